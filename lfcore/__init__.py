@@ -1,0 +1,1 @@
+"""lfcore: pure light-field PIV computation (optics, rendering, reconstruction, vectors)."""

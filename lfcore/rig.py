@@ -1,0 +1,381 @@
+"""The rig description: frozen, validated configuration objects.
+
+A rig file (TOML, see ``examples/``) is parsed by the application into a plain dict and
+validated here with :meth:`Rig.from_dict`. Every table rejects unknown keys, and every
+impossible value is an error that names its key. The objects are immutable; derived optical
+quantities are exposed as properties so they can never drift from the inputs.
+
+Conventions (DESIGN.md): millimetres in the world, micrometres for sensor and lenslet pitches,
+seconds for time. A camera's pose is its rotation and the world point its focal plane is
+centred on; the rotation R = Rz(rz) Ry(ry) Rx(rx) maps camera-frame vectors to world vectors.
+In the camera frame the optical axis is +z, the main lens sits at ``z = so`` looking toward -z,
+and depth ``dz`` is positive toward the camera.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+__all__ = [
+    "Camera",
+    "LaserConfig",
+    "PulseGeneratorConfig",
+    "RenderConfig",
+    "Rig",
+    "RigError",
+    "StageConfig",
+    "TimingConfig",
+    "VolumeConfig",
+    "rotation_matrix",
+]
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+PositiveVec3 = tuple[PositiveFloat, PositiveFloat, PositiveFloat]
+
+#: Names a camera may not take because the run store uses them for its own groups.
+RESERVED_NAMES = frozenset({"drops", "truth", "volumes", "vectors"})
+
+#: Relative mismatch between the main lens' image-side f-number and the lenslets' f-number
+#: above which :meth:`Camera.optics_warnings` warns.
+F_NUMBER_TOLERANCE = 0.05
+
+
+class RigError(ValueError):
+    """A rig description that cannot be used; the message is one line naming the key."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=False)
+
+
+def rotation_matrix(rotation_deg: tuple[float, float, float]) -> np.ndarray:
+    """Camera-to-world rotation from ``[rx, ry, rz]`` in degrees.
+
+    Parameters
+    ----------
+    rotation_deg
+        Rotations about the world x, y and z axes, applied x first: R = Rz Ry Rx.
+
+    Returns
+    -------
+    numpy.ndarray
+        (3, 3) float64 matrix mapping camera-frame vectors to world vectors.
+    """
+    rx, ry, rz = (math.radians(a) for a in rotation_deg)
+    cx, sx, cy, sy, cz, sz = (math.cos(rx), math.sin(rx), math.cos(ry), math.sin(ry),
+                              math.cos(rz), math.sin(rz))
+    r_x = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    r_y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    r_z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return r_z @ r_y @ r_x
+
+
+class Camera(_Strict):
+    """One unfocused plenoptic (light-field) camera: main lens, microlens array, sensor.
+
+    Thin-lens model: main-lens focal length F, magnification M < 0, image distance
+    si = F (1 - M), object distance so = si / (-M), aperture D = F / N. The MLA sits at si
+    behind the main lens, the sensor one lenslet focal length f_ml behind the MLA.
+    """
+
+    name: str
+    sensor_px: tuple[Annotated[int, Field(ge=8)], Annotated[int, Field(ge=8)]]
+    pixel_pitch_um: PositiveFloat
+    mla_grid: Literal["hex", "square"]
+    mla_pitch_um: PositiveFloat
+    mla_focal_length_um: PositiveFloat
+    main_focal_length_mm: PositiveFloat
+    f_number: PositiveFloat
+    magnification: Annotated[float, Field(lt=0, allow_inf_nan=False)]
+    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    focus_mm: Vec3 = (0.0, 0.0, 0.0)
+    mla_rotation_deg: FiniteFloat = 0.0
+    mla_offset_um: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+    serial: str | None = None
+
+    @field_validator("name")
+    @classmethod
+    def _name_ok(cls, v: str) -> str:
+        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]{0,31}", v):
+            raise ValueError("must be 1-32 letters, digits, '_' or '-', starting with a letter")
+        if v in RESERVED_NAMES:
+            raise ValueError(f"'{v}' is reserved by the run store; choose another name")
+        return v
+
+    @model_validator(mode="after")
+    def _optics_possible(self) -> Camera:
+        if self.mla_pitch_um < 2 * self.pixel_pitch_um:
+            raise ValueError("mla_pitch_um must cover at least 2 pixels (pixel_pitch_um)")
+        if self.mla_focal_length_um >= 1000 * self.image_distance_mm:
+            raise ValueError("mla_focal_length_um must be much shorter than the image distance")
+        return self
+
+    # --- derived optics (mm unless the name says otherwise) -----------------------------
+    @property
+    def image_distance_mm(self) -> float:
+        """si = F (1 - M): main lens to MLA."""
+        return self.main_focal_length_mm * (1.0 - self.magnification)
+
+    @property
+    def object_distance_mm(self) -> float:
+        """so = si / (-M): main lens to the focal plane."""
+        return self.image_distance_mm / -self.magnification
+
+    @property
+    def aperture_mm(self) -> float:
+        """Main-lens aperture diameter D = F / N."""
+        return self.main_focal_length_mm / self.f_number
+
+    @property
+    def image_side_f_number(self) -> float:
+        """Working f-number si / D of the cone converging on the MLA."""
+        return self.image_distance_mm / self.aperture_mm
+
+    @property
+    def lenslet_f_number(self) -> float:
+        """f_ml / p_ml; matched optics have this equal to :attr:`image_side_f_number`."""
+        return self.mla_focal_length_um / self.mla_pitch_um
+
+    @property
+    def pixel_mm(self) -> float:
+        return self.pixel_pitch_um * 1e-3
+
+    @property
+    def mla_pitch_mm(self) -> float:
+        return self.mla_pitch_um * 1e-3
+
+    @property
+    def mla_focal_length_mm(self) -> float:
+        return self.mla_focal_length_um * 1e-3
+
+    @property
+    def object_pixel_mm(self) -> float:
+        """Size of one pixel projected onto the focal plane, pixel pitch / |M|."""
+        return self.pixel_mm / abs(self.magnification)
+
+    @property
+    def pixels_per_lenslet(self) -> float:
+        return self.mla_pitch_um / self.pixel_pitch_um
+
+    @property
+    def sensor_size_mm(self) -> tuple[float, float]:
+        """(width, height) of the sensor."""
+        return (self.sensor_px[0] * self.pixel_mm, self.sensor_px[1] * self.pixel_mm)
+
+    @property
+    def field_of_view_mm(self) -> tuple[float, float]:
+        """(width, height) of the focal plane seen by the sensor."""
+        w, h = self.sensor_size_mm
+        m = abs(self.magnification)
+        return (w / m, h / m)
+
+    @property
+    def depth_per_lenslet_mm(self) -> float:
+        """Defocus |dz| at which a point's blur on the MLA spans one lenslet pitch.
+
+        The blur diameter on the MLA grows as D M^2 |dz| / si for small |dz| (longitudinal
+        magnification M^2), so one pitch is reached at p_ml si / (D M^2).
+        """
+        return self.mla_pitch_mm * self.image_side_f_number / self.magnification**2
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """(3, 3) camera-to-world rotation matrix."""
+        return rotation_matrix(self.rotation_deg)
+
+    @property
+    def optical_axis(self) -> np.ndarray:
+        """World direction from the focal plane toward the camera (camera +z)."""
+        return self.rotation[:, 2].copy()
+
+    def world_to_camera(self, points_mm: np.ndarray) -> np.ndarray:
+        """World points to the camera frame (origin at the focus point, +z toward the lens).
+
+        Parameters
+        ----------
+        points_mm
+            (..., 3) world coordinates in mm, last axis (x, y, z).
+
+        Returns
+        -------
+        numpy.ndarray
+            (..., 3) camera-frame coordinates in mm; the last component is the depth dz.
+        """
+        p = np.asarray(points_mm, dtype=np.float64) - np.asarray(self.focus_mm)
+        return p @ self.rotation  # row-vector form of R^T p
+
+    def camera_to_world(self, points_mm: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`world_to_camera`."""
+        p = np.asarray(points_mm, dtype=np.float64)
+        return p @ self.rotation.T + np.asarray(self.focus_mm)
+
+    def optics_warnings(self) -> list[str]:
+        """Human-readable warnings about optics that work but are not as intended."""
+        out = []
+        n_img, n_ml = self.image_side_f_number, self.lenslet_f_number
+        mismatch = n_img / n_ml - 1.0
+        if abs(mismatch) > F_NUMBER_TOLERANCE:
+            matched = n_ml / (1.0 - self.magnification)
+            what = ("the sub-aperture images overlap their neighbours (crosstalk)" if mismatch < 0
+                    else "the sub-aperture images leave pixels unused")
+            out.append(
+                f"camera '{self.name}': the main lens' image-side f-number N(1-M) = {n_img:.2f} "
+                f"does not match the lenslets' f_ml/p_ml = {n_ml:.2f} ({mismatch:+.0%}), so {what}; "
+                f"set f_number = {matched:.3g} to match"
+            )
+        return out
+
+
+class VolumeConfig(_Strict):
+    """The measurement volume, an axis-aligned box in world coordinates."""
+
+    centre_mm: Vec3 = (0.0, 0.0, 0.0)
+    size_mm: PositiveVec3
+    pvr: PositiveVec3 = (2.0, 2.0, 10.0)
+
+
+class LaserConfig(_Strict):
+    """The double-pulsed laser and the light sheet it forms."""
+
+    wavelength_nm: PositiveFloat = 532.0
+    rate_hz: PositiveFloat = 10.0
+    sheet_profile: Literal["uniform", "gaussian", "top-hat"] = "uniform"
+    sheet_axis: Literal["x", "y", "z"] = "z"
+    sheet_thickness_mm: PositiveFloat | None = None
+
+    @model_validator(mode="after")
+    def _thickness_given(self) -> LaserConfig:
+        if self.sheet_profile != "uniform" and self.sheet_thickness_mm is None:
+            raise ValueError(f"sheet_thickness_mm is required for sheet_profile = '{self.sheet_profile}'")
+        return self
+
+
+class TimingConfig(_Strict):
+    """Timing of a double-frame pair."""
+
+    dt_us: PositiveFloat = 2000.0
+
+
+class StageConfig(_Strict):
+    """The motorised calibration stage (serial)."""
+
+    port: str | None = None
+    baud: Annotated[int, Field(gt=0)] = 115200
+
+
+class PulseGeneratorConfig(_Strict):
+    """The pulse generator that fires the laser and triggers the cameras (serial)."""
+
+    port: str | None = None
+    baud: Annotated[int, Field(gt=0)] = 115200
+
+
+class RenderConfig(_Strict):
+    """How synthetic and simulated light-field images are rendered.
+
+    Intensities are in sensor counts (digital numbers). ``particle_counts`` is the total
+    signal one particle at the laser-sheet peak deposits through the whole aperture.
+    """
+
+    rays_per_particle: Annotated[int, Field(ge=1)] = 10000
+    particle_counts: PositiveFloat = 50000.0
+    particle_diameter_um: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+    diffraction: bool = True
+    background_counts: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 100.0
+    gain_e_per_count: PositiveFloat = 1.0
+    shot_noise: bool = True
+    read_noise_counts: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 3.0
+    bit_depth: Annotated[int, Field(ge=8, le=16)] = 16
+
+
+class Rig(_Strict):
+    """A whole LF-PIV rig: the volume, one or more cameras, laser, timing and devices."""
+
+    hardware: Literal["sim", "real"] = "sim"
+    volume: VolumeConfig
+    camera: Annotated[tuple[Camera, ...], Field(min_length=1)]
+    laser: LaserConfig = LaserConfig()
+    timing: TimingConfig = TimingConfig()
+    stage: StageConfig = StageConfig()
+    pulse_generator: PulseGeneratorConfig = PulseGeneratorConfig()
+    render: RenderConfig = RenderConfig()
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Rig:
+        names = [c.name for c in self.camera]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"camera names must be unique; '{dup[0]}' appears twice")
+        corners = np.array(np.meshgrid(*[[-0.5, 0.5]] * 3, indexing="ij")).reshape(3, -1).T
+        corners = np.asarray(self.volume.centre_mm) + corners * np.asarray(self.volume.size_mm)
+        for cam in self.camera:
+            nearest = cam.object_distance_mm - cam.world_to_camera(corners)[:, 2].max()
+            if nearest <= cam.main_focal_length_mm:
+                raise ValueError(
+                    f"the volume reaches within the focal length of camera '{cam.name}' "
+                    f"(nearest point {nearest:.1f} mm from its lens, F = {cam.main_focal_length_mm} mm); "
+                    "shrink volume.size_mm or move the camera back"
+                )
+        return self
+
+    @property
+    def cameras(self) -> tuple[Camera, ...]:
+        return self.camera
+
+    def camera_named(self, name: str) -> Camera:
+        for cam in self.camera:
+            if cam.name == name:
+                return cam
+        raise KeyError(name)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], source: str = "rig") -> Rig:
+        """Validate a parsed rig file.
+
+        Raises
+        ------
+        RigError
+            One line naming the first offending key, e.g.
+            ``rig.toml: camera[1].f_number: must be greater than 0 (got -2)``.
+        """
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise RigError(f"{source}: {_first_error(exc)}") from None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-compatible dict with every default filled in (round-trips through from_dict)."""
+        return self.model_dump(mode="json")
+
+    def optics_warnings(self) -> list[str]:
+        return [w for cam in self.camera for w in cam.optics_warnings()]
+
+
+def _first_error(exc: ValidationError) -> str:
+    err = exc.errors(include_url=False)[0]
+    parts: list[str] = []
+    for item in err["loc"]:
+        if isinstance(item, int):
+            if parts:
+                parts[-1] += f"[{item}]"
+            continue
+        parts.append(str(item))
+    where = ".".join(parts)
+    kind = err["type"]
+    if kind == "extra_forbidden":
+        return f"{where}: unknown key (check its spelling against examples/ and DESIGN.md)"
+    if kind == "missing":
+        return f"{where}: required key is missing"
+    msg = err["msg"]
+    msg = msg.removeprefix("Value error, ")
+    msg = msg[0].lower() + msg[1:] if msg else msg
+    got = err.get("input")
+    shown = "" if isinstance(got, dict) or kind.startswith("value_error") else f" (got {got!r})"
+    return f"{where}: {msg}{shown}" if where else f"{msg}{shown}"

@@ -1,0 +1,32 @@
+"""Shared fixtures: the example rigs and every compute device Warp finds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from lfcore.device import available_devices
+from lfcore.rig import Rig
+from lfpiv.rigfile import load_rig
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+DEVICES = available_devices()
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    # Every test that takes `device` runs once on each device Warp finds (CPU in CI).
+    if "device" in metafunc.fixturenames:
+        metafunc.parametrize("device", DEVICES)
+
+
+@pytest.fixture(scope="session")
+def tiny_rig() -> Rig:
+    return load_rig(EXAMPLES / "tiny.toml")
+
+
+def tiny_variant(rig: Rig, **camera_changes) -> Rig:
+    """The tiny rig with some camera keys changed (validated again)."""
+    d = rig.to_dict()
+    d["camera"][0].update(camera_changes)
+    return Rig.from_dict(d)

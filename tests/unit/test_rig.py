@@ -1,0 +1,131 @@
+"""Rig files: validation that names the key, the derived optics, poses and the voxel grid."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lfcore.rig import Rig, RigError
+from lfcore.volume import VolumeGrid
+from lfpiv.rigfile import load_rig
+from tests.conftest import EXAMPLES, tiny_variant
+
+
+@pytest.mark.parametrize("name", ["tiny", "one_camera", "two_cameras"])
+def test_examples_load_with_matched_optics(name):
+    rig = load_rig(EXAMPLES / f"{name}.toml")
+    assert rig.optics_warnings() == []
+    for cam in rig.camera:
+        assert cam.image_side_f_number == pytest.approx(cam.lenslet_f_number)
+
+
+def test_two_camera_example_is_29mp_at_90_degrees():
+    rig = load_rig(EXAMPLES / "two_cameras.toml")
+    a, b = rig.camera
+    assert a.sensor_px[0] * a.sensor_px[1] == pytest.approx(29e6, rel=0.01)
+    assert (a.pixel_pitch_um, a.mla_pitch_um, a.mla_focal_length_um, a.mla_grid) == (5.5, 77.0, 308.0, "hex")
+    cos = float(a.optical_axis @ b.optical_axis)
+    assert math.degrees(math.acos(cos)) == pytest.approx(90.0)
+
+
+def test_derived_distances_follow_thin_lens(tiny_rig):
+    cam = tiny_rig.camera[0]  # F = 50 mm, M = -1, N = 2
+    assert cam.image_distance_mm == pytest.approx(100.0)
+    assert cam.object_distance_mm == pytest.approx(100.0)
+    assert cam.aperture_mm == pytest.approx(25.0)
+    assert 1 / cam.object_distance_mm + 1 / cam.image_distance_mm == pytest.approx(1 / cam.main_focal_length_mm)
+    assert cam.pixels_per_lenslet == pytest.approx(10.0)
+
+
+def test_f_number_mismatch_warns_with_the_fix(tiny_rig):
+    rig = tiny_variant(tiny_rig, f_number=4.0)
+    (msg,) = rig.optics_warnings()
+    assert "cam0" in msg and "N(1-M) = 8.00" in msg and "set f_number = 2 " in msg
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        ({"f_nmber": 2.0}, "camera[0].f_nmber: unknown key"),
+        ({"f_number": -2.0}, "camera[0].f_number: input should be greater than 0"),
+        ({"magnification": 0.5}, "camera[0].magnification: input should be less than 0"),
+        ({"mla_grid": "triangle"}, "camera[0].mla_grid: input should be 'hex' or 'square'"),
+        ({"mla_pitch_um": 5.0}, "camera[0]: mla_pitch_um must cover at least 2 pixels"),
+        ({"sensor_px": [192]}, "camera[0].sensor_px"),
+        ({"name": "truth"}, "camera[0].name: 'truth' is reserved"),
+        ({"main_focal_length_mm": 0.7}, "the volume reaches within the focal length of camera 'cam0'"),
+    ],
+)
+def test_bad_camera_values_name_their_key(tiny_rig, change, expected):
+    d = tiny_rig.to_dict()
+    d["camera"][0].update(change)
+    with pytest.raises(RigError) as err:
+        Rig.from_dict(d, source="rig.toml")
+    msg = str(err.value)
+    assert msg.startswith("rig.toml: ") and expected in msg and "\n" not in msg
+
+
+def test_bad_tables_name_their_key(tiny_rig):
+    d = tiny_rig.to_dict()
+    d["laser"]["sheet_profile"] = "gaussian"
+    with pytest.raises(RigError, match=r"laser: sheet_thickness_mm is required"):
+        Rig.from_dict(d)
+    d = tiny_rig.to_dict()
+    d["volume"]["pvr"] = [2, 0, 10]
+    with pytest.raises(RigError, match=r"volume.pvr\[1\]: input should be greater than 0"):
+        Rig.from_dict(d)
+    d = tiny_rig.to_dict()
+    d["camera"].append(dict(d["camera"][0]))
+    with pytest.raises(RigError, match="'cam0' appears twice"):
+        Rig.from_dict(d)
+    d = tiny_rig.to_dict()
+    d["lazer"] = {}
+    with pytest.raises(RigError, match="lazer: unknown key"):
+        Rig.from_dict(d)
+    del d["lazer"], d["volume"]
+    with pytest.raises(RigError, match="volume: required key is missing"):
+        Rig.from_dict(d)
+
+
+def test_rig_file_errors(tmp_path):
+    with pytest.raises(RigError, match="not found"):
+        load_rig(tmp_path / "none.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[volume\nsize_mm = 1\n")
+    with pytest.raises(RigError, match=r"bad.toml: invalid TOML: .*line 1"):
+        load_rig(bad)
+
+
+def test_rig_round_trips_through_its_dict(tiny_rig):
+    assert Rig.from_dict(tiny_rig.to_dict()) == tiny_rig
+
+
+def test_pose_convention(tiny_rig):
+    # Identity pose: the camera is on world +z; depth dz is positive toward it.
+    cam = tiny_rig.camera[0]
+    assert np.allclose(cam.optical_axis, [0, 0, 1])
+    assert np.allclose(cam.world_to_camera([[0.1, 0.2, 0.3]]), [[0.1, 0.2, 0.3]])
+    # Rotated 90 degrees about y, it sits on world +x; a world point toward +x is closer to it.
+    side = tiny_variant(tiny_rig, rotation_deg=[0, 90, 0], focus_mm=[0.0, 0.1, 0.0]).camera[0]
+    assert np.allclose(side.optical_axis, [1, 0, 0])
+    p = np.array([[0.3, 0.1, 0.0]])
+    assert side.world_to_camera(p)[0, 2] == pytest.approx(0.3)
+    # R = Rz Ry Rx: an x rotation applied first, then z.
+    rot = tiny_variant(tiny_rig, rotation_deg=[90, 0, 90]).camera[0]
+    assert np.allclose(rot.rotation @ [0, 1, 0], [0, 0, 1], atol=1e-12)
+    assert np.allclose(rot.rotation @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    q = np.random.default_rng(0).normal(size=(5, 3))
+    assert np.allclose(rot.camera_to_world(rot.world_to_camera(q)), q)
+
+
+def test_volume_grid_from_pvr(tiny_rig):
+    g = VolumeGrid.from_rig(tiny_rig)
+    pix = 5.5e-3  # object-side pixel at |M| = 1
+    assert g.voxel_mm == pytest.approx((2 * pix, 2 * pix, 10 * pix))
+    assert g.shape == (29, 68, 82)  # (z, y, x) of 1.6 x 0.75 x 0.9 mm
+    assert g.axis_mm("x").mean() == pytest.approx(0.0)
+    assert g.world_to_index([g.origin_mm]) == pytest.approx(np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="pvr must be three positive"):
+        VolumeGrid.from_rig(tiny_rig, pvr=(2, 2, 0))
