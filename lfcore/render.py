@@ -1,0 +1,154 @@
+"""Synthetic light-field particle images: Monte-Carlo ray tracing and sensor exposure.
+
+Each particle sends ``rays_per_particle`` rays, uniformly over the main-lens aperture, through
+the thin main lens and the MLA to the sensor (:mod:`lfcore._kernels.render`). The rays carry
+the particle's signal (counts) in equal shares and are integrated over the pixel they land on.
+A small Gaussian stands in for diffraction: the main lens' spot on the MLA and the lenslet's
+spot on the sensor, each with sigma = 0.42 lambda N for its f-number N. Exposure then adds a
+background, photon shot noise (Poisson in electrons), Gaussian read noise, and rounds and
+saturates to the sensor's bit depth, returning uint16.
+
+Images are arrays indexed (row, column) as read from the sensor; see :mod:`lfcore.mla`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from lfcore.device import resolve_device, warp
+from lfcore.rig import Camera, RenderConfig
+
+__all__ = ["LightFieldRenderer", "derive_seed"]
+
+#: Upper bound on the threads of one launch; larger jobs are split into several launches.
+MAX_THREADS_PER_LAUNCH = 1 << 24
+
+
+def derive_seed(seed: int, *keys: int) -> int:
+    """A 31-bit seed for one (camera, pair, frame, ...) derived reproducibly from a run seed."""
+    return int(np.random.SeedSequence([seed, *keys]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+class LightFieldRenderer:
+    """Renders one camera's raw light-field images; device buffers are allocated once.
+
+    Parameters
+    ----------
+    camera
+        The camera to render.
+    render
+        Ray count, particle size, noise and bit depth.
+    wavelength_nm
+        Laser wavelength, for the diffraction blur.
+    device
+        Warp device (``"cpu"``, ``"cuda"``, ``"cuda:N"``) or None for the first GPU, else CPU.
+    """
+
+    def __init__(self, camera: Camera, render: RenderConfig, wavelength_nm: float = 532.0,
+                 device: str | None = None) -> None:
+        from lfcore._kernels import render as kr
+
+        self._k = kr
+        self.wp = warp()
+        self.camera = camera
+        self.render = render
+        self.device = resolve_device(device)
+        lam_mm = wavelength_nm * 1e-6
+        t = math.radians(camera.mla_rotation_deg)
+        p = kr.CameraParams()
+        p.so = camera.object_distance_mm
+        p.inv_f = 1.0 / camera.main_focal_length_mm
+        p.si = camera.image_distance_mm
+        p.f_ml = camera.mla_focal_length_mm
+        p.aperture_r = 0.5 * camera.aperture_mm
+        p.pitch = camera.mla_pitch_mm
+        p.hex = 1 if camera.mla_grid == "hex" else 0
+        p.cos_t, p.sin_t = math.cos(t), math.sin(t)
+        p.off_x, p.off_y = (v * 1e-3 for v in camera.mla_offset_um)
+        p.pixel = camera.pixel_mm
+        p.ncols, p.nrows = camera.sensor_px
+        p.sigma_mla = 0.42 * lam_mm * camera.image_side_f_number if render.diffraction else 0.0
+        p.sigma_sensor = 0.42 * lam_mm * camera.lenslet_f_number if render.diffraction else 0.0
+        self.params = p
+        shape = (camera.sensor_px[1], camera.sensor_px[0])
+        self._quanta = self.wp.zeros(shape, dtype=self.wp.int64, device=self.device)
+        self._counts = self.wp.zeros(shape, dtype=float, device=self.device)
+        self._frame = self.wp.zeros(shape, dtype=self.wp.uint16, device=self.device)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, columns) of the images."""
+        return (self.camera.sensor_px[1], self.camera.sensor_px[0])
+
+    def _trace(self, points_mm: np.ndarray, counts: np.ndarray, seed: int,
+               progress: Callable[[int], None] | None = None) -> None:
+        wp, kr = self.wp, self._k
+        pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        cnt = np.broadcast_to(np.asarray(counts, dtype=np.float64), (len(pts),))
+        if not np.all(np.isfinite(pts)) or not np.all(np.isfinite(cnt)) or np.any(cnt < 0):
+            raise ValueError("particle positions must be finite and their counts finite and >= 0")
+        self._quanta.zero_()
+        rays = self.render.rays_per_particle
+        if len(pts) == 0:
+            return
+        cam_pts = self.camera.world_to_camera(pts)
+        if np.any(cam_pts[:, 2] >= self.camera.object_distance_mm - self.camera.main_focal_length_mm):
+            raise ValueError(f"a particle lies inside the focal length of camera '{self.camera.name}'")
+        quanta = np.rint(cnt * kr.QUANTA_PER_COUNT / rays).astype(np.int64)
+        per_thread = 64 if self.device != "cpu" else 1024
+        per_thread = min(per_thread, rays)
+        chunks = -(-rays // per_thread)
+        batch = max(1, MAX_THREADS_PER_LAUNCH // chunks)
+        radius = 0.5e-3 * self.render.particle_diameter_um
+        for start in range(0, len(pts), batch):
+            stop = min(start + batch, len(pts))
+            p_dev = wp.array(cam_pts[start:stop].astype(np.float32), dtype=wp.vec3, device=self.device)
+            q_dev = wp.array(quanta[start:stop], dtype=wp.int64, device=self.device)
+            wp.launch(kr.trace_particles, dim=(stop - start) * chunks, device=self.device,
+                      inputs=[self.params, p_dev, q_dev, radius, rays, per_thread, chunks,
+                              derive_seed(seed, start), self._quanta])
+            if progress is not None:
+                progress(stop - start)
+
+    def irradiance(self, points_mm: np.ndarray, counts: float | np.ndarray, seed: int = 0,
+                   progress: Callable[[int], None] | None = None) -> np.ndarray:
+        """Noise-free signal of particles on the sensor.
+
+        Parameters
+        ----------
+        points_mm
+            (n, 3) world positions in mm, (x, y, z).
+        counts
+            Signal per particle in counts, scalar or (n,).
+        seed
+            Seed of the ray sampling.
+        progress
+            Called with the number of particles finished after each launch.
+
+        Returns
+        -------
+        numpy.ndarray
+            (rows, columns) float32 counts, no background or noise.
+        """
+        self._trace(points_mm, counts, seed, progress)
+        self.wp.launch(self._k.quanta_to_counts, dim=self.shape, device=self.device,
+                       inputs=[self._quanta, 1.0 / self._k.QUANTA_PER_COUNT, self._counts])
+        return self._counts.numpy().copy()  # on the CPU, .numpy() is a view of the reused buffer
+
+    def frame(self, points_mm: np.ndarray, counts: float | np.ndarray, seed: int = 0,
+              progress: Callable[[int], None] | None = None) -> np.ndarray:
+        """A raw 16-bit light-field image, as the camera would deliver it.
+
+        Same parameters as :meth:`irradiance`; returns (rows, columns) uint16 counts with
+        background, shot and read noise, rounded and saturated at 2**bit_depth - 1.
+        """
+        self._trace(points_mm, counts, seed, progress)
+        r = self.render
+        self.wp.launch(self._k.expose, dim=self.shape, device=self.device,
+                       inputs=[self._quanta, 1.0 / self._k.QUANTA_PER_COUNT, r.background_counts,
+                               r.gain_e_per_count, int(r.shot_noise), r.read_noise_counts,
+                               float(2**r.bit_depth - 1), derive_seed(seed, 0x5E25), self._frame])
+        return self._frame.numpy().copy()
