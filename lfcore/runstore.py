@@ -1,0 +1,248 @@
+"""The run store: one zarr v3 directory per run, recorded or synthetic (DESIGN.md, "Files").
+
+This module is :mod:`lfcore`'s one exception to "never open a file": it owns the on-disk
+format so that every writer (synthesis, the recorder, reconstruction) produces the same layout.
+
+Layout::
+
+    run.zarr/                 attrs: rig, timing, software_version, created, state,
+                              committed_pairs, format, format_version
+      <camera>/frames         uint16 (pairs, 2, rows, columns), one chunk per frame
+      <camera>/frame_id       int64 (pairs, 2), -1 where never written
+      <camera>/timestamp_ns   int64 (pairs, 2), -1 where never written
+      drops/                  lost frames: camera, pair, frame, frame_id, timestamp_ns, reason
+      truth/                  synthetic runs: particles (pairs, 2, n, 3) mm, brightness
+                              (pairs, 2, n) counts; attrs: flow (name and parameters), seeding
+
+Every array carries ``units`` and ``axes`` attributes, so plain zarr or xarray users can read a
+run without lfpiv. Pairs ``0 .. committed_pairs - 1`` are complete; ``state`` says whether the
+run is still ``recording``, ``complete`` or ``aborted``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+
+from lfcore.rig import Rig, RigError
+
+__all__ = ["RunStore", "RunStoreError", "STATES"]
+
+FORMAT = "lfpiv-run"
+FORMAT_VERSION = 1
+STATES = ("recording", "complete", "aborted")
+_DROP_FIELDS = {
+    "camera": (str, "", "camera name"),
+    "pair": (np.int64, -1, "pair index, -1 if unknown"),
+    "frame": (np.int64, -1, "0 for frame A, 1 for frame B, -1 if unknown"),
+    "frame_id": (np.int64, -1, "camera frame counter"),
+    "timestamp_ns": (np.int64, -1, "when the loss was detected, ns since the epoch"),
+    "reason": (str, "", "why the frame was lost"),
+}
+
+
+class RunStoreError(ValueError):
+    """A run store that cannot be created or read; the message says what to do."""
+
+
+def _attrs(units: str, axes: list[str], description: str) -> dict[str, Any]:
+    return {"units": units, "axes": axes, "description": description}
+
+
+class RunStore:
+    """Read and write access to one run.
+
+    Use :meth:`create` for a new run and :meth:`open` for an existing one.
+    """
+
+    def __init__(self, group: zarr.Group, path: Path) -> None:
+        self.group = group
+        self.path = path
+
+    # --- creation and opening -----------------------------------------------------------
+    @classmethod
+    def create(cls, path: str | Path, rig: Rig, n_pairs: int, *, timing: dict[str, Any],
+               software_version: str, overwrite: bool = False) -> RunStore:
+        """Create an empty run of ``n_pairs`` pairs for every camera of ``rig``.
+
+        Raises
+        ------
+        RunStoreError
+            If ``path`` exists and ``overwrite`` is false (nothing recorded is ever replaced
+            silently), or if ``n_pairs`` is not positive.
+        """
+        path = Path(path)
+        if n_pairs < 1:
+            raise RunStoreError(f"a run needs at least one pair, got {n_pairs}")
+        if path.exists() and not overwrite:
+            raise RunStoreError(f"{path} already exists; choose another output path or pass --overwrite")
+        root = zarr.open_group(str(path), mode="w", zarr_format=3)
+        root.attrs.update({
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "rig": rig.to_dict(),
+            "timing": timing,
+            "software_version": software_version,
+            "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "state": "recording",
+            "committed_pairs": 0,
+        })
+        for cam in rig.camera:
+            cols, rows = cam.sensor_px
+            g = root.create_group(cam.name)
+            g.attrs.update({"sensor_px": [cols, rows]})
+            frames = g.create_array("frames", shape=(n_pairs, 2, rows, cols), chunks=(1, 1, rows, cols),
+                                    dtype=np.uint16, fill_value=0)
+            frames.attrs.update(_attrs("counts", ["pair", "frame", "row", "column"],
+                                       "raw light-field images; frame 0 is A, 1 is B"))
+            for name, units, what in (("frame_id", "1", "camera frame counter"),
+                                      ("timestamp_ns", "ns", "camera or host timestamp")):
+                a = g.create_array(name, shape=(n_pairs, 2), chunks=(n_pairs, 2), dtype=np.int64, fill_value=-1)
+                a.attrs.update(_attrs(units, ["pair", "frame"], what + "; -1 where never written"))
+        drops = root.create_group("drops")
+        drops.attrs.update({"description": "every frame that was not recorded, with the reason"})
+        for name, (dtype, fill, what) in _DROP_FIELDS.items():
+            a = drops.create_array(name, shape=(0,), chunks=(4096,), dtype=dtype, fill_value=fill)
+            a.attrs.update(_attrs("ns" if name == "timestamp_ns" else "1", ["drop"], what))
+        return cls(root, path)
+
+    @classmethod
+    def open(cls, path: str | Path, mode: str = "r") -> RunStore:
+        """Open an existing run (``mode`` ``"r"`` or ``"r+"``).
+
+        Raises
+        ------
+        RunStoreError
+            If ``path`` does not exist or is not an lfpiv run store.
+        """
+        path = Path(path)
+        if not path.exists():
+            raise RunStoreError(f"{path} does not exist; give the path of a run store (a .zarr directory)")
+        try:
+            root = zarr.open_group(str(path), mode=mode, zarr_format=3)
+        except Exception as exc:  # zarr raises several types for "not a group"
+            raise RunStoreError(f"{path} is not an lfpiv run store (no zarr v3 group there: "
+                                f"{type(exc).__name__})") from None
+        if root.attrs.get("format") != FORMAT:
+            raise RunStoreError(f"{path} is a zarr group but not an lfpiv run store (no format attribute)")
+        return cls(root, path)
+
+    # --- metadata -----------------------------------------------------------------------
+    @property
+    def attrs(self) -> dict[str, Any]:
+        return dict(self.group.attrs)
+
+    @property
+    def rig(self) -> Rig:
+        try:
+            return Rig.from_dict(self.group.attrs["rig"], source=f"{self.path} (rig)")
+        except RigError as exc:
+            raise RunStoreError(str(exc)) from None
+
+    @property
+    def cameras(self) -> list[str]:
+        return [c["name"] for c in self.group.attrs["rig"]["camera"]]
+
+    @property
+    def n_pairs(self) -> int:
+        return int(self.frames(self.cameras[0]).shape[0])
+
+    @property
+    def state(self) -> str:
+        return str(self.group.attrs["state"])
+
+    @property
+    def committed_pairs(self) -> int:
+        return int(self.group.attrs["committed_pairs"])
+
+    @property
+    def timing(self) -> dict[str, Any]:
+        return dict(self.group.attrs["timing"])
+
+    def frames(self, camera: str) -> zarr.Array:
+        """The (pairs, 2, rows, columns) uint16 frames array of one camera."""
+        return self.group[f"{camera}/frames"]
+
+    def frame_ids(self, camera: str) -> np.ndarray:
+        return self.group[f"{camera}/frame_id"][...]
+
+    def timestamps_ns(self, camera: str) -> np.ndarray:
+        return self.group[f"{camera}/timestamp_ns"][...]
+
+    # --- writing ------------------------------------------------------------------------
+    def write_frame(self, camera: str, pair: int, frame: int, image: np.ndarray, frame_id: int,
+                    timestamp_ns: int) -> None:
+        """Store one raw frame (rows, columns) uint16 with its id and timestamp."""
+        arr = self.frames(camera)
+        if image.shape != arr.shape[2:] or image.dtype != np.uint16:
+            raise RunStoreError(f"camera '{camera}' frames are uint16 {arr.shape[2:]}, "
+                                f"got {image.dtype} {image.shape}")
+        arr[pair, frame] = image
+        self.group[f"{camera}/frame_id"][pair, frame] = frame_id
+        self.group[f"{camera}/timestamp_ns"][pair, frame] = timestamp_ns
+
+    def commit(self, pairs: int) -> None:
+        """Declare pairs ``0 .. pairs - 1`` complete (call after their frames are written)."""
+        self.group.attrs["committed_pairs"] = int(pairs)
+
+    def set_state(self, state: str) -> None:
+        if state not in STATES:
+            raise RunStoreError(f"state must be one of {STATES}, got '{state}'")
+        self.group.attrs["state"] = state
+
+    def add_drop(self, camera: str, pair: int, frame: int, frame_id: int, timestamp_ns: int,
+                 reason: str) -> None:
+        """Append one lost frame to ``drops``."""
+        row = {"camera": camera, "pair": pair, "frame": frame, "frame_id": frame_id,
+               "timestamp_ns": timestamp_ns, "reason": reason}
+        for name, value in row.items():
+            a = self.group[f"drops/{name}"]
+            n = a.shape[0]
+            a.resize((n + 1,))
+            a[n] = value
+
+    def drops(self) -> list[dict[str, Any]]:
+        """Every lost frame, as dicts with the fields of ``drops/``."""
+        cols = {name: self.group[f"drops/{name}"][...] for name in _DROP_FIELDS}
+        n = len(cols["camera"])
+        return [{k: (v[i].item() if hasattr(v[i], "item") else v[i]) for k, v in cols.items()} for i in range(n)]
+
+    def write_truth(self, particles_mm: np.ndarray, brightness: np.ndarray, flow: dict[str, Any],
+                    **attrs: Any) -> None:
+        """Store the ground truth of a synthetic run.
+
+        Parameters
+        ----------
+        particles_mm
+            (pairs, 2, n, 3) float world positions (x, y, z) in mm of every particle in
+            frames A and B of every pair.
+        brightness
+            (pairs, 2, n) signal of each particle in counts (laser sheet included).
+        flow
+            The flow's name and parameters (:meth:`lfcore.flows.Flow.params`).
+        **attrs
+            More JSON-compatible attributes (seeding density, seed, render settings).
+        """
+        if "truth" in self.group:
+            del self.group["truth"]
+        g = self.group.create_group("truth")
+        g.attrs.update({"flow": flow, **attrs})
+        p = np.asarray(particles_mm, dtype=np.float64)
+        a = g.create_array("particles", shape=p.shape, chunks=(1, 2, *p.shape[2:]), dtype=np.float64)
+        a[...] = p
+        a.attrs.update(_attrs("mm", ["pair", "frame", "particle", "xyz"], "true particle positions"))
+        b = np.asarray(brightness, dtype=np.float32)
+        a = g.create_array("brightness", shape=b.shape, chunks=(1, 2, b.shape[2]), dtype=np.float32)
+        a[...] = b
+        a.attrs.update(_attrs("counts", ["pair", "frame", "particle"], "signal of each particle"))
+
+    def truth(self) -> dict[str, Any] | None:
+        """``{"particles", "brightness", "attrs"}`` of a synthetic run, or None if recorded."""
+        if "truth" not in self.group:
+            return None
+        g = self.group["truth"]
+        return {"particles": g["particles"][...], "brightness": g["brightness"][...], "attrs": dict(g.attrs)}

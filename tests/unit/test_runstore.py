@@ -1,0 +1,62 @@
+"""The run store round trip and its guards."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+
+from lfcore.runstore import RunStore, RunStoreError
+
+
+def test_round_trip(tiny_rig, tmp_path):
+    path = tmp_path / "run.zarr"
+    s = RunStore.create(path, tiny_rig, 3, timing={"dt_s": 0.002, "rate_hz": 10.0}, software_version="9.9")
+    assert s.state == "recording" and s.committed_pairs == 0
+    img = np.random.default_rng(0).integers(0, 65535, (160, 192), dtype=np.uint16)
+    s.write_frame("cam0", 1, 1, img, frame_id=3, timestamp_ns=123)
+    s.commit(2)
+    s.add_drop("cam0", 2, 0, 4, 456, "frame_id gap")
+    p = np.random.default_rng(1).normal(size=(3, 2, 7, 3))
+    s.write_truth(p, np.ones((3, 2, 7)), {"name": "uniform", "velocity_m_s": [1, 0, 0]}, ppm=0.5, seed=4)
+    s.set_state("complete")
+
+    r = RunStore.open(path)
+    assert r.rig == tiny_rig
+    assert r.cameras == ["cam0"] and r.n_pairs == 3
+    assert (r.state, r.committed_pairs) == ("complete", 2)
+    assert r.attrs["software_version"] == "9.9" and r.timing == {"dt_s": 0.002, "rate_hz": 10.0}
+    f = r.frames("cam0")
+    assert f.shape == (3, 2, 160, 192) and f.dtype == np.uint16 and f.chunks == (1, 1, 160, 192)
+    assert np.array_equal(f[1, 1], img) and not f[0, 0].any()
+    assert r.frame_ids("cam0")[1, 1] == 3 and r.frame_ids("cam0")[0, 0] == -1
+    assert r.timestamps_ns("cam0")[1, 1] == 123
+    assert r.drops() == [{"camera": "cam0", "pair": 2, "frame": 0, "frame_id": 4, "timestamp_ns": 456,
+                          "reason": "frame_id gap"}]
+    t = r.truth()
+    assert np.array_equal(t["particles"], p) and t["attrs"]["flow"]["name"] == "uniform"
+    assert t["attrs"]["ppm"] == 0.5
+    # a user with plain zarr sees units and axes
+    g = zarr.open_group(str(path), mode="r")
+    assert g["cam0/frames"].attrs["axes"] == ["pair", "frame", "row", "column"]
+    assert g["truth/particles"].attrs["units"] == "mm"
+
+
+def test_guards(tiny_rig, tmp_path):
+    path = tmp_path / "run.zarr"
+    s = RunStore.create(path, tiny_rig, 1, timing={"dt_s": 0.002, "rate_hz": 10.0}, software_version="x")
+    s.write_frame("cam0", 0, 0, np.full((160, 192), 7, np.uint16), 0, 0)
+    with pytest.raises(RunStoreError, match="already exists; choose another output path or pass --overwrite"):
+        RunStore.create(path, tiny_rig, 1, timing={}, software_version="x")
+    assert RunStore.open(path).frames("cam0")[0, 0, 0, 0] == 7  # untouched
+    with pytest.raises(RunStoreError, match="uint16"):
+        s.write_frame("cam0", 0, 1, np.zeros((160, 192), np.float32), 1, 1)
+    with pytest.raises(RunStoreError, match="does not exist"):
+        RunStore.open(tmp_path / "nope.zarr")
+    zarr.open_group(str(tmp_path / "plain.zarr"), mode="w")
+    with pytest.raises(RunStoreError, match="not an lfpiv run store"):
+        RunStore.open(tmp_path / "plain.zarr")
+    with pytest.raises(RunStoreError, match="at least one pair"):
+        RunStore.create(tmp_path / "zero.zarr", tiny_rig, 0, timing={}, software_version="x")
+    with pytest.raises(RunStoreError, match="state must be one of"):
+        s.set_state("finished")
