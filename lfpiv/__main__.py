@@ -1,0 +1,3 @@
+from lfpiv.cli import main
+
+raise SystemExit(main())

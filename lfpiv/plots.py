@@ -1,0 +1,68 @@
+"""Pictures a person would rather look at than numbers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only; never needs a display
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
+
+from lfcore.runstore import RunStore  # noqa: E402
+
+__all__ = ["plot_raw_images"]
+
+
+def _stretch(img: np.ndarray) -> tuple[float, float]:
+    lo, hi = np.percentile(img, [1.0, 99.9])
+    return float(lo), float(max(hi, lo + 1.0))
+
+
+def plot_raw_images(store: RunStore, out: str | Path, pair: int = 0, zoom_lenslets: int = 12) -> Path:
+    """Save a PNG of one pair's raw light-field images, one row per camera.
+
+    Each row shows the whole frame A, then frames A and B enlarged around the sensor centre,
+    where the lenslet images (discs under focused particles, single sub-aperture spots under
+    defocused ones) and the particles' motion between A and B can be seen.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
+    out = Path(out)
+    rig = store.rig
+    truth = store.truth()
+    flow = truth["attrs"]["flow"]["name"] if truth else "recorded"
+    cams = rig.camera
+    fig, axes = plt.subplots(len(cams), 3, figsize=(15, 5.2 * len(cams)), squeeze=False)
+    for row, cam in zip(axes, cams, strict=True):
+        a, b = store.frames(cam.name)[pair]
+        lo, hi = _stretch(a)
+        rows, cols = a.shape
+        half = int(round(0.5 * zoom_lenslets * cam.pixels_per_lenslet))
+        r0, c0 = max(0, rows // 2 - half), max(0, cols // 2 - half)
+        r1, c1 = min(rows, rows // 2 + half), min(cols, cols // 2 + half)
+        row[0].imshow(a, cmap="gray", vmin=lo, vmax=hi, interpolation="antialiased")
+        row[0].add_patch(Rectangle((c0, r0), c1 - c0, r1 - r0, fill=False, edgecolor="tab:orange", lw=1.5))
+        row[0].set_title(f"{cam.name}: frame A, {cols} x {rows} px")
+        for ax, img, name in ((row[1], a, "A"), (row[2], b, "B")):
+            ax.imshow(img[r0:r1, c0:c1], cmap="gray", vmin=lo, vmax=hi, interpolation="nearest",
+                      extent=(c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5))
+            ax.set_title(f"frame {name}, centre ({zoom_lenslets} lenslets across)")
+        for ax in row:
+            ax.set_xlabel("column (px)")
+            ax.set_ylabel("row (px)")
+    n_part = truth["particles"].shape[2] if truth else None
+    extra = f", {n_part} particles per frame" if n_part else ""
+    fig.suptitle(f"{store.path.name}: raw light-field images of pair {pair} ({flow}{extra}, "
+                 f"dt = {store.timing['dt_s'] * 1e3:g} ms)")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out

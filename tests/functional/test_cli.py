@@ -1,0 +1,175 @@
+"""The `lfpiv` command end to end: synth, info, demo, and every bad input's one-line error."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from lfcore.render import LightFieldRenderer
+from lfcore.runstore import RunStore
+from lfpiv.cli import main
+from tests.conftest import EXAMPLES
+
+TINY = str(EXAMPLES / "tiny.toml")
+
+
+def _run(capsys, *argv):
+    rc = main(list(argv))
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def _synth(capsys, out, *extra):
+    rc, stdout, err = _run(capsys, "synth", "--rig", TINY, "--out", str(out), "--quiet", *extra)
+    assert rc == 0, err
+    return stdout
+
+
+def test_synth_then_info(capsys, tmp_path):
+    run = tmp_path / "run.zarr"
+    out = _synth(capsys, run, "--ppm", "0.5", "--flow", "vortex-ring", "--pairs", "2", "--dt-ms", "2", "--seed", "1")
+    assert "2 pair(s) x 1 camera(s)" in out
+    s = RunStore.open(run)
+    assert (s.state, s.committed_pairs, s.n_pairs) == ("complete", 2, 2)
+    frames = s.frames("cam0")[...]
+    assert frames.shape == (2, 2, 160, 192) and frames.dtype == np.uint16
+    assert frames.max() > 1000 and np.median(frames) < 200  # particles over a dark background
+    assert s.frame_ids("cam0").tolist() == [[0, 1], [2, 3]]
+    assert s.timestamps_ns("cam0").tolist() == [[0, 2_000_000], [100_000_000, 102_000_000]]
+    t = s.truth()
+    assert t["particles"].shape == (2, 2, 186, 3) and t["attrs"]["flow"]["name"] == "vortex-ring"
+    # the default peak displacement is 10 object-side pixels
+    disp = np.linalg.norm(t["particles"][:, 1] - t["particles"][:, 0], axis=-1).max()
+    assert disp / s.rig.camera[0].object_pixel_mm == pytest.approx(10.0, rel=0.15)
+
+    rc, out, err = _run(capsys, "info", str(run))
+    assert rc == 0 and err == ""
+    for text in ("complete (2 of 2 pairs committed)", "cam0: 192 x 160 px", "hex MLA 55 um",
+                 "vortex-ring", "186 particles per frame (0.5 PPM)", "dt 2 ms", "drops    none"):
+        assert text in out, text
+
+
+def test_synth_is_reproducible_by_seed(capsys, tmp_path):
+    _synth(capsys, tmp_path / "a.zarr", "--pairs", "1", "--seed", "5", "--flow", "B2", "--omega", "0.5")
+    _synth(capsys, tmp_path / "b.zarr", "--pairs", "1", "--seed", "5", "--flow", "B2", "--omega", "0.5")
+    _synth(capsys, tmp_path / "c.zarr", "--pairs", "1", "--seed", "6", "--flow", "B2", "--omega", "0.5")
+    a, b, c = (RunStore.open(tmp_path / f"{n}.zarr").frames("cam0")[...] for n in "abc")
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    t = RunStore.open(tmp_path / "a.zarr").truth()
+    assert t["attrs"]["flow"] == {**t["attrs"]["flow"], "name": "B2", "omega": 0.5}
+    d = t["particles"][0, 1] - t["particles"][0, 0]
+    assert np.abs(d[:, :2]).max() < 1e-12  # B cases move along z only
+    assert np.abs(d[:, 2]).max() / 5.5e-3 == pytest.approx(25.0, rel=0.05)  # the chapter's 25 px
+
+
+def test_synth_from_points_csv(capsys, tmp_path):
+    csv = tmp_path / "points.csv"
+    csv.write_text("x_mm,y_mm,z_mm\n0.0,0.0,0.0\n0.1,-0.05,0.4\n-0.2,0.1,-0.6\n")
+    run = tmp_path / "pts.zarr"
+    _synth(capsys, run, "--particles", str(csv))
+    s = RunStore.open(run)
+    assert s.n_pairs == 1
+    p = s.truth()["particles"]
+    assert np.array_equal(p[0, 0], p[0, 1]) and p[0, 0].tolist()[1] == [0.1, -0.05, 0.4]
+    a, b = s.frames("cam0")[0].astype(np.float64)
+    assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.9  # the same points, different noise
+
+
+def test_demo_writes_a_run_and_a_picture(capsys, tmp_path):
+    out = tmp_path / "demo"
+    for _ in range(2):  # a second demo replaces the first one's output
+        rc, stdout, err = _run(capsys, "demo", "--rig", TINY, "--out", str(out), "--pairs", "1")
+        assert rc == 0, err
+    png = out / "raw_images.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+    assert RunStore.open(out / "run.zarr").state == "complete"
+    assert "picture:" in stdout and "rays/s" in stdout
+
+
+def test_interrupted_synth_keeps_committed_pairs(capsys, tmp_path, monkeypatch):
+    real = LightFieldRenderer.frame
+    calls = {"n": 0}
+
+    def flaky(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:  # pair 1, frame A
+            raise KeyboardInterrupt
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(LightFieldRenderer, "frame", flaky)
+    run = tmp_path / "cut.zarr"
+    rc, _, err = _run(capsys, "synth", "--rig", TINY, "--out", str(run), "--pairs", "3", "--quiet")
+    assert rc == 130 and "interrupted" in err
+    s = RunStore.open(run)
+    assert (s.state, s.committed_pairs) == ("aborted", 1)
+    assert s.frames("cam0")[0].max() > 1000 and s.truth()["particles"].shape[0] == 3
+
+
+def _bad_rig(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text((EXAMPLES / "tiny.toml").read_text().replace("f_number = 2.0", "f_number = 2.0\nfocal = 3"))
+    return str(p)
+
+
+BAD_INPUTS = [
+    (lambda t: ["synth", "--rig", str(t / "none.toml"), "--out", str(t / "x.zarr")], "none.toml not found"),
+    (lambda t: ["synth", "--rig", _bad_rig(t), "--out", str(t / "x.zarr")], "camera[0].focal: unknown key"),
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--ppm", "0"], "--ppm: must be a positive"),
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--pairs", "0"], "--pairs: must be at least 1"),
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--flow", "tornado"], "invalid choice"),
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--dt-ms", "-1"], "--dt-ms: must be a positive"),
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--device", "cuda:7"],
+     "device 'cuda:7' is not available"),
+    (lambda t: ["synth", "--rig", TINY], "the following arguments are required: --out"),
+    (lambda t: ["info", str(t / "nothing.zarr")], "does not exist"),
+    (lambda t: ["info", str(t)], "not an lfpiv run store"),
+]
+
+
+@pytest.mark.parametrize(("argv", "expected"), BAD_INPUTS)
+def test_bad_input_is_one_line(capsys, tmp_path, argv, expected):
+    rc, out, err = _run(capsys, *argv(tmp_path))
+    assert rc == 2 and out == ""
+    assert err.count("\n") == 1 and err.startswith("lfpiv: error: ") and expected in err, err
+    assert not (tmp_path / "x.zarr").exists()  # nothing half-made
+
+
+@pytest.mark.parametrize(
+    ("content", "expected"),
+    [
+        ("x,y,z\n1,2,3\n", "first line must be the header 'x_mm,y_mm,z_mm'"),
+        ("x_mm,y_mm,z_mm\n0,0,0\n0,zero,0\n", "points.csv:3: expected three numbers"),
+        ("x_mm,y_mm,z_mm\n0,0\n", "points.csv:2: expected three numbers"),
+        ("x_mm,y_mm,z_mm\n", "no particles after the header"),
+        ("x_mm,y_mm,z_mm\n0,0,150\n", "inside the focal length of camera 'cam0'"),
+    ],
+)
+def test_bad_points_csv(capsys, tmp_path, content, expected):
+    csv = tmp_path / "points.csv"
+    csv.write_text(content)
+    rc, _, err = _run(capsys, "synth", "--rig", TINY, "--out", str(tmp_path / "x.zarr"), "--particles", str(csv))
+    assert rc == 2 and err.count("\n") == 1 and expected in err, err
+
+
+def test_existing_run_is_never_overwritten_silently(capsys, tmp_path):
+    run = tmp_path / "keep.zarr"
+    _synth(capsys, run, "--pairs", "1")
+    before = RunStore.open(run).frames("cam0")[...]
+    rc, _, err = _run(capsys, "synth", "--rig", TINY, "--out", str(run), "--pairs", "1", "--seed", "9")
+    assert rc == 2 and "already exists; choose another output path or pass --overwrite" in err
+    assert np.array_equal(RunStore.open(run).frames("cam0")[...], before)
+    _synth(capsys, run, "--pairs", "1", "--seed", "9", "--overwrite")
+    assert not np.array_equal(RunStore.open(run).frames("cam0")[...], before)
+
+
+def test_console_script_exit_code_and_no_traceback(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "lfpiv", "synth", "--rig", str(tmp_path / "no.toml"), "--out",
+                        str(tmp_path / "x.zarr")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines() == [f"lfpiv: error: rig file {tmp_path / 'no.toml'} not found; "
+                                             "pass the path of a rig TOML file (see examples/)"]
+    h = subprocess.run([sys.executable, "-m", "lfpiv", "--help"], capture_output=True, text=True, timeout=120)
+    assert h.returncode == 0 and "synth" in h.stdout and "demo" in h.stdout
