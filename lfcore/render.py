@@ -23,8 +23,10 @@ from lfcore.rig import Camera, RenderConfig
 
 __all__ = ["LightFieldRenderer", "derive_seed"]
 
-#: Upper bound on the threads of one launch; larger jobs are split into several launches.
-MAX_THREADS_PER_LAUNCH = 1 << 24
+#: Rays one thread traces, and the most threads of one launch (larger jobs are split into
+#: several launches of about a second each, which also paces the progress callback).
+RAYS_PER_THREAD = {"cpu": 1024, "cuda": 64}
+MAX_THREADS_PER_LAUNCH = {"cpu": 1 << 14, "cuda": 1 << 24}
 
 
 def derive_seed(seed: int, *keys: int) -> int:
@@ -98,10 +100,10 @@ class LightFieldRenderer:
         if np.any(cam_pts[:, 2] >= self.camera.object_distance_mm - self.camera.main_focal_length_mm):
             raise ValueError(f"a particle lies inside the focal length of camera '{self.camera.name}'")
         quanta = np.rint(cnt * kr.QUANTA_PER_COUNT / rays).astype(np.int64)
-        per_thread = 64 if self.device != "cpu" else 1024
-        per_thread = min(per_thread, rays)
+        kind = "cpu" if self.device == "cpu" else "cuda"
+        per_thread = min(RAYS_PER_THREAD[kind], rays)
         chunks = -(-rays // per_thread)
-        batch = max(1, MAX_THREADS_PER_LAUNCH // chunks)
+        batch = max(1, MAX_THREADS_PER_LAUNCH[kind] // chunks)
         radius = 0.5e-3 * self.render.particle_diameter_um
         for start in range(0, len(pts), batch):
             stop = min(start + batch, len(pts))

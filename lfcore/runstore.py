@@ -78,8 +78,7 @@ class RunStore:
         path = Path(path)
         if n_pairs < 1:
             raise RunStoreError(f"a run needs at least one pair, got {n_pairs}")
-        if path.exists() and not overwrite:
-            raise RunStoreError(f"{path} already exists; choose another output path or pass --overwrite")
+        cls.check_new(path, overwrite)
         root = zarr.open_group(str(path), mode="w", zarr_format=3)
         root.attrs.update({
             "format": FORMAT,
@@ -109,6 +108,15 @@ class RunStore:
             a = drops.create_array(name, shape=(0,), chunks=(4096,), dtype=dtype, fill_value=fill)
             a.attrs.update(_attrs("ns" if name == "timestamp_ns" else "1", ["drop"], what))
         return cls(root, path)
+
+    @staticmethod
+    def check_new(path: str | Path, overwrite: bool = False) -> None:
+        """Raise :class:`RunStoreError` unless a new run may be created at ``path``.
+
+        Call it before long work whose result goes to ``path``, so that the user hears at once.
+        """
+        if Path(path).exists() and not overwrite:
+            raise RunStoreError(f"{path} already exists; choose another output path or pass --overwrite")
 
     @classmethod
     def open(cls, path: str | Path, mode: str = "r") -> RunStore:

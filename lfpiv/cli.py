@@ -123,6 +123,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     import shutil
 
+    from lfcore.runstore import RunStore, RunStoreError
     from lfpiv.plots import plot_raw_images
     from lfpiv.rigfile import load_rig
     from lfpiv.synth import synthesize
@@ -135,11 +136,18 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} is a file; give a folder for the demo's output")
     if run.exists():
-        shutil.rmtree(run)  # the demo's own previous output
+        # Replace only what an earlier demo wrote: never a user's recording.
+        try:
+            previous_demo = RunStore.open(run).attrs.get("demo") is True
+        except RunStoreError:
+            previous_demo = False
+        if not previous_demo:
+            raise UsageError(f"{run} exists and was not written by 'lfpiv demo'; choose another --out")
+        shutil.rmtree(run)
     print(f"lfpiv demo: rendering a vortex ring seen by {len(rig.camera)} light-field camera(s) "
           f"from {rig_path} into {run}", file=sys.stderr)
     res = synthesize(rig, run, flow="vortex-ring", ppm=0.5, pairs=args.pairs, seed=1,
-                     rays_per_particle=args.rays, device=args.device)
+                     rays_per_particle=args.rays, device=args.device, attrs={"demo": True})
     png = plot_raw_images(res.store, out / "raw_images.png")
     print(f"rendered {res.store.n_pairs} pair(s), {res.particles_per_frame} particles per frame, "
           f"{res.rays:.3g} rays in {res.seconds:.1f} s ({res.rays / res.seconds:.3g} rays/s "

@@ -97,7 +97,7 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
                dt_s: float | None = None, seed: int = 1, omega: float = 1.0,
                displacement_px: float | None = None, points: np.ndarray | None = None,
                rays_per_particle: int | None = None, device: str | None = None, overwrite: bool = False,
-               progress: bool = True) -> SynthResult:
+               progress: bool = True, attrs: dict[str, Any] | None = None) -> SynthResult:
     """Render a synthetic run into a new run store.
 
     Parameters
@@ -132,9 +132,12 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         Replace an existing store at ``out``.
     progress
         Show a progress bar on stderr.
+    attrs
+        Extra JSON-compatible attributes for the run's root group.
     """
     if pairs < 1:
         raise UsageError(f"--pairs must be at least 1, got {pairs}")
+    RunStore.check_new(out, overwrite)
     dt_s = rig.timing.dt_us * 1e-6 if dt_s is None else dt_s
     if not (np.isfinite(dt_s) and dt_s > 0):
         raise UsageError(f"--dt-ms must be positive, got {dt_s * 1e3:g}")
@@ -177,6 +180,8 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
     renderers = [LightFieldRenderer(cam, render, rig.laser.wavelength_nm, device) for cam in rig.camera]
     timing = {"dt_s": dt_s, "rate_hz": rate}
     store = RunStore.create(out, rig, pairs, timing=timing, software_version=__version__, overwrite=overwrite)
+    if attrs:
+        store.group.attrs.update(attrs)
     store.write_truth(particles, brightness, flow_params, ppm=None if points is not None else ppm, seed=seed,
                       render=render.model_dump(mode="json"), device=renderers[0].device)
     n_part = particles.shape[2]

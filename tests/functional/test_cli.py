@@ -89,6 +89,15 @@ def test_demo_writes_a_run_and_a_picture(capsys, tmp_path):
     assert "picture:" in stdout and "rays/s" in stdout
 
 
+def test_demo_never_replaces_a_users_run(capsys, tmp_path):
+    out = tmp_path / "lab"
+    _synth(capsys, out / "run.zarr", "--pairs", "1")
+    before = RunStore.open(out / "run.zarr").frames("cam0")[...]
+    rc, _, err = _run(capsys, "demo", "--rig", TINY, "--out", str(out), "--pairs", "1")
+    assert rc == 2 and "was not written by 'lfpiv demo'; choose another --out" in err
+    assert np.array_equal(RunStore.open(out / "run.zarr").frames("cam0")[...], before)
+
+
 def test_interrupted_synth_keeps_committed_pairs(capsys, tmp_path, monkeypatch):
     real = LightFieldRenderer.frame
     calls = {"n": 0}
