@@ -13,6 +13,8 @@ Layout::
       drops/                  lost frames: camera, pair, frame, frame_id, timestamp_ns, reason
       truth/                  synthetic runs: particles (pairs, 2, n, 3) mm, brightness
                               (pairs, 2, n) counts; attrs: flow (name and parameters), seeding
+      volumes/data            float32 (pairs, 2, z, y, x); attrs: origin_mm, voxel_mm, method,
+                              settings, reconstructed_pairs
 
 Every array carries ``units`` and ``axes`` attributes, so plain zarr or xarray users can read a
 run without lfpiv. Pairs ``0 .. committed_pairs - 1`` are complete; ``state`` says whether the
@@ -29,6 +31,7 @@ import numpy as np
 import zarr
 
 from lfcore.rig import Rig, RigError
+from lfcore.volume import VolumeGrid
 
 __all__ = ["RunStore", "RunStoreError", "STATES"]
 
@@ -247,6 +250,58 @@ class RunStore:
         a = g.create_array("brightness", shape=b.shape, chunks=(1, 2, b.shape[2]), dtype=np.float32)
         a[...] = b
         a.attrs.update(_attrs("counts", ["pair", "frame", "particle"], "signal of each particle"))
+
+    # --- reconstructed volumes ----------------------------------------------------------
+    def create_volumes(self, grid: VolumeGrid, *, method: str, settings: dict[str, Any]) -> zarr.Array:
+        """Create (or replace) ``volumes/`` for every pair of the run, all zero.
+
+        ``volumes/data`` is float32 (pairs, 2, z, y, x) in chunks of at most 16 x 256 x 256
+        voxels; the group's attributes hold the grid (``origin_mm``, ``voxel_mm``), the method
+        and its settings, and ``reconstructed_pairs``, the pairs written so far.
+        """
+        if "volumes" in self.group:
+            del self.group["volumes"]
+        g = self.group.create_group("volumes")
+        g.attrs.update({"origin_mm": list(grid.origin_mm), "voxel_mm": list(grid.voxel_mm), "method": method,
+                        "settings": settings, "reconstructed_pairs": [],
+                        "description": "reconstructed particle volumes; origin_mm is the world (x, y, z) "
+                                       "of the centre of voxel [0, 0, 0]"})
+        nz, ny, nx = grid.shape
+        a = g.create_array("data", shape=(self.n_pairs, 2, nz, ny, nx), dtype=np.float32, fill_value=0.0,
+                           chunks=(1, 1, min(nz, 16), min(ny, 256), min(nx, 256)))
+        a.attrs.update(_attrs("intensity", ["pair", "frame", "z", "y", "x"], "voxel intensity"))
+        return a
+
+    def write_volume(self, pair: int, frame: int, volume: np.ndarray) -> None:
+        """Store one reconstructed volume (z, y, x) float32 of pair ``pair``, frame 0 (A) or 1 (B).
+
+        A pair counts as reconstructed once both of its frames are written.
+        """
+        g = self.group["volumes"]
+        g["data"][pair, frame] = volume
+        key = "_frames_written"
+        done = {tuple(x) for x in g.attrs.get(key, [])} | {(pair, frame)}
+        pairs = sorted({p for p, _ in done if (p, 0) in done and (p, 1) in done})
+        g.attrs.update({key: sorted(done), "reconstructed_pairs": pairs})
+
+    @property
+    def has_volumes(self) -> bool:
+        return "volumes" in self.group
+
+    def volumes(self) -> zarr.Array:
+        """The (pairs, 2, z, y, x) float32 ``volumes/data`` array."""
+        if not self.has_volumes:
+            raise RunStoreError(f"{self.path} has no reconstructed volumes; run 'lfpiv reconstruct {self.path}' first")
+        return self.group["volumes/data"]
+
+    def volume_grid(self) -> VolumeGrid:
+        """The voxel grid of ``volumes/``."""
+        a = self.group["volumes"].attrs
+        shape = tuple(int(n) for n in self.volumes().shape[2:])
+        return VolumeGrid(shape=shape, voxel_mm=tuple(a["voxel_mm"]), origin_mm=tuple(a["origin_mm"]))
+
+    def reconstructed_pairs(self) -> list[int]:
+        return list(self.group["volumes"].attrs["reconstructed_pairs"]) if self.has_volumes else []
 
     def truth(self) -> dict[str, Any] | None:
         """``{"particles", "brightness", "attrs"}`` of a synthetic run, or None if recorded."""

@@ -60,3 +60,25 @@ def test_guards(tiny_rig, tmp_path):
         RunStore.create(tmp_path / "zero.zarr", tiny_rig, 0, timing={}, software_version="x")
     with pytest.raises(RunStoreError, match="state must be one of"):
         s.set_state("finished")
+
+
+def test_volumes_round_trip(tiny_rig, tmp_path):
+    from lfcore.volume import VolumeGrid
+
+    s = RunStore.create(tmp_path / "v.zarr", tiny_rig, 2, timing={}, software_version="x")
+    assert not s.has_volumes and s.reconstructed_pairs() == []
+    with pytest.raises(RunStoreError, match="no reconstructed volumes; run 'lfpiv reconstruct"):
+        s.volumes()
+    grid = VolumeGrid.from_rig(tiny_rig)
+    s.create_volumes(grid, method="drt-mart", settings={"iterations": 3})
+    vol = np.random.default_rng(0).random(grid.shape, dtype=np.float32)
+    s.write_volume(1, 0, vol)
+    assert s.reconstructed_pairs() == []  # frame B still missing
+    s.write_volume(1, 1, 2 * vol)
+    r = RunStore.open(tmp_path / "v.zarr")
+    assert r.reconstructed_pairs() == [1]
+    assert r.volume_grid() == grid
+    v = r.volumes()
+    assert v.shape == (2, 2, *grid.shape) and v.dtype == np.float32
+    assert np.array_equal(v[1, 1], 2 * vol) and not v[0].any()
+    assert r.group["volumes"].attrs["method"] == "drt-mart"

@@ -1,0 +1,48 @@
+"""One module per ``lfpiv`` subcommand, each with ``register(subparsers)`` that adds its parser
+and sets ``func`` to the function that runs it; shared argument types live here.
+
+To add a command, write its module and name it in :data:`COMMANDS`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+#: Subcommand modules in the order ``lfpiv --help`` lists them.
+COMMANDS = ("demo", "synth", "info")
+
+
+def positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
+    return v
+
+
+def positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+    if not (v > 0 and v != float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return v
+
+
+def add_device(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if there is one)")
+
+
+def examples_dir() -> Path:
+    return Path(__file__).resolve().parents[2] / "examples"
+
+
+def warn_optics(rig) -> None:
+    """Print the rig's optics warnings, one line each, on stderr."""
+    for w in rig.optics_warnings():
+        print(f"lfpiv: warning: {w}", file=sys.stderr)

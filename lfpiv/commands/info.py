@@ -1,0 +1,66 @@
+"""``lfpiv info``: describe a run store."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    i = sub.add_parser("info", help="describe a run store", description="Print a run's cameras, pairs, "
+                       "flow and state.")
+    i.add_argument("run", metavar="RUN", help="run store (a .zarr directory)")
+    i.set_defaults(func=run)
+
+
+def _fmt_params(params: dict) -> str:
+    def fmt(v):
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        if isinstance(v, list):
+            return "(" + ", ".join(fmt(x) for x in v) + ")"
+        return str(v)
+
+    return ", ".join(f"{k}={fmt(v)}" for k, v in params.items() if k != "name")
+
+
+def run(args: argparse.Namespace) -> int:
+    from lfcore.mla import lenslet_count
+    from lfcore.runstore import RunStore
+    from lfcore.volume import VolumeGrid
+
+    store = RunStore.open(args.run)
+    a = store.attrs
+    rig = store.rig
+    t = store.timing
+    grid = VolumeGrid.from_rig(rig)
+    v = rig.volume
+    lines = [
+        ("run", str(store.path)),
+        ("state", f"{store.state} ({store.committed_pairs} of {store.n_pairs} pairs committed)"),
+        ("created", f"{a.get('created')} by lfpiv {a.get('software_version')}"),
+        ("timing", f"dt {t['dt_s'] * 1e3:g} ms, pairs at {t['rate_hz']:g} Hz"),
+        ("volume", f"{' x '.join(f'{s:g}' for s in v.size_mm)} mm centred at "
+                   f"({', '.join(f'{c:g}' for c in v.centre_mm)}); {' x '.join(str(n) for n in grid.shape[::-1])} "
+                   f"voxels (x, y, z) at PVR ({', '.join(f'{p:g}' for p in v.pvr)})"),
+    ]
+    for cam in rig.camera:
+        lines.append(("camera", f"{cam.name}: {cam.sensor_px[0]} x {cam.sensor_px[1]} px of {cam.pixel_pitch_um:g} um, "
+                                f"{cam.mla_grid} MLA {cam.mla_pitch_um:g} um ({lenslet_count(cam)} lenslets, "
+                                f"{cam.pixels_per_lenslet:.1f} px across), F {cam.main_focal_length_mm:g} mm "
+                                f"f/{cam.f_number:g}, M {cam.magnification:g}, rotation "
+                                f"({', '.join(f'{r:g}' for r in cam.rotation_deg)}) deg"))
+    truth = store.truth()
+    if truth:
+        flow = truth["attrs"]["flow"]
+        lines.append(("flow", f"{flow['name']}: {_fmt_params(flow)}"))
+        ppm = truth["attrs"].get("ppm")
+        lines.append(("truth", f"{truth['particles'].shape[2]} particles per frame"
+                               + (f" ({ppm:g} PPM)" if ppm else "") + f", seed {truth['attrs'].get('seed')}"))
+    else:
+        lines.append(("flow", "unknown (recorded run, no truth)"))
+    drops = store.drops()
+    lines.append(("drops", "none" if not drops else f"{len(drops)} frame(s) lost, e.g. {drops[0]['reason']}"))
+    width = max(len(k) for k, _ in lines)
+    for k, val in lines:
+        print(f"{k:<{width}}  {val}")
+    return 0
