@@ -13,7 +13,6 @@ Images are arrays indexed (row, column) as read from the sensor; see :mod:`lfcor
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
@@ -52,6 +51,7 @@ class LightFieldRenderer:
     def __init__(self, camera: Camera, render: RenderConfig, wavelength_nm: float = 532.0,
                  device: str | None = None) -> None:
         from lfcore._kernels import render as kr
+        from lfcore._kernels.optics import camera_params
 
         self._k = kr
         self.wp = warp()
@@ -59,22 +59,8 @@ class LightFieldRenderer:
         self.render = render
         self.device = resolve_device(device)
         lam_mm = wavelength_nm * 1e-6
-        t = math.radians(camera.mla_rotation_deg)
-        p = kr.CameraParams()
-        p.so = camera.object_distance_mm
-        p.inv_f = 1.0 / camera.main_focal_length_mm
-        p.si = camera.image_distance_mm
-        p.f_ml = camera.mla_focal_length_mm
-        p.aperture_r = 0.5 * camera.aperture_mm
-        p.pitch = camera.mla_pitch_mm
-        p.hex = 1 if camera.mla_grid == "hex" else 0
-        p.cos_t, p.sin_t = math.cos(t), math.sin(t)
-        p.off_x, p.off_y = (v * 1e-3 for v in camera.mla_offset_um)
-        p.pixel = camera.pixel_mm
-        p.ncols, p.nrows = camera.sensor_px
-        p.sigma_mla = 0.42 * lam_mm * camera.image_side_f_number if render.diffraction else 0.0
-        p.sigma_sensor = 0.42 * lam_mm * camera.lenslet_f_number if render.diffraction else 0.0
-        self.params = p
+        blur = 0.42 * lam_mm if render.diffraction else 0.0  # Airy core as a Gaussian: 0.42 lambda N
+        self.params = camera_params(camera, blur * camera.image_side_f_number, blur * camera.lenslet_f_number)
         shape = (camera.sensor_px[1], camera.sensor_px[0])
         self._quanta = self.wp.zeros(shape, dtype=self.wp.int64, device=self.device)
         self._counts = self.wp.zeros(shape, dtype=float, device=self.device)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from lfcore._kernels.optics import CameraParams, lenslet_centre
 from lfcore.device import warp as _init
 
 _init()
@@ -20,29 +21,6 @@ wp.set_module_options({"enable_backward": False})
 #: Fixed-point scale of the accumulation buffer: one count is 2**20 quanta. Integer atomics
 #: make the sum independent of thread order, so a seed gives identical images on the GPU too.
 QUANTA_PER_COUNT = float(2**20)
-
-HEX_ROW = 0.8660254037844386
-
-
-@wp.struct
-class CameraParams:
-    so: float  # main lens to focal plane, mm
-    inv_f: float  # 1 / F, 1/mm
-    si: float  # main lens to MLA, mm
-    f_ml: float  # MLA to sensor, mm
-    aperture_r: float  # D / 2, mm
-    pitch: float  # lenslet pitch, mm
-    hex: int  # 1 for a hexagonal grid, 0 for square
-    cos_t: float  # MLA rotation
-    sin_t: float
-    off_x: float  # MLA offset, mm
-    off_y: float
-    pixel: float  # pixel pitch, mm
-    ncols: int
-    nrows: int
-    sigma_mla: float  # main-lens diffraction blur on the MLA (Gaussian sigma), mm
-    sigma_sensor: float  # lenslet diffraction blur on the sensor, mm
-
 
 @wp.func
 def box_muller(u1: float, u2: float) -> wp.vec2:
@@ -54,38 +32,6 @@ def box_muller(u1: float, u2: float) -> wp.vec2:
     r = wp.sqrt(-2.0 * wp.log(wp.max(u1, 1.0e-12)))
     t = 6.283185307179586 * u2
     return wp.vec2(r * wp.cos(t), r * wp.sin(t))
-
-
-@wp.func
-def lenslet_centre(cam: CameraParams, qx: float, qy: float) -> wp.vec2:
-    """Centre (sensor-plane mm) of the lenslet cell containing (qx, qy)."""
-    dx = qx - cam.off_x
-    dy = qy - cam.off_y
-    u = cam.cos_t * dx + cam.sin_t * dy
-    v = -cam.sin_t * dx + cam.cos_t * dy
-    p = cam.pitch
-    cu = 0.0
-    cv = 0.0
-    if cam.hex == 0:
-        cu = wp.round(u / p) * p
-        cv = wp.round(v / p) * p
-    else:
-        h = p * HEX_ROW
-        j0 = wp.floor(v / h)
-        best = 1.0e30
-        for k in range(2):
-            j = j0 + float(k)
-            shift = 0.0
-            if wp.abs(j - 2.0 * wp.floor(j * 0.5)) > 0.5:
-                shift = 0.5 * p
-            au = wp.round((u - shift) / p) * p + shift
-            av = j * h
-            d2 = (u - au) * (u - au) + (v - av) * (v - av)
-            if d2 < best:
-                best = d2
-                cu = au
-                cv = av
-    return wp.vec2(cam.cos_t * cu - cam.sin_t * cv + cam.off_x, cam.sin_t * cu + cam.cos_t * cv + cam.off_y)
 
 
 @wp.kernel
