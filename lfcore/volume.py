@@ -35,14 +35,21 @@ class VolumeGrid:
     origin_mm: tuple[float, float, float]
 
     @classmethod
-    def from_rig(cls, rig: Rig, pvr: tuple[float, float, float] | None = None) -> VolumeGrid:
-        """The grid of ``rig.volume``, with the rig's PVR unless ``pvr`` (x, y, z) is given."""
+    def from_rig(cls, rig: Rig, pvr: tuple[float, float, float] | None = None,
+                 margin_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> VolumeGrid:
+        """The grid of ``rig.volume``, with the rig's PVR unless ``pvr`` (x, y, z) is given.
+
+        ``margin_mm`` (x, y, z) grows the box on every side, e.g. to see that nothing is
+        reconstructed outside the seeded region.
+        """
         pvr = rig.volume.pvr if pvr is None else pvr
-        if any(not np.isfinite(v) or v <= 0 for v in pvr):
+        if len(pvr) != 3 or any(not np.isfinite(v) or v <= 0 for v in pvr):
             raise ValueError(f"pvr must be three positive numbers (x, y, z), got {tuple(pvr)}")
+        if len(margin_mm) != 3 or any(not np.isfinite(m) or m < 0 for m in margin_mm):
+            raise ValueError(f"margin_mm must be three numbers >= 0 (x, y, z), got {tuple(margin_mm)}")
         pix = rig.camera[0].object_pixel_mm
         voxel = np.asarray(pvr, dtype=np.float64) * pix
-        size = np.asarray(rig.volume.size_mm, dtype=np.float64)
+        size = np.asarray(rig.volume.size_mm, dtype=np.float64) + 2.0 * np.asarray(margin_mm, dtype=np.float64)
         n = np.maximum(1, np.rint(size / voxel)).astype(int)
         origin = np.asarray(rig.volume.centre_mm) - 0.5 * (n - 1) * voxel
         return cls(shape=(int(n[2]), int(n[1]), int(n[0])),

@@ -47,18 +47,18 @@ def lenslet_centre(cam: CameraParams, qx: float, qy: float) -> wp.vec2:
     u = cam.cos_t * dx + cam.sin_t * dy
     v = -cam.sin_t * dx + cam.cos_t * dy
     p = cam.pitch
-    cu = 0.0
-    cv = 0.0
+    cu = float(0.0)
+    cv = float(0.0)
     if cam.hex == 0:
         cu = wp.round(u / p) * p
         cv = wp.round(v / p) * p
     else:
         h = p * HEX_ROW
         j0 = wp.floor(v / h)
-        best = 1.0e30
+        best = float(1.0e30)
         for k in range(2):
             j = j0 + float(k)
-            shift = 0.0
+            shift = float(0.0)
             if wp.abs(j - 2.0 * wp.floor(j * 0.5)) > 0.5:
                 shift = 0.5 * p
             au = wp.round((u - shift) / p) * p + shift

@@ -1,0 +1,512 @@
+"""Voxel-to-pixel weights of a plenoptic camera, and zero-voxel elimination.
+
+Camera-frame thin-lens optics as in :mod:`lfcore._kernels.render`. For a voxel centred at P
+(camera frame, depth P.z toward the lens) the ray through aperture point A meets the MLA at
+
+    q = a A + g,   a = 1 - si / si',  g = -P_xy si / (so - P.z),
+
+where si' is the image distance of P, and a ray entering the lenslet centred at c with MLA
+point q lands on the sensor at c + f_ml (q - A) / si.
+
+Dense ray tracing (DRT) weights: the aperture is cut into square sub-apertures of side s_A.
+Each sub-bundle's footprint on the MLA is a square of half-side
+0.5 |a| s_A + (spread of the voxel's own extent); w1 is the fraction of the footprint inside
+each lenslet cell (exact polygon clipping, square or hexagonal cells); the part that enters a
+lenslet lands as a square spot at c + f_ml (centroid - A) / si of half-side
+f_ml / si (0.5 |1 - a| s_A + spread), and w2 is the fraction of the spot on each pixel. A
+voxel's weight on a pixel is the sub-aperture's share of the aperture times w1 times w2, so the
+weights of a voxel sum to the fraction of its light that reaches the sensor.
+
+Line-of-sight (LOS) weights, the conventional MART baseline: each pixel sees along the line
+through its lenslet's conjugate point on the focal plane and its sub-aperture; the weight is the
+overlap area of the pixel's line-of-sight cylinder and the voxel's sphere, cut in the voxel's
+depth plane, normalised so that a voxel's weights sum to one.
+
+The kernels run twice with the same code path: once to count a voxel's weights (``fill = 0``),
+once to write them at the offsets the counts give (``fill = 1``).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from lfcore._kernels.optics import HEX_ROW, CameraParams, lenslet_centre
+from lfcore.device import warp as _init
+
+_init()
+wp.set_module_options({"enable_backward": False})
+
+vec6 = wp.types.vector(length=6, dtype=wp.float32)
+vec12 = wp.types.vector(length=12, dtype=wp.float32)
+
+
+@wp.struct
+class Grid:
+    origin: wp.vec3  # world centre of voxel [0, 0, 0], mm
+    step: wp.vec3  # voxel edges (dx, dy, dz), mm
+    nx: int
+    ny: int
+    nz: int
+
+
+@wp.struct
+class View:
+    """One camera looking at the grid."""
+
+    cam: CameraParams
+    rot: wp.mat33  # world -> camera
+    focus: wp.vec3  # world point the focal plane is centred on, mm
+    half: wp.vec3  # half-extent of a voxel along the camera's x, y, z, mm
+    pix_offset: int  # first global pixel index of this camera
+    sub_first: int  # this camera's range in the sub-aperture table
+    sub_count: int
+    sub_side: float  # side of a sub-aperture, mm
+    n_edges: int  # lenslet cell: 4 (square) or 6 (hexagon)
+    edge_nx: vec6  # outward normals of the cell's edges (camera frame)
+    edge_ny: vec6
+    cell_r: float  # circumradius of a cell, mm
+    magnification: float
+    los_radius: float  # LOS cylinder radius + voxel sphere radius (MART baseline), mm
+    los_cyl: float  # LOS cylinder radius, mm
+    los_sph: float  # voxel sphere radius, mm
+
+
+@wp.struct
+class Poly:
+    x: vec12
+    y: vec12
+    n: int
+
+
+@wp.func
+def voxel_centre(g: Grid, v: int) -> wp.vec3:
+    plane = g.nx * g.ny
+    z = v // plane
+    r = v - z * plane
+    y = r // g.nx
+    x = r - y * g.nx
+    return g.origin + wp.cw_mul(g.step, wp.vec3(float(x), float(y), float(z)))
+
+
+@wp.func
+def clip(p: Poly, nx: float, ny: float, d: float) -> Poly:
+    """Sutherland-Hodgman: the part of convex polygon p with nx x + ny y <= d."""
+    o = Poly()
+    m = int(0)
+    for i in range(p.n):
+        j = (i + 1) % p.n
+        si = nx * p.x[i] + ny * p.y[i] - d
+        sj = nx * p.x[j] + ny * p.y[j] - d
+        if si <= 0.0:
+            o.x[m] = p.x[i]
+            o.y[m] = p.y[i]
+            m += 1
+        if (si <= 0.0 and sj > 0.0) or (si > 0.0 and sj <= 0.0):
+            t = si / (si - sj)
+            o.x[m] = p.x[i] + t * (p.x[j] - p.x[i])
+            o.y[m] = p.y[i] + t * (p.y[j] - p.y[i])
+            m += 1
+    o.n = m
+    return o
+
+
+@wp.struct
+class Overlap:
+    area: float
+    cx: float  # centroid
+    cy: float
+    wx: float  # extent of the overlap along x and y
+    wy: float
+
+
+@wp.func
+def cell_overlap(view: View, cx: float, cy: float, x0: float, x1: float, y0: float, y1: float) -> Overlap:
+    """The part of rectangle [x0, x1] x [y0, y1] inside the lenslet cell centred at (cx, cy)."""
+    # Work relative to the cell centre so single precision keeps sub-micrometre detail.
+    p = Poly()
+    p.x[0] = x0 - cx
+    p.y[0] = y0 - cy
+    p.x[1] = x1 - cx
+    p.y[1] = y0 - cy
+    p.x[2] = x1 - cx
+    p.y[2] = y1 - cy
+    p.x[3] = x0 - cx
+    p.y[3] = y1 - cy
+    p.n = 4
+    h = 0.5 * view.cam.pitch
+    for e in range(view.n_edges):
+        if p.n > 0:
+            p = clip(p, view.edge_nx[e], view.edge_ny[e], h)
+    o = Overlap()
+    area = float(0.0)
+    mx = float(0.0)
+    my = float(0.0)
+    lox = float(1.0e30)
+    hix = float(-1.0e30)
+    loy = float(1.0e30)
+    hiy = float(-1.0e30)
+    for i in range(p.n):
+        j = (i + 1) % p.n
+        cr = p.x[i] * p.y[j] - p.x[j] * p.y[i]
+        area += cr
+        mx += (p.x[i] + p.x[j]) * cr
+        my += (p.y[i] + p.y[j]) * cr
+        lox = wp.min(lox, p.x[i])
+        hix = wp.max(hix, p.x[i])
+        loy = wp.min(loy, p.y[i])
+        hiy = wp.max(hiy, p.y[i])
+    if area > 1.0e-20:
+        o.area = 0.5 * area
+        o.cx = cx + mx / (3.0 * area)
+        o.cy = cy + my / (3.0 * area)
+        o.wx = hix - lox
+        o.wy = hiy - loy
+    return o
+
+
+@wp.func
+def to_lattice(cam: CameraParams, x: float, y: float) -> wp.vec2:
+    dx = x - cam.off_x
+    dy = y - cam.off_y
+    return wp.vec2(cam.cos_t * dx + cam.sin_t * dy, -cam.sin_t * dx + cam.cos_t * dy)
+
+
+@wp.func
+def from_lattice(cam: CameraParams, u: float, v: float) -> wp.vec2:
+    return wp.vec2(cam.cos_t * u - cam.sin_t * v + cam.off_x, cam.sin_t * u + cam.cos_t * v + cam.off_y)
+
+
+@wp.func
+def lattice_box(cam: CameraParams, x0: float, x1: float, y0: float, y1: float, reach: float) -> wp.vec4:
+    """Lattice-frame bounding box (umin, umax, vmin, vmax) of a camera-frame box, grown by reach."""
+    a = to_lattice(cam, x0, y0)
+    b = to_lattice(cam, x1, y0)
+    c = to_lattice(cam, x1, y1)
+    d = to_lattice(cam, x0, y1)
+    umin = wp.min(wp.min(a[0], b[0]), wp.min(c[0], d[0])) - reach
+    umax = wp.max(wp.max(a[0], b[0]), wp.max(c[0], d[0])) + reach
+    vmin = wp.min(wp.min(a[1], b[1]), wp.min(c[1], d[1])) - reach
+    vmax = wp.max(wp.max(a[1], b[1]), wp.max(c[1], d[1])) + reach
+    return wp.vec4(umin, umax, vmin, vmax)
+
+
+@wp.func
+def row_step(cam: CameraParams) -> float:
+    if cam.hex == 1:
+        return cam.pitch * HEX_ROW
+    return cam.pitch
+
+
+@wp.func
+def row_shift(cam: CameraParams, j: int) -> float:
+    if cam.hex == 1 and (j % 2 + 2) % 2 == 1:
+        return 0.5 * cam.pitch
+    return 0.0
+
+
+@wp.func
+def pixel_overlap(lo: float, hi: float, k: int) -> float:
+    """Length of [lo, hi] inside pixel [k, k + 1]."""
+    return wp.max(0.0, wp.min(hi, float(k) + 1.0) - wp.max(lo, float(k)))
+
+
+@wp.func
+def view_point(view: View, pw: wp.vec3) -> wp.vec3:
+    return view.rot * (pw - view.focus)
+
+
+@wp.kernel
+def eliminate(
+    grid: Grid,
+    views: wp.array(dtype=View),
+    n_views: int,
+    sub_a: wp.array(dtype=wp.vec2),
+    sub_check: wp.array(dtype=wp.int32),
+    lit: wp.array(dtype=wp.uint8),
+    min_seen: float,
+    active: wp.array(dtype=wp.int32),
+):
+    """active[v] = 1 if every checked sub-aperture of voxel v lands on a lit pixel in every view.
+
+    A sub-aperture counts as lit if any of the pixels hit by the centre or the corners of its
+    footprint is lit (the footprint may straddle lenslets). Sub-apertures whose rays leave the
+    sensor are not evidence either way; a voxel seen through fewer than ``min_seen`` of its
+    checked sub-apertures in some view is dropped.
+    """
+    v = wp.tid()
+    pw = voxel_centre(grid, v)
+    keep = int(1)
+    for iv in range(n_views):
+        view = views[iv]
+        cam = view.cam
+        p = view_point(view, pw)
+        sop = cam.so - p[2]
+        if sop * cam.inv_f <= 1.0:
+            keep = int(0)
+        if keep == 1:
+            inv = 1.0 / sop
+            a = 1.0 - cam.si * (cam.inv_f - inv)
+            gx = -p[0] * cam.si * inv
+            gy = -p[1] * cam.si * inv
+            dq = cam.si * inv * inv * view.half[2]
+            checked = int(0)
+            seen = int(0)
+            for k in range(view.sub_first, view.sub_first + view.sub_count):
+                if sub_check[k] == 0 or keep == 0:
+                    continue
+                checked += 1
+                ax = sub_a[k][0]
+                ay = sub_a[k][1]
+                qx = a * ax + gx
+                qy = a * ay + gy
+                fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
+                fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
+                on = int(0)
+                hit = int(0)
+                for corner in range(5):
+                    px = qx
+                    py = qy
+                    if corner > 0:
+                        px = qx + fx * float(2 * ((corner - 1) % 2) - 1)
+                        py = qy + fy * float(2 * ((corner - 1) // 2) - 1)
+                    c = lenslet_centre(cam, px, py)
+                    sx = c[0] + cam.f_ml * (px - ax) / cam.si
+                    sy = c[1] + cam.f_ml * (py - ay) / cam.si
+                    col = 0.5 * float(cam.ncols) - sx / cam.pixel
+                    row = 0.5 * float(cam.nrows) + sy / cam.pixel
+                    if col >= 0.0 and row >= 0.0 and col < float(cam.ncols) and row < float(cam.nrows):
+                        on = int(1)
+                        if lit[view.pix_offset + int(row) * cam.ncols + int(col)] != wp.uint8(0):
+                            hit = int(1)
+                if on == 1:
+                    seen += 1
+                    if hit == 0:
+                        keep = int(0)
+            if keep == 1 and float(seen) < min_seen * float(checked):
+                keep = int(0)
+    active[v] = keep
+
+
+@wp.kernel
+def drt_weights(
+    grid: Grid,
+    views: wp.array(dtype=View),
+    n_views: int,
+    sub_a: wp.array(dtype=wp.vec2),
+    sub_w: wp.array(dtype=float),
+    voxels: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int64),
+    min_weight: float,
+    fill: int,
+    counts: wp.array(dtype=wp.int64),
+    pix: wp.array(dtype=wp.int32),
+    w: wp.array(dtype=float),
+):
+    """Dense ray-traced weights of voxel ``voxels[tid]`` (see the module docstring)."""
+    tid = wp.tid()
+    pw = voxel_centre(grid, voxels[tid])
+    n = wp.int64(0)
+    base = wp.int64(0)
+    if fill == 1:
+        base = offsets[tid]
+    for iv in range(n_views):
+        view = views[iv]
+        cam = view.cam
+        p = view_point(view, pw)
+        sop = cam.so - p[2]
+        if sop * cam.inv_f <= 1.0:
+            continue
+        inv = 1.0 / sop
+        a = 1.0 - cam.si * (cam.inv_f - inv)
+        gx = -p[0] * cam.si * inv
+        gy = -p[1] * cam.si * inv
+        dq = cam.si * inv * inv * view.half[2]
+        lat = cam.si * inv
+        k_spot = cam.f_ml / cam.si
+        for k in range(view.sub_first, view.sub_first + view.sub_count):
+            ax = sub_a[k][0]
+            ay = sub_a[k][1]
+            wk = sub_w[k]
+            qx = a * ax + gx
+            qy = a * ay + gy
+            # Footprint on the MLA: the sub-aperture's spread convolved with the voxel's own
+            # lateral and depth extent, as the box with the same second moment (widths add in
+            # quadrature).
+            sprx = lat * view.half[0] + wp.abs(ax - p[0]) * dq
+            spry = lat * view.half[1] + wp.abs(ay - p[1]) * dq
+            wsub = wp.abs(a) * view.sub_side
+            fx = 0.5 * wp.sqrt(wsub * wsub + 4.0 * sprx * sprx)
+            fy = 0.5 * wp.sqrt(wsub * wsub + 4.0 * spry * spry)
+            x0 = qx - fx
+            x1 = qx + fx
+            y0 = qy - fy
+            y1 = qy + fy
+            inv_area = 1.0 / (4.0 * fx * fy)
+            # spot half-sizes on the sensor, in pixels
+            wspot = wp.abs(1.0 - a) * view.sub_side
+            hx_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * sprx * sprx) / cam.pixel
+            hy_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * spry * spry) / cam.pixel
+            box = lattice_box(cam, x0, x1, y0, y1, view.cell_r)
+            h = row_step(cam)
+            j0 = int(wp.ceil(box[2] / h))
+            j1 = int(wp.floor(box[3] / h))
+            for j in range(j0, j1 + 1):
+                shift = row_shift(cam, j)
+                i0 = int(wp.ceil((box[0] - shift) / cam.pitch))
+                i1 = int(wp.floor((box[1] - shift) / cam.pitch))
+                for i in range(i0, i1 + 1):
+                    c = from_lattice(cam, float(i) * cam.pitch + shift, float(j) * h)
+                    ov = cell_overlap(view, c[0], c[1], x0, x1, y0, y1)
+                    if ov.area <= 0.0:
+                        continue
+                    w1 = ov.area * inv_area
+                    # the part entering this lenslet lands around the image of its centroid,
+                    # as a spot shrunk like the part's extent on the MLA
+                    sx = c[0] + cam.f_ml * (ov.cx - ax) / cam.si
+                    sy = c[1] + cam.f_ml * (ov.cy - ay) / cam.si
+                    colc = 0.5 * float(cam.ncols) - sx / cam.pixel
+                    rowc = 0.5 * float(cam.nrows) + sy / cam.pixel
+                    hx = hx_full * ov.wx / (2.0 * fx)
+                    hy = hy_full * ov.wy / (2.0 * fy)
+                    c0 = wp.max(0, int(wp.floor(colc - hx)))
+                    c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
+                    r0 = wp.max(0, int(wp.floor(rowc - hy)))
+                    r1 = wp.min(cam.nrows - 1, int(wp.floor(rowc + hy)))
+                    for r in range(r0, r1 + 1):
+                        oy = pixel_overlap(rowc - hy, rowc + hy, r) / (2.0 * hy)
+                        for cc in range(c0, c1 + 1):
+                            ox = pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
+                            wt = wk * w1 * ox * oy
+                            if wt > min_weight:
+                                if fill == 1:
+                                    pix[base + n] = view.pix_offset + r * cam.ncols + cc
+                                    w[base + n] = wt
+                                n += wp.int64(1)
+    if fill == 0:
+        counts[tid] = n
+
+
+@wp.func
+def circle_overlap(r1: float, r2: float, d: float) -> float:
+    """Area of the intersection of two circles of radii r1, r2 whose centres are d apart."""
+    if d >= r1 + r2:
+        return 0.0
+    if d <= wp.abs(r1 - r2):
+        rm = wp.min(r1, r2)
+        return wp.pi * rm * rm
+    a1 = wp.acos(wp.clamp((d * d + r1 * r1 - r2 * r2) / (2.0 * d * r1), -1.0, 1.0))
+    a2 = wp.acos(wp.clamp((d * d + r2 * r2 - r1 * r1) / (2.0 * d * r2), -1.0, 1.0))
+    k = (-d + r1 + r2) * (d + r1 - r2) * (d - r1 + r2) * (d + r1 + r2)
+    return r1 * r1 * a1 + r2 * r2 * a2 - 0.5 * wp.sqrt(wp.max(k, 0.0))
+
+
+@wp.kernel
+def los_weights(
+    grid: Grid,
+    views: wp.array(dtype=View),
+    n_views: int,
+    voxels: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int64),
+    min_weight: float,
+    fill: int,
+    counts: wp.array(dtype=wp.int64),
+    sums: wp.array(dtype=float),
+    pix: wp.array(dtype=wp.int32),
+    w: wp.array(dtype=float),
+):
+    """Conventional sphere-cylinder weights of voxel ``voxels[tid]`` (the MART baseline).
+
+    The line of sight of the pixel at sensor point s under lenslet c passes through the
+    lenslet's conjugate x_f = c / M on the focal plane and the aperture point
+    A = c + (c - s) si / f_ml; at the voxel's depth it is |dz| / so |A* - A| from the voxel
+    centre, A* being the aperture point whose line passes through the voxel centre.
+    """
+    tid = wp.tid()
+    pw = voxel_centre(grid, voxels[tid])
+    n = wp.int64(0)
+    base = wp.int64(0)
+    norm = float(1.0)
+    if fill == 1:
+        base = offsets[tid]
+        norm = 1.0 / wp.max(sums[tid], 1.0e-30)
+    total = float(0.0)
+    for iv in range(n_views):
+        view = views[iv]
+        cam = view.cam
+        p = view_point(view, pw)
+        sop = cam.so - p[2]
+        if sop * cam.inv_f <= 1.0:
+            continue
+        dz = p[2]
+        if wp.abs(dz) < 1.0e-6:
+            dz = float(1.0e-6)
+        m = view.magnification
+        sph_area = wp.pi * view.los_sph * view.los_sph
+        # lenslets whose lines of sight can pass within los_radius of the voxel
+        shrink = 1.0 - dz / cam.so
+        cx = m * p[0] / shrink
+        cy = m * p[1] / shrink
+        reach = wp.abs(m) * (cam.aperture_r * wp.abs(dz) / cam.so + view.los_radius) / shrink
+        box = lattice_box(cam, cx, cx, cy, cy, reach + view.cell_r)
+        h = row_step(cam)
+        j0 = int(wp.ceil(box[2] / h))
+        j1 = int(wp.floor(box[3] / h))
+        ratio = cam.si / cam.f_ml
+        for j in range(j0, j1 + 1):
+            shift = row_shift(cam, j)
+            i0 = int(wp.ceil((box[0] - shift) / cam.pitch))
+            i1 = int(wp.floor((box[1] - shift) / cam.pitch))
+            for i in range(i0, i1 + 1):
+                c = from_lattice(cam, float(i) * cam.pitch + shift, float(j) * h)
+                xfx = c[0] / m
+                xfy = c[1] / m
+                # aperture point whose line of sight through this lenslet meets the voxel centre
+                asx = xfx + (p[0] - xfx) * cam.so / dz
+                asy = xfy + (p[1] - xfy) * cam.so / dz
+                # the sensor point of that line, and the search radius around it (pixels)
+                ssx = c[0] - (asx - c[0]) / ratio
+                ssy = c[1] - (asy - c[1]) / ratio
+                rad = view.los_radius * cam.so / wp.abs(dz) / ratio / cam.pixel + 1.0
+                rad = wp.min(rad, 0.5 * cam.pitch / cam.pixel + 1.0)
+                ccol = 0.5 * float(cam.ncols) - ssx / cam.pixel
+                crow = 0.5 * float(cam.nrows) + ssy / cam.pixel
+                # only this lenslet's own pixels: those within half a pitch of its centre
+                lcol = 0.5 * float(cam.ncols) - c[0] / cam.pixel
+                lrow = 0.5 * float(cam.nrows) + c[1] / cam.pixel
+                half = 0.5 * cam.pitch / cam.pixel
+                c0 = wp.max(0, int(wp.floor(wp.max(ccol - rad, lcol - half))))
+                c1 = wp.min(cam.ncols - 1, int(wp.floor(wp.min(ccol + rad, lcol + half))))
+                r0 = wp.max(0, int(wp.floor(wp.max(crow - rad, lrow - half))))
+                r1 = wp.min(cam.nrows - 1, int(wp.floor(wp.min(crow + rad, lrow + half))))
+                for r in range(r0, r1 + 1):
+                    for cc in range(c0, c1 + 1):
+                        sx = (0.5 * float(cam.ncols) - (float(cc) + 0.5)) * cam.pixel
+                        sy = (float(r) + 0.5 - 0.5 * float(cam.nrows)) * cam.pixel
+                        # the pixel must lie under this lenslet (its nearest lenslet is c)
+                        own = lenslet_centre(cam, sx, sy)
+                        if wp.abs(own[0] - c[0]) + wp.abs(own[1] - c[1]) > 1.0e-3 * cam.pitch:
+                            continue
+                        ax = c[0] + (c[0] - sx) * ratio
+                        ay = c[1] + (c[1] - sy) * ratio
+                        if ax * ax + ay * ay > cam.aperture_r * cam.aperture_r:
+                            continue
+                        d = wp.abs(dz) / cam.so * wp.sqrt((asx - ax) * (asx - ax) + (asy - ay) * (asy - ay))
+                        wt = circle_overlap(view.los_cyl, view.los_sph, d) / sph_area
+                        if wt > min_weight:  # the same test in both passes
+                            total += wt
+                            if fill == 1:
+                                pix[base + n] = view.pix_offset + r * cam.ncols + cc
+                                w[base + n] = wt * norm
+                            n += wp.int64(1)
+    if fill == 0:
+        counts[tid] = n
+        sums[tid] = total
+
+
+
+@wp.kernel
+def compact(mask: wp.array(dtype=wp.int32), scan: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
+    """Indices of the set entries of ``mask``, in order (``scan`` is its inclusive prefix sum)."""
+    v = wp.tid()
+    if mask[v] != 0:
+        out[scan[v] - 1] = v

@@ -1,0 +1,320 @@
+"""The projector: light-field cameras bound to a voxel grid on a compute device.
+
+It owns the geometry on the device and exposes what reconstruction algorithms need: which
+voxels can hold a particle (zero-voxel elimination), the sparse voxel-to-pixel weights (dense
+ray tracing, or the conventional line-of-sight baseline), forward projection, and the MART
+updates. Algorithms (:mod:`lfcore.reconstruct`) only see this object.
+
+Pixels of all cameras are numbered globally: camera k's pixel (row, column) is
+``pixel_offsets[k] + row * columns + column``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from lfcore.device import resolve_device, warp
+from lfcore.rig import Camera
+from lfcore.volume import VolumeGrid
+
+__all__ = ["MemoryBudgetError", "Projector", "Weights"]
+
+#: Bytes per stored weight: an int32 pixel index and a float32 value.
+BYTES_PER_WEIGHT = 8
+
+
+class MemoryBudgetError(MemoryError):
+    """The reconstruction would not fit in the device's memory; the message says what to change."""
+
+
+@dataclass
+class Weights:
+    """Sparse voxel-to-pixel weights on the device, voxel-major (CSR).
+
+    Attributes
+    ----------
+    voxels
+        (n,) int32 flat indices into the (z, y, x) grid of the voxels that have weights.
+    offsets
+        (n + 1,) int64: voxel j's entries are ``offsets[j] .. offsets[j + 1] - 1``.
+    pix
+        (nnz,) int32 global pixel index of each entry.
+    w
+        (nnz,) float32 weight: the fraction of the voxel's light on that pixel.
+    """
+
+    voxels: object
+    offsets: object
+    pix: object
+    w: object
+    nnz: int
+
+    @property
+    def n_voxels(self) -> int:
+        return int(self.voxels.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        return BYTES_PER_WEIGHT * self.nnz + 12 * self.n_voxels
+
+
+def _available_bytes(device: str) -> int:
+    wp = warp()
+    if device == "cpu":
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"))
+    return int(wp.get_device(device).free_memory)
+
+
+def _sub_apertures(cam: Camera, n_sub: int, samples: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Square sub-apertures over the main-lens disc: centroids (k, 2) mm and area shares (k,)."""
+    d = cam.aperture_mm
+    side = d / n_sub
+    edges = -0.5 * d + side * np.arange(n_sub)
+    fine = (np.arange(samples) + 0.5) / samples * side
+    centres, shares = [], []
+    for y0 in edges:
+        for x0 in edges:
+            xs, ys = np.meshgrid(x0 + fine, y0 + fine)
+            inside = xs**2 + ys**2 <= (0.5 * d) ** 2
+            if inside.any():
+                centres.append([xs[inside].mean(), ys[inside].mean()])
+                shares.append(inside.mean())
+    shares_a = np.asarray(shares)
+    return np.asarray(centres), shares_a
+
+
+class Projector:
+    """Cameras and a voxel grid bound on one device.
+
+    Parameters
+    ----------
+    cameras
+        One or more cameras (a joint reconstruction uses every camera's pixels).
+    grid
+        The voxel grid.
+    sub_apertures
+        Sub-apertures per axis of the main-lens aperture for the DRT weights; default: the
+        camera's pixels per lenslet, so that one sub-aperture maps onto about one pixel.
+    device
+        Warp device; None for the first GPU, else the CPU.
+    """
+
+    def __init__(self, cameras: Sequence[Camera], grid: VolumeGrid, *, sub_apertures: int | None = None,
+                 device: str | None = None) -> None:
+        from lfcore._kernels import weights as kw
+        from lfcore._kernels.optics import camera_params
+
+        if sub_apertures is not None and sub_apertures < 1:
+            raise ValueError(f"sub_apertures must be at least 1, got {sub_apertures}")
+        self.wp = warp()
+        self._kw = kw
+        self.cameras = tuple(cameras)
+        self.grid = grid
+        self.device = resolve_device(device)
+        wp = self.wp
+        g = kw.Grid()
+        g.origin = wp.vec3(*grid.origin_mm)
+        g.step = wp.vec3(*grid.voxel_mm)
+        g.nz, g.ny, g.nx = grid.shape
+        self._grid = g
+        self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in self.cameras])
+        self.n_pixels = int(self.pixel_offsets[-1])
+        if self.n_pixels >= 2**31 or grid.n_voxels >= 2**31:
+            raise MemoryBudgetError("more than 2**31 pixels or voxels; use a coarser --pvr")
+
+        views, sub_a, sub_w, sub_check = [], [], [], []
+        half_world = 0.5 * np.asarray(grid.voxel_mm)
+        for k, cam in enumerate(self.cameras):
+            n_sub = sub_apertures or max(1, round(cam.pixels_per_lenslet))
+            centres, shares = _sub_apertures(cam, n_sub)
+            v = kw.View()
+            v.cam = camera_params(cam)
+            rot = cam.rotation.T  # world -> camera
+            v.rot = wp.mat33(*rot.ravel())
+            v.focus = wp.vec3(*cam.focus_mm)
+            half = np.abs(rot) @ half_world
+            v.half = wp.vec3(*half)
+            v.pix_offset = int(self.pixel_offsets[k])
+            v.sub_first = len(sub_w)
+            v.sub_count = len(shares)
+            v.sub_side = cam.aperture_mm / n_sub
+            hexagonal = cam.mla_grid == "hex"
+            v.n_edges = 6 if hexagonal else 4
+            step = 60.0 if hexagonal else 90.0
+            ang = [math.radians(i * step + cam.mla_rotation_deg) for i in range(v.n_edges)]
+            v.edge_nx = kw.vec6(*[math.cos(a) for a in ang], *[0.0] * (6 - v.n_edges))
+            v.edge_ny = kw.vec6(*[math.sin(a) for a in ang], *[0.0] * (6 - v.n_edges))
+            v.cell_r = cam.mla_pitch_mm / (math.sqrt(3.0) if hexagonal else math.sqrt(2.0))
+            v.magnification = cam.magnification
+            # MART baseline: the pixel's line-of-sight cylinder is as wide as its lenslet's
+            # conjugate on the focal plane; the voxel's sphere as wide as the voxel laterally.
+            v.los_cyl = 0.5 * cam.mla_pitch_mm / abs(cam.magnification)
+            v.los_sph = 0.5 * (half[0] + half[1])
+            v.los_radius = v.los_cyl + v.los_sph
+            views.append(v)
+            sub_a.append(centres)
+            sub_w.append(shares / shares.sum())
+            sub_check.append((shares >= 0.5).astype(np.int32))
+        self.views = wp.array(views, dtype=kw.View, device=self.device)
+        self.sub_a = wp.array(np.concatenate(sub_a).astype(np.float32), dtype=wp.vec2, device=self.device)
+        self.sub_w = wp.array(np.concatenate(sub_w).astype(np.float32), dtype=float, device=self.device)
+        self.sub_check = wp.array(np.concatenate(sub_check), dtype=wp.int32, device=self.device)
+
+    # --- zero-voxel elimination ---------------------------------------------------------
+    def eliminate(self, lit: Sequence[np.ndarray], min_seen: float = 0.5) -> object:
+        """Voxels that can hold a particle: every sub-aperture of theirs lands on a lit pixel.
+
+        Parameters
+        ----------
+        lit
+            One boolean (rows, columns) image per camera: pixels with signal.
+        min_seen
+            Fraction of a voxel's checked sub-apertures that must land on a camera's sensor.
+
+        Returns
+        -------
+        warp.array
+            (n,) int32 flat voxel indices, ascending.
+        """
+        wp, kw = self.wp, self._kw
+        flat = np.concatenate([np.asarray(m, dtype=np.uint8).ravel() for m in lit])
+        if flat.size != self.n_pixels:
+            raise ValueError(f"lit masks hold {flat.size} pixels, the cameras {self.n_pixels}")
+        lit_dev = wp.array(flat, dtype=wp.uint8, device=self.device)
+        n = self.grid.n_voxels
+        mask = wp.zeros(n, dtype=wp.int32, device=self.device)
+        wp.launch(kw.eliminate, dim=n, device=self.device,
+                  inputs=[self._grid, self.views, len(self.cameras), self.sub_a, self.sub_check, lit_dev,
+                          float(min_seen), mask])
+        return self._compact(mask)
+
+    def all_voxels(self) -> object:
+        """Every voxel of the grid (no elimination), as (n,) int32 indices."""
+        return self.wp.array(np.arange(self.grid.n_voxels, dtype=np.int32), device=self.device)
+
+    def _compact(self, mask) -> object:
+        wp, kw = self.wp, self._kw
+        scan = wp.empty_like(mask)
+        wp.utils.array_scan(mask, scan, inclusive=True)
+        count = int(scan[mask.shape[0] - 1 :].numpy()[0]) if mask.shape[0] else 0
+        out = wp.empty(count, dtype=wp.int32, device=self.device)
+        if count:
+            wp.launch(kw.compact, dim=mask.shape[0], device=self.device, inputs=[mask, scan, out])
+        return out
+
+    # --- weights ------------------------------------------------------------------------
+    def weights(self, voxels, method: str = "drt", min_weight: float = 1e-6,
+                budget_bytes: int | None = None) -> Weights:
+        """Sparse weights of ``voxels`` (from :meth:`eliminate` or :meth:`all_voxels`).
+
+        Parameters
+        ----------
+        voxels
+            (n,) int32 flat voxel indices on this projector's device.
+        method
+            ``"drt"``: dense ray tracing; ``"los"``: the conventional line-of-sight cylinder
+            and voxel sphere (MART baseline).
+        min_weight
+            Entries below this are dropped.
+        budget_bytes
+            Memory the weights may take; default: what the device has free.
+
+        Raises
+        ------
+        MemoryBudgetError
+            If the weights would not fit, with their size.
+        """
+        wp, kw = self.wp, self._kw
+        n = int(voxels.shape[0])
+        counts = wp.zeros(max(n, 1), dtype=wp.int64, device=self.device)
+        sums = wp.zeros(max(n, 1), dtype=float, device=self.device)
+        offsets = wp.zeros(n + 1, dtype=wp.int64, device=self.device)
+        dummy_i = wp.empty(1, dtype=wp.int32, device=self.device)
+        dummy_f = wp.empty(1, dtype=float, device=self.device)
+        if method == "drt":
+            kern = kw.drt_weights
+            common = [self._grid, self.views, len(self.cameras), self.sub_a, self.sub_w, voxels]
+        elif method == "los":
+            kern = kw.los_weights
+            common = [self._grid, self.views, len(self.cameras), voxels]
+        else:
+            raise ValueError(f"unknown weight method '{method}'; use 'drt' or 'los'")
+
+        def launch(fill, pix, w):
+            extra = [sums] if method == "los" else []
+            wp.launch(kern, dim=n, device=self.device,
+                      inputs=[*common, offsets, float(min_weight), fill, counts, *extra, pix, w])
+
+        if n:
+            launch(0, dummy_i, dummy_f)
+            wp.utils.array_scan(counts[:n], offsets[1:], inclusive=True)
+        nnz = int(offsets[n:].numpy()[0])
+        need = BYTES_PER_WEIGHT * nnz
+        budget = _available_bytes(self.device) if budget_bytes is None else budget_bytes
+        if need > budget:
+            raise MemoryBudgetError(
+                f"the weights need {need / 2**30:.1f} GiB for {n} voxels and {nnz} entries but "
+                f"{self.device} has {budget / 2**30:.1f} GiB free; use a coarser --pvr, a smaller "
+                "volume, or fewer sub-apertures")
+        pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=self.device)
+        w = wp.empty(max(nnz, 1), dtype=float, device=self.device)
+        if n:
+            launch(1, pix, w)
+        return Weights(voxels=voxels, offsets=offsets, pix=pix, w=w, nnz=nnz)
+
+    # --- projections and updates --------------------------------------------------------
+    def forward(self, weights: Weights, e, out=None):
+        """Project voxel intensities ``e`` (n,) to all pixels; returns (n_pixels,) float32."""
+        from lfcore._kernels import mart as km
+
+        wp = self.wp
+        out = wp.zeros(self.n_pixels, dtype=float, device=self.device) if out is None else out
+        out.zero_()
+        wp.launch(km.project, dim=weights.n_voxels, device=self.device,
+                  inputs=[weights.offsets, weights.pix, weights.w, e, out])
+        return out
+
+    def smart_update(self, weights: Weights, image, proj, e, relaxation: float, floor: float) -> None:
+        """One simultaneous multiplicative update of ``e`` in place (see the kernel)."""
+        from lfcore._kernels import mart as km
+
+        self.wp.launch(km.smart_update, dim=weights.n_voxels, device=self.device,
+                       inputs=[weights.offsets, weights.pix, weights.w, image, proj, float(floor),
+                               float(relaxation), e])
+
+    def transpose(self, weights: Weights):
+        """Pixel-major copy of the weights for the sequential form: (p_offsets, vox, w, rows)."""
+        wp = self.wp
+        offsets = weights.offsets.numpy()
+        pix = weights.pix.numpy()[: weights.nnz]
+        vox = np.repeat(np.arange(weights.n_voxels, dtype=np.int32), np.diff(offsets))
+        order = np.argsort(pix, kind="stable")
+        p_offsets = np.zeros(self.n_pixels + 1, dtype=np.int64)
+        np.cumsum(np.bincount(pix, minlength=self.n_pixels), out=p_offsets[1:])
+        rows = np.flatnonzero(np.diff(p_offsets)).astype(np.int32)
+        dev = self.device
+        return (wp.array(p_offsets, device=dev), wp.array(vox[order], device=dev),
+                wp.array(weights.w.numpy()[: weights.nnz][order], device=dev), wp.array(rows, device=dev))
+
+    def mart_sweep(self, transposed, image, e, relaxation: float, floor: float) -> None:
+        """One sequential sweep of eq. 4.1 over every pixel with weights (single thread)."""
+        from lfcore._kernels import mart as km
+
+        p_offsets, vox, w, rows = transposed
+        self.wp.launch(km.mart_sequential, dim=1, device=self.device,
+                       inputs=[p_offsets, vox, w, rows, image, float(floor), float(relaxation), e])
+
+    def to_volume(self, weights: Weights, e) -> np.ndarray:
+        """Dense (z, y, x) float32 volume with ``e`` at the weighted voxels, zero elsewhere."""
+        from lfcore._kernels import mart as km
+
+        wp = self.wp
+        vol = wp.zeros(self.grid.n_voxels, dtype=float, device=self.device)
+        if weights.n_voxels:
+            wp.launch(km.scatter_volume, dim=weights.n_voxels, device=self.device, inputs=[weights.voxels, e, vol])
+        return vol.numpy().reshape(self.grid.shape)

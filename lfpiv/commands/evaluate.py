@@ -1,0 +1,42 @@
+"""``lfpiv evaluate``: quality of a synthetic run's reconstruction against its truth."""
+
+from __future__ import annotations
+
+import argparse
+
+from lfpiv.commands import positive_float
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    e = sub.add_parser("evaluate", help="compare a synthetic run's volumes (and vectors) with the truth",
+                       description="Print Q_recon, particle recall, ghosts, position errors, particle "
+                       "diameters and the intensity outside the seeded region for every reconstructed frame.")
+    e.add_argument("run", metavar="RUN", help="synthetic run store with volumes/")
+    e.add_argument("--pairs", default=None, metavar="RANGE", help="pairs to evaluate (default: all reconstructed)")
+    e.add_argument("--threshold", type=positive_float, default=0.1,
+                   help="detect peaks above this fraction of the brightest voxel (default: 0.1)")
+    e.add_argument("--match-voxels", type=positive_float, default=2.0,
+                   help="a detection matches a true particle within this many voxels per axis (default: 2)")
+    e.add_argument("--plot", default=None, metavar="PNG", help="also write intensity-against-depth and projections")
+    e.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from lfcore.runstore import RunStore
+    from lfpiv.recon import evaluate_run, summary_rows
+
+    store = RunStore.open(args.run)
+    evals = evaluate_run(store, pairs=args.pairs, threshold=args.threshold, match_voxels=args.match_voxels)
+    rows = summary_rows(evals)
+    cols = list(rows[0])
+    width = {c: max(len(c), *(len(r[c]) for r in rows)) for c in cols}
+    print(f"reconstruction of {store.path} ({store.group['volumes'].attrs['method']}), "
+          f"matching within {args.match_voxels:g} voxels per axis:")
+    print("  ".join(c.ljust(width[c]) for c in cols))
+    for r in rows:
+        print("  ".join(r[c].ljust(width[c]) for c in cols))
+    if args.plot:
+        from lfpiv.plots import plot_reconstruction
+
+        print(f"picture: {plot_reconstruction(store, evals, args.plot)}")
+    return 0

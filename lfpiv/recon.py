@@ -1,0 +1,189 @@
+"""Reconstructing a run store's pairs into ``volumes/``, and evaluating them against the truth."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from lfcore import metrics
+from lfcore.device import resolve_device, warp
+from lfcore.projector import Projector
+from lfcore.reconstruct import ReconResult, ReconSettings, reconstruct
+from lfcore.runstore import RunStore, RunStoreError
+from lfcore.volume import VolumeGrid
+from lfpiv.errors import UsageError
+
+__all__ = ["FrameEvaluation", "evaluate_run", "parse_pairs", "reconstruct_run", "summary_rows"]
+
+#: Bytes per voxel of the box the elimination pass and the dense result need at once.
+BYTES_PER_BOX_VOXEL = 16
+
+
+def parse_pairs(spec: str | None, n_pairs: int) -> list[int]:
+    """Pair indices from ``"3"``, ``"0:10"``, ``"5:"`` or ``":5"`` (Python slice semantics).
+
+    Raises
+    ------
+    UsageError
+        For a malformed spec or one that selects no pair.
+    """
+    if spec is None:
+        return list(range(n_pairs))
+    try:
+        if ":" in spec:
+            a, b = spec.split(":", 1)
+            pairs = list(range(n_pairs))[slice(int(a) if a.strip() else None, int(b) if b.strip() else None)]
+        else:
+            i = int(spec)
+            pairs = [i] if 0 <= i < n_pairs else []
+    except ValueError:
+        raise UsageError(f"--pairs '{spec}' is not a pair number or a range like 0:10") from None
+    if not pairs:
+        raise UsageError(f"--pairs '{spec}' selects no pair of this run (it has pairs 0 to {n_pairs - 1})")
+    return pairs
+
+
+def _available_bytes(device: str) -> int:
+    if device == "cpu":
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"))
+    return int(warp().get_device(device).free_memory)
+
+
+def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[float] | None = None,
+                    margin_mm: Sequence[float] = (0.0, 0.0, 0.0), pairs: str | None = None,
+                    cameras: Sequence[str] | None = None, device: str | None = None,
+                    progress: bool = True) -> list[ReconResult]:
+    """Reconstruct both frames of the selected pairs and store them in ``volumes/``.
+
+    Existing volumes with the same grid, cameras and settings are kept and added to; otherwise
+    ``volumes/`` is replaced.
+
+    Raises
+    ------
+    UsageError
+        No committed pairs, a pair that was not recorded, an unknown camera, a bad PVR, or a
+        box too big for the device's memory.
+    """
+    rig = store.rig
+    if store.committed_pairs == 0:
+        raise UsageError(f"{store.path} has no recorded pairs (committed_pairs = 0); nothing to reconstruct")
+    chosen = parse_pairs(pairs, store.n_pairs)
+    late = [p for p in chosen if p >= store.committed_pairs]
+    if late:
+        raise UsageError(f"pair {late[0]} was never recorded (the run has {store.committed_pairs} committed "
+                         f"pair(s)); choose --pairs within 0:{store.committed_pairs}")
+    names = list(cameras) if cameras else [c.name for c in rig.camera]
+    unknown = [n for n in names if n not in store.cameras]
+    if unknown:
+        raise UsageError(f"--cameras: no camera '{unknown[0]}' in this run (it has {', '.join(store.cameras)})")
+    cams = [rig.camera_named(n) for n in names]
+    try:
+        grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(pvr), tuple(margin_mm))
+    except ValueError as exc:
+        raise UsageError(f"--pvr/--margin-mm: {exc}") from None
+    device = resolve_device(device)
+    need = BYTES_PER_BOX_VOXEL * grid.n_voxels
+    if need > _available_bytes(device):
+        raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
+                         "has free; use a coarser --pvr")
+    projector = Projector(cams, grid, sub_apertures=settings.sub_apertures, device=device)
+    meta = {**settings.as_dict(), "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
+            "cameras": names}
+    if not (store.has_volumes and store.volume_grid() == grid and store.group["volumes"].attrs["settings"] == meta):
+        store.create_volumes(grid, method=settings.method, settings=meta)
+
+    results = []
+    total = len(chosen) * 2 * max(settings.iterations, 1)
+    with tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar:
+        for p in chosen:
+            for f in (0, 1):
+                images = [store.frames(n)[p, f] for n in names]
+                res = reconstruct(projector, images, settings, progress=bar.update)
+                if settings.iterations == 0:
+                    bar.update(1)
+                store.write_volume(p, f, res.volume)
+                bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}")
+                results.append(res)
+    return results
+
+
+@dataclass(frozen=True)
+class FrameEvaluation:
+    """Quality of one reconstructed volume against the truth."""
+
+    pair: int
+    frame: int
+    q: float
+    match: metrics.MatchResult
+    diameters_vox: np.ndarray  # median (x, y, z)
+    outside: float
+    depth_profile: np.ndarray
+    truth_profile: np.ndarray
+
+
+def evaluate_run(store: RunStore, pairs: str | None = None, threshold: float = 0.1,
+                 match_voxels: float = 2.0) -> list[FrameEvaluation]:
+    """Q, detection and matching, diameters and depth profile of every reconstructed frame.
+
+    Raises
+    ------
+    UsageError
+        A recorded run (no truth) or a run without volumes.
+    """
+    truth = store.truth()
+    if truth is None:
+        raise UsageError(f"{store.path} is a recorded run with no truth; evaluate needs a synthetic run")
+    try:
+        vols = store.volumes()
+    except RunStoreError as exc:
+        raise UsageError(str(exc)) from None
+    done = store.reconstructed_pairs()
+    chosen = [p for p in parse_pairs(pairs, store.n_pairs) if p in done]
+    if not chosen:
+        raise UsageError(f"none of the selected pairs is reconstructed (reconstructed: {done or 'none'}); "
+                         f"run 'lfpiv reconstruct {store.path}' first")
+    grid = store.volume_grid()
+    rig = store.rig
+    tol = match_voxels * np.asarray(grid.voxel_mm)
+    out = []
+    for p in chosen:
+        for f in (0, 1):
+            vol = vols[p, f]
+            pts = truth["particles"][p, f]
+            bright = truth["brightness"][p, f]
+            e0 = metrics.truth_volume(grid, pts, bright)
+            pos, peaks, idx = metrics.detect_particles(vol, grid, threshold)
+            m = metrics.match_particles(pos, pts, tol)
+            diam = metrics.particle_diameters(vol, idx)
+            out.append(FrameEvaluation(
+                pair=p, frame=f, q=metrics.q_recon(vol, e0), match=m,
+                diameters_vox=np.median(diam, axis=0) if len(diam) else np.full(3, np.nan),
+                outside=metrics.outside_fraction(vol, grid, rig.volume.centre_mm, rig.volume.size_mm),
+                depth_profile=metrics.depth_profile(vol), truth_profile=metrics.depth_profile(e0)))
+    return out
+
+
+def summary_rows(evals: list[FrameEvaluation]) -> list[dict[str, Any]]:
+    """Printable rows, one per frame plus the mean."""
+    rows = []
+    for e in evals:
+        rms = e.match.rms_error_mm * 1e3
+        rows.append({"pair": str(e.pair), "frame": "AB"[e.frame], "Q": f"{e.q:.3f}",
+                     "recall": f"{e.match.recall:.2f}", "ghosts": f"{e.match.ghosts}/{e.match.n_detected}",
+                     "rms err x,y,z um": ", ".join(f"{v:.1f}" for v in rms),
+                     "diam x,y,z vox": ", ".join(f"{v:.1f}" for v in e.diameters_vox),
+                     "outside": f"{100 * e.outside:.2f}%"})
+    if len(evals) > 1:
+        rms = np.nanmean([e.match.rms_error_mm for e in evals], axis=0) * 1e3
+        rows.append({"pair": "mean", "frame": "", "Q": f"{np.mean([e.q for e in evals]):.3f}",
+                     "recall": f"{np.mean([e.match.recall for e in evals]):.2f}",
+                     "ghosts": f"{sum(e.match.ghosts for e in evals)}/{sum(e.match.n_detected for e in evals)}",
+                     "rms err x,y,z um": ", ".join(f"{v:.1f}" for v in rms),
+                     "diam x,y,z vox": ", ".join(f"{v:.1f}" for v in np.nanmean([e.diameters_vox for e in evals], 0)),
+                     "outside": f"{100 * np.mean([e.outside for e in evals]):.2f}%"})
+    return rows

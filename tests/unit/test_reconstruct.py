@@ -1,0 +1,166 @@
+"""DRT-MART and the MART baseline on the tiny rig, on every device Warp finds.
+
+Known truths: a single particle must come back where it was; a voxel's weights must spread its
+light as the optics (the Monte-Carlo renderer) does; dual cameras at 90 degrees must resolve
+depth better than one; nothing may appear outside the seeded region.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lfcore import metrics
+from lfcore.particles import particle_count, seed_particles
+from lfcore.projector import MemoryBudgetError, Projector
+from lfcore.reconstruct import ReconSettings, estimate_background, reconstruct
+from lfcore.render import LightFieldRenderer
+from lfcore.rig import Rig
+from lfcore.volume import VolumeGrid
+from tests.conftest import tiny_variant
+
+
+def _render(rig, pts, seed=1, rays=20_000, device="cpu"):
+    cfg = rig.render.model_copy(update={"rays_per_particle": rays})
+    return [LightFieldRenderer(c, cfg, rig.laser.wavelength_nm, device=device).frame(pts, 50_000.0, seed=seed + i)
+            for i, c in enumerate(rig.camera)]
+
+
+def _voxel_index(grid, ix, iy, iz):
+    return (iz * grid.shape[1] + iy) * grid.shape[2] + ix
+
+
+def _dual_rig(tiny_rig) -> Rig:
+    d = tiny_rig.to_dict()
+    d["volume"].update(size_mm=[0.8, 0.7, 0.8], pvr=[2.0, 2.0, 2.0])
+    side = dict(d["camera"][0], name="cam1", rotation_deg=[0.0, 90.0, 0.0])
+    d["camera"].append(side)
+    return Rig.from_dict(d)
+
+
+@pytest.mark.parametrize("grid_kind", ["hex", "square"])
+@pytest.mark.parametrize("point", [(0.05, -0.03, 0.31), (-0.12, 0.08, -0.55), (0.2, 0.1, 0.7)])
+def test_single_particle_comes_back_in_place(tiny_rig, device, grid_kind, point):
+    rig = tiny_variant(tiny_rig, mla_grid=grid_kind)
+    grid = VolumeGrid.from_rig(rig)
+    (img,) = _render(rig, np.array([point]), device=device)
+    res = reconstruct(Projector(rig.camera, grid, device=device), [img], ReconSettings(iterations=30))
+    pos, peaks, idx = metrics.detect_particles(res.volume, grid, threshold=0.5)
+    assert len(pos) == 1  # one particle, no ghost above half its intensity
+    err = np.abs(pos[0] - point) / np.asarray(grid.voxel_mm)
+    elong = metrics.particle_diameters(res.volume, idx)[0]
+    assert err[0] < 1.0 and err[1] < 1.0  # within a voxel laterally
+    assert err[2] < max(1.0, 0.5 * elong[2])  # within the elongation in depth
+    assert res.active_fraction < 0.01  # elimination keeps a handful of voxels
+
+
+def test_weights_spread_light_as_the_optics_do(tiny_rig, device):
+    grid = VolumeGrid.from_rig(tiny_rig)
+    cam = tiny_rig.camera[0]
+    proj = Projector([cam], grid, device=device)
+    cfg = tiny_rig.render.model_copy(update={"rays_per_particle": 20_000, "diffraction": False})
+    r = LightFieldRenderer(cam, cfg, device=device)
+    rng = np.random.default_rng(0)
+    for ix, iy, iz in [(41, 34, 14), (45, 30, 20), (41, 34, 2), (60, 50, 26), (81, 67, 0)]:
+        v = _voxel_index(grid, ix, iy, iz)
+        centre = np.asarray(grid.origin_mm) + np.array([ix, iy, iz]) * np.asarray(grid.voxel_mm)
+        w = proj.weights(proj.wp.array([v], dtype=proj.wp.int32, device=proj.device))
+        f = proj.forward(w, proj.wp.array([1.0], dtype=float, device=proj.device)).numpy()
+        # the renderer's image of the voxel filled uniformly with points, as fractions of the light
+        pts = centre + (rng.random((100, 3)) - 0.5) * np.asarray(grid.voxel_mm)
+        img = r.irradiance(pts, 1000.0, seed=2).ravel() / (100 * 1000.0)
+        assert f.sum() == pytest.approx(img.sum(), abs=0.02)  # the share of light on the sensor
+        assert np.corrcoef(f, img)[0, 1] > 0.97  # spread over the same pixels
+        assert np.abs(f - img).sum() < 0.25 * img.sum()
+        if ix < 80:
+            assert f.sum() == pytest.approx(1.0, abs=1e-4)  # inside the field of view: all light arrives
+    assert f.sum() < 0.95  # the last, defocused at the corner of the box, loses some off the sensor
+
+
+def test_drt_mart_beats_mart_at_equal_work(tiny_rig, device):
+    grid = VolumeGrid.from_rig(tiny_rig)
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.3), np.random.default_rng(3))
+    (img,) = _render(tiny_rig, pts, device=device)
+    proj = Projector(tiny_rig.camera, grid, device=device)
+    e0 = metrics.truth_volume(grid, pts)
+    drt = reconstruct(proj, [img], ReconSettings(method="drt-mart", iterations=20))
+    # the baseline gets as many passes over its stored weights as DRT-MART streams
+    mart_its = max(1, round(20 * drt.nnz / proj.weights(proj.all_voxels(), "los").nnz))
+    mart = reconstruct(proj, [img], ReconSettings(method="mart", iterations=mart_its))
+    out = {}
+    tol = 2 * np.asarray(grid.voxel_mm)
+    for name, res in (("drt", drt), ("mart", mart)):
+        pos, _, idx = metrics.detect_particles(res.volume, grid, 0.1)
+        m = metrics.match_particles(pos, pts, tol)
+        real = np.linalg.norm((pos[:, None] - pts[None]) / tol, axis=-1).min(axis=1) <= 1  # not ghosts
+        depth = np.median(metrics.particle_diameters(res.volume, idx[real])[:, 2])
+        out[name] = (metrics.q_recon(res.volume, e0), depth, m.ghosts)
+    assert out["drt"][0] > out["mart"][0]  # Q
+    assert out["drt"][1] < out["mart"][1]  # depth elongation
+    assert out["drt"][2] < out["mart"][2]  # ghosts
+
+
+def test_two_cameras_at_90_degrees_beat_one(tiny_rig, device):
+    rig = _dual_rig(tiny_rig)
+    grid = VolumeGrid.from_rig(rig)
+    pts = seed_particles(rig.volume, particle_count(rig, 0.2), np.random.default_rng(4))
+    imgs = _render(rig, pts, device=device)
+    e0 = metrics.truth_volume(grid, pts)
+    tol = 2 * np.asarray(grid.voxel_mm)
+    one = reconstruct(Projector(rig.camera[:1], grid, device=device), imgs[:1], ReconSettings(iterations=30))
+    two = reconstruct(Projector(rig.camera, grid, device=device), imgs, ReconSettings(iterations=30))
+    q1, q2 = metrics.q_recon(one.volume, e0), metrics.q_recon(two.volume, e0)
+    m1 = metrics.match_particles(metrics.detect_particles(one.volume, grid)[0], pts, tol)
+    m2 = metrics.match_particles(metrics.detect_particles(two.volume, grid)[0], pts, tol)
+    assert q2 > q1 + 0.1
+    assert m2.recall > m1.recall
+    # camera 0 looks along z: its depth error shrinks once camera 1 sees z sideways
+    assert m2.rms_error_mm[2] < 0.7 * m1.rms_error_mm[2]
+    assert two.active_fraction < one.active_fraction
+
+
+def test_no_intensity_outside_the_seeded_region(tiny_rig, device):
+    grid = VolumeGrid.from_rig(tiny_rig, margin_mm=(0.0, 0.0, 0.4))
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.2), np.random.default_rng(5))
+    (img,) = _render(tiny_rig, pts, device=device)
+    res = reconstruct(Projector(tiny_rig.camera, grid, device=device), [img], ReconSettings(iterations=30))
+    v = tiny_rig.volume
+    # a particle at the boundary keeps its depth elongation: allow it three depth voxels
+    reach = np.asarray(v.size_mm) + [0.0, 0.0, 6 * grid.voxel_mm[2]]
+    assert metrics.outside_fraction(res.volume, grid, v.centre_mm, reach) < 0.002
+    assert metrics.outside_fraction(res.volume, grid, v.centre_mm, v.size_mm) < 0.05
+    assert res.volume.sum() > 0
+
+
+def test_sequential_form_finds_the_particle_too(tiny_rig):
+    grid = VolumeGrid.from_rig(tiny_rig)
+    point = np.array([[0.05, -0.03, 0.31]])
+    (img,) = _render(tiny_rig, point)
+    res = reconstruct(Projector(tiny_rig.camera, grid, device="cpu"), [img],
+                      ReconSettings(iterations=10, form="sequential", relaxation=2.5))
+    pos, _, _ = metrics.detect_particles(res.volume, grid, threshold=0.5)
+    assert len(pos) == 1 and np.all(np.abs(pos[0] - point[0])[:2] < np.asarray(grid.voxel_mm)[:2])
+
+
+def test_background_estimate(tiny_rig):
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.5), np.random.default_rng(6))
+    (img,) = _render(tiny_rig, pts)
+    level, sigma = estimate_background(img)
+    assert level == pytest.approx(100.0, abs=2.0)  # the rig's background_counts
+    assert sigma == pytest.approx(np.sqrt(100.0 + 9.0), rel=0.15)  # shot and read noise
+
+
+def test_weights_that_do_not_fit_are_refused(tiny_rig):
+    proj = Projector(tiny_rig.camera, VolumeGrid.from_rig(tiny_rig), device="cpu")
+    with pytest.raises(MemoryBudgetError, match=r"the weights need .* GiB .* use a coarser --pvr"):
+        proj.weights(proj.all_voxels(), "los", budget_bytes=1000)
+
+
+def test_bad_settings():
+    with pytest.raises(ValueError, match="method must be one of"):
+        ReconSettings(method="sart")
+    with pytest.raises(ValueError, match="relaxation must be positive"):
+        ReconSettings(relaxation=0.0)
+    with pytest.raises(ValueError, match="diverge; use at most 2, or the sequential form"):
+        ReconSettings(relaxation=2.5)
+    assert ReconSettings(relaxation=2.5, form="sequential").relaxation == 2.5
