@@ -109,11 +109,11 @@ def sample_bspline(coef: wp.array3d(dtype=wp.float32), p: wp.vec3) -> float:
     x = int(fx) - 1
     y = int(fy) - 1
     z = int(fz) - 1
-    acc = 0.0
+    acc = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
     for c in range(4):
-        plane = 0.0
+        plane = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
         for b in range(4):
-            row = 0.0
+            row = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
             for a in range(4):
                 row += wx[a] * voxel(coef, x + a, y + b, z + c)
             plane += wy[b] * row
@@ -132,7 +132,7 @@ def bspline_prefilter(coef: wp.array3d(dtype=wp.float32), axis: int):
     a, b = wp.tid()
     zp = BSPLINE_POLE
     n = coef.shape[2 - axis]
-    prev = 0.0
+    prev = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
     for k in range(n):
         z = a
         y = b
@@ -240,7 +240,7 @@ def window_stats(sums: wp.array2d(dtype=wp.vec4), n_voxels: float, mean: wp.arra
     va = s[2] - s[0] * ma
     vb = s[3] - s[1] * mb
     mean[w] = wp.vec2f(ma, mb)
-    sc = 0.0
+    sc = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
     # a window with (almost) no fluctuation in either volume has no correlation peak
     if va > 1.0e-6 * s[2] and vb > 1.0e-6 * s[3] and va > 0.0 and vb > 0.0:
         sc = 1.0 / wp.sqrt(va * vb)
@@ -327,8 +327,8 @@ def peak_partial(corr: wp.array4d(dtype=wp.vec2f), threads: int, exclude: wp.arr
     pz = corr.shape[1]
     py = corr.shape[2]
     px = corr.shape[3]
-    best = -1.0e30
-    best_idx = -1
+    best = float(-1.0e30)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    best_idx = int(-1)  # noqa: UP018 - a dynamic Warp variable, mutated below
     e = exclude[w]
     slot = w // 2
     odd = w % 2
@@ -356,8 +356,8 @@ def peak_reduce(part_val: wp.array2d(dtype=float), part_idx: wp.array2d(dtype=in
                 value: wp.array(dtype=float), where: wp.array(dtype=wp.vec3i)):
     """The maximum over the threads of each window; ties go to the lowest index (deterministic)."""
     w = wp.tid()
-    best = -1.0e30
-    best_idx = -1
+    best = float(-1.0e30)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    best_idx = int(-1)  # noqa: UP018 - a dynamic Warp variable, mutated below
     for t in range(part_val.shape[1]):
         v = part_val[w, t]
         ix = part_idx[w, t]
@@ -420,14 +420,14 @@ def peak_fit(corr: wp.array4d(dtype=wp.vec2f), first: int, scale: wp.array(dtype
                               float(signed_shift(j, corr.shape[2])) + fy[0],
                               float(signed_shift(k, corr.shape[1])) + fz[0])
     height[g] = value1[w]
-    r = 0.0
+    r = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
     if value2[w] > 0.0:
         r = value1[w] / value2[w]
     elif value1[w] > 0.0:
         r = 1.0e6  # no second positive peak at all
     ratio[g] = r
     fallback[g] = int(fx[1] + fy[1] + fz[1] > 0.0)
-    ok = 0
+    ok = int(0)  # noqa: UP018 - a dynamic Warp variable, mutated below
     if scale[w] > 0.0 and value1[w] > 0.0:
         ok = 1
     valid[g] = ok
