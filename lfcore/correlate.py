@@ -51,7 +51,7 @@ import scipy.fft
 from scipy.interpolate import RegularGridInterpolator
 
 from lfcore.device import resolve_device, warp
-from lfcore.vectors import MedianTest, median_filter, normalized_median_test, replace_outliers
+from lfcore.vectors import MedianTest, median_filter, normalized_median_test, replace_outliers, smooth
 
 __all__ = ["CorrelationConfig", "CorrelationError", "Correlator", "VectorField", "WindowGrid", "correlate",
            "window_grid"]
@@ -108,6 +108,7 @@ class CorrelationConfig:
     median_test: MedianTest = field(default_factory=MedianTest)
     median_filter: bool = False
     interpolation: str = "cubic"
+    smooth_predictor: float = 1.0
     fft: str = "auto"
     batch_bytes: int | None = None
 
@@ -263,21 +264,18 @@ def _padded(window: tuple[int, int, int], zero_pad: bool) -> tuple[int, int, int
 def _interp(field: np.ndarray, grid: WindowGrid, points: np.ndarray) -> np.ndarray:
     """Trilinear interpolation of a (nz, ny, nx, 3) field on ``grid`` at (n, 3) points (x, y, z) in voxels.
 
-    Points beyond the outermost centres take the edge values (the kernels' ``predictor_at``).
+    Beyond the outermost centres the field is extrapolated linearly (as the kernels'
+    ``predictor_at`` does); along an axis with a single window it is constant.
     """
     axes = []
-    pts = np.empty((len(points), 3))
-    for i, (c, p) in enumerate(zip(grid.centres(), points.T, strict=True)):
-        if len(c) == 1:  # a single window along this axis: constant
-            c = np.array([c[0], c[0] + 1.0])
-        axes.append(c)
-        pts[:, i] = np.clip(p, c[0], c[-1])
     f = field
-    for ax, n in ((0, f.shape[0]), (1, f.shape[1]), (2, f.shape[2])):
-        if n == 1:
+    for ax, c in enumerate(grid.centres()[::-1]):  # z, y, x
+        if len(c) == 1:
+            c = np.array([c[0], c[0] + 1.0])
             f = np.concatenate([f, f], axis=ax)
-    interp = RegularGridInterpolator((axes[2], axes[1], axes[0]), f, method="linear")
-    return interp(pts[:, ::-1])
+        axes.append(c)
+    interp = RegularGridInterpolator(tuple(axes), f, method="linear", bounds_error=False, fill_value=None)
+    return interp(np.asarray(points, dtype=np.float64)[:, ::-1])
 
 
 class Correlator:
@@ -515,7 +513,10 @@ class Correlator:
             disp, replaced = replace_outliers(disp, outlier)
             if np.isnan(disp).all():
                 disp = np.zeros_like(disp)  # nothing to predict from: start again from rest
-            pred = (np.where(np.isnan(disp), 0.0, disp), g)
+            pred_field = np.where(np.isnan(disp), 0.0, disp)
+            if cfg.smooth_predictor > 0 and i + 1 < len(cfg.passes) and cfg.passes[i + 1][1] == "deform":
+                pred_field = smooth(pred_field, cfg.smooth_predictor)
+            pred = (pred_field, g)
             if progress is not None:
                 progress(1)
         if cfg.median_filter:

@@ -9,7 +9,9 @@ to 3D: for each vector and each component u, with u_m the median of its (up to) 
 and r_m the median of the neighbours' residuals |u_i - u_m|, the normalized residual is
 ``|u - u_m| / (r_m + epsilon)``. A vector is an outlier when any component's normalized
 residual exceeds ``threshold`` (defaults: epsilon 0.1 voxel, threshold 2), or when it is
-missing (NaN: a window without signal). Outliers are replaced by the median of their valid
+missing (NaN: a window without signal). Beyond the grid's edges the neighbourhood is completed
+by point reflection about the tested vector (2 u - u_opposite), so that an edge vector in a
+velocity gradient is not flagged for its one-sided neighbourhood. Outliers are replaced by the median of their valid
 neighbours; the flags of both steps are kept.
 """
 
@@ -34,6 +36,7 @@ __all__ = [
     "normalized_median_test",
     "q_criterion",
     "replace_outliers",
+    "smooth",
     "velocity_gradient",
     "vorticity",
 ]
@@ -74,11 +77,28 @@ def _check_field(field: np.ndarray) -> np.ndarray:
     return f
 
 
-def _neighbours(field: np.ndarray) -> np.ndarray:
-    """(26, nz, ny, nx, 3): each vector's 26 neighbours, NaN beyond the grid's edge."""
+def _neighbours(field: np.ndarray, reflect: bool = False) -> np.ndarray:
+    """(26, nz, ny, nx, 3): each vector's 26 neighbours.
+
+    Beyond the grid's edge they are NaN, or with ``reflect`` the point reflection of the field
+    about the edge vector (2 u[0] - u[1]), which continues linear fields exactly.
+    """
     nz, ny, nx, _ = field.shape
     pad = np.full((nz + 2, ny + 2, nx + 2, 3), np.nan)
     pad[1:-1, 1:-1, 1:-1] = field
+    if reflect:
+        for ax, n in enumerate((nz, ny, nx)):
+            if n < 2:
+                continue
+            lo = [slice(None)] * 4
+            hi = [slice(None)] * 4
+            lo[ax], hi[ax] = 0, n + 1
+            e0 = [slice(None)] * 4
+            e1 = [slice(None)] * 4
+            e0[ax], e1[ax] = 1, 2
+            pad[tuple(lo)] = 2 * pad[tuple(e0)] - pad[tuple(e1)]
+            e0[ax], e1[ax] = n, n - 1
+            pad[tuple(hi)] = 2 * pad[tuple(e0)] - pad[tuple(e1)]
     return np.stack([pad[1 + dz:1 + dz + nz, 1 + dy:1 + dy + ny, 1 + dx:1 + dx + nx] for dz, dy, dx in _OFFSETS])
 
 
@@ -105,7 +125,7 @@ def normalized_median_test(field: np.ndarray, test: MedianTest = MedianTest()) -
         valid neighbour cannot be tested and is kept unless it is missing.
     """
     f = _check_field(field)
-    nb = _neighbours(f)
+    nb = _neighbours(f, reflect=True)
     med = _nanmedian(nb)
     res = _nanmedian(np.abs(nb - med[None]))
     with np.errstate(invalid="ignore"):
@@ -162,6 +182,25 @@ def median_filter(field: np.ndarray, size: int = 3) -> np.ndarray:
     if size < 1:
         raise ValueError(f"median filter size must be at least 1, got {size}")
     return np.stack([ndimage.median_filter(f[..., c], size=size, mode="nearest") for c in range(3)], axis=-1)
+
+
+def smooth(field: np.ndarray, sigma: float = 1.0) -> np.ndarray:
+    """Gaussian smoothing of each component over the grid (sigma in grid spacings).
+
+    Used on the predictor between deformation passes: iterating with an unfiltered predictor
+    feeds each vector's random error back into the next deformation and stops the iteration
+    from converging (Schrijer & Scarano 2008). The field is continued point-symmetrically past
+    its edges, so linear fields pass unchanged everywhere.
+    """
+    f = _check_field(field)
+    if sigma <= 0:
+        return f.copy()
+    # point-symmetric padding (2 edge - mirror image) continues linear fields past the edge
+    r = max(1, int(np.ceil(2.0 * sigma)))
+    pads = [(min(r, n - 1),) * 2 for n in f.shape[:3]] + [(0, 0)]
+    p = np.pad(f, pads, mode="reflect", reflect_type="odd") if max(f.shape[:3]) > 1 else f
+    out = np.stack([ndimage.gaussian_filter(p[..., c], sigma, mode="nearest", truncate=2.0) for c in range(3)], axis=-1)
+    return out[tuple(slice(a, a + n) for (a, _), n in zip(pads[:3], f.shape[:3], strict=True))]
 
 
 def flags_from_masks(outlier: np.ndarray, replaced: np.ndarray) -> np.ndarray:

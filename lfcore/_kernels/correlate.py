@@ -50,17 +50,21 @@ def sample(vol: wp.array3d(dtype=wp.float32), p: wp.vec3) -> float:
 
 @wp.func
 def axis_weight(q: float, n: int) -> wp.vec3:
-    """Lower index, upper index and weight of linear interpolation at q in [0, n - 1] (clamped)."""
+    """Lower index, upper index and weight of linear interpolation at grid coordinate q.
+
+    Beyond the first or last grid point the end cell's line is extrapolated (the weight leaves
+    [0, 1]), so that windows reaching past the outermost centres are deformed by the linear
+    continuation of the predictor rather than by its edge value.
+    """
     if n < 2:
         return wp.vec3(0.0, 0.0, 0.0)
-    c = wp.clamp(q, 0.0, float(n - 1))
-    i0 = wp.min(int(wp.floor(c)), n - 2)
-    return wp.vec3(float(i0), float(i0 + 1), c - float(i0))
+    i0 = wp.clamp(int(wp.floor(q)), 0, n - 2)
+    return wp.vec3(float(i0), float(i0 + 1), q - float(i0))
 
 
 @wp.func
 def predictor_at(pred: wp.array3d(dtype=wp.vec3), origin: wp.vec3, step: wp.vec3, p: wp.vec3) -> wp.vec3:
-    """Trilinear interpolation of the predictor grid at voxel coordinates p, clamped at its edges.
+    """Trilinear interpolation of the predictor grid at voxel coordinates p, extrapolated linearly.
 
     ``pred`` holds displacements (x, y, z) in voxels at window centres origin + i * step.
     """
