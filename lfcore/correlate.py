@@ -511,9 +511,7 @@ class Correlator:
             disp = disp.reshape((*g.shape, 3))
             outlier = normalized_median_test(disp, cfg.median_test)
             disp, replaced = replace_outliers(disp, outlier)
-            if np.isnan(disp).all():
-                disp = np.zeros_like(disp)  # nothing to predict from: start again from rest
-            pred_field = np.where(np.isnan(disp), 0.0, disp)
+            pred_field = np.where(np.isnan(disp), 0.0, disp)  # nothing left to predict from: rest
             if cfg.smooth_predictor > 0 and i + 1 < len(cfg.passes) and cfg.passes[i + 1][1] == "deform":
                 pred_field = smooth(pred_field, cfg.smooth_predictor)
             pred = (pred_field, g)

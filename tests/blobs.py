@@ -15,19 +15,19 @@ def render_blobs(points_xyz: np.ndarray, shape: tuple[int, int, int],
     truncation does not bias its centre.
     """
     nz, ny, nx = shape
-    vol = np.zeros(shape, dtype=np.float64)
-    p = np.asarray(points_xyz, dtype=np.float64)
-    base = np.floor(p).astype(int)
+    p = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
     offs = np.arange(-radius + 1, radius + 1)
-    for dz in offs:
-        for dy in offs:
-            for dx in offs:
-                ix, iy, iz = base[:, 0] + dx, base[:, 1] + dy, base[:, 2] + dz
-                ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny) & (iz >= 0) & (iz < nz)
-                r2 = (((ix - p[:, 0]) / sigma[0]) ** 2 + ((iy - p[:, 1]) / sigma[1]) ** 2
-                      + ((iz - p[:, 2]) / sigma[2]) ** 2)
-                np.add.at(vol, (iz[ok], iy[ok], ix[ok]), peak * np.exp(-0.5 * r2[ok]))
-    return vol.astype(np.float32)
+    idx = np.floor(p).astype(np.int64)[:, :, None] + offs  # (n, 3, k) voxel indices per axis
+    w = np.exp(-0.5 * ((idx - p[:, :, None]) / np.asarray(sigma, dtype=np.float64)[None, :, None]) ** 2)
+    for axis, n in enumerate((nx, ny, nz)):  # a blob is separable: zero the weights outside the volume
+        w[:, axis] *= (idx[:, axis] >= 0) & (idx[:, axis] < n)
+    np.clip(idx[:, 0], 0, nx - 1, out=idx[:, 0])
+    np.clip(idx[:, 1], 0, ny - 1, out=idx[:, 1])
+    np.clip(idx[:, 2], 0, nz - 1, out=idx[:, 2])
+    weight = peak * w[:, 2, :, None, None] * w[:, 1, None, :, None] * w[:, 0, None, None, :]  # (n, kz, ky, kx)
+    flat = (idx[:, 2, :, None, None] * ny + idx[:, 1, None, :, None]) * nx + idx[:, 0, None, None, :]
+    vol = np.bincount(flat.ravel(), weights=weight.ravel(), minlength=nz * ny * nx)
+    return vol.reshape(shape).astype(np.float32)
 
 
 def blob_pair(shape: tuple[int, int, int], displacement: Callable[[np.ndarray], np.ndarray], density: float = 0.02,
