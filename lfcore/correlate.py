@@ -368,10 +368,11 @@ class Correlator:
     def _view(self, buf, n: int, dims: tuple[int, ...]):
         return buf[: n * int(np.prod(dims))].reshape((n, *dims))
 
-    def _fft3d(self, src, dst, n: int, dims: tuple[int, int, int], inverse: bool) -> None:
-        """3D FFT of ``n`` windows (Pz, Py, Px) from ``src`` into ``dst`` (``src`` is overwritten).
+    def _fft3d(self, src, dst, n: int, dims: tuple[int, int, int], inverse: bool):
+        """3D FFT of ``n`` windows (Pz, Py, Px) in ``src``, unnormalised in both directions.
 
-        Unnormalised in both directions.
+        Returns the (n, Pz, Py, Px) result: a view of ``dst`` (Warp; ``src`` is overwritten), or
+        on the CPU with SciPy a view of ``src`` transformed in place (or of SciPy's own output).
         """
         wp, kc = self.wp, self._k
         if self.fft == "scipy":
@@ -379,8 +380,10 @@ class Correlator:
             f = scipy.fft.ifftn if inverse else scipy.fft.fftn
             y = f(x, axes=(1, 2, 3), norm="forward" if inverse else "backward", workers=os.cpu_count() or 1,
                   overwrite_x=True)
-            self._view(dst, n, dims).numpy().view(np.complex64)[..., 0] = y
-            return
+            if np.shares_memory(x, y):
+                return self._view(src, n, dims)
+            self._view(src, n, dims).numpy().view(np.complex64)[..., 0] = y
+            return self._view(src, n, dims)
         a, b = src, dst
         shape = dims
         for _ in range(3):  # FFT along the last axis, then rotate the next one last
@@ -395,7 +398,7 @@ class Correlator:
                       device=self.device)
             a, b, shape = b, a, rotated
         # three swaps: the result is in dst
-        assert a is dst
+        return self._view(dst, n, dims)
 
     def _run_pass(self, vol_a, vol_b, i: int, shift_a: np.ndarray, shift_b: np.ndarray) -> None:
         """Correlate every window of pass ``i``; results land in the per-window device arrays."""
@@ -418,14 +421,14 @@ class Correlator:
                       inputs=[vol_a, vol_b, starts, sa, sb, first, size, buf, sums])
             wp.launch(kc.window_stats, dim=n, device=d, inputs=[sums, float(np.prod(g.window)), self._mean,
                                                                  self._scale])
-            self._fft3d(self._buf, self._scratch, n, dims, inverse=False)
+            spec = self._fft3d(self._buf, self._scratch, n, dims, inverse=False)
+            # the packed cross-spectra go to whichever buffer does not hold the spectra
+            free, other = (self._scratch, self._buf) if spec.ptr == self._buf.ptr else (self._buf, self._scratch)
             slots = (n + 1) // 2
-            spec = self._view(self._scratch, n, dims)
-            packed = self._view(self._buf, slots, dims)
-            wp.launch(kc.cross_spectrum, dim=(slots, *dims), device=d,
+            packed = self._view(free, slots, dims)
+            wp.launch(kc.cross_spectrum, dim=(slots, dims[0], dims[1]), device=d,
                       inputs=[spec, self._mean, self._scale, 1.0 / p, *masks, packed])
-            self._fft3d(self._buf, self._scratch, slots, dims, inverse=True)
-            corr = self._view(self._scratch, slots, dims)
+            corr = self._fft3d(free, other, slots, dims, inverse=True)
             for second, out, where in ((0, self._val1, self._peak1), (1, self._val2, self._peak2)):
                 wp.launch(kc.peak_partial, dim=(n, self.threads), device=d,
                           inputs=[corr, self.threads, self._peak1, self.config.peak_exclusion, second,

@@ -16,7 +16,7 @@ import warp as wp
 from lfcore.device import warp as _init
 
 _init()
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
 @wp.func
@@ -221,11 +221,25 @@ def gather(
     s = start[g]
     sa = shift_a[g]
     sb = shift_b[g]
+    nz = vol_a.shape[0]
+    ny = vol_a.shape[1]
+    nx = vol_a.shape[2]
+    xa = s[0] + sa[0]
+    ya = s[1] + j + sa[1]
+    za = s[2] + k + sa[2]
+    xb = s[0] + sb[0]
+    yb = s[1] + j + sb[1]
+    zb = s[2] + k + sb[2]
+    # rows wholly inside both volumes are copied without per-voxel bounds checks
+    fast = (inside and ya >= 0 and ya < ny and za >= 0 and za < nz and yb >= 0 and yb < ny and zb >= 0 and zb < nz
+            and xa >= 0 and xa + size[0] <= nx and xb >= 0 and xb + size[0] <= nx)
     for i in range(out.shape[3]):
         v = wp.vec2f(0.0, 0.0)
         if inside and i < size[0]:
-            v = wp.vec2f(voxel(vol_a, s[0] + i + sa[0], s[1] + j + sa[1], s[2] + k + sa[2]),
-                         voxel(vol_b, s[0] + i + sb[0], s[1] + j + sb[1], s[2] + k + sb[2]))
+            if fast:
+                v = wp.vec2f(vol_a[za, ya, xa + i], vol_b[zb, yb, xb + i])
+            else:
+                v = wp.vec2f(voxel(vol_a, xa + i, ya, za), voxel(vol_b, xb + i, yb, zb))
             acc += wp.vec4(v[0], v[1], v[0] * v[0], v[1] * v[1])
         out[w, k, j, i] = v
     sums[w, k * out.shape[2] + j] = acc
@@ -264,19 +278,13 @@ def cmul(p: wp.vec2f, q: wp.vec2f) -> wp.vec2f:
 
 
 @wp.func
-def pair_spectrum(spec: wp.array4d(dtype=wp.vec2f), w: int, k: int, j: int, i: int, mean: wp.vec2f,
-                  mask: wp.vec2f, s: float) -> wp.vec2f:
-    """s conj(A') B' at one frequency of window w, from the spectrum Z of z = a + i b.
+def pair_spectrum(z: wp.vec2f, m: wp.vec2f, mean: wp.vec2f, mask: wp.vec2f, s: float) -> wp.vec2f:
+    """s conj(A') B' at one frequency f, from the spectrum Z of z = a + i b at f (z) and -f (m).
 
     a and b are real, so A(f) = (Z(f) + conj(Z(-f))) / 2 and B(f) = (Z(f) - conj(Z(-f))) / 2i.
     The window means are removed here: A' = A - mean_a M, with M the spectrum of the window's
     footprint in the (padded) buffer.
     """
-    pz = spec.shape[1]
-    py = spec.shape[2]
-    px = spec.shape[3]
-    z = spec[w, k, j, i]
-    m = spec[w, (pz - k) % pz, (py - j) % py, (px - i) % px]
     a = 0.5 * wp.vec2f(z[0] + m[0], z[1] - m[1]) - mean[0] * mask
     b = 0.5 * wp.vec2f(z[1] + m[1], m[0] - z[0]) - mean[1] * mask
     return s * cmul(wp.vec2f(a[0], -a[1]), b)
@@ -286,20 +294,39 @@ def pair_spectrum(spec: wp.array4d(dtype=wp.vec2f), w: int, k: int, j: int, i: i
 def cross_spectrum(spec: wp.array4d(dtype=wp.vec2f), mean: wp.array(dtype=wp.vec2f), scale: wp.array(dtype=float),
                    norm: float, mask_x: wp.array(dtype=wp.vec2f), mask_y: wp.array(dtype=wp.vec2f),
                    mask_z: wp.array(dtype=wp.vec2f), out: wp.array4d(dtype=wp.vec2f)):
-    """Cross-spectra of windows 2q and 2q+1 packed as S0 + i S1 into slot q.
+    """Cross-spectra of windows 2q and 2q+1 packed as S0 + i S1 into slot q, one row (q, k, j) a thread.
 
     Both correlations are real, so one inverse FFT returns the first in the real part and the
     second in the imaginary part. Each is scaled to the correlation coefficient. The footprint
     spectrum M is separable: mask_x[i] mask_y[j] mask_z[k].
     """
-    q, k, j, i = wp.tid()
-    mask = cmul(cmul(mask_x[i], mask_y[j]), mask_z[k])
+    q, k, j = wp.tid()
+    pz = spec.shape[1]
+    py = spec.shape[2]
+    px = spec.shape[3]
+    mk = (pz - k) % pz
+    mj = (py - j) % py
+    myz = cmul(mask_y[j], mask_z[k])
     w0 = 2 * q
-    s0 = pair_spectrum(spec, w0, k, j, i, mean[w0], mask, scale[w0] * norm)
-    s1 = wp.vec2f(0.0, 0.0)
-    if w0 + 1 < spec.shape[0]:
-        s1 = pair_spectrum(spec, w0 + 1, k, j, i, mean[w0 + 1], mask, scale[w0 + 1] * norm)
-    out[q, k, j, i] = wp.vec2f(s0[0] - s1[1], s0[1] + s1[0])
+    w1 = w0 + 1
+    has1 = w1 < spec.shape[0]
+    s0 = scale[w0] * norm
+    m0 = mean[w0]
+    s1 = float(0.0)  # noqa: UP018 - a dynamic Warp variable
+    m1 = wp.vec2f(0.0, 0.0)
+    if has1:
+        s1 = scale[w1] * norm
+        m1 = mean[w1]
+    for i in range(px):
+        mi = 0
+        if i > 0:
+            mi = px - i
+        mask = cmul(mask_x[i], myz)
+        r0 = pair_spectrum(spec[w0, k, j, i], spec[w0, mk, mj, mi], m0, mask, s0)
+        r1 = wp.vec2f(0.0, 0.0)
+        if has1:
+            r1 = pair_spectrum(spec[w1, k, j, i], spec[w1, mk, mj, mi], m1, mask, s1)
+        out[q, k, j, i] = wp.vec2f(r0[0] - r1[1], r0[1] + r1[0])
 
 
 @wp.func
