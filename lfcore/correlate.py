@@ -332,6 +332,8 @@ class Correlator:
                    for nb, g in zip(self._batch, self.grids, strict=True))
         self._sums = wp.empty(rows, dtype=wp.vec4, device=d)
         self._masks = [self._footprint(g.window, config.zero_pad) for g in self.grids]
+        self._starts = [wp.array(g.starts(), dtype=wp.vec3i, device=d) for g in self.grids]
+        self._vol_a, self._vol_b = (wp.empty(self.shape, dtype=wp.float32, device=d) for _ in range(2))
         deforms = "deform" in (m for _, m in config.passes)
         vol = self.shape if deforms else (1, 1, 1)
         self._def_a, self._def_b = (wp.empty(vol, dtype=wp.float32, device=d) for _ in range(2))
@@ -407,7 +409,7 @@ class Correlator:
         dims = _padded(g.window, self.config.zero_pad)
         p = int(np.prod(dims))
         size = wp.vec3i(*g.window)
-        starts = wp.array(g.starts(), dtype=wp.vec3i, device=d)
+        starts = self._starts[i]
         sa = wp.array(shift_a, dtype=wp.vec3i, device=d)
         sb = wp.array(shift_b, dtype=wp.vec3i, device=d)
         masks = self._masks[i]
@@ -461,13 +463,15 @@ class Correlator:
         return self._def_a, self._def_b
 
     # --- the multi-grid correlation ---------------------------------------------------------
-    def _upload(self, volume: np.ndarray):
+    def _upload(self, volume: np.ndarray, dst):
+        """Copy one volume into its device buffer (allocated once)."""
         v = np.asarray(volume)
         if v.shape != self.shape:
             raise CorrelationError(f"this correlator takes volumes of shape {self.shape} (z, y, x), got {v.shape}")
         if not np.all(np.isfinite(v)):
             raise CorrelationError("volumes must be finite")
-        return self.wp.array(np.ascontiguousarray(v, dtype=np.float32), dtype=self.wp.float32, device=self.device)
+        dst.assign(np.ascontiguousarray(v, dtype=np.float32))
+        return dst
 
     def __call__(self, volume_a: np.ndarray, volume_b: np.ndarray,
                  progress: Callable[[int], None] | None = None) -> VectorField:
@@ -485,7 +489,7 @@ class Correlator:
         VectorField
             Displacements of B relative to A, in voxels, on the last pass's grid.
         """
-        vol_a, vol_b = self._upload(volume_a), self._upload(volume_b)
+        vol_a, vol_b = self._upload(volume_a, self._vol_a), self._upload(volume_b, self._vol_b)
         cfg = self.config
         if self._coef_a.shape == self.shape:
             self._prefilter(vol_a, vol_b)
