@@ -26,17 +26,22 @@ Multi-grid: the first pass uses no predictor. Each further window size uses the 
 pass's field (outliers replaced, interpolated trilinearly to the new centres) as a window
 shift: B's window is moved by the rounded prediction relative to A's, half each way. Then
 ``deform_iterations`` passes at the final size deform both volumes symmetrically with the
-predictor interpolated at every voxel (A sampled at x - d(x)/2, B at x + d(x)/2, trilinear);
-each measures the residual displacement at the window centre. Outliers are found and replaced
-between passes (normalized median test, :mod:`lfcore.vectors`) and after the last one, where
-the flags are kept; the chapter's median filter can follow.
+predictor interpolated at every voxel (A sampled at x - d(x)/2, B at x + d(x)/2) by cubic
+B-spline interpolation (trilinear interpolation biases 3-voxel particles by about 0.03 voxel;
+the B-spline by 0.004); each pass measures the residual displacement at the window centres.
+The predictor of a deformation pass is smoothed (Gaussian, ``smooth_predictor`` grid spacings),
+without which the iteration feeds each vector's random error back and stops converging; it is
+continued linearly beyond the outermost centres, so that edge windows are deformed correctly.
+Outliers are found and replaced between passes (normalized median test, :mod:`lfcore.vectors`)
+and after the last one, where the flags are kept; the chapter's median filter can follow.
 
 FFT: on CUDA the 3D FFT is Warp's tile FFT (cuFFTDx) applied line by line along each axis,
 with an axis rotation between axes; on the CPU it is scipy's pocketfft, multi-threaded, which
 measured 3-5x faster than Warp's single-threaded CPU tile FFT at power-of-two sizes and over
 100x faster at sizes such as 160 (which Warp's CPU path transforms as a direct DFT). The Warp
 path can be forced with ``fft="warp"`` on any device; every other step is a Warp kernel on
-every device.
+every device. Warp's CUDA tile FFT takes any length cuFFTDx supports where Warp was built with
+libmathdx (the PyPI wheels are), and power-of-two lengths only otherwise.
 """
 
 from __future__ import annotations
@@ -90,6 +95,9 @@ class CorrelationConfig:
         Epsilon and threshold of the normalized median test (between passes and at the end).
     median_filter
         Apply the chapter's 3x3(x3) median filter to the final field.
+    smooth_predictor
+        Gaussian sigma, in grid spacings, of the smoothing of the predictor of a deformation
+        pass (0 for none). Linear fields pass unchanged.
     interpolation
         Interpolation of the volume deformation: ``"cubic"`` (cubic B-spline on prefiltered
         coefficients, 64 voxels a sample) or ``"linear"`` (trilinear, 8 voxels, faster but

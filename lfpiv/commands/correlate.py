@@ -130,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
     settings = {"deform_iterations": cfg.deform_iterations, "zero_pad": cfg.zero_pad,
                 "median_test": {"epsilon": cfg.median_test.epsilon, "threshold": cfg.median_test.threshold},
                 "median_filter": cfg.median_filter, "interpolation": cfg.interpolation,
+                "smooth_predictor": cfg.smooth_predictor,
                 "peak_exclusion": cfg.peak_exclusion, "device": correlator.device, "fft": correlator.fft}
     store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=[list(w) for w in cfg.windows],
                          overlap=list(cfg.overlap), settings=settings)
