@@ -524,8 +524,8 @@ class Correlator:
             valid = self._valid.numpy()[:n] != 0
             disp[~valid] = np.nan
             disp = disp.reshape((*g.shape, 3))
-            outlier = normalized_median_test(disp, cfg.median_test)
-            disp, replaced = replace_outliers(disp, outlier)
+            outlier = normalized_median_test(disp, cfg.median_test, device=self.device)
+            disp, replaced = replace_outliers(disp, outlier, device=self.device)
             pred_field = np.where(np.isnan(disp), 0.0, disp)  # nothing left to predict from: rest
             if cfg.smooth_predictor > 0 and i + 1 < len(cfg.passes) and cfg.passes[i + 1][1] == "deform":
                 pred_field = smooth(pred_field, cfg.smooth_predictor)
