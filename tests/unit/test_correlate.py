@@ -77,6 +77,13 @@ def test_uniform_subvoxel_shift_is_recovered(cpu_correlator, shift):
     assert np.median(f.peak_ratio) > 2.0 and np.median(f.peak_height) > 0.8
 
 
+def test_trilinear_deformation_is_biased_but_close():
+    shift = (0.3, -0.7, 0.45)
+    a, b = blob_pair(SHAPE, uniform(shift), density=0.02, seed=1)
+    f = correlate(a, b, CorrelationConfig(windows=FAST.windows, interpolation="linear"), device="cpu")
+    assert np.all(rms(f.displacement - np.asarray(shift)) < 0.08)
+
+
 def test_solid_body_rotation(cpu_correlator):
     fn = rotation(0.06)  # up to 1.4 voxel at the corners
     a, b = blob_pair(SHAPE, fn, seed=2)

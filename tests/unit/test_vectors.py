@@ -187,3 +187,14 @@ def test_run_store_vectors_round_trip(tmp_path, tiny_rig):
         assert {"units", "axes"} <= set(g[name].attrs), name
     assert g["u"].attrs["units"] == "m/s" and g["u"].attrs["axes"] == ["pair", "z", "y", "x"]
     assert g["flags"].attrs["flag_meanings"] == "outlier replaced"
+
+
+def test_outlier_kernels_agree_on_every_device(device):
+    f = linear_field(noise=0.05)
+    f[2, 4, 5] += 3.0
+    f[0, 0, 1] = np.nan
+    out = normalized_median_test(f, device=device)
+    assert np.array_equal(out, normalized_median_test(f, device="cpu"))
+    g, r = replace_outliers(f, out, device=device)
+    g_cpu, r_cpu = replace_outliers(f, out, device="cpu")
+    assert np.array_equal(r, r_cpu) and np.allclose(g, g_cpu, atol=1e-6)
