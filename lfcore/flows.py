@@ -328,3 +328,27 @@ def advect(flow: Flow, points_mm: np.ndarray, t0_s: float, dt_s: float, rtol: fl
     if not sol.success:
         raise RuntimeError(f"particle advection failed: {sol.message}")
     return sol.y[:, -1].reshape(-1, 3)
+
+
+def flow_from_params(params: dict[str, Any]) -> Flow:
+    """The flow that :meth:`Flow.params` described (as a run store's ``truth`` attrs keep it).
+
+    Raises
+    ------
+    ValueError
+        For an unknown flow name or parameters that do not fit it.
+    """
+    p = {k: (tuple(v) if isinstance(v, list) else v) for k, v in params.items()}
+    name = p.pop("name", None)
+    classes: dict[str, type[Flow]] = {"uniform": Uniform, "vortex-ring": VortexRing, "jet": RoundJet}
+    if name in OSCILLATORY_CASES:
+        p["case"] = name
+        cls: type[Flow] = Oscillatory
+    elif name in classes:
+        cls = classes[name]
+    else:
+        raise ValueError(f"unknown flow '{name}'; choose one of {', '.join(FLOW_NAMES)}")
+    try:
+        return cls(**p)
+    except TypeError as exc:
+        raise ValueError(f"parameters of flow '{name}' do not fit: {exc}") from None

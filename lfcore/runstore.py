@@ -309,3 +309,101 @@ class RunStore:
             return None
         g = self.group["truth"]
         return {"particles": g["particles"][...], "brightness": g["brightness"][...], "attrs": dict(g.attrs)}
+
+    # --- vector fields (appended for issue 4: correlation) --------------------------------
+    def create_vectors(self, x_mm: np.ndarray, y_mm: np.ndarray, z_mm: np.ndarray, *, dt_s: float,
+                       windows: list[list[int]], overlap: list[float], settings: dict[str, Any]) -> None:
+        """Create (or replace) ``vectors/`` for every pair of the run, all NaN.
+
+        Parameters
+        ----------
+        x_mm, y_mm, z_mm
+            1-D world coordinates (mm) of the vector grid along x, y and z.
+        dt_s
+            Time between the frames of a pair, s.
+        windows
+            The window size (x, y, z) in voxels of every pass, largest first.
+        overlap
+            Overlap (x, y, z) of neighbouring windows, fractions.
+        settings
+            Everything else that made the vectors (JSON-compatible).
+
+        ``u``, ``v``, ``w`` are float32 (pairs, z, y, x) in m/s, ``flags`` uint8 (bit 1: outlier,
+        bit 2: replaced), ``peak_ratio`` float32; the group's ``correlated_pairs`` attribute lists
+        the pairs written so far.
+        """
+        if "vectors" in self.group:
+            del self.group["vectors"]
+        g = self.group.create_group("vectors")
+        g.attrs.update({"dt_s": float(dt_s), "windows": [[int(n) for n in w] for w in windows],
+                        "overlap": [float(o) for o in overlap], "settings": settings, "correlated_pairs": [],
+                        "description": "3D velocity from multi-grid cross-correlation of volumes/data; windows "
+                                       "are (x, y, z) voxels per pass"})
+        coords = {"x_mm": x_mm, "y_mm": y_mm, "z_mm": z_mm}
+        for name, c in coords.items():
+            c = np.asarray(c, dtype=np.float64)
+            a = g.create_array(name, shape=c.shape, dtype=np.float64)
+            a[...] = c
+            a.attrs.update(_attrs("mm", [name[0]], f"world {name[0]} of the window centres"))
+        shape = (self.n_pairs, len(coords["z_mm"]), len(coords["y_mm"]), len(coords["x_mm"]))
+        chunks = (1, *shape[1:])
+        axes = ["pair", "z", "y", "x"]
+        for name, what in (("u", "x"), ("v", "y"), ("w", "z")):
+            a = g.create_array(name, shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
+            a.attrs.update(_attrs("m/s", axes, f"velocity along world {what}; NaN where not measured"))
+        a = g.create_array("flags", shape=shape, chunks=chunks, dtype=np.uint8, fill_value=0)
+        a.attrs.update({**_attrs("1", axes, "vector quality flags (bits)"), "flag_masks": [1, 2],
+                        "flag_meanings": "outlier replaced"})
+        a = g.create_array("peak_ratio", shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
+        a.attrs.update(_attrs("1", axes, "highest over second-highest correlation peak of the last pass"))
+
+    def write_vectors(self, pair: int, velocity_m_s: np.ndarray, flags: np.ndarray, peak_ratio: np.ndarray) -> None:
+        """Store the vector field of one pair.
+
+        Parameters
+        ----------
+        pair
+            Pair index.
+        velocity_m_s
+            (z, y, x, 3) velocity (u, v, w) in m/s.
+        flags
+            (z, y, x) uint8 flags (1 outlier, 2 replaced).
+        peak_ratio
+            (z, y, x) peak ratio.
+        """
+        if not self.has_vectors:
+            raise RunStoreError(f"{self.path} has no vectors/ group; create it first")
+        g = self.group["vectors"]
+        shape = g["u"].shape[1:]
+        vel = np.asarray(velocity_m_s)
+        if vel.shape != (*shape, 3) or np.shape(flags) != shape or np.shape(peak_ratio) != shape:
+            raise RunStoreError(f"vectors of this run are (z, y, x) = {shape}, got velocity {vel.shape}, "
+                                f"flags {np.shape(flags)}, peak_ratio {np.shape(peak_ratio)}")
+        for c, name in enumerate("uvw"):
+            g[name][pair] = vel[..., c].astype(np.float32)
+        g["flags"][pair] = np.asarray(flags, dtype=np.uint8)
+        g["peak_ratio"][pair] = np.asarray(peak_ratio, dtype=np.float32)
+        done = sorted(set(g.attrs.get("correlated_pairs", [])) | {int(pair)})
+        g.attrs.update({"correlated_pairs": done})
+
+    @property
+    def has_vectors(self) -> bool:
+        return "vectors" in self.group
+
+    def correlated_pairs(self) -> list[int]:
+        return list(self.group["vectors"].attrs["correlated_pairs"]) if self.has_vectors else []
+
+    def vectors(self) -> dict[str, Any]:
+        """``vectors/`` as NumPy arrays: u, v, w, flags, peak_ratio (pairs, z, y, x); x_mm, y_mm, z_mm; attrs.
+
+        Raises
+        ------
+        RunStoreError
+            If the run has no vectors.
+        """
+        if not self.has_vectors:
+            raise RunStoreError(f"{self.path} has no vectors; run 'lfpiv correlate {self.path}' first")
+        g = self.group["vectors"]
+        out: dict[str, Any] = {n: g[n][...] for n in ("u", "v", "w", "flags", "peak_ratio", "x_mm", "y_mm", "z_mm")}
+        out["attrs"] = dict(g.attrs)
+        return out

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 #: Subcommand modules in the order ``lfpiv --help`` lists them.
-COMMANDS = ("demo", "synth", "info", "reconstruct", "evaluate")
+COMMANDS = ("demo", "synth", "info", "reconstruct", "correlate", "evaluate", "export")
 
 
 def positive_int(text: str) -> int:

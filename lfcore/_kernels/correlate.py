@@ -1,0 +1,485 @@
+"""Batched FFT cross-correlation of interrogation volumes.
+
+Layout: a batch of ``n`` windows lives in one buffer of complex samples (``vec2f``) shaped
+(n, Pz, Py, Px), the padded window size. Volume A goes in the real part and volume B in the
+imaginary part, so one complex FFT transforms both (their spectra are separated again by
+Hermitian symmetry in :func:`cross_spectrum`). Every vector quantity is a ``vec3`` ordered
+(x, y, z); arrays are indexed (z, y, x) like the volumes.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import warp as wp
+
+from lfcore.device import warp as _init
+
+_init()
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+
+
+@wp.func
+def voxel(vol: wp.array3d(dtype=wp.float32), x: int, y: int, z: int) -> float:
+    """Intensity of voxel (x, y, z); zero outside the volume."""
+    if x < 0 or y < 0 or z < 0 or z >= vol.shape[0] or y >= vol.shape[1] or x >= vol.shape[2]:
+        return 0.0
+    return vol[z, y, x]
+
+
+@wp.func
+def sample(vol: wp.array3d(dtype=wp.float32), p: wp.vec3) -> float:
+    """Trilinear interpolation of the volume at voxel coordinates p = (x, y, z); zero outside."""
+    fx = wp.floor(p[0])
+    fy = wp.floor(p[1])
+    fz = wp.floor(p[2])
+    tx = p[0] - fx
+    ty = p[1] - fy
+    tz = p[2] - fz
+    x = int(fx)
+    y = int(fy)
+    z = int(fz)
+    c00 = voxel(vol, x, y, z) * (1.0 - tx) + voxel(vol, x + 1, y, z) * tx
+    c10 = voxel(vol, x, y + 1, z) * (1.0 - tx) + voxel(vol, x + 1, y + 1, z) * tx
+    c01 = voxel(vol, x, y, z + 1) * (1.0 - tx) + voxel(vol, x + 1, y, z + 1) * tx
+    c11 = voxel(vol, x, y + 1, z + 1) * (1.0 - tx) + voxel(vol, x + 1, y + 1, z + 1) * tx
+    c0 = c00 * (1.0 - ty) + c10 * ty
+    c1 = c01 * (1.0 - ty) + c11 * ty
+    return c0 * (1.0 - tz) + c1 * tz
+
+
+@wp.func
+def axis_weight(q: float, n: int) -> wp.vec3:
+    """Lower index, upper index and weight of linear interpolation at grid coordinate q.
+
+    Beyond the first or last grid point the end cell's line is extrapolated (the weight leaves
+    [0, 1]), so that windows reaching past the outermost centres are deformed by the linear
+    continuation of the predictor rather than by its edge value.
+    """
+    if n < 2:
+        return wp.vec3(0.0, 0.0, 0.0)
+    i0 = wp.clamp(int(wp.floor(q)), 0, n - 2)
+    return wp.vec3(float(i0), float(i0 + 1), q - float(i0))
+
+
+@wp.func
+def predictor_at(pred: wp.array3d(dtype=wp.vec3), origin: wp.vec3, step: wp.vec3, p: wp.vec3) -> wp.vec3:
+    """Trilinear interpolation of the predictor grid at voxel coordinates p, extrapolated linearly.
+
+    ``pred`` holds displacements (x, y, z) in voxels at window centres origin + i * step.
+    """
+    ax = axis_weight((p[0] - origin[0]) / step[0], pred.shape[2])
+    ay = axis_weight((p[1] - origin[1]) / step[1], pred.shape[1])
+    az = axis_weight((p[2] - origin[2]) / step[2], pred.shape[0])
+    x0 = int(ax[0])
+    x1 = int(ax[1])
+    y0 = int(ay[0])
+    y1 = int(ay[1])
+    z0 = int(az[0])
+    z1 = int(az[1])
+    tx = ax[2]
+    ty = ay[2]
+    tz = az[2]
+    c00 = pred[z0, y0, x0] * (1.0 - tx) + pred[z0, y0, x1] * tx
+    c10 = pred[z0, y1, x0] * (1.0 - tx) + pred[z0, y1, x1] * tx
+    c01 = pred[z1, y0, x0] * (1.0 - tx) + pred[z1, y0, x1] * tx
+    c11 = pred[z1, y1, x0] * (1.0 - tx) + pred[z1, y1, x1] * tx
+    return (c00 * (1.0 - ty) + c10 * ty) * (1.0 - tz) + (c01 * (1.0 - ty) + c11 * ty) * tz
+
+
+#: Pole of the cubic B-spline prefilter, sqrt(3) - 2.
+BSPLINE_POLE = -0.2679491924311228
+
+
+@wp.func
+def bspline_weights(t: float) -> wp.vec4:
+    """Cubic B-spline weights of the coefficients at -1, 0, 1, 2 for an offset t in [0, 1)."""
+    t2 = t * t
+    t3 = t2 * t
+    u = 1.0 - t
+    return wp.vec4(u * u * u / 6.0, (4.0 - 6.0 * t2 + 3.0 * t3) / 6.0, (1.0 + 3.0 * t + 3.0 * t2 - 3.0 * t3) / 6.0,
+                   t3 / 6.0)
+
+
+@wp.func
+def sample_bspline(coef: wp.array3d(dtype=wp.float32), p: wp.vec3) -> float:
+    """Cubic B-spline interpolation at voxel coordinates p = (x, y, z) from prefiltered coefficients."""
+    fx = wp.floor(p[0])
+    fy = wp.floor(p[1])
+    fz = wp.floor(p[2])
+    wx = bspline_weights(p[0] - fx)
+    wy = bspline_weights(p[1] - fy)
+    wz = bspline_weights(p[2] - fz)
+    x = int(fx) - 1
+    y = int(fy) - 1
+    z = int(fz) - 1
+    acc = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    for c in range(4):
+        plane = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+        for b in range(4):
+            row = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+            for a in range(4):
+                row += wx[a] * voxel(coef, x + a, y + b, z + c)
+            plane += wy[b] * row
+        acc += wz[c] * plane
+    return acc
+
+
+@wp.kernel
+def bspline_prefilter(coef: wp.array3d(dtype=wp.float32), axis: int):
+    """In place: samples to cubic B-spline coefficients along one axis (0 x, 1 y, 2 z).
+
+    The recursive filter of Unser (1999), gain 6 and pole z = sqrt(3) - 2, for a signal that is
+    zero beyond the volume: c+[k] = s[k] + z c+[k-1] from c+[0] = s[0], then
+    c-[k] = z (c-[k+1] - c+[k]) from c-[n-1] = -z / (1 - z^2) c+[n-1].
+    """
+    a, b = wp.tid()
+    zp = BSPLINE_POLE
+    n = coef.shape[2 - axis]
+    prev = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    for k in range(n):
+        z = a
+        y = b
+        x = k
+        if axis == 1:
+            x = b
+            y = k
+        elif axis == 2:
+            y = a
+            x = b
+            z = k
+        prev = coef[z, y, x] + zp * prev
+        coef[z, y, x] = prev
+    nxt = -zp / (1.0 - zp * zp) * prev
+    for m in range(n):
+        k = n - 1 - m
+        z = a
+        y = b
+        x = k
+        if axis == 1:
+            x = b
+            y = k
+        elif axis == 2:
+            y = a
+            x = b
+            z = k
+        if m > 0:
+            nxt = zp * (nxt - coef[z, y, x])
+        coef[z, y, x] = 6.0 * nxt
+
+
+@wp.kernel
+def deform_volumes(
+    vol_a: wp.array3d(dtype=wp.float32),
+    vol_b: wp.array3d(dtype=wp.float32),
+    pred: wp.array3d(dtype=wp.vec3),
+    pred_origin: wp.vec3,
+    pred_step: wp.vec3,
+    bspline: int,
+    out_a: wp.array3d(dtype=wp.float32),
+    out_b: wp.array3d(dtype=wp.float32),
+):
+    """Deform both volumes symmetrically by the predictor d: A at x - d(x)/2, B at x + d(x)/2.
+
+    A particle that moved by d(x) then sits at the same place in both, so the correlation of
+    the deformed volumes measures only what the predictor missed. With ``bspline`` non-zero the
+    inputs are cubic B-spline coefficients (:func:`bspline_prefilter`), otherwise samples
+    interpolated trilinearly.
+    """
+    z, y, x = wp.tid()
+    p = wp.vec3(float(x), float(y), float(z))
+    h = 0.5 * predictor_at(pred, pred_origin, pred_step, p)
+    if bspline != 0:
+        out_a[z, y, x] = sample_bspline(vol_a, p - h)
+        out_b[z, y, x] = sample_bspline(vol_b, p + h)
+    else:
+        out_a[z, y, x] = sample(vol_a, p - h)
+        out_b[z, y, x] = sample(vol_b, p + h)
+
+
+@wp.kernel
+def gather(
+    vol_a: wp.array3d(dtype=wp.float32),
+    vol_b: wp.array3d(dtype=wp.float32),
+    start: wp.array(dtype=wp.vec3i),
+    shift_a: wp.array(dtype=wp.vec3i),
+    shift_b: wp.array(dtype=wp.vec3i),
+    first: int,
+    size: wp.vec3i,
+    out: wp.array4d(dtype=wp.vec2f),
+    sums: wp.array2d(dtype=wp.vec4),
+):
+    """Copy one row of each window into the buffer (A real, B imaginary, zero padding).
+
+    The windows of B are offset from those of A by the integer window shift. Also writes the
+    row's sums (a, b, a^2, b^2) for the window statistics.
+    """
+    w, k, j = wp.tid()
+    g = first + w
+    acc = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    inside = j < size[1] and k < size[2]
+    s = start[g]
+    sa = shift_a[g]
+    sb = shift_b[g]
+    nz = vol_a.shape[0]
+    ny = vol_a.shape[1]
+    nx = vol_a.shape[2]
+    xa = s[0] + sa[0]
+    ya = s[1] + j + sa[1]
+    za = s[2] + k + sa[2]
+    xb = s[0] + sb[0]
+    yb = s[1] + j + sb[1]
+    zb = s[2] + k + sb[2]
+    # rows wholly inside both volumes are copied without per-voxel bounds checks
+    fast = (inside and ya >= 0 and ya < ny and za >= 0 and za < nz and yb >= 0 and yb < ny and zb >= 0 and zb < nz
+            and xa >= 0 and xa + size[0] <= nx and xb >= 0 and xb + size[0] <= nx)
+    for i in range(out.shape[3]):
+        v = wp.vec2f(0.0, 0.0)
+        if inside and i < size[0]:
+            if fast:
+                v = wp.vec2f(vol_a[za, ya, xa + i], vol_b[zb, yb, xb + i])
+            else:
+                v = wp.vec2f(voxel(vol_a, xa + i, ya, za), voxel(vol_b, xb + i, yb, zb))
+            acc += wp.vec4(v[0], v[1], v[0] * v[0], v[1] * v[1])
+        out[w, k, j, i] = v
+    sums[w, k * out.shape[2] + j] = acc
+
+
+@wp.kernel
+def window_stats(sums: wp.array2d(dtype=wp.vec4), n_voxels: float, mean: wp.array(dtype=wp.vec2f),
+                 scale: wp.array(dtype=float)):
+    """Window means, and 1 / sqrt(sum a'^2 sum b'^2) with a' = a - mean (0 for a window without signal)."""
+    w = wp.tid()
+    s = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    for t in range(sums.shape[1]):
+        s += sums[w, t]
+    ma = s[0] / n_voxels
+    mb = s[1] / n_voxels
+    va = s[2] - s[0] * ma
+    vb = s[3] - s[1] * mb
+    mean[w] = wp.vec2f(ma, mb)
+    sc = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    # a window with (almost) no fluctuation in either volume has no correlation peak
+    if va > 1.0e-6 * s[2] and vb > 1.0e-6 * s[3] and va > 0.0 and vb > 0.0:
+        sc = 1.0 / wp.sqrt(va * vb)
+    scale[w] = sc
+
+
+@wp.kernel
+def rotate_axes(src: wp.array4d(dtype=wp.vec2f), dst: wp.array4d(dtype=wp.vec2f)):
+    """dst[w, c, a, b] = src[w, a, b, c]: brings the next axis last for the line FFTs."""
+    w, a, b, c = wp.tid()
+    dst[w, c, a, b] = src[w, a, b, c]
+
+
+@wp.func
+def cmul(p: wp.vec2f, q: wp.vec2f) -> wp.vec2f:
+    return wp.vec2f(p[0] * q[0] - p[1] * q[1], p[0] * q[1] + p[1] * q[0])
+
+
+@wp.func
+def pair_spectrum(z: wp.vec2f, m: wp.vec2f, mean: wp.vec2f, mask: wp.vec2f, s: float) -> wp.vec2f:
+    """s conj(A') B' at one frequency f, from the spectrum Z of z = a + i b at f (z) and -f (m).
+
+    a and b are real, so A(f) = (Z(f) + conj(Z(-f))) / 2 and B(f) = (Z(f) - conj(Z(-f))) / 2i.
+    The window means are removed here: A' = A - mean_a M, with M the spectrum of the window's
+    footprint in the (padded) buffer.
+    """
+    a = 0.5 * wp.vec2f(z[0] + m[0], z[1] - m[1]) - mean[0] * mask
+    b = 0.5 * wp.vec2f(z[1] + m[1], m[0] - z[0]) - mean[1] * mask
+    return s * cmul(wp.vec2f(a[0], -a[1]), b)
+
+
+@wp.kernel
+def cross_spectrum(spec: wp.array4d(dtype=wp.vec2f), mean: wp.array(dtype=wp.vec2f), scale: wp.array(dtype=float),
+                   norm: float, mask_x: wp.array(dtype=wp.vec2f), mask_y: wp.array(dtype=wp.vec2f),
+                   mask_z: wp.array(dtype=wp.vec2f), out: wp.array4d(dtype=wp.vec2f)):
+    """Cross-spectra of windows 2q and 2q+1 packed as S0 + i S1 into slot q, one row (q, k, j) a thread.
+
+    Both correlations are real, so one inverse FFT returns the first in the real part and the
+    second in the imaginary part. Each is scaled to the correlation coefficient. The footprint
+    spectrum M is separable: mask_x[i] mask_y[j] mask_z[k].
+    """
+    q, k, j = wp.tid()
+    pz = spec.shape[1]
+    py = spec.shape[2]
+    px = spec.shape[3]
+    mk = (pz - k) % pz
+    mj = (py - j) % py
+    myz = cmul(mask_y[j], mask_z[k])
+    w0 = 2 * q
+    w1 = w0 + 1
+    has1 = w1 < spec.shape[0]
+    s0 = scale[w0] * norm
+    m0 = mean[w0]
+    s1 = float(0.0)  # noqa: UP018 - a dynamic Warp variable
+    m1 = wp.vec2f(0.0, 0.0)
+    if has1:
+        s1 = scale[w1] * norm
+        m1 = mean[w1]
+    for i in range(px):
+        mi = 0
+        if i > 0:
+            mi = px - i
+        mask = cmul(mask_x[i], myz)
+        r0 = pair_spectrum(spec[w0, k, j, i], spec[w0, mk, mj, mi], m0, mask, s0)
+        r1 = wp.vec2f(0.0, 0.0)
+        if has1:
+            r1 = pair_spectrum(spec[w1, k, j, i], spec[w1, mk, mj, mi], m1, mask, s1)
+        out[q, k, j, i] = wp.vec2f(r0[0] - r1[1], r0[1] + r1[0])
+
+
+@wp.func
+def corr_value(corr: wp.array4d(dtype=wp.vec2f), w: int, k: int, j: int, i: int) -> float:
+    """Correlation of window w at (k, j, i), wrapped cyclically (packed two windows per slot)."""
+    pz = corr.shape[1]
+    py = corr.shape[2]
+    px = corr.shape[3]
+    v = corr[w // 2, (k + pz) % pz, (j + py) % py, (i + px) % px]
+    if w % 2 == 1:
+        return v[1]
+    return v[0]
+
+
+@wp.func
+def cyclic_distance(a: int, b: int, n: int) -> int:
+    d = wp.abs(a - b) % n
+    return wp.min(d, n - d)
+
+
+@wp.kernel
+def peak_partial(corr: wp.array4d(dtype=wp.vec2f), threads: int, exclude: wp.array(dtype=wp.vec3i), radius: int,
+                 use_exclude: int, part_val: wp.array2d(dtype=float), part_idx: wp.array2d(dtype=int)):
+    """Per-thread maximum of each correlation volume, optionally outside a box around a first peak.
+
+    Thread t of a window scans rows t, t + threads, ... of its (Pz * Py) rows.
+    """
+    w, t = wp.tid()
+    pz = corr.shape[1]
+    py = corr.shape[2]
+    px = corr.shape[3]
+    best = float(-1.0e30)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    best_idx = int(-1)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    e = exclude[w]
+    slot = w // 2
+    odd = w % 2
+    row = t
+    while row < pz * py:
+        k = row // py
+        j = row - k * py
+        near = use_exclude != 0 and cyclic_distance(j, e[1], py) <= radius and cyclic_distance(k, e[2], pz) <= radius
+        for i in range(px):
+            if not (near and cyclic_distance(i, e[0], px) <= radius):
+                c = corr[slot, k, j, i]
+                v = c[0]
+                if odd == 1:
+                    v = c[1]
+                if v > best:
+                    best = v
+                    best_idx = row * px + i
+        row += threads
+    part_val[w, t] = best
+    part_idx[w, t] = best_idx
+
+
+@wp.kernel
+def peak_reduce(part_val: wp.array2d(dtype=float), part_idx: wp.array2d(dtype=int), size: wp.vec3i,
+                value: wp.array(dtype=float), where: wp.array(dtype=wp.vec3i)):
+    """The maximum over the threads of each window; ties go to the lowest index (deterministic)."""
+    w = wp.tid()
+    best = float(-1.0e30)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    best_idx = int(-1)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    for t in range(part_val.shape[1]):
+        v = part_val[w, t]
+        ix = part_idx[w, t]
+        if ix >= 0 and (v > best or (v == best and ix < best_idx)):
+            best = v
+            best_idx = ix
+    value[w] = best
+    if best_idx < 0:
+        best_idx = 0
+    where[w] = wp.vec3i(best_idx % size[0], (best_idx // size[0]) % size[1], best_idx // (size[0] * size[1]))
+
+
+@wp.func
+def subvoxel(lo: float, c: float, hi: float) -> wp.vec2:
+    """Sub-voxel offset of a peak from three samples, and 1 if the centroid fallback was used.
+
+    The 3-point Gaussian fit (exact for a Gaussian peak) needs three positive samples; otherwise
+    the centroid of the positive parts is used.
+    """
+    if lo > 0.0 and c > 0.0 and hi > 0.0:
+        llo = wp.log(lo)
+        lc = wp.log(c)
+        lhi = wp.log(hi)
+        den = 2.0 * (llo - 2.0 * lc + lhi)
+        if den < 0.0:
+            return wp.vec2(wp.clamp((llo - lhi) / den, -0.5, 0.5), 0.0)
+    plo = wp.max(lo, 0.0)
+    pc = wp.max(c, 0.0)
+    phi = wp.max(hi, 0.0)
+    s = plo + pc + phi
+    if s > 0.0:
+        return wp.vec2(wp.clamp((phi - plo) / s, -0.5, 0.5), 1.0)
+    return wp.vec2(0.0, 1.0)
+
+
+@wp.func
+def signed_shift(k: int, n: int) -> int:
+    if k >= (n + 1) // 2:
+        return k - n
+    return k
+
+
+@wp.kernel
+def peak_fit(corr: wp.array4d(dtype=wp.vec2f), first: int, scale: wp.array(dtype=float),
+             peak1: wp.array(dtype=wp.vec3i), value1: wp.array(dtype=float), value2: wp.array(dtype=float),
+             displacement: wp.array(dtype=wp.vec3), height: wp.array(dtype=float), ratio: wp.array(dtype=float),
+             fallback: wp.array(dtype=int), valid: wp.array(dtype=int)):
+    """Sub-voxel peak position (the residual displacement, voxels), peak height and peak ratio."""
+    w = wp.tid()
+    g = first + w
+    p = peak1[w]
+    i = p[0]
+    j = p[1]
+    k = p[2]
+    c = corr_value(corr, w, k, j, i)
+    fx = subvoxel(corr_value(corr, w, k, j, i - 1), c, corr_value(corr, w, k, j, i + 1))
+    fy = subvoxel(corr_value(corr, w, k, j - 1, i), c, corr_value(corr, w, k, j + 1, i))
+    fz = subvoxel(corr_value(corr, w, k - 1, j, i), c, corr_value(corr, w, k + 1, j, i))
+    displacement[g] = wp.vec3(float(signed_shift(i, corr.shape[3])) + fx[0],
+                              float(signed_shift(j, corr.shape[2])) + fy[0],
+                              float(signed_shift(k, corr.shape[1])) + fz[0])
+    height[g] = value1[w]
+    r = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    if value2[w] > 0.0:
+        r = value1[w] / value2[w]
+    elif value1[w] > 0.0:
+        r = 1.0e6  # no second positive peak at all
+    ratio[g] = r
+    fallback[g] = int(fx[1] + fy[1] + fz[1] > 0.0)
+    ok = int(0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    if scale[w] > 0.0 and value1[w] > 0.0:
+        ok = 1
+    valid[g] = ok
+
+
+@functools.cache
+def fft_lines(n: int, rows: int):
+    """A tiled kernel that FFTs ``rows`` lines of length ``n`` (the last axis) per block, in place.
+
+    Tile shapes are compile-time constants, so there is one kernel per (n, rows); they are
+    cached here and in Warp's kernel cache. ``inverse`` non-zero gives the unnormalised inverse.
+    """
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def fft_lines_kernel(buf: wp.array2d(dtype=wp.vec2f), inverse: int):
+        b = wp.tid()
+        t = wp.tile_load(buf, shape=(rows, n), offset=(b * rows, 0))
+        if inverse != 0:
+            wp.tile_ifft(t)
+        else:
+            wp.tile_fft(t)
+        wp.tile_store(buf, t, offset=(b * rows, 0))
+
+    return fft_lines_kernel

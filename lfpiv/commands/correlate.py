@@ -1,0 +1,202 @@
+"""``lfpiv correlate``: 3D multi-grid cross-correlation of a run's volumes into ``vectors/``.
+
+Also :func:`evaluate_vectors`, the vector lines of ``lfpiv evaluate``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import time
+
+import numpy as np
+
+from lfpiv.commands import add_device, positive_float
+from lfpiv.errors import UsageError
+
+DEFAULT_WINDOWS = "320x320x64,160x160x32"
+
+
+def parse_windows(text: str) -> tuple[tuple[int, int, int], ...]:
+    """'320x320x64,160x160x32' -> ((320, 320, 64), (160, 160, 32)), each (x, y, z) voxels."""
+    out = []
+    for part in text.split(","):
+        m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*[xX]\s*(\d+)\s*", part)
+        if not m:
+            raise argparse.ArgumentTypeError(f"'{part}' is not a window size; write XxYxZ in voxels, e.g. "
+                                             f"{DEFAULT_WINDOWS}")
+        w = tuple(int(g) for g in m.groups())
+        if min(w) < 4:
+            raise argparse.ArgumentTypeError(f"window {part.strip()} is too small: every side needs at least 4 voxels")
+        out.append(w)
+    return tuple(out)
+
+
+def parse_overlap(text: str) -> tuple[float, float, float]:
+    """'0.75' or '0.75,0.75,0.5' (x, y, z) -> a fraction per axis, each in [0, 1)."""
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number or three numbers x,y,z") from None
+    if len(vals) == 1:
+        vals *= 3
+    if len(vals) != 3 or not all(0.0 <= v < 1.0 for v in vals):
+        raise argparse.ArgumentTypeError(f"overlap must be at least 0 and below 1 (one value, or x,y,z), got {text}")
+    return tuple(vals)  # type: ignore[return-value]
+
+
+def parse_pairs(text: str) -> slice:
+    """'3' -> pair 3; '0:10' -> pairs 0..9; '5:' -> pairs 5 to the end (Python slice rules)."""
+    m = re.fullmatch(r"\s*(\d*)\s*(:?)\s*(\d*)\s*", text)
+    if not m or (not m.group(2) and not m.group(1)):
+        raise argparse.ArgumentTypeError(f"'{text}' is not a pair or a range START:STOP, e.g. 0:10")
+    start = int(m.group(1)) if m.group(1) else 0
+    if not m.group(2):
+        return slice(start, start + 1)
+    return slice(start, int(m.group(3)) if m.group(3) else None)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    c = sub.add_parser("correlate", help="3D multi-grid cross-correlation of a run's volumes into vectors/",
+                       description="Correlate the two reconstructed volumes of each pair with 3D multi-grid FFT "
+                       "cross-correlation (window shift, then volume deformation), find and replace outliers "
+                       "(normalized median test) and write the velocity in m/s to the run's vectors/.")
+    c.add_argument("run", metavar="RUN", help="run store with volumes (a .zarr directory)")
+    c.add_argument("--windows", type=parse_windows, default=parse_windows(DEFAULT_WINDOWS), metavar="XxYxZ,...",
+                   help="interrogation volume of each pass, x by y by z voxels, largest first "
+                   f"(default: {DEFAULT_WINDOWS}, the chapter's)")
+    c.add_argument("--overlap", type=parse_overlap, default=(0.75, 0.75, 0.75), metavar="F[,F,F]",
+                   help="overlap of neighbouring windows, one fraction or x,y,z (default: 0.75)")
+    c.add_argument("--iterations", type=int, default=2, metavar="N",
+                   help="passes with volume deformation at the final window size (default: 2)")
+    c.add_argument("--pairs", type=parse_pairs, default=None, metavar="START:STOP",
+                   help="pairs to correlate, e.g. 0:10 or 3 (default: every reconstructed pair)")
+    c.add_argument("--epsilon", type=positive_float, default=0.1,
+                   help="median test: acceptable fluctuation in voxels (default: 0.1)")
+    c.add_argument("--threshold", type=positive_float, default=2.0,
+                   help="median test: largest normalized residual of a valid vector (default: 2)")
+    c.add_argument("--median-filter", action="store_true", help="apply the chapter's 3x3(x3) median filter at the end")
+    c.add_argument("--zero-pad", action="store_true",
+                   help="pad windows to twice their size (linear instead of circular correlation; 8x the FFT work)")
+    c.add_argument("--interpolation", choices=("cubic", "linear"), default="cubic",
+                   help="volume deformation: cubic B-spline or trilinear (default: cubic)")
+    add_device(c)
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.set_defaults(func=run)
+
+
+def _select_pairs(store, sel: slice | None) -> list[int]:
+    from lfcore.runstore import RunStoreError
+
+    store.volumes()  # a run without volumes says so
+    done = store.reconstructed_pairs()
+    if not done:
+        raise RunStoreError(f"{store.path} has no reconstructed pairs yet; run 'lfpiv reconstruct {store.path}' first")
+    if sel is None:
+        return done
+    wanted = list(range(store.n_pairs))[sel]
+    if not wanted:
+        raise UsageError(f"--pairs selects no pair of this run's {store.n_pairs}")
+    missing = [p for p in wanted if p not in done]
+    if missing:
+        raise UsageError(f"--pairs: pair(s) {', '.join(map(str, missing[:5]))}{' ...' if len(missing) > 5 else ''} "
+                         f"are not reconstructed (reconstructed: {', '.join(map(str, done[:10]))})")
+    return wanted
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from lfcore.correlate import CorrelationConfig, CorrelationError, Correlator
+    from lfcore.runstore import RunStore
+    from lfcore.vectors import MedianTest, centres_mm, displacement_to_velocity, flags_from_masks
+
+    store = RunStore.open(args.run, mode="r+")
+    pairs = _select_pairs(store, args.pairs)
+    if args.iterations < 0:
+        raise UsageError(f"--iterations must be 0 or more, got {args.iterations}")
+    grid = store.volume_grid()
+    try:
+        cfg = CorrelationConfig(windows=args.windows, overlap=args.overlap, deform_iterations=args.iterations,
+                                zero_pad=args.zero_pad, median_filter=args.median_filter,
+                                median_test=MedianTest(epsilon=args.epsilon, threshold=args.threshold),
+                                interpolation=args.interpolation)
+        correlator = Correlator(grid.shape, cfg, device=args.device)
+    except CorrelationError as exc:
+        raise UsageError(str(exc)) from None
+    dt_s = float(store.timing["dt_s"])
+    g = correlator.grids[-1]
+    x_mm, y_mm, z_mm = centres_mm(g.centres(), grid.origin_mm, grid.voxel_mm)
+    settings = {"deform_iterations": cfg.deform_iterations, "zero_pad": cfg.zero_pad,
+                "median_test": {"epsilon": cfg.median_test.epsilon, "threshold": cfg.median_test.threshold},
+                "median_filter": cfg.median_filter, "interpolation": cfg.interpolation,
+                "smooth_predictor": cfg.smooth_predictor,
+                "peak_exclusion": cfg.peak_exclusion, "device": correlator.device, "fft": correlator.fft}
+    store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=[list(w) for w in cfg.windows],
+                         overlap=list(cfg.overlap), settings=settings)
+    volumes = store.volumes()
+    n_passes = len(cfg.passes)
+    outliers = 0
+    t0 = time.perf_counter()
+    with tqdm(total=len(pairs) * n_passes, unit="pass", disable=args.quiet, desc="correlating") as bar:
+        for pair in pairs:
+            field = correlator(volumes[pair, 0], volumes[pair, 1], progress=bar.update)
+            vel = displacement_to_velocity(field.displacement, grid.voxel_mm, dt_s)
+            store.write_vectors(pair, vel, flags_from_masks(field.outlier, field.replaced), field.peak_ratio)
+            outliers += int(field.outlier.sum())
+    seconds = time.perf_counter() - t0
+    n_vec = g.size * len(pairs)
+    nx, ny, nz = g.counts
+    print(f"wrote {store.path}/vectors: {len(pairs)} pair(s) of {nx} x {ny} x {nz} vectors (x, y, z), "
+          f"final windows {'x'.join(map(str, g.window))} voxels; {100.0 * outliers / n_vec:.1f}% outliers replaced; "
+          f"{seconds:.1f} s on {correlator.device} ({n_vec / seconds:.3g} vectors/s)")
+    return 0
+
+
+def evaluate_vectors(store) -> list[tuple[str, str]]:
+    """Lines (label, text) about a run's vectors for ``lfpiv evaluate``.
+
+    RMS velocity error per component against the synthetic truth flow (in m/s and in voxels,
+    evaluated at the window centres at mid-pair time), the outlier fraction, and the
+    chapter's divergence error |du/dx + dv/dy + dw/dz|.
+    """
+    from lfcore.flows import flow_from_params
+    from lfcore.vectors import FLAG_OUTLIER, FLAG_REPLACED, divergence
+
+    if not store.has_vectors:
+        return [("vectors", f"none yet (run 'lfpiv correlate {store.path}')")]
+    vec = store.vectors()
+    pairs = store.correlated_pairs()
+    if not pairs:
+        return [("vectors", "vectors/ exists but no pair has been correlated")]
+    a = vec["attrs"]
+    x, y, z = vec["x_mm"], vec["y_mm"], vec["z_mm"]
+    vel = np.stack([vec[c][pairs] for c in "uvw"], axis=-1).astype(np.float64)  # (pairs, z, y, x, 3)
+    flags = vec["flags"][pairs]
+    dt = float(a["dt_s"])
+    lines = [("vectors", f"{len(pairs)} pair(s) of {len(x)} x {len(y)} x {len(z)} vectors (x, y, z); windows "
+                         f"{', '.join('x'.join(map(str, w)) for w in a['windows'])} voxels")]
+    truth = store.truth()
+    if truth is not None:
+        flow = flow_from_params(truth["attrs"]["flow"])
+        rate = float(store.timing.get("rate_hz", 1.0))
+        zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+        pts = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)
+        ref = np.stack([flow.velocity(pts, p / rate + 0.5 * dt).reshape(vel.shape[1:]) for p in pairs])
+        err = vel - ref
+        rms = np.sqrt(np.nanmean(err**2, axis=(0, 1, 2, 3)))
+        peak = float(np.nanmax(np.linalg.norm(ref, axis=-1)))
+        vox = ""
+        if store.has_volumes:  # the same errors as displacements in voxels
+            in_vox = rms * dt * 1e3 / np.asarray(store.volume_grid().voxel_mm)
+            vox = " (" + ", ".join(f"{e:.3f}" for e in in_vox) + " voxel)"
+        lines.append(("velocity error", f"RMS u, v, w {rms[0]:.3g}, {rms[1]:.3g}, {rms[2]:.3g} m/s{vox}; "
+                                        f"{100 * np.linalg.norm(rms) / peak:.1f}% of the peak speed {peak:.3g} m/s"))
+    n = flags.size
+    lines.append(("outliers", f"{100.0 * np.count_nonzero(flags & FLAG_OUTLIER) / n:.1f}% of the vectors "
+                              f"({100.0 * np.count_nonzero(flags & FLAG_REPLACED) / n:.1f}% replaced)"))
+    div = np.abs(np.stack([divergence(v, x, y, z) for v in vel]))
+    lines.append(("divergence error", f"|du/dx + dv/dy + dw/dz| mean {np.nanmean(div):.3g} 1/s, median "
+                                      f"{np.nanmedian(div):.3g} 1/s"))
+    return lines
+

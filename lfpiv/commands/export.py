@@ -1,0 +1,42 @@
+"""``lfpiv export``: write a run's vector fields as netCDF or VTK files."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    e = sub.add_parser("export", help="write a run's vector fields as netCDF or VTK for ParaView, Tecplot, xarray",
+                       description="Write the correlated pairs of a run's vectors/ with vorticity, divergence and "
+                       "Q-criterion: --format netcdf gives one vectors.nc (dimensions pair, z, y, x; mm, m/s); "
+                       "--format vtk gives one VTK ImageData file per pair and a ParaView collection vectors.pvd.")
+    e.add_argument("run", metavar="RUN", help="run store with vectors (a .zarr directory)")
+    e.add_argument("--format", required=True, choices=("netcdf", "vtk"), help="netcdf or vtk")
+    e.add_argument("--out", required=True, metavar="DIR", help="directory to write into (created if needed)")
+    e.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from lfcore.runstore import RunStore, RunStoreError
+    from lfpiv.errors import UsageError
+    from lfpiv.export import fields_of, write_netcdf, write_vti_series
+
+    store = RunStore.open(args.run)
+    vectors = store.vectors()
+    pairs = store.correlated_pairs()
+    if not pairs:
+        raise RunStoreError(f"{store.path} has vectors/ but no correlated pair; run 'lfpiv correlate {store.path}'")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} is a file; give a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    fields = fields_of(vectors, pairs, store.timing.get("rate_hz"))
+    if args.format == "netcdf":
+        files = [write_netcdf(out / "vectors.nc", fields, source=str(store.path))]
+    else:
+        files = write_vti_series(out, fields)
+    print(f"wrote {len(files)} file(s) to {out}: {', '.join(f.name for f in files[:4])}"
+          f"{' ...' if len(files) > 4 else ''}")
+    return 0

@@ -1,0 +1,209 @@
+"""Multi-grid 3D cross-correlation on volumes of Gaussian blobs with known displacements (voxels)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lfcore.correlate import CorrelationConfig, CorrelationError, Correlator, correlate, window_grid
+from lfcore.vectors import divergence, vorticity
+from tests.blobs import blob_pair
+
+SHAPE = (24, 48, 48)  # z, y, x
+CENTRE = np.array([23.5, 23.5, 11.5])  # x, y, z
+FAST = CorrelationConfig(windows=((24, 24, 12), (16, 16, 8)), overlap=0.75)
+
+
+def uniform(d):
+    return lambda p: np.broadcast_to(np.asarray(d, dtype=float), p.shape)
+
+
+def rotation(omega):
+    """Solid-body rotation about the volume's z axis by omega radians over dt (voxels)."""
+
+    def f(p):
+        r = p - CENTRE
+        return np.stack([-omega * r[:, 1], omega * r[:, 0], np.zeros(len(p))], axis=1)
+
+    return f
+
+
+def shear(gamma):
+    """Linear shear: x displacement growing along y (voxels)."""
+
+    def f(p):
+        r = p - CENTRE
+        return np.stack([gamma * r[:, 1], np.zeros(len(p)), np.zeros(len(p))], axis=1)
+
+    return f
+
+
+def truth_at(field, fn):
+    z, y, x = np.meshgrid(field.z, field.y, field.x, indexing="ij")
+    pts = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    return fn(pts).reshape(field.displacement.shape)
+
+
+def rms(e):
+    return np.sqrt(np.mean(np.asarray(e) ** 2, axis=(0, 1, 2)))
+
+
+@pytest.fixture(scope="module")
+def cpu_correlator():
+    return Correlator(SHAPE, FAST, device="cpu")
+
+
+def test_window_grid_is_centred_with_the_overlap_step():
+    g = window_grid((24, 48, 50), (16, 16, 8), (0.75, 0.5, 0.75))
+    assert g.step == (4, 8, 2)
+    assert g.counts == ((50 - 16) // 4 + 1, (48 - 16) // 8 + 1, (24 - 8) // 2 + 1)
+    assert g.shape == (g.counts[2], g.counts[1], g.counts[0])
+    cx, cy, cz = g.centres()
+    assert cx[0] - 7.5 == (50 - 16 - (g.counts[0] - 1) * 4) // 2  # the leftover is split between both ends
+    assert cy[0] == 7.5 and cy[-1] == 48 - 8.5 and cz[0] == 3.5
+    starts = g.starts()
+    assert starts.shape == (g.size, 3) and tuple(starts[1]) == (starts[0, 0] + 4, starts[0, 1], starts[0, 2])
+
+
+@pytest.mark.parametrize("shift", [(0.3, -0.7, 0.45), (0.05, 0.5, -0.25), (2.6, -1.2, 0.8)])
+def test_uniform_subvoxel_shift_is_recovered(cpu_correlator, shift):
+    a, b = blob_pair(SHAPE, uniform(shift), density=0.02, seed=1)
+    f = cpu_correlator(a, b)
+    assert f.shape == (9, 9, 9)
+    err = f.displacement - np.asarray(shift)
+    assert np.all(rms(err) < 0.05), rms(err)  # the issue's goal, per component
+    assert np.abs(err).max() < 0.3  # the worst: a corner window, where particles leave the volume
+    assert not f.outlier.any()
+    assert np.median(f.peak_ratio) > 2.0 and np.median(f.peak_height) > 0.8
+
+
+def test_trilinear_deformation_is_biased_but_close():
+    shift = (0.3, -0.7, 0.45)
+    a, b = blob_pair(SHAPE, uniform(shift), density=0.02, seed=1)
+    f = correlate(a, b, CorrelationConfig(windows=FAST.windows, interpolation="linear"), device="cpu")
+    assert np.all(rms(f.displacement - np.asarray(shift)) < 0.08)
+
+
+def test_solid_body_rotation(cpu_correlator):
+    fn = rotation(0.06)  # up to 1.4 voxel at the corners
+    a, b = blob_pair(SHAPE, fn, seed=2)
+    f = cpu_correlator(a, b)
+    e = f.displacement - truth_at(f, fn)
+    assert np.all(rms(e) < 0.03), rms(e)
+    assert np.abs(e).max() < 0.15
+    # the measured field rotates at the right rate and does not diverge (per dt, in 1/voxel units)
+    x, y, z = f.x, f.y, f.z
+    w = vorticity(f.displacement, x * 1e3, y * 1e3, z * 1e3)[1:-1, 1:-1, 1:-1]
+    assert np.median(w[..., 2]) == pytest.approx(2 * 0.06, rel=0.05)
+    div = divergence(f.displacement, x * 1e3, y * 1e3, z * 1e3)[1:-1, 1:-1, 1:-1]
+    assert np.sqrt(np.mean(div**2)) < 0.05 * 2 * 0.06
+
+
+def test_linear_shear(cpu_correlator):
+    fn = shear(0.08)  # du/dy = 0.08: 1.3 voxel across a final window
+    a, b = blob_pair(SHAPE, fn, seed=3)
+    f = cpu_correlator(a, b)
+    e = f.displacement - truth_at(f, fn)
+    assert np.all(rms(e) < 0.03), rms(e)
+    assert np.abs(e).max() < 0.15
+
+
+def test_a_single_pass_matches_a_numpy_reference():
+    """Without predictor, each window's peak is that of numpy's circular correlation, fitted alike."""
+    a, b = blob_pair((16, 32, 32), uniform((0.4, -1.3, 0.7)), seed=4)
+    cfg = CorrelationConfig(windows=((16, 16, 8),), overlap=0.5, deform_iterations=0)
+    f = correlate(a, b, cfg, device="cpu")
+    g = f.grid
+    ref = []
+    for x0, y0, z0 in g.starts():
+        wa = a[z0:z0 + 8, y0:y0 + 16, x0:x0 + 16].astype(np.float64)
+        wb = b[z0:z0 + 8, y0:y0 + 16, x0:x0 + 16].astype(np.float64)
+        r = np.fft.ifftn(np.conj(np.fft.fftn(wa - wa.mean())) * np.fft.fftn(wb - wb.mean())).real
+        k = np.unravel_index(np.argmax(r), r.shape)
+        d = []
+        for ax in (2, 1, 0):
+            lo, hi = list(k), list(k)
+            lo[ax], hi[ax] = (k[ax] - 1) % r.shape[ax], (k[ax] + 1) % r.shape[ax]
+            ll, lc, lh = np.log([r[tuple(lo)], r[k], r[tuple(hi)]])
+            s = k[ax] if k[ax] < r.shape[ax] / 2 else k[ax] - r.shape[ax]
+            d.append(s + (ll - lh) / (2 * (ll - 2 * lc + lh)))
+        ref.append(d)
+    assert np.allclose(f.displacement.reshape(-1, 3), ref, atol=1e-4)
+
+
+def test_warp_fft_matches_scipy_fft():
+    """Warp's tile FFT path (the GPU's) gives the CPU path's result, zero padding included."""
+    a, b = blob_pair((16, 32, 32), uniform((0.4, -0.6, 0.3)), seed=5)
+    for pad in (False, True):
+        cfg = dict(windows=((16, 16, 8),), overlap=0.5, deform_iterations=1, zero_pad=pad)
+        ref = correlate(a, b, CorrelationConfig(fft="scipy", **cfg), device="cpu")
+        got = correlate(a, b, CorrelationConfig(fft="warp", **cfg), device="cpu")
+        assert np.allclose(got.displacement, ref.displacement, atol=1e-4)
+        assert np.allclose(got.peak_height, ref.peak_height, atol=1e-4)
+
+
+def test_zero_padding_recovers_a_large_shift():
+    # 5.4 voxels is beyond half of the 8-voxel z window: circular correlation aliases it to
+    # -2.6, the padded correlation finds it (biased low by the shrinking overlap, which the
+    # deformation passes then remove)
+    a, b = blob_pair((32, 32, 32), uniform((0.3, 0.2, 5.4)), seed=6, density=0.03)
+    cfg = dict(windows=((16, 16, 8),), overlap=0.5, deform_iterations=2)
+    padded = correlate(a, b, CorrelationConfig(zero_pad=True, **cfg), device="cpu")
+    assert np.median(padded.displacement[..., 2]) == pytest.approx(5.4, abs=0.1)
+    circular = correlate(a, b, CorrelationConfig(**cfg), device="cpu")
+    assert abs(np.median(circular.displacement[..., 2]) - 5.4) > 2
+
+
+def test_spurious_vectors_are_flagged_and_replaced(cpu_correlator):
+    shift = (0.6, -0.4, 0.3)
+    a, b = blob_pair(SHAPE, uniform(shift), seed=7)
+    other, _ = blob_pair(SHAPE, uniform(shift), seed=99)
+    b[6:18, 14:34, 14:34] = other[6:18, 14:34, 14:34]  # B's particles there are unrelated to A's
+    f = cpu_correlator(a, b)
+    assert f.outlier.any() and np.array_equal(f.outlier, f.replaced)
+    z, y, x = np.meshgrid(f.z, f.y, f.x, indexing="ij")
+    inside = (z > 6) & (z < 17) & (y > 14) & (y < 33) & (x > 14) & (x < 33)
+    assert not f.outlier[~inside].any()  # only where the volumes disagree
+    err = np.abs(f.displacement - np.asarray(shift))
+    assert np.all(np.isfinite(f.displacement)) and np.median(err[f.replaced]) < 0.15
+
+
+def test_blank_volumes_have_no_peak():
+    z = np.zeros(SHAPE, dtype=np.float32)
+    f = correlate(z, z, FAST, device="cpu")
+    assert f.outlier.all() and not f.replaced.any() and np.isnan(f.displacement).all()
+
+
+def test_identical_results_on_every_device(device):
+    """The default FFT of each device (pocketfft on the CPU, Warp's tile FFT on CUDA) and every kernel."""
+    fn = rotation(0.04)
+    a, b = blob_pair(SHAPE, fn, seed=8)
+    cfg = CorrelationConfig(windows=((32, 32, 16), (16, 16, 8)), overlap=0.75)  # power-of-two FFTs everywhere
+    ref = Correlator(SHAPE, cfg, device="cpu")(a, b)
+    got = Correlator(SHAPE, cfg, device=device)(a, b)
+    assert np.allclose(got.displacement, ref.displacement, atol=2e-3)
+    assert np.array_equal(got.outlier, ref.outlier)
+    assert np.allclose(got.peak_ratio, ref.peak_ratio, rtol=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (dict(windows=((64, 16, 8),)), "larger than the volume along x (64 > 48 voxels"),
+        (dict(windows=((16, 16, 32),)), "larger than the volume along z (32 > 24 voxels"),
+        (dict(overlap=1.0), "overlap must be at least 0 and below 1"),
+        (dict(overlap=(0.5, 0.5)), "overlap must be at least 0 and below 1"),
+        (dict(windows=((16, 16, 2),)), "too small"),
+        (dict(windows=()), "at least one window"),
+        (dict(fft="fftw"), "fft must be"),
+        (dict(interpolation="sinc"), "interpolation must be"),
+    ],
+)
+def test_bad_settings(kwargs, message):
+    with pytest.raises(CorrelationError, match=message.replace("(", r"\(")):
+        Correlator(SHAPE, CorrelationConfig(**{"windows": ((16, 16, 8),), **kwargs}), device="cpu")
+
+
+def test_wrong_volume_shape(cpu_correlator):
+    with pytest.raises(CorrelationError, match="takes volumes of shape"):
+        cpu_correlator(np.zeros((8, 8, 8), np.float32), np.zeros((8, 8, 8), np.float32))
