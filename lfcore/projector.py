@@ -22,10 +22,12 @@ from lfcore.device import resolve_device, warp
 from lfcore.rig import Camera
 from lfcore.volume import VolumeGrid
 
-__all__ = ["MemoryBudgetError", "Projector", "Weights"]
+__all__ = ["MemoryBudgetError", "Projector", "WeightChunk", "Weights"]
 
 #: Bytes per stored weight: an int32 pixel index and a float32 value.
 BYTES_PER_WEIGHT = 8
+#: Raw (unmerged) entries built at once; bounds the scratch memory of a weight build.
+CHUNK_ENTRIES = {"cpu": 1 << 25, "cuda": 1 << 28}
 
 
 class MemoryBudgetError(MemoryError):
@@ -33,25 +35,37 @@ class MemoryBudgetError(MemoryError):
 
 
 @dataclass
+class WeightChunk:
+    """Weights of the voxels ``first .. first + n - 1`` (CSR).
+
+    ``offsets`` (n + 1,) int64 index ``pix`` (int32 global pixel) and ``w`` (float32): voxel
+    ``first + t`` has entries ``offsets[t] .. offsets[t + 1] - 1``, one per pixel it lights.
+    """
+
+    first: int
+    n: int
+    offsets: object
+    pix: object
+    w: object
+    nnz: int
+
+
+@dataclass
 class Weights:
-    """Sparse voxel-to-pixel weights on the device, voxel-major (CSR).
+    """Sparse voxel-to-pixel weights on the device, voxel-major, in chunks of whole voxels.
 
     Attributes
     ----------
     voxels
         (n,) int32 flat indices into the (z, y, x) grid of the voxels that have weights.
-    offsets
-        (n + 1,) int64: voxel j's entries are ``offsets[j] .. offsets[j + 1] - 1``.
-    pix
-        (nnz,) int32 global pixel index of each entry.
-    w
-        (nnz,) float32 weight: the fraction of the voxel's light on that pixel.
+    chunks
+        The CSR chunks covering voxels 0 .. n - 1 in order.
+    nnz
+        Stored entries: each (voxel, pixel) once, the fraction of the voxel's light on that pixel.
     """
 
     voxels: object
-    offsets: object
-    pix: object
-    w: object
+    chunks: list[WeightChunk]
     nnz: int
 
     @property
@@ -61,6 +75,19 @@ class Weights:
     @property
     def nbytes(self) -> int:
         return BYTES_PER_WEIGHT * self.nnz + 12 * self.n_voxels
+
+    def to_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(offsets (n + 1,), pix (nnz,), w (nnz,)) of all chunks joined, on the host."""
+        offs, pix, w = [np.zeros(1, np.int64)], [], []
+        base = 0
+        for c in self.chunks:
+            o = c.offsets.numpy()
+            offs.append(o[1:] + base)
+            pix.append(c.pix.numpy()[: c.nnz])
+            w.append(c.w.numpy()[: c.nnz])
+            base += c.nnz
+        return (np.concatenate(offs), np.concatenate(pix) if pix else np.zeros(0, np.int32),
+                np.concatenate(w) if w else np.zeros(0, np.float32))
 
 
 def _available_bytes(device: str) -> int:
@@ -127,7 +154,8 @@ class Projector:
         if self.n_pixels >= 2**31 or grid.n_voxels >= 2**31:
             raise MemoryBudgetError("more than 2**31 pixels or voxels; use a coarser --pvr")
 
-        views, sub_a, sub_w, sub_check = [], [], [], []
+        views, sub_a, sub_w, check_order = [], [], [], []
+        rng = np.random.default_rng(0)
         half_world = 0.5 * np.asarray(grid.voxel_mm)
         for k, cam in enumerate(self.cameras):
             n_sub = sub_apertures or max(1, round(cam.pixels_per_lenslet))
@@ -140,8 +168,14 @@ class Projector:
             half = np.abs(rot) @ half_world
             v.half = wp.vec3(*half)
             v.pix_offset = int(self.pixel_offsets[k])
-            v.sub_first = len(sub_w)
+            first = sum(len(x) for x in sub_w)
+            v.sub_first = first
             v.sub_count = len(shares)
+            # Elimination checks the full sub-apertures in random order: neighbouring ones land
+            # on neighbouring pixels and agree, far-apart ones disagree unless a particle is there.
+            full = np.flatnonzero(shares >= 0.5)
+            v.check_first = sum(len(x) for x in check_order)
+            v.check_count = len(full)
             v.sub_side = cam.aperture_mm / n_sub
             hexagonal = cam.mla_grid == "hex"
             v.n_edges = 6 if hexagonal else 4
@@ -159,11 +193,11 @@ class Projector:
             views.append(v)
             sub_a.append(centres)
             sub_w.append(shares / shares.sum())
-            sub_check.append((shares >= 0.5).astype(np.int32))
+            check_order.append((first + rng.permutation(full)).astype(np.int32))
         self.views = wp.array(views, dtype=kw.View, device=self.device)
         self.sub_a = wp.array(np.concatenate(sub_a).astype(np.float32), dtype=wp.vec2, device=self.device)
         self.sub_w = wp.array(np.concatenate(sub_w).astype(np.float32), dtype=float, device=self.device)
-        self.sub_check = wp.array(np.concatenate(sub_check), dtype=wp.int32, device=self.device)
+        self.check_order = wp.array(np.concatenate(check_order), dtype=wp.int32, device=self.device)
 
     # --- zero-voxel elimination ---------------------------------------------------------
     def eliminate(self, lit: Sequence[np.ndarray], min_seen: float = 0.5) -> object:
@@ -189,7 +223,7 @@ class Projector:
         n = self.grid.n_voxels
         mask = wp.zeros(n, dtype=wp.int32, device=self.device)
         wp.launch(kw.eliminate, dim=n, device=self.device,
-                  inputs=[self._grid, self.views, len(self.cameras), self.sub_a, self.sub_check, lit_dev,
+                  inputs=[self._grid, self.views, len(self.cameras), self.sub_a, self.check_order, lit_dev,
                           float(min_seen), mask])
         return self._compact(mask)
 
@@ -212,6 +246,10 @@ class Projector:
                 budget_bytes: int | None = None) -> Weights:
         """Sparse weights of ``voxels`` (from :meth:`eliminate` or :meth:`all_voxels`).
 
+        The kernels emit one entry per (sub-aperture, lenslet, pixel); the entries of a voxel
+        that share a pixel are then summed (a segmented sort by pixel within each voxel), which
+        stores each (voxel, pixel) once: about a third of the raw entries.
+
         Parameters
         ----------
         voxels
@@ -220,7 +258,7 @@ class Projector:
             ``"drt"``: dense ray tracing; ``"los"``: the conventional line-of-sight cylinder
             and voxel sphere (MART baseline).
         min_weight
-            Entries below this are dropped.
+            Raw entries below this are dropped.
         budget_bytes
             Memory the weights may take; default: what the device has free.
 
@@ -231,41 +269,72 @@ class Projector:
         """
         wp, kw = self.wp, self._kw
         n = int(voxels.shape[0])
+        if method not in ("drt", "los"):
+            raise ValueError(f"unknown weight method '{method}'; use 'drt' or 'los'")
         counts = wp.zeros(max(n, 1), dtype=wp.int64, device=self.device)
         sums = wp.zeros(max(n, 1), dtype=float, device=self.device)
         offsets = wp.zeros(n + 1, dtype=wp.int64, device=self.device)
-        dummy_i = wp.empty(1, dtype=wp.int32, device=self.device)
-        dummy_f = wp.empty(1, dtype=float, device=self.device)
         if method == "drt":
             kern = kw.drt_weights
-            common = [self._grid, self.views, len(self.cameras), self.sub_a, self.sub_w, voxels]
-        elif method == "los":
-            kern = kw.los_weights
-            common = [self._grid, self.views, len(self.cameras), voxels]
+            common = [self._grid, self.views, len(self.cameras), self.sub_a, self.sub_w]
         else:
-            raise ValueError(f"unknown weight method '{method}'; use 'drt' or 'los'")
+            kern = kw.los_weights
+            common = [self._grid, self.views, len(self.cameras)]
+        extra = [sums] if method == "los" else []
 
-        def launch(fill, pix, w):
-            extra = [sums] if method == "los" else []
-            wp.launch(kern, dim=n, device=self.device,
-                      inputs=[*common, offsets, float(min_weight), fill, counts, *extra, pix, w])
+        def launch(lo, hi, fill, pix, w, origin=0):
+            wp.launch(kern, dim=hi - lo, device=self.device,
+                      inputs=[*common, voxels[lo:hi], offsets[lo:hi + 1], wp.int64(origin), float(min_weight),
+                              fill, counts[lo:hi], *([sums[lo:hi]] if extra else []), pix, w])
 
+        dummy_i = wp.empty(1, dtype=wp.int32, device=self.device)
+        dummy_f = wp.empty(1, dtype=float, device=self.device)
         if n:
-            launch(0, dummy_i, dummy_f)
+            launch(0, n, 0, dummy_i, dummy_f)
             wp.utils.array_scan(counts[:n], offsets[1:], inclusive=True)
-        nnz = int(offsets[n:].numpy()[0])
-        need = BYTES_PER_WEIGHT * nnz
+        raw = offsets.numpy()
         budget = _available_bytes(self.device) if budget_bytes is None else budget_bytes
-        if need > budget:
-            raise MemoryBudgetError(
-                f"the weights need {need / 2**30:.1f} GiB for {n} voxels and {nnz} entries but "
-                f"{self.device} has {budget / 2**30:.1f} GiB free; use a coarser --pvr, a smaller "
-                "volume, or fewer sub-apertures")
-        pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=self.device)
-        w = wp.empty(max(nnz, 1), dtype=float, device=self.device)
-        if n:
-            launch(1, pix, w)
-        return Weights(voxels=voxels, offsets=offsets, pix=pix, w=w, nnz=nnz)
+        limit = CHUNK_ENTRIES["cpu" if self.device == "cpu" else "cuda"]
+        # Chunks of whole voxels with at most `limit` raw entries (a voxel with more gets its own).
+        bounds = [0]
+        while bounds[-1] < n:
+            lo = bounds[-1]
+            hi = int(np.searchsorted(raw, raw[lo] + limit, side="right")) - 1
+            bounds.append(min(n, max(hi, lo + 1)))
+        chunks, total = [], 0
+        for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+            m = int(raw[hi] - raw[lo])
+            scratch = max(2 * m, 2)
+            pix = wp.empty(scratch, dtype=wp.int32, device=self.device)
+            order = wp.array(np.arange(scratch, dtype=np.int32), device=self.device)
+            w_raw = wp.empty(max(m, 1), dtype=float, device=self.device)
+            launch(lo, hi, 1, pix, w_raw, origin=int(raw[lo]))
+            starts = wp.array((raw[lo:hi] - raw[lo]).astype(np.int32), device=self.device)
+            ends = wp.array((raw[lo + 1:hi + 1] - raw[lo]).astype(np.int32), device=self.device)
+            wp.utils.segmented_sort_pairs(pix, order, m, starts, ends)
+            merged_pix = wp.empty(max(m, 1), dtype=wp.int32, device=self.device)
+            merged_w = wp.empty(max(m, 1), dtype=float, device=self.device)
+            kept = wp.empty(hi - lo, dtype=wp.int32, device=self.device)
+            wp.launch(kw.merge_sorted, dim=hi - lo, device=self.device,
+                      inputs=[starts, ends, pix, order, w_raw, merged_pix, merged_w, kept])
+            del pix, order, w_raw
+            kept_h = kept.numpy().astype(np.int64)
+            c_off = np.zeros(hi - lo + 1, dtype=np.int64)
+            np.cumsum(kept_h, out=c_off[1:])
+            nnz = int(c_off[-1])
+            total += nnz
+            if BYTES_PER_WEIGHT * total > budget:
+                raise MemoryBudgetError(
+                    f"the weights need at least {BYTES_PER_WEIGHT * total / 2**30:.1f} GiB for {n} voxels but "
+                    f"{self.device} has {budget / 2**30:.1f} GiB free; use a coarser --pvr, a smaller volume, "
+                    "or fewer sub-apertures")
+            c_offsets = wp.array(c_off, device=self.device)
+            out_pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=self.device)
+            out_w = wp.empty(max(nnz, 1), dtype=float, device=self.device)
+            wp.launch(kw.gather_merged, dim=hi - lo, device=self.device,
+                      inputs=[starts, c_offsets, kept, merged_pix, merged_w, out_pix, out_w])
+            chunks.append(WeightChunk(first=lo, n=hi - lo, offsets=c_offsets, pix=out_pix, w=out_w, nnz=nnz))
+        return Weights(voxels=voxels, chunks=chunks, nnz=total)
 
     # --- projections and updates --------------------------------------------------------
     def forward(self, weights: Weights, e, out=None):
@@ -275,23 +344,22 @@ class Projector:
         wp = self.wp
         out = wp.zeros(self.n_pixels, dtype=float, device=self.device) if out is None else out
         out.zero_()
-        wp.launch(km.project, dim=weights.n_voxels, device=self.device,
-                  inputs=[weights.offsets, weights.pix, weights.w, e, out])
+        for c in weights.chunks:
+            wp.launch(km.project, dim=c.n, device=self.device, inputs=[c.offsets, c.pix, c.w, c.first, e, out])
         return out
 
     def smart_update(self, weights: Weights, image, proj, e, relaxation: float, floor: float) -> None:
         """One simultaneous multiplicative update of ``e`` in place (see the kernel)."""
         from lfcore._kernels import mart as km
 
-        self.wp.launch(km.smart_update, dim=weights.n_voxels, device=self.device,
-                       inputs=[weights.offsets, weights.pix, weights.w, image, proj, float(floor),
-                               float(relaxation), e])
+        for c in weights.chunks:
+            self.wp.launch(km.smart_update, dim=c.n, device=self.device,
+                           inputs=[c.offsets, c.pix, c.w, c.first, image, proj, float(floor), float(relaxation), e])
 
     def transpose(self, weights: Weights):
         """Pixel-major copy of the weights for the sequential form: (p_offsets, vox, w, rows)."""
         wp = self.wp
-        offsets = weights.offsets.numpy()
-        pix = weights.pix.numpy()[: weights.nnz]
+        offsets, pix, w = weights.to_numpy()
         vox = np.repeat(np.arange(weights.n_voxels, dtype=np.int32), np.diff(offsets))
         order = np.argsort(pix, kind="stable")
         p_offsets = np.zeros(self.n_pixels + 1, dtype=np.int64)
@@ -299,7 +367,7 @@ class Projector:
         rows = np.flatnonzero(np.diff(p_offsets)).astype(np.int32)
         dev = self.device
         return (wp.array(p_offsets, device=dev), wp.array(vox[order], device=dev),
-                wp.array(weights.w.numpy()[: weights.nnz][order], device=dev), wp.array(rows, device=dev))
+                wp.array(w[order], device=dev), wp.array(rows, device=dev))
 
     def mart_sweep(self, transposed, image, e, relaxation: float, floor: float) -> None:
         """One sequential sweep of eq. 4.1 over every pixel with weights (single thread)."""

@@ -23,16 +23,21 @@ def project(
     offsets: wp.array(dtype=wp.int64),
     pix: wp.array(dtype=wp.int32),
     w: wp.array(dtype=float),
+    first: int,
     e: wp.array(dtype=float),
     proj: wp.array(dtype=float),
 ):
-    """proj[i] += sum_j w_ij E_j: forward projection, one thread per voxel."""
-    j = wp.tid()
+    """proj[i] += sum_j w_ij E_j: forward projection, one thread per voxel of a chunk.
+
+    The chunk's voxel t is voxel ``first + t`` of ``e``; its entries start at ``offsets[t]``.
+    """
+    t0 = wp.tid()
+    j = first + t0
     ej = e[j]
     if ej == 0.0:
         return
-    t = offsets[j]
-    end = offsets[j + 1]
+    t = offsets[t0]
+    end = offsets[t0 + 1]
     while t < end:
         wp.atomic_add(proj, pix[t], w[t] * ej)
         t += wp.int64(1)
@@ -43,6 +48,7 @@ def smart_update(
     offsets: wp.array(dtype=wp.int64),
     pix: wp.array(dtype=wp.int32),
     w: wp.array(dtype=float),
+    first: int,
     image: wp.array(dtype=float),
     proj: wp.array(dtype=float),
     floor: float,
@@ -56,13 +62,14 @@ def smart_update(
     equivalent of one sweep of eq. 4.1 over the voxel's pixels. Pixels below ``floor`` count as
     ``floor``, so a dark pixel pulls its voxels down hard without zeroing them in one step.
     """
-    j = wp.tid()
+    t0 = wp.tid()
+    j = first + t0
     ej = e[j]
     if ej == 0.0:
         return
     s = float(0.0)
-    t = offsets[j]
-    end = offsets[j + 1]
+    t = offsets[t0]
+    end = offsets[t0 + 1]
     while t < end:
         i = pix[t]
         p = proj[i]

@@ -60,6 +60,8 @@ class View:
     pix_offset: int  # first global pixel index of this camera
     sub_first: int  # this camera's range in the sub-aperture table
     sub_count: int
+    check_first: int  # this camera's range in the elimination's check order
+    check_count: int
     sub_side: float  # side of a sub-aperture, mm
     n_edges: int  # lenslet cell: 4 (square) or 6 (hexagon)
     edge_nx: vec6  # outward normals of the cell's edges (camera frame)
@@ -221,7 +223,7 @@ def eliminate(
     views: wp.array(dtype=View),
     n_views: int,
     sub_a: wp.array(dtype=wp.vec2),
-    sub_check: wp.array(dtype=wp.int32),
+    check_order: wp.array(dtype=wp.int32),
     lit: wp.array(dtype=wp.uint8),
     min_seen: float,
     active: wp.array(dtype=wp.int32),
@@ -231,7 +233,8 @@ def eliminate(
     A sub-aperture counts as lit if any of the pixels hit by the centre or the corners of its
     footprint is lit (the footprint may straddle lenslets). Sub-apertures whose rays leave the
     sensor are not evidence either way; a voxel seen through fewer than ``min_seen`` of its
-    checked sub-apertures in some view is dropped.
+    checked sub-apertures in some view is dropped. The checks go in ``check_order``, spread
+    over the aperture, so that most empty voxels are rejected after a few lookups.
     """
     v = wp.tid()
     pw = voxel_centre(grid, v)
@@ -243,47 +246,49 @@ def eliminate(
         sop = cam.so - p[2]
         if sop * cam.inv_f <= 1.0:
             keep = int(0)
-        if keep == 1:
-            inv = 1.0 / sop
-            a = 1.0 - cam.si * (cam.inv_f - inv)
-            gx = -p[0] * cam.si * inv
-            gy = -p[1] * cam.si * inv
-            dq = cam.si * inv * inv * view.half[2]
-            checked = int(0)
-            seen = int(0)
-            for k in range(view.sub_first, view.sub_first + view.sub_count):
-                if sub_check[k] == 0 or keep == 0:
-                    continue
-                checked += 1
-                ax = sub_a[k][0]
-                ay = sub_a[k][1]
-                qx = a * ax + gx
-                qy = a * ay + gy
-                fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
-                fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
-                on = int(0)
-                hit = int(0)
-                for corner in range(5):
-                    px = qx
-                    py = qy
-                    if corner > 0:
-                        px = qx + fx * float(2 * ((corner - 1) % 2) - 1)
-                        py = qy + fy * float(2 * ((corner - 1) // 2) - 1)
-                    c = lenslet_centre(cam, px, py)
-                    sx = c[0] + cam.f_ml * (px - ax) / cam.si
-                    sy = c[1] + cam.f_ml * (py - ay) / cam.si
-                    col = 0.5 * float(cam.ncols) - sx / cam.pixel
-                    row = 0.5 * float(cam.nrows) + sy / cam.pixel
-                    if col >= 0.0 and row >= 0.0 and col < float(cam.ncols) and row < float(cam.nrows):
-                        on = int(1)
-                        if lit[view.pix_offset + int(row) * cam.ncols + int(col)] != wp.uint8(0):
-                            hit = int(1)
-                if on == 1:
-                    seen += 1
-                    if hit == 0:
-                        keep = int(0)
-            if keep == 1 and float(seen) < min_seen * float(checked):
-                keep = int(0)
+            break
+        inv = 1.0 / sop
+        a = 1.0 - cam.si * (cam.inv_f - inv)
+        gx = -p[0] * cam.si * inv
+        gy = -p[1] * cam.si * inv
+        dq = cam.si * inv * inv * view.half[2]
+        seen = int(0)
+        for m in range(view.check_first, view.check_first + view.check_count):
+            k = check_order[m]
+            ax = sub_a[k][0]
+            ay = sub_a[k][1]
+            qx = a * ax + gx
+            qy = a * ay + gy
+            fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
+            fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
+            on = int(0)
+            hit = int(0)
+            for corner in range(5):
+                px = qx
+                py = qy
+                if corner > 0:
+                    px = qx + fx * float(2 * ((corner - 1) % 2) - 1)
+                    py = qy + fy * float(2 * ((corner - 1) // 2) - 1)
+                c = lenslet_centre(cam, px, py)
+                sx = c[0] + cam.f_ml * (px - ax) / cam.si
+                sy = c[1] + cam.f_ml * (py - ay) / cam.si
+                col = 0.5 * float(cam.ncols) - sx / cam.pixel
+                row = 0.5 * float(cam.nrows) + sy / cam.pixel
+                if col >= 0.0 and row >= 0.0 and col < float(cam.ncols) and row < float(cam.nrows):
+                    on = int(1)
+                    if lit[view.pix_offset + int(row) * cam.ncols + int(col)] != wp.uint8(0):
+                        hit = int(1)
+                        break
+            if on == 1:
+                seen += 1
+                if hit == 0:
+                    keep = int(0)
+                    break
+        if keep == 0:
+            break
+        if float(seen) < min_seen * float(view.check_count):
+            keep = int(0)
+            break
     active[v] = keep
 
 
@@ -296,19 +301,23 @@ def drt_weights(
     sub_w: wp.array(dtype=float),
     voxels: wp.array(dtype=wp.int32),
     offsets: wp.array(dtype=wp.int64),
+    origin: wp.int64,
     min_weight: float,
     fill: int,
     counts: wp.array(dtype=wp.int64),
     pix: wp.array(dtype=wp.int32),
     w: wp.array(dtype=float),
 ):
-    """Dense ray-traced weights of voxel ``voxels[tid]`` (see the module docstring)."""
+    """Dense ray-traced weights of voxel ``voxels[tid]`` (see the module docstring).
+
+    With ``fill = 1`` the entries go to ``pix``/``w`` from ``offsets[tid] - origin``.
+    """
     tid = wp.tid()
     pw = voxel_centre(grid, voxels[tid])
     n = wp.int64(0)
     base = wp.int64(0)
     if fill == 1:
-        base = offsets[tid]
+        base = offsets[tid] - origin
     for iv in range(n_views):
         view = views[iv]
         cam = view.cam
@@ -346,17 +355,40 @@ def drt_weights(
             wspot = wp.abs(1.0 - a) * view.sub_side
             hx_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * sprx * sprx) / cam.pixel
             hy_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * spry * spry) / cam.pixel
+            # Most footprints near focus lie inside one lenslet: no clipping needed then.
+            home = lenslet_centre(cam, qx, qy)
+            inside = int(1)
+            for e in range(view.n_edges):
+                nx = view.edge_nx[e]
+                ny = view.edge_ny[e]
+                if nx * (qx - home[0]) + ny * (qy - home[1]) + wp.abs(nx) * fx + wp.abs(ny) * fy > 0.5 * cam.pitch:
+                    inside = int(0)
             box = lattice_box(cam, x0, x1, y0, y1, view.cell_r)
             h = row_step(cam)
             j0 = int(wp.ceil(box[2] / h))
             j1 = int(wp.floor(box[3] / h))
+            if inside == 1:
+                j0 = int(0)
+                j1 = int(0)
             for j in range(j0, j1 + 1):
                 shift = row_shift(cam, j)
                 i0 = int(wp.ceil((box[0] - shift) / cam.pitch))
                 i1 = int(wp.floor((box[1] - shift) / cam.pitch))
+                if inside == 1:
+                    i0 = int(0)
+                    i1 = int(0)
                 for i in range(i0, i1 + 1):
-                    c = from_lattice(cam, float(i) * cam.pitch + shift, float(j) * h)
-                    ov = cell_overlap(view, c[0], c[1], x0, x1, y0, y1)
+                    c = home
+                    ov = Overlap()
+                    if inside == 1:
+                        ov.area = 4.0 * fx * fy
+                        ov.cx = qx
+                        ov.cy = qy
+                        ov.wx = 2.0 * fx
+                        ov.wy = 2.0 * fy
+                    else:
+                        c = from_lattice(cam, float(i) * cam.pitch + shift, float(j) * h)
+                        ov = cell_overlap(view, c[0], c[1], x0, x1, y0, y1)
                     if ov.area <= 0.0:
                         continue
                     w1 = ov.area * inv_area
@@ -407,6 +439,7 @@ def los_weights(
     n_views: int,
     voxels: wp.array(dtype=wp.int32),
     offsets: wp.array(dtype=wp.int64),
+    origin: wp.int64,
     min_weight: float,
     fill: int,
     counts: wp.array(dtype=wp.int64),
@@ -427,7 +460,7 @@ def los_weights(
     base = wp.int64(0)
     norm = float(1.0)
     if fill == 1:
-        base = offsets[tid]
+        base = offsets[tid] - origin
         norm = 1.0 / wp.max(sums[tid], 1.0e-30)
     total = float(0.0)
     for iv in range(n_views):
@@ -510,3 +543,55 @@ def compact(mask: wp.array(dtype=wp.int32), scan: wp.array(dtype=wp.int32), out:
     v = wp.tid()
     if mask[v] != 0:
         out[scan[v] - 1] = v
+
+
+@wp.kernel
+def merge_sorted(
+    starts: wp.array(dtype=wp.int32),
+    ends: wp.array(dtype=wp.int32),
+    pix_sorted: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
+    w_raw: wp.array(dtype=float),
+    out_pix: wp.array(dtype=wp.int32),
+    out_w: wp.array(dtype=float),
+    counts: wp.array(dtype=wp.int32),
+):
+    """Sum the entries of one voxel that share a pixel (its entries sorted by pixel)."""
+    v = wp.tid()
+    s = starts[v]
+    m = int(0)
+    prev = int(-1)
+    acc = float(0.0)
+    for t in range(s, ends[v]):
+        p = pix_sorted[t]
+        if p != prev and prev >= 0:
+            out_pix[s + m] = prev
+            out_w[s + m] = acc
+            m += 1
+            acc = float(0.0)
+        prev = p
+        acc += w_raw[order[t]]
+    if prev >= 0:
+        out_pix[s + m] = prev
+        out_w[s + m] = acc
+        m += 1
+    counts[v] = m
+
+
+@wp.kernel
+def gather_merged(
+    starts: wp.array(dtype=wp.int32),
+    new_starts: wp.array(dtype=wp.int64),
+    counts: wp.array(dtype=wp.int32),
+    src_pix: wp.array(dtype=wp.int32),
+    src_w: wp.array(dtype=float),
+    dst_pix: wp.array(dtype=wp.int32),
+    dst_w: wp.array(dtype=float),
+):
+    """Pack each voxel's merged entries (at ``starts``) contiguously (at ``new_starts``)."""
+    v = wp.tid()
+    s = starts[v]
+    d = new_starts[v]
+    for k in range(counts[v]):
+        dst_pix[d + wp.int64(k)] = src_pix[s + k]
+        dst_w[d + wp.int64(k)] = src_w[s + k]

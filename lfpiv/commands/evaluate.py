@@ -23,20 +23,32 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lfcore.runstore import RunStore
+    from lfpiv.commands.correlate import evaluate_vectors
+    from lfpiv.errors import UsageError
     from lfpiv.recon import evaluate_run, summary_rows
 
     store = RunStore.open(args.run)
-    evals = evaluate_run(store, pairs=args.pairs, threshold=args.threshold, match_voxels=args.match_voxels)
-    rows = summary_rows(evals)
-    cols = list(rows[0])
-    width = {c: max(len(c), *(len(r[c]) for r in rows)) for c in cols}
-    print(f"reconstruction of {store.path} ({store.group['volumes'].attrs['method']}), "
-          f"matching within {args.match_voxels:g} voxels per axis:")
-    print("  ".join(c.ljust(width[c]) for c in cols))
-    for r in rows:
-        print("  ".join(r[c].ljust(width[c]) for c in cols))
-    if args.plot:
-        from lfpiv.plots import plot_reconstruction
+    if store.truth() is None:
+        raise UsageError(f"{store.path} is a recorded run with no truth; evaluate needs a synthetic run")
+    if not (store.has_volumes or store.has_vectors):
+        raise UsageError(f"{store.path} has neither volumes nor vectors yet; "
+                         f"run 'lfpiv reconstruct {store.path}' first")
+    if store.has_volumes:
+        evals = evaluate_run(store, pairs=args.pairs, threshold=args.threshold, match_voxels=args.match_voxels)
+        rows = summary_rows(evals)
+        cols = list(rows[0])
+        width = {c: max(len(c), *(len(r[c]) for r in rows)) for c in cols}
+        print(f"reconstruction ({store.group['volumes'].attrs['method']}), matching within "
+              f"{args.match_voxels:g} voxels per axis:")
+        print("  ".join(c.ljust(width[c]) for c in cols))
+        for r in rows:
+            print("  ".join(r[c].ljust(width[c]) for c in cols))
+        if args.plot:
+            from lfpiv.plots import plot_reconstruction
 
-        print(f"picture: {plot_reconstruction(store, evals, args.plot)}")
+            print(f"picture: {plot_reconstruction(store, evals, args.plot)}")
+    else:
+        print(f"volumes: none (run 'lfpiv reconstruct {store.path}')")
+    for label, text in evaluate_vectors(store):
+        print(f"{label}: {text}")
     return 0

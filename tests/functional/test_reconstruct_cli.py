@@ -1,0 +1,98 @@
+"""`lfpiv reconstruct` and `lfpiv evaluate` end to end, and their one-line errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lfcore.runstore import RunStore
+from lfpiv.cli import main
+from lfpiv.rigfile import load_rig
+from tests.conftest import EXAMPLES
+
+TINY = str(EXAMPLES / "tiny.toml")
+
+
+def _run(capsys, *argv):
+    rc = main(list(argv))
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+@pytest.fixture(scope="module")
+def synthetic_run(tmp_path_factory):
+    path = tmp_path_factory.mktemp("recon") / "run.zarr"
+    assert main(["synth", "--rig", TINY, "--out", str(path), "--pairs", "2", "--ppm", "0.2", "--flow", "uniform",
+                 "--quiet"]) == 0
+    return path
+
+
+def test_reconstruct_then_evaluate(capsys, synthetic_run, tmp_path):
+    rc, out, err = _run(capsys, "reconstruct", str(synthetic_run), "--iterations", "20", "--pairs", "1", "--quiet")
+    assert rc == 0, err
+    assert "reconstructed 2 volume(s) of 82 x 68 x 29 voxels (x, y, z) with drt-mart" in out
+    s = RunStore.open(synthetic_run)
+    assert s.reconstructed_pairs() == [1]
+    vol = s.volumes()
+    assert vol.shape == (2, 2, 29, 68, 82) and vol[1].max() > 0 and not vol[0].any()
+    assert s.group["volumes"].attrs["settings"]["iterations"] == 20
+    rc, out, err = _run(capsys, "evaluate", str(synthetic_run), "--plot", str(tmp_path / "q.png"))
+    assert rc == 0, err
+    lines = out.splitlines()
+    header = next(i for i, line in enumerate(lines) if line.startswith("pair"))
+    assert "Q" in lines[header] and "recall" in lines[header] and "ghosts" in lines[header]
+    q = [float(line.split()[2]) for line in lines[header + 1:header + 3]]
+    assert all(0.4 < v <= 1.0 for v in q), out  # frames A and B of pair 1
+    assert "vectors: none yet" in out
+    assert (tmp_path / "q.png").read_bytes()[:4] == b"\x89PNG"
+    # adding pair 0 with the same settings keeps pair 1
+    assert _run(capsys, "reconstruct", str(synthetic_run), "--iterations", "20", "--pairs", "0", "--quiet")[0] == 0
+    assert RunStore.open(synthetic_run).reconstructed_pairs() == [0, 1]
+
+
+def test_mart_baseline_from_the_command(capsys, synthetic_run, tmp_path):
+    rc, out, err = _run(capsys, "reconstruct", str(synthetic_run), "--method", "mart", "--iterations", "3",
+                        "--pairs", "0", "--quiet")
+    assert rc == 0, err
+    assert "100.00% of voxels active" in out
+    assert RunStore.open(synthetic_run).group["volumes"].attrs["method"] == "mart"
+
+
+def _empty_run(tmp_path):
+    path = tmp_path / "empty.zarr"
+    RunStore.create(path, load_rig(TINY), 2, timing={"dt_s": 0.002, "rate_hz": 10.0}, software_version="x")
+    return str(path)
+
+
+BAD = [
+    (lambda t, r: ["reconstruct", str(t / "none.zarr")], "does not exist"),
+    (lambda t, r: ["reconstruct", _empty_run(t)], "no recorded pairs (committed_pairs = 0)"),
+    (lambda t, r: ["reconstruct", r, "--pvr", "0,2,10"], "--pvr must be three positive numbers"),
+    (lambda t, r: ["reconstruct", r, "--pvr", "2,2"], "is not three numbers like 2,2,10"),
+    (lambda t, r: ["reconstruct", r, "--pvr", "0.001,0.001,0.001"], "GiB on cpu, more than it has free; use a coarser"),
+    (lambda t, r: ["reconstruct", r, "--pairs", "7"], "selects no pair of this run"),
+    (lambda t, r: ["reconstruct", r, "--relaxation", "3"], "diverge; use at most 2, or the sequential form"),
+    (lambda t, r: ["reconstruct", r, "--cameras", "camX"], "no camera 'camX' in this run"),
+]
+
+
+@pytest.mark.parametrize(("argv", "expected"), BAD)
+def test_bad_input_is_one_line(capsys, tmp_path, synthetic_run, argv, expected):
+    rc, out, err = _run(capsys, *argv(tmp_path, str(synthetic_run)))
+    assert rc == 2 and out == ""
+    assert err.count("\n") == 1 and err.startswith("lfpiv: error: ") and expected in err, err
+
+
+def test_evaluate_needs_something_to_evaluate(capsys, tmp_path):
+    path = tmp_path / "fresh.zarr"
+    assert main(["synth", "--rig", TINY, "--out", str(path), "--pairs", "1", "--quiet"]) == 0
+    capsys.readouterr()
+    rc, out, err = _run(capsys, "evaluate", str(path))
+    assert rc == 2 and out == "" and "has neither volumes nor vectors yet; run 'lfpiv reconstruct" in err
+
+
+def test_evaluate_needs_a_synthetic_run(capsys, tmp_path):
+    path = _empty_run(tmp_path)
+    RunStore.open(path, mode="r+").write_frame("cam0", 0, 0, np.zeros((160, 192), np.uint16), 0, 0)
+    rc, _, err = _run(capsys, "evaluate", path)  # a recording: frames, no truth
+    assert rc == 2 and "recorded run with no truth" in err
