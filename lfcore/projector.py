@@ -200,8 +200,8 @@ class Projector:
         self.check_order = wp.array(np.concatenate(check_order), dtype=wp.int32, device=self.device)
 
     # --- zero-voxel elimination ---------------------------------------------------------
-    def eliminate(self, lit: Sequence[np.ndarray], min_seen: float = 0.5) -> object:
-        """Voxels that can hold a particle: every sub-aperture of theirs lands on a lit pixel.
+    def eliminate(self, lit: Sequence[np.ndarray], min_seen: float = 0.5, max_dark: float = 0.05) -> object:
+        """Voxels that can hold a particle: their sub-apertures land on lit pixels.
 
         Parameters
         ----------
@@ -209,6 +209,8 @@ class Projector:
             One boolean (rows, columns) image per camera: pixels with signal.
         min_seen
             Fraction of a voxel's checked sub-apertures that must land on a camera's sensor.
+        max_dark
+            Fraction of its checked sub-apertures a voxel may find dark and still be kept.
 
         Returns
         -------
@@ -224,7 +226,7 @@ class Projector:
         mask = wp.zeros(n, dtype=wp.int32, device=self.device)
         wp.launch(kw.eliminate, dim=n, device=self.device,
                   inputs=[self._grid, self.views, len(self.cameras), self.sub_a, self.check_order, lit_dev,
-                          float(min_seen), mask])
+                          float(min_seen), float(max_dark), mask])
         return self._compact(mask)
 
     def all_voxels(self) -> object:

@@ -226,15 +226,19 @@ def eliminate(
     check_order: wp.array(dtype=wp.int32),
     lit: wp.array(dtype=wp.uint8),
     min_seen: float,
+    max_dark: float,
     active: wp.array(dtype=wp.int32),
 ):
-    """active[v] = 1 if every checked sub-aperture of voxel v lands on a lit pixel in every view.
+    """active[v] = 1 if the checked sub-apertures of voxel v land on lit pixels in every view.
 
     A sub-aperture counts as lit if any of the pixels hit by the centre or the corners of its
-    footprint is lit (the footprint may straddle lenslets). Sub-apertures whose rays leave the
-    sensor are not evidence either way; a voxel seen through fewer than ``min_seen`` of its
-    checked sub-apertures in some view is dropped. The checks go in ``check_order``, spread
-    over the aperture, so that most empty voxels are rejected after a few lookups.
+    footprint is lit (the footprint may straddle lenslets). A sub-aperture with a point off the
+    sensor is no evidence either way; a voxel seen through fewer than ``min_seen`` of its
+    checked sub-apertures in some view is dropped, and so is one with more than ``max_dark``
+    of them dark (a little tolerance for noise and for particles larger than a point, whose
+    light near a lenslet edge may cross into the neighbour). The checks go in
+    ``check_order``, spread over the aperture, so that most empty voxels are rejected after a
+    few lookups.
     """
     v = wp.tid()
     pw = voxel_centre(grid, v)
@@ -253,6 +257,8 @@ def eliminate(
         gy = -p[1] * cam.si * inv
         dq = cam.si * inv * inv * view.half[2]
         seen = int(0)
+        dark = int(0)
+        allowed = int(max_dark * float(view.check_count))
         for m in range(view.check_first, view.check_first + view.check_count):
             k = check_order[m]
             ax = sub_a[k][0]
@@ -261,7 +267,7 @@ def eliminate(
             qy = a * ay + gy
             fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
             fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
-            on = int(0)
+            on = int(1)
             hit = int(0)
             for corner in range(5):
                 px = qx
@@ -275,15 +281,17 @@ def eliminate(
                 col = 0.5 * float(cam.ncols) - sx / cam.pixel
                 row = 0.5 * float(cam.nrows) + sy / cam.pixel
                 if col >= 0.0 and row >= 0.0 and col < float(cam.ncols) and row < float(cam.nrows):
-                    on = int(1)
                     if lit[view.pix_offset + int(row) * cam.ncols + int(col)] != wp.uint8(0):
                         hit = int(1)
-                        break
+                else:
+                    on = int(0)
             if on == 1:
                 seen += 1
                 if hit == 0:
-                    keep = int(0)
-                    break
+                    dark += 1
+                    if dark > allowed:
+                        keep = int(0)
+                        break
         if keep == 0:
             break
         if float(seen) < min_seen * float(view.check_count):

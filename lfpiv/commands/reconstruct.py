@@ -51,8 +51,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--pairs", default=None, metavar="RANGE", help="pairs to reconstruct, e.g. 0:10 or 3 (default: all)")
     r.add_argument("--background", type=float, default=None, metavar="COUNTS",
                    help="background level to subtract (default: estimated per image)")
-    r.add_argument("--threshold-sigma", type=positive_float, default=3.0,
-                   help="a pixel is lit above background + this many noise sigmas (default: 3)")
+    r.add_argument("--threshold-sigma", type=positive_float, default=2.0,
+                   help="a pixel is lit above background + this many noise sigmas (default: 2)")
+    r.add_argument("--smooth", type=float, default=0.6, metavar="VOXELS",
+                   help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
     r.add_argument("--sub-apertures", type=_count, default=None,
                    help="main-lens sub-apertures per axis for the DRT weights (default: pixels per lenslet)")
     add_device(r)
@@ -72,9 +74,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         settings = ReconSettings(method=args.method, iterations=args.iterations, relaxation=args.relaxation,
                                  form=args.form, sub_apertures=args.sub_apertures, background=args.background,
-                                 threshold_sigma=args.threshold_sigma)
+                                 threshold_sigma=args.threshold_sigma, smooth=args.smooth)
     except ValueError as exc:
-        raise UsageError(f"--relaxation: {exc}") from None
+        raise UsageError(str(exc)) from None
     store = RunStore.open(args.run, mode="r+")
     cameras = [c.strip() for c in args.cameras.split(",")] if args.cameras else None
     results = reconstruct_run(store, settings, pvr=args.pvr, margin_mm=args.margin_mm, pairs=args.pairs,

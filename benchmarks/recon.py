@@ -1,0 +1,166 @@
+"""Reconstruction benchmark: DRT-MART against the MART baseline and the memory-bandwidth floor.
+
+Run from the repository root::
+
+    python benchmarks/recon.py --case S                  # tiny rig, CPU, seconds
+    python benchmarks/recon.py --case S --ppm 1          # the chapter's 4x speed point
+    python benchmarks/recon.py --case M --device cuda    # 2048 x 2048, 14 px per lenslet
+    python benchmarks/recon.py --case L --device cuda    # 6600 x 4400, 3300 x 2200 x 182 voxels
+
+Cases (single camera, 0.5 PPM unless --ppm, PVR (2, 2, 10)):
+
+S   examples/tiny.toml: 192 x 160 pixels, 82 x 68 x 29 voxels. Its volume is only +-3.6
+    lenslets of blur deep, so much of it lies where depth is poorly resolved: it tests code, it is
+    not representative of speed ratios.
+Mc  the optics of M on a 512 x 512 crop of the sensor (245 x 245 x 131 voxels), 50 iterations:
+    M's geometry at a size a CPU manages in minutes.
+M   examples/one_camera.toml: 2048 x 2048 pixels, 14 pixels per hexagonal lenslet, 400 iterations.
+L   the chapter's experiment: camera 0 of examples/two_cameras.toml (6600 x 4400 pixels),
+    3300 x 2200 x 182 voxels, 400 iterations.
+
+Each case prints the weight build time (elimination and weights), the active fraction, ms per
+iteration, peak memory, Q_recon against the truth, and two ratios measured in the same run:
+against the MART baseline (same iteration code, line-of-sight weights on every voxel; skipped
+when its weights would not fit, with the size they would need) and against the memory-bandwidth
+floor: the bytes one iteration must move (every stored weight read twice, its pixel's projection
+updated and read, each voxel's intensity read and written) divided by the copy bandwidth of the
+same device measured here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from lfcore import metrics  # noqa: E402
+from lfcore.device import resolve_device, warp  # noqa: E402
+from lfcore.particles import particle_count, seed_particles  # noqa: E402
+from lfcore.projector import BYTES_PER_WEIGHT, Projector  # noqa: E402
+from lfcore.reconstruct import ReconSettings, reconstruct  # noqa: E402
+from lfcore.render import LightFieldRenderer  # noqa: E402
+from lfcore.rig import Rig  # noqa: E402
+from lfcore.volume import VolumeGrid  # noqa: E402
+from lfpiv.rigfile import load_rig  # noqa: E402
+
+#: Bytes an iteration moves per stored weight (pix and w read in the projection and again in the
+#: update, the projection's atomic read-modify-write, the gathers of image and projection) and per
+#: reconstructed voxel (offsets twice, intensity read twice and written once).
+BYTES_PER_ENTRY = 8 + 8 + 8 + 8
+BYTES_PER_VOXEL = 16 + 12
+
+
+def case_rig(case: str) -> tuple[Rig, int]:
+    if case == "S":
+        return load_rig(ROOT / "examples" / "tiny.toml"), 50
+    if case == "M":
+        return load_rig(ROOT / "examples" / "one_camera.toml"), 400
+    if case == "Mc":
+        d = load_rig(ROOT / "examples" / "one_camera.toml").to_dict()
+        d["camera"][0]["sensor_px"] = [512, 512]
+        d["volume"]["size_mm"] = [4.5, 4.5, 12.0]
+        return Rig.from_dict(d), 50
+    d = load_rig(ROOT / "examples" / "two_cameras.toml").to_dict()
+    d["camera"] = d["camera"][:1]
+    # 3300 x 2200 x 182 voxels of 11 x 11 x 55 um at PVR (2, 2, 10) and |M| = 1
+    d["volume"].update(size_mm=[3300 * 0.011, 2200 * 0.011, 182 * 0.055], pvr=[2.0, 2.0, 10.0])
+    return Rig.from_dict(d), 400
+
+
+def copy_bandwidth(device: str) -> float:
+    """Bytes per second of a device-to-device copy of 256 MiB (read plus write)."""
+    wp = warp()
+    a = wp.zeros(1 << 26, dtype=float, device=device)
+    b = wp.empty_like(a)
+    wp.copy(b, a)
+    wp.synchronize_device(device)
+    t = time.perf_counter()
+    reps = 5
+    for _ in range(reps):
+        wp.copy(b, a)
+    wp.synchronize_device(device)
+    return 2 * a.size * 4 * reps / (time.perf_counter() - t)
+
+
+def peak_bytes(device: str) -> int:
+    wp = warp()
+    if device == "cpu":
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    return int(wp.get_mempool_used_mem_high(device))
+
+
+def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool) -> None:
+    rig, its = case_rig(case)
+    its = iterations or its
+    cam = rig.camera[0]
+    grid = VolumeGrid.from_rig(rig)
+    n = particle_count(rig, ppm)
+    pts = seed_particles(rig.volume, n, np.random.default_rng(1))
+    render = rig.render.model_copy(update={"rays_per_particle": 5000})
+    t = time.perf_counter()
+    img = LightFieldRenderer(cam, render, rig.laser.wavelength_nm, device=device).frame(pts, render.particle_counts, 1)
+    print(f"case {case}: {cam.sensor_px[0]} x {cam.sensor_px[1]} px, {' x '.join(map(str, grid.shape[::-1]))} voxels "
+          f"(x, y, z), {n} particles ({ppm:g} PPM), {its} iterations, device {device}; "
+          f"rendered in {time.perf_counter() - t:.1f} s")
+    bw = copy_bandwidth(device)
+    proj = Projector([cam], grid, device=device)
+    e0 = metrics.truth_volume(grid, pts)
+    drt = reconstruct(proj, [img], ReconSettings(iterations=its))
+    q = metrics.q_recon(drt.volume, e0)
+    floor_ms = 1e3 * (BYTES_PER_ENTRY * drt.nnz + BYTES_PER_VOXEL * drt.active_voxels) / bw
+    print(f"  copy bandwidth {bw / 1e9:.1f} GB/s")
+    print(f"  DRT-MART: weights {drt.weights_s:.2f} s, active {drt.active_fraction:.3%} ({drt.active_voxels} voxels, "
+          f"{drt.nnz} weights, {drt.weight_bytes / 2**20:.0f} MiB), {drt.ms_per_iteration:.2f} ms/iteration "
+          f"({drt.ms_per_iteration / floor_ms:.1f}x the bandwidth floor of {floor_ms:.3f} ms), "
+          f"total {drt.weights_s + drt.iterate_s:.2f} s, Q {q:.3f}, peak memory {peak_bytes(device) / 2**30:.2f} GiB")
+    if not mart:
+        return
+    # the baseline's weights, counted on a sample of voxels first: they may not fit at all
+    sample = np.random.default_rng(2).choice(grid.n_voxels, size=min(grid.n_voxels, 20000), replace=False)
+    wp = warp()
+    est = proj.weights(wp.array(np.sort(sample).astype(np.int32), device=device), "los").nnz
+    need = BYTES_PER_WEIGHT * est * grid.n_voxels / len(sample)
+    if need > 0.8 * (peak_capacity(device)):
+        print(f"  MART baseline: skipped, its weights would need about {need / 2**30:.0f} GiB")
+        return
+    base = reconstruct(proj, [img], ReconSettings(method="mart", iterations=its))
+    qb = metrics.q_recon(base.volume, e0)
+    tb, td = base.weights_s + base.iterate_s, drt.weights_s + drt.iterate_s
+    print(f"  MART baseline: weights {base.weights_s:.2f} s ({base.nnz} weights), {base.ms_per_iteration:.2f} "
+          f"ms/iteration, total {tb:.2f} s, Q {qb:.3f}")
+    print(f"  DRT-MART vs MART at {its} iterations each: {tb / td:.1f}x faster "
+          f"({base.ms_per_iteration / drt.ms_per_iteration:.1f}x per iteration), Q {q:.3f} vs {qb:.3f}")
+
+
+def peak_capacity(device: str) -> int:
+    if device == "cpu":
+        import os
+
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    return int(warp().get_device(device).total_memory)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--case", choices=("S", "Mc", "M", "L"), action="append", help="case(s) to run (default: S)")
+    ap.add_argument("--device", default=None, help="cpu or cuda (default: a GPU if there is one)")
+    ap.add_argument("--ppm", type=float, default=0.5)
+    ap.add_argument("--iterations", type=int, default=None, help="override the case's iterations")
+    ap.add_argument("--no-mart", action="store_true", help="skip the MART baseline")
+    args = ap.parse_args()
+    device = resolve_device(args.device)
+    for case in args.case or ["S"]:
+        run(case, device, args.ppm, args.iterations, not args.no_mart)
+        sys.stdout.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
