@@ -246,6 +246,9 @@ class LaserConfig(_Strict):
 
     wavelength_nm: PositiveFloat = 532.0
     rate_hz: PositiveFloat = 10.0
+    max_rate_hz: PositiveFloat = 15.0
+    flashlamp_width_us: PositiveFloat = 10.0
+    qswitch_width_us: PositiveFloat = 10.0
     sheet_profile: Literal["uniform", "gaussian", "top-hat"] = "uniform"
     sheet_axis: Literal["x", "y", "z"] = "z"
     sheet_thickness_mm: PositiveFloat | None = None
@@ -254,13 +257,29 @@ class LaserConfig(_Strict):
     def _thickness_given(self) -> LaserConfig:
         if self.sheet_profile != "uniform" and self.sheet_thickness_mm is None:
             raise ValueError(f"sheet_thickness_mm is required for sheet_profile = '{self.sheet_profile}'")
+        if self.rate_hz > self.max_rate_hz:
+            raise ValueError(
+                f"rate_hz = {self.rate_hz} is above the laser's max_rate_hz = {self.max_rate_hz}; "
+                "lower rate_hz or correct max_rate_hz"
+            )
         return self
 
 
 class TimingConfig(_Strict):
-    """Timing of a double-frame pair."""
+    """Timing of a double-frame pair (frame straddling).
+
+    ``qswitch_delay_us`` is the laser's flashlamp-to-Q-switch delay (full energy near 180 us
+    for a typical Nd:YAG); ``camera_exposure_us`` the exposure of frame A, which ends just after
+    the first pulse; ``camera_interframe_us`` the camera's dead time between frames A and B,
+    the shortest possible ``dt``; ``camera_max_fps`` the camera's frame rate limit (two frames
+    per pair).
+    """
 
     dt_us: PositiveFloat = 2000.0
+    qswitch_delay_us: PositiveFloat = 180.0
+    camera_exposure_us: PositiveFloat = 20.0
+    camera_interframe_us: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 1.0
+    camera_max_fps: PositiveFloat = 60.0
 
 
 class StageConfig(_Strict):
@@ -270,11 +289,32 @@ class StageConfig(_Strict):
     baud: Annotated[int, Field(gt=0)] = 115200
 
 
+#: Which output of the pulse generator drives what, unless the rig file says otherwise.
+DEFAULT_CHANNELS = {"flashlamp1": 1, "qswitch1": 2, "flashlamp2": 3, "qswitch2": 4, "camera": 5}
+
+
 class PulseGeneratorConfig(_Strict):
-    """The pulse generator that fires the laser and triggers the cameras (serial)."""
+    """The pulse generator that fires the laser and triggers the cameras (serial).
+
+    ``channels`` maps each role (flashlamp1, qswitch1, flashlamp2, qswitch2, camera) to an
+    output number, 1-based (A = 1). Both cameras share the camera output.
+    """
 
     port: str | None = None
     baud: Annotated[int, Field(gt=0)] = 115200
+    channels: dict[str, Annotated[int, Field(ge=1, le=8)]] = dict(DEFAULT_CHANNELS)
+
+    @field_validator("channels")
+    @classmethod
+    def _roles(cls, v: dict[str, int]) -> dict[str, int]:
+        if set(v) != set(DEFAULT_CHANNELS):
+            missing = sorted(set(DEFAULT_CHANNELS) - set(v))
+            extra = sorted(set(v) - set(DEFAULT_CHANNELS))
+            what = f"missing {missing}" if missing else f"unknown {extra}"
+            raise ValueError(f"{what}; give exactly {sorted(DEFAULT_CHANNELS)}")
+        if len(set(v.values())) != len(v):
+            raise ValueError("two roles share one output; give each role its own channel")
+        return v
 
 
 class RenderConfig(_Strict):
@@ -299,6 +339,9 @@ class Rig(_Strict):
     """A whole LF-PIV rig: the volume, one or more cameras, laser, timing and devices."""
 
     hardware: Literal["sim", "real"] = "sim"
+    #: GenTL producer files (.cti) that give access to the real cameras; when empty, the
+    #: standard GENICAM_GENTL64_PATH environment variable is searched.
+    gentl_producers: tuple[str, ...] = ()
     volume: VolumeConfig
     camera: Annotated[tuple[Camera, ...], Field(min_length=1)]
     laser: LaserConfig = LaserConfig()

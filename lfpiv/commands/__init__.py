@@ -14,14 +14,19 @@ from pathlib import Path
 COMMANDS = ("demo", "synth", "info", "reconstruct", "correlate", "evaluate", "export")
 
 
-def positive_int(text: str) -> int:
+def whole_number(text: str, least: int = 0) -> int:
+    """argparse type: an integer of at least ``least``."""
     try:
         v = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
+    if v < least:
+        raise argparse.ArgumentTypeError(f"must be at least {least}, got {v}")
     return v
+
+
+def positive_int(text: str) -> int:
+    return whole_number(text, 1)
 
 
 def positive_float(text: str) -> float:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from lfpiv.commands import add_device, positive_float
+from lfpiv.commands import add_device, positive_float, positive_int, whole_number
 from lfpiv.errors import UsageError
 
 
@@ -18,16 +18,6 @@ def _triple(text: str) -> tuple[float, float, float]:
     return v  # type: ignore[return-value]
 
 
-def _count(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {v}")
-    return v
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     r = sub.add_parser(
         "reconstruct", help="reconstruct 3D particle volumes from a run's light-field images",
@@ -37,7 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "them; --method mart is the conventional baseline (line-of-sight weights, no elimination).")
     r.add_argument("run", metavar="RUN", help="run store (a .zarr directory)")
     r.add_argument("--method", choices=("drt-mart", "mart"), default="drt-mart", help="default: drt-mart")
-    r.add_argument("--iterations", type=_count, default=50, help="MART iterations (default: 50)")
+    r.add_argument("--iterations", type=whole_number, default=50, help="MART iterations (default: 50)")
     r.add_argument("--relaxation", type=positive_float, default=1.0,
                    help="relaxation mu (default: 1; at most 2 for the simultaneous form; the chapter's "
                    "sequential MART used 2.5)")
@@ -55,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="a pixel is lit above background + this many noise sigmas (default: 2)")
     r.add_argument("--smooth", type=float, default=0.6, metavar="VOXELS",
                    help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
-    r.add_argument("--sub-apertures", type=_count, default=None,
+    r.add_argument("--sub-apertures", type=positive_int, default=None,
                    help="main-lens sub-apertures per axis for the DRT weights (default: pixels per lenslet)")
     add_device(r)
     r.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -67,8 +57,6 @@ def run(args: argparse.Namespace) -> int:
     from lfcore.runstore import RunStore
     from lfpiv.recon import reconstruct_run
 
-    if args.sub_apertures == 0:
-        raise UsageError("--sub-apertures must be at least 1")
     if args.pvr is not None and any(v <= 0 for v in args.pvr):
         raise UsageError(f"--pvr must be three positive numbers, got {','.join(f'{v:g}' for v in args.pvr)}")
     try:

@@ -1,0 +1,225 @@
+"""Device roles of the rig as :class:`typing.Protocol` classes, and the :class:`Frame` record.
+
+Real drivers (``acquisition.genicam``, ``acquisition.pulse_generator``, ``acquisition.stage``)
+and the simulated devices of ``sim`` implement the same protocols, so the acquisition session,
+the calibration runner and the live monitor never know which they drive.
+
+Frame numbering. A light-field PIV camera in double-exposure (frame-straddling) mode delivers
+two frames per trigger: frame A, exposed around the first laser pulse, then frame B around the
+second. ``Frame.frame_id`` counts every frame the camera produced since :meth:`Camera.start`,
+starting at ``Camera.first_frame_id``, so that pair ``k`` holds frames
+``first_frame_id + 2k`` (A) and ``first_frame_id + 2k + 1`` (B). A frame the camera produced but
+never delivered leaves a gap in ``frame_id``; the session turns every gap into a drop record.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+class DeviceError(RuntimeError):
+    """A device refused a command, stopped answering or is missing a required feature.
+
+    The message is one line that names the device and what to do.
+    """
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One image delivered by a camera.
+
+    Attributes
+    ----------
+    data : numpy.ndarray
+        uint16 array of shape (rows, columns), row 0 at the top of the sensor.
+    camera : str
+        Name of the camera in the rig file.
+    frame_id : int
+        Frame counter since acquisition start (see the module docstring).
+    timestamp_ns : int
+        Exposure time stamp in nanoseconds: the camera's clock where it has one, otherwise the
+        host's ``time.time_ns()`` when the frame was fetched.
+    complete : bool
+        False when the transport delivered a partial image (lost packets); the session records
+        such a frame as a drop with the reason "incomplete".
+    """
+
+    data: np.ndarray
+    camera: str
+    frame_id: int
+    timestamp_ns: int
+    complete: bool = True
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """A light-field camera, real (GenICam) or simulated.
+
+    Life cycle: ``open`` → ``configure`` → ``start`` → ``fetch`` … → ``stop`` → ``close``.
+    ``close`` is safe to call in any state and more than once.
+    """
+
+    name: str
+
+    @property
+    def sensor_px(self) -> tuple[int, int]:
+        """(columns, rows) of the delivered image."""
+        ...
+
+    @property
+    def first_frame_id(self) -> int:
+        """``frame_id`` of the first frame after :meth:`start`."""
+        ...
+
+    def open(self) -> None:
+        """Connect to the device."""
+        ...
+
+    def configure(self, *, triggered: bool, frames_per_trigger: int, exposure_us: float) -> None:
+        """Set up external triggering (or free run) and the exposure.
+
+        Parameters
+        ----------
+        triggered : bool
+            True: one trigger on the camera's trigger line starts a burst of
+            ``frames_per_trigger`` frames. False: free run (for cameras without trigger
+            features, such as the GenTL simulator).
+        frames_per_trigger : int
+            2 for double-frame PIV (frame straddling), 1 otherwise.
+        exposure_us : float
+            Exposure of the first frame of a burst, microseconds.
+        """
+        ...
+
+    def start(self) -> None:
+        """Start acquisition; frames produced from now on are delivered by :meth:`fetch`."""
+        ...
+
+    def fetch(self, timeout_s: float) -> Frame | None:
+        """The oldest delivered frame not yet fetched, or None after ``timeout_s`` seconds."""
+        ...
+
+    def stop(self) -> None:
+        """Stop acquisition. Frames already delivered may still be fetched."""
+        ...
+
+    def close(self) -> None:
+        """Release the device."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelSetting:
+    """One output channel of the pulse generator.
+
+    Attributes
+    ----------
+    channel : int
+        Output channel number, 1-based (A = 1).
+    role : str
+        What the output drives, e.g. "flashlamp1", "qswitch1", "flashlamp2", "qswitch2",
+        "camera".
+    delay_s, width_s : float
+        Delay after the generator's T0 and pulse width, seconds.
+    polarity : str
+        "NORM" (active high) or "INV".
+    """
+
+    channel: int
+    role: str
+    delay_s: float
+    width_s: float
+    polarity: str = "NORM"
+
+
+@dataclass(frozen=True, slots=True)
+class TimingPlan:
+    """Everything the pulse generator is programmed with for one double-frame recording.
+
+    Attributes
+    ----------
+    period_s : float
+        T0 period, the inverse of the double-pulse rate.
+    dt_s : float
+        Time between the two laser pulses of a pair.
+    channels : tuple of ChannelSetting
+        One entry per output used.
+    pulses : int
+        Number of T0 periods (pairs) to fire; 0 means run until disarmed.
+    """
+
+    period_s: float
+    dt_s: float
+    channels: tuple[ChannelSetting, ...]
+    pulses: int = 0
+    notes: tuple[str, ...] = field(default=())
+
+    def channel_for(self, role: str) -> ChannelSetting:
+        """The channel that drives ``role``."""
+        for c in self.channels:
+            if c.role == role:
+                return c
+        raise KeyError(role)
+
+
+@runtime_checkable
+class PulseGenerator(Protocol):
+    """The pulse generator that fires both laser cavities and triggers the cameras.
+
+    Safety contract: after :meth:`disarm` or :meth:`close`, and after any error raised by a
+    method, every output is disabled. Implementations are context managers whose ``__exit__``
+    disarms.
+    """
+
+    def identify(self) -> str:
+        """The instrument's identification string."""
+        ...
+
+    def program(self, plan: TimingPlan) -> None:
+        """Load a timing plan, outputs disabled."""
+        ...
+
+    def arm(self) -> None:
+        """Enable the outputs of the plan and start T0: the laser fires from now on."""
+        ...
+
+    def disarm(self) -> None:
+        """Stop T0 and disable every output. Never raises for a device that answers."""
+        ...
+
+    @property
+    def armed(self) -> bool:
+        """True between :meth:`arm` and :meth:`disarm`."""
+        ...
+
+    def close(self) -> None:
+        """Disarm (best effort) and release the port."""
+        ...
+
+
+@runtime_checkable
+class Stage(Protocol):
+    """The motorised stage that carries the calibration target along one axis, millimetres."""
+
+    def home(self) -> None:
+        """Move to the home sensor and zero the position; blocks until done."""
+        ...
+
+    def move_to(self, position_mm: float) -> float:
+        """Move to an absolute position, block until the stage is idle; return the readback."""
+        ...
+
+    def position_mm(self) -> float:
+        """Current position read back from the stage."""
+        ...
+
+    def stop(self) -> None:
+        """Decelerate to a stop now."""
+        ...
+
+    def close(self) -> None:
+        """Release the port."""
+        ...
