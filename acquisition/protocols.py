@@ -149,6 +149,12 @@ class TimingPlan:
         One entry per output used.
     pulses : int
         Number of T0 periods (pairs) to fire; 0 means run until disarmed.
+    notes : tuple of str
+        Human-readable lines explaining the plan (derived times, shifts, margins).
+    pulse_times_s : tuple of float
+        Laser pulse 1 and pulse 2 after T0, seconds (empty if the planner does not derive them).
+    frame_windows_s : tuple of (float, float)
+        Exposure windows (start, end) of frame A and frame B after T0, seconds.
     """
 
     period_s: float
@@ -156,6 +162,8 @@ class TimingPlan:
     channels: tuple[ChannelSetting, ...]
     pulses: int = 0
     notes: tuple[str, ...] = field(default=())
+    pulse_times_s: tuple[float, ...] = field(default=())
+    frame_windows_s: tuple[tuple[float, float], ...] = field(default=())
 
     def channel_for(self, role: str) -> ChannelSetting:
         """The channel that drives ``role``."""

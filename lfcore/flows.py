@@ -46,6 +46,8 @@ __all__ = [
     "Uniform",
     "VortexRing",
     "advect",
+    "default_displacement_px",
+    "flow_for_displacement",
     "peak_speed",
     "standard_flow",
 ]
@@ -284,6 +286,44 @@ def standard_flow(name: str, volume: VolumeConfig, omega: float = 1.0) -> Flow:
         return RoundJet(centre_mm=c, axis=(0.0, 1.0, 0.0), radius_mm=radius, centreline_m_s=1.0,
                         theta_mm=0.1 * radius, wavelength_mm=1.2 * radius, core_mm=0.25 * radius)
     raise ValueError(f"unknown flow '{name}'; choose one of {', '.join(FLOW_NAMES)}")
+
+
+def default_displacement_px(name: str) -> float:
+    """Peak particle displacement over dt, in object-side pixels, when the user gives none.
+
+    25 for the chapter's Table 4.1 cases (its amplitude), 10 for the others.
+    """
+    return 25.0 if name in OSCILLATORY_CASES else 10.0
+
+
+def flow_for_displacement(name: str, volume: VolumeConfig, object_pixel_mm: float, dt_s: float,
+                          displacement_px: float | None = None, omega: float = 1.0) -> Flow:
+    """The named test flow, scaled so its fastest particle moves ``displacement_px`` in ``dt_s``.
+
+    Parameters
+    ----------
+    name, volume, omega
+        As for :func:`standard_flow`.
+    object_pixel_mm
+        Object-side pixel size (pixel pitch / |M|) of the camera the displacement refers to.
+    dt_s
+        Time between the frames of a pair, seconds.
+    displacement_px
+        Peak displacement in object-side pixels; :func:`default_displacement_px` if None.
+
+    Raises
+    ------
+    ValueError
+        For an unknown flow or a non-positive displacement or dt.
+    """
+    disp = default_displacement_px(name) if displacement_px is None else float(displacement_px)
+    if not (np.isfinite(disp) and disp > 0):
+        raise ValueError(f"the displacement must be positive, got {disp}")
+    if not (np.isfinite(dt_s) and dt_s > 0):
+        raise ValueError(f"dt must be positive, got {dt_s}")
+    field = standard_flow(name, volume, omega)
+    target = disp * object_pixel_mm * 1e-3 / dt_s  # m/s
+    return field.scaled(target / peak_speed(field, volume))
 
 
 def peak_speed(flow: Flow, volume: VolumeConfig, t_s: float = 0.0, n: int = 24) -> float:

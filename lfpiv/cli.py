@@ -1,7 +1,8 @@
 """The ``lfpiv`` command.
 
 Bad input never produces a traceback: it is reported as one line on stderr naming the problem
-and the fix, with exit code 2. Ctrl-C exits with 130 after marking an unfinished run aborted.
+and the fix, with exit code 2. A device fault exits with 3, after the laser was disarmed. Ctrl-C
+exits with 130 after marking an unfinished run aborted.
 The subcommands live in :mod:`lfpiv.commands`.
 """
 
@@ -18,6 +19,7 @@ from lfpiv.commands import COMMANDS
 from lfpiv.errors import UsageError
 
 EXIT_USAGE = 2
+EXIT_DEVICE = 3
 EXIT_INTERRUPTED = 130
 
 
@@ -40,6 +42,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``lfpiv`` command; returns the exit code."""
+    from acquisition.protocols import DeviceError as HardwareError
     from lfcore.device import DeviceError
     from lfcore.rig import RigError
     from lfcore.runstore import RunStoreError
@@ -51,6 +54,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (UsageError, RigError, RunStoreError, DeviceError) as exc:
         print(f"lfpiv: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except HardwareError as exc:
+        print(f"lfpiv: device error: {exc}", file=sys.stderr)
+        return EXIT_DEVICE
     except KeyboardInterrupt:
         print("lfpiv: interrupted; what was recorded so far is kept", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from lfcore.flows import OSCILLATORY_CASES, Flow, advect, peak_speed, standard_flow
+from lfcore.flows import Flow, advect, default_displacement_px, flow_for_displacement
 from lfcore.particles import particle_count, seed_particles, sheet_weights
 from lfcore.render import LightFieldRenderer, derive_seed
 from lfcore.rig import Rig
@@ -34,14 +34,6 @@ class SynthResult:
     rays: int
     seconds: float
     flow: dict[str, Any]
-
-
-def default_displacement_px(flow: str) -> float:
-    """Peak particle displacement over dt, in object-side pixels, when the user gives none.
-
-    25 for the chapter's Table 4.1 cases (its amplitude), 10 for the others.
-    """
-    return 25.0 if flow in OSCILLATORY_CASES else 10.0
 
 
 def read_points_csv(path: str | Path) -> np.ndarray:
@@ -155,15 +147,13 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         particles = np.stack([pa, pa])[None]
         flow_params: dict[str, Any] = {"name": "static-points", "particles": len(pa)}
     else:
+        if displacement_px is not None and not (np.isfinite(displacement_px) and displacement_px > 0):
+            raise UsageError(f"--displacement-px must be positive, got {displacement_px}")
         try:
-            field: Flow = standard_flow(flow, rig.volume, omega)
+            field: Flow = flow_for_displacement(flow, rig.volume, rig.camera[0].object_pixel_mm, dt_s,
+                                                displacement_px, omega)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
-        disp = default_displacement_px(flow) if displacement_px is None else displacement_px
-        if not (np.isfinite(disp) and disp > 0):
-            raise UsageError(f"--displacement-px must be positive, got {disp}")
-        target = disp * rig.camera[0].object_pixel_mm * 1e-3 / dt_s  # m/s
-        field = field.scaled(target / peak_speed(field, rig.volume))
         flow_params = field.params()
         try:
             n = particle_count(rig, ppm)

@@ -1,0 +1,335 @@
+"""Recording double-frame runs from the rig, real or simulated (``lfpiv acquire``, ``lfpiv devices``).
+
+The order of operations is what keeps the laser safe and the data whole:
+
+1. Plan the timing and check the output path before touching any device.
+2. Open the pulse generator, program it with outputs disabled; open and configure the cameras.
+3. Create the run store, start the cameras and the recorder, then arm: the generator fires
+   exactly ``pairs`` double pulses (burst mode) and stops by itself.
+4. Watch: progress, camera stalls, recorder errors, the generator still answering.
+5. Whatever happens (done, Ctrl-C, SIGTERM, a device fault), disarm first, then stop the
+   cameras, let the recorder write every settled pair, and mark the run ``complete`` or
+   ``aborted``. Frames that never came are listed in ``drops``.
+
+With ``hardware = "sim"`` the same code runs against :class:`sim.lab.SimLab`: the real serial
+driver talks to the emulated generator on a pseudo-terminal and the simulated cameras are
+triggered by it.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from acquisition.protocols import Camera, DeviceError, PulseGenerator, TimingPlan
+from acquisition.session import RecordingSession, SessionStats
+from acquisition.timing import TimingError, plan_timing
+from lfcore.rig import Rig
+from lfcore.runstore import RunStore
+from lfpiv import __version__
+from lfpiv.errors import UsageError
+
+__all__ = ["AcquireResult", "Rigging", "check_plan", "list_devices", "open_rig", "record"]
+
+
+class Terminated(Exception):
+    """SIGTERM arrived while recording."""
+
+
+@dataclass
+class Rigging:
+    """The opened devices of a rig."""
+
+    pulse_generator: PulseGenerator
+    cameras: list[Camera]
+    lab: Any = None  # the SimLab for hardware = "sim"
+    stage_port: str | None = None
+
+
+@dataclass(frozen=True)
+class AcquireResult:
+    """What a recording did."""
+
+    store: RunStore
+    state: str
+    stats: SessionStats
+    drops: int
+    message: str
+
+
+@contextmanager
+def open_rig(rig: Rig, *, sim_options: dict[str, Any] | None = None) -> Iterator[Rigging]:
+    """Open the pulse generator and the cameras of ``rig`` (real or simulated).
+
+    The generator is disarmed and every device released on exit, whatever happened.
+
+    Parameters
+    ----------
+    rig
+        The rig; ``rig.hardware`` chooses real drivers or the simulated lab.
+    sim_options
+        Keyword arguments of :class:`sim.lab.SimLab` (world, pool_pairs, camera_faults, ...), or
+        ``{"lab": lab}`` to use an already entered :class:`sim.lab.SimLab`.
+    """
+    from acquisition.pulse_generator import QuantumComposers9520
+
+    with ExitStack() as stack:
+        lab = None
+        if rig.hardware == "sim":
+            from sim.lab import SimLab  # the application is the one layer that may wire the simulated lab
+
+            opts = dict(sim_options or {})
+            given = opts.pop("lab", None)  # an already started lab (tests inspect its devices)
+            lab = given if given is not None else stack.enter_context(SimLab(rig, **opts))
+            pulse_port, stage_port = lab.pulse_port, lab.stage_port
+            cameras: list[Camera] = list(lab.cameras)
+        else:
+            from acquisition.genicam import GenICamCamera
+
+            if rig.pulse_generator.port is None:
+                raise UsageError("pulse_generator.port is not set in the rig file; give the serial port "
+                                 "of the pulse generator (e.g. /dev/ttyUSB0), or set hardware = \"sim\"")
+            pulse_port, stage_port = rig.pulse_generator.port, rig.stage.port
+            cameras = [GenICamCamera(c.name, serial=c.serial, producers=list(rig.gentl_producers) or None)
+                       for c in rig.camera]
+        gen = QuantumComposers9520(pulse_port, baud=rig.pulse_generator.baud)
+        stack.callback(gen.close)
+        gen.open()
+        for cam in cameras:
+            stack.callback(cam.close)
+            cam.open()
+        yield Rigging(gen, cameras, lab, stage_port)
+
+
+def check_plan(rig: Rig, pairs: int) -> TimingPlan:
+    """The timing plan for ``pairs`` double pulses, or a one-line :class:`UsageError` saying why
+    the rig's timing is impossible."""
+    if pairs < 1:
+        raise UsageError(f"--pairs must be at least 1, got {pairs}")
+    try:
+        return plan_timing(rig, pulses=pairs)
+    except TimingError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
+           sim_options: dict[str, Any] | None = None, ring_slots: int = 32, writer_threads: int = 4,
+           stall_s: float = 3.0, progress: Callable[[SessionStats], None] | None = None) -> AcquireResult:
+    """Record ``pairs`` double-frame pairs from every camera of ``rig`` into a new run store.
+
+    Parameters
+    ----------
+    rig
+        The rig (devices, timing, laser rate).
+    out
+        Path of the run store to create.
+    pairs
+        Double pulses to fire and pairs to record.
+    overwrite
+        Replace an existing run store at ``out``.
+    sim_options
+        For ``hardware = "sim"``: keyword arguments of :class:`sim.lab.SimLab`.
+    ring_slots, writer_threads
+        Ring-buffer depth in pairs, and parallel frame writers.
+    stall_s
+        A camera that delivers nothing for this long (beyond the trigger period) while
+        triggers are due is taken as failed and the recording stops.
+    progress
+        Called about five times a second with the session's statistics.
+
+    Returns
+    -------
+    AcquireResult
+        The store, its final state ("complete" or "aborted") and statistics.
+
+    Raises
+    ------
+    UsageError
+        For an impossible timing plan or an existing output.
+    DeviceError
+        A device fault; the laser was disarmed and what was recorded is kept, marked aborted.
+    KeyboardInterrupt
+        Ctrl-C; the laser was disarmed and the run marked aborted.
+    """
+    plan = check_plan(rig, pairs)
+    RunStore.check_new(out, overwrite)
+    period = plan.period_s
+
+    with open_rig(rig, sim_options=sim_options) as rg:
+        gen = rg.pulse_generator
+        gen.program(plan)
+        for cam in rg.cameras:
+            cols, rows = cam.sensor_px
+            want = rig.camera_named(cam.name).sensor_px
+            if (cols, rows) != tuple(want):
+                raise UsageError(f"camera '{cam.name}' delivers {cols} x {rows} pixels but the rig file says "
+                                 f"sensor_px = {list(want)}; correct the rig file")
+            cam.configure(triggered=True, frames_per_trigger=2, exposure_us=rig.timing.camera_exposure_us)
+        timing = {"dt_s": plan.dt_s, "rate_hz": 1.0 / period, "pulses": pairs,
+                  "channels": [{"channel": c.channel, "role": c.role, "delay_s": c.delay_s, "width_s": c.width_s,
+                                "polarity": c.polarity} for c in plan.channels]}
+        store = RunStore.create(out, rig, pairs, timing=timing, software_version=__version__, overwrite=overwrite)
+        store.group.attrs.update({"hardware": rig.hardware})
+        session = RecordingSession(rg.cameras, store, pairs, ring_slots=ring_slots, writer_threads=writer_threads)
+        state, message = "aborted", ""
+        previous_term = signal.getsignal(signal.SIGTERM)
+
+        def _on_term(signum: int, frame: object) -> None:
+            raise Terminated()
+
+        in_main = _is_main_thread()
+        if in_main:
+            signal.signal(signal.SIGTERM, _on_term)
+        try:
+            session.start()
+            gen.arm()
+            armed_at = time.monotonic()
+            last_trigger_due = armed_at + pairs * period
+            grace = 1.0 + 2 * period
+            drained = False
+            next_ping = armed_at + 1.0
+            while not session.done:
+                session.wait(0.2)
+                now = time.monotonic()
+                if progress is not None:
+                    progress(session.stats())
+                if session.error is not None:
+                    raise session.error
+                if not drained and now > last_trigger_due + grace:
+                    session.drop_undelivered(f"not delivered within {grace:.1f} s after the last trigger")
+                    drained = True
+                if not drained:
+                    for cam in rg.cameras:
+                        if session.seconds_since_frame(cam.name) > stall_s + period:
+                            raise DeviceError(f"camera '{cam.name}' delivered no frame for {stall_s + period:.1f} s "
+                                              "while triggered; check its trigger cable, power and link")
+                if now > next_ping:
+                    gen.identify()  # a generator that stops answering stops the recording
+                    next_ping = now + 1.0
+            state, message = "complete", f"recorded {pairs} pair(s)"
+        except KeyboardInterrupt:
+            message = f"interrupted after {session.committed_pairs} committed pair(s)"
+            raise
+        except Terminated:
+            message = f"terminated (SIGTERM) after {session.committed_pairs} committed pair(s)"
+            raise KeyboardInterrupt from None
+        except (DeviceError, RuntimeError) as exc:
+            message = str(exc)
+            raise DeviceError(f"{exc}; the laser was disarmed and the {session.committed_pairs} pair(s) "
+                              f"recorded so far are kept in {out} (state 'aborted')") from None
+        finally:
+            _disarm_quietly(gen)
+            session.close()
+            if in_main:
+                signal.signal(signal.SIGTERM, previous_term)
+            if state == "complete" and session.committed_pairs < pairs:
+                state, message = "aborted", f"only {session.committed_pairs} of {pairs} pairs could be written"
+            store.group.attrs.update({"abort_reason": message} if state == "aborted" else {})
+            store.set_state(state)
+            if rg.lab is not None and session.committed_pairs > 0:
+                _write_sim_truth(store, rg.lab, session.committed_pairs)
+        stats = session.stats()
+        return AcquireResult(store, state, stats, len(store.drops()), message)
+
+
+def list_devices(rig: Rig) -> list[tuple[str, bool]]:
+    """What answers of the devices ``rig`` names, one line each with whether it was found.
+
+    Nothing is armed or moved. For ``hardware = "sim"`` the simulated lab is started and its
+    emulated devices are queried with the real serial drivers.
+    """
+    from acquisition.pulse_generator import QuantumComposers9520
+    from acquisition.stage import ZaberStage
+
+    lines: list[tuple[str, bool]] = []
+    with ExitStack() as stack:
+        if rig.hardware == "sim":
+            from sim.lab import SimLab
+
+            lab = stack.enter_context(SimLab(rig, reply_latency_s=0.0))
+            pulse_port, stage_port = lab.pulse_port, lab.stage_port
+            for cam in lab.cameras:
+                cols, rows = cam.sensor_px
+                lines.append((f"camera  {cam.name}: simulated light-field camera, {cols} x {rows} px", True))
+        else:
+            from acquisition.genicam import list_devices as genicam_devices
+
+            pulse_port, stage_port = rig.pulse_generator.port, rig.stage.port
+            try:
+                seen = genicam_devices(list(rig.gentl_producers) or None)
+            except DeviceError as exc:
+                seen = []
+                lines.append((f"cameras: {exc}", False))
+            by_serial = {d.serial_number: d for d in seen}
+            for cam in rig.camera:
+                d = by_serial.get(cam.serial or "")
+                if d is not None:
+                    lines.append((f"camera  {cam.name}: {d.vendor} {d.model}, serial {d.serial_number} ({d.access})",
+                                  True))
+                else:
+                    lines.append((f"camera  {cam.name}: serial {cam.serial!r} not found (seen: "
+                                  f"{sorted(by_serial) or 'none'}); check the cable, power and the rig's serial",
+                                  False))
+        for label, port, probe in (("pulse generator", pulse_port, _probe_generator),
+                                   ("stage", stage_port, _probe_stage)):
+            if port is None:
+                lines.append((f"{label}: no port in the rig file", False))
+                continue
+            try:
+                lines.append((f"{label}: {probe(port, rig, QuantumComposers9520, ZaberStage)} on {port}", True))
+            except DeviceError as exc:
+                lines.append((f"{label}: {exc}", False))
+    return lines
+
+
+def _probe_generator(port: str, rig: Rig, gen_cls: Any, stage_cls: Any) -> str:
+    gen = gen_cls(port, baud=rig.pulse_generator.baud)
+    try:
+        gen.open()
+        return gen.identify()
+    finally:
+        gen.close()
+
+
+def _probe_stage(port: str, rig: Rig, gen_cls: Any, stage_cls: Any) -> str:
+    stage = stage_cls(port, baud=rig.stage.baud)
+    try:
+        stage.open()
+        return f"Zaber stage at {stage.position_mm():.4f} mm, travel {stage.travel_mm[0]:g}..{stage.travel_mm[1]:g} mm"
+    finally:
+        stage.close()
+
+
+def _is_main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+def _disarm_quietly(gen: PulseGenerator) -> None:
+    try:
+        gen.disarm()
+    except Exception as exc:  # noqa: BLE001 - report, never mask the original error
+        print(f"lfpiv: warning: could not confirm the laser is disarmed ({exc}); "
+              "check the pulse generator and the laser interlock", file=sys.stderr)
+
+
+def _write_sim_truth(store: RunStore, lab: Any, pairs: int) -> None:
+    # A simulated recording knows exactly what the cameras saw: keep it, as synth does, so that
+    # reconstruction and vectors of a recorded run can be checked against the truth.
+    import numpy as np
+
+    particles, brightness = lab.truth(pairs)
+    full = np.zeros((store.n_pairs, *particles.shape[1:]))
+    full[:pairs] = particles
+    bright = np.zeros((store.n_pairs, *brightness.shape[1:]))
+    bright[:pairs] = brightness
+    world = lab.world
+    store.write_truth(full, bright, world.flow_params, ppm=world.ppm, seed=world.seed, source="simulated lab",
+                      pairs_with_truth=pairs)
