@@ -5,7 +5,9 @@ tick in which the generator's camera output is enabled triggers one double-frame
 shows the particles of the world at the first laser pulse if both of cavity 1's outputs
 (flashlamp and Q-switch) fired, frame B those at the second pulse if cavity 2 fired; an unlit
 frame shows only background and noise. So the laser being armed or not is visible in the
-images, exactly as in the lab.
+images, exactly as in the lab. While the world shows a continuously lit scene
+(:meth:`sim.world.SimWorld.show`: a white diffuser or the calibration target), every frame shows
+that scene instead, rendered on the trigger's thread and cached while the scene is unchanged.
 
 Rendering a light field takes longer than a trigger period on a CPU, so the camera renders a
 pool of ``pool_pairs`` pairs of the world when it opens and serves trigger ``k`` from pool entry
@@ -104,6 +106,7 @@ class SimCamera:
         self.frames_lost = 0
         self._lit: list[np.ndarray] = []  # per pool pair: (2, rows, cols) lit frames
         self._dark: np.ndarray | None = None
+        self._scene_cache: tuple[object, np.ndarray] | None = None
         roles = rig.pulse_generator.channels
         self._ch = {role: roles[role] for role in roles}
         t = rig.timing
@@ -198,14 +201,28 @@ class SimCamera:
         if not self._running or ch["camera"] not in outputs:
             return
         fired = [ch[f"flashlamp{c}"] in outputs and ch[f"qswitch{c}"] in outputs for c in (1, 2)]
-        lit = self._lit[self.pool_index(tick)]
         t_a = t0_ns + round(outputs[ch["camera"]] * 1e9)
+        if self.world.scene is not None:
+            # A continuously lit scene (calibration) shows in every frame, laser or not.
+            image = self._scene_image()
+            images = [image] * self.frames_per_trigger
+        else:
+            lit = self._lit[self.pool_index(tick)]
+            images = [lit[f] if fired[f] else self._dark for f in range(self.frames_per_trigger)]
         with self._cond:
             if not self._running:
                 return
-            for f in range(self.frames_per_trigger):
-                self._emit(lit[f] if fired[f] else self._dark, t_a + f * self._frame_b_delay_ns)
+            for f, image in enumerate(images):
+                self._emit(image, t_a + f * self._frame_b_delay_ns)
             self._cond.notify_all()
+
+    def _scene_image(self) -> np.ndarray:
+        key = self.world.scene_key
+        if self._scene_cache is None or self._scene_cache[0] != key or key is None:
+            image = np.asarray(self.world.scene(self.rig.camera.index(self.camera)), dtype=np.uint16)
+            image.flags.writeable = False
+            self._scene_cache = (key, image)
+        return self._scene_cache[1]
 
     def _emit(self, image: np.ndarray, timestamp_ns: int) -> None:
         # Caller holds self._cond.

@@ -9,6 +9,7 @@ how many pairs came before, so the truth of any pair can be regenerated later.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -48,12 +49,22 @@ class SimWorld:
     seed: int = 0
     omega: float = 1.0
     _field: Flow = field(init=False, repr=False)
+    #: A continuously lit scene that replaces the particles while set (calibration: a white
+    #: diffuser, the dot target at the stage position). Called as ``scene(camera_index)``, it
+    #: returns the uint16 (rows, columns) image that camera sees; ``scene_key`` changes whenever
+    #: what it shows changes (the simulated cameras cache one image per key).
+    scene: Callable[[int], np.ndarray] | None = field(default=None, repr=False)
+    scene_key: object = None
 
     def __post_init__(self) -> None:
         self.dt_s = self.rig.timing.dt_us * 1e-6
         self._field = flow_for_displacement(self.flow, self.rig.volume, self.rig.camera[0].object_pixel_mm,
                                             self.dt_s, self.displacement_px, self.omega)
         self.n_particles = particle_count(self.rig, self.ppm)
+
+    def show(self, scene: Callable[[int], np.ndarray] | None, key: object = None) -> None:
+        """Put a continuously lit scene in front of the cameras (None: back to the particles)."""
+        self.scene, self.scene_key = scene, key
 
     @property
     def flow_params(self) -> dict:
