@@ -120,7 +120,8 @@ def check_plan(rig: Rig, pairs: int) -> TimingPlan:
 
 def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
            sim_options: dict[str, Any] | None = None, ring_slots: int = 32, writer_threads: int = 4,
-           stall_s: float = 3.0, progress: Callable[[SessionStats], None] | None = None) -> AcquireResult:
+           stall_s: float = 3.0, progress: Callable[[SessionStats], None] | None = None,
+           on_session: Callable[[RecordingSession], None] | None = None) -> AcquireResult:
     """Record ``pairs`` double-frame pairs from every camera of ``rig`` into a new run store.
 
     Parameters
@@ -142,6 +143,9 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
         triggers are due is taken as failed and the recording stops.
     progress
         Called about five times a second with the session's statistics.
+    on_session
+        Called with the recording session once it started and before the laser is armed (the
+        live pipeline attaches to ``session.ring`` here); it must return quickly.
 
     Returns
     -------
@@ -188,6 +192,8 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
             signal.signal(signal.SIGTERM, _on_term)
         try:
             session.start()
+            if on_session is not None:
+                on_session(session)
             gen.arm()
             armed_at = time.monotonic()
             last_trigger_due = armed_at + pairs * period

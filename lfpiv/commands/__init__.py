@@ -11,7 +11,8 @@ import sys
 from pathlib import Path
 
 #: Subcommand modules in the order ``lfpiv --help`` lists them.
-COMMANDS = ("demo", "devices", "acquire", "synth", "info", "reconstruct", "correlate", "evaluate", "export")
+COMMANDS = ("demo", "devices", "acquire", "monitor", "synth", "info", "reconstruct", "correlate",
+            "evaluate", "export")
 
 
 def whole_number(text: str, least: int = 0) -> int:

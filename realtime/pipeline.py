@@ -1,0 +1,650 @@
+"""The live pipeline: the newest recorded pair to a volume, vectors and vorticity, near real time.
+
+It runs in its own thread beside the recorder (DESIGN.md, "Data flow") and never slows it: it
+takes the newest complete pair from the session's :class:`~acquisition.ring.PairRing`, copies
+its frames into its own staging buffers (the only time it touches the ring, a memcpy), checks
+the slot's generation (the ring's seqlock) and discards the copy if the recorder's side reused
+the slot meanwhile. Pairs that arrived since the last one it took are skipped and counted.
+
+Stages, for each pair taken:
+
+1. preprocess: background subtraction and the lit-pixel mask (:func:`lfcore.reconstruct.preprocess`'s
+   rule), into preallocated buffers; the background level and noise of each camera are
+   estimated on the first pair and refreshed every ``background_every`` pairs, not per frame;
+2. DRT-MART of frames A and B with monitoring settings (few iterations; the iterations and the
+   relaxation can be changed while it runs): the projector (geometry on the device), the pixel
+   buffers and the voxel-intensity buffer are built once and reused; the elimination and the
+   sparse weights are per frame, as DRT-MART's active voxels follow the particles;
+3. 3D multi-grid correlation (one or two passes, no deformation by default) with a
+   :class:`~lfcore.correlate.Correlator` whose device buffers are allocated once;
+4. derived quantities: velocity in m/s, vorticity; maximum-intensity projections and one slice
+   of the volume, and the in-plane vectors and out-of-plane vorticity of the vector plane
+   nearest that slice.
+
+Each result is a :class:`LiveResult` handed to every subscriber on the pipeline's thread;
+subscribers must return quickly (the monitor puts it on a Qt queued signal).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import Protocol
+
+import numpy as np
+from scipy import ndimage
+
+from acquisition.ring import PairView
+from lfcore.correlate import CorrelationConfig, Correlator, VectorField
+from lfcore.projector import Projector
+from lfcore.reconstruct import ReconSettings, estimate_background
+from lfcore.rig import Rig
+from lfcore.vectors import centres_mm, displacement_to_velocity, vorticity
+from lfcore.volume import VolumeGrid
+
+__all__ = ["AXES", "LiveResult", "LiveSettings", "LiveStats", "LivePipeline", "PairSource", "VectorSlice",
+           "default_windows", "monitoring_recon", "plausible_latency"]
+
+#: Slice axes: the axis normal to the slice.
+AXES = ("x", "y", "z")
+#: Latencies beyond this are taken as a camera clock that is not the host's (reported as NaN).
+_PLAUSIBLE_LATENCY_S = 3600.0
+
+
+def plausible_latency(seconds: float) -> bool:
+    """True for a latency that can be real (the camera clock is the host's)."""
+    return 0.0 <= seconds < _PLAUSIBLE_LATENCY_S
+
+
+class PairSource(Protocol):
+    """Where pairs come from: :class:`acquisition.ring.PairRing` (or anything like it)."""
+
+    cameras: list[str]
+
+    def latest(self) -> PairView | None: ...
+
+    def still_valid(self, view: PairView) -> bool: ...
+
+
+def monitoring_recon(iterations: int = 5, relaxation: float = 1.0) -> ReconSettings:
+    """DRT-MART settings for monitoring: few simultaneous iterations, the default thresholds."""
+    return ReconSettings(method="drt-mart", iterations=iterations, relaxation=relaxation, form="simultaneous")
+
+
+def default_windows(shape: tuple[int, int, int], passes: int = 2) -> tuple[tuple[int, int, int], ...]:
+    """Monitoring windows (x, y, z) for volumes of ``shape`` (z, y, x): ``passes`` sizes, halving.
+
+    The first is the largest power of two no more than 0.6 of the volume along each axis (at
+    most 64 voxels, at least 4); each further pass halves it (at least 4).
+    """
+    if passes not in (1, 2):
+        raise ValueError(f"the live pipeline correlates in 1 or 2 passes, got {passes}")
+    nz, ny, nx = shape
+    first = []
+    for n in (nx, ny, nz):
+        w = 4
+        while w * 2 <= min(64, 0.6 * n):
+            w *= 2
+        first.append(min(w, n))
+    out = [tuple(first)]
+    if passes == 2:
+        out.append(tuple(max(4, w // 2) for w in first))
+    return tuple(out)  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class LiveSettings:
+    """What may change while the pipeline runs (taken at the start of each pair).
+
+    Attributes
+    ----------
+    iterations
+        DRT-MART iterations per frame (0: the elimination's uniform start only).
+    relaxation
+        DRT-MART relaxation (simultaneous form: at most 2).
+    slice_axis
+        ``"x"``, ``"y"`` or ``"z"``: the axis normal to the slice shown.
+    slice_index
+        Voxel index of the slice along ``slice_axis``; None for the middle. Clipped to the grid.
+    background_every
+        Re-estimate each camera's background level and noise every this many processed pairs
+        (0: only on the first).
+    """
+
+    iterations: int = 5
+    relaxation: float = 1.0
+    slice_axis: str = "z"
+    slice_index: int | None = None
+    background_every: int = 50
+
+    def __post_init__(self) -> None:
+        monitoring_recon(self.iterations, self.relaxation)  # the reconstruction's own checks
+        if self.slice_axis not in AXES:
+            raise ValueError(f"slice_axis must be one of x, y, z, got '{self.slice_axis}'")
+        if self.background_every < 0:
+            raise ValueError(f"background_every must be 0 or more, got {self.background_every}")
+
+
+@dataclass(frozen=True)
+class VectorSlice:
+    """The vectors of one plane of the vector grid, in that plane.
+
+    Attributes
+    ----------
+    axis
+        Axis normal to the plane.
+    index
+        Index of the plane in the vector grid along ``axis``.
+    position_mm
+        World coordinate of the plane along ``axis``.
+    h_mm, v_mm
+        1-D world coordinates of the plane's horizontal and vertical axes (for axis z: x and y;
+        for y: x and z; for x: y and z).
+    uv
+        (len(v_mm), len(h_mm), 2) in-plane velocity (horizontal, vertical) in m/s.
+    normal_vorticity
+        (len(v_mm), len(h_mm)) the vorticity component along ``axis`` in 1/s.
+    """
+
+    axis: str
+    index: int
+    position_mm: float
+    h_mm: np.ndarray
+    v_mm: np.ndarray
+    uv: np.ndarray
+    normal_vorticity: np.ndarray
+
+
+@dataclass(frozen=True)
+class LiveResult:
+    """What the pipeline made of one pair.
+
+    Attributes
+    ----------
+    pair
+        Pair index in the run.
+    sequence
+        How many results were published before this one.
+    raw
+        Per camera, frame A (rows, columns) uint16, a copy.
+    mip
+        Maximum-intensity projections of volume A along each axis: ``"z"`` (ny, nx),
+        ``"y"`` (nz, nx), ``"x"`` (nz, ny).
+    slice_axis, slice_index, slice_image
+        The slice of volume A shown: (ny, nx) for z, (nz, nx) for y, (nz, ny) for x.
+    extent_mm
+        Per axis name, the (min, max) world coordinates of the voxel centres.
+    vectors
+        The vector plane nearest the slice.
+    velocity
+        (nz, ny, nx, 3) velocity (u, v, w) in m/s on the vector grid.
+    vorticity
+        (nz, ny, nx, 3) vorticity (x, y, z) in 1/s.
+    grid_mm
+        1-D world coordinates (x, y, z) of the vector grid.
+    outlier_fraction
+        Share of the vectors the median test flagged.
+    active_fraction
+        Share of voxels that survived elimination (mean of A and B).
+    timings
+        Seconds per stage: ``copy``, ``preprocess``, ``weights``, ``iterate``, ``volume``,
+        ``correlate``, ``derive``, ``total``.
+    trigger_ns
+        Frame A's time stamp (``time.time_ns`` scale for the simulated lab and for cameras
+        without their own clock).
+    latency_s
+        From the trigger (``trigger_ns``) to the result; NaN when the camera's clock is not the
+        host's.
+    settings
+        The settings used.
+    skipped, discarded
+        Pairs skipped, and pairs discarded because the ring reused their slot during the copy,
+        up to this result.
+    """
+
+    pair: int
+    sequence: int
+    raw: dict[str, np.ndarray]
+    mip: dict[str, np.ndarray]
+    slice_axis: str
+    slice_index: int
+    slice_image: np.ndarray
+    extent_mm: dict[str, tuple[float, float]]
+    vectors: VectorSlice
+    velocity: np.ndarray
+    vorticity: np.ndarray
+    grid_mm: tuple[np.ndarray, np.ndarray, np.ndarray]
+    outlier_fraction: float
+    active_fraction: float
+    timings: dict[str, float]
+    trigger_ns: int
+    latency_s: float
+    settings: LiveSettings
+    skipped: int
+    discarded: int
+
+
+@dataclass(frozen=True)
+class LiveStats:
+    """Counters of the pipeline, for the status line.
+
+    Attributes
+    ----------
+    state
+        ``"idle"`` (not started), ``"building"`` (projector and correlator), ``"waiting"`` (no
+        new pair), ``"processing"``, ``"paused"``, ``"stopped"``.
+    processed, skipped, discarded
+        Pairs processed, skipped (newer ones were there) and discarded (overwritten during the
+        copy). ``processed + skipped + discarded`` never exceeds the pairs the ring published.
+    last_pair
+        The newest pair taken, or -1.
+    rate_hz
+        Pairs processed per second over the last few.
+    latency_s
+        Trigger-to-result latency of the last result (NaN if unknown).
+    error
+        The last error of a stage (the pipeline keeps going), or None.
+    """
+
+    state: str
+    processed: int
+    skipped: int
+    discarded: int
+    last_pair: int
+    rate_hz: float
+    latency_s: float
+    error: str | None
+
+
+class _Reconstructor:
+    """DRT-MART of one frame at a time with everything but the per-frame weights built once."""
+
+    def __init__(self, rig: Rig, cameras: Sequence[str], grid: VolumeGrid, recon: ReconSettings,
+                 device: str | None) -> None:
+        self.cams = [rig.camera_named(n) for n in cameras]
+        self.recon = recon
+        self.projector = Projector(self.cams, grid, sub_apertures=recon.sub_apertures, device=device)
+        p = self.projector
+        self.wp = p.wp
+        self.device = p.device
+        self.offsets = [int(o) for o in p.pixel_offsets]
+        self.signal = np.zeros(p.n_pixels, dtype=np.float32)
+        self.lit = np.zeros(p.n_pixels, dtype=bool)
+        self.image = self.wp.zeros(p.n_pixels, dtype=float, device=self.device)
+        self.proj = self.wp.zeros(p.n_pixels, dtype=float, device=self.device)
+        self.e = self.wp.zeros(max(1024, grid.n_voxels // 64), dtype=float, device=self.device)
+        self.background: list[tuple[float, float] | None] = [None] * len(self.cams)
+
+    def _views(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        rows, cols = self.cams[k].sensor_px[1], self.cams[k].sensor_px[0]
+        a, b = self.offsets[k], self.offsets[k + 1]
+        return self.signal[a:b].reshape(rows, cols), self.lit[a:b].reshape(rows, cols)
+
+    def estimate_background(self, images: Sequence[np.ndarray]) -> None:
+        for k, img in enumerate(images):
+            level, sigma = estimate_background(img)
+            if self.recon.background is not None:
+                level = self.recon.background
+            self.background[k] = (level, sigma)
+
+    def preprocess(self, images: Sequence[np.ndarray]) -> None:
+        """Background-subtracted signal and lit mask of every camera, into the shared buffers."""
+        thr = self.recon.threshold_sigma
+        for k, img in enumerate(images):
+            level, sigma = self.background[k]  # type: ignore[misc]
+            sig, lit = self._views(k)
+            np.subtract(img, np.float32(level), out=sig, dtype=np.float32)
+            np.greater(sig, np.float32(thr * sigma), out=lit)
+            np.multiply(sig, lit, out=sig)
+            if self.recon.lit_grow > 0:
+                lit[...] = ndimage.binary_dilation(lit, structure=np.ones((3, 3), bool),
+                                                   iterations=self.recon.lit_grow)
+
+    def weights(self):
+        r = self.recon
+        voxels = self.projector.eliminate([self._views(k)[1] for k in range(len(self.cams))], r.min_seen,
+                                          r.max_dark)
+        return self.projector.weights(voxels, "drt")
+
+    def iterate(self, weights, iterations: int, relaxation: float):
+        """Uniform start scaled to the measured signal, then ``iterations`` SMART updates."""
+        wp, p = self.wp, self.projector
+        n = weights.n_voxels
+        if self.e.shape[0] < n:
+            self.e = wp.zeros(int(n * 1.5) + 1, dtype=float, device=self.device)
+        e = self.e[: max(n, 1)]
+        self.image.assign(self.signal)
+        if n == 0:
+            return e
+        e.fill_(1.0)
+        p.forward(weights, e, self.proj)
+        total = float(wp.utils.array_sum(self.proj))
+        e.fill_(float(self.signal.sum(dtype=np.float64)) / total if total > 0 else 0.0)
+        noise = np.mean([s for _, s in self.background])  # type: ignore[misc]
+        floor = max(self.recon.floor * self.recon.threshold_sigma * float(noise), 1e-6)
+        for _ in range(iterations):
+            p.forward(weights, e, self.proj)
+            p.smart_update(weights, self.image, self.proj, e, relaxation, floor)
+        wp.synchronize_device(self.device)
+        return e
+
+    def volume(self, weights, e) -> np.ndarray:
+        vol = self.projector.to_volume(weights, e)
+        if self.recon.smooth > 0:
+            vol = ndimage.gaussian_filter(vol, self.recon.smooth, mode="constant", truncate=3.0)
+        return vol
+
+
+class LivePipeline:
+    """Reconstruct and correlate the newest pair of a recording, in a thread of its own.
+
+    Parameters
+    ----------
+    rig
+        The rig (cameras, volume, timing).
+    source
+        The session's ring; may be given later with :meth:`attach` (and changed for each
+        recording).
+    settings
+        The run-time settings (see :meth:`update`).
+    recon
+        The fixed DRT-MART settings (thresholds, smoothing, sub-apertures); iterations and
+        relaxation come from ``settings``. Only the simultaneous form is used.
+    correlation
+        The correlation; default: :func:`default_windows` at 50% overlap, no deformation.
+    cameras
+        Cameras to reconstruct from (default: all of the rig's).
+    device
+        Warp device; None for the first GPU, else the CPU.
+    poll_s
+        How often to look for a new pair while waiting.
+    """
+
+    def __init__(self, rig: Rig, source: PairSource | None = None, *, settings: LiveSettings | None = None,
+                 recon: ReconSettings | None = None, correlation: CorrelationConfig | None = None,
+                 cameras: Sequence[str] | None = None, device: str | None = None, poll_s: float = 0.005) -> None:
+        self.rig = rig
+        self.cameras = list(cameras) if cameras else [c.name for c in rig.camera]
+        for n in self.cameras:
+            rig.camera_named(n)  # an unknown camera fails here
+        self.grid = VolumeGrid.from_rig(rig)
+        self._settings = settings or LiveSettings()
+        base = recon or monitoring_recon()
+        self.recon = replace(base, form="simultaneous")
+        self.correlation = correlation or CorrelationConfig(windows=default_windows(self.grid.shape), overlap=0.5,
+                                                            deform_iterations=0)
+        self.device_request = device
+        self.dt_s = rig.timing.dt_us * 1e-6
+        self.poll_s = float(poll_s)
+        self._source: PairSource | None = None
+        self._last_taken = -1
+        self._lock = threading.Lock()
+        self._subscribers: list[Callable[[LiveResult], None]] = []
+        self._stop = threading.Event()
+        self._paused = threading.Event()
+        self._wake = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._state = "idle"
+        self._processed = self._skipped = self._discarded = 0
+        self._done_times: list[float] = []
+        self._latency = float("nan")
+        self._error: str | None = None
+        self._recon: _Reconstructor | None = None
+        self._correlator: Correlator | None = None
+        self._staging: dict[str, np.ndarray] = {}
+        if source is not None:
+            self.attach(source)
+
+    # --- configuration ----------------------------------------------------------------------
+    @property
+    def settings(self) -> LiveSettings:
+        return self._settings
+
+    def update(self, **changes) -> LiveSettings:
+        """Change run-time settings (validated; used from the next pair on)."""
+        with self._lock:
+            self._settings = replace(self._settings, **changes)
+            return self._settings
+
+    def attach(self, source: PairSource | None) -> None:
+        """Take pairs from ``source`` from now on (a new recording's ring), or from nothing."""
+        if source is not None:
+            missing = [c for c in self.cameras if c not in source.cameras]
+            if missing:
+                raise ValueError(f"camera '{missing[0]}' is not in the ring (it has {source.cameras})")
+        with self._lock:
+            self._source = source
+            self._last_taken = -1
+        self._wake.set()
+
+    def subscribe(self, callback: Callable[[LiveResult], None]) -> Callable[[], None]:
+        """Call ``callback(result)`` for every result (on the pipeline's thread); returns an
+        unsubscribe function."""
+        with self._lock:
+            self._subscribers.append(callback)
+
+        def unsubscribe() -> None:
+            with self._lock:
+                if callback in self._subscribers:
+                    self._subscribers.remove(callback)
+
+        return unsubscribe
+
+    # --- life cycle ---------------------------------------------------------------------------
+    def build(self) -> None:
+        """Build the projector and the correlator and their buffers (once; :meth:`start` does it
+        on the pipeline's thread if not done before)."""
+        if self._recon is None:
+            self._recon = _Reconstructor(self.rig, self.cameras, self.grid, self.recon, self.device_request)
+            self._correlator = Correlator(self.grid.shape, self.correlation, device=self._recon.device)
+            self._staging = {c.name: np.zeros((2, c.sensor_px[1], c.sensor_px[0]), dtype=np.uint16)
+                             for c in self._recon.cams}
+
+    @property
+    def device(self) -> str | None:
+        """The Warp device in use, once built."""
+        return None if self._recon is None else self._recon.device
+
+    def start(self) -> None:
+        """Start the pipeline's thread (once)."""
+        if self._thread is not None:
+            raise RuntimeError("the live pipeline was already started")
+        self._thread = threading.Thread(target=self._run, name="lfpiv-live", daemon=True)
+        self._thread.start()
+
+    def pause(self, paused: bool = True) -> None:
+        """Stop taking pairs (``paused``) or take them again; the thread keeps its buffers."""
+        if paused:
+            self._paused.set()
+        else:
+            self._paused.clear()
+        self._wake.set()
+
+    @property
+    def paused(self) -> bool:
+        return self._paused.is_set()
+
+    def stop(self, timeout_s: float = 30.0) -> bool:
+        """Stop the thread after the pair in hand (if any); safe in every state and more than once.
+
+        Returns
+        -------
+        bool
+            True if the thread ended (or never ran) within ``timeout_s``.
+        """
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            return not self._thread.is_alive()
+        with self._lock:
+            self._state = "stopped"
+        return True
+
+    def __enter__(self) -> LivePipeline:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def stats(self) -> LiveStats:
+        with self._lock:
+            t = self._done_times
+            rate = (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
+            return LiveStats(self._state, self._processed, self._skipped, self._discarded, self._last_taken, rate,
+                             self._latency, self._error)
+
+    def wait_processed(self, n: int, timeout_s: float) -> bool:
+        """Block until ``n`` pairs were processed or ``timeout_s`` passed (for scripts and tests)."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            if self._processed >= n:
+                return True
+            time.sleep(0.01)
+        return self._processed >= n
+
+    # --- the thread ---------------------------------------------------------------------------
+    def _set_state(self, state: str) -> None:
+        with self._lock:
+            if self._state != "stopped":
+                self._state = state
+
+    def _run(self) -> None:
+        try:
+            self._set_state("building")
+            self.build()
+        except Exception as exc:  # noqa: BLE001 - reported in the stats; the recording goes on
+            with self._lock:
+                self._error = f"building the live pipeline failed: {type(exc).__name__}: {exc}"
+                self._state = "stopped"
+            return
+        while not self._stop.is_set():
+            if self._paused.is_set():
+                self._set_state("paused")
+                self._wake.wait(0.1)
+                self._wake.clear()
+                continue
+            taken = self._take()
+            if taken is None:
+                self._set_state("waiting")
+                self._wake.wait(self.poll_s)
+                self._wake.clear()
+                continue
+            self._set_state("processing")
+            view, copy_s = taken
+            try:
+                result = self._process(view, copy_s)
+            except Exception as exc:  # noqa: BLE001 - a bad pair must not end the live view
+                with self._lock:
+                    self._error = f"pair {view.pair}: {type(exc).__name__}: {exc}"
+                continue
+            self._publish(result)
+        with self._lock:
+            self._state = "stopped"
+
+    def _take(self) -> tuple[PairView, float] | None:
+        """Copy the newest pair not yet taken into the staging buffers; None if there is none."""
+        with self._lock:
+            src, last = self._source, self._last_taken
+        if src is None:
+            return None
+        view = src.latest()
+        if view is None or view.pair <= last:
+            return None
+        t0 = time.perf_counter()
+        for c in self.cameras:
+            np.copyto(self._staging[c], view.frames[c])
+        ok = src.still_valid(view)
+        with self._lock:
+            if self._source is not src:
+                return None  # a new recording was attached meanwhile
+            self._skipped += view.pair - last - 1
+            self._last_taken = view.pair
+            if not ok:
+                self._discarded += 1
+        return (view, time.perf_counter() - t0) if ok else None
+
+    def _process(self, view: PairView, copy_s: float) -> LiveResult:
+        assert self._recon is not None and self._correlator is not None
+        rc = self._recon
+        s = self._settings
+        t: dict[str, float] = {"copy": copy_s, "preprocess": 0.0, "weights": 0.0, "iterate": 0.0, "volume": 0.0}
+        start = time.perf_counter()
+        vols, active = [], []
+        refresh = rc.background[0] is None or (s.background_every > 0 and self._processed % s.background_every == 0)
+        for f in (0, 1):
+            images = [self._staging[c][f] for c in self.cameras]
+            t0 = time.perf_counter()
+            if refresh and f == 0:
+                rc.estimate_background(images)
+            rc.preprocess(images)
+            t1 = time.perf_counter()
+            w = rc.weights()
+            t2 = time.perf_counter()
+            e = rc.iterate(w, s.iterations, s.relaxation)
+            t3 = time.perf_counter()
+            vols.append(rc.volume(w, e))
+            t4 = time.perf_counter()
+            active.append(w.n_voxels / self.grid.n_voxels)
+            for k, a, b in (("preprocess", t0, t1), ("weights", t1, t2), ("iterate", t2, t3), ("volume", t3, t4)):
+                t[k] += b - a
+        t0 = time.perf_counter()
+        vf = self._correlator(vols[0], vols[1])
+        t1 = time.perf_counter()
+        result = self._derive(view, vols[0], vf, s, float(np.mean(active)), t)
+        t["correlate"] = t1 - t0
+        t["derive"] = time.perf_counter() - t1
+        t["total"] = time.perf_counter() - start + copy_s
+        return result
+
+    def _derive(self, view: PairView, vol: np.ndarray, vf: VectorField, s: LiveSettings, active: float,
+                t: dict[str, float]) -> LiveResult:
+        g = self.grid
+        vel = displacement_to_velocity(vf.displacement, g.voxel_mm, self.dt_s)
+        x_mm, y_mm, z_mm = centres_mm((vf.x, vf.y, vf.z), g.origin_mm, g.voxel_mm)
+        vort = vorticity(np.nan_to_num(vel), x_mm, y_mm, z_mm)
+        mip = {"z": vol.max(axis=0), "y": vol.max(axis=1), "x": vol.max(axis=2)}
+        ax = "zyx".index(s.slice_axis)  # array axis of the volume
+        n = g.shape[ax]
+        idx = n // 2 if s.slice_index is None else int(np.clip(s.slice_index, 0, n - 1))
+        sl = np.take(vol, idx, axis=ax).copy()
+        # the vector plane nearest the voxel slice
+        centres_vox = {"x": vf.x, "y": vf.y, "z": vf.z}[s.slice_axis]
+        vi = int(np.argmin(np.abs(np.asarray(centres_vox) - idx)))
+        coords = {"x": x_mm, "y": y_mm, "z": z_mm}
+        h, v = {"z": ("x", "y"), "y": ("x", "z"), "x": ("y", "z")}[s.slice_axis]
+        comp = {"x": 0, "y": 1, "z": 2}
+        plane = np.take(vel, vi, axis=ax)  # (v, h, 3) in array order
+        wplane = np.take(vort, vi, axis=ax)[..., comp[s.slice_axis]]
+        uv = np.stack([plane[..., comp[h]], plane[..., comp[v]]], axis=-1)
+        vs = VectorSlice(axis=s.slice_axis, index=vi, position_mm=float(coords[s.slice_axis][vi]),
+                         h_mm=coords[h], v_mm=coords[v], uv=uv, normal_vorticity=wplane)
+        extent = {a: (float(g.axis_mm(a)[0]), float(g.axis_mm(a)[-1])) for a in AXES}
+        stamp = int(view.timestamp_ns[self.cameras[0]][0])
+        latency = (time.time_ns() - stamp) * 1e-9 if stamp > 0 else float("nan")
+        if not plausible_latency(latency):
+            latency = float("nan")
+        with self._lock:
+            seq, skipped, discarded = self._processed, self._skipped, self._discarded
+        return LiveResult(pair=view.pair, sequence=seq, raw={c: self._staging[c][0].copy() for c in self.cameras},
+                          mip=mip, slice_axis=s.slice_axis, slice_index=idx, slice_image=sl, extent_mm=extent,
+                          vectors=vs, velocity=vel, vorticity=vort, grid_mm=(x_mm, y_mm, z_mm),
+                          outlier_fraction=float(np.mean(vf.outlier)), active_fraction=active, timings=t,
+                          trigger_ns=stamp, latency_s=latency, settings=s, skipped=skipped, discarded=discarded)
+
+    def _publish(self, result: LiveResult) -> None:
+        with self._lock:
+            self._processed += 1
+            self._latency = result.latency_s
+            self._done_times = [*self._done_times[-9:], time.monotonic()]
+            subs = list(self._subscribers)
+        for cb in subs:
+            try:
+                cb(result)
+            except Exception as exc:  # noqa: BLE001 - one bad subscriber must not stop the others
+                with self._lock:
+                    self._error = f"a subscriber failed: {type(exc).__name__}: {exc}"
+

@@ -1,0 +1,159 @@
+"""``lfpiv monitor`` offscreen on the simulated lab: the screenshot holds every panel, the status
+numbers agree with the run store, and disarming works from every state."""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+
+from lfcore.runstore import RunStore  # noqa: E402
+from lfpiv import cli  # noqa: E402
+from lfpiv.live import LiveRecorder  # noqa: E402
+from lfpiv.rigfile import load_rig  # noqa: E402
+from realtime.pipeline import LivePipeline, LiveSettings  # noqa: E402
+from tests.functional.test_acquire import _lab, fast_rig_text  # noqa: E402
+
+pytest.importorskip("pyqtgraph")
+
+
+@pytest.fixture
+def main():
+    return cli.main
+
+
+@pytest.fixture(scope="module")
+def rig_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("rig") / "fast2.toml"
+    path.write_text(fast_rig_text(rate_hz=20.0, cameras=2))
+    return path
+
+
+def _png(path: Path) -> np.ndarray:
+    import matplotlib.image
+
+    return (matplotlib.image.imread(str(path))[..., :3] * 255).astype(np.uint8)
+
+
+def test_monitor_screenshot_and_status_match_the_run_store(main, rig_file: Path, tmp_path: Path, capsys,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    import realtime.monitor as monitor
+
+    seen = {}
+    make = monitor.MonitorWindow
+
+    def capturing(*args, **kwargs):
+        win = make(*args, **kwargs)
+        shoot = win.screenshot
+
+        def screenshot(path):
+            seen["rects"] = win.panel_rects()
+            seen["size"] = (win.width(), win.height())
+            return shoot(path)
+
+        win.screenshot = screenshot
+        seen["win"] = win
+        return win
+
+    monkeypatch.setattr(monitor, "MonitorWindow", capturing)
+    out, shot = tmp_path / "run.zarr", tmp_path / "shot.png"
+    pairs = 30
+    rc = main(["monitor", "--rig", str(rig_file), "--pairs", str(pairs), "--out", str(out), "--screenshot", str(shot),
+               "--after", "2", "--device", "cpu", "--iterations", "3", "--sim-rays", "300", "--sim-pool", "3",
+               "--quiet"])
+    stdout, stderr = capsys.readouterr()
+    assert rc == 0, stderr
+    # status numbers against the run store
+    m = re.search(r"recording: (\S+): (\d+) pair\(s\) x 2 camera\(s\), (\d+) frames recorded, (\d+) dropped, "
+                  r"(\d+) overruns, state (\w+)", stdout)
+    assert m, stdout
+    store = RunStore.open(out)
+    committed, recorded, dropped, overruns = (int(g) for g in m.groups()[1:5])
+    assert m.group(1) == str(out) and m.group(6) == "complete" == store.state
+    assert committed == store.committed_pairs == pairs
+    assert recorded == sum(int(np.count_nonzero(store.frame_ids(c) >= 0)) for c in store.cameras)
+    assert dropped == len(store.drops())
+    assert recorded + dropped == pairs * 2 * 2 and overruns == 0  # recorded + dropped == triggered
+    live = re.search(r"live: (\d+) pair\(s\) processed, (\d+) skipped, (\d+) discarded, (\d+) shown", stdout)
+    processed, skipped, discarded, shown = (int(g) for g in live.groups())
+    assert 1 <= shown <= processed and processed + skipped + discarded <= committed
+    assert f"screenshot: {shot}" in stdout
+    # the screenshot: every panel drew something
+    img = _png(shot)
+    assert img.shape[:2] == seen["size"][::-1]
+    rects = seen["rects"]
+    assert set(rects) == {"raw:cam0", "raw:cam1", "mip:z", "mip:y", "slice", "vectors"}
+    for name, (x, y, w, h) in rects.items():
+        assert w > 100 and h > 100, name
+        region = img[y + 2:y + h - 2, x + 2:x + w - 2].reshape(-1, 3)
+        colours = np.unique(region, axis=0)
+        assert len(colours) >= 3 and region.max() >= 100, f"panel {name} is empty"
+    # the status line was drawn with the numbers of the run
+    win = seen["win"]
+    assert win.displayed == shown
+    assert f"frames {recorded}, drops {dropped}" in win.status.text()
+
+
+def test_monitor_without_the_gui_extra_says_how_to_install_it(main, rig_file: Path, capsys,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "pyqtgraph", None)
+    assert main(["monitor", "--rig", str(rig_file), "--screenshot", "x.png"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "pip install 'lfpiv[gui]'" in err
+
+
+def test_monitor_without_a_display_is_one_line(main, rig_file: Path, capsys, monkeypatch: pytest.MonkeyPatch) -> None:
+    for var in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM"):
+        monkeypatch.delenv(var, raising=False)
+    assert main(["monitor", "--rig", str(rig_file)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no display" in err and "--screenshot" in err
+
+
+def test_disarm_from_every_state(rig_file: Path, tmp_path: Path) -> None:
+    rig = load_rig(rig_file)
+    pipe = LivePipeline(rig, settings=LiveSettings(iterations=1), device="cpu")
+    with _lab(rig) as lab, pipe:
+        gen = lab.pulse_generator
+        rec = LiveRecorder(rig, pipe, pairs=2000, out=tmp_path / "run.zarr", sim_options={"lab": lab})
+        rec.disarm()  # never armed: nothing happens
+        assert not rec.armed and rec.recordings == []
+        rec.arm()
+        rec.arm()  # already armed: one recording only
+        end = time.monotonic() + 30
+        while rec.status()["committed_pairs"] < 5 and time.monotonic() < end:
+            time.sleep(0.02)
+        rec.disarm()
+        rec.disarm()
+        assert rec.wait(30.0)
+        assert not gen.firing and not gen.outputs_enabled()
+        first = rec.recordings[-1]
+        assert first.state == "aborted" and first.path == tmp_path / "run.zarr"
+        store = RunStore.open(first.path)
+        assert store.state == "aborted" and 5 <= store.committed_pairs == first.committed_pairs < 2000
+        n = store.committed_pairs
+        assert first.frames_recorded + first.frames_dropped == n * 2 * 2
+        # record off: a scratch run, deleted afterwards; disarmed before the laser was armed
+        rec.set_record(False)
+        rec.arm()
+        rec.disarm()
+        assert rec.wait(30.0)
+        second = rec.recordings[-1]
+        assert second.path is None and second.state == "aborted"
+        assert not gen.firing and not gen.outputs_enabled()
+        # record on again: the next run gets its own name
+        rec.set_record(True)
+        rec.pairs = 10
+        rec.arm()
+        assert rec.wait(30.0)
+        third = rec.recordings[-1]
+        assert third.state == "complete" and third.path == tmp_path / "run-3.zarr" and third.committed_pairs == 10
+        assert third.frames_recorded + third.frames_dropped == 10 * 2 * 2
+    assert pipe.stats().state == "stopped"

@@ -1,0 +1,159 @@
+"""The live pipeline on a hand-filled ring: settings, skipping, discarding, and stopping from every state."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from acquisition.ring import PairRing
+from realtime.pipeline import LivePipeline, LiveSettings, default_windows
+
+SHAPE = (160, 192)  # the tiny rig's rows, columns
+
+
+def _frames(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = rng.normal(100.0, 3.0, size=(2, *SHAPE))
+    for f in range(2):  # a few bright spots, shifted one pixel in frame B
+        for r, c in rng.integers(20, 140, size=(30, 2)):
+            img[f, r:r + 3, c + f:c + f + 3] += 400.0
+    return np.clip(img, 0, 65535).astype(np.uint16)
+
+
+def _ring(pairs: int, slots: int = 8) -> PairRing:
+    ring = PairRing({"cam0": SHAPE}, slots=slots)
+    for p in range(pairs):
+        fr = _frames(p)
+        for f in range(2):
+            assert ring.put("cam0", p, f, fr[f], 2 * p + f, time.time_ns())
+        ring.publish(p)
+    return ring
+
+
+def _wait(cond, timeout_s: float = 20.0) -> bool:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.01)
+    return cond()
+
+
+def test_default_windows() -> None:
+    assert default_windows((29, 68, 82)) == ((32, 32, 16), (16, 16, 8))
+    assert default_windows((29, 68, 82), passes=1) == ((32, 32, 16),)
+    assert default_windows((131, 1000, 1000)) == ((64, 64, 64), (32, 32, 32))
+    assert default_windows((5, 6, 7)) == ((4, 4, 4), (4, 4, 4))
+    with pytest.raises(ValueError, match="1 or 2 passes"):
+        default_windows((29, 68, 82), passes=3)
+
+
+def test_settings_are_validated_and_change_at_run_time(tiny_rig) -> None:
+    with pytest.raises(ValueError, match="diverge"):
+        LiveSettings(relaxation=3.0)
+    with pytest.raises(ValueError, match="slice_axis"):
+        LiveSettings(slice_axis="w")
+    pipe = LivePipeline(tiny_rig, device="cpu")
+    with pytest.raises(ValueError, match="iterations"):
+        pipe.update(iterations=-1)
+    assert pipe.update(iterations=2, slice_axis="y", slice_index=3) == LiveSettings(iterations=2, slice_axis="y",
+                                                                                    slice_index=3)
+    with pytest.raises(ValueError, match="camera 'cam0' is not in the ring"):
+        pipe.attach(PairRing({"other": SHAPE}, slots=2))
+
+
+def test_takes_the_newest_pair_counts_the_skipped_and_publishes(tiny_rig) -> None:
+    ring = _ring(5)
+    results = []
+    pipe = LivePipeline(tiny_rig, ring, settings=LiveSettings(iterations=2, slice_axis="y", slice_index=1000),
+                        device="cpu")
+    pipe.subscribe(results.append)
+    with pipe:
+        assert pipe.wait_processed(1, 60.0)
+        # a newer pair arrives: it is taken next, with nothing skipped in between
+        fr = _frames(5)
+        for f in range(2):
+            ring.put("cam0", 5, f, fr[f], 10 + f, time.time_ns())
+        ring.publish(5)
+        assert pipe.wait_processed(2, 60.0)
+    st = pipe.stats()
+    assert st.state == "stopped" and st.error is None
+    assert [r.pair for r in results] == [4, 5]
+    assert st.processed == 2 and st.skipped == 4 and st.discarded == 0 and st.last_pair == 5
+    assert st.processed + st.skipped + st.discarded == st.last_pair + 1
+    r = results[0]
+    assert np.array_equal(r.raw["cam0"], _frames(4)[0])  # the pair's own frame A, copied
+    nz, ny, nx = pipe.grid.shape
+    assert r.mip["z"].shape == (ny, nx) and r.mip["y"].shape == (nz, nx) and r.mip["x"].shape == (nz, ny)
+    assert r.slice_axis == "y" and r.slice_index == ny - 1 and r.slice_image.shape == (nz, nx)  # clipped
+    vs = r.vectors
+    assert vs.axis == "y" and vs.uv.shape == (len(vs.v_mm), len(vs.h_mm), 2)
+    assert vs.normal_vorticity.shape == vs.uv.shape[:2]
+    assert r.velocity.shape == r.vorticity.shape and r.velocity.shape[-1] == 3
+    assert r.settings.iterations == 2 and r.skipped == 4 and r.sequence == 0 and results[1].sequence == 1
+    assert set(r.timings) == {"copy", "preprocess", "weights", "iterate", "volume", "correlate", "derive", "total"}
+    assert 0.0 <= r.latency_s < 60.0
+    assert r.extent_mm["x"][0] < 0.0 < r.extent_mm["x"][1]
+
+
+class _Overwritten:
+    """A ring whose slot is always reused during the copy."""
+
+    def __init__(self, ring: PairRing) -> None:
+        self.ring = ring
+        self.cameras = ring.cameras
+
+    def latest(self):
+        return self.ring.latest()
+
+    def still_valid(self, view) -> bool:
+        return False
+
+
+def test_a_pair_overwritten_during_the_copy_is_discarded(tiny_rig) -> None:
+    results = []
+    pipe = LivePipeline(tiny_rig, _Overwritten(_ring(3)), device="cpu")
+    pipe.subscribe(results.append)
+    with pipe:
+        assert _wait(lambda: pipe.stats().discarded == 1)
+    st = pipe.stats()
+    assert results == [] and st.processed == 0 and st.skipped == 2 and st.last_pair == 2
+
+
+def test_stop_from_every_state(tiny_rig) -> None:
+    # never started
+    idle = LivePipeline(tiny_rig, device="cpu")
+    assert idle.stats().state == "idle"
+    assert idle.stop() and idle.stats().state == "stopped"
+    assert idle.stop()  # twice is fine
+    # waiting: no source at all
+    waiting = LivePipeline(tiny_rig, device="cpu")
+    waiting.start()
+    assert _wait(lambda: waiting.stats().state == "waiting")
+    assert waiting.stop(10.0) and waiting.stats().state == "stopped"
+    with pytest.raises(RuntimeError, match="already started"):
+        waiting.start()
+    # paused with pairs waiting: nothing is taken
+    paused = LivePipeline(tiny_rig, _ring(2), device="cpu")
+    paused.pause()
+    paused.start()
+    assert _wait(lambda: paused.stats().state == "paused")
+    assert paused.stop(10.0) and paused.stats().processed == 0
+    # processing: a subscriber that blocks holds the thread inside a pair
+    inside, release = threading.Event(), threading.Event()
+    busy = LivePipeline(tiny_rig, _ring(2), device="cpu")
+    busy.subscribe(lambda r: (inside.set(), release.wait(30.0)))
+    busy.start()
+    assert inside.wait(60.0) and busy.stats().state == "processing"
+    stopper = threading.Thread(target=busy.stop)
+    stopper.start()
+    release.set()
+    stopper.join(30.0)
+    assert not stopper.is_alive() and busy.stats().state == "stopped" and busy.stats().processed == 1
+    # building: stop right after start
+    building = LivePipeline(tiny_rig, _ring(1), device="cpu")
+    building.start()
+    assert building.stop(60.0) and building.stats().state == "stopped"
