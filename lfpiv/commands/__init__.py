@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 #: Subcommand modules in the order ``lfpiv --help`` lists them.
-COMMANDS = ("demo", "devices", "acquire", "monitor", "synth", "info", "reconstruct", "correlate",
+COMMANDS = ("demo", "devices", "acquire", "monitor", "calibrate", "synth", "info", "reconstruct", "correlate",
             "evaluate", "export")
 
 

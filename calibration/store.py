@@ -1,0 +1,304 @@
+"""The calibration store: one zarr v3 directory holding everything a calibration measured.
+
+Layout::
+
+    calib.zarr/               attrs: format "lfpiv-calibration", format_version, rig (as
+                              loaded), created, software_version
+      <camera>/white          uint16 (rows, columns): the averaged white image
+      <camera>/mla/centres_px float64 (n, 2): detected micro-image centres (column, row);
+                              attrs: pitch_px, rotation_deg, offset_px, grid, rms_px, ...
+      <camera>/mla/indices    int64 (n, 2): lattice indices of each centre
+      <camera>/mla/residuals_px  float64 (n, 2): measured minus fitted centre
+      <camera>/mla/inliers    bool (n,): the centres the lattice was fitted to
+      <camera>/planes/frames  uint16 (planes, rows, columns): the dot target at each plane
+      <camera>/planes/stage_mm   float64 (planes,): stage readback, NaN while not yet taken
+      <camera>/planes/target_mm  float64 (planes,): where the stage was sent
+      <camera>/model          attrs only: the fitted camera model (when fitted)
+
+Every array carries ``units``, ``axes`` and ``description`` attributes, like the run store
+(:mod:`lfcore.runstore`), so a user with plain zarr can read a calibration without lfpiv. A plane
+is done when its ``stage_mm`` is finite: an interrupted volumetric run resumes from the others.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+from zarr.codecs import BloscCodec
+
+from calibration.mla_grid import MlaGrid
+from lfcore.rig import Rig, RigError
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationStore", "CalibrationStoreError"]
+
+FORMAT = "lfpiv-calibration"
+FORMAT_VERSION = 1
+_CODEC = BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")
+
+
+class CalibrationStoreError(ValueError):
+    """A calibration store that cannot be created or read; one line saying what to do."""
+
+
+def _attrs(units: str, axes: list[str], description: str) -> dict[str, Any]:
+    return {"units": units, "axes": axes, "description": description}
+
+
+class CalibrationStore:
+    """Read and write access to one calibration store.
+
+    Use :meth:`open_or_create` (the calibrate commands add to one store step by step),
+    :meth:`create` or :meth:`open`.
+    """
+
+    def __init__(self, group: zarr.Group, path: Path) -> None:
+        self.group = group
+        self.path = path
+
+    # --- creation and opening -----------------------------------------------------------
+    @classmethod
+    def create(cls, path: str | Path, rig: Rig, *, software_version: str = "", overwrite: bool = False
+               ) -> CalibrationStore:
+        """Create an empty store for ``rig``.
+
+        Raises
+        ------
+        CalibrationStoreError
+            If ``path`` exists and ``overwrite`` is false.
+        """
+        path = Path(path)
+        if path.exists() and not overwrite:
+            raise CalibrationStoreError(f"{path} already exists; choose another path or pass --overwrite")
+        root = zarr.open_group(str(path), mode="w", zarr_format=3)
+        root.attrs.update({
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "rig": rig.to_dict(),
+            "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+            "software_version": software_version,
+        })
+        for cam in rig.camera:
+            root.create_group(cam.name).attrs.update({"sensor_px": list(cam.sensor_px)})
+        return cls(root, path)
+
+    @classmethod
+    def open(cls, path: str | Path, mode: str = "r") -> CalibrationStore:
+        """Open an existing store (``mode`` ``"r"`` or ``"r+"``).
+
+        Raises
+        ------
+        CalibrationStoreError
+            If ``path`` does not exist or is not a calibration store.
+        """
+        path = Path(path)
+        if not path.exists():
+            raise CalibrationStoreError(f"{path} does not exist; give the path of a calibration store "
+                                        "(made by 'lfpiv calibrate mla' or 'lfpiv calibrate volume')")
+        try:
+            root = zarr.open_group(str(path), mode=mode, zarr_format=3)
+        except Exception as exc:  # zarr raises several types for "not a group"
+            raise CalibrationStoreError(f"{path} is not a calibration store (no zarr v3 group there: "
+                                        f"{type(exc).__name__})") from None
+        if root.attrs.get("format") != FORMAT:
+            raise CalibrationStoreError(f"{path} is a zarr group but not an lfpiv calibration store "
+                                        f"(format {root.attrs.get('format')!r})")
+        if root.attrs.get("format_version", 0) > FORMAT_VERSION:
+            raise CalibrationStoreError(f"{path} was written by a newer lfpiv (format_version "
+                                        f"{root.attrs['format_version']}); upgrade lfpiv")
+        return cls(root, path)
+
+    @classmethod
+    def open_or_create(cls, path: str | Path, rig: Rig, *, software_version: str = "") -> CalibrationStore:
+        """Open the store at ``path`` for writing if it exists (it must be for the same cameras),
+        else create it."""
+        path = Path(path)
+        if not path.exists():
+            return cls.create(path, rig, software_version=software_version)
+        store = cls.open(path, mode="r+")
+        theirs = {c["name"]: tuple(c["sensor_px"]) for c in store.group.attrs["rig"]["camera"]}
+        ours = {c.name: tuple(c.sensor_px) for c in rig.camera}
+        if theirs != ours:
+            raise CalibrationStoreError(f"{path} holds a calibration of other cameras ({sorted(theirs)}); "
+                                        "give a new --out path")
+        return store
+
+    # --- metadata -----------------------------------------------------------------------
+    @property
+    def attrs(self) -> dict[str, Any]:
+        return dict(self.group.attrs)
+
+    @property
+    def rig(self) -> Rig:
+        try:
+            return Rig.from_dict(self.group.attrs["rig"], source=f"{self.path} (rig)")
+        except RigError as exc:
+            raise CalibrationStoreError(str(exc)) from None
+
+    @property
+    def cameras(self) -> list[str]:
+        return [c["name"] for c in self.group.attrs["rig"]["camera"]]
+
+    def _camera(self, camera: str) -> zarr.Group:
+        if camera not in self.cameras:
+            raise CalibrationStoreError(f"{self.path} has no camera '{camera}' (it has {self.cameras})")
+        return self.group[camera]
+
+    # --- white image and microlens grid ---------------------------------------------------
+    def write_white(self, camera: str, image: np.ndarray, *, frames_averaged: int = 1) -> None:
+        """Store the (rows, columns) white image of ``camera``, rounded to uint16."""
+        g = self._camera(camera)
+        img = np.clip(np.rint(np.asarray(image, dtype=np.float64)), 0, 65535).astype(np.uint16)
+        a = g.create_array("white", shape=img.shape, chunks=img.shape, dtype=np.uint16, compressors=_CODEC,
+                           overwrite=True)
+        a[...] = img
+        a.attrs.update(_attrs("counts", ["row", "column"], "white (uniformly lit) image, mean of frames"))
+        a.attrs["frames_averaged"] = int(frames_averaged)
+
+    def white(self, camera: str) -> np.ndarray | None:
+        """The white image of ``camera`` (rows, columns) uint16, or None if not taken."""
+        g = self._camera(camera)
+        return g["white"][...] if "white" in g else None
+
+    def write_grid(self, camera: str, grid: MlaGrid, *, mla: dict[str, Any] | None = None) -> None:
+        """Store the detected microlens grid of ``camera`` (replacing any earlier one).
+
+        ``mla`` is :meth:`MlaGrid.to_mla` of the nominal camera, kept as attributes.
+        """
+        g = self._camera(camera)
+        m = g.require_group("mla")
+        n = grid.n_lenslets
+        arrays = (
+            ("centres_px", grid.centres_px, np.float64, "px", ["lenslet", "column_row"],
+             "measured micro-image centres (column, row)"),
+            ("indices", grid.indices, np.int64, "1", ["lenslet", "n1_n2"], "lattice indices along basis_px"),
+            ("residuals_px", grid.residuals_px, np.float64, "px", ["lenslet", "column_row"],
+             "measured minus fitted centre"),
+            ("inliers", grid.inliers, bool, "1", ["lenslet"], "centres the lattice was fitted to"),
+        )
+        for name, data, dtype, units, axes, what in arrays:
+            shape = (n, 2) if data.ndim == 2 else (n,)
+            a = m.create_array(name, shape=shape, chunks=shape, dtype=dtype, overwrite=True)
+            a[...] = np.asarray(data, dtype=dtype)
+            a.attrs.update(_attrs(units, axes, what))
+        m.attrs.update({
+            "grid": grid.grid, "pitch_px": grid.pitch_px, "rotation_deg": grid.rotation_deg,
+            "offset_px": list(grid.offset_px), "rms_px": grid.rms_px, "origin_px": list(grid.origin_px),
+            "basis_px": np.asarray(grid.basis_px).tolist(), "image_shape": list(grid.image_shape),
+            "n_lenslets": n, "n_inliers": int(np.sum(grid.inliers)),
+            "description": "micro-image lattice from the white image; rotation_deg in the sensor-plane frame "
+                           "(sign of Camera.mla_rotation_deg); offset_px: lattice node nearest the sensor centre "
+                           "minus the centre (column, row)",
+            "mla": dict(mla or {}),
+        })
+
+    def grid(self, camera: str) -> MlaGrid | None:
+        """The stored microlens grid of ``camera``, or None."""
+        g = self._camera(camera)
+        if "mla" not in g or "centres_px" not in g["mla"]:
+            return None
+        m = g["mla"]
+        at = m.attrs
+        return MlaGrid(grid=at["grid"], pitch_px=float(at["pitch_px"]), rotation_deg=float(at["rotation_deg"]),
+                       offset_px=tuple(at["offset_px"]), image_shape=tuple(at["image_shape"]),
+                       centres_px=m["centres_px"][...], indices=m["indices"][...],
+                       residuals_px=m["residuals_px"][...], inliers=m["inliers"][...], rms_px=float(at["rms_px"]),
+                       origin_px=tuple(at["origin_px"]), basis_px=np.asarray(at["basis_px"], dtype=np.float64))
+
+    # --- volumetric calibration planes --------------------------------------------------
+    def init_planes(self, targets_mm: np.ndarray, *, step_mm: float) -> None:
+        """Create the plane arrays of every camera for stage targets ``targets_mm`` (planes,).
+
+        If they exist with the same targets nothing changes (a resumed run); other targets are
+        an error, so that planes of two different runs are never mixed.
+        """
+        targets = np.asarray(targets_mm, dtype=np.float64)
+        for name in self.cameras:
+            g = self._camera(name)
+            if "planes" in g:
+                old = g["planes/target_mm"][...]
+                if old.shape != targets.shape or not np.allclose(old, targets, atol=1e-6):
+                    raise CalibrationStoreError(
+                        f"{self.path} holds planes at other stage positions ({len(old)} planes from "
+                        f"{old[0]:g} mm); give the same --planes and --step-mm to resume, or a new --out path")
+                continue
+            cols, rows = g.attrs["sensor_px"]
+            p = g.create_group("planes")
+            p.attrs.update({"step_mm": float(step_mm),
+                            "description": "the dot target at each stage position; a plane is done when its "
+                                           "stage_mm is finite"})
+            n = len(targets)
+            f = p.create_array("frames", shape=(n, rows, cols), chunks=(1, rows, cols), dtype=np.uint16,
+                               fill_value=0, compressors=_CODEC)
+            f.attrs.update(_attrs("counts", ["plane", "row", "column"], "raw light-field image of the dot target"))
+            s = p.create_array("stage_mm", shape=(n,), chunks=(n,), dtype=np.float64, fill_value=np.nan)
+            s.attrs.update(_attrs("mm", ["plane"], "stage position read back after the move; NaN: not taken yet"))
+            t = p.create_array("target_mm", shape=(n,), chunks=(n,), dtype=np.float64)
+            t[...] = targets
+            t.attrs.update(_attrs("mm", ["plane"], "stage position requested"))
+
+    def write_plane(self, camera: str, plane: int, image: np.ndarray, stage_mm: float) -> None:
+        """Store one plane's image; the readback is written last, so a plane is never marked done
+        without its image."""
+        p = self._camera(camera)["planes"]
+        p["frames"][plane] = np.asarray(image, dtype=np.uint16)
+        s = p["stage_mm"]
+        s[plane] = float(stage_mm)
+
+    def plane_targets(self) -> np.ndarray | None:
+        """(planes,) requested stage positions, mm, or None if no volumetric run was started."""
+        g = self._camera(self.cameras[0])
+        return g["planes/target_mm"][...] if "planes" in g else None
+
+    def stage_mm(self, camera: str) -> np.ndarray:
+        """(planes,) stage readback of each plane of ``camera``, NaN where not taken."""
+        return self._camera(camera)["planes/stage_mm"][...]
+
+    def planes_done(self) -> np.ndarray:
+        """(planes,) bool: planes taken by every camera."""
+        done = [np.isfinite(self.stage_mm(c)) for c in self.cameras]
+        return np.logical_and.reduce(done)
+
+    def plane_frames(self, camera: str) -> zarr.Array:
+        """(planes, rows, columns) uint16 images of ``camera``."""
+        return self._camera(camera)["planes/frames"]
+
+    # --- summary --------------------------------------------------------------------------
+    def summary(self) -> list[str]:
+        """What the store holds, one line per item, for ``lfpiv calibrate report``."""
+        at = self.group.attrs
+        lines = [f"{self.path}: lfpiv calibration (format {at['format_version']}), created {at['created']}, "
+                 f"{len(self.cameras)} camera(s)"]
+        for name in self.cameras:
+            g = self._camera(name)
+            white = self.white(name)
+            if white is None:
+                lines.append(f"  {name}: no white image (run 'lfpiv calibrate mla')")
+            else:
+                lines.append(f"  {name}: white image {white.shape[1]} x {white.shape[0]} px, "
+                             f"mean of {g['white'].attrs.get('frames_averaged', 1)} frame(s), "
+                             f"levels {np.percentile(white, 1):.0f}..{np.percentile(white, 99.5):.0f} counts")
+            grid = self.grid(name)
+            if grid is not None:
+                mla = dict(g["mla"].attrs.get("mla", {}))
+                lines.append(f"  {name}: MLA {grid.grid}, pitch {grid.pitch_px:.4f} px, rotation "
+                             f"{grid.rotation_deg:+.4f} deg, offset ({grid.offset_px[0]:+.3f}, "
+                             f"{grid.offset_px[1]:+.3f}) px, RMS {grid.rms_px:.4f} px over "
+                             f"{int(grid.inliers.sum())} of {grid.n_lenslets} lenslets")
+                if mla:
+                    ox, oy = mla["mla_offset_um"]
+                    lines.append(f"  {name}: lenslets (optical axis at the sensor centre): pitch "
+                                 f"{mla['mla_pitch_um']:.3f} um, offset ({ox:+.2f}, {oy:+.2f}) um")
+            if "planes" in g:
+                done = np.isfinite(self.stage_mm(name))
+                targets = g["planes/target_mm"][...]
+                lines.append(f"  {name}: planes {int(done.sum())} of {len(done)} taken, stage "
+                             f"{targets[0]:g}..{targets[-1]:g} mm in steps of {g['planes'].attrs['step_mm']:g} mm")
+            if "model" in g:
+                lines.append(f"  {name}: fitted model: {dict(g['model'].attrs)}")
+            else:
+                lines.append(f"  {name}: no fitted camera model yet")
+        return lines
