@@ -109,3 +109,46 @@ def plot_reconstruction(store: RunStore, evals, out: str | Path) -> Path:
     fig.savefig(out, dpi=100)
     plt.close(fig)
     return out
+
+
+def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
+    """Save a PNG of the in-plane vectors (u, v) on the middle z slice of a pair, over the
+    out-of-plane vorticity w_z; beside it the truth flow on the same grid when the run has one.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
+    from lfcore.flows import flow_from_params
+    from lfcore.vectors import vorticity
+
+    out = Path(out)
+    vec = store.vectors()
+    x, y, z = vec["x_mm"], vec["y_mm"], vec["z_mm"]
+    fields = [("measured", np.stack([vec[c][pair] for c in "uvw"], axis=-1))]
+    truth = store.truth()
+    if truth is not None and truth["attrs"].get("flow", {}).get("name") not in (None, "static-points"):
+        flow = flow_from_params(truth["attrs"]["flow"])
+        zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+        pts = np.stack([xx, yy, zz], axis=-1).reshape(-1, 3)
+        t_mid = pair / float(store.timing["rate_hz"]) + 0.5 * float(store.timing["dt_s"])
+        fields.append(("truth", flow.velocity(pts, t_mid).reshape(*zz.shape, 3)))
+    k = len(z) // 2
+    fig, axes = plt.subplots(1, len(fields), figsize=(6.2 * len(fields), 5.4), squeeze=False)
+    wz_max = max(float(np.abs(vorticity(f, x, y, z)[k, ..., 2]).max()) for _, f in fields) or 1.0
+    for ax, (name, f) in zip(axes[0], fields, strict=True):
+        wz = vorticity(f, x, y, z)[k, ..., 2]
+        im = ax.imshow(wz, origin="lower", extent=(x[0], x[-1], y[0], y[-1]), cmap="RdBu_r", vmin=-wz_max,
+                       vmax=wz_max, aspect="equal", interpolation="bilinear")
+        ax.quiver(x, y, f[k, ..., 0], f[k, ..., 1], color="k", angles="xy")
+        ax.set_title(f"{name}: (u, v) at z = {z[k]:.3g} mm over vorticity w_z")
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        fig.colorbar(im, ax=ax, label="w_z (1/s)", shrink=0.85)
+    fig.suptitle(f"{store.path.name}: pair {pair}, {len(x)} x {len(y)} x {len(z)} vectors")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out

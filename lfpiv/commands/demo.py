@@ -1,58 +1,146 @@
-"""``lfpiv demo``: the instrument on simulated hardware, end to end as far as it is built."""
+"""``lfpiv demo``: the whole instrument on simulated hardware, end to end.
+
+Each step is an ordinary ``lfpiv`` command, printed before it runs, so the demo doubles as a
+walk-through of what a user types in the lab.
+"""
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import os
+import shlex
 import shutil
 import sys
+import time
 from pathlib import Path
 
-from lfpiv.commands import add_device, examples_dir, positive_int, warn_optics
+from lfpiv.commands import add_device, examples_dir, positive_int
 from lfpiv.errors import UsageError
+
+#: Marks a folder written by the demo, so that a later demo may replace it (and nothing else).
+MARKER = ".lfpiv-demo"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    d = sub.add_parser("demo", help="render a synthetic vortex-ring run on simulated hardware and picture it",
-                       description="Render a synthetic vortex-ring run with the example rig and write "
-                       "DIR/run.zarr and DIR/raw_images.png (a previous demo's files in DIR are replaced).")
+    d = sub.add_parser("demo", help="the whole instrument on simulated hardware: calibrate, record, reconstruct, "
+                       "vectors, pictures",
+                       description="Calibrate two simulated light-field cameras (microlens grids and the "
+                       "volumetric calibration planes), record a vortex ring on the simulated lab, reconstruct "
+                       "it with DRT-MART, correlate the volumes into 3D vectors, evaluate against the truth, "
+                       "export the field and draw pictures into DIR; then run the live monitor (a window with a "
+                       "display, otherwise a screenshot). A previous demo's folder is replaced; any other "
+                       "non-empty folder is refused.")
     d.add_argument("--out", default="demo-output", metavar="DIR", help="output folder (default: demo-output)")
-    d.add_argument("--rig", default=None, metavar="RIG", help="rig file (default: examples/one_camera.toml)")
-    d.add_argument("--pairs", type=positive_int, default=2, help="double-frame pairs (default: 2)")
-    d.add_argument("--rays", type=positive_int, default=None, help="rays per particle (default: the rig's)")
+    d.add_argument("--rig", default=None, metavar="RIG", help="rig file (default: examples/demo.toml)")
+    d.add_argument("--pairs", type=positive_int, default=2, help="double-frame pairs to record (default: 2)")
+    d.add_argument("--rays", type=positive_int, default=None, help="rays per particle when rendering "
+                   "(default: the rig's)")
+    d.add_argument("--monitor", choices=("auto", "window", "screenshot", "no"), default="auto",
+                   help="live monitor step: a window when a display is available, else a screenshot "
+                   "(default: auto)")
     add_device(d)
     d.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from lfcore.runstore import RunStore, RunStoreError
-    from lfpiv.plots import plot_raw_images
-    from lfpiv.rigfile import load_rig
-    from lfpiv.synth import synthesize
-
-    rig_path = Path(args.rig) if args.rig else examples_dir() / "one_camera.toml"
-    rig = load_rig(rig_path)
-    warn_optics(rig)
-    out = Path(args.out)
-    run_path = out / "run.zarr"
+def _prepare(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} is a file; give a folder for the demo's output")
-    if run_path.exists():
-        # Replace only what an earlier demo wrote: never a user's recording.
-        try:
-            previous_demo = RunStore.open(run_path).attrs.get("demo") is True
-        except RunStoreError:
-            previous_demo = False
-        if not previous_demo:
-            raise UsageError(f"{run_path} exists and was not written by 'lfpiv demo'; choose another --out")
-        shutil.rmtree(run_path)
-    print(f"lfpiv demo: rendering a vortex ring seen by {len(rig.camera)} light-field camera(s) "
-          f"from {rig_path} into {run_path}", file=sys.stderr)
-    res = synthesize(rig, run_path, flow="vortex-ring", ppm=0.5, pairs=args.pairs, seed=1,
-                     rays_per_particle=args.rays, device=args.device, attrs={"demo": True})
-    png = plot_raw_images(res.store, out / "raw_images.png")
-    print(f"rendered {res.store.n_pairs} pair(s), {res.particles_per_frame} particles per frame, "
-          f"{res.rays:.3g} rays in {res.seconds:.1f} s ({res.rays / res.seconds:.3g} rays/s "
-          f"on {res.store.truth()['attrs']['device']})")
-    print(f"run store: {run_path}   (inspect with: lfpiv info {run_path})")
-    print(f"picture:   {png}")
+    if out.exists() and any(out.iterdir()):
+        if not (out / MARKER).exists():
+            raise UsageError(f"{out} is not empty and was not written by 'lfpiv demo'; choose another --out")
+        shutil.rmtree(out)  # only ever a previous demo's folder
+    out.mkdir(parents=True, exist_ok=True)
+    (out / MARKER).write_text("written by 'lfpiv demo'; the next demo replaces this folder\n")
+
+
+def _step(title: str, argv: list[str]) -> None:
+    from lfpiv.cli import main
+
+    print(f"\nlfpiv demo: {title}\n$ lfpiv {shlex.join(argv)}", file=sys.stderr, flush=True)
+    t = time.perf_counter()
+    code = main(argv)
+    if code != 0:
+        raise SystemExit(code)
+    print(f"({time.perf_counter() - t:.1f} s)", file=sys.stderr, flush=True)
+
+
+def _monitor_mode(choice: str) -> str:
+    if choice == "no":
+        return "no"
+    if importlib.util.find_spec("pyqtgraph") is None:
+        print("lfpiv demo: skipping the live monitor (install it with: pip install 'lfpiv[gui]')", file=sys.stderr)
+        return "no"
+    if choice == "auto":
+        return "window" if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY") else "screenshot"
+    return choice
+
+
+def _windows(run: str) -> str:
+    """Two passes whose first windows are the largest power of two up to 32 voxels that fits
+    twice into the volume along each axis."""
+    from lfcore.runstore import RunStore
+
+    first = []
+    for n in RunStore.open(run).volume_grid().shape[::-1]:  # x, y, z
+        w = 32
+        while w > 4 and 2 * w > n:
+            w //= 2
+        first.append(w)
+    return f"{'x'.join(map(str, first))},{'x'.join(str(w // 2) for w in first)}"
+
+
+def run(args: argparse.Namespace) -> int:
+    from lfcore.runstore import RunStore
+    from lfpiv.plots import plot_raw_images, plot_vectors
+    from lfpiv.rigfile import load_rig
+
+    rig_path = Path(args.rig) if args.rig else examples_dir() / "demo.toml"
+    rig = load_rig(rig_path)
+    if rig.hardware != "sim":
+        raise UsageError(f"{rig_path} has hardware = \"{rig.hardware}\"; the demo runs on the simulated lab only")
+    out = Path(args.out)
+    _prepare(out)
+    rig_s, calib, run_ = str(rig_path), str(out / "calib.zarr"), str(out / "run.zarr")
+    dev = ["--device", args.device] if args.device else []
+    rays = ["--sim-rays", str(args.rays)] if args.rays else []
+    start = time.perf_counter()
+
+    _step("calibration 1/2: the microlens grid of each camera from a white image",
+          ["calibrate", "mla", "--rig", rig_s, "--out", calib])
+    _step("calibration 2/2: the dot target through 5 stage planes, seen by both cameras (the laser stays off)",
+          ["calibrate", "volume", "--rig", rig_s, "--planes", "5", "--step-mm", "0.2", "--out", calib])
+    _step("calibration report", ["calibrate", "report", calib, "--plot", str(out / "calibration.png")])
+    _step(f"recording {args.pairs} double-frame pair(s) of a vortex ring: the pulse generator fires the laser and "
+          "triggers both cameras", ["acquire", "--rig", rig_s, "--pairs", str(args.pairs), "--out", run_,
+                                    "--sim-pool", str(min(args.pairs, 4)), "--quiet", *rays])
+    _step("reconstruction: DRT-MART, both cameras jointly", ["reconstruct", run_, *dev])
+    _step("3D multi-grid cross-correlation", ["correlate", run_, "--windows", _windows(run_), "--overlap", "0.5",
+                                             "--quiet", *dev])
+    _step("accuracy against the simulated truth", ["evaluate", run_, "--plot", str(out / "quality.png")])
+    _step("export of the velocity field", ["export", run_, "--format", "netcdf", "--out", str(out / "field")])
+    store = RunStore.open(run_)
+    pictures = [plot_raw_images(store, out / "raw_images.png"), plot_vectors(store, out / "vectors.png"),
+                out / "quality.png", out / "calibration.png"]
+
+    mode = _monitor_mode(args.monitor)
+    if mode != "no":
+        live = ["monitor", "--rig", rig_s, "--sim-pool", "2", "--quiet", *dev, *rays]
+        if mode == "screenshot":
+            os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+            live += ["--pairs", "30", "--out", str(out / "live.zarr"), "--screenshot", str(out / "monitor.png"),
+                     "--after", "1"]
+            pictures.append(out / "monitor.png")
+            title = "the live monitor, offscreen (no display): a screenshot after the first processed pair"
+        else:
+            live += ["--out", str(out / "live.zarr")]
+            title = "the live monitor (close its window to finish)"
+        _step(title, live)
+
+    print(f"\nlfpiv demo: done in {time.perf_counter() - start:.0f} s. In {out}/:")
+    print(f"  calib.zarr        calibration store        (lfpiv calibrate report {calib})")
+    print(f"  run.zarr          the recorded run, with volumes/ and vectors/   (lfpiv info {run_})")
+    print("  field/            the velocity field as netCDF")
+    for p in pictures:
+        print(f"  {p.name:<17} picture")
     return 0

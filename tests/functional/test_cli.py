@@ -78,15 +78,24 @@ def test_synth_from_points_csv(capsys, tmp_path):
     assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.9  # the same points, different noise
 
 
-def test_demo_writes_a_run_and_a_picture(capsys, tmp_path):
+def test_demo_runs_the_whole_instrument_on_the_simulated_lab(capsys, tmp_path):
     out = tmp_path / "demo"
-    for _ in range(2):  # a second demo replaces the first one's output
-        rc, stdout, err = _run(capsys, "demo", "--rig", TINY, "--out", str(out), "--pairs", "1")
-        assert rc == 0, err
-    png = out / "raw_images.png"
-    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
-    assert RunStore.open(out / "run.zarr").state == "complete"
-    assert "picture:" in stdout and "rays/s" in stdout
+    out.mkdir()
+    (out / ".lfpiv-demo").write_text("")  # a previous demo's folder is replaced
+    (out / "old.png").write_bytes(b"x")
+    rc, stdout, err = _run(capsys, "demo", "--rig", TINY, "--out", str(out), "--pairs", "1", "--rays", "500",
+                           "--monitor", "no")
+    assert rc == 0, err
+    assert not (out / "old.png").exists()
+    for name in ("raw_images.png", "vectors.png", "quality.png", "calibration.png"):
+        png = out / name
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000, name
+    run = RunStore.open(out / "run.zarr")
+    assert run.state == "complete" and run.has_volumes and run.has_vectors
+    assert run.truth() is not None  # recorded on the simulated lab, which knows what it showed
+    assert (out / "field" / "vectors.nc").stat().st_size > 1000
+    assert (out / "calib.zarr").is_dir()
+    assert "$ lfpiv acquire" in err and "Q" in stdout and "done in" in stdout
 
 
 def test_demo_never_replaces_a_users_run(capsys, tmp_path):
@@ -94,7 +103,7 @@ def test_demo_never_replaces_a_users_run(capsys, tmp_path):
     _synth(capsys, out / "run.zarr", "--pairs", "1")
     before = RunStore.open(out / "run.zarr").frames("cam0")[...]
     rc, _, err = _run(capsys, "demo", "--rig", TINY, "--out", str(out), "--pairs", "1")
-    assert rc == 2 and "was not written by 'lfpiv demo'; choose another --out" in err
+    assert rc == 2 and "is not empty and was not written by 'lfpiv demo'; choose another --out" in err
     assert np.array_equal(RunStore.open(out / "run.zarr").frames("cam0")[...], before)
 
 
