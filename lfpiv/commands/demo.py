@@ -47,11 +47,23 @@ def _prepare(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} is a file; give a folder for the demo's output")
     if out.exists() and any(out.iterdir()):
-        if not (out / MARKER).exists():
+        if not (out / MARKER).exists() and not _legacy_demo(out):
             raise UsageError(f"{out} is not empty and was not written by 'lfpiv demo'; choose another --out")
         shutil.rmtree(out)  # only ever a previous demo's folder
     out.mkdir(parents=True, exist_ok=True)
     (out / MARKER).write_text("written by 'lfpiv demo'; the next demo replaces this folder\n")
+
+
+def _legacy_demo(out: Path) -> bool:
+    # lfpiv 0.1's demo left only run.zarr (with attrs demo = true) and raw_images.png.
+    from lfcore.runstore import RunStore, RunStoreError
+
+    if {p.name for p in out.iterdir()} - {"run.zarr", "raw_images.png"}:
+        return False
+    try:
+        return RunStore.open(out / "run.zarr").attrs.get("demo") is True
+    except RunStoreError:
+        return False
 
 
 def _step(title: str, argv: list[str]) -> None:
