@@ -13,7 +13,10 @@ Layout::
       <camera>/planes/frames  uint16 (planes, rows, columns): the dot target at each plane
       <camera>/planes/stage_mm   float64 (planes,): stage readback, NaN while not yet taken
       <camera>/planes/target_mm  float64 (planes,): where the stage was sent
-      <camera>/model          attrs only: the fitted camera model (when fitted)
+      <camera>/model          attrs only: the fitted camera model (when fitted): camera (a
+                              rig-file [[camera]] table), rms_px, plane_rms_px, plane_dots, ...
+
+Root attrs ``target`` hold the dot board (:class:`lfcore.target.DotBoard`) of the planes.
 
 Every array carries ``units``, ``axes`` and ``description`` attributes, like the run store
 (:mod:`lfcore.runstore`), so a user with plain zarr can read a calibration without lfpiv. A plane
@@ -31,7 +34,8 @@ import zarr
 from zarr.codecs import BloscCodec
 
 from calibration.mla_grid import MlaGrid
-from lfcore.rig import Rig, RigError
+from lfcore.rig import Camera, Rig, RigError
+from lfcore.target import DotBoard
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationStore", "CalibrationStoreError"]
 
@@ -266,6 +270,45 @@ class CalibrationStore:
         """(planes, rows, columns) uint16 images of ``camera``."""
         return self._camera(camera)["planes/frames"]
 
+    # --- target and fitted models ---------------------------------------------------------
+    def write_target(self, board: DotBoard) -> None:
+        """Store the dot board (spacing, tilt, marker, where the stage puts it) as root attrs."""
+        self.group.attrs["target"] = board.to_dict()
+
+    def target(self) -> DotBoard | None:
+        """The stored dot board, or None."""
+        t = self.group.attrs.get("target")
+        return DotBoard.from_dict(t) if t else None
+
+    def write_model(self, camera: str, model: dict[str, Any], stats: dict[str, Any]) -> None:
+        """Store ``camera``'s fitted model (a rig-file camera table) and its fit statistics."""
+        g = self._camera(camera).require_group("model")
+        g.attrs.update({"camera": model, **stats,
+                        "description": "fitted camera model (rig-file [[camera]] table) and its reprojection "
+                                       "RMS (px) over all planes and per plane (NaN: no dots)"})
+
+    def model(self, camera: str) -> dict[str, Any] | None:
+        """The fitted model attrs of ``camera`` (``camera``: the rig-file table, rms_px, ...), or None."""
+        g = self._camera(camera)
+        return dict(g["model"].attrs) if "model" in g else None
+
+    def fitted_rig(self) -> Rig:
+        """The store's rig with every fitted camera replaced by its model.
+
+        Raises
+        ------
+        CalibrationStoreError
+            No camera has a fitted model.
+        """
+        rig = self.rig
+        cams = []
+        for cam in rig.camera:
+            m = self.model(cam.name)
+            cams.append(Camera.model_validate(m["camera"]) if m else cam)
+        if all(self.model(c.name) is None for c in rig.camera):
+            raise CalibrationStoreError(f"{self.path} holds no fitted camera model; run 'lfpiv calibrate fit'")
+        return rig.model_copy(update={"camera": tuple(cams)})
+
     # --- summary --------------------------------------------------------------------------
     def summary(self) -> list[str]:
         """What the store holds, one line per item, for ``lfpiv calibrate report``."""
@@ -298,7 +341,16 @@ class CalibrationStore:
                 lines.append(f"  {name}: planes {int(done.sum())} of {len(done)} taken, stage "
                              f"{targets[0]:g}..{targets[-1]:g} mm in steps of {g['planes'].attrs['step_mm']:g} mm")
             if "model" in g:
-                lines.append(f"  {name}: fitted model: {dict(g['model'].attrs)}")
+                m = dict(g["model"].attrs)
+                c = m["camera"]
+                lines.append(f"  {name}: fitted model: magnification {c['magnification']:.5f}, rotation "
+                             f"{[round(v, 4) for v in c['rotation_deg']]} deg, focus "
+                             f"{[round(v, 4) for v in c['focus_mm']]} mm, MLA offset "
+                             f"({c['mla_offset_um'][0]:+.3f}, {c['mla_offset_um'][1]:+.3f}) um, rotation "
+                             f"{c['mla_rotation_deg']:+.4f} deg")
+                lines.append(f"  {name}: reprojection RMS {m['rms_px']:.4f} px over {sum(m['plane_dots'])} dots "
+                             f"on {sum(1 for n in m['plane_dots'] if n)} planes (white-image lattice "
+                             f"{m['lattice_rms_px']:.4f} px)")
             else:
                 lines.append(f"  {name}: no fitted camera model yet")
         return lines

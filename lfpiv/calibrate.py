@@ -12,6 +12,8 @@ to every camera while the white images are taken, and the dot target
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,16 +22,21 @@ from typing import Any
 import numpy as np
 
 from acquisition.timing import TimingError
+from calibration.dots import DotError, detect_dots, match_dots
+from calibration.fit import CameraFit, FitError, PlaneDots, fit_camera
 from calibration.mla_grid import GridError, MlaGrid, check_white, detect_grid
 from calibration.runner import PlaneRun, camera_only_plan, capture_frames, plane_targets, run_planes
 from calibration.store import CalibrationStore, CalibrationStoreError
-from lfcore.rig import Rig
+from lfcore.projection import project
+from lfcore.rig import Camera, Rig
+from lfcore.target import DotBoard
 from lfcore.white import WhiteImageConfig
 from lfpiv import __version__
 from lfpiv.acquire import open_rig
 from lfpiv.errors import UsageError
 
-__all__ = ["MlaResult", "calibrate_mla", "calibrate_volume", "plot_grids"]
+__all__ = ["MlaResult", "calibrate_fit", "calibrate_mla", "calibrate_volume", "default_board", "plot_grids",
+           "plot_rms"]
 
 
 @dataclass(frozen=True)
@@ -80,7 +87,7 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
         if rg.lab is not None:
             from sim.scenes import white_scene  # the application wires the simulated lab
 
-            rg.lab.world.show(*white_scene(rig, white))
+            rg.lab.world.show(*white_scene(rg.lab.rig, white))  # the lab renders its own (true) rig
         for cam in rg.cameras:
             want = tuple(rig.camera_named(cam.name).sensor_px)
             if tuple(cam.sensor_px) != want:
@@ -181,9 +188,24 @@ def plot_grids(store: CalibrationStore, out: str | Path, lenslets: int = 8) -> P
     return out
 
 
+def default_board(rig: Rig, spacing_mm: float | None = None, tilt_deg: float | None = None) -> DotBoard:
+    """The board the volumetric run assumes unless told: 3 mm spacing (a quarter of the volume's
+    smaller transverse size for small rigs), centred on the volume, tilted about world y so its
+    normal bisects the cameras' optical axes (0 for one camera, 45 degrees for two at 90), with
+    a marker dot (1.6 times larger) at its origin for two or more cameras; one camera names its
+    dots from the nominal model alone (no marker)."""
+    vol = rig.volume
+    if spacing_mm is None:
+        spacing_mm = min(3.0, 0.25 * min(vol.size_mm[0], vol.size_mm[1]))
+    board = DotBoard.for_cameras(np.array([c.optical_axis for c in rig.camera]), spacing_mm=spacing_mm,
+                                 centre_mm=vol.centre_mm, marker_scale=1.6 if len(rig.camera) > 1 else 1.0)
+    return board if tilt_deg is None else dataclasses.replace(board, tilt_deg=tilt_deg)
+
+
 def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: float = 0.5,
                      centre_mm: float | None = None, settle_s: float = 0.0, exposure_us: float | None = None,
-                     sim_options: dict[str, Any] | None = None,
+                     board: DotBoard | None = None, sim_options: dict[str, Any] | None = None,
+                     sim_target: dict[str, Any] | None = None,
                      progress: Callable[[int, int, int], None] | None = None) -> PlaneRun:
     """Move the target through the planes and store every camera's image at each (resumable).
 
@@ -201,9 +223,16 @@ def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: fl
         Wait after each move before triggering.
     exposure_us
         Exposure (default: the rig's ``timing.camera_exposure_us``).
+    board
+        The dot board (:func:`default_board` if None); its ``stage_centre_mm`` is set to the
+        middle plane's stage position and it is stored with the planes (it defines the world
+        frame of the fit).
     sim_options
         For ``hardware = "sim"``: keyword arguments of :class:`sim.lab.SimLab`, or ``{"lab": lab}``.
-        The simulated target sits at world z = volume centre + (stage position - ``centre_mm``).
+        The simulated target's origin sits at world z = board centre + (stage position - ``centre_mm``).
+    sim_target
+        For ``hardware = "sim"``: keyword arguments of :func:`sim.scenes.dot_target_scene`
+        (points_per_dot, rays_per_point, dot_counts, seed).
     progress
         Called as ``progress(plane, done, total)`` after each stored plane.
 
@@ -237,13 +266,18 @@ def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: fl
                 raise UsageError(f"planes {targets[0]:g}..{targets[-1]:g} mm leave the stage's travel {lo:g}..{hi:g} "
                                  "mm; give fewer --planes, a smaller --step-mm or another --centre-mm")
             lab = rg.lab
+            brd = dataclasses.replace(board or default_board(rig), stage_centre_mm=float(centre))
+            old = store.target()
+            if old is not None and store.plane_targets() is not None and old != brd:
+                raise UsageError(f"{out} holds planes of another target ({old}); give a new --out path")
+            store.write_target(brd)
 
             def on_moved(plane: int, readback: float) -> None:
                 if lab is not None:
                     from sim.scenes import dot_target_scene  # the application wires the simulated lab
 
-                    z = rig.volume.centre_mm[2] + lab.stage.position_mm - centre  # the TRUE carriage position
-                    lab.world.show(*dot_target_scene(rig, z))
+                    z = brd.centre_mm[2] + lab.stage.position_mm - centre  # the TRUE carriage position
+                    lab.world.show(*dot_target_scene(lab.rig, z, board=brd, **(sim_target or {})))
 
             def grab() -> dict[str, np.ndarray]:
                 return {k: v[0] for k, v in capture_frames(rig, rg.cameras, rg.pulse_generator, 1, exposure).items()}
@@ -257,3 +291,119 @@ def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: fl
             stage.close()
             if rg.lab is not None:
                 rg.lab.world.show(None)
+
+
+def _named_dots(store: CalibrationStore, nominal: Camera, board: DotBoard, min_dots: int,
+                model: Camera | None = None) -> list[PlaneDots]:
+    """Find and name the dots of every plane of one camera (``model`` predicts where they are)."""
+    grid = store.grid(nominal.name)
+    if grid is None:
+        raise UsageError(f"camera '{nominal.name}': no microlens grid in {store.path}; run 'lfpiv calibrate mla' "
+                         "first")
+    cam = model or nominal
+    stage = store.stage_mm(nominal.name)
+    frames = store.plane_frames(nominal.name)
+    reach = 0.75 * math.hypot(*cam.field_of_view_mm) / math.cos(math.radians(board.tilt_deg)) + board.spacing_mm
+    ij = board.indices(board.half_extent(reach + abs(float(np.nanmax(np.abs(stage - board.stage_centre_mm))))))
+    out = []
+    for p in np.flatnonzero(np.isfinite(stage)):
+        try:
+            dots = detect_dots(frames[int(p)], grid)
+        except DotError as exc:
+            raise UsageError(f"camera '{nominal.name}', plane {p + 1} of {len(stage)}: {exc}") from None
+        found, which = match_dots(dots, project(cam, board.dot_centres(ij, stage[p])), ij)
+        if len(found) < min_dots:
+            raise UsageError(f"camera '{nominal.name}', plane {p + 1} of {len(stage)} (stage {stage[p]:.4f} mm): "
+                             f"{len(found)} dot(s) found and named (of {len(dots)} seen), need at least "
+                             f"{min_dots}; check the target's lighting, focus and the board settings")
+        out.append(PlaneDots(int(p), float(stage[p]), which, dots.views_px[found]))
+    return out
+
+
+def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: int = 2) -> list[CameraFit]:
+    """Fit every camera's model to the stored planes and white-image grid; store the models.
+
+    Dots are found and named with the nominal camera (the rig in the store), the model fitted,
+    then the dots named again with the fitted model and the model refitted.
+
+    Parameters
+    ----------
+    out
+        Calibration store with microlens grids (``calibrate mla``) and planes (``calibrate volume``).
+    fit_distortion
+        Also fit a radial distortion (stored as ``radial_k1``; not used by the reconstruction).
+    min_dots
+        Fewest named dots accepted in a plane.
+
+    Returns
+    -------
+    list of CameraFit
+        One per camera, in rig order.
+
+    Raises
+    ------
+    UsageError
+        No planes or grid, a plane with too few dots (naming camera and plane), a failed fit.
+    """
+    try:
+        store = CalibrationStore.open(out, mode="r+")
+    except CalibrationStoreError as exc:
+        raise UsageError(str(exc)) from None
+    board = store.target()
+    if board is None or store.plane_targets() is None:
+        raise UsageError(f"{out} holds no target planes; run 'lfpiv calibrate volume' first")
+    rig = store.rig
+    fits = []
+    for nominal in rig.camera:
+        try:
+            planes = _named_dots(store, nominal, board, min_dots)
+            grid = store.grid(nominal.name)
+            fit = fit_camera(nominal, board, planes, grid, n_planes=len(store.stage_mm(nominal.name)),
+                             fit_distortion=fit_distortion)
+            planes = _named_dots(store, nominal, board, min_dots, model=fit.camera)
+            fit = fit_camera(nominal, board, planes, grid, n_planes=len(store.stage_mm(nominal.name)),
+                             fit_distortion=fit_distortion)
+        except FitError as exc:
+            raise UsageError(str(exc)) from None
+        fits.append(fit)
+    for fit in fits:
+        store.write_model(fit.camera.name, fit.model_dict(), {
+            "rms_px": fit.rms_px, "plane_rms_px": [None if not np.isfinite(v) else float(v) for v in fit.plane_rms_px],
+            "plane_dots": [int(n) for n in fit.plane_dots], "lattice_rms_px": fit.lattice_rms_px,
+            "radial_k1": fit.radial_k1, "std": fit.std, "dropped": fit.dropped,
+            "views": "chief ray and four half-aperture views per dot"})
+    return fits
+
+
+def plot_rms(store: CalibrationStore, out: str | Path) -> Path:
+    """Save a PNG of each fitted camera's reprojection RMS per plane against the stage position.
+
+    Raises
+    ------
+    UsageError
+        No camera has a fitted model.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [n for n in store.cameras if store.model(n) is not None]
+    if not names:
+        raise UsageError(f"{store.path} holds no fitted camera model; run 'lfpiv calibrate fit' first")
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name in names:
+        m = store.model(name)
+        rms = np.array([np.nan if v is None else v for v in m["plane_rms_px"]], dtype=float)
+        ax.plot(store.stage_mm(name), rms, "o-", label=f"{name} (all planes {m['rms_px']:.3f} px)")
+    ax.set_xlabel("stage position, mm")
+    ax.set_ylabel("RMS reprojection error, px")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    ax.set_title("dot reprojection error per plane")
+    fig.tight_layout()
+    out = Path(out)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out

@@ -9,12 +9,14 @@ once and serve the cached image on every trigger.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 
 import numpy as np
 
 from lfcore.render import derive_seed
 from lfcore.rig import Rig
+from lfcore.target import DotBoard
 from lfcore.white import WhiteImageConfig, white_image
 
 __all__ = ["dot_target_scene", "white_scene"]
@@ -47,39 +49,55 @@ def white_scene(rig: Rig, config: WhiteImageConfig | None = None) -> tuple[Calla
     return scene, ("white", config)
 
 
-def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, points_per_dot: int = 300,
-                     rays_per_point: int = 32, dot_counts: float = 1.5e6, seed: int = 0,
+def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, board: DotBoard | None = None,
+                     points_per_dot: int = 300, rays_per_point: int = 32, dot_counts: float = 1.5e6, seed: int = 0,
                      device: str | None = None) -> tuple[Callable[[int], np.ndarray], object]:
-    """The calibration target (white dots on a matt black board) in the world plane z = ``z_mm``.
+    """The calibration target (white dots on a matt black board) with its origin dot at world z = ``z_mm``.
 
-    The dots lie on a square grid ``spacing_mm`` apart (default 3 mm, the chapter's board, or a
-    quarter of the volume's smaller transverse size for small rigs), centred on the volume
-    centre, each a disc of 0.15 spacing radius rendered as ``points_per_dot`` points through the
-    light-field renderer (few rays each).
+    The dots lie on a square grid (:class:`lfcore.target.DotBoard`): ``board`` gives spacing,
+    dot size, the larger marker dot at the origin and the tilt about world y (a tilted board is
+    what two cameras 90 degrees apart both see); its origin is put at (``board.centre_mm`` x, y,
+    ``z_mm``). Default: an untilted board ``spacing_mm`` apart (default 3 mm, the chapter's
+    board, or a quarter of the volume's smaller transverse size for small rigs) centred on the
+    volume centre. Each dot is a disc of ``points_per_dot`` points (scaled with its area) through
+    the light-field renderer, few rays each. The points come in pairs mirrored about the dot
+    centre, so every dot's light is centred exactly on it (a board printed without error).
 
     Returns
     -------
     scene, key
-        As :func:`white_scene`; the key changes with ``z_mm``.
+        As :func:`white_scene`; the key changes with ``z_mm`` and the board.
     """
     from lfcore.render import LightFieldRenderer
 
     vol = rig.volume
-    if spacing_mm is None:
-        spacing_mm = min(3.0, 0.25 * min(vol.size_mm[0], vol.size_mm[1]))
-    reach = 0.6 * max(vol.size_mm[0], vol.size_mm[1])
-    n = int(reach / spacing_mm)
-    g = np.arange(-n, n + 1) * spacing_mm
-    cx, cy = np.meshgrid(g + vol.centre_mm[0], g + vol.centre_mm[1], indexing="xy")
+    if board is None:
+        if spacing_mm is None:
+            spacing_mm = min(3.0, 0.25 * min(vol.size_mm[0], vol.size_mm[1]))
+        board = DotBoard(spacing_mm=spacing_mm, centre_mm=vol.centre_mm)
+    # Cover the volume's widest extent, stretched by the tilt (a tilted board is foreshortened).
+    reach = 0.6 * max(vol.size_mm) / math.cos(math.radians(board.tilt_deg)) + board.spacing_mm
+    ij = board.indices(board.half_extent(reach))
+    here = dataclasses.replace(board, centre_mm=(board.centre_mm[0], board.centre_mm[1], float(z_mm)),
+                               stage_centre_mm=0.0)
+    centres = here.dot_centres(ij, 0.0)
+    e1, e2, _ = board.axes
     rng = np.random.default_rng(derive_seed(seed, 0xD075))
-    r = 0.15 * spacing_mm * np.sqrt(rng.random((cx.size, points_per_dot)))
-    a = 2 * np.pi * rng.random((cx.size, points_per_dot))
-    pts = np.stack([cx.reshape(-1, 1) + r * np.cos(a), cy.reshape(-1, 1) + r * np.sin(a),
-                    np.full(r.shape, float(z_mm))], axis=-1).reshape(-1, 3)
+    marker = np.all(ij == 0, axis=1)
+    pts = []
+    per_point = dot_counts / points_per_dot  # equal surface brightness: the marker gets more points
+    for c, big in zip(centres, marker, strict=True):
+        scale = board.marker_scale if big else 1.0
+        half = max(1, int(round(0.5 * points_per_dot * scale**2)))
+        r = board.radius_mm * scale * np.sqrt(rng.random(half))
+        a = 2 * np.pi * rng.random(half)
+        d = (r * np.cos(a))[:, None] * e1 + (r * np.sin(a))[:, None] * e2
+        pts.append(np.concatenate([c + d, c - d]))
+    pts = np.concatenate(pts)
     render = rig.render.model_copy(update={"rays_per_particle": int(rays_per_point)})
 
     def scene(ci: int) -> np.ndarray:
         rend = LightFieldRenderer(rig.camera[ci], render, rig.laser.wavelength_nm, device)
-        return rend.frame(pts, dot_counts / points_per_dot, seed=derive_seed(seed, 0xD075, ci))
+        return rend.frame(pts, per_point, seed=derive_seed(seed, 0xD075, ci))
 
-    return scene, ("dots", round(float(z_mm), 6), spacing_mm)
+    return scene, ("dots", round(float(z_mm), 6), board, points_per_dot, rays_per_point, dot_counts, seed)

@@ -11,7 +11,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser("calibrate", help="calibrate the rig: microlens grids, target planes, report",
                        description="Calibrate the light-field cameras of a rig into a calibration store "
                        "(a .zarr directory). 'mla' takes white images and detects every microlens grid; "
-                       "'volume' moves the dot target through the planes; 'report' says what a store holds. "
+                       "'volume' moves the dot target through the planes; 'fit' fits every camera's model to "
+                       "them; 'report' says what a store holds and how well the models reproject. "
                        "The laser is never armed: only the camera trigger output is programmed.")
     steps = s.add_subparsers(dest="step", required=True, metavar="STEP", parser_class=type(s))
 
@@ -48,8 +49,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     v.add_argument("--settle-s", type=float, default=0.0, metavar="S", help="wait after each move (default: 0)")
     v.add_argument("--exposure-us", type=positive_float, default=None, metavar="US",
                    help="exposure per frame (default: the rig's timing.camera_exposure_us)")
+    v.add_argument("--spacing-mm", type=positive_float, default=None, metavar="MM",
+                   help="dot spacing of the board (default: 3, or a quarter of a small volume's width)")
+    v.add_argument("--tilt-deg", type=float, default=None, metavar="DEG",
+                   help="board tilt about world y (default: its normal bisects the cameras' optical axes)")
+    v.add_argument("--fit", action="store_true", help="when every plane is taken, run 'calibrate fit' on the store")
     v.add_argument("--quiet", action="store_true", help="no progress bar")
     v.set_defaults(func=run_volume)
+
+    f = steps.add_parser("fit", help="fit every camera's model to the target planes (reprojection least squares)",
+                         description="Find the dots of every plane in each camera's light-field images (lenslet "
+                         "sums, centroids in the chief-ray and four half-aperture views), name them on the board "
+                         "(the larger marker dot is (0, 0)), and fit each camera's pose, magnification, MLA offset "
+                         "and rotation by least squares on the reprojection error, with the board positions from "
+                         "the stage readback as the world frame. Stores the models and prints the RMS per camera.")
+    f.add_argument("store", metavar="CALIB", help="calibration store with grids and planes")
+    f.add_argument("--distortion", action="store_true", help="also fit a radial distortion k1 (reported only)")
+    f.add_argument("--min-dots", type=positive_int, default=2, help="fewest dots accepted per plane (default: 2)")
+    f.set_defaults(func=run_fit)
 
     r = steps.add_parser("report", help="what a calibration store holds, how good it is",
                          description="Print what a calibration store holds (white images, microlens grids with "
@@ -57,8 +74,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("store", metavar="CALIB", help="calibration store (.zarr directory)")
     r.add_argument("--plot", metavar="PNG", default=None,
                    help="write a PNG of the detected centres over the white image and their residuals")
+    r.add_argument("--rms-plot", metavar="PNG", default=None,
+                   help="write a PNG of the reprojection RMS per plane of every fitted camera")
     r.set_defaults(func=run_report)
-    s.set_defaults(func=lambda args: s.error("give a step: mla, volume or report"))
+    s.set_defaults(func=lambda args: s.error("give a step: mla, volume, fit or report"))
 
 
 def run_mla(args: argparse.Namespace) -> int:
@@ -101,9 +120,16 @@ def run_volume(args: argparse.Namespace) -> int:
             print(f"\rplanes [{'#' * filled}{'.' * (30 - filled)}] {done}/{total}", end="", file=sys.stderr,
                   flush=True)
 
+    from lfpiv.calibrate import default_board
+    from lfpiv.errors import UsageError
+
+    try:
+        board = default_board(rig, args.spacing_mm, args.tilt_deg)
+    except ValueError as exc:
+        raise UsageError(f"--spacing-mm/--tilt-deg: {exc}") from None
     try:
         res = calibrate_volume(rig, args.out, planes=args.planes, step_mm=args.step_mm, centre_mm=args.centre_mm,
-                               settle_s=args.settle_s, exposure_us=args.exposure_us, progress=bar)
+                               settle_s=args.settle_s, exposure_us=args.exposure_us, board=board, progress=bar)
     finally:
         if not args.quiet:
             print(file=sys.stderr)
@@ -111,12 +137,30 @@ def run_volume(args: argparse.Namespace) -> int:
     hi = max(res.readback_mm, default=float("nan"))
     print(f"took {len(res.taken)} plane(s) ({len(res.skipped)} already done) of {res.planes}"
           + (f", stage {lo:.4f}..{hi:.4f} mm" if res.taken else "") + f"; wrote {args.out}")
+    if args.fit:
+        args.store, args.distortion, args.min_dots = args.out, False, 2
+        return run_fit(args)
+    return 0
+
+
+def run_fit(args: argparse.Namespace) -> int:
+    from lfpiv.calibrate import calibrate_fit
+
+    for fit in calibrate_fit(args.store, fit_distortion=args.distortion, min_dots=args.min_dots):
+        c = fit.camera
+        ox, oy = c.mla_offset_um
+        print(f"{c.name}: RMS {fit.rms_px:.4f} px over {int(fit.plane_dots.sum())} dots on "
+              f"{int((fit.plane_dots > 0).sum())} planes; magnification {c.magnification:.5f}, rotation "
+              f"[{', '.join(f'{v:.4f}' for v in c.rotation_deg)}] deg, focus "
+              f"[{', '.join(f'{v:.4f}' for v in c.focus_mm)}] mm, MLA offset ({ox:+.3f}, {oy:+.3f}) um, rotation "
+              f"{c.mla_rotation_deg:+.4f} deg" + (f", k1 {fit.radial_k1:+.2e}" if args.distortion else ""))
+    print(f"wrote the models to {args.store}")
     return 0
 
 
 def run_report(args: argparse.Namespace) -> int:
     from calibration.store import CalibrationStore, CalibrationStoreError
-    from lfpiv.calibrate import plot_grids
+    from lfpiv.calibrate import plot_grids, plot_rms
     from lfpiv.errors import UsageError
 
     try:
@@ -125,6 +169,16 @@ def run_report(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     for line in store.summary():
         print(line)
+    for name in store.cameras:
+        m = store.model(name)
+        if m is None:
+            continue
+        stage = store.stage_mm(name)
+        print(f"  {name}: plane  stage_mm  dots  rms_px")
+        for i, (s_mm, n, rms) in enumerate(zip(stage, m["plane_dots"], m["plane_rms_px"], strict=True)):
+            print(f"  {name}: {i + 1:5d}  {s_mm:8.4f}  {n:4d}  " + ("   -" if rms is None else f"{rms:.4f}"))
     if args.plot:
         print(f"wrote {plot_grids(store, args.plot)}")
+    if args.rms_plot:
+        print(f"wrote {plot_rms(store, args.rms_plot)}")
     return 0

@@ -118,10 +118,12 @@ def run(args: argparse.Namespace) -> int:
     rays = ["--sim-rays", str(args.rays)] if args.rays else []
     start = time.perf_counter()
 
-    _step("calibration 1/2: the microlens grid of each camera from a white image",
+    _step("calibration 1/3: the microlens grid of each camera from a white image",
           ["calibrate", "mla", "--rig", rig_s, "--out", calib])
-    _step("calibration 2/2: the dot target through 5 stage planes, seen by both cameras (the laser stays off)",
+    _step("calibration 2/3: the dot target through 5 stage planes, seen by both cameras (the laser stays off)",
           ["calibrate", "volume", "--rig", rig_s, "--planes", "5", "--step-mm", "0.2", "--out", calib])
+    _step("calibration 3/3: the fit of each camera's model from the dots, both cameras in one world frame",
+          ["calibrate", "fit", calib])
     _step("calibration report", ["calibrate", "report", calib, "--plot", str(out / "calibration.png")])
     _step(f"recording {args.pairs} double-frame pair(s) of a vortex ring: the pulse generator fires the laser and "
           "triggers both cameras", ["acquire", "--rig", rig_s, "--pairs", str(args.pairs), "--out", run_,

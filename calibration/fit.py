@@ -1,0 +1,260 @@
+"""Fitting a camera model to the calibration target: least squares on reprojection error.
+
+Observations, per camera:
+
+- the dots of every plane, named on the board (:mod:`calibration.dots`), whose world positions
+  the board and the stage readback give (:class:`lfcore.target.DotBoard`; they define the world
+  frame, so every camera fitted against them shares it);
+- the micro-image centres of the white image (:class:`calibration.mla_grid.MlaGrid`).
+
+Model: :class:`lfcore.rig.Camera`, the optics the renderer and the reconstruction use.
+Parameters: the pose (a small rotation vector applied to the nominal rotation in the camera
+frame, which has no gimbal lock however the camera points, and the focus point), the
+magnification (the main-lens focal length stays nominal: with it, M fixes si and so, so the
+perspective of the planes at different depths checks the scale), the MLA offset and rotation,
+and optionally a radial distortion k1 (:func:`lfcore.projection.project`).
+
+Residuals, in pixels: found minus projected dot centroids (:func:`lfcore.projection.project`,
+independent of the MLA) in the chief-ray view and the four half-aperture views (their parallax
+fixes the depth of the focal plane, so the magnification), and measured micro-image centres minus the model's nearest
+micro-image centre (k times the nearest lenslet centre, :mod:`lfcore.white`), which fix the
+MLA's offset and rotation. The two blocks share only the micro-image scale k = 1 + f_ml / si.
+Dots further than 5 robust sigmas from the first fit (misnamed or merged) are dropped and the
+fit repeated.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from calibration.dots import view_pupils_mm
+from calibration.mla_grid import MlaGrid
+from lfcore.mla import nearest_lenslet, pixel_to_sensor, sensor_to_pixel
+from lfcore.projection import project
+from lfcore.rig import Camera
+from lfcore.target import DotBoard
+
+__all__ = ["CameraFit", "FitError", "PlaneDots", "fit_camera", "rotation_deg_from_matrix"]
+
+
+class FitError(ValueError):
+    """A camera whose model cannot be fitted; one line naming it and saying why."""
+
+
+@dataclass(frozen=True)
+class PlaneDots:
+    """The named dots of one plane of one camera.
+
+    Attributes
+    ----------
+    plane : int
+        Plane index in the store.
+    stage_mm : float
+        Stage readback of the plane, mm.
+    indices : numpy.ndarray
+        (m, 2) int64 board indices (i, j).
+    views_px : numpy.ndarray
+        (m, views, 2) found centroids (column, row), pixels, in the views of
+        :data:`calibration.dots.VIEW_PUPILS`.
+    """
+
+    plane: int
+    stage_mm: float
+    indices: np.ndarray
+    views_px: np.ndarray
+
+
+@dataclass(frozen=True)
+class CameraFit:
+    """One camera's fitted model and how well it reprojects.
+
+    Attributes
+    ----------
+    camera : Camera
+        The fitted model.
+    radial_k1 : float
+        Fitted radial distortion (0 unless fitted; not part of :class:`Camera`).
+    rms_px : float
+        RMS distance between found and projected dots (chief-ray view) over all planes, pixels.
+    plane_rms_px : numpy.ndarray
+        (planes,) the same per plane; NaN for planes without dots.
+    plane_dots : numpy.ndarray
+        (planes,) int, dots used per plane.
+    lattice_rms_px : float
+        RMS distance of the white image's micro-image centres from the model's, pixels (NaN
+        without a grid).
+    std : dict
+        1-sigma uncertainty of each parameter from the fit's covariance.
+    residuals_px : list of numpy.ndarray
+        Per plane, (m, 2) found minus projected, pixels.
+    dropped : int
+        Dots rejected as outliers.
+    """
+
+    camera: Camera
+    radial_k1: float
+    rms_px: float
+    plane_rms_px: np.ndarray
+    plane_dots: np.ndarray
+    lattice_rms_px: float
+    std: dict[str, float]
+    residuals_px: list[np.ndarray] = field(repr=False)
+    dropped: int = 0
+
+    def model_dict(self) -> dict[str, Any]:
+        """The fitted camera as a rig-file ``[[camera]]`` table (JSON-compatible)."""
+        return self.camera.model_dump(mode="json")
+
+
+def rotation_deg_from_matrix(r: np.ndarray) -> tuple[float, float, float]:
+    """``[rx, ry, rz]`` (degrees) with R = Rz(rz) Ry(ry) Rx(rx) equal to the (3, 3) matrix ``r``."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # near ry = +-90 degrees one angle is arbitrary; R is kept
+        z, y, x = Rotation.from_matrix(r).as_euler("ZYX", degrees=True)
+    return (float(x), float(y), float(z))
+
+
+_NAMES = ("rot_x_rad", "rot_y_rad", "rot_z_rad", "focus_x_mm", "focus_y_mm", "focus_z_mm", "magnification",
+          "mla_offset_x_um", "mla_offset_y_um", "mla_rotation_deg", "radial_k1")
+
+
+def _lattice_sample(grid: MlaGrid, n_max: int) -> np.ndarray:
+    pts = grid.centres_px[grid.inliers]
+    if len(pts) > n_max:
+        pts = pts[np.linspace(0, len(pts) - 1, n_max).astype(int)]
+    return pts
+
+
+def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], grid: MlaGrid | None = None, *,
+               n_planes: int | None = None, fit_distortion: bool = False, max_lattice_points: int = 600,
+               outlier_sigma: float = 5.0) -> CameraFit:
+    """Fit one camera's model to its named dots (and its white-image lattice).
+
+    Parameters
+    ----------
+    nominal
+        The starting model (the rig file's camera); the main-lens focal length, pitches and
+        sensor are kept.
+    board
+        The target (its positions define the world frame).
+    planes
+        The named dots of each plane.
+    grid
+        The white image's microlens grid: fits the MLA offset and rotation (seeded from
+        :meth:`MlaGrid.to_mla`); None keeps them nominal.
+    n_planes
+        Number of planes in the store (for the per-plane arrays; default: highest plane + 1).
+    fit_distortion
+        Also fit the radial distortion k1.
+    max_lattice_points
+        Micro-image centres used (evenly spread over the sensor).
+    outlier_sigma
+        Dots further than this many robust sigmas from the first fit are dropped.
+
+    Raises
+    ------
+    FitError
+        Too few dots for the parameters, or a fit that does not converge.
+    """
+    planes = [p for p in planes if len(p.indices)]
+    total = sum(len(p.indices) for p in planes)
+    if total < 8 or len(planes) < 2:
+        raise FitError(f"camera '{nominal.name}': {total} dot(s) on {len(planes)} plane(s); need at least 8 "
+                       "dots on 2 planes at different depths to fit the pose and magnification")
+    n_planes = max(p.plane for p in planes) + 1 if n_planes is None else n_planes
+    world = [board.dot_centres(p.indices, p.stage_mm) for p in planes]
+    found = [np.asarray(p.views_px, dtype=np.float64) for p in planes]  # (m, views, 2) each
+    pupils = view_pupils_mm(nominal.aperture_mm)
+    r0 = nominal.rotation
+    f0 = np.asarray(nominal.focus_mm)
+    mla0 = grid.to_mla(nominal) if grid is not None else {"mla_offset_um": nominal.mla_offset_um,
+                                                          "mla_rotation_deg": nominal.mla_rotation_deg}
+    lattice = _lattice_sample(grid, max_lattice_points) if grid is not None else np.zeros((0, 2))
+    x0 = np.array([0.0, 0.0, 0.0, *f0, nominal.magnification, *mla0["mla_offset_um"], mla0["mla_rotation_deg"],
+                   0.0])
+    free = np.ones(len(x0), dtype=bool)
+    free[10] = fit_distortion
+    if grid is None:
+        free[7:10] = False
+
+    def camera_of(x: np.ndarray) -> Camera:
+        r = r0 @ Rotation.from_rotvec(x[:3]).as_matrix()
+        return nominal.model_copy(update={"rotation_deg": rotation_deg_from_matrix(r), "focus_mm": tuple(x[3:6]),
+                                          "magnification": float(x[6]), "mla_offset_um": (float(x[7]), float(x[8])),
+                                          "mla_rotation_deg": float(x[9])})
+
+    def dot_residuals(x: np.ndarray, keep: list[np.ndarray]) -> list[np.ndarray]:
+        """Per plane (m, views, 2) found minus projected, pixels."""
+        cam = camera_of(x)
+        out = []
+        for f, w, k in zip(found, world, keep, strict=True):
+            proj = np.stack([project(cam, w, radial_k1=x[10], pupil_mm=tuple(a)) for a in pupils], axis=1)
+            out.append((f - proj)[k])
+        return out
+
+    def lattice_residuals(x: np.ndarray) -> np.ndarray:
+        if not len(lattice):
+            return np.zeros((0, 2))
+        cam = camera_of(x)
+        k = 1.0 + cam.mla_focal_length_mm / cam.image_distance_mm
+        c = nearest_lenslet(cam, pixel_to_sensor(cam, lattice) / k)
+        return lattice - sensor_to_pixel(cam, k * c)
+
+    def solve(x_start: np.ndarray, keep: list[np.ndarray]) -> object:
+        def fun(xf: np.ndarray) -> np.ndarray:
+            x = x_start.copy()
+            x[free] = xf
+            parts = [r.ravel() for r in dot_residuals(x, keep)] + [lattice_residuals(x).ravel()]
+            out = np.concatenate(parts)
+            return np.where(np.isfinite(out), out, 1e3)
+
+        return least_squares(fun, x_start[free], x_scale="jac", method="trf", xtol=1e-12, ftol=1e-12,
+                             gtol=1e-12, max_nfev=200 * int(free.sum()))
+
+    keep = [np.ones(len(f), dtype=bool) for f in found]
+    x = x0.copy()
+    sol = solve(x, keep)
+    x[free] = sol.x
+    res = dot_residuals(x, [np.ones(len(f), dtype=bool) for f in found])
+    d = np.concatenate([np.hypot(r[:, 0, 0], r[:, 0, 1]) for r in res])
+    sigma = max(1.4826 * float(np.median(d)) / 1.1774, 1e-6)
+    keep = [np.hypot(r[:, :, 0], r[:, :, 1]).max(axis=1) <= outlier_sigma * sigma for r in res]
+    dropped = int(sum((~k).sum() for k in keep))
+    if dropped:
+        sol = solve(x, keep)
+        x[free] = sol.x
+    if not sol.success:
+        raise FitError(f"camera '{nominal.name}': the fit did not converge ({sol.message})")
+    res = dot_residuals(x, keep)
+    cam = camera_of(x)
+    res = [r[:, 0] for r in res]  # reported: the chief-ray view (all the light)
+    allres = np.concatenate(res)
+    rms = float(np.sqrt(np.mean(np.sum(allres**2, axis=1))))
+    plane_rms = np.full(n_planes, np.nan)
+    plane_n = np.zeros(n_planes, dtype=np.int64)
+    for p, r in zip(planes, res, strict=True):
+        plane_n[p.plane] = len(r)
+        if len(r):
+            plane_rms[p.plane] = float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
+    lat = lattice_residuals(x)
+    lat_rms = float(np.sqrt(np.mean(np.sum(lat**2, axis=1)))) if len(lat) else math.nan
+    std: dict[str, float] = {}
+    try:
+        jac = sol.jac
+        dof = max(1, len(sol.fun) - jac.shape[1])
+        s2 = float(np.sum(sol.fun**2)) / dof
+        cov = np.linalg.pinv(jac.T @ jac) * s2
+        for name, v in zip(np.asarray(_NAMES)[free], np.sqrt(np.maximum(np.diag(cov), 0.0)), strict=True):
+            std[str(name)] = float(v)
+    except (ValueError, np.linalg.LinAlgError):
+        pass
+    return CameraFit(camera=cam, radial_k1=float(x[10]), rms_px=rms, plane_rms_px=plane_rms, plane_dots=plane_n,
+                     lattice_rms_px=lat_rms, std=std, residuals_px=res, dropped=dropped)

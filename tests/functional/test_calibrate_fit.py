@@ -1,0 +1,103 @@
+"""The volumetric calibration fit on the simulated lab (issue 6, step 5).
+
+The lab renders the TRUE cameras (MLA rotated 0.2 degrees and offset by 0.3 lenslet,
+magnification 1% high, the second camera's pose 0.5 degree off about world y); the calibration
+starts from the NOMINAL rig file and must recover each. The tiny rig (about 19 x 16 lenslets per
+camera, 1 mm field of view) is the hardest case for the pose: a handful of dots per plane, and
+a field of view a hundredth of the working distance, so tolerances here are looser than a real
+rig's (hundreds of lenslets, many dots).
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from calibration.store import CalibrationStore
+from lfcore.rig import Rig
+from lfpiv.calibrate import calibrate_fit, calibrate_mla, calibrate_volume, default_board
+from lfpiv.cli import main
+from sim.lab import SimLab
+from tests.functional.test_acquire import fast_rig_text
+
+PITCH_UM = 55.0
+
+
+def _true_rig(nominal: Rig) -> Rig:
+    cams = []
+    for i, c in enumerate(nominal.camera):
+        upd = {"mla_rotation_deg": 0.2, "mla_offset_um": (0.3 * PITCH_UM, 0.0), "magnification": 1.01 * c.magnification}
+        if i == 1:
+            upd["rotation_deg"] = (0.0, 90.5, 0.0)
+        cams.append(c.model_copy(update=upd))
+    return nominal.model_copy(update={"camera": tuple(cams)})
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.linalg.norm(Rotation.from_matrix(a.T @ b).as_rotvec())))
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Rig, Rig]:
+    nominal = Rig.from_dict(tomllib.loads(fast_rig_text()))
+    true = _true_rig(nominal)
+    out = tmp_path_factory.mktemp("fit") / "calib.zarr"
+    board = default_board(nominal, spacing_mm=0.3)
+    assert board.tilt_deg == pytest.approx(45.0)
+    with SimLab(true, pool_pairs=1, rays_per_particle=16, reply_latency_s=0.0005) as lab:
+        calibrate_mla(nominal, out, frames=2, sim_options={"lab": lab})
+        calibrate_volume(nominal, out, planes=5, step_mm=0.1, board=board, sim_options={"lab": lab},
+                         sim_target={"rays_per_point": 64})
+    return out, nominal, true
+
+
+def test_fit_recovers_the_true_cameras(calibrated: tuple[Path, Rig, Rig]) -> None:
+    out, nominal, true = calibrated
+    fits = calibrate_fit(out)
+    for fit, tru in zip(fits, true.camera, strict=True):
+        c = fit.camera
+        assert c.mla_rotation_deg == pytest.approx(0.2, abs=0.02)
+        assert np.allclose(c.mla_offset_um, (0.3 * PITCH_UM, 0.0), atol=0.1)  # 0.2% of a lenslet
+        assert c.magnification == pytest.approx(tru.magnification, rel=0.005)  # the 1% error, to half a percent
+        assert np.allclose(c.focus_mm, tru.focus_mm, atol=0.02)
+        assert _angle_deg(c.rotation, tru.rotation) < 0.3  # from 0.5 (cam1) off
+        assert fit.rms_px < 0.2
+        assert fit.lattice_rms_px < 0.03
+    assert _angle_deg(fits[1].camera.rotation, true.camera[1].rotation) < _angle_deg(
+        nominal.camera[1].rotation, true.camera[1].rotation)
+    store = CalibrationStore.open(out)
+    rig = store.fitted_rig()
+    assert rig.camera[0].magnification == fits[0].camera.magnification
+    assert store.model("cam1")["plane_dots"] and store.model("cam1")["rms_px"] == pytest.approx(fits[1].rms_px)
+
+
+def test_fit_and_report_cli(calibrated: tuple[Path, Rig, Rig], tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out, _, _ = calibrated
+    assert main(["calibrate", "fit", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "cam0: RMS" in text and "cam1: RMS" in text and "magnification" in text
+    png = tmp_path / "rms.png"
+    assert main(["calibrate", "report", str(out), "--rms-plot", str(png)]) == 0
+    rep = capsys.readouterr().out
+    assert "reprojection RMS" in rep and "plane  stage_mm  dots  rms_px" in rep and png.stat().st_size > 5_000
+
+
+def test_a_plane_without_dots_is_one_line_naming_camera_and_plane(calibrated: tuple[Path, Rig, Rig],
+                                                                    tmp_path: Path) -> None:
+    import shutil
+
+    out, _, _ = calibrated
+    bad = tmp_path / "bad.zarr"
+    shutil.copytree(out, bad)
+    store = CalibrationStore.open(bad, mode="r+")
+    frames = store.plane_frames("cam1")
+    frames[2] = np.full(frames.shape[1:], 100, dtype=np.uint16)  # the target fell off: a dark plane
+    from lfpiv.errors import UsageError
+
+    with pytest.raises(UsageError, match=r"^camera 'cam1', plane 3 of 5 \(stage") as info:
+        calibrate_fit(bad)
+    assert "\n" not in str(info.value)
