@@ -32,6 +32,7 @@ import numpy as np
 from scipy import ndimage
 
 from lfcore.projector import Projector
+from lfcore.weight_cache import WeightCache
 
 __all__ = ["ReconResult", "ReconSettings", "estimate_background", "preprocess", "reconstruct"]
 
@@ -204,7 +205,7 @@ def preprocess(image: np.ndarray, background: float, sigma: float, threshold_sig
 
 
 def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: ReconSettings,
-                progress: Callable[[int], None] | None = None) -> ReconResult:
+                progress: Callable[[int], None] | None = None, cache: WeightCache | None = None) -> ReconResult:
     """Reconstruct one volume from one image per camera of the projector.
 
     Parameters
@@ -217,12 +218,17 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
         Method, iterations, relaxation, form, thresholds.
     progress
         Called with 1 after each iteration.
+    cache
+        DRT weights kept across calls (built on ``projector``): each frame then traces only
+        the voxels no earlier frame kept. Used by DRT-MART only; None: build them directly.
 
     Returns
     -------
     ReconResult
     """
     wp = projector.wp
+    if cache is not None and cache.projector is not projector:
+        raise ValueError("the weight cache belongs to another projector")
     if len(images) != len(projector.cameras):
         raise ValueError(f"got {len(images)} images for {len(projector.cameras)} cameras")
     signals, lits, backgrounds, noises = [], [], [], []
@@ -242,7 +248,7 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
     t0 = time.perf_counter()
     if settings.method == "drt-mart":
         voxels = projector.eliminate(lits, settings.min_seen, settings.max_dark)
-        weights = projector.weights(voxels, "drt")
+        weights = projector.weights(voxels, "drt") if cache is None else cache.weights(voxels)
     else:
         voxels = projector.all_voxels()
         weights = projector.weights(voxels, "los")

@@ -16,6 +16,7 @@ from lfcore.projector import Projector
 from lfcore.reconstruct import ReconResult, ReconSettings, reconstruct
 from lfcore.runstore import RunStore, RunStoreError
 from lfcore.volume import VolumeGrid
+from lfcore.weight_cache import WeightCache
 from lfpiv.errors import UsageError
 
 __all__ = ["FrameEvaluation", "evaluate_run", "parse_pairs", "reconstruct_run", "summary_rows"]
@@ -92,6 +93,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
                          "has free; use a coarser --pvr")
     projector = Projector(cams, grid, sub_apertures=settings.sub_apertures, device=device)
+    cache = WeightCache(projector) if settings.method == "drt-mart" else None  # weights reused across frames
     meta = {**settings.as_dict(), "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
             "cameras": names}
     if not (store.has_volumes and store.volume_grid() == grid and store.group["volumes"].attrs["settings"] == meta):
@@ -103,7 +105,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         for p in chosen:
             for f in (0, 1):
                 images = [store.frames(n)[p, f] for n in names]
-                res = reconstruct(projector, images, settings, progress=bar.update)
+                res = reconstruct(projector, images, settings, progress=bar.update, cache=cache)
                 if settings.iterations == 0:
                     bar.update(1)
                 store.write_volume(p, f, res.volume)

@@ -43,6 +43,7 @@ from lfcore.reconstruct import ReconSettings, estimate_background
 from lfcore.rig import Rig
 from lfcore.vectors import centres_mm, displacement_to_velocity, vorticity
 from lfcore.volume import VolumeGrid
+from lfcore.weight_cache import WeightCache
 
 __all__ = ["AXES", "LiveResult", "LiveSettings", "LiveStats", "LivePipeline", "PairSource", "VectorSlice",
            "default_windows", "monitoring_recon", "plausible_latency"]
@@ -267,6 +268,8 @@ class _Reconstructor:
         self.recon = recon
         self.projector = Projector(self.cams, grid, sub_apertures=recon.sub_apertures, device=device)
         p = self.projector
+        # each voxel's weights traced once, on the first frame that keeps it (see WeightCache)
+        self.cache = WeightCache(p)
         self.wp = p.wp
         self.device = p.device
         self.offsets = [int(o) for o in p.pixel_offsets]
@@ -306,7 +309,7 @@ class _Reconstructor:
         r = self.recon
         voxels = self.projector.eliminate([self._views(k)[1] for k in range(len(self.cams))], r.min_seen,
                                           r.max_dark)
-        return self.projector.weights(voxels, "drt")
+        return self.cache.weights(voxels)
 
     def iterate(self, weights, iterations: int, relaxation: float):
         """Uniform start scaled to the measured signal, then ``iterations`` SMART updates."""

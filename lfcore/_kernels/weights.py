@@ -217,6 +217,28 @@ def view_point(view: View, pw: wp.vec3) -> wp.vec3:
     return view.rot * (pw - view.focus)
 
 
+@wp.func
+def corner_pixel(view: View, ax: float, ay: float, qx: float, qy: float, fx: float, fy: float, corner: int) -> int:
+    """Global pixel hit by the centre (corner 0) or a corner (1-4) of a sub-aperture's footprint.
+
+    -1 if the point lands off the sensor.
+    """
+    cam = view.cam
+    px = qx
+    py = qy
+    if corner > 0:
+        px = qx + fx * float(2 * ((corner - 1) % 2) - 1)
+        py = qy + fy * float(2 * ((corner - 1) // 2) - 1)
+    c = lenslet_centre(cam, px, py)
+    sx = c[0] + cam.f_ml * (px - ax) / cam.si
+    sy = c[1] + cam.f_ml * (py - ay) / cam.si
+    col = 0.5 * float(cam.ncols) - sx / cam.pixel
+    row = 0.5 * float(cam.nrows) + sy / cam.pixel
+    if col >= 0.0 and row >= 0.0 and col < float(cam.ncols) and row < float(cam.nrows):
+        return view.pix_offset + int(row) * cam.ncols + int(col)
+    return -1
+
+
 @wp.kernel
 def eliminate(
     grid: Grid,
@@ -227,6 +249,8 @@ def eliminate(
     lit: wp.array(dtype=wp.uint8),
     min_seen: float,
     max_dark: float,
+    table: wp.array(dtype=wp.int32),
+    n_table: int,
     active: wp.array(dtype=wp.int32),
 ):
     """active[v] = 1 if the checked sub-apertures of voxel v land on lit pixels in every view.
@@ -239,6 +263,9 @@ def eliminate(
     light near a lenslet edge may cross into the neighbour). The checks go in
     ``check_order``, spread over the aperture, so that most empty voxels are rejected after a
     few lookups.
+
+    ``table`` may hold, from :func:`check_pixels`, the pixels of the first ``n_table`` checks
+    of every voxel and view, which then need no tracing (``n_table = 0``: no table).
     """
     v = wp.tid()
     pw = voxel_centre(grid, v)
@@ -260,31 +287,33 @@ def eliminate(
         dark = int(0)
         allowed = int(max_dark * float(view.check_count))
         for m in range(view.check_first, view.check_first + view.check_count):
-            k = check_order[m]
-            ax = sub_a[k][0]
-            ay = sub_a[k][1]
-            qx = a * ax + gx
-            qy = a * ay + gy
-            fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
-            fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
             on = int(1)
             hit = int(0)
-            for corner in range(5):
-                px = qx
-                py = qy
-                if corner > 0:
-                    px = qx + fx * float(2 * ((corner - 1) % 2) - 1)
-                    py = qy + fy * float(2 * ((corner - 1) // 2) - 1)
-                c = lenslet_centre(cam, px, py)
-                sx = c[0] + cam.f_ml * (px - ax) / cam.si
-                sy = c[1] + cam.f_ml * (py - ay) / cam.si
-                col = 0.5 * float(cam.ncols) - sx / cam.pixel
-                row = 0.5 * float(cam.nrows) + sy / cam.pixel
-                if col >= 0.0 and row >= 0.0 and col < float(cam.ncols) and row < float(cam.nrows):
-                    if lit[view.pix_offset + int(row) * cam.ncols + int(col)] != wp.uint8(0):
-                        hit = int(1)
-                else:
-                    on = int(0)
+            mi = m - view.check_first
+            if mi < n_table:
+                row = ((v * n_views + iv) * n_table + mi) * 5
+                for corner in range(5):
+                    q = table[row + corner]
+                    if q >= 0:
+                        if lit[q] != wp.uint8(0):
+                            hit = int(1)
+                    else:
+                        on = int(0)
+            else:
+                k = check_order[m]
+                ax = sub_a[k][0]
+                ay = sub_a[k][1]
+                qx = a * ax + gx
+                qy = a * ay + gy
+                fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
+                fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
+                for corner in range(5):
+                    q = corner_pixel(view, ax, ay, qx, qy, fx, fy, corner)
+                    if q >= 0:
+                        if lit[q] != wp.uint8(0):
+                            hit = int(1)
+                    else:
+                        on = int(0)
             if on == 1:
                 seen += 1
                 if hit == 0:
@@ -301,6 +330,52 @@ def eliminate(
 
 
 @wp.kernel
+def check_pixels(
+    grid: Grid,
+    views: wp.array(dtype=View),
+    n_views: int,
+    sub_a: wp.array(dtype=wp.vec2),
+    check_order: wp.array(dtype=wp.int32),
+    n_table: int,
+    table: wp.array(dtype=wp.int32),
+):
+    """The pixels :func:`eliminate` looks up in the first ``n_table`` checks of voxel v, every view.
+
+    ``table[((v * n_views + view) * n_table + check) * 5 + corner]``: the global pixel, -1 off
+    the sensor (also for checks past the view's ``check_count``). Views that cannot see the
+    voxel are never looked up.
+    """
+    v = wp.tid()
+    pw = voxel_centre(grid, v)
+    for iv in range(n_views):
+        view = views[iv]
+        cam = view.cam
+        p = view_point(view, pw)
+        sop = cam.so - p[2]
+        inv = float(0.0)
+        if sop * cam.inv_f > 1.0:
+            inv = 1.0 / sop
+        a = 1.0 - cam.si * (cam.inv_f - inv)
+        gx = -p[0] * cam.si * inv
+        gy = -p[1] * cam.si * inv
+        dq = cam.si * inv * inv * view.half[2]
+        for mi in range(n_table):
+            row = ((v * n_views + iv) * n_table + mi) * 5
+            for corner in range(5):
+                table[row + corner] = -1
+            if mi < view.check_count and inv > 0.0:
+                k = check_order[view.check_first + mi]
+                ax = sub_a[k][0]
+                ay = sub_a[k][1]
+                qx = a * ax + gx
+                qy = a * ay + gy
+                fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
+                fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
+                for corner in range(5):
+                    table[row + corner] = corner_pixel(view, ax, ay, qx, qy, fx, fy, corner)
+
+
+@wp.kernel
 def drt_weights(
     grid: Grid,
     views: wp.array(dtype=View),
@@ -312,13 +387,17 @@ def drt_weights(
     origin: wp.int64,
     min_weight: float,
     fill: int,
+    limit: wp.int64,
     counts: wp.array(dtype=wp.int64),
     pix: wp.array(dtype=wp.int32),
     w: wp.array(dtype=float),
 ):
     """Dense ray-traced weights of voxel ``voxels[tid]`` (see the module docstring).
 
-    With ``fill = 1`` the entries go to ``pix``/``w`` from ``offsets[tid] - origin``.
+    With ``fill = 1`` the first ``limit`` entries go to ``pix``/``w`` from
+    ``offsets[tid] - origin``. ``counts[tid]`` gets the voxel's number of entries in both modes,
+    so that a single pass into slots of a guessed capacity ``limit`` also tells which voxels
+    did not fit.
     """
     tid = wp.tid()
     pw = voxel_centre(grid, voxels[tid])
@@ -418,12 +497,11 @@ def drt_weights(
                             ox = pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
                             wt = wk * w1 * ox * oy
                             if wt > min_weight:
-                                if fill == 1:
+                                if fill == 1 and n < limit:
                                     pix[base + n] = view.pix_offset + r * cam.ncols + cc
                                     w[base + n] = wt
                                 n += wp.int64(1)
-    if fill == 0:
-        counts[tid] = n
+    counts[tid] = n
 
 
 @wp.func
@@ -586,6 +664,119 @@ def merge_sorted(
     counts[v] = m
 
 
+@wp.func
+def _merge_pass(
+    src_pix: wp.array(dtype=wp.int32),
+    src_ord: wp.array(dtype=wp.int32),
+    dst_pix: wp.array(dtype=wp.int32),
+    dst_ord: wp.array(dtype=wp.int32),
+    s: int,
+    n: int,
+    width: int,
+):
+    """Merge the sorted runs of ``width`` entries from ``s`` pairwise into ``dst`` (stable)."""
+    lo = int(0)
+    while lo < n:
+        mid = wp.min(lo + width, n)
+        hi = wp.min(lo + 2 * width, n)
+        i = lo
+        j = mid
+        k = lo
+        while k < hi:
+            take_left = int(0)
+            if i < mid:
+                if j >= hi:
+                    take_left = 1
+                elif src_pix[s + i] <= src_pix[s + j]:
+                    take_left = 1
+            if take_left == 1:
+                dst_pix[s + k] = src_pix[s + i]
+                dst_ord[s + k] = src_ord[s + i]
+                i += 1
+            else:
+                dst_pix[s + k] = src_pix[s + j]
+                dst_ord[s + k] = src_ord[s + j]
+                j += 1
+            k += 1
+        lo = hi
+
+
+@wp.kernel
+def sort_merge(
+    starts: wp.array(dtype=wp.int32),
+    ends: wp.array(dtype=wp.int32),
+    pix: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
+    tmp_pix: wp.array(dtype=wp.int32),
+    tmp_ord: wp.array(dtype=wp.int32),
+    w_raw: wp.array(dtype=float),
+    out_pix: wp.array(dtype=wp.int32),
+    out_w: wp.array(dtype=float),
+    counts: wp.array(dtype=wp.int32),
+):
+    """Sort one voxel's raw entries by pixel and sum those sharing a pixel, in one thread.
+
+    The per-thread equivalent of ``segmented_sort_pairs`` followed by :func:`merge_sorted`,
+    with the same result: a stable sort (insertion sort of blocks of 16, then bottom-up merge
+    passes through ``tmp_pix``/``tmp_ord``), so entries sharing a pixel are summed in their raw
+    order. Cheaper than the library sort on the CPU, where a voxel's few hundred entries stay
+    in cache; the kernel traces emit them in short sorted runs.
+    """
+    v = wp.tid()
+    s = starts[v]
+    n = ends[v] - s
+    block = int(16)
+    for t in range(s, s + n):
+        order[t] = t
+    # insertion sort of each block
+    b0 = int(0)
+    while b0 < n:
+        b1 = wp.min(b0 + block, n)
+        for i in range(b0 + 1, b1):
+            kp = pix[s + i]
+            ko = order[s + i]
+            j = i - 1
+            while j >= b0 and pix[s + j] > kp:
+                pix[s + j + 1] = pix[s + j]
+                order[s + j + 1] = order[s + j]
+                j -= 1
+            pix[s + j + 1] = kp
+            order[s + j + 1] = ko
+        b0 = b1
+    # merge passes, alternating between the raw arrays and the scratch
+    width = block
+    in_tmp = int(0)
+    while width < n:
+        if in_tmp == 0:
+            _merge_pass(pix, order, tmp_pix, tmp_ord, s, n, width)
+            in_tmp = 1
+        else:
+            _merge_pass(tmp_pix, tmp_ord, pix, order, s, n, width)
+            in_tmp = 0
+        width = 2 * width
+    if in_tmp == 1:
+        for t in range(s, s + n):
+            pix[t] = tmp_pix[t]
+            order[t] = tmp_ord[t]
+    m = int(0)
+    prev = int(-1)
+    acc = float(0.0)
+    for t in range(s, s + n):
+        p = pix[t]
+        if p != prev and prev >= 0:
+            out_pix[s + m] = prev
+            out_w[s + m] = acc
+            m += 1
+            acc = float(0.0)
+        prev = p
+        acc += w_raw[order[t]]
+    if prev >= 0:
+        out_pix[s + m] = prev
+        out_w[s + m] = acc
+        m += 1
+    counts[v] = m
+
+
 @wp.kernel
 def gather_merged(
     starts: wp.array(dtype=wp.int32),
@@ -603,3 +794,24 @@ def gather_merged(
     for k in range(counts[v]):
         dst_pix[d + wp.int64(k)] = src_pix[s + k]
         dst_w[d + wp.int64(k)] = src_w[s + k]
+
+
+@wp.kernel
+def copy_rows(
+    src_start: wp.array(dtype=wp.int64),
+    dst_offsets: wp.array(dtype=wp.int64),
+    src_pix: wp.array(dtype=wp.int32),
+    src_w: wp.array(dtype=float),
+    dst_pix: wp.array(dtype=wp.int32),
+    dst_w: wp.array(dtype=float),
+):
+    """Copy row t, ``dst_offsets[t + 1] - dst_offsets[t]`` entries from ``src_start[t]``, to ``dst_offsets[t]``."""
+    t = wp.tid()
+    s = src_start[t]
+    d = dst_offsets[t]
+    n = dst_offsets[t + 1] - d
+    k = wp.int64(0)
+    while k < n:
+        dst_pix[d + k] = src_pix[s + k]
+        dst_w[d + k] = src_w[s + k]
+        k += wp.int64(1)

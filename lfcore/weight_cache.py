@@ -1,0 +1,174 @@
+"""DRT weights kept across frames: trace each voxel once, gather the active rows per frame.
+
+A voxel's dense ray-traced weights depend only on the cameras and the grid, never on the
+image; only zero-voxel elimination does. A :class:`WeightCache` binds a :class:`Projector` and
+keeps, on its device, the merged weights of every voxel it has been asked for. Each frame then
+costs the elimination, tracing only the voxels never seen before, and one copy of the active
+rows into a fresh :class:`~lfcore.projector.Weights` (a few milliseconds where the tracing
+took seconds on a CPU). The rows are the ones :meth:`Projector.weights` builds for the same
+voxels, bit for bit.
+
+It also has the projector store the pixels of each voxel's first elimination checks
+(:meth:`Projector.precompute_checks`), so that elimination mostly looks pixels up.
+
+Memory: 8 bytes per stored weight (int32 pixel, float32 value) in a pool on the device, plus
+12 bytes per grid voxel on the host (row start and length). A voxel has a few hundred weights
+per camera at 10 pixels per lenslet (about 200 for the tiny rig's camera), so the whole of
+``benchmarks/live.py --case S`` (two cameras, 161,704 voxels) would take about 0.5 GiB; in
+practice only the voxels that elimination ever keeps are stored. The pool grows by doubling up
+to ``budget_bytes``; a frame whose new rows would not fit is built directly (nothing is evicted,
+nothing is lost but the speed-up for the voxels left out). The elimination table adds
+``20 * Projector.max_checks`` bytes per voxel and camera, 1.6 kB at 10 pixels per lenslet
+(0.5 GiB for case S, built in about 3.5 s on a CPU core, when the cache is made), fewer
+checks if that would pass a quarter of the budget.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lfcore.projector import BYTES_PER_WEIGHT, Projector, WeightChunk, Weights, _available_bytes
+
+__all__ = ["DEFAULT_BUDGET_FRACTION", "WeightCache"]
+
+#: Share of the device's free memory (when the cache is made) that the pool may grow to by default.
+DEFAULT_BUDGET_FRACTION = 0.25
+#: Entries the pool holds at first.
+INITIAL_ENTRIES = 1 << 20
+#: Voxels traced at once by :meth:`WeightCache.prefill` (bounds its scratch memory).
+PREFILL_VOXELS = 1 << 15
+
+
+class WeightCache:
+    """Merged DRT weights of the voxels of one projector, kept on its device across frames.
+
+    Parameters
+    ----------
+    projector
+        The cameras and grid; the weights live on its device.
+    budget_bytes
+        Most bytes the pool of weights may take; default: ``DEFAULT_BUDGET_FRACTION`` of what
+        the device has free now.
+    min_weight
+        Raw entries below this are dropped (as in :meth:`Projector.weights`).
+    checks
+        Elimination checks per voxel and camera whose pixels the projector stores
+        (:meth:`Projector.precompute_checks`, ``20 * checks`` bytes per voxel and camera), as
+        many as fit in a quarter of the budget (on top of it); None: all; 0: none.
+    """
+
+    def __init__(self, projector: Projector, budget_bytes: int | None = None, min_weight: float = 1e-6,
+                 checks: int | None = None) -> None:
+        self.projector = projector
+        self.wp = projector.wp
+        self.device = projector.device
+        self.min_weight = float(min_weight)
+        if budget_bytes is None:
+            budget_bytes = int(DEFAULT_BUDGET_FRACTION * _available_bytes(self.device))
+        self.budget_bytes = int(budget_bytes)
+        n = projector.grid.n_voxels
+        self._start = np.full(n, -1, dtype=np.int64)  # row start in the pool; -1: not cached
+        self._count = np.zeros(n, dtype=np.int32)
+        self._pix = None
+        self._w = None
+        self._used = 0
+        self.checks_bytes = projector.precompute_checks(checks, self.budget_bytes // 4)
+
+    @property
+    def n_cached(self) -> int:
+        """Voxels whose weights are stored."""
+        return int(np.count_nonzero(self._start >= 0))
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of stored weights (the pool itself may be up to twice as large)."""
+        return BYTES_PER_WEIGHT * self._used
+
+    def _capacity(self) -> int:
+        return 0 if self._pix is None else int(self._pix.shape[0])
+
+    def _reserve(self, entries: int) -> bool:
+        """Make room for ``entries`` more weights; False if that would pass the budget."""
+        need = self._used + entries
+        if BYTES_PER_WEIGHT * need > self.budget_bytes:
+            return False
+        cap = self._capacity()
+        if need <= cap:
+            return True
+        wp = self.wp
+        new_cap = min(max(need, 2 * cap, INITIAL_ENTRIES), self.budget_bytes // BYTES_PER_WEIGHT)
+        pix = wp.empty(new_cap, dtype=wp.int32, device=self.device)
+        w = wp.empty(new_cap, dtype=float, device=self.device)
+        if self._used:
+            wp.copy(pix, self._pix, count=self._used)
+            wp.copy(w, self._w, count=self._used)
+        self._pix, self._w = pix, w
+        return True
+
+    def _store(self, voxels: np.ndarray, built: Weights) -> bool:
+        """Append the rows of ``built`` (the weights of ``voxels``); False if over the budget."""
+        wp = self.wp
+        if not self._reserve(built.nnz):
+            return False
+        for c in built.chunks:
+            offs = c.offsets.numpy()
+            if c.nnz:
+                wp.copy(self._pix, c.pix, dest_offset=self._used, count=c.nnz)
+                wp.copy(self._w, c.w, dest_offset=self._used, count=c.nnz)
+            vox = voxels[c.first : c.first + c.n]
+            self._start[vox] = self._used + offs[:-1]
+            self._count[vox] = np.diff(offs).astype(np.int32)
+            self._used += c.nnz
+        return True
+
+    def prefill(self, voxels: np.ndarray | None = None) -> int:
+        """Trace ahead of time ``voxels`` (flat indices; default: the whole grid) not yet stored.
+
+        Stops at the budget. Returns the number of voxels stored.
+        """
+        wp = self.wp
+        todo = np.arange(self.projector.grid.n_voxels) if voxels is None else np.asarray(voxels, dtype=np.int64)
+        todo = np.unique(todo[self._start[todo] < 0]).astype(np.int32)
+        stored = 0
+        for lo in range(0, todo.size, PREFILL_VOXELS):
+            part = todo[lo : lo + PREFILL_VOXELS]
+            built = self.projector.weights(wp.array(part, dtype=wp.int32, device=self.device), "drt",
+                                           self.min_weight, budget_bytes=self.budget_bytes)
+            if not self._store(part, built):
+                break
+            stored += part.size
+        return stored
+
+    def weights(self, voxels) -> Weights:
+        """The DRT weights of ``voxels`` ((n,) int32 on the projector's device), as built directly.
+
+        Traces and stores the voxels not yet stored, then copies every requested row into one
+        chunk. If the new rows would pass the budget, the frame's weights are built directly.
+        """
+        wp, p = self.wp, self.projector
+        vox_h = voxels.numpy().astype(np.int64)
+        missing = vox_h[self._start[vox_h] < 0]
+        if missing.size:
+            built = p.weights(wp.array(missing.astype(np.int32), dtype=wp.int32, device=self.device), "drt",
+                              self.min_weight)
+            if not self._store(missing, built):
+                if missing.size == vox_h.size:
+                    return Weights(voxels=voxels, chunks=built.chunks, nnz=built.nnz)
+                return p.weights(voxels, "drt", self.min_weight)
+        n = vox_h.size
+        if n == 0:
+            return Weights(voxels=voxels, chunks=[], nnz=0)
+        counts = self._count[vox_h]
+        offsets = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        nnz = int(offsets[-1])
+        dev = self.device
+        d_offsets = wp.array(offsets, dtype=wp.int64, device=dev)
+        out_pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=dev)
+        out_w = wp.empty(max(nnz, 1), dtype=float, device=dev)
+        if nnz:
+            wp.launch(p._kw.copy_rows, dim=n, device=dev,
+                      inputs=[wp.array(self._start[vox_h], dtype=wp.int64, device=dev), d_offsets, self._pix, self._w,
+                              out_pix, out_w])
+        chunk = WeightChunk(first=0, n=n, offsets=d_offsets, pix=out_pix, w=out_w, nnz=nnz)
+        return Weights(voxels=voxels, chunks=[chunk], nnz=nnz)

@@ -1,0 +1,147 @@
+"""The fast DRT weight builds give the operator of the direct build, on every device Warp finds.
+
+The direct build is the two-pass trace with the library's segmented sort. The single-pass build
+(slots of a guessed capacity, per-voxel sort and merge) and the cross-frame
+:class:`~lfcore.weight_cache.WeightCache` must give the same voxels, the same pixels per voxel
+and the same weights (to 1e-6 relative), including when a voxel overflows its slot, when the
+build is split into chunks, and when the cache's budget is exhausted.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lfcore import projector as projector_module
+from lfcore.particles import seed_particles
+from lfcore.projector import Projector
+from lfcore.reconstruct import ReconSettings, estimate_background, preprocess, reconstruct
+from lfcore.render import LightFieldRenderer
+from lfcore.rig import Rig
+from lfcore.volume import VolumeGrid
+from lfcore.weight_cache import WeightCache
+
+
+@pytest.fixture(scope="module")
+def small_dual_rig(tiny_rig) -> Rig:
+    """Two cameras at 90 degrees around a small box (27 x 23 x 7 voxels)."""
+    d = tiny_rig.to_dict()
+    d["volume"].update(size_mm=[0.3, 0.25, 0.4], pvr=[2.0, 2.0, 10.0])
+    d["camera"].append(dict(d["camera"][0], name="cam1", rotation_deg=[0.0, 90.0, 0.0]))
+    return Rig.from_dict(d)
+
+
+def _same(a, b) -> None:
+    """Two Weights hold the same operator: same voxels, pixels and weights (1e-6 relative)."""
+    assert np.array_equal(a.voxels.numpy(), b.voxels.numpy())
+    assert a.nnz == b.nnz
+    oa, pa, wa = a.to_numpy()
+    ob, pb, wb = b.to_numpy()
+    assert np.array_equal(oa, ob)
+    assert np.array_equal(pa, pb)
+    np.testing.assert_allclose(wb, wa, rtol=1e-6, atol=0.0)
+
+
+def _images(rig, grid, device, n=12, seed=3):
+    pts = seed_particles(rig.volume, n, np.random.default_rng(seed))
+    cfg = rig.render.model_copy(update={"rays_per_particle": 4000})
+    return [LightFieldRenderer(c, cfg, rig.laser.wavelength_nm, device=device).frame(pts, 50_000.0, seed=1 + i)
+            for i, c in enumerate(rig.camera)]
+
+
+def _lit(images, settings):
+    out = []
+    for img in images:
+        level, sigma = estimate_background(img)
+        out.append(preprocess(img, level, sigma, settings.threshold_sigma)[1])
+    return out
+
+
+def test_single_pass_build_matches_the_two_pass_build(small_dual_rig, device, monkeypatch):
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = Projector(small_dual_rig.camera, grid, device=device)
+    vox = proj.wp.array(np.arange(0, grid.n_voxels, 5, dtype=np.int32), device=device)
+    direct = proj.weights(vox, "drt", build="two-pass")
+    assert direct.nnz > 0
+    _same(direct, proj.weights(vox, "drt", build="single-pass"))
+    # a tiny capacity sample (voxels overflow their slots) and small chunks: still the same
+    monkeypatch.setattr(projector_module, "CAPACITY_SAMPLE", 1)
+    monkeypatch.setattr(projector_module, "SINGLE_PASS_ENTRIES", 5000)
+    fast = proj.weights(vox, "drt", build="single-pass")
+    assert len(fast.chunks) > 1
+    _same(direct, fast)
+    _same(direct, proj.weights(vox, "drt"))  # the device's default build
+    empty = proj.weights(proj.wp.zeros(0, dtype=proj.wp.int32, device=device), "drt", build="single-pass")
+    assert empty.nnz == 0 and empty.n_voxels == 0
+    with pytest.raises(ValueError, match="build"):
+        proj.weights(vox, "drt", build="fast")
+
+
+def test_cache_gives_the_direct_operator_frame_after_frame(small_dual_rig, device):
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = Projector(small_dual_rig.camera, grid, device=device)
+    settings = ReconSettings()
+    cache = WeightCache(proj)
+    seen = 0
+    for seed in (3, 4, 3):  # the third frame repeats the first: nothing new to trace
+        lit = _lit(_images(small_dual_rig, grid, device, seed=seed), settings)
+        voxels = proj.eliminate(lit, settings.min_seen, settings.max_dark)
+        assert voxels.shape[0] > 0
+        direct = proj.weights(voxels, "drt", build="two-pass")
+        cached = cache.weights(voxels)
+        _same(direct, cached)
+        assert cache.n_cached >= seen
+        seen = cache.n_cached
+        assert cache.nbytes >= cached.nnz * 8
+    # prefill stores the rest; rows of a mixed request are still the direct ones
+    every = np.arange(0, grid.n_voxels, 3, dtype=np.int32)
+    assert cache.prefill(every) + seen >= len(every)
+    vox = proj.wp.array(every, device=device)
+    _same(proj.weights(vox, "drt", build="two-pass"), cache.weights(vox))
+
+
+def test_cache_over_budget_builds_directly(small_dual_rig, device):
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = Projector(small_dual_rig.camera, grid, device=device)
+    vox = proj.wp.array(np.arange(0, grid.n_voxels, 9, dtype=np.int32), device=device)
+    direct = proj.weights(vox, "drt", build="two-pass")
+    cache = WeightCache(proj, budget_bytes=8 * direct.nnz // 2)
+    half = proj.wp.array(vox.numpy()[: vox.shape[0] // 4], device=device)
+    _same(proj.weights(half, "drt", build="two-pass"), cache.weights(half))  # fits: stored
+    assert cache.n_cached == half.shape[0]
+    _same(direct, cache.weights(vox))  # the rest does not fit: built directly
+    assert cache.n_cached == half.shape[0]
+    assert cache.nbytes <= cache.budget_bytes
+
+
+def test_reconstruct_with_a_cache_gives_the_same_volume(small_dual_rig, device):
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = Projector(small_dual_rig.camera, grid, device=device)
+    images = _images(small_dual_rig, grid, device)
+    settings = ReconSettings(iterations=10)
+    plain = reconstruct(proj, images, settings)
+    cache = WeightCache(proj)
+    for _ in range(2):  # filling the cache, then reading it
+        res = reconstruct(proj, images, settings, cache=cache)
+        assert res.active_voxels == plain.active_voxels and res.nnz == plain.nnz
+        np.testing.assert_allclose(res.volume, plain.volume, rtol=1e-4, atol=1e-6 * float(plain.volume.max()))
+    with pytest.raises(ValueError, match="another projector"):
+        reconstruct(Projector(small_dual_rig.camera, grid, device=device), images, settings, cache=cache)
+
+
+def test_elimination_with_stored_checks_keeps_the_same_voxels(small_dual_rig, device):
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = Projector(small_dual_rig.camera, grid, device=device)
+    settings = ReconSettings()
+    lit = _lit(_images(small_dual_rig, grid, device, n=30), settings)
+    for min_seen, max_dark in ((settings.min_seen, settings.max_dark), (0.5, 0.2)):
+        ref = proj.eliminate(lit, min_seen, max_dark).numpy()
+        assert 0 < ref.size < grid.n_voxels
+        for n_checks in (3, None, 0):
+            nbytes = proj.precompute_checks(n_checks)
+            expect = 0 if n_checks == 0 else 20 * grid.n_voxels * 2 * (n_checks or proj.max_checks)
+            assert nbytes == expect
+            assert np.array_equal(proj.eliminate(lit, min_seen, max_dark).numpy(), ref)
+    # a budget too small for every check stores fewer; one too small for any stores none
+    assert proj.precompute_checks(None, budget_bytes=20 * grid.n_voxels * 2 * 5) == 20 * grid.n_voxels * 2 * 5
+    assert proj.precompute_checks(None, budget_bytes=10) == 0
