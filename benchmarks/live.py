@@ -52,16 +52,16 @@ def case_rig(case: str) -> Rig:
     return Rig.from_dict(d)
 
 
-def render_pair(rig: Rig, ppm: float, device: str, rays: int) -> dict[str, np.ndarray]:
+def render_pair(rig: Rig, ppm: float, device: str, rays: int, seed: int = 1) -> dict[str, np.ndarray]:
     """One (2, rows, columns) uint16 pair per camera; frame B shifted 2 voxels along x."""
     n = particle_count(rig, ppm)
-    pts = seed_particles(rig.volume, n, np.random.default_rng(1))
+    pts = seed_particles(rig.volume, n, np.random.default_rng(seed))
     shift = np.array([2 * rig.volume.pvr[0] * rig.camera[0].object_pixel_mm, 0.0, 0.0])
     render = rig.render.model_copy(update={"rays_per_particle": rays})
     out = {}
     for cam in rig.camera:
         r = LightFieldRenderer(cam, render, rig.laser.wavelength_nm, device=device)
-        frames = [r.frame(p, render.particle_counts, 1 + k) for k, p in enumerate((pts, pts + shift))]
+        frames = [r.frame(p, render.particle_counts, 2 * seed + k) for k, p in enumerate((pts, pts + shift))]
         out[cam.name] = np.stack([np.clip(f, 0, 65535).astype(np.uint16) for f in frames])
     return out
 
@@ -75,15 +75,20 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=20.0, help="how long to feed pairs (default: 20)")
     ap.add_argument("--ppm", type=float, default=0.5)
     ap.add_argument("--rays", type=int, default=2000, help="rays per particle when rendering the pair")
+    ap.add_argument("--distinct", type=int, default=32,
+                    help="distinct pairs (fresh seeding) the feeder cycles through (default: 32); the weight "
+                    "cache only helps for voxels an earlier pair already activated")
     args = ap.parse_args()
     device = resolve_device(args.device)
     rig = case_rig(args.case)
     t = time.perf_counter()
-    pair = render_pair(rig, args.ppm, device, args.rays)
+    pairs = [render_pair(rig, args.ppm, device, args.rays, seed=1 + k) for k in range(max(1, args.distinct))]
+    pair = pairs[0]
     cams = list(pair)
     rows_cols = {c: pair[c].shape[1:] for c in cams}
     print(f"case {args.case}: {len(cams)} cameras of {rows_cols[cams[0]][1]} x {rows_cols[cams[0]][0]} px, "
-          f"device {device}, {args.iterations} iterations, feeder at {args.rate:g} Hz; rendered in "
+          f"device {device}, {args.iterations} iterations, feeder at {args.rate:g} Hz cycling {len(pairs)} "
+          f"distinct pairs; rendered in "
           f"{time.perf_counter() - t:.1f} s")
     ring = PairRing(rows_cols, slots=8)
     pipe = LivePipeline(rig, settings=LiveSettings(iterations=args.iterations), device=device)
@@ -109,7 +114,7 @@ def main() -> int:
                 ring.release(p - ring.slots)
             for c in cams:
                 for f in range(2):
-                    ring.put(c, p, f, pair[c][f], 2 * p + f, stamp)
+                    ring.put(c, p, f, pairs[p % len(pairs)][c][f], 2 * p + f, stamp)
             ring.publish(p)
             p += 1
 
