@@ -34,7 +34,7 @@ import numpy as np
 from lfcore.mla import sensor_to_pixel
 from lfcore.rig import Camera
 
-__all__ = ["chief_ray_mla", "project", "sensor_radius_mm"]
+__all__ = ["chief_ray_mla", "defocus_radius_mm", "image_scale", "project", "sensor_radius_mm"]
 
 
 def sensor_radius_mm(camera: Camera) -> float:
@@ -62,6 +62,49 @@ def chief_ray_mla(camera: Camera, points_mm: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         s = -e[..., :2] / np.where(depth > 0, depth, np.nan)[..., None]
     return camera.image_distance_mm * s
+
+
+def defocus_radius_mm(camera: Camera, points_mm: np.ndarray) -> np.ndarray:
+    """Radius of each point's blur disc on the MLA (the aperture's cone cut by the MLA plane), mm.
+
+    A point at distance d in front of the main lens images at si' with 1 / si' = 1 / F - 1 / d;
+    its cone of light, of diameter D at the lens, has at the MLA the radius
+    (D / 2) |si / si' - 1| = (D / 2) si |1 / so - 1 / d|: zero on the focal plane.
+
+    Parameters
+    ----------
+    camera
+        The camera.
+    points_mm
+        (..., 3) world points, mm.
+
+    Returns
+    -------
+    numpy.ndarray
+        (...) blur radius on the MLA, mm; NaN for points at or behind the lens plane.
+    """
+    e = camera.world_to_camera(points_mm)
+    depth = camera.object_distance_mm - e[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(depth > 0, 1.0 / depth, np.nan)
+    return 0.5 * camera.aperture_mm * camera.image_distance_mm * np.abs(1.0 / camera.object_distance_mm - inv)
+
+
+def image_scale(camera: Camera, points_mm: np.ndarray) -> np.ndarray:
+    """Local transverse scale si / d of the main lens' image on the MLA at each point's depth.
+
+    A small object (a dot of radius r) at distance d in front of the lens spans about
+    r si / d on the MLA (|M| on the focal plane), before its defocus blur.
+
+    Returns
+    -------
+    numpy.ndarray
+        (...) scale, dimensionless; NaN at or behind the lens plane.
+    """
+    e = camera.world_to_camera(points_mm)
+    depth = camera.object_distance_mm - e[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(depth > 0, camera.image_distance_mm / depth, np.nan)
 
 
 def project(camera: Camera, points_mm: np.ndarray, *, radial_k1: float = 0.0,

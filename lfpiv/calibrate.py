@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,8 +35,8 @@ from lfpiv import __version__
 from lfpiv.acquire import open_rig
 from lfpiv.errors import UsageError
 
-__all__ = ["MlaResult", "calibrate_fit", "calibrate_mla", "calibrate_volume", "default_board", "plot_grids",
-           "plot_rms"]
+__all__ = ["MlaResult", "calibrate_fit", "calibrate_mla", "calibrate_volume", "calibrated_rig", "default_board",
+           "plot_grids", "plot_rms"]
 
 
 @dataclass(frozen=True)
@@ -370,7 +370,7 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
         store.write_model(fit.camera.name, fit.model_dict(), {
             "rms_px": fit.rms_px, "plane_rms_px": [None if not np.isfinite(v) else float(v) for v in fit.plane_rms_px],
             "plane_dots": [int(n) for n in fit.plane_dots], "lattice_rms_px": fit.lattice_rms_px,
-            "radial_k1": fit.radial_k1, "std": fit.std, "dropped": fit.dropped,
+            "radial_k1": fit.radial_k1, "std": fit.std, "dropped": fit.dropped, "set_aside": fit.set_aside,
             "views": "chief ray and four half-aperture views per dot"})
     return fits
 
@@ -407,3 +407,59 @@ def plot_rms(store: CalibrationStore, out: str | Path) -> Path:
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
+
+
+def calibrated_rig(run_rig: Rig, calibration: str | Path, cameras: Sequence[str] | None = None
+                   ) -> tuple[Rig, dict[str, Any]]:
+    """A run's rig with its cameras replaced by the fitted models of a calibration store.
+
+    Everything but the cameras (volume, laser, timing) stays the run's; each camera of the run
+    takes the fitted model of the camera of the same name.
+
+    Parameters
+    ----------
+    run_rig
+        The rig stored in the run.
+    calibration
+        Calibration store with fitted models (``lfpiv calibrate fit``).
+    cameras
+        The cameras that need a model (default: every camera of the run).
+
+    Returns
+    -------
+    rig : Rig
+        The run's rig with the fitted cameras.
+    info : dict
+        Which calibration was used (JSON-compatible, for the ``volumes/`` attrs): the store's
+        path and creation time and, per camera, the reprojection RMS in pixels.
+
+    Raises
+    ------
+    UsageError
+        A store that cannot be opened, a camera with no fitted model in it (naming the camera
+        and ``lfpiv calibrate fit``), or a model whose sensor differs from the run's camera.
+    """
+    try:
+        store = CalibrationStore.open(calibration)
+    except CalibrationStoreError as exc:
+        raise UsageError(str(exc)) from None
+    need = set(cameras) if cameras else {c.name for c in run_rig.camera}
+    cams, rms = [], {}
+    for cam in run_rig.camera:
+        model = store.model(cam.name) if cam.name in store.cameras else None
+        if model is None:
+            if cam.name in need:
+                raise UsageError(f"camera '{cam.name}': no fitted model in {store.path}; run 'lfpiv calibrate fit "
+                                 f"{store.path}' first")
+            cams.append(cam)
+            continue
+        fitted = Camera.model_validate(model["camera"])
+        if tuple(fitted.sensor_px) != tuple(cam.sensor_px):
+            raise UsageError(f"camera '{cam.name}': the calibration's model has {fitted.sensor_px[0]} x "
+                             f"{fitted.sensor_px[1]} pixels but the run's camera {cam.sensor_px[0]} x "
+                             f"{cam.sensor_px[1]}; use the calibration of this rig")
+        cams.append(fitted.model_copy(update={"serial": cam.serial}))
+        rms[cam.name] = float(model["rms_px"])
+    info = {"store": str(Path(store.path).resolve()), "created": str(store.attrs.get("created", "")),
+            "rms_px": rms}
+    return run_rig.model_copy(update={"camera": tuple(cams)}), info

@@ -14,6 +14,7 @@ from lfcore import metrics
 from lfcore.device import resolve_device, warp
 from lfcore.projector import Projector
 from lfcore.reconstruct import ReconResult, ReconSettings, reconstruct
+from lfcore.rig import Rig
 from lfcore.runstore import RunStore, RunStoreError
 from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
@@ -58,11 +59,16 @@ def _available_bytes(device: str) -> int:
 def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[float] | None = None,
                     margin_mm: Sequence[float] = (0.0, 0.0, 0.0), pairs: str | None = None,
                     cameras: Sequence[str] | None = None, device: str | None = None,
-                    progress: bool = True) -> list[ReconResult]:
+                    progress: bool = True, rig: Rig | None = None,
+                    calibration: dict[str, Any] | None = None) -> list[ReconResult]:
     """Reconstruct both frames of the selected pairs and store them in ``volumes/``.
 
-    Existing volumes with the same grid, cameras and settings are kept and added to; otherwise
-    ``volumes/`` is replaced.
+    Existing volumes with the same grid, cameras, settings and calibration are kept and added
+    to; otherwise ``volumes/`` is replaced.
+
+    ``rig`` replaces the rig stored in the run (e.g. the run's rig with the fitted camera models
+    of a calibration, :func:`lfpiv.calibrate.calibrated_rig`); ``calibration`` says which
+    calibration that is and is kept in the ``volumes/`` settings (None: the run's own rig).
 
     Raises
     ------
@@ -70,7 +76,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         No committed pairs, a pair that was not recorded, an unknown camera, a bad PVR, or a
         box too big for the device's memory.
     """
-    rig = store.rig
+    rig = store.rig if rig is None else rig
     if store.committed_pairs == 0:
         raise UsageError(f"{store.path} has no recorded pairs (committed_pairs = 0); nothing to reconstruct")
     chosen = parse_pairs(pairs, store.n_pairs)
@@ -95,7 +101,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     projector = Projector(cams, grid, sub_apertures=settings.sub_apertures, device=device)
     cache = WeightCache(projector) if settings.method == "drt-mart" else None  # weights reused across frames
     meta = {**settings.as_dict(), "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
-            "cameras": names}
+            "cameras": names, "calibration": calibration}
     if not (store.has_volumes and store.volume_grid() == grid and store.group["volumes"].attrs["settings"] == meta):
         store.create_volumes(grid, method=settings.method, settings=meta)
 

@@ -149,8 +149,9 @@ def run_fit(args: argparse.Namespace) -> int:
     for fit in calibrate_fit(args.store, fit_distortion=args.distortion, min_dots=args.min_dots):
         c = fit.camera
         ox, oy = c.mla_offset_um
-        print(f"{c.name}: RMS {fit.rms_px:.4f} px over {int(fit.plane_dots.sum())} dots on "
-              f"{int((fit.plane_dots > 0).sum())} planes; magnification {c.magnification:.5f}, rotation "
+        print(f"{c.name}: RMS {fit.rms_px:.4f} px over {int(fit.plane_dots.sum())} clear dots on "
+              f"{int((fit.plane_dots > 0).sum())} planes ({fit.set_aside} weighted down or left out as "
+              f"in sharp focus or crowded); magnification {c.magnification:.5f}, rotation "
               f"[{', '.join(f'{v:.4f}' for v in c.rotation_deg)}] deg, focus "
               f"[{', '.join(f'{v:.4f}' for v in c.focus_mm)}] mm, MLA offset ({ox:+.3f}, {oy:+.3f}) um, rotation "
               f"{c.mla_rotation_deg:+.4f} deg" + (f", k1 {fit.radial_k1:+.2e}" if args.distortion else ""))

@@ -47,6 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
     r.add_argument("--sub-apertures", type=positive_int, default=None,
                    help="main-lens sub-apertures per axis for the DRT weights (default: pixels per lenslet)")
+    r.add_argument("--calibration", default=None, metavar="CALIB",
+                   help="calibration store (lfpiv calibrate fit): reconstruct with its fitted camera models "
+                   "instead of the rig stored in the run")
     add_device(r)
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=run)
@@ -67,14 +70,21 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     store = RunStore.open(args.run, mode="r+")
     cameras = [c.strip() for c in args.cameras.split(",")] if args.cameras else None
+    rig, calibration = None, None
+    if args.calibration is not None:
+        from lfpiv.calibrate import calibrated_rig
+
+        rig, calibration = calibrated_rig(store.rig, args.calibration, cameras)
     results = reconstruct_run(store, settings, pvr=args.pvr, margin_mm=args.margin_mm, pairs=args.pairs,
-                              cameras=cameras, device=args.device, progress=not args.quiet)
+                              cameras=cameras, device=args.device, progress=not args.quiet, rig=rig,
+                              calibration=calibration)
     grid = store.volume_grid()
     act = sum(r.active_fraction for r in results) / len(results)
     ms = sum(r.ms_per_iteration for r in results) / len(results)
     wb = max(r.weight_bytes for r in results)
     ws = sum(r.weights_s for r in results) / len(results)
     print(f"reconstructed {len(results)} volume(s) of {' x '.join(map(str, grid.shape[::-1]))} voxels (x, y, z) "
-          f"with {args.method} into {store.path}/volumes; per volume: {act:.2%} of voxels active, "
+          f"with {args.method}{' and the models of ' + args.calibration if calibration else ''} into "
+          f"{store.path}/volumes; per volume: {act:.2%} of voxels active, "
           f"weights {wb / 2**20:.1f} MiB built in {ws:.2f} s, {ms:.1f} ms per iteration")
     return 0
