@@ -13,8 +13,10 @@ Stages, for each pair taken:
    estimated on the first pair and refreshed every ``background_every`` pairs, not per frame;
 2. DRT-MART of frames A and B with monitoring settings (few iterations; the iterations and the
    relaxation can be changed while it runs): the projector (geometry on the device), the pixel
-   buffers and the voxel-intensity buffer are built once and reused; the elimination and the
-   sparse weights are per frame, as DRT-MART's active voxels follow the particles;
+   buffers and the voxel-intensity buffer are built once and reused; the elimination is per
+   frame, as DRT-MART's active voxels follow the particles, and a
+   :class:`~lfcore.weight_cache.WeightCache` keeps the weights of every voxel already traced,
+   so a frame traces only voxels no earlier frame activated;
 3. 3D multi-grid correlation (one or two passes, no deformation by default) with a
    :class:`~lfcore.correlate.Correlator` whose device buffers are allocated once;
 4. derived quantities: velocity in m/s, vorticity; maximum-intensity projections and one slice
