@@ -143,16 +143,30 @@ def run_volume(args: argparse.Namespace) -> int:
     return 0
 
 
+def _pose_change_deg(a: tuple[float, float, float], b: tuple[float, float, float]) -> float:
+    """Angle (degrees) of the rotation between two poses; near ry = 90 deg the Euler angles of an
+    almost unchanged pose can differ wildly, this angle does not."""
+    import numpy as np
+
+    from lfcore.rig import rotation_matrix
+
+    r = rotation_matrix(a).T @ rotation_matrix(b)
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+
+
 def run_fit(args: argparse.Namespace) -> int:
+    from calibration.store import CalibrationStore
     from lfpiv.calibrate import calibrate_fit
 
+    nominal = CalibrationStore.open(args.store).rig
     for fit in calibrate_fit(args.store, fit_distortion=args.distortion, min_dots=args.min_dots):
         c = fit.camera
+        turned = _pose_change_deg(nominal.camera_named(c.name).rotation_deg, c.rotation_deg)
         ox, oy = c.mla_offset_um
         print(f"{c.name}: RMS {fit.rms_px:.4f} px over {int(fit.plane_dots.sum())} clear dots on "
               f"{int((fit.plane_dots > 0).sum())} planes ({fit.set_aside} weighted down or left out as "
               f"in sharp focus or crowded); magnification {c.magnification:.5f}, rotation "
-              f"[{', '.join(f'{v:.4f}' for v in c.rotation_deg)}] deg, focus "
+              f"[{', '.join(f'{v:.4f}' for v in c.rotation_deg)}] deg ({turned:.3f} deg from the rig file), focus "
               f"[{', '.join(f'{v:.4f}' for v in c.focus_mm)}] mm, MLA offset ({ox:+.3f}, {oy:+.3f}) um, rotation "
               f"{c.mla_rotation_deg:+.4f} deg" + (f", k1 {fit.radial_k1:+.2e}" if args.distortion else ""))
     print(f"wrote the models to {args.store}")
