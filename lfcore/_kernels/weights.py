@@ -631,6 +631,37 @@ def compact(mask: wp.array(dtype=wp.int32), scan: wp.array(dtype=wp.int32), out:
         out[scan[v] - 1] = v
 
 
+@wp.func
+def _sum_runs(
+    pix: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
+    w_raw: wp.array(dtype=float),
+    s: int,
+    e: int,
+    out_pix: wp.array(dtype=wp.int32),
+    out_w: wp.array(dtype=float),
+):
+    """Sum the weights of entries ``s .. e - 1`` (sorted by pixel) that share a pixel, writing one
+    entry per pixel from ``s``; returns how many. ``order`` maps sorted entries to ``w_raw``."""
+    m = int(0)
+    prev = int(-1)
+    acc = float(0.0)
+    for t in range(s, e):
+        p = pix[t]
+        if p != prev and prev >= 0:
+            out_pix[s + m] = prev
+            out_w[s + m] = acc
+            m += 1
+            acc = float(0.0)
+        prev = p
+        acc += w_raw[order[t]]
+    if prev >= 0:
+        out_pix[s + m] = prev
+        out_w[s + m] = acc
+        m += 1
+    return m
+
+
 @wp.kernel
 def merge_sorted(
     starts: wp.array(dtype=wp.int32),
@@ -644,24 +675,7 @@ def merge_sorted(
 ):
     """Sum the entries of one voxel that share a pixel (its entries sorted by pixel)."""
     v = wp.tid()
-    s = starts[v]
-    m = int(0)
-    prev = int(-1)
-    acc = float(0.0)
-    for t in range(s, ends[v]):
-        p = pix_sorted[t]
-        if p != prev and prev >= 0:
-            out_pix[s + m] = prev
-            out_w[s + m] = acc
-            m += 1
-            acc = float(0.0)
-        prev = p
-        acc += w_raw[order[t]]
-    if prev >= 0:
-        out_pix[s + m] = prev
-        out_w[s + m] = acc
-        m += 1
-    counts[v] = m
+    counts[v] = _sum_runs(pix_sorted, order, w_raw, starts[v], ends[v], out_pix, out_w)
 
 
 @wp.func
@@ -758,23 +772,7 @@ def sort_merge(
         for t in range(s, s + n):
             pix[t] = tmp_pix[t]
             order[t] = tmp_ord[t]
-    m = int(0)
-    prev = int(-1)
-    acc = float(0.0)
-    for t in range(s, s + n):
-        p = pix[t]
-        if p != prev and prev >= 0:
-            out_pix[s + m] = prev
-            out_w[s + m] = acc
-            m += 1
-            acc = float(0.0)
-        prev = p
-        acc += w_raw[order[t]]
-    if prev >= 0:
-        out_pix[s + m] = prev
-        out_w[s + m] = acc
-        m += 1
-    counts[v] = m
+    counts[v] = _sum_runs(pix, order, w_raw, s, s + n, out_pix, out_w)
 
 
 @wp.kernel
