@@ -52,3 +52,30 @@ def warn_optics(rig) -> None:
     """Print the rig's optics warnings, one line each, on stderr."""
     for w in rig.optics_warnings():
         print(f"lfpiv: warning: {w}", file=sys.stderr)
+
+
+def add_sim_options(parser: argparse.ArgumentParser) -> None:
+    """The ``--sim-*`` options of commands that can run on the simulated lab."""
+    parser.add_argument("--sim-flow", default="vortex-ring", metavar="FLOW",
+                        help="simulated lab only: the flow the simulated cameras see (default: vortex-ring)")
+    parser.add_argument("--sim-ppm", type=float, default=0.5, metavar="PPM",
+                        help="simulated lab only: seeding in particles per microlens (default: 0.5)")
+    parser.add_argument("--sim-rays", type=positive_int, default=None, metavar="N",
+                        help="simulated lab only: rays per particle when rendering (default: the rig's)")
+    parser.add_argument("--sim-pool", type=positive_int, default=4, metavar="PAIRS",
+                        help="simulated lab only: distinct pairs rendered and cycled through (default: 4)")
+
+
+def sim_lab_options(rig, args: argparse.Namespace) -> dict | None:
+    """Keyword arguments of :class:`sim.lab.SimLab` from the ``--sim-*`` options, or None for
+    real hardware. A bad flow or density is a one-line :class:`~lfpiv.errors.UsageError`."""
+    if rig.hardware != "sim":
+        return None
+    from lfpiv.errors import UsageError
+    from sim.world import SimWorld  # the application is the one layer that wires the simulated lab
+
+    try:
+        world = SimWorld(rig, flow=args.sim_flow, ppm=args.sim_ppm)
+    except ValueError as exc:
+        raise UsageError(f"--sim-flow/--sim-ppm: {exc}") from None
+    return {"world": world, "pool_pairs": args.sim_pool, "rays_per_particle": args.sim_rays}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from lfpiv.commands import positive_int, warn_optics
+from lfpiv.commands import add_sim_options, positive_int, sim_lab_options, warn_optics
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,38 +20,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--overwrite", action="store_true", help="replace an existing run store at --out")
     s.add_argument("--ring", type=positive_int, default=32, metavar="PAIRS",
                    help="ring-buffer depth in pairs (default: 32)")
-    s.add_argument("--sim-flow", default="vortex-ring", metavar="FLOW",
-                   help="simulated lab only: the flow the simulated cameras see (default: vortex-ring)")
-    s.add_argument("--sim-ppm", type=float, default=0.5, metavar="PPM",
-                   help="simulated lab only: seeding in particles per microlens (default: 0.5)")
-    s.add_argument("--sim-rays", type=positive_int, default=None, metavar="N",
-                   help="simulated lab only: rays per particle when rendering (default: the rig's)")
-    s.add_argument("--sim-pool", type=positive_int, default=4, metavar="PAIRS",
-                   help="simulated lab only: distinct pairs rendered and cycled through (default: 4)")
+    add_sim_options(s)
     s.add_argument("--quiet", action="store_true", help="no progress line")
     s.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from lfpiv.acquire import check_plan, record
-    from lfpiv.errors import UsageError
     from lfpiv.rigfile import load_rig
 
     rig = load_rig(args.rig)
     warn_optics(rig)
     check_plan(rig, args.pairs)  # refuse an impossible timing before the simulated lab renders
-    sim_options = None
-    if rig.hardware == "sim":
-        from sim.world import SimWorld
-
-        try:
-            world = SimWorld(rig, flow=args.sim_flow, ppm=args.sim_ppm)
-        except ValueError as exc:
-            raise UsageError(f"--sim-flow/--sim-ppm: {exc}") from None
-        sim_options = {"world": world, "pool_pairs": args.sim_pool, "rays_per_particle": args.sim_rays}
-        if not args.quiet:
-            print(f"lfpiv: simulated lab: rendering {args.sim_pool} pair(s) of '{args.sim_flow}' per camera ...",
-                  file=sys.stderr)
+    sim_options = sim_lab_options(rig, args)
+    if sim_options is not None and not args.quiet:
+        print(f"lfpiv: simulated lab: rendering {args.sim_pool} pair(s) of '{args.sim_flow}' per camera ...",
+              file=sys.stderr)
 
     def show(st) -> None:
         if not args.quiet:

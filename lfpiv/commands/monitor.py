@@ -10,7 +10,15 @@ import sys
 import time
 from contextlib import ExitStack
 
-from lfpiv.commands import add_device, positive_float, positive_int, warn_optics, whole_number
+from lfpiv.commands import (
+    add_device,
+    add_sim_options,
+    positive_float,
+    positive_int,
+    sim_lab_options,
+    warn_optics,
+    whole_number,
+)
 from lfpiv.errors import UsageError
 
 
@@ -42,14 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--ring", type=positive_int, default=32, metavar="PAIRS",
                    help="ring-buffer depth in pairs (default: 32)")
     add_device(m)
-    m.add_argument("--sim-flow", default="vortex-ring", metavar="FLOW",
-                   help="simulated lab only: the flow the simulated cameras see (default: vortex-ring)")
-    m.add_argument("--sim-ppm", type=float, default=0.5, metavar="PPM",
-                   help="simulated lab only: seeding in particles per microlens (default: 0.5)")
-    m.add_argument("--sim-rays", type=positive_int, default=None, metavar="N",
-                   help="simulated lab only: rays per particle when rendering (default: the rig's)")
-    m.add_argument("--sim-pool", type=positive_int, default=4, metavar="PAIRS",
-                   help="simulated lab only: distinct pairs rendered and cycled through (default: 4)")
+    add_sim_options(m)
     m.add_argument("--quiet", action="store_true", help="no progress messages")
     m.set_defaults(func=run)
 
@@ -100,19 +101,12 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
             print(f"lfpiv monitor: {text}", file=sys.stderr)
 
     with ExitStack() as stack:
-        sim_options = None
-        if rig.hardware == "sim":
+        sim_options = sim_lab_options(rig, args)
+        if sim_options is not None:
             from sim.lab import SimLab  # the application is the one layer that wires the simulated lab
-            from sim.world import SimWorld
 
-            try:
-                world = SimWorld(rig, flow=args.sim_flow, ppm=args.sim_ppm)
-            except ValueError as exc:
-                raise UsageError(f"--sim-flow/--sim-ppm: {exc}") from None
             say(f"simulated lab: rendering {args.sim_pool} pair(s) of '{args.sim_flow}' per camera ...")
-            lab = stack.enter_context(SimLab(rig, world=world, pool_pairs=args.sim_pool,
-                                             rays_per_particle=args.sim_rays))
-            sim_options = {"lab": lab}
+            sim_options = {"lab": stack.enter_context(SimLab(rig, **sim_options))}
         grid = VolumeGrid.from_rig(rig)
         try:
             corr = CorrelationConfig(windows=default_windows(grid.shape, args.passes), overlap=0.5,
