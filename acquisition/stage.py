@@ -33,7 +33,7 @@ from types import TracebackType
 from typing import NoReturn
 
 from .protocols import DeviceError
-from .serial_link import LinkClosed, LinkError, SerialLink
+from .serial_link import LinkClosed, LinkError, LinkTimeout, SerialLink
 
 __all__ = ["ZaberReply", "ZaberStage", "parse_reply"]
 
@@ -293,6 +293,11 @@ class ZaberStage:
                         break
         except LinkClosed as exc:
             self._fail(cmd, str(exc), "check the USB/serial cable and the stage controller's power")
+        except LinkTimeout:
+            # read_line saw only the time left of the deadline; report the configured wait.
+            self._fail(cmd, f"no reply within {self._link.timeout_s:g} s",
+                       f"check the cable, the controller's power, baud rate ({self._link.baud}) "
+                       f"and device number ({self.device})")
         except LinkError as exc:
             self._fail(cmd, str(exc), f"check the cable, the controller's power, baud rate ({self._link.baud}) "
                        f"and device number ({self.device})")
