@@ -471,8 +471,17 @@ class Correlator:
         return self._def_a, self._def_b
 
     # --- the multi-grid correlation ---------------------------------------------------------
-    def _upload(self, volume: np.ndarray, dst):
-        """Copy one volume into its device buffer (allocated once)."""
+    def _upload(self, volume, dst):
+        """Copy one volume into its device buffer (allocated once); a volume already on the
+        device is used where it is."""
+        if isinstance(volume, self.wp.array):
+            if tuple(volume.shape) != self.shape or volume.dtype != self.wp.float32:
+                raise CorrelationError(f"this correlator takes float32 volumes of shape {self.shape} (z, y, x), got "
+                                       f"{volume.dtype.__name__} {tuple(volume.shape)}")
+            if str(volume.device) != self.device:
+                raise CorrelationError(f"the volume is on {volume.device}, the correlator on {self.device}; "
+                                       "build the correlator on the volume's device")
+            return volume
         v = np.asarray(volume)
         if v.shape != self.shape:
             raise CorrelationError(f"this correlator takes volumes of shape {self.shape} (z, y, x), got {v.shape}")
@@ -488,7 +497,9 @@ class Correlator:
         Parameters
         ----------
         volume_a, volume_b
-            (nz, ny, nx) float32 intensities of the first and second frame.
+            (nz, ny, nx) float32 intensities of the first and second frame: NumPy arrays, or
+            Warp arrays on the correlator's device (used in place, not copied; their values
+            are taken as finite, as a reconstruction makes them).
         progress
             Called with 1 after each pass.
 

@@ -215,7 +215,9 @@ class Projector:
         Parameters
         ----------
         lit
-            One boolean (rows, columns) image per camera: pixels with signal.
+            One boolean (rows, columns) image per camera: pixels with signal; or, already on
+            the projector's device, one (n_pixels,) uint8 Warp array of all cameras' pixels
+            (see :class:`lfcore.device_ops.ImagePreprocessor`).
         min_seen
             Fraction of a voxel's checked sub-apertures that must land on a camera's sensor.
         max_dark
@@ -227,10 +229,16 @@ class Projector:
             (n,) int32 flat voxel indices, ascending.
         """
         wp, kw = self.wp, self._kw
-        flat = np.concatenate([np.asarray(m, dtype=np.uint8).ravel() for m in lit])
-        if flat.size != self.n_pixels:
-            raise ValueError(f"lit masks hold {flat.size} pixels, the cameras {self.n_pixels}")
-        lit_dev = wp.array(flat, dtype=wp.uint8, device=self.device)
+        if isinstance(lit, wp.array):
+            if lit.dtype != wp.uint8 or lit.shape != (self.n_pixels,) or str(lit.device) != self.device:
+                raise ValueError(f"a device lit mask must be ({self.n_pixels},) uint8 on {self.device}, got "
+                                 f"{lit.shape} {lit.dtype.__name__} on {lit.device}")
+            lit_dev = lit
+        else:
+            flat = np.concatenate([np.asarray(m, dtype=np.uint8).ravel() for m in lit])
+            if flat.size != self.n_pixels:
+                raise ValueError(f"lit masks hold {flat.size} pixels, the cameras {self.n_pixels}")
+            lit_dev = wp.array(flat, dtype=wp.uint8, device=self.device)
         n = self.grid.n_voxels
         mask = wp.zeros(n, dtype=wp.int32, device=self.device)
         wp.launch(kw.eliminate, dim=n, device=self.device,
@@ -508,10 +516,33 @@ class Projector:
 
     def to_volume(self, weights: Weights, e) -> np.ndarray:
         """Dense (z, y, x) float32 volume with ``e`` at the weighted voxels, zero elsewhere."""
+        return self.scatter(weights, e).numpy()
+
+    def scatter(self, weights: Weights, e, out=None):
+        """Like :meth:`to_volume`, but the (z, y, x) volume stays on the device.
+
+        Parameters
+        ----------
+        weights, e
+            The reconstructed voxels and their (n,) intensities.
+        out
+            (nz, ny, nx) float32 Warp array to write (zeroed first); None: a new one.
+
+        Returns
+        -------
+        warp.array
+            ``out`` (or the new array), (nz, ny, nx) float32 on the projector's device.
+        """
         from lfcore._kernels import mart as km
 
         wp = self.wp
-        vol = wp.zeros(self.grid.n_voxels, dtype=float, device=self.device)
+        if out is None:
+            out = wp.zeros(self.grid.shape, dtype=float, device=self.device)
+        else:
+            if tuple(out.shape) != tuple(self.grid.shape):
+                raise ValueError(f"the volume must be {self.grid.shape} (z, y, x), got {out.shape}")
+            out.zero_()
         if weights.n_voxels:
-            wp.launch(km.scatter_volume, dim=weights.n_voxels, device=self.device, inputs=[weights.voxels, e, vol])
-        return vol.numpy().reshape(self.grid.shape)
+            flat = out.reshape(self.grid.n_voxels)
+            wp.launch(km.scatter_volume, dim=weights.n_voxels, device=self.device, inputs=[weights.voxels, e, flat])
+        return out

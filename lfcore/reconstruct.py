@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from lfcore.device_ops import VolumeOps
 from lfcore.projector import Projector
 from lfcore.weight_cache import WeightCache
 
@@ -163,18 +164,28 @@ def estimate_background(image: np.ndarray) -> tuple[float, float]:
     peak of width sigma, where particle light spreads broadly) and sigma from the pixels below
     the mode, which particle light cannot reach.
     """
-    v = np.asarray(image, dtype=np.float64).ravel()
+    image = np.asarray(image)
+    v = image.astype(np.float64).ravel()
     if v.size > 2_000_000:
         v = v[:: v.size // 2_000_000]
     lo, hi = np.percentile(v, [0.1, 90.0])
     if hi <= lo:
         return float(lo), 1e-6
-    bins = int(min(4096, max(64, np.ceil(hi - lo))))
+    if np.issubdtype(image.dtype, np.integer) or np.array_equal(v, np.round(v)):
+        # Whole counts: bins a whole number of counts wide and centred on them; narrower ones
+        # would leave most bins empty and put the histogram's peak anywhere.
+        width = max(1, int(np.ceil((hi - lo + 1) / 4096)))
+        lo = np.floor(lo) - 0.5
+        bins = max(1, int(np.ceil((np.ceil(hi) + 0.5 - lo) / width)))
+        hi = lo + bins * width
+    else:
+        bins = int(min(4096, max(64, np.ceil(hi - lo))))
     hist, edges = np.histogram(v, bins=bins, range=(lo, hi))
     smooth = ndimage.gaussian_filter1d(hist.astype(np.float64), 2.0)
     k = int(np.argmax(smooth))
     near = v[(v >= edges[max(k - 2, 0)]) & (v < edges[min(k + 3, bins)])]
-    level = float(near.mean())  # the peak located finer than a bin
+    # the peak located finer than a bin
+    level = float(near.mean()) if near.size else float(0.5 * (edges[k] + edges[k + 1]))
     below = v[v < level] - level
     sigma = float(np.sqrt(np.mean(below**2))) if below.size > 10 else 1e-6
     return level, max(sigma, 1e-6)
@@ -276,9 +287,10 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
             progress(1)
     wp.synchronize_device(dev)
     t2 = time.perf_counter()
-    volume = projector.to_volume(weights, e)
-    if settings.smooth > 0:
-        volume = ndimage.gaussian_filter(volume, settings.smooth, mode="constant", truncate=3.0)
+    vol = projector.scatter(weights, e)
+    if settings.smooth > 0:  # on the device: a host filter would dominate a large GPU volume
+        VolumeOps(projector.grid.shape, dev).smooth(vol, settings.smooth)
+    volume = vol.numpy()
     return ReconResult(volume=volume, active_voxels=n, active_fraction=n / projector.grid.n_voxels,
                        nnz=weights.nnz, weight_bytes=weights.nbytes, weights_s=t1 - t0, iterate_s=t2 - t1,
                        iterations=settings.iterations, background=backgrounds, noise=noises)

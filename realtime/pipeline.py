@@ -1,27 +1,35 @@
 """The live pipeline: the newest recorded pair to a volume, vectors and vorticity, near real time.
 
-It runs in its own thread beside the recorder (DESIGN.md, "Data flow") and never slows it: it
-takes the newest complete pair from the session's :class:`~acquisition.ring.PairRing`, copies
-its frames into its own staging buffers (the only time it touches the ring, a memcpy), checks
-the slot's generation (the ring's seqlock) and discards the copy if the recorder's side reused
-the slot meanwhile. Pairs that arrived since the last one it took are skipped and counted.
+It runs beside the recorder (DESIGN.md, "Data flow") and never slows it. A feeder thread
+copies the newest complete pair out of the session's :class:`~acquisition.ring.PairRing` into
+a host staging slot (pinned memory on a GPU machine; the only time it touches the ring, a
+memcpy), checks the slot's generation (the ring's seqlock) and discards the copy if the
+recorder's side reused the slot meanwhile. Pairs that arrived since the last one taken are
+skipped and counted; a newer pair replaces a ready one not yet picked up. The copy of the next
+pair thus overlaps the work on the current one, and on a GPU so does its upload: the pipeline
+starts the next pair's upload on a CUDA stream of its own while the current pair's kernels
+run, and the device waits for it with an event, not the host.
 
-Stages, for each pair taken:
+Stages, on the pipeline's own thread, for each pair:
 
-1. preprocess: background subtraction and the lit-pixel mask (:func:`lfcore.reconstruct.preprocess`'s
-   rule), into preallocated buffers; the background level and noise of each camera are
-   estimated on the first pair and refreshed every ``background_every`` pairs, not per frame;
+1. preprocess on the device: the raw 16-bit frames (half the bytes of float signal) become the
+   background-subtracted signal and the lit-pixel mask (:func:`lfcore.reconstruct.preprocess`'s
+   rule, :class:`~lfcore.device_ops.ImagePreprocessor`); the background level and noise of each
+   camera are estimated on the host on the first pair and refreshed every ``background_every``
+   pairs, not per frame;
 2. DRT-MART of frames A and B with monitoring settings (few iterations; the iterations and the
    relaxation can be changed while it runs): the projector (geometry on the device), the pixel
-   buffers and the voxel-intensity buffer are built once and reused; the elimination is per
-   frame, as DRT-MART's active voxels follow the particles, and a
+   buffers and two volume buffers are built once and reused; the elimination is per frame, as
+   DRT-MART's active voxels follow the particles, and a
    :class:`~lfcore.weight_cache.WeightCache` keeps the weights of every voxel already traced,
-   so a frame traces only voxels no earlier frame activated;
+   so a frame traces only voxels no earlier frame activated; the volumes are scattered and
+   smoothed on the device;
 3. 3D multi-grid correlation (one or two passes, no deformation by default) with a
-   :class:`~lfcore.correlate.Correlator` whose device buffers are allocated once;
+   :class:`~lfcore.correlate.Correlator` whose device buffers are allocated once, reading the
+   volumes where they are;
 4. derived quantities: velocity in m/s, vorticity; maximum-intensity projections and one slice
-   of the volume, and the in-plane vectors and out-of-plane vorticity of the vector plane
-   nearest that slice.
+   of volume A (computed on the device: only these planes come to the host), and the in-plane
+   vectors and out-of-plane vorticity of the vector plane nearest that slice.
 
 Each result is a :class:`LiveResult` handed to every subscriber on the pipeline's thread;
 subscribers must return quickly (the monitor puts it on a Qt queued signal).
@@ -36,10 +44,10 @@ from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
-from scipy import ndimage
 
 from acquisition.ring import PairView
 from lfcore.correlate import CorrelationConfig, Correlator, VectorField
+from lfcore.device_ops import ImagePreprocessor, VolumeOps
 from lfcore.projector import Projector
 from lfcore.reconstruct import ReconSettings, estimate_background
 from lfcore.rig import Rig
@@ -262,7 +270,13 @@ class LiveStats:
 
 
 class _Reconstructor:
-    """DRT-MART of one frame at a time with everything but the per-frame weights built once."""
+    """DRT-MART of one frame at a time with everything but the per-frame weights built once.
+
+    Everything per pair stays on the device: the raw frames arrive there as uint16, are
+    preprocessed there (:class:`~lfcore.device_ops.ImagePreprocessor`), reconstructed, scattered
+    into two preallocated volumes and smoothed there (:class:`~lfcore.device_ops.VolumeOps`),
+    and the correlator reads those volumes where they are.
+    """
 
     def __init__(self, rig: Rig, cameras: Sequence[str], grid: VolumeGrid, recon: ReconSettings,
                  device: str | None) -> None:
@@ -275,71 +289,90 @@ class _Reconstructor:
         self.wp = p.wp
         self.device = p.device
         self.offsets = [int(o) for o in p.pixel_offsets]
-        self.signal = np.zeros(p.n_pixels, dtype=np.float32)
-        self.lit = np.zeros(p.n_pixels, dtype=bool)
-        self.image = self.wp.zeros(p.n_pixels, dtype=float, device=self.device)
-        self.proj = self.wp.zeros(p.n_pixels, dtype=float, device=self.device)
-        self.e = self.wp.zeros(max(1024, grid.n_voxels // 64), dtype=float, device=self.device)
+        self.pre = ImagePreprocessor(self.cams, device=self.device)
+        self.ops = VolumeOps(grid.shape, device=self.device)
+        wp = self.wp
+        self.signal = [wp.zeros(p.n_pixels, dtype=float, device=self.device) for _ in range(2)]
+        self.lit = [wp.zeros(p.n_pixels, dtype=wp.uint8, device=self.device) for _ in range(2)]
+        self.volumes = [self.ops.empty() for _ in range(2)]
+        self.proj = wp.zeros(p.n_pixels, dtype=float, device=self.device)
+        self.e = wp.zeros(max(1024, grid.n_voxels // 64), dtype=float, device=self.device)
         self.background: list[tuple[float, float] | None] = [None] * len(self.cams)
 
-    def _views(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+    def camera_image(self, frames: np.ndarray, f: int, k: int) -> np.ndarray:
+        """Camera ``k``'s (rows, columns) view of frame ``f`` of flat (2, n_pixels) host frames."""
         rows, cols = self.cams[k].sensor_px[1], self.cams[k].sensor_px[0]
-        a, b = self.offsets[k], self.offsets[k + 1]
-        return self.signal[a:b].reshape(rows, cols), self.lit[a:b].reshape(rows, cols)
+        return frames[f, self.offsets[k]:self.offsets[k + 1]].reshape(rows, cols)
 
-    def estimate_background(self, images: Sequence[np.ndarray]) -> None:
-        for k, img in enumerate(images):
-            level, sigma = estimate_background(img)
+    def estimate_background(self, frames: np.ndarray) -> None:
+        """Each camera's background level and noise, from frame A of flat host frames."""
+        for k in range(len(self.cams)):
+            level, sigma = estimate_background(self.camera_image(frames, 0, k))
             if self.recon.background is not None:
                 level = self.recon.background
             self.background[k] = (level, sigma)
 
-    def preprocess(self, images: Sequence[np.ndarray]) -> None:
-        """Background-subtracted signal and lit mask of every camera, into the shared buffers."""
-        thr = self.recon.threshold_sigma
-        for k, img in enumerate(images):
-            level, sigma = self.background[k]  # type: ignore[misc]
-            sig, lit = self._views(k)
-            np.subtract(img, np.float32(level), out=sig, dtype=np.float32)
-            np.greater(sig, np.float32(thr * sigma), out=lit)
-            np.multiply(sig, lit, out=sig)
-            if self.recon.lit_grow > 0:
-                lit[...] = ndimage.binary_dilation(lit, structure=np.ones((3, 3), bool),
-                                                   iterations=self.recon.lit_grow)
+    def preprocess(self, raw) -> None:
+        """Signal and lit mask of both frames of the (2, n_pixels) uint16 device array ``raw``."""
+        levels = [b[0] for b in self.background]  # type: ignore[index]
+        thresholds = [self.recon.threshold_sigma * b[1] for b in self.background]  # type: ignore[index]
+        for f in (0, 1):
+            self.pre(raw[f], levels, thresholds, self.signal[f], self.lit[f], grow=self.recon.lit_grow)
 
-    def weights(self):
+    def weights(self, f: int):
         r = self.recon
-        voxels = self.projector.eliminate([self._views(k)[1] for k in range(len(self.cams))], r.min_seen,
-                                          r.max_dark)
+        voxels = self.projector.eliminate(self.lit[f], r.min_seen, r.max_dark)
         return self.cache.weights(voxels)
 
-    def iterate(self, weights, iterations: int, relaxation: float):
+    def iterate(self, f: int, weights, iterations: int, relaxation: float):
         """Uniform start scaled to the measured signal, then ``iterations`` SMART updates."""
         wp, p = self.wp, self.projector
         n = weights.n_voxels
         if self.e.shape[0] < n:
             self.e = wp.zeros(int(n * 1.5) + 1, dtype=float, device=self.device)
         e = self.e[: max(n, 1)]
-        self.image.assign(self.signal)
         if n == 0:
             return e
+        image = self.signal[f]
         e.fill_(1.0)
         p.forward(weights, e, self.proj)
         total = float(wp.utils.array_sum(self.proj))
-        e.fill_(float(self.signal.sum(dtype=np.float64)) / total if total > 0 else 0.0)
+        e.fill_(float(wp.utils.array_sum(image)) / total if total > 0 else 0.0)
         noise = np.mean([s for _, s in self.background])  # type: ignore[misc]
         floor = max(self.recon.floor * self.recon.threshold_sigma * float(noise), 1e-6)
         for _ in range(iterations):
             p.forward(weights, e, self.proj)
-            p.smart_update(weights, self.image, self.proj, e, relaxation, floor)
+            p.smart_update(weights, image, self.proj, e, relaxation, floor)
         wp.synchronize_device(self.device)
         return e
 
-    def volume(self, weights, e) -> np.ndarray:
-        vol = self.projector.to_volume(weights, e)
-        if self.recon.smooth > 0:
-            vol = ndimage.gaussian_filter(vol, self.recon.smooth, mode="constant", truncate=3.0)
+    def volume(self, f: int, weights, e):
+        """Frame ``f``'s (z, y, x) volume, smoothed, in its device buffer."""
+        vol = self.projector.scatter(weights, e, self.volumes[f])
+        self.ops.smooth(vol, self.recon.smooth)
         return vol
+
+
+@dataclass(eq=False)
+class _Slot:
+    """Host staging for one pair: (2, n_pixels) uint16 frames, pinned on a GPU machine."""
+
+    host: object  # warp.array on the CPU
+    frames: np.ndarray  # its NumPy view
+    view: PairView | None = None
+    source: object = None
+    copy_s: float = 0.0
+
+
+@dataclass(eq=False)
+class _Job:
+    """A pair on its way to the device: the slot, the device frames, the upload's event."""
+
+    slot: _Slot
+    raw: object  # (2, n_pixels) uint16 warp.array on the device
+    buffer: int  # which device buffer (-1 on the CPU, where the slot itself is used)
+    uploaded: object = None  # warp.Event on a GPU
+    released: bool = False  # the host slot was given back
 
 
 class LivePipeline:
@@ -398,7 +431,13 @@ class LivePipeline:
         self._error: str | None = None
         self._recon: _Reconstructor | None = None
         self._correlator: Correlator | None = None
-        self._staging: dict[str, np.ndarray] = {}
+        # Staging (see _feed and _next_job): host slots the feeder thread fills with the newest
+        # pair, the one pair ready for the pipeline, and the one already on its way to the device.
+        self._slots_cv = threading.Condition()
+        self._free: list[_Slot] = []
+        self._ready: _Slot | None = None
+        self._prefetched: _Job | None = None
+        self._feeder: threading.Thread | None = None
         if source is not None:
             self.attach(source)
 
@@ -442,10 +481,23 @@ class LivePipeline:
         """Build the projector and the correlator and their buffers (once; :meth:`start` does it
         on the pipeline's thread if not done before)."""
         if self._recon is None:
-            self._recon = _Reconstructor(self.rig, self.cameras, self.grid, self.recon, self.device_request)
-            self._correlator = Correlator(self.grid.shape, self.correlation, device=self._recon.device)
-            self._staging = {c.name: np.zeros((2, c.sensor_px[1], c.sensor_px[0]), dtype=np.uint16)
-                             for c in self._recon.cams}
+            rc = _Reconstructor(self.rig, self.cameras, self.grid, self.recon, self.device_request)
+            self._correlator = Correlator(self.grid.shape, self.correlation, device=rc.device)
+            wp, n = rc.wp, rc.projector.n_pixels
+            gpu = rc.device != "cpu"
+            # Four host slots: one being filled, one ready, one prefetched, one being preprocessed.
+            for _ in range(4):
+                host = wp.empty((2, n), dtype=wp.uint16, device="cpu", pinned=gpu)
+                self._free.append(_Slot(host=host, frames=host.numpy()))
+            if gpu:
+                # Uploads run on a stream of their own so that the next pair's copy overlaps the
+                # kernels of the current one; two device buffers alternate between them.
+                self._copy_stream = wp.Stream(rc.device)
+                self._dev_raw = [wp.empty((2, n), dtype=wp.uint16, device=rc.device) for _ in range(2)]
+                self._uploaded = [wp.Event(rc.device) for _ in range(2)]
+                self._consumed = [wp.Event(rc.device) for _ in range(2)]
+                self._next_buffer = 0
+            self._recon = rc
 
     @property
     def device(self) -> str | None:
@@ -526,96 +578,224 @@ class LivePipeline:
                 self._error = f"building the live pipeline failed: {type(exc).__name__}: {exc}"
                 self._state = "stopped"
             return
+        self._feeder = threading.Thread(target=self._feed, name="lfpiv-live-feed", daemon=True)
+        self._feeder.start()
+        try:
+            while not self._stop.is_set():
+                if self._paused.is_set():
+                    self._set_state("paused")
+                    self._drop_pending()
+                    self._wake.wait(0.1)
+                    self._wake.clear()
+                    continue
+                job = self._next_job()
+                if job is None:
+                    self._set_state("waiting")
+                    with self._slots_cv:
+                        if self._ready is None and not self._stop.is_set():
+                            self._slots_cv.wait(self.poll_s)
+                    continue
+                self._set_state("processing")
+                view = job.slot.view
+                try:
+                    result = self._process(job)
+                except Exception as exc:  # noqa: BLE001 - a bad pair must not end the live view
+                    self._release(job)
+                    with self._lock:
+                        self._error = f"pair {view.pair}: {type(exc).__name__}: {exc}"
+                    continue
+                self._publish(result)
+        finally:
+            self._stop.set()
+            with self._slots_cv:
+                self._slots_cv.notify_all()
+            self._feeder.join(10.0)
+            self._drop_pending()  # taken but never processed: skipped
+            with self._lock:
+                self._state = "stopped"
+
+    # --- staging: the feeder thread and the hand-over ---------------------------------------------
+    def _feed(self) -> None:
+        """Copy the newest pair not yet taken into a free host slot and make it the ready one.
+
+        Runs on a thread of its own with host work only (a memcpy out of the ring), so the copy
+        of the next pair overlaps the processing of the current one. A newer pair replaces a
+        ready one that the pipeline has not yet picked up (that one counts as skipped): the
+        pipeline always starts on the newest complete pair.
+        """
         while not self._stop.is_set():
             if self._paused.is_set():
-                self._set_state("paused")
-                self._wake.wait(0.1)
-                self._wake.clear()
+                self._stop.wait(0.05)
                 continue
-            taken = self._take()
-            if taken is None:
-                self._set_state("waiting")
-                self._wake.wait(self.poll_s)
-                self._wake.clear()
+            with self._lock:
+                src, last = self._source, self._last_taken
+            view = src.latest() if src is not None else None
+            if view is None or view.pair <= last:
+                self._stop.wait(self.poll_s)
                 continue
-            self._set_state("processing")
-            view, copy_s = taken
-            try:
-                result = self._process(view, copy_s)
-            except Exception as exc:  # noqa: BLE001 - a bad pair must not end the live view
+            with self._slots_cv:
+                slot = self._free.pop() if self._free else None
+                if slot is None:
+                    self._slots_cv.wait(self.poll_s)
+                    continue
+            t0 = time.perf_counter()
+            rc = self._recon
+            for k, c in enumerate(self.cameras):
+                for f in (0, 1):
+                    np.copyto(rc.camera_image(slot.frames, f, k), view.frames[c][f])  # type: ignore[union-attr]
+            ok = src.still_valid(view)
+            slot.view, slot.source, slot.copy_s = view, src, time.perf_counter() - t0
+            with self._lock:
+                current = self._source is src
+                if current:
+                    self._skipped += view.pair - last - 1
+                    self._last_taken = view.pair
+                    if not ok:
+                        self._discarded += 1
+            if not (current and ok):
+                self._free_slot(slot)
+                continue
+            with self._slots_cv:
+                replaced, self._ready = self._ready, slot
+                if replaced is not None:
+                    self._free.append(replaced)
+                self._slots_cv.notify_all()
+            if replaced is not None:
                 with self._lock:
-                    self._error = f"pair {view.pair}: {type(exc).__name__}: {exc}"
-                continue
-            self._publish(result)
-        with self._lock:
-            self._state = "stopped"
+                    self._skipped += 1
 
-    def _take(self) -> tuple[PairView, float] | None:
-        """Copy the newest pair not yet taken into the staging buffers; None if there is none."""
-        with self._lock:
-            src, last = self._source, self._last_taken
-        if src is None:
-            return None
-        view = src.latest()
-        if view is None or view.pair <= last:
-            return None
-        t0 = time.perf_counter()
-        for c in self.cameras:
-            np.copyto(self._staging[c], view.frames[c])
-        ok = src.still_valid(view)
-        with self._lock:
-            if self._source is not src:
-                return None  # a new recording was attached meanwhile
-            self._skipped += view.pair - last - 1
-            self._last_taken = view.pair
-            if not ok:
-                self._discarded += 1
-        return (view, time.perf_counter() - t0) if ok else None
+    def _free_slot(self, slot: _Slot) -> None:
+        slot.view = slot.source = None
+        with self._slots_cv:
+            self._free.append(slot)
+            self._slots_cv.notify_all()
 
-    def _process(self, view: PairView, copy_s: float) -> LiveResult:
+    def _upload(self, slot: _Slot) -> _Job:
+        """Start the slot's frames on their way to the device (on the GPU: the copy stream)."""
+        rc = self._recon
+        assert rc is not None
+        if rc.device == "cpu":
+            return _Job(slot=slot, raw=slot.host, buffer=-1)
+        i = self._next_buffer
+        self._next_buffer ^= 1
+        s = self._copy_stream
+        s.wait_event(self._consumed[i])  # the pair before last has been preprocessed out of buffer i
+        rc.wp.copy(self._dev_raw[i], slot.host, stream=s)
+        s.record_event(self._uploaded[i])
+        return _Job(slot=slot, raw=self._dev_raw[i], buffer=i, uploaded=self._uploaded[i])
+
+    def _release(self, job: _Job) -> None:
+        """The job's host slot is free once its upload is done (once only)."""
+        if job.released:
+            return
+        job.released = True
+        if job.uploaded is not None:
+            self._recon.wp.synchronize_event(job.uploaded)  # type: ignore[union-attr]
+        self._free_slot(job.slot)
+
+    def _claim_ready(self) -> _Slot | None:
+        with self._slots_cv:
+            slot, self._ready = self._ready, None
+        if slot is not None and slot.source is not self._source:  # from a recording since detached
+            self._free_slot(slot)
+            return None
+        return slot
+
+    def _next_job(self) -> _Job | None:
+        """The newest pair: the prefetched one unless a newer one is ready."""
+        pre, self._prefetched = self._prefetched, None
+        if pre is not None and pre.slot.source is not self._source:  # from a recording since detached
+            self._release(pre)
+            pre = None
+        slot = self._claim_ready()
+        if pre is None:
+            return None if slot is None else self._upload(slot)
+        if slot is None:
+            return pre
+        self._release(pre)  # a newer pair came in since the prefetch: take that one instead
+        with self._lock:
+            self._skipped += 1
+        return self._upload(slot)
+
+    def _prefetch(self) -> None:
+        """If a pair is ready and none is prefetched, start its upload now (overlapping the
+        current pair's kernels on the GPU)."""
+        if self._prefetched is None:
+            slot = self._claim_ready()
+            if slot is not None:
+                self._prefetched = self._upload(slot)
+
+    def _drop_pending(self) -> None:
+        """Give back the ready and the prefetched pair, counting them as skipped."""
+        dropped = 0
+        pre, self._prefetched = self._prefetched, None
+        if pre is not None:
+            self._release(pre)
+            dropped += 1
+        with self._slots_cv:
+            slot, self._ready = self._ready, None
+        if slot is not None:
+            self._free_slot(slot)
+            dropped += 1
+        if dropped:
+            with self._lock:
+                self._skipped += dropped
+
+    # --- one pair ----------------------------------------------------------------------------------
+    def _process(self, job: _Job) -> LiveResult:
         assert self._recon is not None and self._correlator is not None
         rc = self._recon
         s = self._settings
-        t: dict[str, float] = {"copy": copy_s, "preprocess": 0.0, "weights": 0.0, "iterate": 0.0, "volume": 0.0}
+        slot, view = job.slot, job.slot.view
+        assert view is not None
+        t: dict[str, float] = {"copy": slot.copy_s, "preprocess": 0.0, "weights": 0.0, "iterate": 0.0,
+                               "volume": 0.0}
         start = time.perf_counter()
+        if job.uploaded is not None:  # kernels wait for the upload on the device, not the host
+            rc.wp.get_stream(rc.device).wait_event(job.uploaded)
+        if rc.background[0] is None or (s.background_every > 0 and self._processed % s.background_every == 0):
+            rc.estimate_background(slot.frames)
+        rc.preprocess(job.raw)
+        if job.buffer >= 0:
+            rc.wp.get_stream(rc.device).record_event(self._consumed[job.buffer])
+        raw = {c: rc.camera_image(slot.frames, 0, k).copy() for k, c in enumerate(self.cameras)}
+        self._release(job)
+        t["preprocess"] = time.perf_counter() - start
         vols, active = [], []
-        refresh = rc.background[0] is None or (s.background_every > 0 and self._processed % s.background_every == 0)
         for f in (0, 1):
-            images = [self._staging[c][f] for c in self.cameras]
-            t0 = time.perf_counter()
-            if refresh and f == 0:
-                rc.estimate_background(images)
-            rc.preprocess(images)
             t1 = time.perf_counter()
-            w = rc.weights()
+            w = rc.weights(f)
             t2 = time.perf_counter()
-            e = rc.iterate(w, s.iterations, s.relaxation)
+            e = rc.iterate(f, w, s.iterations, s.relaxation)
             t3 = time.perf_counter()
-            vols.append(rc.volume(w, e))
+            vols.append(rc.volume(f, w, e))
             t4 = time.perf_counter()
             active.append(w.n_voxels / self.grid.n_voxels)
-            for k, a, b in (("preprocess", t0, t1), ("weights", t1, t2), ("iterate", t2, t3), ("volume", t3, t4)):
+            for k, a, b in (("weights", t1, t2), ("iterate", t2, t3), ("volume", t3, t4)):
                 t[k] += b - a
+            self._prefetch()
         t0 = time.perf_counter()
         vf = self._correlator(vols[0], vols[1])
         t1 = time.perf_counter()
-        result = self._derive(view, vols[0], vf, s, float(np.mean(active)), t)
+        result = self._derive(view, raw, vols[0], vf, s, float(np.mean(active)), t)
         t["correlate"] = t1 - t0
         t["derive"] = time.perf_counter() - t1
-        t["total"] = time.perf_counter() - start + copy_s
+        t["total"] = time.perf_counter() - start + slot.copy_s
         return result
 
-    def _derive(self, view: PairView, vol: np.ndarray, vf: VectorField, s: LiveSettings, active: float,
-                t: dict[str, float]) -> LiveResult:
+    def _derive(self, view: PairView, raw: dict[str, np.ndarray], vol, vf: VectorField, s: LiveSettings,
+                active: float, t: dict[str, float]) -> LiveResult:
+        """Velocity, vorticity and what the monitor shows; ``vol`` is volume A on the device."""
         g = self.grid
         vel = displacement_to_velocity(vf.displacement, g.voxel_mm, self.dt_s)
         x_mm, y_mm, z_mm = centres_mm((vf.x, vf.y, vf.z), g.origin_mm, g.voxel_mm)
         vort = vorticity(np.nan_to_num(vel), x_mm, y_mm, z_mm)
-        mip = {"z": vol.max(axis=0), "y": vol.max(axis=1), "x": vol.max(axis=2)}
+        ops = self._recon.ops  # type: ignore[union-attr]
+        mip = {a: ops.projection(vol, ax) for ax, a in enumerate("zyx")}  # only these come to the host
         ax = "zyx".index(s.slice_axis)  # array axis of the volume
         n = g.shape[ax]
         idx = n // 2 if s.slice_index is None else int(np.clip(s.slice_index, 0, n - 1))
-        sl = np.take(vol, idx, axis=ax).copy()
+        sl = ops.plane(vol, ax, idx)
         # the vector plane nearest the voxel slice
         centres_vox = {"x": vf.x, "y": vf.y, "z": vf.z}[s.slice_axis]
         vi = int(np.argmin(np.abs(np.asarray(centres_vox) - idx)))
@@ -634,7 +814,7 @@ class LivePipeline:
             latency = float("nan")
         with self._lock:
             seq, skipped, discarded = self._processed, self._skipped, self._discarded
-        return LiveResult(pair=view.pair, sequence=seq, raw={c: self._staging[c][0].copy() for c in self.cameras},
+        return LiveResult(pair=view.pair, sequence=seq, raw=raw,
                           mip=mip, slice_axis=s.slice_axis, slice_index=idx, slice_image=sl, extent_mm=extent,
                           vectors=vs, velocity=vel, vorticity=vort, grid_mm=(x_mm, y_mm, z_mm),
                           outlier_fraction=float(np.mean(vf.outlier)), active_fraction=active, timings=t,

@@ -150,6 +150,18 @@ def test_background_estimate(tiny_rig):
     assert sigma == pytest.approx(np.sqrt(100.0 + 9.0), rel=0.15)  # shot and read noise
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_background_estimate_of_narrow_integer_counts(seed):
+    # Low noise in whole counts spans few values: the histogram's bins must not be narrower than
+    # a count (they once were, and the level came out NaN for some images).
+    rng = np.random.default_rng(seed)
+    img = rng.normal(100.0, 3.0, size=(160, 192))
+    img[rng.random(img.shape) < 0.05] += 400.0  # particle light
+    for im in (img.round().astype(np.uint16), img.round().astype(np.float32)):
+        level, sigma = estimate_background(im)
+        assert level == pytest.approx(100.0, abs=0.5) and sigma == pytest.approx(3.0, rel=0.2)
+
+
 def test_weights_that_do_not_fit_are_refused(tiny_rig):
     proj = Projector(tiny_rig.camera, VolumeGrid.from_rig(tiny_rig), device="cpu")
     with pytest.raises(MemoryBudgetError, match=r"the weights need .* GiB .* use a coarser --pvr"):

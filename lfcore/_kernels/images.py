@@ -1,0 +1,58 @@
+"""Raw-image preprocessing on the device: background subtraction, the lit mask, its growth.
+
+The same rules as :func:`lfcore.reconstruct.preprocess`, so that a live pipeline can upload
+raw 16-bit frames (half the bytes of float signal) and never bring pixels back to the host.
+Images are flat: camera ``k``'s pixels are ``offset .. offset + rows * cols - 1`` of the
+concatenated sensor, row-major.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from lfcore.device import warp as _init
+
+_init()
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def subtract_threshold(
+    raw: wp.array(dtype=wp.uint16),
+    offset: int,
+    level: float,
+    threshold: float,
+    signal: wp.array(dtype=float),
+    lit: wp.array(dtype=wp.uint8),
+):
+    """signal = raw - level where that exceeds ``threshold`` (else 0); lit = 1 there."""
+    i = offset + wp.tid()
+    s = float(raw[i]) - level
+    if s > threshold:
+        signal[i] = s
+        lit[i] = wp.uint8(1)
+    else:
+        signal[i] = 0.0
+        lit[i] = wp.uint8(0)
+
+
+@wp.kernel
+def dilate3x3(
+    src: wp.array(dtype=wp.uint8),
+    offset: int,
+    rows: int,
+    cols: int,
+    dst: wp.array(dtype=wp.uint8),
+):
+    """dst = binary dilation of ``src`` by a 3 x 3 square; pixels outside the image count as dark."""
+    r, c = wp.tid()
+    hit = wp.uint8(0)
+    for dr in range(-1, 2):
+        rr = r + dr
+        if rr >= 0 and rr < rows:
+            for dc in range(-1, 2):
+                cc = c + dc
+                if cc >= 0 and cc < cols:
+                    if src[offset + rr * cols + cc] != wp.uint8(0):
+                        hit = wp.uint8(1)
+    dst[offset + r * cols + c] = hit

@@ -1,0 +1,152 @@
+"""Image and volume operations that keep the data on the Warp device.
+
+The live pipeline uploads raw 16-bit frames once and brings back only what a person looks at
+(projections, one slice) and the vectors; these classes do the steps in between on the device
+with buffers allocated once. Their results equal the host versions
+(:func:`lfcore.reconstruct.preprocess`, ``scipy.ndimage.gaussian_filter`` with
+``mode="constant", truncate=3.0``, ``numpy.max``) to float32 rounding.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from lfcore.device import resolve_device, warp
+from lfcore.rig import Camera
+
+__all__ = ["ImagePreprocessor", "VolumeOps", "gaussian_taps"]
+
+
+def gaussian_taps(sigma: float, truncate: float = 3.0) -> np.ndarray:
+    """Normalised 1-D Gaussian taps (2 r + 1,), r = int(truncate sigma + 0.5), as SciPy's."""
+    radius = int(truncate * float(sigma) + 0.5)
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    taps = np.exp(-0.5 * (x / float(sigma)) ** 2)
+    return (taps / taps.sum()).astype(np.float32)
+
+
+class ImagePreprocessor:
+    """Background subtraction and the lit mask of every camera's raw frame, on the device.
+
+    Parameters
+    ----------
+    cameras
+        The cameras, in the order their pixels are concatenated (the projector's order).
+    device
+        Warp device; None for the first GPU, else the CPU.
+
+    Notes
+    -----
+    Inputs are flat uint16 arrays of all cameras' pixels (camera after camera, each row-major),
+    ``n_pixels`` long. Outputs, into caller-provided arrays of the same length: the float32
+    signal (raw minus the background level where that exceeds the threshold, zero elsewhere)
+    and the uint8 lit mask, grown by ``grow`` pixels with a 3 x 3 square (pixels past the
+    image border count as dark), exactly as :func:`lfcore.reconstruct.preprocess`.
+    """
+
+    def __init__(self, cameras: Sequence[Camera], device: str | None = None) -> None:
+        from lfcore._kernels import images as ki
+
+        self._k = ki
+        self.wp = warp()
+        self.device = resolve_device(device)
+        self.shapes = [(int(c.sensor_px[1]), int(c.sensor_px[0])) for c in cameras]
+        sizes = [r * c for r, c in self.shapes]
+        self.offsets = [0, *np.cumsum(sizes).tolist()]
+        self.n_pixels = int(self.offsets[-1])
+        self._grown = self.wp.empty(self.n_pixels, dtype=self.wp.uint8, device=self.device)
+
+    def __call__(self, raw, levels: Sequence[float], thresholds: Sequence[float], signal, lit, grow: int = 0,
+                 stream=None) -> None:
+        """Preprocess one frame of every camera.
+
+        Parameters
+        ----------
+        raw
+            (n_pixels,) uint16 Warp array on the device: the raw frames, in counts.
+        levels, thresholds
+            Per camera, the background level and the signal threshold above it, in counts.
+        signal, lit
+            (n_pixels,) float32 and uint8 Warp arrays written.
+        grow
+            Pixels by which the lit mask is widened.
+        stream
+            CUDA stream to launch on (None: the device's current stream).
+        """
+        wp, k, d = self.wp, self._k, self.device
+        for i, (rows, cols) in enumerate(self.shapes):
+            wp.launch(k.subtract_threshold, dim=rows * cols, device=d, stream=stream,
+                      inputs=[raw, self.offsets[i], float(levels[i]), float(thresholds[i]), signal, lit])
+        for _ in range(int(grow)):
+            for i, (rows, cols) in enumerate(self.shapes):
+                wp.launch(k.dilate3x3, dim=(rows, cols), device=d, stream=stream,
+                          inputs=[lit, self.offsets[i], rows, cols, self._grown])
+            wp.copy(lit, self._grown, stream=stream)
+
+
+class VolumeOps:
+    """Gaussian smoothing, maximum-intensity projections and slices of (z, y, x) volumes on the device.
+
+    Parameters
+    ----------
+    shape
+        (nz, ny, nx) of the volumes.
+    device
+        Warp device; None for the first GPU, else the CPU.
+    """
+
+    def __init__(self, shape: tuple[int, int, int], device: str | None = None) -> None:
+        from lfcore._kernels import volumes as kv
+
+        self._k = kv
+        self.wp = warp()
+        self.device = resolve_device(device)
+        self.shape = tuple(int(n) for n in shape)
+        self._tmp: object | None = None
+        self._taps: dict[float, object] = {}
+        nz, ny, nx = self.shape
+        self._planes = {0: (ny, nx), 1: (nz, nx), 2: (nz, ny)}
+        self._mip = {a: self.wp.empty(s, dtype=float, device=self.device) for a, s in self._planes.items()}
+        self._slice = {a: self.wp.empty(s, dtype=float, device=self.device) for a, s in self._planes.items()}
+
+    def empty(self):
+        """A new (z, y, x) float32 volume on the device (contents undefined)."""
+        return self.wp.empty(self.shape, dtype=float, device=self.device)
+
+    def smooth(self, vol, sigma: float) -> None:
+        """Gaussian-smooth ``vol`` in place (sigma in voxels, every axis; zero outside).
+
+        Equals ``scipy.ndimage.gaussian_filter(vol, sigma, mode="constant", truncate=3.0)``.
+        """
+        if sigma <= 0:
+            return
+        wp, d = self.wp, self.device
+        if self._tmp is None:
+            self._tmp = self.empty()
+        taps = self._taps.get(float(sigma))
+        if taps is None:
+            taps = self._taps[float(sigma)] = wp.array(gaussian_taps(sigma), dtype=float, device=d)
+        radius = (taps.shape[0] - 1) // 2
+        # z into tmp, y back into vol, x into tmp, then tmp copied to vol
+        src, dst = vol, self._tmp
+        for axis in (0, 1, 2):
+            wp.launch(self._k.convolve_axis, dim=self.shape, device=d, inputs=[src, taps, radius, axis, dst])
+            src, dst = dst, src
+        wp.copy(vol, src)
+
+    def projection(self, vol, axis: int) -> np.ndarray:
+        """Maximum-intensity projection along array ``axis`` (0 z, 1 y, 2 x), on the host."""
+        out = self._mip[axis]
+        self.wp.launch(self._k.max_along, dim=self._planes[axis], device=self.device, inputs=[vol, axis, out])
+        return out.numpy().copy()
+
+    def plane(self, vol, axis: int, index: int) -> np.ndarray:
+        """The plane ``index`` normal to array ``axis``, on the host."""
+        if not 0 <= index < self.shape[axis]:
+            raise IndexError(f"slice {index} is outside the volume's {self.shape[axis]} planes along axis {axis}")
+        out = self._slice[axis]
+        self.wp.launch(self._k.take_slice, dim=self._planes[axis], device=self.device,
+                       inputs=[vol, axis, int(index), out])
+        return out.numpy().copy()
