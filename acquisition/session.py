@@ -29,7 +29,7 @@ import numpy as np
 
 from acquisition.protocols import Camera, DeviceError
 from acquisition.ring import PairRing
-from lfcore.runstore import RunStore
+from lfcore.runstore import FrameWriter, RunStore
 
 __all__ = ["RecordingSession", "SessionStats"]
 
@@ -117,7 +117,7 @@ class RecordingSession:
         self._pool = ThreadPoolExecutor(max_workers=max(1, writer_threads), thread_name_prefix="lfpiv-writer")
         self._on_commit = on_commit
         # Array handles opened once: opening one reads its metadata from disk.
-        self._frames = {c.name: store.frames(c.name) for c in cameras}
+        self._frames = {c.name: FrameWriter(store.frames(c.name)) for c in cameras}
         self._ids = {c.name: store.group[f"{c.name}/frame_id"] for c in cameras}
         self._stamps = {c.name: store.group[f"{c.name}/timestamp_ns"] for c in cameras}
         self._next_settle = 0
@@ -293,9 +293,9 @@ class RecordingSession:
     def _write_frames(self, first: int, statuses: np.ndarray) -> list[tuple[dict, dict, int]]:
         # Writes the frames of pairs first .. first + len(statuses) - 1, whose ring slots are
         # consecutive; returns per pair the frame ids and timestamps (-1 where dropped) and the
-        # number of frames written. A camera whose frames are all present is written with one
-        # zarr call (its chunks are encoded and stored concurrently), as per-call overhead, not
-        # bandwidth, limits small frames.
+        # number of frames written. A camera whose frames are all present is written in one
+        # call (through zarr, its chunks are encoded and stored concurrently), as per-call
+        # overhead, not bandwidth, limits small frames.
         n = len(statuses)
         slots = [self.ring.slot_of(first + i) for i in range(n)]
         out = [({}, {}, 0) for _ in range(n)]
@@ -304,7 +304,7 @@ class RecordingSession:
             whole = all(s is not None for s in slots) and bool(np.all(statuses[:, ci] == _IN_RING))
             if whole:
                 s0 = slots[0]
-                self._frames[name][first:first + n] = self.ring.data[name][s0:s0 + n]
+                self._frames[name].write_pairs(first, self.ring.data[name][s0:s0 + n])
             for i, s in enumerate(slots):
                 ids = np.full(2, -1, dtype=np.int64)
                 stamps = np.full(2, -1, dtype=np.int64)
@@ -313,7 +313,7 @@ class RecordingSession:
                     for k in range(2):
                         if statuses[i, ci, k] == _IN_RING:
                             if not whole:
-                                self._frames[name][first + i, k] = self.ring.data[name][s, k]
+                                self._frames[name].write(first + i, k, self.ring.data[name][s, k])
                             ids[k] = self.ring.frame_id[name][s, k]
                             stamps[k] = self.ring.timestamp_ns[name][s, k]
                             written += 1

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import zarr
 
-from lfcore.runstore import RunStore, RunStoreError
+from lfcore.runstore import FRAME_CODEC, FrameWriter, RunStore, RunStoreError
 
 
 def test_round_trip(tiny_rig, tmp_path):
@@ -82,3 +82,37 @@ def test_volumes_round_trip(tiny_rig, tmp_path):
     assert v.shape == (2, 2, *grid.shape) and v.dtype == np.float32
     assert np.array_equal(v[1, 1], 2 * vol) and not v[0].any()
     assert r.group["volumes"].attrs["method"] == "drt-mart"
+
+
+def test_frame_writer_writes_the_chunks_zarr_writes(tiny_rig, tmp_path):
+    rng = np.random.default_rng(2)
+    frames = (rng.normal(100, 5, (3, 2, 160, 192)) + (rng.random((3, 2, 160, 192)) < 0.02) * 3000).astype(np.uint16)
+    ours = RunStore.create(tmp_path / "ours.zarr", tiny_rig, 4, timing={}, software_version="0")
+    ref = RunStore.create(tmp_path / "ref.zarr", tiny_rig, 4, timing={}, software_version="0")
+    w = FrameWriter(ours.frames("cam0"))
+    assert w.direct
+    w.write_pairs(0, frames[:2])
+    w.write(3, 1, frames[2, 1])
+    ref.frames("cam0")[0:2] = frames[:2]
+    ref.frames("cam0")[3, 1] = frames[2, 1]
+    back = RunStore.open(tmp_path / "ours.zarr").frames("cam0")
+    assert np.array_equal(back[0:2], frames[:2]) and np.array_equal(back[3, 1], frames[2, 1])
+    assert not back[2].any() and not back[3, 0].any()  # never written: the fill value
+    for key in ("c/0/0/0/0", "c/1/1/0/0", "c/3/1/0/0"):  # byte for byte what zarr writes
+        a = (tmp_path / "ours.zarr" / "cam0" / "frames" / key).read_bytes()
+        assert a == (tmp_path / "ref.zarr" / "cam0" / "frames" / key).read_bytes() and len(a) < frames[0, 0].nbytes
+    assert not (tmp_path / "ours.zarr" / "cam0" / "frames" / "c" / "2").exists()
+
+
+def test_frame_writer_goes_through_zarr_for_other_layouts(tmp_path):
+    g = zarr.open_group(tmp_path / "g.zarr", mode="w")
+    plain = g.create_array("plain", shape=(2, 2, 8, 8), chunks=(1, 1, 8, 8), dtype=np.uint16, fill_value=0)
+    wide = g.create_array("wide", shape=(2, 2, 8, 8), chunks=(1, 2, 8, 8), dtype=np.uint16, fill_value=0,
+                          compressors=FRAME_CODEC)
+    img = np.arange(64, dtype=np.uint16).reshape(8, 8)
+    for arr in (plain, wide):
+        w = FrameWriter(arr)
+        assert not w.direct
+        w.write(1, 1, img)
+        w.write_pairs(0, np.stack([[img, img]]))
+        assert np.array_equal(arr[1, 1], img) and np.array_equal(arr[0, 0], img)
