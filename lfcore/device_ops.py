@@ -106,10 +106,7 @@ class VolumeOps:
         self.shape = tuple(int(n) for n in shape)
         self._tmp: object | None = None
         self._taps: dict[float, object] = {}
-        nz, ny, nx = self.shape
-        self._planes = {0: (ny, nx), 1: (nz, nx), 2: (nz, ny)}
-        self._mip = {a: self.wp.empty(s, dtype=float, device=self.device) for a, s in self._planes.items()}
-        self._slice = {a: self.wp.empty(s, dtype=float, device=self.device) for a, s in self._planes.items()}
+        self._planes: dict[int, object] = {}  # per axis, one plane buffer (made on first use)
 
     def empty(self):
         """A new (z, y, x) float32 volume on the device (contents undefined)."""
@@ -136,17 +133,21 @@ class VolumeOps:
             src, dst = dst, src
         wp.copy(vol, src)
 
+    def _to_host(self, kernel, vol, axis: int, *args) -> np.ndarray:
+        """Run a plane kernel (output: the volume's shape without ``axis``) and copy its plane to the host."""
+        out = self._planes.get(axis)
+        if out is None:
+            dims = tuple(n for i, n in enumerate(self.shape) if i != axis)
+            out = self._planes[axis] = self.wp.empty(dims, dtype=float, device=self.device)
+        self.wp.launch(kernel, dim=out.shape, device=self.device, inputs=[vol, axis, *args, out])
+        return out.numpy().copy()
+
     def projection(self, vol, axis: int) -> np.ndarray:
         """Maximum-intensity projection along array ``axis`` (0 z, 1 y, 2 x), on the host."""
-        out = self._mip[axis]
-        self.wp.launch(self._k.max_along, dim=self._planes[axis], device=self.device, inputs=[vol, axis, out])
-        return out.numpy().copy()
+        return self._to_host(self._k.max_along, vol, axis)
 
     def plane(self, vol, axis: int, index: int) -> np.ndarray:
         """The plane ``index`` normal to array ``axis``, on the host."""
         if not 0 <= index < self.shape[axis]:
             raise IndexError(f"slice {index} is outside the volume's {self.shape[axis]} planes along axis {axis}")
-        out = self._slice[axis]
-        self.wp.launch(self._k.take_slice, dim=self._planes[axis], device=self.device,
-                       inputs=[vol, axis, int(index), out])
-        return out.numpy().copy()
+        return self._to_host(self._k.take_slice, vol, axis, int(index))

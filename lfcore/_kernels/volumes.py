@@ -15,6 +15,17 @@ _init()
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.func
+def along(vol: wp.array3d(dtype=float), axis: int, k: int, a: int, b: int):
+    """The voxel at index ``k`` along ``axis`` (0 z, 1 y, 2 x), ``a`` and ``b`` the other two
+    indices in array order."""
+    if axis == 0:
+        return vol[k, a, b]
+    if axis == 1:
+        return vol[a, k, b]
+    return vol[a, b, k]
+
+
 @wp.kernel
 def convolve_axis(
     src: wp.array3d(dtype=float),
@@ -27,23 +38,16 @@ def convolve_axis(
     zero outside the volume (SciPy's mode="constant")."""
     z, y, x = wp.tid()
     n = src.shape[axis]
-    pos = z
+    pos, a, b = z, y, x
     if axis == 1:
-        pos = y
+        pos, a, b = y, z, x
     elif axis == 2:
-        pos = x
+        pos, a, b = x, z, y
     acc = float(0.0)
     for k in range(-radius, radius + 1):
         q = pos + k
         if q >= 0 and q < n:
-            v = float(0.0)
-            if axis == 0:
-                v = src[q, y, x]
-            elif axis == 1:
-                v = src[z, q, x]
-            else:
-                v = src[z, y, q]
-            acc += taps[k + radius] * v
+            acc += taps[k + radius] * along(src, axis, q, a, b)
     dst[z, y, x] = acc
 
 
@@ -55,17 +59,9 @@ def max_along(
 ):
     """Maximum-intensity projection along ``axis``; ``out`` is the volume's shape without it."""
     a, b = wp.tid()
-    n = vol.shape[axis]
     m = float(-3.0e38)
-    for k in range(n):
-        v = float(0.0)
-        if axis == 0:
-            v = vol[k, a, b]
-        elif axis == 1:
-            v = vol[a, k, b]
-        else:
-            v = vol[a, b, k]
-        m = wp.max(m, v)
+    for k in range(vol.shape[axis]):
+        m = wp.max(m, along(vol, axis, k, a, b))
     out[a, b] = m
 
 
@@ -78,9 +74,4 @@ def take_slice(
 ):
     """The plane ``index`` normal to ``axis``; ``out`` is the volume's shape without it."""
     a, b = wp.tid()
-    if axis == 0:
-        out[a, b] = vol[index, a, b]
-    elif axis == 1:
-        out[a, b] = vol[a, index, b]
-    else:
-        out[a, b] = vol[a, b, index]
+    out[a, b] = along(vol, axis, index, a, b)
