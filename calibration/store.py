@@ -41,7 +41,7 @@ __all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationStore", "CalibrationStoreErro
 
 FORMAT = "lfpiv-calibration"
 FORMAT_VERSION = 1
-_CODEC = BloscCodec(cname="lz4", clevel=1, shuffle="shuffle")
+_CODEC = BloscCodec(cname="lz4", clevel=1, shuffle="bitshuffle")  # raw camera frames, like FRAME_CODEC
 
 
 class CalibrationStoreError(ValueError):
