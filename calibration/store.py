@@ -31,37 +31,36 @@ from typing import Any
 
 import numpy as np
 import zarr
-from zarr.codecs import BloscCodec
 
 from calibration.mla_grid import MlaGrid
-from lfcore.rig import Camera, Rig, RigError
+from lfcore.rig import Camera, Rig
+from lfcore.runstore import FRAME_CODEC
 from lfcore.target import DotBoard
+from lfcore.zarrstore import RigStore, array_attrs
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationStore", "CalibrationStoreError"]
 
 FORMAT = "lfpiv-calibration"
 FORMAT_VERSION = 1
-_CODEC = BloscCodec(cname="lz4", clevel=1, shuffle="bitshuffle")  # raw camera frames, like FRAME_CODEC
+_CODEC = FRAME_CODEC  # white and plane images are raw camera frames too
 
 
 class CalibrationStoreError(ValueError):
     """A calibration store that cannot be created or read; one line saying what to do."""
 
 
-def _attrs(units: str, axes: list[str], description: str) -> dict[str, Any]:
-    return {"units": units, "axes": axes, "description": description}
-
-
-class CalibrationStore:
+class CalibrationStore(RigStore):
     """Read and write access to one calibration store.
 
     Use :meth:`open_or_create` (the calibrate commands add to one store step by step),
     :meth:`create` or :meth:`open`.
     """
 
-    def __init__(self, group: zarr.Group, path: Path) -> None:
-        self.group = group
-        self.path = path
+    FORMAT = FORMAT
+    FORMAT_VERSION = FORMAT_VERSION
+    KIND = "lfpiv calibration store"
+    HINT = "give the path of a calibration store (made by 'lfpiv calibrate mla' or 'lfpiv calibrate volume')"
+    Error = CalibrationStoreError
 
     # --- creation and opening -----------------------------------------------------------
     @classmethod
@@ -99,20 +98,7 @@ class CalibrationStore:
             If ``path`` does not exist or is not a calibration store.
         """
         path = Path(path)
-        if not path.exists():
-            raise CalibrationStoreError(f"{path} does not exist; give the path of a calibration store "
-                                        "(made by 'lfpiv calibrate mla' or 'lfpiv calibrate volume')")
-        try:
-            root = zarr.open_group(str(path), mode=mode, zarr_format=3)
-        except Exception as exc:  # zarr raises several types for "not a group"
-            raise CalibrationStoreError(f"{path} is not a calibration store (no zarr v3 group there: "
-                                        f"{type(exc).__name__})") from None
-        if root.attrs.get("format") != FORMAT:
-            raise CalibrationStoreError(f"{path} is a zarr group but not an lfpiv calibration store "
-                                        f"(format {root.attrs.get('format')!r})")
-        if root.attrs.get("format_version", 0) > FORMAT_VERSION:
-            raise CalibrationStoreError(f"{path} was written by a newer lfpiv (format_version "
-                                        f"{root.attrs['format_version']}); upgrade lfpiv")
+        root = cls._open_root(path, mode)
         return cls(root, path)
 
     @classmethod
@@ -131,21 +117,6 @@ class CalibrationStore:
         return store
 
     # --- metadata -----------------------------------------------------------------------
-    @property
-    def attrs(self) -> dict[str, Any]:
-        return dict(self.group.attrs)
-
-    @property
-    def rig(self) -> Rig:
-        try:
-            return Rig.from_dict(self.group.attrs["rig"], source=f"{self.path} (rig)")
-        except RigError as exc:
-            raise CalibrationStoreError(str(exc)) from None
-
-    @property
-    def cameras(self) -> list[str]:
-        return [c["name"] for c in self.group.attrs["rig"]["camera"]]
-
     def _camera(self, camera: str) -> zarr.Group:
         if camera not in self.cameras:
             raise CalibrationStoreError(f"{self.path} has no camera '{camera}' (it has {self.cameras})")
@@ -159,7 +130,7 @@ class CalibrationStore:
         a = g.create_array("white", shape=img.shape, chunks=img.shape, dtype=np.uint16, compressors=_CODEC,
                            overwrite=True)
         a[...] = img
-        a.attrs.update(_attrs("counts", ["row", "column"], "white (uniformly lit) image, mean of frames"))
+        a.attrs.update(array_attrs("counts", ["row", "column"], "white (uniformly lit) image, mean of frames"))
         a.attrs["frames_averaged"] = int(frames_averaged)
 
     def white(self, camera: str) -> np.ndarray | None:
@@ -187,7 +158,7 @@ class CalibrationStore:
             shape = (n, 2) if data.ndim == 2 else (n,)
             a = m.create_array(name, shape=shape, chunks=shape, dtype=dtype, overwrite=True)
             a[...] = np.asarray(data, dtype=dtype)
-            a.attrs.update(_attrs(units, axes, what))
+            a.attrs.update(array_attrs(units, axes, what))
         m.attrs.update({
             "grid": grid.grid, "pitch_px": grid.pitch_px, "rotation_deg": grid.rotation_deg,
             "offset_px": list(grid.offset_px), "rms_px": grid.rms_px, "origin_px": list(grid.origin_px),
@@ -237,12 +208,12 @@ class CalibrationStore:
             n = len(targets)
             f = p.create_array("frames", shape=(n, rows, cols), chunks=(1, rows, cols), dtype=np.uint16,
                                fill_value=0, compressors=_CODEC)
-            f.attrs.update(_attrs("counts", ["plane", "row", "column"], "raw light-field image of the dot target"))
+            f.attrs.update(array_attrs("counts", ["plane", "row", "column"], "raw light-field image of the dot target"))
             s = p.create_array("stage_mm", shape=(n,), chunks=(n,), dtype=np.float64, fill_value=np.nan)
-            s.attrs.update(_attrs("mm", ["plane"], "stage position read back after the move; NaN: not taken yet"))
+            s.attrs.update(array_attrs("mm", ["plane"], "stage position read back after the move; NaN: not taken yet"))
             t = p.create_array("target_mm", shape=(n,), chunks=(n,), dtype=np.float64)
             t[...] = targets
-            t.attrs.update(_attrs("mm", ["plane"], "stage position requested"))
+            t.attrs.update(array_attrs("mm", ["plane"], "stage position requested"))
 
     def write_plane(self, camera: str, plane: int, image: np.ndarray, stage_mm: float) -> None:
         """Store one plane's image; the readback is written last, so a plane is never marked done

@@ -33,8 +33,9 @@ import zarr
 from zarr.codecs import BloscCodec, BytesCodec
 from zarr.storage import LocalStore
 
-from lfcore.rig import Rig, RigError
+from lfcore.rig import Rig
 from lfcore.volume import VolumeGrid
+from lfcore.zarrstore import RigStore, array_attrs
 
 __all__ = ["RunStore", "RunStoreError", "STATES"]
 
@@ -125,19 +126,17 @@ class RunStoreError(ValueError):
     """A run store that cannot be created or read; the message says what to do."""
 
 
-def _attrs(units: str, axes: list[str], description: str) -> dict[str, Any]:
-    return {"units": units, "axes": axes, "description": description}
-
-
-class RunStore:
+class RunStore(RigStore):
     """Read and write access to one run.
 
     Use :meth:`create` for a new run and :meth:`open` for an existing one.
     """
 
-    def __init__(self, group: zarr.Group, path: Path) -> None:
-        self.group = group
-        self.path = path
+    FORMAT = FORMAT
+    FORMAT_VERSION = FORMAT_VERSION
+    KIND = "lfpiv run store"
+    HINT = "give the path of a run store (a .zarr directory)"
+    Error = RunStoreError
 
     # --- creation and opening -----------------------------------------------------------
     @classmethod
@@ -172,18 +171,18 @@ class RunStore:
             g.attrs.update({"sensor_px": [cols, rows]})
             frames = g.create_array("frames", shape=(n_pairs, 2, rows, cols), chunks=(1, 1, rows, cols),
                                     dtype=np.uint16, fill_value=0, compressors=FRAME_CODEC)
-            frames.attrs.update(_attrs("counts", ["pair", "frame", "row", "column"],
-                                       "raw light-field images; frame 0 is A, 1 is B"))
+            frames.attrs.update(array_attrs("counts", ["pair", "frame", "row", "column"],
+                                            "raw light-field images; frame 0 is A, 1 is B"))
             for name, units, what in (("frame_id", "1", "camera frame counter"),
                                       ("timestamp_ns", "ns", "camera or host timestamp")):
                 a = g.create_array(name, shape=(n_pairs, 2), chunks=(min(n_pairs, 1024), 2), dtype=np.int64,
                                    fill_value=-1)
-                a.attrs.update(_attrs(units, ["pair", "frame"], what + "; -1 where never written"))
+                a.attrs.update(array_attrs(units, ["pair", "frame"], what + "; -1 where never written"))
         drops = root.create_group("drops")
         drops.attrs.update({"description": "every frame that was not recorded, with the reason"})
         for name, (dtype, fill, what) in _DROP_FIELDS.items():
             a = drops.create_array(name, shape=(0,), chunks=(4096,), dtype=dtype, fill_value=fill)
-            a.attrs.update(_attrs("ns" if name == "timestamp_ns" else "1", ["drop"], what))
+            a.attrs.update(array_attrs("ns" if name == "timestamp_ns" else "1", ["drop"], what))
         return cls(root, path)
 
     @staticmethod
@@ -205,33 +204,10 @@ class RunStore:
             If ``path`` does not exist or is not an lfpiv run store.
         """
         path = Path(path)
-        if not path.exists():
-            raise RunStoreError(f"{path} does not exist; give the path of a run store (a .zarr directory)")
-        try:
-            root = zarr.open_group(str(path), mode=mode, zarr_format=3)
-        except Exception as exc:  # zarr raises several types for "not a group"
-            raise RunStoreError(f"{path} is not an lfpiv run store (no zarr v3 group there: "
-                                f"{type(exc).__name__})") from None
-        if root.attrs.get("format") != FORMAT:
-            raise RunStoreError(f"{path} is a zarr group but not an lfpiv run store (no format attribute)")
+        root = cls._open_root(path, mode)
         return cls(root, path)
 
     # --- metadata -----------------------------------------------------------------------
-    @property
-    def attrs(self) -> dict[str, Any]:
-        return dict(self.group.attrs)
-
-    @property
-    def rig(self) -> Rig:
-        try:
-            return Rig.from_dict(self.group.attrs["rig"], source=f"{self.path} (rig)")
-        except RigError as exc:
-            raise RunStoreError(str(exc)) from None
-
-    @property
-    def cameras(self) -> list[str]:
-        return [c["name"] for c in self.group.attrs["rig"]["camera"]]
-
     @property
     def n_pairs(self) -> int:
         return int(self.frames(self.cameras[0]).shape[0])
@@ -325,11 +301,11 @@ class RunStore:
         p = np.asarray(particles_mm, dtype=np.float64)
         a = g.create_array("particles", shape=p.shape, chunks=(1, 2, *p.shape[2:]), dtype=np.float64)
         a[...] = p
-        a.attrs.update(_attrs("mm", ["pair", "frame", "particle", "xyz"], "true particle positions"))
+        a.attrs.update(array_attrs("mm", ["pair", "frame", "particle", "xyz"], "true particle positions"))
         b = np.asarray(brightness, dtype=np.float32)
         a = g.create_array("brightness", shape=b.shape, chunks=(1, 2, b.shape[2]), dtype=np.float32)
         a[...] = b
-        a.attrs.update(_attrs("counts", ["pair", "frame", "particle"], "signal of each particle"))
+        a.attrs.update(array_attrs("counts", ["pair", "frame", "particle"], "signal of each particle"))
 
     # --- reconstructed volumes ----------------------------------------------------------
     def create_volumes(self, grid: VolumeGrid, *, method: str, settings: dict[str, Any]) -> zarr.Array:
@@ -349,7 +325,7 @@ class RunStore:
         nz, ny, nx = grid.shape
         a = g.create_array("data", shape=(self.n_pairs, 2, nz, ny, nx), dtype=np.float32, fill_value=0.0,
                            chunks=(1, 1, min(nz, 16), min(ny, 256), min(nx, 256)))
-        a.attrs.update(_attrs("intensity", ["pair", "frame", "z", "y", "x"], "voxel intensity"))
+        a.attrs.update(array_attrs("intensity", ["pair", "frame", "z", "y", "x"], "voxel intensity"))
         return a
 
     def write_volume(self, pair: int, frame: int, volume: np.ndarray) -> None:
@@ -424,18 +400,18 @@ class RunStore:
             c = np.asarray(c, dtype=np.float64)
             a = g.create_array(name, shape=c.shape, dtype=np.float64)
             a[...] = c
-            a.attrs.update(_attrs("mm", [name[0]], f"world {name[0]} of the window centres"))
+            a.attrs.update(array_attrs("mm", [name[0]], f"world {name[0]} of the window centres"))
         shape = (self.n_pairs, len(coords["z_mm"]), len(coords["y_mm"]), len(coords["x_mm"]))
         chunks = (1, *shape[1:])
         axes = ["pair", "z", "y", "x"]
         for name, what in (("u", "x"), ("v", "y"), ("w", "z")):
             a = g.create_array(name, shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
-            a.attrs.update(_attrs("m/s", axes, f"velocity along world {what}; NaN where not measured"))
+            a.attrs.update(array_attrs("m/s", axes, f"velocity along world {what}; NaN where not measured"))
         a = g.create_array("flags", shape=shape, chunks=chunks, dtype=np.uint8, fill_value=0)
-        a.attrs.update({**_attrs("1", axes, "vector quality flags (bits)"), "flag_masks": [1, 2],
+        a.attrs.update({**array_attrs("1", axes, "vector quality flags (bits)"), "flag_masks": [1, 2],
                         "flag_meanings": "outlier replaced"})
         a = g.create_array("peak_ratio", shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
-        a.attrs.update(_attrs("1", axes, "highest over second-highest correlation peak of the last pass"))
+        a.attrs.update(array_attrs("1", axes, "highest over second-highest correlation peak of the last pass"))
 
     def write_vectors(self, pair: int, velocity_m_s: np.ndarray, flags: np.ndarray, peak_ratio: np.ndarray) -> None:
         """Store the vector field of one pair.

@@ -56,6 +56,15 @@ def test_guards(tiny_rig, tmp_path):
     zarr.open_group(str(tmp_path / "plain.zarr"), mode="w")
     with pytest.raises(RunStoreError, match="not an lfpiv run store"):
         RunStore.open(tmp_path / "plain.zarr")
+    newer = zarr.open_group(str(path), mode="r+")
+    newer.attrs["format_version"] = 99
+    with pytest.raises(RunStoreError, match=r"newer lfpiv \(format_version 99\); upgrade lfpiv"):
+        RunStore.open(path)
+    newer.attrs["format_version"] = 1
+    bad = zarr.open_group(str(path), mode="r+")
+    bad.attrs["rig"] = {"camera": []}
+    with pytest.raises(RunStoreError):
+        _ = RunStore.open(path).rig
     with pytest.raises(RunStoreError, match="at least one pair"):
         RunStore.create(tmp_path / "zero.zarr", tiny_rig, 0, timing={}, software_version="x")
     with pytest.raises(RunStoreError, match="state must be one of"):

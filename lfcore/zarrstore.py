@@ -1,0 +1,74 @@
+"""What the run store and the calibration store share: a zarr v3 directory whose root attributes
+name its format and version and hold the rig it was made with.
+
+Like :mod:`lfcore.runstore`, this owns an on-disk format, so it is allowed to open files.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, ClassVar
+
+import zarr
+
+from lfcore.rig import Rig, RigError
+
+__all__ = ["RigStore", "array_attrs"]
+
+
+def array_attrs(units: str, axes: list[str], description: str) -> dict[str, Any]:
+    """The attributes every stored array carries, so that plain zarr or xarray users can read it."""
+    return {"units": units, "axes": axes, "description": description}
+
+
+class RigStore:
+    """Base of the stores: a zarr v3 group with ``format``, ``format_version`` and ``rig`` attrs.
+
+    Subclasses set :attr:`FORMAT`, :attr:`FORMAT_VERSION`, :attr:`KIND` (how messages name the
+    store), :attr:`HINT` (what to give instead of a missing path) and :attr:`Error` (a
+    ``ValueError`` subclass whose message is one line saying what to do).
+    """
+
+    FORMAT: ClassVar[str]
+    FORMAT_VERSION: ClassVar[int]
+    KIND: ClassVar[str]
+    HINT: ClassVar[str]
+    Error: ClassVar[type[ValueError]] = ValueError
+
+    def __init__(self, group: zarr.Group, path: Path) -> None:
+        self.group = group
+        self.path = path
+
+    @classmethod
+    def _open_root(cls, path: Path, mode: str) -> zarr.Group:
+        # The checks every open makes, in the order a user's mistake is likely.
+        if not path.exists():
+            raise cls.Error(f"{path} does not exist; {cls.HINT}")
+        try:
+            root = zarr.open_group(str(path), mode=mode, zarr_format=3)
+        except Exception as exc:  # zarr raises several types for "not a group"
+            raise cls.Error(f"{path} is not an {cls.KIND} (no zarr v3 group there: {type(exc).__name__})") from None
+        if root.attrs.get("format") != cls.FORMAT:
+            raise cls.Error(f"{path} is a zarr group but not an {cls.KIND} (format {root.attrs.get('format')!r})")
+        if root.attrs.get("format_version", 0) > cls.FORMAT_VERSION:
+            raise cls.Error(f"{path} was written by a newer lfpiv (format_version "
+                            f"{root.attrs['format_version']}); upgrade lfpiv")
+        return root
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        """A copy of the root attributes."""
+        return dict(self.group.attrs)
+
+    @property
+    def rig(self) -> Rig:
+        """The rig the store was made with, validated like a rig file."""
+        try:
+            return Rig.from_dict(self.group.attrs["rig"], source=f"{self.path} (rig)")
+        except RigError as exc:
+            raise self.Error(str(exc)) from None
+
+    @property
+    def cameras(self) -> list[str]:
+        """Camera names in rig order."""
+        return [c["name"] for c in self.group.attrs["rig"]["camera"]]
