@@ -55,7 +55,7 @@ import numpy as np
 import scipy.fft
 from scipy.interpolate import RegularGridInterpolator
 
-from lfcore.device import resolve_device, warp
+from lfcore.device import RowOffset, Rows, launch_rows, resolve_device, warp
 from lfcore.vectors import MedianTest, median_filter, normalized_median_test, replace_outliers, smooth
 
 __all__ = ["CorrelationConfig", "CorrelationError", "Correlator", "VectorField", "WindowGrid", "correlate",
@@ -347,6 +347,8 @@ class Correlator:
         self._def_a, self._def_b = (wp.empty(vol, dtype=wp.float32, device=d) for _ in range(2))
         coef = vol if deforms and config.interpolation == "cubic" else (1, 1, 1)
         self._coef_a, self._coef_b = (wp.empty(coef, dtype=wp.float32, device=d) for _ in range(2))
+        self._row_val = wp.empty(rows, dtype=float, device=d)
+        self._row_i = wp.empty(rows, dtype=int, device=d)
         self._part_val = wp.empty((nb_max, self.threads), dtype=float, device=d)
         self._part_idx = wp.empty((nb_max, self.threads), dtype=int, device=d)
         self._mean = wp.empty(nb_max, dtype=wp.vec2f, device=d)
@@ -427,8 +429,8 @@ class Correlator:
             n = min(nb, g.size - first)
             buf = self._view(self._buf, n, dims)
             sums = self._sums[: n * dims[0] * dims[1]].reshape((n, dims[0] * dims[1]))
-            wp.launch(kc.gather, dim=(n, dims[0], dims[1]), device=d,
-                      inputs=[vol_a, vol_b, starts, sa, sb, first, size, buf, sums])
+            launch_rows(kc.gather, n, [vol_a, vol_b, starts, sa, sb, RowOffset(first), size, Rows(buf), Rows(sums)], d,
+                        rest=(dims[0], dims[1]))
             wp.launch(kc.window_stats, dim=n, device=d, inputs=[sums, float(np.prod(g.window)), self._mean,
                                                                  self._scale])
             spec = self._fft3d(self._buf, self._scratch, n, dims, inverse=False)
@@ -436,13 +438,18 @@ class Correlator:
             free, other = (self._scratch, self._buf) if spec.ptr == self._buf.ptr else (self._buf, self._scratch)
             slots = (n + 1) // 2
             packed = self._view(free, slots, dims)
-            wp.launch(kc.cross_spectrum, dim=(slots, dims[0], dims[1]), device=d,
-                      inputs=[spec, self._mean, self._scale, 1.0 / p, *masks, packed])
+            launch_rows(kc.cross_spectrum, slots, [Rows(spec, scale=2), Rows(self._mean[:n], scale=2),
+                                                   Rows(self._scale[:n], scale=2), 1.0 / p, *masks, Rows(packed)],
+                        d, rest=(dims[0], dims[1]))
             corr = self._fft3d(free, other, slots, dims, inverse=True)
+            # two windows share a correlation slot: CPU blocks start at even windows
+            row_val = Rows(self._row_val[: n * dims[0] * dims[1]].reshape((n, dims[0] * dims[1])))
+            row_i = Rows(self._row_i[: n * dims[0] * dims[1]].reshape((n, dims[0] * dims[1])))
+            launch_rows(kc.row_peaks, n, [Rows(corr, div=2), row_val, row_i], d, rest=(dims[0] * dims[1],), align=2)
             for second, out, where in ((0, self._val1, self._peak1), (1, self._val2, self._peak2)):
-                wp.launch(kc.peak_partial, dim=(n, self.threads), device=d,
-                          inputs=[corr, self.threads, self._peak1, self.config.peak_exclusion, second,
-                                  self._part_val, self._part_idx])
+                launch_rows(kc.peak_partial, n, [Rows(corr, div=2), row_val, row_i, self.threads, Rows(self._peak1),
+                                                 self.config.peak_exclusion, second, Rows(self._part_val),
+                                                 Rows(self._part_idx)], d, rest=(self.threads,), align=2)
                 wp.launch(kc.peak_reduce, dim=n, device=d,
                           inputs=[self._part_val[:n], self._part_idx[:n], pad, out, where])
             wp.launch(kc.peak_fit, dim=n, device=d,
@@ -456,7 +463,7 @@ class Correlator:
         for src, dst in ((vol_a, self._coef_a), (vol_b, self._coef_b)):
             wp.copy(dst, src)
             for axis, dims in ((0, (nz, ny)), (1, (nz, nx)), (2, (ny, nx))):
-                wp.launch(self._k.bspline_prefilter, dim=dims, device=d, inputs=[dst, axis])
+                launch_rows(self._k.bspline_prefilter, dims[0], [dst, axis, RowOffset(0)], d, rest=dims[1:])
 
     def _deform(self, vol_a, vol_b, pred: np.ndarray, pgrid: WindowGrid):
         """Both volumes deformed by the predictor (see the kernel ``deform_volumes``)."""
@@ -465,9 +472,10 @@ class Correlator:
         if bspline:
             vol_a, vol_b = self._coef_a, self._coef_b
         pred_dev = wp.array(np.ascontiguousarray(pred, dtype=np.float32), dtype=wp.vec3, device=self.device)
-        wp.launch(self._k.deform_volumes, dim=self.shape, device=self.device,
-                  inputs=[vol_a, vol_b, pred_dev, wp.vec3(*pgrid.origin.astype(float)),
-                          wp.vec3(*(float(s) for s in pgrid.step)), int(bspline), self._def_a, self._def_b])
+        launch_rows(self._k.deform_volumes, self.shape[0],
+                    [vol_a, vol_b, pred_dev, wp.vec3(*pgrid.origin.astype(float)),
+                     wp.vec3(*(float(s) for s in pgrid.step)), int(bspline), RowOffset(0), self._def_a, self._def_b],
+                    self.device, rest=self.shape[1:])
         return self._def_a, self._def_b
 
     # --- the multi-grid correlation ---------------------------------------------------------

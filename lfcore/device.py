@@ -12,10 +12,15 @@ import ctypes
 import functools
 import os
 import sys
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor, wait
+from dataclasses import dataclass
+from typing import Any
 
 import warp as wp
 
-__all__ = ["DeviceError", "available_devices", "resolve_device", "warp"]
+__all__ = ["DeviceError", "RowOffset", "Rows", "available_devices", "cpu_threads", "launch_rows", "resolve_device",
+           "warp"]
 
 
 class DeviceError(ValueError):
@@ -82,3 +87,110 @@ def resolve_device(device: str | None = None) -> str:
     if name not in found:
         raise DeviceError(f"device '{device}' is not available here; choose one of: {', '.join(found)}")
     return name
+
+
+@functools.cache
+def cpu_threads() -> int:
+    """Threads that one CPU launch is split over: ``LFPIV_CPU_THREADS`` if set, else the cores
+    this process may run on."""
+    env = os.environ.get("LFPIV_CPU_THREADS", "").strip()
+    if env:
+        try:
+            return max(1, int(env))
+        except ValueError:
+            raise DeviceError(f"LFPIV_CPU_THREADS must be a whole number of threads, got '{env}'") from None
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+@functools.cache
+def _pool() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=max(1, cpu_threads() - 1), thread_name_prefix="lfpiv-cpu-launch")
+
+
+@dataclass(frozen=True)
+class Rows:
+    """An input of :func:`launch_rows` that the first thread index addresses.
+
+    Each block of rows ``lo .. hi - 1`` gets ``array[lo * scale // div : ceil(hi * scale / div)]``
+    (clipped to the array): ``scale=2`` where a row reads two elements (e.g. two windows),
+    ``div=2`` where two rows share one element.
+    """
+
+    array: Any
+    scale: int = 1
+    div: int = 1
+
+
+@dataclass(frozen=True)
+class RowOffset:
+    """An integer input of :func:`launch_rows` that gives the first row's global index: each
+    block gets ``value + lo``."""
+
+    value: int
+
+
+def _block_input(item: Any, lo: int, hi: int) -> Any:
+    if isinstance(item, Rows):
+        a, b = lo * item.scale // item.div, -(-hi * item.scale // item.div)
+        return item.array[a:min(b, item.array.shape[0])]
+    if isinstance(item, RowOffset):
+        return int(item.value) + lo
+    return item
+
+
+def launch_rows(kernel: Any, rows: int, inputs: Sequence[Any], device: str, *, rest: tuple[int, ...] = (),
+                align: int = 1, min_rows: int = 1, stream: Any = None) -> None:
+    """Launch ``kernel`` over ``(rows, *rest)`` threads; on the CPU, over all cores.
+
+    Warp runs a CPU launch on one thread. Here the rows (the first launch dimension) are cut
+    into one contiguous block per core and the blocks are launched concurrently: ctypes releases
+    the GIL for the length of each native call, so they run in parallel. On a GPU this is one
+    ordinary launch.
+
+    Parameters
+    ----------
+    kernel
+        A Warp kernel whose threads write disjoint memory. Warp's CPU ``atomic_add`` is a plain
+        read-modify-write, so a kernel that accumulates with atomics must not be split.
+    rows
+        Size of the first launch dimension.
+    inputs
+        The kernel's inputs. Wrap every array that the first thread index addresses in
+        :class:`Rows`, and an integer that gives the first row's global index in
+        :class:`RowOffset`; each block then sees its rows as ``0 .. hi - lo - 1``.
+    device
+        Warp device alias.
+    rest
+        The other launch dimensions.
+    align
+        Block boundaries are multiples of this (e.g. 2 where two rows share one element).
+    min_rows
+        Fewest rows per block; a smaller launch is not split.
+    stream
+        CUDA stream of the launch (ignored on the CPU).
+    """
+    if rows <= 0:
+        return
+    threads = cpu_threads() if device == "cpu" else 1
+    blocks = min(threads, rows // max(min_rows, align, 1))
+    if blocks <= 1:
+        wp.launch(kernel, dim=(rows, *rest), inputs=[_block_input(x, 0, rows) for x in inputs], device=device,
+                  stream=stream)
+        return
+    per = -(-rows // blocks)
+    per = -(-per // align) * align
+
+    def run(lo: int, hi: int) -> None:
+        wp.launch(kernel, dim=(hi - lo, *rest), inputs=[_block_input(x, lo, hi) for x in inputs], device=device)
+
+    bounds = [(lo, min(rows, lo + per)) for lo in range(0, rows, per)]
+    futures = [_pool().submit(run, lo, hi) for lo, hi in bounds[1:]]
+    try:
+        run(*bounds[0])
+    finally:
+        wait(futures)  # never return while a block still writes
+    for f in futures:
+        f.result()

@@ -126,14 +126,17 @@ def sample_bspline(coef: wp.array3d(dtype=wp.float32), p: wp.vec3) -> float:
 
 
 @wp.kernel
-def bspline_prefilter(coef: wp.array3d(dtype=wp.float32), axis: int):
+def bspline_prefilter(coef: wp.array3d(dtype=wp.float32), axis: int, a0: int):
     """In place: samples to cubic B-spline coefficients along one axis (0 x, 1 y, 2 z).
+
+    One thread filters one line; the launch covers lines (a0 + a, b) of the other two axes.
 
     The recursive filter of Unser (1999), gain 6 and pole z = sqrt(3) - 2, for a signal that is
     zero beyond the volume: c+[k] = s[k] + z c+[k-1] from c+[0] = s[0], then
     c-[k] = z (c-[k+1] - c+[k]) from c-[n-1] = -z / (1 - z^2) c+[n-1].
     """
     a, b = wp.tid()
+    a += a0
     zp = BSPLINE_POLE
     n = coef.shape[2 - axis]
     prev = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
@@ -176,10 +179,13 @@ def deform_volumes(
     pred_origin: wp.vec3,
     pred_step: wp.vec3,
     bspline: int,
+    z0: int,
     out_a: wp.array3d(dtype=wp.float32),
     out_b: wp.array3d(dtype=wp.float32),
 ):
     """Deform both volumes symmetrically by the predictor d: A at x - d(x)/2, B at x + d(x)/2.
+
+    The launch covers planes z0 + z of the outputs (all of them from z0 = 0).
 
     A particle that moved by d(x) then sits at the same place in both, so the correlation of
     the deformed volumes measures only what the predictor missed. With ``bspline`` non-zero the
@@ -187,6 +193,7 @@ def deform_volumes(
     interpolated trilinearly.
     """
     z, y, x = wp.tid()
+    z += z0
     p = wp.vec3(float(x), float(y), float(z))
     h = 0.5 * predictor_at(pred, pred_origin, pred_step, p)
     if bspline != 0:
@@ -348,11 +355,39 @@ def cyclic_distance(a: int, b: int, n: int) -> int:
 
 
 @wp.kernel
-def peak_partial(corr: wp.array4d(dtype=wp.vec2f), threads: int, exclude: wp.array(dtype=wp.vec3i), radius: int,
-                 use_exclude: int, part_val: wp.array2d(dtype=float), part_idx: wp.array2d(dtype=int)):
+def row_peaks(corr: wp.array4d(dtype=wp.vec2f), row_val: wp.array2d(dtype=float), row_i: wp.array2d(dtype=int)):
+    """Highest value of each row (w, k, j) of every window's correlation, and its column (the
+    lowest on ties). One thread a row; :func:`peak_partial` then works on these maxima."""
+    w, r = wp.tid()
+    py = corr.shape[2]
+    px = corr.shape[3]
+    k = r // py
+    j = r - k * py
+    slot = w // 2
+    odd = w % 2
+    best = float(-1.0e30)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    best_i = int(0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    for i in range(px):
+        c = corr[slot, k, j, i]
+        v = c[0]
+        if odd == 1:
+            v = c[1]
+        if v > best:
+            best = v
+            best_i = i
+    row_val[w, r] = best
+    row_i[w, r] = best_i
+
+
+@wp.kernel
+def peak_partial(corr: wp.array4d(dtype=wp.vec2f), row_val: wp.array2d(dtype=float), row_i: wp.array2d(dtype=int),
+                 threads: int, exclude: wp.array(dtype=wp.vec3i), radius: int, use_exclude: int,
+                 part_val: wp.array2d(dtype=float), part_idx: wp.array2d(dtype=int)):
     """Per-thread maximum of each correlation volume, optionally outside a box around a first peak.
 
-    Thread t of a window scans rows t, t + threads, ... of its (Pz * Py) rows.
+    Thread t of a window takes rows t, t + threads, ... of its (Pz * Py) rows from the row
+    maxima of :func:`row_peaks`; only the few rows that cross the excluded box are scanned
+    again, without the box. The result equals a scan of every value, lowest index on ties.
     """
     w, t = wp.tid()
     pz = corr.shape[1]
@@ -368,15 +403,21 @@ def peak_partial(corr: wp.array4d(dtype=wp.vec2f), threads: int, exclude: wp.arr
         k = row // py
         j = row - k * py
         near = use_exclude != 0 and cyclic_distance(j, e[1], py) <= radius and cyclic_distance(k, e[2], pz) <= radius
-        for i in range(px):
-            if not (near and cyclic_distance(i, e[0], px) <= radius):
-                c = corr[slot, k, j, i]
-                v = c[0]
-                if odd == 1:
-                    v = c[1]
-                if v > best:
-                    best = v
-                    best_idx = row * px + i
+        if near:
+            for i in range(px):
+                if cyclic_distance(i, e[0], px) > radius:
+                    c = corr[slot, k, j, i]
+                    v = c[0]
+                    if odd == 1:
+                        v = c[1]
+                    if v > best:
+                        best = v
+                        best_idx = row * px + i
+        else:
+            v = row_val[w, row]
+            if v > best:
+                best = v
+                best_idx = row * px + row_i[w, row]
         row += threads
     part_val[w, t] = best
     part_idx[w, t] = best_idx

@@ -114,12 +114,20 @@ def test_a_single_pass_matches_a_numpy_reference():
     cfg = CorrelationConfig(windows=((16, 16, 8),), overlap=0.5, deform_iterations=0)
     f = correlate(a, b, cfg, device="cpu")
     g = f.grid
-    ref = []
+    ref, height, ratio = [], [], []
     for x0, y0, z0 in g.starts():
         wa = a[z0:z0 + 8, y0:y0 + 16, x0:x0 + 16].astype(np.float64)
         wb = b[z0:z0 + 8, y0:y0 + 16, x0:x0 + 16].astype(np.float64)
-        r = np.fft.ifftn(np.conj(np.fft.fftn(wa - wa.mean())) * np.fft.fftn(wb - wb.mean())).real
+        wa, wb = wa - wa.mean(), wb - wb.mean()
+        r = np.fft.ifftn(np.conj(np.fft.fftn(wa)) * np.fft.fftn(wb)).real / np.sqrt(np.sum(wa**2) * np.sum(wb**2))
         k = np.unravel_index(np.argmax(r), r.shape)
+        # the second peak: the highest value outside a cyclic box of +-2 voxels (peak_exclusion)
+        near = np.ones(r.shape, bool)
+        for ax, n in enumerate(r.shape):
+            dist = np.abs(np.arange(n) - k[ax]) % n
+            near &= (np.minimum(dist, n - dist) <= 2).reshape([-1 if i == ax else 1 for i in range(3)])
+        height.append(r[k])
+        ratio.append(r[k] / r[~near].max())
         d = []
         for ax in (2, 1, 0):
             lo, hi = list(k), list(k)
@@ -129,6 +137,8 @@ def test_a_single_pass_matches_a_numpy_reference():
             d.append(s + (ll - lh) / (2 * (ll - 2 * lc + lh)))
         ref.append(d)
     assert np.allclose(f.displacement.reshape(-1, 3), ref, atol=1e-4)
+    assert np.allclose(f.peak_height.ravel(), height, atol=1e-5)
+    assert np.allclose(f.peak_ratio.ravel(), ratio, rtol=1e-4)
 
 
 def test_warp_fft_matches_scipy_fft():
