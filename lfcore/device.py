@@ -19,8 +19,8 @@ from typing import Any
 
 import warp as wp
 
-__all__ = ["DeviceError", "RowOffset", "Rows", "available_devices", "cpu_threads", "launch_rows", "resolve_device",
-           "warp"]
+__all__ = ["DeviceError", "PerBlock", "RowOffset", "Rows", "available_devices", "cpu_threads", "launch_rows",
+           "resolve_device", "warp"]
 
 
 class DeviceError(ValueError):
@@ -114,14 +114,25 @@ def _pool() -> ThreadPoolExecutor:
 class Rows:
     """An input of :func:`launch_rows` that the first thread index addresses.
 
-    Each block of rows ``lo .. hi - 1`` gets ``array[lo * scale // div : ceil(hi * scale / div)]``
+    Each block of rows ``lo .. hi - 1`` gets ``array[lo * scale // div : ceil(hi * scale / div) + extra]``
     (clipped to the array): ``scale=2`` where a row reads two elements (e.g. two windows),
-    ``div=2`` where two rows share one element.
+    ``div=2`` where two rows share one element, ``extra=1`` for CSR offsets (row t also reads
+    element t + 1).
     """
 
     array: Any
     scale: int = 1
     div: int = 1
+    extra: int = 0
+
+
+@dataclass(frozen=True)
+class PerBlock:
+    """An input of :func:`launch_rows` that differs per CPU block: block k gets ``arrays[k]``
+    (on a GPU, and in an unsplit launch, ``arrays[0]``). There must be one per CPU thread
+    (:func:`cpu_threads`). For private accumulation buffers, since CPU atomics are not atomic."""
+
+    arrays: tuple
 
 
 @dataclass(frozen=True)
@@ -132,12 +143,14 @@ class RowOffset:
     value: int
 
 
-def _block_input(item: Any, lo: int, hi: int) -> Any:
+def _block_input(item: Any, lo: int, hi: int, block: int = 0) -> Any:
     if isinstance(item, Rows):
-        a, b = lo * item.scale // item.div, -(-hi * item.scale // item.div)
+        a, b = lo * item.scale // item.div, -(-hi * item.scale // item.div) + item.extra
         return item.array[a:min(b, item.array.shape[0])]
     if isinstance(item, RowOffset):
         return int(item.value) + lo
+    if isinstance(item, PerBlock):
+        return item.arrays[block]
     return item
 
 
@@ -176,6 +189,8 @@ def launch_rows(kernel: Any, rows: int, inputs: Sequence[Any], device: str, *, r
         return
     threads = cpu_threads() if device == "cpu" else 1
     blocks = min(threads, rows // max(min_rows, align, 1))
+    if blocks > 1 and any(isinstance(x, PerBlock) and len(x.arrays) < blocks for x in inputs):
+        raise ValueError(f"a PerBlock input needs one array for each of {blocks} CPU blocks")
     if blocks <= 1:
         wp.launch(kernel, dim=(rows, *rest), inputs=[_block_input(x, 0, rows) for x in inputs], device=device,
                   stream=stream)
@@ -183,13 +198,14 @@ def launch_rows(kernel: Any, rows: int, inputs: Sequence[Any], device: str, *, r
     per = -(-rows // blocks)
     per = -(-per // align) * align
 
-    def run(lo: int, hi: int) -> None:
-        wp.launch(kernel, dim=(hi - lo, *rest), inputs=[_block_input(x, lo, hi) for x in inputs], device=device)
+    def run(block: int, lo: int, hi: int) -> None:
+        wp.launch(kernel, dim=(hi - lo, *rest), inputs=[_block_input(x, lo, hi, block) for x in inputs],
+                  device=device)
 
     bounds = [(lo, min(rows, lo + per)) for lo in range(0, rows, per)]
-    futures = [_pool().submit(run, lo, hi) for lo, hi in bounds[1:]]
+    futures = [_pool().submit(run, k, lo, hi) for k, (lo, hi) in enumerate(bounds) if k > 0]
     try:
-        run(*bounds[0])
+        run(0, *bounds[0])
     finally:
         wait(futures)  # never return while a block still writes
     for f in futures:

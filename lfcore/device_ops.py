@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from lfcore.device import resolve_device, warp
+from lfcore.device import RowOffset, launch_rows, resolve_device, warp
 from lfcore.rig import Camera
 
 __all__ = ["ImagePreprocessor", "VolumeOps", "gaussian_taps"]
@@ -77,12 +77,13 @@ class ImagePreprocessor:
         """
         wp, k, d = self.wp, self._k, self.device
         for i, (rows, cols) in enumerate(self.shapes):
-            wp.launch(k.subtract_threshold, dim=rows * cols, device=d, stream=stream,
-                      inputs=[raw, self.offsets[i], float(levels[i]), float(thresholds[i]), signal, lit])
+            launch_rows(k.subtract_threshold, rows * cols,
+                        [raw, RowOffset(self.offsets[i]), float(levels[i]), float(thresholds[i]), signal, lit], d,
+                        stream=stream)
         for _ in range(int(grow)):
             for i, (rows, cols) in enumerate(self.shapes):
-                wp.launch(k.dilate3x3, dim=(rows, cols), device=d, stream=stream,
-                          inputs=[lit, self.offsets[i], rows, cols, self._grown])
+                launch_rows(k.dilate3x3, rows, [lit, self.offsets[i], rows, cols, RowOffset(0), self._grown], d,
+                            rest=(cols,), stream=stream)
             wp.copy(lit, self._grown, stream=stream)
 
 
@@ -129,7 +130,8 @@ class VolumeOps:
         # z into tmp, y back into vol, x into tmp, then tmp copied to vol
         src, dst = vol, self._tmp
         for axis in (0, 1, 2):
-            wp.launch(self._k.convolve_axis, dim=self.shape, device=d, inputs=[src, taps, radius, axis, dst])
+            launch_rows(self._k.convolve_axis, self.shape[0], [src, taps, radius, axis, RowOffset(0), dst], d,
+                        rest=self.shape[1:])
             src, dst = dst, src
         wp.copy(vol, src)
 

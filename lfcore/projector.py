@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfcore.device import resolve_device, warp
+from lfcore.device import PerBlock, RowOffset, Rows, cpu_threads, launch_rows, resolve_device, warp
 from lfcore.rig import Camera
 from lfcore.volume import VolumeGrid
 
@@ -157,6 +157,7 @@ class Projector:
         self._grid = g
         self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in self.cameras])
         self.n_pixels = int(self.pixel_offsets[-1])
+        self._parts = None  # private projection images of the CPU blocks (see forward)
         if self.n_pixels >= 2**31 or grid.n_voxels >= 2**31:
             raise MemoryBudgetError("more than 2**31 pixels or voxels; use a coarser --pvr")
 
@@ -241,9 +242,9 @@ class Projector:
             lit_dev = wp.array(flat, dtype=wp.uint8, device=self.device)
         n = self.grid.n_voxels
         mask = wp.zeros(n, dtype=wp.int32, device=self.device)
-        wp.launch(kw.eliminate, dim=n, device=self.device,
-                  inputs=[self._grid, self.views, len(self.cameras), self.sub_a, self.check_order, lit_dev,
-                          float(min_seen), float(max_dark), self._checks, self._n_checks, mask])
+        launch_rows(kw.eliminate, n, [self._grid, self.views, len(self.cameras), self.sub_a, self.check_order, lit_dev,
+                                      float(min_seen), float(max_dark), self._checks, self._n_checks, RowOffset(0),
+                                      mask], self.device)
         return self._compact(mask)
 
     def precompute_checks(self, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
@@ -278,9 +279,9 @@ class Projector:
             self._checks, self._n_checks = wp.zeros(1, dtype=wp.int32, device=self.device), 0
             return 0
         table = wp.empty(entries, dtype=wp.int32, device=self.device)
-        wp.launch(kw.check_pixels, dim=self.grid.n_voxels, device=self.device,
-                  inputs=[self._grid, self.views, len(self.cameras), self.sub_a, self.check_order, int(n_checks),
-                          table])
+        launch_rows(kw.check_pixels, self.grid.n_voxels, [self._grid, self.views, len(self.cameras), self.sub_a,
+                                                          self.check_order, int(n_checks), RowOffset(0), table],
+                    self.device)
         self._checks, self._n_checks = table, int(n_checks)
         return 4 * entries
 
@@ -359,9 +360,9 @@ class Projector:
         limit = [wp.int64(2**62)] if method == "drt" else []
 
         def launch(lo, hi, fill, pix, w, origin=0):
-            wp.launch(kern, dim=hi - lo, device=self.device,
-                      inputs=[*common, voxels[lo:hi], offsets[lo:hi + 1], wp.int64(origin), float(min_weight),
-                              fill, *limit, counts[lo:hi], *([sums[lo:hi]] if extra else []), pix, w])
+            launch_rows(kern, hi - lo, [*common, Rows(voxels[lo:hi]), Rows(offsets[lo:hi + 1]), wp.int64(origin),
+                                        float(min_weight), fill, *limit, Rows(counts[lo:hi]),
+                                        *([Rows(sums[lo:hi])] if extra else []), pix, w], self.device)
 
         dummy_i = wp.empty(1, dtype=wp.int32, device=self.device)
         dummy_f = wp.empty(1, dtype=float, device=self.device)
@@ -390,8 +391,8 @@ class Projector:
             merged_pix = wp.empty(max(m, 1), dtype=wp.int32, device=self.device)
             merged_w = wp.empty(max(m, 1), dtype=float, device=self.device)
             kept = wp.empty(hi - lo, dtype=wp.int32, device=self.device)
-            wp.launch(kw.merge_sorted, dim=hi - lo, device=self.device,
-                      inputs=[starts, ends, pix, order, w_raw, merged_pix, merged_w, kept])
+            launch_rows(kw.merge_sorted, hi - lo, [Rows(starts), Rows(ends), pix, order, w_raw, merged_pix, merged_w,
+                                                   Rows(kept)], self.device)
             del pix, order, w_raw
             chunk = self._pack(lo, hi, starts, kept, merged_pix, merged_w, total, n, budget)
             total += chunk.nnz
@@ -414,8 +415,8 @@ class Projector:
         c_offsets = wp.array(c_off, device=self.device)
         out_pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=self.device)
         out_w = wp.empty(max(nnz, 1), dtype=float, device=self.device)
-        wp.launch(kw.gather_merged, dim=hi - lo, device=self.device,
-                  inputs=[starts, c_offsets, kept, merged_pix, merged_w, out_pix, out_w])
+        launch_rows(kw.gather_merged, hi - lo, [Rows(starts), Rows(c_offsets), Rows(kept), merged_pix, merged_w,
+                                                out_pix, out_w], self.device)
         return WeightChunk(first=lo, n=hi - lo, offsets=c_offsets, pix=out_pix, w=out_w, nnz=nnz)
 
     def _drt_single_pass(self, voxels, min_weight: float, budget: int) -> Weights:
@@ -430,8 +431,8 @@ class Projector:
         dummy_f = wp.empty(1, dtype=float, device=dev)
 
         def trace(vox, offs, fill, limit, counts, pix, w):
-            wp.launch(kw.drt_weights, dim=vox.shape[0], device=dev,
-                      inputs=[*common, vox, offs, wp.int64(0), min_weight, fill, wp.int64(limit), counts, pix, w])
+            launch_rows(kw.drt_weights, vox.shape[0], [*common, Rows(vox), Rows(offs), wp.int64(0), min_weight, fill,
+                                                       wp.int64(limit), Rows(counts), pix, w], dev)
 
         # Slot capacity: the most entries of a sample of voxels spread over the list, plus a margin.
         take = np.unique(np.linspace(0, n - 1, min(n, CAPACITY_SAMPLE)).astype(np.int64))
@@ -465,8 +466,8 @@ class Projector:
             merged_pix = wp.empty(pix.shape[0], dtype=wp.int32, device=dev)
             merged_w = wp.empty(pix.shape[0], dtype=float, device=dev)
             kept = wp.empty(m, dtype=wp.int32, device=dev)
-            wp.launch(kw.sort_merge, dim=m, device=dev,
-                      inputs=[starts, ends, pix, order, tmp_pix, tmp_ord, w_raw, merged_pix, merged_w, kept])
+            launch_rows(kw.sort_merge, m, [Rows(starts), Rows(ends), pix, order, tmp_pix, tmp_ord, w_raw, merged_pix,
+                                           merged_w, Rows(kept)], dev)
             del pix, order, tmp_pix, tmp_ord, w_raw
             chunk = self._pack(lo, hi, starts, kept, merged_pix, merged_w, total, n, budget)
             total += chunk.nnz
@@ -481,8 +482,20 @@ class Projector:
         wp = self.wp
         out = wp.zeros(self.n_pixels, dtype=float, device=self.device) if out is None else out
         out.zero_()
+        # The projection accumulates into pixels with atomics, which are plain adds on the CPU:
+        # there each CPU block sums into a private image, and the images are added after.
+        parts = (out,)
+        if self.device == "cpu" and cpu_threads() > 1:
+            if self._parts is None or self._parts.shape != (cpu_threads() - 1, self.n_pixels):
+                self._parts = wp.zeros((cpu_threads() - 1, self.n_pixels), dtype=float, device=self.device)
+            self._parts.zero_()
+            parts = (out, *(self._parts[k] for k in range(cpu_threads() - 1)))
         for c in weights.chunks:
-            wp.launch(km.project, dim=c.n, device=self.device, inputs=[c.offsets, c.pix, c.w, c.first, e, out])
+            launch_rows(km.project, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), e,
+                                          PerBlock(parts)], self.device)
+        if len(parts) > 1:
+            total = out.numpy()  # on the CPU, a view of the array
+            total += self._parts.numpy().sum(axis=0)
         return out
 
     def smart_update(self, weights: Weights, image, proj, e, relaxation: float, floor: float) -> None:
@@ -490,8 +503,8 @@ class Projector:
         from lfcore._kernels import mart as km
 
         for c in weights.chunks:
-            self.wp.launch(km.smart_update, dim=c.n, device=self.device,
-                           inputs=[c.offsets, c.pix, c.w, c.first, image, proj, float(floor), float(relaxation), e])
+            launch_rows(km.smart_update, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), image, proj,
+                                               float(floor), float(relaxation), e], self.device)
 
     def transpose(self, weights: Weights):
         """Pixel-major copy of the weights for the sequential form: (p_offsets, vox, w, rows)."""
@@ -544,5 +557,5 @@ class Projector:
             out.zero_()
         if weights.n_voxels:
             flat = out.reshape(self.grid.n_voxels)
-            wp.launch(km.scatter_volume, dim=weights.n_voxels, device=self.device, inputs=[weights.voxels, e, flat])
+            launch_rows(km.scatter_volume, weights.n_voxels, [Rows(weights.voxels), Rows(e), flat], self.device)
         return out

@@ -17,7 +17,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from lfcore.device import resolve_device, warp
+from lfcore.device import PerBlock, RowOffset, cpu_threads, launch_rows, resolve_device, warp
 from lfcore.rig import Camera, RenderConfig
 
 __all__ = ["LightFieldRenderer", "derive_seed"]
@@ -65,6 +65,7 @@ class LightFieldRenderer:
         self._quanta = self.wp.zeros(shape, dtype=self.wp.int64, device=self.device)
         self._counts = self.wp.zeros(shape, dtype=float, device=self.device)
         self._frame = self.wp.zeros(shape, dtype=self.wp.uint16, device=self.device)
+        self._parts = None  # private ray images of the CPU blocks (see _trace)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -87,6 +88,14 @@ class LightFieldRenderer:
             raise ValueError(f"a particle lies inside the focal length of camera '{self.camera.name}'")
         quanta = np.rint(cnt * kr.QUANTA_PER_COUNT / rays).astype(np.int64)
         kind = "cpu" if self.device == "cpu" else "cuda"
+        # Rays land with atomic adds, plain adds on the CPU: there each CPU block fills an image
+        # of its own, added after (integer quanta, so the sum does not depend on the order).
+        images = (self._quanta,)
+        if self.device == "cpu" and cpu_threads() > 1:
+            if self._parts is None or self._parts.shape[0] != cpu_threads() - 1:
+                self._parts = wp.zeros((cpu_threads() - 1, *self.shape), dtype=wp.int64, device=self.device)
+            self._parts.zero_()
+            images = (self._quanta, *(self._parts[k] for k in range(cpu_threads() - 1)))
         per_thread = min(RAYS_PER_THREAD[kind], rays)
         chunks = -(-rays // per_thread)
         batch = max(1, MAX_THREADS_PER_LAUNCH[kind] // chunks)
@@ -95,11 +104,14 @@ class LightFieldRenderer:
             stop = min(start + batch, len(pts))
             p_dev = wp.array(cam_pts[start:stop].astype(np.float32), dtype=wp.vec3, device=self.device)
             q_dev = wp.array(quanta[start:stop], dtype=wp.int64, device=self.device)
-            wp.launch(kr.trace_particles, dim=(stop - start) * chunks, device=self.device,
-                      inputs=[self.params, p_dev, q_dev, radius, rays, per_thread, chunks,
-                              derive_seed(seed, start), self._quanta])
+            launch_rows(kr.trace_particles, (stop - start) * chunks,
+                        [self.params, p_dev, q_dev, radius, rays, per_thread, chunks, derive_seed(seed, start),
+                         RowOffset(0), PerBlock(images)], self.device)
             if progress is not None:
                 progress(stop - start)
+        if len(images) > 1:
+            total = self._quanta.numpy()  # on the CPU, a view of the array
+            total += self._parts.numpy().sum(axis=0)
 
     def irradiance(self, points_mm: np.ndarray, counts: float | np.ndarray, seed: int = 0,
                    progress: Callable[[int], None] | None = None) -> np.ndarray:
@@ -135,8 +147,8 @@ class LightFieldRenderer:
         """
         self._trace(points_mm, counts, seed, progress)
         r = self.render
-        self.wp.launch(self._k.expose, dim=self.shape, device=self.device,
-                       inputs=[self._quanta, 1.0 / self._k.QUANTA_PER_COUNT, r.background_counts,
-                               r.gain_e_per_count, int(r.shot_noise), r.read_noise_counts,
-                               float(2**r.bit_depth - 1), derive_seed(seed, 0x5E25), self._frame])
+        launch_rows(self._k.expose, self.shape[0],
+                    [self._quanta, 1.0 / self._k.QUANTA_PER_COUNT, r.background_counts, r.gain_e_per_count,
+                     int(r.shot_noise), r.read_noise_counts, float(2**r.bit_depth - 1), derive_seed(seed, 0x5E25),
+                     RowOffset(0), self._frame], self.device, rest=self.shape[1:])
         return self._frame.numpy().copy()

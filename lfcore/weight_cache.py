@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lfcore.device import Rows, launch_rows
 from lfcore.projector import BYTES_PER_WEIGHT, Projector, WeightChunk, Weights, _available_bytes
 
 __all__ = ["DEFAULT_BUDGET_FRACTION", "WeightCache"]
@@ -167,8 +168,7 @@ class WeightCache:
         out_pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=dev)
         out_w = wp.empty(max(nnz, 1), dtype=float, device=dev)
         if nnz:
-            wp.launch(p._kw.copy_rows, dim=n, device=dev,
-                      inputs=[wp.array(self._start[vox_h], dtype=wp.int64, device=dev), d_offsets, self._pix, self._w,
-                              out_pix, out_w])
+            launch_rows(p._kw.copy_rows, n, [Rows(wp.array(self._start[vox_h], dtype=wp.int64, device=dev)),
+                                             Rows(d_offsets, extra=1), self._pix, self._w, out_pix, out_w], dev)
         chunk = WeightChunk(first=0, n=n, offsets=d_offsets, pix=out_pix, w=out_w, nnz=nnz)
         return Weights(voxels=voxels, chunks=[chunk], nnz=nnz)

@@ -42,10 +42,13 @@ def dilate3x3(
     offset: int,
     rows: int,
     cols: int,
+    r0: int,
     dst: wp.array(dtype=wp.uint8),
 ):
-    """dst = binary dilation of ``src`` by a 3 x 3 square; pixels outside the image count as dark."""
+    """dst = binary dilation of ``src`` by a 3 x 3 square; pixels outside the image count as dark.
+    The launch covers rows ``r0 + r``."""
     r, c = wp.tid()
+    r += r0
     hit = wp.uint8(0)
     for dr in range(-1, 2):
         rr = r + dr

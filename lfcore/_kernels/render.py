@@ -44,10 +44,15 @@ def trace_particles(
     rays_per_thread: int,
     chunks: int,
     seed: int,
+    tid0: int,
     image: wp.array2d(dtype=wp.int64),
 ):
-    """One thread traces ``rays_per_thread`` rays of one particle (camera-frame points, mm)."""
-    tid = wp.tid()
+    """One thread traces ``rays_per_thread`` rays of one particle (camera-frame points, mm).
+
+    The launch covers threads ``tid0 + tid`` (a thread's random stream depends on that index
+    only, so a launch split into blocks draws the same rays).
+    """
+    tid = wp.tid() + tid0
     ip = tid // chunks
     first = (tid - ip * chunks) * rays_per_thread
     n = wp.min(rays_per_thread, rays_per_particle - first)
@@ -94,10 +99,15 @@ def expose(
     read_noise: float,
     full_scale: float,
     seed: int,
+    r0: int,
     out: wp.array2d(dtype=wp.uint16),
 ):
-    """Irradiance (fixed-point counts) to digital numbers: shot and read noise, saturation."""
+    """Irradiance (fixed-point counts) to digital numbers: shot and read noise, saturation.
+
+    The launch covers rows ``r0 + r``; each pixel's noise depends on its own index only.
+    """
     r, c = wp.tid()
+    r += r0
     mean = float(quanta[r, c]) * count_per_quantum + background
     state = wp.rand_init(seed, r * out.shape[1] + c)
     v = mean

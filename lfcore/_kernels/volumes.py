@@ -32,11 +32,13 @@ def convolve_axis(
     taps: wp.array(dtype=float),
     radius: int,
     axis: int,
+    z0: int,
     dst: wp.array3d(dtype=float),
 ):
     """dst = src convolved along ``axis`` (0 z, 1 y, 2 x) with symmetric ``taps`` (2 radius + 1);
-    zero outside the volume (SciPy's mode="constant")."""
+    zero outside the volume (SciPy's mode="constant"). The launch covers planes ``z0 + z``."""
     z, y, x = wp.tid()
+    z += z0
     n = src.shape[axis]
     pos, a, b = z, y, x
     if axis == 1:

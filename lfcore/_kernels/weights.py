@@ -251,6 +251,7 @@ def eliminate(
     max_dark: float,
     table: wp.array(dtype=wp.int32),
     n_table: int,
+    first: int,
     active: wp.array(dtype=wp.int32),
 ):
     """active[v] = 1 if the checked sub-apertures of voxel v land on lit pixels in every view.
@@ -265,9 +266,10 @@ def eliminate(
     few lookups.
 
     ``table`` may hold, from :func:`check_pixels`, the pixels of the first ``n_table`` checks
-    of every voxel and view, which then need no tracing (``n_table = 0``: no table).
+    of every voxel and view, which then need no tracing (``n_table = 0``: no table). The launch
+    covers voxels ``first + tid``.
     """
-    v = wp.tid()
+    v = wp.tid() + first
     pw = voxel_centre(grid, v)
     keep = int(1)
     for iv in range(n_views):
@@ -337,15 +339,16 @@ def check_pixels(
     sub_a: wp.array(dtype=wp.vec2),
     check_order: wp.array(dtype=wp.int32),
     n_table: int,
+    first: int,
     table: wp.array(dtype=wp.int32),
 ):
     """The pixels :func:`eliminate` looks up in the first ``n_table`` checks of voxel v, every view.
 
     ``table[((v * n_views + view) * n_table + check) * 5 + corner]``: the global pixel, -1 off
     the sensor (also for checks past the view's ``check_count``). Views that cannot see the
-    voxel are never looked up.
+    voxel are never looked up. The launch covers voxels ``first + tid``.
     """
-    v = wp.tid()
+    v = wp.tid() + first
     pw = voxel_centre(grid, v)
     for iv in range(n_views):
         view = views[iv]

@@ -64,3 +64,56 @@ def test_cpu_threads_from_the_environment(monkeypatch):
 def test_unknown_device_names_the_ones_that_exist():
     with pytest.raises(DeviceError, match="not available here; choose one of: cpu"):
         resolve_device("cuda:7")
+
+
+# --- the split kernels give what one thread gives ------------------------------------------
+def _threads(monkeypatch, n: int) -> None:
+    # every module that asks how many CPU threads to use, asked at call time
+    for where in ("lfcore.device", "lfcore.render", "lfcore.projector"):
+        monkeypatch.setattr(f"{where}.cpu_threads", lambda n=n: n)
+
+
+def _frame_and_reconstruction(tiny_rig):
+    from lfcore.particles import seed_particles
+    from lfcore.projector import Projector
+    from lfcore.reconstruct import ReconSettings, reconstruct
+    from lfcore.render import LightFieldRenderer
+    from lfcore.volume import VolumeGrid
+
+    cam = tiny_rig.camera[0]
+    pts = seed_particles(tiny_rig.volume, 40, np.random.default_rng(3))
+    render = tiny_rig.render.model_copy(update={"rays_per_particle": 3000})
+    frame = LightFieldRenderer(cam, render, tiny_rig.laser.wavelength_nm, device="cpu").frame(
+        pts, render.particle_counts, 5)
+    proj = Projector([cam], VolumeGrid.from_rig(tiny_rig), device="cpu")
+    drt = reconstruct(proj, [frame], ReconSettings(iterations=8))
+    mart = reconstruct(proj, [frame], ReconSettings(method="mart", iterations=3))
+    return frame, drt, mart
+
+
+def test_rendering_and_reconstruction_do_not_depend_on_the_cpu_threads(tiny_rig, monkeypatch):
+    _threads(monkeypatch, 1)
+    frame1, drt1, mart1 = _frame_and_reconstruction(tiny_rig)
+    _threads(monkeypatch, 3)
+    frame3, drt3, mart3 = _frame_and_reconstruction(tiny_rig)
+    # rays land as integer quanta with per-thread random streams: bit for bit the same image
+    assert np.array_equal(frame1, frame3) and frame1.sum() > 0
+    # the same voxels and weights; projections summed in another order agree to float precision
+    assert drt1.active_voxels == drt3.active_voxels and drt1.nnz == drt3.nnz and mart1.nnz == mart3.nnz
+    scale = drt1.volume.max()
+    assert scale > 0 and np.allclose(drt1.volume, drt3.volume, rtol=1e-4, atol=1e-5 * scale)
+    assert np.allclose(mart1.volume, mart3.volume, rtol=1e-4, atol=1e-5 * mart1.volume.max())
+
+
+def test_correlation_does_not_depend_on_the_cpu_threads(monkeypatch):
+    from lfcore.correlate import CorrelationConfig, correlate
+    from tests.blobs import blob_pair
+
+    a, b = blob_pair((16, 32, 32), lambda p: np.broadcast_to([0.4, -1.1, 0.3], p.shape), seed=2)
+    cfg = CorrelationConfig(windows=((16, 16, 8), (8, 8, 8)), overlap=0.5, deform_iterations=1)
+    _threads(monkeypatch, 1)
+    one = correlate(a, b, cfg, device="cpu")
+    _threads(monkeypatch, 3)
+    three = correlate(a, b, cfg, device="cpu")
+    assert np.allclose(one.displacement, three.displacement, atol=1e-5, equal_nan=True)
+    assert np.allclose(one.peak_ratio, three.peak_ratio, rtol=1e-5)
