@@ -382,17 +382,25 @@ class Projector:
             m = int(raw[hi] - raw[lo])
             scratch = max(2 * m, 2)
             pix = wp.empty(scratch, dtype=wp.int32, device=self.device)
-            order = wp.array(np.arange(scratch, dtype=np.int32), device=self.device)
             w_raw = wp.empty(max(m, 1), dtype=float, device=self.device)
             launch(lo, hi, 1, pix, w_raw, origin=int(raw[lo]))
             starts = wp.array((raw[lo:hi] - raw[lo]).astype(np.int32), device=self.device)
             ends = wp.array((raw[lo + 1:hi + 1] - raw[lo]).astype(np.int32), device=self.device)
-            wp.utils.segmented_sort_pairs(pix, order, m, starts, ends)
             merged_pix = wp.empty(max(m, 1), dtype=wp.int32, device=self.device)
             merged_w = wp.empty(max(m, 1), dtype=float, device=self.device)
             kept = wp.empty(hi - lo, dtype=wp.int32, device=self.device)
-            launch_rows(kw.merge_sorted, hi - lo, [Rows(starts), Rows(ends), pix, order, w_raw, merged_pix, merged_w,
-                                                   Rows(kept)], self.device)
+            if self.device == "cpu":
+                # each voxel sorted and merged by its own thread: the same stable result as the
+                # library's segmented sort, which runs on one CPU thread and is several times slower
+                order, tmp_pix, tmp_ord = (wp.empty(scratch, dtype=wp.int32, device=self.device) for _ in range(3))
+                launch_rows(kw.sort_merge, hi - lo, [Rows(starts), Rows(ends), pix, order, tmp_pix, tmp_ord, w_raw,
+                                                     merged_pix, merged_w, Rows(kept)], self.device)
+                del tmp_pix, tmp_ord
+            else:
+                order = wp.array(np.arange(scratch, dtype=np.int32), device=self.device)
+                wp.utils.segmented_sort_pairs(pix, order, m, starts, ends)
+                launch_rows(kw.merge_sorted, hi - lo, [Rows(starts), Rows(ends), pix, order, w_raw, merged_pix,
+                                                       merged_w, Rows(kept)], self.device)
             del pix, order, w_raw
             chunk = self._pack(lo, hi, starts, kept, merged_pix, merged_w, total, n, budget)
             total += chunk.nnz
