@@ -301,7 +301,7 @@ class Projector:
 
     # --- weights ------------------------------------------------------------------------
     def weights(self, voxels, method: str = "drt", min_weight: float = 1e-6,
-                budget_bytes: int | None = None, build: str = "auto") -> Weights:
+                budget_bytes: int | None = None, build: str = "auto", sort: str = "auto") -> Weights:
         """Sparse weights of ``voxels`` (from :meth:`eliminate` or :meth:`all_voxels`).
 
         The kernels emit one entry per (sub-aperture, lenslet, pixel); the entries of a voxel
@@ -309,11 +309,12 @@ class Projector:
         each (voxel, pixel) once: about a third of the raw entries.
 
         Two builds give the same weights (to float round-off). ``"two-pass"`` traces every voxel
-        twice, once to count its entries and once to write them, and merges with the library's
-        segmented sort (fast on a GPU). ``"single-pass"`` traces once into slots of a capacity
-        guessed from a sample of voxels (re-tracing only a chunk with a voxel that overflowed)
-        and sorts and merges each voxel in its own thread (:func:`sort_merge`), which is about
-        2.5x faster on the CPU.
+        twice, once to count its entries and once to write them. ``"single-pass"`` traces once
+        into slots of a capacity guessed from a sample of voxels (re-tracing only a chunk with a
+        voxel that overflowed), which is about 2.5x faster on the CPU. Entries are merged either
+        by the library's segmented sort (fast on a GPU, one thread on the CPU) or by sorting each
+        voxel in its own thread (:func:`sort_merge`, several times faster on the CPU); both are
+        stable and give the same weights.
 
         Parameters
         ----------
@@ -329,6 +330,9 @@ class Projector:
         build
             ``"auto"`` (single-pass for DRT weights on the CPU, else two-pass),
             ``"single-pass"`` or ``"two-pass"``. LOS weights are always built in two passes.
+        sort
+            Merge of a two-pass build: ``"auto"`` (per voxel on the CPU, the library's on a GPU),
+            ``"per-voxel"`` or ``"library"``. A single-pass build always sorts per voxel.
 
         Raises
         ------
@@ -343,6 +347,9 @@ class Projector:
             raise ValueError(f"unknown build '{build}'; use one of {', '.join(BUILDS)}")
         if build == "auto":
             build = "single-pass" if self.device == "cpu" else "two-pass"
+        if sort not in ("auto", "per-voxel", "library"):
+            raise ValueError(f"unknown sort '{sort}'; use auto, per-voxel or library")
+        per_voxel = sort == "per-voxel" or (sort == "auto" and self.device == "cpu")
         budget = _available_bytes(self.device) if budget_bytes is None else budget_bytes
         if method == "drt" and build == "single-pass":
             return self._drt_single_pass(voxels, float(min_weight), budget)
@@ -389,7 +396,7 @@ class Projector:
             merged_pix = wp.empty(max(m, 1), dtype=wp.int32, device=self.device)
             merged_w = wp.empty(max(m, 1), dtype=float, device=self.device)
             kept = wp.empty(hi - lo, dtype=wp.int32, device=self.device)
-            if self.device == "cpu":
+            if per_voxel:
                 # each voxel sorted and merged by its own thread: the same stable result as the
                 # library's segmented sort, which runs on one CPU thread and is several times slower
                 order, tmp_pix, tmp_ord = (wp.empty(scratch, dtype=wp.int32, device=self.device) for _ in range(3))

@@ -64,6 +64,12 @@ def test_single_pass_build_matches_the_two_pass_build(small_dual_rig, device, mo
     direct = proj.weights(vox, "drt", build="two-pass")
     assert direct.nnz > 0
     _same(direct, proj.weights(vox, "drt", build="single-pass"))
+    # both merges of the two-pass build, for DRT and the MART baseline's weights
+    _same(direct, proj.weights(vox, "drt", build="two-pass", sort="library"))
+    _same(direct, proj.weights(vox, "drt", build="two-pass", sort="per-voxel"))
+    los = proj.weights(vox, "los", sort="library")
+    assert los.nnz > 0
+    _same(los, proj.weights(vox, "los", sort="per-voxel"))
     # a tiny capacity sample (voxels overflow their slots) and small chunks: still the same
     monkeypatch.setattr(projector_module, "CAPACITY_SAMPLE", 1)
     monkeypatch.setattr(projector_module, "SINGLE_PASS_ENTRIES", 5000)
@@ -75,6 +81,8 @@ def test_single_pass_build_matches_the_two_pass_build(small_dual_rig, device, mo
     assert empty.nnz == 0 and empty.n_voxels == 0
     with pytest.raises(ValueError, match="build"):
         proj.weights(vox, "drt", build="fast")
+    with pytest.raises(ValueError, match="unknown sort"):
+        proj.weights(vox, "drt", sort="quick")
 
 
 def test_cache_gives_the_direct_operator_frame_after_frame(small_dual_rig, device):
