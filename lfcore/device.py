@@ -20,7 +20,7 @@ from typing import Any
 import warp as wp
 
 __all__ = ["DeviceError", "PerBlock", "RowOffset", "Rows", "available_devices", "cpu_threads", "launch_rows",
-           "resolve_device", "warp"]
+           "private_copies", "resolve_device", "warp"]
 
 
 class DeviceError(ValueError):
@@ -129,10 +129,20 @@ class Rows:
 @dataclass(frozen=True)
 class PerBlock:
     """An input of :func:`launch_rows` that differs per CPU block: block k gets ``arrays[k]``
-    (on a GPU, and in an unsplit launch, ``arrays[0]``). There must be one per CPU thread
-    (:func:`cpu_threads`). For private accumulation buffers, since CPU atomics are not atomic."""
+    (on a GPU, and in an unsplit launch, ``arrays[0]``); the launch makes at most as many blocks
+    as there are arrays. For private accumulation buffers, since CPU atomics are not atomic."""
 
     arrays: tuple
+
+
+#: Most memory that the private accumulation images of one split CPU launch may take.
+PRIVATE_BYTES = 1 << 30
+
+
+def private_copies(nbytes: int) -> int:
+    """How many private copies of an ``nbytes`` accumulation buffer a split CPU launch should
+    add to the caller's own: one per further CPU thread, within :data:`PRIVATE_BYTES`."""
+    return max(0, min(cpu_threads() - 1, PRIVATE_BYTES // max(1, int(nbytes))))
 
 
 @dataclass(frozen=True)
@@ -188,9 +198,8 @@ def launch_rows(kernel: Any, rows: int, inputs: Sequence[Any], device: str, *, r
     if rows <= 0:
         return
     threads = cpu_threads() if device == "cpu" else 1
+    threads = min([threads] + [len(x.arrays) for x in inputs if isinstance(x, PerBlock)])
     blocks = min(threads, rows // max(min_rows, align, 1))
-    if blocks > 1 and any(isinstance(x, PerBlock) and len(x.arrays) < blocks for x in inputs):
-        raise ValueError(f"a PerBlock input needs one array for each of {blocks} CPU blocks")
     if blocks <= 1:
         wp.launch(kernel, dim=(rows, *rest), inputs=[_block_input(x, 0, rows) for x in inputs], device=device,
                   stream=stream)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfcore.device import PerBlock, RowOffset, Rows, cpu_threads, launch_rows, resolve_device, warp
+from lfcore.device import PerBlock, RowOffset, Rows, launch_rows, private_copies, resolve_device, warp
 from lfcore.rig import Camera
 from lfcore.volume import VolumeGrid
 
@@ -500,11 +500,12 @@ class Projector:
         # The projection accumulates into pixels with atomics, which are plain adds on the CPU:
         # there each CPU block sums into a private image, and the images are added after.
         parts = (out,)
-        if self.device == "cpu" and cpu_threads() > 1:
-            if self._parts is None or self._parts.shape != (cpu_threads() - 1, self.n_pixels):
-                self._parts = wp.zeros((cpu_threads() - 1, self.n_pixels), dtype=float, device=self.device)
+        extra = private_copies(4 * self.n_pixels) if self.device == "cpu" else 0
+        if extra:
+            if self._parts is None or self._parts.shape != (extra, self.n_pixels):
+                self._parts = wp.zeros((extra, self.n_pixels), dtype=float, device=self.device)
             self._parts.zero_()
-            parts = (out, *(self._parts[k] for k in range(cpu_threads() - 1)))
+            parts = (out, *(self._parts[k] for k in range(extra)))
         for c in weights.chunks:
             launch_rows(km.project, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), e,
                                           PerBlock(parts)], self.device)

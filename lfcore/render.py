@@ -17,7 +17,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from lfcore.device import PerBlock, RowOffset, cpu_threads, launch_rows, resolve_device, warp
+from lfcore.device import PerBlock, RowOffset, launch_rows, private_copies, resolve_device, warp
 from lfcore.rig import Camera, RenderConfig
 
 __all__ = ["LightFieldRenderer", "derive_seed"]
@@ -91,11 +91,12 @@ class LightFieldRenderer:
         # Rays land with atomic adds, plain adds on the CPU: there each CPU block fills an image
         # of its own, added after (integer quanta, so the sum does not depend on the order).
         images = (self._quanta,)
-        if self.device == "cpu" and cpu_threads() > 1:
-            if self._parts is None or self._parts.shape[0] != cpu_threads() - 1:
-                self._parts = wp.zeros((cpu_threads() - 1, *self.shape), dtype=wp.int64, device=self.device)
+        extra = private_copies(8 * self.shape[0] * self.shape[1]) if self.device == "cpu" else 0
+        if extra:
+            if self._parts is None or self._parts.shape[0] != extra:
+                self._parts = wp.zeros((extra, *self.shape), dtype=wp.int64, device=self.device)
             self._parts.zero_()
-            images = (self._quanta, *(self._parts[k] for k in range(cpu_threads() - 1)))
+            images = (self._quanta, *(self._parts[k] for k in range(extra)))
         per_thread = min(RAYS_PER_THREAD[kind], rays)
         chunks = -(-rays // per_thread)
         batch = max(1, MAX_THREADS_PER_LAUNCH[kind] // chunks)

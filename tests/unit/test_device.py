@@ -7,7 +7,7 @@ import pytest
 import warp as wp
 
 import lfcore.device as dev
-from lfcore.device import DeviceError, RowOffset, Rows, launch_rows, resolve_device
+from lfcore.device import DeviceError, PerBlock, RowOffset, Rows, launch_rows, resolve_device
 
 dev.warp()
 
@@ -48,6 +48,30 @@ def test_rows_slices_scaled_and_shared_elements():
     assert dev._block_input(1.5, 3, 9) == 1.5
 
 
+def test_private_images_stay_within_their_budget(monkeypatch):
+    monkeypatch.setattr(dev, "cpu_threads", lambda: 16)
+    assert dev.private_copies(4 << 20) == 15
+    assert dev.private_copies(dev.PRIVATE_BYTES // 3) == 3  # a 29 MP int64 image: a few copies only
+    assert dev.private_copies(2 * dev.PRIVATE_BYTES) == 0
+    monkeypatch.setattr(dev, "cpu_threads", lambda: 1)
+    assert dev.private_copies(1) == 0
+
+
+def test_per_block_inputs_bound_the_blocks(device, monkeypatch):
+    monkeypatch.setattr(dev, "cpu_threads", lambda: 4)
+    parts = tuple(wp.zeros((9, 5), dtype=int, device=device) for _ in range(2))
+    pairs = wp.zeros(5, dtype=int, device=device)
+    launch_rows(_probe, 9, [RowOffset(0), PerBlock(parts), Rows(pairs, div=2)], device, rest=(5,), align=2)
+    expect = np.arange(9)[:, None] * 100 + np.arange(5)[None, :]
+    if device == "cpu":  # two arrays, so two blocks (not four): rows 0-5 and 6-8, each in its own array
+        got = np.concatenate([parts[0].numpy()[:6], parts[1].numpy()[:3]])
+        assert not parts[1].numpy()[3:].any()
+    else:  # one launch into the first array
+        got = parts[0].numpy()
+        assert not parts[1].numpy().any()
+    assert np.array_equal(got, expect)
+
+
 def test_cpu_threads_from_the_environment(monkeypatch):
     dev.cpu_threads.cache_clear()
     try:
@@ -69,8 +93,7 @@ def test_unknown_device_names_the_ones_that_exist():
 # --- the split kernels give what one thread gives ------------------------------------------
 def _threads(monkeypatch, n: int) -> None:
     # every module that asks how many CPU threads to use, asked at call time
-    for where in ("lfcore.device", "lfcore.render", "lfcore.projector"):
-        monkeypatch.setattr(f"{where}.cpu_threads", lambda n=n: n)
+    monkeypatch.setattr("lfcore.device.cpu_threads", lambda: n)
 
 
 def _frame_and_reconstruction(tiny_rig):
