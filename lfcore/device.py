@@ -110,6 +110,10 @@ def _pool() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=max(1, cpu_threads() - 1), thread_name_prefix="lfpiv-cpu-launch")
 
 
+if hasattr(os, "register_at_fork"):  # a forked child has none of the parent's pool threads
+    os.register_at_fork(after_in_child=_pool.cache_clear)
+
+
 @dataclass(frozen=True)
 class Rows:
     """An input of :func:`launch_rows` that the first thread index addresses.

@@ -140,3 +140,29 @@ def test_correlation_does_not_depend_on_the_cpu_threads(monkeypatch):
     three = correlate(a, b, cfg, device="cpu")
     assert np.allclose(one.displacement, three.displacement, atol=1e-5, equal_nan=True)
     assert np.allclose(one.peak_ratio, three.peak_ratio, rtol=1e-5)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs os.fork")
+def test_a_forked_child_can_still_split_launches(monkeypatch):
+    import os
+
+    monkeypatch.setattr(dev, "cpu_threads", lambda: 2)
+    _run(8, "cpu", align=1)  # the parent's pool exists now
+    pid = os.fork()
+    if pid == 0:  # the child: a split launch must not wait for threads it does not have
+        try:
+            out, _ = _run(8, "cpu", align=1)
+            os._exit(0 if out[7, 4] == 100704 else 1)
+        except BaseException:
+            os._exit(2)
+    import signal
+    import time
+
+    end = time.monotonic() + 60
+    while (done := os.waitpid(pid, os.WNOHANG))[0] == 0 and time.monotonic() < end:
+        time.sleep(0.05)
+    if done[0] == 0:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        pytest.fail("the split launch in the forked child never finished")
+    assert os.waitstatus_to_exitcode(done[1]) == 0
