@@ -20,7 +20,7 @@ from typing import Any
 import warp as wp
 
 __all__ = ["DeviceError", "PerBlock", "RowOffset", "Rows", "available_devices", "cpu_threads", "launch_rows",
-           "private_copies", "resolve_device", "warp"]
+           "PrivateCopies", "private_copies", "resolve_device", "warp"]
 
 
 class DeviceError(ValueError):
@@ -147,6 +147,39 @@ def private_copies(nbytes: int) -> int:
     """How many private copies of an ``nbytes`` accumulation buffer a split CPU launch should
     add to the caller's own: one per further CPU thread, within :data:`PRIVATE_BYTES`."""
     return max(0, min(cpu_threads() - 1, PRIVATE_BYTES // max(1, int(nbytes))))
+
+
+class PrivateCopies:
+    """Private copies of one accumulation buffer for the blocks of split CPU launches.
+
+    A kernel that accumulates with atomics cannot share its output between CPU blocks (Warp's
+    CPU atomics are plain adds). :meth:`open` gives the :class:`PerBlock` input: the buffer
+    itself and zeroed copies, as many as :func:`private_copies` allows; after the launches,
+    :meth:`close` adds the copies into the buffer. On a GPU the buffer is used alone. The
+    copies are allocated on first use and kept for the next launches.
+    """
+
+    def __init__(self) -> None:
+        self._parts: Any = None
+        self._n = 0
+
+    def open(self, out: Any) -> PerBlock:
+        """The per-block outputs for launches that accumulate into ``out``."""
+        self._n = private_copies(out.numpy().nbytes) if str(out.device) == "cpu" else 0
+        if self._n:
+            shape = (self._n, *out.shape)
+            if self._parts is None or tuple(self._parts.shape) != shape or self._parts.dtype != out.dtype:
+                self._parts = wp.zeros(shape, dtype=out.dtype, device=out.device)
+            else:
+                self._parts.zero_()
+        return PerBlock((out, *(self._parts[k] for k in range(self._n))))
+
+    def close(self, out: Any) -> None:
+        """Add what the other blocks accumulated into ``out`` (on the CPU, in place)."""
+        if self._n:
+            total = out.numpy()  # on the CPU, a view of the array
+            total += self._parts.numpy().sum(axis=0)
+            self._n = 0
 
 
 @dataclass(frozen=True)

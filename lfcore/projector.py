@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfcore.device import PerBlock, RowOffset, Rows, launch_rows, private_copies, resolve_device, warp
+from lfcore.device import PrivateCopies, RowOffset, Rows, launch_rows, resolve_device, warp
 from lfcore.rig import Camera
 from lfcore.volume import VolumeGrid
 
@@ -157,7 +157,7 @@ class Projector:
         self._grid = g
         self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in self.cameras])
         self.n_pixels = int(self.pixel_offsets[-1])
-        self._parts = None  # private projection images of the CPU blocks (see forward)
+        self._parts = PrivateCopies()  # projection images of the CPU blocks (see forward)
         if self.n_pixels >= 2**31 or grid.n_voxels >= 2**31:
             raise MemoryBudgetError("more than 2**31 pixels or voxels; use a coarser --pvr")
 
@@ -499,19 +499,11 @@ class Projector:
         out.zero_()
         # The projection accumulates into pixels with atomics, which are plain adds on the CPU:
         # there each CPU block sums into a private image, and the images are added after.
-        parts = (out,)
-        extra = private_copies(4 * self.n_pixels) if self.device == "cpu" else 0
-        if extra:
-            if self._parts is None or self._parts.shape != (extra, self.n_pixels):
-                self._parts = wp.zeros((extra, self.n_pixels), dtype=float, device=self.device)
-            self._parts.zero_()
-            parts = (out, *(self._parts[k] for k in range(extra)))
+        parts = self._parts.open(out)
         for c in weights.chunks:
-            launch_rows(km.project, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), e,
-                                          PerBlock(parts)], self.device)
-        if len(parts) > 1:
-            total = out.numpy()  # on the CPU, a view of the array
-            total += self._parts.numpy().sum(axis=0)
+            launch_rows(km.project, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), e, parts],
+                        self.device)
+        self._parts.close(out)
         return out
 
     def smart_update(self, weights: Weights, image, proj, e, relaxation: float, floor: float) -> None:

@@ -17,7 +17,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from lfcore.device import PerBlock, RowOffset, launch_rows, private_copies, resolve_device, warp
+from lfcore.device import PrivateCopies, RowOffset, launch_rows, resolve_device, warp
 from lfcore.rig import Camera, RenderConfig
 
 __all__ = ["LightFieldRenderer", "derive_seed"]
@@ -65,7 +65,7 @@ class LightFieldRenderer:
         self._quanta = self.wp.zeros(shape, dtype=self.wp.int64, device=self.device)
         self._counts = self.wp.zeros(shape, dtype=float, device=self.device)
         self._frame = self.wp.zeros(shape, dtype=self.wp.uint16, device=self.device)
-        self._parts = None  # private ray images of the CPU blocks (see _trace)
+        self._parts = PrivateCopies()  # ray images of the CPU blocks (see _trace)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -90,13 +90,7 @@ class LightFieldRenderer:
         kind = "cpu" if self.device == "cpu" else "cuda"
         # Rays land with atomic adds, plain adds on the CPU: there each CPU block fills an image
         # of its own, added after (integer quanta, so the sum does not depend on the order).
-        images = (self._quanta,)
-        extra = private_copies(8 * self.shape[0] * self.shape[1]) if self.device == "cpu" else 0
-        if extra:
-            if self._parts is None or self._parts.shape[0] != extra:
-                self._parts = wp.zeros((extra, *self.shape), dtype=wp.int64, device=self.device)
-            self._parts.zero_()
-            images = (self._quanta, *(self._parts[k] for k in range(extra)))
+        images = self._parts.open(self._quanta)
         per_thread = min(RAYS_PER_THREAD[kind], rays)
         chunks = -(-rays // per_thread)
         batch = max(1, MAX_THREADS_PER_LAUNCH[kind] // chunks)
@@ -107,12 +101,10 @@ class LightFieldRenderer:
             q_dev = wp.array(quanta[start:stop], dtype=wp.int64, device=self.device)
             launch_rows(kr.trace_particles, (stop - start) * chunks,
                         [self.params, p_dev, q_dev, radius, rays, per_thread, chunks, derive_seed(seed, start),
-                         RowOffset(0), PerBlock(images)], self.device)
+                         RowOffset(0), images], self.device)
             if progress is not None:
                 progress(stop - start)
-        if len(images) > 1:
-            total = self._quanta.numpy()  # on the CPU, a view of the array
-            total += self._parts.numpy().sum(axis=0)
+        self._parts.close(self._quanta)
 
     def irradiance(self, points_mm: np.ndarray, counts: float | np.ndarray, seed: int = 0,
                    progress: Callable[[int], None] | None = None) -> np.ndarray:
