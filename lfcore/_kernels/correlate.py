@@ -337,15 +337,20 @@ def cross_spectrum(spec: wp.array4d(dtype=wp.vec2f), mean: wp.array(dtype=wp.vec
 
 
 @wp.func
+def unpack(c: wp.vec2f, odd: int) -> float:
+    """The correlation of the even (real part) or odd (imaginary part) window of a packed slot."""
+    if odd == 1:
+        return c[1]
+    return c[0]
+
+
+@wp.func
 def corr_value(corr: wp.array4d(dtype=wp.vec2f), w: int, k: int, j: int, i: int) -> float:
     """Correlation of window w at (k, j, i), wrapped cyclically (packed two windows per slot)."""
     pz = corr.shape[1]
     py = corr.shape[2]
     px = corr.shape[3]
-    v = corr[w // 2, (k + pz) % pz, (j + py) % py, (i + px) % px]
-    if w % 2 == 1:
-        return v[1]
-    return v[0]
+    return unpack(corr[w // 2, (k + pz) % pz, (j + py) % py, (i + px) % px], w % 2)
 
 
 @wp.func
@@ -368,10 +373,7 @@ def row_peaks(corr: wp.array4d(dtype=wp.vec2f), row_val: wp.array2d(dtype=float)
     best = float(-1.0e30)  # noqa: UP018 - a dynamic Warp variable, mutated below
     best_i = int(0)  # noqa: UP018 - a dynamic Warp variable, mutated below
     for i in range(px):
-        c = corr[slot, k, j, i]
-        v = c[0]
-        if odd == 1:
-            v = c[1]
+        v = unpack(corr[slot, k, j, i], odd)
         if v > best:
             best = v
             best_i = i
@@ -406,10 +408,7 @@ def peak_partial(corr: wp.array4d(dtype=wp.vec2f), row_val: wp.array2d(dtype=flo
         if near:
             for i in range(px):
                 if cyclic_distance(i, e[0], px) > radius:
-                    c = corr[slot, k, j, i]
-                    v = c[0]
-                    if odd == 1:
-                        v = c[1]
+                    v = unpack(corr[slot, k, j, i], odd)
                     if v > best:
                         best = v
                         best_idx = row * px + i
