@@ -42,6 +42,15 @@ def sensor_radius_mm(camera: Camera) -> float:
     return 0.5 * math.hypot(*camera.sensor_size_mm)
 
 
+def _inverse_depth(camera: Camera, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points (..., 3) and 1 / d, d their distance in front of the lens along the
+    axis (NaN at or behind the lens plane)."""
+    e = camera.world_to_camera(points_mm)
+    depth = camera.object_distance_mm - e[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return e, np.where(depth > 0, 1.0 / depth, np.nan)
+
+
 def chief_ray_mla(camera: Camera, points_mm: np.ndarray) -> np.ndarray:
     """Where each point's chief ray meets the MLA plane, in sensor-plane coordinates.
 
@@ -57,11 +66,8 @@ def chief_ray_mla(camera: Camera, points_mm: np.ndarray) -> np.ndarray:
     numpy.ndarray
         (..., 2) sensor-plane (x, y), mm; NaN for points at or behind the lens plane.
     """
-    e = camera.world_to_camera(points_mm)
-    depth = camera.object_distance_mm - e[..., 2]  # distance in front of the lens along the axis
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -e[..., :2] / np.where(depth > 0, depth, np.nan)[..., None]
-    return camera.image_distance_mm * s
+    e, inv = _inverse_depth(camera, points_mm)
+    return -camera.image_distance_mm * e[..., :2] * inv[..., None]
 
 
 def defocus_radius_mm(camera: Camera, points_mm: np.ndarray) -> np.ndarray:
@@ -83,10 +89,7 @@ def defocus_radius_mm(camera: Camera, points_mm: np.ndarray) -> np.ndarray:
     numpy.ndarray
         (...) blur radius on the MLA, mm; NaN for points at or behind the lens plane.
     """
-    e = camera.world_to_camera(points_mm)
-    depth = camera.object_distance_mm - e[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.where(depth > 0, 1.0 / depth, np.nan)
+    _, inv = _inverse_depth(camera, points_mm)
     return 0.5 * camera.aperture_mm * camera.image_distance_mm * np.abs(1.0 / camera.object_distance_mm - inv)
 
 
@@ -101,10 +104,7 @@ def image_scale(camera: Camera, points_mm: np.ndarray) -> np.ndarray:
     numpy.ndarray
         (...) scale, dimensionless; NaN at or behind the lens plane.
     """
-    e = camera.world_to_camera(points_mm)
-    depth = camera.object_distance_mm - e[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(depth > 0, camera.image_distance_mm / depth, np.nan)
+    return camera.image_distance_mm * _inverse_depth(camera, points_mm)[1]
 
 
 def project(camera: Camera, points_mm: np.ndarray, *, radial_k1: float = 0.0,
