@@ -202,7 +202,7 @@ def _block_input(item: Any, lo: int, hi: int, block: int = 0) -> Any:
 
 
 def launch_rows(kernel: Any, rows: int, inputs: Sequence[Any], device: str, *, rest: tuple[int, ...] = (),
-                align: int = 1, min_rows: int = 1, stream: Any = None) -> None:
+                align: int = 1, stream: Any = None) -> None:
     """Launch ``kernel`` over ``(rows, *rest)`` threads; on the CPU, over all cores.
 
     Warp runs a CPU launch on one thread. Here the rows (the first launch dimension) are cut
@@ -213,8 +213,9 @@ def launch_rows(kernel: Any, rows: int, inputs: Sequence[Any], device: str, *, r
     Parameters
     ----------
     kernel
-        A Warp kernel whose threads write disjoint memory. Warp's CPU ``atomic_add`` is a plain
-        read-modify-write, so a kernel that accumulates with atomics must not be split.
+        A Warp kernel whose blocks write disjoint memory. Warp's CPU ``atomic_add`` is a plain
+        read-modify-write, so a kernel that accumulates with atomics needs its output as a
+        :class:`PerBlock` input (see :class:`PrivateCopies`).
     rows
         Size of the first launch dimension.
     inputs
@@ -227,8 +228,6 @@ def launch_rows(kernel: Any, rows: int, inputs: Sequence[Any], device: str, *, r
         The other launch dimensions.
     align
         Block boundaries are multiples of this (e.g. 2 where two rows share one element).
-    min_rows
-        Fewest rows per block; a smaller launch is not split.
     stream
         CUDA stream of the launch (ignored on the CPU).
     """
@@ -236,7 +235,7 @@ def launch_rows(kernel: Any, rows: int, inputs: Sequence[Any], device: str, *, r
         return
     threads = cpu_threads() if device == "cpu" else 1
     threads = min([threads] + [len(x.arrays) for x in inputs if isinstance(x, PerBlock)])
-    blocks = min(threads, rows // max(min_rows, align, 1))
+    blocks = min(threads, rows // max(align, 1))
     if blocks <= 1:
         wp.launch(kernel, dim=(rows, *rest), inputs=[_block_input(x, 0, rows) for x in inputs], device=device,
                   stream=stream)
