@@ -540,8 +540,10 @@ def los_weights(
 
     The line of sight of the pixel at sensor point s under lenslet c passes through the
     lenslet's conjugate x_f = c / M on the focal plane and the aperture point
-    A = c + (c - s) si / f_ml; at the voxel's depth it is |dz| / so |A* - A| from the voxel
-    centre, A* being the aperture point whose line passes through the voxel centre.
+    A = c + (c - s) si / f_ml; at the voxel's depth dz it is at x_f + (A - x_f) dz / so. The
+    pixels searched lie around the aperture point A* whose line passes through the voxel centre,
+    within the lenslet's own pixels (near the focal plane A* leaves the aperture and every pixel
+    of the lenslet sees the voxel).
     """
     tid = wp.tid()
     pw = voxel_centre(grid, voxels[tid])
@@ -588,8 +590,9 @@ def los_weights(
                 # the sensor point of that line, and the search radius around it (pixels)
                 ssx = c[0] - (asx - c[0]) / ratio
                 ssy = c[1] - (asy - c[1]) / ratio
+                # (near the focal plane the disc covers the whole lenslet: the clamp to the
+                # lenslet's own pixels below bounds the loop, so the radius is not capped)
                 rad = view.los_radius * cam.so / wp.abs(dz) / ratio / cam.pixel + 1.0
-                rad = wp.min(rad, 0.5 * cam.pitch / cam.pixel + 1.0)
                 ccol = 0.5 * float(cam.ncols) - ssx / cam.pixel
                 crow = 0.5 * float(cam.nrows) + ssy / cam.pixel
                 # only this lenslet's own pixels: those within half a pitch of its centre
@@ -612,7 +615,11 @@ def los_weights(
                         ay = c[1] + (c[1] - sy) * ratio
                         if ax * ax + ay * ay > cam.aperture_r * cam.aperture_r:
                             continue
-                        d = wp.abs(dz) / cam.so * wp.sqrt((asx - ax) * (asx - ax) + (asy - ay) * (asy - ay))
+                        # the line of sight at the voxel's depth, xf + (A - xf) dz / so, against its centre
+                        # (this form stays exact at the focal plane, where A* runs off to infinity)
+                        ex = xfx - p[0] + (ax - xfx) * dz / cam.so
+                        ey = xfy - p[1] + (ay - xfy) * dz / cam.so
+                        d = wp.sqrt(ex * ex + ey * ey)
                         wt = circle_overlap(view.los_cyl, view.los_sph, d) / sph_area
                         if wt > min_weight:  # the same test in both passes
                             total += wt

@@ -77,6 +77,29 @@ def test_weights_spread_light_as_the_optics_do(tiny_rig, device):
     assert f.sum() < 0.95  # the last, defocused at the corner of the box, loses some off the sensor
 
 
+def test_baseline_weights_reach_the_sensor_at_every_depth(tiny_rig, device):
+    # The baseline must be honest at the focal plane too, where every line of sight of a lenslet
+    # passes through the same conjugate point (its search once left three layers without weights).
+    grid = VolumeGrid.from_rig(tiny_rig)
+    cam = tiny_rig.camera[0]
+    proj = Projector([cam], grid, device=device)
+    nz, ny, nx = grid.shape
+    column = [_voxel_index(grid, ix, iy, iz) for iz in range(nz) for ix in (40, 41, 42) for iy in (33, 34, 35)]
+    w = proj.weights(proj.wp.array(column, dtype=proj.wp.int32, device=proj.device), "los")
+    offsets, _, values = w.to_numpy()
+    assert np.all(np.diff(offsets) > 0)
+    np.testing.assert_allclose(np.add.reduceat(values, offsets[:-1]), 1.0, atol=1e-4)
+    # the focal-plane voxel lights the pixels its image does
+    cfg = tiny_rig.render.model_copy(update={"rays_per_particle": 20_000, "diffraction": False})
+    iz = int(np.argmin(np.abs(np.asarray(grid.origin_mm)[2] + np.arange(nz) * grid.voxel_mm[2] - cam.focus_mm[2])))
+    centre = np.asarray(grid.origin_mm) + np.array([41, 34, iz]) * np.asarray(grid.voxel_mm)
+    pts = centre + (np.random.default_rng(0).random((100, 3)) - 0.5) * np.asarray(grid.voxel_mm)
+    img = LightFieldRenderer(cam, cfg, device=device).irradiance(pts, 1000.0, seed=2).ravel()
+    one = proj.weights(proj.wp.array([_voxel_index(grid, 41, 34, iz)], dtype=proj.wp.int32, device=proj.device), "los")
+    f = proj.forward(one, proj.wp.array([1.0], dtype=float, device=proj.device)).numpy()
+    assert np.corrcoef(f, img)[0, 1] > 0.95
+
+
 def test_drt_mart_beats_mart_at_equal_work(tiny_rig, device):
     grid = VolumeGrid.from_rig(tiny_rig)
     pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.3), np.random.default_rng(3))
