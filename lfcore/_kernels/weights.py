@@ -785,6 +785,24 @@ def sort_merge(
     counts[v] = _sum_runs(pix, order, w_raw, s, s + n, out_pix, out_w)
 
 
+@wp.func
+def _copy_run(
+    src_pix: wp.array(dtype=wp.int32),
+    src_w: wp.array(dtype=float),
+    s: wp.int64,
+    dst_pix: wp.array(dtype=wp.int32),
+    dst_w: wp.array(dtype=float),
+    d: wp.int64,
+    n: wp.int64,
+):
+    """Copy ``n`` (pixel, weight) entries from ``s`` to ``d``."""
+    k = wp.int64(0)
+    while k < n:
+        dst_pix[d + k] = src_pix[s + k]
+        dst_w[d + k] = src_w[s + k]
+        k += wp.int64(1)
+
+
 @wp.kernel
 def gather_merged(
     starts: wp.array(dtype=wp.int32),
@@ -797,11 +815,7 @@ def gather_merged(
 ):
     """Pack each voxel's merged entries (at ``starts``) contiguously (at ``new_starts``)."""
     v = wp.tid()
-    s = starts[v]
-    d = new_starts[v]
-    for k in range(counts[v]):
-        dst_pix[d + wp.int64(k)] = src_pix[s + k]
-        dst_w[d + wp.int64(k)] = src_w[s + k]
+    _copy_run(src_pix, src_w, wp.int64(starts[v]), dst_pix, dst_w, new_starts[v], wp.int64(counts[v]))
 
 
 @wp.kernel
@@ -815,11 +829,5 @@ def copy_rows(
 ):
     """Copy row t, ``dst_offsets[t + 1] - dst_offsets[t]`` entries from ``src_start[t]``, to ``dst_offsets[t]``."""
     t = wp.tid()
-    s = src_start[t]
     d = dst_offsets[t]
-    n = dst_offsets[t + 1] - d
-    k = wp.int64(0)
-    while k < n:
-        dst_pix[d + k] = src_pix[s + k]
-        dst_w[d + k] = src_w[s + k]
-        k += wp.int64(1)
+    _copy_run(src_pix, src_w, src_start[t], dst_pix, dst_w, d, dst_offsets[t + 1] - d)
