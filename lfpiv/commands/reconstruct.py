@@ -24,9 +24,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Reconstruct both frames of every selected pair into volumes/ of the run store, "
         "jointly from every camera's image (or those given by --cameras). DRT-MART eliminates the voxels "
         "that cannot hold a particle, builds dense ray-traced weights for the rest and iterates MART on "
-        "them; --method mart is the conventional baseline (line-of-sight weights, no elimination).")
+        "them; --method mart is the conventional baseline (line-of-sight weights, no elimination); --method "
+        "mlos-mart eliminates as DRT-MART does, then iterates with the baseline's weights.")
     r.add_argument("run", metavar="RUN", help="run store (a .zarr directory)")
-    r.add_argument("--method", choices=("drt-mart", "mart"), default="drt-mart", help="default: drt-mart")
+    r.add_argument("--method", choices=("drt-mart", "mart", "mlos-mart"), default="drt-mart", help="default: drt-mart")
     r.add_argument("--iterations", type=whole_number, default=50, help="MART iterations (default: 50)")
     r.add_argument("--relaxation", type=positive_float, default=1.0,
                    help="relaxation mu (default: 1; at most 2 for the simultaneous form; the chapter's "

@@ -58,6 +58,15 @@ def test_mart_baseline_from_the_command(capsys, synthetic_run, tmp_path):
     assert RunStore.open(synthetic_run).group["volumes"].attrs["method"] == "mart"
 
 
+def test_mlos_mart_from_the_command(capsys, synthetic_run, tmp_path):
+    rc, out, err = _run(capsys, "reconstruct", str(synthetic_run), "--method", "mlos-mart", "--iterations", "3",
+                        "--pairs", "0", "--quiet")
+    assert rc == 0, err
+    active = float(out.split("% of voxels active")[0].rsplit(" ", 1)[1])
+    assert 0 < active < 20  # eliminated like DRT-MART
+    assert RunStore.open(synthetic_run).group["volumes"].attrs["method"] == "mlos-mart"
+
+
 def _empty_run(tmp_path):
     path = tmp_path / "empty.zarr"
     RunStore.create(path, load_rig(TINY), 2, timing={"dt_s": 0.002, "rate_hz": 10.0}, software_version="x")

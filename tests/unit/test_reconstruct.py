@@ -123,6 +123,23 @@ def test_drt_mart_beats_mart_at_equal_work(tiny_rig, device):
     assert out["drt"][2] < out["mart"][2]  # ghosts
 
 
+def test_mlos_mart_is_the_baseline_on_the_surviving_voxels(tiny_rig, device):
+    # Eliminated voxels hold no particle, so MART on the survivors with the baseline's weights
+    # must reconstruct what the baseline does on the whole box.
+    grid = VolumeGrid.from_rig(tiny_rig)
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.3), np.random.default_rng(3))
+    (img,) = _render(tiny_rig, pts, device=device)
+    proj = Projector(tiny_rig.camera, grid, device=device)
+    e0 = metrics.truth_volume(grid, pts)
+    mlos = reconstruct(proj, [img], ReconSettings(method="mlos-mart", iterations=20))
+    drt = reconstruct(proj, [img], ReconSettings(method="drt-mart", iterations=20))
+    mart = reconstruct(proj, [img], ReconSettings(method="mart", iterations=20))
+    assert mlos.active_voxels == drt.active_voxels < 0.25 * mart.active_voxels
+    assert mlos.nnz < 0.25 * mart.nnz
+    q_mlos, q_mart = metrics.q_recon(mlos.volume, e0), metrics.q_recon(mart.volume, e0)
+    assert q_mlos == pytest.approx(q_mart, abs=0.01)
+
+
 def test_two_cameras_at_90_degrees_beat_one(tiny_rig, device):
     rig = _dual_rig(tiny_rig)
     grid = VolumeGrid.from_rig(rig)
