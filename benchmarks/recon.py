@@ -4,14 +4,17 @@ Run from the repository root::
 
     python benchmarks/recon.py --case S                  # tiny rig, CPU, seconds
     python benchmarks/recon.py --case S --ppm 1          # the chapter's 4x speed point
+    python benchmarks/recon.py --case S2                 # two cameras at 90 degrees
     python benchmarks/recon.py --case M --device cuda    # 2048 x 2048, 14 px per lenslet
     python benchmarks/recon.py --case L --device cuda    # 6600 x 4400, 3300 x 2200 x 182 voxels
 
-Cases (single camera, 0.5 PPM unless --ppm, PVR (2, 2, 10)):
+Cases (single camera, 0.5 PPM unless --ppm, PVR (2, 2, 10), except S2):
 
 S   examples/tiny.toml: 192 x 160 pixels, 82 x 68 x 29 voxels. Its volume is only +-3.6
     lenslets of blur deep, so much of it lies where depth is poorly resolved: it tests code, it is
     not representative of speed ratios.
+S2  the tiny rig's camera and a second one at 90 degrees about y, 0.8 x 0.7 x 0.8 mm at PVR
+    (2, 2, 2) (73 x 64 x 73 voxels), reconstructed jointly: the dual-camera case.
 Mc  the optics of M on a 512 x 512 crop of the sensor (245 x 245 x 131 voxels), 50 iterations:
     M's geometry at a size a CPU manages in minutes.
 M   examples/one_camera.toml: 2048 x 2048 pixels, 14 pixels per hexagonal lenslet, 400 iterations.
@@ -61,6 +64,11 @@ BYTES_PER_VOXEL = 16 + 12
 def case_rig(case: str) -> tuple[Rig, int]:
     if case == "S":
         return load_rig(ROOT / "examples" / "tiny.toml"), 50
+    if case == "S2":
+        d = load_rig(ROOT / "examples" / "tiny.toml").to_dict()
+        d["camera"].append(dict(d["camera"][0], name="cam1", rotation_deg=[0.0, 90.0, 0.0]))
+        d["volume"].update(size_mm=[0.8, 0.7, 0.8], pvr=[2.0, 2.0, 2.0])
+        return Rig.from_dict(d), 50
     if case == "M":
         return load_rig(ROOT / "examples" / "one_camera.toml"), 400
     if case == "Mc":
@@ -100,20 +108,24 @@ def peak_bytes(device: str) -> int:
 def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool) -> None:
     rig, its = case_rig(case)
     its = iterations or its
-    cam = rig.camera[0]
+    cams = rig.camera if case == "S2" else rig.camera[:1]
+    cam = cams[0]
     grid = VolumeGrid.from_rig(rig)
     n = particle_count(rig, ppm)
     pts = seed_particles(rig.volume, n, np.random.default_rng(1))
     render = rig.render.model_copy(update={"rays_per_particle": 5000})
     t = time.perf_counter()
-    img = LightFieldRenderer(cam, render, rig.laser.wavelength_nm, device=device).frame(pts, render.particle_counts, 1)
-    print(f"case {case}: {cam.sensor_px[0]} x {cam.sensor_px[1]} px, {' x '.join(map(str, grid.shape[::-1]))} voxels "
-          f"(x, y, z), {n} particles ({ppm:g} PPM), {its} iterations, device {device}; "
+    img = [LightFieldRenderer(c, render, rig.laser.wavelength_nm, device=device).frame(pts, render.particle_counts,
+                                                                                        1 + k)
+           for k, c in enumerate(cams)]
+    print(f"case {case}: {len(cams)} x {cam.sensor_px[0]} x {cam.sensor_px[1]} px, "
+          f"{' x '.join(map(str, grid.shape[::-1]))} voxels (x, y, z), {n} particles ({ppm:g} PPM), {its} iterations, "
+          f"device {device}; "
           f"rendered in {time.perf_counter() - t:.1f} s")
     bw = copy_bandwidth(device)
-    proj = Projector([cam], grid, device=device)
+    proj = Projector(cams, grid, device=device)
     e0 = metrics.truth_volume(grid, pts)
-    drt = reconstruct(proj, [img], ReconSettings(iterations=its))
+    drt = reconstruct(proj, img, ReconSettings(iterations=its))
     q = metrics.q_recon(drt.volume, e0)
     floor_ms = 1e3 * (BYTES_PER_ENTRY * drt.nnz + BYTES_PER_VOXEL * drt.active_voxels) / bw
     print(f"  copy bandwidth {bw / 1e9:.1f} GB/s")
@@ -122,7 +134,7 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool) 
           f"({drt.ms_per_iteration / floor_ms:.1f}x the bandwidth floor of {floor_ms:.3f} ms), "
           f"total {drt.weights_s + drt.iterate_s:.2f} s, Q {q:.3f}, peak memory {peak_bytes(device) / 2**30:.2f} GiB")
     # MLOS-MART: the same elimination, the baseline's weights on the surviving voxels
-    mlos = reconstruct(proj, [img], ReconSettings(method="mlos-mart", iterations=its))
+    mlos = reconstruct(proj, img, ReconSettings(method="mlos-mart", iterations=its))
     tm = mlos.weights_s + mlos.iterate_s
     print(f"  MLOS-MART: weights {mlos.weights_s:.2f} s ({mlos.nnz} weights), {mlos.ms_per_iteration:.2f} "
           f"ms/iteration, total {tm:.2f} s, Q {metrics.q_recon(mlos.volume, e0):.3f}")
@@ -136,7 +148,7 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool) 
     if need > 0.8 * (peak_capacity(device)):
         print(f"  MART baseline: skipped, its weights would need about {need / 2**30:.0f} GiB")
         return
-    base = reconstruct(proj, [img], ReconSettings(method="mart", iterations=its))
+    base = reconstruct(proj, img, ReconSettings(method="mart", iterations=its))
     qb = metrics.q_recon(base.volume, e0)
     tb, td = base.weights_s + base.iterate_s, drt.weights_s + drt.iterate_s
     print(f"  MART baseline: weights {base.weights_s:.2f} s ({base.nnz} weights), {base.ms_per_iteration:.2f} "
@@ -156,7 +168,7 @@ def peak_capacity(device: str) -> int:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--case", choices=("S", "Mc", "M", "L"), action="append", help="case(s) to run (default: S)")
+    ap.add_argument("--case", choices=("S", "S2", "Mc", "M", "L"), action="append", help="case(s) to run (default: S)")
     ap.add_argument("--device", default=None, help="cpu or cuda (default: a GPU if there is one)")
     ap.add_argument("--ppm", type=float, default=0.5)
     ap.add_argument("--iterations", type=int, default=None, help="override the case's iterations")
