@@ -263,15 +263,14 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
         noises.append(sigma)
 
     t0 = time.perf_counter()
-    if settings.method == "drt-mart":
-        voxels = projector.eliminate(lits, settings.min_seen, settings.max_dark)
-        weights = projector.weights(voxels, "drt") if cache is None else cache.weights(voxels)
-    elif settings.method == "mlos-mart":
-        voxels = projector.eliminate(lits, settings.min_seen, settings.max_dark)
-        weights = projector.weights(voxels, "los")
+    if settings.method == "mart":
+        weights = projector.weights(projector.all_voxels(), "los")
     else:
-        voxels = projector.all_voxels()
-        weights = projector.weights(voxels, "los")
+        voxels = projector.eliminate(lits, settings.min_seen, settings.max_dark)
+        if settings.method == "mlos-mart":
+            weights = projector.weights(voxels, "los")
+        else:
+            weights = projector.weights(voxels, "drt") if cache is None else cache.weights(voxels)
     dev = projector.device
     image = wp.array(np.concatenate([s.ravel() for s in signals]), dtype=float, device=dev)
     n = weights.n_voxels
