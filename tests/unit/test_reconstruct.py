@@ -30,6 +30,24 @@ def _voxel_index(grid, ix, iy, iz):
     return (iz * grid.shape[1] + iy) * grid.shape[2] + ix
 
 
+def _voxel_images(proj, renderer, grid, ix, iy, iz, rng, method="drt"):
+    """A voxel's projection through its weights, and the renderer's image of the voxel filled
+    uniformly with points, both as fractions of its light."""
+    w = proj.weights(proj.wp.array([_voxel_index(grid, ix, iy, iz)], dtype=proj.wp.int32, device=proj.device), method)
+    f = proj.forward(w, proj.wp.array([1.0], dtype=float, device=proj.device)).numpy()
+    centre = np.asarray(grid.origin_mm) + np.array([ix, iy, iz]) * np.asarray(grid.voxel_mm)
+    pts = centre + (rng.random((100, 3)) - 0.5) * np.asarray(grid.voxel_mm)
+    return f, renderer.irradiance(pts, 1000.0, seed=2).ravel() / (100 * 1000.0)
+
+
+def _seeded_scene(tiny_rig, device):
+    """The tiny rig at 0.3 PPM: grid, true particles, image, projector and truth volume."""
+    grid = VolumeGrid.from_rig(tiny_rig)
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.3), np.random.default_rng(3))
+    (img,) = _render(tiny_rig, pts, device=device)
+    return grid, pts, img, Projector(tiny_rig.camera, grid, device=device), metrics.truth_volume(grid, pts)
+
+
 def _dual_rig(tiny_rig) -> Rig:
     d = tiny_rig.to_dict()
     d["volume"].update(size_mm=[0.8, 0.7, 0.8], pvr=[2.0, 2.0, 2.0])
@@ -62,13 +80,7 @@ def test_weights_spread_light_as_the_optics_do(tiny_rig, device):
     r = LightFieldRenderer(cam, cfg, device=device)
     rng = np.random.default_rng(0)
     for ix, iy, iz in [(41, 34, 14), (45, 30, 20), (41, 34, 2), (60, 50, 26), (81, 67, 0)]:
-        v = _voxel_index(grid, ix, iy, iz)
-        centre = np.asarray(grid.origin_mm) + np.array([ix, iy, iz]) * np.asarray(grid.voxel_mm)
-        w = proj.weights(proj.wp.array([v], dtype=proj.wp.int32, device=proj.device))
-        f = proj.forward(w, proj.wp.array([1.0], dtype=float, device=proj.device)).numpy()
-        # the renderer's image of the voxel filled uniformly with points, as fractions of the light
-        pts = centre + (rng.random((100, 3)) - 0.5) * np.asarray(grid.voxel_mm)
-        img = r.irradiance(pts, 1000.0, seed=2).ravel() / (100 * 1000.0)
+        f, img = _voxel_images(proj, r, grid, ix, iy, iz, rng)
         assert f.sum() == pytest.approx(img.sum(), abs=0.02)  # the share of light on the sensor
         assert np.corrcoef(f, img)[0, 1] > 0.97  # spread over the same pixels
         assert np.abs(f - img).sum() < 0.25 * img.sum()
@@ -92,20 +104,13 @@ def test_baseline_weights_reach_the_sensor_at_every_depth(tiny_rig, device):
     # the focal-plane voxel lights the pixels its image does
     cfg = tiny_rig.render.model_copy(update={"rays_per_particle": 20_000, "diffraction": False})
     iz = int(np.argmin(np.abs(np.asarray(grid.origin_mm)[2] + np.arange(nz) * grid.voxel_mm[2] - cam.focus_mm[2])))
-    centre = np.asarray(grid.origin_mm) + np.array([41, 34, iz]) * np.asarray(grid.voxel_mm)
-    pts = centre + (np.random.default_rng(0).random((100, 3)) - 0.5) * np.asarray(grid.voxel_mm)
-    img = LightFieldRenderer(cam, cfg, device=device).irradiance(pts, 1000.0, seed=2).ravel()
-    one = proj.weights(proj.wp.array([_voxel_index(grid, 41, 34, iz)], dtype=proj.wp.int32, device=proj.device), "los")
-    f = proj.forward(one, proj.wp.array([1.0], dtype=float, device=proj.device)).numpy()
+    f, img = _voxel_images(proj, LightFieldRenderer(cam, cfg, device=device), grid, 41, 34, iz,
+                           np.random.default_rng(0), "los")
     assert np.corrcoef(f, img)[0, 1] > 0.95
 
 
 def test_drt_mart_beats_mart_at_equal_work(tiny_rig, device):
-    grid = VolumeGrid.from_rig(tiny_rig)
-    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.3), np.random.default_rng(3))
-    (img,) = _render(tiny_rig, pts, device=device)
-    proj = Projector(tiny_rig.camera, grid, device=device)
-    e0 = metrics.truth_volume(grid, pts)
+    grid, pts, img, proj, e0 = _seeded_scene(tiny_rig, device)
     drt = reconstruct(proj, [img], ReconSettings(method="drt-mart", iterations=20))
     # the baseline gets as many passes over its stored weights as DRT-MART streams
     mart_its = max(1, round(20 * drt.nnz / proj.weights(proj.all_voxels(), "los").nnz))
@@ -126,11 +131,7 @@ def test_drt_mart_beats_mart_at_equal_work(tiny_rig, device):
 def test_mlos_mart_is_the_baseline_on_the_surviving_voxels(tiny_rig, device):
     # Eliminated voxels hold no particle, so MART on the survivors with the baseline's weights
     # must reconstruct what the baseline does on the whole box.
-    grid = VolumeGrid.from_rig(tiny_rig)
-    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.3), np.random.default_rng(3))
-    (img,) = _render(tiny_rig, pts, device=device)
-    proj = Projector(tiny_rig.camera, grid, device=device)
-    e0 = metrics.truth_volume(grid, pts)
+    _, _, img, proj, e0 = _seeded_scene(tiny_rig, device)
     mlos = reconstruct(proj, [img], ReconSettings(method="mlos-mart", iterations=20))
     drt = reconstruct(proj, [img], ReconSettings(method="drt-mart", iterations=20))
     mart = reconstruct(proj, [img], ReconSettings(method="mart", iterations=20))
