@@ -120,9 +120,14 @@ def test_volume_run_resumes_without_repeating_planes(tmp_path: Path, capsys: pyt
     stage = store.stage_mm("cam0")
     assert np.allclose(np.diff(stage), 0.2, atol=1e-3) and np.all(np.isfinite(stage))
     frames = store.plane_frames("cam0")[...]
-    # the dots are sharpest (fewest lit pixels, brightest) in the middle plane, the focal plane
-    peak = frames.reshape(7, -1).max(axis=1)
-    assert np.argmax(peak) == 3 and peak[3] > 1.05 * max(peak[0], peak[6])
+    # each plane was taken at its own stage position, in order: the dot images of neighbouring
+    # planes (0.2 mm apart) resemble each other, those 0.6 mm apart hardly, and no plane repeats
+    # another (0.82-0.87 and 0.20-0.31 measured). The brightest pixel is no focus measure in a
+    # light-field image (a dot in focus spreads over a whole lenslet image) and its order changes
+    # with the render's random stream.
+    c = np.corrcoef(frames.reshape(7, -1).astype(np.float64))
+    assert all(0.6 < c[k, k + 1] < 0.98 for k in range(6)), np.round(c, 3)
+    assert all(c[k, k + 3] < 0.5 for k in range(4)), np.round(c, 3)
     # the same command again: nothing left to do
     assert main(["calibrate", "volume", "--rig", str(_write(tmp_path)), "--out", str(out), "--planes", "7",
                  "--step-mm", "0.2", "--quiet"]) == 0

@@ -78,7 +78,7 @@ BAD = [
     (lambda t, r: ["reconstruct", _empty_run(t)], "no recorded pairs (committed_pairs = 0)"),
     (lambda t, r: ["reconstruct", r, "--pvr", "0,2,10"], "--pvr must be three positive numbers"),
     (lambda t, r: ["reconstruct", r, "--pvr", "2,2"], "is not three numbers like 2,2,10"),
-    (lambda t, r: ["reconstruct", r, "--pvr", "0.001,0.001,0.001"], "GiB on cpu, more than it has free; use a coarser"),
+    (lambda t, r: ["reconstruct", r, "--pvr", "0.001,0.001,0.001"], "more than it has free; use a coarser"),
     (lambda t, r: ["reconstruct", r, "--pairs", "7"], "selects no pair of this run"),
     (lambda t, r: ["reconstruct", r, "--relaxation", "3"], "diverge; use at most 2, or the sequential form"),
     (lambda t, r: ["reconstruct", r, "--cameras", "camX"], "no camera 'camX' in this run"),
