@@ -35,8 +35,9 @@ continued linearly beyond the outermost centres, so that edge windows are deform
 Outliers are found and replaced between passes (normalized median test, :mod:`lfcore.vectors`)
 and after the last one, where the flags are kept; the chapter's median filter can follow.
 
-FFT: on CUDA the 3D FFT is Warp's tile FFT (cuFFTDx) applied line by line along each axis,
-with an axis rotation between axes; on the CPU it is scipy's pocketfft, multi-threaded, which
+FFT: on CUDA the 3D FFT is Warp's tile FFT (cuFFTDx) applied in place along each axis: along x
+to whole lines, along y and z to blocks of columns turned in shared memory (no pass rotates the
+buffer's axes in global memory); on the CPU it is scipy's pocketfft, multi-threaded, which
 measured 3-5x faster than Warp's single-threaded CPU tile FFT at power-of-two sizes and over
 100x faster at sizes such as 160 (which Warp's CPU path transforms as a direct DFT). The Warp
 path can be forced with ``fft="warp"`` on any device; every other step is a Warp kernel on
@@ -65,6 +66,10 @@ __all__ = ["CorrelationConfig", "CorrelationError", "Correlator", "VectorField",
 DEFAULT_BATCH_BYTES = {"cpu": 256 << 20, "cuda": 8 << 30}
 #: Threads per window in the reductions (window means, peak search).
 REDUCE_THREADS = {"cpu": 1, "cuda": 128}
+#: In the "elements" (GPU) layout, window axes up to this long other than x are transformed by
+#: a direct DFT from shared memory (:func:`lfcore._kernels.correlate.dft_columns`) rather than
+#: by the tile FFT, which would run them on a few threads a block.
+SHORT_DFT = 32
 MIN_WINDOW = 4
 
 
@@ -297,6 +302,12 @@ class Correlator:
         Windows, overlap, passes and post-processing.
     device
         Warp device (``"cpu"``, ``"cuda"``, ``"cuda:N"``) or None for the first GPU, else CPU.
+    layout
+        How the copy into the FFT buffer and the cross-spectrum are spread over threads:
+        ``"rows"`` (a thread per buffer row, which suits CPU caches), ``"elements"`` (a thread
+        per sample, so that a GPU's neighbouring threads touch neighbouring addresses, and short
+        y and z axes transformed by a direct DFT) or ``"auto"`` (rows on the CPU, elements on
+        a GPU). The results are the same to float round-off.
 
     Raises
     ------
@@ -305,7 +316,7 @@ class Correlator:
     """
 
     def __init__(self, shape: tuple[int, int, int], config: CorrelationConfig = CorrelationConfig(),
-                 device: str | None = None) -> None:
+                 device: str | None = None, *, layout: str = "auto") -> None:
         from lfcore._kernels import correlate as kc
 
         self._k = kc
@@ -316,6 +327,9 @@ class Correlator:
             raise CorrelationError(f"volumes must be 3-D (z, y, x), got shape {shape}")
         self.config = config
         kind = "cpu" if self.device == "cpu" else "cuda"
+        if layout not in ("auto", "rows", "elements"):
+            raise CorrelationError(f"layout must be 'auto', 'rows' or 'elements', got '{layout}'")
+        self.layout = layout if layout != "auto" else ("rows" if kind == "cpu" else "elements")
         fft = config.fft if config.fft != "auto" else ("scipy" if kind == "cpu" else "warp")
         if fft == "scipy" and kind != "cpu":
             raise CorrelationError("fft='scipy' runs on the CPU only; use fft='warp' or 'auto' on a GPU")
@@ -364,6 +378,7 @@ class Correlator:
         self._fallback = wp.empty(n_max, dtype=int, device=d)
         self._valid = wp.empty(n_max, dtype=int, device=d)
         self.last_fallback_fraction = 0.0
+        self._twiddles: dict = {}
 
     # --- one pass -------------------------------------------------------------------------
     def _footprint(self, window: tuple[int, int, int], zero_pad: bool) -> list:
@@ -377,14 +392,21 @@ class Correlator:
                                      device=self.device))
         return out
 
+    def _twiddle(self, n: int):
+        """exp(-2 pi i m / n), m = 0 .. n - 1, on the device (made once per length)."""
+        if n not in self._twiddles:
+            w = np.exp(-2j * np.pi * np.arange(n) / n)
+            self._twiddles[n] = self.wp.array(np.stack([w.real, w.imag], axis=1).astype(np.float32),
+                                              dtype=self.wp.vec2f, device=self.device)
+        return self._twiddles[n]
+
     def _view(self, buf, n: int, dims: tuple[int, ...]):
         return buf[: n * int(np.prod(dims))].reshape((n, *dims))
 
-    def _fft3d(self, src, dst, n: int, dims: tuple[int, int, int], inverse: bool):
+    def _fft3d(self, src, n: int, dims: tuple[int, int, int], inverse: bool):
         """3D FFT of ``n`` windows (Pz, Py, Px) in ``src``, unnormalised in both directions.
 
-        Returns the (n, Pz, Py, Px) result: a view of ``dst`` (Warp; ``src`` is overwritten), or
-        on the CPU with SciPy a view of ``src`` transformed in place (or of SciPy's own output).
+        Returns the (n, Pz, Py, Px) result: a view of ``src``, transformed in place.
         """
         wp, kc = self.wp, self._k
         if self.fft == "scipy":
@@ -396,21 +418,28 @@ class Correlator:
                 return self._view(src, n, dims)
             self._view(src, n, dims).numpy().view(np.complex64)[..., 0] = y
             return self._view(src, n, dims)
-        a, b = src, dst
-        shape = dims
-        for _ in range(3):  # FFT along the last axis, then rotate the next one last
-            length = shape[2]
-            rows = max(1, min(64, 4096 // length)) if self.device == "cpu" else max(1, min(16, 1024 // length))
-            lines = self._view(a, n, shape).reshape((n * shape[0] * shape[1], length))
-            block = 1 if self.device == "cpu" else max(1, length // 2)
-            wp.launch_tiled(kc.fft_lines(length, rows), dim=math.ceil(lines.shape[0] / rows),
-                            inputs=[lines, int(inverse)], block_dim=block, device=self.device)
-            rotated = (shape[2], shape[0], shape[1])
-            wp.launch(kc.rotate_axes, dim=(n, *shape), inputs=[self._view(a, n, shape), self._view(b, n, rotated)],
-                      device=self.device)
-            a, b, shape = b, a, rotated
-        # three swaps: the result is in dst
-        return self._view(dst, n, dims)
+        nz, ny, nx = dims
+        # x: whole lines; y and z: columns turned in shared memory (see kc.fft_columns); in place
+        gpu = self.device != "cpu"
+        rows = max(1, min(16, 1024 // nx)) if gpu else max(1, min(64, 4096 // nx))
+        lines = self._view(src, n, dims).reshape((n * nz * ny, nx))
+        if nx > 1:
+            wp.launch_tiled(kc.fft_lines(nx, rows), dim=math.ceil(lines.shape[0] / rows), inputs=[lines, int(inverse)],
+                            block_dim=max(1, nx // 2) if gpu else 1, device=self.device)
+        for length, view in ((ny, lines), (nz, lines.reshape((n * nz, ny * nx)))):
+            if length == 1:
+                continue
+            if self.layout == "elements" and length <= SHORT_DFT:
+                blocks = (view.shape[0] // length, math.ceil(view.shape[1] / 16))
+                wp.launch_tiled(kc.dft_columns(length, 16), dim=blocks, inputs=[view, self._twiddle(length),
+                                                                                 int(inverse)],
+                                block_dim=128 if gpu else 1, device=self.device)
+                continue
+            cols = max(1, min(16, 1024 // length)) if gpu else 16
+            blocks = (view.shape[0] // length, math.ceil(view.shape[1] / cols))
+            wp.launch_tiled(kc.fft_columns(length, cols), dim=blocks, inputs=[view, int(inverse)],
+                            block_dim=max(1, length // 2) if gpu else 1, device=self.device)
+        return self._view(src, n, dims)
 
     def _run_pass(self, vol_a, vol_b, i: int, shift_a: np.ndarray, shift_b: np.ndarray) -> None:
         """Correlate every window of pass ``i``; results land in the per-window device arrays."""
@@ -429,19 +458,32 @@ class Correlator:
             n = min(nb, g.size - first)
             buf = self._view(self._buf, n, dims)
             sums = self._sums[: n * dims[0] * dims[1]].reshape((n, dims[0] * dims[1]))
-            launch_rows(kc.gather, n, [vol_a, vol_b, starts, sa, sb, RowOffset(first), size, Rows(buf), Rows(sums)], d,
-                        rest=(dims[0], dims[1]))
+            if self.layout == "rows":
+                launch_rows(kc.gather, n, [vol_a, vol_b, starts, sa, sb, RowOffset(first), size, Rows(buf), Rows(sums)],
+                            d, rest=(dims[0], dims[1]))
+            else:
+                wp.launch(kc.gather_elements, dim=(n, *dims), device=d,
+                          inputs=[vol_a, vol_b, starts, sa, sb, first, size, buf])
+                lines = n * dims[0] * dims[1]
+                rows = max(1, min(64, 4096 // dims[2]))
+                wp.launch_tiled(kc.row_sums(dims[2], rows), dim=math.ceil(lines / rows),
+                                inputs=[buf.reshape((lines, dims[2])), self._sums[:lines]],
+                                block_dim=128 if d != "cpu" else 1, device=d)
             wp.launch(kc.window_stats, dim=n, device=d, inputs=[sums, float(np.prod(g.window)), self._mean,
                                                                  self._scale])
-            spec = self._fft3d(self._buf, self._scratch, n, dims, inverse=False)
-            # the packed cross-spectra go to whichever buffer does not hold the spectra
-            free, other = (self._scratch, self._buf) if spec.ptr == self._buf.ptr else (self._buf, self._scratch)
+            spec = self._fft3d(self._buf, n, dims, inverse=False)
+            # the packed cross-spectra go to the buffer that does not hold the spectra
+            free = self._scratch
             slots = (n + 1) // 2
             packed = self._view(free, slots, dims)
-            launch_rows(kc.cross_spectrum, slots, [Rows(spec, scale=2), Rows(self._mean[:n], scale=2),
-                                                   Rows(self._scale[:n], scale=2), 1.0 / p, *masks, Rows(packed)],
-                        d, rest=(dims[0], dims[1]))
-            corr = self._fft3d(free, other, slots, dims, inverse=True)
+            if self.layout == "rows":
+                launch_rows(kc.cross_spectrum, slots, [Rows(spec, scale=2), Rows(self._mean[:n], scale=2),
+                                                       Rows(self._scale[:n], scale=2), 1.0 / p, *masks, Rows(packed)],
+                            d, rest=(dims[0], dims[1]))
+            else:
+                wp.launch(kc.cross_spectrum_elements, dim=(slots, *dims), device=d,
+                          inputs=[spec, self._mean[:n], self._scale[:n], 1.0 / p, *masks, packed])
+            corr = self._fft3d(free, slots, dims, inverse=True)
             # two windows share a correlation slot: CPU blocks start at even windows
             row_val = Rows(self._row_val[: n * dims[0] * dims[1]].reshape((n, dims[0] * dims[1])))
             row_i = Rows(self._row_i[: n * dims[0] * dims[1]].reshape((n, dims[0] * dims[1])))

@@ -204,6 +204,16 @@ def deform_volumes(
         out_b[z, y, x] = sample(vol_b, p + h)
 
 
+@wp.func
+def gather_value(vol_a: wp.array3d(dtype=wp.float32), vol_b: wp.array3d(dtype=wp.float32), s: wp.vec3i,
+                 sa: wp.vec3i, sb: wp.vec3i, size: wp.vec3i, k: int, j: int, i: int) -> wp.vec2f:
+    """Buffer sample (i, j, k) of a window at ``s``: A (shifted by sa) real, B (by sb) imaginary, 0 in the padding."""
+    if i >= size[0] or j >= size[1] or k >= size[2]:
+        return wp.vec2f(0.0, 0.0)
+    return wp.vec2f(voxel(vol_a, s[0] + i + sa[0], s[1] + j + sa[1], s[2] + k + sa[2]),
+                    voxel(vol_b, s[0] + i + sb[0], s[1] + j + sb[1], s[2] + k + sb[2]))
+
+
 @wp.kernel
 def gather(
     vol_a: wp.array3d(dtype=wp.float32),
@@ -219,7 +229,7 @@ def gather(
     """Copy one row of each window into the buffer (A real, B imaginary, zero padding).
 
     The windows of B are offset from those of A by the integer window shift. Also writes the
-    row's sums (a, b, a^2, b^2) for the window statistics.
+    row's sums (a, b, a^2, b^2) for the window statistics. One thread a row: the CPU layout.
     """
     w, k, j = wp.tid()
     g = first + w
@@ -242,14 +252,49 @@ def gather(
             and xa >= 0 and xa + size[0] <= nx and xb >= 0 and xb + size[0] <= nx)
     for i in range(out.shape[3]):
         v = wp.vec2f(0.0, 0.0)
-        if inside and i < size[0]:
-            if fast:
-                v = wp.vec2f(vol_a[za, ya, xa + i], vol_b[zb, yb, xb + i])
-            else:
-                v = wp.vec2f(voxel(vol_a, xa + i, ya, za), voxel(vol_b, xb + i, yb, zb))
-            acc += wp.vec4(v[0], v[1], v[0] * v[0], v[1] * v[1])
+        if fast and i < size[0]:
+            v = wp.vec2f(vol_a[za, ya, xa + i], vol_b[zb, yb, xb + i])
+        elif inside:
+            v = gather_value(vol_a, vol_b, s, sa, sb, size, k, j, i)
+        acc += wp.vec4(v[0], v[1], v[0] * v[0], v[1] * v[1])
         out[w, k, j, i] = v
     sums[w, k * out.shape[2] + j] = acc
+
+
+@wp.kernel
+def gather_elements(
+    vol_a: wp.array3d(dtype=wp.float32),
+    vol_b: wp.array3d(dtype=wp.float32),
+    start: wp.array(dtype=wp.vec3i),
+    shift_a: wp.array(dtype=wp.vec3i),
+    shift_b: wp.array(dtype=wp.vec3i),
+    first: int,
+    size: wp.vec3i,
+    out: wp.array4d(dtype=wp.vec2f),
+):
+    """:func:`gather` with one thread a sample (the GPU layout: neighbouring threads read and
+    write neighbouring addresses); the row sums come from :func:`row_sums`."""
+    w, k, j, i = wp.tid()
+    g = first + w
+    out[w, k, j, i] = gather_value(vol_a, vol_b, start[g], shift_a[g], shift_b[g], size, k, j, i)
+
+
+@wp.func
+def moments(v: wp.vec2f) -> wp.vec4:
+    return wp.vec4(v[0], v[1], v[0] * v[0], v[1] * v[1])
+
+
+@functools.cache
+def row_sums(length: int, rows: int):
+    """A tiled kernel: sums (a, b, a^2, b^2) of ``rows`` buffer rows of ``length`` samples per block."""
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def row_sums_kernel(buf: wp.array2d(dtype=wp.vec2f), sums: wp.array(dtype=wp.vec4)):
+        b = wp.tid()
+        t = wp.tile_load(buf, shape=(rows, length), offset=(b * rows, 0))
+        wp.tile_store(sums, wp.tile_sum(wp.tile_map(moments, t), axis=1), offset=b * rows)
+
+    return row_sums_kernel
 
 
 @wp.kernel
@@ -272,13 +317,6 @@ def window_stats(sums: wp.array2d(dtype=wp.vec4), n_voxels: float, mean: wp.arra
     scale[w] = sc
 
 
-@wp.kernel
-def rotate_axes(src: wp.array4d(dtype=wp.vec2f), dst: wp.array4d(dtype=wp.vec2f)):
-    """dst[w, c, a, b] = src[w, a, b, c]: brings the next axis last for the line FFTs."""
-    w, a, b, c = wp.tid()
-    dst[w, c, a, b] = src[w, a, b, c]
-
-
 @wp.func
 def cmul(p: wp.vec2f, q: wp.vec2f) -> wp.vec2f:
     return wp.vec2f(p[0] * q[0] - p[1] * q[1], p[0] * q[1] + p[1] * q[0])
@@ -297,6 +335,26 @@ def pair_spectrum(z: wp.vec2f, m: wp.vec2f, mean: wp.vec2f, mask: wp.vec2f, s: f
     return s * cmul(wp.vec2f(a[0], -a[1]), b)
 
 
+@wp.func
+def packed_spectrum(spec: wp.array4d(dtype=wp.vec2f), mean: wp.array(dtype=wp.vec2f), scale: wp.array(dtype=float),
+                    norm: float, myz: wp.vec2f, mask_x: wp.array(dtype=wp.vec2f), q: int, k: int, j: int,
+                    i: int) -> wp.vec2f:
+    """S0 + i S1 at frequency (i, j, k): the scaled cross-spectra of windows 2q and 2q + 1."""
+    pz = spec.shape[1]
+    py = spec.shape[2]
+    px = spec.shape[3]
+    mi = (px - i) % px
+    mj = (py - j) % py
+    mk = (pz - k) % pz
+    mask = cmul(mask_x[i], myz)
+    w0 = 2 * q
+    r0 = pair_spectrum(spec[w0, k, j, i], spec[w0, mk, mj, mi], mean[w0], mask, scale[w0] * norm)
+    r1 = wp.vec2f(0.0, 0.0)
+    if w0 + 1 < spec.shape[0]:
+        r1 = pair_spectrum(spec[w0 + 1, k, j, i], spec[w0 + 1, mk, mj, mi], mean[w0 + 1], mask, scale[w0 + 1] * norm)
+    return wp.vec2f(r0[0] - r1[1], r0[1] + r1[0])
+
+
 @wp.kernel
 def cross_spectrum(spec: wp.array4d(dtype=wp.vec2f), mean: wp.array(dtype=wp.vec2f), scale: wp.array(dtype=float),
                    norm: float, mask_x: wp.array(dtype=wp.vec2f), mask_y: wp.array(dtype=wp.vec2f),
@@ -308,32 +366,19 @@ def cross_spectrum(spec: wp.array4d(dtype=wp.vec2f), mean: wp.array(dtype=wp.vec
     spectrum M is separable: mask_x[i] mask_y[j] mask_z[k].
     """
     q, k, j = wp.tid()
-    pz = spec.shape[1]
-    py = spec.shape[2]
-    px = spec.shape[3]
-    mk = (pz - k) % pz
-    mj = (py - j) % py
     myz = cmul(mask_y[j], mask_z[k])
-    w0 = 2 * q
-    w1 = w0 + 1
-    has1 = w1 < spec.shape[0]
-    s0 = scale[w0] * norm
-    m0 = mean[w0]
-    s1 = float(0.0)  # noqa: UP018 - a dynamic Warp variable
-    m1 = wp.vec2f(0.0, 0.0)
-    if has1:
-        s1 = scale[w1] * norm
-        m1 = mean[w1]
-    for i in range(px):
-        mi = 0
-        if i > 0:
-            mi = px - i
-        mask = cmul(mask_x[i], myz)
-        r0 = pair_spectrum(spec[w0, k, j, i], spec[w0, mk, mj, mi], m0, mask, s0)
-        r1 = wp.vec2f(0.0, 0.0)
-        if has1:
-            r1 = pair_spectrum(spec[w1, k, j, i], spec[w1, mk, mj, mi], m1, mask, s1)
-        out[q, k, j, i] = wp.vec2f(r0[0] - r1[1], r0[1] + r1[0])
+    for i in range(spec.shape[3]):
+        out[q, k, j, i] = packed_spectrum(spec, mean, scale, norm, myz, mask_x, q, k, j, i)
+
+
+@wp.kernel
+def cross_spectrum_elements(spec: wp.array4d(dtype=wp.vec2f), mean: wp.array(dtype=wp.vec2f),
+                            scale: wp.array(dtype=float), norm: float, mask_x: wp.array(dtype=wp.vec2f),
+                            mask_y: wp.array(dtype=wp.vec2f), mask_z: wp.array(dtype=wp.vec2f),
+                            out: wp.array4d(dtype=wp.vec2f)):
+    """:func:`cross_spectrum` with one thread a frequency (the GPU layout)."""
+    q, k, j, i = wp.tid()
+    out[q, k, j, i] = packed_spectrum(spec, mean, scale, norm, cmul(mask_y[j], mask_z[k]), mask_x, q, k, j, i)
 
 
 @wp.func
@@ -523,3 +568,71 @@ def fft_lines(n: int, rows: int):
         wp.tile_store(buf, t, offset=(b * rows, 0))
 
     return fft_lines_kernel
+
+
+@wp.func
+def same(x: wp.vec2f) -> wp.vec2f:
+    return x
+
+
+@functools.cache
+def fft_columns(n: int, cols: int):
+    """A tiled kernel that FFTs, in place, ``cols`` columns of length ``n`` per block.
+
+    The buffer is viewed 2-D, (groups * n, width): block (g, c) transforms columns
+    c * cols .. c * cols + cols - 1 of rows g * n .. g * n + n - 1. Rows are loaded whole
+    (neighbouring addresses), turned in shared memory so the transform axis is last, and turned
+    back before the store, so the y and z transforms of a window need no pass that rotates
+    the axes of the whole buffer in global memory. Columns past ``width`` read as zero and
+    are not stored.
+    """
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def fft_columns_kernel(buf: wp.array2d(dtype=wp.vec2f), inverse: int):
+        g, c = wp.tid()
+        t = wp.tile_load(buf, shape=(n, cols), offset=(g * n, c * cols), storage="shared")
+        turned = wp.tile_transpose(t)  # aliases t
+        r = wp.tile_map(same, turned)  # a register copy: the tile FFT works on registers
+        if inverse != 0:
+            wp.tile_ifft(r)
+        else:
+            wp.tile_fft(r)
+        wp.tile_assign(turned, r)
+        wp.tile_store(buf, t, offset=(g * n, c * cols))
+
+    return fft_columns_kernel
+
+
+@functools.cache
+def dft_columns(n: int, cols: int):
+    """:func:`fft_columns` for short columns: a direct DFT from shared memory.
+
+    Warp's tile FFT runs a transform of length n on at most n / 2 threads, which leaves a GPU's
+    blocks nearly empty for the short depth axis (8 threads at n = 16). Here every thread of
+    the block computes outputs from the loaded tile, n complex multiply-adds each (cheap next
+    to the memory traffic for n <= 32). ``twiddle[m] = exp(-2 pi i m / n)``; the inverse uses
+    the conjugates. The whole tile is loaded (and the block synchronised) before any output is
+    written, so the transform is in place.
+    """
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def dft_columns_kernel(buf: wp.array2d(dtype=wp.vec2f), twiddle: wp.array(dtype=wp.vec2f), inverse: int):
+        g, c, lane = wp.tid()
+        t = wp.tile_load(buf, shape=(n, cols), offset=(g * n, c * cols), storage="shared")
+        sign = float(1.0)  # noqa: UP018 - a dynamic Warp variable
+        if inverse != 0:
+            sign = -1.0
+        e = lane
+        while e < n * cols:
+            k = e // cols
+            col = e - k * cols
+            acc = wp.vec2f(0.0, 0.0)
+            for m in range(n):
+                tw = twiddle[(k * m) % n]
+                acc += cmul(t[m, col], wp.vec2f(tw[0], sign * tw[1]))
+            x = c * cols + col
+            if x < buf.shape[1]:
+                buf[g * n + k, x] = acc
+            e += wp.block_dim()
+
+    return dft_columns_kernel
