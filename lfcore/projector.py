@@ -287,7 +287,9 @@ class Projector:
 
     def all_voxels(self) -> object:
         """Every voxel of the grid (no elimination), as (n,) int32 indices."""
-        return self.wp.array(np.arange(self.grid.n_voxels, dtype=np.int32), device=self.device)
+        out = self.wp.empty(self.grid.n_voxels, dtype=self.wp.int32, device=self.device)
+        self.wp.launch(self._kw.iota, dim=out.shape[0], inputs=[out], device=self.device)
+        return out
 
     def _compact(self, mask) -> object:
         wp, kw = self.wp, self._kw
@@ -404,7 +406,8 @@ class Projector:
                                                      merged_pix, merged_w, Rows(kept)], self.device)
                 del tmp_pix, tmp_ord
             else:
-                order = wp.array(np.arange(scratch, dtype=np.int32), device=self.device)
+                order = wp.empty(scratch, dtype=wp.int32, device=self.device)
+                wp.launch(kw.iota, dim=scratch, inputs=[order], device=self.device)
                 wp.utils.segmented_sort_pairs(pix, order, m, starts, ends)
                 launch_rows(kw.merge_sorted, hi - lo, [Rows(starts), Rows(ends), pix, order, w_raw, merged_pix,
                                                        merged_w, Rows(kept)], self.device)

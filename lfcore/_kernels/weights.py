@@ -73,13 +73,6 @@ class View:
     los_sph: float  # voxel sphere radius, mm
 
 
-@wp.struct
-class Poly:
-    x: vec12
-    y: vec12
-    n: int
-
-
 @wp.func
 def voxel_centre(g: Grid, v: int) -> wp.vec3:
     plane = g.nx * g.ny
@@ -88,28 +81,6 @@ def voxel_centre(g: Grid, v: int) -> wp.vec3:
     y = r // g.nx
     x = r - y * g.nx
     return g.origin + wp.cw_mul(g.step, wp.vec3(float(x), float(y), float(z)))
-
-
-@wp.func
-def clip(p: Poly, nx: float, ny: float, d: float) -> Poly:
-    """Sutherland-Hodgman: the part of convex polygon p with nx x + ny y <= d."""
-    o = Poly()
-    m = int(0)
-    for i in range(p.n):
-        j = (i + 1) % p.n
-        si = nx * p.x[i] + ny * p.y[i] - d
-        sj = nx * p.x[j] + ny * p.y[j] - d
-        if si <= 0.0:
-            o.x[m] = p.x[i]
-            o.y[m] = p.y[i]
-            m += 1
-        if (si <= 0.0 and sj > 0.0) or (si > 0.0 and sj <= 0.0):
-            t = si / (si - sj)
-            o.x[m] = p.x[i] + t * (p.x[j] - p.x[i])
-            o.y[m] = p.y[i] + t * (p.y[j] - p.y[i])
-            m += 1
-    o.n = m
-    return o
 
 
 @wp.struct
@@ -121,49 +92,133 @@ class Overlap:
     wy: float
 
 
+@wp.struct
+class Boundary:
+    """Running sums over the boundary segments of a counter-clockwise region (Green's theorem)."""
+
+    area2: float  # 2 x area
+    mx6: float  # 6 x first moment in x
+    my6: float
+    lo: wp.vec2  # extent of the segments' ends
+    hi: wp.vec2
+
+
+@wp.func
+def add_segment(b: Boundary, sx: float, sy: float, dx: float, dy: float, t0: float, t1: float) -> Boundary:
+    """Add the segment (sx, sy) + t (dx, dy), t0 <= t <= t1, if it is not empty."""
+    if t1 <= t0:
+        return b
+    p = wp.vec2(sx + t0 * dx, sy + t0 * dy)
+    q = wp.vec2(sx + t1 * dx, sy + t1 * dy)
+    cr = p[0] * q[1] - q[0] * p[1]
+    b.area2 += cr
+    b.mx6 += (p[0] + q[0]) * cr
+    b.my6 += (p[1] + q[1]) * cr
+    b.lo = wp.min(b.lo, wp.min(p, q))
+    b.hi = wp.max(b.hi, wp.max(p, q))
+    return b
+
+
 @wp.func
 def cell_overlap(view: View, cx: float, cy: float, x0: float, x1: float, y0: float, y1: float) -> Overlap:
-    """The part of rectangle [x0, x1] x [y0, y1] inside the lenslet cell centred at (cx, cy)."""
+    """The part of rectangle [x0, x1] x [y0, y1] inside the lenslet cell centred at (cx, cy).
+
+    Exact for the convex cell (square or hexagon: the half-planes n_e . p <= pitch / 2): the
+    boundary of the intersection is the cell's edges clipped to the rectangle plus the
+    rectangle's edges clipped to the cell, both run counter-clockwise, and its area, centroid
+    and extent follow from those segments alone (Green's theorem). Everything stays in
+    registers: no polygon is built, which on a GPU would live in slow local memory.
+    """
     # Work relative to the cell centre so single precision keeps sub-micrometre detail.
-    p = Poly()
-    p.x[0] = x0 - cx
-    p.y[0] = y0 - cy
-    p.x[1] = x1 - cx
-    p.y[1] = y0 - cy
-    p.x[2] = x1 - cx
-    p.y[2] = y1 - cy
-    p.x[3] = x0 - cx
-    p.y[3] = y1 - cy
-    p.n = 4
+    rx0 = x0 - cx
+    rx1 = x1 - cx
+    ry0 = y0 - cy
+    ry1 = y1 - cy
     h = 0.5 * view.cam.pitch
+    tol = 1.0e-6 * h
+    bd = Boundary()
+    bd.lo = wp.vec2(1.0e30, 1.0e30)
+    bd.hi = wp.vec2(-1.0e30, -1.0e30)
+    # the cell's edges, each clipped to the other edges (its own length) and to the rectangle
     for e in range(view.n_edges):
-        if p.n > 0:
-            p = clip(p, view.edge_nx[e], view.edge_ny[e], h)
-    o = Overlap()
-    area = float(0.0)
-    mx = float(0.0)
-    my = float(0.0)
-    lox = float(1.0e30)
-    hix = float(-1.0e30)
-    loy = float(1.0e30)
-    hiy = float(-1.0e30)
-    for i in range(p.n):
-        j = (i + 1) % p.n
-        cr = p.x[i] * p.y[j] - p.x[j] * p.y[i]
-        area += cr
-        mx += (p.x[i] + p.x[j]) * cr
-        my += (p.y[i] + p.y[j]) * cr
-        lox = wp.min(lox, p.x[i])
-        hix = wp.max(hix, p.x[i])
-        loy = wp.min(loy, p.y[i])
-        hiy = wp.max(hiy, p.y[i])
-    if area > 1.0e-20:
-        o.area = 0.5 * area
-        o.cx = cx + mx / (3.0 * area)
-        o.cy = cy + my / (3.0 * area)
-        o.wx = hix - lox
-        o.wy = hiy - loy
-    return o
+        nx = view.edge_nx[e]
+        ny = view.edge_ny[e]
+        dx = -ny  # counter-clockwise along the edge (outward normal on the right)
+        dy = nx
+        t0 = float(-1.0e30)
+        t1 = float(1.0e30)
+        for f in range(view.n_edges):
+            den = view.edge_nx[f] * dx + view.edge_ny[f] * dy
+            if f != e and wp.abs(den) > 1.0e-6:
+                t = (h - h * (view.edge_nx[f] * nx + view.edge_ny[f] * ny)) / den
+                if den > 0.0:
+                    t1 = wp.min(t1, t)
+                else:
+                    t0 = wp.max(t0, t)
+        # the rectangle's slabs (Liang-Barsky)
+        bx = h * nx
+        by = h * ny
+        if wp.abs(dx) > 1.0e-6:
+            ta = (rx0 - bx) / dx
+            tb = (rx1 - bx) / dx
+            t0 = wp.max(t0, wp.min(ta, tb))
+            t1 = wp.min(t1, wp.max(ta, tb))
+        elif bx < rx0 - tol or bx > rx1 + tol:  # the same tolerance as the rectangle's edges below
+            t1 = t0 - 1.0
+        if wp.abs(dy) > 1.0e-6:
+            ta = (ry0 - by) / dy
+            tb = (ry1 - by) / dy
+            t0 = wp.max(t0, wp.min(ta, tb))
+            t1 = wp.min(t1, wp.max(ta, tb))
+        elif by < ry0 - tol or by > ry1 + tol:
+            t1 = t0 - 1.0
+        bd = add_segment(bd, bx, by, dx, dy, t0, t1)
+    # the rectangle's edges (bottom, right, top, left), each clipped to the cell (Cyrus-Beck)
+    for k in range(4):
+        sx = rx0
+        sy = ry0
+        ex = rx1
+        ey = ry0
+        if k == 1:
+            sx = rx1
+            ex = rx1
+            ey = ry1
+        elif k == 2:
+            sx = rx1
+            sy = ry1
+            ex = rx0
+            ey = ry1
+        elif k == 3:
+            sy = ry1
+            ex = rx0
+        ddx = ex - sx
+        ddy = ey - sy
+        t0 = float(0.0)
+        t1 = float(1.0)
+        for f in range(view.n_edges):
+            nx = view.edge_nx[f]
+            ny = view.edge_ny[f]
+            num = h - (nx * sx + ny * sy)
+            den = nx * ddx + ny * ddy
+            if wp.abs(den) <= 1.0e-12 * (wp.abs(ddx) + wp.abs(ddy)):
+                # parallel to this cell edge: wholly outside, or lying on it from inside, where
+                # the cell's edge already counts it (counting it twice would double its share)
+                outward = nx * ddy - ny * ddx  # the rectangle edge's outward normal . n_f
+                if num < -tol or (wp.abs(num) <= tol and outward > 0.0):
+                    t1 = -1.0
+            elif den > 0.0:
+                t1 = wp.min(t1, num / den)
+            else:
+                t0 = wp.max(t0, num / den)
+        bd = add_segment(bd, sx, sy, ddx, ddy, t0, t1)
+    out = Overlap()
+    if bd.area2 > 1.0e-20:
+        out.area = 0.5 * bd.area2
+        out.cx = cx + bd.mx6 / (3.0 * bd.area2)
+        out.cy = cy + bd.my6 / (3.0 * bd.area2)
+        out.wx = bd.hi[0] - bd.lo[0]
+        out.wy = bd.hi[1] - bd.lo[1]
+    return out
 
 
 @wp.func
@@ -631,6 +686,13 @@ def los_weights(
         counts[tid] = n
         sums[tid] = total
 
+
+
+@wp.kernel
+def iota(out: wp.array(dtype=wp.int32)):
+    """out[i] = i (made on the device: a host range of the raw entries would be gigabytes to copy)."""
+    i = wp.tid()
+    out[i] = i
 
 
 @wp.kernel
