@@ -105,7 +105,7 @@ def peak_bytes(device: str) -> int:
     return int(wp.get_mempool_used_mem_high(device))
 
 
-def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool) -> None:
+def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, with_drt: bool = True) -> None:
     rig, its = case_rig(case)
     its = iterations or its
     cams = rig.camera if case == "S2" else rig.camera[:1]
@@ -125,19 +125,27 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool) 
     bw = copy_bandwidth(device)
     proj = Projector(cams, grid, device=device)
     e0 = metrics.truth_volume(grid, pts)
-    drt = reconstruct(proj, img, ReconSettings(iterations=its))
-    q = metrics.q_recon(drt.volume, e0)
-    floor_ms = 1e3 * (BYTES_PER_ENTRY * drt.nnz + BYTES_PER_VOXEL * drt.active_voxels) / bw
     print(f"  copy bandwidth {bw / 1e9:.1f} GB/s")
-    print(f"  DRT-MART: weights {drt.weights_s:.2f} s, active {drt.active_fraction:.3%} ({drt.active_voxels} voxels, "
-          f"{drt.nnz} weights, {drt.weight_bytes / 2**20:.0f} MiB), {drt.ms_per_iteration:.2f} ms/iteration "
-          f"({drt.ms_per_iteration / floor_ms:.1f}x the bandwidth floor of {floor_ms:.3f} ms), "
-          f"total {drt.weights_s + drt.iterate_s:.2f} s, Q {q:.3f}, peak memory {peak_bytes(device) / 2**30:.2f} GiB")
+
+    def floor_ms(r) -> float:
+        return 1e3 * (BYTES_PER_ENTRY * r.nnz + BYTES_PER_VOXEL * r.active_voxels) / bw
+
+    drt = None
+    if with_drt:
+        drt = reconstruct(proj, img, ReconSettings(iterations=its))
+        q = metrics.q_recon(drt.volume, e0)
+        print(f"  DRT-MART: weights {drt.weights_s:.2f} s, active {drt.active_fraction:.3%} ({drt.active_voxels} "
+              f"voxels, {drt.nnz} weights, {drt.weight_bytes / 2**20:.0f} MiB), {drt.ms_per_iteration:.2f} "
+              f"ms/iteration ({drt.ms_per_iteration / floor_ms(drt):.1f}x the bandwidth floor of "
+              f"{floor_ms(drt):.3f} ms), total {drt.weights_s + drt.iterate_s:.2f} s, Q {q:.3f}, "
+              f"peak memory {peak_bytes(device) / 2**30:.2f} GiB")
     # MLOS-MART: the same elimination, the baseline's weights on the surviving voxels
     mlos = reconstruct(proj, img, ReconSettings(method="mlos-mart", iterations=its))
     tm = mlos.weights_s + mlos.iterate_s
-    print(f"  MLOS-MART: weights {mlos.weights_s:.2f} s ({mlos.nnz} weights), {mlos.ms_per_iteration:.2f} "
-          f"ms/iteration, total {tm:.2f} s, Q {metrics.q_recon(mlos.volume, e0):.3f}")
+    print(f"  MLOS-MART: weights {mlos.weights_s:.2f} s, active {mlos.active_fraction:.3%} ({mlos.active_voxels} "
+          f"voxels, {mlos.nnz} weights, {mlos.weight_bytes / 2**20:.0f} MiB), {mlos.ms_per_iteration:.2f} "
+          f"ms/iteration ({mlos.ms_per_iteration / floor_ms(mlos):.1f}x the bandwidth floor), total {tm:.2f} s, "
+          f"Q {metrics.q_recon(mlos.volume, e0):.3f}, peak memory {peak_bytes(device) / 2**30:.2f} GiB")
     if not mart:
         return
     # the baseline's weights, counted on a sample of voxels first: they may not fit at all
@@ -150,12 +158,86 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool) 
         return
     base = reconstruct(proj, img, ReconSettings(method="mart", iterations=its))
     qb = metrics.q_recon(base.volume, e0)
-    tb, td = base.weights_s + base.iterate_s, drt.weights_s + drt.iterate_s
+    tb = base.weights_s + base.iterate_s
     print(f"  MART baseline: weights {base.weights_s:.2f} s ({base.nnz} weights), {base.ms_per_iteration:.2f} "
           f"ms/iteration, total {tb:.2f} s, Q {qb:.3f}")
-    print(f"  DRT-MART vs MART at {its} iterations each: {tb / td:.1f}x faster "
-          f"({base.ms_per_iteration / drt.ms_per_iteration:.1f}x per iteration), Q {q:.3f} vs {qb:.3f}")
+    if drt is not None:
+        td = drt.weights_s + drt.iterate_s
+        print(f"  DRT-MART vs MART at {its} iterations each: {tb / td:.1f}x faster "
+              f"({base.ms_per_iteration / drt.ms_per_iteration:.1f}x per iteration), Q {q:.3f} vs {qb:.3f}")
     print(f"  MLOS-MART vs MART: {tb / tm:.1f}x faster")
+
+
+def profile_weights(case: str, device: str, ppm: float) -> None:
+    """Time the elimination and each way of building the DRT weights, then every kernel of the
+    default build and of the MLOS (line-of-sight) weights (synchronised after each launch)."""
+    import collections
+
+    wp = warp()
+    rig, _ = case_rig(case)
+    cams = rig.camera if case == "S2" else rig.camera[:1]
+    grid = VolumeGrid.from_rig(rig)
+    pts = seed_particles(rig.volume, particle_count(rig, ppm), np.random.default_rng(1))
+    render = rig.render.model_copy(update={"rays_per_particle": 5000})
+    img = [LightFieldRenderer(c, render, rig.laser.wavelength_nm, device=device).frame(pts, render.particle_counts,
+                                                                                        1 + k)
+           for k, c in enumerate(cams)]
+    proj = Projector(cams, grid, device=device)
+    from lfcore.reconstruct import estimate_background, preprocess
+
+    st = ReconSettings()
+    lit = []
+    for im in img:  # the lit pixels, as reconstruct() finds them
+        level, sigma = estimate_background(im)
+        lit.append(preprocess(im, level, sigma, st.threshold_sigma, st.lit_grow)[1])
+
+    def timed(fn):
+        wp.synchronize_device(device)
+        t = time.perf_counter()
+        out = fn()
+        wp.synchronize_device(device)
+        return out, time.perf_counter() - t
+
+    proj.eliminate(lit, st.min_seen, st.max_dark)
+    voxels, te = timed(lambda: proj.eliminate(lit, st.min_seen, st.max_dark))
+    print(f"profile of the weight build, case {case} at {ppm:g} PPM on {device}: elimination {te:.3f} s, "
+          f"{voxels.shape[0]} active voxels")
+    variants = [("two-pass", "library"), ("two-pass", "per-voxel"), ("single-pass", "per-voxel")]
+    few = voxels[: min(1000, voxels.shape[0])]
+    for build, sort in variants:  # compile every kernel first
+        proj.weights(few, "drt", build=build, sort=sort)
+    proj.weights(few, "los")
+    spent: collections.Counter = collections.Counter()
+    real = wp.launch, wp.launch_tiled, wp.utils.segmented_sort_pairs, wp.utils.array_scan
+
+    def clocked(fn, name=None):
+        def run(*args, **kwargs):
+            wp.synchronize_device(device)
+            t = time.perf_counter()
+            fn(*args, **kwargs)
+            wp.synchronize_device(device)
+            key = name or args[0].key.split("_locals_")[-1]
+            spent[key] += time.perf_counter() - t
+        return run
+
+    for method in ("drt", "los"):
+        spent.clear()
+        wp.launch, wp.launch_tiled = clocked(real[0]), clocked(real[1])
+        wp.utils.segmented_sort_pairs = clocked(real[2], "segmented_sort_pairs (library)")
+        wp.utils.array_scan = clocked(real[3], "array_scan (library)")
+        try:
+            w, t = timed(lambda m=method: proj.weights(voxels, m))
+        finally:
+            wp.launch, wp.launch_tiled, wp.utils.segmented_sort_pairs, wp.utils.array_scan = real
+        print(f"  kernels of the default {method} build ({t:.3f} s in all, {w.nnz} weights):")
+        for name, sec in spent.most_common():
+            print(f"    {name:40s} {sec:8.3f} s")
+        print(f"    {'host (copies, allocation, numpy)':40s} {t - sum(spent.values()):8.3f} s")
+        del w
+    for build, sort in variants:
+        w, t = timed(lambda b=build, s=sort: proj.weights(voxels, "drt", build=b, sort=s))
+        print(f"  DRT {build:11s} {sort:9s}: {t:7.3f} s, {w.nnz} weights ({w.nnz / t / 1e6:.0f} M weights/s)")
+        del w
 
 
 def peak_capacity(device: str) -> int:
@@ -173,10 +255,17 @@ def main() -> int:
     ap.add_argument("--ppm", type=float, default=0.5)
     ap.add_argument("--iterations", type=int, default=None, help="override the case's iterations")
     ap.add_argument("--no-mart", action="store_true", help="skip the MART baseline")
+    ap.add_argument("--no-drt", action="store_true", help="skip DRT-MART (MLOS-MART only, with --no-mart)")
+    ap.add_argument("--profile-weights", action="store_true",
+                    help="instead: time the elimination, each DRT weight build and every kernel of the builds")
     args = ap.parse_args()
     device = resolve_device(args.device)
+    if args.profile_weights:
+        for case in args.case or ["S"]:
+            profile_weights(case, device, args.ppm)
+        return 0
     for case in args.case or ["S"]:
-        run(case, device, args.ppm, args.iterations, not args.no_mart)
+        run(case, device, args.ppm, args.iterations, not args.no_mart, not args.no_drt)
         sys.stdout.flush()
     return 0
 

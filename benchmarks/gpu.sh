@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# Every GPU check of the project in few calls of the device machine (see ../shared/GPU.md).
+#
+#   bash benchmarks/gpu.sh tests   # the tests' CUDA variants and the functional tests (default
+#                                  # device: the GPU), then the quick benchmarks
+#   bash benchmarks/gpu.sh big     # the M and L reconstructions and the live M case
+#   bash benchmarks/gpu.sh profile # the correlation tests and benchmark, the weight-build profile
+#   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
+#                                  # iterations), then the weight-build profile (what fits in 6 min)
+#
+# Each step runs under its own time limit, so one slow case cannot take the whole call; logs go
+# to $OUT (or ./gpu-logs) and a short summary is printed last.
+set -u
+stage=${1:-tests}
+out=${OUT:-gpu-logs}
+mkdir -p "$out"
+export PYTHONUNBUFFERED=1
+summary=()
+
+step() {  # step NAME SECONDS COMMAND...
+    local name=$1 limit=$2
+    shift 2
+    local t0=$SECONDS
+    echo "=== $name (limit ${limit} s): $*" | tee -a "$out/$stage.log"
+    timeout -k 10 "$limit" "$@" >>"$out/$stage.log" 2>&1
+    local rc=$?
+    summary+=("$name: rc $rc, $((SECONDS - t0)) s")
+    tail -n 25 "$out/$stage.log"
+}
+
+if [ "$stage" = tests ]; then
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee -a "$out/$stage.log"
+    python3 -c "import warp as wp; wp.init(); print('warp', wp.__version__, wp.get_cuda_devices())" \
+        >>"$out/$stage.log" 2>&1
+    step pytest 330 python3 -m pytest tests -q -k "cuda or functional" -p no:cacheprovider \
+        --continue-on-collection-errors --timeout 150 --junitxml "$out/pytest.xml"
+    step render 60 python3 benchmarks/render.py --device cuda:0
+    step correlate 90 python3 benchmarks/correlate.py --case gpu --profile
+    step recon-S 60 python3 benchmarks/recon.py --case S --case S2 --device cuda
+    step live-S 60 python3 benchmarks/live.py --case S --device cuda --seconds 10
+elif [ "$stage" = short ]; then
+    step pytest-correlate-cuda 80 python3 -m pytest tests/unit/test_correlate.py -q -k cuda -p no:cacheprovider \
+        --timeout 60
+    step correlate 70 python3 benchmarks/correlate.py --case gpu --profile
+    step recon-M-mlos 140 python3 benchmarks/recon.py --case M --device cuda --no-drt --no-mart --iterations 50
+    step weights-Mc 80 python3 benchmarks/recon.py --case Mc --ppm 1 --device cuda --profile-weights
+elif [ "$stage" = profile ]; then
+    step pytest-correlate 150 python3 -m pytest tests/unit/test_correlate.py tests/functional/test_correlate_cli.py -q \
+        -p no:cacheprovider --timeout 100
+    step correlate 90 python3 benchmarks/correlate.py --case gpu --profile
+    step weights-Mc 150 python3 benchmarks/recon.py --case Mc --ppm 1 --device cuda --profile-weights
+else
+    step recon-Mc 60 python3 benchmarks/recon.py --case Mc --ppm 1 --iterations 20 --device cuda
+    step recon-M 200 python3 benchmarks/recon.py --case M --device cuda
+    step live-M 120 python3 benchmarks/live.py --case M --device cuda --seconds 15
+    step recon-L 180 python3 benchmarks/recon.py --case L --device cuda --no-mart
+fi
+echo "=== summary ($stage)"
+printf '%s\n' "${summary[@]}"
