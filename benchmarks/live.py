@@ -5,8 +5,9 @@ Run from the repository root::
     python benchmarks/live.py --case S --device cpu            # tiny rig, two cameras, seconds
     python benchmarks/live.py --case M --device cuda           # two 2048 x 2048 cameras (the goal)
 
-Cases (two cameras at 90 degrees, 0.5 PPM, monitoring settings: DRT-MART with ``--iterations``
-simultaneous iterations, two correlation passes at 50% overlap, no deformation):
+Cases (two cameras at 90 degrees, 0.5 PPM, monitoring settings: DRT-MART, or MLOS-MART with
+``--method mlos-mart``, with ``--iterations`` simultaneous iterations, two correlation passes at
+50% overlap, no deformation):
 
 S   examples/tiny.toml with a second camera: 192 x 160 pixels each, 82 x 68 x 29 voxels.
 M   examples/one_camera.toml (the reconstruction benchmark's M case) with a second camera:
@@ -40,7 +41,7 @@ from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.render import LightFieldRenderer  # noqa: E402
 from lfcore.rig import Rig  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
-from realtime.pipeline import LivePipeline, LiveSettings  # noqa: E402
+from realtime.pipeline import LivePipeline, LiveSettings, monitoring_recon  # noqa: E402
 
 
 def case_rig(case: str) -> Rig:
@@ -71,6 +72,8 @@ def main() -> int:
     ap.add_argument("--case", choices=("S", "M"), default="S")
     ap.add_argument("--device", default=None, help="cpu, cuda (default: a GPU if there is one)")
     ap.add_argument("--iterations", type=int, default=5)
+    ap.add_argument("--method", choices=("drt-mart", "mlos-mart"), default="drt-mart",
+                    help="the live reconstruction (default: drt-mart)")
     ap.add_argument("--rate", type=float, default=10.0, help="pairs per second the feeder publishes (default: 10)")
     ap.add_argument("--seconds", type=float, default=20.0, help="how long to feed pairs (default: 20)")
     ap.add_argument("--ppm", type=float, default=0.5)
@@ -87,11 +90,12 @@ def main() -> int:
     cams = list(pair)
     rows_cols = {c: pair[c].shape[1:] for c in cams}
     print(f"case {args.case}: {len(cams)} cameras of {rows_cols[cams[0]][1]} x {rows_cols[cams[0]][0]} px, "
-          f"device {device}, {args.iterations} iterations, feeder at {args.rate:g} Hz cycling {len(pairs)} "
-          f"distinct pairs; rendered in "
+          f"device {device}, {args.method} with {args.iterations} iterations, feeder at {args.rate:g} Hz "
+          f"cycling {len(pairs)} distinct pairs; rendered in "
           f"{time.perf_counter() - t:.1f} s")
     ring = PairRing(rows_cols, slots=8)
-    pipe = LivePipeline(rig, settings=LiveSettings(iterations=args.iterations), device=device)
+    pipe = LivePipeline(rig, settings=LiveSettings(iterations=args.iterations),
+                        recon=monitoring_recon(method=args.method), device=device)
     t = time.perf_counter()
     pipe.build()
     g = pipe.grid.shape

@@ -235,9 +235,10 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
     progress
         Called with 1 after each iteration.
     cache
-        DRT weights kept across calls (built on ``projector``): each frame then traces only
-        the voxels no earlier frame kept. Used by DRT-MART only (ignored by the other methods);
-        None: build them directly.
+        Weights kept across calls (built on ``projector``): each frame then traces only the
+        voxels no earlier frame kept. Used by DRT-MART when it holds DRT weights and by
+        MLOS-MART when it holds line-of-sight ones (ignored otherwise); None: build them
+        directly.
 
     Returns
     -------
@@ -267,10 +268,11 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
         weights = projector.weights(projector.all_voxels(), "los")
     else:
         voxels = projector.eliminate(lits, settings.min_seen, settings.max_dark)
-        if settings.method == "mlos-mart":
-            weights = projector.weights(voxels, "los")
+        kind = "los" if settings.method == "mlos-mart" else "drt"
+        if cache is not None and cache.method == kind:
+            weights = cache.weights(voxels)
         else:
-            weights = projector.weights(voxels, "drt") if cache is None else cache.weights(voxels)
+            weights = projector.weights(voxels, kind)
     dev = projector.device
     image = wp.array(np.concatenate([s.ravel() for s in signals]), dtype=float, device=dev)
     n = weights.n_voxels

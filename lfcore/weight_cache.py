@@ -1,11 +1,12 @@
-"""DRT weights kept across frames: trace each voxel once, gather the active rows per frame.
+"""Weights kept across frames: trace each voxel once, gather the active rows per frame.
 
-A voxel's dense ray-traced weights depend only on the cameras and the grid, never on the
-image; only zero-voxel elimination does. A :class:`WeightCache` binds a :class:`Projector` and
-keeps, on its device, the merged weights of every voxel it has been asked for. Each frame then
-costs the elimination, tracing only the voxels never seen before, and one copy of the active
-rows into a fresh :class:`~lfcore.projector.Weights` (a few milliseconds where the tracing
-took seconds on a CPU). The rows are the ones :meth:`Projector.weights` builds for the same
+A voxel's weights, dense ray-traced (DRT-MART) or line-of-sight (MLOS-MART), depend only on the
+cameras and the grid, never on the image; only zero-voxel elimination does. A
+:class:`WeightCache` binds a :class:`Projector` and keeps, on its device, the merged weights
+of every voxel it has been asked for. Each frame then costs the elimination, tracing only the
+voxels never seen before, and one copy of the active rows into a fresh
+:class:`~lfcore.projector.Weights` (a few milliseconds where the tracing took seconds on a
+CPU). The rows are the ones :meth:`Projector.weights` builds for the same
 voxels, bit for bit.
 
 It also has the projector store the pixels of each voxel's first elimination checks
@@ -41,12 +42,14 @@ PREFILL_VOXELS = 1 << 15
 
 
 class WeightCache:
-    """Merged DRT weights of the voxels of one projector, kept on its device across frames.
+    """Merged weights of the voxels of one projector, kept on its device across frames.
 
     Parameters
     ----------
     projector
         The cameras and grid; the weights live on its device.
+    method
+        ``"drt"`` (dense ray tracing, DRT-MART) or ``"los"`` (line of sight, MLOS-MART).
     budget_bytes
         Most bytes the pool of weights may take; default: ``DEFAULT_BUDGET_FRACTION`` of what
         the device has free now.
@@ -59,7 +62,10 @@ class WeightCache:
     """
 
     def __init__(self, projector: Projector, budget_bytes: int | None = None, min_weight: float = 1e-6,
-                 checks: int | None = None) -> None:
+                 checks: int | None = None, method: str = "drt") -> None:
+        if method not in ("drt", "los"):
+            raise ValueError(f"unknown weight method '{method}'; use 'drt' or 'los'")
+        self.method = method
         self.projector = projector
         self.wp = projector.wp
         self.device = projector.device
@@ -133,7 +139,7 @@ class WeightCache:
         stored = 0
         for lo in range(0, todo.size, PREFILL_VOXELS):
             part = todo[lo : lo + PREFILL_VOXELS]
-            built = self.projector.weights(wp.array(part, dtype=wp.int32, device=self.device), "drt",
+            built = self.projector.weights(wp.array(part, dtype=wp.int32, device=self.device), self.method,
                                            self.min_weight, budget_bytes=self.budget_bytes)
             if not self._store(part, built):
                 break
@@ -141,7 +147,7 @@ class WeightCache:
         return stored
 
     def weights(self, voxels) -> Weights:
-        """The DRT weights of ``voxels`` ((n,) int32 on the projector's device), as built directly.
+        """The weights of ``voxels`` ((n,) int32 on the projector's device), as built directly.
 
         Traces and stores the voxels not yet stored, then copies every requested row into one
         chunk. If the new rows would pass the budget, the frame's weights are built directly.
@@ -150,12 +156,12 @@ class WeightCache:
         vox_h = voxels.numpy().astype(np.int64)
         missing = vox_h[self._start[vox_h] < 0]
         if missing.size:
-            built = p.weights(wp.array(missing.astype(np.int32), dtype=wp.int32, device=self.device), "drt",
+            built = p.weights(wp.array(missing.astype(np.int32), dtype=wp.int32, device=self.device), self.method,
                               self.min_weight)
             if not self._store(missing, built):
                 if missing.size == vox_h.size:
                     return Weights(voxels=voxels, chunks=built.chunks, nnz=built.nnz)
-                return p.weights(voxels, "drt", self.min_weight)
+                return p.weights(voxels, self.method, self.min_weight)
         n = vox_h.size
         if n == 0:
             return Weights(voxels=voxels, chunks=[], nnz=0)

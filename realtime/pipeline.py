@@ -17,11 +17,12 @@ Stages, on the pipeline's own thread, for each pair:
    rule, :class:`~lfcore.device_ops.ImagePreprocessor`); the background level and noise of each
    camera are estimated on the host on the first pair and refreshed every ``background_every``
    pairs, not per frame;
-2. DRT-MART of frames A and B with monitoring settings (few iterations; the iterations and the
-   relaxation can be changed while it runs): the projector (geometry on the device), the pixel
-   buffers and two volume buffers are built once and reused; the elimination is per frame, as
-   DRT-MART's active voxels follow the particles, and a
-   :class:`~lfcore.weight_cache.WeightCache` keeps the weights of every voxel already traced,
+2. DRT-MART (or MLOS-MART: the same elimination, line-of-sight weights) of frames A and B with
+   monitoring settings (few iterations; the iterations and the relaxation can be changed while
+   it runs): the projector (geometry on the device), the pixel buffers and two volume buffers
+   are built once and reused; the elimination is per frame, as the active voxels follow the
+   particles, and a :class:`~lfcore.weight_cache.WeightCache` keeps the weights of every voxel
+   already traced,
    so a frame traces only voxels no earlier frame activated; the volumes are scattered and
    smoothed on the device;
 3. 3D multi-grid correlation (one or two passes, no deformation by default) with a
@@ -55,8 +56,8 @@ from lfcore.vectors import centres_mm, displacement_to_velocity, vorticity
 from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
 
-__all__ = ["AXES", "LiveResult", "LiveSettings", "LiveStats", "LivePipeline", "PairSource", "VectorSlice",
-           "default_windows", "monitoring_recon", "plausible_latency"]
+__all__ = ["AXES", "LIVE_METHODS", "LiveResult", "LiveSettings", "LiveStats", "LivePipeline", "PairSource",
+           "VectorSlice", "default_windows", "monitoring_recon", "plausible_latency"]
 
 #: Slice axes: the axis normal to the slice.
 AXES = ("x", "y", "z")
@@ -79,9 +80,19 @@ class PairSource(Protocol):
     def still_valid(self, view: PairView) -> bool: ...
 
 
-def monitoring_recon(iterations: int = 5, relaxation: float = 1.0) -> ReconSettings:
-    """DRT-MART settings for monitoring: few simultaneous iterations, the default thresholds."""
-    return ReconSettings(method="drt-mart", iterations=iterations, relaxation=relaxation, form="simultaneous")
+#: Reconstruction methods the live path runs: both eliminate zero voxels, so their weights
+#: follow the particles and can be cached.
+LIVE_METHODS = ("drt-mart", "mlos-mart")
+
+
+def monitoring_recon(iterations: int = 5, relaxation: float = 1.0, method: str = "drt-mart") -> ReconSettings:
+    """Settings for monitoring: few simultaneous iterations, the default thresholds.
+
+    ``method`` is ``"drt-mart"`` or ``"mlos-mart"`` (see :data:`LIVE_METHODS`).
+    """
+    if method not in LIVE_METHODS:
+        raise ValueError(f"the live path runs {' or '.join(LIVE_METHODS)}, not '{method}'")
+    return ReconSettings(method=method, iterations=iterations, relaxation=relaxation, form="simultaneous")
 
 
 def default_windows(shape: tuple[int, int, int], passes: int = 2) -> tuple[tuple[int, int, int], ...]:
@@ -270,7 +281,7 @@ class LiveStats:
 
 
 class _Reconstructor:
-    """DRT-MART of one frame at a time with everything but the per-frame weights built once.
+    """DRT-MART or MLOS-MART of one frame at a time with everything but the per-frame weights built once.
 
     Everything per pair stays on the device: the raw frames arrive there as uint16, are
     preprocessed there (:class:`~lfcore.device_ops.ImagePreprocessor`), reconstructed, scattered
@@ -285,7 +296,7 @@ class _Reconstructor:
         self.projector = Projector(self.cams, grid, sub_apertures=recon.sub_apertures, device=device)
         p = self.projector
         # each voxel's weights traced once, on the first frame that keeps it (see WeightCache)
-        self.cache = WeightCache(p)
+        self.cache = WeightCache(p, method="los" if recon.method == "mlos-mart" else "drt")
         self.wp = p.wp
         self.device = p.device
         self.offsets = [int(o) for o in p.pixel_offsets]
@@ -388,8 +399,9 @@ class LivePipeline:
     settings
         The run-time settings (see :meth:`update`).
     recon
-        The fixed DRT-MART settings (thresholds, smoothing, sub-apertures); iterations and
-        relaxation come from ``settings``. Only the simultaneous form is used.
+        The fixed reconstruction settings (method: DRT-MART or MLOS-MART; thresholds, smoothing,
+        sub-apertures); iterations and relaxation come from ``settings``. Only the simultaneous
+        form is used.
     correlation
         The correlation; default: :func:`default_windows` at 50% overlap, no deformation.
     cameras
@@ -410,6 +422,8 @@ class LivePipeline:
         self.grid = VolumeGrid.from_rig(rig)
         self._settings = settings or LiveSettings()
         base = recon or monitoring_recon()
+        if base.method not in LIVE_METHODS:
+            raise ValueError(f"the live path runs {' or '.join(LIVE_METHODS)}, not '{base.method}'")
         self.recon = replace(base, form="simultaneous")
         self.correlation = correlation or CorrelationConfig(windows=default_windows(self.grid.shape), overlap=0.5,
                                                             deform_iterations=0)

@@ -41,10 +41,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "does (works without a display)")
     m.add_argument("--after", type=positive_int, default=3, metavar="N",
                    help="pairs shown before the screenshot (default: 3)")
+    m.add_argument("--method", choices=("drt-mart", "mlos-mart"), default="drt-mart",
+                   help="reconstruction: drt-mart (dense ray-traced weights) or mlos-mart (the same elimination, "
+                   "line-of-sight weights; faster on a GPU) (default: drt-mart)")
     m.add_argument("--iterations", type=lambda t: whole_number(t, 0), default=5,
-                   help="DRT-MART iterations per frame (default: 5; changeable in the window)")
+                   help="MART iterations per frame (default: 5; changeable in the window)")
     m.add_argument("--relaxation", type=positive_float, default=1.0,
-                   help="DRT-MART relaxation, at most 2 (default: 1; changeable in the window)")
+                   help="MART relaxation, at most 2 (default: 1; changeable in the window)")
     m.add_argument("--slice", choices=("x", "y", "z"), default="z", help="axis normal to the slice (default: z)")
     m.add_argument("--passes", type=int, choices=(1, 2), default=2, help="correlation passes (default: 2)")
     m.add_argument("--ring", type=positive_int, default=32, metavar="PAIRS",
@@ -86,7 +89,7 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
     from lfcore.volume import VolumeGrid
     from lfpiv.live import LiveRecorder
     from realtime.monitor import MonitorWindow
-    from realtime.pipeline import LivePipeline, LiveSettings, default_windows
+    from realtime.pipeline import LivePipeline, LiveSettings, default_windows, monitoring_recon
 
     if args.out is not None:
         RunStore.check_new(args.out, args.overwrite)
@@ -113,7 +116,8 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
                                      deform_iterations=0)
         except CorrelationError as exc:
             raise UsageError(str(exc)) from None
-        pipe = LivePipeline(rig, settings=settings, correlation=corr, device=device)
+        pipe = LivePipeline(rig, settings=settings, recon=monitoring_recon(method=args.method), correlation=corr,
+                            device=device)
         say(f"building the reconstruction ({'x'.join(map(str, pipe.grid.shape[::-1]))} voxels) and correlation "
             f"on {device} ...")
         pipe.build()
@@ -172,7 +176,8 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
     lat = numbers["latency_s"]
     print(f"live: {int(numbers['processed'])} pair(s) processed, {int(numbers['skipped'])} skipped, "
           f"{int(numbers['discarded'])} discarded, {int(numbers['displayed'])} shown; last trigger-to-display "
-          f"latency {f'{lat:.2f} s' if math.isfinite(lat) else 'n/a'}; {args.iterations} iteration(s) on {device}")
+          f"latency {f'{lat:.2f} s' if math.isfinite(lat) else 'n/a'}; {args.method}, {args.iterations} iteration(s) "
+          f"on {device}")
     st = pipe.stats()
     if st.error:
         print(f"lfpiv monitor: warning: the live path reported: {st.error}", file=sys.stderr)

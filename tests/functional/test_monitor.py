@@ -66,8 +66,8 @@ def test_monitor_screenshot_and_status_match_the_run_store(main, rig_file: Path,
     out, shot = tmp_path / "run.zarr", tmp_path / "shot.png"
     pairs = 30
     rc = main(["monitor", "--rig", str(rig_file), "--pairs", str(pairs), "--out", str(out), "--screenshot", str(shot),
-               "--after", "2", "--device", "cpu", "--iterations", "3", "--sim-rays", "300", "--sim-pool", "3",
-               "--quiet"])
+               "--after", "2", "--device", "cpu", "--iterations", "3", "--method", "mlos-mart", "--sim-rays", "300",
+               "--sim-pool", "3", "--quiet"])
     stdout, stderr = capsys.readouterr()
     assert rc == 0, stderr
     # status numbers against the run store
@@ -84,6 +84,7 @@ def test_monitor_screenshot_and_status_match_the_run_store(main, rig_file: Path,
     live = re.search(r"live: (\d+) pair\(s\) processed, (\d+) skipped, (\d+) discarded, (\d+) shown", stdout)
     processed, skipped, discarded, shown = (int(g) for g in live.groups())
     assert 1 <= shown <= processed and processed + skipped + discarded <= committed
+    assert "mlos-mart, 3 iteration(s) on cpu" in stdout
     assert f"screenshot: {shot}" in stdout
     # the screenshot: every panel drew something
     img = _png(shot)

@@ -122,13 +122,17 @@ def test_cache_over_budget_builds_directly(small_dual_rig, device):
     assert cache.nbytes <= cache.budget_bytes
 
 
-def test_reconstruct_with_a_cache_gives_the_same_volume(small_dual_rig, device):
+@pytest.mark.parametrize(("method", "kind"), [("drt-mart", "drt"), ("mlos-mart", "los")])
+def test_reconstruct_with_a_cache_gives_the_same_volume(small_dual_rig, device, method, kind):
     grid = VolumeGrid.from_rig(small_dual_rig)
     proj = Projector(small_dual_rig.camera, grid, device=device)
     images = _images(small_dual_rig, grid, device)
-    settings = ReconSettings(iterations=10)
+    settings = ReconSettings(method=method, iterations=10)
     plain = reconstruct(proj, images, settings)
-    cache = WeightCache(proj)
+    other = WeightCache(proj, method="los" if kind == "drt" else "drt")
+    res = reconstruct(proj, images, settings, cache=other)  # a cache of the other weights is not used
+    assert other.n_cached == 0 and res.nnz == plain.nnz
+    cache = WeightCache(proj, method=kind)
     for _ in range(2):  # filling the cache, then reading it
         res = reconstruct(proj, images, settings, cache=cache)
         assert res.active_voxels == plain.active_voxels and res.nnz == plain.nnz
@@ -238,3 +242,9 @@ def test_cell_overlap_is_the_clipped_rectangle(device, edges, rotation_deg):
     assert np.abs(got[big, 1:3] - ref[big, 1:3]).max() < 1e-5 * pitch
     assert np.abs(got[some, 1:3] - ref[some, 1:3]).max() < 2e-4 * pitch
     assert np.abs(got_ext[some] - ref[some, 3:5]).max() < 1e-5 * pitch
+
+
+def test_cache_rejects_an_unknown_method(small_dual_rig):
+    proj = Projector(small_dual_rig.camera[:1], VolumeGrid.from_rig(small_dual_rig), device="cpu")
+    with pytest.raises(ValueError, match="unknown weight method 'mart'"):
+        WeightCache(proj, method="mart", checks=0)

@@ -190,8 +190,10 @@ def test_staging_hands_over_the_newest_pair_intact(tiny_rig) -> None:
     assert st.processed + st.skipped + st.discarded == st.last_pair + 1
 
 
-def test_live_volume_equals_the_batch_reconstruction(tiny_rig) -> None:
-    """Device preprocessing, device volumes and device smoothing give the batch path's volume."""
+@pytest.mark.parametrize("method", ["drt-mart", "mlos-mart"])
+def test_live_volume_equals_the_batch_reconstruction(tiny_rig, method) -> None:
+    """Device preprocessing, device volumes and device smoothing give the batch path's volume,
+    with either method's weights (kept in the live path's weight cache)."""
     from lfcore.particles import particle_count, seed_particles
     from lfcore.projector import Projector
     from lfcore.reconstruct import reconstruct
@@ -208,15 +210,25 @@ def test_live_volume_equals_the_batch_reconstruction(tiny_rig) -> None:
     ring.publish(0)
     results = []
     pipe = LivePipeline(tiny_rig, ring, settings=LiveSettings(iterations=3, slice_axis="z", slice_index=14),
-                        device="cpu")
+                        recon=monitoring_recon(method=method), device="cpu")
     pipe.subscribe(results.append)
     with pipe:
         assert pipe.wait_processed(1, 60.0)
     proj = Projector(tiny_rig.camera, pipe.grid, sub_apertures=pipe.recon.sub_apertures, device="cpu")
-    ref = reconstruct(proj, [frames[0]], monitoring_recon(3, 1.0)).volume
+    ref = reconstruct(proj, [frames[0]], monitoring_recon(3, 1.0, method)).volume
     r = results[0]
     assert ref.max() > 0 and 0.0 < r.active_fraction < 0.5
     scale = float(ref.max())
     for ax, a in enumerate("zyx"):
         assert np.allclose(r.mip[a], ref.max(axis=ax), rtol=1e-3, atol=1e-4 * scale)
     assert np.allclose(r.slice_image, ref[14], rtol=1e-3, atol=1e-4 * scale)
+
+
+def test_the_live_path_runs_only_eliminating_methods(tiny_rig) -> None:
+    from lfcore.reconstruct import ReconSettings
+    from realtime.pipeline import monitoring_recon
+
+    with pytest.raises(ValueError, match="runs drt-mart or mlos-mart, not 'mart'"):
+        monitoring_recon(method="mart")
+    with pytest.raises(ValueError, match="not 'mart'"):
+        LivePipeline(tiny_rig, recon=ReconSettings(method="mart"), device="cpu")
