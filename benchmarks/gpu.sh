@@ -3,7 +3,8 @@
 #
 #   bash benchmarks/gpu.sh tests   # the tests' CUDA variants and the functional tests (default
 #                                  # device: the GPU), then the quick benchmarks
-#   bash benchmarks/gpu.sh big     # the M and L reconstructions and the live M case
+#   bash benchmarks/gpu.sh big     # the DRT weight-build profile, M by both methods, live M by
+#                                  # both, L by MLOS-MART (about 9 minutes)
 #   bash benchmarks/gpu.sh profile # the correlation tests and benchmark, the weight-build profile
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
 #                                  # iterations), then the weight-build profile (what fits in 6 min)
@@ -50,10 +51,11 @@ elif [ "$stage" = profile ]; then
     step correlate 90 python3 benchmarks/correlate.py --case gpu --profile
     step weights-Mc 150 python3 benchmarks/recon.py --case Mc --ppm 1 --device cuda --profile-weights
 else
-    step recon-Mc 60 python3 benchmarks/recon.py --case Mc --ppm 1 --iterations 20 --device cuda
-    step recon-M 200 python3 benchmarks/recon.py --case M --device cuda
-    step live-M 120 python3 benchmarks/live.py --case M --device cuda --seconds 15
-    step recon-L 180 python3 benchmarks/recon.py --case L --device cuda --no-mart
+    step weights-Mc 100 python3 benchmarks/recon.py --case Mc --ppm 1 --device cuda --profile-weights
+    step recon-M 150 python3 benchmarks/recon.py --case M --device cuda --no-mart --iterations 50
+    step live-M-mlos 100 python3 benchmarks/live.py --case M --device cuda --seconds 15 --method mlos-mart
+    step live-M-drt 100 python3 benchmarks/live.py --case M --device cuda --seconds 15
+    step recon-L-mlos 60 python3 benchmarks/recon.py --case L --device cuda --no-drt --no-mart --iterations 20
 fi
 echo "=== summary ($stage)"
 printf '%s\n' "${summary[@]}"

@@ -47,7 +47,7 @@ sys.path.insert(0, str(ROOT))
 from lfcore import metrics  # noqa: E402
 from lfcore.device import resolve_device, warp  # noqa: E402
 from lfcore.particles import particle_count, seed_particles  # noqa: E402
-from lfcore.projector import BYTES_PER_WEIGHT, Projector  # noqa: E402
+from lfcore.projector import BYTES_PER_WEIGHT, MemoryBudgetError, Projector  # noqa: E402
 from lfcore.reconstruct import ReconSettings, reconstruct  # noqa: E402
 from lfcore.render import LightFieldRenderer  # noqa: E402
 from lfcore.rig import Rig  # noqa: E402
@@ -265,7 +265,10 @@ def main() -> int:
             profile_weights(case, device, args.ppm)
         return 0
     for case in args.case or ["S"]:
-        run(case, device, args.ppm, args.iterations, not args.no_mart, not args.no_drt)
+        try:
+            run(case, device, args.ppm, args.iterations, not args.no_mart, not args.no_drt)
+        except MemoryBudgetError as exc:  # the case does not fit this device: say so, go on
+            print(f"  case {case}: {exc}")
         sys.stdout.flush()
     return 0
 
