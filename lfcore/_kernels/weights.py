@@ -11,7 +11,7 @@ point q lands on the sensor at c + f_ml (q - A) / si.
 Dense ray tracing (DRT) weights: the aperture is cut into square sub-apertures of side s_A.
 Each sub-bundle's footprint on the MLA is a square of half-side
 0.5 |a| s_A + (spread of the voxel's own extent); w1 is the fraction of the footprint inside
-each lenslet cell (exact polygon clipping, square or hexagonal cells); the part that enters a
+each lenslet cell (exact, square or hexagonal cells: :func:`cell_overlap`); the part that enters a
 lenslet lands as a square spot at c + f_ml (centroid - A) / si of half-side
 f_ml / si (0.5 |1 - a| s_A + spread), and w2 is the fraction of the spot on each pixel. A
 voxel's weight on a pixel is the sub-aperture's share of the aperture times w1 times w2, so the
@@ -37,7 +37,6 @@ _init()
 wp.set_module_options({"enable_backward": False})
 
 vec6 = wp.types.vector(length=6, dtype=wp.float32)
-vec12 = wp.types.vector(length=12, dtype=wp.float32)
 
 
 @wp.struct
