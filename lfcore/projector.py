@@ -287,8 +287,12 @@ class Projector:
 
     def all_voxels(self) -> object:
         """Every voxel of the grid (no elimination), as (n,) int32 indices."""
-        out = self.wp.empty(self.grid.n_voxels, dtype=self.wp.int32, device=self.device)
-        self.wp.launch(self._kw.iota, dim=out.shape[0], inputs=[out], device=self.device)
+        return self._arange(self.grid.n_voxels)
+
+    def _arange(self, n: int) -> object:
+        """0 .. n - 1 as int32, made on the device (a host range to copy would be gigabytes)."""
+        out = self.wp.empty(n, dtype=self.wp.int32, device=self.device)
+        self.wp.launch(self._kw.iota, dim=n, inputs=[out], device=self.device)
         return out
 
     def _compact(self, mask) -> object:
@@ -406,8 +410,7 @@ class Projector:
                                                      merged_pix, merged_w, Rows(kept)], self.device)
                 del tmp_pix, tmp_ord
             else:
-                order = wp.empty(scratch, dtype=wp.int32, device=self.device)
-                wp.launch(kw.iota, dim=scratch, inputs=[order], device=self.device)
+                order = self._arange(scratch)
                 wp.utils.segmented_sort_pairs(pix, order, m, starts, ends)
                 launch_rows(kw.merge_sorted, hi - lo, [Rows(starts), Rows(ends), pix, order, w_raw, merged_pix,
                                                        merged_w, Rows(kept)], self.device)

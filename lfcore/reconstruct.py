@@ -39,9 +39,11 @@ from lfcore.device_ops import VolumeOps
 from lfcore.projector import Projector
 from lfcore.weight_cache import WeightCache
 
-__all__ = ["ReconResult", "ReconSettings", "estimate_background", "preprocess", "reconstruct"]
+__all__ = ["METHODS", "WEIGHTS", "ReconResult", "ReconSettings", "estimate_background", "preprocess", "reconstruct"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart")
+#: The weights each method iterates on (:meth:`Projector.weights` and :class:`WeightCache` names).
+WEIGHTS = {"drt-mart": "drt", "mart": "los", "mlos-mart": "los"}
 #: Above this the simultaneous update overshoots: every voxel on an under-projected pixel grows at
 #: once (sequential MART takes the chapter's 2.5 because each pixel's step is small).
 MAX_SIMULTANEOUS_RELAXATION = 2.0
@@ -268,7 +270,7 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
         weights = projector.weights(projector.all_voxels(), "los")
     else:
         voxels = projector.eliminate(lits, settings.min_seen, settings.max_dark)
-        kind = "los" if settings.method == "mlos-mart" else "drt"
+        kind = WEIGHTS[settings.method]
         if cache is not None and cache.method == kind:
             weights = cache.weights(voxels)
         else:

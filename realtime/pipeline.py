@@ -50,7 +50,7 @@ from acquisition.ring import PairView
 from lfcore.correlate import CorrelationConfig, Correlator, VectorField
 from lfcore.device_ops import ImagePreprocessor, VolumeOps
 from lfcore.projector import Projector
-from lfcore.reconstruct import ReconSettings, estimate_background
+from lfcore.reconstruct import WEIGHTS, ReconSettings, estimate_background
 from lfcore.rig import Rig
 from lfcore.vectors import centres_mm, displacement_to_velocity, vorticity
 from lfcore.volume import VolumeGrid
@@ -90,9 +90,13 @@ def monitoring_recon(iterations: int = 5, relaxation: float = 1.0, method: str =
 
     ``method`` is ``"drt-mart"`` or ``"mlos-mart"`` (see :data:`LIVE_METHODS`).
     """
+    _check_live_method(method)
+    return ReconSettings(method=method, iterations=iterations, relaxation=relaxation, form="simultaneous")
+
+
+def _check_live_method(method: str) -> None:
     if method not in LIVE_METHODS:
         raise ValueError(f"the live path runs {' or '.join(LIVE_METHODS)}, not '{method}'")
-    return ReconSettings(method=method, iterations=iterations, relaxation=relaxation, form="simultaneous")
 
 
 def default_windows(shape: tuple[int, int, int], passes: int = 2) -> tuple[tuple[int, int, int], ...]:
@@ -296,7 +300,7 @@ class _Reconstructor:
         self.projector = Projector(self.cams, grid, sub_apertures=recon.sub_apertures, device=device)
         p = self.projector
         # each voxel's weights traced once, on the first frame that keeps it (see WeightCache)
-        self.cache = WeightCache(p, method="los" if recon.method == "mlos-mart" else "drt")
+        self.cache = WeightCache(p, method=WEIGHTS[recon.method])
         self.wp = p.wp
         self.device = p.device
         self.offsets = [int(o) for o in p.pixel_offsets]
@@ -422,8 +426,7 @@ class LivePipeline:
         self.grid = VolumeGrid.from_rig(rig)
         self._settings = settings or LiveSettings()
         base = recon or monitoring_recon()
-        if base.method not in LIVE_METHODS:
-            raise ValueError(f"the live path runs {' or '.join(LIVE_METHODS)}, not '{base.method}'")
+        _check_live_method(base.method)
         self.recon = replace(base, form="simultaneous")
         self.correlation = correlation or CorrelationConfig(windows=default_windows(self.grid.shape), overlap=0.5,
                                                             deform_iterations=0)

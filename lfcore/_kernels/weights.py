@@ -689,7 +689,7 @@ def los_weights(
 
 @wp.kernel
 def iota(out: wp.array(dtype=wp.int32)):
-    """out[i] = i (made on the device: a host range of the raw entries would be gigabytes to copy)."""
+    """out[i] = i."""
     i = wp.tid()
     out[i] = i
 
