@@ -188,33 +188,15 @@ def gpu_case(args) -> None:
 
 
 def profile(c: Correlator, a: np.ndarray, b: np.ndarray, device: str) -> None:
-    """Time of every kernel (synchronised after each launch, so the total exceeds the run's)."""
-    import collections
+    """Time of every kernel (synchronised around each launch, so the total exceeds the run's)."""
+    from _kernel_clock import kernel_clock, print_clock
 
-    import warp as wp
-
-    spent: collections.Counter = collections.Counter()
-    launch, launch_tiled = wp.launch, wp.launch_tiled
-
-    def timed_launch(real):
-        def run(kernel, *args, **kwargs):
-            t = time.perf_counter()
-            real(kernel, *args, **kwargs)
-            wp.synchronize_device(device)
-            spent[kernel.key.split("_locals_")[-1]] += time.perf_counter() - t
-        return run
-
-    wp.launch, wp.launch_tiled = timed_launch(launch), timed_launch(launch_tiled)
-    try:
+    with kernel_clock(device) as spent:
         t = time.perf_counter()
         c(a, b)
         total = time.perf_counter() - t
-    finally:
-        wp.launch, wp.launch_tiled = launch, launch_tiled
     print(f"  profile (synchronised launches, {total:.3f} s in all):")
-    for name, s in spent.most_common():
-        print(f"    {name:40s} {s:8.3f} s")
-    print(f"    {'host (FFT on the CPU, median test, copies)':40s} {total - sum(spent.values()):8.3f} s")
+    print_clock(spent, total, "host (FFT on the CPU, median test, copies)")
 
 
 def main() -> None:

@@ -41,7 +41,7 @@ from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.render import LightFieldRenderer  # noqa: E402
 from lfcore.rig import Rig  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
-from realtime.pipeline import LivePipeline, LiveSettings, monitoring_recon  # noqa: E402
+from realtime.pipeline import LIVE_METHODS, LivePipeline, LiveSettings, monitoring_recon  # noqa: E402
 
 
 def case_rig(case: str) -> Rig:
@@ -72,7 +72,7 @@ def main() -> int:
     ap.add_argument("--case", choices=("S", "M"), default="S")
     ap.add_argument("--device", default=None, help="cpu, cuda (default: a GPU if there is one)")
     ap.add_argument("--iterations", type=int, default=5)
-    ap.add_argument("--method", choices=("drt-mart", "mlos-mart"), default="drt-mart",
+    ap.add_argument("--method", choices=LIVE_METHODS, default="drt-mart",
                     help="the live reconstruction (default: drt-mart)")
     ap.add_argument("--rate", type=float, default=10.0, help="pairs per second the feeder publishes (default: 10)")
     ap.add_argument("--seconds", type=float, default=20.0, help="how long to feed pairs (default: 20)")

@@ -48,7 +48,7 @@ from lfcore import metrics  # noqa: E402
 from lfcore.device import resolve_device, warp  # noqa: E402
 from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.projector import BYTES_PER_WEIGHT, MemoryBudgetError, Projector  # noqa: E402
-from lfcore.reconstruct import ReconSettings, reconstruct  # noqa: E402
+from lfcore.reconstruct import ReconSettings, estimate_background, preprocess, reconstruct  # noqa: E402
 from lfcore.render import LightFieldRenderer  # noqa: E402
 from lfcore.rig import Rig  # noqa: E402
 from lfcore.volume import VolumeGrid  # noqa: E402
@@ -105,19 +105,24 @@ def peak_bytes(device: str) -> int:
     return int(wp.get_mempool_used_mem_high(device))
 
 
-def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, with_drt: bool = True) -> None:
+def scene(case: str, device: str, ppm: float):
+    """The case's rig, iterations, cameras, grid and true particles, and one rendered image per camera."""
     rig, its = case_rig(case)
-    its = iterations or its
     cams = rig.camera if case == "S2" else rig.camera[:1]
-    cam = cams[0]
-    grid = VolumeGrid.from_rig(rig)
-    n = particle_count(rig, ppm)
-    pts = seed_particles(rig.volume, n, np.random.default_rng(1))
+    pts = seed_particles(rig.volume, particle_count(rig, ppm), np.random.default_rng(1))
     render = rig.render.model_copy(update={"rays_per_particle": 5000})
-    t = time.perf_counter()
     img = [LightFieldRenderer(c, render, rig.laser.wavelength_nm, device=device).frame(pts, render.particle_counts,
                                                                                         1 + k)
            for k, c in enumerate(cams)]
+    return rig, its, cams, VolumeGrid.from_rig(rig), pts, img
+
+
+def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, with_drt: bool = True) -> None:
+    t = time.perf_counter()
+    _, its, cams, grid, pts, img = scene(case, device, ppm)
+    its = iterations or its
+    cam = cams[0]
+    n = len(pts)
     print(f"case {case}: {len(cams)} x {cam.sensor_px[0]} x {cam.sensor_px[1]} px, "
           f"{' x '.join(map(str, grid.shape[::-1]))} voxels (x, y, z), {n} particles ({ppm:g} PPM), {its} iterations, "
           f"device {device}; "
@@ -170,21 +175,12 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, 
 
 def profile_weights(case: str, device: str, ppm: float) -> None:
     """Time the elimination and each way of building the DRT weights, then every kernel of the
-    default build and of the MLOS (line-of-sight) weights (synchronised after each launch)."""
-    import collections
+    default build and of the MLOS (line-of-sight) weights (synchronised around each launch)."""
+    from _kernel_clock import kernel_clock, print_clock
 
     wp = warp()
-    rig, _ = case_rig(case)
-    cams = rig.camera if case == "S2" else rig.camera[:1]
-    grid = VolumeGrid.from_rig(rig)
-    pts = seed_particles(rig.volume, particle_count(rig, ppm), np.random.default_rng(1))
-    render = rig.render.model_copy(update={"rays_per_particle": 5000})
-    img = [LightFieldRenderer(c, render, rig.laser.wavelength_nm, device=device).frame(pts, render.particle_counts,
-                                                                                        1 + k)
-           for k, c in enumerate(cams)]
+    _, _, cams, grid, _, img = scene(case, device, ppm)
     proj = Projector(cams, grid, device=device)
-    from lfcore.reconstruct import estimate_background, preprocess
-
     st = ReconSettings()
     lit = []
     for im in img:  # the lit pixels, as reconstruct() finds them
@@ -207,32 +203,11 @@ def profile_weights(case: str, device: str, ppm: float) -> None:
     for build, sort in variants:  # compile every kernel first
         proj.weights(few, "drt", build=build, sort=sort)
     proj.weights(few, "los")
-    spent: collections.Counter = collections.Counter()
-    real = wp.launch, wp.launch_tiled, wp.utils.segmented_sort_pairs, wp.utils.array_scan
-
-    def clocked(fn, name=None):
-        def run(*args, **kwargs):
-            wp.synchronize_device(device)
-            t = time.perf_counter()
-            fn(*args, **kwargs)
-            wp.synchronize_device(device)
-            key = name or args[0].key.split("_locals_")[-1]
-            spent[key] += time.perf_counter() - t
-        return run
-
     for method in ("drt", "los"):
-        spent.clear()
-        wp.launch, wp.launch_tiled = clocked(real[0]), clocked(real[1])
-        wp.utils.segmented_sort_pairs = clocked(real[2], "segmented_sort_pairs (library)")
-        wp.utils.array_scan = clocked(real[3], "array_scan (library)")
-        try:
+        with kernel_clock(device) as spent:
             w, t = timed(lambda m=method: proj.weights(voxels, m))
-        finally:
-            wp.launch, wp.launch_tiled, wp.utils.segmented_sort_pairs, wp.utils.array_scan = real
         print(f"  kernels of the default {method} build ({t:.3f} s in all, {w.nnz} weights):")
-        for name, sec in spent.most_common():
-            print(f"    {name:40s} {sec:8.3f} s")
-        print(f"    {'host (copies, allocation, numpy)':40s} {t - sum(spent.values()):8.3f} s")
+        print_clock(spent, t, "host (copies, allocation, numpy)")
         del w
     for build, sort in variants:
         w, t = timed(lambda b=build, s=sort: proj.weights(voxels, "drt", build=b, sort=s))
