@@ -19,28 +19,57 @@ TINY = wp.constant(1.0e-30)
 
 
 @wp.kernel
+def log_ratio(image: wp.array(dtype=float), proj: wp.array(dtype=float), floor: float, ratio: wp.array(dtype=float)):
+    """ratio[i] = ln(max(I_i, floor) / proj_i), 0 where nothing projects onto pixel i.
+
+    The log of the measured-to-projected ratio is a property of the pixel, so it is taken once
+    per pixel per iteration instead of once per weight.
+    """
+    i = wp.tid()
+    p = proj[i]
+    r = float(0.0)
+    if p > 0.0:
+        r = wp.log(wp.max(image[i], floor) / p)
+    ratio[i] = r
+
+
+@wp.kernel
 def project(
     offsets: wp.array(dtype=wp.int64),
     pix: wp.array(dtype=wp.int32),
     w: wp.array(dtype=float),
     first: int,
+    lanes: int,
     e: wp.array(dtype=float),
     proj: wp.array(dtype=float),
 ):
-    """proj[i] += sum_j w_ij E_j: forward projection, one thread per voxel of a chunk.
+    """proj[i] += sum_j w_ij E_j: forward projection over (voxels of a chunk, ``lanes``) threads.
 
     The chunk's voxel t is voxel ``first + t`` of ``e``; its entries start at ``offsets[t]``.
+    Lane k takes entries k, k + lanes, ...: on a GPU the 32 lanes of a warp then read 32
+    consecutive weights (one coalesced transaction) where a thread per voxel would read 32
+    scattered rows. On the CPU ``lanes`` is 1.
     """
-    t0 = wp.tid()
-    j = first + t0
-    ej = e[j]
+    t0, lane = wp.tid()
+    ej = e[first + t0]
     if ej == 0.0:
         return
-    t = offsets[t0]
+    t = offsets[t0] + wp.int64(lane)
     end = offsets[t0 + 1]
     while t < end:
         wp.atomic_add(proj, pix[t], w[t] * ej)
-        t += wp.int64(1)
+        t += wp.int64(lanes)
+
+
+@wp.func
+def multiplied(ej: float, s: float, relaxation: float) -> float:
+    """E_j exp(mu s), with the step bounded and a vanishing voxel set to zero."""
+    # A bounded step (a factor of at most 1e3 either way) keeps float32 finite when a voxel's
+    # pixels are far from their projection; it does not move the fixed point.
+    ej = ej * wp.exp(wp.clamp(relaxation * s, -MAX_LOG_STEP, MAX_LOG_STEP))
+    if ej < TINY:
+        ej = 0.0  # a dead voxel stays dead and costs no more work
+    return ej
 
 
 @wp.kernel
@@ -49,18 +78,18 @@ def smart_update(
     pix: wp.array(dtype=wp.int32),
     w: wp.array(dtype=float),
     first: int,
-    image: wp.array(dtype=float),
-    proj: wp.array(dtype=float),
-    floor: float,
+    ratio: wp.array(dtype=float),
     relaxation: float,
     e: wp.array(dtype=float),
 ):
-    """Simultaneous multiplicative update E_j <- E_j exp(mu sum_i w_ij ln(I_i / proj_i)).
+    """Simultaneous multiplicative update E_j <- E_j exp(mu sum_i w_ij ln(I_i / proj_i)), a thread per voxel.
 
     With a voxel's weights summing to the fraction of its light on the sensor, the exponent is
     mu times the weight-averaged log ratio of measured to projected intensity: the per-voxel
-    equivalent of one sweep of eq. 4.1 over the voxel's pixels. Pixels below ``floor`` count as
-    ``floor``, so a dark pixel pulls its voxels down hard without zeroing them in one step.
+    equivalent of one sweep of eq. 4.1 over the voxel's pixels. ``ratio`` is the pixels'
+    :func:`log_ratio`, where pixels below the floor count as the floor, so a dark pixel pulls
+    its voxels down hard without zeroing them in one step. The CPU's form (see
+    :func:`smart_update_tiled` for the GPU's).
     """
     t0 = wp.tid()
     j = first + t0
@@ -71,17 +100,43 @@ def smart_update(
     t = offsets[t0]
     end = offsets[t0 + 1]
     while t < end:
-        i = pix[t]
-        p = proj[i]
-        if p > 0.0:
-            s += w[t] * wp.log(wp.max(image[i], floor) / p)
+        s += w[t] * ratio[pix[t]]
         t += wp.int64(1)
-    # A bounded step (a factor of at most 1e3 either way) keeps float32 finite when a voxel's
-    # pixels are far from their projection; it does not move the fixed point.
-    ej = ej * wp.exp(wp.clamp(relaxation * s, -MAX_LOG_STEP, MAX_LOG_STEP))
-    if ej < TINY:
-        ej = 0.0  # a dead voxel stays dead and costs no more work
-    e[j] = ej
+    e[j] = multiplied(ej, s, relaxation)
+
+
+@wp.kernel
+def smart_update_tiled(
+    offsets: wp.array(dtype=wp.int64),
+    pix: wp.array(dtype=wp.int32),
+    w: wp.array(dtype=float),
+    first: int,
+    ratio: wp.array(dtype=float),
+    relaxation: float,
+    e: wp.array(dtype=float),
+):
+    """:func:`smart_update` with a block of threads per voxel (launched tiled over the voxels).
+
+    The block's threads take interleaved entries of the voxel, so on a GPU a warp reads
+    consecutive weights (coalesced), and a block reduction adds their partial sums. (On the CPU a
+    block is one thread; there :func:`smart_update` is used, since tile kernels must not run
+    in concurrent CPU launches.)
+    """
+    t0, lane = wp.tid()
+    j = first + t0
+    ej = e[j]
+    if ej == 0.0:
+        return  # the whole block shares the voxel, so it leaves together
+    s = float(0.0)
+    t = offsets[t0] + wp.int64(lane)
+    end = offsets[t0 + 1]
+    step = wp.int64(wp.block_dim())
+    while t < end:
+        s += w[t] * ratio[pix[t]]
+        t += step
+    total = wp.tile_sum(wp.tile(s))
+    if lane == 0:
+        e[j] = multiplied(ej, total[0], relaxation)
 
 
 @wp.kernel
