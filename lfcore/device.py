@@ -19,12 +19,44 @@ from typing import Any
 
 import warp as wp
 
-__all__ = ["DeviceError", "PerBlock", "RowOffset", "Rows", "available_devices", "cpu_threads", "launch_rows",
-           "PrivateCopies", "private_copies", "resolve_device", "warp"]
+__all__ = ["DeviceError", "MemoryBudgetError", "PerBlock", "RowOffset", "Rows", "available_devices", "cpu_threads",
+           "launch_rows", "PrivateCopies", "out_of_memory_is_budget_error", "private_copies", "resolve_device", "warp"]
 
 
 class DeviceError(ValueError):
     """A compute device that does not exist on this machine."""
+
+
+class MemoryBudgetError(MemoryError):
+    """The work would not fit in the device's memory; the message says what to change."""
+
+
+@contextlib.contextmanager
+def out_of_memory_is_budget_error(device: str, what: str, advice: str):
+    """Turn a failed Warp allocation inside the block into a :class:`MemoryBudgetError`.
+
+    Sizes are checked before the large allocations, but other buffers (and other programs on
+    the same GPU) take memory too; an allocation that still fails then says what ran out and
+    what to change rather than ending in a traceback.
+
+    Parameters
+    ----------
+    device
+        The Warp device the block allocates on.
+    what
+        What the block does, e.g. ``"the weights of 1,234 voxels"``.
+    advice
+        What to change, e.g. ``"use a coarser --pvr"``.
+    """
+    try:
+        yield
+    except RuntimeError as exc:
+        text = str(exc)
+        if not text.startswith("Failed to allocate"):
+            raise
+        size = text.split(" bytes", 1)[0].rsplit(" ", 1)[-1]
+        need = f" ({int(size) / 2**30:.1f} GiB more)" if size.isdigit() else ""
+        raise MemoryBudgetError(f"{what} ran out of memory on {device}{need}; {advice}") from None
 
 
 def _cuda_driver_present() -> bool:

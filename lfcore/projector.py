@@ -18,7 +18,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfcore.device import PrivateCopies, RowOffset, Rows, launch_rows, resolve_device, warp
+from lfcore.device import (
+    MemoryBudgetError,
+    PrivateCopies,
+    RowOffset,
+    Rows,
+    launch_rows,
+    out_of_memory_is_budget_error,
+    resolve_device,
+    warp,
+)
 from lfcore.rig import Camera
 from lfcore.volume import VolumeGrid
 
@@ -28,16 +37,19 @@ __all__ = ["MemoryBudgetError", "Projector", "WeightChunk", "Weights"]
 BYTES_PER_WEIGHT = 8
 #: Raw (unmerged) entries built at once; bounds the scratch memory of a weight build.
 CHUNK_ENTRIES = {"cpu": 1 << 25, "cuda": 1 << 28}
+#: Scratch bytes per raw entry of a two-pass DRT build, by merge (per voxel or not): pixels and
+#: sort order (twice each, three times per voxel), the raw value, the merged pixel and value.
+MERGE_SCRATCH_BYTES = {False: 28, True: 44}
 #: Raw-entry slots per chunk of the single-pass DRT build: small enough to stay in the caches.
 SINGLE_PASS_ENTRIES = 1 << 21
 #: Voxels whose entries are counted to size the slots of the single-pass build.
 CAPACITY_SAMPLE = 256
+#: What to change when the weights do not fit.
+ADVICE = "use a coarser --pvr, a smaller volume, or fewer sub-apertures"
+#: GPU threads that share one voxel's row of weights in the MART kernels (a warp).
+LANES = 32
 #: Ways to build DRT weights (see :meth:`Projector.weights`).
 BUILDS = ("auto", "single-pass", "two-pass")
-
-
-class MemoryBudgetError(MemoryError):
-    """The reconstruction would not fit in the device's memory; the message says what to change."""
 
 
 @dataclass
@@ -158,6 +170,7 @@ class Projector:
         self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in self.cameras])
         self.n_pixels = int(self.pixel_offsets[-1])
         self._parts = PrivateCopies()  # projection images of the CPU blocks (see forward)
+        self._ratio = None  # the pixels' log ratios of smart_update
         if self.n_pixels >= 2**31 or grid.n_voxels >= 2**31:
             raise MemoryBudgetError("more than 2**31 pixels or voxels; use a coarser --pvr")
 
@@ -310,11 +323,12 @@ class Projector:
                 budget_bytes: int | None = None, build: str = "auto", sort: str = "auto") -> Weights:
         """Sparse weights of ``voxels`` (from :meth:`eliminate` or :meth:`all_voxels`).
 
-        The kernels emit one entry per (sub-aperture, lenslet, pixel); the entries of a voxel
-        that share a pixel are then summed (a sort by pixel within each voxel), which stores
-        each (voxel, pixel) once: about a third of the raw entries.
+        The DRT kernel emits one entry per (sub-aperture, lenslet, pixel); the entries of a
+        voxel that share a pixel are then summed (a sort by pixel within each voxel), which
+        stores each (voxel, pixel) once: about a third of the raw entries. The line-of-sight
+        kernel meets each pixel of a voxel once, so its entries are stored as they are emitted.
 
-        Two builds give the same weights (to float round-off). ``"two-pass"`` traces every voxel
+        Two DRT builds give the same weights (to float round-off). ``"two-pass"`` traces every voxel
         twice, once to count its entries and once to write them. ``"single-pass"`` traces once
         into slots of a capacity guessed from a sample of voxels (re-tracing only a chunk with a
         voxel that overflowed), which is about 2.5x faster on the CPU. Entries are merged either
@@ -345,6 +359,11 @@ class Projector:
         MemoryBudgetError
             If the weights would not fit, with their size.
         """
+        with out_of_memory_is_budget_error(self.device, f"the weights of {int(voxels.shape[0]):,} voxels", ADVICE):
+            return self._weights(voxels, method, min_weight, budget_bytes, build, sort)
+
+    def _weights(self, voxels, method: str, min_weight: float, budget_bytes: int | None, build: str,
+                 sort: str) -> Weights:
         wp, kw = self.wp, self._kw
         n = int(voxels.shape[0])
         if method not in ("drt", "los"):
@@ -390,9 +409,26 @@ class Projector:
             lo = bounds[-1]
             hi = int(np.searchsorted(raw, raw[lo] + per_chunk, side="right")) - 1
             bounds.append(min(n, max(hi, lo + 1)))
+        if method == "los":
+            self._check_budget(int(raw[n]), n, budget)  # the raw entries are the weights (below)
+        else:
+            # the weights must leave room for one chunk's raw entries and their sort
+            largest = max((int(raw[hi] - raw[lo]) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)), default=0)
+            budget -= MERGE_SCRATCH_BYTES[per_voxel] * largest
         chunks, total = [], 0
         for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
             m = int(raw[hi] - raw[lo])
+            if method == "los":
+                # A line-of-sight entry is a pixel under its own lenslet, and each lenslet is
+                # visited once per camera, so a voxel never meets a pixel twice: the raw entries
+                # are the weights, written where they stay (no sort, no merge, no scratch).
+                c_offsets = wp.array(raw[lo:hi + 1] - raw[lo], device=self.device)
+                pix = wp.empty(max(m, 1), dtype=wp.int32, device=self.device)
+                w_raw = wp.empty(max(m, 1), dtype=float, device=self.device)
+                launch(lo, hi, 1, pix, w_raw, origin=int(raw[lo]))
+                chunks.append(WeightChunk(first=lo, n=hi - lo, offsets=c_offsets, pix=pix, w=w_raw, nnz=m))
+                total += m
+                continue
             scratch = max(2 * m, 2)
             pix = wp.empty(scratch, dtype=wp.int32, device=self.device)
             w_raw = wp.empty(max(m, 1), dtype=float, device=self.device)
@@ -420,6 +456,13 @@ class Projector:
             chunks.append(chunk)
         return Weights(voxels=voxels, chunks=chunks, nnz=total)
 
+    def _check_budget(self, entries: int, n: int, budget: int) -> None:
+        """Raise :class:`MemoryBudgetError` if ``entries`` weights (of ``n`` voxels) pass ``budget`` bytes."""
+        if BYTES_PER_WEIGHT * entries > budget:
+            raise MemoryBudgetError(
+                f"the weights need at least {BYTES_PER_WEIGHT * entries / 2**30:.1f} GiB for {n} voxels but "
+                f"{self.device} has {budget / 2**30:.1f} GiB free; {ADVICE}")
+
     def _pack(self, lo: int, hi: int, starts, kept, merged_pix, merged_w, total: int, n: int,
               budget: int) -> WeightChunk:
         """The chunk of voxels ``lo .. hi - 1`` from their merged entries (at ``starts``, ``kept`` each)."""
@@ -428,11 +471,7 @@ class Projector:
         c_off = np.zeros(hi - lo + 1, dtype=np.int64)
         np.cumsum(kept_h, out=c_off[1:])
         nnz = int(c_off[-1])
-        if BYTES_PER_WEIGHT * (total + nnz) > budget:
-            raise MemoryBudgetError(
-                f"the weights need at least {BYTES_PER_WEIGHT * (total + nnz) / 2**30:.1f} GiB for {n} voxels but "
-                f"{self.device} has {budget / 2**30:.1f} GiB free; use a coarser --pvr, a smaller volume, "
-                "or fewer sub-apertures")
+        self._check_budget(total + nnz, n, budget)
         c_offsets = wp.array(c_off, device=self.device)
         out_pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=self.device)
         out_w = wp.empty(max(nnz, 1), dtype=float, device=self.device)
@@ -506,19 +545,33 @@ class Projector:
         # The projection accumulates into pixels with atomics, which are plain adds on the CPU:
         # there each CPU block sums into a private image, and the images are added after.
         parts = self._parts.open(out)
+        lanes = 1 if self.device == "cpu" else LANES
         for c in weights.chunks:
-            launch_rows(km.project, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), e, parts],
-                        self.device)
+            launch_rows(km.project, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), lanes, e, parts],
+                        self.device, rest=(lanes,))
         self._parts.close(out)
         return out
 
     def smart_update(self, weights: Weights, image, proj, e, relaxation: float, floor: float) -> None:
-        """One simultaneous multiplicative update of ``e`` in place (see the kernel)."""
+        """One simultaneous multiplicative update of ``e`` in place (see the kernel).
+
+        ``image`` and ``proj`` are (n_pixels,) float32: the measured signal and the forward
+        projection of ``e``; ``floor`` (counts) is the least a pixel's measurement counts as.
+        """
         from lfcore._kernels import mart as km
 
+        wp = self.wp
+        if self._ratio is None or self._ratio.shape[0] != self.n_pixels:
+            self._ratio = wp.empty(self.n_pixels, dtype=float, device=self.device)
+        wp.launch(km.log_ratio, dim=self.n_pixels, inputs=[image, proj, float(floor), self._ratio], device=self.device)
+        mu = float(relaxation)
         for c in weights.chunks:
-            launch_rows(km.smart_update, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), image, proj,
-                                               float(floor), float(relaxation), e], self.device)
+            if self.device == "cpu":
+                launch_rows(km.smart_update, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first),
+                                                   self._ratio, mu, e], self.device)
+            elif c.n:  # a warp per voxel, its lanes' sums added by a block reduction
+                wp.launch_tiled(km.smart_update_tiled, dim=[c.n], block_dim=LANES, device=self.device,
+                                inputs=[c.offsets, c.pix, c.w, c.first, self._ratio, mu, e])
 
     def transpose(self, weights: Weights):
         """Pixel-major copy of the weights for the sequential form: (p_offsets, vox, w, rows)."""

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from lfcore.device import out_of_memory_is_budget_error
 from lfcore.device_ops import VolumeOps
 from lfcore.projector import Projector
 from lfcore.weight_cache import WeightCache
@@ -245,8 +246,12 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
     Returns
     -------
     ReconResult
+
+    Raises
+    ------
+    MemoryBudgetError
+        If the weights or the iteration buffers do not fit in the device's memory.
     """
-    wp = projector.wp
     if cache is not None and cache.projector is not projector:
         raise ValueError("the weight cache belongs to another projector")
     if len(images) != len(projector.cameras):
@@ -265,6 +270,15 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
         backgrounds.append(level)
         noises.append(sigma)
 
+    what = f"{settings.method} of a {projector.grid.n_voxels:,}-voxel box"
+    with out_of_memory_is_budget_error(projector.device, what, "use a coarser --pvr or a smaller volume"):
+        return _reconstruct(projector, signals, lits, backgrounds, noises, settings, progress, cache)
+
+
+def _reconstruct(projector: Projector, signals: list[np.ndarray], lits: list[np.ndarray], backgrounds: list[float],
+                 noises: list[float], settings: ReconSettings, progress: Callable[[int], None] | None,
+                 cache: WeightCache | None) -> ReconResult:
+    wp = projector.wp
     t0 = time.perf_counter()
     if settings.method == "mart":
         weights = projector.weights(projector.all_voxels(), "los")

@@ -17,8 +17,10 @@ Memory: 8 bytes per stored weight (int32 pixel, float32 value) in a pool on the 
 per camera at 10 pixels per lenslet (about 200 for the tiny rig's camera), so the whole of
 ``benchmarks/live.py --case S`` (two cameras, 161,704 voxels) would take about 0.5 GiB; in
 practice only the voxels that elimination ever keeps are stored. The pool grows by doubling up
-to ``budget_bytes``; a frame whose new rows would not fit is built directly (nothing is evicted,
-nothing is lost but the speed-up for the voxels left out). The elimination table adds
+to ``budget_bytes`` (and at most 2**31 - 1 weights, the longest Warp array). When a frame's new
+rows do not fit, its stored rows are copied out, its new rows are used as built, and the pool
+is emptied and refilled with that frame's rows alone: the next frame (frame B of the pair, or
+the next pair) shares more voxels with it than with older frames. The elimination table adds
 ``20 * Projector.max_checks`` bytes per voxel and camera, 1.6 kB at 10 pixels per lenslet
 (0.5 GiB for case S, built in about 3.5 s on a CPU core, when the cache is made), fewer
 checks if that would pass a quarter of the budget.
@@ -26,10 +28,12 @@ checks if that would pass a quarter of the budget.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from lfcore.device import Rows, launch_rows
-from lfcore.projector import BYTES_PER_WEIGHT, Projector, WeightChunk, Weights, _available_bytes
+from lfcore.projector import BYTES_PER_WEIGHT, CHUNK_ENTRIES, Projector, WeightChunk, Weights, _available_bytes
 
 __all__ = ["DEFAULT_BUDGET_FRACTION", "WeightCache"]
 
@@ -37,6 +41,8 @@ __all__ = ["DEFAULT_BUDGET_FRACTION", "WeightCache"]
 DEFAULT_BUDGET_FRACTION = 0.25
 #: Entries the pool holds at first.
 INITIAL_ENTRIES = 1 << 20
+#: Most weights in the pool: a Warp array's length is a signed 32-bit integer.
+MAX_ARRAY_ENTRIES = 2**31 - 1
 #: Voxels traced at once by :meth:`WeightCache.prefill` (bounds its scratch memory).
 PREFILL_VOXELS = 1 << 15
 
@@ -94,16 +100,24 @@ class WeightCache:
     def _capacity(self) -> int:
         return 0 if self._pix is None else int(self._pix.shape[0])
 
+    def clear(self) -> None:
+        """Forget every stored row (the pool's memory is kept for the next ones)."""
+        if self._used == 0:
+            return  # nothing stored (the host tables are a gigabyte for a large grid)
+        self._start.fill(-1)
+        self._count.fill(0)
+        self._used = 0
+
     def _reserve(self, entries: int) -> bool:
         """Make room for ``entries`` more weights; False if that would pass the budget."""
         need = self._used + entries
-        if BYTES_PER_WEIGHT * need > self.budget_bytes:
+        if BYTES_PER_WEIGHT * need > self.budget_bytes or need > MAX_ARRAY_ENTRIES:
             return False
         cap = self._capacity()
         if need <= cap:
             return True
         wp = self.wp
-        new_cap = min(max(need, 2 * cap, INITIAL_ENTRIES), self.budget_bytes // BYTES_PER_WEIGHT)
+        new_cap = min(max(need, 2 * cap, INITIAL_ENTRIES), self.budget_bytes // BYTES_PER_WEIGHT, MAX_ARRAY_ENTRIES)
         pix = wp.empty(new_cap, dtype=wp.int32, device=self.device)
         w = wp.empty(new_cap, dtype=float, device=self.device)
         if self._used:
@@ -149,32 +163,53 @@ class WeightCache:
     def weights(self, voxels) -> Weights:
         """The weights of ``voxels`` ((n,) int32 on the projector's device), as built directly.
 
-        Traces and stores the voxels not yet stored, then copies every requested row into one
-        chunk. If the new rows would pass the budget, the frame's weights are built directly.
+        Traces the voxels not yet stored and stores them, then copies every requested row out
+        of the pool, in the order of ``voxels``. If the new rows do not fit next to the stored
+        ones, the stored rows of the request are copied out first and the new ones follow as
+        built (the returned ``voxels`` are then in that order); the pool is then cleared and
+        refilled with this request's rows if they fit alone, since the next frame shares more
+        voxels with this one than with older frames.
         """
         wp, p = self.wp, self.projector
         vox_h = voxels.numpy().astype(np.int64)
-        missing = vox_h[self._start[vox_h] < 0]
-        if missing.size:
-            built = p.weights(wp.array(missing.astype(np.int32), dtype=wp.int32, device=self.device), self.method,
-                              self.min_weight)
-            if not self._store(missing, built):
-                if missing.size == vox_h.size:
-                    return Weights(voxels=voxels, chunks=built.chunks, nnz=built.nnz)
-                return p.weights(voxels, self.method, self.min_weight)
-        n = vox_h.size
-        if n == 0:
-            return Weights(voxels=voxels, chunks=[], nnz=0)
-        counts = self._count[vox_h]
+        hit = self._start[vox_h] >= 0
+        if hit.all():
+            return Weights(voxels=voxels, chunks=self._copy_out(vox_h), nnz=int(self._count[vox_h].sum()))
+        missing = vox_h[~hit]
+        built = p.weights(wp.array(missing.astype(np.int32), dtype=wp.int32, device=self.device), self.method,
+                          self.min_weight)
+        if self._store(missing, built):
+            return Weights(voxels=voxels, chunks=self._copy_out(vox_h), nnz=int(self._count[vox_h].sum()))
+        hits = vox_h[hit]
+        order = np.concatenate([hits, missing])
+        chunks = self._copy_out(hits) + [replace(c, first=c.first + hits.size) for c in built.chunks]
+        out = Weights(voxels=wp.array(order.astype(np.int32), dtype=wp.int32, device=self.device), chunks=chunks,
+                      nnz=int(self._count[hits].sum()) + built.nnz)
+        self.clear()
+        self._store(order, out)  # nothing if the request alone passes the budget
+        return out
+
+    def _copy_out(self, vox: np.ndarray) -> list[WeightChunk]:
+        """The stored rows of ``vox`` (flat indices, all stored) copied into chunks of whole rows."""
+        wp, p = self.wp, self.projector
+        n = vox.size
+        counts = self._count[vox]
         offsets = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(counts, out=offsets[1:])
-        nnz = int(offsets[-1])
-        dev = self.device
-        d_offsets = wp.array(offsets, dtype=wp.int64, device=dev)
-        out_pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=dev)
-        out_w = wp.empty(max(nnz, 1), dtype=float, device=dev)
-        if nnz:
-            launch_rows(p._kw.copy_rows, n, [Rows(wp.array(self._start[vox_h], dtype=wp.int64, device=dev)),
-                                             Rows(d_offsets, extra=1), self._pix, self._w, out_pix, out_w], dev)
-        chunk = WeightChunk(first=0, n=n, offsets=d_offsets, pix=out_pix, w=out_w, nnz=nnz)
-        return Weights(voxels=voxels, chunks=[chunk], nnz=nnz)
+        per_chunk = CHUNK_ENTRIES["cpu" if self.device == "cpu" else "cuda"]
+        chunks, lo = [], 0
+        while lo < n:
+            hi = max(lo + 1, int(np.searchsorted(offsets, offsets[lo] + per_chunk, side="right")) - 1)
+            hi = min(hi, n)
+            offs = offsets[lo:hi + 1] - offsets[lo]
+            nnz = int(offs[-1])
+            d_offsets = wp.array(offs, dtype=wp.int64, device=self.device)
+            out_pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=self.device)
+            out_w = wp.empty(max(nnz, 1), dtype=float, device=self.device)
+            if nnz:
+                starts = wp.array(self._start[vox[lo:hi]], dtype=wp.int64, device=self.device)
+                launch_rows(p._kw.copy_rows, hi - lo, [Rows(starts), Rows(d_offsets, extra=1), self._pix, self._w,
+                                                       out_pix, out_w], self.device)
+            chunks.append(WeightChunk(first=lo, n=hi - lo, offsets=d_offsets, pix=out_pix, w=out_w, nnz=nnz))
+            lo = hi
+        return chunks

@@ -11,9 +11,9 @@ import numpy as np
 from tqdm import tqdm
 
 from lfcore import metrics
-from lfcore.device import resolve_device, warp
+from lfcore.device import MemoryBudgetError, resolve_device, warp
 from lfcore.projector import Projector
-from lfcore.reconstruct import ReconResult, ReconSettings, reconstruct
+from lfcore.reconstruct import WEIGHTS, ReconResult, ReconSettings, reconstruct
 from lfcore.rig import Rig
 from lfcore.runstore import RunStore, RunStoreError
 from lfcore.volume import VolumeGrid
@@ -99,7 +99,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
                          "has free; use a coarser --pvr")
     projector = Projector(cams, grid, sub_apertures=settings.sub_apertures, device=device)
-    cache = WeightCache(projector) if settings.method == "drt-mart" else None  # weights reused across frames
+    # weights reused across frames (the baseline's cover the whole box and are built per frame)
+    cache = None if settings.method == "mart" else WeightCache(projector, method=WEIGHTS[settings.method])
     meta = {**settings.as_dict(), "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
             "cameras": names, "calibration": calibration}
     if not (store.has_volumes and store.volume_grid() == grid and store.group["volumes"].attrs["settings"] == meta):
@@ -111,7 +112,11 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         for p in chosen:
             for f in (0, 1):
                 images = [store.frames(n)[p, f] for n in names]
-                res = reconstruct(projector, images, settings, progress=bar.update, cache=cache)
+                try:
+                    res = reconstruct(projector, images, settings, progress=bar.update, cache=cache)
+                except MemoryBudgetError as exc:
+                    kept = f"; the {len(results)} volume(s) written before are kept" if results else ""
+                    raise UsageError(f"pair {p} frame {'AB'[f]}: {exc}{kept}") from None
                 if settings.iterations == 0:
                     bar.update(1)
                 store.write_volume(p, f, res.volume)

@@ -105,3 +105,28 @@ def test_evaluate_needs_a_synthetic_run(capsys, tmp_path):
     RunStore.open(path, mode="r+").write_frame("cam0", 0, 0, np.zeros((160, 192), np.uint16), 0, 0)
     rc, _, err = _run(capsys, "evaluate", path)  # a recording: frames, no truth
     assert rc == 2 and "recorded run with no truth" in err
+
+
+def test_running_out_of_device_memory_is_one_line_and_keeps_volumes(capsys, tmp_path, monkeypatch):
+    """A weight build whose allocation fails (as Warp reports it) midway through a run."""
+    from lfcore.projector import Projector
+
+    path = tmp_path / "run.zarr"
+    assert main(["synth", "--rig", TINY, "--out", str(path), "--pairs", "1", "--ppm", "0.2", "--quiet"]) == 0
+    capsys.readouterr()
+    build = Projector._weights
+    calls = []
+
+    def failing(self, *args):
+        calls.append(1)
+        if len(calls) == 2:  # frame B
+            raise RuntimeError("Failed to allocate 3221225472 bytes on device 'cuda:0'")
+        return build(self, *args)
+
+    monkeypatch.setattr(Projector, "_weights", failing)
+    rc, out, err = _run(capsys, "reconstruct", str(path), "--iterations", "2", "--quiet")
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert "pair 0 frame B: the weights of" in err and "ran out of memory on " in err and "(3.0 GiB more)" in err
+    assert "use a coarser --pvr" in err and "the 1 volume(s) written before are kept" in err
+    vol = RunStore.open(path).volumes()
+    assert vol[0, 0].max() > 0  # frame A is in the store

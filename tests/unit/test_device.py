@@ -166,3 +166,14 @@ def test_a_forked_child_can_still_split_launches(monkeypatch):
         os.waitpid(pid, 0)
         pytest.fail("the split launch in the forked child never finished")
     assert os.waitstatus_to_exitcode(done[1]) == 0
+
+
+def test_a_failed_allocation_becomes_a_budget_error():
+    from lfcore.device import MemoryBudgetError, out_of_memory_is_budget_error
+
+    with pytest.raises(MemoryBudgetError, match=r"^the test ran out of memory on cuda:0 \(1\.5 GiB more\); do less$"):
+        with out_of_memory_is_budget_error("cuda:0", "the test", "do less"):
+            raise RuntimeError("Failed to allocate 1610612736 bytes on device 'cuda:0'")
+    with pytest.raises(RuntimeError, match="something else"):  # other errors pass through
+        with out_of_memory_is_budget_error("cpu", "the test", "do less"):
+            raise RuntimeError("something else")

@@ -108,18 +108,51 @@ def test_cache_gives_the_direct_operator_frame_after_frame(small_dual_rig, devic
     _same(proj.weights(vox, "drt", build="two-pass"), cache.weights(vox))
 
 
-def test_cache_over_budget_builds_directly(small_dual_rig, device):
+def _rows_by_voxel(weights) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    offsets, pix, w = weights.to_numpy()
+    return {int(v): (pix[offsets[k]:offsets[k + 1]], w[offsets[k]:offsets[k + 1]])
+            for k, v in enumerate(weights.voxels.numpy())}
+
+
+def _same_rows(a, b) -> None:
+    """The same operator with the voxels in any order."""
+    ra, rb = _rows_by_voxel(a), _rows_by_voxel(b)
+    assert ra.keys() == rb.keys() and a.nnz == b.nnz
+    for v, (pa, wa) in ra.items():
+        assert np.array_equal(pa, rb[v][0])
+        np.testing.assert_allclose(rb[v][1], wa, rtol=1e-6, atol=0.0)
+
+
+def test_cache_over_budget_keeps_the_newest_frame(small_dual_rig, device, monkeypatch):
     grid = VolumeGrid.from_rig(small_dual_rig)
     proj = Projector(small_dual_rig.camera, grid, device=device)
-    vox = proj.wp.array(np.arange(0, grid.n_voxels, 9, dtype=np.int32), device=device)
+    every = np.arange(0, grid.n_voxels, 9, dtype=np.int32)
+    vox = proj.wp.array(every, device=device)
     direct = proj.weights(vox, "drt", build="two-pass")
-    cache = WeightCache(proj, budget_bytes=8 * direct.nnz // 2)
-    half = proj.wp.array(vox.numpy()[: vox.shape[0] // 4], device=device)
-    _same(proj.weights(half, "drt", build="two-pass"), cache.weights(half))  # fits: stored
-    assert cache.n_cached == half.shape[0]
-    _same(direct, cache.weights(vox))  # the rest does not fit: built directly
-    assert cache.n_cached == half.shape[0]
-    assert cache.nbytes <= cache.budget_bytes
+    cache = WeightCache(proj, budget_bytes=8 * direct.nnz * 9 // 10)
+    first = proj.wp.array(every[: every.size // 2], device=device)
+    _same(proj.weights(first, "drt", build="two-pass"), cache.weights(first))  # fits: stored
+    assert cache.n_cached == first.shape[0]
+    # the second half does not fit next to the first: the request's stored rows are copied
+    # out, its new rows follow as built, and the pool is refilled with the request alone
+    late = proj.wp.array(every[every.size // 4:], device=device)
+    got = cache.weights(late)
+    _same_rows(proj.weights(late, "drt", build="two-pass"), got)
+    stored = every[every.size // 4: every.size // 2]  # the part of the request already stored comes first
+    assert np.array_equal(got.voxels.numpy()[: stored.size], stored)
+    assert cache.n_cached == late.shape[0] and cache.nbytes <= cache.budget_bytes
+    _same(proj.weights(late, "drt", build="two-pass"), cache.weights(late))  # now stored, in request order
+    # a request larger than the whole budget is served as built and leaves the pool empty
+    _same_rows(direct, cache.weights(vox))
+    assert cache.n_cached == 0
+    # output chunks stay below the length limit of one array
+    monkeypatch.setitem(projector_module.CHUNK_ENTRIES, device.split(":")[0], direct.nnz // 5)
+    monkeypatch.setattr("lfcore.weight_cache.CHUNK_ENTRIES", projector_module.CHUNK_ENTRIES)
+    small = WeightCache(proj)
+    small.weights(vox)
+    chunked = small.weights(vox)
+    assert len(chunked.chunks) >= 5 and all(c.nnz <= direct.nnz // 5 for c in chunked.chunks)
+    _same(direct, chunked)
 
 
 @pytest.mark.parametrize(("method", "kind"), [("drt-mart", "drt"), ("mlos-mart", "los")])
