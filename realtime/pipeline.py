@@ -215,8 +215,8 @@ class LiveResult:
     active_fraction
         Share of voxels that survived elimination (mean of A and B).
     timings
-        Seconds per stage: ``copy``, ``preprocess``, ``weights``, ``iterate``, ``volume``,
-        ``correlate``, ``derive``, ``total``.
+        Seconds per stage: ``copy``, ``preprocess``, ``eliminate``, ``weights`` (from the cache or
+        built), ``iterate``, ``volume``, ``correlate``, ``derive``, ``total``.
     trigger_ns
         Frame A's time stamp (``time.time_ns`` scale for the simulated lab and for cameras
         without their own clock).
@@ -334,9 +334,13 @@ class _Reconstructor:
         for f in (0, 1):
             self.pre(raw[f], levels, thresholds, self.signal[f], self.lit[f], grow=self.recon.lit_grow)
 
-    def weights(self, f: int):
+    def eliminate(self, f: int):
+        """The voxels that survive zero-voxel elimination in frame ``f``, (n,) int32 on the device."""
         r = self.recon
-        voxels = self.projector.eliminate(self.lit[f], r.min_seen, r.max_dark)
+        return self.projector.eliminate(self.lit[f], r.min_seen, r.max_dark)
+
+    def weights(self, voxels):
+        """The weights of the surviving voxels, from the cache where it has them."""
         return self.cache.weights(voxels)
 
     def iterate(self, f: int, weights, iterations: int, relaxation: float):
@@ -765,8 +769,8 @@ class LivePipeline:
         s = self._settings
         slot, view = job.slot, job.slot.view
         assert view is not None
-        t: dict[str, float] = {"copy": slot.copy_s, "preprocess": 0.0, "weights": 0.0, "iterate": 0.0,
-                               "volume": 0.0}
+        t: dict[str, float] = {"copy": slot.copy_s, "preprocess": 0.0, "eliminate": 0.0, "weights": 0.0,
+                               "iterate": 0.0, "volume": 0.0}
         start = time.perf_counter()
         if job.uploaded is not None:  # kernels wait for the upload on the device, not the host
             rc.wp.get_stream(rc.device).wait_event(job.uploaded)
@@ -780,16 +784,19 @@ class LivePipeline:
         t["preprocess"] = time.perf_counter() - start
         vols, active = [], []
         for f in (0, 1):
+            t0 = time.perf_counter()
+            voxels = rc.eliminate(f)  # ends on the host (the count of survivors), so t1 is exact
             t1 = time.perf_counter()
-            w = rc.weights(f)
+            w = rc.weights(voxels)
             t2 = time.perf_counter()
             e = rc.iterate(f, w, s.iterations, s.relaxation)
             t3 = time.perf_counter()
             vols.append(rc.volume(f, w, e))
             t4 = time.perf_counter()
             active.append(w.n_voxels / self.grid.n_voxels)
-            for k, a, b in (("weights", t1, t2), ("iterate", t2, t3), ("volume", t3, t4)):
+            for k, a, b in (("eliminate", t0, t1), ("weights", t1, t2), ("iterate", t2, t3), ("volume", t3, t4)):
                 t[k] += b - a
+            del voxels, w, e  # frame A's weights go before frame B's are built (tens of GB for a large volume)
             self._prefetch()
         t0 = time.perf_counter()
         vf = self._correlator(vols[0], vols[1])

@@ -94,7 +94,8 @@ def test_takes_the_newest_pair_counts_the_skipped_and_publishes(tiny_rig) -> Non
     assert vs.normal_vorticity.shape == vs.uv.shape[:2]
     assert r.velocity.shape == r.vorticity.shape and r.velocity.shape[-1] == 3
     assert r.settings.iterations == 2 and r.skipped == 4 and r.sequence == 0 and results[1].sequence == 1
-    assert set(r.timings) == {"copy", "preprocess", "weights", "iterate", "volume", "correlate", "derive", "total"}
+    assert set(r.timings) == {"copy", "preprocess", "eliminate", "weights", "iterate", "volume", "correlate", "derive",
+                             "total"}
     assert 0.0 <= r.latency_s < 60.0
     assert r.extent_mm["x"][0] < 0.0 < r.extent_mm["x"][1]
 
