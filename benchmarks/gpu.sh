@@ -6,6 +6,10 @@
 #   bash benchmarks/gpu.sh big     # the DRT weight-build profile, M by both methods, live M by
 #                                  # both, L by MLOS-MART (about 9 minutes)
 #   bash benchmarks/gpu.sh profile # the correlation tests and benchmark, the weight-build profile
+#   bash benchmarks/gpu.sh iter    # the unit tests' CUDA variants, S and M reconstructions, live M by
+#                                  # MLOS-MART (about 8 minutes)
+#   bash benchmarks/gpu.sh live    # live M by MLOS-MART, live S by both, L by MLOS-MART, then the CUDA
+#                                  # and functional tests (about 8 minutes)
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
 #                                  # iterations), then the weight-build profile (what fits in 6 min)
 #
@@ -39,6 +43,21 @@ if [ "$stage" = tests ]; then
     step correlate 90 python3 benchmarks/correlate.py --case gpu --profile
     step recon-S 60 python3 benchmarks/recon.py --case S --case S2 --device cuda
     step live-S 60 python3 benchmarks/live.py --case S --device cuda --seconds 10
+elif [ "$stage" = iter ]; then
+    step pytest-unit-cuda 200 python3 -m pytest tests/unit -q -k cuda -p no:cacheprovider --timeout 100 \
+        --junitxml "$out/pytest-unit.xml"
+    step recon-S 60 python3 benchmarks/recon.py --case S --case S2 --device cuda
+    step recon-M 150 python3 benchmarks/recon.py --case M --device cuda --no-mart --iterations 50
+    step live-M-mlos 100 python3 benchmarks/live.py --case M --device cuda --seconds 15 --method mlos-mart \
+        --distinct 8 --warmup-limit 60
+elif [ "$stage" = live ]; then
+    step live-M-mlos 120 python3 benchmarks/live.py --case M --device cuda --seconds 15 --method mlos-mart \
+        --distinct 8 --warmup-limit 60
+    step live-S-drt 40 python3 benchmarks/live.py --case S --device cuda --seconds 10
+    step live-S-mlos 40 python3 benchmarks/live.py --case S --device cuda --seconds 10 --method mlos-mart
+    step recon-L-mlos 60 python3 benchmarks/recon.py --case L --device cuda --no-drt --no-mart --iterations 20
+    step pytest 240 python3 -m pytest tests -q -k "cuda or functional" -p no:cacheprovider \
+        --continue-on-collection-errors --timeout 150 --junitxml "$out/pytest.xml"
 elif [ "$stage" = short ]; then
     step pytest-correlate-cuda 80 python3 -m pytest tests/unit/test_correlate.py -q -k cuda -p no:cacheprovider \
         --timeout 60

@@ -28,6 +28,7 @@ import argparse
 import sys
 import threading
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +82,8 @@ def main() -> int:
     ap.add_argument("--distinct", type=int, default=32,
                     help="distinct pairs (fresh seeding) the feeder cycles through (default: 32); the weight "
                     "cache only helps for voxels an earlier pair already activated")
+    ap.add_argument("--warmup-limit", type=float, default=600.0,
+                    help="give up if the first pair takes longer than this many seconds (default: 600)")
     args = ap.parse_args()
     device = resolve_device(args.device)
     rig = case_rig(args.case)
@@ -130,7 +133,17 @@ def main() -> int:
     warm.publish(0)
     pipe.attach(warm)
     with pipe:
-        pipe.wait_processed(1, 3600)
+        t = time.perf_counter()
+        while not pipe.wait_processed(1, 1.0):
+            err = pipe.stats().error
+            if err is not None or time.perf_counter() - t > args.warmup_limit:
+                print(f"  the first pair did not finish: {err or f'still running after {args.warmup_limit:g} s, in:'}")
+                if err is None:  # where the pipeline's thread is
+                    live = next((th for th in threading.enumerate() if th.name == "lfpiv-live"), None)
+                    frame = sys._current_frames().get(live.ident) if live is not None else None
+                    print("".join(traceback.format_stack(frame)[-6:]) if frame is not None else "  (no live thread)")
+                return 1
+        print(f"  first pair (every weight traced, kernels compiled) in {time.perf_counter() - t:.1f} s")
         results.clear()
         pipe.attach(ring)
         feeder = threading.Thread(target=feed, daemon=True)
