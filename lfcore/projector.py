@@ -44,6 +44,8 @@ MERGE_SCRATCH_BYTES = {False: 28, True: 44}
 SINGLE_PASS_ENTRIES = 1 << 21
 #: Voxels whose entries are counted to size the slots of the single-pass build.
 CAPACITY_SAMPLE = 256
+#: Checks per view of elimination's first pass over the grid (see :meth:`Projector.eliminate`).
+PREFILTER_CHECKS = 4
 #: What to change when the weights do not fit.
 ADVICE = "use a coarser --pvr, a smaller volume, or fewer sub-apertures"
 #: GPU threads that share one voxel's row of weights in the MART kernels (a warp).
@@ -253,12 +255,19 @@ class Projector:
             if flat.size != self.n_pixels:
                 raise ValueError(f"lit masks hold {flat.size} pixels, the cameras {self.n_pixels}")
             lit_dev = wp.array(flat, dtype=wp.uint8, device=self.device)
+        common = [self._grid, self.views, len(self.cameras), self.sub_a, self.check_order, lit_dev, float(min_seen),
+                  float(max_dark), self._checks, self._n_checks]
+        # First the whole grid with a few checks per view, then every check on the candidates
+        # left: the same voxels as one full pass, but a warp no longer waits for its one kept voxel.
         n = self.grid.n_voxels
         mask = wp.zeros(n, dtype=wp.int32, device=self.device)
-        launch_rows(kw.eliminate, n, [self._grid, self.views, len(self.cameras), self.sub_a, self.check_order, lit_dev,
-                                      float(min_seen), float(max_dark), self._checks, self._n_checks, RowOffset(0),
-                                      mask], self.device)
-        return self._compact(mask)
+        none = wp.empty(0, dtype=wp.int32, device=self.device)
+        launch_rows(kw.eliminate, n, [*common, none, PREFILTER_CHECKS, RowOffset(0), mask], self.device)
+        candidates = self._compact(mask)
+        n = int(candidates.shape[0])
+        mask = wp.zeros(max(n, 1), dtype=wp.int32, device=self.device)
+        launch_rows(kw.eliminate, n, [*common, candidates, 2**30, RowOffset(0), mask], self.device)
+        return self._compact(mask[:n], candidates)
 
     def precompute_checks(self, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
         """Trace once the pixels of every voxel's first ``n_checks`` elimination checks.
@@ -308,14 +317,17 @@ class Projector:
         self.wp.launch(self._kw.iota, dim=n, inputs=[out], device=self.device)
         return out
 
-    def _compact(self, mask) -> object:
+    def _compact(self, mask, values=None) -> object:
+        """The indices where ``mask`` is set (or those entries of ``values``), as (n,) int32."""
         wp, kw = self.wp, self._kw
         scan = wp.empty_like(mask)
         wp.utils.array_scan(mask, scan, inclusive=True)
         count = int(scan[mask.shape[0] - 1 :].numpy()[0]) if mask.shape[0] else 0
         out = wp.empty(count, dtype=wp.int32, device=self.device)
+        if values is None:
+            values = wp.empty(0, dtype=wp.int32, device=self.device)
         if count:
-            wp.launch(kw.compact, dim=mask.shape[0], device=self.device, inputs=[mask, scan, out])
+            wp.launch(kw.compact, dim=mask.shape[0], device=self.device, inputs=[mask, scan, values, out])
         return out
 
     # --- weights ------------------------------------------------------------------------

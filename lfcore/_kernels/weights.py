@@ -305,10 +305,12 @@ def eliminate(
     max_dark: float,
     table: wp.array(dtype=wp.int32),
     n_table: int,
+    voxels: wp.array(dtype=wp.int32),
+    stage_checks: int,
     first: int,
     active: wp.array(dtype=wp.int32),
 ):
-    """active[v] = 1 if the checked sub-apertures of voxel v land on lit pixels in every view.
+    """active[i] = 1 if the checked sub-apertures of voxel v land on lit pixels in every view.
 
     A sub-aperture counts as lit if any of the pixels hit by the centre or the corners of its
     footprint is lit (the footprint may straddle lenslets). A sub-aperture with a point off the
@@ -320,10 +322,17 @@ def eliminate(
     few lookups.
 
     ``table`` may hold, from :func:`check_pixels`, the pixels of the first ``n_table`` checks
-    of every voxel and view, which then need no tracing (``n_table = 0``: no table). The launch
-    covers voxels ``first + tid``.
+    of every voxel and view, which then need no tracing (``n_table = 0``: no table). Thread i
+    takes voxel ``voxels[first + tid]``, or voxel ``first + tid`` of the grid if ``voxels`` is
+    empty. ``stage_checks`` below a view's check count makes only that many checks and drops a
+    voxel only for too many dark ones (the seen test needs them all): a first pass over the
+    grid that rejects what a full pass would, cheaply, so that the full pass runs on a list of
+    candidates in which a GPU warp's threads do similar work.
     """
-    v = wp.tid() + first
+    i = wp.tid() + first
+    v = i
+    if voxels.shape[0] > 0:
+        v = voxels[i]
     pw = voxel_centre(grid, v)
     keep = int(1)
     for iv in range(n_views):
@@ -342,7 +351,8 @@ def eliminate(
         seen = int(0)
         dark = int(0)
         allowed = int(max_dark * float(view.check_count))
-        for m in range(view.check_first, view.check_first + view.check_count):
+        checks = wp.min(view.check_count, stage_checks)
+        for m in range(view.check_first, view.check_first + checks):
             on = int(1)
             hit = int(0)
             mi = m - view.check_first
@@ -379,10 +389,10 @@ def eliminate(
                         break
         if keep == 0:
             break
-        if float(seen) < min_seen * float(view.check_count):
+        if checks == view.check_count and float(seen) < min_seen * float(view.check_count):
             keep = int(0)
             break
-    active[v] = keep
+    active[i] = keep
 
 
 @wp.kernel
@@ -695,11 +705,16 @@ def iota(out: wp.array(dtype=wp.int32)):
 
 
 @wp.kernel
-def compact(mask: wp.array(dtype=wp.int32), scan: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.int32)):
-    """Indices of the set entries of ``mask``, in order (``scan`` is its inclusive prefix sum)."""
+def compact(mask: wp.array(dtype=wp.int32), scan: wp.array(dtype=wp.int32), values: wp.array(dtype=wp.int32),
+            out: wp.array(dtype=wp.int32)):
+    """The entries of ``values`` (their indices if it is empty) where ``mask`` is set, in order
+    (``scan`` is the mask's inclusive prefix sum)."""
     v = wp.tid()
     if mask[v] != 0:
-        out[scan[v] - 1] = v
+        x = v
+        if values.shape[0] > 0:
+            x = values[v]
+        out[scan[v] - 1] = x
 
 
 @wp.func

@@ -192,6 +192,27 @@ def test_elimination_with_stored_checks_keeps_the_same_voxels(small_dual_rig, de
     assert proj.precompute_checks(None, budget_bytes=10) == 0
 
 
+@pytest.mark.parametrize("prefilter", [1, 4, 1000])
+def test_elimination_in_two_passes_keeps_what_one_full_pass_keeps(small_dual_rig, device, monkeypatch, prefilter):
+    """The grid pass with a few checks, then every check on its candidates, against every check at once."""
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = Projector(small_dual_rig.camera, grid, device=device)
+    settings = ReconSettings()
+    lit = _lit(_images(small_dual_rig, grid, device, n=30), settings)
+    wp = proj.wp
+    flat = wp.array(np.concatenate([m.ravel() for m in lit]).astype(np.uint8), device=device)
+    monkeypatch.setattr(projector_module, "PREFILTER_CHECKS", prefilter)
+    for min_seen, max_dark in ((settings.min_seen, settings.max_dark), (0.5, 0.2), (0.9, 0.0)):
+        mask = wp.zeros(grid.n_voxels, dtype=wp.int32, device=device)
+        wp.launch(proj._kw.eliminate, dim=grid.n_voxels, device=device,
+                  inputs=[proj._grid, proj.views, 2, proj.sub_a, proj.check_order, flat, min_seen, max_dark,
+                          proj._checks, proj._n_checks, wp.empty(0, dtype=wp.int32, device=device), 2**30, 0, mask])
+        one_pass = np.flatnonzero(mask.numpy())
+        assert 0 < one_pass.size < grid.n_voxels
+        assert np.array_equal(proj.eliminate(lit, min_seen, max_dark).numpy(), one_pass)
+        assert np.array_equal(proj.eliminate(flat, min_seen, max_dark).numpy(), one_pass)
+
+
 def _clipped_reference(rect, normals, h):
     """Area, centroid and extent of a rectangle clipped to the cell {p: n . p <= h} (Sutherland-Hodgman)."""
     x0, x1, y0, y1 = rect
