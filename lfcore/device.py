@@ -19,8 +19,9 @@ from typing import Any
 
 import warp as wp
 
-__all__ = ["DeviceError", "MemoryBudgetError", "PerBlock", "RowOffset", "Rows", "available_devices", "cpu_threads",
-           "launch_rows", "PrivateCopies", "out_of_memory_is_budget_error", "private_copies", "resolve_device", "warp"]
+__all__ = ["DeviceError", "MemoryBudgetError", "PerBlock", "RowOffset", "Rows", "available_bytes", "available_devices",
+           "cpu_threads", "launch_rows", "PrivateCopies", "out_of_memory_is_budget_error", "private_copies",
+           "resolve_device", "warp"]
 
 
 class DeviceError(ValueError):
@@ -97,6 +98,13 @@ def warp():
         with _native_stderr_silenced():
             wp.init()
     return wp
+
+
+def available_bytes(device: str) -> int:
+    """Memory free now on ``device``: the host's available RAM for ``"cpu"``, else the GPU's."""
+    if device == "cpu":
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"))
+    return int(warp().get_device(device).free_memory)
 
 
 def available_devices() -> list[str]:

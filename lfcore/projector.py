@@ -12,7 +12,6 @@ Pixels of all cameras are numbered globally: camera k's pixel (row, column) is
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -23,6 +22,7 @@ from lfcore.device import (
     PrivateCopies,
     RowOffset,
     Rows,
+    available_bytes,
     launch_rows,
     out_of_memory_is_budget_error,
     resolve_device,
@@ -108,13 +108,6 @@ class Weights:
             base += c.nnz
         return (np.concatenate(offs), np.concatenate(pix) if pix else np.zeros(0, np.int32),
                 np.concatenate(w) if w else np.zeros(0, np.float32))
-
-
-def _available_bytes(device: str) -> int:
-    wp = warp()
-    if device == "cpu":
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"))
-    return int(wp.get_device(device).free_memory)
 
 
 def _sub_apertures(cam: Camera, n_sub: int, samples: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -293,7 +286,7 @@ class Projector:
         """
         wp, kw = self.wp, self._kw
         per_check = 20 * self.grid.n_voxels * len(self.cameras)
-        budget = _available_bytes(self.device) // 4 if budget_bytes is None else budget_bytes
+        budget = available_bytes(self.device) // 4 if budget_bytes is None else budget_bytes
         n_checks = self.max_checks if n_checks is None else min(int(n_checks), self.max_checks)
         n_checks = max(0, min(n_checks, budget // per_check, (2**31 - 1) // (per_check // 4)))
         entries = per_check // 4 * n_checks
@@ -387,7 +380,7 @@ class Projector:
         if sort not in ("auto", "per-voxel", "library"):
             raise ValueError(f"unknown sort '{sort}'; use auto, per-voxel or library")
         per_voxel = sort == "per-voxel" or (sort == "auto" and self.device == "cpu")
-        budget = _available_bytes(self.device) if budget_bytes is None else budget_bytes
+        budget = available_bytes(self.device) if budget_bytes is None else budget_bytes
         if method == "drt" and build == "single-pass":
             return self._drt_single_pass(voxels, float(min_weight), budget)
         counts = wp.zeros(max(n, 1), dtype=wp.int64, device=self.device)

@@ -32,8 +32,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from lfcore.device import Rows, launch_rows
-from lfcore.projector import BYTES_PER_WEIGHT, CHUNK_ENTRIES, Projector, WeightChunk, Weights, _available_bytes
+from lfcore.device import Rows, available_bytes, launch_rows
+from lfcore.projector import BYTES_PER_WEIGHT, CHUNK_ENTRIES, Projector, WeightChunk, Weights
 
 __all__ = ["DEFAULT_BUDGET_FRACTION", "WeightCache"]
 
@@ -77,7 +77,7 @@ class WeightCache:
         self.device = projector.device
         self.min_weight = float(min_weight)
         if budget_bytes is None:
-            budget_bytes = int(DEFAULT_BUDGET_FRACTION * _available_bytes(self.device))
+            budget_bytes = int(DEFAULT_BUDGET_FRACTION * available_bytes(self.device))
         self.budget_bytes = int(budget_bytes)
         n = projector.grid.n_voxels
         self._start = np.full(n, -1, dtype=np.int64)  # row start in the pool; -1: not cached
@@ -174,23 +174,26 @@ class WeightCache:
         vox_h = voxels.numpy().astype(np.int64)
         hit = self._start[vox_h] >= 0
         if hit.all():
-            return Weights(voxels=voxels, chunks=self._copy_out(vox_h), nnz=int(self._count[vox_h].sum()))
+            return self._copy_out(voxels, vox_h)
         missing = vox_h[~hit]
         built = p.weights(wp.array(missing.astype(np.int32), dtype=wp.int32, device=self.device), self.method,
                           self.min_weight)
         if self._store(missing, built):
-            return Weights(voxels=voxels, chunks=self._copy_out(vox_h), nnz=int(self._count[vox_h].sum()))
+            return self._copy_out(voxels, vox_h)
         hits = vox_h[hit]
         order = np.concatenate([hits, missing])
-        chunks = self._copy_out(hits) + [replace(c, first=c.first + hits.size) for c in built.chunks]
-        out = Weights(voxels=wp.array(order.astype(np.int32), dtype=wp.int32, device=self.device), chunks=chunks,
-                      nnz=int(self._count[hits].sum()) + built.nnz)
+        stored = self._copy_out(None, hits)
+        out = Weights(voxels=wp.array(order.astype(np.int32), dtype=wp.int32, device=self.device),
+                      chunks=stored.chunks + [replace(c, first=c.first + hits.size) for c in built.chunks],
+                      nnz=stored.nnz + built.nnz)
         self.clear()
         self._store(order, out)  # nothing if the request alone passes the budget
         return out
 
-    def _copy_out(self, vox: np.ndarray) -> list[WeightChunk]:
-        """The stored rows of ``vox`` (flat indices, all stored) copied into chunks of whole rows."""
+    def _copy_out(self, voxels, vox: np.ndarray) -> Weights:
+        """The stored rows of ``vox`` (flat indices, all stored) copied into chunks of whole rows;
+        ``voxels`` is ``vox`` on the device if the caller has it (None: the result's ``voxels``
+        is left to the caller)."""
         wp, p = self.wp, self.projector
         n = vox.size
         counts = self._count[vox]
@@ -212,4 +215,4 @@ class WeightCache:
                                                        out_pix, out_w], self.device)
             chunks.append(WeightChunk(first=lo, n=hi - lo, offsets=d_offsets, pix=out_pix, w=out_w, nnz=nnz))
             lo = hi
-        return chunks
+        return Weights(voxels=voxels, chunks=chunks, nnz=int(offsets[-1]))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -11,7 +10,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lfcore import metrics
-from lfcore.device import MemoryBudgetError, resolve_device, warp
+from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
 from lfcore.projector import Projector
 from lfcore.reconstruct import WEIGHTS, ReconResult, ReconSettings, reconstruct
 from lfcore.rig import Rig
@@ -48,12 +47,6 @@ def parse_pairs(spec: str | None, n_pairs: int) -> list[int]:
     if not pairs:
         raise UsageError(f"--pairs '{spec}' selects no pair of this run (it has pairs 0 to {n_pairs - 1})")
     return pairs
-
-
-def _available_bytes(device: str) -> int:
-    if device == "cpu":
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"))
-    return int(warp().get_device(device).free_memory)
 
 
 def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[float] | None = None,
@@ -95,7 +88,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         raise UsageError(f"--pvr/--margin-mm: {exc}") from None
     device = resolve_device(device)
     need = BYTES_PER_BOX_VOXEL * grid.n_voxels
-    if need > _available_bytes(device):
+    if need > available_bytes(device):
         raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
                          "has free; use a coarser --pvr")
     projector = Projector(cams, grid, sub_apertures=settings.sub_apertures, device=device)

@@ -339,10 +339,6 @@ class _Reconstructor:
         r = self.recon
         return self.projector.eliminate(self.lit[f], r.min_seen, r.max_dark)
 
-    def weights(self, voxels):
-        """The weights of the surviving voxels, from the cache where it has them."""
-        return self.cache.weights(voxels)
-
     def iterate(self, f: int, weights, iterations: int, relaxation: float):
         """Uniform start scaled to the measured signal, then ``iterations`` SMART updates."""
         wp, p = self.wp, self.projector
@@ -787,7 +783,7 @@ class LivePipeline:
             t0 = time.perf_counter()
             voxels = rc.eliminate(f)  # ends on the host (the count of survivors), so t1 is exact
             t1 = time.perf_counter()
-            w = rc.weights(voxels)
+            w = rc.cache.weights(voxels)  # from the cache where it has them
             t2 = time.perf_counter()
             e = rc.iterate(f, w, s.iterations, s.relaxation)
             t3 = time.perf_counter()

@@ -62,6 +62,26 @@ def project(
 
 
 @wp.func
+def row_sum(
+    offsets: wp.array(dtype=wp.int64),
+    pix: wp.array(dtype=wp.int32),
+    w: wp.array(dtype=float),
+    ratio: wp.array(dtype=float),
+    t0: int,
+    lane: int,
+    lanes: int,
+) -> float:
+    """sum_i w_ij ratio_i over entries lane, lane + lanes, ... of row ``t0`` (all of it for one lane)."""
+    s = float(0.0)
+    t = offsets[t0] + wp.int64(lane)
+    end = offsets[t0 + 1]
+    while t < end:
+        s += w[t] * ratio[pix[t]]
+        t += wp.int64(lanes)
+    return s
+
+
+@wp.func
 def multiplied(ej: float, s: float, relaxation: float) -> float:
     """E_j exp(mu s), with the step bounded and a vanishing voxel set to zero."""
     # A bounded step (a factor of at most 1e3 either way) keeps float32 finite when a voxel's
@@ -96,13 +116,7 @@ def smart_update(
     ej = e[j]
     if ej == 0.0:
         return
-    s = float(0.0)
-    t = offsets[t0]
-    end = offsets[t0 + 1]
-    while t < end:
-        s += w[t] * ratio[pix[t]]
-        t += wp.int64(1)
-    e[j] = multiplied(ej, s, relaxation)
+    e[j] = multiplied(ej, row_sum(offsets, pix, w, ratio, t0, 0, 1), relaxation)
 
 
 @wp.kernel
@@ -127,13 +141,7 @@ def smart_update_tiled(
     ej = e[j]
     if ej == 0.0:
         return  # the whole block shares the voxel, so it leaves together
-    s = float(0.0)
-    t = offsets[t0] + wp.int64(lane)
-    end = offsets[t0 + 1]
-    step = wp.int64(wp.block_dim())
-    while t < end:
-        s += w[t] * ratio[pix[t]]
-        t += step
+    s = row_sum(offsets, pix, w, ratio, t0, lane, wp.block_dim())
     total = wp.tile_sum(wp.tile(s))
     if lane == 0:
         e[j] = multiplied(ej, total[0], relaxation)
