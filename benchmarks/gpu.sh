@@ -10,6 +10,8 @@
 #                                  # MLOS-MART (about 8 minutes)
 #   bash benchmarks/gpu.sh live    # live M by MLOS-MART, live S by both, L by MLOS-MART, then the CUDA
 #                                  # and functional tests (about 8 minutes)
+#   bash benchmarks/gpu.sh corr    # the correlation's tests, and its benchmark in every variant with
+#                                  # a kernel profile (about 6 minutes)
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
 #                                  # iterations), then the weight-build profile (what fits in 6 min)
 #
@@ -64,6 +66,11 @@ elif [ "$stage" = short ]; then
     step correlate 70 python3 benchmarks/correlate.py --case gpu --profile
     step recon-M-mlos 140 python3 benchmarks/recon.py --case M --device cuda --no-drt --no-mart --iterations 50
     step weights-Mc 80 python3 benchmarks/recon.py --case Mc --ppm 1 --device cuda --profile-weights
+elif [ "$stage" = corr ]; then
+    step pytest-correlate 200 python3 -m pytest tests/unit/test_correlate.py tests/functional/test_correlate_cli.py -q \
+        -p no:cacheprovider --timeout 100
+    step correlate 200 python3 benchmarks/correlate.py --case gpu --profile
+    step correlate-r4 100 python3 benchmarks/correlate.py --case gpu --variant direct-first50 --search-radius 4
 elif [ "$stage" = profile ]; then
     step pytest-correlate 150 python3 -m pytest tests/unit/test_correlate.py tests/functional/test_correlate_cli.py -q \
         -p no:cacheprovider --timeout 100

@@ -35,6 +35,21 @@ continued linearly beyond the outermost centres, so that edge windows are deform
 Outliers are found and replaced between passes (normalized median test, :mod:`lfcore.vectors`)
 and after the last one, where the flags are kept; the chapter's median filter can follow.
 
+Direct correlation around the predictor (``search_radius``): after the first pass, a window's
+residual displacement is small, so its correlation is needed only at lags within +-r voxels.
+These passes deform both volumes by the predictor and correlate them directly: the lag d is
+split between the volumes (A's window moved back by floor(d/2), B's forward by the rest), so
+that a window's edge cuts each particle pair alike at every lag and the pair peaks at its own
+displacement (a fixed window of A against a moving B pulls every cut particle inwards). Lags
+of one parity share their windows, so the 3-point Gaussian fit uses lags p - 2, p, p + 2 around
+the highest, p; a peak within two lags of the box's face is an outlier (the displacement may
+lie beyond it). Windows overlap (at 75% every voxel lies in 64 of them), so the lag sums are
+taken once per block of voxels that divides both the window and the step, and summed into
+windows along x, y and z. The work is 2 r + 1 cubed multiply-adds a voxel instead of the FFTs
+of every window, and no small-window FFT bias remains: on blobs moved by (0.3, -0.7, 0.45)
+voxels (tests) the RMS error falls from 0.018 to 0.006 voxel. The first pass, which has no
+predictor, is always an FFT pass; it may use its own overlap (``first_overlap``).
+
 FFT: on CUDA the 3D FFT is Warp's tile FFT (cuFFTDx) applied in place along each axis: along x
 to whole lines, along y and z to blocks of columns turned in shared memory (no pass rotates the
 buffer's axes in global memory); on the CPU it is scipy's pocketfft, multi-threaded, which
@@ -71,6 +86,12 @@ REDUCE_THREADS = {"cpu": 1, "cuda": 128}
 #: by the tile FFT, which would run them on a few threads a block.
 SHORT_DFT = 32
 MIN_WINDOW = 4
+#: Largest search radius of the direct correlation (9^3 lags a window at 4).
+MAX_SEARCH_RADIUS = 8
+#: Shared memory for one block of A and the grown block of B in the direct correlation.
+LAG_TILE_BYTES = 40 << 10
+#: Threads per block of voxels in the direct correlation on a GPU.
+LAG_THREADS = 512
 
 
 class CorrelationError(ValueError):
@@ -111,6 +132,17 @@ class CorrelationConfig:
         ``"auto"`` (scipy on the CPU, Warp on CUDA), ``"scipy"`` (CPU only) or ``"warp"``.
     batch_bytes
         Memory budget of one batch of windows; None for the device's default.
+    search_radius
+        Half-width in voxels (x, y, z), 2 to 8, of the lags at which the passes after the
+        first are correlated directly around their predictor instead of by FFT (see the module
+        notes); one number applies to every axis; None (the default) uses the FFT in every pass.
+        With it, every pass after the first deforms the volumes (no window shift), and a window
+        whose peak lies within two lags of the search box's face is replaced as an outlier.
+        Each window's size and step must share a factor along every axis (true of any window at
+        50% or 75% overlap of a multiple of 4). 3 suits residuals below 1 voxel.
+    first_overlap
+        Overlap of the first pass's windows, which only predict the next pass (as ``overlap``);
+        None uses ``overlap``.
     """
 
     windows: tuple[tuple[int, int, int], ...] = ((320, 320, 64), (160, 160, 32))
@@ -124,6 +156,8 @@ class CorrelationConfig:
     smooth_predictor: float = 1.0
     fft: str = "auto"
     batch_bytes: int | None = None
+    search_radius: int | tuple[int, int, int] | None = None
+    first_overlap: float | tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         wins = tuple(tuple(int(n) for n in w) for w in self.windows)
@@ -135,11 +169,16 @@ class CorrelationConfig:
             if min(w) < MIN_WINDOW:
                 raise CorrelationError(f"window {_fmt(w)} is too small: every side needs at least {MIN_WINDOW} voxels")
         object.__setattr__(self, "windows", wins)
-        ov = self.overlap
-        ov = (float(ov),) * 3 if np.isscalar(ov) else tuple(float(o) for o in ov)  # type: ignore[arg-type]
-        if len(ov) != 3 or not all(0.0 <= o < 1.0 for o in ov):
-            raise CorrelationError(f"overlap must be at least 0 and below 1 on every axis, got {self.overlap}")
-        object.__setattr__(self, "overlap", ov)
+        object.__setattr__(self, "overlap", _per_axis_overlap(self.overlap, "overlap"))
+        if self.first_overlap is not None:
+            object.__setattr__(self, "first_overlap", _per_axis_overlap(self.first_overlap, "first_overlap"))
+        if self.search_radius is not None:
+            r = self.search_radius
+            r = (int(r),) * 3 if np.isscalar(r) else tuple(int(v) for v in r)  # type: ignore[arg-type]
+            if len(r) != 3 or min(r) < 2 or max(r) > MAX_SEARCH_RADIUS:
+                raise CorrelationError(f"search_radius must be 2 to {MAX_SEARCH_RADIUS} voxels on every axis (one "
+                                       f"number, or x, y, z), got {self.search_radius}")
+            object.__setattr__(self, "search_radius", r)
         if self.deform_iterations < 0:
             raise CorrelationError(f"deform_iterations must be >= 0, got {self.deform_iterations}")
         if self.peak_exclusion < 1:
@@ -153,9 +192,16 @@ class CorrelationConfig:
     def passes(self) -> list[tuple[tuple[int, int, int], str]]:
         """(window, predictor) of every pass; predictor is 'none', 'shift' or 'deform'."""
         out = [(self.windows[0], "none")]
-        out += [(w, "shift") for w in self.windows[1:]]
+        out += [(w, "shift" if self.search_radius is None else "deform") for w in self.windows[1:]]
         out += [(self.windows[-1], "deform")] * self.deform_iterations
         return out
+
+
+def _per_axis_overlap(value, name: str) -> tuple[float, float, float]:
+    ov = (float(value),) * 3 if np.isscalar(value) else tuple(float(o) for o in value)
+    if len(ov) != 3 or not all(0.0 <= o < 1.0 for o in ov):
+        raise CorrelationError(f"{name} must be at least 0 and below 1 on every axis, got {value}")
+    return ov  # type: ignore[return-value]
 
 
 def _fmt(w: tuple[int, ...]) -> str:
@@ -291,6 +337,63 @@ def _interp(field: np.ndarray, grid: WindowGrid, points: np.ndarray) -> np.ndarr
     return interp(np.asarray(points, dtype=np.float64)[:, ::-1])
 
 
+@dataclass(frozen=True)
+class _LagPlan:
+    """How a pass is correlated directly: blocks of voxels, and windows made of them.
+
+    ``block`` (x, y, z) voxels divides both the window and the step; a window is
+    ``per_window`` blocks, the next window starts ``stride`` blocks further, ``blocks`` cover
+    every window of the pass, and ``slab`` window rows along z are correlated at a time.
+    """
+
+    block: tuple[int, int, int]
+    per_window: tuple[int, int, int]
+    stride: tuple[int, int, int]
+    blocks: tuple[int, int, int]
+    columns: int
+    slab: int
+    entries: int
+
+
+def _lag_plan(g: WindowGrid, radius: tuple[int, int, int], budget: int) -> _LagPlan:
+    """The blocks of a directly correlated pass (see :class:`_LagPlan`).
+
+    Raises
+    ------
+    CorrelationError
+        If a window and its step share no factor worth a block, or one slab does not fit.
+    """
+    block = []
+    for w, s in zip(g.window, g.step, strict=True):
+        block.append(math.gcd(w, s))
+    # the block of A and the grown block of B must fit in shared memory: shrink the largest side
+    def tile_bytes(b):
+        return 4 * (int(np.prod(b)) + int(np.prod([n + 2 * r for n, r in zip(b, radius, strict=True)])))
+
+    while tile_bytes(block) > LAG_TILE_BYTES:
+        ax = int(np.argmax(block))
+        smaller = [f for f in range(block[ax] - 1, 0, -1) if block[ax] % f == 0]
+        block[ax] = smaller[0] if smaller else 1
+    if int(np.prod(block)) < 8:
+        raise CorrelationError(f"window {_fmt(g.window)} and its step {_fmt(g.step)} share no block of voxels for the "
+                               "direct correlation (search_radius); choose windows and an overlap whose step divides "
+                               "the window (e.g. 75% or 50% overlap of a multiple of 4), or no search radius")
+    per = tuple(w // b for w, b in zip(g.window, block, strict=True))
+    stride = tuple(s // b for s, b in zip(g.step, block, strict=True))
+    blocks = tuple((c - 1) * st + m for c, st, m in zip(g.counts, stride, per, strict=True))
+    columns = int(np.prod([2 * r + 1 for r in radius])) + 1
+    row_entries = blocks[0] * blocks[1] * columns  # one plane of blocks along z
+    slab = 1
+    while slab < g.counts[2] and ((slab * stride[2] + per[2]) * row_entries * 12 * 2 <= budget):
+        slab += 1
+    entries = ((slab - 1) * stride[2] + per[2]) * row_entries
+    if entries * 12 * 2 > max(budget, 1 << 30):
+        raise CorrelationError(f"the direct correlation of windows {_fmt(g.window)} needs "
+                               f"{entries * 24 / 2**30:.1f} GiB for one row of windows; use a smaller search_radius")
+    return _LagPlan(block=tuple(block), per_window=per, stride=stride, blocks=blocks, columns=columns, slab=slab,
+                    entries=entries)
+
+
 class Correlator:
     """Multi-grid correlation of volume pairs of one shape; device buffers are allocated once.
 
@@ -335,30 +438,50 @@ class Correlator:
             raise CorrelationError("fft='scipy' runs on the CPU only; use fft='warp' or 'auto' on a GPU")
         self.fft = fft
         self.threads = REDUCE_THREADS[kind]
-        self.grids = [window_grid(self.shape, w, config.overlap) for w, _ in config.passes]
+        first_ov = config.first_overlap or config.overlap
+        self.grids = [window_grid(self.shape, w, first_ov if i == 0 else config.overlap)
+                      for i, (w, _) in enumerate(config.passes)]
         budget = config.batch_bytes or DEFAULT_BATCH_BYTES[kind]
         wp = self.wp
+        # passes correlated directly around the predictor (all after the first, with a search radius)
+        self._lags: list[_LagPlan | None] = [
+            _lag_plan(g, config.search_radius, budget) if config.search_radius is not None and i > 0 else None
+            for i, g in enumerate(self.grids)]
         self._batch: list[int] = []
-        biggest = 0
-        for g in self.grids:
+        biggest = 2
+        for g, lag in zip(self.grids, self._lags, strict=True):
+            if lag is not None:
+                self._batch.append(0)
+                continue
             p = int(np.prod(_padded(g.window, config.zero_pad)))
             nb = max(2, min(g.size, budget // (2 * 8 * p)))
             nb += nb % 2  # windows are correlated two per inverse FFT
             self._batch.append(nb)
             biggest = max(biggest, nb * p)
-        nb_max = max(self._batch)
+        nb_max = max(2, *self._batch)
         d = self.device
         self._buf = wp.empty(biggest, dtype=wp.vec2f, device=d)
         self._scratch = wp.empty(biggest, dtype=wp.vec2f, device=d)
         rows = max(nb * int(np.prod(_padded(g.window, config.zero_pad)[:2]))
                    for nb, g in zip(self._batch, self.grids, strict=True))
+        lag_entries = max((lag.entries for lag in self._lags if lag is not None), default=1)
+        self._lag_sums = [wp.empty(lag_entries, dtype=wp.vec3f, device=d) for _ in range(2)]
         self._sums = wp.empty(rows, dtype=wp.vec4, device=d)
         self._masks = [self._footprint(g.window, config.zero_pad) for g in self.grids]
         self._starts = [wp.array(g.starts(), dtype=wp.vec3i, device=d) for g in self.grids]
         self._vol_a, self._vol_b = (wp.empty(self.shape, dtype=wp.float32, device=d) for _ in range(2))
         deforms = "deform" in (m for _, m in config.passes)
         vol = self.shape if deforms else (1, 1, 1)
-        self._def_a, self._def_b = (wp.empty(vol, dtype=wp.float32, device=d) for _ in range(2))
+        if deforms and config.search_radius is not None:
+            # the direct correlation reads B up to the radius beyond a window: pad with zeros
+            rx, ry, rz = config.search_radius
+            nz, ny, nx = self.shape
+            self._def_a, self._def_b = (wp.zeros((nz + 2 * rz, ny + 2 * ry, nx + 2 * rx), dtype=wp.float32, device=d)
+                                        for _ in range(2))
+            self._def_in = tuple(v[rz:rz + nz, ry:ry + ny, rx:rx + nx] for v in (self._def_a, self._def_b))
+        else:
+            self._def_a, self._def_b = (wp.empty(vol, dtype=wp.float32, device=d) for _ in range(2))
+            self._def_in = (self._def_a, self._def_b)
         coef = vol if deforms and config.interpolation == "cubic" else (1, 1, 1)
         self._coef_a, self._coef_b = (wp.empty(coef, dtype=wp.float32, device=d) for _ in range(2))
         self._row_val = wp.empty(rows, dtype=float, device=d)
@@ -379,6 +502,7 @@ class Correlator:
         self._valid = wp.empty(n_max, dtype=int, device=d)
         self.last_fallback_fraction = 0.0
         self._twiddles: dict = {}
+        self._nonfinite = wp.zeros(1, dtype=int, device=d)
 
     # --- one pass -------------------------------------------------------------------------
     def _footprint(self, window: tuple[int, int, int], zero_pad: bool) -> list:
@@ -498,6 +622,48 @@ class Correlator:
                       inputs=[corr, first, self._scale, self._peak1, self._val1, self._val2, self._disp,
                               self._height, self._ratio, self._fallback, self._valid])
 
+    def _run_local(self, def_a, def_b, i: int) -> None:
+        """Correlate every window of pass ``i`` directly at the lags of the search box.
+
+        ``def_a`` and ``def_b`` are the deformed volumes padded by the search radius. Windows
+        are taken in slabs of window rows along z (as many as the memory budget allows): the
+        lag sums of the slab's blocks of voxels, summed into windows along x, y and z, then
+        each window's peak.
+        """
+        wp, kc, d = self.wp, self._k, self.device
+        g, lag = self.grids[i], self._lags[i]
+        rx, ry, rz = self.config.search_radius
+        bx, by, bz = lag.block
+        mx, my, mz = lag.per_window
+        sx, sy, sz = lag.stride
+        cx, cy, cz = g.counts
+        nbx, nby = lag.blocks[0], lag.blocks[1]
+        cols = lag.columns
+        kernel = kc.block_lag_sums(lag.block, self.config.search_radius)
+        nl = wp.vec3i(2 * rx + 1, 2 * ry + 1, 2 * rz + 1)
+        p_buf, q_buf = self._lag_sums
+        for k0 in range(0, cz, lag.slab):
+            kz = min(lag.slab, cz - k0)
+            nbz = (kz - 1) * sz + mz
+            origin = wp.vec3i(g.first[0] + rx, g.first[1] + ry, g.first[2] + rz + k0 * sz * bz)
+            blocks = p_buf[: nbz * nby * nbx * cols].reshape((nbz * nby * nbx, cols))
+            # on a GPU, a thread per lag column (up to LAG_THREADS, in whole warps)
+            threads = min(LAG_THREADS, -(-kc.lag_tasks(self.config.search_radius) // 32) * 32) if d != "cpu" else 1
+            wp.launch_tiled(kernel, dim=nbz * nby * nbx, inputs=[def_a, def_b, origin, wp.vec3i(nbx, nby, nbz), blocks],
+                            block_dim=threads, device=d)
+            src = blocks.reshape((nbz, nby, nbx, cols))
+            for axis, shape, m, stride, buf in ((2, (nbz, nby, cx, cols), mx, sx, q_buf),
+                                                (1, (nbz, cy, cx, cols), my, sy, p_buf),
+                                                (0, (kz, cy, cx, cols), mz, sz, q_buf)):
+                dst = buf[: int(np.prod(shape))].reshape(shape)
+                wp.launch(kc.window_sum_axis, dim=shape, inputs=[src, axis, m, stride, dst], device=d)
+                src = dst
+            n = kz * cy * cx
+            wp.launch(kc.local_peak, dim=n, device=d,
+                      inputs=[src.reshape((n, cols)), k0 * cy * cx, nl, float(np.prod(g.window)),
+                              self.config.peak_exclusion, self._disp, self._height, self._ratio, self._fallback,
+                              self._valid])
+
     def _prefilter(self, vol_a, vol_b) -> None:
         """Cubic B-spline coefficients of both volumes, once per pair."""
         wp, d = self.wp, self.device
@@ -516,7 +682,7 @@ class Correlator:
         pred_dev = wp.array(np.ascontiguousarray(pred, dtype=np.float32), dtype=wp.vec3, device=self.device)
         launch_rows(self._k.deform_volumes, self.shape[0],
                     [vol_a, vol_b, pred_dev, wp.vec3(*pgrid.origin.astype(float)),
-                     wp.vec3(*(float(s) for s in pgrid.step)), int(bspline), RowOffset(0), self._def_a, self._def_b],
+                     wp.vec3(*(float(s) for s in pgrid.step)), int(bspline), RowOffset(0), *self._def_in],
                     self.device, rest=self.shape[1:])
         return self._def_a, self._def_b
 
@@ -535,9 +701,18 @@ class Correlator:
         v = np.asarray(volume)
         if v.shape != self.shape:
             raise CorrelationError(f"this correlator takes volumes of shape {self.shape} (z, y, x), got {v.shape}")
-        if not np.all(np.isfinite(v)):
-            raise CorrelationError("volumes must be finite")
+        if self.device == "cpu":
+            if not np.all(np.isfinite(v)):
+                raise CorrelationError("volumes must be finite")
+            dst.assign(np.ascontiguousarray(v, dtype=np.float32))
+            return dst
+        # on a GPU the values are checked there (a host scan of two large volumes costs more
+        # than their copy)
         dst.assign(np.ascontiguousarray(v, dtype=np.float32))
+        self._nonfinite.zero_()
+        self.wp.launch(self._k.count_nonfinite, dim=self.shape, inputs=[dst, self._nonfinite], device=self.device)
+        if int(self._nonfinite.numpy()[0]):
+            raise CorrelationError("volumes must be finite")
         return dst
 
     def __call__(self, volume_a: np.ndarray, volume_b: np.ndarray,
@@ -577,9 +752,12 @@ class Correlator:
             elif mode == "deform":
                 base = _interp(pred[0], pred[1], centres)
                 va, vb = self._deform(vol_a, vol_b, *pred)
-            shift_a = (-(s // 2)).astype(np.int32)  # A's window moves back half the shift, B's forward the rest
-            shift_b = (s + shift_a).astype(np.int32)
-            self._run_pass(va, vb, i, shift_a, shift_b)
+            if self._lags[i] is not None:
+                self._run_local(va, vb, i)
+            else:
+                shift_a = (-(s // 2)).astype(np.int32)  # A's window moves back half the shift, B's forward the rest
+                shift_b = (s + shift_a).astype(np.int32)
+                self._run_pass(va, vb, i, shift_a, shift_b)
             n = g.size
             disp = self._disp.numpy()[:n].astype(np.float64) + base
             valid = self._valid.numpy()[:n] != 0

@@ -19,6 +19,14 @@ _init()
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 
+@wp.kernel
+def count_nonfinite(vol: wp.array3d(dtype=wp.float32), count: wp.array(dtype=int)):
+    """Count the voxels that are NaN or infinite (GPU launches only: atomics)."""
+    z, y, x = wp.tid()
+    if not wp.isfinite(vol[z, y, x]):
+        wp.atomic_add(count, 0, 1)
+
+
 @wp.func
 def voxel(vol: wp.array3d(dtype=wp.float32), x: int, y: int, z: int) -> float:
     """Intensity of voxel (x, y, z); zero outside the volume."""
@@ -636,3 +644,225 @@ def dft_columns(n: int, cols: int):
             e += wp.block_dim()
 
     return dft_columns_kernel
+
+
+# --- direct correlation around the predictor (deformation passes) ---------------------------
+#
+# After deformation a window's residual displacement is small, so its correlation is needed only
+# at lags within +-r voxels. Windows of one pass overlap (at 75% every voxel lies in 64 of
+# them), so the products A(x) B(x + d) are summed once per block of voxels (a block divides
+# both the window and the step) and a window's sum is the sum of its blocks. Each lag column
+# holds (sum a b_d, sum b_d), b_d being B shifted by the lag; two more columns hold
+# (sum a, sum a^2) and (sum b^2, sum b) of the unshifted block for the window's statistics.
+
+
+@wp.func
+def floor_half(n: int) -> int:
+    """floor(n // 2) for either sign of n."""
+    if n >= 0:
+        return n // 2
+    return -((1 - n) // 2)
+
+
+@functools.cache
+def block_lag_sums(block: tuple[int, int, int], radius: tuple[int, int, int]):
+    """A tiled kernel: the lag sums of every block of voxels (a block of threads per block).
+
+    ``block`` and ``radius`` are (x, y, z). The lag d is split between the volumes, A moved
+    back by floor(d / 2) and B forward by the rest (sum over x in the block of
+    A(x - floor(d/2)) B(x + ceil(d/2))), so that a window's edge cuts every particle image the
+    same way at every lag: summed over the window, each particle pair then peaks at its own
+    displacement whether or not it is cut (correlating a fixed window of A with B would pull
+    each cut particle's peak inwards). Both blocks, grown by ceil(r / 2) on every side, are
+    loaded into shared memory once. A thread then sums the two x lags 2k and 2k + 1 of one
+    (y, z) lag, which read the same A (moved back by k) and neighbouring B samples, so that
+    along a row each A and each B sample is read once for both. One more thread sums
+    (sum a^2, sum b^2) at lag 0. The volumes are padded by at least ceil(r / 2) on every
+    side, so that no load leaves them.
+    """
+    bx, by, bz = block
+    rx, ry, rz = radius
+    gx, gy, gz = (rx + 1) // 2, (ry + 1) // 2, (rz + 1) // 2  # margin of the grown blocks
+    # with an even x radius the last pair's second lag (rx + 1, not stored) reads one more column
+    hx, hy, hz = bx + 2 * gx + (1 - rx % 2), by + 2 * gy, bz + 2 * gz
+    nlx, nly, nlz = 2 * rx + 1, 2 * ry + 1, 2 * rz + 1
+    n_lags = nlx * nly * nlz
+    k_lo = -((rx + 1) // 2)  # floor(-rx / 2): the x-lag pairs k_lo .. rx // 2
+    ngx = rx // 2 - k_lo + 1
+    n_tasks = ngx * nly * nlz + 1
+    n_rows = by * bz
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def block_lag_sums_kernel(vol_a: wp.array3d(dtype=wp.float32), vol_b: wp.array3d(dtype=wp.float32),
+                              origin: wp.vec3i, nblocks: wp.vec3i, out: wp.array2d(dtype=wp.vec3f)):
+        blk, lane = wp.tid()
+        ix = blk % nblocks[0]
+        iy = (blk // nblocks[0]) % nblocks[1]
+        iz = blk // (nblocks[0] * nblocks[1])
+        x0 = origin[0] + ix * bx - gx
+        y0 = origin[1] + iy * by - gy
+        z0 = origin[2] + iz * bz - gz
+        ta = wp.tile_load(vol_a, shape=(hz, hy, hx), offset=(z0, y0, x0), storage="shared")
+        tb = wp.tile_load(vol_b, shape=(hz, hy, hx), offset=(z0, y0, x0), storage="shared")
+        e = lane
+        while e < n_tasks:
+            if e == n_tasks - 1:
+                # statistics of the unshifted block
+                qa = float(0.0)  # noqa: UP018 - dynamic Warp variables, accumulated below
+                qb = float(0.0)  # noqa: UP018
+                for row in range(n_rows):
+                    y = row % by + gy
+                    z = row // by + gz
+                    for x in range(bx):
+                        a = ta[z, y, x + gx]
+                        b = tb[z, y, x + gx]
+                        qa += a * a
+                        qb += b * b
+                out[blk, n_lags] = wp.vec3f(qa, qb, 0.0)
+            else:
+                k = e % ngx + k_lo  # x lags 2k and 2k + 1
+                ly = (e // ngx) % nly - ry
+                lz = e // (ngx * nly) - rz
+                ay = gy - floor_half(ly)  # A's block in its tile (y, z); x: gx - k
+                az = gz - floor_half(lz)
+                byo = ay + ly
+                bzo = az + lz
+                sab0 = float(0.0)  # noqa: UP018 - dynamic Warp variables, accumulated below
+                sb0 = float(0.0)  # noqa: UP018
+                sab1 = float(0.0)  # noqa: UP018
+                sb1 = float(0.0)  # noqa: UP018
+                sa = float(0.0)  # noqa: UP018
+                for row in range(n_rows):
+                    y = row % by
+                    z = row // by
+                    b_here = tb[z + bzo, y + byo, gx + k]  # B at x + k for x = 0
+                    for x in range(bx):
+                        a = ta[z + az, y + ay, x + gx - k]
+                        b_next = tb[z + bzo, y + byo, x + gx + k + 1]
+                        sab0 += a * b_here
+                        sb0 += b_here
+                        sab1 += a * b_next
+                        sb1 += b_next
+                        sa += a
+                        b_here = b_next
+                base = ((lz + rz) * nly + ly + ry) * nlx + rx
+                if 2 * k >= -rx:
+                    out[blk, base + 2 * k] = wp.vec3f(sab0, sb0, sa)
+                if 2 * k + 1 <= rx:
+                    out[blk, base + 2 * k + 1] = wp.vec3f(sab1, sb1, sa)
+            e += wp.block_dim()
+
+    return block_lag_sums_kernel
+
+
+def lag_tasks(radius: tuple[int, int, int]) -> int:
+    """Threads' tasks of :func:`block_lag_sums` per block of voxels (x-lag pairs by y, z lags, plus one)."""
+    rx, ry, rz = radius
+    return (rx // 2 + (rx + 1) // 2 + 1) * (2 * ry + 1) * (2 * rz + 1) + 1
+
+
+@wp.kernel
+def window_sum_axis(src: wp.array4d(dtype=wp.vec3f), axis: int, m: int, stride: int,
+                    dst: wp.array4d(dtype=wp.vec3f)):
+    """Sums of ``m`` consecutive entries along ``axis`` (0, 1, 2 = z, y, x) starting every ``stride``.
+
+    Applied along x, y and z in turn, it turns block lag sums (blocks z, y, x, column) into
+    window lag sums (windows z, y, x, column).
+    """
+    i, j, k, c = wp.tid()
+    acc = wp.vec3f(0.0, 0.0, 0.0)
+    for t in range(m):
+        if axis == 0:
+            acc += src[i * stride + t, j, k, c]
+        elif axis == 1:
+            acc += src[i, j * stride + t, k, c]
+        else:
+            acc += src[i, j, k * stride + t, c]
+    dst[i, j, k, c] = acc
+
+
+@wp.func
+def lag_value(sums: wp.array2d(dtype=wp.vec3f), w: int, lag: int, n_voxels: float, scale: float) -> float:
+    """Correlation coefficient of a window at a lag, from (sum a b, sum b, sum a) over the lag's windows.
+
+    sum (a - mean a)(b - mean b) = sum a b - sum a sum b / n, exactly; the scale is that of
+    lag 0 (as the FFT path's).
+    """
+    s = sums[w, lag]
+    return (s[0] - s[1] * s[2] / n_voxels) * scale
+
+
+@wp.func
+def lag_index(i: int, j: int, k: int, nl: wp.vec3i) -> int:
+    return (k * nl[1] + j) * nl[0] + i
+
+
+@wp.kernel
+def local_peak(sums: wp.array2d(dtype=wp.vec3f), first: int, nl: wp.vec3i, n_voxels: float, exclusion: int,
+               displacement: wp.array(dtype=wp.vec3), height: wp.array(dtype=float), ratio: wp.array(dtype=float),
+               fallback: wp.array(dtype=int), valid: wp.array(dtype=int)):
+    """:func:`peak_fit` for windows correlated at lags within the search box (``nl`` lags per axis).
+
+    A peak on the face of the box (along an axis searched) is not a peak of the correlation:
+    the displacement may lie beyond the box, so the vector is invalid and will be replaced.
+    """
+    w = wp.tid()
+    g = first + w
+    n_lags = nl[0] * nl[1] * nl[2]
+    s0 = sums[w, n_lags // 2]  # lag 0: (sum a b, sum b, sum a)
+    sq = sums[w, n_lags]  # (sum a^2, sum b^2, 0)
+    va = sq[0] - s0[2] * s0[2] / n_voxels
+    vb = sq[1] - s0[1] * s0[1] / n_voxels
+    sc = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    if va > 1.0e-6 * sq[0] and vb > 1.0e-6 * sq[1] and va > 0.0 and vb > 0.0:
+        sc = 1.0 / wp.sqrt(va * vb)
+    best = float(-1.0e30)  # noqa: UP018
+    bi = int(0)  # noqa: UP018
+    for lag in range(n_lags):
+        v = lag_value(sums, w, lag, n_voxels, sc)
+        if v > best:
+            best = v
+            bi = lag
+    pi = bi % nl[0]
+    pj = (bi // nl[0]) % nl[1]
+    pk = bi // (nl[0] * nl[1])
+    second = float(-1.0e30)  # noqa: UP018
+    for lag in range(n_lags):
+        i = lag % nl[0]
+        j = (lag // nl[0]) % nl[1]
+        k = lag // (nl[0] * nl[1])
+        if wp.max(wp.max(wp.abs(i - pi), wp.abs(j - pj)), wp.abs(k - pk)) > exclusion:
+            second = wp.max(second, lag_value(sums, w, lag, n_voxels, sc))
+    ok = int(1)  # noqa: UP018
+    fx = wp.vec2(0.0, 0.0)
+    fy = wp.vec2(0.0, 0.0)
+    fz = wp.vec2(0.0, 0.0)
+    # lags of one parity share their windows (see block_lag_sums): fit through p - 2, p, p + 2
+    if pi < 2 or pi > nl[0] - 3:
+        ok = 0
+    else:
+        fx = subvoxel(lag_value(sums, w, lag_index(pi - 2, pj, pk, nl), n_voxels, sc), best,
+                      lag_value(sums, w, lag_index(pi + 2, pj, pk, nl), n_voxels, sc))
+    if pj < 2 or pj > nl[1] - 3:
+        ok = 0
+    else:
+        fy = subvoxel(lag_value(sums, w, lag_index(pi, pj - 2, pk, nl), n_voxels, sc), best,
+                      lag_value(sums, w, lag_index(pi, pj + 2, pk, nl), n_voxels, sc))
+    if pk < 2 or pk > nl[2] - 3:
+        ok = 0
+    else:
+        fz = subvoxel(lag_value(sums, w, lag_index(pi, pj, pk - 2, nl), n_voxels, sc), best,
+                      lag_value(sums, w, lag_index(pi, pj, pk + 2, nl), n_voxels, sc))
+    displacement[g] = wp.vec3(float(pi - nl[0] // 2) + 2.0 * fx[0], float(pj - nl[1] // 2) + 2.0 * fy[0],
+                              float(pk - nl[2] // 2) + 2.0 * fz[0])
+    height[g] = best
+    r = float(0.0)  # noqa: UP018
+    if second > 0.0:
+        r = best / second
+    elif best > 0.0:
+        r = 1.0e6  # no second positive peak in the box
+    ratio[g] = r
+    fallback[g] = int(fx[1] + fy[1] + fz[1] > 0.0)
+    if sc <= 0.0 or best <= 0.0:
+        ok = 0
+    valid[g] = ok

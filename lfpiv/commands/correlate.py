@@ -45,6 +45,19 @@ def parse_overlap(text: str) -> tuple[float, float, float]:
     return tuple(vals)  # type: ignore[return-value]
 
 
+def parse_radius(text: str) -> tuple[int, int, int]:
+    """'3' or '3,3,2' (x, y, z) -> a search radius in voxels per axis."""
+    try:
+        vals = [int(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number of voxels or three of them x,y,z") from None
+    if len(vals) == 1:
+        vals *= 3
+    if len(vals) != 3:
+        raise argparse.ArgumentTypeError(f"give one radius or three (x,y,z), got {text}")
+    return tuple(vals)  # type: ignore[return-value]
+
+
 def parse_pairs(text: str) -> slice:
     """'3' -> pair 3; '0:10' -> pairs 0..9; '5:' -> pairs 5 to the end (Python slice rules)."""
     m = re.fullmatch(r"\s*(\d*)\s*(:?)\s*(\d*)\s*", text)
@@ -80,6 +93,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pad windows to twice their size (linear instead of circular correlation; 8x the FFT work)")
     c.add_argument("--interpolation", choices=("cubic", "linear"), default="cubic",
                    help="volume deformation: cubic B-spline or trilinear (default: cubic)")
+    c.add_argument("--search-radius", type=parse_radius, default=None, metavar="R[,R,R]",
+                   help="correlate the passes after the first directly at lags within R voxels of the "
+                   "predictor (x,y,z or one value, 2 to 8) instead of by FFT: faster and unbiased; those "
+                   "passes deform the volumes (default: FFT in every pass)")
+    c.add_argument("--first-overlap", type=parse_overlap, default=None, metavar="F[,F,F]",
+                   help="overlap of the first pass's windows, which only predict (default: --overlap)")
     add_device(c)
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=run)
@@ -120,7 +139,8 @@ def run(args: argparse.Namespace) -> int:
         cfg = CorrelationConfig(windows=args.windows, overlap=args.overlap, deform_iterations=args.iterations,
                                 zero_pad=args.zero_pad, median_filter=args.median_filter,
                                 median_test=MedianTest(epsilon=args.epsilon, threshold=args.threshold),
-                                interpolation=args.interpolation)
+                                interpolation=args.interpolation, search_radius=args.search_radius,
+                                first_overlap=args.first_overlap)
         correlator = Correlator(grid.shape, cfg, device=args.device)
     except CorrelationError as exc:
         raise UsageError(str(exc)) from None
@@ -131,7 +151,9 @@ def run(args: argparse.Namespace) -> int:
                 "median_test": {"epsilon": cfg.median_test.epsilon, "threshold": cfg.median_test.threshold},
                 "median_filter": cfg.median_filter, "interpolation": cfg.interpolation,
                 "smooth_predictor": cfg.smooth_predictor,
-                "peak_exclusion": cfg.peak_exclusion, "device": correlator.device, "fft": correlator.fft}
+                "peak_exclusion": cfg.peak_exclusion, "device": correlator.device, "fft": correlator.fft,
+                "search_radius": None if cfg.search_radius is None else list(cfg.search_radius),
+                "first_overlap": None if cfg.first_overlap is None else list(cfg.first_overlap)}
     store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=[list(w) for w in cfg.windows],
                          overlap=list(cfg.overlap), settings=settings)
     volumes = store.volumes()

@@ -148,6 +148,21 @@ def test_correlate_selected_pairs_and_options(tmp_path, tiny_rig, capsys):
     assert a["settings"]["median_test"] == {"epsilon": 0.1, "threshold": 3.0}
 
 
+def test_correlate_with_a_search_radius(tmp_path, tiny_rig, capsys):
+    """The direct correlation around the predictor from the command line: same flow, settings recorded."""
+    _, grid, vel = _make_run(tmp_path / "s.zarr", tiny_rig, pairs=1, reconstructed=1)
+    rc, out, err = _run(capsys, "correlate", tmp_path / "s.zarr", "--windows", WINDOWS, "--search-radius", "3",
+                        "--first-overlap", "0.5", "--device", "cpu", "--quiet")
+    assert rc == 0, err
+    s = RunStore.open(tmp_path / "s.zarr")
+    v = s.vectors()
+    a = v["attrs"]["settings"]
+    assert a["search_radius"] == [3, 3, 3] and a["first_overlap"] == [0.5, 0.5, 0.5]
+    for comp, truth in zip("uvw", vel, strict=True):
+        err_m_s = np.asarray(v[comp][0], dtype=np.float64) - truth
+        assert np.sqrt(np.mean(err_m_s**2)) < 0.05 * np.abs(vel).max(), comp
+
+
 def _no_volumes(t, rig):
     _make_run(t / "nv.zarr", rig, with_volumes=False)
     return t / "nv.zarr"
@@ -168,6 +183,9 @@ BAD = [
     (lambda t, r: [_three_pairs(t, r), "--windows", "16x16x8", "--pairs", "1:3"], "pair(s) 2 are not reconstructed"),
     (lambda t, r: [_three_pairs(t, r), "--windows", "16x16x8", "--pairs", "7"], "--pairs selects no pair"),
     (lambda t, r: [_three_pairs(t, r), "--device", "cuda:7"], "device 'cuda:7' is not available"),
+    (lambda t, r: [_three_pairs(t, r), "--windows", "16x16x8", "--search-radius", "x"], "--search-radius: 'x' is not"),
+    (lambda t, r: [_three_pairs(t, r), "--windows", "32x32x16,16x16x8", "--search-radius", "12"],
+     "search_radius must be 2 to 8 voxels"),
     (lambda t, r: [_no_volumes(t, r)], "has no reconstructed volumes; run 'lfpiv reconstruct"),
     (lambda t, r: [t / "none.zarr"], "does not exist"),
 ]
