@@ -122,6 +122,17 @@ def sample_bspline(coef: wp.array3d(dtype=wp.float32), p: wp.vec3) -> float:
     y = int(fy) - 1
     z = int(fz) - 1
     acc = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    if x >= 0 and y >= 0 and z >= 0 and x + 3 < coef.shape[2] and y + 3 < coef.shape[1] and z + 3 < coef.shape[0]:
+        # inside the volume (nearly every sample): no test per coefficient
+        for c in range(4):
+            plane = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+            for b in range(4):
+                row = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+                for a in range(4):
+                    row += wx[a] * coef[z + c, y + b, x + a]
+                plane += wy[b] * row
+            acc += wz[c] * plane
+        return acc
     for c in range(4):
         plane = float(0.0)  # noqa: UP018 - a dynamic Warp variable, mutated below
         for b in range(4):
