@@ -69,7 +69,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.fft
-from scipy.interpolate import RegularGridInterpolator
 
 from lfcore.device import RowOffset, Rows, launch_rows, resolve_device, warp
 from lfcore.vectors import MedianTest, median_filter, normalized_median_test, replace_outliers, smooth
@@ -320,21 +319,35 @@ def _padded(window: tuple[int, int, int], zero_pad: bool) -> tuple[int, int, int
     return p[2], p[1], p[0]
 
 
-def _interp(field: np.ndarray, grid: WindowGrid, points: np.ndarray) -> np.ndarray:
-    """Trilinear interpolation of a (nz, ny, nx, 3) field on ``grid`` at (n, 3) points (x, y, z) in voxels.
+def _axis_weights(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """(len(dst), len(src)) linear interpolation weights from points ``src`` to ``dst`` (1-D,
+    regularly spaced), the end cells' lines continued beyond the outermost points (as the kernels'
+    ``axis_weight``); one source point gives a constant."""
+    w = np.zeros((len(dst), len(src)))
+    if len(src) == 1:
+        w[:, 0] = 1.0
+        return w
+    q = (dst - src[0]) / (src[1] - src[0])
+    i0 = np.clip(np.floor(q).astype(int), 0, len(src) - 2)
+    t = q - i0
+    rows = np.arange(len(dst))
+    w[rows, i0] = 1.0 - t
+    w[rows, i0 + 1] += t
+    return w
 
-    Beyond the outermost centres the field is extrapolated linearly (as the kernels'
-    ``predictor_at`` does); along an axis with a single window it is constant.
+
+def _interp(field: np.ndarray, grid: WindowGrid, to: WindowGrid) -> np.ndarray:
+    """Trilinear interpolation of a (nz, ny, nx, 3) field on ``grid`` at the centres of ``to``.
+
+    Returns the (to.size, 3) values, x fastest. Beyond the outermost centres the field is
+    extrapolated linearly (as the kernels' ``predictor_at`` does); along an axis with a single
+    window it is constant. Both grids are regular, so the interpolation is separable: one small
+    weight matrix per axis.
     """
-    axes = []
-    f = field
-    for ax, c in enumerate(grid.centres()[::-1]):  # z, y, x
-        if len(c) == 1:
-            c = np.array([c[0], c[0] + 1.0])
-            f = np.concatenate([f, f], axis=ax)
-        axes.append(c)
-    interp = RegularGridInterpolator(tuple(axes), f, method="linear", bounds_error=False, fill_value=None)
-    return interp(np.asarray(points, dtype=np.float64)[:, ::-1])
+    (sx, sy, sz), (dx, dy, dz) = grid.centres(), to.centres()
+    out = np.einsum("kc,jb,ia,cbad->kjid", _axis_weights(sz, dz), _axis_weights(sy, dy), _axis_weights(sx, dx),
+                    np.asarray(field, dtype=np.float64), optimize=True)
+    return out.reshape(-1, 3)
 
 
 @dataclass(frozen=True)
@@ -740,17 +753,14 @@ class Correlator:
         pred: tuple[np.ndarray, WindowGrid] | None = None
         for i, (_, mode) in enumerate(cfg.passes):
             g = self.grids[i]
-            cx, cy, cz = g.centres()
-            z, y, x = np.meshgrid(cz, cy, cx, indexing="ij")
-            centres = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
             base = np.zeros((g.size, 3))
             s = np.zeros((g.size, 3), dtype=np.int64)
             va, vb = vol_a, vol_b
             if mode == "shift":
-                s = np.rint(_interp(pred[0], pred[1], centres)).astype(np.int64)
+                s = np.rint(_interp(pred[0], pred[1], g)).astype(np.int64)
                 base = s.astype(float)
             elif mode == "deform":
-                base = _interp(pred[0], pred[1], centres)
+                base = pred[0].reshape(-1, 3) if pred[1] == g else _interp(pred[0], pred[1], g)
                 va, vb = self._deform(vol_a, vol_b, *pred)
             if self._lags[i] is not None:
                 self._run_local(va, vb, i)
