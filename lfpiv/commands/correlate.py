@@ -72,8 +72,10 @@ def parse_pairs(text: str) -> slice:
 def register(sub: argparse._SubParsersAction) -> None:
     c = sub.add_parser("correlate", help="3D multi-grid cross-correlation of a run's volumes into vectors/",
                        description="Correlate the two reconstructed volumes of each pair with 3D multi-grid FFT "
-                       "cross-correlation (window shift, then volume deformation), find and replace outliers "
-                       "(normalized median test) and write the velocity in m/s to the run's vectors/.")
+                       "cross-correlation (window shift, then volume deformation; with --search-radius, volume "
+                       "deformation and direct correlation around the predictor after the first pass), find and "
+                       "replace outliers (normalized median test) and write the velocity in m/s to the run's "
+                       "vectors/.")
     c.add_argument("run", metavar="RUN", help="run store with volumes (a .zarr directory)")
     c.add_argument("--windows", type=parse_windows, default=parse_windows(DEFAULT_WINDOWS), metavar="XxYxZ,...",
                    help="interrogation volume of each pass, x by y by z voxels, largest first "
