@@ -87,7 +87,7 @@ SHORT_DFT = 32
 MIN_WINDOW = 4
 #: Largest search radius of the direct correlation (9^3 lags a window at 4).
 MAX_SEARCH_RADIUS = 8
-#: Shared memory for one block of A and the grown block of B in the direct correlation.
+#: Shared memory for the grown blocks of A and B in the direct correlation.
 LAG_TILE_BYTES = 40 << 10
 #: Threads per block of voxels in the direct correlation on a GPU.
 LAG_THREADS = 512
@@ -379,9 +379,11 @@ def _lag_plan(g: WindowGrid, radius: tuple[int, int, int], budget: int) -> _LagP
     block = []
     for w, s in zip(g.window, g.step, strict=True):
         block.append(math.gcd(w, s))
-    # the block of A and the grown block of B must fit in shared memory: shrink the largest side
+    # both grown blocks (see kc.block_lag_sums) must fit in shared memory: shrink the largest side
     def tile_bytes(b):
-        return 4 * (int(np.prod(b)) + int(np.prod([n + 2 * r for n, r in zip(b, radius, strict=True)])))
+        grown = [n + 2 * ((r + 1) // 2) for n, r in zip(b, radius, strict=True)]
+        grown[0] += 1 - radius[0] % 2
+        return 2 * 4 * int(np.prod(grown))
 
     while tile_bytes(block) > LAG_TILE_BYTES:
         ax = int(np.argmax(block))
@@ -660,7 +662,7 @@ class Correlator:
             nbz = (kz - 1) * sz + mz
             origin = wp.vec3i(g.first[0] + rx, g.first[1] + ry, g.first[2] + rz + k0 * sz * bz)
             blocks = p_buf[: nbz * nby * nbx * cols].reshape((nbz * nby * nbx, cols))
-            # on a GPU, a thread per lag column (up to LAG_THREADS, in whole warps)
+            # on a GPU, a thread per task (two x lags; up to LAG_THREADS, in whole warps)
             threads = min(LAG_THREADS, -(-kc.lag_tasks(self.config.search_radius) // 32) * 32) if d != "cpu" else 1
             wp.launch_tiled(kernel, dim=nbz * nby * nbx, inputs=[def_a, def_b, origin, wp.vec3i(nbx, nby, nbz), blocks],
                             block_dim=threads, device=d)
