@@ -172,8 +172,7 @@ class CorrelationConfig:
         if self.first_overlap is not None:
             object.__setattr__(self, "first_overlap", _per_axis_overlap(self.first_overlap, "first_overlap"))
         if self.search_radius is not None:
-            r = self.search_radius
-            r = (int(r),) * 3 if np.isscalar(r) else tuple(int(v) for v in r)  # type: ignore[arg-type]
+            r = _per_axis(self.search_radius, int)
             if len(r) != 3 or min(r) < 2 or max(r) > MAX_SEARCH_RADIUS:
                 raise CorrelationError(f"search_radius must be 2 to {MAX_SEARCH_RADIUS} voxels on every axis (one "
                                        f"number, or x, y, z), got {self.search_radius}")
@@ -196,8 +195,13 @@ class CorrelationConfig:
         return out
 
 
+def _per_axis(value, cast) -> tuple:
+    """One number for every axis, or one per axis, as a tuple of ``cast`` values."""
+    return (cast(value),) * 3 if np.isscalar(value) else tuple(cast(v) for v in value)
+
+
 def _per_axis_overlap(value, name: str) -> tuple[float, float, float]:
-    ov = (float(value),) * 3 if np.isscalar(value) else tuple(float(o) for o in value)
+    ov = _per_axis(value, float)
     if len(ov) != 3 or not all(0.0 <= o < 1.0 for o in ov):
         raise CorrelationError(f"{name} must be at least 0 and below 1 on every axis, got {value}")
     return ov  # type: ignore[return-value]
@@ -657,13 +661,13 @@ class Correlator:
         kernel = kc.block_lag_sums(lag.block, self.config.search_radius)
         nl = wp.vec3i(2 * rx + 1, 2 * ry + 1, 2 * rz + 1)
         p_buf, q_buf = self._lag_sums
+        # on a GPU, a thread per task (two x lags; up to LAG_THREADS, in whole warps)
+        threads = min(LAG_THREADS, -(-kc.lag_tasks(self.config.search_radius) // 32) * 32) if d != "cpu" else 1
         for k0 in range(0, cz, lag.slab):
             kz = min(lag.slab, cz - k0)
             nbz = (kz - 1) * sz + mz
             origin = wp.vec3i(g.first[0] + rx, g.first[1] + ry, g.first[2] + rz + k0 * sz * bz)
             blocks = p_buf[: nbz * nby * nbx * cols].reshape((nbz * nby * nbx, cols))
-            # on a GPU, a thread per task (two x lags; up to LAG_THREADS, in whole warps)
-            threads = min(LAG_THREADS, -(-kc.lag_tasks(self.config.search_radius) // 32) * 32) if d != "cpu" else 1
             wp.launch_tiled(kernel, dim=nbz * nby * nbx, inputs=[def_a, def_b, origin, wp.vec3i(nbx, nby, nbz), blocks],
                             block_dim=threads, device=d)
             src = blocks.reshape((nbz, nby, nbx, cols))
@@ -716,18 +720,15 @@ class Correlator:
         v = np.asarray(volume)
         if v.shape != self.shape:
             raise CorrelationError(f"this correlator takes volumes of shape {self.shape} (z, y, x), got {v.shape}")
-        if self.device == "cpu":
-            if not np.all(np.isfinite(v)):
-                raise CorrelationError("volumes must be finite")
-            dst.assign(np.ascontiguousarray(v, dtype=np.float32))
-            return dst
-        # on a GPU the values are checked there (a host scan of two large volumes costs more
-        # than their copy)
-        dst.assign(np.ascontiguousarray(v, dtype=np.float32))
-        self._nonfinite.zero_()
-        self.wp.launch(self._k.count_nonfinite, dim=self.shape, inputs=[dst, self._nonfinite], device=self.device)
-        if int(self._nonfinite.numpy()[0]):
+        if self.device == "cpu" and not np.all(np.isfinite(v)):
             raise CorrelationError("volumes must be finite")
+        dst.assign(np.ascontiguousarray(v, dtype=np.float32))
+        if self.device != "cpu":
+            # checked on the GPU: a host scan of two large volumes costs more than their copy
+            self._nonfinite.zero_()
+            self.wp.launch(self._k.count_nonfinite, dim=self.shape, inputs=[dst, self._nonfinite], device=self.device)
+            if int(self._nonfinite.numpy()[0]):
+                raise CorrelationError("volumes must be finite")
         return dst
 
     def __call__(self, volume_a: np.ndarray, volume_b: np.ndarray,

@@ -700,7 +700,7 @@ def block_lag_sums(block: tuple[int, int, int], radius: tuple[int, int, int]):
     n_lags = nlx * nly * nlz
     k_lo = -((rx + 1) // 2)  # floor(-rx / 2): the x-lag pairs k_lo .. rx // 2
     ngx = rx // 2 - k_lo + 1
-    n_tasks = ngx * nly * nlz + 1
+    n_tasks = lag_tasks(radius)
     n_rows = by * bz
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -767,7 +767,8 @@ def block_lag_sums(block: tuple[int, int, int], radius: tuple[int, int, int]):
 
 
 def lag_tasks(radius: tuple[int, int, int]) -> int:
-    """Threads' tasks of :func:`block_lag_sums` per block of voxels (x-lag pairs by y, z lags, plus one)."""
+    """Threads' tasks of :func:`block_lag_sums` per block of voxels: the x-lag pairs
+    floor(-rx / 2) .. floor(rx / 2) by the y and z lags, plus the statistics."""
     rx, ry, rz = radius
     return (rx // 2 + (rx + 1) // 2 + 1) * (2 * ry + 1) * (2 * rz + 1) + 1
 
@@ -808,14 +809,27 @@ def lag_index(i: int, j: int, k: int, nl: wp.vec3i) -> int:
     return (k * nl[1] + j) * nl[0] + i
 
 
+@wp.func
+def parity_fit(sums: wp.array2d(dtype=wp.vec3f), w: int, p: int, n: int, lag_lo: int, lag_hi: int, best: float,
+               n_voxels: float, scale: float) -> wp.vec3:
+    """(offset in units of 2 lags, 1 if the centroid fallback was used, 1 if fitted) of a peak at
+    lag index ``p`` of ``n`` along one axis, from the lags two below and two above (``lag_lo``,
+    ``lag_hi``); not fitted (0) within two lags of the box's face."""
+    if p < 2 or p > n - 3:
+        return wp.vec3(0.0, 0.0, 0.0)
+    f = subvoxel(lag_value(sums, w, lag_lo, n_voxels, scale), best, lag_value(sums, w, lag_hi, n_voxels, scale))
+    return wp.vec3(f[0], f[1], 1.0)
+
+
 @wp.kernel
 def local_peak(sums: wp.array2d(dtype=wp.vec3f), first: int, nl: wp.vec3i, n_voxels: float, exclusion: int,
                displacement: wp.array(dtype=wp.vec3), height: wp.array(dtype=float), ratio: wp.array(dtype=float),
                fallback: wp.array(dtype=int), valid: wp.array(dtype=int)):
     """:func:`peak_fit` for windows correlated at lags within the search box (``nl`` lags per axis).
 
-    A peak on the face of the box (along an axis searched) is not a peak of the correlation:
-    the displacement may lie beyond the box, so the vector is invalid and will be replaced.
+    A peak within two lags of the box's face cannot be fitted through lags of its parity and
+    may not be the correlation's peak (the displacement may lie beyond the box), so the vector
+    is invalid and will be replaced.
     """
     w = wp.tid()
     g = first + w
@@ -844,26 +858,13 @@ def local_peak(sums: wp.array2d(dtype=wp.vec3f), first: int, nl: wp.vec3i, n_vox
         k = lag // (nl[0] * nl[1])
         if wp.max(wp.max(wp.abs(i - pi), wp.abs(j - pj)), wp.abs(k - pk)) > exclusion:
             second = wp.max(second, lag_value(sums, w, lag, n_voxels, sc))
-    ok = int(1)  # noqa: UP018
-    fx = wp.vec2(0.0, 0.0)
-    fy = wp.vec2(0.0, 0.0)
-    fz = wp.vec2(0.0, 0.0)
     # lags of one parity share their windows (see block_lag_sums): fit through p - 2, p, p + 2
-    if pi < 2 or pi > nl[0] - 3:
-        ok = 0
-    else:
-        fx = subvoxel(lag_value(sums, w, lag_index(pi - 2, pj, pk, nl), n_voxels, sc), best,
-                      lag_value(sums, w, lag_index(pi + 2, pj, pk, nl), n_voxels, sc))
-    if pj < 2 or pj > nl[1] - 3:
-        ok = 0
-    else:
-        fy = subvoxel(lag_value(sums, w, lag_index(pi, pj - 2, pk, nl), n_voxels, sc), best,
-                      lag_value(sums, w, lag_index(pi, pj + 2, pk, nl), n_voxels, sc))
-    if pk < 2 or pk > nl[2] - 3:
-        ok = 0
-    else:
-        fz = subvoxel(lag_value(sums, w, lag_index(pi, pj, pk - 2, nl), n_voxels, sc), best,
-                      lag_value(sums, w, lag_index(pi, pj, pk + 2, nl), n_voxels, sc))
+    fx = parity_fit(sums, w, pi, nl[0], lag_index(pi - 2, pj, pk, nl), lag_index(pi + 2, pj, pk, nl), best,
+                    n_voxels, sc)
+    fy = parity_fit(sums, w, pj, nl[1], lag_index(pi, pj - 2, pk, nl), lag_index(pi, pj + 2, pk, nl), best,
+                    n_voxels, sc)
+    fz = parity_fit(sums, w, pk, nl[2], lag_index(pi, pj, pk - 2, nl), lag_index(pi, pj, pk + 2, nl), best,
+                    n_voxels, sc)
     displacement[g] = wp.vec3(float(pi - nl[0] // 2) + 2.0 * fx[0], float(pj - nl[1] // 2) + 2.0 * fy[0],
                               float(pk - nl[2] // 2) + 2.0 * fz[0])
     height[g] = best
@@ -874,6 +875,7 @@ def local_peak(sums: wp.array2d(dtype=wp.vec3f), first: int, nl: wp.vec3i, n_vox
         r = 1.0e6  # no second positive peak in the box
     ratio[g] = r
     fallback[g] = int(fx[1] + fy[1] + fz[1] > 0.0)
-    if sc <= 0.0 or best <= 0.0:
-        ok = 0
+    ok = int(0)  # noqa: UP018 - a dynamic Warp variable, mutated below
+    if fx[2] > 0.0 and fy[2] > 0.0 and fz[2] > 0.0 and sc > 0.0 and best > 0.0:
+        ok = 1
     valid[g] = ok

@@ -32,14 +32,19 @@ def parse_windows(text: str) -> tuple[tuple[int, int, int], ...]:
     return tuple(out)
 
 
+def _per_axis(text: str, cast, expected: str) -> list:
+    """'a' or 'a,b,...' -> the values converted by ``cast``, one value repeated for x, y and z;
+    a value ``cast`` refuses is reported as not ``expected``."""
+    try:
+        vals = [cast(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not {expected}") from None
+    return vals * 3 if len(vals) == 1 else vals
+
+
 def parse_overlap(text: str) -> tuple[float, float, float]:
     """'0.75' or '0.75,0.75,0.5' (x, y, z) -> a fraction per axis, each in [0, 1)."""
-    try:
-        vals = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a number or three numbers x,y,z") from None
-    if len(vals) == 1:
-        vals *= 3
+    vals = _per_axis(text, float, "a number or three numbers x,y,z")
     if len(vals) != 3 or not all(0.0 <= v < 1.0 for v in vals):
         raise argparse.ArgumentTypeError(f"overlap must be at least 0 and below 1 (one value, or x,y,z), got {text}")
     return tuple(vals)  # type: ignore[return-value]
@@ -47,12 +52,7 @@ def parse_overlap(text: str) -> tuple[float, float, float]:
 
 def parse_radius(text: str) -> tuple[int, int, int]:
     """'3' or '3,3,2' (x, y, z) -> a search radius in voxels per axis."""
-    try:
-        vals = [int(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number of voxels or three of them x,y,z") from None
-    if len(vals) == 1:
-        vals *= 3
+    vals = _per_axis(text, int, "a whole number of voxels or three of them x,y,z")
     if len(vals) != 3:
         raise argparse.ArgumentTypeError(f"give one radius or three (x,y,z), got {text}")
     return tuple(vals)  # type: ignore[return-value]
