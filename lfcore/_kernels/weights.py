@@ -272,25 +272,56 @@ def view_point(view: View, pw: wp.vec3) -> wp.vec3:
 
 
 @wp.func
-def corner_pixel(view: View, ax: float, ay: float, qx: float, qy: float, fx: float, fy: float, corner: int) -> int:
-    """Global pixel hit by the centre (corner 0) or a corner (1-4) of a sub-aperture's footprint.
+def corner_point(qx: float, qy: float, fx: float, fy: float, corner: int) -> wp.vec2:
+    """The centre (corner 0) or a corner (1-4) of the footprint box q +- f on the MLA."""
+    if corner == 0:
+        return wp.vec2(qx, qy)
+    return wp.vec2(qx + fx * float(2 * ((corner - 1) % 2) - 1), qy + fy * float(2 * ((corner - 1) // 2) - 1))
 
-    -1 if the point lands off the sensor.
-    """
+
+@wp.func
+def landing_pixel(view: View, c: wp.vec2, ax: float, ay: float, pt: wp.vec2) -> int:
+    """Global pixel where the ray from aperture point A through MLA point ``pt`` of the lenslet
+    centred at ``c`` lands; -1 off the sensor."""
     cam = view.cam
-    px = qx
-    py = qy
-    if corner > 0:
-        px = qx + fx * float(2 * ((corner - 1) % 2) - 1)
-        py = qy + fy * float(2 * ((corner - 1) // 2) - 1)
-    c = lenslet_centre(cam, px, py)
-    sx = c[0] + cam.f_ml * (px - ax) / cam.si
-    sy = c[1] + cam.f_ml * (py - ay) / cam.si
+    sx = c[0] + cam.f_ml * (pt[0] - ax) / cam.si
+    sy = c[1] + cam.f_ml * (pt[1] - ay) / cam.si
     col = 0.5 * float(cam.ncols) - sx / cam.pixel
     row = 0.5 * float(cam.nrows) + sy / cam.pixel
     if col >= 0.0 and row >= 0.0 and col < float(cam.ncols) and row < float(cam.nrows):
         return view.pix_offset + int(row) * cam.ncols + int(col)
     return -1
+
+
+@wp.func
+def corner_pixel(view: View, ax: float, ay: float, qx: float, qy: float, fx: float, fy: float, corner: int) -> int:
+    """Global pixel hit by the centre (corner 0) or a corner (1-4) of a sub-aperture's footprint.
+
+    -1 if the point lands off the sensor.
+    """
+    pt = corner_point(qx, qy, fx, fy, corner)
+    return landing_pixel(view, lenslet_centre(view.cam, pt[0], pt[1]), ax, ay, pt)
+
+
+@wp.func
+def inside_sensor(view: View, ax: float, ay: float, qx: float, qy: float, fx: float, fy: float) -> bool:
+    """True if the centre and corners of a footprint (see :func:`corner_pixel`) surely land on the sensor.
+
+    A point p of the MLA lands at c + f_ml (p - A) / si with its lenslet centre c within a cell's
+    circumradius of p, so over the footprint's box the landing point stays within a box that
+    grows linearly with p; that box, with a hundredth of a pixel to spare, inside the sensor
+    means every point is on it, without locating a single lenslet.
+    """
+    cam = view.cam
+    k = cam.f_ml / cam.si
+    margin = view.cell_r + 0.01 * cam.pixel
+    half_w = 0.5 * float(cam.ncols) * cam.pixel
+    half_h = 0.5 * float(cam.nrows) * cam.pixel
+    x_lo = (qx - fx) * (1.0 + k) - k * ax - margin
+    x_hi = (qx + fx) * (1.0 + k) - k * ax + margin
+    y_lo = (qy - fy) * (1.0 + k) - k * ay - margin
+    y_hi = (qy + fy) * (1.0 + k) - k * ay + margin
+    return x_lo > -half_w and x_hi < half_w and y_lo > -half_h and y_hi < half_h
 
 
 @wp.kernel
@@ -373,13 +404,30 @@ def eliminate(
                 qy = a * ay + gy
                 fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
                 fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
-                for corner in range(5):
-                    q = corner_pixel(view, ax, ay, qx, qy, fx, fy, corner)
-                    if q >= 0:
-                        if lit[q] != wp.uint8(0):
+                if inside_sensor(view, ax, ay, qx, qy, fx, fy):
+                    # Every point lands on the sensor, so the first lit one settles the check;
+                    # and a footprint well inside its centre's lenslet cell (inradius half a
+                    # pitch, square or hexagonal) needs that one lenslet only.
+                    c0 = lenslet_centre(cam, qx, qy)
+                    one_cell = wp.length(wp.vec2(qx - c0[0], qy - c0[1])) + wp.sqrt(fx * fx + fy * fy) < (
+                        0.4999 * cam.pitch)
+                    corner = int(0)
+                    while corner < 5 and hit == 0:
+                        pt = corner_point(qx, qy, fx, fy, corner)
+                        c = c0
+                        if corner > 0 and not one_cell:
+                            c = lenslet_centre(cam, pt[0], pt[1])
+                        if lit[landing_pixel(view, c, ax, ay, pt)] != wp.uint8(0):
                             hit = int(1)
-                    else:
-                        on = int(0)
+                        corner += 1
+                else:
+                    for corner in range(5):
+                        q = corner_pixel(view, ax, ay, qx, qy, fx, fy, corner)
+                        if q >= 0:
+                            if lit[q] != wp.uint8(0):
+                                hit = int(1)
+                        else:
+                            on = int(0)
             if on == 1:
                 seen += 1
                 if hit == 0:

@@ -302,3 +302,29 @@ def test_cache_rejects_an_unknown_method(small_dual_rig):
     proj = Projector(small_dual_rig.camera[:1], VolumeGrid.from_rig(small_dual_rig), device="cpu")
     with pytest.raises(ValueError, match="unknown weight method 'mart'"):
         WeightCache(proj, method="mart", checks=0)
+
+
+def test_elimination_off_the_sensor_edges_keeps_what_the_traced_table_keeps(tiny_rig, device):
+    """A box wider than the field of view: footprints off the sensor and partly off it.
+
+    Traced checks settle a footprint by its first lit point when it surely lies on the sensor
+    (and use one lenslet for a footprint inside one cell); the table stores every point of every
+    check, traced without those shortcuts, so the two must keep the same voxels.
+    """
+    d = tiny_rig.to_dict()
+    d["volume"].update(size_mm=[1.6, 1.4, 1.6], pvr=[4.0, 4.0, 20.0])
+    rig = Rig.from_dict(d)
+    grid = VolumeGrid.from_rig(rig)
+    proj = Projector(rig.camera, grid, device=device)
+    settings = ReconSettings()
+    lit = _lit(_images(rig, grid, device, n=40), settings)
+    for min_seen, max_dark in ((settings.min_seen, settings.max_dark), (0.9, 0.2), (0.2, 0.0)):
+        proj.precompute_checks(0)
+        traced = proj.eliminate(lit, min_seen, max_dark).numpy()
+        proj.precompute_checks(None)
+        assert np.array_equal(proj.eliminate(lit, min_seen, max_dark).numpy(), traced)
+        assert 0 < traced.size < grid.n_voxels
+    # the test means something only if some voxels are seen through few sub-apertures
+    everything = np.ones((rig.camera[0].sensor_px[1], rig.camera[0].sensor_px[0]), bool)
+    proj.precompute_checks(0)
+    assert proj.eliminate([everything], 0.99, 0.0).numpy().size < proj.eliminate([everything], 0.01, 0.0).numpy().size
