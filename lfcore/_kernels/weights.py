@@ -389,13 +389,14 @@ def eliminate(
             mi = m - view.check_first
             if mi < n_table:
                 row = ((v * n_views + iv) * n_table + mi) * 5
-                for corner in range(5):
-                    q = table[row + corner]
-                    if q >= 0:
-                        if lit[q] != wp.uint8(0):
+                if table[row] < 0:
+                    on = int(0)  # a point off the sensor: the table marks the whole check
+                else:
+                    corner = int(0)
+                    while corner < 5 and hit == 0:
+                        if lit[table[row + corner]] != wp.uint8(0):
                             hit = int(1)
-                    else:
-                        on = int(0)
+                        corner += 1
             else:
                 k = check_order[m]
                 ax = sub_a[k][0]
@@ -456,8 +457,9 @@ def check_pixels(
 ):
     """The pixels :func:`eliminate` looks up in the first ``n_table`` checks of voxel v, every view.
 
-    ``table[((v * n_views + view) * n_table + check) * 5 + corner]``: the global pixel, -1 off
-    the sensor (also for checks past the view's ``check_count``). Views that cannot see the
+    ``table[((v * n_views + view) * n_table + check) * 5 + corner]``: the global pixel; -1 in all
+    five if any of them lands off the sensor (such a check is no evidence), and for checks past
+    the view's ``check_count``. Views that cannot see the
     voxel are never looked up. The launch covers voxels ``first + tid``.
     """
     v = wp.tid() + first
@@ -486,8 +488,15 @@ def check_pixels(
                 qy = a * ay + gy
                 fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
                 fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
+                off = int(0)
                 for corner in range(5):
-                    table[row + corner] = corner_pixel(view, ax, ay, qx, qy, fx, fy, corner)
+                    q = corner_pixel(view, ax, ay, qx, qy, fx, fy, corner)
+                    table[row + corner] = q
+                    if q < 0:
+                        off = int(1)
+                if off == 1:  # the check sees nothing: -1 throughout, so one read tells
+                    for corner in range(5):
+                        table[row + corner] = -1
 
 
 @wp.kernel
