@@ -75,6 +75,8 @@ def main() -> int:
     ap.add_argument("--iterations", type=int, default=5)
     ap.add_argument("--method", choices=LIVE_METHODS, default="drt-mart",
                     help="the live reconstruction (default: drt-mart)")
+    ap.add_argument("--pvr", default=None, metavar="X,Y,Z",
+                    help="pixel-voxel ratio of the live volume (default: the rig's, 2,2,10); a monitoring setting")
     ap.add_argument("--rate", type=float, default=10.0, help="pairs per second the feeder publishes (default: 10)")
     ap.add_argument("--seconds", type=float, default=20.0, help="how long to feed pairs (default: 20)")
     ap.add_argument("--ppm", type=float, default=0.5)
@@ -85,6 +87,7 @@ def main() -> int:
     ap.add_argument("--warmup-limit", type=float, default=600.0,
                     help="give up if the first pair takes longer than this many seconds (default: 600)")
     args = ap.parse_args()
+    pvr = None if args.pvr is None else tuple(float(v) for v in args.pvr.split(","))
     device = resolve_device(args.device)
     rig = case_rig(args.case)
     t = time.perf_counter()
@@ -98,12 +101,12 @@ def main() -> int:
           f"{time.perf_counter() - t:.1f} s")
     ring = PairRing(rows_cols, slots=8)
     pipe = LivePipeline(rig, settings=LiveSettings(iterations=args.iterations),
-                        recon=monitoring_recon(method=args.method), device=device)
+                        recon=monitoring_recon(method=args.method), pvr=pvr, device=device)
     t = time.perf_counter()
     pipe.build()
     g = pipe.grid.shape
-    print(f"  volume {g[2]} x {g[1]} x {g[0]} voxels (x, y, z), windows {pipe.correlation.windows}; "
-          f"built in {time.perf_counter() - t:.1f} s")
+    print(f"  volume {g[2]} x {g[1]} x {g[0]} voxels (x, y, z) at PVR {pvr or rig.volume.pvr}, "
+          f"windows {pipe.correlation.windows}; built in {time.perf_counter() - t:.1f} s")
     results = []
     pipe.subscribe(results.append)
     stop = threading.Event()

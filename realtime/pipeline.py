@@ -410,6 +410,11 @@ class LivePipeline:
         The correlation; default: :func:`default_windows` at 50% overlap, no deformation.
     cameras
         Cameras to reconstruct from (default: all of the rig's).
+    pvr
+        Pixel-voxel ratio (x, y, z) of the live volume; default: the rig's ``volume.pvr``. A
+        coarser one is a monitoring setting: the live path watches the flow on fewer, larger
+        voxels (elimination, weights and iterations all scale with their number), while the
+        recording keeps the raw frames for full-resolution processing afterwards.
     device
         Warp device; None for the first GPU, else the CPU.
     poll_s
@@ -418,12 +423,13 @@ class LivePipeline:
 
     def __init__(self, rig: Rig, source: PairSource | None = None, *, settings: LiveSettings | None = None,
                  recon: ReconSettings | None = None, correlation: CorrelationConfig | None = None,
-                 cameras: Sequence[str] | None = None, device: str | None = None, poll_s: float = 0.005) -> None:
+                 cameras: Sequence[str] | None = None, pvr: Sequence[float] | None = None, device: str | None = None,
+                 poll_s: float = 0.005) -> None:
         self.rig = rig
         self.cameras = list(cameras) if cameras else [c.name for c in rig.camera]
         for n in self.cameras:
             rig.camera_named(n)  # an unknown camera fails here
-        self.grid = VolumeGrid.from_rig(rig)
+        self.grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(float(v) for v in pvr))
         self._settings = settings or LiveSettings()
         base = recon or monitoring_recon()
         _check_live_method(base.method)

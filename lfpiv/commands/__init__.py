@@ -40,6 +40,25 @@ def positive_float(text: str) -> float:
     return v
 
 
+def xyz_triple(text: str) -> tuple[float, float, float]:
+    """argparse type: three numbers x,y,z (a PVR, a margin; their ranges are checked by the command)."""
+    try:
+        v = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not three numbers like 2,2,10") from None
+    if len(v) != 3:
+        raise argparse.ArgumentTypeError(f"'{text}' is not three numbers like 2,2,10")
+    return v  # type: ignore[return-value]
+
+
+def check_pvr(pvr: tuple[float, float, float] | None) -> None:
+    """A one-line usage error unless ``pvr`` is None or three positive finite numbers."""
+    from lfpiv.errors import UsageError
+
+    if pvr is not None and not all(0 < v < float("inf") for v in pvr):
+        raise UsageError(f"--pvr must be three positive numbers, got {','.join(f'{v:g}' for v in pvr)}")
+
+
 def add_device(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if there is one)")
 

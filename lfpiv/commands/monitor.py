@@ -13,11 +13,13 @@ from contextlib import ExitStack
 from lfpiv.commands import (
     add_device,
     add_sim_options,
+    check_pvr,
     positive_float,
     positive_int,
     sim_lab_options,
     warn_optics,
     whole_number,
+    xyz_triple,
 )
 from lfpiv.errors import UsageError
 
@@ -48,6 +50,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="MART iterations per frame (default: 5; changeable in the window)")
     m.add_argument("--relaxation", type=positive_float, default=1.0,
                    help="MART relaxation, at most 2 (default: 1; changeable in the window)")
+    m.add_argument("--pvr", type=xyz_triple, default=None, metavar="X,Y,Z",
+                   help="pixel-voxel ratio per axis of the live volume (default: the rig's volume.pvr); a "
+                   "coarser one, e.g. twice the rig's, watches the flow on 8x fewer voxels, many times faster. "
+                   "The recording keeps the raw frames whatever it is")
     m.add_argument("--slice", choices=("x", "y", "z"), default="z", help="axis normal to the slice (default: z)")
     m.add_argument("--passes", type=int, choices=(1, 2), default=2, help="correlation passes (default: 2)")
     m.add_argument("--ring", type=positive_int, default=32, metavar="PAIRS",
@@ -91,6 +97,7 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
     from realtime.monitor import MonitorWindow
     from realtime.pipeline import LivePipeline, LiveSettings, default_windows, monitoring_recon
 
+    check_pvr(args.pvr)
     if args.out is not None:
         RunStore.check_new(args.out, args.overwrite)
     try:
@@ -110,14 +117,14 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
 
             say(f"simulated lab: rendering {args.sim_pool} pair(s) of '{args.sim_flow}' per camera ...")
             sim_options = {"lab": stack.enter_context(SimLab(rig, **sim_options))}
-        grid = VolumeGrid.from_rig(rig)
+        grid = VolumeGrid.from_rig(rig, args.pvr)
         try:
             corr = CorrelationConfig(windows=default_windows(grid.shape, args.passes), overlap=0.5,
                                      deform_iterations=0)
         except CorrelationError as exc:
             raise UsageError(str(exc)) from None
         pipe = LivePipeline(rig, settings=settings, recon=monitoring_recon(method=args.method), correlation=corr,
-                            device=device)
+                            pvr=args.pvr, device=device)
         say(f"building the reconstruction ({'x'.join(map(str, pipe.grid.shape[::-1]))} voxels) and correlation "
             f"on {device} ...")
         pipe.build()
@@ -177,7 +184,8 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
     print(f"live: {int(numbers['processed'])} pair(s) processed, {int(numbers['skipped'])} skipped, "
           f"{int(numbers['discarded'])} discarded, {int(numbers['displayed'])} shown; last trigger-to-display "
           f"latency {f'{lat:.2f} s' if math.isfinite(lat) else 'n/a'}; {args.method}, {args.iterations} iteration(s) "
-          f"on {device}")
+          f"on {device}, {'x'.join(map(str, pipe.grid.shape[::-1]))} voxels at PVR "
+          f"{','.join(f'{v:g}' for v in args.pvr or rig.volume.pvr)}")
     st = pipe.stats()
     if st.error:
         print(f"lfpiv monitor: warning: the live path reported: {st.error}", file=sys.stderr)

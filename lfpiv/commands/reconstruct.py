@@ -4,18 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from lfpiv.commands import add_device, positive_float, positive_int, whole_number
+from lfpiv.commands import add_device, check_pvr, positive_float, positive_int, whole_number, xyz_triple
 from lfpiv.errors import UsageError
-
-
-def _triple(text: str) -> tuple[float, float, float]:
-    try:
-        v = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not three numbers like 2,2,10") from None
-    if len(v) != 3:
-        raise argparse.ArgumentTypeError(f"'{text}' is not three numbers like 2,2,10")
-    return v  # type: ignore[return-value]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,9 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "sequential MART used 2.5)")
     r.add_argument("--form", choices=("simultaneous", "sequential"), default="simultaneous",
                    help="simultaneous (default; parallel, for GPUs) or sequential (eq. 4.1 pixel by pixel)")
-    r.add_argument("--pvr", type=_triple, default=None, metavar="X,Y,Z",
+    r.add_argument("--pvr", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="pixel-voxel ratio per axis (default: the rig's volume.pvr)")
-    r.add_argument("--margin-mm", type=_triple, default=(0.0, 0.0, 0.0), metavar="X,Y,Z",
+    r.add_argument("--margin-mm", type=xyz_triple, default=(0.0, 0.0, 0.0), metavar="X,Y,Z",
                    help="grow the box beyond the rig's volume on every side (default: 0,0,0)")
     r.add_argument("--cameras", default=None, metavar="NAMES", help="comma-separated cameras to use (default: all)")
     r.add_argument("--pairs", default=None, metavar="RANGE", help="pairs to reconstruct, e.g. 0:10 or 3 (default: all)")
@@ -61,8 +51,7 @@ def run(args: argparse.Namespace) -> int:
     from lfcore.runstore import RunStore
     from lfpiv.recon import reconstruct_run
 
-    if args.pvr is not None and any(v <= 0 for v in args.pvr):
-        raise UsageError(f"--pvr must be three positive numbers, got {','.join(f'{v:g}' for v in args.pvr)}")
+    check_pvr(args.pvr)
     try:
         settings = ReconSettings(method=args.method, iterations=args.iterations, relaxation=args.relaxation,
                                  form=args.form, sub_apertures=args.sub_apertures, background=args.background,

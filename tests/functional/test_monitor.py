@@ -67,7 +67,7 @@ def test_monitor_screenshot_and_status_match_the_run_store(main, rig_file: Path,
     pairs = 30
     rc = main(["monitor", "--rig", str(rig_file), "--pairs", str(pairs), "--out", str(out), "--screenshot", str(shot),
                "--after", "2", "--device", "cpu", "--iterations", "3", "--method", "mlos-mart", "--sim-rays", "300",
-               "--sim-pool", "3", "--quiet"])
+               "--sim-pool", "3", "--pvr", "4,4,20", "--quiet"])
     stdout, stderr = capsys.readouterr()
     assert rc == 0, stderr
     # status numbers against the run store
@@ -84,7 +84,8 @@ def test_monitor_screenshot_and_status_match_the_run_store(main, rig_file: Path,
     live = re.search(r"live: (\d+) pair\(s\) processed, (\d+) skipped, (\d+) discarded, (\d+) shown", stdout)
     processed, skipped, discarded, shown = (int(g) for g in live.groups())
     assert 1 <= shown <= processed and processed + skipped + discarded <= committed
-    assert "mlos-mart, 3 iteration(s) on cpu" in stdout
+    # the live volume at the monitoring PVR (the tiny rig's 82 x 68 x 29 voxels at 2,2,10)
+    assert "mlos-mart, 3 iteration(s) on cpu, 41x34x15 voxels at PVR 4,4,20" in stdout
     assert f"screenshot: {shot}" in stdout
     # the screenshot: every panel drew something
     img = _png(shot)
@@ -108,6 +109,12 @@ def test_monitor_without_the_gui_extra_says_how_to_install_it(main, rig_file: Pa
     assert main(["monitor", "--rig", str(rig_file), "--screenshot", "x.png"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "pip install 'lfpiv[gui]'" in err
+
+
+def test_monitor_with_a_bad_pvr_is_one_line(main, rig_file: Path, capsys) -> None:
+    assert main(["monitor", "--rig", str(rig_file), "--pvr", "0,2,10", "--screenshot", "x.png"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--pvr must be three positive numbers, got 0,2,10" in err
 
 
 def test_monitor_without_a_display_is_one_line(main, rig_file: Path, capsys, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from acquisition.ring import PairRing
+from lfcore.volume import VolumeGrid
 from realtime.pipeline import LivePipeline, LiveSettings, default_windows
 
 SHAPE = (160, 192)  # the tiny rig's rows, columns
@@ -191,10 +192,11 @@ def test_staging_hands_over_the_newest_pair_intact(tiny_rig) -> None:
     assert st.processed + st.skipped + st.discarded == st.last_pair + 1
 
 
-@pytest.mark.parametrize("method", ["drt-mart", "mlos-mart"])
-def test_live_volume_equals_the_batch_reconstruction(tiny_rig, method) -> None:
+@pytest.mark.parametrize(("method", "pvr"), [("drt-mart", None), ("mlos-mart", None), ("mlos-mart", (4, 4, 20))])
+def test_live_volume_equals_the_batch_reconstruction(tiny_rig, method, pvr) -> None:
     """Device preprocessing, device volumes and device smoothing give the batch path's volume,
-    with either method's weights (kept in the live path's weight cache)."""
+    with either method's weights (kept in the live path's weight cache), at the rig's PVR or a
+    coarser monitoring one."""
     from lfcore.particles import particle_count, seed_particles
     from lfcore.projector import Projector
     from lfcore.reconstruct import reconstruct
@@ -211,7 +213,9 @@ def test_live_volume_equals_the_batch_reconstruction(tiny_rig, method) -> None:
     ring.publish(0)
     results = []
     pipe = LivePipeline(tiny_rig, ring, settings=LiveSettings(iterations=3, slice_axis="z", slice_index=14),
-                        recon=monitoring_recon(method=method), device="cpu")
+                        recon=monitoring_recon(method=method), pvr=pvr, device="cpu")
+    assert pipe.grid == VolumeGrid.from_rig(tiny_rig, pvr)
+    assert pipe.grid.shape == ((29, 68, 82) if pvr is None else (15, 34, 41))
     pipe.subscribe(results.append)
     with pipe:
         assert pipe.wait_processed(1, 60.0)
