@@ -12,6 +12,8 @@
 #                                  # and functional tests (about 8 minutes)
 #   bash benchmarks/gpu.sh corr    # the correlation's tests, and its benchmark in every variant with
 #                                  # a kernel profile (about 6 minutes)
+#   bash benchmarks/gpu.sh monitor # the elimination and live tests' CUDA variants, live M by MLOS-MART at
+#                                  # the rig's PVR and two monitoring PVRs, M by MLOS-MART (about 8 min)
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
 #                                  # iterations), then the weight-build profile (what fits in 6 min)
 #
@@ -71,6 +73,16 @@ elif [ "$stage" = corr ]; then
         -p no:cacheprovider --timeout 100
     step correlate 200 python3 benchmarks/correlate.py --case gpu --profile
     step correlate-r4 100 python3 benchmarks/correlate.py --case gpu --variant direct-first50 --search-radius 4
+elif [ "$stage" = monitor ]; then
+    step pytest-elim-live-cuda 120 python3 -m pytest tests/unit/test_weight_build.py tests/unit/realtime -q -k cuda \
+        -p no:cacheprovider --timeout 100
+    step live-M-mlos 110 python3 benchmarks/live.py --case M --device cuda --seconds 15 --method mlos-mart \
+        --distinct 8 --warmup-limit 60
+    step live-M-mlos-pvr4 90 python3 benchmarks/live.py --case M --device cuda --seconds 15 --method mlos-mart \
+        --distinct 8 --warmup-limit 60 --pvr 4,4,20
+    step live-M-mlos-pvr6 80 python3 benchmarks/live.py --case M --device cuda --seconds 15 --method mlos-mart \
+        --distinct 8 --warmup-limit 60 --pvr 6,6,30
+    step recon-M-mlos 100 python3 benchmarks/recon.py --case M --device cuda --no-drt --no-mart --iterations 50
 elif [ "$stage" = profile ]; then
     step pytest-correlate 150 python3 -m pytest tests/unit/test_correlate.py tests/functional/test_correlate_cli.py -q \
         -p no:cacheprovider --timeout 100
