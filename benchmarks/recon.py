@@ -139,7 +139,8 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, 
     if with_drt:
         drt = reconstruct(proj, img, ReconSettings(iterations=its))
         q = metrics.q_recon(drt.volume, e0)
-        print(f"  DRT-MART: weights {drt.weights_s:.2f} s, active {drt.active_fraction:.3%} ({drt.active_voxels} "
+        print(f"  DRT-MART: weights {drt.weights_s:.2f} s (elimination {drt.eliminate_s:.2f} s), "
+              f"active {drt.active_fraction:.3%} ({drt.active_voxels} "
               f"voxels, {drt.nnz} weights, {drt.weight_bytes / 2**20:.0f} MiB), {drt.ms_per_iteration:.2f} "
               f"ms/iteration ({drt.ms_per_iteration / floor_ms(drt):.1f}x the bandwidth floor of "
               f"{floor_ms(drt):.3f} ms), total {drt.weights_s + drt.iterate_s:.2f} s, Q {q:.3f}, "
@@ -147,7 +148,8 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, 
     # MLOS-MART: the same elimination, the baseline's weights on the surviving voxels
     mlos = reconstruct(proj, img, ReconSettings(method="mlos-mart", iterations=its))
     tm = mlos.weights_s + mlos.iterate_s
-    print(f"  MLOS-MART: weights {mlos.weights_s:.2f} s, active {mlos.active_fraction:.3%} ({mlos.active_voxels} "
+    print(f"  MLOS-MART: weights {mlos.weights_s:.2f} s (elimination {mlos.eliminate_s:.2f} s), "
+          f"active {mlos.active_fraction:.3%} ({mlos.active_voxels} "
           f"voxels, {mlos.nnz} weights, {mlos.weight_bytes / 2**20:.0f} MiB), {mlos.ms_per_iteration:.2f} "
           f"ms/iteration ({mlos.ms_per_iteration / floor_ms(mlos):.1f}x the bandwidth floor), total {tm:.2f} s, "
           f"Q {metrics.q_recon(mlos.volume, e0):.3f}, peak memory {peak_bytes(device) / 2**30:.2f} GiB")

@@ -115,6 +115,7 @@ def test_drt_mart_beats_mart_at_equal_work(tiny_rig, device):
     # the baseline gets as many passes over its stored weights as DRT-MART streams
     mart_its = max(1, round(20 * drt.nnz / proj.weights(proj.all_voxels(), "los").nnz))
     mart = reconstruct(proj, [img], ReconSettings(method="mart", iterations=mart_its))
+    assert 0.0 < drt.eliminate_s < drt.weights_s and mart.eliminate_s == 0.0  # elimination timed apart
     out = {}
     tol = 2 * np.asarray(grid.voxel_mm)
     for name, res in (("drt", drt), ("mart", mart)):
