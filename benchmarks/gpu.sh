@@ -14,6 +14,8 @@
 #                                  # a kernel profile (about 6 minutes)
 #   bash benchmarks/gpu.sh monitor # the elimination and live tests' CUDA variants, live M by MLOS-MART at
 #                                  # the rig's PVR and two monitoring PVRs, M by MLOS-MART (about 8 min)
+#   bash benchmarks/gpu.sh quality # Q at the chapter's 400 iterations: M by DRT-MART and MLOS-MART, the
+#                                  # dual-camera Mc2 and S2 by all three methods (about 6 min)
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
 #                                  # iterations), then the weight-build profile (what fits in 6 min)
 #
@@ -83,6 +85,10 @@ elif [ "$stage" = monitor ]; then
     step live-M-mlos-pvr6 80 python3 benchmarks/live.py --case M --device cuda --seconds 15 --method mlos-mart \
         --distinct 8 --warmup-limit 60 --pvr 6,6,30
     step recon-M-mlos 100 python3 benchmarks/recon.py --case M --device cuda --no-drt --no-mart --iterations 50
+elif [ "$stage" = quality ]; then
+    step recon-M-400 240 python3 benchmarks/recon.py --case M --device cuda --no-mart
+    step recon-Mc2-400 150 python3 benchmarks/recon.py --case Mc2 --device cuda --iterations 400
+    step recon-S2-400 60 python3 benchmarks/recon.py --case S2 --device cuda --iterations 400
 elif [ "$stage" = profile ]; then
     step pytest-correlate 150 python3 -m pytest tests/unit/test_correlate.py tests/functional/test_correlate_cli.py -q \
         -p no:cacheprovider --timeout 100

@@ -17,6 +17,8 @@ S2  the tiny rig's camera and a second one at 90 degrees about y, 0.8 x 0.7 x 0.
     (2, 2, 2) (73 x 64 x 73 voxels), reconstructed jointly: the dual-camera case.
 Mc  the optics of M on a 512 x 512 crop of the sensor (245 x 245 x 131 voxels), 50 iterations:
     M's geometry at a size a CPU manages in minutes.
+Mc2 Mc's camera and a second one at 90 degrees about y around a 4.5 mm cube (245 x 245 x 49
+    voxels at PVR (2, 2, 10)), reconstructed jointly: the dual-camera case on M's optics.
 M   examples/one_camera.toml: 2048 x 2048 pixels, 14 pixels per hexagonal lenslet, 400 iterations.
 L   the chapter's experiment: camera 0 of examples/two_cameras.toml (6600 x 4400 pixels),
     3300 x 2200 x 182 voxels, 400 iterations.
@@ -71,10 +73,13 @@ def case_rig(case: str) -> tuple[Rig, int]:
         return Rig.from_dict(d), 50
     if case == "M":
         return load_rig(ROOT / "examples" / "one_camera.toml"), 400
-    if case == "Mc":
+    if case in ("Mc", "Mc2"):
         d = load_rig(ROOT / "examples" / "one_camera.toml").to_dict()
         d["camera"][0]["sensor_px"] = [512, 512]
         d["volume"]["size_mm"] = [4.5, 4.5, 12.0]
+        if case == "Mc2":  # a second camera at 90 degrees about y; a box both see whole
+            d["camera"].append(dict(d["camera"][0], name="cam1", rotation_deg=[0.0, 90.0, 0.0]))
+            d["volume"]["size_mm"] = [4.5, 4.5, 4.5]
         return Rig.from_dict(d), 50
     d = load_rig(ROOT / "examples" / "two_cameras.toml").to_dict()
     d["camera"] = d["camera"][:1]
@@ -108,7 +113,7 @@ def peak_bytes(device: str) -> int:
 def scene(case: str, device: str, ppm: float):
     """The case's rig, iterations, cameras, grid and true particles, and one rendered image per camera."""
     rig, its = case_rig(case)
-    cams = rig.camera if case == "S2" else rig.camera[:1]
+    cams = rig.camera if case in ("S2", "Mc2") else rig.camera[:1]
     pts = seed_particles(rig.volume, particle_count(rig, ppm), np.random.default_rng(1))
     render = rig.render.model_copy(update={"rays_per_particle": 5000})
     img = [LightFieldRenderer(c, render, rig.laser.wavelength_nm, device=device).frame(pts, render.particle_counts,
@@ -227,7 +232,8 @@ def peak_capacity(device: str) -> int:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--case", choices=("S", "S2", "Mc", "M", "L"), action="append", help="case(s) to run (default: S)")
+    ap.add_argument("--case", choices=("S", "S2", "Mc", "Mc2", "M", "L"), action="append",
+                    help="case(s) to run (default: S)")
     ap.add_argument("--device", default=None, help="cpu or cuda (default: a GPU if there is one)")
     ap.add_argument("--ppm", type=float, default=0.5)
     ap.add_argument("--iterations", type=int, default=None, help="override the case's iterations")
