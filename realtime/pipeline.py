@@ -413,8 +413,9 @@ class LivePipeline:
     pvr
         Pixel-voxel ratio (x, y, z) of the live volume; default: the rig's ``volume.pvr``. A
         coarser one is a monitoring setting: the live path watches the flow on fewer, larger
-        voxels (elimination, weights and iterations all scale with their number), while the
-        recording keeps the raw frames for full-resolution processing afterwards.
+        voxels (elimination, weights and correlation cost about in proportion to their number;
+        iterations less, as a larger voxel has more line-of-sight weights), while the recording
+        keeps the raw frames for full-resolution processing afterwards.
     device
         Warp device; None for the first GPU, else the CPU.
     poll_s

@@ -52,7 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="MART relaxation, at most 2 (default: 1; changeable in the window)")
     m.add_argument("--pvr", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="pixel-voxel ratio per axis of the live volume (default: the rig's volume.pvr); a "
-                   "coarser one, e.g. twice the rig's, watches the flow on 8x fewer voxels, many times faster. "
+                   "coarser one, e.g. twice the rig's, watches the flow on 8x fewer voxels, several times faster. "
                    "The recording keeps the raw frames whatever it is")
     m.add_argument("--slice", choices=("x", "y", "z"), default="z", help="axis normal to the slice (default: z)")
     m.add_argument("--passes", type=int, choices=(1, 2), default=2, help="correlation passes (default: 2)")
