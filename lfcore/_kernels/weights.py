@@ -304,6 +304,17 @@ def corner_pixel(view: View, ax: float, ay: float, qx: float, qy: float, fx: flo
 
 
 @wp.func
+def check_footprint(view: View, a: float, gx: float, gy: float, inv: float, dq: float, p: wp.vec3, ax: float,
+                    ay: float) -> wp.vec4:
+    """Elimination's footprint of sub-aperture point A on the MLA: (qx, qy, fx, fy), centre q and
+    half-sides f of a box that holds the sub-aperture's spot and the voxel's own extent."""
+    cam = view.cam
+    fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
+    fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
+    return wp.vec4(a * ax + gx, a * ay + gy, fx, fy)
+
+
+@wp.func
 def inside_sensor(view: View, ax: float, ay: float, qx: float, qy: float, fx: float, fy: float) -> bool:
     """True if the centre and corners of a footprint (see :func:`corner_pixel`) surely land on the sensor.
 
@@ -401,10 +412,11 @@ def eliminate(
                 k = check_order[m]
                 ax = sub_a[k][0]
                 ay = sub_a[k][1]
-                qx = a * ax + gx
-                qy = a * ay + gy
-                fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
-                fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
+                box = check_footprint(view, a, gx, gy, inv, dq, p, ax, ay)
+                qx = box[0]
+                qy = box[1]
+                fx = box[2]
+                fy = box[3]
                 if inside_sensor(view, ax, ay, qx, qy, fx, fy):
                     # Every point lands on the sensor, so the first lit one settles the check;
                     # and a footprint well inside its centre's lenslet cell (inradius half a
@@ -484,10 +496,11 @@ def check_pixels(
                 k = check_order[view.check_first + mi]
                 ax = sub_a[k][0]
                 ay = sub_a[k][1]
-                qx = a * ax + gx
-                qy = a * ay + gy
-                fx = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[0] + wp.abs(ax - p[0]) * dq
-                fy = 0.5 * wp.abs(a) * view.sub_side + cam.si * inv * view.half[1] + wp.abs(ay - p[1]) * dq
+                box = check_footprint(view, a, gx, gy, inv, dq, p, ax, ay)
+                qx = box[0]
+                qy = box[1]
+                fx = box[2]
+                fy = box[3]
                 off = int(0)
                 for corner in range(5):
                     q = corner_pixel(view, ax, ay, qx, qy, fx, fy, corner)
