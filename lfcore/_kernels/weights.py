@@ -710,6 +710,7 @@ def los_weights(
         j0 = int(wp.ceil(box[2] / h))
         j1 = int(wp.floor(box[3] / h))
         ratio = cam.si / cam.f_ml
+        inner2 = 0.2499 * cam.pitch * cam.pitch  # (0.49995 pitch)^2: inside every cell's inscribed circle
         for j in range(j0, j1 + 1):
             shift = row_shift(cam, j)
             i0 = int(wp.ceil((box[0] - shift) / cam.pitch))
@@ -724,27 +725,41 @@ def los_weights(
                 # the sensor point of that line, and the search radius around it (pixels)
                 ssx = c[0] - (asx - c[0]) / ratio
                 ssy = c[1] - (asy - c[1]) / ratio
-                # (near the focal plane the disc covers the whole lenslet: the clamp to the
-                # lenslet's own pixels below bounds the loop, so the radius is not capped)
-                rad = view.los_radius * cam.so / wp.abs(dz) / ratio / cam.pixel + 1.0
-                ccol = 0.5 * float(cam.ncols) - ssx / cam.pixel
-                crow = 0.5 * float(cam.nrows) + ssy / cam.pixel
+                # A pixel at sensor point s has aperture point A = A* + (ss - s) ratio, and its
+                # line passes |A - A*| |dz| / so from the voxel centre: it sees the voxel only if
+                # its centre is within rad of ss (pixels; a hair more for round-off). Near the
+                # focal plane the disc covers the whole lenslet: the clamp to the lenslet's own
+                # pixels below bounds the loop, so the radius is not capped.
+                rad = view.los_radius * cam.so / wp.abs(dz) / ratio / cam.pixel * 1.0001 + 1.0e-3
+                # if no pixel of the disc can have its aperture point inside the aperture, none
+                # of this lenslet's pixels sees the voxel
+                reach_a = cam.aperture_r + ratio * rad * cam.pixel
+                if asx * asx + asy * asy > reach_a * reach_a:
+                    continue
+                # pixel centres are at column + 0.5, row + 0.5 in these coordinates
+                ccol = 0.5 * float(cam.ncols) - ssx / cam.pixel - 0.5
+                crow = 0.5 * float(cam.nrows) + ssy / cam.pixel - 0.5
                 # only this lenslet's own pixels: those within half a pitch of its centre
-                lcol = 0.5 * float(cam.ncols) - c[0] / cam.pixel
-                lrow = 0.5 * float(cam.nrows) + c[1] / cam.pixel
-                half = 0.5 * cam.pitch / cam.pixel
-                c0 = wp.max(0, int(wp.floor(wp.max(ccol - rad, lcol - half))))
-                c1 = wp.min(cam.ncols - 1, int(wp.floor(wp.min(ccol + rad, lcol + half))))
-                r0 = wp.max(0, int(wp.floor(wp.max(crow - rad, lrow - half))))
+                lcol = 0.5 * float(cam.ncols) - c[0] / cam.pixel - 0.5
+                lrow = 0.5 * float(cam.nrows) + c[1] / cam.pixel - 0.5
+                half = 0.5 * cam.pitch / cam.pixel + 0.5
+                r0 = wp.max(0, int(wp.ceil(wp.max(crow - rad, lrow - half))))
                 r1 = wp.min(cam.nrows - 1, int(wp.floor(wp.min(crow + rad, lrow + half))))
                 for r in range(r0, r1 + 1):
+                    # the disc's chord on this row
+                    dr = float(r) - crow
+                    chord = wp.sqrt(wp.max(rad * rad - dr * dr, 0.0))
+                    c0 = wp.max(0, int(wp.ceil(wp.max(ccol - chord, lcol - half))))
+                    c1 = wp.min(cam.ncols - 1, int(wp.floor(wp.min(ccol + chord, lcol + half))))
                     for cc in range(c0, c1 + 1):
                         sx = (0.5 * float(cam.ncols) - (float(cc) + 0.5)) * cam.pixel
                         sy = (float(r) + 0.5 - 0.5 * float(cam.nrows)) * cam.pixel
-                        # the pixel must lie under this lenslet (its nearest lenslet is c)
-                        own = lenslet_centre(cam, sx, sy)
-                        if wp.abs(own[0] - c[0]) + wp.abs(own[1] - c[1]) > 1.0e-3 * cam.pitch:
-                            continue
+                        # the pixel must lie under this lenslet (its nearest lenslet is c); inside
+                        # the cell's inscribed circle it does without asking the lattice
+                        if (sx - c[0]) * (sx - c[0]) + (sy - c[1]) * (sy - c[1]) > inner2:
+                            own = lenslet_centre(cam, sx, sy)
+                            if wp.abs(own[0] - c[0]) + wp.abs(own[1] - c[1]) > 1.0e-3 * cam.pitch:
+                                continue
                         ax = c[0] + (c[0] - sx) * ratio
                         ay = c[1] + (c[1] - sy) * ratio
                         if ax * ax + ay * ay > cam.aperture_r * cam.aperture_r:
