@@ -16,6 +16,8 @@
 #                                  # the rig's PVR and two monitoring PVRs, M by MLOS-MART (about 8 min)
 #   bash benchmarks/gpu.sh quality # Q at the chapter's 400 iterations: M by DRT-MART and MLOS-MART, the
 #                                  # dual-camera Mc2 and S2 by all three methods (about 6 min)
+#   bash benchmarks/gpu.sh fly     # weights made on the fly: their CUDA tests, M by MLOS-MART with stored and
+#                                  # with on-the-fly weights, L by MLOS-MART (part on the fly; about 9 min)
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
 #                                  # iterations), then the weight-build profile (what fits in 6 min)
 #
@@ -89,6 +91,14 @@ elif [ "$stage" = quality ]; then
     step recon-M-400 240 python3 benchmarks/recon.py --case M --device cuda --no-mart
     step recon-Mc2-400 150 python3 benchmarks/recon.py --case Mc2 --device cuda --iterations 400
     step recon-S2-400 60 python3 benchmarks/recon.py --case S2 --device cuda --iterations 400
+elif [ "$stage" = fly ]; then
+    step pytest-fly-cuda 150 python3 -m pytest tests/unit/test_reconstruct.py -q -k "cuda and (fly or single)" \
+        -p no:cacheprovider --timeout 100
+    step recon-M-stored 100 python3 benchmarks/recon.py --case M --device cuda --no-drt --no-mart --iterations 20 \
+        --weight-storage stored
+    step recon-M-fly 120 python3 benchmarks/recon.py --case M --device cuda --no-drt --no-mart --iterations 20 \
+        --weight-storage on-the-fly
+    step recon-L-mlos 300 python3 benchmarks/recon.py --case L --device cuda --no-drt --no-mart --iterations 3
 elif [ "$stage" = profile ]; then
     step pytest-correlate 150 python3 -m pytest tests/unit/test_correlate.py tests/functional/test_correlate_cli.py -q \
         -p no:cacheprovider --timeout 100

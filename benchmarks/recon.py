@@ -31,6 +31,11 @@ when its weights would not fit, with the size they would need) and against the m
 floor: the bytes one iteration must move (every stored weight read twice, its pixel's projection
 updated and read, each voxel's intensity read and written) divided by the copy bandwidth of the
 same device measured here.
+
+Line-of-sight weights that do not fit in the device's memory are made on the fly in each
+iteration (``--weight-storage auto``, the default; L by MLOS-MART on one GPU): such a run
+reports how many voxels' weights were, and no bandwidth floor, since it traces rather than
+reads them. ``--weight-storage on-the-fly`` forces it, to compare with stored weights.
 """
 
 from __future__ import annotations
@@ -122,7 +127,15 @@ def scene(case: str, device: str, ppm: float):
     return rig, its, cams, VolumeGrid.from_rig(rig), pts, img
 
 
-def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, with_drt: bool = True) -> None:
+def floor_text(r, floor_ms) -> str:
+    """The ratio to the bandwidth floor, or how many voxels' weights were made on the fly."""
+    if r.on_the_fly_voxels:
+        return f"weights of {r.on_the_fly_voxels} voxels made on the fly"
+    return f"{r.ms_per_iteration / floor_ms(r):.1f}x the bandwidth floor of {floor_ms(r):.3f} ms"
+
+
+def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, with_drt: bool = True,
+        storage: str = "auto") -> None:
     t = time.perf_counter()
     _, its, cams, grid, pts, img = scene(case, device, ppm)
     its = iterations or its
@@ -147,16 +160,15 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, 
         print(f"  DRT-MART: weights {drt.weights_s:.2f} s (elimination {drt.eliminate_s:.2f} s), "
               f"active {drt.active_fraction:.3%} ({drt.active_voxels} "
               f"voxels, {drt.nnz} weights, {drt.weight_bytes / 2**20:.0f} MiB), {drt.ms_per_iteration:.2f} "
-              f"ms/iteration ({drt.ms_per_iteration / floor_ms(drt):.1f}x the bandwidth floor of "
-              f"{floor_ms(drt):.3f} ms), total {drt.weights_s + drt.iterate_s:.2f} s, Q {q:.3f}, "
+              f"ms/iteration ({floor_text(drt, floor_ms)}), total {drt.weights_s + drt.iterate_s:.2f} s, Q {q:.3f}, "
               f"peak memory {peak_bytes(device) / 2**30:.2f} GiB")
     # MLOS-MART: the same elimination, the baseline's weights on the surviving voxels
-    mlos = reconstruct(proj, img, ReconSettings(method="mlos-mart", iterations=its))
+    mlos = reconstruct(proj, img, ReconSettings(method="mlos-mart", iterations=its, weight_storage=storage))
     tm = mlos.weights_s + mlos.iterate_s
     print(f"  MLOS-MART: weights {mlos.weights_s:.2f} s (elimination {mlos.eliminate_s:.2f} s), "
           f"active {mlos.active_fraction:.3%} ({mlos.active_voxels} "
           f"voxels, {mlos.nnz} weights, {mlos.weight_bytes / 2**20:.0f} MiB), {mlos.ms_per_iteration:.2f} "
-          f"ms/iteration ({mlos.ms_per_iteration / floor_ms(mlos):.1f}x the bandwidth floor), total {tm:.2f} s, "
+          f"ms/iteration ({floor_text(mlos, floor_ms)}), total {tm:.2f} s, "
           f"Q {metrics.q_recon(mlos.volume, e0):.3f}, peak memory {peak_bytes(device) / 2**30:.2f} GiB")
     if not mart:
         return
@@ -168,7 +180,7 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, 
     if need > 0.8 * (peak_capacity(device)):
         print(f"  MART baseline: skipped, its weights would need about {need / 2**30:.0f} GiB")
         return
-    base = reconstruct(proj, img, ReconSettings(method="mart", iterations=its))
+    base = reconstruct(proj, img, ReconSettings(method="mart", iterations=its, weight_storage=storage))
     qb = metrics.q_recon(base.volume, e0)
     tb = base.weights_s + base.iterate_s
     print(f"  MART baseline: weights {base.weights_s:.2f} s ({base.nnz} weights), {base.ms_per_iteration:.2f} "
@@ -239,6 +251,8 @@ def main() -> int:
     ap.add_argument("--iterations", type=int, default=None, help="override the case's iterations")
     ap.add_argument("--no-mart", action="store_true", help="skip the MART baseline")
     ap.add_argument("--no-drt", action="store_true", help="skip DRT-MART (MLOS-MART only, with --no-mart)")
+    ap.add_argument("--weight-storage", choices=("auto", "stored", "on-the-fly"), default="auto",
+                    help="line-of-sight weights of MLOS-MART and the baseline (default: auto, stored if they fit)")
     ap.add_argument("--profile-weights", action="store_true",
                     help="instead: time the elimination, each DRT weight build and every kernel of the builds")
     args = ap.parse_args()
@@ -249,7 +263,7 @@ def main() -> int:
         return 0
     for case in args.case or ["S"]:
         try:
-            run(case, device, args.ppm, args.iterations, not args.no_mart, not args.no_drt)
+            run(case, device, args.ppm, args.iterations, not args.no_mart, not args.no_drt, args.weight_storage)
         except MemoryBudgetError as exc:  # the case does not fit this device: say so, go on
             print(f"  case {case}: {exc}")
         sys.stdout.flush()

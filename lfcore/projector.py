@@ -19,6 +19,7 @@ import numpy as np
 
 from lfcore.device import (
     MemoryBudgetError,
+    PerBlock,
     PrivateCopies,
     RowOffset,
     Rows,
@@ -52,6 +53,10 @@ ADVICE = "use a coarser --pvr, a smaller volume, or fewer sub-apertures"
 LANES = 32
 #: Ways to build DRT weights (see :meth:`Projector.weights`).
 BUILDS = ("auto", "single-pass", "two-pass")
+#: Where weights live (see :meth:`Projector.weights`).
+STORAGE = ("auto", "stored", "on-the-fly")
+#: Bytes per voxel of weights made on the fly: its index and its weights' sum.
+ON_THE_FLY_BYTES_PER_VOXEL = 8
 
 
 @dataclass
@@ -79,25 +84,53 @@ class Weights:
     voxels
         (n,) int32 flat indices into the (z, y, x) grid of the voxels that have weights.
     chunks
-        The CSR chunks covering voxels 0 .. n - 1 in order.
+        The CSR chunks covering voxels 0 .. k - 1 in order, k = ``n_stored`` (all voxels unless
+        some weights are made on the fly).
     nnz
-        Stored entries: each (voxel, pixel) once, the fraction of the voxel's light on that pixel.
+        Entries: each (voxel, pixel) once, the fraction of the voxel's light on that pixel.
+    sums
+        Weights made on the fly (line-of-sight only) of voxels k .. n - 1: (n - k,) float32, the
+        sum of each voxel's raw weights (they are divided by it, as stored ones are); None if
+        every weight is stored.
+    min_weight
+        The raw weights below this were dropped (made on the fly, they are dropped again).
     """
 
     voxels: object
     chunks: list[WeightChunk]
     nnz: int
+    sums: object = None
+    min_weight: float = 1e-6
 
     @property
     def n_voxels(self) -> int:
         return int(self.voxels.shape[0])
 
     @property
+    def n_on_the_fly(self) -> int:
+        """Voxels whose weights are made in each iteration (the last ones) instead of stored."""
+        return 0 if self.sums is None else int(self.sums.shape[0])
+
+    @property
+    def n_stored(self) -> int:
+        """Voxels whose weights are stored (the first ones)."""
+        return self.n_voxels - self.n_on_the_fly
+
+    @property
+    def stored(self) -> bool:
+        """True if every weight is held in memory."""
+        return self.sums is None
+
+    @property
     def nbytes(self) -> int:
-        return BYTES_PER_WEIGHT * self.nnz + 12 * self.n_voxels
+        held = sum(c.nnz for c in self.chunks)
+        return BYTES_PER_WEIGHT * held + 12 * self.n_stored + ON_THE_FLY_BYTES_PER_VOXEL * self.n_on_the_fly
 
     def to_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(offsets (n + 1,), pix (nnz,), w (nnz,)) of all chunks joined, on the host."""
+        if not self.stored:
+            raise ValueError("some of these weights are made on the fly, not stored; build them with "
+                             "storage='stored'")
         offs, pix, w = [np.zeros(1, np.int64)], [], []
         base = 0
         for c in self.chunks:
@@ -325,7 +358,8 @@ class Projector:
 
     # --- weights ------------------------------------------------------------------------
     def weights(self, voxels, method: str = "drt", min_weight: float = 1e-6,
-                budget_bytes: int | None = None, build: str = "auto", sort: str = "auto") -> Weights:
+                budget_bytes: int | None = None, build: str = "auto", sort: str = "auto",
+                storage: str = "stored") -> Weights:
         """Sparse weights of ``voxels`` (from :meth:`eliminate` or :meth:`all_voxels`).
 
         The DRT kernel emits one entry per (sub-aperture, lenslet, pixel); the entries of a
@@ -358,6 +392,13 @@ class Projector:
         sort
             Merge of a two-pass build: ``"auto"`` (per voxel on the CPU, the library's on a GPU),
             ``"per-voxel"`` or ``"library"``. A single-pass build always sorts per voxel.
+        storage
+            ``"stored"``; ``"on-the-fly"``: only each voxel's weight sum is kept, and
+            :meth:`forward` and :meth:`smart_update` compute the weights again where they use
+            them (line-of-sight weights only: the same iterations, to float round-off, in 16
+            bytes per voxel, at the cost of tracing every weight twice an iteration);
+            ``"auto"``: as many voxels' weights stored as fit in ``budget_bytes``, the rest
+            made on the fly (DRT weights are always stored).
 
         Raises
         ------
@@ -365,14 +406,19 @@ class Projector:
             If the weights would not fit, with their size.
         """
         with out_of_memory_is_budget_error(self.device, f"the weights of {int(voxels.shape[0]):,} voxels", ADVICE):
-            return self._weights(voxels, method, min_weight, budget_bytes, build, sort)
+            return self._weights(voxels, method, min_weight, budget_bytes, build, sort, storage)
 
     def _weights(self, voxels, method: str, min_weight: float, budget_bytes: int | None, build: str,
-                 sort: str) -> Weights:
+                 sort: str, storage: str) -> Weights:
         wp, kw = self.wp, self._kw
         n = int(voxels.shape[0])
         if method not in ("drt", "los"):
             raise ValueError(f"unknown weight method '{method}'; use 'drt' or 'los'")
+        if storage not in STORAGE:
+            raise ValueError(f"unknown weight storage '{storage}'; use one of {', '.join(STORAGE)}")
+        if method == "drt" and storage == "on-the-fly":
+            raise ValueError("DRT weights cannot be made on the fly; use stored ones, or line-of-sight weights "
+                             "(mart, mlos-mart)")
         if build not in BUILDS:
             raise ValueError(f"unknown build '{build}'; use one of {', '.join(BUILDS)}")
         if build == "auto":
@@ -386,36 +432,42 @@ class Projector:
         counts = wp.zeros(max(n, 1), dtype=wp.int64, device=self.device)
         sums = wp.zeros(max(n, 1), dtype=float, device=self.device)
         offsets = wp.zeros(n + 1, dtype=wp.int64, device=self.device)
-        if method == "drt":
-            kern = kw.drt_weights
-            common = [self._grid, self.views, len(self.cameras), self.sub_a, self.sub_w]
-        else:
-            kern = kw.los_weights
-            common = [self._grid, self.views, len(self.cameras)]
-        extra = [sums] if method == "los" else []
-
-        limit = [wp.int64(2**62)] if method == "drt" else []
-
-        def launch(lo, hi, fill, pix, w, origin=0):
-            launch_rows(kern, hi - lo, [*common, Rows(voxels[lo:hi]), Rows(offsets[lo:hi + 1]), wp.int64(origin),
-                                        float(min_weight), fill, *limit, Rows(counts[lo:hi]),
-                                        *([Rows(sums[lo:hi])] if extra else []), pix, w], self.device)
-
         dummy_i = wp.empty(1, dtype=wp.int32, device=self.device)
         dummy_f = wp.empty(1, dtype=float, device=self.device)
+
+        def launch(lo, hi, fill, pix, w, origin=0):
+            if method == "los":
+                self._los(voxels[lo:hi], fill, min_weight, counts=counts[lo:hi], sums=sums[lo:hi],
+                          offsets=offsets[lo:hi + 1], origin=origin, pix=pix, w=w)
+                return
+            launch_rows(kw.drt_weights, hi - lo, [self._grid, self.views, len(self.cameras), self.sub_a, self.sub_w,
+                                                  Rows(voxels[lo:hi]), Rows(offsets[lo:hi + 1]), wp.int64(origin),
+                                                  float(min_weight), fill, wp.int64(2**62), Rows(counts[lo:hi]), pix,
+                                                  w], self.device)
+
         if n:
             launch(0, n, 0, dummy_i, dummy_f)
             wp.utils.array_scan(counts[:n], offsets[1:], inclusive=True)
         raw = offsets.numpy()
+        stored_n = n
+        if method == "los" and storage != "stored":
+            # The most first voxels whose weights fit beside the rest's sums and indices, and beside
+            # the build's counts and offsets (8 bytes each per voxel) while the chunks are made.
+            held = BYTES_PER_WEIGHT * raw
+            held += (12 - ON_THE_FLY_BYTES_PER_VOXEL) * np.arange(n + 1)
+            held += (ON_THE_FLY_BYTES_PER_VOXEL + 16) * n
+            fit = np.flatnonzero(held <= budget)
+            del held
+            stored_n = int(fit[-1]) if storage == "auto" and fit.size else 0
         per_chunk = CHUNK_ENTRIES["cpu" if self.device == "cpu" else "cuda"]
         # Chunks of whole voxels with at most `per_chunk` raw entries (a voxel with more gets its own).
         bounds = [0]
-        while bounds[-1] < n:
+        while bounds[-1] < stored_n:
             lo = bounds[-1]
             hi = int(np.searchsorted(raw, raw[lo] + per_chunk, side="right")) - 1
-            bounds.append(min(n, max(hi, lo + 1)))
+            bounds.append(min(stored_n, max(hi, lo + 1)))
         if method == "los":
-            self._check_budget(int(raw[n]), n, budget)  # the raw entries are the weights (below)
+            self._check_budget(int(raw[stored_n]), n, budget)  # the raw entries are the weights (below)
         else:
             # the weights must leave room for one chunk's raw entries and their sort
             largest = max((int(raw[hi] - raw[lo]) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)), default=0)
@@ -459,7 +511,33 @@ class Projector:
             chunk = self._pack(lo, hi, starts, kept, merged_pix, merged_w, total, n, budget)
             total += chunk.nnz
             chunks.append(chunk)
+        if stored_n < n:  # the rest made on the fly: keep their sums, free their counts
+            return Weights(voxels=voxels, chunks=chunks, nnz=int(raw[n]), sums=sums[stored_n:n],
+                           min_weight=float(min_weight))
         return Weights(voxels=voxels, chunks=chunks, nnz=total)
+
+    def _los(self, voxels, fill: int, min_weight: float, *, counts=None, sums, offsets=None, origin: int = 0,
+             pix=None, w=None, e=None, proj=None, ratio=None, relaxation: float = 0.0) -> None:
+        """Launch the line-of-sight kernel over ``voxels`` in mode ``fill`` (see :func:`los_weights`).
+
+        Arrays a mode does not use may be left out; ``proj`` is the :class:`PerBlock` output of a
+        projection.
+        """
+        wp = self.wp
+        dev = self.device
+        i64 = wp.empty(1, dtype=wp.int64, device=dev)
+        f32 = wp.empty(1, dtype=float, device=dev)
+        i32 = wp.empty(1, dtype=wp.int32, device=dev)
+
+        def rows(a, empty):
+            return empty if a is None else Rows(a)
+
+        launch_rows(self._kw.los_weights, int(voxels.shape[0]),
+                    [self._grid, self.views, len(self.cameras), Rows(voxels), rows(offsets, i64),
+                     wp.int64(origin), float(min_weight), fill, rows(counts, i64), Rows(sums),
+                     i32 if pix is None else pix, f32 if w is None else w, rows(e, f32),
+                     PerBlock((f32,)) if proj is None else proj, f32 if ratio is None else ratio,
+                     float(relaxation)], dev)
 
     def _check_budget(self, entries: int, n: int, budget: int) -> None:
         """Raise :class:`MemoryBudgetError` if ``entries`` weights (of ``n`` voxels) pass ``budget`` bytes."""
@@ -550,6 +628,10 @@ class Projector:
         # The projection accumulates into pixels with atomics, which are plain adds on the CPU:
         # there each CPU block sums into a private image, and the images are added after.
         parts = self._parts.open(out)
+        k = weights.n_stored
+        if k < weights.n_voxels:
+            self._los(weights.voxels[k:], 2, weights.min_weight, sums=weights.sums, e=e[k:weights.n_voxels],
+                      proj=parts)
         lanes = 1 if self.device == "cpu" else LANES
         for c in weights.chunks:
             launch_rows(km.project, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), lanes, e, parts],
@@ -570,6 +652,10 @@ class Projector:
             self._ratio = wp.empty(self.n_pixels, dtype=float, device=self.device)
         wp.launch(km.log_ratio, dim=self.n_pixels, inputs=[image, proj, float(floor), self._ratio], device=self.device)
         mu = float(relaxation)
+        k = weights.n_stored
+        if k < weights.n_voxels:
+            self._los(weights.voxels[k:], 3, weights.min_weight, sums=weights.sums, e=e[k:weights.n_voxels],
+                      ratio=self._ratio, relaxation=mu)
         for c in weights.chunks:
             if self.device == "cpu":
                 launch_rows(km.smart_update, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first),

@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from lfcore.device import out_of_memory_is_budget_error
+from lfcore.device import MemoryBudgetError, available_bytes, out_of_memory_is_budget_error
 from lfcore.device_ops import VolumeOps
-from lfcore.projector import Projector
+from lfcore.projector import STORAGE, Projector
 from lfcore.weight_cache import WeightCache
 
 __all__ = ["METHODS", "WEIGHTS", "ReconResult", "ReconSettings", "estimate_background", "preprocess", "reconstruct"]
@@ -90,6 +90,14 @@ class ReconSettings:
         cross-correlation needs to locate peaks without peak locking (and that Q_recon's truth
         is made of); 0.6 voxel brings them to that size, as in spatially filtered MART
         (Discetti et al. 2013).
+    weight_storage
+        Where the line-of-sight weights of ``mart`` and ``mlos-mart`` live: ``"auto"`` (stored
+        if they fit in the device's memory; otherwise as many voxels' as fit, the rest computed
+        again in each iteration), ``"stored"`` (all stored, or a :class:`MemoryBudgetError`) or
+        ``"on-the-fly"`` (none stored). The volume is the same (to float round-off); weights
+        made on the fly cost two traces per iteration instead of two reads, so a volume whose
+        weights do not fit is reconstructed slowly rather than refused. DRT weights and the
+        sequential form are always stored.
     """
 
     method: str = "drt-mart"
@@ -104,6 +112,7 @@ class ReconSettings:
     floor: float = 0.3
     lit_grow: int = 0
     smooth: float = 0.6
+    weight_storage: str = "auto"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -121,6 +130,13 @@ class ReconSettings:
             raise ValueError(f"threshold_sigma must be 0 or more, got {self.threshold_sigma}")
         if not self.smooth >= 0:
             raise ValueError(f"smooth must be 0 or more, got {self.smooth}")
+        if self.weight_storage not in STORAGE:
+            raise ValueError(f"weight_storage must be one of {', '.join(STORAGE)}, got '{self.weight_storage}'")
+        if self.weight_storage == "on-the-fly" and self.method == "drt-mart":
+            raise ValueError("DRT-MART's weights are always stored; on-the-fly weights are for mart and mlos-mart")
+        if self.weight_storage == "on-the-fly" and self.form == "sequential":
+            raise ValueError("the sequential form needs stored weights; use the simultaneous form for on-the-fly "
+                             "weights")
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -146,6 +162,8 @@ class ReconResult:
         Seconds spent on elimination plus weights, and on the iterations.
     eliminate_s
         Of ``weights_s``, the seconds of zero-voxel elimination (0 for the MART baseline).
+    on_the_fly_voxels
+        Voxels whose weights were made in each iteration instead of stored (0: all stored).
     background, noise
         Per camera: the background subtracted and the noise sigma, in counts.
     """
@@ -161,6 +179,7 @@ class ReconResult:
     background: list[float] = field(default_factory=list)
     noise: list[float] = field(default_factory=list)
     eliminate_s: float = 0.0
+    on_the_fly_voxels: int = 0
 
     @property
     def ms_per_iteration(self) -> float:
@@ -227,7 +246,8 @@ def preprocess(image: np.ndarray, background: float, sigma: float, threshold_sig
 
 
 def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: ReconSettings,
-                progress: Callable[[int], None] | None = None, cache: WeightCache | None = None) -> ReconResult:
+                progress: Callable[[int], None] | None = None, cache: WeightCache | None = None,
+                budget_bytes: int | None = None) -> ReconResult:
     """Reconstruct one volume from one image per camera of the projector.
 
     Parameters
@@ -243,8 +263,12 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
     cache
         Weights kept across calls (built on ``projector``): each frame then traces only the
         voxels no earlier frame kept. Used by DRT-MART when it holds DRT weights and by
-        MLOS-MART when it holds line-of-sight ones (ignored otherwise); None: build them
-        directly.
+        MLOS-MART when it holds line-of-sight ones (ignored otherwise, and when its weights
+        would not fit); None: build them directly.
+    budget_bytes
+        Device memory the weights and the iterations may take; None: what the device has free.
+        With ``settings.weight_storage = "auto"``, line-of-sight weights beyond it are made on
+        the fly.
 
     Returns
     -------
@@ -275,25 +299,40 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
 
     what = f"{settings.method} of a {projector.grid.n_voxels:,}-voxel box"
     with out_of_memory_is_budget_error(projector.device, what, "use a coarser --pvr or a smaller volume"):
-        return _reconstruct(projector, signals, lits, backgrounds, noises, settings, progress, cache)
+        return _reconstruct(projector, signals, lits, backgrounds, noises, settings, progress, cache, budget_bytes)
+
+
+def _weight_budget(projector: Projector, n_active: int, budget_bytes: int | None) -> int:
+    """Bytes the weights of ``n_active`` voxels may take: the budget less what the iterations
+    and the result need beside them (per pixel the image, its projection and log ratio; per
+    active voxel its intensity; the dense volume and its smoothing)."""
+    free = available_bytes(projector.device) if budget_bytes is None else int(budget_bytes)
+    return free - 12 * projector.n_pixels - 4 * n_active - 8 * projector.grid.n_voxels
 
 
 def _reconstruct(projector: Projector, signals: list[np.ndarray], lits: list[np.ndarray], backgrounds: list[float],
                  noises: list[float], settings: ReconSettings, progress: Callable[[int], None] | None,
-                 cache: WeightCache | None) -> ReconResult:
+                 cache: WeightCache | None, budget_bytes: int | None) -> ReconResult:
     wp = projector.wp
     t0 = time.perf_counter()
     t_elim = t0
+    kind = WEIGHTS[settings.method]
+    storage = "stored" if kind == "drt" or settings.form == "sequential" else settings.weight_storage
     if settings.method == "mart":
-        weights = projector.weights(projector.all_voxels(), "los")
+        voxels = projector.all_voxels()
     else:
         voxels = projector.eliminate(lits, settings.min_seen, settings.max_dark)  # returns once counted: synced
         t_elim = time.perf_counter()
-        kind = WEIGHTS[settings.method]
-        if cache is not None and cache.method == kind:
+    weights = None
+    if cache is not None and cache.method == kind and settings.method != "mart" and storage != "on-the-fly":
+        try:
             weights = cache.weights(voxels)
-        else:
-            weights = projector.weights(voxels, kind)
+        except MemoryBudgetError:
+            if storage == "stored":
+                raise
+    if weights is None:
+        budget = _weight_budget(projector, int(voxels.shape[0]), budget_bytes)
+        weights = projector.weights(voxels, kind, budget_bytes=budget, storage=storage)
     dev = projector.device
     image = wp.array(np.concatenate([s.ravel() for s in signals]), dtype=float, device=dev)
     n = weights.n_voxels
@@ -325,4 +364,4 @@ def _reconstruct(projector: Projector, signals: list[np.ndarray], lits: list[np.
     return ReconResult(volume=volume, active_voxels=n, active_fraction=n / projector.grid.n_voxels,
                        nnz=weights.nnz, weight_bytes=weights.nbytes, weights_s=t1 - t0, iterate_s=t2 - t1,
                        iterations=settings.iterations, background=backgrounds, noise=noises,
-                       eliminate_s=t_elim - t0)
+                       eliminate_s=t_elim - t0, on_the_fly_voxels=weights.n_on_the_fly)

@@ -93,8 +93,12 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                          "has free; use a coarser --pvr")
     projector = Projector(cams, grid, sub_apertures=settings.sub_apertures, device=device)
     # weights reused across frames (the baseline's cover the whole box and are built per frame)
-    cache = None if settings.method == "mart" else WeightCache(projector, method=WEIGHTS[settings.method])
-    meta = {**settings.as_dict(), "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
+    cache = None
+    if settings.method != "mart" and settings.weight_storage != "on-the-fly":
+        cache = WeightCache(projector, method=WEIGHTS[settings.method])
+    # where the weights lived does not change a volume, so it does not make volumes/ a different set
+    kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
+    meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
             "cameras": names, "calibration": calibration}
     if not (store.has_volumes and store.volume_grid() == grid and store.group["volumes"].attrs["settings"] == meta):
         store.create_volumes(grid, method=settings.method, settings=meta)

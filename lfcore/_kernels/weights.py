@@ -23,13 +23,16 @@ overlap area of the pixel's line-of-sight cylinder and the voxel's sphere, cut i
 depth plane, normalised so that a voxel's weights sum to one.
 
 The kernels run twice with the same code path: once to count a voxel's weights (``fill = 0``),
-once to write them at the offsets the counts give (``fill = 1``).
+once to write them at the offsets the counts give (``fill = 1``). The line-of-sight kernel can
+also apply its weights as it computes them (``fill = 2, 3``: a MART iteration without stored
+weights, for volumes whose weights do not fit in memory).
 """
 
 from __future__ import annotations
 
 import warp as wp
 
+from lfcore._kernels.mart import multiplied
 from lfcore._kernels.optics import HEX_ROW, CameraParams, lenslet_centre
 from lfcore.device import warp as _init
 
@@ -669,8 +672,19 @@ def los_weights(
     sums: wp.array(dtype=float),
     pix: wp.array(dtype=wp.int32),
     w: wp.array(dtype=float),
+    e: wp.array(dtype=float),
+    proj: wp.array(dtype=float),
+    log_ratio: wp.array(dtype=float),
+    relaxation: float,
 ):
     """Conventional sphere-cylinder weights of voxel ``voxels[tid]`` (the MART baseline).
+
+    ``fill`` says what to do with them: 0 count them into ``counts`` and their sum into
+    ``sums``; 1 write them, divided by ``sums[tid]``, to ``pix``/``w`` from ``offsets[tid]``;
+    2 project the voxel, ``proj[pixel] += w e[tid]``; 3 update it, ``e[tid] <- e[tid]
+    exp(relaxation sum w log_ratio[pixel])`` (:func:`lfcore._kernels.mart.multiplied`). Modes 2 and
+    3 are the MART iteration on weights computed where they are used, never stored: exactly
+    what :mod:`lfcore._kernels.mart` does with the weights of mode 1, in a fraction of the memory.
 
     The line of sight of the pixel at sensor point s under lenslet c passes through the
     lenslet's conjugate x_f = c / M on the focal plane and the aperture point
@@ -680,14 +694,21 @@ def los_weights(
     of the lenslet sees the voxel).
     """
     tid = wp.tid()
+    ej = float(0.0)
+    if fill >= 2:
+        ej = e[tid]
+        if ej == 0.0:
+            return  # a dead voxel projects nothing and stays dead
     pw = voxel_centre(grid, voxels[tid])
     n = wp.int64(0)
     base = wp.int64(0)
     norm = float(1.0)
+    if fill >= 1:
+        norm = 1.0 / wp.max(sums[tid], 1.0e-30)
     if fill == 1:
         base = offsets[tid] - origin
-        norm = 1.0 / wp.max(sums[tid], 1.0e-30)
     total = float(0.0)
+    log_sum = float(0.0)
     for iv in range(n_views):
         view = views[iv]
         cam = view.cam
@@ -770,15 +791,22 @@ def los_weights(
                         ey = xfy - p[1] + (ay - xfy) * dz / cam.so
                         d = wp.sqrt(ex * ex + ey * ey)
                         wt = circle_overlap(view.los_cyl, view.los_sph, d) / sph_area
-                        if wt > min_weight:  # the same test in both passes
+                        if wt > min_weight:  # the same test in every mode
                             total += wt
+                            q = view.pix_offset + r * cam.ncols + cc
                             if fill == 1:
-                                pix[base + n] = view.pix_offset + r * cam.ncols + cc
+                                pix[base + n] = q
                                 w[base + n] = wt * norm
+                            elif fill == 2:
+                                wp.atomic_add(proj, q, wt * norm * ej)
+                            elif fill == 3:
+                                log_sum += wt * norm * log_ratio[q]
                             n += wp.int64(1)
     if fill == 0:
         counts[tid] = n
         sums[tid] = total
+    elif fill == 3:
+        e[tid] = multiplied(ej, log_sum, relaxation)
 
 
 

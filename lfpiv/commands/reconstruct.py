@@ -41,6 +41,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--calibration", default=None, metavar="CALIB",
                    help="calibration store (lfpiv calibrate fit): reconstruct with its fitted camera models "
                    "instead of the rig stored in the run")
+    r.add_argument("--weight-storage", choices=("auto", "stored", "on-the-fly"), default="auto",
+                   help="line-of-sight weights (mart, mlos-mart): auto (default) stores them if they fit in the "
+                   "device's memory and makes the rest again in each iteration (slower, the same volume); "
+                   "stored refuses a volume whose weights do not fit; on-the-fly stores none")
     add_device(r)
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=run)
@@ -55,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         settings = ReconSettings(method=args.method, iterations=args.iterations, relaxation=args.relaxation,
                                  form=args.form, sub_apertures=args.sub_apertures, background=args.background,
-                                 threshold_sigma=args.threshold_sigma, smooth=args.smooth)
+                                 threshold_sigma=args.threshold_sigma, smooth=args.smooth,
+                                 weight_storage=args.weight_storage)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     store = RunStore.open(args.run, mode="r+")
@@ -77,4 +82,8 @@ def run(args: argparse.Namespace) -> int:
           f"with {args.method}{' and the models of ' + args.calibration if calibration else ''} into "
           f"{store.path}/volumes; per volume: {act:.2%} of voxels active, "
           f"weights {wb / 2**20:.1f} MiB built in {ws:.2f} s, {ms:.1f} ms per iteration")
+    fly = max(r.on_the_fly_voxels for r in results)
+    if fly:
+        print(f"the weights of up to {fly:,} active voxels per volume did not fit in the device's memory and "
+              "were made again in each iteration (the same volume, more slowly)")
     return 0

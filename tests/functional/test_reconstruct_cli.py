@@ -67,6 +67,20 @@ def test_mlos_mart_from_the_command(capsys, synthetic_run, tmp_path):
     assert RunStore.open(synthetic_run).group["volumes"].attrs["method"] == "mlos-mart"
 
 
+def test_weights_made_on_the_fly_from_the_command(capsys, synthetic_run):
+    argv = ["reconstruct", str(synthetic_run), "--method", "mlos-mart", "--iterations", "5", "--pairs", "1", "--quiet"]
+    rc, out, err = _run(capsys, *argv, "--weight-storage", "stored")
+    assert rc == 0, err
+    assert "made again in each iteration" not in out
+    stored = RunStore.open(synthetic_run).volumes()[1]
+    rc, out, err = _run(capsys, *argv, "--weight-storage", "on-the-fly")
+    assert rc == 0, err
+    assert "did not fit in the device's memory and were made again in each iteration" in out
+    fly = RunStore.open(synthetic_run).volumes()[1]
+    assert stored.max() > 0
+    np.testing.assert_allclose(fly, stored, rtol=1e-4, atol=1e-5 * float(stored.max()))
+
+
 def _empty_run(tmp_path):
     path = tmp_path / "empty.zarr"
     RunStore.create(path, load_rig(TINY), 2, timing={"dt_s": 0.002, "rate_hz": 10.0}, software_version="x")
@@ -82,6 +96,7 @@ BAD = [
     (lambda t, r: ["reconstruct", r, "--pairs", "7"], "selects no pair of this run"),
     (lambda t, r: ["reconstruct", r, "--relaxation", "3"], "diverge; use at most 2, or the sequential form"),
     (lambda t, r: ["reconstruct", r, "--cameras", "camX"], "no camera 'camX' in this run"),
+    (lambda t, r: ["reconstruct", r, "--weight-storage", "on-the-fly"], "DRT-MART's weights are always stored"),
 ]
 
 

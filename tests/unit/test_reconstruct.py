@@ -210,6 +210,63 @@ def test_weights_that_do_not_fit_are_refused(tiny_rig):
         proj.weights(proj.all_voxels(), "los", budget_bytes=1000)
 
 
+def _scene_images(rig, ppm, device):
+    pts = seed_particles(rig.volume, particle_count(rig, ppm), np.random.default_rng(5))
+    return pts, _render(rig, pts, device=device)
+
+
+@pytest.mark.parametrize("dual", [False, True])
+def test_weights_made_on_the_fly_project_and_update_as_stored_ones(tiny_rig, device, dual):
+    rig = _dual_rig(tiny_rig) if dual else tiny_rig
+    proj = Projector(rig.camera, VolumeGrid.from_rig(rig), device=device)
+    wp = proj.wp
+    rng = np.random.default_rng(4)
+    voxels = wp.array(np.sort(rng.choice(proj.grid.n_voxels, 4000, replace=False)).astype(np.int32), device=device)
+    stored = proj.weights(voxels, "los")
+    fly = proj.weights(voxels, "los", storage="on-the-fly")
+    split = proj.weights(voxels, "los", storage="auto", budget_bytes=stored.nbytes // 3)
+    assert stored.stored and not fly.stored and not split.stored
+    assert fly.n_on_the_fly == 4000 and 0 < split.n_stored < 4000 and split.n_stored + split.n_on_the_fly == 4000
+    assert fly.nnz == split.nnz == stored.nnz and fly.nbytes < stored.nbytes / 50
+    e = rng.random(4000).astype(np.float32)
+    e[rng.random(4000) < 0.3] = 0.0  # dead voxels are skipped
+    ref = proj.forward(stored, wp.array(e, dtype=float, device=device)).numpy().copy()
+    image = wp.array((ref * rng.uniform(0.5, 1.5, ref.size)).astype(np.float32), dtype=float, device=device)
+    ref_e = wp.array(e, dtype=float, device=device)
+    proj.smart_update(stored, image, wp.array(ref, dtype=float, device=device), ref_e, 1.0, 0.01)
+    for w in (fly, split):
+        got = proj.forward(w, wp.array(e, dtype=float, device=device)).numpy()
+        np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-6 * ref.max())
+        upd = wp.array(e, dtype=float, device=device)
+        proj.smart_update(w, image, wp.array(ref, dtype=float, device=device), upd, 1.0, 0.01)
+        np.testing.assert_allclose(upd.numpy(), ref_e.numpy(), rtol=1e-5)
+    with pytest.raises(ValueError, match="made on the fly, not stored"):
+        fly.to_numpy()
+
+
+@pytest.mark.parametrize("method", ["mlos-mart", "mart"])
+def test_weights_that_do_not_fit_are_made_on_the_fly(tiny_rig, device, method):
+    grid = VolumeGrid.from_rig(tiny_rig)
+    pts, images = _scene_images(tiny_rig, 0.3, device)
+    proj = Projector(tiny_rig.camera, grid, device=device)
+    its = 10 if method == "mlos-mart" else 3
+    stored = reconstruct(proj, images, ReconSettings(method=method, iterations=its, weight_storage="stored"))
+    assert stored.on_the_fly_voxels == 0
+    # a budget that holds some of the weights: the rest are made on the fly, and the volume is the same
+    small = stored.weight_bytes // 2 + 12 * proj.n_pixels + 12 * grid.n_voxels
+    tight = reconstruct(proj, images, ReconSettings(method=method, iterations=its), budget_bytes=small)
+    fly = reconstruct(proj, images, ReconSettings(method=method, iterations=its, weight_storage="on-the-fly"))
+    assert 0 < tight.on_the_fly_voxels < stored.active_voxels and fly.on_the_fly_voxels == stored.active_voxels
+    assert tight.weight_bytes < stored.weight_bytes and fly.weight_bytes < stored.weight_bytes / 20
+    truth = metrics.truth_volume(grid, pts)
+    for res in (tight, fly):
+        np.testing.assert_allclose(res.volume, stored.volume, rtol=1e-3, atol=1e-4 * stored.volume.max())
+        assert metrics.q_recon(res.volume, truth) == pytest.approx(metrics.q_recon(stored.volume, truth), abs=1e-4)
+    with pytest.raises(MemoryBudgetError, match="the weights need"):
+        reconstruct(proj, images, ReconSettings(method=method, iterations=1, weight_storage="stored"),
+                    budget_bytes=small)
+
+
 def test_bad_settings():
     with pytest.raises(ValueError, match="method must be one of"):
         ReconSettings(method="sart")
@@ -218,3 +275,9 @@ def test_bad_settings():
     with pytest.raises(ValueError, match="diverge; use at most 2, or the sequential form"):
         ReconSettings(relaxation=2.5)
     assert ReconSettings(relaxation=2.5, form="sequential").relaxation == 2.5
+    with pytest.raises(ValueError, match="weight_storage must be one of auto, stored, on-the-fly"):
+        ReconSettings(method="mlos-mart", weight_storage="disk")
+    with pytest.raises(ValueError, match="DRT-MART's weights are always stored"):
+        ReconSettings(weight_storage="on-the-fly")
+    with pytest.raises(ValueError, match="the sequential form needs stored weights"):
+        ReconSettings(method="mlos-mart", form="sequential", weight_storage="on-the-fly")
