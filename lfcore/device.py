@@ -100,10 +100,24 @@ def warp():
     return wp
 
 
+def host_available_bytes(meminfo: str = "/proc/meminfo") -> int:
+    """RAM a new allocation can have without swapping: Linux's MemAvailable, which counts the page
+    cache the kernel gives back on demand (free pages alone can be a small part of it on a
+    workstation that has just read a run store); elsewhere the free pages."""
+    try:
+        with open(meminfo) as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"))
+
+
 def available_bytes(device: str) -> int:
     """Memory free now on ``device``: the host's available RAM for ``"cpu"``, else the GPU's."""
     if device == "cpu":
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES"))
+        return host_available_bytes()
     return int(warp().get_device(device).free_memory)
 
 
