@@ -84,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
           f"weights {wb / 2**20:.1f} MiB built in {ws:.2f} s, {ms:.1f} ms per iteration")
     fly = max(r.on_the_fly_voxels for r in results)
     if fly:
-        print(f"the weights of up to {fly:,} active voxels per volume did not fit in the device's memory and "
-              "were made again in each iteration (the same volume, more slowly)")
+        why = " (they did not fit in the device's memory)" if args.weight_storage == "auto" else ""
+        print(f"the weights of up to {fly:,} active voxels per volume were made again in each iteration instead "
+              f"of stored{why}: the same volume, more slowly")
     return 0
