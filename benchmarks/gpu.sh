@@ -63,7 +63,8 @@ elif [ "$stage" = live ]; then
         --distinct 8 --warmup-limit 60
     step live-S-drt 40 python3 benchmarks/live.py --case S --device cuda --seconds 10
     step live-S-mlos 40 python3 benchmarks/live.py --case S --device cuda --seconds 10 --method mlos-mart
-    step recon-L-mlos 60 python3 benchmarks/recon.py --case L --device cuda --no-drt --no-mart --iterations 20
+    step recon-L-mlos 60 python3 benchmarks/recon.py --case L --device cuda --no-drt --no-mart --iterations 20 \
+        --weight-storage stored
     step pytest 240 python3 -m pytest tests -q -k "cuda or functional" -p no:cacheprovider \
         --continue-on-collection-errors --timeout 150 --junitxml "$out/pytest.xml"
 elif [ "$stage" = short ]; then
@@ -109,7 +110,8 @@ else
     step recon-M 150 python3 benchmarks/recon.py --case M --device cuda --no-mart --iterations 50
     step live-M-mlos 100 python3 benchmarks/live.py --case M --device cuda --seconds 15 --method mlos-mart
     step live-M-drt 100 python3 benchmarks/live.py --case M --device cuda --seconds 15
-    step recon-L-mlos 60 python3 benchmarks/recon.py --case L --device cuda --no-drt --no-mart --iterations 20
+    step recon-L-mlos 60 python3 benchmarks/recon.py --case L --device cuda --no-drt --no-mart --iterations 20 \
+        --weight-storage stored
 fi
 echo "=== summary ($stage)"
 printf '%s\n' "${summary[@]}"
