@@ -54,7 +54,7 @@ sys.path.insert(0, str(ROOT))
 from lfcore import metrics  # noqa: E402
 from lfcore.device import resolve_device, warp  # noqa: E402
 from lfcore.particles import particle_count, seed_particles  # noqa: E402
-from lfcore.projector import BYTES_PER_WEIGHT, MemoryBudgetError, Projector  # noqa: E402
+from lfcore.projector import BYTES_PER_WEIGHT, STORAGE, MemoryBudgetError, Projector  # noqa: E402
 from lfcore.reconstruct import ReconSettings, estimate_background, preprocess, reconstruct  # noqa: E402
 from lfcore.render import LightFieldRenderer  # noqa: E402
 from lfcore.rig import Rig  # noqa: E402
@@ -251,7 +251,7 @@ def main() -> int:
     ap.add_argument("--iterations", type=int, default=None, help="override the case's iterations")
     ap.add_argument("--no-mart", action="store_true", help="skip the MART baseline")
     ap.add_argument("--no-drt", action="store_true", help="skip DRT-MART (MLOS-MART only, with --no-mart)")
-    ap.add_argument("--weight-storage", choices=("auto", "stored", "on-the-fly"), default="auto",
+    ap.add_argument("--weight-storage", choices=STORAGE, default="auto",
                     help="line-of-sight weights of MLOS-MART and the baseline (default: auto, stored if they fit)")
     ap.add_argument("--profile-weights", action="store_true",
                     help="instead: time the elimination, each DRT weight build and every kernel of the builds")
