@@ -15,7 +15,7 @@
 #   bash benchmarks/gpu.sh monitor # the elimination and live tests' CUDA variants, live M by MLOS-MART at
 #                                  # the rig's PVR and two monitoring PVRs, M by MLOS-MART (about 8 min)
 #   bash benchmarks/gpu.sh quality # Q at the chapter's 400 iterations: M by DRT-MART and MLOS-MART, the
-#                                  # dual-camera Mc2 and S2 by all three methods (about 6 min)
+#                                  # dual-camera Mc2 and S2 by all three methods; Mc2 at 1 PPM (about 8 min)
 #   bash benchmarks/gpu.sh fly     # weights made on the fly: their CUDA tests, M by MLOS-MART with stored and
 #                                  # with on-the-fly weights, L by MLOS-MART (part on the fly; about 9 min)
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
@@ -92,6 +92,7 @@ elif [ "$stage" = quality ]; then
     step recon-M-400 240 python3 benchmarks/recon.py --case M --device cuda --no-mart
     step recon-Mc2-400 150 python3 benchmarks/recon.py --case Mc2 --device cuda --iterations 400
     step recon-S2-400 60 python3 benchmarks/recon.py --case S2 --device cuda --iterations 400
+    step recon-Mc2-ppm1 120 python3 benchmarks/recon.py --case Mc2 --ppm 1 --device cuda
 elif [ "$stage" = fly ]; then
     step pytest-fly-cuda 150 python3 -m pytest tests/unit/test_reconstruct.py -q -k "cuda and (fly or single)" \
         -p no:cacheprovider --timeout 100

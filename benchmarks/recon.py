@@ -8,7 +8,7 @@ Run from the repository root::
     python benchmarks/recon.py --case M --device cuda    # 2048 x 2048, 14 px per lenslet
     python benchmarks/recon.py --case L --device cuda    # 6600 x 4400, 3300 x 2200 x 182 voxels
 
-Cases (single camera, 0.5 PPM unless --ppm, PVR (2, 2, 10), except S2):
+Cases (single camera, 0.5 PPM unless --ppm, PVR (2, 2, 10), except S2 and Mc2):
 
 S   examples/tiny.toml: 192 x 160 pixels, 82 x 68 x 29 voxels. Its volume is only +-3.6
     lenslets of blur deep, so much of it lies where depth is poorly resolved: it tests code, it is
@@ -17,8 +17,10 @@ S2  the tiny rig's camera and a second one at 90 degrees about y, 0.8 x 0.7 x 0.
     (2, 2, 2) (73 x 64 x 73 voxels), reconstructed jointly: the dual-camera case.
 Mc  the optics of M on a 512 x 512 crop of the sensor (245 x 245 x 131 voxels), 50 iterations:
     M's geometry at a size a CPU manages in minutes.
-Mc2 Mc's camera and a second one at 90 degrees about y around a 4.5 mm cube (245 x 245 x 49
-    voxels at PVR (2, 2, 10)), reconstructed jointly: the dual-camera case on M's optics.
+Mc2 Mc's camera and a second one at 90 degrees about y around a 4.5 mm cube, reconstructed
+    jointly at the chapter's dual-camera PVR (3, 3, 3) (164 x 164 x 164 voxels), as
+    examples/two_cameras.toml: each camera's depth is the other's lateral axis, so deep voxels
+    would throw away what the second camera adds.
 M   examples/one_camera.toml: 2048 x 2048 pixels, 14 pixels per hexagonal lenslet, 400 iterations.
 L   the chapter's experiment: camera 0 of examples/two_cameras.toml (6600 x 4400 pixels),
     3300 x 2200 x 182 voxels, 400 iterations.
@@ -84,7 +86,7 @@ def case_rig(case: str) -> tuple[Rig, int]:
         d["volume"]["size_mm"] = [4.5, 4.5, 12.0]
         if case == "Mc2":  # a second camera at 90 degrees about y; a box both see whole
             d["camera"].append(dict(d["camera"][0], name="cam1", rotation_deg=[0.0, 90.0, 0.0]))
-            d["volume"]["size_mm"] = [4.5, 4.5, 4.5]
+            d["volume"].update(size_mm=[4.5, 4.5, 4.5], pvr=[3.0, 3.0, 3.0])
         return Rig.from_dict(d), 50
     d = load_rig(ROOT / "examples" / "two_cameras.toml").to_dict()
     d["camera"] = d["camera"][:1]
