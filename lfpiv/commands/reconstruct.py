@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import argparse
 
-from lfpiv.commands import add_device, check_pvr, positive_float, positive_int, whole_number, xyz_triple
+from lfpiv.commands import (
+    add_device,
+    check_pvr,
+    positive_float,
+    positive_int,
+    warn_voxel_shape,
+    whole_number,
+    xyz_triple,
+)
 from lfpiv.errors import UsageError
 
 
@@ -70,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
         from lfpiv.calibrate import calibrated_rig
 
         rig, calibration = calibrated_rig(store.rig, args.calibration, cameras)
+    warn_voxel_shape(rig or store.rig, cameras, args.pvr)
     results = reconstruct_run(store, settings, pvr=args.pvr, margin_mm=args.margin_mm, pairs=args.pairs,
                               cameras=cameras, device=args.device, progress=not args.quiet, rig=rig,
                               calibration=calibration)

@@ -81,6 +81,25 @@ def test_weights_made_on_the_fly_from_the_command(capsys, synthetic_run):
     np.testing.assert_allclose(fly, stored, rtol=1e-4, atol=1e-5 * float(stored.max()))
 
 
+def test_crossed_cameras_on_deep_voxels_are_warned(capsys, tmp_path):
+    # the tiny rig with a second camera 90 degrees away, on its one-camera PVR (2, 2, 10)
+    text = (EXAMPLES / "tiny.toml").read_text().replace("size_mm = [0.9, 0.75, 1.6]", "size_mm = [0.8, 0.7, 0.8]")
+    cam0 = text[text.index("[[camera]]"):text.index("[laser]")]
+    rig = tmp_path / "dual.toml"
+    rig.write_text(text + "\n" + cam0.replace('"cam0"', '"cam1"').replace("[0.0, 0.0, 0.0]  #", "[0.0, 90.0, 0.0]  #"))
+    run = str(tmp_path / "dual.zarr")
+    assert main(["synth", "--rig", str(rig), "--out", run, "--pairs", "1", "--ppm", "0.1", "--quiet"]) == 0
+    argv = ["reconstruct", run, "--iterations", "1", "--quiet"]
+    rc, out, err = _run(capsys, *argv)
+    assert rc == 0 and "reconstructed 2 volume(s)" in out
+    (line,) = err.splitlines()
+    assert line.startswith("lfpiv: warning: cameras 'cam0' and 'cam1' view the volume 90 degrees apart")
+    assert line.endswith("use equal PVRs, e.g. --pvr 2,2,2 (the chapter's dual-camera cases use 3,3,3)")
+    for more in (["--pvr", "4,4,4"], ["--cameras", "cam0"]):  # equal voxels, or one camera: no warning
+        rc, out, err = _run(capsys, *argv, *more)
+        assert rc == 0 and err == ""
+
+
 def _empty_run(tmp_path):
     path = tmp_path / "empty.zarr"
     RunStore.create(path, load_rig(TINY), 2, timing={"dt_s": 0.002, "rate_hz": 10.0}, software_version="x")

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from lfcore.rig import Rig, RigError
+from lfcore.rig import Rig, RigError, voxel_shape_warnings
 from lfcore.volume import VolumeGrid
 from lfpiv.rigfile import load_rig
 from tests.conftest import EXAMPLES, tiny_variant
@@ -43,6 +43,30 @@ def test_f_number_mismatch_warns_with_the_fix(tiny_rig):
     rig = tiny_variant(tiny_rig, f_number=4.0)
     (msg,) = rig.optics_warnings()
     assert "cam0" in msg and "N(1-M) = 8.00" in msg and "set f_number = 2 " in msg
+
+
+@pytest.mark.parametrize(
+    ("second", "pvr", "warns"),
+    [
+        (None, (2, 2, 10), False),  # one camera: deep voxels are what it resolves
+        ((0, 90, 0), (2, 2, 10), True),
+        ((0, -60, 0), (2, 2, 10), True),
+        ((0, 90, 0), (2, 2, 2), False),
+        ((0, 90, 0), (3, 3, 5), False),  # less than 2x: left to the user
+        ((0, 30, 0), (2, 2, 10), False),  # close views share most of their depth axis
+        ((0, 180, 0), (2, 2, 10), False),  # facing cameras share it entirely
+    ],
+)
+def test_crossed_cameras_on_deep_voxels_warn_with_the_fix(tiny_rig, second, pvr, warns):
+    cams = [tiny_rig.camera[0]]
+    if second is not None:
+        cams.append(cams[0].model_copy(update={"name": "cam1", "rotation_deg": second}))
+    msgs = voxel_shape_warnings(cams, pvr)
+    assert len(msgs) == int(warns)
+    if warns:
+        angle = abs(second[1])
+        assert f"'cam0' and 'cam1' view the volume {angle} degrees apart" in msgs[0]
+        assert "5x longer than wide (PVR 2, 2, 10)" in msgs[0] and "--pvr 2,2,2" in msgs[0]
 
 
 @pytest.mark.parametrize(
