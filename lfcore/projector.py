@@ -202,7 +202,7 @@ class Projector:
         if self.n_pixels >= 2**31 or grid.n_voxels >= 2**31:
             raise MemoryBudgetError("more than 2**31 pixels or voxels; use a coarser --pvr")
 
-        views, sub_a, sub_w, check_order = [], [], [], []
+        views, sub_a, sub_w, check_order, overlap = [], [], [], [], []
         rng = np.random.default_rng(0)
         half_world = 0.5 * np.asarray(grid.voxel_mm)
         for k, cam in enumerate(self.cameras):
@@ -238,11 +238,16 @@ class Projector:
             v.los_cyl = 0.5 * cam.mla_pitch_mm / abs(cam.magnification)
             v.los_sph = 0.5 * (half[0] + half[1])
             v.los_radius = v.los_cyl + v.los_sph
+            v.los_first = (kw.OVERLAP_SAMPLES + 1) * k
+            v.los_d0 = abs(v.los_cyl - v.los_sph)
+            v.los_dinv = kw.OVERLAP_SAMPLES / (v.los_radius - v.los_d0)
+            overlap.append(kw.overlap_table(v.los_cyl, v.los_sph))
             views.append(v)
             sub_a.append(centres)
             sub_w.append(shares / shares.sum())
             check_order.append((first + rng.permutation(full)).astype(np.int32))
         self.views = wp.array(views, dtype=kw.View, device=self.device)
+        self._overlap = wp.array(np.concatenate(overlap), dtype=float, device=self.device)
         self.sub_a = wp.array(np.concatenate(sub_a).astype(np.float32), dtype=wp.vec2, device=self.device)
         self.sub_w = wp.array(np.concatenate(sub_w).astype(np.float32), dtype=float, device=self.device)
         self.check_order = wp.array(np.concatenate(check_order), dtype=wp.int32, device=self.device)
@@ -537,7 +542,7 @@ class Projector:
                      wp.int64(origin), float(min_weight), fill, rows(counts, i64), Rows(sums),
                      i32 if pix is None else pix, f32 if w is None else w, rows(e, f32),
                      PerBlock((f32,)) if proj is None else proj, f32 if ratio is None else ratio,
-                     float(relaxation)], dev)
+                     float(relaxation), self._overlap], dev)
 
     def _check_budget(self, entries: int, n: int, budget: int) -> None:
         """Raise :class:`MemoryBudgetError` if ``entries`` weights (of ``n`` voxels) pass ``budget`` bytes."""

@@ -30,6 +30,7 @@ weights, for volumes whose weights do not fit in memory).
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from lfcore._kernels.mart import multiplied
@@ -73,6 +74,9 @@ class View:
     los_radius: float  # LOS cylinder radius + voxel sphere radius (MART baseline), mm
     los_cyl: float  # LOS cylinder radius, mm
     los_sph: float  # voxel sphere radius, mm
+    los_first: int  # this camera's range in the overlap table (see overlap_table)
+    los_d0: float  # distance below which the smaller circle lies inside the larger, mm
+    los_dinv: float  # OVERLAP_SAMPLES / (los_radius - los_d0), 1/mm
 
 
 @wp.func
@@ -644,18 +648,51 @@ def drt_weights(
     counts[tid] = n
 
 
-@wp.func
-def circle_overlap(r1: float, r2: float, d: float) -> float:
-    """Area of the intersection of two circles of radii r1, r2 whose centres are d apart."""
-    if d >= r1 + r2:
-        return 0.0
-    if d <= wp.abs(r1 - r2):
-        rm = wp.min(r1, r2)
-        return wp.pi * rm * rm
-    a1 = wp.acos(wp.clamp((d * d + r1 * r1 - r2 * r2) / (2.0 * d * r1), -1.0, 1.0))
-    a2 = wp.acos(wp.clamp((d * d + r2 * r2 - r1 * r1) / (2.0 * d * r2), -1.0, 1.0))
+#: Samples of a camera's sphere-cylinder overlap between full and no overlap (see overlap_table).
+OVERLAP_SAMPLES = wp.constant(1024)
+
+
+def overlap_table(r_cyl: float, r_sph: float, samples: int = OVERLAP_SAMPLES) -> np.ndarray:
+    """The line-of-sight weight against distance, tabulated for :func:`tabulated_overlap`.
+
+    The weight of a voxel on a pixel is the area shared by the pixel's line-of-sight cylinder
+    (radius ``r_cyl``) and the voxel's sphere (radius ``r_sph``) in the voxel's depth plane,
+    over the sphere's cross-section; both radii are fixed per camera, so it depends on the
+    distance d of the line from the voxel centre alone. Returns ``samples + 1`` values at d
+    evenly spaced from |r_cyl - r_sph| (one circle inside the other) to r_cyl + r_sph (apart,
+    where it is 0), computed exactly in double precision.
+    """
+    r1, r2 = float(r_cyl), float(r_sph)
+    d = np.linspace(abs(r1 - r2), r1 + r2, samples + 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a1 = np.arccos(np.clip((d * d + r1 * r1 - r2 * r2) / (2.0 * d * r1), -1.0, 1.0))
+        a2 = np.arccos(np.clip((d * d + r2 * r2 - r1 * r1) / (2.0 * d * r2), -1.0, 1.0))
     k = (-d + r1 + r2) * (d + r1 - r2) * (d - r1 + r2) * (d + r1 + r2)
-    return r1 * r1 * a1 + r2 * r2 * a2 - 0.5 * wp.sqrt(wp.max(k, 0.0))
+    area = r1 * r1 * a1 + r2 * r2 * a2 - 0.5 * np.sqrt(np.maximum(k, 0.0))
+    rm = min(r1, r2)
+    area[0] = np.pi * rm * rm  # d = |r1 - r2|: the formula's 0/0 when r1 = r2
+    area[-1] = 0.0
+    return (area / (np.pi * r2 * r2)).astype(np.float32)
+
+
+@wp.func
+def tabulated_overlap(view: View, table: wp.array(dtype=float), d: float) -> float:
+    """The line-of-sight weight at distance d (mm) of the line from the voxel centre, from the
+    camera's :func:`overlap_table`, linearly interpolated.
+
+    Two arc cosines a weight would otherwise take most of the kernel's time. The table is also
+    the more accurate: within 1e-5 of the exact overlap (double precision) on the benchmark's
+    cameras, where the same formula in single precision was off by up to 7e-4 (cancellation
+    near full and near no overlap)."""
+    x = (d - view.los_d0) * view.los_dinv
+    if x >= float(OVERLAP_SAMPLES):
+        return 0.0
+    if x <= 0.0:
+        return table[view.los_first]
+    i = int(x)
+    f = x - float(i)
+    k = view.los_first + i
+    return table[k] + f * (table[k + 1] - table[k])
 
 
 @wp.kernel
@@ -676,6 +713,7 @@ def los_weights(
     proj: wp.array(dtype=float),
     log_ratio: wp.array(dtype=float),
     relaxation: float,
+    overlap: wp.array(dtype=float),
 ):
     """Conventional sphere-cylinder weights of voxel ``voxels[tid]`` (the MART baseline).
 
@@ -720,7 +758,6 @@ def los_weights(
         if wp.abs(dz) < 1.0e-6:
             dz = float(1.0e-6)
         m = view.magnification
-        sph_area = wp.pi * view.los_sph * view.los_sph
         # lenslets whose lines of sight can pass within los_radius of the voxel
         shrink = 1.0 - dz / cam.so
         cx = m * p[0] / shrink
@@ -790,7 +827,7 @@ def los_weights(
                         ex = xfx - p[0] + (ax - xfx) * dz / cam.so
                         ey = xfy - p[1] + (ay - xfy) * dz / cam.so
                         d = wp.sqrt(ex * ex + ey * ey)
-                        wt = circle_overlap(view.los_cyl, view.los_sph, d) / sph_area
+                        wt = tabulated_overlap(view, overlap, d)
                         if wt > min_weight:  # the same test in every mode
                             total += wt
                             q = view.pix_offset + r * cam.ncols + cc

@@ -109,6 +109,28 @@ def test_baseline_weights_reach_the_sensor_at_every_depth(tiny_rig, device):
     assert np.corrcoef(f, img)[0, 1] > 0.95
 
 
+@pytest.mark.parametrize(("r_cyl", "r_sph"), [(27.5, 5.5), (1.0, 1.0), (0.5, 2.0)])
+def test_tabulated_line_of_sight_overlap_is_the_circles_shared_area(r_cyl, r_sph):
+    from lfcore._kernels.weights import OVERLAP_SAMPLES, overlap_table
+
+    table = overlap_table(r_cyl, r_sph)
+    d0, d1 = abs(r_cyl - r_sph), r_cyl + r_sph
+    assert table[0] == pytest.approx(min(r_cyl, r_sph) ** 2 / r_sph**2) and table[-1] == 0.0
+    assert np.all(np.diff(table) <= 0)  # less overlap the farther apart
+    # the share of the sphere's disc inside the cylinder's, counted on a fine grid of the disc
+    g = (np.arange(2000) + 0.5) / 1000.0 - 1.0
+    x, y = np.meshgrid(g * r_sph, g * r_sph)
+    disc = x**2 + y**2 <= r_sph**2
+    for frac in (0.1, 0.37, 0.5, 0.83, 0.97):
+        d = d0 + frac * (d1 - d0)
+        inside = ((x - d) ** 2 + y**2 <= r_cyl**2) & disc
+        looked_up = np.interp(frac * OVERLAP_SAMPLES, np.arange(OVERLAP_SAMPLES + 1), table)
+        assert looked_up == pytest.approx(inside.sum() / disc.sum(), abs=2e-3)
+    if r_cyl == r_sph:  # two unit circles one radius apart share 2 pi / 3 - sqrt(3) / 2
+        assert np.interp(OVERLAP_SAMPLES / 2, np.arange(OVERLAP_SAMPLES + 1), table) == pytest.approx(
+            (2 * np.pi / 3 - np.sqrt(3) / 2) / np.pi, abs=1e-5)
+
+
 def test_drt_mart_beats_mart_at_equal_work(tiny_rig, device):
     grid, pts, img, proj, e0 = _seeded_scene(tiny_rig, device)
     drt = reconstruct(proj, [img], ReconSettings(method="drt-mart", iterations=20))
