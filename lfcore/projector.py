@@ -589,7 +589,7 @@ class Projector:
         trace(sample, wp.zeros(len(take) + 1, dtype=wp.int64, device=dev), 0, 0, counts, dummy_i, dummy_f)
         cap = int(1.25 * int(counts.numpy().max())) + 32
         per_chunk = max(1, SINGLE_PASS_ENTRIES // cap)
-        chunks, total = [], 0
+        chunks, group, total = [], [], 0
         for lo in range(0, n, per_chunk):
             hi = min(n, lo + per_chunk)
             m = hi - lo
@@ -619,8 +619,36 @@ class Projector:
             del pix, order, tmp_pix, tmp_ord, w_raw
             chunk = self._pack(lo, hi, starts, kept, merged_pix, merged_w, total, n, budget)
             total += chunk.nnz
-            chunks.append(chunk)
+            if group and sum(c.nnz for c in group) + chunk.nnz > CHUNK_ENTRIES["cpu" if dev == "cpu" else "cuda"]:
+                chunks += self._joined(group, total - chunk.nnz, budget)
+                group = []
+            group.append(chunk)
+        chunks += self._joined(group, total, budget)
         return Weights(voxels=voxels, chunks=chunks, nnz=total)
+
+    def _joined(self, group: list[WeightChunk], total: int, budget: int) -> list[WeightChunk]:
+        """Consecutive chunks as one, if its copy fits beside the ``total`` weights held.
+
+        The single-pass build makes chunks of a few hundred voxels, and every chunk is one
+        launch per kernel and iteration: on the CPU, where a launch is spread over the cores,
+        a hundred chunks cost more in launches than in work.
+        """
+        nnz = sum(c.nnz for c in group)
+        if len(group) < 2 or BYTES_PER_WEIGHT * (total + nnz) > budget:
+            return group
+        wp = self.wp
+        pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=self.device)
+        w = wp.empty(max(nnz, 1), dtype=float, device=self.device)
+        offsets, at = [np.zeros(1, dtype=np.int64)], 0
+        for c in group:
+            if c.nnz:
+                wp.copy(pix, c.pix, dest_offset=at, count=c.nnz)
+                wp.copy(w, c.w, dest_offset=at, count=c.nnz)
+            offsets.append(c.offsets.numpy()[1:] + at)
+            at += c.nnz
+        n = sum(c.n for c in group)
+        return [WeightChunk(first=group[0].first, n=n, offsets=wp.array(np.concatenate(offsets), device=self.device),
+                            pix=pix, w=w, nnz=nnz)]
 
     # --- projections and updates --------------------------------------------------------
     def forward(self, weights: Weights, e, out=None):

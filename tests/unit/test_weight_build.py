@@ -74,8 +74,16 @@ def test_single_pass_build_matches_the_two_pass_build(small_dual_rig, device, mo
     monkeypatch.setattr(projector_module, "CAPACITY_SAMPLE", 1)
     monkeypatch.setattr(projector_module, "SINGLE_PASS_ENTRIES", 5000)
     fast = proj.weights(vox, "drt", build="single-pass")
-    assert len(fast.chunks) > 1
+    assert len(fast.chunks) == 1  # the build's many small chunks joined: fewer launches an iteration
     _same(direct, fast)
+    # joined up to the chunk size, and not at all where the copy would not fit the budget
+    monkeypatch.setitem(projector_module.CHUNK_ENTRIES, "cpu" if device == "cpu" else "cuda", direct.nnz // 3)
+    fast = proj.weights(vox, "drt", build="single-pass")
+    assert 3 <= len(fast.chunks) < 10 and max(c.nnz for c in fast.chunks) <= direct.nnz // 3
+    _same(direct, fast)
+    tight = proj.weights(vox, "drt", build="single-pass", budget_bytes=projector_module.BYTES_PER_WEIGHT * direct.nnz)
+    assert len(tight.chunks) >= 10
+    _same(direct, tight)
     _same(direct, proj.weights(vox, "drt"))  # the device's default build
     empty = proj.weights(proj.wp.zeros(0, dtype=proj.wp.int32, device=device), "drt", build="single-pass")
     assert empty.nnz == 0 and empty.n_voxels == 0
