@@ -235,13 +235,13 @@ class Projector:
             v.magnification = cam.magnification
             # MART baseline: the pixel's line-of-sight cylinder is as wide as its lenslet's
             # conjugate on the focal plane; the voxel's sphere as wide as the voxel laterally.
-            v.los_cyl = 0.5 * cam.mla_pitch_mm / abs(cam.magnification)
-            v.los_sph = 0.5 * (half[0] + half[1])
-            v.los_radius = v.los_cyl + v.los_sph
+            r_cyl = 0.5 * cam.mla_pitch_mm / abs(cam.magnification)
+            r_sph = 0.5 * (half[0] + half[1])
+            v.los_radius = r_cyl + r_sph
             v.los_first = (kw.OVERLAP_SAMPLES + 1) * k
-            v.los_d0 = abs(v.los_cyl - v.los_sph)
-            v.los_dinv = kw.OVERLAP_SAMPLES / (v.los_radius - v.los_d0)
-            overlap.append(kw.overlap_table(v.los_cyl, v.los_sph))
+            v.los_d0 = abs(r_cyl - r_sph)  # the table spans d0 .. r_cyl + r_sph, 2 min(r) wide
+            v.los_dinv = kw.OVERLAP_SAMPLES / (2.0 * min(r_cyl, r_sph))
+            overlap.append(kw.overlap_table(r_cyl, r_sph))
             views.append(v)
             sub_a.append(centres)
             sub_w.append(shares / shares.sum())
@@ -400,8 +400,9 @@ class Projector:
         storage
             ``"stored"``; ``"on-the-fly"``: only each voxel's weight sum is kept, and
             :meth:`forward` and :meth:`smart_update` compute the weights again where they use
-            them (line-of-sight weights only: the same iterations, to float round-off, in 16
-            bytes per voxel, at the cost of tracing every weight twice an iteration);
+            them (line-of-sight weights only: the same iterations, to float round-off, in
+            ``ON_THE_FLY_BYTES_PER_VOXEL`` bytes per voxel, at the cost of tracing every weight
+            twice an iteration);
             ``"auto"``: as many voxels' weights stored as fit in ``budget_bytes``, the rest
             made on the fly (DRT weights are always stored).
 

@@ -72,8 +72,6 @@ class View:
     cell_r: float  # circumradius of a cell, mm
     magnification: float
     los_radius: float  # LOS cylinder radius + voxel sphere radius (MART baseline), mm
-    los_cyl: float  # LOS cylinder radius, mm
-    los_sph: float  # voxel sphere radius, mm
     los_first: int  # this camera's range in the overlap table (see overlap_table)
     los_d0: float  # distance below which the smaller circle lies inside the larger, mm
     los_dinv: float  # OVERLAP_SAMPLES / (los_radius - los_d0), 1/mm
