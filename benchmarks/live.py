@@ -41,6 +41,7 @@ from lfcore.device import resolve_device  # noqa: E402
 from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.render import LightFieldRenderer  # noqa: E402
 from lfcore.rig import Rig  # noqa: E402
+from lfpiv.commands import xyz_triple  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
 from realtime.pipeline import LIVE_METHODS, LivePipeline, LiveSettings, monitoring_recon  # noqa: E402
 
@@ -75,7 +76,7 @@ def main() -> int:
     ap.add_argument("--iterations", type=int, default=5)
     ap.add_argument("--method", choices=LIVE_METHODS, default="drt-mart",
                     help="the live reconstruction (default: drt-mart)")
-    ap.add_argument("--pvr", default=None, metavar="X,Y,Z",
+    ap.add_argument("--pvr", type=xyz_triple, default=None, metavar="X,Y,Z",
                     help="pixel-voxel ratio of the live volume (default: the rig's, 2,2,10); a monitoring setting")
     ap.add_argument("--rate", type=float, default=10.0, help="pairs per second the feeder publishes (default: 10)")
     ap.add_argument("--seconds", type=float, default=20.0, help="how long to feed pairs (default: 20)")
@@ -87,7 +88,7 @@ def main() -> int:
     ap.add_argument("--warmup-limit", type=float, default=600.0,
                     help="give up if the first pair takes longer than this many seconds (default: 600)")
     args = ap.parse_args()
-    pvr = None if args.pvr is None else tuple(float(v) for v in args.pvr.split(","))
+    pvr = args.pvr
     device = resolve_device(args.device)
     rig = case_rig(args.case)
     t = time.perf_counter()
