@@ -328,15 +328,23 @@ class RunStore(RigStore):
         a.attrs.update(array_attrs("intensity", ["pair", "frame", "z", "y", "x"], "voxel intensity"))
         return a
 
-    def write_volume(self, pair: int, frame: int, volume: np.ndarray) -> None:
+    def write_volume(self, pair: int, frame: int, volume: np.ndarray, *, record: bool = True) -> None:
         """Store one reconstructed volume (z, y, x) float32 of pair ``pair``, frame 0 (A) or 1 (B).
 
-        A pair counts as reconstructed once both of its frames are written.
+        A pair counts as reconstructed once both of its frames are written. With ``record``
+        False only the voxels are written, not the bookkeeping: for worker processes that write
+        distinct volumes at once, while one coordinator records them (:meth:`record_volumes`),
+        since attributes are rewritten whole and concurrent writers would lose each other's.
         """
+        self.group["volumes"]["data"][pair, frame] = volume
+        if record:
+            self.record_volumes([(pair, frame)])
+
+    def record_volumes(self, written: list[tuple[int, int]]) -> None:
+        """Add (pair, frame) volumes, already written, to ``reconstructed_pairs``."""
         g = self.group["volumes"]
-        g["data"][pair, frame] = volume
         key = "_frames_written"
-        done = {tuple(x) for x in g.attrs.get(key, [])} | {(pair, frame)}
+        done = {tuple(x) for x in g.attrs.get(key, [])} | {(int(p), int(f)) for p, f in written}
         pairs = sorted({p for p, _ in done if (p, 0) in done and (p, 1) in done})
         g.attrs.update({key: sorted(done), "reconstructed_pairs": pairs})
 
@@ -413,8 +421,10 @@ class RunStore(RigStore):
         a = g.create_array("peak_ratio", shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
         a.attrs.update(array_attrs("1", axes, "highest over second-highest correlation peak of the last pass"))
 
-    def write_vectors(self, pair: int, velocity_m_s: np.ndarray, flags: np.ndarray, peak_ratio: np.ndarray) -> None:
-        """Store the vector field of one pair.
+    def write_vectors(self, pair: int, velocity_m_s: np.ndarray, flags: np.ndarray, peak_ratio: np.ndarray, *,
+                      record: bool = True) -> None:
+        """Store the vector field of one pair; with ``record`` False, without adding it to
+        ``correlated_pairs`` (for concurrent writers: see :meth:`write_volume`).
 
         Parameters
         ----------
@@ -439,7 +449,13 @@ class RunStore(RigStore):
             g[name][pair] = vel[..., c].astype(np.float32)
         g["flags"][pair] = np.asarray(flags, dtype=np.uint8)
         g["peak_ratio"][pair] = np.asarray(peak_ratio, dtype=np.float32)
-        done = sorted(set(g.attrs.get("correlated_pairs", [])) | {int(pair)})
+        if record:
+            self.record_vectors([pair])
+
+    def record_vectors(self, pairs: list[int]) -> None:
+        """Add pairs whose vectors are already written to ``correlated_pairs``."""
+        g = self.group["vectors"]
+        done = sorted(set(g.attrs.get("correlated_pairs", [])) | {int(p) for p in pairs})
         g.attrs.update({"correlated_pairs": done})
 
     @property
