@@ -74,7 +74,7 @@ from lfcore.device import RowOffset, Rows, launch_rows, resolve_device, warp
 from lfcore.vectors import MedianTest, median_filter, normalized_median_test, replace_outliers, smooth
 
 __all__ = ["CorrelationConfig", "CorrelationError", "Correlator", "VectorField", "WindowGrid", "correlate",
-           "window_grid"]
+           "pass_grids", "window_grid"]
 
 #: Memory for one batch of windows (both FFT buffers), per device kind.
 DEFAULT_BATCH_BYTES = {"cpu": 256 << 20, "cuda": 8 << 30}
@@ -281,6 +281,19 @@ def window_grid(shape: tuple[int, int, int], window: tuple[int, int, int],
     return WindowGrid(window=tuple(window), step=tuple(steps), first=tuple(firsts), counts=tuple(counts))
 
 
+def pass_grids(shape: tuple[int, int, int], config: CorrelationConfig) -> list[WindowGrid]:
+    """The window grid of every pass of ``config`` over volumes of ``shape`` (z, y, x); the last
+    one is the grid of the vectors.
+
+    Raises
+    ------
+    CorrelationError
+        If a pass's window is larger than the volume.
+    """
+    first_ov = config.first_overlap or config.overlap
+    return [window_grid(shape, w, first_ov if i == 0 else config.overlap) for i, (w, _) in enumerate(config.passes)]
+
+
 @dataclass
 class VectorField:
     """The result of a correlation, in voxels.
@@ -457,9 +470,7 @@ class Correlator:
             raise CorrelationError("fft='scipy' runs on the CPU only; use fft='warp' or 'auto' on a GPU")
         self.fft = fft
         self.threads = REDUCE_THREADS[kind]
-        first_ov = config.first_overlap or config.overlap
-        self.grids = [window_grid(self.shape, w, first_ov if i == 0 else config.overlap)
-                      for i, (w, _) in enumerate(config.passes)]
+        self.grids = pass_grids(self.shape, config)
         budget = config.batch_bytes or DEFAULT_BATCH_BYTES[kind]
         wp = self.wp
         # passes correlated directly around the predictor (all after the first, with a search radius)
