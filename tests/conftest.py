@@ -8,6 +8,7 @@ import pytest
 
 from lfcore.device import available_devices
 from lfcore.rig import Rig
+from lfpiv.cli import main
 from lfpiv.rigfile import load_rig
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -30,3 +31,10 @@ def tiny_variant(rig: Rig, **camera_changes) -> Rig:
     d = rig.to_dict()
     d["camera"][0].update(camera_changes)
     return Rig.from_dict(d)
+
+
+def run_cli(capsys: pytest.CaptureFixture[str], *argv: object) -> tuple[int, str, str]:
+    """Run the ``lfpiv`` command in this process: its exit code, stdout and stderr."""
+    rc = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err

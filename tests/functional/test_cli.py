@@ -10,16 +10,11 @@ import pytest
 
 from lfcore.render import LightFieldRenderer
 from lfcore.runstore import RunStore
-from lfpiv.cli import main
 from tests.conftest import EXAMPLES
+from tests.conftest import run_cli as _run
 
 TINY = str(EXAMPLES / "tiny.toml")
 
-
-def _run(capsys, *argv):
-    rc = main(list(argv))
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def _synth(capsys, out, *extra):

@@ -16,16 +16,12 @@ from lfcore.volume import VolumeGrid
 from lfpiv.cli import main
 from lfpiv.commands.correlate import evaluate_vectors
 from tests.blobs import blob_pair
+from tests.conftest import run_cli as _run
 
 DT = 2e-3
 SHIFT_VOX = np.array([0.4, -0.3, 0.6])  # x, y, z voxels over dt
 WINDOWS = "32x32x16,16x16x8"
 
-
-def _run(capsys, *argv):
-    rc = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 def _make_run(path, rig, with_volumes=True, pairs=2, reconstructed=2):

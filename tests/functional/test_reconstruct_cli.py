@@ -9,14 +9,10 @@ from lfcore.runstore import RunStore
 from lfpiv.cli import main
 from lfpiv.rigfile import load_rig
 from tests.conftest import EXAMPLES
+from tests.conftest import run_cli as _run
 
 TINY = str(EXAMPLES / "tiny.toml")
 
-
-def _run(capsys, *argv):
-    rc = main(list(argv))
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 @pytest.fixture(scope="module")
