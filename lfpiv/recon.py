@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -19,7 +20,8 @@ from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
 from lfpiv.errors import UsageError
 
-__all__ = ["FrameEvaluation", "evaluate_run", "parse_pairs", "reconstruct_run", "summary_rows"]
+__all__ = ["FrameEvaluation", "ReconJob", "evaluate_run", "parse_pairs", "reconstruct_pair_task", "reconstruct_run",
+           "summary_rows"]
 
 #: Bytes per voxel of the box the elimination pass and the dense result need at once.
 BYTES_PER_BOX_VOXEL = 16
@@ -49,19 +51,85 @@ def parse_pairs(spec: str | None, n_pairs: int) -> list[int]:
     return pairs
 
 
+@dataclass(frozen=True)
+class ReconJob:
+    """What a worker needs to reconstruct pairs of a run (:mod:`lfpiv.batch`): picklable, small."""
+
+    path: str
+    rig: Rig
+    cameras: tuple[str, ...]
+    grid: VolumeGrid
+    settings: ReconSettings
+    device: str | None
+    token: str
+
+
+def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings,
+              device: str | None) -> tuple[Projector, WeightCache | None]:
+    """The projector of a run's reconstruction and its weight cache, on a device with room for the box."""
+    device = resolve_device(device)
+    need = BYTES_PER_BOX_VOXEL * grid.n_voxels
+    if need > available_bytes(device):
+        raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
+                         "has free; use a coarser --pvr")
+    projector = Projector(cams, grid, sub_apertures=settings.sub_apertures, device=device)
+    # weights reused across frames (the baseline's cover the whole box and are built per frame)
+    cache = None
+    if settings.method != "mart" and settings.weight_storage != "on-the-fly":
+        cache = WeightCache(projector, method=WEIGHTS[settings.method])
+    return projector, cache
+
+
+def _reconstruct_frame(projector: Projector, cache: WeightCache | None, store: RunStore, names: Sequence[str],
+                       pair: int, frame: int, settings: ReconSettings,
+                       progress: Any = None) -> ReconResult:
+    """Reconstruct one frame of a pair and write its voxels (not the bookkeeping) into ``volumes/``."""
+    images = [store.frames(n)[pair, frame] for n in names]
+    try:
+        res = reconstruct(projector, images, settings, progress=progress, cache=cache)
+    except MemoryBudgetError as exc:
+        raise UsageError(f"pair {pair} frame {'AB'[frame]}: {exc}") from None
+    store.write_volume(pair, frame, res.volume, record=False)
+    return res
+
+
+def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
+    """Worker task: reconstruct both frames of ``pair`` into the run store; the results come
+    back without their volumes, which stay in the store."""
+    from lfpiv.batch import this_worker_device, worker_state
+
+    def build() -> tuple[RunStore, Projector, WeightCache | None]:
+        store = RunStore.open(job.path, mode="r+")
+        cams = [job.rig.camera_named(n) for n in job.cameras]
+        return (store, *_operator(cams, job.grid, job.settings, this_worker_device(job.device)))
+
+    store, projector, cache = worker_state(job.token, build)
+    out = []
+    for f in (0, 1):
+        res = _reconstruct_frame(projector, cache, store, job.cameras, pair, f, job.settings)
+        out.append(replace(res, volume=np.zeros((0, 0, 0), np.float32)))
+    return out
+
+
 def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[float] | None = None,
                     margin_mm: Sequence[float] = (0.0, 0.0, 0.0), pairs: str | None = None,
                     cameras: Sequence[str] | None = None, device: str | None = None,
                     progress: bool = True, rig: Rig | None = None,
-                    calibration: dict[str, Any] | None = None) -> list[ReconResult]:
+                    calibration: dict[str, Any] | None = None, skip_done: bool = False,
+                    client: Any = None) -> list[ReconResult]:
     """Reconstruct both frames of the selected pairs and store them in ``volumes/``.
 
     Existing volumes with the same grid, cameras, settings and calibration are kept and added
-    to; otherwise ``volumes/`` is replaced.
+    to; otherwise ``volumes/`` is replaced. With ``skip_done``, the selected pairs that such
+    volumes already hold are not reconstructed again (a run resumed after an interruption).
 
     ``rig`` replaces the rig stored in the run (e.g. the run's rig with the fitted camera models
     of a calibration, :func:`lfpiv.calibrate.calibrated_rig`); ``calibration`` says which
     calibration that is and is kept in the ``volumes/`` settings (None: the run's own rig).
+
+    ``client``, a Dask client (:func:`lfpiv.batch.dask_client`), spreads the pairs over its
+    workers, which resolve ``device`` each for itself; the results then hold no volumes (they
+    are in the store).
 
     Raises
     ------
@@ -86,39 +154,48 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(pvr), tuple(margin_mm))
     except ValueError as exc:
         raise UsageError(f"--pvr/--margin-mm: {exc}") from None
-    device = resolve_device(device)
-    need = BYTES_PER_BOX_VOXEL * grid.n_voxels
-    if need > available_bytes(device):
-        raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
-                         "has free; use a coarser --pvr")
-    projector = Projector(cams, grid, sub_apertures=settings.sub_apertures, device=device)
-    # weights reused across frames (the baseline's cover the whole box and are built per frame)
-    cache = None
-    if settings.method != "mart" and settings.weight_storage != "on-the-fly":
-        cache = WeightCache(projector, method=WEIGHTS[settings.method])
+    # the cluster's workers hold the device; this process may have none (a login node)
+    projector, cache = _operator(cams, grid, settings, device) if client is None else (None, None)
     # where the weights lived does not change a volume, so it does not make volumes/ a different set
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
             "cameras": names, "calibration": calibration}
     if not (store.has_volumes and store.volume_grid() == grid and store.group["volumes"].attrs["settings"] == meta):
         store.create_volumes(grid, method=settings.method, settings=meta)
+    elif skip_done:
+        done = set(store.reconstructed_pairs())
+        chosen = [p for p in chosen if p not in done]
+    results: list[ReconResult] = []
+    if not chosen:
+        return results
 
-    results = []
-    total = len(chosen) * 2 * max(settings.iterations, 1)
-    with tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar:
-        for p in chosen:
-            for f in (0, 1):
-                images = [store.frames(n)[p, f] for n in names]
-                try:
-                    res = reconstruct(projector, images, settings, progress=bar.update, cache=cache)
-                except MemoryBudgetError as exc:
-                    kept = f"; the {len(results)} volume(s) written before are kept" if results else ""
-                    raise UsageError(f"pair {p} frame {'AB'[f]}: {exc}{kept}") from None
-                if settings.iterations == 0:
-                    bar.update(1)
-                store.write_volume(p, f, res.volume)
-                bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}")
-                results.append(res)
+    def written(p: int, res: list[ReconResult]) -> None:
+        store.record_volumes([(p, 0), (p, 1)])
+        results.extend(res)
+
+    try:
+        if client is not None:
+            from lfpiv.batch import map_pairs, new_token
+
+            job = ReconJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names), grid=grid,
+                           settings=settings, device=device, token=new_token())
+            map_pairs(client, reconstruct_pair_task, job, chosen, on_done=written, desc="reconstructing",
+                      progress=progress)
+            return results
+        total = len(chosen) * 2 * max(settings.iterations, 1)
+        with tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar:
+            for p in chosen:
+                for f in (0, 1):
+                    res = _reconstruct_frame(projector, cache, store, names, p, f, settings, bar.update)
+                    store.record_volumes([(p, f)])
+                    results.append(res)
+                    if settings.iterations == 0:
+                        bar.update(1)
+                    bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}")
+    except UsageError as exc:
+        if results:
+            raise UsageError(f"{exc}; the {len(results)} volume(s) written before are kept") from None
+        raise
     return results
 
 

@@ -63,6 +63,20 @@ def add_device(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if there is one)")
 
 
+def add_workers(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--workers`` / ``--scheduler`` / ``--skip-done``: a run's pairs spread over Dask workers
+    (:mod:`lfpiv.batch`)."""
+    g = parser.add_mutually_exclusive_group()
+    g.add_argument("--workers", type=positive_int, default=None, metavar="N",
+                   help=f"{what} pairs in N worker processes on this machine, one pair each at a time (with "
+                   "--device cuda, worker i takes GPU i modulo the GPUs; default: in this process)")
+    g.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help=f"{what} pairs on the workers of a running Dask cluster, e.g. tcp://head:8786; they "
+                   "must see the run store at the same absolute path")
+    parser.add_argument("--skip-done", action="store_true",
+                        help="leave out the selected pairs already done with the same settings (to resume)")
+
+
 def examples_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "examples"
 

@@ -6,6 +6,7 @@ import argparse
 
 from lfpiv.commands import (
     add_device,
+    add_workers,
     check_pvr,
     positive_float,
     positive_int,
@@ -54,13 +55,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "device's memory and makes the rest again in each iteration (slower, the same volume); "
                    "stored refuses a volume whose weights do not fit; on-the-fly stores none")
     add_device(r)
+    add_workers(r, "reconstruct")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.set_defaults(func=run)
+
+
+def _where(args: argparse.Namespace) -> str:
+    if args.workers:
+        return f" by {args.workers} local worker(s)"
+    return f" by the workers of {args.scheduler}" if args.scheduler else ""
 
 
 def run(args: argparse.Namespace) -> int:
     from lfcore.reconstruct import ReconSettings
     from lfcore.runstore import RunStore
+    from lfpiv.batch import dask_client
     from lfpiv.recon import reconstruct_run
 
     check_pvr(args.pvr)
@@ -79,9 +88,13 @@ def run(args: argparse.Namespace) -> int:
 
         rig, calibration = calibrated_rig(store.rig, args.calibration, cameras)
     warn_voxel_shape(rig or store.rig, cameras, args.pvr)
-    results = reconstruct_run(store, settings, pvr=args.pvr, margin_mm=args.margin_mm, pairs=args.pairs,
-                              cameras=cameras, device=args.device, progress=not args.quiet, rig=rig,
-                              calibration=calibration)
+    with dask_client(args.workers, args.scheduler) as client:
+        results = reconstruct_run(store, settings, pvr=args.pvr, margin_mm=args.margin_mm, pairs=args.pairs,
+                                  cameras=cameras, device=args.device, progress=not args.quiet, rig=rig,
+                                  calibration=calibration, skip_done=args.skip_done, client=client)
+    if not results:
+        print(f"every selected pair of {store.path} is already reconstructed with these settings; nothing to do")
+        return 0
     grid = store.volume_grid()
     act = sum(r.active_fraction for r in results) / len(results)
     ms = sum(r.ms_per_iteration for r in results) / len(results)
@@ -89,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     ws = sum(r.weights_s for r in results) / len(results)
     print(f"reconstructed {len(results)} volume(s) of {' x '.join(map(str, grid.shape[::-1]))} voxels (x, y, z) "
           f"with {args.method}{' and the models of ' + args.calibration if calibration else ''} into "
-          f"{store.path}/volumes; per volume: {act:.2%} of voxels active, "
+          f"{store.path}/volumes{_where(args)}; per volume: {act:.2%} of voxels active, "
           f"weights {wb / 2**20:.1f} MiB built in {ws:.2f} s, {ms:.1f} ms per iteration")
     fly = max(r.on_the_fly_voxels for r in results)
     if fly:
