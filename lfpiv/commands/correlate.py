@@ -7,11 +7,10 @@ from __future__ import annotations
 
 import argparse
 import re
-import time
 
 import numpy as np
 
-from lfpiv.commands import add_device, positive_float
+from lfpiv.commands import add_device, add_workers, positive_float
 from lfpiv.errors import UsageError
 
 DEFAULT_WINDOWS = "320x320x64,160x160x32"
@@ -102,6 +101,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--first-overlap", type=parse_overlap, default=None, metavar="F[,F,F]",
                    help="overlap of the first pass's windows, which only predict (default: --overlap)")
     add_device(c)
+    add_workers(c, "correlate")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=run)
 
@@ -126,54 +126,38 @@ def _select_pairs(store, sel: slice | None) -> list[int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-    from lfcore.correlate import CorrelationConfig, CorrelationError, Correlator
+    from lfcore.correlate import CorrelationConfig, CorrelationError
     from lfcore.runstore import RunStore
-    from lfcore.vectors import MedianTest, centres_mm, displacement_to_velocity, flags_from_masks
+    from lfcore.vectors import MedianTest
+    from lfpiv.batch import dask_client
+    from lfpiv.correlation import correlate_run
 
     store = RunStore.open(args.run, mode="r+")
     pairs = _select_pairs(store, args.pairs)
     if args.iterations < 0:
         raise UsageError(f"--iterations must be 0 or more, got {args.iterations}")
-    grid = store.volume_grid()
     try:
         cfg = CorrelationConfig(windows=args.windows, overlap=args.overlap, deform_iterations=args.iterations,
                                 zero_pad=args.zero_pad, median_filter=args.median_filter,
                                 median_test=MedianTest(epsilon=args.epsilon, threshold=args.threshold),
                                 interpolation=args.interpolation, search_radius=args.search_radius,
                                 first_overlap=args.first_overlap)
-        correlator = Correlator(grid.shape, cfg, device=args.device)
     except CorrelationError as exc:
         raise UsageError(str(exc)) from None
-    dt_s = float(store.timing["dt_s"])
-    g = correlator.grids[-1]
-    x_mm, y_mm, z_mm = centres_mm(g.centres(), grid.origin_mm, grid.voxel_mm)
-    settings = {"deform_iterations": cfg.deform_iterations, "zero_pad": cfg.zero_pad,
-                "median_test": {"epsilon": cfg.median_test.epsilon, "threshold": cfg.median_test.threshold},
-                "median_filter": cfg.median_filter, "interpolation": cfg.interpolation,
-                "smooth_predictor": cfg.smooth_predictor,
-                "peak_exclusion": cfg.peak_exclusion, "device": correlator.device, "fft": correlator.fft,
-                "search_radius": None if cfg.search_radius is None else list(cfg.search_radius),
-                "first_overlap": None if cfg.first_overlap is None else list(cfg.first_overlap)}
-    store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=[list(w) for w in cfg.windows],
-                         overlap=list(cfg.overlap), settings=settings)
-    volumes = store.volumes()
-    n_passes = len(cfg.passes)
-    outliers = 0
-    t0 = time.perf_counter()
-    with tqdm(total=len(pairs) * n_passes, unit="pass", disable=args.quiet, desc="correlating") as bar:
-        for pair in pairs:
-            field = correlator(volumes[pair, 0], volumes[pair, 1], progress=bar.update)
-            vel = displacement_to_velocity(field.displacement, grid.voxel_mm, dt_s)
-            store.write_vectors(pair, vel, flags_from_masks(field.outlier, field.replaced), field.peak_ratio)
-            outliers += int(field.outlier.sum())
-    seconds = time.perf_counter() - t0
-    n_vec = g.size * len(pairs)
+    with dask_client(args.workers, args.scheduler) as client:
+        done = correlate_run(store, cfg, pairs, device=args.device, progress=not args.quiet,
+                             skip_done=args.skip_done, client=client)
+    if not done.pairs:
+        print(f"every selected pair of {store.path} is already correlated with these settings; nothing to do")
+        return 0
+    g = done.grid
+    n_vec = g.size * len(done.pairs)
     nx, ny, nz = g.counts
-    print(f"wrote {store.path}/vectors: {len(pairs)} pair(s) of {nx} x {ny} x {nz} vectors (x, y, z), "
-          f"final windows {'x'.join(map(str, g.window))} voxels; {100.0 * outliers / n_vec:.1f}% outliers replaced; "
-          f"{seconds:.1f} s on {correlator.device} ({n_vec / seconds:.3g} vectors/s)")
+    where = (f" by {args.workers} local worker(s) on {done.device}" if args.workers else
+             f" by the workers of {args.scheduler} on {done.device}" if args.scheduler else f" on {done.device}")
+    print(f"wrote {store.path}/vectors: {len(done.pairs)} pair(s) of {nx} x {ny} x {nz} vectors (x, y, z), "
+          f"final windows {'x'.join(map(str, g.window))} voxels; {100.0 * done.outliers / n_vec:.1f}% outliers "
+          f"replaced; {done.seconds:.1f} s{where} ({n_vec / done.seconds:.3g} vectors/s)")
     return 0
 
 

@@ -1,0 +1,155 @@
+"""Correlating a run store's reconstructed pairs into ``vectors/``, in this process or on Dask workers."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from lfcore.correlate import CorrelationConfig, CorrelationError, Correlator, WindowGrid, pass_grids
+from lfcore.runstore import RunStore
+from lfcore.vectors import centres_mm, displacement_to_velocity, flags_from_masks
+from lfcore.volume import VolumeGrid
+from lfpiv.errors import UsageError
+
+__all__ = ["CorrelateJob", "CorrelationRun", "PairVectors", "correlate_pair_task", "correlate_run"]
+
+# Settings that say where the vectors were computed, not what they are: a run correlated on
+# another device (or FFT engine, which follows the device) keeps its earlier pairs.
+_PLACE = ("device", "fft")
+
+
+@dataclass(frozen=True)
+class CorrelateJob:
+    """What a worker needs to correlate pairs of a run (:mod:`lfpiv.batch`)."""
+
+    path: str
+    shape: tuple[int, int, int]
+    config: CorrelationConfig
+    device: str | None
+    token: str
+
+
+@dataclass(frozen=True)
+class PairVectors:
+    """What correlating one pair found, without the vectors (they are in the store)."""
+
+    pair: int
+    outliers: int
+    device: str
+    fft: str
+
+
+@dataclass(frozen=True)
+class CorrelationRun:
+    """The summary of :func:`correlate_run`."""
+
+    pairs: list[int]
+    grid: WindowGrid
+    outliers: int
+    seconds: float
+    device: str
+
+
+def _settings(cfg: CorrelationConfig, device: str, fft: str) -> dict[str, Any]:
+    return {"deform_iterations": cfg.deform_iterations, "zero_pad": cfg.zero_pad,
+            "median_test": {"epsilon": cfg.median_test.epsilon, "threshold": cfg.median_test.threshold},
+            "median_filter": cfg.median_filter, "interpolation": cfg.interpolation,
+            "smooth_predictor": cfg.smooth_predictor,
+            "peak_exclusion": cfg.peak_exclusion, "device": device, "fft": fft,
+            "search_radius": None if cfg.search_radius is None else list(cfg.search_radius),
+            "first_overlap": None if cfg.first_overlap is None else list(cfg.first_overlap)}
+
+
+def _correlator(shape: tuple[int, int, int], cfg: CorrelationConfig, device: str | None) -> Correlator:
+    try:
+        return Correlator(shape, cfg, device=device)
+    except CorrelationError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _correlate_pair(correlator: Correlator, store: RunStore, grid: VolumeGrid, pair: int,
+                    progress: Any = None) -> PairVectors:
+    """Correlate one pair and write its vectors (not the bookkeeping) into ``vectors/``."""
+    volumes = store.volumes()
+    field = correlator(volumes[pair, 0], volumes[pair, 1], progress=progress)
+    vel = displacement_to_velocity(field.displacement, grid.voxel_mm, float(store.timing["dt_s"]))
+    store.write_vectors(pair, vel, flags_from_masks(field.outlier, field.replaced), field.peak_ratio, record=False)
+    return PairVectors(pair=pair, outliers=int(field.outlier.sum()), device=correlator.device, fft=correlator.fft)
+
+
+def correlate_pair_task(job: CorrelateJob, pair: int) -> PairVectors:
+    """Worker task: correlate ``pair`` of the run into its ``vectors/``."""
+    from lfpiv.batch import this_worker_device, worker_state
+
+    def build() -> tuple[RunStore, VolumeGrid, Correlator]:
+        store = RunStore.open(job.path, mode="r+")
+        return store, store.volume_grid(), _correlator(job.shape, job.config, this_worker_device(job.device))
+
+    store, grid, correlator = worker_state(job.token, build)
+    return _correlate_pair(correlator, store, grid, pair)
+
+
+def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, device: str | None = None,
+                  progress: bool = True, skip_done: bool = False, client: Any = None) -> CorrelationRun:
+    """Correlate the volumes of ``pairs`` into the run's ``vectors/``.
+
+    Vectors already there with the same windows, overlap and settings are kept and added to;
+    otherwise ``vectors/`` is replaced. With ``skip_done``, pairs those vectors already hold are
+    left out. ``client``, a Dask client (:func:`lfpiv.batch.dask_client`), spreads the pairs
+    over its workers, each correlating on its own ``device``.
+
+    Raises
+    ------
+    UsageError
+        Windows that do not fit the volume or settings the device cannot run.
+    """
+    grid = store.volume_grid()
+    correlator = _correlator(grid.shape, cfg, device) if client is None else None
+    try:
+        g = pass_grids(grid.shape, cfg)[-1]
+    except CorrelationError as exc:
+        raise UsageError(str(exc)) from None
+    x_mm, y_mm, z_mm = centres_mm(g.centres(), grid.origin_mm, grid.voxel_mm)
+    dt_s = float(store.timing["dt_s"])
+    # on a cluster the workers resolve the device; recorded from the first pair they finish
+    place = (correlator.device, correlator.fft) if correlator is not None else (device or "auto", cfg.fft)
+    settings = _settings(cfg, *place)
+    windows, overlap = [list(w) for w in cfg.windows], list(cfg.overlap)
+    old = store.vectors()["attrs"] if store.has_vectors else None
+    same = (old is not None and old["windows"] == windows and old["overlap"] == overlap
+            and float(old["dt_s"]) == dt_s and len(store.vectors()["x_mm"]) == len(x_mm)
+            and {k: v for k, v in old["settings"].items() if k not in _PLACE}
+            == {k: v for k, v in settings.items() if k not in _PLACE})
+    if not same:
+        store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=windows, overlap=overlap, settings=settings)
+    elif skip_done:
+        done = set(store.correlated_pairs())
+        pairs = [p for p in pairs if p not in done]
+    found: list[PairVectors] = []
+
+    def written(p: int, res: PairVectors) -> None:
+        s = store.group["vectors"].attrs["settings"]
+        if not found and (s.get("device"), s.get("fft")) != (res.device, res.fft):
+            # the device and FFT engine that computed the latest pairs (a worker resolves its own)
+            store.group["vectors"].attrs["settings"] = {**s, "device": res.device, "fft": res.fft}
+        store.record_vectors([p])
+        found.append(res)
+
+    t0 = time.perf_counter()
+    if client is not None and pairs:
+        from lfpiv.batch import map_pairs, new_token
+
+        job = CorrelateJob(path=str(Path(store.path).resolve()), shape=grid.shape, config=cfg, device=device,
+                           token=new_token())
+        map_pairs(client, correlate_pair_task, job, pairs, on_done=written, desc="correlating", progress=progress)
+    elif pairs:
+        with tqdm(total=len(pairs) * len(cfg.passes), unit="pass", disable=not progress, desc="correlating") as bar:
+            for p in pairs:
+                written(p, _correlate_pair(correlator, store, grid, p, progress=bar.update))
+    dev = found[0].device if found else place[0]
+    return CorrelationRun(pairs=[r.pair for r in found], grid=g, outliers=sum(r.outliers for r in found),
+                          seconds=time.perf_counter() - t0, device=dev)
