@@ -1,0 +1,176 @@
+"""A run's pairs on Dask workers (`--workers`, `--scheduler`) and resumed (`--skip-done`), end to end.
+
+The workers are real processes; they must give what the command gives in one process, and the
+run store's bookkeeping must list every pair they finished, and only those.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from lfcore.runstore import RunStore
+from lfpiv.batch import worker_device
+from lfpiv.cli import main
+from tests.conftest import EXAMPLES
+from tests.conftest import run_cli as _run
+
+TINY = str(EXAMPLES / "tiny.toml")
+RECON = ("--iterations", "10", "--device", "cpu", "--quiet")
+CORR = ("--windows", "32x32x16,16x16x8", "--device", "cpu", "--quiet")
+
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    """A 3-pair synthetic run, reconstructed and correlated in one process: the reference."""
+    path = tmp_path_factory.mktemp("batch") / "serial.zarr"
+    assert main(["synth", "--rig", TINY, "--out", str(path), "--pairs", "3", "--ppm", "0.2", "--flow", "uniform",
+                 "--quiet"]) == 0
+    assert main(["reconstruct", str(path), *RECON]) == 0
+    assert main(["correlate", str(path), *CORR]) == 0
+    return path
+
+
+def _copy_frames(serial, tmp_path, keep_volumes=False):
+    """The serial run's recording without its vectors, and without its volumes unless kept."""
+    import shutil
+
+    path = tmp_path / "run.zarr"
+    shutil.copytree(serial, path)
+    s = RunStore.open(path, mode="r+")
+    del s.group["vectors"]
+    if not keep_volumes:
+        del s.group["volumes"]
+    return path
+
+
+def test_local_workers_give_the_serial_volumes_and_vectors(serial, tmp_path, capsys):
+    path = _copy_frames(serial, tmp_path)
+    rc, out, err = _run(capsys, "reconstruct", path, *RECON, "--workers", "2")
+    assert rc == 0, err
+    assert "reconstructed 6 volume(s)" in out and "by 2 local worker(s)" in out
+    s, ref = RunStore.open(path), RunStore.open(serial)
+    assert s.reconstructed_pairs() == [0, 1, 2]
+    a, b = s.volumes()[...], ref.volumes()[...]
+    assert b.max() > 0
+    # the same kernels; only the CPU launches' split over threads differs
+    assert np.abs(a - b).max() <= 1e-4 * b.max()
+    assert s.group["volumes"].attrs["settings"] == ref.group["volumes"].attrs["settings"]
+
+    # the serial volumes, so that the vectors can be compared one by one
+    path = _copy_frames(serial, tmp_path / "c", keep_volumes=True)
+    rc, out, err = _run(capsys, "correlate", path, *CORR, "--workers", "2")
+    assert rc == 0, err
+    assert "wrote" in out and "3 pair(s)" in out and "by 2 local worker(s) on cpu" in out
+    s = RunStore.open(path)
+    assert s.correlated_pairs() == [0, 1, 2]
+    v, w = s.vectors(), ref.vectors()
+    for c in "uvw":
+        assert np.isfinite(v[c]).all()
+        assert np.allclose(v[c], w[c], rtol=1e-4, atol=1e-5 * np.abs(w["u"]).max())
+    assert np.array_equal(v["flags"], w["flags"])
+    assert v["attrs"]["settings"]["device"] == "cpu"
+
+
+def test_skip_done_resumes_where_a_run_stopped(serial, tmp_path, capsys):
+    path = _copy_frames(serial, tmp_path)
+    assert _run(capsys, "reconstruct", path, *RECON, "--pairs", "1")[0] == 0
+    first = RunStore.open(path).volumes()[1].copy()
+    rc, out, err = _run(capsys, "reconstruct", path, *RECON, "--skip-done")
+    assert rc == 0, err
+    assert "reconstructed 4 volume(s)" in out  # pairs 0 and 2 only
+    s = RunStore.open(path)
+    assert s.reconstructed_pairs() == [0, 1, 2]
+    assert np.array_equal(s.volumes()[1], first)
+    rc, out, err = _run(capsys, "reconstruct", path, *RECON, "--skip-done", "--workers", "1")
+    assert rc == 0 and "already reconstructed with these settings; nothing to do" in out
+    # other settings are another set of volumes: nothing is skipped, volumes/ starts again
+    rc, out, err = _run(capsys, "reconstruct", path, "--iterations", "3", "--device", "cpu", "--quiet",
+                        "--skip-done", "--pairs", "0")
+    assert rc == 0 and "reconstructed 2 volume(s)" in out
+    assert RunStore.open(path).reconstructed_pairs() == [0]
+
+    # correlation: the same settings keep the pairs correlated before, and --skip-done leaves them out
+    path = _copy_frames(serial, tmp_path / "c", keep_volumes=True)
+    assert _run(capsys, "correlate", path, *CORR, "--pairs", "2")[0] == 0
+    rc, out, err = _run(capsys, "correlate", path, *CORR, "--skip-done")
+    assert rc == 0 and "2 pair(s)" in out, out + err
+    assert RunStore.open(path).correlated_pairs() == [0, 1, 2]
+    rc, out, err = _run(capsys, "correlate", path, *CORR, "--skip-done")
+    assert rc == 0 and "already correlated with these settings; nothing to do" in out
+
+
+def test_workers_of_a_running_scheduler(serial, tmp_path, capsys):
+    from distributed import LocalCluster
+
+    path = _copy_frames(serial, tmp_path)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=logging.CRITICAL) as cluster:
+        rc, out, err = _run(capsys, "reconstruct", path, *RECON, "--pairs", "0:2", "--scheduler",
+                            cluster.scheduler_address)
+        assert rc == 0, err
+        assert f"by the workers of {cluster.scheduler_address}" in out
+        s = RunStore.open(path)
+        assert s.reconstructed_pairs() == [0, 1]
+        assert np.abs(s.volumes()[:2] - RunStore.open(serial).volumes()[:2]).max() <= 1e-4 * s.volumes()[0].max()
+    # a worker of several threads would run two pairs on one operator at once: refused
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=None,
+                      silence_logs=logging.CRITICAL) as cluster:
+        rc, out, err = _run(capsys, "correlate", path, *CORR, "--scheduler", cluster.scheduler_address)
+        assert rc == 2 and err.count("\n") == 1, err
+        assert "runs 2 threads" in err and "--nthreads 1" in err
+
+
+def test_cluster_errors_are_one_line(serial, tmp_path, capsys, monkeypatch):
+    path = _copy_frames(serial, tmp_path)
+    monkeypatch.setenv("LFPIV_DASK_TIMEOUT_S", "1")
+    rc, out, err = _run(capsys, "reconstruct", path, *RECON, "--scheduler", "tcp://127.0.0.1:9")
+    assert rc == 2 and err.count("\n") == 1, err
+    assert "--scheduler tcp://127.0.0.1:9: no Dask scheduler answered" in err and "--workers N" in err
+    # a device a worker does not have: the worker's error, once, naming the worker
+    rc, out, err = _run(capsys, "reconstruct", path, "--iterations", "2", "--device", "cuda:7", "--quiet",
+                        "--workers", "1")
+    assert rc == 2 and err.count("\n") == 1, err
+    assert "Dask worker 0: device 'cuda:7' is not available here" in err
+    rc, out, err = _run(capsys, "correlate", serial, *CORR, "--workers", "1", "--scheduler", "tcp://127.0.0.1:9")
+    assert rc == 2 and "not allowed with argument" in err
+
+
+def test_ctrl_c_keeps_the_pairs_the_workers_finished(serial, tmp_path, capsys, monkeypatch):
+    """Ctrl-C while the workers run: the command stops with 130, the cluster is shut down, and
+    the pairs recorded before are there to resume from."""
+    path = _copy_frames(serial, tmp_path)
+    record = RunStore.record_volumes
+    calls = []
+
+    def interrupted(self, written):
+        calls.append(written)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        record(self, written)
+
+    monkeypatch.setattr(RunStore, "record_volumes", interrupted)
+    rc, out, err = _run(capsys, "reconstruct", path, *RECON, "--workers", "1")
+    assert rc == 130 and "interrupted" in err
+    monkeypatch.undo()
+    done = RunStore.open(path).reconstructed_pairs()
+    assert len(done) == 1
+    rc, out, err = _run(capsys, "reconstruct", path, *RECON, "--skip-done", "--workers", "1")
+    assert rc == 0 and "reconstructed 4 volume(s)" in out
+    assert RunStore.open(path).reconstructed_pairs() == [0, 1, 2]
+
+
+@pytest.mark.parametrize(("asked", "name", "gpus", "expected"), [
+    ("cpu", 3, ["cuda:0", "cuda:1"], "cpu"),
+    ("cuda:1", 0, ["cuda:0", "cuda:1"], "cuda:1"),
+    ("cuda", 3, ["cuda:0", "cuda:1"], "cuda:1"),
+    (None, 2, ["cuda:0", "cuda:1"], "cuda:0"),
+    ("cuda", "SLURMCluster-4", ["cuda:0", "cuda:1"], "cuda"),
+    ("cuda", 1, [], "cuda"),
+    (None, 1, [], None),
+])
+def test_worker_device(asked, name, gpus, expected):
+    assert worker_device(asked, name, gpus) == expected
