@@ -31,8 +31,8 @@ from tqdm import tqdm
 
 from lfpiv.errors import UsageError
 
-__all__ = ["connect_timeout_s", "dask_client", "map_pairs", "new_token", "this_worker_device", "worker_device",
-           "worker_state"]
+__all__ = ["connect_timeout_s", "dask_client", "map_pairs", "new_token", "open_run_on_worker", "this_worker_device",
+           "worker_device", "worker_state"]
 
 T = TypeVar("T")
 
@@ -163,6 +163,25 @@ def this_worker_device(device: str | None) -> str:
         return resolve_device(worker_device(device, name, [d for d in available_devices() if d.startswith("cuda")]))
     except DeviceError as exc:
         raise DeviceError(f"Dask worker {name}: {exc}") from None
+
+
+def open_run_on_worker(path: str) -> Any:
+    """The run store at ``path``, opened for writing by the worker process calling it.
+
+    Raises
+    ------
+    RunStoreError
+        If the worker cannot open it, naming the worker and the shared path it needs.
+    """
+    from distributed import get_worker
+
+    from lfcore.runstore import RunStore, RunStoreError
+
+    try:
+        return RunStore.open(path, mode="r+")
+    except RunStoreError as exc:
+        raise RunStoreError(f"Dask worker {get_worker().name}: {exc} (every worker must see the run store at the "
+                            "same absolute path: a shared file system)") from None
 
 
 def worker_state(token: str, build: Callable[[], T]) -> T:

@@ -83,10 +83,10 @@ def _correlate_pair(correlator: Correlator, store: RunStore, grid: VolumeGrid, p
 
 def correlate_pair_task(job: CorrelateJob, pair: int) -> PairVectors:
     """Worker task: correlate ``pair`` of the run into its ``vectors/``."""
-    from lfpiv.batch import this_worker_device, worker_state
+    from lfpiv.batch import open_run_on_worker, this_worker_device, worker_state
 
     def build() -> tuple[RunStore, VolumeGrid, Correlator]:
-        store = RunStore.open(job.path, mode="r+")
+        store = open_run_on_worker(job.path)
         return store, store.volume_grid(), _correlator(job.shape, job.config, this_worker_device(job.device))
 
     store, grid, correlator = worker_state(job.token, build)

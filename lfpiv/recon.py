@@ -96,10 +96,10 @@ def _reconstruct_frame(projector: Projector, cache: WeightCache | None, store: R
 def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
     """Worker task: reconstruct both frames of ``pair`` into the run store; the results come
     back without their volumes, which stay in the store."""
-    from lfpiv.batch import this_worker_device, worker_state
+    from lfpiv.batch import open_run_on_worker, this_worker_device, worker_state
 
     def build() -> tuple[RunStore, Projector, WeightCache | None]:
-        store = RunStore.open(job.path, mode="r+")
+        store = open_run_on_worker(job.path)
         cams = [job.rig.camera_named(n) for n in job.cameras]
         return (store, *_operator(cams, job.grid, job.settings, this_worker_device(job.device)))
 

@@ -139,6 +139,22 @@ def test_cluster_errors_are_one_line(serial, tmp_path, capsys, monkeypatch):
     assert rc == 2 and "not allowed with argument" in err
 
 
+def test_a_worker_that_cannot_see_the_run_store_says_so(tmp_path):
+    """A cluster's worker without the shared file system: named, with what it needs."""
+    from lfcore.correlate import CorrelationConfig
+    from lfcore.runstore import RunStoreError
+    from lfpiv.batch import dask_client, map_pairs, new_token
+    from lfpiv.correlation import CorrelateJob, correlate_pair_task
+
+    job = CorrelateJob(path=str(tmp_path / "elsewhere.zarr"), shape=(16, 32, 32),
+                       config=CorrelationConfig(windows=((16, 16, 8),)), device="cpu", token=new_token())
+    with dask_client(workers=1) as client, pytest.raises(RunStoreError) as err:
+        map_pairs(client, correlate_pair_task, job, [0], on_done=lambda p, r: None, desc="correlating",
+                  progress=False)
+    assert str(err.value).startswith("Dask worker 0: ") and "elsewhere.zarr does not exist" in str(err.value)
+    assert "same absolute path" in str(err.value)
+
+
 def test_ctrl_c_keeps_the_pairs_the_workers_finished(serial, tmp_path, capsys, monkeypatch):
     """Ctrl-C while the workers run: the command stops with 130, the cluster is shut down, and
     the pairs recorded before are there to resume from."""
