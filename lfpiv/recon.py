@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ from lfcore.runstore import RunStore, RunStoreError
 from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
 from lfpiv.errors import UsageError
+from lfpiv.overlap import WriteBehind
 
 __all__ = ["FrameEvaluation", "ReconJob", "evaluate_run", "parse_pairs", "reconstruct_pair_task", "reconstruct_run",
            "summary_rows"]
@@ -83,14 +85,18 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings,
 def _reconstruct_frame(projector: Projector, cache: WeightCache | None, store: RunStore, names: Sequence[str],
                        pair: int, frame: int, settings: ReconSettings,
                        progress: Any = None) -> ReconResult:
-    """Reconstruct one frame of a pair and write its voxels (not the bookkeeping) into ``volumes/``."""
+    """Reconstruct one frame of a pair from the run's images."""
     images = [store.frames(n)[pair, frame] for n in names]
     try:
-        res = reconstruct(projector, images, settings, progress=progress, cache=cache)
+        return reconstruct(projector, images, settings, progress=progress, cache=cache)
     except MemoryBudgetError as exc:
         raise UsageError(f"pair {pair} frame {'AB'[frame]}: {exc}") from None
-    store.write_volume(pair, frame, res.volume, record=False)
-    return res
+
+
+def _summary(res: ReconResult) -> ReconResult:
+    # a run's results are kept for its summary line, its volumes are in the store: holding
+    # them all would take a whole run's volumes of memory (482 MiB a frame for the M case)
+    return replace(res, volume=np.zeros((0, 0, 0), np.float32))
 
 
 def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
@@ -105,9 +111,12 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
 
     store, projector, cache = worker_state(job.token, build)
     out = []
-    for f in (0, 1):
-        res = _reconstruct_frame(projector, cache, store, job.cameras, pair, f, job.settings)
-        out.append(replace(res, volume=np.zeros((0, 0, 0), np.float32)))
+    # frame A is written while frame B is reconstructed; both are written when the task returns
+    with WriteBehind() as writer:
+        for f in (0, 1):
+            res = _reconstruct_frame(projector, cache, store, job.cameras, pair, f, job.settings)
+            writer.submit(partial(store.write_volume, record=False), pair, f, res.volume)
+            out.append(_summary(res))
     return out
 
 
@@ -128,8 +137,16 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     calibration that is and is kept in the ``volumes/`` settings (None: the run's own rig).
 
     ``client``, a Dask client (:func:`lfpiv.batch.dask_client`), spreads the pairs over its
-    workers, which resolve ``device`` each for itself; the results then hold no volumes (they
-    are in the store).
+    workers, which resolve ``device`` each for itself.
+
+    Each volume is written into the store while the next frame is reconstructed.
+
+    Returns
+    -------
+    list of ReconResult
+        One per frame reconstructed (with a client, in the order the pairs finished), without
+        its volume (an empty array): the volumes are in the store, and a run's worth of them
+        would not fit in memory.
 
     Raises
     ------
@@ -183,12 +200,14 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                       progress=progress)
             return results
         total = len(chosen) * 2 * max(settings.iterations, 1)
-        with tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar:
+        # each volume is written (and recorded) while the next frame is reconstructed
+        with (WriteBehind() as writer,
+              tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar):
             for p in chosen:
                 for f in (0, 1):
                     res = _reconstruct_frame(projector, cache, store, names, p, f, settings, bar.update)
-                    store.record_volumes([(p, f)])
-                    results.append(res)
+                    writer.submit(store.write_volume, p, f, res.volume)
+                    results.append(_summary(res))
                     if settings.iterations == 0:
                         bar.update(1)
                     bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}")
