@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from tqdm import tqdm
 
 from lfcore.correlate import CorrelationConfig, CorrelationError, Correlator, WindowGrid, pass_grids
@@ -14,6 +16,7 @@ from lfcore.runstore import RunStore
 from lfcore.vectors import centres_mm, displacement_to_velocity, flags_from_masks
 from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError
+from lfpiv.overlap import prefetched
 
 __all__ = ["CorrelateJob", "CorrelationRun", "PairVectors", "correlate_pair_task", "correlate_run"]
 
@@ -71,11 +74,15 @@ def _correlator(shape: tuple[int, int, int], cfg: CorrelationConfig, device: str
         raise UsageError(str(exc)) from None
 
 
-def _correlate_pair(correlator: Correlator, store: RunStore, grid: VolumeGrid, pair: int,
-                    progress: Any = None) -> PairVectors:
-    """Correlate one pair and write its vectors (not the bookkeeping) into ``vectors/``."""
+def _read_pair(store: RunStore, pair: int) -> tuple[np.ndarray, np.ndarray]:
     volumes = store.volumes()
-    field = correlator(volumes[pair, 0], volumes[pair, 1], progress=progress)
+    return volumes[pair, 0], volumes[pair, 1]
+
+
+def _correlate_pair(correlator: Correlator, store: RunStore, grid: VolumeGrid, pair: int,
+                    volumes: tuple[np.ndarray, np.ndarray], progress: Any = None) -> PairVectors:
+    """Correlate one pair's volumes (A, B) and write its vectors (not the bookkeeping) into ``vectors/``."""
+    field = correlator(*volumes, progress=progress)
     vel = displacement_to_velocity(field.displacement, grid.voxel_mm, float(store.timing["dt_s"]))
     store.write_vectors(pair, vel, flags_from_masks(field.outlier, field.replaced), field.peak_ratio, record=False)
     return PairVectors(pair=pair, outliers=int(field.outlier.sum()), device=correlator.device, fft=correlator.fft)
@@ -90,7 +97,7 @@ def correlate_pair_task(job: CorrelateJob, pair: int) -> PairVectors:
         return store, store.volume_grid(), _correlator(job.shape, job.config, this_worker_device(job.device))
 
     store, grid, correlator = worker_state(job.token, build)
-    return _correlate_pair(correlator, store, grid, pair)
+    return _correlate_pair(correlator, store, grid, pair, _read_pair(store, pair))
 
 
 def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, device: str | None = None,
@@ -148,8 +155,9 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
         map_pairs(client, correlate_pair_task, job, pairs, on_done=written, desc="correlating", progress=progress)
     elif pairs:
         with tqdm(total=len(pairs) * len(cfg.passes), unit="pass", disable=not progress, desc="correlating") as bar:
-            for p in pairs:
-                written(p, _correlate_pair(correlator, store, grid, p, progress=bar.update))
+            # the next pair's volumes are read while this one is correlated
+            for p, vols in prefetched(pairs, partial(_read_pair, store)):
+                written(p, _correlate_pair(correlator, store, grid, p, vols, progress=bar.update))
     dev = found[0].device if found else place[0]
     return CorrelationRun(pairs=[r.pair for r in found], grid=g, outliers=sum(r.outliers for r in found),
                           seconds=time.perf_counter() - t0, device=dev)
