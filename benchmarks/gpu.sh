@@ -18,6 +18,8 @@
 #                                  # dual-camera Mc2 and S2 by all three methods; Mc2 at 1 PPM (about 8 min)
 #   bash benchmarks/gpu.sh fly     # weights made on the fly: their CUDA tests, M by MLOS-MART with stored and
 #                                  # with on-the-fly weights, L by MLOS-MART (part on the fly; about 9 min)
+#   bash benchmarks/gpu.sh batch   # a whole run of M: volumes written behind the reconstruction and
+#                                  # read ahead of the correlation, against one after the other (~6 min)
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
 #                                  # iterations), then the weight-build profile (what fits in 6 min)
 #
@@ -101,6 +103,9 @@ elif [ "$stage" = fly ]; then
     step recon-M-fly 120 python3 benchmarks/recon.py --case M --device cuda --no-drt --no-mart --iterations 20 \
         --weight-storage on-the-fly
     step recon-L-mlos 300 python3 benchmarks/recon.py --case L --device cuda --no-drt --no-mart --iterations 3
+elif [ "$stage" = batch ]; then
+    step batch-S 60 python3 benchmarks/batch.py --case S --pairs 3 --device cuda
+    step batch-M 300 python3 benchmarks/batch.py --case M --pairs 3 --device cuda
 elif [ "$stage" = profile ]; then
     step pytest-correlate 150 python3 -m pytest tests/unit/test_correlate.py tests/functional/test_correlate_cli.py -q \
         -p no:cacheprovider --timeout 100
