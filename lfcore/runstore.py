@@ -24,6 +24,7 @@ run is still ``recording``, ``complete`` or ``aborted``.
 from __future__ import annotations
 
 import datetime as _dt
+import uuid
 from pathlib import Path
 from typing import Any
 
@@ -313,13 +314,14 @@ class RunStore(RigStore):
 
         ``volumes/data`` is float32 (pairs, 2, z, y, x) in chunks of at most 16 x 256 x 256
         voxels; the group's attributes hold the grid (``origin_mm``, ``voxel_mm``), the method
-        and its settings, and ``reconstructed_pairs``, the pairs written so far.
+        and its settings, ``reconstructed_pairs``, the pairs written so far, and ``volumes_id``, a
+        name new with every ``volumes/`` made, which the vectors correlated from it record.
         """
         if "volumes" in self.group:
             del self.group["volumes"]
         g = self.group.create_group("volumes")
         g.attrs.update({"origin_mm": list(grid.origin_mm), "voxel_mm": list(grid.voxel_mm), "method": method,
-                        "settings": settings, "reconstructed_pairs": [],
+                        "settings": settings, "reconstructed_pairs": [], "volumes_id": uuid.uuid4().hex,
                         "description": "reconstructed particle volumes; origin_mm is the world (x, y, z) "
                                        "of the centre of voxel [0, 0, 0]"})
         nz, ny, nx = grid.shape
@@ -351,6 +353,12 @@ class RunStore(RigStore):
     @property
     def has_volumes(self) -> bool:
         return "volumes" in self.group
+
+    @property
+    def volumes_id(self) -> str | None:
+        """The name of the current ``volumes/`` (new each time it is made), None if there is none
+        (or it was made before lfpiv recorded one)."""
+        return self.group["volumes"].attrs.get("volumes_id") if self.has_volumes else None
 
     def volumes(self) -> zarr.Array:
         """The (pairs, 2, z, y, x) float32 ``volumes/data`` array."""
@@ -394,13 +402,15 @@ class RunStore(RigStore):
 
         ``u``, ``v``, ``w`` are float32 (pairs, z, y, x) in m/s, ``flags`` uint8 (bit 1: outlier,
         bit 2: replaced), ``peak_ratio`` float32; the group's ``correlated_pairs`` attribute lists
-        the pairs written so far.
+        the pairs written so far, and ``volumes_id`` the :attr:`volumes_id` of the volumes they are
+        correlated from.
         """
         if "vectors" in self.group:
             del self.group["vectors"]
         g = self.group.create_group("vectors")
         g.attrs.update({"dt_s": float(dt_s), "windows": [[int(n) for n in w] for w in windows],
                         "overlap": [float(o) for o in overlap], "settings": settings, "correlated_pairs": [],
+                        "volumes_id": self.volumes_id,
                         "description": "3D velocity from multi-grid cross-correlation of volumes/data; windows "
                                        "are (x, y, z) voxels per pass"})
         coords = {"x_mm": x_mm, "y_mm": y_mm, "z_mm": z_mm}

@@ -67,6 +67,18 @@ def _settings(cfg: CorrelationConfig, device: str, fft: str) -> dict[str, Any]:
             "first_overlap": None if cfg.first_overlap is None else list(cfg.first_overlap)}
 
 
+def _same_vectors(g: Any, volumes_id: str | None, windows: list[list[int]], overlap: list[float], dt_s: float,
+                  coords: tuple[np.ndarray, np.ndarray, np.ndarray], settings: dict[str, Any]) -> bool:
+    """Whether the stored ``vectors/`` group ``g`` holds vectors of these settings, on this grid,
+    from the current volumes (vectors of volumes since replaced are not kept)."""
+    old = dict(g.attrs)
+    return (old.get("volumes_id") == volumes_id and old["windows"] == windows and old["overlap"] == overlap
+            and float(old["dt_s"]) == dt_s
+            and all(np.array_equal(g[n][...], c) for n, c in zip(("x_mm", "y_mm", "z_mm"), coords, strict=True))
+            and {k: v for k, v in old["settings"].items() if k not in _PLACE}
+            == {k: v for k, v in settings.items() if k not in _PLACE})
+
+
 def _correlator(shape: tuple[int, int, int], cfg: CorrelationConfig, device: str | None) -> Correlator:
     try:
         return Correlator(shape, cfg, device=device)
@@ -126,11 +138,8 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
     place = (correlator.device, correlator.fft) if correlator is not None else (device or "auto", cfg.fft)
     settings = _settings(cfg, *place)
     windows, overlap = [list(w) for w in cfg.windows], list(cfg.overlap)
-    old = store.vectors()["attrs"] if store.has_vectors else None
-    same = (old is not None and old["windows"] == windows and old["overlap"] == overlap
-            and float(old["dt_s"]) == dt_s and len(store.vectors()["x_mm"]) == len(x_mm)
-            and {k: v for k, v in old["settings"].items() if k not in _PLACE}
-            == {k: v for k, v in settings.items() if k not in _PLACE})
+    same = store.has_vectors and _same_vectors(store.group["vectors"], store.volumes_id, windows, overlap, dt_s,
+                                               (x_mm, y_mm, z_mm), settings)
     if not same:
         store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=windows, overlap=overlap, settings=settings)
     elif skip_done:
