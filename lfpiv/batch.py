@@ -214,18 +214,81 @@ def map_pairs(client: Any, task: Callable[..., T], job: Any, pairs: Iterable[int
     """Run ``task(job, pair)`` on the cluster for every pair; ``on_done(pair, result)`` here, in
     the order the tasks finish.
 
-    On the first failure (or Ctrl-C) the tasks not yet started are cancelled and the error is
-    raised; the pairs finished before were passed to ``on_done``.
+    No more tasks are given out than the cluster has worker threads, so after a failure the
+    others given out are all under way: they are waited for, the pairs among them that succeed
+    passed to ``on_done``, and then the first error is raised, as one line when it is the
+    cluster's (a worker that died). Ctrl-C cancels them instead: local workers stop with the
+    command, a cluster's worker finishes the pair it is on.
+
+    Raises
+    ------
+    UsageError
+        If the cluster lost a task (its worker died, the scheduler went away).
+    Exception
+        The first task's own error, with its type.
     """
     from distributed import as_completed
 
-    pairs = list(pairs)
-    futures = {client.submit(task, job, p, key=f"{desc}-{p}-{uuid.uuid4().hex[:8]}", pure=False): p for p in pairs}
+    todo = list(pairs)[::-1]
+    given: dict[Any, int] = {}
+
+    def give_out() -> list[Any]:
+        # the cluster may grow or shrink while it works (an adaptive job-queue cluster)
+        free = max(1, sum(client.nthreads().values())) - len(given)
+        out = []
+        for _ in range(min(free, len(todo))):
+            p = todo.pop()
+            fut = client.submit(task, job, p, key=f"{desc}-{p}-{uuid.uuid4().hex[:8]}", pure=False)
+            given[fut] = p
+            out.append(fut)
+        return out
+
+    first: BaseException | None = None
     try:
-        with tqdm(total=len(pairs), unit="pair", disable=not progress, desc=desc, leave=False) as bar:
-            for fut in as_completed(list(futures)):
-                result = fut.result()  # a worker's exception is raised here, with its type
-                on_done(futures[fut], result)
+        with tqdm(total=len(todo), unit="pair", disable=not progress, desc=desc, leave=False) as bar:
+            running = as_completed(give_out())
+            for fut in running:
+                p = given.pop(fut)
+                try:
+                    result = fut.result()  # a task's exception is raised here, with its type
+                except Exception as exc:
+                    if first is None:
+                        first = _task_error(exc, p)
+                    continue
+                on_done(p, result)
                 bar.update(1)
+                if first is None:
+                    running.update(give_out())
     finally:
-        client.cancel([f for f in futures if not f.done()])
+        client.cancel(list(given))
+        _forget_job(client, job)
+    if first is not None:
+        raise first
+
+
+def _task_error(exc: Exception, pair: int) -> Exception:
+    """A task's own error as it is; the cluster's (a lost worker or connection) as one line."""
+    from concurrent.futures import CancelledError
+
+    from distributed.comm.core import CommClosedError
+    from distributed.scheduler import KilledWorker
+
+    if isinstance(exc, KilledWorker | CommClosedError | CancelledError):
+        return UsageError(f"pair {pair}: the Dask cluster lost its task ({type(exc).__name__}: {exc}); a worker that "
+                          "died, often out of memory, is the usual cause: give the workers more memory, run fewer "
+                          "per machine or use a coarser --pvr")
+    return exc
+
+
+def _forget_job(client: Any, job: Any) -> None:
+    """Drop the job's operator (device memory) from workers that outlive the command."""
+    token = getattr(job, "token", None)
+    try:
+        client.run(_forget_state, token, on_error="ignore")
+    except Exception:  # a cluster going away has nothing left to free
+        pass
+
+
+def _forget_state(token: str | None) -> None:
+    if _STATE.get("token") == token:
+        _STATE.clear()

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -104,18 +103,21 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
     back without their volumes, which stay in the store."""
     from lfpiv.batch import open_run_on_worker, this_worker_device, worker_state
 
-    def build() -> tuple[RunStore, Projector, WeightCache | None]:
+    def build() -> tuple[RunStore, Any, Projector, WeightCache | None]:
         store = open_run_on_worker(job.path)
         cams = [job.rig.camera_named(n) for n in job.cameras]
-        return (store, *_operator(cams, job.grid, job.settings, this_worker_device(job.device)))
+        # the volumes array opened once: its group's attributes are rewritten by the coordinator
+        # as pairs finish, and re-reading them for every write could meet a half-replaced file
+        # on a network file system
+        return (store, store.volumes(), *_operator(cams, job.grid, job.settings, this_worker_device(job.device)))
 
-    store, projector, cache = worker_state(job.token, build)
+    store, data, projector, cache = worker_state(job.token, build)
     out = []
     # frame A is written while frame B is reconstructed; both are written when the task returns
     with WriteBehind() as writer:
         for f in (0, 1):
             res = _reconstruct_frame(projector, cache, store, job.cameras, pair, f, job.settings)
-            writer.submit(partial(store.write_volume, record=False), pair, f, res.volume)
+            writer.submit(data.__setitem__, (pair, f), res.volume)
             out.append(_summary(res))
     return out
 

@@ -14,6 +14,7 @@ import pytest
 from lfcore.runstore import RunStore
 from lfpiv.batch import worker_device
 from lfpiv.cli import main
+from lfpiv.errors import UsageError
 from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
 
@@ -101,6 +102,12 @@ def test_skip_done_resumes_where_a_run_stopped(serial, tmp_path, capsys):
     assert RunStore.open(path).correlated_pairs() == [0, 1, 2]
     rc, out, err = _run(capsys, "correlate", path, *CORR, "--skip-done")
     assert rc == 0 and "already correlated with these settings; nothing to do" in out
+    # volumes made again replace the vectors of the old ones, even with the same correlation settings
+    assert _run(capsys, "reconstruct", path, "--iterations", "3", "--device", "cpu", "--quiet", "--pairs", "0")[0] == 0
+    rc, out, err = _run(capsys, "correlate", path, *CORR, "--skip-done")
+    assert rc == 0 and "1 pair(s)" in out, out + err
+    s = RunStore.open(path)
+    assert s.correlated_pairs() == [0] and s.vectors()["attrs"]["volumes_id"] == s.volumes_id is not None
 
 
 def test_workers_of_a_running_scheduler(serial, tmp_path, capsys):
@@ -190,3 +197,43 @@ def test_ctrl_c_keeps_the_pairs_the_workers_finished(serial, tmp_path, capsys, m
 ])
 def test_worker_device(asked, name, gpus, expected):
     assert worker_device(asked, name, gpus) == expected
+
+
+def _slow_unless_first(job, pair):
+    """A task for map_pairs: pair 0 fails at once, the others finish a moment later."""
+    import time
+
+    if pair == 0:
+        raise ValueError("pair 0 is bad")
+    time.sleep(2.0)
+    return pair * 10
+
+
+def _dies(job, pair):
+    import os
+
+    os._exit(3)  # what the kernel's out-of-memory killer does to a worker
+
+
+def test_after_a_failure_the_pairs_under_way_finish_and_are_recorded():
+    from lfpiv.batch import dask_client, map_pairs
+
+    done = {}
+    with dask_client(workers=2) as client, pytest.raises(ValueError, match="pair 0 is bad"):
+        map_pairs(client, _slow_unless_first, None, [0, 1, 2, 3], on_done=done.__setitem__, desc="t",
+                  progress=False)
+    # pair 1 was under way on the other worker when pair 0 failed, and is kept; the rest were not
+    # given out (no more than the workers' two threads are out at a time)
+    assert done.get(1) == 10 and len(done) < 3
+
+
+def test_a_worker_that_dies_is_one_line():
+    import dask
+
+    from lfpiv.batch import dask_client, map_pairs
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}), dask_client(workers=1) as client, \
+            pytest.raises(UsageError) as err:
+        map_pairs(client, _dies, None, [5], on_done=lambda p, r: None, desc="t", progress=False)
+    assert str(err.value).startswith("pair 5: the Dask cluster lost its task (KilledWorker")
+    assert "\n" not in str(err.value)
