@@ -148,10 +148,11 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
     found: list[PairVectors] = []
 
     def written(p: int, res: PairVectors) -> None:
-        s = store.group["vectors"].attrs["settings"]
-        if not found and (s.get("device"), s.get("fft")) != (res.device, res.fft):
+        if not found:
             # the device and FFT engine that computed the latest pairs (a worker resolves its own)
-            store.group["vectors"].attrs["settings"] = {**s, "device": res.device, "fft": res.fft}
+            s = store.group["vectors"].attrs["settings"]
+            if (s.get("device"), s.get("fft")) != (res.device, res.fft):
+                store.group["vectors"].attrs["settings"] = {**s, "device": res.device, "fft": res.fft}
         store.record_vectors([p])
         found.append(res)
 

@@ -77,6 +77,13 @@ def add_workers(parser: argparse.ArgumentParser, what: str) -> None:
                         help="leave out the selected pairs already done with the same settings (to resume)")
 
 
+def workers_phrase(args: argparse.Namespace) -> str:
+    """Where the pairs were done, for a command's summary line (see :func:`add_workers`)."""
+    if args.workers:
+        return f" by {args.workers} local worker(s)"
+    return f" by the workers of {args.scheduler}" if args.scheduler else ""
+
+
 def examples_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "examples"
 

@@ -10,7 +10,7 @@ import re
 
 import numpy as np
 
-from lfpiv.commands import add_device, add_workers, positive_float
+from lfpiv.commands import add_device, add_workers, positive_float, workers_phrase
 from lfpiv.errors import UsageError
 
 DEFAULT_WINDOWS = "320x320x64,160x160x32"
@@ -153,11 +153,10 @@ def run(args: argparse.Namespace) -> int:
     g = done.grid
     n_vec = g.size * len(done.pairs)
     nx, ny, nz = g.counts
-    where = (f" by {args.workers} local worker(s) on {done.device}" if args.workers else
-             f" by the workers of {args.scheduler} on {done.device}" if args.scheduler else f" on {done.device}")
     print(f"wrote {store.path}/vectors: {len(done.pairs)} pair(s) of {nx} x {ny} x {nz} vectors (x, y, z), "
           f"final windows {'x'.join(map(str, g.window))} voxels; {100.0 * done.outliers / n_vec:.1f}% outliers "
-          f"replaced; {done.seconds:.1f} s{where} ({n_vec / done.seconds:.3g} vectors/s)")
+          f"replaced; {done.seconds:.1f} s{workers_phrase(args)} on {done.device} "
+          f"({n_vec / done.seconds:.3g} vectors/s)")
     return 0
 
 

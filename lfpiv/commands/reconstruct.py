@@ -12,6 +12,7 @@ from lfpiv.commands import (
     positive_int,
     warn_voxel_shape,
     whole_number,
+    workers_phrase,
     xyz_triple,
 )
 from lfpiv.errors import UsageError
@@ -60,12 +61,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.set_defaults(func=run)
 
 
-def _where(args: argparse.Namespace) -> str:
-    if args.workers:
-        return f" by {args.workers} local worker(s)"
-    return f" by the workers of {args.scheduler}" if args.scheduler else ""
-
-
 def run(args: argparse.Namespace) -> int:
     from lfcore.reconstruct import ReconSettings
     from lfcore.runstore import RunStore
@@ -102,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     ws = sum(r.weights_s for r in results) / len(results)
     print(f"reconstructed {len(results)} volume(s) of {' x '.join(map(str, grid.shape[::-1]))} voxels (x, y, z) "
           f"with {args.method}{' and the models of ' + args.calibration if calibration else ''} into "
-          f"{store.path}/volumes{_where(args)}; per volume: {act:.2%} of voxels active, "
+          f"{store.path}/volumes{workers_phrase(args)}; per volume: {act:.2%} of voxels active, "
           f"weights {wb / 2**20:.1f} MiB built in {ws:.2f} s, {ms:.1f} ms per iteration")
     fly = max(r.on_the_fly_voxels for r in results)
     if fly:
