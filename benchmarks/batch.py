@@ -43,7 +43,7 @@ from lfcore.reconstruct import ReconSettings  # noqa: E402
 from lfcore.runstore import RunStore  # noqa: E402
 from lfcore.volume import VolumeGrid  # noqa: E402
 from lfpiv.commands.correlate import parse_windows  # noqa: E402
-from lfpiv.correlation import _correlate_pair, _read_pair, correlate_run  # noqa: E402
+from lfpiv.correlation import _correlate_pair, _read_pair, _Target, correlate_run  # noqa: E402
 from lfpiv.recon import _operator, _reconstruct_frame, reconstruct_run  # noqa: E402
 
 
@@ -105,12 +105,13 @@ def correlation(store: RunStore, cfg: CorrelationConfig, device: str) -> None:
     correlator = Correlator(grid.shape, cfg, device=device)
     t_build = time.perf_counter() - t0
     t_read = t_corr = 0.0
+    target, volumes = _Target.of(store), store.volumes()
     for p in pairs:
         t = time.perf_counter()
-        vols = _read_pair(store, p)
+        vols = _read_pair(volumes, p)
         t_read += time.perf_counter() - t
         t = time.perf_counter()
-        _correlate_pair(correlator, store, grid, p, vols)
+        _correlate_pair(correlator, target, p, vols)
         t_corr += time.perf_counter() - t
     serial = time.perf_counter() - t0
     del correlator

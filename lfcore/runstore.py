@@ -431,8 +431,20 @@ class RunStore(RigStore):
         a = g.create_array("peak_ratio", shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
         a.attrs.update(array_attrs("1", axes, "highest over second-highest correlation peak of the last pass"))
 
+    def vector_arrays(self) -> dict[str, zarr.Array]:
+        """The ``u``, ``v``, ``w``, ``flags`` and ``peak_ratio`` arrays of ``vectors/``, opened now.
+
+        For a worker that writes many pairs while another process records them: writing through
+        arrays opened once never reads the group's attributes again, which the recording process
+        rewrites as pairs finish (see :meth:`write_vectors`).
+        """
+        if not self.has_vectors:
+            raise RunStoreError(f"{self.path} has no vectors/ group; create it first")
+        g = self.group["vectors"]
+        return {n: g[n] for n in ("u", "v", "w", "flags", "peak_ratio")}
+
     def write_vectors(self, pair: int, velocity_m_s: np.ndarray, flags: np.ndarray, peak_ratio: np.ndarray, *,
-                      record: bool = True) -> None:
+                      record: bool = True, arrays: dict[str, zarr.Array] | None = None) -> None:
         """Store the vector field of one pair; with ``record`` False, without adding it to
         ``correlated_pairs`` (for concurrent writers: see :meth:`write_volume`).
 
@@ -446,10 +458,10 @@ class RunStore(RigStore):
             (z, y, x) uint8 flags (1 outlier, 2 replaced).
         peak_ratio
             (z, y, x) peak ratio.
+        arrays
+            :meth:`vector_arrays` opened before, to write through; by default they are opened now.
         """
-        if not self.has_vectors:
-            raise RunStoreError(f"{self.path} has no vectors/ group; create it first")
-        g = self.group["vectors"]
+        g = self.vector_arrays() if arrays is None else arrays
         shape = g["u"].shape[1:]
         vel = np.asarray(velocity_m_s)
         if vel.shape != (*shape, 3) or np.shape(flags) != shape or np.shape(peak_ratio) != shape:

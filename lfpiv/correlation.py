@@ -86,17 +86,32 @@ def _correlator(shape: tuple[int, int, int], cfg: CorrelationConfig, device: str
         raise UsageError(str(exc)) from None
 
 
-def _read_pair(store: RunStore, pair: int) -> tuple[np.ndarray, np.ndarray]:
-    volumes = store.volumes()
+def _read_pair(volumes: Any, pair: int) -> tuple[np.ndarray, np.ndarray]:
+    """Frames A and B of ``pair`` from the (pairs, 2, z, y, x) ``volumes/data`` array."""
     return volumes[pair, 0], volumes[pair, 1]
 
 
-def _correlate_pair(correlator: Correlator, store: RunStore, grid: VolumeGrid, pair: int,
+@dataclass(frozen=True)
+class _Target:
+    """Where a pair's vectors go: the run, its grid and ``vectors/`` arrays opened once."""
+
+    store: RunStore
+    grid: VolumeGrid
+    dt_s: float
+    arrays: dict[str, Any]
+
+    @classmethod
+    def of(cls, store: RunStore) -> _Target:
+        return cls(store, store.volume_grid(), float(store.timing["dt_s"]), store.vector_arrays())
+
+
+def _correlate_pair(correlator: Correlator, target: _Target, pair: int,
                     volumes: tuple[np.ndarray, np.ndarray], progress: Any = None) -> PairVectors:
     """Correlate one pair's volumes (A, B) and write its vectors (not the bookkeeping) into ``vectors/``."""
     field = correlator(*volumes, progress=progress)
-    vel = displacement_to_velocity(field.displacement, grid.voxel_mm, float(store.timing["dt_s"]))
-    store.write_vectors(pair, vel, flags_from_masks(field.outlier, field.replaced), field.peak_ratio, record=False)
+    vel = displacement_to_velocity(field.displacement, target.grid.voxel_mm, target.dt_s)
+    target.store.write_vectors(pair, vel, flags_from_masks(field.outlier, field.replaced), field.peak_ratio,
+                               record=False, arrays=target.arrays)
     return PairVectors(pair=pair, outliers=int(field.outlier.sum()), device=correlator.device, fft=correlator.fft)
 
 
@@ -104,12 +119,16 @@ def correlate_pair_task(job: CorrelateJob, pair: int) -> PairVectors:
     """Worker task: correlate ``pair`` of the run into its ``vectors/``."""
     from lfpiv.batch import open_run_on_worker, this_worker_device, worker_state
 
-    def build() -> tuple[RunStore, VolumeGrid, Correlator]:
+    def build() -> tuple[_Target, Any, Correlator]:
+        # the arrays are opened once: the group's attributes are rewritten by the coordinator as
+        # pairs finish, and re-reading them for every write could meet a half-replaced file on a
+        # network file system
         store = open_run_on_worker(job.path)
-        return store, store.volume_grid(), _correlator(job.shape, job.config, this_worker_device(job.device))
+        return (_Target.of(store), store.volumes(),
+                _correlator(job.shape, job.config, this_worker_device(job.device)))
 
-    store, grid, correlator = worker_state(job.token, build)
-    return _correlate_pair(correlator, store, grid, pair, _read_pair(store, pair))
+    target, volumes, correlator = worker_state(job.token, build)
+    return _correlate_pair(correlator, target, pair, _read_pair(volumes, pair))
 
 
 def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, device: str | None = None,
@@ -166,8 +185,9 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
     elif pairs:
         with tqdm(total=len(pairs) * len(cfg.passes), unit="pass", disable=not progress, desc="correlating") as bar:
             # the next pair's volumes are read while this one is correlated
-            for p, vols in prefetched(pairs, partial(_read_pair, store)):
-                written(p, _correlate_pair(correlator, store, grid, p, vols, progress=bar.update))
+            target = _Target.of(store)
+            for p, vols in prefetched(pairs, partial(_read_pair, store.volumes())):
+                written(p, _correlate_pair(correlator, target, p, vols, progress=bar.update))
     dev = found[0].device if found else place[0]
     return CorrelationRun(pairs=[r.pair for r in found], grid=g, outliers=sum(r.outliers for r in found),
                           seconds=time.perf_counter() - t0, device=dev)

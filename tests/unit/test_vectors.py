@@ -189,6 +189,25 @@ def test_run_store_vectors_round_trip(tmp_path, tiny_rig):
     assert g["flags"].attrs["flag_meanings"] == "outlier replaced"
 
 
+def test_vectors_written_through_arrays_opened_once(tmp_path, tiny_rig):
+    # a worker writes through arrays opened once while the coordinator records pairs
+    s = RunStore.create(tmp_path / "r.zarr", tiny_rig, 3, timing={"dt_s": 1e-3, "rate_hz": 10.0},
+                        software_version="test")
+    with pytest.raises(RunStoreError, match="no vectors/ group; create it first"):
+        s.vector_arrays()
+    s.create_vectors(np.arange(5.0), np.arange(4.0), np.arange(3.0), dt_s=1e-3, windows=[[8, 8, 8]],
+                     overlap=[0.5, 0.5, 0.5], settings={})
+    worker = RunStore.open(tmp_path / "r.zarr", mode="r+")
+    arrays = worker.vector_arrays()
+    vel = np.full((3, 4, 5, 3), 2.5)
+    for p in (0, 2):
+        worker.write_vectors(p, vel * (p + 1), np.zeros((3, 4, 5)), np.ones((3, 4, 5)), record=False, arrays=arrays)
+        s.record_vectors([p])
+    r = RunStore.open(tmp_path / "r.zarr").vectors()
+    assert r["attrs"]["correlated_pairs"] == [0, 2] and np.isnan(r["u"][1]).all()
+    assert np.allclose(r["w"][2], 7.5) and np.allclose(r["peak_ratio"][0], 1.0)
+
+
 def test_outlier_kernels_agree_on_every_device(device):
     f = linear_field(noise=0.05)
     f[2, 4, 5] += 3.0
