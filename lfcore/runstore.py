@@ -264,7 +264,11 @@ class RunStore(RigStore):
 
     def add_drops(self, rows: list[dict[str, Any]]) -> None:
         """Append lost frames to ``drops``; each row has the fields camera, pair, frame,
-        frame_id, timestamp_ns and reason."""
+        frame_id, timestamp_ns and reason.
+
+        The columns grow one after the other, ``reason`` last: a row counts once its reason is
+        written (see :meth:`drops`), so a process killed half-way leaves no broken row.
+        """
         if not rows:
             return
         for name, (dtype, _, _) in _DROP_FIELDS.items():
@@ -274,10 +278,17 @@ class RunStore(RigStore):
             a[n:] = np.asarray([r[name] for r in rows], dtype=object if dtype is str else dtype)
 
     def drops(self) -> list[dict[str, Any]]:
-        """Every lost frame, as dicts with the fields of ``drops/``."""
+        """Every lost frame, as dicts with the fields of ``drops/``.
+
+        Of a run killed while recording (``state`` still "recording"), only the drops of
+        committed pairs: rows of a pair the kill left uncommitted, or half-appended, are left out.
+        """
         cols = {name: self.group[f"drops/{name}"][...] for name in _DROP_FIELDS}
-        n = len(cols["camera"])
-        return [{k: (v[i].item() if hasattr(v[i], "item") else v[i]) for k, v in cols.items()} for i in range(n)]
+        n = min(len(v) for v in cols.values())  # a kill while appending leaves some columns longer
+        rows = [{k: (v[i].item() if hasattr(v[i], "item") else v[i]) for k, v in cols.items()} for i in range(n)]
+        if self.state == "recording":
+            rows = [r for r in rows if r["pair"] < self.committed_pairs and r["reason"]]
+        return rows
 
     def write_truth(self, particles_mm: np.ndarray, brightness: np.ndarray, flow: dict[str, Any],
                     **attrs: Any) -> None:

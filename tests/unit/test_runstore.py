@@ -9,6 +9,27 @@ import zarr
 from lfcore.runstore import FRAME_CODEC, FrameWriter, RunStore, RunStoreError
 
 
+def test_drops_of_a_run_killed_while_appending_them(tiny_rig, tmp_path):
+    s = RunStore.create(tmp_path / "run.zarr", tiny_rig, 4, timing={}, software_version="test")
+    s.add_drop("cam0", 0, 1, 2, 10, "frame_id gap")
+    s.commit(1)
+    # killed while appending the drops of pair 1: some columns grew, the rest did not
+    for name in ("camera", "pair", "frame"):
+        a = s.group[f"drops/{name}"]
+        a.resize((2,))
+        a[1:] = np.asarray(["cam0"] if name == "camera" else [1], dtype=object if name == "camera" else np.int64)
+    want = [{"camera": "cam0", "pair": 0, "frame": 1, "frame_id": 2, "timestamp_ns": 10, "reason": "frame_id gap"}]
+    assert RunStore.open(tmp_path / "run.zarr").drops() == want
+    # every column appended, the pair not committed: still only committed pairs
+    for name in ("frame_id", "timestamp_ns", "reason"):
+        a = s.group[f"drops/{name}"]
+        a.resize((2,))
+        a[1:] = np.asarray(["lost"] if name == "reason" else [5], dtype=object if name == "reason" else np.int64)
+    assert RunStore.open(tmp_path / "run.zarr").drops() == want
+    s.commit(2)
+    assert len(RunStore.open(tmp_path / "run.zarr").drops()) == 2
+
+
 def test_round_trip(tiny_rig, tmp_path):
     path = tmp_path / "run.zarr"
     s = RunStore.create(path, tiny_rig, 3, timing={"dt_s": 0.002, "rate_hz": 10.0}, software_version="9.9")
