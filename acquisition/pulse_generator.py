@@ -16,9 +16,11 @@ Channel 0 is T0, 1 is channel A, 2 is B, and so on. Commands used here::
     :PULSE0:PER <s>             T0 period, seconds
     :PULSE0:MODE NORM|BURS      continuous, or a burst of :PULSE0:BCO <n> periods then stop
     :PULSE0:TRIG:MODE DIS       T0 from the internal rate generator, no external trigger
+    :PULSE0:GATE:MODE DIS       no external gate input holds pulses back
     :PULSEn:STATE ON|OFF        enable / disable output n
     :PULSEn:SYNC T0             output n is timed from T0
     :PULSEn:CMODE NORM          output n fires on every T0
+    :PULSEn:MUX <2**(n-1)>      output n driven by timer n alone (the multiplexer can OR timers)
     :PULSEn:POL NORM|INV        active high / low
     :PULSEn:DELAY <s>           delay after T0, seconds
     :PULSEn:WIDT <s>            pulse width, seconds
@@ -245,6 +247,7 @@ class QuantumComposers9520:
                        "build the plan with acquisition.timing.plan_timing")
         self._plan = None
         self._cmd(":PULSE0:TRIG:MODE DIS")  # T0 from the internal rate generator
+        self._cmd(":PULSE0:GATE:MODE DIS")  # no external gate may hold the pulses back
         self._cmd(f":PULSE0:PER {plan.period_s:.9f}")
         if plan.pulses > 0:
             self._cmd(":PULSE0:MODE BURS")
@@ -255,6 +258,9 @@ class QuantumComposers9520:
             n = c.channel
             self._cmd(f":PULSE{n}:SYNC T0")
             self._cmd(f":PULSE{n}:CMODE NORM")
+            # each output driven by its own timer alone: a multiplexer set from the front panel
+            # could otherwise put, say, the Q-switch timer on a camera's output
+            self._cmd(f":PULSE{n}:MUX {1 << (n - 1)}")
             self._cmd(f":PULSE{n}:POL {c.polarity}")
             self._cmd(f":PULSE{n}:DELAY {c.delay_s:.11f}")
             self._cmd(f":PULSE{n}:WIDT {c.width_s:.11f}")

@@ -216,6 +216,7 @@ class ChannelState:
     sync: str = "T0"
     polarity: str = "NORM"
     mode: str = "NORM"
+    mux: int = 0  # the channel timers routed to this output, one bit each (timer A = 1)
 
 
 class _ScpiError(Exception):
@@ -271,11 +272,12 @@ class PulseGeneratorEmulator(_PtyEmulator):
                  serial: str = "EMU0001") -> None:
         self.n_channels = channels
         self.idn = f"QC,{model},{serial},3.0.0-emulator"
-        self._channels = {n: ChannelState() for n in range(1, channels + 1)}
+        self._channels = {n: ChannelState(mux=1 << (n - 1)) for n in range(1, channels + 1)}
         self.period_s = 1e-3
         self.mode = "NORM"
         self.burst_count = 1
         self.trigger_mode = "DIS"
+        self.gate_mode = "DIS"
         self.ticks_fired = 0
         self._running = False
         self._run_stop: threading.Event | None = None
@@ -362,7 +364,9 @@ class PulseGeneratorEmulator(_PtyEmulator):
             with self._lock:
                 if stop.is_set():
                     return
-                outputs = {n: c.delay_s for n, c in self._channels.items() if c.enabled}
+                # an output fires with the first of the timers its multiplexer routes to it
+                outputs = {n: min(t.delay_s for m, t in self._channels.items() if c.mux >> (m - 1) & 1)
+                           for n, c in self._channels.items() if c.enabled and c.mux}
                 listeners = list(self._listeners)
                 period, mode, count = self.period_s, self.mode, self.burst_count
             t0_ns = wall0 + (due - perf0)
@@ -436,6 +440,11 @@ class PulseGeneratorEmulator(_PtyEmulator):
                 return self.trigger_mode
             self.trigger_mode = _choice(_need(arg), ("DISabled", "TRIGgered", "DUAL"))
             return "ok"
+        if len(words) == 2 and _kw(key, "GATe") and _kw(words[1], "MODe"):
+            if query:
+                return self.gate_mode
+            self.gate_mode = _choice(_need(arg), ("DISabled", "PULSe", "OUTPut", "CHANnel"))
+            return "ok"
         if len(words) != 1:
             raise _ScpiError(3)
         if _kw(key, "STATe"):
@@ -503,6 +512,13 @@ class PulseGeneratorEmulator(_PtyEmulator):
                 if query:
                     return c.mode
                 c.mode = _choice(_need(arg), _MODES)
+            elif _kw(key, "MUX"):
+                if query:
+                    return str(c.mux)
+                value = _number(arg, 0, 2 ** len(self._channels) - 1)
+                if value != int(value):
+                    raise _ScpiError(5)
+                c.mux = int(value)
             else:
                 raise _ScpiError(3)
         return "ok"
@@ -510,8 +526,9 @@ class PulseGeneratorEmulator(_PtyEmulator):
     def _reset(self) -> None:
         self._set_running(False)
         with self._lock:
-            self._channels = {n: ChannelState() for n in self._channels}
+            self._channels = {n: ChannelState(mux=1 << (n - 1)) for n in self._channels}
             self.period_s, self.mode, self.burst_count, self.trigger_mode = 1e-3, "NORM", 1, "DIS"
+            self.gate_mode = "DIS"
 
 
 def _need(arg: str) -> str:

@@ -90,6 +90,17 @@ def test_program_loads_every_setting_with_outputs_off(emu, gen, plan, pulses):
     assert not emu.running and not gen.armed
 
 
+def test_program_undoes_front_panel_routing_and_gating(emu, gen, plan):
+    # left from the front panel: output 2 driven by timer 1 as well, and an external gate
+    for cmd in (":PULSE2:MUX 3", ":PULSE0:GATE:MODE PULS"):
+        assert emu._execute(cmd) == "ok"
+    assert emu.channel_state(2).mux == 3 and emu.gate_mode == "PULS"
+    gen.program(plan)
+    assert emu.gate_mode == "DIS"
+    assert {c.channel: emu.channel_state(c.channel).mux for c in plan.channels} == {
+        c.channel: 1 << (c.channel - 1) for c in plan.channels}
+
+
 def test_arm_fires_and_disarm_stops(emu, gen, plan):
     ticks: list[tuple[int, int, dict[int, float]]] = []
     emu.add_listener(lambda tick, t0_ns, outputs: ticks.append((tick, t0_ns, outputs)))
