@@ -59,13 +59,14 @@ import os
 import re
 import signal
 import threading
+from collections.abc import Callable, Iterator
 from types import FrameType, TracebackType
 from typing import Any, NoReturn
 
 from .protocols import DeviceError, TimingPlan
 from .serial_link import LinkClosed, LinkError, SerialLink
 
-__all__ = ["ERROR_CODES", "QuantumComposers9520", "disarm_all"]
+__all__ = ["ERROR_CODES", "QuantumComposers9520", "disarm_all", "install_signal_handlers", "signals_call"]
 
 log = logging.getLogger(__name__)
 
@@ -459,7 +460,7 @@ def _register(gen: QuantumComposers9520) -> None:
         if not _ATEXIT_DONE:
             atexit.register(disarm_all)
             _ATEXIT_DONE = True
-        _install_signal_handlers()
+        install_signal_handlers()
 
 
 def _unregister(gen: QuantumComposers9520) -> None:
@@ -467,20 +468,48 @@ def _unregister(gen: QuantumComposers9520) -> None:
         _ARMED.discard(gen)
 
 
-def _install_signal_handlers() -> None:
-    """Install the SIGTERM/SIGHUP handlers once, remembering the previous ones to chain to."""
+def install_signal_handlers() -> None:
+    """Make SIGTERM and SIGHUP disarm every armed generator, then do what they did before.
+
+    Only the main thread may set signal handlers, so a program that arms from another thread
+    (the live monitor does) must call this from its main thread first; :meth:`arm` calls it too,
+    which covers programs that arm from the main thread. A handler someone replaced ours with
+    since is chained to in turn. atexit covers a normal exit; nothing covers SIGKILL.
+    """
     if threading.current_thread() is not threading.main_thread():
-        return  # only the main thread may set handlers; atexit still covers a normal exit
+        return
     for sig in _SIGNALS:
-        if sig in _PREVIOUS:
-            continue
         with contextlib.suppress(ValueError, OSError):
-            _PREVIOUS[sig] = signal.getsignal(sig)
-            signal.signal(sig, _on_signal)
+            current = signal.getsignal(sig)
+            if current is not _on_signal:
+                _PREVIOUS[sig] = current
+                signal.signal(sig, _on_signal)
+
+
+@contextlib.contextmanager
+def signals_call(handler: Callable[[], None]) -> Iterator[None]:
+    """Inside, SIGTERM and SIGHUP disarm every armed generator and then call ``handler()`` in
+    the main thread (to end a recording as Ctrl-C does, say, by raising or closing a window)
+    instead of ending the process.
+
+    Enter it from the main thread (only there do signals arrive in Python).
+    """
+    install_signal_handlers()
+    _HOOKS.append(handler)
+    try:
+        yield
+    finally:
+        _HOOKS.remove(handler)
+
+
+_HOOKS: list[Callable[[], None]] = []
 
 
 def _on_signal(signum: int, frame: FrameType | None) -> None:
     disarm_all()
+    if _HOOKS:
+        _HOOKS[-1]()
+        return
     previous = _PREVIOUS.get(signum)
     if callable(previous):
         previous(signum, frame)

@@ -18,7 +18,6 @@ triggered by it.
 
 from __future__ import annotations
 
-import signal
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -28,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from acquisition.protocols import Camera, DeviceError, PulseGenerator, TimingPlan
+from acquisition.pulse_generator import signals_call
 from acquisition.session import RecordingSession, SessionStats
 from acquisition.timing import TimingError, plan_timing
 from lfcore.rig import Rig
@@ -39,7 +39,11 @@ __all__ = ["AcquireResult", "Rigging", "check_plan", "list_devices", "open_rig",
 
 
 class Terminated(Exception):
-    """SIGTERM arrived while recording."""
+    """SIGTERM or SIGHUP arrived while recording."""
+
+
+def _terminated() -> None:
+    raise Terminated()
 
 
 @dataclass
@@ -182,14 +186,13 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
         store.group.attrs.update({"hardware": rig.hardware})
         session = RecordingSession(rg.cameras, store, pairs, ring_slots=ring_slots, writer_threads=writer_threads)
         state, message = "aborted", ""
-        previous_term = signal.getsignal(signal.SIGTERM)
-
-        def _on_term(signum: int, frame: object) -> None:
-            raise Terminated()
-
-        in_main = _is_main_thread()
-        if in_main:
-            signal.signal(signal.SIGTERM, _on_term)
+        # undisarmed: None until the disarm below, then "" or what could not be confirmed
+        undisarmed: str | None = None
+        # SIGTERM / SIGHUP (a kill, a closed terminal) disarm and then end the recording as
+        # Ctrl-C does, so the run is closed and marked; signals reach only the main thread
+        signals = ExitStack()
+        if _is_main_thread():
+            signals.enter_context(signals_call(_terminated))
         try:
             session.start()
             if on_session is not None:
@@ -223,23 +226,29 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
             message = f"interrupted after {session.committed_pairs} committed pair(s)"
             raise
         except Terminated:
-            message = f"terminated (SIGTERM) after {session.committed_pairs} committed pair(s)"
+            message = f"terminated by a signal after {session.committed_pairs} committed pair(s)"
             raise KeyboardInterrupt from None
         except (DeviceError, RuntimeError) as exc:
             message = str(exc)
-            raise DeviceError(f"{exc}; the laser was disarmed and the {session.committed_pairs} pair(s) "
-                              f"recorded so far are kept in {out} (state 'aborted')") from None
+            undisarmed = _disarm(gen)
+            laser = "the laser was disarmed" if not undisarmed else _unconfirmed(undisarmed)
+            raise DeviceError(f"{exc}; {laser}; the {session.committed_pairs} pair(s) recorded so far are kept "
+                              f"in {out} (state 'aborted')") from None
         finally:
-            _disarm_quietly(gen)
+            if undisarmed is None:
+                undisarmed = _disarm(gen)
+                if undisarmed and state != "complete":  # leaving on Ctrl-C or a signal
+                    print(f"lfpiv: warning: {_unconfirmed(undisarmed)}", file=sys.stderr)
+            signals.close()  # from here a second signal ends the process: the laser is off
             session.close()
-            if in_main:
-                signal.signal(signal.SIGTERM, previous_term)
             if state == "complete" and session.committed_pairs < pairs:
                 state, message = "aborted", f"only {session.committed_pairs} of {pairs} pairs could be written"
             store.group.attrs.update({"abort_reason": message} if state == "aborted" else {})
             store.set_state(state)
             if rg.lab is not None and session.committed_pairs > 0:
                 _write_sim_truth(store, rg.lab, session.committed_pairs)
+        if undisarmed:
+            raise DeviceError(f"{message}: the run is kept in {out} (state '{state}'), but {_unconfirmed(undisarmed)}")
         stats = session.stats()
         return AcquireResult(store, state, stats, len(store.drops()), message)
 
@@ -318,12 +327,19 @@ def _is_main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-def _disarm_quietly(gen: PulseGenerator) -> None:
+def _disarm(gen: PulseGenerator) -> str:
+    """Disarm ``gen``; "" when confirmed, else why not (never raises: it must not mask the error
+    that ended the recording)."""
     try:
         gen.disarm()
-    except Exception as exc:  # noqa: BLE001 - report, never mask the original error
-        print(f"lfpiv: warning: could not confirm the laser is disarmed ({exc}); "
-              "check the pulse generator and the laser interlock", file=sys.stderr)
+    except Exception as exc:  # noqa: BLE001
+        return str(exc) or type(exc).__name__
+    return ""
+
+
+def _unconfirmed(problem: str) -> str:
+    return (f"the laser could NOT be confirmed disarmed ({problem}): press STOP on the pulse generator or close "
+            "the laser shutter, then check the generator's cable and power")
 
 
 def _write_sim_truth(store: RunStore, lab: Any, pairs: int) -> None:

@@ -43,11 +43,15 @@ def _build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``lfpiv`` command; returns the exit code."""
     from acquisition.protocols import DeviceError as HardwareError
+    from acquisition.pulse_generator import install_signal_handlers
     from lfcore.device import DeviceError
     from lfcore.rig import RigError
     from lfcore.runstore import RunStoreError
 
     warnings.filterwarnings("ignore", category=UserWarning, module="zarr")
+    # before any thread starts: a kill or a closed terminal disarms a laser armed from any
+    # thread (the monitor arms from its recording thread, where no handler can be set)
+    install_signal_handlers()
     try:
         args = _build_parser().parse_args(argv)
         return args.func(args)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,16 @@ from lfpiv.rigfile import load_rig
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 DEVICES = available_devices()
+
+
+def wait_for(condition, timeout_s: float = 5.0) -> bool:
+    """Poll ``condition()`` until it is true (True) or ``timeout_s`` passed (False)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.002)
+    return True
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:

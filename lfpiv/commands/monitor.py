@@ -77,6 +77,7 @@ def _check_display(screenshot: bool) -> None:
 
 
 def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of set-up steps
+    from acquisition.pulse_generator import signals_call
     from lfpiv.acquire import check_plan
     from lfpiv.rigfile import load_rig
     from realtime.monitor import GuiUnavailable, require_qt
@@ -145,6 +146,8 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
         shot: dict[str, object] = {"path": None}
         previous_int = signal.signal(signal.SIGINT, lambda *_: win.close())
         stack.callback(signal.signal, signal.SIGINT, previous_int)
+        # a kill or a closed terminal: the laser off at once, then the window closes as on Ctrl-C
+        stack.enter_context(signals_call(win.close))
 
         def tick() -> None:
             # Offscreen mode: the screenshot after --after pairs were shown (or once the recording

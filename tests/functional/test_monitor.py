@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 import re
+import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -19,7 +21,7 @@ from lfpiv import cli  # noqa: E402
 from lfpiv.live import LiveRecorder  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
 from realtime.pipeline import LivePipeline, LiveSettings  # noqa: E402
-from tests.functional.test_acquire import _lab, fast_rig_text  # noqa: E402
+from tests.functional.test_acquire import LFPIV, _lab, _wait_committed, fast_rig_text  # noqa: E402
 
 pytest.importorskip("pyqtgraph")
 
@@ -165,3 +167,27 @@ def test_disarm_from_every_state(rig_file: Path, tmp_path: Path) -> None:
         assert third.state == "complete" and third.path == tmp_path / "run-3.zarr" and third.committed_pairs == 10
         assert third.frames_recorded + third.frames_dropped == 10 * 2 * 2
     assert pipe.stats().state == "stopped"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_a_killed_monitor_disarms_and_closes_its_recording(rig_file: Path, tmp_path: Path, sig: int) -> None:
+    # The monitor arms from its recording thread, where no signal handler can be set: a kill or
+    # a closed terminal must still disarm, and the recording end as after "disarm".
+    out = tmp_path / "run.zarr"
+    cmd = [*LFPIV, "monitor", "--rig", str(rig_file), "--pairs", "5000", "--out", str(out), "--screenshot",
+           str(tmp_path / "shot.png"), "--after", "100000", "--device", "cpu", "--iterations", "1", "--method",
+           "mlos-mart", "--sim-rays", "300", "--sim-pool", "2", "--pvr", "4,4,20", "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    try:
+        _wait_committed(out, 5, proc, timeout_s=120.0)
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0 and "Traceback" not in stderr, stderr
+    store = RunStore.open(out)
+    assert store.state == "aborted" and 5 <= store.committed_pairs < 5000
+    assert f"{store.committed_pairs} pair(s) x 2 camera(s)" in stdout and "state aborted" in stdout
+    recorded = sum(int(np.count_nonzero(store.frame_ids(c) >= 0)) for c in store.cameras)
+    assert recorded + len(store.drops()) == store.committed_pairs * 2 * 2

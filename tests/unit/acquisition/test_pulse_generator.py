@@ -18,18 +18,10 @@ from acquisition.protocols import DeviceError, PulseGenerator, TimingPlan
 from acquisition.pulse_generator import QuantumComposers9520
 from acquisition.timing import plan_timing
 from sim.serial_emulators import PulseGeneratorEmulator
+from tests.conftest import wait_for
 
 REPO = Path(__file__).resolve().parents[3]
 PERIOD_S = 0.004  # faster than any laser, to keep the tests short
-
-
-def wait_for(condition, timeout_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.002)
-    return True
 
 
 @pytest.fixture
@@ -262,7 +254,16 @@ CHILD = textwrap.dedent("""
     gen = QuantumComposers9520(sys.argv[1])
     gen.open()
     gen.program(plan)
-    gen.arm()
+    if mode == "thread":
+        # as the live monitor does: the main thread installs the handlers, a thread arms
+        import threading
+        from acquisition.pulse_generator import install_signal_handlers
+        install_signal_handlers()
+        t = threading.Thread(target=gen.arm)
+        t.start()
+        t.join()
+    else:
+        gen.arm()
     print("armed", flush=True)
     if mode == "exit":
         sys.exit(0)  # forgets to disarm: atexit must do it
@@ -271,7 +272,7 @@ CHILD = textwrap.dedent("""
 
 
 @pytest.mark.parametrize("mode, returncode", [
-    ("default", -signal.SIGTERM), ("chain", 3), ("exit", 0),
+    ("default", -signal.SIGTERM), ("chain", 3), ("exit", 0), ("thread", -signal.SIGTERM),
 ])
 def test_a_process_that_dies_disarms_its_generator(emu, mode, returncode):
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
