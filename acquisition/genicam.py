@@ -614,8 +614,8 @@ class GenICamCamera:
 
     Notes
     -----
-    ``frame_id`` is the producer's frame (block) id, unchanged, so a frame lost anywhere
-    leaves a gap. ``timestamp_ns`` is the buffer's time stamp from the camera clock where the
+    ``frame_id`` is the producer's frame (block) id, unwrapped where 16-bit GigE Vision ids wrap,
+    so a frame lost anywhere leaves a gap. ``timestamp_ns`` is the buffer's time stamp from the camera clock where the
     producer reports one (``timestamp_ns``, or ticks over the device's tick frequency),
     otherwise the host's ``time.time_ns()`` when the frame was fetched.
     """
@@ -651,6 +651,8 @@ class GenICamCamera:
         self._acquiring = False
         self._pending: deque[Frame] = deque()
         self._incomplete = 0
+        self._last_raw_id: int | None = None  # the producer's last frame (block) id
+        self._id_base = 0  # added to it for the 16-bit GigE Vision ids that wrapped
         self._tick_hz: float | None = None
         self._mode = "not configured"
 
@@ -877,6 +879,7 @@ class GenICamCamera:
                 )
             self._read_size()
             self._pending.clear()
+            self._last_raw_id, self._id_base = None, 0
             ia = self._ia
             stream = ia.data_streams[0] if ia.data_streams else None
             if stream is None:
@@ -940,7 +943,7 @@ class GenICamCamera:
     def _to_frame(self, buffer: Any, host_ns: int) -> Frame:
         raw = buffer.module
         try:
-            frame_id = int(raw.frame_id)
+            frame_id = self._unwrap(int(raw.frame_id))
         except Exception:
             frame_id = -1
         try:
@@ -965,6 +968,22 @@ class GenICamCamera:
             timestamp_ns=self._timestamp(raw) or host_ns,
             complete=complete,
         )
+
+    def _unwrap(self, raw_id: int) -> int:
+        """The frame count since :meth:`start` from the producer's frame (block) id.
+
+        GigE Vision 1.x block ids are 16 bits and wrap from 65535 to 1 (0 is never used): after
+        55 minutes of double frames at 10 Hz. A jump back of more than half that range from
+        a 16-bit id is a wrap, and the count goes on from 65536. 64-bit ids (USB3 Vision, GigE
+        Vision 2 extended ids) never wrap in practice and pass unchanged.
+        """
+        if raw_id < 0:
+            return -1
+        last = self._last_raw_id
+        if last is not None and last <= 0xFFFF and last - raw_id > 0x8000:
+            self._id_base += 0xFFFF
+        self._last_raw_id = raw_id
+        return raw_id + self._id_base
 
     def _timestamp(self, raw: Any) -> int:
         try:

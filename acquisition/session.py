@@ -55,6 +55,10 @@ class SessionStats:
         Seconds since :meth:`RecordingSession.start`.
     pair_rate_hz : float
         Committed pairs per second since the first commit.
+    late_frames : int
+        Frames that arrived after their place was settled (already listed as not delivered,
+        or a repeat); ignored, not recorded: each one's place holds a recorded frame or a drop
+        row already.
     """
 
     committed_pairs: int
@@ -64,6 +68,7 @@ class SessionStats:
     extra_frames: int
     elapsed_s: float
     pair_rate_hz: float
+    late_frames: int = 0
 
 
 class RecordingSession:
@@ -125,6 +130,7 @@ class RecordingSession:
         self._recorded = 0
         self._dropped = 0
         self._extra = 0
+        self._late = 0
         self._started = 0.0
         self._first_commit: float | None = None
         self._last_frame = {n: 0.0 for n in names}
@@ -168,7 +174,7 @@ class RecordingSession:
                 span = time.monotonic() - self._first_commit
                 rate = (self._committed - 1) / span if span > 0 else 0.0
             return SessionStats(self._committed, self._recorded, self._dropped, self.ring.overruns, self._extra,
-                                elapsed, rate)
+                                elapsed, rate, self._late)
 
     def wait(self, timeout_s: float) -> bool:
         """Block until every pair is committed, an error happened, or ``timeout_s`` passed."""
@@ -184,8 +190,8 @@ class RecordingSession:
     def drop_undelivered(self, reason: str, up_to_pair: int | None = None) -> int:
         """List every frame still missing (of pairs ``< up_to_pair``) as dropped with ``reason``.
 
-        Call after the last trigger plus a grace period: those frames will not come. Returns the
-        number of frames dropped.
+        Call after the last trigger plus a grace period: those frames will not come, and one that
+        still does is ignored (counted in ``late_frames``). Returns the number of frames dropped.
         """
         limit = self.n_pairs if up_to_pair is None else min(self.n_pairs, up_to_pair)
         n = 0
@@ -195,6 +201,8 @@ class RecordingSession:
                 cam = self.cameras[ci].name
                 self._add_drop(cam, int(pair), int(frame), -1, reason)
                 n += 1
+            for name in self._expected:  # those places are settled now
+                self._expected[name] = max(self._expected[name], 2 * limit)
             self._settle()
         return n
 
@@ -247,6 +255,7 @@ class RecordingSession:
 
     def _grab(self, cam: Camera) -> None:
         name = cam.name
+        ci = self._cam_index[name]
         first = cam.first_frame_id
         rows, cols = self.ring.data[name].shape[2:]
         try:
@@ -254,15 +263,27 @@ class RecordingSession:
                 frame = cam.fetch(self.fetch_timeout_s)
                 if frame is None:
                     continue
-                self._last_frame[name] = time.monotonic()
                 rel = frame.frame_id - first
-                expected = self._expected[name]
-                if rel < expected:
-                    continue  # a repeated or late frame whose place is already settled
                 with self._cond:
+                    expected = self._expected[name]
+                    if frame.frame_id < 0:
+                        raise DeviceError(f"camera '{name}' delivers frames without a frame id, and frames are "
+                                          "paired by their ids; check its driver (GenTL producer) and firmware")
+                    if rel < expected:
+                        # a repeat, or a frame already listed as not delivered: its place is
+                        # accounted for
+                        self._late += 1
+                        continue
+                    if expected == 0 and rel >= 2 * self.ring.slots:
+                        raise DeviceError(
+                            f"camera '{name}' numbered its first frame {frame.frame_id}, {rel} after the "
+                            f"{first} it should start at: its frame counter did not restart with the "
+                            "acquisition, so its frames cannot be paired; power-cycle it or reset its counter")
+                    self._last_frame[name] = time.monotonic()
                     for missing in range(expected, min(rel, self.n_frames)):
                         pair, k = divmod(missing, 2)
-                        self._add_drop(name, pair, k, first + missing, "frame_id gap: lost in camera or transport")
+                        if self._status[pair, ci, k] == _PENDING:
+                            self._add_drop(name, pair, k, first + missing, "frame_id gap: lost in camera or transport")
                     self._expected[name] = rel + 1
                     if rel >= self.n_frames:
                         self._extra += 1
@@ -280,8 +301,14 @@ class RecordingSession:
                         continue
                 ok = self.ring.put(name, pair, k, frame.data, frame.frame_id, frame.timestamp_ns)
                 with self._cond:
-                    if ok:
-                        self._status[pair, self._cam_index[name], k] = _IN_RING
+                    if self._status[pair, ci, k] != _PENDING:
+                        # listed as not delivered while it was copied: the listing stands; a slot
+                        # this copy claimed again after the pair was committed is given back
+                        self._late += 1
+                        if ok and pair < self._committed:
+                            self.ring.release(pair)
+                    elif ok:
+                        self._status[pair, ci, k] = _IN_RING
                     else:
                         self._add_drop(name, pair, k, frame.frame_id,
                                        f"ring overrun: the recorder fell {self.ring.slots} pairs behind")
@@ -331,14 +358,16 @@ class RecordingSession:
             drops = [d for pair in range(first, last + 1) for d in self._drops.pop(pair, [])]
         self.store.add_drops(drops)
         self.store.commit(last + 1)
-        for pair in range(first, last + 1):
-            self.ring.release(pair)
         with self._cond:
             self._committed = last + 1
             self._recorded += sum(r[2] for _, r in batch)
             if self._first_commit is None:
                 self._first_commit = time.monotonic()
             self._cond.notify_all()
+        # released after _committed moves, so a grabber that sees the pair committed knows its
+        # slot is released or about to be
+        for pair in range(first, last + 1):
+            self.ring.release(pair)
         if self._on_commit is not None:
             self._on_commit(last + 1)
 

@@ -374,3 +374,14 @@ def test_viky_recording_session_pairs_frames_of_two_cameras(tiny_rig, tmp_path: 
         assert np.array_equal(ids[p, f], 1 + 2 * p + f)  # viky numbers frames from 1
         assert store.frames(cam)[p[0], f[0]].max() > 0  # the simulator's test pattern
         assert np.all(np.diff(store.timestamps_ns(cam)[recorded]) >= 0)
+
+
+def test_16_bit_gige_frame_ids_are_unwrapped() -> None:
+    # GigE Vision 1.x block ids wrap from 65535 to 1 (0 is never used); the count goes on
+    cam = gc.GenICamCamera("cam0")
+    got = [cam._unwrap(i) for i in (65533, 65534, 65535, 1, 2, 4)]
+    assert got == [65533, 65534, 65535, 65536, 65537, 65539]
+    assert [cam._unwrap(i) for i in (65535, 1)] == [131070, 131071]  # and again
+    # 64-bit ids (USB3 Vision, extended ids) are never taken for a wrap; no id stays -1
+    cam = gc.GenICamCamera("cam1")
+    assert [cam._unwrap(i) for i in (70000, 100, 70001, -1)] == [70000, 100, 70001, -1]
