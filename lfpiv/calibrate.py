@@ -256,41 +256,44 @@ def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: fl
             raise UsageError("stage.port is not set in the rig file; give the serial port of the calibration "
                              "stage, or set hardware = \"sim\"")
         stage = ZaberStage(rg.stage_port, baud=rig.stage.baud)
-        stage.open()
-        try:
-            stage.home()
-            lo, hi = stage.travel_mm
-            centre = 0.5 * (lo + hi) if centre_mm is None else centre_mm
-            targets = plane_targets(planes, step_mm, centre)
-            if targets[0] < lo or targets[-1] > hi:
-                raise UsageError(f"planes {targets[0]:g}..{targets[-1]:g} mm leave the stage's travel {lo:g}..{hi:g} "
-                                 "mm; give fewer --planes, a smaller --step-mm or another --centre-mm")
-            lab = rg.lab
-            brd = dataclasses.replace(board or default_board(rig), stage_centre_mm=float(centre))
-            old = store.target()
-            if old is not None and store.plane_targets() is not None and old != brd:
-                raise UsageError(f"{out} holds planes of another target ({old}); give a new --out path")
-            store.write_target(brd)
-
-            def on_moved(plane: int, readback: float) -> None:
-                if lab is not None:
-                    from sim.scenes import dot_target_scene  # the application wires the simulated lab
-
-                    z = brd.centre_mm[2] + lab.stage.position_mm - centre  # the TRUE carriage position
-                    lab.world.show(*dot_target_scene(lab.rig, z, board=brd, **(sim_target or {})))
-
-            def grab() -> dict[str, np.ndarray]:
-                return {k: v[0] for k, v in capture_frames(rig, rg.cameras, rg.pulse_generator, 1, exposure).items()}
-
+        # the port opens here and closes on the way out, after stopping a move under way if
+        # anything (Ctrl-C too) ends the calibration early
+        with stage:
             try:
-                return run_planes(store, stage, grab, targets, step_mm, settle_s=settle_s, on_moved=on_moved,
-                                  progress=progress)
-            except CalibrationStoreError as exc:
-                raise UsageError(str(exc)) from None
-        finally:
-            stage.close()
-            if rg.lab is not None:
-                rg.lab.world.show(None)
+                stage.home()
+                lo, hi = stage.travel_mm
+                centre = 0.5 * (lo + hi) if centre_mm is None else centre_mm
+                targets = plane_targets(planes, step_mm, centre)
+                if targets[0] < lo or targets[-1] > hi:
+                    raise UsageError(f"planes {targets[0]:g}..{targets[-1]:g} mm leave the stage's travel "
+                                     f"{lo:g}..{hi:g} mm; give fewer --planes, a smaller --step-mm or another "
+                                     "--centre-mm")
+                lab = rg.lab
+                brd = dataclasses.replace(board or default_board(rig), stage_centre_mm=float(centre))
+                old = store.target()
+                if old is not None and store.plane_targets() is not None and old != brd:
+                    raise UsageError(f"{out} holds planes of another target ({old}); give a new --out path")
+                store.write_target(brd)
+
+                def on_moved(plane: int, readback: float) -> None:
+                    if lab is not None:
+                        from sim.scenes import dot_target_scene  # the application wires the simulated lab
+
+                        z = brd.centre_mm[2] + lab.stage.position_mm - centre  # the TRUE carriage position
+                        lab.world.show(*dot_target_scene(lab.rig, z, board=brd, **(sim_target or {})))
+
+                def grab() -> dict[str, np.ndarray]:
+                    frames = capture_frames(rig, rg.cameras, rg.pulse_generator, 1, exposure)
+                    return {k: v[0] for k, v in frames.items()}
+
+                try:
+                    return run_planes(store, stage, grab, targets, step_mm, settle_s=settle_s, on_moved=on_moved,
+                                      progress=progress)
+                except CalibrationStoreError as exc:
+                    raise UsageError(str(exc)) from None
+            finally:
+                if rg.lab is not None:
+                    rg.lab.world.show(None)
 
 
 def _named_dots(store: CalibrationStore, nominal: Camera, board: DotBoard, min_dots: int,
