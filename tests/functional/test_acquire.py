@@ -154,6 +154,21 @@ def test_a_generator_that_stops_answering_stops_the_recording(fast_rig, tmp_path
     _check_every_frame_accounted(store, store.committed_pairs)
 
 
+def test_a_complete_recording_whose_disarm_is_unconfirmed_is_an_error(fast_rig, tmp_path: Path) -> None:
+    # the generator stops answering after the last trigger was programmed, before the first
+    # liveness ping (1 s after arming): every pair is recorded, the disarm cannot be confirmed
+    def pull_the_cable(stats) -> None:
+        if stats.committed_pairs >= 1:
+            lab.pulse_generator.inject("no_reply")
+
+    with _lab(fast_rig) as lab:
+        with pytest.raises(DeviceError, match=r"recorded 20 pair\(s\): the run is kept in .*state 'complete'.*"
+                                              "laser could NOT be confirmed disarmed"):
+            record(fast_rig, tmp_path / "done.zarr", 20, sim_options={"lab": lab}, progress=pull_the_cable)
+    store = RunStore.open(tmp_path / "done.zarr")
+    assert store.state == "complete" and store.committed_pairs == 20
+
+
 def test_impossible_timing_is_refused_before_any_device_opens(fast_rig_file: Path, tmp_path: Path,
                                                               capsys: pytest.CaptureFixture) -> None:
     rig_file = tmp_path / "bad.toml"
