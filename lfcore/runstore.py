@@ -186,14 +186,23 @@ class RunStore(RigStore):
             a.attrs.update(array_attrs("ns" if name == "timestamp_ns" else "1", ["drop"], what))
         return cls(root, path)
 
-    @staticmethod
-    def check_new(path: str | Path, overwrite: bool = False) -> None:
+    @classmethod
+    def check_new(cls, path: str | Path, overwrite: bool = False) -> None:
         """Raise :class:`RunStoreError` unless a new run may be created at ``path``.
 
-        Call it before long work whose result goes to ``path``, so that the user hears at once.
+        ``overwrite`` replaces only an lfpiv run store, never another file or folder. Call it
+        before long work whose result goes to ``path``, so that the user hears at once.
         """
-        if Path(path).exists() and not overwrite:
+        path = Path(path)
+        if not path.exists():
+            return
+        if not overwrite:
             raise RunStoreError(f"{path} already exists; choose another output path or pass --overwrite")
+        try:
+            cls._open_root(path, "r")
+        except RunStoreError as exc:
+            raise RunStoreError(f"{exc}, and --overwrite replaces only run stores; choose another output path") \
+                from None
 
     @classmethod
     def open(cls, path: str | Path, mode: str = "r") -> RunStore:
@@ -494,6 +503,14 @@ class RunStore(RigStore):
     @property
     def has_vectors(self) -> bool:
         return "vectors" in self.group
+
+    @property
+    def vectors_outdated(self) -> bool:
+        """True when ``vectors/`` was correlated from volumes since replaced (or removed)."""
+        if not self.has_vectors:
+            return False
+        made_from = self.group["vectors"].attrs.get("volumes_id")
+        return made_from is not None and made_from != self.volumes_id
 
     def correlated_pairs(self) -> list[int]:
         return list(self.group["vectors"].attrs["correlated_pairs"]) if self.has_vectors else []

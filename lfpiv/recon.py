@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -92,6 +93,21 @@ def _reconstruct_frame(projector: Projector, cache: WeightCache | None, store: R
         raise UsageError(f"pair {pair} frame {'AB'[frame]}: {exc}") from None
 
 
+def _say_replaced(store: RunStore, grid: VolumeGrid, meta: dict[str, Any]) -> None:
+    """Tell the user that volumes made with other settings are about to be replaced (they are
+    derived data: the recorded frames stay, and the old settings can make them again)."""
+    done = store.reconstructed_pairs()
+    if not done:
+        return
+    old = store.group["volumes"].attrs["settings"]
+    changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k)]
+    if store.volume_grid() != grid:
+        changed.insert(0, "voxel grid")
+    print(f"lfpiv: note: replacing the volumes of {len(done)} pair(s) made with other settings "
+          f"({', '.join(changed[:4])}{' ...' if len(changed) > 4 else ''} differ); vectors correlated from them "
+          "no longer match them", file=sys.stderr)
+
+
 def _summary(res: ReconResult) -> ReconResult:
     # a run's results are kept for its summary line, its volumes are in the store: holding
     # them all would take a whole run's volumes of memory (482 MiB a frame for the M case)
@@ -159,7 +175,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     rig = store.rig if rig is None else rig
     if store.committed_pairs == 0:
         raise UsageError(f"{store.path} has no recorded pairs (committed_pairs = 0); nothing to reconstruct")
-    chosen = parse_pairs(pairs, store.n_pairs)
+    # by default every recorded pair: a run cut short (Ctrl-C, a fault) has fewer than it planned
+    chosen = parse_pairs(pairs, store.n_pairs) if pairs is not None else list(range(store.committed_pairs))
     late = [p for p in chosen if p >= store.committed_pairs]
     if late:
         raise UsageError(f"pair {late[0]} was never recorded (the run has {store.committed_pairs} committed "
@@ -180,6 +197,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
             "cameras": names, "calibration": calibration}
     if not (store.has_volumes and store.volume_grid() == grid and store.group["volumes"].attrs["settings"] == meta):
+        _say_replaced(store, grid, meta)
         store.create_volumes(grid, method=settings.method, settings=meta)
     elif skip_done:
         done = set(store.reconstructed_pairs())

@@ -40,6 +40,25 @@ def positive_float(text: str) -> float:
     return v
 
 
+def non_negative_float(text: str) -> float:
+    """argparse type: a finite number of at least 0."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
+    if not 0 <= v < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+    return v
+
+
+def fraction(text: str) -> float:
+    """argparse type: a number above 0 and at most 1."""
+    v = positive_float(text)
+    if v > 1:
+        raise argparse.ArgumentTypeError(f"must be a fraction above 0 and at most 1, got {text}")
+    return v
+
+
 def xyz_triple(text: str) -> tuple[float, float, float]:
     """argparse type: three numbers x,y,z (a PVR, a margin; their ranges are checked by the command)."""
     try:
@@ -86,6 +105,14 @@ def workers_phrase(args: argparse.Namespace) -> str:
 
 def examples_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "examples"
+
+
+def warn_outdated_vectors(store) -> None:
+    """A note on stderr when the run's vectors come from volumes that were replaced since."""
+    if store.vectors_outdated:
+        print(f"lfpiv: note: the vectors of {store.path} were correlated from volumes that have since been "
+              f"replaced; run 'lfpiv correlate {store.path}' again for vectors of the current volumes",
+              file=sys.stderr)
 
 
 def warn_optics(rig) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from lfpiv.commands import positive_float
+from lfpiv.commands import fraction, positive_float, warn_outdated_vectors
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -13,7 +13,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "diameters and the intensity outside the seeded region for every reconstructed frame.")
     e.add_argument("run", metavar="RUN", help="synthetic run store with volumes/")
     e.add_argument("--pairs", default=None, metavar="RANGE", help="pairs to evaluate (default: all reconstructed)")
-    e.add_argument("--threshold", type=positive_float, default=0.1,
+    e.add_argument("--threshold", type=fraction, default=0.1,
                    help="detect peaks above this fraction of the brightest voxel (default: 0.1)")
     e.add_argument("--match-voxels", type=positive_float, default=2.0,
                    help="a detection matches a true particle within this many voxels per axis (default: 2)")
@@ -49,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"picture: {plot_reconstruction(store, evals, args.plot)}")
     else:
         print(f"volumes: none (run 'lfpiv reconstruct {store.path}')")
+    warn_outdated_vectors(store)
     for label, text in evaluate_vectors(store):
         print(f"{label}: {text}")
     return 0

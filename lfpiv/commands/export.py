@@ -20,11 +20,13 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from lfcore.runstore import RunStore, RunStoreError
+    from lfpiv.commands import warn_outdated_vectors
     from lfpiv.errors import UsageError
     from lfpiv.export import fields_of, write_netcdf, write_vti_series
 
     store = RunStore.open(args.run)
     vectors = store.vectors()
+    warn_outdated_vectors(store)
     pairs = store.correlated_pairs()
     if not pairs:
         raise RunStoreError(f"{store.path} has vectors/ but no correlated pair; run 'lfpiv correlate {store.path}'")

@@ -160,3 +160,30 @@ def test_running_out_of_device_memory_is_one_line_and_keeps_volumes(capsys, tmp_
     assert "use a coarser --pvr" in err and "the 1 volume(s) written before are kept" in err
     vol = RunStore.open(path).volumes()
     assert vol[0, 0].max() > 0  # frame A is in the store
+
+
+def test_replacing_volumes_says_so_and_marks_their_vectors_outdated(capsys, tmp_path):
+    run = tmp_path / "run.zarr"
+    assert main(["synth", "--rig", TINY, "--out", str(run), "--pairs", "2", "--ppm", "0.2", "--flow", "uniform",
+                 "--quiet"]) == 0
+    assert _run(capsys, "reconstruct", str(run), "--iterations", "2", "--quiet")[0] == 0
+    rc, _, err = _run(capsys, "correlate", str(run), "--windows", "32x32x16,16x16x8", "--quiet")
+    assert rc == 0 and not RunStore.open(run).vectors_outdated, err
+    rc, _, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--pairs", "0", "--quiet")
+    assert rc == 0
+    assert "note: replacing the volumes of 2 pair(s) made with other settings (iterations differ)" in err
+    assert RunStore.open(run).vectors_outdated
+    for argv in (["evaluate", run], ["export", run, "--format", "netcdf", "--out", tmp_path / "f"]):
+        rc, _, err = _run(capsys, *argv)
+        assert rc == 0 and "were correlated from volumes that have since been replaced" in err, err
+
+
+def test_reconstruct_by_default_takes_the_pairs_a_cut_short_recording_committed(capsys, tmp_path):
+    run = tmp_path / "run.zarr"
+    assert main(["synth", "--rig", TINY, "--out", str(run), "--pairs", "3", "--ppm", "0.2", "--quiet"]) == 0
+    s = RunStore.open(run, mode="r+")
+    s.commit(2)
+    s.set_state("aborted")
+    rc, _, err = _run(capsys, "reconstruct", str(run), "--iterations", "1", "--quiet")
+    assert rc == 0, err
+    assert RunStore.open(run).reconstructed_pairs() == [0, 1]
