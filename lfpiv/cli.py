@@ -9,7 +9,10 @@ The subcommands live in :mod:`lfpiv.commands`.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
+import re
 import sys
 import warnings
 from collections.abc import Sequence
@@ -40,10 +43,24 @@ def _build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _negative_lists(argv: list[str]) -> list[str]:
+    """``--pvr -2,2,10`` as ``--pvr=-2,2,10``: argparse takes a value starting with a minus sign
+    for an option unless it is a single number, and would answer "expected one argument"; joined,
+    the value reaches the option's own check, which says what is wrong with it."""
+    out: list[str] = []
+    for tok in argv:
+        if out and out[-1].startswith("--") and "=" not in out[-1] and re.fullmatch(r"-[\d.][^,]*(,[^,]*)+", tok):
+            out[-1] = f"{out[-1]}={tok}"
+        else:
+            out.append(tok)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``lfpiv`` command; returns the exit code."""
     from acquisition.protocols import DeviceError as HardwareError
     from acquisition.pulse_generator import install_signal_handlers
+    from calibration.store import CalibrationStoreError
     from lfcore.device import DeviceError
     from lfcore.rig import RigError
     from lfcore.runstore import RunStoreError
@@ -53,9 +70,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     # thread (the monitor arms from its recording thread, where no handler can be set)
     install_signal_handlers()
     try:
-        args = _build_parser().parse_args(argv)
+        args = _build_parser().parse_args(_negative_lists(sys.argv[1:] if argv is None else list(argv)))
         return args.func(args)
-    except (UsageError, RigError, RunStoreError, DeviceError) as exc:
+    except (UsageError, RigError, RunStoreError, CalibrationStoreError, DeviceError) as exc:
         print(f"lfpiv: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except HardwareError as exc:
@@ -64,6 +81,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("lfpiv: interrupted; what was recorded so far is kept", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # the reader went away (``lfpiv info run.zarr | head``): nothing left to say
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except OSError as exc:
+        # a path that cannot be written or read (read-only, missing folder, no space, ...)
+        where = f" {exc.filename}" if exc.filename else ""
+        print(f"lfpiv: error: cannot use{where}: {exc.strerror or exc}; choose another path or fix its "
+              "permissions and free space", file=sys.stderr)
+        return EXIT_USAGE
 
 
 if __name__ == "__main__":

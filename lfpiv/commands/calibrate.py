@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from lfpiv.commands import positive_float, positive_int, warn_optics, whole_number
+from lfpiv.commands import non_negative_float, positive_float, positive_int, warn_optics, whole_number
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -46,7 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="distance between planes (default: 0.5)")
     v.add_argument("--centre-mm", type=float, default=None, metavar="MM",
                    help="stage position of the middle plane (default: the middle of the stage's travel)")
-    v.add_argument("--settle-s", type=float, default=0.0, metavar="S", help="wait after each move (default: 0)")
+    v.add_argument("--settle-s", type=non_negative_float, default=0.0, metavar="S",
+                   help="wait after each move (default: 0)")
     v.add_argument("--exposure-us", type=positive_float, default=None, metavar="US",
                    help="exposure per frame (default: the rig's timing.camera_exposure_us)")
     v.add_argument("--spacing-mm", type=positive_float, default=None, metavar="MM",

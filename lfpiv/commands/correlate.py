@@ -117,7 +117,8 @@ def _select_pairs(store, sel: slice | None) -> list[int]:
         return done
     wanted = list(range(store.n_pairs))[sel]
     if not wanted:
-        raise UsageError(f"--pairs selects no pair of this run's {store.n_pairs}")
+        raise UsageError(f"--pairs selects no pair of this run (it has pairs 0 to {store.n_pairs - 1}); "
+                         "give START:STOP with START below STOP, e.g. 0:10")
     missing = [p for p in wanted if p not in done]
     if missing:
         raise UsageError(f"--pairs: pair(s) {', '.join(map(str, missing[:5]))}{' ...' if len(missing) > 5 else ''} "

@@ -8,10 +8,10 @@ from lfpiv.commands import (
     add_device,
     add_workers,
     check_pvr,
+    non_negative_float,
     positive_float,
     positive_int,
     warn_voxel_shape,
-    whole_number,
     workers_phrase,
     xyz_triple,
 )
@@ -28,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "mlos-mart eliminates as DRT-MART does, then iterates with the baseline's weights.")
     r.add_argument("run", metavar="RUN", help="run store (a .zarr directory)")
     r.add_argument("--method", choices=("drt-mart", "mart", "mlos-mart"), default="drt-mart", help="default: drt-mart")
-    r.add_argument("--iterations", type=whole_number, default=50, help="MART iterations (default: 50)")
+    r.add_argument("--iterations", type=positive_int, default=50, help="MART iterations (default: 50)")
     r.add_argument("--relaxation", type=positive_float, default=1.0,
                    help="relaxation mu (default: 1; at most 2 for the simultaneous form; the chapter's "
                    "sequential MART used 2.5)")
@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="grow the box beyond the rig's volume on every side (default: 0,0,0)")
     r.add_argument("--cameras", default=None, metavar="NAMES", help="comma-separated cameras to use (default: all)")
     r.add_argument("--pairs", default=None, metavar="RANGE", help="pairs to reconstruct, e.g. 0:10 or 3 (default: all)")
-    r.add_argument("--background", type=float, default=None, metavar="COUNTS",
+    r.add_argument("--background", type=non_negative_float, default=None, metavar="COUNTS",
                    help="background level to subtract (default: estimated per image)")
     r.add_argument("--threshold-sigma", type=positive_float, default=2.0,
                    help="a pixel is lit above background + this many noise sigmas (default: 2)")

@@ -127,7 +127,28 @@ def _bad_rig(tmp_path):
     return str(p)
 
 
+def _user_folder(t):
+    """A folder of the user's that is not a run store."""
+    (t / "mydata").mkdir(exist_ok=True)
+    (t / "mydata" / "notes.txt").write_text("keep me")
+    return str(t / "mydata")
+
+
+def _under_a_file(t):
+    (t / "afile").write_text("")
+    return str(t / "afile" / "x.zarr")
+
+
 BAD_INPUTS = [
+    (lambda t: ["synth", "--rig", TINY, "--out", _user_folder(t), "--overwrite"],
+     "not an lfpiv run store (no zarr v3 group there: GroupNotFoundError), and --overwrite replaces only run stores"),
+    (lambda t: ["synth", "--rig", TINY, "--out", _under_a_file(t)], "cannot use"),
+    (lambda t: ["reconstruct", str(t / "r.zarr"), "--iterations", "0"], "--iterations: must be at least 1"),
+    (lambda t: ["reconstruct", str(t / "r.zarr"), "--background", "-5"], "--background: must be 0 or more"),
+    (lambda t: ["reconstruct", str(t / "r.zarr"), "--pvr", "-2,2,10"], "--pvr must be three positive numbers"),
+    (lambda t: ["evaluate", str(t / "r.zarr"), "--threshold", "2"], "--threshold: must be a fraction above 0"),
+    (lambda t: ["calibrate", "volume", "--rig", TINY, "--out", str(t / "c.zarr"), "--settle-s", "-1"],
+     "--settle-s: must be 0 or more"),
     (lambda t: ["synth", "--rig", str(t / "none.toml"), "--out", str(t / "x.zarr")], "none.toml not found"),
     (lambda t: ["synth", "--rig", _bad_rig(t), "--out", str(t / "x.zarr")], "camera[0].focal: unknown key"),
     (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--ppm", "0"], "--ppm: must be a positive"),
@@ -148,6 +169,8 @@ def test_bad_input_is_one_line(capsys, tmp_path, argv, expected):
     assert rc == 2 and out == ""
     assert err.count("\n") == 1 and err.startswith("lfpiv: error: ") and expected in err, err
     assert not (tmp_path / "x.zarr").exists()  # nothing half-made
+    if (tmp_path / "mydata").exists():
+        assert (tmp_path / "mydata" / "notes.txt").read_text() == "keep me"
 
 
 @pytest.mark.parametrize(
