@@ -9,6 +9,7 @@ import signal
 import sys
 import time
 from contextlib import ExitStack
+from pathlib import Path
 
 from lfpiv.commands import (
     add_device,
@@ -85,6 +86,10 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
     rig = load_rig(args.rig)
     warn_optics(rig)
     check_plan(rig, args.pairs)
+    if args.screenshot is not None:
+        folder = Path(args.screenshot).parent
+        if not (folder.is_dir() or not folder.exists()) or (folder.exists() and not os.access(folder, os.W_OK)):
+            raise UsageError(f"cannot write the screenshot into {folder}; give a writable --screenshot path")
     _check_display(args.screenshot is not None)
     try:
         pg, QtCore, _, _ = require_qt()
@@ -143,11 +148,17 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
         win.show()
         pipe.start()
         rec.arm()
-        shot: dict[str, object] = {"path": None}
-        previous_int = signal.signal(signal.SIGINT, lambda *_: win.close())
+        shot: dict[str, object] = {"path": None, "error": None}
+        interrupted: list[str] = []
+
+        def interrupt(*_: object) -> None:
+            interrupted.append("signal")
+            win.close()
+
+        previous_int = signal.signal(signal.SIGINT, interrupt)
         stack.callback(signal.signal, signal.SIGINT, previous_int)
         # a kill or a closed terminal: the laser off at once, then the window closes as on Ctrl-C
-        stack.enter_context(signals_call(win.close))
+        stack.enter_context(signals_call(interrupt))
 
         def tick() -> None:
             # Offscreen mode: the screenshot after --after pairs were shown (or once the recording
@@ -159,7 +170,11 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
                          and st.last_pair >= rec.status()["committed_pairs"] - 1)
             if shot["path"] is None and (win.displayed >= args.after or (caught_up and not win.drawing_pending)):
                 win.refresh_status()
-                shot["path"] = win.screenshot(args.screenshot)
+                try:
+                    shot["path"] = win.screenshot(args.screenshot)
+                except OSError as exc:  # the monitor stops: the run it recorded is kept
+                    shot["path"], shot["error"] = args.screenshot, exc
+                    rec.disarm()
                 if win.displayed < args.after:
                     say(f"the recording ended after {win.displayed} pair(s) were shown, fewer than --after "
                         f"{args.after}")
@@ -177,7 +192,7 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
         end_recording()
         pipe.stop()
         numbers = win.status_numbers()
-        say(f"stopped in {time.monotonic() - t0:.1f} s")
+        say(f"window closed; recording and live path stopped {time.monotonic() - t0:.1f} s later")
 
     for r in rec.recordings:
         where = str(r.path) if r.path is not None else "not recorded (no --out)"
@@ -192,11 +207,15 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
     st = pipe.stats()
     if st.error:
         print(f"lfpiv monitor: warning: the live path reported: {st.error}", file=sys.stderr)
-    if shot["path"] is not None:
+    if shot["path"] is not None and shot["error"] is None:
         print(f"screenshot: {shot['path']}")
     failed = [r for r in rec.recordings if r.state == "failed"]
     if failed:
         from acquisition.protocols import DeviceError
 
         raise DeviceError(failed[-1].message)
+    if shot["error"] is not None:
+        raise UsageError(f"{shot['error']}; give a writable --screenshot path")
+    if interrupted:
+        raise KeyboardInterrupt
     return 0

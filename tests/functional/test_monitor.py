@@ -119,6 +119,13 @@ def test_monitor_with_a_bad_pvr_is_one_line(main, rig_file: Path, capsys) -> Non
     assert len(err.splitlines()) == 1 and "--pvr must be three positive numbers, got 0,2,10" in err
 
 
+def test_monitor_with_an_unwritable_screenshot_is_one_line(main, rig_file: Path, tmp_path: Path, capsys) -> None:
+    (tmp_path / "afile").write_text("")
+    assert main(["monitor", "--rig", str(rig_file), "--screenshot", str(tmp_path / "afile" / "m.png")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "cannot write the screenshot into" in err and "writable" in err
+
+
 def test_monitor_without_a_display_is_one_line(main, rig_file: Path, capsys, monkeypatch: pytest.MonkeyPatch) -> None:
     for var in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM"):
         monkeypatch.delenv(var, raising=False)
@@ -185,7 +192,7 @@ def test_a_killed_monitor_disarms_and_closes_its_recording(rig_file: Path, tmp_p
         stdout, stderr = proc.communicate(timeout=60)
     finally:
         proc.kill()
-    assert proc.returncode == 0 and "Traceback" not in stderr, stderr
+    assert proc.returncode == 130 and "Traceback" not in stderr and "interrupted" in stderr, stderr
     store = RunStore.open(out)
     assert store.state == "aborted" and 5 <= store.committed_pairs < 5000
     assert f"{store.committed_pairs} pair(s) x 2 camera(s)" in stdout and "state aborted" in stdout
