@@ -23,6 +23,14 @@ def _fmt_params(params: dict) -> str:
     return ", ".join(f"{k}={fmt(v)}" for k, v in params.items() if k != "name")
 
 
+def _count(pairs: list[int]) -> str:
+    """``"3 pair(s) (0 to 2)"``, or ``"none"``."""
+    if not pairs:
+        return "no pair"
+    span = f"{pairs[0]}" if len(pairs) == 1 else f"{pairs[0]} to {pairs[-1]}"
+    return f"{len(pairs)} pair(s) ({span})"
+
+
 def run(args: argparse.Namespace) -> int:
     from lfcore.mla import lenslet_count
     from lfcore.runstore import RunStore
@@ -58,8 +66,23 @@ def run(args: argparse.Namespace) -> int:
                                + (f" ({ppm:g} PPM)" if ppm else "") + f", seed {truth['attrs'].get('seed')}"))
     else:
         lines.append(("flow", "unknown (recorded run, no truth)"))
+    if a.get("abort_reason"):
+        lines.append(("aborted", str(a["abort_reason"])))
     drops = store.drops()
     lines.append(("drops", "none" if not drops else f"{len(drops)} frame(s) lost, e.g. {drops[0]['reason']}"))
+    if store.has_volumes:
+        va = store.group["volumes"].attrs
+        g = store.volume_grid()
+        lines.append(("volumes", f"{_count(store.reconstructed_pairs())} reconstructed by {va['method']}, "
+                                 f"{va['settings'].get('iterations')} iterations, "
+                                 f"{' x '.join(str(n) for n in g.shape[::-1])} voxels"))
+    else:
+        lines.append(("volumes", f"none (lfpiv reconstruct {store.path})"))
+    if store.has_vectors:
+        windows = store.group["vectors"].attrs["windows"]
+        lines.append(("vectors", f"{_count(store.correlated_pairs())} correlated, windows "
+                                 f"{' then '.join('x'.join(map(str, w)) for w in windows)}"
+                                 + ("; from volumes since replaced" if store.vectors_outdated else "")))
     width = max(len(k) for k, _ in lines)
     for k, val in lines:
         print(f"{k:<{width}}  {val}")

@@ -176,6 +176,9 @@ def test_replacing_volumes_says_so_and_marks_their_vectors_outdated(capsys, tmp_
     for argv in (["evaluate", run], ["export", run, "--format", "netcdf", "--out", tmp_path / "f"]):
         rc, _, err = _run(capsys, *argv)
         assert rc == 0 and "were correlated from volumes that have since been replaced" in err, err
+    rc, out, _ = _run(capsys, "info", run)
+    assert "volumes  1 pair(s) (0) reconstructed by drt-mart, 3 iterations, 82 x 68 x 29 voxels" in out
+    assert "vectors  2 pair(s) (0 to 1) correlated, windows 32x32x16 then 16x16x8; from volumes since replaced" in out
 
 
 def test_reconstruct_by_default_takes_the_pairs_a_cut_short_recording_committed(capsys, tmp_path):
