@@ -156,8 +156,14 @@ def _vti(path: Path, f: Fields, i: int) -> None:
 
 
 def write_vti_series(out_dir: str | Path, f: Fields) -> list[Path]:
-    """One ``vectors_pairNNNN.vti`` per pair and ``vectors.pvd`` listing them by time (mm, m/s)."""
+    """One ``vectors_pairNNNN.vti`` per pair and ``vectors.pvd`` listing them by time (mm, m/s).
+
+    A series exported into ``out_dir`` before is replaced whole: its files of pairs this one
+    lacks are removed, so the folder never mixes two exports.
+    """
     out = Path(out_dir)
+    for old in out.glob("vectors_pair[0-9][0-9][0-9][0-9].vti"):
+        old.unlink()
     files = []
     entries = []
     for i, pair in enumerate(f.pairs):

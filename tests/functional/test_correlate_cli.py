@@ -110,8 +110,13 @@ def test_export_netcdf(correlated, tmp_path, capsys):
 
 def test_export_vtk(correlated, tmp_path, capsys):
     path, _, _ = correlated
+    # a series left from another export (of more pairs) is replaced, not mixed in
+    (tmp_path / "vtk").mkdir()
+    (tmp_path / "vtk" / "vectors_pair0007.vti").write_text("old")
+    (tmp_path / "vtk" / "notes.txt").write_text("keep")
     rc, out, _ = _run(capsys, "export", path, "--format", "vtk", "--out", tmp_path / "vtk")
     assert rc == 0
+    (tmp_path / "vtk" / "notes.txt").unlink()
     files = sorted(p.name for p in (tmp_path / "vtk").iterdir())
     assert files == ["vectors.pvd", "vectors_pair0000.vti", "vectors_pair0001.vti"]
     raw = (tmp_path / "vtk" / "vectors_pair0001.vti").read_bytes()
