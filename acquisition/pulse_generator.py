@@ -474,13 +474,16 @@ def install_signal_handlers() -> None:
     Only the main thread may set signal handlers, so a program that arms from another thread
     (the live monitor does) must call this from its main thread first; :meth:`arm` calls it too,
     which covers programs that arm from the main thread. A handler someone replaced ours with
-    since is chained to in turn. atexit covers a normal exit; nothing covers SIGKILL.
+    since is chained to in turn; a signal the process ignores (``nohup`` ignores SIGHUP) stays
+    ignored. atexit covers a normal exit; nothing covers SIGKILL.
     """
     if threading.current_thread() is not threading.main_thread():
         return
     for sig in _SIGNALS:
         with contextlib.suppress(ValueError, OSError):
             current = signal.getsignal(sig)
+            if current == signal.SIG_IGN:
+                continue  # ignored on purpose (``nohup``): the recording is meant to go on
             if current is not _on_signal:
                 _PREVIOUS[sig] = current
                 signal.signal(sig, _on_signal)

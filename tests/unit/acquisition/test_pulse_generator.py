@@ -297,3 +297,15 @@ def test_a_process_that_dies_disarms_its_generator(emu, mode, returncode):
     if mode == "chain":
         assert "previous handler ran\n" in lines
     assert_safe(emu)
+
+
+def test_an_ignored_sighup_stays_ignored():
+    # under nohup a closed terminal must not stop the recording (nor the laser it needs)
+    from acquisition.pulse_generator import install_signal_handlers
+
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        install_signal_handlers()
+        assert signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, previous)
