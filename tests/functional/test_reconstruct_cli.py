@@ -93,7 +93,7 @@ def test_crossed_cameras_on_deep_voxels_are_warned(capsys, tmp_path):
     assert line.endswith("use equal PVRs, e.g. --pvr 2,2,2 (the chapter's dual-camera cases use 3,3,3)")
     for more in (["--pvr", "4,4,4"], ["--cameras", "cam0"]):  # equal voxels, or one camera: no warning
         rc, out, err = _run(capsys, *argv, *more)
-        assert rc == 0 and err == ""
+        assert rc == 0 and "warning" not in err  # (a note says the earlier volumes were replaced)
 
 
 def _empty_run(tmp_path):
