@@ -56,22 +56,27 @@ def _negative_lists(argv: list[str]) -> list[str]:
     return out
 
 
+def _interrupted() -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``lfpiv`` command; returns the exit code."""
     from acquisition.protocols import DeviceError as HardwareError
-    from acquisition.pulse_generator import install_signal_handlers
+    from acquisition.pulse_generator import signals_call
     from calibration.store import CalibrationStoreError
     from lfcore.device import DeviceError
     from lfcore.rig import RigError
     from lfcore.runstore import RunStoreError
 
     warnings.filterwarnings("ignore", category=UserWarning, module="zarr")
-    # before any thread starts: a kill or a closed terminal disarms a laser armed from any
-    # thread (the monitor arms from its recording thread, where no handler can be set)
-    install_signal_handlers()
     try:
         args = _build_parser().parse_args(_negative_lists(sys.argv[1:] if argv is None else list(argv)))
-        return args.func(args)
+        # installed before any thread starts: a kill or a closed terminal disarms a laser armed
+        # from any thread (the monitor arms from its recording thread, where no handler can be
+        # set), then ends the command as Ctrl-C does (acquire and monitor refine this)
+        with signals_call(_interrupted):
+            return args.func(args)
     except (UsageError, RigError, RunStoreError, CalibrationStoreError, DeviceError) as exc:
         print(f"lfpiv: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

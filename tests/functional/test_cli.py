@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -119,6 +121,28 @@ def test_interrupted_synth_keeps_committed_pairs(capsys, tmp_path, monkeypatch):
     s = RunStore.open(run)
     assert (s.state, s.committed_pairs) == ("aborted", 1)
     assert s.frames("cam0")[0].max() > 1000 and s.truth()["particles"].shape[0] == 3
+
+
+def test_a_killed_synth_ends_as_after_ctrl_c(tmp_path):
+    run = tmp_path / "killed.zarr"
+    proc = subprocess.Popen([sys.executable, "-m", "lfpiv", "synth", "--rig", TINY, "--out", str(run), "--pairs",
+                             "300", "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                if RunStore.open(run).committed_pairs >= 2:
+                    break
+            except Exception:  # noqa: BLE001 - not created yet
+                pass
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130 and "Traceback" not in err and "interrupted" in err, err
+    s = RunStore.open(run)
+    assert s.state == "aborted" and 2 <= s.committed_pairs < 300
 
 
 def _bad_rig(tmp_path):
