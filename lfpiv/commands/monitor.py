@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
     check_plan(rig, args.pairs)
     if args.screenshot is not None:
         folder = Path(args.screenshot).parent
-        if not (folder.is_dir() or not folder.exists()) or (folder.exists() and not os.access(folder, os.W_OK)):
+        if folder.exists() and not (folder.is_dir() and os.access(folder, os.W_OK)):
             raise UsageError(f"cannot write the screenshot into {folder}; give a writable --screenshot path")
     _check_display(args.screenshot is not None)
     try:
