@@ -24,7 +24,7 @@ def _fmt_params(params: dict) -> str:
 
 
 def _count(pairs: list[int]) -> str:
-    """``"3 pair(s) (0 to 2)"``, or ``"none"``."""
+    """``"3 pair(s) (0 to 2)"``, or ``"no pair"``."""
     if not pairs:
         return "no pair"
     span = f"{pairs[0]}" if len(pairs) == 1 else f"{pairs[0]} to {pairs[-1]}"

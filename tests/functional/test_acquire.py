@@ -199,6 +199,18 @@ def _wait_committed(path: Path, at_least: int, proc: subprocess.Popen, timeout_s
     raise AssertionError(f"{path} did not reach {at_least} committed pairs")
 
 
+def signal_when_committed(proc: subprocess.Popen, path: Path, at_least: int, sig: int, *,
+                          timeout_s: float = 60.0, exit_timeout_s: float = 60.0) -> tuple[str, str]:
+    """Send ``sig`` to ``proc`` once the run at ``path`` has ``at_least`` committed pairs; its
+    stdout and stderr when it has ended (it is killed if it has not)."""
+    try:
+        _wait_committed(path, at_least, proc, timeout_s)
+        proc.send_signal(sig)
+        return proc.communicate(timeout=exit_timeout_s)
+    finally:
+        proc.kill()
+
+
 def _start(fast_rig_file: Path, out: Path, pairs: int) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     cmd = [*LFPIV, "acquire", "--rig", str(fast_rig_file), "--pairs", str(pairs), "--out", str(out), "--quiet",
@@ -229,12 +241,7 @@ def test_sigkill_leaves_every_committed_pair_intact(fast_rig_file: Path, tmp_pat
 def test_interrupt_signals_abort_cleanly(fast_rig_file: Path, tmp_path: Path, sig: signal.Signals) -> None:
     out = tmp_path / "stopped.zarr"
     proc = _start(fast_rig_file, out, 5000)
-    try:
-        _wait_committed(out, 10, proc)
-        proc.send_signal(sig)
-        _, err = proc.communicate(timeout=30)
-    finally:
-        proc.kill()
+    _, err = signal_when_committed(proc, out, 10, sig, exit_timeout_s=30)
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "interrupted" in err
     store = RunStore.open(out)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ from lfcore.render import LightFieldRenderer
 from lfcore.runstore import RunStore
 from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
+from tests.functional.test_acquire import signal_when_committed
 
 TINY = str(EXAMPLES / "tiny.toml")
 
@@ -127,19 +127,7 @@ def test_a_killed_synth_ends_as_after_ctrl_c(tmp_path):
     run = tmp_path / "killed.zarr"
     proc = subprocess.Popen([sys.executable, "-m", "lfpiv", "synth", "--rig", TINY, "--out", str(run), "--pairs",
                              "300", "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and proc.poll() is None:
-            try:
-                if RunStore.open(run).committed_pairs >= 2:
-                    break
-            except Exception:  # noqa: BLE001 - not created yet
-                pass
-            time.sleep(0.1)
-        proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
+    _, err = signal_when_committed(proc, run, 2, signal.SIGTERM, timeout_s=120.0)
     assert proc.returncode == 130 and "Traceback" not in err and "interrupted" in err, err
     s = RunStore.open(run)
     assert s.state == "aborted" and 2 <= s.committed_pairs < 300

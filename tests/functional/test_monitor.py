@@ -21,7 +21,7 @@ from lfpiv import cli  # noqa: E402
 from lfpiv.live import LiveRecorder  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
 from realtime.pipeline import LivePipeline, LiveSettings  # noqa: E402
-from tests.functional.test_acquire import LFPIV, _lab, _wait_committed, fast_rig_text  # noqa: E402
+from tests.functional.test_acquire import LFPIV, _lab, fast_rig_text, signal_when_committed  # noqa: E402
 
 pytest.importorskip("pyqtgraph")
 
@@ -186,12 +186,7 @@ def test_a_killed_monitor_disarms_and_closes_its_recording(rig_file: Path, tmp_p
            "mlos-mart", "--sim-rays", "300", "--sim-pool", "2", "--pvr", "4,4,20", "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    try:
-        _wait_committed(out, 5, proc, timeout_s=120.0)
-        proc.send_signal(sig)
-        stdout, stderr = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
+    stdout, stderr = signal_when_committed(proc, out, 5, sig, timeout_s=120.0)
     assert proc.returncode == 130 and "Traceback" not in stderr and "interrupted" in stderr, stderr
     store = RunStore.open(out)
     assert store.state == "aborted" and 5 <= store.committed_pairs < 5000

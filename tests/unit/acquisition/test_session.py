@@ -71,29 +71,28 @@ def test_frames_after_the_grace_period_are_counted_once(tiny_rig, tmp_path: Path
     assert np.array_equal(ids[:4].ravel(), np.arange(8)) and np.all(ids[4:] == -1)
 
 
-def test_a_frame_counter_that_did_not_restart_is_an_error(tiny_rig, tmp_path: Path) -> None:
-    cam = ScriptedCamera(tiny_rig, range(1001, 1013), first=1)
-    s, _ = _session(tmp_path, tiny_rig, cam, 6)
+def _first_error(tmp_path: Path, rig, cam: ScriptedCamera, pairs: int) -> BaseException:
+    """The error that ends a recording of ``cam``."""
+    s, _ = _session(tmp_path, rig, cam, pairs)
     s.start()
     try:
         assert wait_for(lambda: s.error is not None, 10.0)
     finally:
         s.close()
-    assert isinstance(s.error, DeviceError)
-    assert "numbered its first frame 1001, 1000 after the 1 it should start at" in str(s.error)
-    assert "reset its counter" in str(s.error)
+    return s.error
+
+
+def test_a_frame_counter_that_did_not_restart_is_an_error(tiny_rig, tmp_path: Path) -> None:
+    error = _first_error(tmp_path, tiny_rig, ScriptedCamera(tiny_rig, range(1001, 1013), first=1), 6)
+    assert isinstance(error, DeviceError)
+    assert "numbered its first frame 1001, 1000 after the 1 it should start at" in str(error)
+    assert "reset its counter" in str(error)
 
 
 def test_frames_without_an_id_are_an_error(tiny_rig, tmp_path: Path) -> None:
-    cam = ScriptedCamera(tiny_rig, [-1] * 4)
-    s, _ = _session(tmp_path, tiny_rig, cam, 2)
-    s.start()
-    try:
-        assert wait_for(lambda: s.error is not None, 10.0)
-    finally:
-        s.close()
+    error = _first_error(tmp_path, tiny_rig, ScriptedCamera(tiny_rig, [-1] * 4), 2)
     with pytest.raises(DeviceError, match="without a frame id"):
-        raise s.error
+        raise error
 
 
 def test_a_gap_and_a_repeat_are_one_drop_each_place(tiny_rig, tmp_path: Path) -> None:
