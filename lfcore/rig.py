@@ -14,6 +14,8 @@ and depth ``dz`` is positive toward the camera.
 
 from __future__ import annotations
 
+import difflib
+import json
 import math
 import re
 from collections.abc import Sequence
@@ -51,6 +53,12 @@ F_NUMBER_TOLERANCE = 0.05
 #: Angle (degrees) between two cameras' lines of sight from which each sees, across its view,
 #: the depth the other resolves poorly (the chapter's optimum is 90).
 CROSSED_VIEWS_DEG = 45.0
+
+#: Fewest lenslets across either sensor axis a camera may have: fewer means a slipped unit.
+MIN_LENSLETS = 4
+
+#: Pixels per lenslet above which :meth:`Camera.optics_warnings` suspects a slipped unit.
+MANY_PIXELS_PER_LENSLET = 60.0
 
 #: Ratio of a voxel's longest to its shortest edge from which :func:`voxel_shape_warnings` warns.
 DEEP_VOXEL_RATIO = 2.0
@@ -122,6 +130,14 @@ class Camera(_Strict):
     def _optics_possible(self) -> Camera:
         if self.mla_pitch_um < 2 * self.pixel_pitch_um:
             raise ValueError("mla_pitch_um must cover at least 2 pixels (pixel_pitch_um)")
+        across = [n * self.pixel_pitch_um / self.mla_pitch_um for n in self.sensor_px]
+        if min(across) < MIN_LENSLETS:
+            # a pitch given in millimetres or nanometres leaves the sensor a lenslet or two wide
+            raise ValueError(
+                f"the sensor is only {across[0]:.3g} x {across[1]:.3g} lenslets "
+                f"(sensor_px x pixel_pitch_um / mla_pitch_um); check the units: both pitches are in "
+                "micrometres (e.g. pixel_pitch_um = 5.5, mla_pitch_um = 77)"
+            )
         if self.mla_focal_length_um >= 1000 * self.image_distance_mm:
             raise ValueError("mla_focal_length_um must be much shorter than the image distance")
         return self
@@ -228,6 +244,11 @@ class Camera(_Strict):
     def optics_warnings(self) -> list[str]:
         """Human-readable warnings about optics that work but are not as intended."""
         out = []
+        if self.pixels_per_lenslet > MANY_PIXELS_PER_LENSLET:
+            out.append(
+                f"camera '{self.name}': each lenslet spans {self.pixels_per_lenslet:.0f} pixels (light-field PIV "
+                "cameras use about 10-20); check that pixel_pitch_um and mla_pitch_um are both in micrometres"
+            )
         n_img, n_ml = self.image_side_f_number, self.lenslet_f_number
         mismatch = n_img / n_ml - 1.0
         if abs(mismatch) > F_NUMBER_TOLERANCE:
@@ -292,10 +313,19 @@ class TimingConfig(_Strict):
 
 
 class StageConfig(_Strict):
-    """The motorised calibration stage (serial)."""
+    """The motorised calibration stage (serial, Zaber ASCII protocol).
+
+    ``device`` is the controller's address on the daisy chain and ``axis`` its axis (both as
+    the Zaber Console shows them); ``microstep_um`` is the size of one native step, the
+    product's "microstep size" (0.1 um on most Zaber linear stages, but 0.047625 um on some
+    lead-screw models), which converts every position the stage reports into millimetres.
+    """
 
     port: str | None = None
     baud: Annotated[int, Field(gt=0)] = 115200
+    device: Annotated[int, Field(ge=1, le=99)] = 1
+    axis: Annotated[int, Field(ge=1, le=9)] = 1
+    microstep_um: PositiveFloat = 0.1
 
 
 #: Which output of the pulse generator drives what, unless the rig file says otherwise.
@@ -391,14 +421,24 @@ class Rig(_Strict):
     def from_dict(cls, data: dict[str, Any], source: str = "rig") -> Rig:
         """Validate a parsed rig file.
 
+        Values are checked strictly, as the file's own types: a quoted number
+        (``pixel_pitch_um = "5.5"``) or a fractional count is an error rather than being
+        converted, since it usually means a slip elsewhere in the line.
+
         Raises
         ------
         RigError
             One line naming the first offending key, e.g.
-            ``rig.toml: camera[1].f_number: must be greater than 0 (got -2)``.
+            ``rig.toml: camera[1].f_number: must be greater than 0 (got -2)``. A misspelt key is
+            named before the required key it leaves missing, with the closest known key.
         """
         try:
-            return cls.model_validate(data)
+            # through JSON so that strict mode reads arrays as tuples, as a TOML file writes them
+            text = json.dumps(data, default=str)
+        except (TypeError, ValueError) as exc:
+            raise RigError(f"{source}: cannot be read as a rig: {exc}") from None
+        try:
+            return cls.model_validate_json(text, strict=True)
         except ValidationError as exc:
             raise RigError(f"{source}: {_first_error(exc)}") from None
 
@@ -450,24 +490,53 @@ def voxel_shape_warnings(cameras: Sequence[Camera], pvr: Sequence[float]) -> lis
     return []
 
 
-def _first_error(exc: ValidationError) -> str:
-    err = exc.errors(include_url=False)[0]
+#: The tables of a rig file and the model of each, to suggest the key a misspelt one meant.
+_TABLES: dict[str, type[BaseModel]] = {
+    "camera": Camera, "volume": VolumeConfig, "laser": LaserConfig, "timing": TimingConfig, "stage": StageConfig,
+    "pulse_generator": PulseGeneratorConfig, "render": RenderConfig,
+}
+
+
+def _where(loc: tuple[int | str, ...]) -> str:
     parts: list[str] = []
-    for item in err["loc"]:
+    for item in loc:
         if isinstance(item, int):
             if parts:
                 parts[-1] += f"[{item}]"
             continue
         parts.append(str(item))
-    where = ".".join(parts)
+    return ".".join(parts)
+
+
+def _model_at(loc: tuple[int | str, ...]) -> type[BaseModel] | None:
+    """The model of the table that holds key ``loc`` (the last element is the key)."""
+    names = [str(item) for item in loc[:-1] if not isinstance(item, int)]
+    return _TABLES.get(names[-1]) if names else Rig
+
+
+def _first_error(exc: ValidationError) -> str:
+    errors = exc.errors(include_url=False)
+    # a misspelt key also leaves its intended key missing; name the misspelling, which is
+    # what the user has to change
+    unknown = [e for e in errors if e["type"] == "extra_forbidden"]
+    err = unknown[0] if unknown else errors[0]
+    where = _where(err["loc"])
     kind = err["type"]
     if kind == "extra_forbidden":
-        return f"{where}: unknown key (check its spelling against examples/ and DESIGN.md)"
+        model = _model_at(err["loc"])
+        known = list(model.model_fields) if model is not None else []
+        close = difflib.get_close_matches(str(err["loc"][-1]), known, n=1, cutoff=0.6)
+        hint = f"did you mean {close[0]}?" if close else "check its spelling against examples/ and DESIGN.md"
+        return f"{where}: unknown key ({hint})"
     if kind == "missing":
         return f"{where}: required key is missing"
+    if where == "camera" and kind in ("tuple_type", "list_type") and isinstance(err.get("input"), dict):
+        return "camera: write each camera as an array of tables, [[camera]], not [camera]"
     msg = err["msg"]
     msg = msg.removeprefix("Value error, ")
     msg = msg[0].lower() + msg[1:] if msg else msg
     got = err.get("input")
     shown = "" if isinstance(got, dict) or kind.startswith("value_error") else f" (got {got!r})"
+    if isinstance(got, str) and kind in ("float_type", "float_parsing", "int_type", "int_parsing", "bool_type"):
+        shown += "; write numbers and true/false without quotes"
     return f"{where}: {msg}{shown}" if where else f"{msg}{shown}"

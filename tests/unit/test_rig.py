@@ -113,6 +113,50 @@ def test_bad_tables_name_their_key(tiny_rig):
         Rig.from_dict(d)
 
 
+EXAMPLE = EXAMPLES / "one_camera.toml"
+
+
+@pytest.mark.parametrize("old, new, message", [
+    # a misspelt key is named, with the key it meant, not the key it leaves missing
+    ("pixel_pitch_um", "pixel_pich_um", r"camera\[0\]\.pixel_pich_um: unknown key \(did you mean pixel_pitch_um\?\)"),
+    ("dt_us", "dt_uss", r"timing\.dt_uss: unknown key \(did you mean dt_us\?\)"),
+    ("[laser]", "[lazer]", r"lazer: unknown key \(did you mean laser\?\)"),
+    ("[[camera]]", "[camera]", r"camera: write each camera as an array of tables, \[\[camera\]\], not \[camera\]"),
+    # a quoted number is refused rather than converted
+    ("pixel_pitch_um = 5.5", 'pixel_pitch_um = "5.5"',
+     r"camera\[0\]\.pixel_pitch_um: input should be a valid number \(got '5\.5'\); write numbers .* without quotes"),
+    ("sensor_px = [2048, 2048]", "sensor_px = [2048.5, 2048]",
+     r"camera\[0\]\.sensor_px\[0\]: input should be a valid integer"),
+    # a pitch in millimetres leaves a sensor a fraction of a lenslet wide
+    ("pixel_pitch_um = 5.5", "pixel_pitch_um = 0.0055",
+     r"camera\[0\]: the sensor is only 0\.146 x 0\.146 lenslets .* check the units"),
+])
+def test_rig_file_slips_are_named(tmp_path, old, new, message):
+    text = EXAMPLE.read_text()
+    assert old in text
+    path = tmp_path / "rig.toml"
+    path.write_text(text.replace(old, new))
+    with pytest.raises(RigError, match=f"^{path}: {message}"):
+        load_rig(path)
+
+
+def test_many_pixels_per_lenslet_is_suspected(tiny_rig):
+    cam = tiny_variant(tiny_rig, mla_pitch_um=tiny_rig.camera[0].pixel_pitch_um * 80,
+                       sensor_px=[800, 800]).camera[0]
+    assert any("spans 80 pixels" in w for w in cam.optics_warnings())
+    assert not any("spans" in w for w in tiny_rig.camera[0].optics_warnings())
+
+
+def test_stage_address_and_microstep(tiny_rig):
+    d = tiny_rig.to_dict()
+    assert d["stage"] == {"port": None, "baud": 115200, "device": 1, "axis": 1, "microstep_um": 0.1}
+    d["stage"].update(device=2, axis=1, microstep_um=0.047625)
+    assert Rig.from_dict(d).stage.microstep_um == 0.047625
+    d["stage"]["device"] = 0
+    with pytest.raises(RigError, match=r"stage\.device: input should be greater than or equal to 1"):
+        Rig.from_dict(d)
+
+
 def test_rig_file_errors(tmp_path):
     with pytest.raises(RigError, match="not found"):
         load_rig(tmp_path / "none.toml")
