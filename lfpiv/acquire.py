@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from acquisition.protocols import Camera, DeviceError, PulseGenerator, TimingPlan
 from acquisition.pulse_generator import signals_call
@@ -35,7 +35,10 @@ from lfcore.runstore import RunStore
 from lfpiv import __version__
 from lfpiv.errors import UsageError
 
-__all__ = ["AcquireResult", "Rigging", "check_plan", "list_devices", "open_rig", "record"]
+if TYPE_CHECKING:
+    from acquisition.stage import ZaberStage
+
+__all__ = ["AcquireResult", "Rigging", "check_plan", "list_devices", "make_stage", "open_rig", "record"]
 
 
 class Terminated(Exception):
@@ -100,6 +103,11 @@ def open_rig(rig: Rig, *, sim_options: dict[str, Any] | None = None) -> Iterator
                 raise UsageError("pulse_generator.port is not set in the rig file; give the serial port "
                                  "of the pulse generator (e.g. /dev/ttyUSB0), or set hardware = \"sim\"")
             pulse_port, stage_port = rig.pulse_generator.port, rig.stage.port
+            unnamed = [c.name for c in rig.camera if c.serial is None]
+            if unnamed and len(rig.camera) > 1:
+                # without serials both would open the first device found
+                raise UsageError(f"camera '{unnamed[0]}' has no serial in the rig file; with {len(rig.camera)} "
+                                 "cameras each needs its GenICam serial number (lfpiv devices lists them)")
             cameras = [GenICamCamera(c.name, serial=c.serial, producers=list(rig.gentl_producers) or None)
                        for c in rig.camera]
         gen = QuantumComposers9520(pulse_port, baud=rig.pulse_generator.baud)
@@ -259,9 +267,6 @@ def list_devices(rig: Rig) -> list[tuple[str, bool]]:
     Nothing is armed or moved. For ``hardware = "sim"`` the simulated lab is started and its
     emulated devices are queried with the real serial drivers.
     """
-    from acquisition.pulse_generator import QuantumComposers9520
-    from acquisition.stage import ZaberStage
-
     lines: list[tuple[str, bool]] = []
     with ExitStack() as stack:
         if rig.hardware == "sim":
@@ -283,7 +288,10 @@ def list_devices(rig: Rig) -> list[tuple[str, bool]]:
                 lines.append((f"cameras: {exc}", False))
             by_serial = {d.serial_number: d for d in seen}
             for cam in rig.camera:
-                d = by_serial.get(cam.serial or "")
+                if cam.serial is None:
+                    lines.append(_unpinned_camera(cam.name, seen, len(rig.camera)))
+                    continue
+                d = by_serial.get(cam.serial)
                 if d is not None:
                     lines.append((f"camera  {cam.name}: {d.vendor} {d.model}, serial {d.serial_number} ({d.access})",
                                   True))
@@ -297,14 +305,29 @@ def list_devices(rig: Rig) -> list[tuple[str, bool]]:
                 lines.append((f"{label}: no port in the rig file", False))
                 continue
             try:
-                lines.append((f"{label}: {probe(port, rig, QuantumComposers9520, ZaberStage)} on {port}", True))
+                lines.append((f"{label}: {probe(port, rig)} on {port}", True))
             except DeviceError as exc:
                 lines.append((f"{label}: {exc}", False))
     return lines
 
 
-def _probe_generator(port: str, rig: Rig, gen_cls: Any, stage_cls: Any) -> str:
-    gen = gen_cls(port, baud=rig.pulse_generator.baud)
+def _unpinned_camera(name: str, seen: list[Any], n_cameras: int) -> tuple[str, bool]:
+    """The devices line of a camera with no serial in the rig file."""
+    serials = sorted(d.serial_number for d in seen)
+    if n_cameras > 1:
+        return (f"camera  {name}: no serial in the rig file; set serial to one of {serials or 'none found'} "
+                "(with several cameras each needs its own)", False)
+    if not seen:
+        return f"camera  {name}: no GenICam device found; check the cable, power and gentl_producers", False
+    d = seen[0]
+    return (f"camera  {name}: {d.vendor} {d.model}, serial {d.serial_number} ({d.access}), the first device "
+            f"found; set serial = \"{d.serial_number}\" in the rig file to pin it", True)
+
+
+def _probe_generator(port: str, rig: Rig) -> str:
+    from acquisition.pulse_generator import QuantumComposers9520
+
+    gen = QuantumComposers9520(port, baud=rig.pulse_generator.baud)
     try:
         gen.open()
         return gen.identify()
@@ -312,8 +335,16 @@ def _probe_generator(port: str, rig: Rig, gen_cls: Any, stage_cls: Any) -> str:
         gen.close()
 
 
-def _probe_stage(port: str, rig: Rig, gen_cls: Any, stage_cls: Any) -> str:
-    stage = stage_cls(port, baud=rig.stage.baud)
+def make_stage(port: str, rig: Rig) -> ZaberStage:
+    """The stage driver for ``port`` with the rig's baud rate, Zaber address and microstep size."""
+    from acquisition.stage import ZaberStage
+
+    st = rig.stage
+    return ZaberStage(port, baud=st.baud, device=st.device, axis=st.axis, microstep_um=st.microstep_um)
+
+
+def _probe_stage(port: str, rig: Rig) -> str:
+    stage = make_stage(port, rig)
     try:
         stage.open()
         return f"Zaber stage at {stage.position_mm():.4f} mm, travel {stage.travel_mm[0]:g}..{stage.travel_mm[1]:g} mm"

@@ -32,7 +32,7 @@ from lfcore.rig import Camera, Rig
 from lfcore.target import DotBoard
 from lfcore.white import WhiteImageConfig
 from lfpiv import __version__
-from lfpiv.acquire import open_rig
+from lfpiv.acquire import make_stage, open_rig
 from lfpiv.errors import UsageError
 
 __all__ = ["MlaResult", "calibrate_fit", "calibrate_mla", "calibrate_volume", "calibrated_rig", "default_board",
@@ -243,8 +243,6 @@ def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: fl
     DeviceError
         A device fault; :class:`calibration.runner.StageError` names the plane the stage missed.
     """
-    from acquisition.stage import ZaberStage
-
     if planes < 1 or not step_mm > 0:
         raise UsageError(f"--planes must be at least 1 and --step-mm positive, got {planes} and {step_mm}")
     exposure = rig.timing.camera_exposure_us if exposure_us is None else exposure_us
@@ -255,7 +253,7 @@ def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: fl
         if rg.stage_port is None:
             raise UsageError("stage.port is not set in the rig file; give the serial port of the calibration "
                              "stage, or set hardware = \"sim\"")
-        stage = ZaberStage(rg.stage_port, baud=rig.stage.baud)
+        stage = make_stage(rg.stage_port, rig)
         # the port opens here and closes on the way out, after stopping a move under way if
         # anything (Ctrl-C too) ends the calibration early
         with stage:

@@ -60,7 +60,8 @@ class SimLab:
     def __enter__(self) -> SimLab:
         try:
             self.pulse_generator = self._stack.enter_context(PulseGeneratorEmulator(latency_s=self._latency))
-            self.stage = self._stack.enter_context(StageEmulator(latency_s=self._latency))
+            self.stage = self._stack.enter_context(StageEmulator(
+                device=self.rig.stage.device, microstep_um=self.rig.stage.microstep_um, latency_s=self._latency))
             self.cameras = [
                 SimCamera(cam.name, self.rig, self.world, self.pulse_generator, pool_pairs=self._pool_pairs,
                           rays_per_particle=self._rays, device=self._device, **self._faults.get(cam.name, {}))

@@ -16,12 +16,15 @@ import numpy as np
 import pytest
 
 from acquisition.protocols import DeviceError
+from lfcore.rig import Rig
 from lfcore.runstore import RunStore
-from lfpiv.acquire import record
+from lfpiv.acquire import list_devices, open_rig, record
 from lfpiv.cli import main
+from lfpiv.errors import UsageError
 from lfpiv.rigfile import load_rig
 from sim.lab import SimLab
 from sim.world import SimWorld
+from tests.unit.acquisition.test_genicam import VIKY
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 LFPIV = [sys.executable, "-m", "lfpiv.cli"]
@@ -183,6 +186,43 @@ def test_devices_lists_the_simulated_lab(fast_rig_file: Path, capsys: pytest.Cap
     assert main(["devices", "--rig", str(fast_rig_file)]) == 0
     out = capsys.readouterr().out
     assert "cam0" in out and "cam1" in out and "QC," in out and "Zaber" in out
+
+
+def test_devices_addresses_the_stage_the_rig_names(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    # a stage at address 2 with a finer microstep: the emulator is set up from the same keys,
+    # so the driver finds it only at that address and reads its travel in millimetres
+    rig_file = tmp_path / "stage.toml"
+    rig_file.write_text(fast_rig_text(cameras=1) + "\n[stage]\ndevice = 2\nmicrostep_um = 0.047625\n")
+    assert main(["devices", "--rig", str(rig_file)]) == 0
+    out = capsys.readouterr().out
+    assert "Zaber stage at" in out and "travel 0..50 mm" in out
+
+
+@pytest.mark.skipif(VIKY is None, reason="GenTL simulator viky.cti not found (pip install 'lfpiv[genicam]')")
+@pytest.mark.parametrize("cameras", [1, 2])
+def test_devices_of_cameras_without_a_serial(cameras: int, tmp_path: Path) -> None:
+    from acquisition.genicam import reset_system
+
+    text = fast_rig_text(cameras=cameras).replace('hardware = "sim"',
+                                                  f'hardware = "real"\ngentl_producers = ["{VIKY}"]', 1)
+    rig_file = tmp_path / "real.toml"
+    rig_file.write_text(text)
+    try:
+        lines = list_devices(load_rig(rig_file))
+    finally:
+        reset_system()
+    cams = [(line, found) for line, found in lines if line.startswith("camera")]
+    assert len(cams) == cameras and not any("None" in line for line, _ in cams)
+    if cameras == 1:  # the first device found is used, and the line says how to pin it
+        assert cams[0][1] and 'serial = "0" in the rig file to pin it' in cams[0][0]
+    else:  # both would open the same device: each needs its serial
+        assert all(not found and "set serial to one of ['0', '1', '2']" in line for line, found in cams)
+        d = load_rig(rig_file).to_dict()
+        d["pulse_generator"]["port"] = str(tmp_path / "no-such-port")
+        with pytest.raises(UsageError, match="camera 'cam0' has no serial in the rig file; with 2 cameras"):
+            with open_rig(Rig.from_dict(d)):
+                pass
+    assert ("pulse generator: no port in the rig file", False) in lines
 
 
 def _wait_committed(path: Path, at_least: int, proc: subprocess.Popen, timeout_s: float = 60.0) -> int:
