@@ -22,7 +22,7 @@ from lfcore.runstore import RunStore
 from lfpiv import __version__
 from lfpiv.errors import UsageError
 
-__all__ = ["SynthResult", "default_displacement_px", "read_points_csv", "synthesize"]
+__all__ = ["SynthResult", "default_displacement_px", "points_outside", "read_points_csv", "synthesize"]
 
 
 @dataclass(frozen=True)
@@ -73,6 +73,23 @@ def read_points_csv(path: str | Path) -> np.ndarray:
     if not pts:
         raise UsageError(f"{path}: no particles after the header line")
     return np.asarray(pts, dtype=np.float64)
+
+
+def points_outside(rig: Rig, points: np.ndarray) -> int:
+    """How many of ``points`` (n, 3) mm lie outside the rig's measurement volume.
+
+    They are still rendered (a camera sees particles beyond the box), but a reconstruction
+    holds only the box, so they show as missing particles or as ghosts at its faces.
+
+    Raises
+    ------
+    UsageError
+        A point no camera can image (inside a camera's focal length).
+    """
+    _check_in_front(rig, points)
+    lo = np.asarray(rig.volume.centre_mm) - 0.5 * np.asarray(rig.volume.size_mm)
+    hi = lo + np.asarray(rig.volume.size_mm)
+    return int(np.count_nonzero(np.any((points < lo) | (points > hi), axis=1)))
 
 
 def _check_in_front(rig: Rig, points: np.ndarray) -> None:

@@ -27,6 +27,10 @@ def parse_windows(text: str) -> tuple[tuple[int, int, int], ...]:
         w = tuple(int(g) for g in m.groups())
         if min(w) < 4:
             raise argparse.ArgumentTypeError(f"window {part.strip()} is too small: every side needs at least 4 voxels")
+        if out and any(a > b for a, b in zip(w, out[-1], strict=True)):
+            # multi-grid refines: each pass predicts the next from larger windows
+            raise argparse.ArgumentTypeError(f"window {part.strip()} is larger than the one before it; list the "
+                                             f"passes largest first, e.g. {DEFAULT_WINDOWS}")
         out.append(w)
     return tuple(out)
 

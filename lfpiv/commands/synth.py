@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from lfpiv.commands import add_device, positive_float, positive_int, warn_optics
 
@@ -38,11 +39,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lfpiv.rigfile import load_rig
-    from lfpiv.synth import read_points_csv, synthesize
+    from lfpiv.synth import points_outside, read_points_csv, synthesize
 
     rig = load_rig(args.rig)
     warn_optics(rig)
     points = read_points_csv(args.particles) if args.particles else None
+    outside = 0 if points is None else points_outside(rig, points)
+    if outside:
+        v = rig.volume
+        print(f"lfpiv: warning: {outside} of {len(points)} particles in {args.particles} lie outside the rig's "
+              f"volume (centre {list(v.centre_mm)} mm, size {list(v.size_mm)} mm); they are rendered, but a "
+              "reconstruction of the volume cannot hold them (positions are world millimetres)", file=sys.stderr)
     res = synthesize(rig, args.out, flow=args.flow, ppm=args.ppm, pairs=args.pairs,
                      dt_s=None if args.dt_ms is None else args.dt_ms * 1e-3, seed=args.seed,
                      omega=args.omega, displacement_px=args.displacement_px, points=points,

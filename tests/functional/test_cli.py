@@ -75,6 +75,15 @@ def test_synth_from_points_csv(capsys, tmp_path):
     assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.9  # the same points, different noise
 
 
+def test_synth_warns_of_csv_particles_outside_the_volume(capsys, tmp_path):
+    csv = tmp_path / "points.csv"
+    # the second point was written in 100 um units: 10 mm is far outside the tiny volume
+    csv.write_text("x_mm,y_mm,z_mm\n0.0,0.0,0.0\n10,-5,4\n")
+    rc, _, err = _run(capsys, "synth", "--rig", TINY, "--out", str(tmp_path / "x.zarr"), "--particles", str(csv),
+                      "--quiet")
+    assert rc == 0 and err.count("lie outside") == 1 and "1 of 2 particles" in err
+
+
 def test_demo_runs_the_whole_instrument_on_the_simulated_lab(capsys, tmp_path):
     out = tmp_path / "demo"
     out.mkdir()

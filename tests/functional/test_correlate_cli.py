@@ -180,6 +180,8 @@ BAD = [
     (lambda t, r: [_three_pairs(t, r), "--overlap", "1"], "--overlap: overlap must be at least 0 and below 1"),
     (lambda t, r: [_three_pairs(t, r), "--windows", "32x32"], "--windows: '32x32' is not a window size"),
     (lambda t, r: [_three_pairs(t, r), "--windows", "32x32x2"], "--windows: window 32x32x2 is too small"),
+    (lambda t, r: [_three_pairs(t, r), "--windows", "16x16x8,32x32x8"],
+     "--windows: window 32x32x8 is larger than the one before it; list the passes largest first"),
     (lambda t, r: [_three_pairs(t, r), "--windows", "16x16x8", "--pairs", "x"], "--pairs: 'x' is not a pair"),
     (lambda t, r: [_three_pairs(t, r), "--windows", "16x16x8", "--pairs", "1:3"], "pair(s) 2 are not reconstructed"),
     (lambda t, r: [_three_pairs(t, r), "--windows", "16x16x8", "--pairs", "7"], "--pairs selects no pair"),
