@@ -215,7 +215,26 @@ class RunStore(RigStore):
         """
         path = Path(path)
         root = cls._open_root(path, mode)
+        missing = cls._missing(root)
+        if missing:
+            raise RunStoreError(f"{path} is damaged: {missing} is missing, so it cannot be read as a run; copy what "
+                                "you need from it with zarr, or record it again")
         return cls(root, path)
+
+    @staticmethod
+    def _missing(root: zarr.Group) -> str | None:
+        """The first attribute or array of the layout that ``root`` lacks (a run store damaged
+        by hand or cut off while being created), or None."""
+        for key in ("rig", "timing", "state", "committed_pairs"):
+            if key not in root.attrs:
+                return f"the root attribute {key!r}"
+        try:
+            names = [c["name"] for c in root.attrs["rig"]["camera"]]
+        except (KeyError, TypeError):
+            return "the rig's cameras"
+        needed = [f"{n}/{a}" for n in names for a in ("frames", "frame_id", "timestamp_ns")]
+        needed += [f"drops/{f}" for f in _DROP_FIELDS]
+        return next((n for n in needed if n not in root), None)
 
     # --- metadata -----------------------------------------------------------------------
     @property
@@ -384,6 +403,9 @@ class RunStore(RigStore):
         """The (pairs, 2, z, y, x) float32 ``volumes/data`` array."""
         if not self.has_volumes:
             raise RunStoreError(f"{self.path} has no reconstructed volumes; run 'lfpiv reconstruct {self.path}' first")
+        if "volumes/data" not in self.group:  # the group of a reconstruction cut off as it began
+            raise RunStoreError(f"{self.path} has an incomplete volumes/ group; run 'lfpiv reconstruct {self.path}' "
+                                "again")
         return self.group["volumes/data"]
 
     def volume_grid(self) -> VolumeGrid:

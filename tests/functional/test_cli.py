@@ -218,6 +218,10 @@ def test_existing_run_is_never_overwritten_silently(capsys, tmp_path):
     rc, _, err = _run(capsys, "synth", "--rig", TINY, "--out", str(run), "--pairs", "1", "--seed", "9")
     assert rc == 2 and "already exists; choose another output path or pass --overwrite" in err
     assert np.array_equal(RunStore.open(run).frames("cam0")[...], before)
+    # acquire refuses it before the simulated lab starts rendering, with that one line only
+    rc, _, err = _run(capsys, "acquire", "--rig", TINY, "--out", str(run), "--pairs", "1")
+    assert rc == 2 and err.splitlines() == [f"lfpiv: error: {run} already exists; choose another output path or "
+                                            "pass --overwrite"]
     _synth(capsys, run, "--pairs", "1", "--seed", "9", "--overwrite")
     assert not np.array_equal(RunStore.open(run).frames("cam0")[...], before)
 

@@ -92,6 +92,26 @@ def test_guards(tiny_rig, tmp_path):
         s.set_state("finished")
 
 
+@pytest.mark.parametrize("damage, missing", [
+    (lambda g: g["cam0"].__delitem__("frames"), "cam0/frames"),
+    (lambda g: g["drops"].__delitem__("reason"), "drops/reason"),
+    (lambda g: g.attrs.__delitem__("state"), "the root attribute 'state'"),
+])
+def test_a_damaged_store_is_named_not_a_key_error(tiny_rig, tmp_path, damage, missing):
+    path = tmp_path / "run.zarr"
+    RunStore.create(path, tiny_rig, 1, timing={}, software_version="x")
+    damage(zarr.open_group(str(path), mode="r+"))
+    with pytest.raises(RunStoreError, match=f"^{path} is damaged: {missing} is missing, so it cannot be read"):
+        RunStore.open(path)
+
+
+def test_an_incomplete_volumes_group_is_named(tiny_rig, tmp_path):
+    s = RunStore.create(tmp_path / "v.zarr", tiny_rig, 1, timing={}, software_version="x")
+    s.group.create_group("volumes")  # a reconstruction killed between the group and its array
+    with pytest.raises(RunStoreError, match="incomplete volumes/ group; run 'lfpiv reconstruct .*' again"):
+        RunStore.open(tmp_path / "v.zarr").volumes()
+
+
 def test_volumes_round_trip(tiny_rig, tmp_path):
     from lfcore.volume import VolumeGrid
 
