@@ -21,11 +21,35 @@ stopped, ``NI`` a move was interrupted by another command. Lines starting with `
 Zaber linear stages; check the product's "microstep size").
 
 Motion is polled: after ``move abs`` the driver reads ``get pos`` until the axis reports
-``IDLE``, then checks the warning flags and the position against the target.
+``IDLE``, then reads the full ``warnings`` list and checks the position against the target.
+
+Checksums. A message may end in ``:XX``, a longitudinal redundancy check: the 8-bit sum of
+the bytes after the leading ``/``, ``@``, ``#`` or ``!`` up to (not including) the ``:``,
+negated (two's complement) and written as two hex digits. Devices append it to their replies
+when the device setting ``comm.checksum`` is 1; a reply whose checksum does not match is
+corrupt and is never used. With ``send_checksums=True`` the driver also appends one to its
+commands so the device can refuse a corrupted command instead of carrying it out.
+
+Retries. Every command this driver sends is safe to repeat: queries (``get``, ``warnings``),
+``stop``, ``home`` (homing again just restarts it) and ``move abs`` (an absolute target, so a
+second copy only restarts the same move; the device notes it with the ``NI`` notice, which is
+ignored). So a command whose reply is corrupt is sent again, and so is one the device rejects
+with ``AGAIN`` (it asks for the command to be repeated, e.g. while its command buffer is busy),
+at most ``retries`` more times, ``retry_pause_s`` apart. ``warnings clear`` is repeated too:
+the repeat may list fewer flags, which is why the flags are always read again afterwards.
+
+Warning flags. The reply's warning field shows only the highest-priority active flag, so a
+fatal flag can hide under a harmless one; after every move and homing the driver reads the
+whole list (``warnings`` -> ``NN F1 F2 ...``). Faults (``F*``) and warnings (``W*``) fail the
+move, except the health warnings ``WV`` (supply voltage out of range) and ``WT`` (temperature
+high), which do not make a finished move wrong and are logged. Notices (``N*``: ``NI`` a move
+was interrupted, e.g. by our own stop, ``NC`` manual control, ...) are ignored; the readback
+against ``tolerance_um`` still catches a move that ended in the wrong place.
 """
 
 from __future__ import annotations
 
+import logging
 import re
 import time
 from dataclasses import dataclass
@@ -35,9 +59,16 @@ from typing import NoReturn
 from .protocols import DeviceError
 from .serial_link import LinkClosed, LinkError, LinkTimeout, SerialLink
 
-__all__ = ["ZaberReply", "ZaberStage", "parse_reply"]
+__all__ = ["CorruptReply", "ZaberReply", "ZaberStage", "checksum", "parse_reply"]
 
-_REPLY = re.compile(r"@(\d{2}) (\d) (OK|RJ) (IDLE|BUSY) (\S\S) ?(.*?)(?::[0-9A-Fa-f]{2})?")
+log = logging.getLogger(__name__)
+
+_REPLY = re.compile(r"@(\d{2}) (\d) (OK|RJ) (IDLE|BUSY) (\S\S) ?(.*?)")
+#: A message ending in a checksum: marker, body, two hex digits.
+_CHECKED = re.compile(r"([/@#!])(.*):([0-9A-Fa-f]{2})")
+
+#: Warnings that do not make a finished move wrong (logged, not fatal).
+_HEALTH_WARNINGS = frozenset({"WV", "WT"})
 
 #: What each rejection reason means and what to do.
 _REJECTIONS = {
@@ -51,6 +82,39 @@ _REJECTIONS = {
     "DEVICEONLY": "the command applies to the whole device, not to an axis",
     "AGAIN": "the device asks to repeat the command",
 }
+
+
+class CorruptReply(ValueError):
+    """A message whose checksum does not match its content (corrupted on the line)."""
+
+
+def checksum(body: str) -> str:
+    """Checksum of a Zaber ASCII message, as two uppercase hex digits.
+
+    Parameters
+    ----------
+    body : str
+        The message between its leading ``/``, ``@``, ``#`` or ``!`` and the ``:`` that
+        introduces the checksum, e.g. ``"01 1 OK IDLE -- 0"``.
+
+    Returns
+    -------
+    str
+        The 8-bit two's complement of the sum of the bytes of ``body``, so that the bytes and
+        the checksum together sum to 0 modulo 256.
+    """
+    return f"{-sum(body.encode('ascii')) & 0xFF:02X}"
+
+
+def _verified(line: str) -> str:
+    """``line`` without its checksum; unchanged if it has none; CorruptReply if it is wrong."""
+    m = _CHECKED.fullmatch(line)
+    if m is None:
+        return line
+    marker, body, given = m.groups()
+    if checksum(body) != given.upper():
+        raise CorruptReply(f"reply {line!r} fails its checksum (computed {checksum(body)})")
+    return marker + body
 
 
 @dataclass(frozen=True)
@@ -74,8 +138,24 @@ class ZaberReply:
 
 
 def parse_reply(line: str) -> ZaberReply | None:
-    """Parse one reply line; None if it is not a reply (an info ``#`` or alert ``!`` line)."""
-    m = _REPLY.fullmatch(line.strip())
+    """Parse one reply line, verifying its checksum if it carries one.
+
+    Parameters
+    ----------
+    line : str
+        One line from the device, without or with its terminator.
+
+    Returns
+    -------
+    ZaberReply or None
+        The reply; None if the line is not a reply (an info ``#`` or alert ``!`` line, noise).
+
+    Raises
+    ------
+    CorruptReply
+        The line ends in a checksum (``:XX``) that does not match its content.
+    """
+    m = _REPLY.fullmatch(_verified(line.strip()))
     if not m:
         return None
     dev, axis, flag, status, warn, data = m.groups()
@@ -103,19 +183,32 @@ class ZaberStage:
         Largest accepted difference between a target and the position read back.
     poll_s : float
         Interval between status polls while the axis moves.
+    retries : int
+        How many more times a command is sent when its reply is corrupt (bad checksum) or the
+        device rejects it with ``AGAIN``.
+    retry_pause_s : float
+        Pause before each repeat, seconds.
+    send_checksums : bool
+        Append a checksum to every command, so that the device refuses a corrupted one.
     """
 
     def __init__(self, port: str, baud: int = 115200, device: int = 1, axis: int = 1, timeout_s: float = 0.5,
                  microstep_um: float = 0.1, *, move_timeout_s: float = 60.0, tolerance_um: float = 1.0,
-                 poll_s: float = 0.02) -> None:
+                 poll_s: float = 0.02, retries: int = 3, retry_pause_s: float = 0.05,
+                 send_checksums: bool = False) -> None:
         if microstep_um <= 0:
             raise ValueError("microstep_um must be positive")
+        if retries < 0:
+            raise ValueError("retries must be 0 or more")
         self._link = SerialLink(port, baud, timeout_s, eol=b"\n")
         self.device, self.axis = device, axis
         self.microstep_um = microstep_um
         self.move_timeout_s = move_timeout_s
         self.tolerance_um = tolerance_um
         self.poll_s = poll_s
+        self.retries = retries
+        self.retry_pause_s = retry_pause_s
+        self.send_checksums = send_checksums
         self._travel_mm: tuple[float, float] | None = None
 
     @property
@@ -174,14 +267,17 @@ class ZaberStage:
         Raises
         ------
         DeviceError
-            The command is rejected, the device stops answering, or homing does not finish
-            within ``move_timeout_s`` (the stage is then stopped).
+            The command is rejected, the device stops answering, homing does not finish
+            within ``move_timeout_s`` (the stage is then stopped), or a fault or warning flag
+            is active afterwards (``WR``: still no reference position).
         """
         self._command("warnings clear")
         self._command("home")
         reply = self._wait_idle("home", None)
-        if reply.warning in ("WR", "FS", "FE", "WL"):
-            self._fail("home", f"finished with warning {reply.warning} ({_flag_text(reply.warning)})",
+        fatal = self._fatal_flags(self._warnings("home"))
+        if fatal:
+            where = self._mm(self._steps(reply.data, "home"))
+            self._fail("home", f"finished at {where:.4f} mm with {_describe(fatal)}",
                        "check the home sensor and that nothing blocks the carriage, then home again")
 
     def move_to(self, position_mm: float) -> float:
@@ -190,8 +286,9 @@ class ZaberStage:
         Raises
         ------
         DeviceError
-            Target outside the travel, stage not homed, command rejected, limit sensor hit,
-            stall (no arrival within ``move_timeout_s``; the stage is stopped), or readback
+            Target outside the travel, stage not homed, a fault still active before the move,
+            command rejected, a fault or warning flag after the move (limit sensor, stall,
+            ...), no arrival within ``move_timeout_s`` (the stage is stopped), or readback
             further than ``tolerance_um`` from the target.
         """
         lo, hi = self.travel_mm
@@ -200,18 +297,25 @@ class ZaberStage:
         if not lo - 1e-9 <= position_mm <= hi + 1e-9:
             raise DeviceError(f"stage on {self.port}: {cmd!r}: target {position_mm:g} mm is outside the travel "
                               f"[{lo:g}, {hi:g}] mm; choose a position inside it")
-        # 'warnings clear' lists the active flags and resets the latched ones (WL, FS, NI...),
-        # so the flags after this move are this move's; WR stays until the stage is homed.
-        flags = self._warnings(clear=True)
-        if "WR" in flags:
+        # 'warnings clear' resets the latched flags (WL, FS, NI...) so that the flags after this
+        # move are this move's; what is still set after it (WR until homed, a driver fault) is
+        # a standing condition that makes the move pointless.
+        self._command("warnings clear")
+        standing = self._warnings(cmd)
+        if "WR" in standing:
             raise DeviceError(f"stage on {self.port}: {cmd!r}: the stage is not homed (flag WR, no reference "
                               "position); call home() first")
+        fatal = self._fatal_flags(standing)
+        if fatal:
+            self._fail(cmd, f"refused to move: {_describe(fatal)} still active after 'warnings clear'",
+                       "check its cause in the Zaber manual's warning-flag table, power-cycle the "
+                       "controller if needed, then home again")
         self._command(cmd)
         reply = self._wait_idle(cmd, position_mm)
         reached = self._mm(self._steps(reply.data, cmd))
-        if reply.warning in ("WL", "FS", "FE"):
-            self._fail(cmd, f"stopped at {reached:.4f} mm with warning {reply.warning} "
-                       f"({_flag_text(reply.warning)})",
+        fatal = self._fatal_flags(self._warnings(cmd))
+        if fatal:
+            self._fail(cmd, f"stopped at {reached:.4f} mm with {_describe(fatal)}",
                        "check for an obstruction and the limit settings, then home again")
         if abs(reached - position_mm) * 1000.0 > self.tolerance_um:
             self._fail(cmd, f"ended at {reached:.4f} mm, {abs(reached - position_mm) * 1000:.1f} um from the "
@@ -243,9 +347,27 @@ class ZaberStage:
         except (ValueError, IndexError):
             self._fail(cmd, f"unexpected data {data!r} instead of a position", "check the device and firmware")
 
-    def _warnings(self, clear: bool = False) -> set[str]:
-        reply = self._command("warnings clear" if clear else "warnings")
-        return set(reply.data.split()[1:])  # "NN F1 F2 ..."
+    def _warnings(self, during: str) -> list[str]:
+        """Every active warning flag, highest priority first (``warnings`` -> ``NN F1 F2 ...``)."""
+        reply = self._command("warnings")
+        words = reply.data.split()
+        try:
+            count = int(words[0])
+        except (ValueError, IndexError):
+            count = -1
+        flags = words[1:]
+        if count != len(flags) or not all(len(f) == 2 and f.isalpha() and f.isupper() for f in flags):
+            self._fail(during, f"unexpected 'warnings' data {reply.data!r} (want a count and the flags)",
+                       "check the device and firmware")
+        return flags
+
+    def _fatal_flags(self, flags: list[str]) -> list[str]:
+        """The flags that make a move or homing fail; health warnings are logged, notices ignored."""
+        fatal = [f for f in flags if f[0] == "F" or (f[0] == "W" and f not in _HEALTH_WARNINGS)]
+        for f in flags:
+            if f in _HEALTH_WARNINGS:
+                log.warning("stage on %s: warning flag %s (%s)", self.port, f, _flag_text(f))
+        return fatal
 
     def _wait_idle(self, cmd: str, target_mm: float | None) -> ZaberReply:
         deadline = time.monotonic() + self.move_timeout_s
@@ -269,12 +391,41 @@ class ZaberStage:
             pass
 
     def _line(self, cmd: str) -> str:
-        return f"/{self.device} {self.axis} {cmd}"
+        body = f"{self.device} {self.axis} {cmd}"
+        return f"/{body}:{checksum(body)}" if self.send_checksums else f"/{body}"
 
     def _command(self, cmd: str) -> ZaberReply:
-        """Send one command, return its reply; rejection or link failure raises DeviceError."""
+        """Send one command and return its reply, repeating it on a corrupt reply or AGAIN.
+
+        A rejection, a link failure or running out of repeats raises DeviceError.
+        """
         if not self._link.is_open:
             raise DeviceError(f"stage on {self.port}: {cmd!r} on a closed port; call open() first")
+        for attempt in range(self.retries + 1):
+            if attempt:
+                time.sleep(self.retry_pause_s)
+            reply = self._exchange(cmd)
+            if reply is None:
+                continue  # corrupt reply: the command is safe to send again (module docstring)
+            if not reply.ok and reply.data.split()[:1] == ["AGAIN"]:
+                continue  # the device asks for the command again
+            break
+        else:
+            if reply is None:
+                self._fail(cmd, f"{self.retries + 1} replies in a row failed their checksum (corrupted on the line)",
+                           "check the cable, its shielding and grounding, and the baud rate")
+            self._fail(cmd, f"rejected with AGAIN ({_REJECTIONS['AGAIN']}) {self.retries + 1} times in a row",
+                       "check that no other program or controller sends commands to the stage, then retry")
+        if not reply.ok:
+            reason = reply.data.split()[0] if reply.data else "?"
+            if reply.warning == "WR" and cmd.startswith("move"):
+                self._fail(cmd, "rejected: the stage is not homed (flag WR)", "call home() first")
+            self._fail(cmd, f"rejected with {reason} ({_REJECTIONS.get(reason, 'see the Zaber ASCII manual')})",
+                       "check the command's value against the stage's settings")
+        return reply
+
+    def _exchange(self, cmd: str) -> ZaberReply | None:
+        """Send ``cmd`` once and read its reply; None if the reply is corrupt (bad checksum)."""
         line = self._line(cmd)
         try:
             with self._link.lock:
@@ -283,14 +434,19 @@ class ZaberStage:
                 deadline = time.monotonic() + self._link.timeout_s
                 while True:
                     text = self._link.read_line(max(deadline - time.monotonic(), 0.001))
-                    reply = parse_reply(text)
+                    try:
+                        reply = parse_reply(text)
+                    except CorruptReply as exc:
+                        # Whose reply it was cannot be trusted either: count it as ours.
+                        log.warning("stage on %s: %r: %s; sending it again", self.port, cmd, exc)
+                        return None
                     if reply is None:
                         if text.startswith(("#", "!")):
                             continue  # info and alert messages
                         self._fail(cmd, f"unexpected reply {text!r}",
                                    "check the baud rate and that this port carries the Zaber ASCII protocol")
                     if reply.device == self.device and reply.axis in (self.axis, 0):
-                        break
+                        return reply
         except LinkClosed as exc:
             self._fail(cmd, str(exc), "check the USB/serial cable and the stage controller's power")
         except LinkTimeout:
@@ -301,23 +457,31 @@ class ZaberStage:
         except LinkError as exc:
             self._fail(cmd, str(exc), f"check the cable, the controller's power, baud rate ({self._link.baud}) "
                        f"and device number ({self.device})")
-        if not reply.ok:
-            reason = reply.data.split()[0] if reply.data else "?"
-            if reply.warning == "WR" and cmd.startswith("move"):
-                self._fail(cmd, "rejected: the stage is not homed (flag WR)", "call home() first")
-            self._fail(cmd, f"rejected with {reason} ({_REJECTIONS.get(reason, 'see the Zaber ASCII manual')})",
-                       "check the command's value against the stage's settings")
-        return reply
 
     def _fail(self, cmd: str, what: str, fix: str) -> NoReturn:
         raise DeviceError(f"stage on {self.port}: {cmd!r}: {what}; {fix}")
 
 
+#: Zaber warning flags: faults F*, warnings W*, notices N*.
 _FLAG_TEXT = {
-    "WR": "no reference position", "WL": "unexpected limit sensor", "FS": "stalled and stopped",
-    "FE": "limit sensor fault", "WH": "not homed", "NI": "command interrupted", "NC": "manual control",
+    "FF": "critical system error", "FN": "peripheral not supported", "FZ": "peripheral inactive",
+    "FH": "hardware emergency stop, driver disabled", "FV": "over- or undervoltage, driver disabled",
+    "FO": "driver disabled", "FC": "current inrush error", "FM": "motor temperature error",
+    "FD": "driver temperature/current error", "FQ": "encoder error", "FS": "stalled and stopped",
+    "FB": "stream bounds error", "FP": "interpolated path deviation", "FE": "limit error",
+    "FT": "excessive twist",
+    "WL": "unexpected limit trigger", "WV": "voltage out of range", "WT": "temperature high",
+    "WS": "stalled with recovery", "WM": "displaced when stationary", "WP": "invalid calibration type",
+    "WR": "no reference position", "WH": "device not homed",
+    "NC": "manual control", "NI": "movement interrupted", "ND": "stream discontinuity", "NR": "value rounded",
 }
 
 
 def _flag_text(flag: str) -> str:
     return _FLAG_TEXT.get(flag, "see the Zaber ASCII manual")
+
+
+def _describe(flags: list[str]) -> str:
+    """``flag WL (unexpected limit trigger)`` or ``flags FS (...), WL (...)``."""
+    items = ", ".join(f"{f} ({_flag_text(f)})" for f in flags)
+    return f"flag{'s' if len(flags) > 1 else ''} {items}"

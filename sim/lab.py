@@ -60,8 +60,9 @@ class SimLab:
     def __enter__(self) -> SimLab:
         try:
             self.pulse_generator = self._stack.enter_context(PulseGeneratorEmulator(latency_s=self._latency))
+            st = self.rig.stage
             self.stage = self._stack.enter_context(StageEmulator(
-                device=self.rig.stage.device, microstep_um=self.rig.stage.microstep_um, latency_s=self._latency))
+                device=st.device, axis=st.axis, microstep_um=st.microstep_um, latency_s=self._latency))
             self.cameras = [
                 SimCamera(cam.name, self.rig, self.world, self.pulse_generator, pool_pairs=self._pool_pairs,
                           rays_per_particle=self._rays, device=self._device, **self._faults.get(cam.name, {}))

@@ -21,7 +21,14 @@ Faults for tests (:meth:`inject`, :meth:`clear_faults`):
 ``"error"``      (pulse generator) the next command is refused with ``?code``, one shot;
 ``"stall"``      (stage) the next move never progresses and the axis stays BUSY until stopped;
 ``"limit"``      (stage) the next move stops half way on a limit sensor, flag ``WL``;
-``"slip"``       (stage) the next move ends IDLE 50 um away from its target.
+``"slip"``       (stage) the next move ends IDLE 50 um away from its target;
+``"flags"``      (stage) the next move or homing ends with the warning flags ``flags=(...)``
+                 raised, e.g. ``("WT", "WM")`` (the reply then shows only the first);
+``"again"``      (stage) the next ``count=n`` commands (default 1) are refused with
+                 ``RJ ... AGAIN`` without being carried out;
+``"bad_checksum"`` (stage) the next ``count=n`` replies (default 1) are corrupted on the way
+                 back: one data character changes, the checksum of the original stays. The
+                 command itself is carried out.
 
 ``after=n`` delays a fault until ``n`` more commands have been served normally.
 
@@ -557,6 +564,11 @@ _FLAG_ORDER = ("FD", "FQ", "FS", "FT", "FB", "FP", "FE", "WH", "WL", "WP", "WV",
 _CLEARABLE = {"FQ", "FS", "FT", "FB", "FP", "FE", "WL", "NI"}
 
 
+def _lrc(body: str) -> str:
+    """Zaber message checksum: two's complement of the byte sum of ``body``, two hex digits."""
+    return f"{(256 - sum(body.encode('ascii')) % 256) % 256:02X}"
+
+
 @dataclasses.dataclass
 class _Motion:
     start: int          # true position, steps
@@ -565,7 +577,7 @@ class _Motion:
     speed: float        # steps per second
     stall: bool = False
     home: bool = False
-    flag_on_arrival: str | None = None
+    flags_on_arrival: tuple[str, ...] = ()
 
 
 class StageEmulator(_PtyEmulator):
@@ -575,10 +587,15 @@ class StageEmulator(_PtyEmulator):
     position counter the device reports; they differ by an unknown offset until the stage is
     homed, as on a stage just powered up.
 
+    Commands may end in a checksum (``/1 1 get pos:XX``); one that does not match is dropped
+    unanswered, like any line the device cannot read.
+
     Parameters
     ----------
     device : int
         Device address on the daisy chain.
+    axis : int
+        The one axis this device has (the rig's ``stage.axis``).
     microstep_um : float
         Size of one native step (microstep), micrometres.
     travel_mm : float
@@ -591,18 +608,24 @@ class StageEmulator(_PtyEmulator):
         Start homed (no ``WR`` flag) instead of freshly powered up.
     latency_s : float
         Reply latency, seconds.
+    checksums : bool
+        Append a checksum ``:XX`` to every reply (the device setting ``comm.checksum 1``).
     """
 
-    FAULTS = frozenset({"no_reply", "garbled", "disconnect", "stall", "limit", "slip"})
+    FAULTS = frozenset({"no_reply", "garbled", "disconnect", "stall", "limit", "slip", "flags", "again",
+                        "bad_checksum"})
     name = "stage"
 
-    def __init__(self, *, device: int = 1, microstep_um: float = 0.1, travel_mm: float = 50.0,
+    def __init__(self, *, device: int = 1, axis: int = 1, microstep_um: float = 0.1, travel_mm: float = 50.0,
                  speed_mm_s: float = 20.0, position_mm: float = 12.5, homed: bool = False,
-                 latency_s: float = 0.002) -> None:
+                 latency_s: float = 0.002, checksums: bool = False) -> None:
         self.device = device
+        self.axis = axis
         self.microstep_um = microstep_um
         self.limit_max = round(travel_mm * 1000 / microstep_um)
         self.speed_mm_s = speed_mm_s
+        #: Append checksums to replies (may be changed at any time).
+        self.checksums = checksums
         self._true = round(position_mm * 1000 / microstep_um)
         self._offset = 0 if homed else self._true  # the counter reads 0 at power-up
         self._flags: set[str] = set() if homed else {"WR"}
@@ -635,6 +658,31 @@ class StageEmulator(_PtyEmulator):
             self._update()
             return frozenset(self._flags)
 
+    def set_flags(self, *flags: str) -> None:
+        """Raise warning flags now (a standing condition, e.g. ``"FD"``, ``"WV"``).
+
+        Raises
+        ------
+        ValueError
+            A flag this emulator does not know.
+        """
+        unknown = set(flags) - set(_FLAG_ORDER)
+        if unknown:
+            raise ValueError(f"unknown flags {sorted(unknown)}; choose from {list(_FLAG_ORDER)}")
+        with self._lock:
+            self._update()
+            self._flags.update(flags)
+
+    # --- faults that last for several commands -------------------------------------------
+    def _count_down(self, fault: str) -> None:
+        """Use one of the ``count=n`` occurrences of a fault; remove it after the last."""
+        with self._lock:
+            left = int(self._fault_args.get(fault, {}).get("count", 1)) - 1
+            if left <= 0:
+                self._consume_fault(fault)
+            else:
+                self._fault_args[fault]["count"] = left
+
     # --- motion model --------------------------------------------------------------------
     def _update(self) -> None:
         m = self._motion
@@ -651,8 +699,7 @@ class StageEmulator(_PtyEmulator):
             if m.home:
                 self._offset = 0
                 self._flags.discard("WR")
-            if m.flag_on_arrival:
-                self._flags.add(m.flag_on_arrival)
+            self._flags.update(m.flags_on_arrival)
 
     def _start(self, end: int, faults: set[str], *, home: bool = False) -> None:
         if self._motion is not None:
@@ -667,16 +714,27 @@ class StageEmulator(_PtyEmulator):
         elif "limit" in faults and not home:
             self._consume_fault("limit")
             m.end = m.start + (end - m.start) // 2
-            m.flag_on_arrival = "WL"
+            m.flags_on_arrival = ("WL",)
         elif "slip" in faults and not home:
             self._consume_fault("slip")
             m.end = end + round(50.0 / self.microstep_um)
+        if "flags" in faults:
+            flags = tuple(self._consume_fault("flags").get("flags", ()))
+            unknown = set(flags) - set(_FLAG_ORDER)
+            if unknown:
+                log.error("stage emulator: unknown flags %s ignored", sorted(unknown))
+            m.flags_on_arrival += tuple(f for f in flags if f in _FLAG_ORDER)
         self._motion = m
 
     # --- ASCII protocol ------------------------------------------------------------------
     def _respond(self, line: str, faults: set[str]) -> str | None:
         if not line.startswith("/"):
             return None  # not a command: Zaber devices ignore it
+        checked = re.fullmatch(r"/(.*):([0-9A-Fa-f]{2})", line)
+        if checked:
+            if _lrc(checked.group(1)) != checked.group(2).upper():
+                return None  # corrupted on the way in: dropped
+            line = "/" + checked.group(1)
         parts = line[1:].split()
         try:
             dev = int(parts[0]) if parts else 0
@@ -688,9 +746,34 @@ class StageEmulator(_PtyEmulator):
         words = parts[2:] if len(parts) > 1 and parts[1].isdigit() else parts[1:]
         with self._lock:
             self._update()
-            if axis not in (0, 1):
-                return self._reply(axis, "RJ", "BADAXIS")
-            return self._command(axis, [w.lower() for w in words], faults)
+            if axis not in (0, self.axis):
+                reply = self._reply(axis, "RJ", "BADAXIS")
+            elif "again" in faults:
+                self._count_down("again")  # buffer busy: not carried out, asks for a repeat
+                reply = self._reply(axis, "RJ", "AGAIN")
+            else:
+                reply = self._command(axis, [w.lower() for w in words], faults)
+            return self._frame(reply, "bad_checksum" in faults)
+
+    def _frame(self, reply: str, corrupt: bool) -> str:
+        """Append the checksum; for the ``bad_checksum`` fault, corrupt the text after it."""
+        body = reply[1:]
+        if not (self.checksums or corrupt):
+            return reply
+        cs = _lrc(body)
+        if corrupt:
+            self._count_down("bad_checksum")
+            # One character flips on the line: the first digit of the data if there is one
+            # (a position that silently changes), else the last character.
+            fields = body.split(" ", 5)  # dd a flag status warning data
+            data = fields[5] if len(fields) == 6 else ""
+            i = next((k for k, ch in enumerate(data) if ch.isdigit()), None)
+            if i is not None:
+                fields[5] = data[:i] + str((int(data[i]) + 5) % 10) + data[i + 1:]
+                body = " ".join(fields)
+            else:
+                body = body[:-1] + ("A" if body[-1] != "A" else "B")
+        return f"@{body}:{cs}"
 
     def _reply(self, axis: int, flag: str, data: str) -> str:
         status = "BUSY" if self._motion is not None else "IDLE"

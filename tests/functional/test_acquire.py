@@ -189,10 +189,10 @@ def test_devices_lists_the_simulated_lab(fast_rig_file: Path, capsys: pytest.Cap
 
 
 def test_devices_addresses_the_stage_the_rig_names(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    # a stage at address 2 with a finer microstep: the emulator is set up from the same keys,
+    # a stage at address 2, axis 3, with a finer microstep: the emulator is set up from the same keys,
     # so the driver finds it only at that address and reads its travel in millimetres
     rig_file = tmp_path / "stage.toml"
-    rig_file.write_text(fast_rig_text(cameras=1) + "\n[stage]\ndevice = 2\nmicrostep_um = 0.047625\n")
+    rig_file.write_text(fast_rig_text(cameras=1) + "\n[stage]\ndevice = 2\naxis = 3\nmicrostep_um = 0.047625\n")
     assert main(["devices", "--rig", str(rig_file)]) == 0
     out = capsys.readouterr().out
     assert "Zaber stage at" in out and "travel 0..50 mm" in out
