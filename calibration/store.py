@@ -114,6 +114,12 @@ class CalibrationStore(RigStore):
         if theirs != ours:
             raise CalibrationStoreError(f"{path} holds a calibration of other cameras ({sorted(theirs)}); "
                                         "give a new --out path")
+        changed = _first_change(store.rig, rig)
+        if changed:
+            # its white images, grids and planes were taken, and dots named, with the nominal
+            # optics in the store: mixing in planes of other optics would spoil the fit
+            raise CalibrationStoreError(f"{path} was made with another rig ({changed}); give a new --out path, or "
+                                        "the rig file it was made with")
         return store
 
     # --- metadata -----------------------------------------------------------------------
@@ -138,12 +144,21 @@ class CalibrationStore(RigStore):
         g = self._camera(camera)
         return g["white"][...] if "white" in g else None
 
-    def write_grid(self, camera: str, grid: MlaGrid, *, mla: dict[str, Any] | None = None) -> None:
+    def write_grid(self, camera: str, grid: MlaGrid, *, mla: dict[str, Any] | None = None) -> bool:
         """Store the detected microlens grid of ``camera`` (replacing any earlier one).
 
-        ``mla`` is :meth:`MlaGrid.to_mla` of the nominal camera, kept as attributes.
+        ``mla`` is :meth:`MlaGrid.to_mla` of the nominal camera, kept as attributes. A fitted
+        model of ``camera`` is removed: its dots were found through the earlier grid.
+
+        Returns
+        -------
+        bool
+            Whether a fitted model was removed.
         """
         g = self._camera(camera)
+        stale = "model" in g
+        if stale:
+            del g["model"]
         m = g.require_group("mla")
         n = grid.n_lenslets
         arrays = (
@@ -169,6 +184,7 @@ class CalibrationStore(RigStore):
                            "minus the centre (column, row)",
             "mla": dict(mla or {}),
         })
+        return stale
 
     def grid(self, camera: str) -> MlaGrid | None:
         """The stored microlens grid of ``camera``, or None."""
@@ -325,3 +341,16 @@ class CalibrationStore(RigStore):
             else:
                 lines.append(f"  {name}: no fitted camera model yet")
         return lines
+
+
+def _first_change(stored: Rig, rig: Rig) -> str | None:
+    """The first camera key (serial aside) or stage microstep that differs, as "key a, now b"."""
+    for old in stored.camera:
+        new = rig.camera_named(old.name)
+        a, b = old.model_dump(exclude={"serial"}), new.model_dump(exclude={"serial"})
+        for key in a:
+            if a[key] != b[key]:
+                return f"camera '{old.name}' {key} {a[key]} in the store, {b[key]} now"
+    if stored.stage.microstep_um != rig.stage.microstep_um:
+        return f"stage microstep_um {stored.stage.microstep_um} in the store, {rig.stage.microstep_um} now"
+    return None

@@ -46,6 +46,8 @@ class MlaResult:
     camera: str
     grid: MlaGrid
     mla: dict[str, Any]
+    #: whether the store held a model fitted through an earlier grid, now removed
+    removed_model: bool = False
 
 
 def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: float | None = None,
@@ -110,11 +112,13 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
         grids[cam.name] = (mean, len(stack))
         results.append(MlaResult(cam.name, grid, grid.to_mla(cam)))
     store = _open_store(out, rig)  # written only when every camera's grid was found
+    written = []
     for res in results:
         mean, n = grids[res.camera]
         store.write_white(res.camera, mean, frames_averaged=n)
-        store.write_grid(res.camera, res.grid, mla=res.mla)
-    return results
+        removed = store.write_grid(res.camera, res.grid, mla=res.mla)
+        written.append(dataclasses.replace(res, removed_model=removed))
+    return written
 
 
 def _check_timing(rig: Rig, triggers: int) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from lfpiv.commands import non_negative_float, positive_float, positive_int, warn_optics, whole_number
 
@@ -102,6 +103,10 @@ def run_mla(args: argparse.Namespace) -> int:
               f"offset ({g.offset_px[0]:+.3f}, {g.offset_px[1]:+.3f}) px, RMS {g.rms_px:.4f} px, "
               f"{int(g.inliers.sum())} of {g.n_lenslets} lenslets; MLA pitch {res.mla['mla_pitch_um']:.3f} um, "
               f"offset ({ox:+.2f}, {oy:+.2f}) um")
+    stale = [res.camera for res in results if res.removed_model]
+    if stale:
+        print(f"lfpiv: note: removed the fitted model of {', '.join(stale)}, made through the earlier grid; "
+              f"run 'lfpiv calibrate fit {args.out}' again", file=sys.stderr)
     print(f"wrote {args.out}")
     return 0
 

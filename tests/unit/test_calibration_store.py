@@ -46,6 +46,12 @@ def test_round_trip_and_plain_zarr_layout(tiny_rig, tmp_path):
     m = root["cam0/mla"].attrs
     assert m["grid"] == "hex" and m["rotation_deg"] == pytest.approx(0.2, abs=0.01) and len(m["offset_px"]) == 2
 
+    # a new grid removes the model fitted through the old one
+    s.write_model("cam0", {"name": "cam0"}, {"rms_px": 0.1})
+    assert s.model("cam0") is not None
+    assert s.write_grid("cam0", grid, mla=grid.to_mla(cam)) is True
+    assert s.model("cam0") is None and s.write_grid("cam0", grid) is False
+
 
 def test_resume_needs_the_same_planes_and_cameras(tiny_rig, tmp_path):
     path = tmp_path / "c.zarr"
@@ -58,5 +64,11 @@ def test_resume_needs_the_same_planes_and_cameras(tiny_rig, tmp_path):
     other = tiny_variant(tiny_rig, name="camX")
     with pytest.raises(CalibrationStoreError, match="other cameras"):
         CalibrationStore.open_or_create(path, other)
+    # the same camera with other optics: its planes would be named with the wrong model
+    zoomed = tiny_variant(tiny_rig, magnification=-1.1, serial="123")
+    with pytest.raises(CalibrationStoreError, match=r"made with another rig \(camera 'cam0' magnification "
+                                                    r"-1\.0 in the store, -1\.1 now\); give a new --out path"):
+        CalibrationStore.open_or_create(path, zoomed)
+    assert CalibrationStore.open_or_create(path, tiny_variant(tiny_rig, serial="123"))  # a serial is no optics
     with pytest.raises(CalibrationStoreError, match="does not exist"):
         CalibrationStore.open(tmp_path / "nope.zarr")
