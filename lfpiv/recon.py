@@ -22,35 +22,28 @@ from lfcore.weight_cache import WeightCache
 from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
 
-__all__ = ["FrameEvaluation", "ReconJob", "evaluate_run", "parse_pairs", "reconstruct_pair_task", "reconstruct_run",
-           "summary_rows"]
+__all__ = ["FrameEvaluation", "ReconJob", "evaluate_run", "reconstruct_pair_task", "reconstruct_run",
+           "select_pairs", "summary_rows"]
 
 #: Bytes per voxel of the box the elimination pass and the dense result need at once.
 BYTES_PER_BOX_VOXEL = 16
 
 
-def parse_pairs(spec: str | None, n_pairs: int) -> list[int]:
-    """Pair indices from ``"3"``, ``"0:10"``, ``"5:"`` or ``":5"`` (Python slice semantics).
+def select_pairs(pairs: slice | None, n_pairs: int) -> list[int]:
+    """The pair indices ``pairs`` (the ``--pairs`` range) selects of a run of ``n_pairs``.
 
     Raises
     ------
     UsageError
-        For a malformed spec or one that selects no pair.
+        A range that selects no pair.
     """
-    if spec is None:
+    if pairs is None:
         return list(range(n_pairs))
-    try:
-        if ":" in spec:
-            a, b = spec.split(":", 1)
-            pairs = list(range(n_pairs))[slice(int(a) if a.strip() else None, int(b) if b.strip() else None)]
-        else:
-            i = int(spec)
-            pairs = [i] if 0 <= i < n_pairs else []
-    except ValueError:
-        raise UsageError(f"--pairs '{spec}' is not a pair number or a range like 0:10") from None
-    if not pairs:
-        raise UsageError(f"--pairs '{spec}' selects no pair of this run (it has pairs 0 to {n_pairs - 1})")
-    return pairs
+    chosen = list(range(n_pairs))[pairs]
+    if not chosen:
+        raise UsageError(f"--pairs selects no pair of this run (it has pairs 0 to {n_pairs - 1}); give START:STOP "
+                         "with START below STOP, e.g. 0:10")
+    return chosen
 
 
 @dataclass(frozen=True)
@@ -139,7 +132,7 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
 
 
 def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[float] | None = None,
-                    margin_mm: Sequence[float] = (0.0, 0.0, 0.0), pairs: str | None = None,
+                    margin_mm: Sequence[float] = (0.0, 0.0, 0.0), pairs: slice | None = None,
                     cameras: Sequence[str] | None = None, device: str | None = None,
                     progress: bool = True, rig: Rig | None = None,
                     calibration: dict[str, Any] | None = None, skip_done: bool = False,
@@ -176,7 +169,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     if store.committed_pairs == 0:
         raise UsageError(f"{store.path} has no recorded pairs (committed_pairs = 0); nothing to reconstruct")
     # by default every recorded pair: a run cut short (Ctrl-C, a fault) has fewer than it planned
-    chosen = parse_pairs(pairs, store.n_pairs) if pairs is not None else list(range(store.committed_pairs))
+    chosen = select_pairs(pairs, store.n_pairs) if pairs is not None else list(range(store.committed_pairs))
     late = [p for p in chosen if p >= store.committed_pairs]
     if late:
         raise UsageError(f"pair {late[0]} was never recorded (the run has {store.committed_pairs} committed "
@@ -252,7 +245,7 @@ class FrameEvaluation:
     truth_profile: np.ndarray
 
 
-def evaluate_run(store: RunStore, pairs: str | None = None, threshold: float = 0.1,
+def evaluate_run(store: RunStore, pairs: slice | None = None, threshold: float = 0.1,
                  match_voxels: float = 2.0) -> list[FrameEvaluation]:
     """Q, detection and matching, diameters and depth profile of every reconstructed frame.
 
@@ -269,7 +262,7 @@ def evaluate_run(store: RunStore, pairs: str | None = None, threshold: float = 0
     except RunStoreError as exc:
         raise UsageError(str(exc)) from None
     done = store.reconstructed_pairs()
-    chosen = [p for p in parse_pairs(pairs, store.n_pairs) if p in done]
+    chosen = [p for p in select_pairs(pairs, store.n_pairs) if p in done]
     if not chosen:
         raise UsageError(f"none of the selected pairs is reconstructed (reconstructed: {done or 'none'}); "
                          f"run 'lfpiv reconstruct {store.path}' first")

@@ -7,6 +7,7 @@ To add a command, write its module and name it in :data:`COMMANDS`.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -24,6 +25,18 @@ def whole_number(text: str, least: int = 0) -> int:
     if v < least:
         raise argparse.ArgumentTypeError(f"must be at least {least}, got {v}")
     return v
+
+
+def pair_range(text: str) -> slice:
+    """argparse type of ``--pairs``: '3' -> pair 3; '0:10' -> pairs 0..9; '5:' -> 5 to the end;
+    ':5' -> 0..4 (Python slice rules, no negative indices)."""
+    m = re.fullmatch(r"\s*(\d*)\s*(:?)\s*(\d*)\s*", text)
+    if not m or (not m.group(2) and not m.group(1)):
+        raise argparse.ArgumentTypeError(f"'{text}' is not a pair or a range START:STOP, e.g. 0:10")
+    start = int(m.group(1)) if m.group(1) else 0
+    if not m.group(2):
+        return slice(start, start + 1)
+    return slice(start, int(m.group(3)) if m.group(3) else None)
 
 
 def positive_int(text: str) -> int:

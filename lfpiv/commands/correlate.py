@@ -10,7 +10,7 @@ import re
 
 import numpy as np
 
-from lfpiv.commands import add_device, add_workers, positive_float, workers_phrase
+from lfpiv.commands import add_device, add_workers, pair_range, positive_float, workers_phrase
 from lfpiv.errors import UsageError
 
 DEFAULT_WINDOWS = "320x320x64,160x160x32"
@@ -61,17 +61,6 @@ def parse_radius(text: str) -> tuple[int, int, int]:
     return tuple(vals)  # type: ignore[return-value]
 
 
-def parse_pairs(text: str) -> slice:
-    """'3' -> pair 3; '0:10' -> pairs 0..9; '5:' -> pairs 5 to the end (Python slice rules)."""
-    m = re.fullmatch(r"\s*(\d*)\s*(:?)\s*(\d*)\s*", text)
-    if not m or (not m.group(2) and not m.group(1)):
-        raise argparse.ArgumentTypeError(f"'{text}' is not a pair or a range START:STOP, e.g. 0:10")
-    start = int(m.group(1)) if m.group(1) else 0
-    if not m.group(2):
-        return slice(start, start + 1)
-    return slice(start, int(m.group(3)) if m.group(3) else None)
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     c = sub.add_parser("correlate", help="3D multi-grid cross-correlation of a run's volumes into vectors/",
                        description="Correlate the two reconstructed volumes of each pair with 3D multi-grid FFT "
@@ -87,7 +76,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="overlap of neighbouring windows, one fraction or x,y,z (default: 0.75)")
     c.add_argument("--iterations", type=int, default=2, metavar="N",
                    help="passes with volume deformation at the final window size (default: 2)")
-    c.add_argument("--pairs", type=parse_pairs, default=None, metavar="START:STOP",
+    c.add_argument("--pairs", type=pair_range, default=None, metavar="START:STOP",
                    help="pairs to correlate, e.g. 0:10 or 3 (default: every reconstructed pair)")
     c.add_argument("--epsilon", type=positive_float, default=0.1,
                    help="median test: acceptable fluctuation in voxels (default: 0.1)")
@@ -112,6 +101,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _select_pairs(store, sel: slice | None) -> list[int]:
     from lfcore.runstore import RunStoreError
+    from lfpiv.recon import select_pairs
 
     store.volumes()  # a run without volumes says so
     done = store.reconstructed_pairs()
@@ -119,10 +109,7 @@ def _select_pairs(store, sel: slice | None) -> list[int]:
         raise RunStoreError(f"{store.path} has no reconstructed pairs yet; run 'lfpiv reconstruct {store.path}' first")
     if sel is None:
         return done
-    wanted = list(range(store.n_pairs))[sel]
-    if not wanted:
-        raise UsageError(f"--pairs selects no pair of this run (it has pairs 0 to {store.n_pairs - 1}); "
-                         "give START:STOP with START below STOP, e.g. 0:10")
+    wanted = select_pairs(sel, store.n_pairs)
     missing = [p for p in wanted if p not in done]
     if missing:
         raise UsageError(f"--pairs: pair(s) {', '.join(map(str, missing[:5]))}{' ...' if len(missing) > 5 else ''} "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from lfpiv.commands import fraction, positive_float, warn_outdated_vectors
+from lfpiv.commands import fraction, pair_range, positive_float, warn_outdated_vectors
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -12,7 +12,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Print Q_recon, particle recall, ghosts, position errors, particle "
                        "diameters and the intensity outside the seeded region for every reconstructed frame.")
     e.add_argument("run", metavar="RUN", help="synthetic run store with volumes/")
-    e.add_argument("--pairs", default=None, metavar="RANGE", help="pairs to evaluate (default: all reconstructed)")
+    e.add_argument("--pairs", type=pair_range, default=None, metavar="START:STOP",
+                   help="pairs to evaluate, e.g. 0:10 or 3 (default: all reconstructed)")
     e.add_argument("--threshold", type=fraction, default=0.1,
                    help="detect peaks above this fraction of the brightest voxel (default: 0.1)")
     e.add_argument("--match-voxels", type=positive_float, default=2.0,

@@ -9,6 +9,7 @@ from lfpiv.commands import (
     add_workers,
     check_pvr,
     non_negative_float,
+    pair_range,
     positive_float,
     positive_int,
     warn_voxel_shape,
@@ -39,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--margin-mm", type=xyz_triple, default=(0.0, 0.0, 0.0), metavar="X,Y,Z",
                    help="grow the box beyond the rig's volume on every side (default: 0,0,0)")
     r.add_argument("--cameras", default=None, metavar="NAMES", help="comma-separated cameras to use (default: all)")
-    r.add_argument("--pairs", default=None, metavar="RANGE", help="pairs to reconstruct, e.g. 0:10 or 3 (default: all)")
+    r.add_argument("--pairs", type=pair_range, default=None, metavar="START:STOP",
+                   help="pairs to reconstruct, e.g. 0:10 or 3 (default: every recorded pair)")
     r.add_argument("--background", type=non_negative_float, default=None, metavar="COUNTS",
                    help="background level to subtract (default: estimated per image)")
     r.add_argument("--threshold-sigma", type=positive_float, default=2.0,
