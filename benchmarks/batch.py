@@ -68,7 +68,7 @@ def reconstruction(store: RunStore, settings: ReconSettings, device: str) -> Non
     names = [c.name for c in rig.camera]
     pairs = range(store.n_pairs)
     # warm-up: kernels loaded and compiled before either is timed
-    reconstruct_run(store, settings, pairs="0", device=device, progress=False)
+    reconstruct_run(store, settings, pairs=slice(0, 1), device=device, progress=False)
 
     t0 = time.perf_counter()
     projector, cache = _operator(rig.camera, grid, settings, device)
