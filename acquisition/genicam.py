@@ -22,8 +22,9 @@ that ships with the ``genicam`` wheel:
   :data:`POLL_INTERVAL_S` in Python between polls: other threads keep running, at the cost of
   up to a millisecond (a GIL switch interval under load) of latency.
 * harvesters 1.4 requeues incomplete buffers itself and never hands them out; they show as
-  ``frame_id`` gaps, and :attr:`GenICamCamera.incomplete_frames` counts them so that a session
-  can tell "incomplete" from "not delivered".
+  ``frame_id`` gaps, and :attr:`GenICamCamera.incomplete_frames` counts them (in the thread
+  that fetches, before the next complete frame is returned) so that a session can tell
+  "incomplete" from "not delivered".
 * Creating an ``ImageAcquirer`` in the main thread replaces the SIGINT handler with one that
   silently destroys the acquirer; :meth:`GenICamCamera.open` puts the previous handler back,
   so Ctrl-C still raises :class:`KeyboardInterrupt`.
@@ -440,6 +441,61 @@ def _set(nm: Any, name: str, value: Any, where: str, *, required: bool = True) -
     return True
 
 
+def _frame_period_us(nm: Any) -> float | None:
+    """The camera's frame period, microseconds, as its node map states it; None if it does not.
+
+    ``ResultingFrameRate`` (what the camera will really do with the current exposure and
+    settings) first; then ``AcquisitionFrameRate`` where it is enabled (or has no enable
+    switch), else its maximum, the rate a camera runs at when its frame rate is not limited.
+    """
+    for name in ("ResultingFrameRate", "ResultingFrameRateAbs"):
+        node = _feature(nm, name)
+        try:
+            rate = float(node.value) if node is not None else 0.0
+        except Exception:
+            rate = 0.0
+        if math.isfinite(rate) and rate > 0:
+            return 1e6 / rate
+    for name in ("AcquisitionFrameRate", "AcquisitionFrameRateAbs"):
+        node = _feature(nm, name)
+        if node is None:
+            continue
+        enable = _feature(nm, "AcquisitionFrameRateEnable")
+        try:
+            rate = float(node.value) if enable is None or bool(enable.value) else float(node.max)
+        except Exception:
+            continue
+        if math.isfinite(rate) and rate > 0:
+            return 1e6 / rate
+    return None
+
+
+def _burst_misses_pulse_2(nm: Any, exposure_us: float, dt_us: float | None) -> str | None:
+    """Why a FrameBurstStart burst of two frames cannot catch laser pulse 2; None if it can.
+
+    In a burst, frame B starts one camera frame period ``T`` after frame A and is exposed for
+    the same ``exposure_us`` (it is not a double-shutter frame that opens right after frame A).
+    The timing plan puts pulse 1 one straddle margin ``m`` before frame A closes and pulse 2
+    ``dt`` later, so pulse 2 is inside frame B only when ``dt <= T <= dt + exposure - 2 m``.
+    """
+    from acquisition.timing import STRADDLE_MARGIN_US as m
+
+    if dt_us is None:
+        return ("FrameBurstStart starts frame B one frame period after frame A, and configure() was not "
+                "given dt_us to check that frame B catches laser pulse 2")
+    period = _frame_period_us(nm)
+    if period is None:
+        return ("FrameBurstStart starts frame B one frame period after frame A, and the camera states no "
+                "frame rate (ResultingFrameRate, AcquisitionFrameRate) to check that frame B catches laser pulse 2")
+    lo, hi = dt_us, dt_us + exposure_us - 2 * m
+    if lo <= period <= hi:
+        return None
+    where_b = "opens after" if period > hi else "closes before"
+    return (f"FrameBurstStart starts frame B one frame period ({period:.1f} us) after frame A, so frame B "
+            f"{where_b} laser pulse 2 (dt = {dt_us:g} us, exposure {exposure_us:g} us; the period would have "
+            f"to be {lo:.1f}-{hi:.1f} us)")
+
+
 def _configure_node_map(
     nm: Any,
     *,
@@ -450,8 +506,14 @@ def _configure_node_map(
     exposure_us: float,
     trigger_line: str,
     allow_software_pairing: bool,
+    dt_us: float | None = None,
 ) -> str:
-    """Apply the SFNC trigger and exposure set-up; return a short description of the mode."""
+    """Apply the SFNC trigger and exposure set-up; return a short description of the mode.
+
+    For ``frames_per_trigger=2`` without a vendor hook, ``FrameBurstStart`` is used only when
+    :func:`_burst_misses_pulse_2` finds that frame B catches laser pulse 2; otherwise the camera
+    is set to one frame per trigger where ``allow_software_pairing`` allows it, or refused.
+    """
     _set(nm, "AcquisitionMode", "Continuous", where, required=False)
     _set(nm, "ExposureAuto", "Off", where, required=False)
     _set(nm, "ExposureMode", "Timed", where, required=False)
@@ -484,25 +546,37 @@ def _configure_node_map(
     all_triggers_off()
 
     hook = _double_exposure_hook(vendor) if frames_per_trigger == 2 else None
-    start = "FrameStart"
-    burst = False
-    if frames_per_trigger == 2 and hook is None:
-        if "FrameBurstStart" in selectors and _feature(nm, "AcquisitionBurstFrameCount") is not None:
-            start, burst = "FrameBurstStart", True
-        elif not allow_software_pairing:
-            raise DeviceError(
-                f"{where} has no double-exposure mode known to lfpiv (no FrameBurstStart trigger, "
-                f"no hook for vendor {vendor!r}): register one with "
-                "acquisition.genicam.register_double_exposure, or pass allow_software_pairing=True "
-                "and trigger the camera once per frame"
-            )
-    if selectors:
-        _set(nm, "TriggerSelector", start, where)
+    burst = (frames_per_trigger == 2 and hook is None and "FrameBurstStart" in selectors
+             and _feature(nm, "AcquisitionBurstFrameCount") is not None)
+    fix = (f"register the camera's double-exposure (PIV) mode for vendor {vendor!r} with "
+           "acquisition.genicam.register_double_exposure, or pass allow_software_pairing=True and trigger the "
+           "camera once per frame")
+    if frames_per_trigger == 2 and hook is None and not burst and not allow_software_pairing:
+        raise DeviceError(f"{where} has no double-exposure mode known to lfpiv (no FrameBurstStart trigger, "
+                          f"no hook for vendor {vendor!r}): {fix}")
+
+    def trigger_on(start: str) -> None:
+        if selectors:
+            _set(nm, "TriggerSelector", start, where)
+        _set(nm, "AcquisitionBurstFrameCount", 2 if start == "FrameBurstStart" else 1, where,
+             required=start == "FrameBurstStart")
+        _set(nm, "TriggerSource", trigger_line, where)
+        _set(nm, "TriggerActivation", "RisingEdge", where, required=False)
+        _set(nm, "TriggerMode", "On", where)
+
+    start = "FrameBurstStart" if burst else "FrameStart"
+    trigger_on(start)
+    unfit = None
     if burst:
-        _set(nm, "AcquisitionBurstFrameCount", 2, where)
-    _set(nm, "TriggerSource", trigger_line, where)
-    _set(nm, "TriggerActivation", "RisingEdge", where, required=False)
-    _set(nm, "TriggerMode", "On", where)
+        # checked once set up: the frame rate the camera reports depends on exposure and burst
+        unfit = _burst_misses_pulse_2(nm, exposure_us, dt_us)
+        if unfit is not None:
+            if not allow_software_pairing:
+                raise DeviceError(f"{where}: {unfit}; {fix}")
+            _log.warning("%s: %s; using one frame per trigger, paired in software", where, unfit)
+            all_triggers_off()
+            start, burst = "FrameStart", False
+            trigger_on(start)
     mode = f"{start} trigger on {trigger_line}"
     if hook is not None:
         try:
@@ -515,7 +589,7 @@ def _configure_node_map(
     elif burst:
         mode += ", bursts of 2 frames"
     elif frames_per_trigger == 2:
-        mode += ", one frame per trigger (paired in software)"
+        mode += ", one frame per trigger (paired in software" + ("; no usable burst)" if unfit else ")")
     return mode
 
 
@@ -605,8 +679,9 @@ class GenICamCamera:
         the producer drops new frames once all are waiting to be fetched.
     allow_software_pairing : bool
         With ``triggered=True, frames_per_trigger=2`` on a camera without a double-exposure
-        mode (no vendor hook, no ``FrameBurstStart``): accept a plain one-frame-per-trigger
-        set-up and let consecutive frames form the pairs, instead of raising.
+        mode (no vendor hook, and no ``FrameBurstStart`` burst whose frame B catches laser
+        pulse 2, see :meth:`configure`): accept a plain one-frame-per-trigger set-up and let
+        consecutive frames form the pairs, instead of raising.
     first_frame_id : int, optional
         ``frame_id`` of the first frame after :meth:`start`. Default: 0 for USB3 Vision
         ("U3V", block ids start at 0), 1 otherwise (GigE Vision block ids start at 1; viky
@@ -615,9 +690,10 @@ class GenICamCamera:
     Notes
     -----
     ``frame_id`` is the producer's frame (block) id, unwrapped where 16-bit GigE Vision ids wrap,
-    so a frame lost anywhere leaves a gap. ``timestamp_ns`` is the buffer's time stamp from the camera clock where the
-    producer reports one (``timestamp_ns``, or ticks over the device's tick frequency),
-    otherwise the host's ``time.time_ns()`` when the frame was fetched.
+    so a frame lost anywhere leaves a gap. ``timestamp_ns`` is the buffer's time stamp from the
+    camera clock where the producer reports one (``timestamp_ns``, or ticks over the device's
+    tick frequency; then ``Frame.device_clock`` is True), otherwise the host's
+    ``time.time_ns()`` when the frame was fetched.
     """
 
     def __init__(
@@ -814,31 +890,54 @@ class GenICamCamera:
         except Exception:
             return None
 
-    def configure(self, *, triggered: bool, frames_per_trigger: int, exposure_us: float) -> None:
+    def configure(self, *, triggered: bool, frames_per_trigger: int, exposure_us: float,
+                  dt_us: float | None = None) -> None:
         """Set up external triggering (SFNC) or free run, and the exposure.
 
         Triggered: every trigger selector off, then ``TriggerSelector=FrameStart`` (or
-        ``FrameBurstStart`` with ``AcquisitionBurstFrameCount=2`` for ``frames_per_trigger=2``
-        when the camera has it and no vendor hook is registered), ``TriggerSource`` =
-        ``trigger_line``, ``TriggerActivation=RisingEdge`` (where present),
+        ``FrameBurstStart`` with ``AcquisitionBurstFrameCount=2``, see below),
+        ``TriggerSource`` = ``trigger_line``, ``TriggerActivation=RisingEdge`` (where present),
         ``TriggerMode=On``; ``ExposureAuto=Off``, ``ExposureMode=Timed`` (where present),
         ``ExposureTime`` = ``exposure_us``; then the vendor's double-exposure hook for
         ``frames_per_trigger=2`` (see :func:`register_double_exposure`). Free run: every
         trigger mode off, exposure as above; consecutive frames form the pairs.
         ``pixel_format`` (constructor) is written first.
 
+        Double frames without a vendor hook. A PIV double-shutter camera opens frame B right
+        after frame A (the interframe time); a ``FrameBurstStart`` burst of two frames opens it
+        one whole frame period ``T`` later, with the same exposure. Pulse 2, ``dt_us`` after
+        pulse 1 (which the timing plan puts just before frame A closes), is then inside frame B
+        only when ``dt_us <= T <= dt_us + exposure_us - 2 x`` the straddle margin; at a camera's
+        usual rate (e.g. 16.7 ms at 60 frames/s against a dt of 2 ms) frame B would record no
+        particles. So the burst is used only when the frame period the camera reports
+        (``ResultingFrameRate``, else ``AcquisitionFrameRate``) fits; a frame rate set through
+        :attr:`node_map` before ``configure`` can make it fit. Otherwise, with
+        ``allow_software_pairing``, the camera takes one frame per trigger; without it
+        ``configure`` raises.
+
+        Parameters
+        ----------
+        triggered, frames_per_trigger, exposure_us
+            See :meth:`acquisition.protocols.Camera.configure`.
+        dt_us : float, optional
+            Time between the two laser pulses of a pair, microseconds (the rig's
+            ``timing.dt_us``); needed to accept a ``FrameBurstStart`` burst.
+
         Raises
         ------
         DeviceError
             One line naming the camera and the missing or refused feature, e.g. a camera
-            without ``TriggerMode`` asked for ``triggered=True``; or acquisition is running.
+            without ``TriggerMode`` asked for ``triggered=True``, or a burst whose frame B
+            misses pulse 2; or acquisition is running.
         ValueError
-            ``frames_per_trigger`` not 1 or 2, or a non-positive exposure.
+            ``frames_per_trigger`` not 1 or 2, or a non-positive exposure or dt.
         """
         if frames_per_trigger not in (1, 2):
             raise ValueError(f"frames_per_trigger must be 1 or 2, got {frames_per_trigger}")
         if not (math.isfinite(exposure_us) and exposure_us > 0):
             raise ValueError(f"exposure_us must be positive, got {exposure_us}")
+        if dt_us is not None and not (math.isfinite(dt_us) and dt_us > 0):
+            raise ValueError(f"dt_us must be positive, got {dt_us}")
         with self._lock:
             nm = self._node_map()
             if self._acquiring:
@@ -854,6 +953,7 @@ class GenICamCamera:
                 exposure_us=exposure_us,
                 trigger_line=self.trigger_line,
                 allow_software_pairing=self.allow_software_pairing,
+                dt_us=dt_us,
             )
             self._read_size()
         _log.info("%s: %s", self._where, self._mode)
@@ -961,12 +1061,14 @@ class GenICamCamera:
             _log.warning("%s: frame %d unreadable (%s); recorded as incomplete", self._where, frame_id, exc)
         if data is None:
             data, complete = np.zeros((rows, cols), np.uint16), False
+        stamp = self._timestamp(raw)
         return Frame(
             data=data,
             camera=self.name,
             frame_id=frame_id,
-            timestamp_ns=self._timestamp(raw) or host_ns,
+            timestamp_ns=stamp or host_ns,
             complete=complete,
+            device_clock=bool(stamp),
         )
 
     def _unwrap(self, raw_id: int) -> int:

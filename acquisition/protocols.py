@@ -10,6 +10,15 @@ second. ``Frame.frame_id`` counts every frame the camera produced since :meth:`C
 starting at ``Camera.first_frame_id``, so that pair ``k`` holds frames
 ``first_frame_id + 2k`` (A) and ``first_frame_id + 2k + 1`` (B). A frame the camera produced but
 never delivered leaves a gap in ``frame_id``; the session turns every gap into a drop record.
+
+A trigger the camera missed makes no frames and leaves no gap in ``frame_id``; only the time
+stamps show it, and only where they come from the camera's clock (``Frame.device_clock``): two
+consecutive frames A then lie two trigger periods apart instead of one. The session uses that
+to keep the pairing right (see :mod:`acquisition.session`).
+
+A camera whose driver discards incomplete images itself (harvesters does) may say how many it
+discarded in an ``int`` attribute ``incomplete_frames``; the session then names the ``frame_id``
+gaps they leave "incomplete frame" rather than "frame_id gap".
 """
 
 from __future__ import annotations
@@ -45,6 +54,11 @@ class Frame:
     complete : bool
         False when the transport delivered a partial image (lost packets); the session records
         such a frame as a drop with the reason "incomplete".
+    device_clock : bool
+        True when ``timestamp_ns`` comes from the camera's own clock (latched at the same point
+        of every exposure, so differences are multiples of the trigger period); False for host
+        fetch times, which carry transport and scheduling delays and prove nothing about
+        triggers.
     """
 
     data: np.ndarray
@@ -52,6 +66,7 @@ class Frame:
     frame_id: int
     timestamp_ns: int
     complete: bool = True
+    device_clock: bool = False
 
 
 @runtime_checkable
@@ -78,7 +93,8 @@ class Camera(Protocol):
         """Connect to the device."""
         ...
 
-    def configure(self, *, triggered: bool, frames_per_trigger: int, exposure_us: float) -> None:
+    def configure(self, *, triggered: bool, frames_per_trigger: int, exposure_us: float,
+                  dt_us: float | None = None) -> None:
         """Set up external triggering (or free run) and the exposure.
 
         Parameters
@@ -91,6 +107,10 @@ class Camera(Protocol):
             2 for double-frame PIV (frame straddling), 1 otherwise.
         exposure_us : float
             Exposure of the first frame of a burst, microseconds.
+        dt_us : float, optional
+            Time between the two laser pulses of a pair, microseconds, for cameras that must
+            check that frame B catches the second pulse (see
+            :meth:`acquisition.genicam.GenICamCamera.configure`); None when not known.
         """
         ...
 

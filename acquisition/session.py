@@ -1,14 +1,32 @@
 """Synchronised double-frame recording of several cameras into a run store.
 
 One grabber thread per camera fetches frames (oldest first, with a timeout) and places each in
-the ring slot of its pair; pair and frame come from the frame counter alone
-(``pair, frame = divmod(frame_id - first_frame_id, 2)``), so frames of both cameras pair up by
-trigger count even when some are lost. A gap in a camera's ``frame_id`` becomes one drop record
-per missing frame; an incomplete frame, a ring overrun or a frame that never arrives are drops
-too. The recorder thread writes pairs to the run store strictly in order as soon as each is
+the ring slot of its pair; pair and frame come from the frame counter
+(``pair, frame = divmod(frame_id - first_frame_id + shift, 2)``), so frames of both cameras pair
+up by trigger count even when some are lost. A gap in a camera's ``frame_id`` becomes one drop
+record per missing frame ("incomplete frame" where the camera's driver counted that many
+discarded incomplete images over the gap, "frame_id gap" otherwise); an incomplete frame, a
+ring overrun or a frame that never arrives are drops too.
+
+The recorder thread writes pairs to the run store strictly in order as soon as each is
 settled (every frame of every camera either in the ring or listed as dropped), writing frames
 in parallel, then advances ``committed_pairs``. Nothing is lost silently: for every triggered
 frame there is a recorded image or a row in ``drops``.
+
+Missed triggers. A trigger the camera missed makes no frames, so ``frame_id`` stays
+consecutive and every later frame would land one pair early. Where frames carry the camera's
+own time stamps (``Frame.device_clock``) and the trigger period is known, each complete frame
+is compared with the camera's last complete frame of the same kind (A with A, B with B): the
+time between them in trigger periods, rounded, is the number of triggers between them. More
+triggers than pairs of ``frame_id`` means missed triggers: their pairs are listed as dropped
+("missed trigger") and ``shift`` grows by 2 for each, so the frame goes to the pair of the
+trigger that made it (the ``frame_id`` recorded for later pairs is then offset by 2 per missed
+trigger). Fewer triggers than pairs of ``frame_id`` (frames without a trigger, or a clock
+that jumped) cannot be put right and stop the recording with a :class:`DeviceError`. Both
+frames of a pair must come from one trigger (a double-exposure camera). Not detectable: a
+trigger missed before a camera's first complete time-stamped frame, and any missed by a
+camera with host time stamps; there the later frames stay one pair early and the last pair
+shows as not delivered.
 
 Crash safety: zarr writes every chunk and metadata document atomically (a temporary file moved
 into place), and ``committed_pairs`` moves only after a pair's frames, ids and drops are on disk,
@@ -18,6 +36,8 @@ so after a hard kill every committed pair reads back intact and ``state`` still 
 
 from __future__ import annotations
 
+import logging
+import math
 import threading
 import time
 from collections import deque
@@ -27,13 +47,32 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from acquisition.protocols import Camera, DeviceError
+from acquisition.protocols import Camera, DeviceError, Frame
 from acquisition.ring import PairRing
 from lfcore.runstore import FrameWriter, RunStore
 
 __all__ = ["RecordingSession", "SessionStats"]
 
+_log = logging.getLogger(__name__)
+
 _PENDING, _IN_RING, _DROPPED = 0, 1, 2
+
+
+def _incomplete_count(cam: Camera) -> int | None:
+    """Incomplete images the camera's driver discarded so far, where it counts them."""
+    n = getattr(cam, "incomplete_frames", None)
+    return n if isinstance(n, int) and not isinstance(n, bool) else None
+
+
+def _gap_reason(gap: int, incomplete: int) -> str:
+    """Drop reason of the frames of a ``frame_id`` gap of ``gap`` frames while the camera's
+    discarded-incomplete counter rose by ``incomplete``."""
+    if incomplete >= gap:
+        return "incomplete frame: discarded by the camera driver (lost packets)"
+    if incomplete > 0:
+        return (f"frame_id gap: {incomplete} of these {gap} frames came incomplete and were discarded by the "
+                "camera driver, the rest were lost in camera or transport")
+    return "frame_id gap: lost in camera or transport"
 
 
 @dataclass(frozen=True)
@@ -59,6 +98,9 @@ class SessionStats:
         Frames that arrived after their place was settled (already listed as not delivered,
         or a repeat); ignored, not recorded: each one's place holds a recorded frame or a drop
         row already.
+    missed_triggers : int
+        Triggers a camera made no frames for, found from its time stamps (summed over the
+        cameras); their frames are in ``frames_dropped``.
     """
 
     committed_pairs: int
@@ -69,6 +111,7 @@ class SessionStats:
     elapsed_s: float
     pair_rate_hz: float
     late_frames: int = 0
+    missed_triggers: int = 0
 
 
 class RecordingSession:
@@ -90,6 +133,10 @@ class RecordingSession:
         Threads compressing and writing frames in parallel.
     on_commit
         Called with the new ``committed_pairs`` after each commit (recorder thread).
+    trigger_period_s
+        Time between two triggers (the pulse generator's T0 period), to find missed triggers
+        from device time stamps. None: ``1 / rate_hz`` of the run store's ``timing`` where it
+        has one, else missed triggers are not looked for.
     """
 
     #: Most pairs written by one zarr call per camera.
@@ -97,7 +144,8 @@ class RecordingSession:
 
     def __init__(self, cameras: Sequence[Camera], store: RunStore, n_pairs: int, *, ring_slots: int = 32,
                  fetch_timeout_s: float = 0.1, writer_threads: int = 4,
-                 on_commit: Callable[[int], None] | None = None) -> None:
+                 on_commit: Callable[[int], None] | None = None,
+                 trigger_period_s: float | None = None) -> None:
         if n_pairs < 1:
             raise ValueError(f"n_pairs must be at least 1, got {n_pairs}")
         if n_pairs > store.n_pairs:
@@ -134,7 +182,21 @@ class RecordingSession:
         self._started = 0.0
         self._first_commit: float | None = None
         self._last_frame = {n: 0.0 for n in names}
+        # Per camera, in places (2 x pair + frame): the next place expected, and the offset
+        # added to frame_id - first_frame_id (2 per missed trigger).
         self._expected = {n: 0 for n in names}
+        self._shift = {n: 0 for n in names}
+        # Per camera and frame kind (A, B): (place, device time stamp, frame_id) of the last
+        # complete frame with a device time stamp.
+        self._last_stamp: dict[str, list[tuple[int, int, int] | None]] = {n: [None, None] for n in names}
+        self._incomplete_seen: dict[str, int | None] = {n: None for n in names}
+        self._missed = 0
+        if trigger_period_s is None:
+            rate = store.timing.get("rate_hz")
+            trigger_period_s = 1.0 / float(rate) if rate else None
+        if trigger_period_s is not None and not (math.isfinite(trigger_period_s) and trigger_period_s > 0):
+            raise ValueError(f"trigger_period_s must be positive, got {trigger_period_s}")
+        self._period_ns = None if trigger_period_s is None else float(trigger_period_s) * 1e9
         self.error: BaseException | None = None
         self._closed = False
 
@@ -143,6 +205,7 @@ class RecordingSession:
         """Start the cameras, the grabbers and the recorder. Call before arming the laser."""
         self._started = time.monotonic()
         for cam in self.cameras:
+            self._incomplete_seen[cam.name] = _incomplete_count(cam)
             cam.start()
             self._last_frame[cam.name] = self._started
         for cam in self.cameras:
@@ -174,7 +237,7 @@ class RecordingSession:
                 span = time.monotonic() - self._first_commit
                 rate = (self._committed - 1) / span if span > 0 else 0.0
             return SessionStats(self._committed, self._recorded, self._dropped, self.ring.overruns, self._extra,
-                                elapsed, rate, self._late)
+                                elapsed, rate, self._late, self._missed)
 
     def wait(self, timeout_s: float) -> bool:
         """Block until every pair is committed, an error happened, or ``timeout_s`` passed."""
@@ -196,10 +259,17 @@ class RecordingSession:
         limit = self.n_pairs if up_to_pair is None else min(self.n_pairs, up_to_pair)
         n = 0
         with self._cond:
+            # argwhere lists places in order; the first of a camera's places after its last
+            # frame are the ones its driver discarded as incomplete since then, if it counted any
+            incomplete = {cam.name: self._incomplete_rise(cam) for cam in self.cameras}
             pending = np.argwhere(self._status[:limit] == _PENDING)
             for pair, ci, frame in pending:
                 cam = self.cameras[ci].name
-                self._add_drop(cam, int(pair), int(frame), -1, reason)
+                why = reason
+                if incomplete[cam] > 0 and 2 * pair + frame >= self._expected[cam]:
+                    incomplete[cam] -= 1
+                    why = _gap_reason(1, 1)
+                self._add_drop(cam, int(pair), int(frame), -1, why)
                 n += 1
             for name in self._expected:  # those places are settled now
                 self._expected[name] = max(self._expected[name], 2 * limit)
@@ -238,6 +308,32 @@ class RecordingSession:
         })
         self._dropped += 1
 
+    def _incomplete_rise(self, cam: Camera) -> int:
+        # Incomplete images the camera's driver discarded since the last look (0 if it does not say).
+        now, seen = _incomplete_count(cam), self._incomplete_seen[cam.name]
+        self._incomplete_seen[cam.name] = now
+        return max(0, now - seen) if now is not None and seen is not None else 0
+
+    def _missed_triggers(self, name: str, place: int, frame: Frame) -> int:
+        # Triggers missed between the camera's last frame of this kind and ``frame`` (at ``place``
+        # by its frame_id), from the device clock: consecutive frames A (or B) lie one trigger
+        # period apart, n periods when n - 1 triggers made no frames.
+        if self._period_ns is None or not frame.device_clock or not frame.complete:
+            return 0
+        ref = self._last_stamp[name][place % 2]
+        if ref is None:
+            return 0
+        ref_place, ref_ns, ref_id = ref
+        by_id = (place - ref_place) // 2
+        by_time = round((frame.timestamp_ns - ref_ns) / self._period_ns)
+        if by_time < by_id:
+            raise DeviceError(
+                f"camera '{name}' time-stamped frame {frame.frame_id} {(frame.timestamp_ns - ref_ns) / 1e6:.3f} ms "
+                f"after frame {ref_id}, {by_time} trigger period(s) for {by_id} pair(s) of frame ids: it made frames "
+                "without a trigger (or its clock jumped), so its frames can no longer be paired; check its trigger "
+                "mode and trigger cable, and that laser.rate_hz is the rate it is triggered at")
+        return by_time - by_id
+
     def _settle(self) -> None:
         # Advance over pairs whose every frame is in the ring or dropped; publish complete ones.
         while self._next_settle < self.n_pairs and not np.any(self._status[self._next_settle] == _PENDING):
@@ -263,8 +359,8 @@ class RecordingSession:
                 frame = cam.fetch(self.fetch_timeout_s)
                 if frame is None:
                     continue
-                rel = frame.frame_id - first
                 with self._cond:
+                    rel = frame.frame_id - first + self._shift[name]  # the frame's place
                     expected = self._expected[name]
                     if frame.frame_id < 0:
                         raise DeviceError(f"camera '{name}' delivers frames without a frame id, and frames are "
@@ -280,10 +376,39 @@ class RecordingSession:
                             f"{first} it should start at: its frame counter did not restart with the "
                             "acquisition, so its frames cannot be paired; power-cycle it or reset its counter")
                     self._last_frame[name] = time.monotonic()
+                    missed = self._missed_triggers(name, rel, frame)
+                    missed_from = rel - rel % 2  # the missed pairs come just before this frame's pair
+                    shift = self._shift[name]
+                    if missed:
+                        if rel % 2 and expected == rel:
+                            # frame A of this frame's trigger is already placed, missed pairs too early
+                            raise DeviceError(
+                                f"camera '{name}': frame {frame.frame_id} (B) is {missed} trigger(s) later than the "
+                                f"frame A before it, so that frame A was paired wrongly and its frames can no longer "
+                                "be paired; check the camera's time stamps and trigger cable")
+                        self._missed += missed
+                        self._shift[name] += 2 * missed
+                        rel += 2 * missed
+                        _log.warning("camera '%s' missed %d trigger(s) before frame %d (its time stamps say so); "
+                                     "pairs %d-%d are listed as dropped and later frames moved %d pair(s) on",
+                                     name, missed, frame.frame_id, missed_from // 2, missed_from // 2 + missed - 1,
+                                     missed)
+                    gap = rel - expected - 2 * missed  # frames whose ids never came
+                    incomplete = self._incomplete_rise(cam)
+                    gap_reason = _gap_reason(gap, incomplete) if gap else ""
                     for missing in range(expected, min(rel, self.n_frames)):
                         pair, k = divmod(missing, 2)
-                        if self._status[pair, ci, k] == _PENDING:
-                            self._add_drop(name, pair, k, first + missing, "frame_id gap: lost in camera or transport")
+                        if self._status[pair, ci, k] != _PENDING:
+                            continue
+                        if missing < missed_from:  # ids before the missed triggers
+                            self._add_drop(name, pair, k, first + missing - shift, gap_reason)
+                        elif missing < missed_from + 2 * missed:  # no frame was made
+                            self._add_drop(name, pair, k, -1, "missed trigger: the camera made no frames for this "
+                                           "trigger (its time stamps say so)")
+                        else:  # frame A of this frame B's trigger
+                            self._add_drop(name, pair, k, first + missing - self._shift[name], gap_reason)
+                    if frame.device_clock and frame.complete:
+                        self._last_stamp[name][rel % 2] = (rel, frame.timestamp_ns, frame.frame_id)
                     self._expected[name] = rel + 1
                     if rel >= self.n_frames:
                         self._extra += 1

@@ -186,13 +186,15 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
             if (cols, rows) != tuple(want):
                 raise UsageError(f"camera '{cam.name}' delivers {cols} x {rows} pixels but the rig file says "
                                  f"sensor_px = {list(want)}; correct the rig file")
-            cam.configure(triggered=True, frames_per_trigger=2, exposure_us=rig.timing.camera_exposure_us)
+            cam.configure(triggered=True, frames_per_trigger=2, exposure_us=rig.timing.camera_exposure_us,
+                          dt_us=rig.timing.dt_us)
         timing = {"dt_s": plan.dt_s, "rate_hz": 1.0 / period, "pulses": pairs,
                   "channels": [{"channel": c.channel, "role": c.role, "delay_s": c.delay_s, "width_s": c.width_s,
                                 "polarity": c.polarity} for c in plan.channels]}
         store = RunStore.create(out, rig, pairs, timing=timing, software_version=__version__, overwrite=overwrite)
         store.group.attrs.update({"hardware": rig.hardware})
-        session = RecordingSession(rg.cameras, store, pairs, ring_slots=ring_slots, writer_threads=writer_threads)
+        session = RecordingSession(rg.cameras, store, pairs, ring_slots=ring_slots, writer_threads=writer_threads,
+                                   trigger_period_s=period)
         state, message = "aborted", ""
         # undisarmed: None until the disarm below, then "" or what could not be confirmed
         undisarmed: str | None = None

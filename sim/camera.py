@@ -20,7 +20,12 @@ Faults to inject (all by frame id, counted from the first frame after ``start``)
 ``lose_frames`` never delivers those frames (a gap), ``incomplete_frames`` delivers them marked
 incomplete, ``lose_rate`` loses frames at random, and ``fail_after_frames`` makes ``fetch`` raise
 :class:`~acquisition.protocols.DeviceError` once that many frames were produced (a pulled
-cable).
+cable). ``miss_triggers`` (by trigger, counted from 0 at the first trigger after ``start``)
+ignores those triggers: no frames, and the frame counter does not advance, as when a real
+camera misses a trigger pulse; only the time stamps show it.
+
+Time stamps are the camera's clock (``Frame.device_clock``): the emulated generator's T0 edge
+plus the camera output's delay for frame A, and frame B the exposure and interframe time later.
 """
 
 from __future__ import annotations
@@ -70,6 +75,8 @@ class SimCamera:
         Distinct pairs rendered at :meth:`open` and cycled through.
     buffers
         Frames the camera holds before it loses new ones.
+    lose_frames, incomplete_frames, lose_rate, fail_after_frames, miss_triggers
+        Faults to inject (see the module docstring).
     rays_per_particle
         Overrides the rig's ``render.rays_per_particle`` (fewer rays, faster start).
     device
@@ -79,7 +86,8 @@ class SimCamera:
     def __init__(self, name: str, rig: Rig, world: SimWorld, trigger: TriggerSource, *, pool_pairs: int = 4,
                  buffers: int = 16, rays_per_particle: int | None = None, device: str | None = None,
                  lose_frames: set[int] | None = None, incomplete_frames: set[int] | None = None,
-                 lose_rate: float = 0.0, fail_after_frames: int | None = None, seed: int = 0) -> None:
+                 lose_rate: float = 0.0, fail_after_frames: int | None = None,
+                 miss_triggers: set[int] | None = None, seed: int = 0) -> None:
         self.name = name
         self.rig = rig
         self.camera = rig.camera_named(name)
@@ -89,7 +97,10 @@ class SimCamera:
         self.rays_per_particle = rays_per_particle
         self.device = device
         self.lose_frames = set(lose_frames or ())
-        self.incomplete_frames = set(incomplete_frames or ())
+        # not named incomplete_frames: a session reads an int of that name as a driver's count
+        # of discarded incomplete images
+        self.incomplete_ids = set(incomplete_frames or ())
+        self.miss_triggers = set(miss_triggers or ())
         self.lose_rate = float(lose_rate)
         self.fail_after_frames = fail_after_frames
         self._rng = np.random.default_rng(derive_seed(seed, 7919, rig.camera.index(self.camera)))
@@ -101,9 +112,11 @@ class SimCamera:
         self._open = False
         self._configured = False
         self._counter = 0
+        self._triggers = 0
         self._failed = False
         self.frames_produced = 0
         self.frames_lost = 0
+        self.triggers_missed = 0
         self._lit: list[np.ndarray] = []  # per pool pair: (2, rows, cols) lit frames
         self._dark: np.ndarray | None = None
         self._scene_cache: tuple[object, np.ndarray] | None = None
@@ -141,7 +154,11 @@ class SimCamera:
         self._dark.flags.writeable = False
         self._open = True
 
-    def configure(self, *, triggered: bool, frames_per_trigger: int, exposure_us: float) -> None:
+    def configure(self, *, triggered: bool, frames_per_trigger: int, exposure_us: float,
+                  dt_us: float | None = None) -> None:
+        """Check the set-up; the simulated camera is a double-shutter PIV camera whose frame B
+        opens the rig's interframe time after frame A, so ``exposure_us`` and ``dt_us`` change
+        nothing (the rig's timing decides)."""
         self._require_open()
         if not triggered:
             raise DeviceError(f"simulated camera '{self.name}' runs triggered only; configure it with triggered=True")
@@ -157,8 +174,10 @@ class SimCamera:
         with self._cond:
             self._queue.clear()
             self._counter = 0
+            self._triggers = 0
             self.frames_produced = 0
             self.frames_lost = 0
+            self.triggers_missed = 0
             self._failed = False
             self._running = True
         if not self._listening:
@@ -200,6 +219,11 @@ class SimCamera:
         ch = self._ch
         if not self._running or ch["camera"] not in outputs:
             return
+        with self._cond:
+            n, self._triggers = self._triggers, self._triggers + 1
+            if n in self.miss_triggers:
+                self.triggers_missed += 1
+                return
         fired = [ch[f"flashlamp{c}"] in outputs and ch[f"qswitch{c}"] in outputs for c in (1, 2)]
         t_a = t0_ns + round(outputs[ch["camera"]] * 1e9)
         if self.world.scene is not None:
@@ -237,4 +261,5 @@ class SimCamera:
         if lost:
             self.frames_lost += 1
             return
-        self._queue.append(Frame(image, self.name, fid, timestamp_ns, complete=fid not in self.incomplete_frames))
+        self._queue.append(Frame(image, self.name, fid, timestamp_ns, complete=fid not in self.incomplete_ids,
+                                 device_clock=True))

@@ -53,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
         print(file=sys.stderr)
     st = res.stats
     print(f"wrote {res.store.path}: {st.committed_pairs} pair(s) x {len(rig.camera)} camera(s), "
-          f"{st.frames_recorded} frames recorded, {res.drops} dropped (see drops/), state {res.state}"
+          f"{st.frames_recorded} frames recorded, {res.drops} dropped (see drops/"
+          + (f"; {st.missed_triggers} missed trigger(s)" if st.missed_triggers else "") + f"), state {res.state}"
           + (f", {st.pair_rate_hz:.1f} pairs/s" if st.committed_pairs > 1 else ""))
     return 0

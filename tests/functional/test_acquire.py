@@ -113,6 +113,27 @@ def test_soak_2000_pairs_two_cameras_with_faults(fast_rig, tmp_path: Path) -> No
     assert truth is not None and truth["particles"].shape[:2] == (pairs, 2)
 
 
+def test_missed_triggers_are_dropped_and_later_frames_keep_their_pair(fast_rig, tmp_path: Path) -> None:
+    # cam0 misses triggers 4 and 9: it makes no frames for them and its frame ids stay
+    # consecutive, so only its time stamps tell that every later frame belongs one or two pairs on
+    pairs = 15
+    with _lab(fast_rig, cam0={"miss_triggers": {4, 9}}) as lab:
+        res = record(fast_rig, tmp_path / "missed.zarr", pairs, sim_options={"lab": lab})
+        triggered = lab.pulse_generator.ticks_fired
+        lit = {c.name: c._lit for c in lab.cameras}
+    assert triggered == pairs and res.stats.missed_triggers == 2
+    store = RunStore.open(tmp_path / "missed.zarr")
+    drops = [d for d in store.drops() if d["camera"] == "cam0"]
+    assert sorted((d["pair"], d["frame"]) for d in drops) == [(4, 0), (4, 1), (9, 0), (9, 1)]
+    assert all(d["reason"].startswith("missed trigger") for d in drops)
+    assert not [d for d in store.drops() if d["camera"] == "cam1"]
+    frames = store.frames("cam0")
+    for p in set(range(pairs)) - {4, 9}:  # each recorded pair holds its own trigger's images
+        for f in range(2):
+            assert np.array_equal(frames[p, f], lit["cam0"][p % 3][f]), (p, f)
+    assert res.stats.frames_recorded + len(store.drops()) == triggered * 2 * 2
+
+
 def test_camera_fault_stops_recording_disarms_and_keeps_the_data(fast_rig, tmp_path: Path) -> None:
     with _lab(fast_rig, cam1={"fail_after_frames": 60}) as lab:
         with pytest.raises(DeviceError, match="cam1.*laser was disarmed"):

@@ -123,7 +123,7 @@ class _Node:
 class _SelectedNodeMap:
     """A node map whose TriggerMode/TriggerSource depend on TriggerSelector, as in SFNC."""
 
-    def __init__(self, selectors=("FrameStart", "AcquisitionStart"), burst=False):
+    def __init__(self, selectors=("FrameStart", "AcquisitionStart"), burst=False, fps=None):
         self.TriggerSelector = _Node(selectors[0], tuple(selectors))
         self._modes = {s: _Node("On", ("Off", "On")) for s in selectors}
         self._sources = {s: _Node("Software", ("Software", "Line0", "Line1")) for s in selectors}
@@ -132,6 +132,8 @@ class _SelectedNodeMap:
         self.ExposureTime = _Node(1000.0, lo=10.0, hi=1e6)
         if burst:
             self.AcquisitionBurstFrameCount = _Node(1, lo=1, hi=255)
+        if fps is not None:
+            self.ResultingFrameRate = _Node(fps)
 
     @property
     def TriggerMode(self):  # noqa: N802 - GenICam feature name
@@ -170,9 +172,15 @@ def test_sfnc_trigger_setup_frame_start() -> None:
     assert all(m.value == "Off" for m in free._modes.values())
 
 
+def _burst_map(fps=None) -> _SelectedNodeMap:
+    return _SelectedNodeMap(selectors=("FrameStart", "FrameBurstStart"), burst=True, fps=fps)
+
+
 def test_sfnc_double_frame_burst_hook_and_errors() -> None:
-    nm = _SelectedNodeMap(selectors=("FrameStart", "FrameBurstStart"), burst=True)
-    assert "bursts of 2" in _configure(nm, frames_per_trigger=2)
+    # exposure 50 us, dt 2000 us: pulse 1 is 0.5 us before frame A closes, pulse 2 dt later, so
+    # a burst's frame B (same exposure, one frame period T after A) holds it for 2000 <= T <= 2049 us
+    nm = _burst_map(fps=1e6 / 2020.0)
+    assert "bursts of 2" in _configure(nm, frames_per_trigger=2, dt_us=2000.0)
     assert nm.TriggerSelector.value == "FrameBurstStart" and nm.AcquisitionBurstFrameCount.value == 2
     assert nm._modes["FrameStart"].value == "Off" and nm._modes["FrameBurstStart"].value == "On"
 
@@ -197,6 +205,86 @@ def test_sfnc_double_frame_burst_hook_and_errors() -> None:
         _configure(_SelectedNodeMap(), exposure_us=2.0)
     with pytest.raises(DeviceError, match="it accepts Software, Line0, Line1"):
         _configure(_SelectedNodeMap(), trigger_line="Line7")
+
+
+@pytest.mark.parametrize(("fps", "dt_us", "says"), [
+    (60.0, 2000.0, r"frame period \(16666.7 us\).*opens after laser pulse 2.*2000.0-2049.0 us"),  # 4 MP at 60 fps
+    (1000.0, 2000.0, r"frame period \(1000.0 us\).*closes before laser pulse 2"),
+    (1e6 / 2020.0, None, "not given dt_us"),
+    (None, 2000.0, "states no frame rate"),
+])
+def test_a_burst_whose_frame_b_misses_pulse_2_is_refused(fps, dt_us, says) -> None:
+    nm = _burst_map(fps)
+    with pytest.raises(DeviceError, match=says) as info:
+        _configure(nm, frames_per_trigger=2, dt_us=dt_us)
+    msg = str(info.value)
+    assert msg.startswith("camera 'c': FrameBurstStart") and "\n" not in msg
+    assert "register_double_exposure" in msg and "allow_software_pairing=True" in msg
+
+
+def test_an_unusable_burst_falls_back_to_software_pairing_when_allowed() -> None:
+    nm = _burst_map(fps=60.0)
+    mode = _configure(nm, frames_per_trigger=2, dt_us=2000.0, allow_software_pairing=True)
+    assert mode == "FrameStart trigger on Line1, one frame per trigger (paired in software; no usable burst)"
+    assert nm._modes["FrameStart"].value == "On" and nm._modes["FrameBurstStart"].value == "Off"
+    assert nm._sources["FrameStart"].value == "Line1" and nm.AcquisitionBurstFrameCount.value == 1
+    # a vendor hook wins over the burst, whatever its frame rate
+    gc.register_double_exposure("acme", lambda node_map: None)
+    try:
+        assert "double exposure" in _configure(_burst_map(fps=60.0), frames_per_trigger=2, dt_us=2000.0)
+    finally:
+        gc.unregister_double_exposure("acme")
+
+
+def test_frame_period_from_resulting_or_acquisition_frame_rate() -> None:
+    assert gc._frame_period_us(SimpleNamespace(ResultingFrameRate=_Node(500.0))) == 2000.0
+    assert gc._frame_period_us(SimpleNamespace(ResultingFrameRateAbs=_Node(250.0))) == 4000.0
+    # a frame rate that is switched off does not limit the camera: it runs at the highest
+    off = SimpleNamespace(AcquisitionFrameRate=_Node(100.0, lo=1.0, hi=500.0), AcquisitionFrameRateEnable=_Node(False))
+    assert gc._frame_period_us(off) == 2000.0
+    on = SimpleNamespace(AcquisitionFrameRate=_Node(100.0, lo=1.0, hi=500.0), AcquisitionFrameRateEnable=_Node(True))
+    assert gc._frame_period_us(on) == 10000.0
+    assert gc._frame_period_us(SimpleNamespace(AcquisitionFrameRate=_Node(20.0))) == 50000.0
+    assert gc._frame_period_us(SimpleNamespace()) is None
+
+
+def test_configure_refuses_a_non_positive_dt() -> None:
+    with pytest.raises(ValueError, match="dt_us must be positive"):
+        gc.GenICamCamera("c").configure(triggered=True, frames_per_trigger=2, exposure_us=20.0, dt_us=0.0)
+
+
+class _Raw:
+    """A GenTL buffer's info: frame id, completeness and, if given, a device time stamp."""
+
+    def __init__(self, frame_id: int, stamp_ns: int | None) -> None:
+        self.frame_id, self._stamp = frame_id, stamp_ns
+
+    def is_complete(self) -> bool:
+        return True
+
+    @property
+    def timestamp_ns(self) -> int:
+        if self._stamp is None:
+            raise RuntimeError("NotAvailable")  # what producers without time stamps raise
+        return self._stamp
+
+    @property
+    def timestamp(self) -> int:
+        raise RuntimeError("NotAvailable")
+
+
+def _buffer(frame_id: int, stamp_ns: int | None) -> SimpleNamespace:
+    comp = SimpleNamespace(data=np.arange(6, dtype=np.uint8), data_format="Mono8", width=3, height=2)
+    return SimpleNamespace(module=_Raw(frame_id, stamp_ns), payload=SimpleNamespace(components=[comp]))
+
+
+def test_frames_say_whether_their_time_stamp_is_the_camera_clock() -> None:
+    cam = gc.GenICamCamera("c")
+    device = cam._to_frame(_buffer(7, 123_456_789), host_ns=999)
+    assert (device.frame_id, device.timestamp_ns, device.device_clock) == (7, 123_456_789, True)
+    host = cam._to_frame(_buffer(8, None), host_ns=999)
+    assert (host.frame_id, host.timestamp_ns, host.device_clock) == (8, 999, False)
+    np.testing.assert_array_equal(host.data, [[0, 1, 2], [3, 4, 5]])
 
 
 # --- viky ----------------------------------------------------------------------------------
@@ -255,7 +343,7 @@ def test_free_run_acquisition(pixel_format: str | None) -> None:
     assert all(f is not None for f in frames)
     assert [f.frame_id for f in frames] == list(range(cam.first_frame_id, cam.first_frame_id + 20))
     assert all(f.data.shape == (400, 400) and f.data.dtype == np.uint16 for f in frames)
-    assert all(f.camera == "cam0" and f.complete for f in frames)
+    assert all(f.camera == "cam0" and f.complete and not f.device_clock for f in frames)
     assert all(0 < f.data.max() <= 255 for f in frames)
     stamps = [f.timestamp_ns for f in frames]
     assert stamps == sorted(stamps) and abs(stamps[0] - time.time_ns()) < 60e9  # host clock on viky
