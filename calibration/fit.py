@@ -121,8 +121,9 @@ class CameraFit:
     set_aside: int = 0
 
     def model_dict(self) -> dict[str, Any]:
-        """The fitted camera as a rig-file ``[[camera]]`` table (JSON-compatible)."""
-        return self.camera.model_dump(mode="json")
+        """The fitted camera as a rig-file ``[[camera]]`` table (JSON-compatible; keys without a
+        value, such as an unset serial, are left out, as TOML has no null)."""
+        return self.camera.model_dump(mode="json", exclude_none=True)
 
 
 def rotation_deg_from_matrix(r: np.ndarray) -> tuple[float, float, float]:

@@ -36,7 +36,7 @@ from calibration.mla_grid import MlaGrid
 from lfcore.rig import Camera, Rig
 from lfcore.runstore import FRAME_CODEC
 from lfcore.target import DotBoard
-from lfcore.zarrstore import RigStore, array_attrs
+from lfcore.zarrstore import RigStore, described_array
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationStore", "CalibrationStoreError"]
 
@@ -133,10 +133,9 @@ class CalibrationStore(RigStore):
         """Store the (rows, columns) white image of ``camera``, rounded to uint16."""
         g = self._camera(camera)
         img = np.clip(np.rint(np.asarray(image, dtype=np.float64)), 0, 65535).astype(np.uint16)
-        a = g.create_array("white", shape=img.shape, chunks=img.shape, dtype=np.uint16, compressors=_CODEC,
-                           overwrite=True)
+        a = described_array(g, "white", "counts", ["row", "column"], "white (uniformly lit) image, mean of frames",
+                            shape=img.shape, chunks=img.shape, dtype=np.uint16, compressors=_CODEC, overwrite=True)
         a[...] = img
-        a.attrs.update(array_attrs("counts", ["row", "column"], "white (uniformly lit) image, mean of frames"))
         a.attrs["frames_averaged"] = int(frames_averaged)
 
     def white(self, camera: str) -> np.ndarray | None:
@@ -163,7 +162,8 @@ class CalibrationStore(RigStore):
         n = grid.n_lenslets
         arrays = (
             ("centres_px", grid.centres_px, np.float64, "px", ["lenslet", "column_row"],
-             "measured micro-image centres (column, row)"),
+             "measured micro-image centres (column, row) in continuous pixel coordinates: pixel [row, column] "
+             "covers column..column+1, row..row+1, so its centre is (column + 0.5, row + 0.5)"),
             ("indices", grid.indices, np.int64, "1", ["lenslet", "n1_n2"], "lattice indices along basis_px"),
             ("residuals_px", grid.residuals_px, np.float64, "px", ["lenslet", "column_row"],
              "measured minus fitted centre"),
@@ -171,9 +171,8 @@ class CalibrationStore(RigStore):
         )
         for name, data, dtype, units, axes, what in arrays:
             shape = (n, 2) if data.ndim == 2 else (n,)
-            a = m.create_array(name, shape=shape, chunks=shape, dtype=dtype, overwrite=True)
-            a[...] = np.asarray(data, dtype=dtype)
-            a.attrs.update(array_attrs(units, axes, what))
+            described_array(m, name, units, axes, what, shape=shape, chunks=shape, dtype=dtype,
+                            overwrite=True)[...] = np.asarray(data, dtype=dtype)
         m.attrs.update({
             "grid": grid.grid, "pitch_px": grid.pitch_px, "rotation_deg": grid.rotation_deg,
             "offset_px": list(grid.offset_px), "rms_px": grid.rms_px, "origin_px": list(grid.origin_px),
@@ -222,14 +221,13 @@ class CalibrationStore(RigStore):
                             "description": "the dot target at each stage position; a plane is done when its "
                                            "stage_mm is finite"})
             n = len(targets)
-            f = p.create_array("frames", shape=(n, rows, cols), chunks=(1, rows, cols), dtype=np.uint16,
-                               fill_value=0, compressors=_CODEC)
-            f.attrs.update(array_attrs("counts", ["plane", "row", "column"], "raw light-field image of the dot target"))
-            s = p.create_array("stage_mm", shape=(n,), chunks=(n,), dtype=np.float64, fill_value=np.nan)
-            s.attrs.update(array_attrs("mm", ["plane"], "stage position read back after the move; NaN: not taken yet"))
-            t = p.create_array("target_mm", shape=(n,), chunks=(n,), dtype=np.float64)
-            t[...] = targets
-            t.attrs.update(array_attrs("mm", ["plane"], "stage position requested"))
+            described_array(p, "frames", "counts", ["plane", "row", "column"], "raw light-field image of the dot "
+                            "target", shape=(n, rows, cols), chunks=(1, rows, cols), dtype=np.uint16, fill_value=0,
+                            compressors=_CODEC)
+            described_array(p, "stage_mm", "mm", ["plane"], "stage position read back after the move; NaN: not "
+                            "taken yet", shape=(n,), chunks=(n,), dtype=np.float64, fill_value=np.nan)
+            described_array(p, "target_mm", "mm", ["plane"], "stage position requested", shape=(n,), chunks=(n,),
+                            dtype=np.float64)[...] = targets
 
     def write_plane(self, camera: str, plane: int, image: np.ndarray, stage_mm: float) -> None:
         """Store one plane's image; the readback is written last, so a plane is never marked done

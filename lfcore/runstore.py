@@ -36,7 +36,7 @@ from zarr.storage import LocalStore
 
 from lfcore.rig import Rig
 from lfcore.volume import VolumeGrid
-from lfcore.zarrstore import RigStore, array_attrs
+from lfcore.zarrstore import RigStore, described_array
 
 __all__ = ["RunStore", "RunStoreError", "STATES"]
 
@@ -170,20 +170,19 @@ class RunStore(RigStore):
             cols, rows = cam.sensor_px
             g = root.create_group(cam.name)
             g.attrs.update({"sensor_px": [cols, rows]})
-            frames = g.create_array("frames", shape=(n_pairs, 2, rows, cols), chunks=(1, 1, rows, cols),
-                                    dtype=np.uint16, fill_value=0, compressors=FRAME_CODEC)
-            frames.attrs.update(array_attrs("counts", ["pair", "frame", "row", "column"],
-                                            "raw light-field images; frame 0 is A, 1 is B"))
+            described_array(g, "frames", "counts", ["pair", "frame", "row", "column"],
+                            "raw light-field images; frame 0 is A, 1 is B", shape=(n_pairs, 2, rows, cols),
+                            chunks=(1, 1, rows, cols), dtype=np.uint16, fill_value=0, compressors=FRAME_CODEC)
             for name, units, what in (("frame_id", "1", "camera frame counter"),
-                                      ("timestamp_ns", "ns", "camera or host timestamp")):
-                a = g.create_array(name, shape=(n_pairs, 2), chunks=(min(n_pairs, 1024), 2), dtype=np.int64,
-                                   fill_value=-1)
-                a.attrs.update(array_attrs(units, ["pair", "frame"], what + "; -1 where never written"))
+                                      ("timestamp_ns", "ns", "the camera's clock where it has one, else the host's "
+                                       "time of fetch (ns since the epoch); synthetic runs: from the first pulse")):
+                described_array(g, name, units, ["pair", "frame"], what + "; -1 where never written",
+                                shape=(n_pairs, 2), chunks=(min(n_pairs, 1024), 2), dtype=np.int64, fill_value=-1)
         drops = root.create_group("drops")
         drops.attrs.update({"description": "every frame that was not recorded, with the reason"})
         for name, (dtype, fill, what) in _DROP_FIELDS.items():
-            a = drops.create_array(name, shape=(0,), chunks=(4096,), dtype=dtype, fill_value=fill)
-            a.attrs.update(array_attrs("ns" if name == "timestamp_ns" else "1", ["drop"], what))
+            described_array(drops, name, "ns" if name == "timestamp_ns" else "1", ["drop"], what, shape=(0,),
+                            chunks=(4096,), dtype=dtype, fill_value=fill)
         return cls(root, path)
 
     @classmethod
@@ -339,13 +338,11 @@ class RunStore(RigStore):
         g = self.group.create_group("truth")
         g.attrs.update({"flow": flow, **attrs})
         p = np.asarray(particles_mm, dtype=np.float64)
-        a = g.create_array("particles", shape=p.shape, chunks=(1, 2, *p.shape[2:]), dtype=np.float64)
-        a[...] = p
-        a.attrs.update(array_attrs("mm", ["pair", "frame", "particle", "xyz"], "true particle positions"))
+        described_array(g, "particles", "mm", ["pair", "frame", "particle", "xyz"], "true particle positions",
+                        shape=p.shape, chunks=(1, 2, *p.shape[2:]), dtype=np.float64)[...] = p
         b = np.asarray(brightness, dtype=np.float32)
-        a = g.create_array("brightness", shape=b.shape, chunks=(1, 2, b.shape[2]), dtype=np.float32)
-        a[...] = b
-        a.attrs.update(array_attrs("counts", ["pair", "frame", "particle"], "signal of each particle"))
+        described_array(g, "brightness", "counts", ["pair", "frame", "particle"], "signal of each particle",
+                        shape=b.shape, chunks=(1, 2, b.shape[2]), dtype=np.float32)[...] = b
 
     # --- reconstructed volumes ----------------------------------------------------------
     def create_volumes(self, grid: VolumeGrid, *, method: str, settings: dict[str, Any]) -> zarr.Array:
@@ -364,10 +361,9 @@ class RunStore(RigStore):
                         "description": "reconstructed particle volumes; origin_mm is the world (x, y, z) "
                                        "of the centre of voxel [0, 0, 0]"})
         nz, ny, nx = grid.shape
-        a = g.create_array("data", shape=(self.n_pairs, 2, nz, ny, nx), dtype=np.float32, fill_value=0.0,
-                           chunks=(1, 1, min(nz, 16), min(ny, 256), min(nx, 256)))
-        a.attrs.update(array_attrs("intensity", ["pair", "frame", "z", "y", "x"], "voxel intensity"))
-        return a
+        return described_array(g, "data", "intensity", ["pair", "frame", "z", "y", "x"], "voxel intensity",
+                               shape=(self.n_pairs, 2, nz, ny, nx), dtype=np.float32, fill_value=0.0,
+                               chunks=(1, 1, min(nz, 16), min(ny, 256), min(nx, 256)))
 
     def write_volume(self, pair: int, frame: int, volume: np.ndarray, *, record: bool = True) -> None:
         """Store one reconstructed volume (z, y, x) float32 of pair ``pair``, frame 0 (A) or 1 (B).
@@ -458,20 +454,19 @@ class RunStore(RigStore):
         coords = {"x_mm": x_mm, "y_mm": y_mm, "z_mm": z_mm}
         for name, c in coords.items():
             c = np.asarray(c, dtype=np.float64)
-            a = g.create_array(name, shape=c.shape, dtype=np.float64)
-            a[...] = c
-            a.attrs.update(array_attrs("mm", [name[0]], f"world {name[0]} of the window centres"))
+            described_array(g, name, "mm", [name[0]], f"world {name[0]} of the window centres", shape=c.shape,
+                            dtype=np.float64)[...] = c
         shape = (self.n_pairs, len(coords["z_mm"]), len(coords["y_mm"]), len(coords["x_mm"]))
         chunks = (1, *shape[1:])
         axes = ["pair", "z", "y", "x"]
         for name, what in (("u", "x"), ("v", "y"), ("w", "z")):
-            a = g.create_array(name, shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
-            a.attrs.update(array_attrs("m/s", axes, f"velocity along world {what}; NaN where not measured"))
-        a = g.create_array("flags", shape=shape, chunks=chunks, dtype=np.uint8, fill_value=0)
-        a.attrs.update({**array_attrs("1", axes, "vector quality flags (bits)"), "flag_masks": [1, 2],
-                        "flag_meanings": "outlier replaced"})
-        a = g.create_array("peak_ratio", shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
-        a.attrs.update(array_attrs("1", axes, "highest over second-highest correlation peak of the last pass"))
+            described_array(g, name, "m/s", axes, f"velocity along world {what}; NaN where not measured",
+                            shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
+        a = described_array(g, "flags", "1", axes, "vector quality flags (bits)", shape=shape, chunks=chunks,
+                            dtype=np.uint8, fill_value=0)
+        a.attrs.update({"flag_masks": [1, 2], "flag_meanings": "outlier replaced"})
+        described_array(g, "peak_ratio", "1", axes, "highest over second-highest correlation peak of the last pass",
+                        shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
 
     def vector_arrays(self) -> dict[str, zarr.Array]:
         """The ``u``, ``v``, ``w``, ``flags`` and ``peak_ratio`` arrays of ``vectors/``, opened now.

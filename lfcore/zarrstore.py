@@ -13,12 +13,31 @@ import zarr
 
 from lfcore.rig import Rig, RigError
 
-__all__ = ["RigStore", "array_attrs"]
+__all__ = ["RigStore", "array_attrs", "described_array"]
 
 
 def array_attrs(units: str, axes: list[str], description: str) -> dict[str, Any]:
     """The attributes every stored array carries, so that plain zarr or xarray users can read it."""
     return {"units": units, "axes": axes, "description": description}
+
+
+def described_array(group: zarr.Group, name: str, units: str, axes: list[str], description: str,
+                    **create: Any) -> zarr.Array:
+    """Create array ``name`` in ``group`` with its axes as zarr v3 ``dimension_names`` (which
+    xarray reads) and the :func:`array_attrs` attributes.
+
+    Parameters
+    ----------
+    group
+        The group to create it in.
+    name, units, axes, description
+        Its name, units, one name per axis, and what it holds.
+    **create
+        Passed to :meth:`zarr.Group.create_array` (shape, chunks, dtype, fill_value, ...).
+    """
+    a = group.create_array(name, dimension_names=list(axes), **create)
+    a.attrs.update(array_attrs(units, list(axes), description))
+    return a
 
 
 class RigStore:

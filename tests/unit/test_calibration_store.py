@@ -46,6 +46,12 @@ def test_round_trip_and_plain_zarr_layout(tiny_rig, tmp_path):
     m = root["cam0/mla"].attrs
     assert m["grid"] == "hex" and m["rotation_deg"] == pytest.approx(0.2, abs=0.01) and len(m["offset_px"]) == 2
 
+    xr = pytest.importorskip("xarray")  # and a user with xarray
+    mla = xr.open_zarr(path, group="cam0/mla", consolidated=False)
+    assert mla["centres_px"].dims == ("lenslet", "column_row") and mla["inliers"].dims == ("lenslet",)
+    planes = xr.open_zarr(path, group="cam0/planes", consolidated=False)
+    assert planes["frames"].dims == ("plane", "row", "column") and float(planes["stage_mm"][2]) == 1.0001
+
     # a new grid removes the model fitted through the old one
     s.write_model("cam0", {"name": "cam0"}, {"rms_px": 0.1})
     assert s.model("cam0") is not None

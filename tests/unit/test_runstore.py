@@ -166,3 +166,32 @@ def test_frame_writer_goes_through_zarr_for_other_layouts(tmp_path):
         w.write(1, 1, img)
         w.write_pairs(0, np.stack([[img, img]]))
         assert np.array_equal(arr[1, 1], img) and np.array_equal(arr[0, 0], img)
+
+
+def test_every_group_reads_with_xarray(tiny_rig, tmp_path):
+    """DESIGN.md: a user with plain zarr or xarray reads a run without lfpiv. xarray needs each
+    array's axes as zarr v3 dimension_names, with one size per name across a group."""
+    xr = pytest.importorskip("xarray")
+    from lfcore.volume import VolumeGrid
+
+    path = tmp_path / "run.zarr"
+    s = RunStore.create(path, tiny_rig, 2, timing={}, software_version="x")
+    s.write_frame("cam0", 1, 0, np.full((160, 192), 7, np.uint16), 5, 123)
+    s.add_drops([{"camera": "cam0", "pair": 0, "frame": 1, "frame_id": 2, "timestamp_ns": 9, "reason": "test"}])
+    s.write_truth(np.zeros((2, 2, 3, 3)), np.ones((2, 2, 3)), flow={"name": "uniform"})
+    grid = VolumeGrid.from_rig(tiny_rig)
+    s.create_volumes(grid, method="drt-mart", settings={})
+    s.create_vectors(x_mm=[0.0, 1.0], y_mm=[0.0], z_mm=[0.0, 0.5, 1.0], dt_s=0.002, windows=[(16, 16, 8)],
+                     overlap=(0.5, 0.5, 0.5), settings={})
+    cam = xr.open_zarr(path, group="cam0", consolidated=False)
+    assert cam["frames"].dims == ("pair", "frame", "row", "column") and cam["frames"].attrs["units"] == "counts"
+    assert int(cam["frames"][1, 0, 3, 4]) == 7 and int(cam["timestamp_ns"][1, 0]) == 123
+    drops = xr.open_zarr(path, group="drops", consolidated=False)
+    assert drops["reason"].dims == ("drop",) and drops["reason"].values.tolist() == ["test"]
+    truth = xr.open_zarr(path, group="truth", consolidated=False)
+    assert truth["particles"].dims == ("pair", "frame", "particle", "xyz")
+    vol = xr.open_zarr(path, group="volumes", consolidated=False)
+    assert vol["data"].dims == ("pair", "frame", "z", "y", "x") and vol["data"].shape[2:] == grid.shape
+    vec = xr.open_zarr(path, group="vectors", consolidated=False)
+    assert vec["u"].dims == ("pair", "z", "y", "x") and vec["u"].shape == (2, 3, 1, 2)
+    assert vec["x_mm"].dims == ("x",) and vec["u"].attrs["units"] == "m/s"
