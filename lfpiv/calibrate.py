@@ -89,7 +89,7 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
         if rg.lab is not None:
             from sim.scenes import white_scene  # the application wires the simulated lab
 
-            rg.lab.world.show(*white_scene(rg.lab.rig, white))  # the lab renders its own (true) rig
+            rg.lab.show(*white_scene(rg.lab.rig, white))  # the lab renders its own (true) rig
         for cam in rg.cameras:
             want = tuple(rig.camera_named(cam.name).sensor_px)
             if tuple(cam.sensor_px) != want:
@@ -97,7 +97,7 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
                                  f"the rig file says sensor_px = {list(want)}; correct the rig file")
         images = capture_frames(rig, rg.cameras, rg.pulse_generator, frames, exposure)
         if rg.lab is not None:
-            rg.lab.world.show(None)
+            rg.lab.show(None)
     full_scale = 2**rig.render.bit_depth - 1
     results = []
     grids = {}
@@ -282,7 +282,7 @@ def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: fl
                         from sim.scenes import dot_target_scene  # the application wires the simulated lab
 
                         z = brd.centre_mm[2] + lab.stage.position_mm - centre  # the TRUE carriage position
-                        lab.world.show(*dot_target_scene(lab.rig, z, board=brd, **(sim_target or {})))
+                        lab.show(*dot_target_scene(lab.rig, z, board=brd, **(sim_target or {})))
 
                 def grab() -> dict[str, np.ndarray]:
                     frames = capture_frames(rig, rg.cameras, rg.pulse_generator, 1, exposure)
@@ -295,7 +295,7 @@ def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: fl
                     raise UsageError(str(exc)) from None
             finally:
                 if rg.lab is not None:
-                    rg.lab.world.show(None)
+                    rg.lab.show(None)
 
 
 def _named_dots(store: CalibrationStore, nominal: Camera, board: DotBoard, min_dots: int,

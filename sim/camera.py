@@ -240,6 +240,11 @@ class SimCamera:
                 self._emit(image, t_a + f * self._frame_b_delay_ns)
             self._cond.notify_all()
 
+    def prepare_scene(self) -> None:
+        """Render the world's current scene now, so that a trigger serves it from the cache."""
+        if self.world.scene is not None:
+            self._scene_image()
+
     def _scene_image(self) -> np.ndarray:
         key = self.world.scene_key
         if self._scene_cache is None or self._scene_cache[0] != key or key is None:

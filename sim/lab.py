@@ -9,6 +9,7 @@ looking at one shared :class:`~sim.world.SimWorld`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from contextlib import ExitStack
 from typing import Any
 
@@ -80,6 +81,18 @@ class SimLab:
         for cam in self.cameras:
             cam.close()
         self._stack.close()
+
+    def show(self, scene: Callable[[int], np.ndarray] | None, key: object = None) -> None:
+        """Put a continuously lit scene in front of the cameras (see :meth:`SimWorld.show`) and
+        render each camera's image of it now, in the caller's thread.
+
+        A large sensor takes seconds to render; rendered at the first trigger instead, that
+        time would count against the capture's wait for frames, as a real camera never needs.
+        """
+        self.world.show(scene, key)
+        if scene is not None:
+            for cam in self.cameras:
+                cam.prepare_scene()
 
     @property
     def pulse_port(self) -> str:

@@ -101,3 +101,22 @@ def test_session_records_each_pair_from_its_own_trigger(tiny_rig, world, tmp_pat
         for f in range(2):
             if ids[p, f] >= 0:
                 assert np.array_equal(frames[p, f], cam._lit[cam.pool_index(p)][f])
+
+
+def test_the_lab_renders_a_shown_scene_before_any_trigger(tiny_rig) -> None:
+    # a scene takes seconds to render on a large sensor: SimLab.show renders it at once, so a
+    # capture's wait for frames never includes it
+    from sim.lab import SimLab
+
+    calls: list[int] = []
+
+    def scene(ci: int) -> np.ndarray:
+        calls.append(ci)
+        return np.full(tuple(reversed(tiny_rig.camera[ci].sensor_px)), 500, np.uint16)
+
+    with SimLab(tiny_rig, pool_pairs=1, rays_per_particle=16, reply_latency_s=0.0) as lab:
+        lab.show(scene, "grey")
+        assert calls == [0]
+        assert lab.cameras[0]._scene_image()[0, 0] == 500 and calls == [0]  # served from the cache
+        lab.show(None)
+        assert lab.world.scene is None and calls == [0]
