@@ -54,7 +54,8 @@ F_NUMBER_TOLERANCE = 0.05
 #: the depth the other resolves poorly (the chapter's optimum is 90).
 CROSSED_VIEWS_DEG = 45.0
 
-#: Fewest lenslets across either sensor axis a camera may have: fewer means a slipped unit.
+#: Fewest lenslets across either sensor axis before :meth:`Camera.optics_warnings` suspects a
+#: slipped unit (below one lenslet the rig is refused).
 MIN_LENSLETS = 4
 
 #: Pixels per lenslet above which :meth:`Camera.optics_warnings` suspects a slipped unit.
@@ -130,8 +131,8 @@ class Camera(_Strict):
     def _optics_possible(self) -> Camera:
         if self.mla_pitch_um < 2 * self.pixel_pitch_um:
             raise ValueError("mla_pitch_um must cover at least 2 pixels (pixel_pitch_um)")
-        across = [n * self.pixel_pitch_um / self.mla_pitch_um for n in self.sensor_px]
-        if min(across) < MIN_LENSLETS:
+        across = self.lenslets_across
+        if min(across) < 1.0:
             # a pitch given in millimetres or nanometres leaves the sensor a lenslet or two wide
             raise ValueError(
                 f"the sensor is only {across[0]:.3g} x {across[1]:.3g} lenslets "
@@ -143,6 +144,12 @@ class Camera(_Strict):
         return self
 
     # --- derived optics (mm unless the name says otherwise) -----------------------------
+    @property
+    def lenslets_across(self) -> tuple[float, float]:
+        """Lenslets across the sensor (columns, rows): sensor_px x pixel_pitch_um / mla_pitch_um."""
+        return (self.sensor_px[0] * self.pixel_pitch_um / self.mla_pitch_um,
+                self.sensor_px[1] * self.pixel_pitch_um / self.mla_pitch_um)
+
     @property
     def image_distance_mm(self) -> float:
         """si = F (1 - M): main lens to MLA."""
@@ -244,6 +251,12 @@ class Camera(_Strict):
     def optics_warnings(self) -> list[str]:
         """Human-readable warnings about optics that work but are not as intended."""
         out = []
+        across = self.lenslets_across
+        if min(across) < MIN_LENSLETS:
+            out.append(
+                f"camera '{self.name}': the sensor is only {across[0]:.3g} x {across[1]:.3g} lenslets; check that "
+                "pixel_pitch_um and mla_pitch_um are both in micrometres"
+            )
         if self.pixels_per_lenslet > MANY_PIXELS_PER_LENSLET:
             out.append(
                 f"camera '{self.name}': each lenslet spans {self.pixels_per_lenslet:.0f} pixels (light-field PIV "
@@ -422,8 +435,9 @@ class Rig(_Strict):
         """Validate a parsed rig file.
 
         Values are checked strictly, as the file's own types: a quoted number
-        (``pixel_pitch_um = "5.5"``) or a fractional count is an error rather than being
-        converted, since it usually means a slip elsewhere in the line.
+        (``pixel_pitch_um = "5.5"``) or a fractional count (``sensor_px = [2048.5, 2048]``) is
+        an error rather than being converted, since it usually means a slip elsewhere in the
+        line; a whole number written as a float (``rays_per_particle = 4e3``) is a whole number.
 
         Raises
         ------
@@ -434,7 +448,7 @@ class Rig(_Strict):
         """
         try:
             # through JSON so that strict mode reads arrays as tuples, as a TOML file writes them
-            text = json.dumps(data, default=str)
+            text = json.dumps(_whole_numbers(data), default=_plain)
         except (TypeError, ValueError) as exc:
             raise RigError(f"{source}: cannot be read as a rig: {exc}") from None
         try:
@@ -488,6 +502,25 @@ def voxel_shape_warnings(cameras: Sequence[Camera], pvr: Sequence[float]) -> lis
                         f"{', '.join(f'{v:g}' for v in pvr)}), which throws that away; use equal PVRs, e.g. "
                         f"--pvr {even} (the chapter's dual-camera cases use 3,3,3)"]
     return []
+
+
+def _whole_numbers(value: Any) -> Any:
+    """``value`` with every float that is a whole number made an int (strict int keys accept
+    ``4e3``; strict float keys accept ints)."""
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, dict):
+        return {k: _whole_numbers(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_whole_numbers(v) for v in value]
+    return value
+
+
+def _plain(value: Any) -> Any:
+    """JSON form of what json cannot write: numpy scalars and arrays as numbers and lists."""
+    if isinstance(value, np.generic | np.ndarray):
+        return _whole_numbers(value.tolist())
+    return str(value)  # e.g. a TOML date, refused as a string where a number is due
 
 
 #: The tables of a rig file and the model of each, to suggest the key a misspelt one meant.

@@ -216,7 +216,8 @@ class RunStore(RigStore):
         root = cls._open_root(path, mode)
         missing = cls._missing(root)
         if missing:
-            raise RunStoreError(f"{path} is damaged: {missing} is missing, so it cannot be read as a run; copy what "
+            raise RunStoreError(f"{path} is incomplete: {missing} is missing (a store still being created, or a "
+                                "damaged one), so it cannot be read as a run; if it is not being created, copy what "
                                 "you need from it with zarr, or record it again")
         return cls(root, path)
 
@@ -387,7 +388,8 @@ class RunStore(RigStore):
 
     @property
     def has_volumes(self) -> bool:
-        return "volumes" in self.group
+        # a group without its array is a reconstruction killed as it began: none, to make again
+        return "volumes/data" in self.group
 
     @property
     def volumes_id(self) -> str | None:
@@ -399,9 +401,6 @@ class RunStore(RigStore):
         """The (pairs, 2, z, y, x) float32 ``volumes/data`` array."""
         if not self.has_volumes:
             raise RunStoreError(f"{self.path} has no reconstructed volumes; run 'lfpiv reconstruct {self.path}' first")
-        if "volumes/data" not in self.group:  # the group of a reconstruction cut off as it began
-            raise RunStoreError(f"{self.path} has an incomplete volumes/ group; run 'lfpiv reconstruct {self.path}' "
-                                "again")
         return self.group["volumes/data"]
 
     def volume_grid(self) -> VolumeGrid:

@@ -31,7 +31,7 @@ def pair_range(text: str) -> slice:
     """argparse type of ``--pairs``: '3' -> pair 3; '0:10' -> pairs 0..9; '5:' -> 5 to the end;
     ':5' -> 0..4 (Python slice rules, no negative indices)."""
     m = re.fullmatch(r"\s*(\d*)\s*(:?)\s*(\d*)\s*", text)
-    if not m or (not m.group(2) and not m.group(1)):
+    if not m or (not m.group(2) and (not m.group(1) or m.group(3))):  # "2 0" is no range
         raise argparse.ArgumentTypeError(f"'{text}' is not a pair or a range START:STOP, e.g. 0:10")
     start = int(m.group(1)) if m.group(1) else 0
     if not m.group(2):

@@ -95,11 +95,11 @@ def run_mla(args: argparse.Namespace) -> int:
                                  dead_lenslets=args.sim_dead)
     except ValueError as exc:
         raise UsageError(f"--sim-*: {exc}") from None
-    if rig.hardware == "sim":
-        mpx = max(c.sensor_px[0] * c.sensor_px[1] for c in rig.camera) / 1e6
+    mpx = max(c.sensor_px[0] * c.sensor_px[1] for c in rig.camera) / 1e6
+    if rig.hardware == "sim" and mpx > 8:
         # about 9 s per megapixel on a 2-core CPU (258 s for one 6600 x 4400 camera)
-        slow = f" (a {mpx:.0f} MP camera takes minutes on a CPU)" if mpx > 8 else ""
-        print(f"lfpiv: simulated lab: rendering each camera's white image{slow} ...", file=sys.stderr)
+        print(f"lfpiv: simulated lab: rendering each camera's white image (a {mpx:.0f} MP camera takes minutes on "
+              "a CPU) ...", file=sys.stderr)
     results = calibrate_mla(rig, args.out, frames=args.frames, exposure_us=args.exposure_us, white=white)
     for res in results:
         g = res.grid

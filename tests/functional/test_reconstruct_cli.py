@@ -112,6 +112,7 @@ BAD = [
     (lambda t, r: ["reconstruct", r, "--pairs", "1:0"], "selects no pair of this run (it has pairs 0 to 1)"),
     (lambda t, r: ["reconstruct", r, "--pairs", "-1"], "--pairs: '-1' is not a pair or a range START:STOP"),
     (lambda t, r: ["evaluate", r, "--pairs", "one"], "--pairs: 'one' is not a pair or a range START:STOP"),
+    (lambda t, r: ["reconstruct", r, "--pairs", "2 0"], "--pairs: '2 0' is not a pair or a range START:STOP"),
     (lambda t, r: ["reconstruct", r, "--relaxation", "3"], "diverge; use at most 2, or the sequential form"),
     (lambda t, r: ["reconstruct", r, "--cameras", "camX"], "no camera 'camX' in this run"),
     (lambda t, r: ["reconstruct", r, "--weight-storage", "on-the-fly"], "DRT-MART's weights are always stored"),

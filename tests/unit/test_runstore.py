@@ -101,15 +101,21 @@ def test_a_damaged_store_is_named_not_a_key_error(tiny_rig, tmp_path, damage, mi
     path = tmp_path / "run.zarr"
     RunStore.create(path, tiny_rig, 1, timing={}, software_version="x")
     damage(zarr.open_group(str(path), mode="r+"))
-    with pytest.raises(RunStoreError, match=f"^{path} is damaged: {missing} is missing, so it cannot be read"):
+    with pytest.raises(RunStoreError, match=f"^{path} is incomplete: {missing} is missing .*cannot be read"):
         RunStore.open(path)
 
 
-def test_an_incomplete_volumes_group_is_named(tiny_rig, tmp_path):
+def test_a_half_made_volumes_group_counts_as_none_and_is_made_again(tiny_rig, tmp_path):
+    from lfcore.volume import VolumeGrid
+
     s = RunStore.create(tmp_path / "v.zarr", tiny_rig, 1, timing={}, software_version="x")
     s.group.create_group("volumes")  # a reconstruction killed between the group and its array
-    with pytest.raises(RunStoreError, match="incomplete volumes/ group; run 'lfpiv reconstruct .*' again"):
-        RunStore.open(tmp_path / "v.zarr").volumes()
+    r = RunStore.open(tmp_path / "v.zarr", mode="r+")
+    assert not r.has_volumes and r.reconstructed_pairs() == []
+    with pytest.raises(RunStoreError, match="no reconstructed volumes; run 'lfpiv reconstruct"):
+        r.volumes()
+    r.create_volumes(VolumeGrid.from_rig(tiny_rig), method="drt-mart", settings={})
+    assert RunStore.open(tmp_path / "v.zarr").volumes().shape[:2] == (1, 2)
 
 
 def test_volumes_round_trip(tiny_rig, tmp_path):
