@@ -147,8 +147,8 @@ class Camera(_Strict):
     @property
     def lenslets_across(self) -> tuple[float, float]:
         """Lenslets across the sensor (columns, rows): sensor_px x pixel_pitch_um / mla_pitch_um."""
-        return (self.sensor_px[0] * self.pixel_pitch_um / self.mla_pitch_um,
-                self.sensor_px[1] * self.pixel_pitch_um / self.mla_pitch_um)
+        cols, rows = self.sensor_px
+        return cols / self.pixels_per_lenslet, rows / self.pixels_per_lenslet
 
     @property
     def image_distance_mm(self) -> float:

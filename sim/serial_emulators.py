@@ -55,6 +55,8 @@ import time
 import tty
 from collections.abc import Callable
 
+from acquisition.stage import checksum
+
 __all__ = ["ChannelState", "PulseGeneratorEmulator", "StageEmulator", "TickListener"]
 
 log = logging.getLogger(__name__)
@@ -564,11 +566,6 @@ _FLAG_ORDER = ("FD", "FQ", "FS", "FT", "FB", "FP", "FE", "WH", "WL", "WP", "WV",
 _CLEARABLE = {"FQ", "FS", "FT", "FB", "FP", "FE", "WL", "NI"}
 
 
-def _lrc(body: str) -> str:
-    """Zaber message checksum: two's complement of the byte sum of ``body``, two hex digits."""
-    return f"{(256 - sum(body.encode('ascii')) % 256) % 256:02X}"
-
-
 @dataclasses.dataclass
 class _Motion:
     start: int          # true position, steps
@@ -732,7 +729,7 @@ class StageEmulator(_PtyEmulator):
             return None  # not a command: Zaber devices ignore it
         checked = re.fullmatch(r"/(.*):([0-9A-Fa-f]{2})", line)
         if checked:
-            if _lrc(checked.group(1)) != checked.group(2).upper():
+            if checksum(checked.group(1)) != checked.group(2).upper():
                 return None  # corrupted on the way in: dropped
             line = "/" + checked.group(1)
         parts = line[1:].split()
@@ -760,7 +757,7 @@ class StageEmulator(_PtyEmulator):
         body = reply[1:]
         if not (self.checksums or corrupt):
             return reply
-        cs = _lrc(body)
+        cs = checksum(body)
         if corrupt:
             self._count_down("bad_checksum")
             # One character flips on the line: the first digit of the data if there is one
