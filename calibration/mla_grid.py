@@ -31,6 +31,8 @@ covers ``c <= column < c + 1``.
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -48,6 +50,10 @@ _BASIS_ANGLE = {"hex": 60.0, "square": 90.0}
 #: Gaussian smoothing (pixels) before centring: sharp disc edges make the spline interpolant
 #: depend on the sub-pixel phase, which biases the centres toward the pixel grid.
 SMOOTH_PX = 1.0
+
+#: Side of the central crop the coarse pitch is measured on, pixels (micro-images up to a few
+#: hundred pixels across still show their first autocorrelation peak).
+_PITCH_CROP_PX = 2048
 
 
 class GridError(ValueError):
@@ -158,19 +164,23 @@ def _quadratic_surface(img: np.ndarray) -> np.ndarray:
     rows, cols = img.shape
     step = max(1, min(rows, cols) // 64)
     r, c = np.mgrid[0:rows:step, 0:cols:step]
-    v = img[::step, ::step]
-
-    def design(rr: np.ndarray, cc: np.ndarray) -> np.ndarray:
-        y, x = rr / rows - 0.5, cc / cols - 0.5
-        return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=-1)
-
-    coef, *_ = np.linalg.lstsq(design(r, c).reshape(-1, 6), v.reshape(-1), rcond=None)
-    rr, cc = np.mgrid[0:rows, 0:cols]
-    return design(rr.astype(float), cc.astype(float)) @ coef
+    y, x = r / rows - 0.5, c / cols - 0.5
+    design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=-1).reshape(-1, 6)
+    c0, cx, cy, cxx, cxy, cyy = np.linalg.lstsq(design, img[::step, ::step].reshape(-1), rcond=None)[0]
+    y = (np.arange(rows) / rows - 0.5)[:, None]
+    x = (np.arange(cols) / cols - 0.5)[None, :]
+    return c0 + cx * x + cy * y + cxx * x * x + cxy * x * y + cyy * y * y
 
 
 def _coarse_pitch(img: np.ndarray) -> float:
-    """Length of the shortest lattice vector, from the first autocorrelation peak."""
+    """Length of the shortest lattice vector, from the first autocorrelation peak.
+
+    Measured on a central crop of at most ``_PITCH_CROP_PX`` square: the lattice is the same
+    everywhere and a 29 MP autocorrelation would cost seconds and gigabytes for nothing.
+    """
+    rows, cols = img.shape
+    r0, c0 = max(0, (rows - _PITCH_CROP_PX) // 2), max(0, (cols - _PITCH_CROP_PX) // 2)
+    img = img[r0:r0 + _PITCH_CROP_PX, c0:c0 + _PITCH_CROP_PX]
     surface = np.maximum(_quadratic_surface(img), 1e-6 * max(img.max(), 1.0))
     f = img / surface - 1.0
     f -= f.mean()
@@ -232,7 +242,7 @@ def _cell_normalised(img: np.ndarray, flat: np.ndarray, centres: np.ndarray, pit
     for r0 in range(0, rows, step):
         pr, pc = np.mgrid[r0:min(rows, r0 + step), 0:cols]
         xy = np.stack([pc.ravel() + 0.5, pr.ravel() + 0.5], axis=-1)
-        dist, idx = tree.query(xy, distance_upper_bound=0.75 * pitch)
+        dist, idx = tree.query(xy, distance_upper_bound=0.75 * pitch, workers=-1)
         ok = np.isfinite(dist)
         block = out[r0:r0 + pr.shape[0]].reshape(-1)
         block[ok] = img[r0:r0 + pr.shape[0]].reshape(-1)[ok] / level[idx[ok]]
@@ -248,37 +258,64 @@ def _candidates(flat: np.ndarray, pitch: float) -> np.ndarray:
     return np.stack([c + 0.5, r + 0.5], axis=-1).astype(np.float64)
 
 
-def _symmetric_centres(flat: np.ndarray, start: np.ndarray, pitch: float, iterations: int = 6,
-                       smooth_px: float | None = None) -> np.ndarray:
-    """Gauss-Newton point-symmetry centring of every micro-image; NaN where it fails."""
-    s = ndimage.gaussian_filter(flat, SMOOTH_PX if smooth_px is None else smooth_px)
-    coeffs = ndimage.spline_filter(s, order=3)
-    gr, gc = np.gradient(s)
+def _symmetric_centres(flat: np.ndarray, start: np.ndarray, pitch: float, iterations: int = 8,
+                       smooth_px: float | None = None, tol_px: float = 1e-3, block: int | None = None) -> np.ndarray:
+    """Gauss-Newton point-symmetry centring of every micro-image; NaN where it fails.
+
+    Micro-images are solved in blocks on a thread pool (scipy's interpolation releases the
+    GIL), each one only until its step falls below ``tol_px``, so memory stays bounded and a
+    29 MP sensor's 170 000 micro-images take seconds per core rather than minutes.
+    """
+    sigma = SMOOTH_PX if smooth_px is None else smooth_px
+    # The smoothed image and its exact derivatives (derivative-of-Gaussian filters), all
+    # sampled through cubic splines: an exact Jacobian makes Gauss-Newton converge
+    # quadratically (3 steps reach 1e-6 px; linearly interpolated finite differences took 8
+    # steps to reach 1e-5 px).
+    coeffs, gr, gc = (ndimage.spline_filter(ndimage.gaussian_filter(flat, sigma, order=o), order=3)
+                      for o in ((0, 0), (1, 0), (0, 1)))
     radius = 0.6 * pitch
-    step = 0.5
+    # About one offset per pixel of the disc: the image is already smoothed over a pixel, and
+    # on 14 px micro-images a 1 px step centres as accurately as a 0.5 px one (0.012 px RMS
+    # against the truth either way) at half the cost; small micro-images get a finer step.
+    step = min(1.0, max(0.5, pitch / 14.0))
     g = np.arange(-radius, radius + step / 2, step)
     dc, dr = np.meshgrid(g, g, indexing="xy")
     keep = (np.hypot(dc, dr) <= radius) & ((dr > 0) | ((dr == 0) & (dc > 0)))  # one of each +-d pair
     d = np.stack([dc[keep], dr[keep]], axis=-1)
     w = np.exp(-0.5 * (np.hypot(d[:, 0], d[:, 1]) / (0.4 * pitch)) ** 2)
-    e = start.copy()
 
-    def sample(a: np.ndarray, pos: np.ndarray, spline: bool) -> np.ndarray:
+    def sample(a: np.ndarray, pos: np.ndarray) -> np.ndarray:
         # array index = continuous coordinate - 0.5 (index i is the centre of pixel i)
         coords = [pos[..., 1].ravel() - 0.5, pos[..., 0].ravel() - 0.5]
-        out = ndimage.map_coordinates(a, coords, order=3 if spline else 1, prefilter=False, mode="nearest")
+        out = ndimage.map_coordinates(a, coords, order=3, prefilter=False, mode="nearest")
         return out.reshape(pos.shape[:-1])
 
-    for _ in range(iterations):
-        plus, minus = e[:, None, :] + d[None], e[:, None, :] - d[None]
-        res = sample(coeffs, plus, True) - sample(coeffs, minus, True)
-        jac = np.stack([sample(gc, plus, False) - sample(gc, minus, False),
-                        sample(gr, plus, False) - sample(gr, minus, False)], axis=-1)
-        jw = jac * w[None, :, None]
-        h = np.einsum("nmi,nmj->nij", jw, jac) + 1e-9 * np.eye(2)
-        rhs = -np.einsum("nmi,nm->ni", jw, res)
-        delta = np.linalg.solve(h, rhs[..., None])[..., 0]
-        e += np.clip(delta, -0.25 * pitch, 0.25 * pitch)
+    def solve(block: np.ndarray) -> np.ndarray:
+        e = block.copy()
+        active = np.arange(len(e))
+        for _ in range(iterations):
+            if not active.size:
+                break
+            plus, minus = e[active, None, :] + d[None], e[active, None, :] - d[None]
+            res = sample(coeffs, plus) - sample(coeffs, minus)
+            jac = np.stack([sample(gc, plus) - sample(gc, minus), sample(gr, plus) - sample(gr, minus)], axis=-1)
+            jw = jac * w[None, :, None]
+            h = np.einsum("nmi,nmj->nij", jw, jac) + 1e-9 * np.eye(2)
+            rhs = -np.einsum("nmi,nm->ni", jw, res)
+            delta = np.clip(np.linalg.solve(h, rhs[..., None])[..., 0], -0.25 * pitch, 0.25 * pitch)
+            e[active] += delta
+            active = active[np.hypot(delta[:, 0], delta[:, 1]) > tol_px]
+        return e
+
+    per_block = block or max(64, 1_000_000 // max(1, len(d)))  # about 16 MB per work array
+    blocks = [start[i:i + per_block] for i in range(0, len(start), per_block)]
+    workers = max(1, min(os.cpu_count() or 1, len(blocks)))
+    if workers == 1:
+        parts = [solve(b) for b in blocks]
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            parts = list(pool.map(solve, blocks))
+    e = np.concatenate(parts) if parts else start.copy()
     moved = np.hypot(*(e - start).T) > 0.5 * pitch
     e[moved] = np.nan
     return e

@@ -84,8 +84,16 @@ def nearest_lenslet(cam: Camera, xy_mm: np.ndarray) -> np.ndarray:
     return _from_lattice(cam, best)
 
 
-def lenslet_centers(cam: Camera) -> np.ndarray:
+def lenslet_centers(cam: Camera, margin_mm: float = 0.0) -> np.ndarray:
     """Centres of every lenslet whose centre lies on the sensor.
+
+    Parameters
+    ----------
+    cam
+        The camera.
+    margin_mm
+        Also include lenslets whose centre lies up to this far outside the sensor edges, mm
+        (0: only those on the sensor, the denominator of PPM).
 
     Returns
     -------
@@ -94,6 +102,7 @@ def lenslet_centers(cam: Camera) -> np.ndarray:
     """
     p = cam.mla_pitch_mm
     w, h_s = cam.sensor_size_mm
+    w, h_s = w + 2.0 * margin_mm, h_s + 2.0 * margin_mm
     reach = 0.5 * math.hypot(w, h_s) + math.hypot(*cam.mla_offset_um) * 1e-3 + p
     row = p * (HEX_ROW if cam.mla_grid == "hex" else 1.0)
     nj, ni = int(reach / row) + 1, int(reach / p) + 1

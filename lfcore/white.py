@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from lfcore.mla import HEX_ROW, lenslet_centers, nearest_lenslet, pixel_to_sensor, sensor_to_pixel
+from lfcore.mla import lenslet_centers, sensor_to_pixel
 from lfcore.rig import Camera, RenderConfig
 
 __all__ = ["WhiteImageConfig", "micro_image_centres", "micro_image_scale", "white_image", "white_irradiance"]
@@ -116,21 +116,14 @@ def _keys(camera: Camera, centres_mm: np.ndarray) -> np.ndarray:
     return q[..., 0] * (1 << 32) + q[..., 1]
 
 
-def _neighbour_vectors(camera: Camera) -> np.ndarray:
-    p = camera.mla_pitch_mm
-    if camera.mla_grid == "hex":
-        uv = [(p, 0), (-p, 0), (p / 2, p * HEX_ROW), (-p / 2, p * HEX_ROW), (p / 2, -p * HEX_ROW),
-              (-p / 2, -p * HEX_ROW)]
-    else:
-        uv = [(i * p, j * p) for i in (-1, 0, 1) for j in (-1, 0, 1) if (i, j) != (0, 0)]
-    t = math.radians(camera.mla_rotation_deg)
-    rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
-    return np.asarray(uv, dtype=np.float64) @ rot.T
-
-
 def white_irradiance(camera: Camera, config: WhiteImageConfig = WhiteImageConfig(),
                      blur_sigma_px: float = 0.0) -> np.ndarray:
     """Noise-free white image: every micro-image a pupil disc, integrated over each pixel.
+
+    Each lenslet's disc is splatted onto the pixels of its own bounding box (coverage
+    integrated on ``config.supersample`` squared sub-samples per pixel, with an
+    anti-aliasing ramp one sub-sample wide at the rim), weighted by the lenslet's falloff, and
+    the discs are summed, so overlapping discs of an over-filled MLA add up.
 
     Parameters
     ----------
@@ -147,33 +140,41 @@ def white_irradiance(camera: Camera, config: WhiteImageConfig = WhiteImageConfig
         (rows, columns) float64 counts, no background or noise.
     """
     k = micro_image_scale(camera)
-    r_disc = camera.mla_focal_length_mm * 0.5 * camera.aperture_mm / camera.image_distance_mm
-    nc, nr = camera.sensor_px
     ss = config.supersample
-    h = camera.pixel_mm / ss  # width of the anti-aliasing ramp at the disc edge, mm
-    # Discs reach into the neighbouring cells when wider than the cell's inscribed circle.
-    neighbours = _neighbour_vectors(camera) if r_disc + h > 0.5 * camera.mla_pitch_mm * k else np.zeros((0, 2))
+    r_px = camera.mla_focal_length_mm * 0.5 * camera.aperture_mm / camera.image_distance_mm / camera.pixel_mm
+    h_px = 1.0 / ss  # width of the anti-aliasing ramp at the disc rim, pixels
+    reach = r_px + 0.5 * h_px  # coverage is zero beyond this distance from a disc centre
+    nc, nr = camera.sensor_px
+    # Lenslets whose disc (centre k c on the sensor) can reach a pixel: c within reach of the
+    # sensor suffices, since k >= 1.
+    lenslets = lenslet_centers(camera, margin_mm=reach * camera.pixel_mm)
+    weight = _falloff(camera, config, np.hypot(lenslets[:, 0], lenslets[:, 1]))
     dead = _dead_keys(camera, config)
-    sub = (np.arange(ss) + 0.5) / ss
-    out = np.zeros((nr, nc))
-    chunk = max(1, 2_000_000 // (nc * ss * ss))
-    for r0 in range(0, nr, chunk):
-        rows = np.arange(r0, min(nr, r0 + chunk))
-        rr = (rows[:, None] + sub[None, :]).reshape(-1)
-        cc = (np.arange(nc)[:, None] + sub[None, :]).reshape(-1)
-        grid = np.stack(np.meshgrid(cc, rr, indexing="xy"), axis=-1)  # (len(rr), len(cc), 2)
-        xy = pixel_to_sensor(camera, grid)
-        own = nearest_lenslet(camera, xy / k)  # lenslet whose micro-image lattice cell holds xy
-        acc = np.zeros(xy.shape[:-1])
-        for c in [own, *(own + v for v in neighbours)]:
-            d = np.hypot(*(xy - k * c).transpose(2, 0, 1))
-            cover = np.clip((r_disc - d) / h + 0.5, 0.0, 1.0)
-            w = _falloff(camera, config, np.hypot(c[..., 0], c[..., 1]))
-            if len(dead):
-                w = np.where(np.isin(_keys(camera, c), dead), 0.0, w)
-            acc += cover * w
-        out[rows] = acc.reshape(len(rows), ss, nc, ss).mean(axis=(1, 3))
-    out *= config.level_counts
+    if len(dead):
+        weight[np.isin(_keys(camera, lenslets), dead)] = 0.0
+    centres = sensor_to_pixel(camera, k * lenslets)
+    lit = (weight > 0) & np.all(centres > -reach, axis=1) & (centres[:, 0] < nc + reach) & (centres[:, 1] < nr + reach)
+    centres, weight = centres[lit], weight[lit]
+
+    box = int(math.ceil(2.0 * reach)) + 2  # pixels per side of every disc's bounding box
+    sub = (np.arange(box * ss) + 0.5) / ss  # sub-sample positions within the box, pixels
+    out = np.zeros(nr * nc)
+    chunk = max(1, 4_000_000 // (box * ss) ** 2)
+    for i in range(0, len(centres), chunk):
+        c, w = centres[i:i + chunk], weight[i:i + chunk]
+        origin = np.floor(c - reach).astype(np.int64)  # (column, row) of each box's first pixel
+        dx2 = (origin[:, 0, None] + sub[None, :] - c[:, 0, None]) ** 2  # (n, box * ss)
+        dy2 = (origin[:, 1, None] + sub[None, :] - c[:, 1, None]) ** 2
+        d = np.sqrt(dy2[:, :, None] + dx2[:, None, :])  # (n, rows, columns) of sub-samples
+        cover = np.clip((r_px - d) / h_px + 0.5, 0.0, 1.0)
+        px = cover.reshape(len(c), box, ss, box, ss).mean(axis=(2, 4)) * w[:, None, None]
+        rows = origin[:, 1, None] + np.arange(box)[None, :]  # (n, box)
+        cols = origin[:, 0, None] + np.arange(box)[None, :]
+        ok = ((rows >= 0) & (rows < nr))[:, :, None] & ((cols >= 0) & (cols < nc))[:, None, :]
+        flat = (rows[:, :, None] * nc + cols[:, None, :])[ok]
+        lo = int(flat.min()) if flat.size else 0
+        out[lo:lo + (int(flat.max()) - lo + 1 if flat.size else 0)] += np.bincount(flat - lo, weights=px[ok])
+    out = out.reshape(nr, nc) * config.level_counts
     if blur_sigma_px > 0:
         out = ndimage.gaussian_filter(out, blur_sigma_px, mode="nearest")
     return out

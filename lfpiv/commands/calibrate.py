@@ -96,11 +96,11 @@ def run_mla(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(f"--sim-*: {exc}") from None
     mpx = max(c.sensor_px[0] * c.sensor_px[1] for c in rig.camera) / 1e6
-    if rig.hardware == "sim" and mpx > 8:
-        # about 9 s per megapixel on a 2-core CPU (258 s for one 6600 x 4400 camera)
-        print(f"lfpiv: simulated lab: rendering each camera's white image (a {mpx:.0f} MP camera takes minutes on "
-              "a CPU) ...", file=sys.stderr)
-    results = calibrate_mla(rig, args.out, frames=args.frames, exposure_us=args.exposure_us, white=white)
+    large = mpx > 8  # say what a long silence is: about 3 s per megapixel on a 2-core CPU
+    if rig.hardware == "sim" and large:
+        print("lfpiv: simulated lab: rendering each camera's white image ...", file=sys.stderr)
+    results = calibrate_mla(rig, args.out, frames=args.frames, exposure_us=args.exposure_us, white=white,
+                            status=(lambda line: print(f"lfpiv: {line}", file=sys.stderr)) if large else None)
     for res in results:
         g = res.grid
         ox, oy = res.mla["mla_offset_um"]

@@ -109,3 +109,45 @@ def test_bad_white_images_are_refused():
         check_white(np.full((64, 64), 4095), 4095)
     with pytest.raises(GridError, match="no periodic"):
         detect_grid(rng.normal(20000, 150, (96, 96)))
+
+
+@pytest.mark.parametrize(("grid", "f_number"), [("hex", 2.0), ("square", 1.6)])
+def test_splatted_white_image_equals_every_disc_summed_at_every_subsample(tiny_rig, grid, f_number):
+    # The known truth, by brute force: at every sub-sample, the ramped coverage of EVERY
+    # lenslet's disc (on or off the sensor), weighted by its cos^4 falloff. f/1.6 over-fills the
+    # lenslets, so neighbouring discs overlap and edge discs of off-sensor lenslets show.
+    cam = _camera(tiny_rig, grid, f_number=f_number, sensor_px=[40, 30])
+    cfg = WhiteImageConfig(vignetting=0.4, supersample=3, level_counts=1.0)
+    k = micro_image_scale(cam)
+    r_px = cam.mla_focal_length_mm * 0.5 * cam.aperture_mm / cam.image_distance_mm / cam.pixel_mm
+    lenslets = lenslet_centers(cam, margin_mm=5 * cam.mla_pitch_mm)
+    centres = sensor_to_pixel(cam, k * lenslets)
+    corner = 0.5 * np.hypot(*cam.sensor_size_mm)
+    length = corner / np.sqrt((1 - cfg.vignetting) ** -0.5 - 1)
+    weight = 1.0 / (1.0 + np.sum(lenslets**2, axis=1) / length**2) ** 2
+    nc, nr = cam.sensor_px
+    sub = (np.arange(3) + 0.5) / 3
+    x = (np.arange(nc)[:, None] + sub).ravel()
+    y = (np.arange(nr)[:, None] + sub).ravel()
+    d = np.hypot(x[None, None, :] - centres[:, 0, None, None], y[None, :, None] - centres[:, 1, None, None])
+    cover = np.clip((r_px - d) * 3 + 0.5, 0.0, 1.0)  # (lenslet, sub-row, sub-column)
+    truth = np.einsum("l,lrc->rc", weight, cover).reshape(nr, 3, nc, 3).mean(axis=(1, 3))
+    img = white_irradiance(cam, cfg)
+    assert np.allclose(img, truth, rtol=0, atol=1e-9)
+    if f_number < 2:
+        assert img.max() > 1.2  # overlapping discs add up
+
+
+def test_grid_centring_in_parallel_blocks_equals_one_block(tiny_rig):
+    from calibration.mla_grid import _flat_field, _symmetric_centres
+
+    cam = _camera(tiny_rig, "hex")
+    img = white_image(cam, tiny_rig.render, WhiteImageConfig(vignetting=0.3, seed=2)).astype(np.float64)
+    start = micro_image_centres(cam)
+    start = start[np.all((start > 8) & (start < np.array(cam.sensor_px) - 8), axis=1)] + 0.3
+    flat = _flat_field(img, cam.pixels_per_lenslet)
+    one = _symmetric_centres(flat, start, cam.pixels_per_lenslet, block=len(start))
+    many = _symmetric_centres(flat, start, cam.pixels_per_lenslet, block=5)  # several blocks, a thread pool
+    assert len(start) > 20 and np.array_equal(one, many)
+    d, _ = cKDTree(micro_image_centres(cam)).query(one)
+    assert np.sqrt(np.mean(d**2)) < 0.05  # and they moved 0.42 px onto the true centres
