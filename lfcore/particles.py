@@ -25,8 +25,8 @@ def seed_particles(volume: VolumeConfig, n: int, rng: np.random.Generator) -> np
     numpy.ndarray
         (n, 3) world positions in mm, (x, y, z).
     """
-    half = 0.5 * np.asarray(volume.size_mm)
-    return np.asarray(volume.centre_mm) + rng.uniform(-half, half, size=(n, 3))
+    lo, hi = volume.bounds_mm
+    return rng.uniform(lo, hi, size=(n, 3))
 
 
 def sheet_weights(points_mm: np.ndarray, laser: LaserConfig, volume: VolumeConfig) -> np.ndarray:

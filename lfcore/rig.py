@@ -283,6 +283,12 @@ class VolumeConfig(_Strict):
     size_mm: PositiveVec3
     pvr: PositiveVec3 = (2.0, 2.0, 10.0)
 
+    @property
+    def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi): the box's lowest and highest corners, (3,) world (x, y, z) mm each."""
+        half = 0.5 * np.asarray(self.size_mm)
+        return np.asarray(self.centre_mm) - half, np.asarray(self.centre_mm) + half
+
 
 class LaserConfig(_Strict):
     """The double-pulsed laser and the light sheet it forms."""

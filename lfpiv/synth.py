@@ -87,8 +87,7 @@ def points_outside(rig: Rig, points: np.ndarray) -> int:
         A point no camera can image (inside a camera's focal length).
     """
     _check_in_front(rig, points)
-    lo = np.asarray(rig.volume.centre_mm) - 0.5 * np.asarray(rig.volume.size_mm)
-    hi = lo + np.asarray(rig.volume.size_mm)
+    lo, hi = rig.volume.bounds_mm
     return int(np.count_nonzero(np.any((points < lo) | (points > hi), axis=1)))
 
 
