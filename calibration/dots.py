@@ -10,10 +10,12 @@ dot counts (not only the central sub-aperture's), so Monte-Carlo and shot noise 
 
 1. Lenslet sums over cells of radius 0.6 pitch about the fitted lattice nodes of the white image
    (:class:`calibration.mla_grid.MlaGrid`); background: the frame's median pixel.
-2. Lenslets brighter than ``threshold_sigma`` noise sigmas; each climbs the sums (smoothed over
-   its lattice neighbours, in lattice index space: six on a hexagonal grid, eight on a square
-   one) to a local maximum, so the faint overlap of two defocused dots is split at its valley;
-   maxima closer than ``min_separation`` pitches (noise on a flat defocused disc) are merged.
+2. Lenslets brighter than ``threshold_sigma`` noise sigmas are grouped from the brightest down
+   (sums smoothed over their lattice neighbours, in lattice index space: six on a hexagonal
+   grid, eight on a square one), and two groups that meet stay two dots only where a valley
+   deeper than ``min_prominence`` of the fainter peak separates them, so the faint overlap of
+   two defocused dots is split while the noise on a dot many lenslets wide is not; maxima
+   closer than ``min_separation`` pitches are also merged.
 3. Each dot's flux-weighted centroid over its lenslets, also with each lenslet's light split
    between the halves of the main-lens aperture (each pixel of a micro-image sees one aperture
    point): the views through opposite halves disagree in proportion to the dot's defocus. Dots
@@ -33,7 +35,8 @@ from scipy.spatial import cKDTree
 
 from calibration.mla_grid import MlaGrid
 
-__all__ = ["VIEW_PUPILS", "DotError", "Dots", "detect_dots", "lenslet_sums", "match_dots", "view_pupils_mm"]
+__all__ = ["VIEW_PUPILS", "DotError", "Dots", "LensletCells", "detect_dots", "lenslet_cells", "lenslet_sums",
+           "match_dots", "view_pupils_mm"]
 
 #: The views a dot is centred in, as the mean aperture point of the light each takes, in units
 #: of 4 R / (3 pi) (the centroid of a half disc of radius R): all the light (the chief ray),
@@ -83,7 +86,66 @@ class Dots:
         return self.views_px[:, 0]
 
 
-def lenslet_sums(frame: np.ndarray, grid: MlaGrid) -> tuple[np.ndarray, float]:
+@dataclass(frozen=True)
+class LensletCells:
+    """Which lenslet each pixel belongs to, and where in its micro-image: fixed by the grid.
+
+    Computed once per camera (:func:`lenslet_cells`) and reused for every frame, since finding
+    the nearest lattice node of 29 million pixels costs seconds.
+
+    Attributes
+    ----------
+    image_shape : tuple of int
+        (rows, columns) of the frames.
+    pixels : numpy.ndarray
+        (m,) int64 flat indices of the pixels within 0.6 pitch of a lattice node.
+    lenslet : numpy.ndarray
+        (m,) int32 index of that node, in the order of ``grid.indices``.
+    wx, wy : numpy.ndarray
+        (m,) float32 fraction of each pixel on the +x and +y side of the main-lens aperture.
+    n_lenslets : int
+        Number of lattice nodes.
+    npix_median : float
+        Median number of pixels per cell.
+    """
+
+    image_shape: tuple[int, int]
+    pixels: np.ndarray
+    lenslet: np.ndarray
+    wx: np.ndarray
+    wy: np.ndarray
+    n_lenslets: int
+    npix_median: float
+
+
+def lenslet_cells(grid: MlaGrid) -> LensletCells:
+    """The cells (radius 0.6 pitch about each fitted lattice node of ``grid``) of every pixel."""
+    rows, cols = grid.image_shape
+    nodes = grid.lattice_px()
+    tree = cKDTree(nodes)
+    pixels, lenslet, wx, wy = [], [], [], []
+    step = max(1, 4_000_000 // cols)
+    for r0 in range(0, rows, step):
+        r, c = np.mgrid[r0:min(rows, r0 + step), 0:cols]
+        xy = np.stack([c.ravel() + 0.5, r.ravel() + 0.5], axis=-1)
+        dist, idx = tree.query(xy, distance_upper_bound=0.6 * grid.pitch_px, workers=-1)
+        ok = np.isfinite(dist)
+        # Pupil halves: a pixel delta (column, row) from its micro-image centre sees the
+        # aperture point A = -(si / f_ml) delta_sensor, so A_x > 0 for columns right of the
+        # centre and A_y > 0 above it (row = Nr/2 + y / pixel); a pixel on the dividing line is
+        # shared by its fraction on each side.
+        d = xy[ok] - nodes[idx[ok]]
+        pixels.append(r0 * cols + np.flatnonzero(ok))
+        lenslet.append(idx[ok].astype(np.int32))
+        wx.append(np.clip(d[:, 0] + 0.5, 0.0, 1.0).astype(np.float32))
+        wy.append(np.clip(0.5 - d[:, 1], 0.0, 1.0).astype(np.float32))
+    lens = np.concatenate(lenslet)
+    npix = np.bincount(lens, minlength=len(nodes))
+    return LensletCells((rows, cols), np.concatenate(pixels), lens, np.concatenate(wx), np.concatenate(wy),
+                        len(nodes), float(np.median(npix)))
+
+
+def lenslet_sums(frame: np.ndarray, grid: MlaGrid, cells: LensletCells | None = None) -> tuple[np.ndarray, float]:
     """Background-subtracted light of every lenslet of ``grid`` in ``frame``.
 
     Parameters
@@ -92,6 +154,8 @@ def lenslet_sums(frame: np.ndarray, grid: MlaGrid) -> tuple[np.ndarray, float]:
         (rows, columns) raw image, counts.
     grid
         The microlens grid from the white image.
+    cells
+        :func:`lenslet_cells` of ``grid``, when several frames are summed (default: computed).
 
     Returns
     -------
@@ -107,29 +171,19 @@ def lenslet_sums(frame: np.ndarray, grid: MlaGrid) -> tuple[np.ndarray, float]:
     if (rows, cols) != tuple(grid.image_shape):
         raise DotError(f"frame of {cols} x {rows} pixels does not match the white image's "
                        f"{grid.image_shape[1]} x {grid.image_shape[0]}")
+    cells = lenslet_cells(grid) if cells is None else cells
     bg = float(np.median(img))
     low = img[img <= bg]
     sig_px = 1.4826 * float(np.median(bg - low)) if len(low) else 1.0  # MAD of the lower half
-    nodes = grid.lattice_px()
-    r, c = np.mgrid[0:rows, 0:cols]
-    xy = np.stack([c.ravel() + 0.5, r.ravel() + 0.5], axis=-1)
-    dist, idx = cKDTree(nodes).query(xy, distance_upper_bound=0.6 * grid.pitch_px)
-    ok = np.isfinite(dist)
-    v = img.ravel()[ok] - bg
-    # Pupil halves: a pixel delta (column, row) from its micro-image centre sees the aperture
-    # point A = -(si / f_ml) delta_sensor, so A_x > 0 for columns right of the centre and
-    # A_y > 0 above it (row = Nr/2 + y / pixel); a pixel on the dividing line is shared by its fraction on each side.
-    d = xy[ok] - nodes[idx[ok]]
-    wx = np.clip(d[:, 0] + 0.5, 0.0, 1.0)
-    wy = np.clip(0.5 - d[:, 1], 0.0, 1.0)
-    weights = (v, v * wx, v * (1 - wx), v * wy, v * (1 - wy))
-    sums = np.stack([np.bincount(idx[ok], weights=w, minlength=len(nodes)) for w in weights], axis=-1)
-    npix = np.bincount(idx[ok], minlength=len(nodes))
-    return sums, max(sig_px, 1e-3) * float(np.sqrt(np.median(npix)))
+    v = img.ravel()[cells.pixels] - bg
+    weights = (v, v * cells.wx, v * (1 - cells.wx), v * cells.wy, v * (1 - cells.wy))
+    sums = np.stack([np.bincount(cells.lenslet, weights=w, minlength=cells.n_lenslets) for w in weights], axis=-1)
+    return sums, max(sig_px, 1e-3) * float(np.sqrt(cells.npix_median))
 
 
 def detect_dots(frame: np.ndarray, grid: MlaGrid, *, threshold_sigma: float = 8.0, min_lenslets: int = 2,
-                min_separation: float = 2.5) -> Dots:
+                min_separation: float = 2.5, min_prominence: float = 0.35, min_flux_fraction: float = 0.1,
+                cells: LensletCells | None = None) -> Dots:
     """Find every whole dot in a raw light-field frame and its centroid.
 
     Parameters
@@ -144,13 +198,22 @@ def detect_dots(frame: np.ndarray, grid: MlaGrid, *, threshold_sigma: float = 8.
         Smallest group of lit lenslets accepted as a dot.
     min_separation
         Intensity maxima closer than this many lenslet pitches belong to one dot.
+    min_prominence
+        Two touching groups of lit lenslets are two dots only if the fainter one's peak
+        (smoothed over its neighbours) stands above the saddle between them by more than this
+        fraction of the peak.
+    min_flux_fraction
+        Dots with less than this fraction of the typical dot's flux (the flux-weighted median)
+        are left out: they are the tips of defocused dots too faint to find whole.
+    cells
+        :func:`lenslet_cells` of ``grid``, computed once for many frames (default: computed).
 
     Returns
     -------
     Dots
         Centroids in raw pixel coordinates, fluxes and sizes.
     """
-    allsums, sigma = lenslet_sums(frame, grid)
+    allsums, sigma = lenslet_sums(frame, grid, cells)
     sums = allsums[:, 0]
     n = grid.indices - grid.indices.min(axis=0)
     shape = tuple(n.max(axis=0) + 1)
@@ -165,64 +228,121 @@ def detect_dots(frame: np.ndarray, grid: MlaGrid, *, threshold_sigma: float = 8.
     adj = _HEX_ADJ if grid.grid == "hex" else _SQUARE_ADJ
     border = valid & ~ndimage.binary_erosion(valid, adj, border_value=0)
     lit = valid & (val > threshold_sigma * sigma)
-    # Split touching dots: each lit lenslet climbs the smoothed sums to its local maximum;
-    # maxima closer than min_separation (noise on a defocused dot's flat top) are merged into
-    # the brighter one.
+    # Split touching dots where a valley separates them. Each lit lenslet climbs the smoothed
+    # sums to its local maximum, so the lenslets of two overlapping dots part at the valley;
+    # the maxima are then grouped from the brightest down (persistence), and a maximum stays
+    # a dot of its own only if it stands above the saddle joining it to a brighter one by more
+    # than ``min_prominence`` of its height. Noise on the flat top of a dot many lenslets wide
+    # (large, or defocused) makes shallow maxima, which join their dot; the dip between two
+    # dots is deep.
     sm = ndimage.correlate(np.where(valid, val, 0.0), adj.astype(float), mode="constant")
     sm /= np.maximum(ndimage.correlate(valid.astype(float), adj.astype(float), mode="constant"), 1.0)
-    sm = np.where(lit, sm, -np.inf)
+    climbed = np.where(lit, sm, -np.inf)
     flat = np.arange(sm.size).reshape(shape)
-    best, parent = sm.copy(), flat.copy()
+    best, parent = climbed.copy(), flat.copy()
     for d1, d2 in zip(*np.nonzero(adj), strict=True):
         shifted = np.full(shape, -np.inf)
         src = np.full(shape, -1)
         o1, o2 = d1 - 1, d2 - 1
         dst_sl = (slice(max(0, -o1), shape[0] - max(0, o1)), slice(max(0, -o2), shape[1] - max(0, o2)))
         src_sl = (slice(max(0, o1), shape[0] - max(0, -o1)), slice(max(0, o2), shape[1] - max(0, -o2)))
-        shifted[dst_sl] = sm[src_sl]
+        shifted[dst_sl] = climbed[src_sl]
         src[dst_sl] = flat[src_sl]
         up = shifted > best
         best = np.where(up, shifted, best)
         parent = np.where(up, src, parent)
-    par = parent.ravel()
-    for _ in range(64):
-        nxt = par[par]
-        if np.array_equal(nxt, par):
+    top = parent.ravel()
+    for _ in range(sm.size):  # pointer jumping: log2 of the longest climb
+        nxt = top[top]
+        if np.array_equal(nxt, top):
             break
-        par = nxt
-    lit_flat = lit.ravel()
-    roots = np.unique(par[lit_flat])
-    rpos = pos.reshape(-1, 2)[roots]
-    order = np.argsort(-sm.ravel()[roots])
+        top = nxt
+    region_of = np.full(sm.size, -1, dtype=np.int64)
+    region_of[lit.ravel()] = _regions(sm, lit, adj, min_prominence)[top[lit.ravel()]]
+    # Maxima closer than min_separation pitches (noise on a small dot) are one dot: greedy,
+    # brightest first, each joining the brightest kept one within reach.
+    roots = np.unique(region_of[region_of >= 0])
+    smf, posf = sm.ravel(), pos.reshape(-1, 2)
     owner = {int(r): int(r) for r in roots}
-    kept: list[int] = []
-    for i in order:
-        near = [k for k in kept if np.hypot(*(rpos[i] - rpos[np.searchsorted(roots, k)])) < min_separation
-                * grid.pitch_px]
+    reach = min_separation * grid.pitch_px
+    cells_of: dict[tuple[int, int], list[tuple[int, int]]] = {}  # kept maxima binned one reach wide
+    n_kept = 0
+    for r in roots[np.argsort(-smf[roots], kind="stable")]:
+        cx, cy = (int(v) for v in np.floor(posf[r] / reach))
+        near = [(rank, k) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for rank, k in cells_of.get((cx + dx, cy + dy), ())
+                if np.hypot(*(posf[r] - posf[k])) < reach]
         if near:
-            owner[int(roots[i])] = near[0]
+            owner[int(r)] = min(near)[1]
         else:
-            kept.append(int(roots[i]))
-    region_of = np.full(sm.size, -1)
-    region_of[lit_flat] = [owner[int(r)] for r in par[lit_flat]]
-    border_flat = border.ravel()
-    valf = val.ravel()
-    posf = pos.reshape(-1, 2)
-    centres, flux, size = [], [], []
-    for k in kept:
-        members = region_of == k
-        if members.sum() < min_lenslets or np.any(members & border_flat):
-            continue
-        w = valf[members]
-        total = float(w.sum())
-        if total <= 0:
-            continue
-        wv = views.reshape(-1, views.shape[-1])[members]  # (lenslets, views)
-        centres.append(np.einsum("lv,lc->vc", wv, posf[members]) / wv.sum(axis=0)[:, None])
-        flux.append(total)
-        size.append(int(members.sum()))
+            cells_of.setdefault((cx, cy), []).append((n_kept, int(r)))
+            n_kept += 1
+    lit_flat = np.flatnonzero(region_of >= 0)
+    label = np.array([owner[int(r)] for r in region_of[lit_flat]], dtype=np.int64)
+    # Per dot: lenslet count, whether it touches the lattice edge, flux and view centroids.
+    kept, inv = np.unique(label, return_inverse=True)
+    size = np.bincount(inv, minlength=len(kept))
+    cut = np.bincount(inv, weights=border.ravel()[lit_flat], minlength=len(kept)) > 0
+    w = val.ravel()[lit_flat]
+    total = np.bincount(inv, weights=w, minlength=len(kept))
+    wv = views.reshape(-1, views.shape[-1])[lit_flat]  # (lenslets, views)
+    p = posf[lit_flat]
+    num = np.stack([np.stack([np.bincount(inv, weights=wv[:, v] * p[:, c], minlength=len(kept)) for c in (0, 1)],
+                             axis=-1) for v in range(wv.shape[1])], axis=1)  # (dots, views, 2)
+    den = np.stack([np.bincount(inv, weights=wv[:, v], minlength=len(kept)) for v in range(wv.shape[1])], axis=1)
+    good = (size >= min_lenslets) & ~cut & (total > 0)
+    if good.any():
+        # Every dot of the board sends the same light (equal areas, the marker more), so a group
+        # with a small fraction of the typical dot's flux is the part of a defocused dot that
+        # rose above the threshold: its centroid is biased. Typical: the flux-weighted median,
+        # which such fragments, however many, barely move.
+        f = np.sort(total[good])
+        typical = f[np.searchsorted(np.cumsum(f), 0.5 * f.sum())]
+        good &= total >= min_flux_fraction * typical
+    centres = num[good] / den[good][:, :, None]
+    flux, size = total[good], size[good]
     return Dots(np.asarray(centres, dtype=np.float64).reshape(-1, len(VIEW_PUPILS), 2),
                 np.asarray(flux, dtype=np.float64), np.asarray(size, dtype=np.int64))
+
+
+def _regions(sm: np.ndarray, lit: np.ndarray, adj: np.ndarray, min_prominence: float) -> np.ndarray:
+    """Flat index of each lenslet's region peak (-1 where not lit), by merging from the top down.
+
+    A union-find over the lit lenslets in decreasing ``sm`` (persistence of the maxima): a
+    lenslet touching several regions joins the one with the highest peak, and every other one
+    is merged into it unless its peak rises above this saddle by more than ``min_prominence``
+    of the peak.
+    """
+    shape = sm.shape
+    flat = sm.ravel()
+    offsets = [(d1 - 1, d2 - 1) for d1, d2 in zip(*np.nonzero(adj), strict=True) if (d1, d2) != (1, 1)]
+    parent = np.full(flat.size, -1, dtype=np.int64)  # -1: not yet reached
+    peak = np.zeros(flat.size)
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = int(parent[i])
+        return i
+
+    order = np.flatnonzero(lit.ravel())
+    order = order[np.argsort(-flat[order], kind="stable")]
+    rows, cols = np.divmod(order, shape[1])
+    for i, r, c in zip(order.tolist(), rows.tolist(), cols.tolist(), strict=True):
+        near = {root(r2 * shape[1] + c2) for o1, o2 in offsets
+                if 0 <= (r2 := r + o1) < shape[0] and 0 <= (c2 := c + o2) < shape[1]
+                and parent[r2 * shape[1] + c2] >= 0}
+        if not near:
+            parent[i], peak[i] = i, flat[i]
+            continue
+        top = max(near, key=lambda k: peak[k])
+        parent[i] = top
+        for k in near - {top}:
+            if peak[k] - flat[i] <= min_prominence * peak[k]:
+                parent[k] = top
+    out = np.full(flat.size, -1, dtype=np.int64)
+    reached = np.flatnonzero(parent >= 0)
+    out[reached] = [root(int(i)) for i in reached]
+    return out
 
 
 def _affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -244,7 +364,8 @@ def match_dots(dots: Dots, predicted_px: np.ndarray, indices: np.ndarray, *, mar
     indices
         (k, 2) board indices (i, j), with (0, 0) the marker.
     marker_ratio
-        The brightest dot is the marker if it has this many times the median flux.
+        Dots with this many times the median flux are marker candidates: the brightest, or
+        if several, the one nearest the marker's predicted position.
     tolerance
         Largest accepted distance from a predicted position, in predicted dot spacings.
 
@@ -263,11 +384,13 @@ def match_dots(dots: Dots, predicted_px: np.ndarray, indices: np.ndarray, *, mar
         return np.zeros(0, dtype=np.int64), np.zeros((0, 2), dtype=np.int64)
     spacing = float(np.median(cKDTree(pred).query(pred, k=2)[0][:, 1]))
     m = np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]])
-    if len(dots) >= 3:
-        best = int(np.argmax(dots.flux))
-        others = np.delete(dots.flux, best)
-        origin = np.flatnonzero(np.all(idx == 0, axis=1))
-        if dots.flux[best] > marker_ratio * np.median(others) and len(origin):
+    origin = np.flatnonzero(np.all(idx == 0, axis=1))
+    if len(dots) >= 3 and len(origin):
+        # The marker has clearly the most light; where crowded defocused dots merge into groups
+        # as bright, the bright one nearest the marker's predicted place is taken.
+        bright = np.flatnonzero(dots.flux > marker_ratio * np.median(dots.flux))
+        if len(bright) and len(bright) < len(dots) / 2:
+            best = bright[np.argmin(np.hypot(*(dots.centres_px[bright] - pred[origin[0]]).T))]
             m[2] = dots.centres_px[best] - pred[origin[0]]
     found = np.zeros(0, dtype=np.int64)
     which = np.zeros(0, dtype=np.int64)

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from acquisition.timing import TimingError
-from calibration.dots import DotError, detect_dots, match_dots
+from calibration.dots import DotError, Dots, detect_dots, lenslet_cells, match_dots
 from calibration.fit import CameraFit, FitError, PlaneDots, fit_camera
 from calibration.mla_grid import GridError, MlaGrid, check_white, detect_grid
 from calibration.runner import PlaneRun, camera_only_plan, capture_frames, plane_targets, run_planes
@@ -303,30 +303,39 @@ def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: fl
                     rg.lab.show(None)
 
 
-def _named_dots(store: CalibrationStore, nominal: Camera, board: DotBoard, min_dots: int,
-                model: Camera | None = None) -> list[PlaneDots]:
-    """Find and name the dots of every plane of one camera (``model`` predicts where they are)."""
+def _detected_dots(store: CalibrationStore, nominal: Camera) -> list[tuple[int, Dots]]:
+    """The dots of every taken plane of one camera, found once (naming them needs a model)."""
     grid = store.grid(nominal.name)
     if grid is None:
         raise UsageError(f"camera '{nominal.name}': no microlens grid in {store.path}; run 'lfpiv calibrate mla' "
                          "first")
-    cam = model or nominal
     stage = store.stage_mm(nominal.name)
     frames = store.plane_frames(nominal.name)
-    reach = 0.75 * math.hypot(*cam.field_of_view_mm) / math.cos(math.radians(board.tilt_deg)) + board.spacing_mm
-    ij = board.indices(board.half_extent(reach + abs(float(np.nanmax(np.abs(stage - board.stage_centre_mm))))))
+    cells = lenslet_cells(grid)
     out = []
     for p in np.flatnonzero(np.isfinite(stage)):
         try:
-            dots = detect_dots(frames[int(p)], grid)
+            out.append((int(p), detect_dots(frames[int(p)], grid, cells=cells)))
         except DotError as exc:
             raise UsageError(f"camera '{nominal.name}', plane {p + 1} of {len(stage)}: {exc}") from None
+    return out
+
+
+def _named_dots(store: CalibrationStore, nominal: Camera, board: DotBoard, detected: list[tuple[int, Dots]],
+                min_dots: int, model: Camera | None = None) -> list[PlaneDots]:
+    """Name the dots of every plane of one camera (``model`` predicts where they are)."""
+    cam = model or nominal
+    stage = store.stage_mm(nominal.name)
+    reach = 0.75 * math.hypot(*cam.field_of_view_mm) / math.cos(math.radians(board.tilt_deg)) + board.spacing_mm
+    ij = board.indices(board.half_extent(reach + abs(float(np.nanmax(np.abs(stage - board.stage_centre_mm))))))
+    out = []
+    for p, dots in detected:
         found, which = match_dots(dots, project(cam, board.dot_centres(ij, stage[p])), ij)
         if len(found) < min_dots:
             raise UsageError(f"camera '{nominal.name}', plane {p + 1} of {len(stage)} (stage {stage[p]:.4f} mm): "
                              f"{len(found)} dot(s) found and named (of {len(dots)} seen), need at least "
                              f"{min_dots}; check the target's lighting, focus and the board settings")
-        out.append(PlaneDots(int(p), float(stage[p]), which, dots.views_px[found]))
+        out.append(PlaneDots(p, float(stage[p]), which, dots.views_px[found]))
     return out
 
 
@@ -366,11 +375,12 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
     fits = []
     for nominal in rig.camera:
         try:
-            planes = _named_dots(store, nominal, board, min_dots)
+            detected = _detected_dots(store, nominal)
+            planes = _named_dots(store, nominal, board, detected, min_dots)
             grid = store.grid(nominal.name)
             fit = fit_camera(nominal, board, planes, grid, n_planes=len(store.stage_mm(nominal.name)),
                              fit_distortion=fit_distortion)
-            planes = _named_dots(store, nominal, board, min_dots, model=fit.camera)
+            planes = _named_dots(store, nominal, board, detected, min_dots, model=fit.camera)
             fit = fit_camera(nominal, board, planes, grid, n_planes=len(store.stage_mm(nominal.name)),
                              fit_distortion=fit_distortion)
         except FitError as exc:

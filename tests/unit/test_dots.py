@@ -1,0 +1,70 @@
+"""Finding the calibration target's dots in a light-field frame (calibration.dots).
+
+Frames are built lenslet by lenslet from a white image: every micro-image is filled with a
+chosen lenslet brightness, with noise per lenslet as a Monte-Carlo render (or a dim target)
+gives, so the truth is which dots there are and where their light is centred.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from calibration.dots import detect_dots, lenslet_cells
+from calibration.mla_grid import detect_grid
+from lfcore.white import WhiteImageConfig, white_image, white_irradiance
+from tests.conftest import tiny_variant
+
+
+@pytest.fixture(scope="module")
+def lattice(tiny_rig):
+    cam = tiny_variant(tiny_rig, sensor_px=[640, 480]).camera[0]  # about 64 x 48 lenslets
+    grid = detect_grid(white_image(cam, tiny_rig.render, WhiteImageConfig(seed=3)))
+    disc = white_irradiance(cam, WhiteImageConfig(level_counts=1.0))
+    return grid, disc, lenslet_cells(grid)
+
+
+def _frame(lattice, brightness, noise=0.3, seed=0):
+    """Each micro-image lit by ``brightness(node_xy)`` (counts at a disc's centre) times 1 + noise * N(0, 1)."""
+    grid, disc, cells = lattice
+    rng = np.random.default_rng(seed)
+    nodes = grid.lattice_px()
+    level = brightness(nodes) * (1.0 + noise * rng.standard_normal(len(nodes)))
+    img = np.full(disc.size, 100.0)
+    img[cells.pixels] += disc.ravel()[cells.pixels] * level[cells.lenslet]
+    img += rng.normal(0.0, 3.0, img.size)
+    return np.clip(img, 0, None).reshape(disc.shape), nodes
+
+
+def _disc(centre, radius_px, level):
+    return lambda xy: level * (np.hypot(*(xy - centre).T) <= radius_px)
+
+
+def _blob(centre, sigma_px, level):
+    return lambda xy: level * np.exp(-0.5 * np.sum((xy - centre) ** 2, axis=1) / sigma_px**2)
+
+
+def test_a_dot_many_lenslets_wide_is_one_dot_despite_noise(lattice):
+    # Two flat-topped dots 12 lenslets across, with 30% noise per lenslet: many shallow maxima
+    # on each top, which must not split it.
+    a, b = np.array([170.0, 240.0]), np.array([440.0, 240.0])
+    frame, _ = _frame(lattice, lambda xy: _disc(a, 60, 3000)(xy) + _disc(b, 60, 3000)(xy))
+    dots = detect_dots(frame, lattice[0], cells=lattice[2])
+    assert len(dots) == 2
+    found = dots.centres_px[np.argsort(dots.centres_px[:, 0])]
+    assert np.allclose(found, [a, b], atol=2.0)  # a fifth of a lenslet
+    assert np.all(dots.lenslets > 80)
+    # the noise is real: taking every maximum apart from 2.5 pitches splits the tops
+    assert len(detect_dots(frame, lattice[0], cells=lattice[2], min_prominence=0.0)) > 4
+
+
+def test_two_overlapping_dots_part_at_the_valley_and_a_faint_fragment_is_left_out(lattice):
+    a, b, speck = np.array([250.0, 240.0]), np.array([330.0, 240.0]), np.array([500.0, 120.0])
+    frame, _ = _frame(lattice, lambda xy: (_blob(a, 15, 4000)(xy) + _blob(b, 15, 4000)(xy)
+                                            + _blob(speck, 6, 1500)(xy)), noise=0.05)
+    dots = detect_dots(frame, lattice[0], cells=lattice[2])
+    assert len(dots) == 2  # the speck holds 4% of a dot's light: the tip of a defocused dot
+    found = dots.centres_px[np.argsort(dots.centres_px[:, 0])]
+    assert np.allclose(found, [a, b], atol=3.0)
+    assert dots.flux[0] == pytest.approx(dots.flux[1], rel=0.05)
+    assert len(detect_dots(frame, lattice[0], cells=lattice[2], min_flux_fraction=0.0)) == 3
