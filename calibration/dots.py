@@ -10,19 +10,22 @@ dot counts (not only the central sub-aperture's), so Monte-Carlo and shot noise 
 
 1. Lenslet sums over cells of radius 0.6 pitch about the fitted lattice nodes of the white image
    (:class:`calibration.mla_grid.MlaGrid`); background: the frame's median pixel.
-2. Lenslets brighter than ``threshold_sigma`` noise sigmas are grouped from the brightest down
-   (sums smoothed over their lattice neighbours, in lattice index space: six on a hexagonal
-   grid, eight on a square one), and two groups that meet stay two dots only where a valley
-   deeper than ``min_prominence`` of the fainter peak separates them, so the faint overlap of
-   two defocused dots is split while the noise on a dot many lenslets wide is not; maxima
-   closer than ``min_separation`` pitches are also merged.
+2. Lenslets brighter than ``threshold_sigma`` noise sigmas; each climbs the sums (smoothed over
+   its lattice neighbours, in lattice index space: six on a hexagonal grid, eight on a square
+   one) to a local maximum, so the faint overlap of two defocused dots is split at its valley.
+   A maximum is a dot of its own only if a valley deeper than ``min_prominence`` of its height
+   parts it from every brighter one (persistence, merged from the brightest down), so the
+   noise on the top of a dot many lenslets wide does not split it; maxima closer than
+   ``min_separation`` pitches are merged too, and groups with under ``min_flux_fraction`` of a
+   dot's light (the tips of defocused dots) are left out.
 3. Each dot's flux-weighted centroid over its lenslets, also with each lenslet's light split
    between the halves of the main-lens aperture (each pixel of a micro-image sees one aperture
    point): the views through opposite halves disagree in proportion to the dot's defocus. Dots
    touching the edge of the detected lattice are dropped (a cut dot's centroid is biased).
 4. Naming: the marker dot (0, 0) is the one with clearly the most light (the dots are equally
-   bright per area); the board's dots projected by a nominal camera are shifted onto it, then an
-   affine map from predicted to found positions is refined on nearest matches.
+   bright per area), the one nearest its predicted place if several are as bright; the
+   board's dots projected by a nominal camera are shifted onto it, then an affine map from
+   predicted to found positions is refined on nearest matches.
 """
 
 from __future__ import annotations
@@ -364,8 +367,8 @@ def match_dots(dots: Dots, predicted_px: np.ndarray, indices: np.ndarray, *, mar
     indices
         (k, 2) board indices (i, j), with (0, 0) the marker.
     marker_ratio
-        Dots with this many times the median flux are marker candidates: the brightest, or
-        if several, the one nearest the marker's predicted position.
+        Dots with more than this many times the median flux are marker candidates; the one
+        nearest the marker's predicted position is taken.
     tolerance
         Largest accepted distance from a predicted position, in predicted dot spacings.
 

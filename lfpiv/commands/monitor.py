@@ -152,8 +152,10 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
         interrupted: list[str] = []
 
         def interrupt(*_: object) -> None:
+            # Only noted here: tick() closes the window from the event loop. A signal handler
+            # runs between any two bytecodes of the main thread, often inside a paint event,
+            # and destroying the widgets being painted crashed Qt (SIGABRT, none_dealloc).
             interrupted.append("signal")
-            win.close()
 
         previous_int = signal.signal(signal.SIGINT, interrupt)
         stack.callback(signal.signal, signal.SIGINT, previous_int)
@@ -161,6 +163,10 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
         stack.enter_context(signals_call(interrupt))
 
         def tick() -> None:
+            if interrupted:
+                win.close()
+                app.quit()
+                return
             # Offscreen mode: the screenshot after --after pairs were shown (or once the recording
             # ended and the live path has caught up), then quit when the recording has ended.
             if args.screenshot is None:
