@@ -59,7 +59,7 @@ from typing import NoReturn
 from .protocols import DeviceError
 from .serial_link import LinkClosed, LinkError, LinkTimeout, SerialLink
 
-__all__ = ["CorruptReply", "ZaberReply", "ZaberStage", "checksum", "parse_reply"]
+__all__ = ["CorruptReply", "ZaberReply", "ZaberStage", "checksum", "parse_reply", "verified"]
 
 log = logging.getLogger(__name__)
 
@@ -106,8 +106,14 @@ def checksum(body: str) -> str:
     return f"{-sum(body.encode('ascii')) & 0xFF:02X}"
 
 
-def _verified(line: str) -> str:
-    """``line`` without its checksum; unchanged if it has none; CorruptReply if it is wrong."""
+def verified(line: str) -> str:
+    """``line`` (a command or a reply) without its checksum; unchanged if it has none.
+
+    Raises
+    ------
+    CorruptReply
+        The line ends in a checksum (``:XX``) that does not match its content.
+    """
     m = _CHECKED.fullmatch(line)
     if m is None:
         return line
@@ -155,7 +161,7 @@ def parse_reply(line: str) -> ZaberReply | None:
     CorruptReply
         The line ends in a checksum (``:XX``) that does not match its content.
     """
-    m = _REPLY.fullmatch(_verified(line.strip()))
+    m = _REPLY.fullmatch(verified(line.strip()))
     if not m:
         return None
     dev, axis, flag, status, warn, data = m.groups()

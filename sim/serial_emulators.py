@@ -55,7 +55,7 @@ import time
 import tty
 from collections.abc import Callable
 
-from acquisition.stage import checksum
+from acquisition.stage import CorruptReply, checksum, verified
 
 __all__ = ["ChannelState", "PulseGeneratorEmulator", "StageEmulator", "TickListener"]
 
@@ -727,11 +727,10 @@ class StageEmulator(_PtyEmulator):
     def _respond(self, line: str, faults: set[str]) -> str | None:
         if not line.startswith("/"):
             return None  # not a command: Zaber devices ignore it
-        checked = re.fullmatch(r"/(.*):([0-9A-Fa-f]{2})", line)
-        if checked:
-            if checksum(checked.group(1)) != checked.group(2).upper():
-                return None  # corrupted on the way in: dropped
-            line = "/" + checked.group(1)
+        try:
+            line = verified(line)
+        except CorruptReply:
+            return None  # corrupted on the way in: dropped
         parts = line[1:].split()
         try:
             dev = int(parts[0]) if parts else 0
