@@ -272,11 +272,20 @@ def signal_when_committed(proc: subprocess.Popen, path: Path, at_least: int, sig
         proc.kill()
 
 
+def terminal_signals() -> None:
+    """In a child before exec: SIGINT and SIGHUP as from a terminal. A test run started with
+    ``nohup`` or as a background job ignores them, its children inherit that, and the program
+    then keeps them ignored by design (``nohup`` means "keep recording")."""
+    for sig in (signal.SIGINT, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
+
+
 def _start(fast_rig_file: Path, out: Path, pairs: int) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     cmd = [*LFPIV, "acquire", "--rig", str(fast_rig_file), "--pairs", str(pairs), "--out", str(out), "--quiet",
            "--sim-rays", "300", "--sim-ppm", "0.2", "--sim-pool", "2"]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=terminal_signals)
 
 
 def test_sigkill_leaves_every_committed_pair_intact(fast_rig_file: Path, tmp_path: Path) -> None:

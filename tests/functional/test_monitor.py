@@ -21,7 +21,13 @@ from lfpiv import cli  # noqa: E402
 from lfpiv.live import LiveRecorder  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
 from realtime.pipeline import LivePipeline, LiveSettings  # noqa: E402
-from tests.functional.test_acquire import LFPIV, _lab, fast_rig_text, signal_when_committed  # noqa: E402
+from tests.functional.test_acquire import (  # noqa: E402
+    LFPIV,
+    _lab,
+    fast_rig_text,
+    signal_when_committed,
+    terminal_signals,
+)
 
 pytest.importorskip("pyqtgraph")
 
@@ -185,7 +191,7 @@ def test_a_killed_monitor_disarms_and_closes_its_recording(rig_file: Path, tmp_p
            str(tmp_path / "shot.png"), "--after", "100000", "--device", "cpu", "--iterations", "1", "--method",
            "mlos-mart", "--sim-rays", "300", "--sim-pool", "2", "--pvr", "4,4,20", "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=terminal_signals)
     stdout, stderr = signal_when_committed(proc, out, 5, sig, timeout_s=120.0)
     assert proc.returncode == 130 and "Traceback" not in stderr and "interrupted" in stderr, stderr
     store = RunStore.open(out)
