@@ -179,7 +179,8 @@ class RunStore(RigStore):
                 described_array(g, name, units, ["pair", "frame"], what + "; -1 where never written",
                                 shape=(n_pairs, 2), chunks=(min(n_pairs, 1024), 2), dtype=np.int64, fill_value=-1)
         drops = root.create_group("drops")
-        drops.attrs.update({"description": "every frame that was not recorded, with the reason"})
+        drops.attrs.update({"description": "every frame that was not recorded, with the reason; a row with an "
+                                           "empty reason was never written (a recorder killed while adding it)"})
         for name, (dtype, fill, what) in _DROP_FIELDS.items():
             described_array(drops, name, "ns" if name == "timestamp_ns" else "1", ["drop"], what, shape=(0,),
                             chunks=(4096,), dtype=dtype, fill_value=fill)
@@ -294,15 +295,21 @@ class RunStore(RigStore):
         """Append lost frames to ``drops``; each row has the fields camera, pair, frame,
         frame_id, timestamp_ns and reason.
 
-        The columns grow one after the other, ``reason`` last: a row counts once its reason is
-        written (see :meth:`drops`), so a process killed half-way leaves no broken row.
+        Every column first grows by the new rows (their fill values: ``reason`` empty), and only
+        then are the rows written, ``reason`` last: a row counts once its reason is written (see
+        :meth:`drops`). A process killed half-way so leaves no broken row, and the columns keep
+        one length (plain zarr and xarray readers need it) unless the kill falls between two
+        resizes, a few metadata writes.
         """
         if not rows:
             return
-        for name, (dtype, _, _) in _DROP_FIELDS.items():
-            a = self.group[f"drops/{name}"]
-            n = a.shape[0]
+        if not all(r["reason"] for r in rows):
+            raise RunStoreError("every drop needs a reason: a row with an empty one reads as never written")
+        cols = [self.group[f"drops/{name}"] for name in _DROP_FIELDS]
+        n = min(a.shape[0] for a in cols)
+        for a in cols:
             a.resize((n + len(rows),))
+        for a, (name, (dtype, _, _)) in zip(cols, _DROP_FIELDS.items(), strict=True):
             a[n:] = np.asarray([r[name] for r in rows], dtype=object if dtype is str else dtype)
 
     def drops(self) -> list[dict[str, Any]]:
@@ -312,11 +319,11 @@ class RunStore(RigStore):
         committed pairs: rows of a pair the kill left uncommitted, or half-appended, are left out.
         """
         cols = {name: self.group[f"drops/{name}"][...] for name in _DROP_FIELDS}
-        n = min(len(v) for v in cols.values())  # a kill while appending leaves some columns longer
+        n = min(len(v) for v in cols.values())  # a kill between two resizes leaves some columns longer
         rows = [{k: (v[i].item() if hasattr(v[i], "item") else v[i]) for k, v in cols.items()} for i in range(n)]
         if self.state == "recording":
-            rows = [r for r in rows if r["pair"] < self.committed_pairs and r["reason"]]
-        return rows
+            rows = [r for r in rows if r["pair"] < self.committed_pairs]
+        return [r for r in rows if r["reason"]]  # an empty reason: a row grown but never written
 
     def write_truth(self, particles_mm: np.ndarray, brightness: np.ndarray, flow: dict[str, Any],
                     **attrs: Any) -> None:

@@ -13,21 +13,53 @@ def test_drops_of_a_run_killed_while_appending_them(tiny_rig, tmp_path):
     s = RunStore.create(tmp_path / "run.zarr", tiny_rig, 4, timing={}, software_version="test")
     s.add_drop("cam0", 0, 1, 2, 10, "frame_id gap")
     s.commit(1)
-    # killed while appending the drops of pair 1: some columns grew, the rest did not
+    # killed between two resizes (the one window left): some columns grew, the rest did not
     for name in ("camera", "pair", "frame"):
-        a = s.group[f"drops/{name}"]
-        a.resize((2,))
-        a[1:] = np.asarray(["cam0"] if name == "camera" else [1], dtype=object if name == "camera" else np.int64)
+        s.group[f"drops/{name}"].resize((2,))
     want = [{"camera": "cam0", "pair": 0, "frame": 1, "frame_id": 2, "timestamp_ns": 10, "reason": "frame_id gap"}]
     assert RunStore.open(tmp_path / "run.zarr").drops() == want
     # every column appended, the pair not committed: still only committed pairs
-    for name in ("frame_id", "timestamp_ns", "reason"):
+    for name, value in (("camera", "cam0"), ("pair", 1), ("frame", 0), ("frame_id", 5), ("timestamp_ns", 5),
+                        ("reason", "lost")):
         a = s.group[f"drops/{name}"]
         a.resize((2,))
-        a[1:] = np.asarray(["lost"] if name == "reason" else [5], dtype=object if name == "reason" else np.int64)
+        a[1:] = np.asarray([value], dtype=object if isinstance(value, str) else np.int64)
     assert RunStore.open(tmp_path / "run.zarr").drops() == want
     s.commit(2)
     assert len(RunStore.open(tmp_path / "run.zarr").drops()) == 2
+
+
+def test_a_kill_while_adding_drops_leaves_columns_of_one_length(tiny_rig, tmp_path, monkeypatch):
+    """The columns all grow before any row is written, so plain readers (xarray needs one
+    length per dimension) can read the drops of a recorder killed while adding them, and lfpiv
+    leaves the rows that were never finished out."""
+    import xarray as xr
+
+    path = tmp_path / "run.zarr"
+    s = RunStore.create(path, tiny_rig, 4, timing={}, software_version="test")
+    s.add_drop("cam0", 0, 1, 2, 10, "frame_id gap")
+    s.commit(3)
+    writes = 0
+    real_setitem = zarr.Array.__setitem__
+
+    def killed_after_three_columns(self, key, value):
+        nonlocal writes
+        writes += 1
+        if writes > 3:
+            raise SystemExit("killed")
+        real_setitem(self, key, value)
+
+    monkeypatch.setattr(zarr.Array, "__setitem__", killed_after_three_columns)
+    with pytest.raises(SystemExit):
+        s.add_drops([{"camera": "cam1", "pair": 2, "frame": 0, "frame_id": 7, "timestamp_ns": 11, "reason": "timeout"}])
+    monkeypatch.undo()
+    ds = xr.open_zarr(path, group="drops", consolidated=False)
+    assert ds.sizes == {"drop": 2}
+    assert list(ds["camera"].values) == ["cam0", "cam1"] and list(ds["reason"].values) == ["frame_id gap", ""]
+    assert RunStore.open(path).drops() == [{"camera": "cam0", "pair": 0, "frame": 1, "frame_id": 2,
+                                            "timestamp_ns": 10, "reason": "frame_id gap"}]
+    with pytest.raises(RunStoreError, match="needs a reason"):
+        s.add_drop("cam0", 1, 0, 3, 12, "")
 
 
 def test_round_trip(tiny_rig, tmp_path):
