@@ -33,7 +33,7 @@ import numpy as np
 import zarr
 
 from calibration.mla_grid import MlaGrid
-from lfcore.rig import Camera, Rig
+from lfcore.rig import Camera, Rig, rotation_angle_deg
 from lfcore.runstore import FRAME_CODEC
 from lfcore.target import DotBoard
 from lfcore.zarrstore import RigStore, described_array
@@ -328,8 +328,12 @@ class CalibrationStore(RigStore):
             if "model" in g:
                 m = dict(g["model"].attrs)
                 c = m["camera"]
+                # Near ry = +-90 deg, rx and rz of R = Rz Ry Rx act about nearly one axis, so a tiny
+                # turn moves both a lot (gimbal lock): the angle from the rig file's pose says more.
+                turn = rotation_angle_deg(self.rig.camera_named(name).rotation_deg, c["rotation_deg"])
                 lines.append(f"  {name}: fitted model: magnification {c['magnification']:.5f}, rotation "
-                             f"{[round(v, 4) for v in c['rotation_deg']]} deg, focus "
+                             f"{[round(v, 4) for v in c['rotation_deg']]} deg ({turn:.4f} deg from the rig "
+                             f"file's), focus "
                              f"{[round(v, 4) for v in c['focus_mm']]} mm, MLA offset "
                              f"({c['mla_offset_um'][0]:+.3f}, {c['mla_offset_um'][1]:+.3f}) um, rotation "
                              f"{c['mla_rotation_deg']:+.4f} deg")

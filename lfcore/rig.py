@@ -34,6 +34,7 @@ __all__ = [
     "StageConfig",
     "TimingConfig",
     "VolumeConfig",
+    "rotation_angle_deg",
     "rotation_matrix",
     "voxel_shape_warnings",
 ]
@@ -93,6 +94,20 @@ def rotation_matrix(rotation_deg: tuple[float, float, float]) -> np.ndarray:
     r_y = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
     r_z = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
     return r_z @ r_y @ r_x
+
+
+def rotation_angle_deg(a_deg: tuple[float, float, float], b_deg: tuple[float, float, float]) -> float:
+    """Angle (degrees) of the rotation that takes pose ``a_deg`` to pose ``b_deg`` (both
+    ``[rx, ry, rz]`` as :func:`rotation_matrix`).
+
+    Near ry = +-90 degrees rx and rz turn about almost the same axis (gimbal lock), so the Euler
+    angles of two nearly equal poses can differ by tens of degrees; this angle cannot.
+    """
+    r = rotation_matrix(a_deg).T @ rotation_matrix(b_deg)
+    # atan2 of the axis part against the trace part stays accurate at small angles, where
+    # arccos((trace - 1) / 2) loses half its digits
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    return float(np.degrees(math.atan2(0.5 * np.linalg.norm(axis), 0.5 * (np.trace(r) - 1.0))))
 
 
 class Camera(_Strict):

@@ -375,8 +375,10 @@ def _build_window_class():  # noqa: C901 - one Qt class, built once Qt is import
                              f"({n.get('pair_rate_hz', 0.0):.1f} pairs/s), frames {int(n.get('frames_recorded', 0))}, "
                              f"drops {int(n.get('frames_dropped', 0))}, overruns {int(n.get('overruns', 0))}")
             lat = n["latency_s"]
+            # a rate needs two processed pairs: before that it is unknown, not zero
+            rate = f"{st.rate_hz:.1f} pairs/s" if st.rate_hz > 0 else "rate n/a"
             parts.append(f"live ({st.state}): pair {st.last_pair}, processed {st.processed} "
-                         f"({st.rate_hz:.1f} pairs/s), skipped {st.skipped}, discarded {st.discarded}, latency "
+                         f"({rate}), skipped {st.skipped}, discarded {st.discarded}, latency "
                          + (f"{lat:.2f} s" if math.isfinite(lat) else "n/a"))
             text = "  |  ".join(parts) + _gpu_memory(self.pipeline.device)
             if st.error:

@@ -154,25 +154,15 @@ def run_volume(args: argparse.Namespace) -> int:
     return 0
 
 
-def _pose_change_deg(a: tuple[float, float, float], b: tuple[float, float, float]) -> float:
-    """Angle (degrees) of the rotation between two poses; near ry = 90 deg the Euler angles of an
-    almost unchanged pose can differ wildly, this angle does not."""
-    import numpy as np
-
-    from lfcore.rig import rotation_matrix
-
-    r = rotation_matrix(a).T @ rotation_matrix(b)
-    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 def run_fit(args: argparse.Namespace) -> int:
     from calibration.store import CalibrationStore
+    from lfcore.rig import rotation_angle_deg
     from lfpiv.calibrate import calibrate_fit
 
     nominal = CalibrationStore.open(args.store).rig
     for fit in calibrate_fit(args.store, fit_distortion=args.distortion, min_dots=args.min_dots):
         c = fit.camera
-        turned = _pose_change_deg(nominal.camera_named(c.name).rotation_deg, c.rotation_deg)
+        turned = rotation_angle_deg(nominal.camera_named(c.name).rotation_deg, c.rotation_deg)
         ox, oy = c.mla_offset_um
         print(f"{c.name}: RMS {fit.rms_px:.4f} px over {int(fit.plane_dots.sum())} clear dots on "
               f"{int((fit.plane_dots > 0).sum())} planes ({fit.set_aside} weighted down or left out as "

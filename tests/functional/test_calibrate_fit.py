@@ -10,6 +10,7 @@ rig's (hundreds of lenslets, many dots).
 
 from __future__ import annotations
 
+import re
 import tomllib
 from pathlib import Path
 
@@ -84,6 +85,10 @@ def test_fit_and_report_cli(calibrated: tuple[Path, Rig, Rig], tmp_path: Path, c
     assert main(["calibrate", "report", str(out), "--rms-plot", str(png)]) == 0
     rep = capsys.readouterr().out
     assert "reprojection RMS" in rep and "plane  stage_mm  dots  rms_px" in rep and png.stat().st_size > 5_000
+    # the rig file's cam1 is 0.5 deg off the truth the fit finds; cam0 is right
+    found = re.findall(r"(cam\d): fitted model: .*\(([\d.]+) deg from the rig file's\)", rep)
+    turn = {cam: float(deg) for cam, deg in found}
+    assert turn["cam0"] < 0.2 and 0.3 < turn["cam1"] < 0.7
 
 
 def test_a_plane_without_dots_is_one_line_naming_camera_and_plane(calibrated: tuple[Path, Rig, Rig],

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from lfcore.rig import Rig, RigError, voxel_shape_warnings
+from lfcore.rig import Rig, RigError, rotation_angle_deg, voxel_shape_warnings
 from lfcore.volume import VolumeGrid
 from lfpiv.rigfile import load_rig
 from tests.conftest import EXAMPLES, tiny_variant
@@ -217,3 +217,13 @@ def test_volume_grid_from_pvr(tiny_rig):
     assert g.world_to_index([g.origin_mm]) == pytest.approx(np.zeros((1, 3)))
     with pytest.raises(ValueError, match="pvr must be three positive"):
         VolumeGrid.from_rig(tiny_rig, pvr=(2, 2, 0))
+
+
+def test_rotation_angle_between_poses_is_small_where_euler_angles_jump():
+    assert rotation_angle_deg((0, 30, 0), (0, 30, 0)) == 0.0
+    assert rotation_angle_deg((10, 20, 30), (10, 20, 30.25)) == pytest.approx(0.25, abs=1e-9)
+    assert rotation_angle_deg((0, 90, 0), (0, 90, 0.001)) == pytest.approx(0.001, rel=1e-6)
+    # at gimbal lock (ry = 90) rx and rz turn about one axis: only rz - rx counts
+    assert rotation_angle_deg((0, 90, 0), (-108.0, 90.0, -108.0)) == pytest.approx(0.0, abs=1e-6)
+    assert rotation_angle_deg((0, 90, 0), (-108.0107, 89.9861, -108.0168)) < 0.02
+    assert rotation_angle_deg((0, 0, 0), (0, 180, 0)) == pytest.approx(180.0)
