@@ -1,4 +1,4 @@
-"""``lfpiv info``: describe a run store."""
+"""``lfpiv info``: describe a run store, or a calibration store."""
 
 from __future__ import annotations
 
@@ -6,9 +6,10 @@ import argparse
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    i = sub.add_parser("info", help="describe a run store", description="Print a run's cameras, pairs, "
-                       "flow and state.")
-    i.add_argument("run", metavar="RUN", help="run store (a .zarr directory)")
+    i = sub.add_parser("info", help="describe a run store or a calibration store",
+                       description="Print a run's cameras, pairs, flow and state; given a calibration store, "
+                       "what it holds (as 'lfpiv calibrate report').")
+    i.add_argument("run", metavar="STORE", help="run store or calibration store (a .zarr directory)")
     i.set_defaults(func=run)
 
 
@@ -31,11 +32,31 @@ def _count(pairs: list[int]) -> str:
     return f"{len(pairs)} pair(s) ({span})"
 
 
+def _is_calibration(path: str) -> bool:
+    """Whether ``path`` holds a calibration store (its root names the format)."""
+    import json
+    from pathlib import Path
+
+    from calibration.store import FORMAT
+
+    try:
+        meta = json.loads((Path(path) / "zarr.json").read_text())
+    except (OSError, ValueError):
+        return False  # the run store's open says what is wrong
+    return isinstance(meta, dict) and meta.get("attributes", {}).get("format") == FORMAT
+
+
 def run(args: argparse.Namespace) -> int:
     from lfcore.mla import lenslet_count
     from lfcore.runstore import RunStore
     from lfcore.volume import VolumeGrid
 
+    if _is_calibration(args.run):
+        from calibration.store import CalibrationStore
+
+        for line in CalibrationStore.open(args.run).summary():
+            print(line)
+        return 0
     store = RunStore.open(args.run)
     a = store.attrs
     rig = store.rig

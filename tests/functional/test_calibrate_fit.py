@@ -89,6 +89,10 @@ def test_fit_and_report_cli(calibrated: tuple[Path, Rig, Rig], tmp_path: Path, c
     found = re.findall(r"(cam\d): fitted model: .*\(([\d.]+) deg from the rig file's\)", rep)
     turn = {cam: float(deg) for cam, deg in found}
     assert turn["cam0"] < 0.2 and 0.3 < turn["cam1"] < 0.7
+    # lfpiv info describes a calibration store too, with the report's summary
+    assert main(["info", str(out)]) == 0
+    info = capsys.readouterr().out
+    assert "lfpiv calibration" in info and info.strip() in rep
 
 
 def test_a_plane_without_dots_is_one_line_naming_camera_and_plane(calibrated: tuple[Path, Rig, Rig],
