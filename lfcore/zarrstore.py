@@ -53,6 +53,14 @@ class RigStore:
     KIND: ClassVar[str]
     HINT: ClassVar[str]
     Error: ClassVar[type[ValueError]] = ValueError
+    #: KIND of every store class by FORMAT, so that opening one kind of store as another says
+    #: which kind it is
+    _kinds: ClassVar[dict[str, str]] = {}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "FORMAT" in cls.__dict__:
+            RigStore._kinds[cls.FORMAT] = cls.KIND
 
     def __init__(self, group: zarr.Group, path: Path) -> None:
         self.group = group
@@ -67,8 +75,12 @@ class RigStore:
             root = zarr.open_group(str(path), mode=mode, zarr_format=3)
         except Exception as exc:  # zarr raises several types for "not a group"
             raise cls.Error(f"{path} is not an {cls.KIND} (no zarr v3 group there: {type(exc).__name__})") from None
-        if root.attrs.get("format") != cls.FORMAT:
-            raise cls.Error(f"{path} is a zarr group but not an {cls.KIND} (format {root.attrs.get('format')!r})")
+        fmt = root.attrs.get("format")
+        if fmt != cls.FORMAT:
+            other = RigStore._kinds.get(fmt)
+            if other is not None:
+                raise cls.Error(f"{path} is an {other}, not an {cls.KIND}; {cls.HINT}")
+            raise cls.Error(f"{path} is a zarr group but not an {cls.KIND} (format {fmt!r})")
         if root.attrs.get("format_version", 0) > cls.FORMAT_VERSION:
             raise cls.Error(f"{path} was written by a newer lfpiv (format_version "
                             f"{root.attrs['format_version']}); upgrade lfpiv")

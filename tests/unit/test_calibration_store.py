@@ -8,6 +8,7 @@ import zarr
 
 from calibration.mla_grid import detect_grid
 from calibration.store import CalibrationStore, CalibrationStoreError
+from lfcore.runstore import RunStore, RunStoreError
 from lfcore.white import WhiteImageConfig, white_image
 from tests.conftest import tiny_variant
 
@@ -78,3 +79,12 @@ def test_resume_needs_the_same_planes_and_cameras(tiny_rig, tmp_path):
     assert CalibrationStore.open_or_create(path, tiny_variant(tiny_rig, serial="123"))  # a serial is no optics
     with pytest.raises(CalibrationStoreError, match="does not exist"):
         CalibrationStore.open(tmp_path / "nope.zarr")
+
+
+def test_a_store_of_the_other_kind_is_named(tiny_rig, tmp_path):
+    CalibrationStore.create(tmp_path / "calib.zarr", tiny_rig)
+    RunStore.create(tmp_path / "run.zarr", tiny_rig, 1, timing={}, software_version="x")
+    with pytest.raises(RunStoreError, match=r"calib.zarr is an lfpiv calibration store, not an lfpiv run store; give"):
+        RunStore.open(tmp_path / "calib.zarr")
+    with pytest.raises(CalibrationStoreError, match=r"run.zarr is an lfpiv run store, not an lfpiv calibration store"):
+        CalibrationStore.open(tmp_path / "run.zarr")
