@@ -169,19 +169,49 @@ def lenslet_sums(frame: np.ndarray, grid: MlaGrid, cells: LensletCells | None = 
     sigma : float
         Noise sigma of one sum (background pixels' robust sigma times sqrt(pixels per cell)).
     """
-    img = np.asarray(frame, dtype=np.float64)
+    img = np.asarray(frame)
     rows, cols = img.shape
     if (rows, cols) != tuple(grid.image_shape):
         raise DotError(f"frame of {cols} x {rows} pixels does not match the white image's "
                        f"{grid.image_shape[1]} x {grid.image_shape[0]}")
     cells = lenslet_cells(grid) if cells is None else cells
+    bg, sig_px = _background(img)
+    v = img.ravel()[cells.pixels].astype(np.float64) - bg
+    total, plus_x, plus_y = (np.bincount(cells.lenslet, weights=w, minlength=cells.n_lenslets)
+                             for w in (v, v * cells.wx, v * cells.wy))
+    # a pixel's light is split between the two halves of each axis, so each minus half is
+    # the rest of the total
+    sums = np.stack([total, plus_x, total - plus_x, plus_y, total - plus_y], axis=-1)
+    return sums, max(sig_px, 1e-3) * float(np.sqrt(cells.npix_median))
+
+
+def _background(img: np.ndarray) -> tuple[float, float]:
+    """Median of ``img`` (the dark board fills most of a frame) and the noise sigma of one
+    pixel (1.4826 times the median absolute deviation of the pixels at or below it).
+
+    Camera frames (unsigned integers of up to 16 bits) take both from one histogram, exactly
+    as :func:`numpy.median` would, in a fraction of its time on 29 MP.
+    """
+    if img.dtype.kind == "u" and img.dtype.itemsize <= 2:
+        hist = np.bincount(img.ravel(), minlength=1)
+        bg = _hist_median(hist, 0)
+        below = hist[:int(bg) + 1][::-1]  # counts of bg - value = 0, 1, 2, ... (bg rounds down)
+        mad = _hist_median(below, bg - int(bg)) if below.sum() else 1.0 / 1.4826
+        return bg, 1.4826 * mad
+    img = np.asarray(img, dtype=np.float64)
     bg = float(np.median(img))
     low = img[img <= bg]
-    sig_px = 1.4826 * float(np.median(bg - low)) if len(low) else 1.0  # MAD of the lower half
-    v = img.ravel()[cells.pixels] - bg
-    weights = (v, v * cells.wx, v * (1 - cells.wx), v * cells.wy, v * (1 - cells.wy))
-    sums = np.stack([np.bincount(cells.lenslet, weights=w, minlength=cells.n_lenslets) for w in weights], axis=-1)
-    return sums, max(sig_px, 1e-3) * float(np.sqrt(cells.npix_median))
+    return bg, 1.4826 * float(np.median(bg - low)) if len(low) else 1.0
+
+
+def _hist_median(hist: np.ndarray, offset: float) -> float:
+    """Median of the values ``offset + i`` taken ``hist[i]`` times (mean of the two middle ones
+    for an even count, as :func:`numpy.median`)."""
+    n = int(hist.sum())
+    cum = np.cumsum(hist)
+    lo = int(np.searchsorted(cum, (n - 1) // 2, side="right"))  # the value at sorted index (n-1)//2
+    hi = int(np.searchsorted(cum, n // 2, side="right"))
+    return offset + 0.5 * (lo + hi)
 
 
 def detect_dots(frame: np.ndarray, grid: MlaGrid, *, threshold_sigma: float = 8.0, min_lenslets: int = 2,

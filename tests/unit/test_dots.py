@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.dots import detect_dots, lenslet_cells
+from calibration.dots import detect_dots, lenslet_cells, lenslet_sums
 from calibration.mla_grid import detect_grid
 from lfcore.white import WhiteImageConfig, white_image, white_irradiance
 from tests.conftest import tiny_variant
@@ -68,3 +68,26 @@ def test_two_overlapping_dots_part_at_the_valley_and_a_faint_fragment_is_left_ou
     assert np.allclose(found, [a, b], atol=3.0)
     assert dots.flux[0] == pytest.approx(dots.flux[1], rel=0.05)
     assert len(detect_dots(frame, lattice[0], cells=lattice[2], min_flux_fraction=0.0)) == 3
+
+
+def test_camera_frames_give_the_sums_and_noise_of_float_frames(lattice):
+    # uint16 frames take the background and its noise from a histogram, other frames from
+    # numpy.median: the two must agree exactly
+    frame, _ = _frame(lattice, _disc(np.array([300.0, 200.0]), 40, 3000))
+    counts = np.round(frame).astype(np.uint16)
+    cam = lenslet_sums(counts, lattice[0], lattice[2])
+    flt = lenslet_sums(counts.astype(np.float64), lattice[0], lattice[2])
+    assert cam[1] == flt[1] > 0
+    np.testing.assert_allclose(cam[0], flt[0], rtol=0, atol=1e-9 * np.abs(flt[0]).max())
+    # the halves of each axis add up to the whole
+    np.testing.assert_allclose(cam[0][:, 1] + cam[0][:, 2], cam[0][:, 0], atol=1e-6)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 10, 1001, 4096])
+def test_the_histogram_median_and_noise_are_numpys(n):
+    from calibration.dots import _background
+
+    img = np.random.default_rng(n).poisson(60.0, (1, n)).astype(np.uint16)
+    f = img.astype(np.float64)
+    bg = np.median(f)
+    assert _background(img) == pytest.approx((bg, 1.4826 * np.median(bg - f[f <= bg])), abs=1e-12)
