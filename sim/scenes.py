@@ -50,7 +50,7 @@ def white_scene(rig: Rig, config: WhiteImageConfig | None = None) -> tuple[Calla
 
 
 def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, board: DotBoard | None = None,
-                     points_per_dot: int = 300, rays_per_point: int = 32, dot_counts: float = 1.5e6, seed: int = 0,
+                     points_per_dot: int = 300, rays_per_point: int = 256, dot_counts: float = 1.5e6, seed: int = 0,
                      device: str | None = None) -> tuple[Callable[[int], np.ndarray], object]:
     """The calibration target (white dots on a matt black board) with its origin dot at world z = ``z_mm``.
 
@@ -60,8 +60,12 @@ def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, 
     ``z_mm``). Default: an untilted board ``spacing_mm`` apart (default 3 mm, the chapter's
     board, or a quarter of the volume's smaller transverse size for small rigs) centred on the
     volume centre. Each dot is a disc of ``points_per_dot`` points (scaled with its area) through
-    the light-field renderer, few rays each. The points come in pairs mirrored about the dot
-    centre, so every dot's light is centred exactly on it (a board printed without error).
+    the light-field renderer, ``rays_per_point`` rays each. The points come in pairs mirrored
+    about the dot centre, so every dot's light is centred exactly on it (a board printed without
+    error). A defocused dot spreads over thousands of pixels, so too few rays give it a grainy
+    image no real dot has: on the 29 MP example rig (11 planes), 32 rays a point left the fit
+    RMS at 0.28 / 0.37 px (cam0 / cam1) with cam1's depth 0.07 mm off, 256 gave 0.17 / 0.27 px
+    and 0.014 mm, for about 2.6 s more rendering per frame on a 2-core CPU.
 
     Returns
     -------
