@@ -32,32 +32,23 @@ def _count(pairs: list[int]) -> str:
     return f"{len(pairs)} pair(s) ({span})"
 
 
-def _is_calibration(path: str) -> bool:
-    """Whether ``path`` holds a calibration store (its root names the format)."""
-    import json
-    from pathlib import Path
-
-    from calibration.store import FORMAT
-
-    try:
-        meta = json.loads((Path(path) / "zarr.json").read_text())
-    except (OSError, ValueError):
-        return False  # the run store's open says what is wrong
-    return isinstance(meta, dict) and meta.get("attributes", {}).get("format") == FORMAT
-
-
 def run(args: argparse.Namespace) -> int:
     from lfcore.mla import lenslet_count
-    from lfcore.runstore import RunStore
+    from lfcore.runstore import RunStore, RunStoreError
     from lfcore.volume import VolumeGrid
 
-    if _is_calibration(args.run):
-        from calibration.store import CalibrationStore
+    try:
+        store = RunStore.open(args.run)
+    except RunStoreError as not_a_run:
+        from calibration.store import CalibrationStore, CalibrationStoreError
 
-        for line in CalibrationStore.open(args.run).summary():
+        try:
+            calibration = CalibrationStore.open(args.run)
+        except CalibrationStoreError:
+            raise not_a_run from None
+        for line in calibration.summary():
             print(line)
         return 0
-    store = RunStore.open(args.run)
     a = store.attrs
     rig = store.rig
     t = store.timing
