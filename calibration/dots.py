@@ -36,7 +36,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from calibration.mla_grid import MlaGrid
+from calibration.mla_grid import MlaGrid, pixels_by_nearest_centre
 
 __all__ = ["VIEW_PUPILS", "DotError", "Dots", "LensletCells", "detect_dots", "lenslet_cells", "lenslet_sums",
            "match_dots", "view_pupils_mm"]
@@ -123,29 +123,21 @@ class LensletCells:
 
 def lenslet_cells(grid: MlaGrid) -> LensletCells:
     """The cells (radius 0.6 pitch about each fitted lattice node of ``grid``) of every pixel."""
-    rows, cols = grid.image_shape
     nodes = grid.lattice_px()
-    tree = cKDTree(nodes)
     pixels, lenslet, wx, wy = [], [], [], []
-    step = max(1, 4_000_000 // cols)
-    for r0 in range(0, rows, step):
-        r, c = np.mgrid[r0:min(rows, r0 + step), 0:cols]
-        xy = np.stack([c.ravel() + 0.5, r.ravel() + 0.5], axis=-1)
-        dist, idx = tree.query(xy, distance_upper_bound=0.6 * grid.pitch_px, workers=-1)
-        ok = np.isfinite(dist)
+    for px, d, idx in pixels_by_nearest_centre(grid.image_shape, nodes, 0.6 * grid.pitch_px):
         # Pupil halves: a pixel delta (column, row) from its micro-image centre sees the
         # aperture point A = -(si / f_ml) delta_sensor, so A_x > 0 for columns right of the
         # centre and A_y > 0 above it (row = Nr/2 + y / pixel); a pixel on the dividing line is
         # shared by its fraction on each side.
-        d = xy[ok] - nodes[idx[ok]]
-        pixels.append(r0 * cols + np.flatnonzero(ok))
-        lenslet.append(idx[ok].astype(np.int32))
+        pixels.append(px)
+        lenslet.append(idx.astype(np.int32))
         wx.append(np.clip(d[:, 0] + 0.5, 0.0, 1.0).astype(np.float32))
         wy.append(np.clip(0.5 - d[:, 1], 0.0, 1.0).astype(np.float32))
     lens = np.concatenate(lenslet)
     npix = np.bincount(lens, minlength=len(nodes))
-    return LensletCells((rows, cols), np.concatenate(pixels), lens, np.concatenate(wx), np.concatenate(wy),
-                        len(nodes), float(np.median(npix)))
+    return LensletCells(tuple(grid.image_shape), np.concatenate(pixels), lens, np.concatenate(wx),
+                        np.concatenate(wy), len(nodes), float(np.median(npix)))
 
 
 def lenslet_sums(frame: np.ndarray, grid: MlaGrid, cells: LensletCells | None = None) -> tuple[np.ndarray, float]:

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -42,7 +43,7 @@ from scipy.spatial import cKDTree
 from lfcore.rig import Camera
 from lfcore.white import micro_image_scale
 
-__all__ = ["GridError", "MlaGrid", "check_white", "detect_grid"]
+__all__ = ["GridError", "MlaGrid", "check_white", "detect_grid", "pixels_by_nearest_centre"]
 
 #: Angle between the two basis vectors of each lattice, degrees.
 _BASIS_ANGLE = {"hex": 60.0, "square": 90.0}
@@ -236,18 +237,44 @@ def _cell_normalised(img: np.ndarray, flat: np.ndarray, centres: np.ndarray, pit
     rr = np.clip(np.rint(centres[:, None, 1] - 0.5 + dr[keep][None]).astype(int), 0, rows - 1)
     level = np.median(img[rr, cc], axis=1)
     level = np.maximum(level, 0.05 * np.median(level))
-    out = flat.copy()
+    out = flat.copy().reshape(-1)
+    for pixels, _, idx in pixels_by_nearest_centre(img.shape, centres, 0.75 * pitch):
+        out[pixels] = img.reshape(-1)[pixels] / level[idx]
+    return out.reshape(rows, cols)
+
+
+def pixels_by_nearest_centre(shape: tuple[int, int], centres: np.ndarray, max_distance_px: float
+                             ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The pixels of an image within ``max_distance_px`` of a micro-image centre, and which
+    centre is nearest, a block of rows at a time (a 29 MP image at once would take gigabytes).
+
+    Parameters
+    ----------
+    shape
+        (rows, columns) of the image.
+    centres
+        (n, 2) micro-image centres, continuous (column, row) pixel coordinates.
+    max_distance_px
+        Pixels whose centre is farther than this from every micro-image centre are left out.
+
+    Yields
+    ------
+    pixels : numpy.ndarray
+        (m,) int64 flat indices into the image of the block's pixels that have a centre.
+    offsets : numpy.ndarray
+        (m, 2) float64 (column, row) of each such pixel's centre minus its micro-image centre.
+    nearest : numpy.ndarray
+        (m,) int64 index into ``centres`` of that micro-image centre.
+    """
+    rows, cols = shape
     tree = cKDTree(centres)
     step = max(1, 4_000_000 // cols)
     for r0 in range(0, rows, step):
         pr, pc = np.mgrid[r0:min(rows, r0 + step), 0:cols]
         xy = np.stack([pc.ravel() + 0.5, pr.ravel() + 0.5], axis=-1)
-        dist, idx = tree.query(xy, distance_upper_bound=0.75 * pitch, workers=-1)
+        dist, idx = tree.query(xy, distance_upper_bound=max_distance_px, workers=-1)
         ok = np.isfinite(dist)
-        block = out[r0:r0 + pr.shape[0]].reshape(-1)
-        block[ok] = img[r0:r0 + pr.shape[0]].reshape(-1)[ok] / level[idx[ok]]
-        out[r0:r0 + pr.shape[0]] = block.reshape(pr.shape)
-    return out
+        yield r0 * cols + np.flatnonzero(ok), xy[ok] - centres[idx[ok]], idx[ok]
 
 
 def _candidates(flat: np.ndarray, pitch: float) -> np.ndarray:
