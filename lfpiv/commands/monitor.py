@@ -153,8 +153,8 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
 
         def interrupt(*_: object) -> None:
             # Only noted here: tick() closes the window from the event loop. A signal handler
-            # runs between any two bytecodes of the main thread, often inside a paint event,
-            # and destroying the widgets being painted crashed Qt (SIGABRT, none_dealloc).
+            # runs between any two bytecodes of the main thread, possibly inside a paint
+            # event, where destroying the widgets being painted is unsafe.
             interrupted.append("signal")
 
         previous_int = signal.signal(signal.SIGINT, interrupt)
