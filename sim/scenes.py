@@ -49,8 +49,12 @@ def white_scene(rig: Rig, config: WhiteImageConfig | None = None) -> tuple[Calla
     return scene, ("white", config)
 
 
+#: The turn between consecutive points of a sunflower spiral, radians (pi (3 - sqrt 5)).
+_GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
+
+
 def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, board: DotBoard | None = None,
-                     points_per_dot: int = 300, rays_per_point: int = 256, dot_counts: float = 1.5e6, seed: int = 0,
+                     points_per_dot: int = 2048, rays_per_point: int = 32, dot_counts: float = 1.5e6, seed: int = 0,
                      device: str | None = None) -> tuple[Callable[[int], np.ndarray], object]:
     """The calibration target (white dots on a matt black board) with its origin dot at world z = ``z_mm``.
 
@@ -60,12 +64,12 @@ def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, 
     ``z_mm``). Default: an untilted board ``spacing_mm`` apart (default 3 mm, the chapter's
     board, or a quarter of the volume's smaller transverse size for small rigs) centred on the
     volume centre. Each dot is a disc of ``points_per_dot`` points (scaled with its area) through
-    the light-field renderer, ``rays_per_point`` rays each. The points come in pairs mirrored
-    about the dot centre, so every dot's light is centred exactly on it (a board printed without
-    error). A defocused dot spreads over thousands of pixels, so too few rays give it a grainy
-    image no real dot has: on the 29 MP example rig (11 planes), 32 rays a point left the fit
-    RMS at 0.28 / 0.37 px (cam0 / cam1) with cam1's depth 0.07 mm off, 256 gave 0.17 / 0.27 px
-    and 0.014 mm, for about 2.6 s more rendering per frame on a 2-core CPU.
+    the light-field renderer, ``rays_per_point`` rays each. The points lie on a sunflower spiral
+    and come in pairs mirrored about the dot centre, so every dot's light is centred exactly on
+    it (a board printed without error) and spread evenly over it (random points left a dot in
+    sharp focus a few points per lenslet, grainy enough to split it in two). A defocused dot
+    spreads over thousands of pixels, so too few rays in all give it a grainy image no real dot
+    has; 2048 points of 32 rays cost about as much as the 300 of 256 of before.
 
     Returns
     -------
@@ -86,15 +90,23 @@ def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, 
                                stage_centre_mm=0.0)
     centres = here.dot_centres(ij, 0.0)
     e1, e2, _ = board.axes
-    rng = np.random.default_rng(derive_seed(seed, 0xD075))
+    # Every plane draws its own points, rays and noise, as every real frame has its own: with
+    # one seed for all, the errors of a dot that stays put in the image (a camera looking along
+    # the stage's travel) repeated on every plane and did not average out in the fit.
+    plane_key = int(np.float64(z_mm).view(np.uint64))
+    rng = np.random.default_rng(derive_seed(seed, 0xD075, plane_key))
     marker = np.all(ij == 0, axis=1)
     pts = []
     per_point = dot_counts / points_per_dot  # equal surface brightness: the marker gets more points
     for c, big in zip(centres, marker, strict=True):
         scale = board.marker_scale if big else 1.0
         half = max(1, int(round(0.5 * points_per_dot * scale**2)))
-        r = board.radius_mm * scale * np.sqrt(rng.random(half))
-        a = 2 * np.pi * rng.random(half)
+        # A sunflower (Vogel) spiral, turned at random per dot, spreads the points evenly over
+        # the disc: in focus each lenslet images a patch of the dot, and random points left
+        # those patches a few points each, so the image was grainy enough to split a dot in two.
+        k = np.arange(half)
+        r = board.radius_mm * scale * np.sqrt((k + 0.5) / half)
+        a = _GOLDEN_ANGLE * k + 2 * np.pi * rng.random()
         d = (r * np.cos(a))[:, None] * e1 + (r * np.sin(a))[:, None] * e2
         pts.append(np.concatenate([c + d, c - d]))
     pts = np.concatenate(pts)
@@ -102,6 +114,6 @@ def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, 
 
     def scene(ci: int) -> np.ndarray:
         rend = LightFieldRenderer(rig.camera[ci], render, rig.laser.wavelength_nm, device)
-        return rend.frame(pts, per_point, seed=derive_seed(seed, 0xD075, ci))
+        return rend.frame(pts, per_point, seed=derive_seed(seed, 0xD075, plane_key, ci))
 
     return scene, ("dots", round(float(z_mm), 6), board, points_per_dot, rays_per_point, dot_counts, seed)
