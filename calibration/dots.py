@@ -9,7 +9,8 @@ flux-weighted mean of the micro-image centres of the lenslets it lights is where
 dot counts (not only the central sub-aperture's), so Monte-Carlo and shot noise average out.
 
 1. Lenslet sums over cells of radius 0.6 pitch about the fitted lattice nodes of the white image
-   (:class:`calibration.mla_grid.MlaGrid`); background: the frame's median pixel.
+   (:class:`calibration.mla_grid.MlaGrid`); background: the frame's median pixel, corrected by
+   the mean of the lenslets far from any lit one (lit pixels raise the median).
 2. Lenslets brighter than ``threshold_sigma`` noise sigmas; each climbs the sums (smoothed over
    its lattice neighbours, in lattice index space: six on a hexagonal grid, eight on a square
    one) to a local maximum, so the faint overlap of two defocused dots is split at its valley.
@@ -18,7 +19,8 @@ dot counts (not only the central sub-aperture's), so Monte-Carlo and shot noise 
    noise on the top of a dot many lenslets wide does not split it; maxima closer than
    ``min_separation`` pitches are merged too, and groups with under ``min_flux_fraction`` of a
    dot's light (the tips of defocused dots) are left out.
-3. Each dot's flux-weighted centroid over its lenslets, also with each lenslet's light split
+3. Each dot's flux-weighted centroid over a disc of lenslets centred on it that holds its faint
+   rim below the threshold too (see :func:`_window_centroids`), also with each lenslet's light split
    between the halves of the main-lens aperture (each pixel of a micro-image sees one aperture
    point): the views through opposite halves disagree in proportion to the dot's defocus. Dots
    touching the edge of the detected lattice are dropped (a cut dot's centroid is biased).
@@ -37,9 +39,10 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from calibration.mla_grid import MlaGrid, pixels_by_nearest_centre
+from lfcore.rig import Camera
 
-__all__ = ["VIEW_PUPILS", "DotError", "Dots", "LensletCells", "detect_dots", "lenslet_cells", "lenslet_sums",
-           "match_dots", "view_pupils_mm"]
+__all__ = ["VIEW_PUPILS", "DotError", "Dots", "LensletCells", "ViewGeometry", "detect_dots", "lenslet_cells",
+           "lenslet_sums", "match_dots", "view_geometry", "view_pupils_mm"]
 
 #: The views a dot is centred in, as the mean aperture point of the light each takes, in units
 #: of 4 R / (3 pi) (the centroid of a half disc of radius R): all the light (the chief ray),
@@ -48,8 +51,85 @@ VIEW_PUPILS = np.array([[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -
 
 
 def view_pupils_mm(aperture_mm: float) -> np.ndarray:
-    """(views, 2) mean aperture point (camera-frame x, y, mm) of each view, for aperture diameter D."""
+    """(views, 2) mean aperture point (camera-frame x, y, mm) of each view, for aperture diameter D,
+    if each pixel saw only its own micro-image (see :func:`view_geometry` for what the views see)."""
     return VIEW_PUPILS * 4.0 * (0.5 * aperture_mm) / (3.0 * np.pi)
+
+
+@dataclass(frozen=True)
+class ViewGeometry:
+    """What each view of :data:`VIEW_PUPILS` sees, as :func:`lenslet_sums` forms it.
+
+    Attributes
+    ----------
+    pupils_mm : numpy.ndarray
+        (views, 2) light-weighted mean aperture point (camera-frame x, y, mm) of each view.
+    offsets_px : numpy.ndarray
+        (views, 2) mean displacement (column, row) of a view's light from where its rays meet
+        the MLA, pixels: the light of one micro-image counted in a neighbour's cell is placed at
+        the neighbour's centre.
+    """
+
+    pupils_mm: np.ndarray
+    offsets_px: np.ndarray
+
+
+def view_geometry(camera: Camera, wavelength_nm: float = 532.0, samples: int = 1_000_000, seed: int = 0
+                  ) -> ViewGeometry:
+    """The views of a dot as the dot finder forms them, for ``camera``'s optics (Monte Carlo).
+
+    Where the main lens' image-side f-number matches the lenslets', micro-images touch: the
+    light of a micro-image's rim (the aperture's edge) falls in pixels nearer a neighbour's
+    centre, or is blurred into them by the lenslet's diffraction (sigma 0.42 lambda N, as
+    :mod:`lfcore.render`). That light counts in the neighbour's cell, on the opposite half of
+    the aperture, so each half view sees a smaller mean aperture point than the half disc's
+    4 R / (3 pi), and is displaced by a fraction of a pitch. On the 29 MP example camera
+    (f/4 lenslets, 14 pixels across) that is 4-6 % less parallax and 0.13-0.15 px: fitted with
+    the half disc's instead, 51 simulated planes put the focal planes 8.5 and 10.8 um off (1.5
+    and 0.3 um with these).
+
+    Rays from every aperture point enter lenslets at uniformly spread points (a dot blurred
+    over many lenslets), reach the sensor, and are counted as :func:`lenslet_sums` counts them.
+
+    Parameters
+    ----------
+    camera
+        The camera.
+    wavelength_nm
+        Wavelength of the target's light, for the diffraction blur.
+    samples
+        Rays traced.
+    seed
+        Seed of the rays (fixed: the same camera gives the same geometry).
+    """
+    from lfcore.mla import nearest_lenslet, pixel_to_sensor, sensor_to_pixel
+
+    rng = np.random.default_rng(seed)
+    si, fml = camera.image_distance_mm, camera.mla_focal_length_mm
+    k = 1.0 + fml / si
+    r = 0.5 * camera.aperture_mm * np.sqrt(rng.random(samples))
+    t = 2.0 * np.pi * rng.random(samples)
+    a = np.stack([r * np.cos(t), r * np.sin(t)], axis=-1)
+    # MLA points over the whole sensor: the micro-images' phase on the pixel grid drifts over the
+    # field (a pitch of 14.01 pixels comes back in step every 92 lenslets), and with it the
+    # light lost to neighbours (by up to 7 %); the fit takes the mean over the field
+    half = 0.5 * np.array(camera.sensor_px) * camera.pixel_mm / (1.0 + camera.mla_focal_length_mm / si)
+    q = (rng.random((samples, 2)) - 0.5) * (2.0 * half)
+    c = nearest_lenslet(camera, q)
+    blur = 0.42 * wavelength_nm * 1e-6 * camera.lenslet_f_number
+    x = c + fml * (q - a) / si + blur * rng.standard_normal((samples, 2))  # the renderer's ray, on the sensor
+    pix = np.floor(sensor_to_pixel(camera, x)) + 0.5
+    cell = nearest_lenslet(camera, pixel_to_sensor(camera, pix) / k)  # the micro-image the pixel is counted in
+    d = pix - sensor_to_pixel(camera, k * cell)
+    wx, wy = np.clip(d[:, 0] + 0.5, 0.0, 1.0), np.clip(0.5 - d[:, 1], 0.0, 1.0)  # as lenslet_cells
+    moved = sensor_to_pixel(camera, k * cell) - sensor_to_pixel(camera, k * c)
+    pupils, offsets = [], []
+    for w in (np.ones(samples), wx, 1.0 - wx, wy, 1.0 - wy):
+        pupils.append(w @ a / w.sum())
+        offsets.append(w @ moved / w.sum())
+    pupils_mm, offsets_px = np.array(pupils), np.array(offsets)
+    pupils_mm[0] = offsets_px[0] = 0.0  # all the light: centred on the chief ray (by symmetry)
+    return ViewGeometry(pupils_mm, offsets_px)
 
 #: Lattice adjacency in (n1, n2) index space; a hexagonal basis has a1 and a2 60 degrees apart,
 #: so a2 - a1 is also a neighbour, a1 + a2 is not.
@@ -110,6 +190,9 @@ class LensletCells:
         Number of lattice nodes.
     npix_median : float
         Median number of pixels per cell.
+    view_pixels : numpy.ndarray
+        (n_lenslets, 5) pixels of each cell in each view of :data:`VIEW_PUPILS` (fractions
+        counted): what a background error of one count per pixel adds to each lenslet sum.
     """
 
     image_shape: tuple[int, int]
@@ -119,6 +202,7 @@ class LensletCells:
     wy: np.ndarray
     n_lenslets: int
     npix_median: float
+    view_pixels: np.ndarray
 
 
 def lenslet_cells(grid: MlaGrid) -> LensletCells:
@@ -135,9 +219,10 @@ def lenslet_cells(grid: MlaGrid) -> LensletCells:
         wx.append(np.clip(d[:, 0] + 0.5, 0.0, 1.0).astype(np.float32))
         wy.append(np.clip(0.5 - d[:, 1], 0.0, 1.0).astype(np.float32))
     lens = np.concatenate(lenslet)
-    npix = np.bincount(lens, minlength=len(nodes))
-    return LensletCells(tuple(grid.image_shape), np.concatenate(pixels), lens, np.concatenate(wx),
-                        np.concatenate(wy), len(nodes), float(np.median(npix)))
+    wx_all, wy_all = np.concatenate(wx), np.concatenate(wy)
+    npix, nx, ny = (np.bincount(lens, weights=w, minlength=len(nodes)) for w in (None, wx_all, wy_all))
+    return LensletCells(tuple(grid.image_shape), np.concatenate(pixels), lens, wx_all, wy_all, len(nodes),
+                        float(np.median(npix)), np.stack([npix, nx, npix - nx, ny, npix - ny], axis=-1))
 
 
 def lenslet_sums(frame: np.ndarray, grid: MlaGrid, cells: LensletCells | None = None) -> tuple[np.ndarray, float]:
@@ -208,7 +293,8 @@ def _hist_median(hist: np.ndarray, offset: float) -> float:
 
 def detect_dots(frame: np.ndarray, grid: MlaGrid, *, threshold_sigma: float = 8.0, min_lenslets: int = 2,
                 min_separation: float = 2.5, min_prominence: float = 0.35, min_flux_fraction: float = 0.1,
-                cells: LensletCells | None = None) -> Dots:
+                cells: LensletCells | None = None, window_margin: float | None = 0.2,
+                refine_background: bool = True) -> Dots:
     """Find every whole dot in a raw light-field frame and its centroid.
 
     Parameters
@@ -232,25 +318,46 @@ def detect_dots(frame: np.ndarray, grid: MlaGrid, *, threshold_sigma: float = 8.
         are left out: they are the tips of defocused dots too faint to find whole.
     cells
         :func:`lenslet_cells` of ``grid``, computed once for many frames (default: computed).
+    window_margin
+        Each dot is centred, in each view, over a disc of lenslets about its centroid (see
+        :func:`_window_centroids`) reaching past its farthest lit lenslet by this fraction of
+        that distance, and at least a pitch; None: over its lit lenslets only. Fitted on the
+        simulated 29 MP example (51 planes, ``lfpiv calibrate fit``), this default left the poses
+        0.0017 and 0.0035 degree off, a fixed margin of 2 pitches 0.0007 and 0.0031, of 1 pitch
+        0.0018 and 0.0050, the lit lenslets only 0.042; on the demo rig, whose dots are a few
+        lenslets across, the dark lenslets' noise made 2 pitches worse than 1.
+    refine_background
+        Correct the background (the frame's median) by the mean of the lenslets three rings or
+        more from every lit one.
 
     Returns
     -------
     Dots
-        Centroids in raw pixel coordinates, fluxes and sizes.
+        Centroids in raw pixel coordinates, fluxes and sizes (of the lit lenslets).
     """
+    cells = lenslet_cells(grid) if cells is None else cells
     allsums, sigma = lenslet_sums(frame, grid, cells)
-    sums = allsums[:, 0]
     n = grid.indices - grid.indices.min(axis=0)
     shape = tuple(n.max(axis=0) + 1)
     valid = np.zeros(shape, dtype=bool)
     valid[n[:, 0], n[:, 1]] = True
-    val = np.zeros(shape)
-    val[n[:, 0], n[:, 1]] = sums
     views = np.zeros((*shape, allsums.shape[1]))
     views[n[:, 0], n[:, 1]] = allsums
     pos = np.zeros((*shape, 2))
     pos[n[:, 0], n[:, 1]] = grid.lattice_px()
     adj = _HEX_ADJ if grid.grid == "hex" else _SQUARE_ADJ
+    # The frame's median pixel is the background only while few pixels are lit: the light of
+    # the dots (a tenth of the pixels of a plane with defocused dots) raises it by about a
+    # count, which summed over a lenslet's 150 pixels is a tenth of the threshold, and over
+    # the faint rim of a dot (below the threshold, but its light) pulls each view's centroid.
+    # The mean of the lenslets far from every lit one is the background's error.
+    npix = np.zeros_like(views)
+    npix[n[:, 0], n[:, 1]] = cells.view_pixels
+    bright = valid & (views[..., 0] > threshold_sigma * sigma)
+    dark = valid & ~ndimage.binary_dilation(bright, adj, iterations=3)
+    if refine_background and dark.sum() >= max(16, 0.05 * valid.sum()):
+        views -= (views[dark, 0].sum() / npix[dark, 0].sum()) * npix
+    val = views[..., 0]
     border = valid & ~ndimage.binary_erosion(valid, adj, border_value=0)
     lit = valid & (val > threshold_sigma * sigma)
     # Split touching dots where a valley separates them. Each lit lenslet climbs the smoothed
@@ -325,8 +432,68 @@ def detect_dots(frame: np.ndarray, grid: MlaGrid, *, threshold_sigma: float = 8.
         good &= total >= min_flux_fraction * typical
     centres = num[good] / den[good][:, :, None]
     flux, size = total[good], size[good]
+    if good.any() and window_margin is not None:
+        owner_of = np.full(sm.size, -1, dtype=np.int64)
+        owner_of[lit_flat] = label
+        dot_idx = np.flatnonzero(good)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c0 = num[:, 0] / den[:, 0, None]
+        reach = np.zeros(len(kept))  # the farthest lit lenslet of each dot from its centroid
+        np.maximum.at(reach, inv, np.hypot(*(p - c0[inv]).T))
+        # a more blurred dot has a wider rim below the threshold: the margin grows with the dot
+        radius = reach[dot_idx] + np.maximum(grid.pitch_px, window_margin * reach[dot_idx])
+        centres = _window_centroids(centres, radius, kept[dot_idx], views.reshape(-1, views.shape[-1]), posf,
+                                    valid.ravel(), owner_of)
     return Dots(np.asarray(centres, dtype=np.float64).reshape(-1, len(VIEW_PUPILS), 2),
                 np.asarray(flux, dtype=np.float64), np.asarray(size, dtype=np.int64))
+
+
+def _window_centroids(start: np.ndarray, radius: np.ndarray, dots: np.ndarray, views: np.ndarray, pos: np.ndarray,
+                      valid: np.ndarray, owner: np.ndarray, iterations: int = 3) -> np.ndarray:
+    """Centroids of each dot in each view over a disc of lenslets centred on that centroid.
+
+    A disc symmetric about the centroid holds all of a dot's light, its faint rim included
+    (which a threshold cuts off, more on the more defocused far side of a dot on a tilted
+    board, pulling the centroid to the near side and shrinking the parallax between views),
+    and a uniform background error adds light centred on the centroid, which does not move it.
+
+    Parameters
+    ----------
+    start
+        (m, views, 2) centroids over the lit lenslets, pixels.
+    radius
+        (m,) disc radius of each dot, pixels.
+    dots
+        (m,) label of each dot in ``owner``.
+    views
+        (lenslets, views) sums; ``pos``: (lenslets, 2) micro-image centres, pixels; ``valid``:
+        (lenslets,) bool, on the lattice (flat lattice index).
+    owner
+        (lenslets,) label of the dot whose lit lenslet it is, -1 if none: other dots' lit
+        lenslets are left out of a disc.
+    iterations
+        Re-centrings of the discs.
+
+    Returns
+    -------
+    numpy.ndarray
+        (m, views, 2) centroids, pixels.
+    """
+    on = np.flatnonzero(valid)
+    tree = cKDTree(pos[on])
+    out = np.array(start, dtype=np.float64)
+    for i, (lab, r) in enumerate(zip(dots, radius, strict=True)):
+        for _ in range(iterations):
+            # one query covers every view's disc: the views part by the parallax, within the dot
+            spread = float(np.hypot(*(out[i] - out[i, 0]).T).max())
+            cand = on[tree.query_ball_point(out[i, 0], r + spread)]
+            cand = cand[(owner[cand] < 0) | (owner[cand] == lab)]
+            for v in range(out.shape[1]):
+                sel = cand[np.hypot(*(pos[cand] - out[i, v]).T) <= r]
+                w = views[sel, v]
+                if w.sum() > 0:
+                    out[i, v] = (w[:, None] * pos[sel]).sum(axis=0) / w.sum()
+    return out
 
 
 def _regions(sm: np.ndarray, lit: np.ndarray, adj: np.ndarray, min_prominence: float) -> np.ndarray:

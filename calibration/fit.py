@@ -16,7 +16,9 @@ and optionally a radial distortion k1 (:func:`lfcore.projection.project`).
 
 Residuals, in pixels: found minus projected dot centroids (:func:`lfcore.projection.project`,
 independent of the MLA) in the chief-ray view and the four half-aperture views (their parallax
-fixes the depth of the focal plane, so the magnification), and measured micro-image centres minus the model's nearest
+fixes the depth of the focal plane, so the magnification; each view's mean aperture point and
+displacement are those :func:`calibration.dots.view_geometry` finds for the optics, since light
+crosses between touching micro-images), and measured micro-image centres minus the model's nearest
 micro-image centre (k times the nearest lenslet centre, :mod:`lfcore.white`), which fix the
 MLA's offset and rotation. The two blocks share only the micro-image scale k = 1 + f_ml / si.
 Dots further than 5 robust sigmas from the first fit (misnamed or merged) are dropped and the
@@ -42,7 +44,7 @@ from pydantic import PrivateAttr
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from calibration.dots import view_pupils_mm
+from calibration.dots import view_geometry
 from calibration.mla_grid import MlaGrid
 from lfcore.mla import nearest_lenslet, pixel_to_sensor, sensor_to_pixel
 from lfcore.projection import chief_ray_mla, defocus_radius_mm, image_scale, project
@@ -238,7 +240,8 @@ def clear_dots(camera: Camera, board: DotBoard, indices: np.ndarray, stage_mm: f
 def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], grid: MlaGrid | None = None, *,
                n_planes: int | None = None, fit_distortion: bool = False, max_lattice_points: int = 600,
                outlier_sigma: float = 5.0, min_blur_lenslets: float = 0.75, min_gap_lenslets: float = 0.25,
-               max_overlap_lenslets: float = -0.5, biased_weight: float = 0.2) -> CameraFit:
+               max_overlap_lenslets: float = -0.5, biased_weight: float = 0.2, wavelength_nm: float = 532.0
+               ) -> CameraFit:
     """Fit one camera's model to its named dots (and its white-image lattice).
 
     Parameters
@@ -270,6 +273,9 @@ def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], gr
         are left out, unless fewer than 8 dots on 2 planes would remain.
     biased_weight
         Weight of a biased dot's residuals (1: as a clear dot's).
+    wavelength_nm
+        Wavelength of the target's light (the lenslets' diffraction blur moves light between
+        neighbouring micro-images, see :func:`calibration.dots.view_geometry`).
 
     Raises
     ------
@@ -284,7 +290,7 @@ def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], gr
     n_planes = max(p.plane for p in planes) + 1 if n_planes is None else n_planes
     world = [board.dot_centres(p.indices, p.stage_mm) for p in planes]
     found = [np.asarray(p.views_px, dtype=np.float64) for p in planes]  # (m, views, 2) each
-    pupils = view_pupils_mm(nominal.aperture_mm)
+    views = view_geometry(nominal, wavelength_nm)  # what each view sees, for the nominal optics
     r0 = nominal.rotation
     f0 = np.asarray(nominal.focus_mm)
     mla0 = grid.to_mla(nominal) if grid is not None else {"mla_offset_um": nominal.mla_offset_um,
@@ -311,8 +317,8 @@ def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], gr
         cam = camera_of(x)
         out = []
         for f, w, k in zip(found, world, keep, strict=True):
-            proj = np.stack([project(cam, w, radial_k1=x[10], pupil_mm=tuple(a)) for a in pupils], axis=1)
-            out.append((f - proj)[k])
+            proj = np.stack([project(cam, w, radial_k1=x[10], pupil_mm=tuple(a)) for a in views.pupils_mm], axis=1)
+            out.append((f - proj - views.offsets_px)[k])
         return out
 
     def lattice_residuals(x: np.ndarray) -> np.ndarray:

@@ -378,11 +378,11 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
             detected = _detected_dots(store, nominal)
             planes = _named_dots(store, nominal, board, detected, min_dots)
             grid = store.grid(nominal.name)
-            fit = fit_camera(nominal, board, planes, grid, n_planes=len(store.stage_mm(nominal.name)),
-                             fit_distortion=fit_distortion)
+            opts = {"n_planes": len(store.stage_mm(nominal.name)), "fit_distortion": fit_distortion,
+                    "wavelength_nm": rig.laser.wavelength_nm}  # the sim lights the target at the laser's
+            fit = fit_camera(nominal, board, planes, grid, **opts)
             planes = _named_dots(store, nominal, board, detected, min_dots, model=fit.camera)
-            fit = fit_camera(nominal, board, planes, grid, n_planes=len(store.stage_mm(nominal.name)),
-                             fit_distortion=fit_distortion)
+            fit = fit_camera(nominal, board, planes, grid, **opts)
         except FitError as exc:
             raise UsageError(str(exc)) from None
         fits.append(fit)

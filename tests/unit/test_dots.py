@@ -91,3 +91,80 @@ def test_the_histogram_median_and_noise_are_numpys(n):
     f = img.astype(np.float64)
     bg = np.median(f)
     assert _background(img) == pytest.approx((bg, 1.4826 * np.median(bg - f[f <= bg])), abs=1e-12)
+
+
+def test_a_dot_is_centred_on_all_its_light_including_the_rim_below_the_threshold(lattice):
+    # A defocused dot on a tilted board blurs more on its far side: a faint rim there, below
+    # the threshold, holds light the centroid needs. Bright dots over a quarter of the frame
+    # raise its median pixel above the background, which, summed over the dot's rim, biased the
+    # centroid as much again.
+    grid, disc, cells = lattice
+    nodes = grid.lattice_px()
+    a = np.array([250.0, 240.0])
+
+    def dot(xy):
+        d = xy - a
+        outer = np.where(d[:, 0] > 0, 110.0, 50.0)  # the rim reaches 80 px on +x, 20 px on -x
+        return 40.0 * np.clip((outer - np.hypot(*d.T)) / (outer - 30.0), 0.0, 1.0)
+
+    w = dot(nodes)
+    truth = (w[:, None] * nodes).sum(axis=0) / w.sum()
+    level = w + 40.0 * (nodes[:, 0] < 130)  # the bright block (cut by the frame's edge: no dot)
+    errors = []
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        img = np.full(disc.size, 100.0)
+        img[cells.pixels] += disc.ravel()[cells.pixels] * level[cells.lenslet]
+        img = (img + rng.normal(0.0, 3.0, img.size)).reshape(disc.shape)
+        row = []
+        for kw in ({}, {"window_margin": None, "refine_background": False}, {"window_margin": None},
+                   {"refine_background": False}):
+            dots = detect_dots(img, grid, cells=cells, **kw)
+            assert len(dots) == 1
+            row.append(dots.centres_px[0] - truth)
+        errors.append(row)
+    e = np.array(errors)  # (seeds, variants, 2)
+    # centred on a disc about it: the pixel noise of the disc's dark lenslets (about 0.1 px), no bias
+    assert np.all(np.hypot(e[:, 0, 0], e[:, 0, 1]) < 0.25) and abs(e[:, 0, 0].mean()) < 0.1
+    # over the lit lenslets only, the rim is lost (toward -x) and the background error weighs too
+    assert np.all(e[:, 1, 0] < -1.0) and np.all(e[:, 2, 0] < -0.3)
+    # the disc is centred on the dot, so the background's error barely moves it
+    assert np.all(np.hypot(e[:, 3, 0], e[:, 3, 1]) < 0.25)
+
+
+def test_the_views_parallax_is_what_view_geometry_predicts_for_the_rendered_camera():
+    # Micro-images that touch (f-number matched) share their rims: the half views of rendered
+    # point sources, spread over a whole period of the micro-images' drift on the pixel grid,
+    # show the parallax of view_geometry's pupils, 4-6 % under the half disc's 4 R / (3 pi).
+    from calibration.dots import view_geometry, view_pupils_mm
+    from lfcore.projection import project
+    from lfcore.render import LightFieldRenderer
+    from lfpiv.rigfile import load_rig
+    from tests.conftest import EXAMPLES
+
+    rig = load_rig(EXAMPLES / "two_cameras.toml")
+    cam = rig.camera[0].model_copy(update={"sensor_px": (1400, 1300)})  # 7.7 mm: one drift period
+    grid = detect_grid(white_image(cam, rig.render, WhiteImageConfig(seed=1)))
+    geo = view_geometry(cam, rig.laser.wavelength_nm)
+    xs = np.linspace(-3.0, 3.0, 5)
+    pts = np.array([[x, y, z] for x in xs for y, z in ((-2.0, -2.0), (1.5, 2.0))])  # 1.4 mm apart at least
+    rend = LightFieldRenderer(cam, rig.render.model_copy(update={"rays_per_particle": 400_000,
+                                                                 "particle_diameter_um": 0.0}), rig.laser.wavelength_nm)
+    sums, _ = lenslet_sums(rend.irradiance(pts, 1e6, seed=2), grid)
+    nodes = grid.lattice_px()
+    found, model, naive = [], [], []
+    for p in pts:
+        chief = project(cam, p)
+        near = np.hypot(*(nodes - chief).T) < 100.0  # the blur disc is 45 px across
+        s = sums[near]
+        found.append((s[:, :, None] * nodes[near][:, None, :]).sum(axis=0) / s.sum(axis=0)[:, None])
+        model.append(np.stack([project(cam, p, pupil_mm=tuple(a)) for a in geo.pupils_mm]) + geo.offsets_px)
+        naive.append(np.stack([project(cam, p, pupil_mm=tuple(a)) for a in view_pupils_mm(cam.aperture_mm)]))
+    found, model, naive = (np.array(v)[:, 1:] - np.array(v)[:, :1] for v in (found, model, naive))  # parallax
+
+    def ratio(a, b):
+        return float(np.sum(a * b) / np.sum(b * b))
+
+    print("parallax found / model", ratio(found, model), "found / half disc", ratio(found, naive))
+    assert ratio(found, model) == pytest.approx(1.0, abs=0.01)
+    assert ratio(found, naive) < 0.96

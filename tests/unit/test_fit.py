@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibration.dots import view_pupils_mm
+from calibration.dots import view_geometry
 from calibration.fit import PlaneDots, fit_camera, rotation_deg_from_matrix
 from lfcore.projection import project
 from lfcore.rig import rotation_angle_deg
@@ -20,9 +20,10 @@ def _planes(cam, board, stages):
     cols, rows = cam.sensor_px
     ij = board.indices(8)
     out = []
+    geo = view_geometry(cam)
     for k, z in enumerate(stages):
         views = np.stack([project(cam, board.dot_centres(ij, z), pupil_mm=tuple(a))
-                          for a in view_pupils_mm(cam.aperture_mm)], axis=1)
+                          for a in geo.pupils_mm], axis=1) + geo.offsets_px
         ok = np.all(np.isfinite(views), axis=(1, 2)) & np.all((views[..., 0] > 20) & (views[..., 0] < cols - 20)
                                                              & (views[..., 1] > 20) & (views[..., 1] < rows - 20),
                                                              axis=1)
