@@ -482,17 +482,22 @@ def _window_centroids(start: np.ndarray, radius: np.ndarray, dots: np.ndarray, v
     on = np.flatnonzero(valid)
     tree = cKDTree(pos[on])
     out = np.array(start, dtype=np.float64)
-    for i, (lab, r) in enumerate(zip(dots, radius, strict=True)):
-        for _ in range(iterations):
-            # one query covers every view's disc: the views part by the parallax, within the dot
-            spread = float(np.hypot(*(out[i] - out[i, 0]).T).max())
-            cand = on[tree.query_ball_point(out[i, 0], r + spread)]
-            cand = cand[(owner[cand] < 0) | (owner[cand] == lab)]
-            for v in range(out.shape[1]):
-                sel = cand[np.hypot(*(pos[cand] - out[i, v]).T) <= r]
-                w = views[sel, v]
-                if w.sum() > 0:
-                    out[i, v] = (w[:, None] * pos[sel]).sum(axis=0) / w.sum()
+    m, nv = out.shape[:2]
+    for _ in range(iterations):
+        # one query a dot covers every view's disc: the views part by the parallax, within the dot
+        spread = np.hypot(*(out - out[:, :1]).transpose(2, 0, 1)).max(axis=1)
+        near = tree.query_ball_point(out[:, 0], radius + spread)
+        dot = np.repeat(np.arange(m), [len(c) for c in near])
+        cand = on[np.concatenate([np.asarray(c, dtype=np.int64) for c in near])]
+        mine = (owner[cand] < 0) | (owner[cand] == dots[dot])
+        dot, cand = dot[mine], cand[mine]
+        for v in range(nv):
+            inside = np.hypot(*(pos[cand] - out[dot, v]).T) <= radius[dot]
+            w = views[cand, v] * inside
+            total = np.bincount(dot, weights=w, minlength=m)
+            ok = total > 0
+            for c in (0, 1):
+                out[ok, v, c] = np.bincount(dot, weights=w * pos[cand, c], minlength=m)[ok] / total[ok]
     return out
 
 
