@@ -39,6 +39,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from calibration.mla_grid import MlaGrid, pixels_by_nearest_centre
+from lfcore.mla import nearest_lenslet, pixel_to_sensor, sensor_to_pixel
+from lfcore.projection import diffraction_sigma_mm
 from lfcore.rig import Camera
 
 __all__ = ["VIEW_PUPILS", "DotError", "Dots", "LensletCells", "ViewGeometry", "detect_dots", "lenslet_cells",
@@ -102,8 +104,6 @@ def view_geometry(camera: Camera, wavelength_nm: float = 532.0, samples: int = 1
     seed
         Seed of the rays (fixed: the same camera gives the same geometry).
     """
-    from lfcore.mla import nearest_lenslet, pixel_to_sensor, sensor_to_pixel
-
     rng = np.random.default_rng(seed)
     si, fml = camera.image_distance_mm, camera.mla_focal_length_mm
     k = 1.0 + fml / si
@@ -116,12 +116,11 @@ def view_geometry(camera: Camera, wavelength_nm: float = 532.0, samples: int = 1
     half = 0.5 * np.array(camera.sensor_px) * camera.pixel_mm / (1.0 + camera.mla_focal_length_mm / si)
     q = (rng.random((samples, 2)) - 0.5) * (2.0 * half)
     c = nearest_lenslet(camera, q)
-    blur = 0.42 * wavelength_nm * 1e-6 * camera.lenslet_f_number
+    blur = diffraction_sigma_mm(wavelength_nm, camera.lenslet_f_number)
     x = c + fml * (q - a) / si + blur * rng.standard_normal((samples, 2))  # the renderer's ray, on the sensor
     pix = np.floor(sensor_to_pixel(camera, x)) + 0.5
     cell = nearest_lenslet(camera, pixel_to_sensor(camera, pix) / k)  # the micro-image the pixel is counted in
-    d = pix - sensor_to_pixel(camera, k * cell)
-    wx, wy = np.clip(d[:, 0] + 0.5, 0.0, 1.0), np.clip(0.5 - d[:, 1], 0.0, 1.0)  # as lenslet_cells
+    wx, wy = _plus_halves(pix - sensor_to_pixel(camera, k * cell))  # as lenslet_cells splits them
     moved = sensor_to_pixel(camera, k * cell) - sensor_to_pixel(camera, k * c)
     pupils, offsets = [], []
     for w in (np.ones(samples), wx, 1.0 - wx, wy, 1.0 - wy):
@@ -205,19 +204,28 @@ class LensletCells:
     view_pixels: np.ndarray
 
 
+def _plus_halves(offsets_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fraction of each pixel on the +x and on the +y half of the main-lens aperture, from its
+    centre's (column, row) offset from its micro-image centre.
+
+    A pixel delta from its micro-image centre sees the aperture point A = -(si / f_ml)
+    delta_sensor, so A_x > 0 for columns right of the centre and A_y > 0 above it (row = Nr/2 +
+    y / pixel); a pixel on the dividing line is shared by its fraction on each side.
+    """
+    d = np.asarray(offsets_px)
+    return np.clip(d[..., 0] + 0.5, 0.0, 1.0), np.clip(0.5 - d[..., 1], 0.0, 1.0)
+
+
 def lenslet_cells(grid: MlaGrid) -> LensletCells:
     """The cells (radius 0.6 pitch about each fitted lattice node of ``grid``) of every pixel."""
     nodes = grid.lattice_px()
     pixels, lenslet, wx, wy = [], [], [], []
     for px, d, idx in pixels_by_nearest_centre(grid.image_shape, nodes, 0.6 * grid.pitch_px):
-        # Pupil halves: a pixel delta (column, row) from its micro-image centre sees the
-        # aperture point A = -(si / f_ml) delta_sensor, so A_x > 0 for columns right of the
-        # centre and A_y > 0 above it (row = Nr/2 + y / pixel); a pixel on the dividing line is
-        # shared by its fraction on each side.
         pixels.append(px)
         lenslet.append(idx.astype(np.int32))
-        wx.append(np.clip(d[:, 0] + 0.5, 0.0, 1.0).astype(np.float32))
-        wy.append(np.clip(0.5 - d[:, 1], 0.0, 1.0).astype(np.float32))
+        hx, hy = _plus_halves(d)
+        wx.append(hx.astype(np.float32))
+        wy.append(hy.astype(np.float32))
     lens = np.concatenate(lenslet)
     wx_all, wy_all = np.concatenate(wx), np.concatenate(wy)
     npix, nx, ny = (np.bincount(lens, weights=w, minlength=len(nodes)) for w in (None, wx_all, wy_all))

@@ -34,7 +34,8 @@ import numpy as np
 from lfcore.mla import sensor_to_pixel
 from lfcore.rig import Camera
 
-__all__ = ["chief_ray_mla", "defocus_radius_mm", "image_scale", "project", "sensor_radius_mm"]
+__all__ = ["chief_ray_mla", "defocus_radius_mm", "diffraction_sigma_mm", "image_scale", "project",
+           "sensor_radius_mm"]
 
 
 def sensor_radius_mm(camera: Camera) -> float:
@@ -68,6 +69,12 @@ def chief_ray_mla(camera: Camera, points_mm: np.ndarray) -> np.ndarray:
     """
     e, inv = _inverse_depth(camera, points_mm)
     return -camera.image_distance_mm * e[..., :2] * inv[..., None]
+
+
+def diffraction_sigma_mm(wavelength_nm: float, f_number: float) -> float:
+    """Sigma (mm) of the Gaussian that stands in for the Airy core of a lens working at
+    ``f_number``: 0.42 lambda N."""
+    return 0.42 * wavelength_nm * 1e-6 * f_number
 
 
 def defocus_radius_mm(camera: Camera, points_mm: np.ndarray) -> np.ndarray:

@@ -18,6 +18,7 @@ from collections.abc import Callable
 import numpy as np
 
 from lfcore.device import PrivateCopies, RowOffset, launch_rows, resolve_device, warp
+from lfcore.projection import diffraction_sigma_mm
 from lfcore.rig import Camera, RenderConfig
 
 __all__ = ["LightFieldRenderer", "derive_seed"]
@@ -58,9 +59,9 @@ class LightFieldRenderer:
         self.camera = camera
         self.render = render
         self.device = resolve_device(device)
-        lam_mm = wavelength_nm * 1e-6
-        blur = 0.42 * lam_mm if render.diffraction else 0.0  # Airy core as a Gaussian: 0.42 lambda N
-        self.params = camera_params(camera, blur * camera.image_side_f_number, blur * camera.lenslet_f_number)
+        lam = wavelength_nm if render.diffraction else 0.0  # no diffraction: no blur
+        self.params = camera_params(camera, diffraction_sigma_mm(lam, camera.image_side_f_number),
+                                    diffraction_sigma_mm(lam, camera.lenslet_f_number))
         shape = (camera.sensor_px[1], camera.sensor_px[0])
         self._quanta = self.wp.zeros(shape, dtype=self.wp.int64, device=self.device)
         self._counts = self.wp.zeros(shape, dtype=float, device=self.device)

@@ -24,6 +24,7 @@ import numpy as np
 from scipy import ndimage
 
 from lfcore.mla import lenslet_centers, sensor_to_pixel
+from lfcore.projection import diffraction_sigma_mm
 from lfcore.rig import Camera, RenderConfig
 
 __all__ = ["WhiteImageConfig", "micro_image_centres", "micro_image_scale", "white_image", "white_irradiance"]
@@ -205,7 +206,8 @@ def white_image(camera: Camera, render: RenderConfig | None = None,
         (rows, columns) uint16 counts.
     """
     render = RenderConfig() if render is None else render
-    sigma = 0.42 * wavelength_nm * 1e-6 * camera.lenslet_f_number / camera.pixel_mm if render.diffraction else 0.0
+    lam = wavelength_nm if render.diffraction else 0.0  # no diffraction: no blur
+    sigma = diffraction_sigma_mm(lam, camera.lenslet_f_number) / camera.pixel_mm
     mean = white_irradiance(camera, config, sigma) + render.background_counts
     rng = np.random.default_rng([config.seed, 0x3417E])
     v = rng.poisson(mean * render.gain_e_per_count) / render.gain_e_per_count if render.shot_noise else mean

@@ -101,9 +101,7 @@ def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, 
     for c, big in zip(centres, marker, strict=True):
         scale = board.marker_scale if big else 1.0
         half = max(1, int(round(0.5 * points_per_dot * scale**2)))
-        # A sunflower (Vogel) spiral, turned at random per dot, spreads the points evenly over
-        # the disc: in focus each lenslet images a patch of the dot, and random points left
-        # those patches a few points each, so the image was grainy enough to split a dot in two.
+        # a sunflower (Vogel) spiral, turned at random per dot: the points spread evenly
         k = np.arange(half)
         r = board.radius_mm * scale * np.sqrt((k + 0.5) / half)
         a = _GOLDEN_ANGLE * k + 2 * np.pi * rng.random()
