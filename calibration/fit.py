@@ -44,7 +44,7 @@ from pydantic import PrivateAttr
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from calibration.dots import view_geometry
+from calibration.dots import ViewGeometry, view_geometry
 from calibration.mla_grid import MlaGrid
 from lfcore.mla import nearest_lenslet, pixel_to_sensor, sensor_to_pixel
 from lfcore.projection import chief_ray_mla, defocus_radius_mm, image_scale, project
@@ -240,8 +240,8 @@ def clear_dots(camera: Camera, board: DotBoard, indices: np.ndarray, stage_mm: f
 def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], grid: MlaGrid | None = None, *,
                n_planes: int | None = None, fit_distortion: bool = False, max_lattice_points: int = 600,
                outlier_sigma: float = 5.0, min_blur_lenslets: float = 0.75, min_gap_lenslets: float = 0.25,
-               max_overlap_lenslets: float = -0.5, biased_weight: float = 0.2, wavelength_nm: float = 532.0
-               ) -> CameraFit:
+               max_overlap_lenslets: float = -0.5, biased_weight: float = 0.2, wavelength_nm: float = 532.0,
+               views: ViewGeometry | None = None) -> CameraFit:
     """Fit one camera's model to its named dots (and its white-image lattice).
 
     Parameters
@@ -276,6 +276,9 @@ def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], gr
     wavelength_nm
         Wavelength of the target's light (the lenslets' diffraction blur moves light between
         neighbouring micro-images, see :func:`calibration.dots.view_geometry`).
+    views
+        ``view_geometry(nominal, wavelength_nm)`` computed already (a Monte Carlo of about a
+        second; a caller fitting one camera twice passes it); None computes it.
 
     Raises
     ------
@@ -290,7 +293,8 @@ def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], gr
     n_planes = max(p.plane for p in planes) + 1 if n_planes is None else n_planes
     world = [board.dot_centres(p.indices, p.stage_mm) for p in planes]
     found = [np.asarray(p.views_px, dtype=np.float64) for p in planes]  # (m, views, 2) each
-    views = view_geometry(nominal, wavelength_nm)  # what each view sees, for the nominal optics
+    if views is None:
+        views = view_geometry(nominal, wavelength_nm)  # what each view sees, for the nominal optics
     r0 = nominal.rotation
     f0 = np.asarray(nominal.focus_mm)
     mla0 = grid.to_mla(nominal) if grid is not None else {"mla_offset_um": nominal.mla_offset_um,

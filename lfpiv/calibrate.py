@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from acquisition.timing import TimingError
-from calibration.dots import DotError, Dots, detect_dots, lenslet_cells, match_dots
+from calibration.dots import DotError, Dots, detect_dots, lenslet_cells, match_dots, view_geometry
 from calibration.fit import CameraFit, FitError, PlaneDots, fit_camera
 from calibration.mla_grid import GridError, MlaGrid, check_white, detect_grid
 from calibration.runner import PlaneRun, camera_only_plan, capture_frames, plane_targets, run_planes
@@ -378,8 +378,9 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
             detected = _detected_dots(store, nominal)
             planes = _named_dots(store, nominal, board, detected, min_dots)
             grid = store.grid(nominal.name)
+            wavelength = rig.laser.wavelength_nm  # the sim lights the target at the laser's
             opts = {"n_planes": len(store.stage_mm(nominal.name)), "fit_distortion": fit_distortion,
-                    "wavelength_nm": rig.laser.wavelength_nm}  # the sim lights the target at the laser's
+                    "wavelength_nm": wavelength, "views": view_geometry(nominal, wavelength)}
             fit = fit_camera(nominal, board, planes, grid, **opts)
             planes = _named_dots(store, nominal, board, detected, min_dots, model=fit.camera)
             fit = fit_camera(nominal, board, planes, grid, **opts)
