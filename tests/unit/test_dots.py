@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration.dots import detect_dots, lenslet_cells, lenslet_sums
+from calibration.dots import _climb, _regions, detect_dots, lenslet_cells, lenslet_sums
 from calibration.mla_grid import detect_grid
 from lfcore.white import WhiteImageConfig, white_image, white_irradiance
 from tests.conftest import tiny_variant
@@ -68,6 +68,26 @@ def test_two_overlapping_dots_part_at_the_valley_and_a_faint_fragment_is_left_ou
     assert np.allclose(found, [a, b], atol=3.0)
     assert dots.flux[0] == pytest.approx(dots.flux[1], rel=0.05)
     assert len(detect_dots(frame, lattice[0], cells=lattice[2], min_flux_fraction=0.0)) == 3
+
+
+@pytest.mark.parametrize("min_prominence, merged", [(0.35, True), (0.2, False)])
+def test_a_maximum_joins_a_brighter_one_unless_it_stands_above_their_saddle(min_prominence, merged):
+    # peaks 10 and 8 joined at a saddle of 6: the lower one rises 2 above it, a quarter of its height
+    sm = np.array([[1.0, 5.0, 10.0, 6.0, 8.0, 3.0]])
+    lit, adj = np.ones_like(sm, dtype=bool), np.ones((3, 3), dtype=bool)
+    top = _climb(sm, lit, adj)
+    assert top.tolist() == [2, 2, 2, 2, 4, 4]  # the saddle climbs to its brighter side
+    assert _regions(sm, lit, adj, top, min_prominence)[[2, 4]].tolist() == ([2, 2] if merged else [2, 4])
+
+
+def test_at_a_saddle_of_three_a_low_maximum_joins_the_highest_not_the_nearest():
+    # three arms (4-neighbour lattice) with peaks 10, 9 and 5 meeting at one lenslet of 4.5:
+    # 9 stands 4.5 above it (half its height) and stays a dot; 5 joins the peak of 10
+    sm = np.zeros((5, 5))
+    sm[0, 2], sm[1, 2], sm[2, 0], sm[2, 1], sm[2, 3], sm[2, 4], sm[2, 2] = 10, 7, 9, 6, 4.8, 5, 4.5
+    lit, adj = sm > 0, np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
+    top = _climb(sm, lit, adj)
+    assert _regions(sm, lit, adj, top, 0.35)[[2, 10, 14]].tolist() == [2, 10, 2]
 
 
 def test_camera_frames_give_the_sums_and_noise_of_float_frames(lattice):
