@@ -187,13 +187,20 @@ def _unit(v: tuple[float, float, float]) -> np.ndarray:
 
 @dataclass(frozen=True)
 class VortexRing(Flow):
-    """A laminar vortex ring translating along ``axis`` at its self-induced speed."""
+    """A laminar vortex ring translating along ``axis`` at its self-induced speed.
+
+    ``period_s``: a new ring leaves ``centre_mm`` every ``period_s`` seconds, as from a ring
+    generator fired with the laser: with the laser's pair period every pair sees the ring at
+    the same phase (phase-locked PIV). None: one ring, which travels on (at the usual speeds
+    it leaves a millimetre-sized volume between one pair and the next).
+    """
 
     centre_mm: tuple[float, float, float]
     axis: tuple[float, float, float]
     radius_mm: float
     core_mm: float
     circulation_mm2_s: float
+    period_s: float | None = None
     name: ClassVar[str] = "vortex-ring"
 
     @property
@@ -203,7 +210,13 @@ class VortexRing(Flow):
         return 1e-3 * self.circulation_mm2_s / (4 * math.pi * r) * (math.log(8 * r / a) - 0.558)
 
     def centre_at(self, t_s: float) -> np.ndarray:
-        return np.asarray(self.centre_mm) + 1e3 * self.translation_m_s * t_s * _unit(self.axis)
+        """Centre (mm) of the ring at time ``t_s``."""
+        age = t_s
+        if self.period_s:
+            # pair k fires at k / rate: k * (1 / rate) must count as whole periods, where
+            # t % period would give 0.7 % 0.1 = 0.09999... (the ring at the end of its travel)
+            age = max(0.0, t_s - self.period_s * math.floor(t_s / self.period_s + 1e-9))
+        return np.asarray(self.centre_mm) + 1e3 * self.translation_m_s * age * _unit(self.axis)
 
     def velocity(self, points_mm: np.ndarray, t_s: float = 0.0) -> np.ndarray:
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
@@ -297,13 +310,18 @@ def default_displacement_px(name: str) -> float:
 
 
 def flow_for_displacement(name: str, volume: VolumeConfig, object_pixel_mm: float, dt_s: float,
-                          displacement_px: float | None = None, omega: float = 1.0) -> Flow:
+                          displacement_px: float | None = None, omega: float = 1.0,
+                          period_s: float | None = None) -> Flow:
     """The named test flow, scaled so its fastest particle moves ``displacement_px`` in ``dt_s``.
 
     Parameters
     ----------
     name, volume, omega
         As for :func:`standard_flow`.
+    period_s
+        For the vortex ring: a new ring every ``period_s`` (pass the laser's pair period,
+        ``1 / rate_hz``, so that every pair of a run sees it in the volume; see
+        :class:`VortexRing`). The other flows ignore it.
     object_pixel_mm
         Object-side pixel size (pixel pitch / |M|) of the camera the displacement refers to.
     dt_s
@@ -322,8 +340,15 @@ def flow_for_displacement(name: str, volume: VolumeConfig, object_pixel_mm: floa
     if not (np.isfinite(dt_s) and dt_s > 0):
         raise ValueError(f"dt must be positive, got {dt_s}")
     field = standard_flow(name, volume, omega)
+    if period_s is not None and not (np.isfinite(period_s) and period_s > 0):
+        raise ValueError(f"the ring period must be positive, got {period_s}")
     target = disp * object_pixel_mm * 1e-3 / dt_s  # m/s
-    return field.scaled(target / peak_speed(field, volume))
+    field = field.scaled(target / peak_speed(field, volume))
+    if isinstance(field, VortexRing) and period_s is not None:
+        if period_s <= dt_s:
+            raise ValueError(f"the ring period {period_s:g} s must be longer than dt = {dt_s:g} s")
+        field = replace(field, period_s=float(period_s))
+    return field
 
 
 def peak_speed(flow: Flow, volume: VolumeConfig, t_s: float = 0.0, n: int = 24) -> float:

@@ -167,7 +167,7 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
             raise UsageError(f"--displacement-px must be positive, got {displacement_px}")
         try:
             field: Flow = flow_for_displacement(flow, rig.volume, rig.camera[0].object_pixel_mm, dt_s,
-                                                displacement_px, omega)
+                                                displacement_px, omega, period_s=1.0 / rate)  # phase-locked ring
         except ValueError as exc:
             raise UsageError(str(exc)) from None
         flow_params = field.params()

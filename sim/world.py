@@ -59,7 +59,8 @@ class SimWorld:
     def __post_init__(self) -> None:
         self.dt_s = self.rig.timing.dt_us * 1e-6
         self._field = flow_for_displacement(self.flow, self.rig.volume, self.rig.camera[0].object_pixel_mm,
-                                            self.dt_s, self.displacement_px, self.omega)
+                                            self.dt_s, self.displacement_px, self.omega,
+                                            period_s=1.0 / self.rig.laser.rate_hz)  # phase-locked ring
         self.n_particles = particle_count(self.rig, self.ppm)
 
     def show(self, scene: Callable[[int], np.ndarray] | None, key: object = None) -> None:

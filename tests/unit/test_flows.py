@@ -12,6 +12,8 @@ from lfcore.flows import (
     OSCILLATORY_CASES,
     Oscillatory,
     advect,
+    flow_for_displacement,
+    flow_from_params,
     peak_speed,
     standard_flow,
 )
@@ -102,6 +104,28 @@ def test_vortex_ring_centre_speed_and_translation():
     assert u == pytest.approx(1e-3 * gamma / (4 * math.pi * r) * (math.log(8 * r / a) - 0.558))
     moved = ring.velocity(pts + [0.0, 1e3 * u * 0.3, 0.0], 0.3)
     assert np.allclose(moved, v)
+
+
+def test_a_phase_locked_ring_is_at_the_same_place_at_every_pair():
+    # 10 px in 2 ms on 5.5 um pixels, pairs at 10 Hz: one ring would travel on by about 50 dt
+    # of its own displacement between pairs, out of a millimetre-sized volume
+    single = flow_for_displacement("vortex-ring", VOLUME, 0.0055, 2e-3)
+    locked = flow_for_displacement("vortex-ring", VOLUME, 0.0055, 2e-3, period_s=0.1)
+    assert single.period_s is None and locked.period_s == 0.1
+    assert locked.circulation_mm2_s == single.circulation_mm2_s
+    pts = np.asarray(VOLUME.centre_mm) + np.random.default_rng(2).uniform(-0.3, 0.3, (50, 3)) * VOLUME.size_mm
+    for k in (1, 3, 7, 123):  # pair k's first pulse (at k / rate, as the sim times it), and its middle
+        for t in (0.0, 1e-3):
+            got = locked.velocity(pts, k / 10.0 + t)
+            assert np.allclose(got, single.velocity(pts, t), rtol=1e-6, atol=1e-12), (k, t)
+    travel = 1e3 * single.translation_m_s * 0.1  # mm between pairs
+    assert np.allclose(single.centre_at(0.1) - single.centre_at(0.0), [0.0, travel, 0.0])
+    # the period is kept in the truth's parameters, and only the ring has one
+    assert flow_from_params(locked.params()) == locked
+    assert flow_for_displacement("jet", VOLUME, 0.0055, 2e-3, period_s=0.1) == \
+        flow_for_displacement("jet", VOLUME, 0.0055, 2e-3)
+    with pytest.raises(ValueError, match="longer than dt"):
+        flow_for_displacement("vortex-ring", VOLUME, 0.0055, 2e-3, period_s=1e-3)
 
 
 def test_advection_converges():
