@@ -326,7 +326,7 @@ class RunStore(RigStore):
         return [r for r in rows if r["reason"]]  # an empty reason: a row grown but never written
 
     def write_truth(self, particles_mm: np.ndarray, brightness: np.ndarray, flow: dict[str, Any],
-                    **attrs: Any) -> None:
+                    t0_s: np.ndarray | None = None, **attrs: Any) -> None:
         """Store the ground truth of a synthetic run.
 
         Parameters
@@ -338,6 +338,10 @@ class RunStore(RigStore):
             (pairs, 2, n) signal of each particle in counts (laser sheet included).
         flow
             The flow's name and parameters (:meth:`lfcore.flows.Flow.params`).
+        t0_s
+            (pairs,) time of each pair's first pulse on the flow's clock, s, kept as
+            ``truth/t0_s``; None: pair / ``timing.rate_hz`` (a simulated lab that shows a pool
+            of pairs over and over passes the times of the pairs it showed).
         **attrs
             More JSON-compatible attributes (seeding density, seed, render settings).
         """
@@ -351,6 +355,15 @@ class RunStore(RigStore):
         b = np.asarray(brightness, dtype=np.float32)
         described_array(g, "brightness", "counts", ["pair", "frame", "particle"], "signal of each particle",
                         shape=b.shape, chunks=(1, 2, b.shape[2]), dtype=np.float32)[...] = b
+        t0 = self._pair_times_s() if t0_s is None else np.asarray(t0_s, dtype=np.float64)
+        if t0.shape != (p.shape[0],):
+            raise ValueError(f"t0_s must hold one time per pair ({p.shape[0]}), got shape {t0.shape}")
+        described_array(g, "t0_s", "s", ["pair"], "time of each pair's first pulse on the flow's clock",
+                        shape=t0.shape, chunks=t0.shape, dtype=np.float64)[...] = t0
+
+    def _pair_times_s(self) -> np.ndarray:
+        rate = self.timing.get("rate_hz")
+        return np.arange(self.n_pairs) / float(rate) if rate else np.zeros(self.n_pairs)
 
     # --- reconstructed volumes ----------------------------------------------------------
     def create_volumes(self, grid: VolumeGrid, *, method: str, settings: dict[str, Any]) -> zarr.Array:
@@ -420,11 +433,18 @@ class RunStore(RigStore):
         return list(self.group["volumes"].attrs["reconstructed_pairs"]) if self.has_volumes else []
 
     def truth(self) -> dict[str, Any] | None:
-        """``{"particles", "brightness", "attrs"}`` of a synthetic run, or None if recorded."""
+        """``{"particles", "brightness", "t0_s", "attrs"}`` of a synthetic run, or None if recorded.
+
+        ``t0_s`` (pairs,): when each pair's first pulse fired on the flow's clock, s, the time
+        to evaluate the truth flow at (pair / ``timing.rate_hz`` for stores written before it
+        was kept).
+        """
         if "truth" not in self.group:
             return None
         g = self.group["truth"]
-        return {"particles": g["particles"][...], "brightness": g["brightness"][...], "attrs": dict(g.attrs)}
+        t0 = g["t0_s"][...] if "t0_s" in g else self._pair_times_s()
+        return {"particles": g["particles"][...], "brightness": g["brightness"][...], "t0_s": t0,
+                "attrs": dict(g.attrs)}
 
     # --- vector fields (appended for issue 4: correlation) --------------------------------
     def create_vectors(self, x_mm: np.ndarray, y_mm: np.ndarray, z_mm: np.ndarray, *, dt_s: float,

@@ -132,7 +132,7 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
         flow = flow_from_params(truth["attrs"]["flow"])
         zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
         pts = np.stack([xx, yy, zz], axis=-1).reshape(-1, 3)
-        t_mid = pair / float(store.timing["rate_hz"]) + 0.5 * float(store.timing["dt_s"])
+        t_mid = float(truth["t0_s"][pair]) + 0.5 * float(store.timing["dt_s"])
         fields.append(("truth", flow.velocity(pts, t_mid).reshape(*zz.shape, 3)))
     k = len(z) // 2
     fig, axes = plt.subplots(1, len(fields), figsize=(6.2 * len(fields), 5.4), squeeze=False)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -298,11 +299,14 @@ def summary_rows(evals: list[FrameEvaluation]) -> list[dict[str, Any]]:
                      "diam x,y,z vox": ", ".join(f"{v:.1f}" for v in e.diameters_vox),
                      "outside": f"{100 * e.outside:.2f}%"})
     if len(evals) > 1:
-        rms = np.nanmean([e.match.rms_error_mm for e in evals], axis=0) * 1e3
+        with warnings.catch_warnings():  # no frame matched a particle: nan, printed as such
+            warnings.simplefilter("ignore", RuntimeWarning)
+            rms = np.nanmean([e.match.rms_error_mm for e in evals], axis=0) * 1e3
+            diam = np.nanmean([e.diameters_vox for e in evals], axis=0)
         rows.append({"pair": "mean", "frame": "", "Q": f"{np.mean([e.q for e in evals]):.3f}",
                      "recall": f"{np.mean([e.match.recall for e in evals]):.2f}",
                      "ghosts": f"{sum(e.match.ghosts for e in evals)}/{sum(e.match.n_detected for e in evals)}",
                      "rms err x,y,z um": ", ".join(f"{v:.1f}" for v in rms),
-                     "diam x,y,z vox": ", ".join(f"{v:.1f}" for v in np.nanmean([e.diameters_vox for e in evals], 0)),
+                     "diam x,y,z vox": ", ".join(f"{v:.1f}" for v in diam),
                      "outside": f"{100 * np.mean([e.outside for e in evals]):.2f}%"})
     return rows

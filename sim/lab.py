@@ -120,3 +120,9 @@ class SimLab:
         pool = [self.world.pair(j) for j in range(cam.pool_pairs)]
         idx = [cam.pool_index(k) for k in range(pairs)]
         return np.stack([pool[j][0] for j in idx]), np.stack([pool[j][1] for j in idx])
+
+    def truth_times_s(self, pairs: int) -> np.ndarray:
+        """(pairs,) time of the first pulse of the world pair each trigger ``0 .. pairs - 1``
+        showed, s: the time the truth flow of that pair is to be taken at."""
+        cam = self.cameras[0]
+        return np.array([cam.pool_index(k) / self.world.rig.laser.rate_hz for k in range(pairs)])

@@ -152,8 +152,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def evaluate_vectors(store) -> list[tuple[str, str]]:
-    """Lines (label, text) about a run's vectors for ``lfpiv evaluate``.
+def evaluate_vectors(store, pairs: slice | None = None) -> list[tuple[str, str]]:
+    """Lines (label, text) about a run's vectors for ``lfpiv evaluate``, over the correlated
+    pairs among ``pairs`` (the ``--pairs`` range; None: all).
 
     RMS velocity error per component against the synthetic truth flow (in m/s and in voxels,
     evaluated at the window centres at mid-pair time), the outlier fraction, and the
@@ -161,13 +162,17 @@ def evaluate_vectors(store) -> list[tuple[str, str]]:
     """
     from lfcore.flows import flow_from_params
     from lfcore.vectors import FLAG_OUTLIER, FLAG_REPLACED, divergence
+    from lfpiv.recon import select_pairs
 
     if not store.has_vectors:
         return [("vectors", f"none yet (run 'lfpiv correlate {store.path}')")]
     vec = store.vectors()
-    pairs = store.correlated_pairs()
-    if not pairs:
+    done = store.correlated_pairs()
+    if not done:
         return [("vectors", "vectors/ exists but no pair has been correlated")]
+    pairs = [p for p in select_pairs(pairs, store.n_pairs) if p in done]
+    if not pairs:
+        return [("vectors", f"none of the selected pairs is correlated (correlated: {done})")]
     a = vec["attrs"]
     x, y, z = vec["x_mm"], vec["y_mm"], vec["z_mm"]
     vel = np.stack([vec[c][pairs] for c in "uvw"], axis=-1).astype(np.float64)  # (pairs, z, y, x, 3)
@@ -178,10 +183,9 @@ def evaluate_vectors(store) -> list[tuple[str, str]]:
     truth = store.truth()
     if truth is not None:
         flow = flow_from_params(truth["attrs"]["flow"])
-        rate = float(store.timing.get("rate_hz", 1.0))
         zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
         pts = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)
-        ref = np.stack([flow.velocity(pts, p / rate + 0.5 * dt).reshape(vel.shape[1:]) for p in pairs])
+        ref = np.stack([flow.velocity(pts, truth["t0_s"][p] + 0.5 * dt).reshape(vel.shape[1:]) for p in pairs])
         err = vel - ref
         rms = np.sqrt(np.nanmean(err**2, axis=(0, 1, 2, 3)))
         peak = float(np.nanmax(np.linalg.norm(ref, axis=-1)))

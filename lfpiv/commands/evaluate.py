@@ -13,7 +13,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "diameters and the intensity outside the seeded region for every reconstructed frame.")
     e.add_argument("run", metavar="RUN", help="synthetic run store with volumes/")
     e.add_argument("--pairs", type=pair_range, default=None, metavar="START:STOP",
-                   help="pairs to evaluate, e.g. 0:10 or 3 (default: all reconstructed)")
+                   help="pairs to evaluate, e.g. 0:10 or 3 (default: every pair reconstructed or correlated)")
     e.add_argument("--threshold", type=fraction, default=0.1,
                    help="detect peaks above this fraction of the brightest voxel (default: 0.1)")
     e.add_argument("--match-voxels", type=positive_float, default=2.0,
@@ -51,6 +51,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"volumes: none (run 'lfpiv reconstruct {store.path}')")
     warn_outdated_vectors(store)
-    for label, text in evaluate_vectors(store):
+    for label, text in evaluate_vectors(store, args.pairs):
         print(f"{label}: {text}")
     return 0

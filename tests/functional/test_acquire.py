@@ -111,6 +111,8 @@ def test_soak_2000_pairs_two_cameras_with_faults(fast_rig, tmp_path: Path) -> No
                 assert np.array_equal(frames[p, f], lit["cam1"][p % 3][f])
     truth = store.truth()
     assert truth is not None and truth["particles"].shape[:2] == (pairs, 2)
+    # the truth flow of each pair is taken at the time of the pool pair it showed
+    assert np.allclose(truth["t0_s"][:pairs], (np.arange(pairs) % 3) / store.timing["rate_hz"])
 
 
 def test_missed_triggers_are_dropped_and_later_frames_keep_their_pair(fast_rig, tmp_path: Path) -> None:

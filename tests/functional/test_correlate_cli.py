@@ -86,6 +86,13 @@ def test_evaluate_vectors_reports_errors_against_the_truth(correlated):
     assert "1/s" in lines["divergence error"]
 
 
+def test_evaluate_pairs_selects_the_vectors_too(correlated, capsys):
+    path, _, _ = correlated
+    assert "1 pair(s) of" in dict(evaluate_vectors(RunStore.open(path), slice(1, 2)))["vectors"]
+    assert main(["evaluate", str(path), "--pairs", "1"]) == 0
+    assert "vectors: 1 pair(s) of 17 x 14 x 11" in capsys.readouterr().out
+
+
 def test_evaluate_without_vectors(tmp_path, tiny_rig):
     s, _, _ = _make_run(tmp_path / "r.zarr", tiny_rig)
     assert evaluate_vectors(s) == [("vectors", f"none yet (run 'lfpiv correlate {s.path}')")]
