@@ -48,6 +48,8 @@ WEIGHTS = {"drt-mart": "drt", "mart": "los", "mlos-mart": "los"}
 #: Above this the simultaneous update overshoots: every voxel on an under-projected pixel grows at
 #: once (sequential MART takes the chapter's 2.5 because each pixel's step is small).
 MAX_SIMULTANEOUS_RELAXATION = 2.0
+#: Widest smoothing sigma accepted, voxels.
+MAX_SMOOTH_VOXELS = 10.0
 FORMS = ("simultaneous", "sequential")
 
 
@@ -128,8 +130,9 @@ class ReconSettings:
                              f"{MAX_SIMULTANEOUS_RELAXATION:g}, or the sequential form for the chapter's 2.5")
         if not self.threshold_sigma >= 0:
             raise ValueError(f"threshold_sigma must be 0 or more, got {self.threshold_sigma}")
-        if not self.smooth >= 0:
-            raise ValueError(f"smooth must be 0 or more, got {self.smooth}")
+        if not 0 <= self.smooth <= MAX_SMOOTH_VOXELS:
+            # a sigma many voxels wide blurs particles (3 voxels across) into the background
+            raise ValueError(f"smooth must be from 0 to {MAX_SMOOTH_VOXELS:g} voxels, got {self.smooth}")
         if self.weight_storage not in STORAGE:
             raise ValueError(f"weight_storage must be one of {', '.join(STORAGE)}, got '{self.weight_storage}'")
         if self.weight_storage == "on-the-fly" and self.method == "drt-mart":

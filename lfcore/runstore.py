@@ -442,6 +442,10 @@ class RunStore(RigStore):
         if "truth" not in self.group:
             return None
         g = self.group["truth"]
+        missing = [n for n in ("particles", "brightness") if n not in g]
+        if missing:
+            raise RunStoreError(f"{self.path}: truth/ has no {missing[0]} (the run was interrupted while its "
+                                "truth was written); render it again with --overwrite")
         t0 = g["t0_s"][...] if "t0_s" in g else self._pair_times_s()
         return {"particles": g["particles"][...], "brightness": g["brightness"][...], "t0_s": t0,
                 "attrs": dict(g.attrs)}

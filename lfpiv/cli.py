@@ -62,12 +62,16 @@ def _interrupted() -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``lfpiv`` command; returns the exit code."""
-    from acquisition.protocols import DeviceError as HardwareError
-    from acquisition.pulse_generator import signals_call
-    from calibration.store import CalibrationStoreError
-    from lfcore.device import DeviceError
-    from lfcore.rig import RigError
-    from lfcore.runstore import RunStoreError
+    try:
+        from acquisition.protocols import DeviceError as HardwareError
+        from acquisition.pulse_generator import signals_call
+        from calibration.store import CalibrationStoreError
+        from lfcore.device import DeviceError, MemoryBudgetError
+        from lfcore.rig import RigError
+        from lfcore.runstore import RunStoreError
+    except KeyboardInterrupt:  # Ctrl-C while starting: nothing was done yet
+        print("lfpiv: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
     warnings.filterwarnings("ignore", category=UserWarning, module="zarr")
     try:
@@ -77,7 +81,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # set), then ends the command as Ctrl-C does (acquire and monitor refine this)
         with signals_call(_interrupted):
             return args.func(args)
-    except (UsageError, RigError, RunStoreError, CalibrationStoreError, DeviceError) as exc:
+    except (UsageError, RigError, RunStoreError, CalibrationStoreError, DeviceError, MemoryBudgetError) as exc:
         print(f"lfpiv: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except HardwareError as exc:

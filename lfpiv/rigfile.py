@@ -21,7 +21,9 @@ def load_rig(path: str | Path) -> Rig:
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Windows editors) is not TOML
+    except UnicodeDecodeError as exc:
+        raise RigError(f"rig file {path} is not UTF-8 text (byte {exc.start}); save it as UTF-8") from None
     except FileNotFoundError:
         raise RigError(f"rig file {path} not found; pass the path of a rig TOML file (see examples/)") from None
     except OSError as exc:

@@ -51,10 +51,12 @@ def read_points_csv(path: str | Path) -> np.ndarray:
     """
     path = Path(path)
     try:
-        with path.open(newline="", encoding="utf-8") as fh:
+        with path.open(newline="", encoding="utf-8-sig") as fh:  # "CSV UTF-8" from Excel starts with a BOM
             rows = list(csv.reader(fh))
     except FileNotFoundError:
         raise UsageError(f"particles file {path} not found") from None
+    except UnicodeDecodeError as exc:
+        raise UsageError(f"particles file {path} is not UTF-8 text (byte {exc.start}); save it as UTF-8 CSV") from None
     if not rows or [c.strip() for c in rows[0]] != ["x_mm", "y_mm", "z_mm"]:
         raise UsageError(f"{path}: the first line must be the header 'x_mm,y_mm,z_mm'")
     pts = []
@@ -186,16 +188,16 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
     renderers = [LightFieldRenderer(cam, render, rig.laser.wavelength_nm, device) for cam in rig.camera]
     timing = {"dt_s": dt_s, "rate_hz": rate}
     store = RunStore.create(out, rig, pairs, timing=timing, software_version=__version__, overwrite=overwrite)
-    if attrs:
-        store.group.attrs.update(attrs)
-    store.write_truth(particles, brightness, flow_params, ppm=None if points is not None else ppm, seed=seed,
-                      render=render.model_dump(mode="json"), device=renderers[0].device)
     n_part = particles.shape[2]
     total_rays = pairs * 2 * len(renderers) * n_part * render.rays_per_particle
     start = time.perf_counter()
     bar = tqdm(total=total_rays, unit="ray", unit_scale=True, disable=not progress, desc="rendering",
                leave=False)
-    try:
+    try:  # from the store's creation on: an interrupted run is marked aborted, truth or not
+        if attrs:
+            store.group.attrs.update(attrs)
+        store.write_truth(particles, brightness, flow_params, ppm=None if points is not None else ppm, seed=seed,
+                          render=render.model_dump(mode="json"), device=renderers[0].device)
         for i in range(pairs):
             for f in range(2):
                 t_ns = round((i / rate + f * dt_s) * 1e9)

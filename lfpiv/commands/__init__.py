@@ -43,6 +43,19 @@ def positive_int(text: str) -> int:
     return whole_number(text, 1)
 
 
+def ring_slots(text: str) -> int:
+    """argparse type of ``--ring``: pairs the ring buffer holds, at least 2 (one being filled
+    while the recorder writes another)."""
+    return whole_number(text, 2)
+
+
+def png_path(text: str) -> str:
+    """argparse type of a picture's path: it must end in .png (checked before any work)."""
+    if not text.lower().endswith(".png"):
+        raise argparse.ArgumentTypeError(f"'{text}' does not end in .png; pictures are written as PNG")
+    return text
+
+
 def positive_float(text: str) -> float:
     try:
         v = float(text)

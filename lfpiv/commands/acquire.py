@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from lfpiv.commands import add_sim_options, positive_int, sim_lab_options, warn_optics
+from lfpiv.commands import add_sim_options, positive_int, ring_slots, sim_lab_options, warn_optics
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -18,7 +18,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--pairs", required=True, type=positive_int, help="double-frame pairs to record")
     s.add_argument("--out", required=True, metavar="RUN", help="run store to create (a .zarr directory)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing run store at --out")
-    s.add_argument("--ring", type=positive_int, default=32, metavar="PAIRS",
+    s.add_argument("--ring", type=ring_slots, default=32, metavar="PAIRS",
                    help="ring-buffer depth in pairs (default: 32)")
     add_sim_options(s)
     s.add_argument("--quiet", action="store_true", help="no progress line")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from lfpiv.commands import non_negative_float, positive_float, positive_int, warn_optics, whole_number
+from lfpiv.commands import non_negative_float, png_path, positive_float, positive_int, warn_optics, whole_number
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -74,9 +74,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                          description="Print what a calibration store holds (white images, microlens grids with "
                          "their RMS residual, target planes, fitted models); --plot also writes a PNG.")
     r.add_argument("store", metavar="CALIB", help="calibration store (.zarr directory)")
-    r.add_argument("--plot", metavar="PNG", default=None,
+    r.add_argument("--plot", type=png_path, metavar="PNG", default=None,
                    help="write a PNG of the detected centres over the white image and their residuals")
-    r.add_argument("--rms-plot", metavar="PNG", default=None,
+    r.add_argument("--rms-plot", type=png_path, metavar="PNG", default=None,
                    help="write a PNG of the reprojection RMS per plane of every fitted camera")
     r.set_defaults(func=run_report)
     s.set_defaults(func=lambda args: s.error("give a step: mla, volume, fit or report"))

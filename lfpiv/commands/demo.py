@@ -111,6 +111,10 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(rig_path)
     if rig.hardware != "sim":
         raise UsageError(f"{rig_path} has hardware = \"{rig.hardware}\"; the demo runs on the simulated lab only")
+    if args.device:  # checked before the previous demo's folder is cleared
+        from lfcore.device import resolve_device
+
+        resolve_device(args.device)
     out = Path(args.out)
     _prepare(out)
     rig_s, calib, run_ = str(rig_path), str(out / "calib.zarr"), str(out / "run.zarr")

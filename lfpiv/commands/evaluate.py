@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from lfpiv.commands import fraction, pair_range, positive_float, warn_outdated_vectors
+from lfpiv.commands import fraction, pair_range, png_path, positive_float, warn_outdated_vectors
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -18,7 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="detect peaks above this fraction of the brightest voxel (default: 0.1)")
     e.add_argument("--match-voxels", type=positive_float, default=2.0,
                    help="a detection matches a true particle within this many voxels per axis (default: 2)")
-    e.add_argument("--plot", default=None, metavar="PNG", help="also write intensity-against-depth and projections")
+    e.add_argument("--plot", type=png_path, default=None, metavar="PNG",
+                   help="also write intensity-against-depth and projections")
     e.set_defaults(func=run)
 
 

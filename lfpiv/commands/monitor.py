@@ -15,8 +15,10 @@ from lfpiv.commands import (
     add_device,
     add_sim_options,
     check_pvr,
+    png_path,
     positive_float,
     positive_int,
+    ring_slots,
     sim_lab_options,
     warn_optics,
     whole_number,
@@ -39,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="run store to record to (a .zarr directory); without it the pairs are only shown "
                    "(the 'record' box turns recording on for the next arming)")
     m.add_argument("--overwrite", action="store_true", help="replace an existing run store at --out")
-    m.add_argument("--screenshot", default=None, metavar="PNG",
+    m.add_argument("--screenshot", type=png_path, default=None, metavar="PNG",
                    help="save the window as PNG after --after pairs were shown, then end when the recording "
                    "does (works without a display)")
     m.add_argument("--after", type=positive_int, default=3, metavar="N",
@@ -57,7 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "The recording keeps the raw frames whatever it is")
     m.add_argument("--slice", choices=("x", "y", "z"), default="z", help="axis normal to the slice (default: z)")
     m.add_argument("--passes", type=int, choices=(1, 2), default=2, help="correlation passes (default: 2)")
-    m.add_argument("--ring", type=positive_int, default=32, metavar="PAIRS",
+    m.add_argument("--ring", type=ring_slots, default=32, metavar="PAIRS",
                    help="ring-buffer depth in pairs (default: 32)")
     add_device(m)
     add_sim_options(m)

@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="background level to subtract (default: estimated per image)")
     r.add_argument("--threshold-sigma", type=positive_float, default=2.0,
                    help="a pixel is lit above background + this many noise sigmas (default: 2)")
-    r.add_argument("--smooth", type=float, default=0.6, metavar="VOXELS",
+    r.add_argument("--smooth", type=non_negative_float, default=0.6, metavar="VOXELS",
                    help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
     r.add_argument("--sub-apertures", type=positive_int, default=None,
                    help="main-lens sub-apertures per axis for the DRT weights (default: pixels per lenslet)")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from lfpiv.commands import add_device, positive_float, positive_int, warn_optics
+from lfpiv.commands import add_device, positive_float, positive_int, warn_optics, whole_number
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--pairs", type=positive_int, default=3, help="double-frame pairs (default: 3)")
     s.add_argument("--dt-ms", type=positive_float, default=None,
                    help="time between frames A and B in ms (default: the rig's timing.dt_us)")
-    s.add_argument("--seed", type=int, default=1, help="random seed (default: 1)")
+    s.add_argument("--seed", type=whole_number, default=1, help="random seed (default: 1)")
     s.add_argument("--displacement-px", type=positive_float, default=None,
                    help="peak particle displacement over dt in object-side pixels of the first camera "
                    "(default: 25 for A1..B4 as in the chapter, 10 otherwise)")

@@ -5,9 +5,11 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
+import zarr
 
 from lfcore.render import LightFieldRenderer
 from lfcore.runstore import RunStore
@@ -183,7 +185,18 @@ BAD_INPUTS = [
     (lambda t: ["synth", "--rig", TINY], "the following arguments are required: --out"),
     (lambda t: ["info", str(t / "nothing.zarr")], "does not exist"),
     (lambda t: ["info", str(t)], "not an lfpiv run store"),
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--seed", "-1"], "--seed: must be at least 0"),
+    (lambda t: ["synth", "--rig", _not_utf8(t), "--out", str(t / "x.zarr")], "latin1.toml is not UTF-8 text (byte 23)"),
+    (lambda t: ["acquire", "--rig", TINY, "--out", str(t / "x.zarr"), "--pairs", "1", "--ring", "1"],
+     "--ring: must be at least 2"),
+    (lambda t: ["evaluate", str(t / "r.zarr"), "--plot", "q.txt"], "'q.txt' does not end in .png"),
+    (lambda t: ["reconstruct", str(t / "r.zarr"), "--smooth", "inf"], "--smooth: must be 0 or more"),
 ]
+
+
+def _not_utf8(t):
+    (t / "latin1.toml").write_bytes("# rig of the lab in Orl\xe9ans\n".encode("latin-1"))
+    return str(t / "latin1.toml")
 
 
 @pytest.mark.parametrize(("argv", "expected"), BAD_INPUTS)
@@ -211,6 +224,43 @@ def test_bad_points_csv(capsys, tmp_path, content, expected):
     csv.write_text(content)
     rc, _, err = _run(capsys, "synth", "--rig", TINY, "--out", str(tmp_path / "x.zarr"), "--particles", str(csv))
     assert rc == 2 and err.count("\n") == 1 and expected in err, err
+
+
+def test_a_rig_file_and_points_saved_with_a_byte_order_mark_are_read(capsys, tmp_path):
+    rig = tmp_path / "bom.toml"
+    rig.write_bytes(b"\xef\xbb\xbf" + Path(TINY).read_bytes())
+    csv = tmp_path / "points.csv"
+    csv.write_bytes(b"\xef\xbb\xbfx_mm,y_mm,z_mm\r\n0.0,0.0,0.0\r\n")
+    rc, _, err = _run(capsys, "synth", "--rig", rig, "--out", tmp_path / "x.zarr", "--particles", csv, "--quiet")
+    assert rc == 0, err
+    assert RunStore.open(tmp_path / "x.zarr").truth()["particles"].shape == (1, 2, 1, 3)
+
+
+def test_a_smoothing_that_would_fail_is_refused_before_the_volumes_are_replaced(capsys, tmp_path):
+    run = tmp_path / "r.zarr"
+    _synth(capsys, run, "--pairs", "1", "--rays", "300")
+    assert _run(capsys, "reconstruct", run, "--iterations", "2", "--quiet")[0] == 0
+    rc, _, err = _run(capsys, "reconstruct", run, "--iterations", "2", "--smooth", "1e9", "--quiet")
+    assert rc == 2 and err == "lfpiv: error: smooth must be from 0 to 10 voxels, got 1000000000.0\n"
+    assert RunStore.open(run).reconstructed_pairs() == [0]  # the volumes made before are kept
+
+
+def test_demo_with_a_missing_device_keeps_the_previous_demo(capsys, tmp_path):
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / ".lfpiv-demo").write_text("")
+    (out / "run.zarr").mkdir()  # what an earlier demo left, which a demo that runs replaces
+    rc, _, err = _run(capsys, "demo", "--out", out, "--device", "cuda:7", "--monitor", "no")
+    assert rc == 2 and "device 'cuda:7' is not available" in err
+    assert (out / "run.zarr").is_dir()
+
+
+def test_a_truth_cut_short_is_one_line_not_a_traceback(capsys, tmp_path):
+    run = tmp_path / "r.zarr"
+    _synth(capsys, run, "--pairs", "1", "--rays", "300")
+    del zarr.open_group(str(run), mode="r+")["truth/brightness"]  # what a Ctrl-C while writing the truth left
+    rc, _, err = _run(capsys, "info", run)
+    assert rc == 2 and err.count("\n") == 1 and "truth/ has no brightness" in err and "--overwrite" in err
 
 
 def test_existing_run_is_never_overwritten_silently(capsys, tmp_path):
