@@ -578,7 +578,7 @@ def _regions(sm: np.ndarray, lit: np.ndarray, adj: np.ndarray, top: np.ndarray, 
 
     def root(b: int) -> int:
         while (p := parent.get(b, b)) != b:
-            parent[b] = parent.get(p, p)  # path halving
+            parent[b] = parent.get(p, p)  # path splitting: point at the grandparent
             b = p
         return b
 
