@@ -113,7 +113,7 @@ def view_geometry(camera: Camera, wavelength_nm: float = 532.0, samples: int = 1
     # MLA points over the whole sensor: the micro-images' phase on the pixel grid drifts over the
     # field (a pitch of 14.01 pixels comes back in step every 92 lenslets), and with it the
     # light lost to neighbours (by up to 7 %); the fit takes the mean over the field
-    half = 0.5 * np.array(camera.sensor_px) * camera.pixel_mm / (1.0 + camera.mla_focal_length_mm / si)
+    half = 0.5 * np.array(camera.sensor_px) * camera.pixel_mm / k
     q = (rng.random((samples, 2)) - 0.5) * (2.0 * half)
     c = nearest_lenslet(camera, q)
     blur = diffraction_sigma_mm(wavelength_nm, camera.lenslet_f_number)
@@ -241,7 +241,7 @@ def lenslet_cells(grid: MlaGrid) -> LensletCells:
 
     lens, pix, wx_all, wy_all = grouped(lenslet), grouped(pixels), grouped(wx), grouped(wy)
     npix, nx, ny = (np.bincount(lens, weights=w, minlength=len(nodes)) for w in (None, wx_all, wy_all))
-    starts = np.concatenate([[0], np.cumsum(np.bincount(lens, minlength=len(nodes)))]).astype(np.int64)
+    starts = np.concatenate([[0], np.cumsum(npix)]).astype(np.int64)
     return LensletCells(tuple(grid.image_shape), pix, lens, wx_all, wy_all, len(nodes), float(np.median(npix)),
                         np.stack([npix, nx, npix - nx, ny, npix - ny], axis=-1), starts)
 

@@ -385,8 +385,7 @@ def _write_sim_truth(store: RunStore, lab: Any, pairs: int) -> None:
     full[:pairs] = particles
     bright = np.zeros((store.n_pairs, *brightness.shape[1:]))
     bright[:pairs] = brightness
-    t0 = np.arange(store.n_pairs) / float(store.timing.get("rate_hz") or 1.0)
-    t0[:pairs] = lab.truth_times_s(pairs)  # the lab shows its pool of pairs over and over
     world = lab.world
+    t0 = lab.truth_times_s(store.n_pairs)  # the lab shows its pool of pairs over and over
     store.write_truth(full, bright, world.flow_params, t0, ppm=world.ppm, seed=world.seed, source="simulated lab",
                       pairs_with_truth=pairs)

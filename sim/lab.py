@@ -125,4 +125,4 @@ class SimLab:
         """(pairs,) time of the first pulse of the world pair each trigger ``0 .. pairs - 1``
         showed, s: the time the truth flow of that pair is to be taken at."""
         cam = self.cameras[0]
-        return np.array([cam.pool_index(k) / self.world.rig.laser.rate_hz for k in range(pairs)])
+        return np.array([self.world.t0_s(cam.pool_index(k)) for k in range(pairs)])

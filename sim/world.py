@@ -72,6 +72,10 @@ class SimWorld:
         """The flow's name and parameters, as stored in ``truth/``."""
         return self._field.params()
 
+    def t0_s(self, k: int) -> float:
+        """Time of the first pulse of double pulse ``k`` on the flow's clock, s."""
+        return k / self.rig.laser.rate_hz
+
     def pair(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Particles of double pulse ``k``.
 
@@ -83,9 +87,8 @@ class SimWorld:
             (2, n) counts each particle deposits (laser-sheet profile applied).
         """
         rng = np.random.default_rng(derive_seed(self.seed, k))
-        t0 = k / self.rig.laser.rate_hz
         a = seed_particles(self.rig.volume, self.n_particles, rng)
-        b = advect(self._field, a, t0, self.dt_s)
+        b = advect(self._field, a, self.t0_s(k), self.dt_s)
         particles = np.stack([a, b])
         brightness = self.rig.render.particle_counts * sheet_weights(particles.reshape(-1, 3), self.rig.laser,
                                                                      self.rig.volume)
