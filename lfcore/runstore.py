@@ -15,6 +15,11 @@ Layout::
                               (pairs, 2, n) counts; attrs: flow (name and parameters), seeding
       volumes/data            float32 (pairs, 2, z, y, x); attrs: origin_mm, voxel_mm, method,
                               settings, reconstructed_pairs
+      vectors/                u, v, w, flags, peak_ratio (pairs, z, y, x); x_mm, y_mm, z_mm
+      volumes.pending/,       a replacement of volumes/ or vectors/ (other settings) being made,
+      vectors.pending/        same layout; it becomes volumes/ or vectors/ only once complete, so
+                              an interrupted replacement leaves the old ones whole; readers
+                              ignore it
 
 Every array carries ``units`` and ``axes`` attributes, so plain zarr or xarray users can read a
 run without lfpiv. Pairs ``0 .. committed_pairs - 1`` are complete; ``state`` says whether the
@@ -24,6 +29,8 @@ run is still ``recording``, ``complete`` or ``aborted``.
 from __future__ import annotations
 
 import datetime as _dt
+import os
+import shutil
 import uuid
 from pathlib import Path
 from typing import Any
@@ -138,6 +145,13 @@ class RunStore(RigStore):
     KIND = "lfpiv run store"
     HINT = "give the path of a run store (a .zarr directory)"
     Error = RunStoreError
+    #: Suffix of the group where a replacement of ``volumes/`` or ``vectors/`` is made.
+    PENDING = ".pending"
+
+    def __init__(self, group: zarr.Group, path: Path) -> None:
+        super().__init__(group, path)
+        # where volumes/ and vectors/ are written: themselves, or their pending replacement
+        self._target = {"volumes": "volumes", "vectors": "vectors"}
 
     # --- creation and opening -----------------------------------------------------------
     @classmethod
@@ -369,14 +383,16 @@ class RunStore(RigStore):
     def create_volumes(self, grid: VolumeGrid, *, method: str, settings: dict[str, Any]) -> zarr.Array:
         """Create (or replace) ``volumes/`` for every pair of the run, all zero.
 
+        Volumes already reconstructed are not deleted: the new ones are made in
+        ``volumes.pending/``, which :meth:`finish` makes ``volumes/`` once they are all written
+        (see :meth:`writing`).
+
         ``volumes/data`` is float32 (pairs, 2, z, y, x) in chunks of at most 16 x 256 x 256
         voxels; the group's attributes hold the grid (``origin_mm``, ``voxel_mm``), the method
         and its settings, ``reconstructed_pairs``, the pairs written so far, and ``volumes_id``, a
         name new with every ``volumes/`` made, which the vectors correlated from it record.
         """
-        if "volumes" in self.group:
-            del self.group["volumes"]
-        g = self.group.create_group("volumes")
+        g = self._begin("volumes", staged=bool(self.reconstructed_pairs()))
         g.attrs.update({"origin_mm": list(grid.origin_mm), "voxel_mm": list(grid.voxel_mm), "method": method,
                         "settings": settings, "reconstructed_pairs": [], "volumes_id": uuid.uuid4().hex,
                         "description": "reconstructed particle volumes; origin_mm is the world (x, y, z) "
@@ -394,13 +410,13 @@ class RunStore(RigStore):
         distinct volumes at once, while one coordinator records them (:meth:`record_volumes`),
         since attributes are rewritten whole and concurrent writers would lose each other's.
         """
-        self.group["volumes"]["data"][pair, frame] = volume
+        self.writing("volumes")["data"][pair, frame] = volume
         if record:
             self.record_volumes([(pair, frame)])
 
     def record_volumes(self, written: list[tuple[int, int]]) -> None:
         """Add (pair, frame) volumes, already written, to ``reconstructed_pairs``."""
-        g = self.group["volumes"]
+        g = self.writing("volumes")
         key = "_frames_written"
         done = {tuple(x) for x in g.attrs.get(key, [])} | {(int(p), int(f)) for p, f in written}
         pairs = sorted({p for p, _ in done if (p, 0) in done and (p, 1) in done})
@@ -425,8 +441,15 @@ class RunStore(RigStore):
 
     def volume_grid(self) -> VolumeGrid:
         """The voxel grid of ``volumes/``."""
-        a = self.group["volumes"].attrs
-        shape = tuple(int(n) for n in self.volumes().shape[2:])
+        return self.grid_of(self.group["volumes"]) if self.has_volumes else self.grid_of(None)
+
+    def grid_of(self, group: zarr.Group | None) -> VolumeGrid:
+        """The voxel grid of a volumes group (``volumes/`` or its pending replacement)."""
+        if group is None or "data" not in group:
+            raise RunStoreError(f"{self.path} has no reconstructed volumes; run 'lfpiv reconstruct {self.path}' "
+                                "first")
+        a = group.attrs
+        shape = tuple(int(n) for n in group["data"].shape[2:])
         return VolumeGrid(shape=shape, voxel_mm=tuple(a["voxel_mm"]), origin_mm=tuple(a["origin_mm"]))
 
     def reconstructed_pairs(self) -> list[int]:
@@ -455,6 +478,9 @@ class RunStore(RigStore):
                        windows: list[list[int]], overlap: list[float], settings: dict[str, Any]) -> None:
         """Create (or replace) ``vectors/`` for every pair of the run, all NaN.
 
+        Vectors already correlated are kept until the new ones are complete, as
+        :meth:`create_volumes` keeps volumes.
+
         Parameters
         ----------
         x_mm, y_mm, z_mm
@@ -473,9 +499,7 @@ class RunStore(RigStore):
         the pairs written so far, and ``volumes_id`` the :attr:`volumes_id` of the volumes they are
         correlated from.
         """
-        if "vectors" in self.group:
-            del self.group["vectors"]
-        g = self.group.create_group("vectors")
+        g = self._begin("vectors", staged=bool(self.correlated_pairs()))
         g.attrs.update({"dt_s": float(dt_s), "windows": [[int(n) for n in w] for w in windows],
                         "overlap": [float(o) for o in overlap], "settings": settings, "correlated_pairs": [],
                         "volumes_id": self.volumes_id,
@@ -499,15 +523,17 @@ class RunStore(RigStore):
                         shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
 
     def vector_arrays(self) -> dict[str, zarr.Array]:
-        """The ``u``, ``v``, ``w``, ``flags`` and ``peak_ratio`` arrays of ``vectors/``, opened now.
+        """The ``u``, ``v``, ``w``, ``flags`` and ``peak_ratio`` arrays being written (``vectors/``
+        or its pending replacement, :meth:`writing`), opened now.
 
         For a worker that writes many pairs while another process records them: writing through
         arrays opened once never reads the group's attributes again, which the recording process
         rewrites as pairs finish (see :meth:`write_vectors`).
         """
-        if not self.has_vectors:
-            raise RunStoreError(f"{self.path} has no vectors/ group; create it first")
-        g = self.group["vectors"]
+        key = self._target["vectors"]
+        if key not in self.group:
+            raise RunStoreError(f"{self.path} has no {key}/ group; create it first")
+        g = self.group[key]
         return {n: g[n] for n in ("u", "v", "w", "flags", "peak_ratio")}
 
     def write_vectors(self, pair: int, velocity_m_s: np.ndarray, flags: np.ndarray, peak_ratio: np.ndarray, *,
@@ -543,7 +569,7 @@ class RunStore(RigStore):
 
     def record_vectors(self, pairs: list[int]) -> None:
         """Add pairs whose vectors are already written to ``correlated_pairs``."""
-        g = self.group["vectors"]
+        g = self.writing("vectors")
         done = sorted(set(g.attrs.get("correlated_pairs", [])) | {int(p) for p in pairs})
         g.attrs.update({"correlated_pairs": done})
 
@@ -576,3 +602,59 @@ class RunStore(RigStore):
         out: dict[str, Any] = {n: g[n][...] for n in ("u", "v", "w", "flags", "peak_ratio", "x_mm", "y_mm", "z_mm")}
         out["attrs"] = dict(g.attrs)
         return out
+
+    # --- replacing derived data whole ---------------------------------------------------
+    def _begin(self, name: str, *, staged: bool) -> zarr.Group:
+        """A new, empty group where ``name`` (``volumes`` or ``vectors``) is made from now on:
+        ``name`` itself, or with ``staged`` its pending replacement, which leaves ``name`` whole
+        until :meth:`finish`."""
+        pending = name + self.PENDING
+        if pending in self.group:  # an earlier replacement, interrupted, and now superseded
+            del self.group[pending]
+        key = pending if staged else name
+        if key in self.group:
+            del self.group[key]
+        self._target[name] = key
+        return self.group.create_group(key)
+
+    def pending(self, name: str) -> zarr.Group | None:
+        """The unfinished replacement of ``name`` (``volumes`` or ``vectors``) that an interrupted
+        run left, or None."""
+        key = name + self.PENDING
+        return self.group[key] if key in self.group else None
+
+    def resume(self, name: str) -> zarr.Group:
+        """Write ``name`` into its pending replacement again (a replacement resumed), and return it."""
+        g = self.pending(name)
+        if g is None:
+            raise RunStoreError(f"{self.path} has no {name}{self.PENDING}/ to resume")
+        self._target[name] = g.basename
+        return g
+
+    def writing(self, name: str) -> zarr.Group:
+        """The group that writes of ``name`` (``volumes`` or ``vectors``) go to: ``name`` itself,
+        or the pending replacement that :meth:`create_volumes`, :meth:`create_vectors` or
+        :meth:`resume` chose."""
+        key = self._target[name]
+        if key not in self.group:
+            raise RunStoreError(f"{self.path} has no {key}/ group; create it first")
+        return self.group[key]
+
+    def finish(self, name: str) -> None:
+        """Make the pending replacement of ``name`` being written the current ``name`` (two
+        directory renames); nothing to do when ``name`` itself is being written.
+
+        Call it once every selected pair is written: until then readers see the old ``name``
+        whole. A kill between the two renames leaves the old one as ``<name>.replaced/``.
+        """
+        key = self._target[name]
+        if key == name:
+            return
+        root = Path(self.path)
+        old = root / f"{name}.replaced"
+        shutil.rmtree(old, ignore_errors=True)
+        if (root / name).exists():
+            os.replace(root / name, old)
+        os.replace(root / key, root / name)
+        shutil.rmtree(old, ignore_errors=True)
+        self._target[name] = name

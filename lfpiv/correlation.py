@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -34,6 +35,8 @@ class CorrelateJob:
     config: CorrelationConfig
     device: str | None
     token: str
+    #: the group the vectors go to: ``vectors``, or ``vectors.pending`` while they replace others
+    into: str = "vectors"
 
 
 @dataclass(frozen=True)
@@ -124,6 +127,8 @@ def correlate_pair_task(job: CorrelateJob, pair: int) -> PairVectors:
         # pairs finish, and re-reading them for every write could meet a half-replaced file on a
         # network file system
         store = open_run_on_worker(job.path)
+        if job.into != "vectors":
+            store.resume("vectors")
         return (_Target.of(store), store.volumes(),
                 _correlator(job.shape, job.config, this_worker_device(job.device)))
 
@@ -136,7 +141,9 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
     """Correlate the volumes of ``pairs`` into the run's ``vectors/``.
 
     Vectors already there with the same windows, overlap and settings are kept and added to;
-    otherwise ``vectors/`` is replaced. With ``skip_done``, pairs those vectors already hold are
+    otherwise new vectors replace them once every pair is written, and until then ``vectors/``
+    stays as it was (an interrupted replacement is kept in ``vectors.pending/`` and goes on when
+    the same settings are given again). With ``skip_done``, pairs those vectors already hold are
     left out. ``client``, a Dask client (:func:`lfpiv.batch.dask_client`), spreads the pairs
     over its workers, each correlating on its own ``device``.
 
@@ -157,37 +164,53 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
     place = (correlator.device, correlator.fft) if correlator is not None else (device or "auto", cfg.fft)
     settings = _settings(cfg, *place)
     windows, overlap = [list(w) for w in cfg.windows], list(cfg.overlap)
-    same = store.has_vectors and _same_vectors(store.group["vectors"], store.volumes_id, windows, overlap, dt_s,
-                                               (x_mm, y_mm, z_mm), settings)
-    if not same:
+    def same(g: Any) -> bool:
+        return g is not None and _same_vectors(g, store.volumes_id, windows, overlap, dt_s, (x_mm, y_mm, z_mm),
+                                               settings)
+
+    if same(store.pending("vectors")):
+        # an earlier replacement by these settings, interrupted: go on with it
+        store.resume("vectors")
+    elif not same(store.group["vectors"] if store.has_vectors else None):
         store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=windows, overlap=overlap, settings=settings)
-    elif skip_done:
-        done = set(store.correlated_pairs())
+    if skip_done:
+        done = set(store.writing("vectors").attrs["correlated_pairs"])
         pairs = [p for p in pairs if p not in done]
     found: list[PairVectors] = []
 
     def written(p: int, res: PairVectors) -> None:
         if not found:
             # the device and FFT engine that computed the latest pairs (a worker resolves its own)
-            s = store.group["vectors"].attrs["settings"]
+            g = store.writing("vectors")
+            s = g.attrs["settings"]
             if (s.get("device"), s.get("fft")) != (res.device, res.fft):
-                store.group["vectors"].attrs["settings"] = {**s, "device": res.device, "fft": res.fft}
+                g.attrs["settings"] = {**s, "device": res.device, "fft": res.fft}
         store.record_vectors([p])
         found.append(res)
 
     t0 = time.perf_counter()
-    if client is not None and pairs:
-        from lfpiv.batch import map_pairs, new_token
+    try:
+        if client is not None and pairs:
+            from lfpiv.batch import map_pairs, new_token
 
-        job = CorrelateJob(path=str(Path(store.path).resolve()), shape=grid.shape, config=cfg, device=device,
-                           token=new_token())
-        map_pairs(client, correlate_pair_task, job, pairs, on_done=written, desc="correlating", progress=progress)
-    elif pairs:
-        with tqdm(total=len(pairs) * len(cfg.passes), unit="pass", disable=not progress, desc="correlating") as bar:
-            # the next pair's volumes are read while this one is correlated
-            target = _Target.of(store)
-            for p, vols in prefetched(pairs, partial(_read_pair, store.volumes())):
-                written(p, _correlate_pair(correlator, target, p, vols, progress=bar.update))
+            job = CorrelateJob(path=str(Path(store.path).resolve()), shape=grid.shape, config=cfg, device=device,
+                               token=new_token(), into=store.writing("vectors").basename)
+            map_pairs(client, correlate_pair_task, job, pairs, on_done=written, desc="correlating",
+                      progress=progress)
+        elif pairs:
+            with tqdm(total=len(pairs) * len(cfg.passes), unit="pass", disable=not progress,
+                      desc="correlating") as bar:
+                # the next pair's volumes are read while this one is correlated
+                target = _Target.of(store)
+                for p, vols in prefetched(pairs, partial(_read_pair, store.volumes())):
+                    written(p, _correlate_pair(correlator, target, p, vols, progress=bar.update))
+    except KeyboardInterrupt:
+        if store.writing("vectors").basename != "vectors":
+            print(f"lfpiv: note: the vectors of {len(found)} pair(s) are kept aside and those correlated before "
+                  "with other settings are unchanged; the same command with --skip-done goes on with the new ones",
+                  file=sys.stderr)
+        raise
+    store.finish("vectors")
     dev = found[0].device if found else place[0]
     return CorrelationRun(pairs=[r.pair for r in found], grid=g, outliers=sum(r.outliers for r in found),
                           seconds=time.perf_counter() - t0, device=dev)

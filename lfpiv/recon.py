@@ -58,6 +58,8 @@ class ReconJob:
     settings: ReconSettings
     device: str | None
     token: str
+    #: the group the volumes go to: ``volumes``, or ``volumes.pending`` while they replace others
+    into: str = "volumes"
 
 
 def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings,
@@ -97,9 +99,9 @@ def _say_replaced(store: RunStore, grid: VolumeGrid, meta: dict[str, Any]) -> No
     changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k)]
     if store.volume_grid() != grid:
         changed.insert(0, "voxel grid")
-    print(f"lfpiv: note: replacing the volumes of {len(done)} pair(s) made with other settings "
-          f"({', '.join(changed[:4])}{' ...' if len(changed) > 4 else ''} differ); vectors correlated from them "
-          "no longer match them", file=sys.stderr)
+    print(f"lfpiv: note: the volumes of {len(done)} pair(s) made with other settings "
+          f"({', '.join(changed[:4])}{' ...' if len(changed) > 4 else ''} differ) are replaced once the new ones "
+          "are complete; vectors correlated from them will no longer match them", file=sys.stderr)
 
 
 def _summary(res: ReconResult) -> ReconResult:
@@ -115,11 +117,14 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
 
     def build() -> tuple[RunStore, Any, Projector, WeightCache | None]:
         store = open_run_on_worker(job.path)
+        if job.into != "volumes":
+            store.resume("volumes")
         cams = [job.rig.camera_named(n) for n in job.cameras]
         # the volumes array opened once: its group's attributes are rewritten by the coordinator
         # as pairs finish, and re-reading them for every write could meet a half-replaced file
         # on a network file system
-        return (store, store.volumes(), *_operator(cams, job.grid, job.settings, this_worker_device(job.device)))
+        return (store, store.writing("volumes")["data"],
+                *_operator(cams, job.grid, job.settings, this_worker_device(job.device)))
 
     store, data, projector, cache = worker_state(job.token, build)
     out = []
@@ -141,8 +146,11 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     """Reconstruct both frames of the selected pairs and store them in ``volumes/``.
 
     Existing volumes with the same grid, cameras, settings and calibration are kept and added
-    to; otherwise ``volumes/`` is replaced. With ``skip_done``, the selected pairs that such
-    volumes already hold are not reconstructed again (a run resumed after an interruption).
+    to; otherwise new volumes replace them once every selected pair is written, and until then
+    ``volumes/`` stays as it was (an interrupted replacement is kept in ``volumes.pending/`` and
+    goes on when the same settings are given again). With ``skip_done``, the selected pairs
+    already reconstructed with these settings are not reconstructed again (a run resumed after
+    an interruption).
 
     ``rig`` replaces the rig stored in the run (e.g. the run's rig with the fitted camera models
     of a calibration, :func:`lfpiv.calibrate.calibrated_rig`); ``calibration`` says which
@@ -190,14 +198,19 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
             "cameras": names, "calibration": calibration}
-    if not (store.has_volumes and store.volume_grid() == grid and store.group["volumes"].attrs["settings"] == meta):
+    pending = store.pending("volumes")
+    if _made_with(store, pending, grid, meta):
+        # an earlier replacement by these settings, interrupted: go on with it
+        store.resume("volumes")
+    elif not _made_with(store, store.group["volumes"] if store.has_volumes else None, grid, meta):
         _say_replaced(store, grid, meta)
         store.create_volumes(grid, method=settings.method, settings=meta)
-    elif skip_done:
-        done = set(store.reconstructed_pairs())
+    if skip_done:
+        done = set(store.writing("volumes").attrs["reconstructed_pairs"])
         chosen = [p for p in chosen if p not in done]
     results: list[ReconResult] = []
     if not chosen:
+        store.finish("volumes")
         return results
 
     def written(p: int, res: list[ReconResult]) -> None:
@@ -209,9 +222,11 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
             from lfpiv.batch import map_pairs, new_token
 
             job = ReconJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names), grid=grid,
-                           settings=settings, device=device, token=new_token())
+                           settings=settings, device=device, token=new_token(),
+                           into=store.writing("volumes").basename)
             map_pairs(client, reconstruct_pair_task, job, chosen, on_done=written, desc="reconstructing",
                       progress=progress)
+            store.finish("volumes")
             return results
         total = len(chosen) * 2 * max(settings.iterations, 1)
         # each volume is written (and recorded) while the next frame is reconstructed
@@ -227,9 +242,28 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                     bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}")
     except UsageError as exc:
         if results:
-            raise UsageError(f"{exc}; the {len(results)} volume(s) written before are kept") from None
+            raise UsageError(f"{exc}; the {len(results)} volume(s) written before are kept{_aside(store)}") from None
         raise
+    except KeyboardInterrupt:
+        if _aside(store):
+            print(f"lfpiv: note: the {len(results)} new volume(s) are kept{_aside(store)}", file=sys.stderr)
+        raise
+    store.finish("volumes")
     return results
+
+
+def _aside(store: RunStore) -> str:
+    """How an unfinished replacement of the volumes is left, for an error message."""
+    if store.writing("volumes").basename == "volumes":
+        return ""
+    return (" aside and the volumes made before with other settings are unchanged; the same command with "
+            "--skip-done goes on with the new ones")
+
+
+def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, Any]) -> bool:
+    """True when ``group`` (volumes or their pending replacement, None if absent) holds volumes
+    on ``grid`` made with the settings ``meta``."""
+    return group is not None and "data" in group and store.grid_of(group) == grid and group.attrs["settings"] == meta
 
 
 @dataclass(frozen=True)

@@ -95,6 +95,12 @@ def run(args: argparse.Namespace) -> int:
         lines.append(("vectors", f"{_count(store.correlated_pairs())} correlated, windows "
                                  f"{' then '.join('x'.join(map(str, w)) for w in windows)}"
                                  + ("; from volumes since replaced" if store.vectors_outdated else "")))
+    for name, done in (("volumes", "reconstructed_pairs"), ("vectors", "correlated_pairs")):
+        pending = store.pending(name)
+        if pending is not None:
+            lines.append((f"{name}.pending", f"a replacement with other settings, interrupted after "
+                                             f"{_count(pending.attrs.get(done, []))}; it takes the place of {name}/ "
+                                             "once the same settings are given again with --skip-done"))
     width = max(len(k) for k, _ in lines)
     for k, val in lines:
         print(f"{k:<{width}}  {val}")

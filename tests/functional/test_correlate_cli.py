@@ -225,3 +225,41 @@ def test_console_script_help_and_exit_code(tmp_path, tiny_rig):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
     shutil.rmtree(tmp_path / "r.zarr")
+
+
+def test_an_interrupted_replacement_leaves_the_old_vectors_whole_and_goes_on(tmp_path, tiny_rig, capsys,
+                                                                            monkeypatch):
+    import lfpiv.correlation as correlation
+
+    path = tmp_path / "r.zarr"
+    _make_run(path, tiny_rig)
+    assert _run(capsys, "correlate", path, "--windows", "16x16x8", "--quiet")[0] == 0
+    before = RunStore.open(path).vectors()
+    real = correlation._correlate_pair
+    done = []
+
+    def interrupted_at_pair_1(correlator, target, pair, *args, **kwargs):
+        if pair == 1:
+            raise KeyboardInterrupt
+        done.append(pair)
+        return real(correlator, target, pair, *args, **kwargs)
+
+    monkeypatch.setattr(correlation, "_correlate_pair", interrupted_at_pair_1)
+    rc, _, err = _run(capsys, "correlate", path, "--windows", WINDOWS, "--quiet")
+    assert rc == 130
+    assert "the vectors of 1 pair(s) are kept aside and those correlated before with other settings are unchanged" \
+        in err
+    s = RunStore.open(path)
+    now = s.vectors()
+    assert now["attrs"]["windows"] == [[16, 16, 8]] and s.correlated_pairs() == [0, 1]
+    assert all(np.array_equal(now[n], before[n], equal_nan=True) for n in ("u", "v", "w", "flags"))
+    assert s.pending("vectors").attrs["correlated_pairs"] == [0]
+
+    done.clear()
+    monkeypatch.setattr(correlation, "_correlate_pair", lambda *a, **k: (done.append(a[2]), real(*a, **k))[1])
+    rc, _, err = _run(capsys, "correlate", path, "--windows", WINDOWS, "--skip-done", "--quiet")
+    assert rc == 0, err
+    assert done == [1]
+    s = RunStore.open(path)
+    assert s.vectors()["attrs"]["windows"] == [[32, 32, 16], [16, 16, 8]] and s.correlated_pairs() == [0, 1]
+    assert s.pending("vectors") is None

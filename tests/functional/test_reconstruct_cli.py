@@ -175,7 +175,7 @@ def test_replacing_volumes_says_so_and_marks_their_vectors_outdated(capsys, tmp_
     assert rc == 0 and not RunStore.open(run).vectors_outdated, err
     rc, _, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--pairs", "0", "--quiet")
     assert rc == 0
-    assert "note: replacing the volumes of 2 pair(s) made with other settings (iterations differ)" in err
+    assert "note: the volumes of 2 pair(s) made with other settings (iterations differ) are replaced" in err
     assert RunStore.open(run).vectors_outdated
     for argv in (["evaluate", run], ["export", run, "--format", "netcdf", "--out", tmp_path / "f"]):
         rc, _, err = _run(capsys, *argv)
@@ -194,3 +194,75 @@ def test_reconstruct_by_default_takes_the_pairs_a_cut_short_recording_committed(
     rc, _, err = _run(capsys, "reconstruct", str(run), "--iterations", "1", "--quiet")
     assert rc == 0, err
     assert RunStore.open(run).reconstructed_pairs() == [0, 1]
+
+
+def test_an_interrupted_replacement_leaves_the_old_volumes_whole_and_goes_on(capsys, tmp_path, monkeypatch):
+    """Ctrl-C while volumes of other settings are made: the old volumes/ (and the vectors
+    correlated from them) stay as they were; the same command with --skip-done finishes the new
+    ones, which then replace them."""
+    import lfpiv.recon as recon
+
+    run = tmp_path / "run.zarr"
+    assert main(["synth", "--rig", TINY, "--out", str(run), "--pairs", "2", "--ppm", "0.2", "--quiet"]) == 0
+    assert _run(capsys, "reconstruct", str(run), "--iterations", "2", "--quiet")[0] == 0
+    assert _run(capsys, "correlate", str(run), "--windows", "32x32x16", "--quiet")[0] == 0
+    before = RunStore.open(run).volumes()[...]
+    frames = []
+    real = recon._reconstruct_frame
+
+    def interrupted_at_pair_1(projector, cache, store, names, pair, frame, *args, **kwargs):
+        if pair == 1:
+            raise KeyboardInterrupt
+        frames.append((pair, frame))
+        return real(projector, cache, store, names, pair, frame, *args, **kwargs)
+
+    monkeypatch.setattr(recon, "_reconstruct_frame", interrupted_at_pair_1)
+    rc, _, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--quiet")
+    assert rc == 130
+    assert "the 2 new volume(s) are kept aside and the volumes made before with other settings are unchanged" in err
+    s = RunStore.open(run)
+    assert np.array_equal(s.volumes()[...], before) and s.reconstructed_pairs() == [0, 1]
+    assert s.group["volumes"].attrs["settings"]["iterations"] == 2 and not s.vectors_outdated
+    assert s.pending("volumes").attrs["reconstructed_pairs"] == [0]
+    rc, out, _ = _run(capsys, "info", str(run))
+    assert "volumes          2 pair(s) (0 to 1) reconstructed by drt-mart, 2 iterations" in out
+    assert "volumes.pending  a replacement with other settings, interrupted after 1 pair(s) (0)" in out
+
+    frames.clear()
+    monkeypatch.setattr(recon, "_reconstruct_frame", lambda *a, **k: (frames.append(a[4:6]), real(*a, **k))[1])
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--skip-done", "--quiet")
+    assert rc == 0, err
+    assert frames == [(1, 0), (1, 1)]  # pair 0 of the interrupted replacement was kept
+    s = RunStore.open(run)
+    assert s.pending("volumes") is None and s.reconstructed_pairs() == [0, 1]
+    assert s.group["volumes"].attrs["settings"]["iterations"] == 3 and s.vectors_outdated
+    assert not np.array_equal(s.volumes()[...], before)
+    assert sorted(p.name for p in run.iterdir() if p.name.startswith("volumes")) == ["volumes"]
+
+
+def test_other_settings_after_an_interrupted_replacement_start_it_again(capsys, tmp_path, monkeypatch):
+    import lfpiv.recon as recon
+
+    run = tmp_path / "run.zarr"
+    assert main(["synth", "--rig", TINY, "--out", str(run), "--pairs", "2", "--ppm", "0.2", "--quiet"]) == 0
+    assert _run(capsys, "reconstruct", str(run), "--iterations", "1", "--quiet")[0] == 0
+    real = recon._reconstruct_frame
+
+    def interrupted_at_pair_1(*args, **kwargs):
+        if args[4] == 1:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(recon, "_reconstruct_frame", interrupted_at_pair_1)
+    assert _run(capsys, "reconstruct", str(run), "--iterations", "2", "--quiet")[0] == 130
+    monkeypatch.setattr(recon, "_reconstruct_frame", real)
+    # back to the first settings: the volumes already hold them, the stale replacement is dropped
+    rc, _, err = _run(capsys, "reconstruct", str(run), "--iterations", "1", "--skip-done", "--quiet")
+    assert rc == 0 and "replaced" not in err, err
+    s = RunStore.open(run)
+    assert s.group["volumes"].attrs["settings"]["iterations"] == 1 and s.pending("volumes") is not None
+    # third settings: a new replacement, made whole
+    assert _run(capsys, "reconstruct", str(run), "--iterations", "3", "--quiet")[0] == 0
+    s = RunStore.open(run)
+    assert s.group["volumes"].attrs["settings"]["iterations"] == 3 and s.pending("volumes") is None
+    assert s.reconstructed_pairs() == [0, 1]

@@ -186,6 +186,37 @@ def test_volumes_round_trip(tiny_rig, tmp_path):
     assert r.group["volumes"].attrs["method"] == "drt-mart"
 
 
+def test_volumes_are_replaced_only_once_the_new_ones_are_finished(tiny_rig, tmp_path):
+    from lfcore.volume import VolumeGrid
+
+    path = tmp_path / "v.zarr"
+    s = RunStore.create(path, tiny_rig, 2, timing={}, software_version="x")
+    grid = VolumeGrid.from_rig(tiny_rig)
+    s.create_volumes(grid, method="mart", settings={"iterations": 1})
+    old = np.ones(grid.shape, np.float32)
+    for f in (0, 1):
+        s.write_volume(0, f, old)
+    s.finish("volumes")  # nothing pending: nothing to do
+    old_id = s.volumes_id
+    s.create_volumes(grid, method="drt-mart", settings={"iterations": 2})
+    # a second process (a Dask worker) writes into the same replacement
+    w = RunStore.open(path, mode="r+")
+    w.resume("volumes")
+    w.write_volume(1, 0, 3 * old, record=False)
+    s.write_volume(1, 1, 3 * old, record=False)
+    s.record_volumes([(1, 0), (1, 1)])
+    r = RunStore.open(path)
+    assert r.volumes_id == old_id and r.reconstructed_pairs() == [0] and r.volumes()[0, 1].min() == 1
+    assert r.pending("volumes").attrs["reconstructed_pairs"] == [1]
+    s.finish("volumes")
+    r = RunStore.open(path)
+    assert r.pending("volumes") is None and r.volumes_id != old_id and r.reconstructed_pairs() == [1]
+    assert r.group["volumes"].attrs["method"] == "drt-mart" and r.volumes()[1, 0].max() == 3
+    assert sorted(p.name for p in path.iterdir() if p.name.startswith("volumes")) == ["volumes"]
+    with pytest.raises(RunStoreError, match="no volumes.pending/ to resume"):
+        r.resume("volumes")
+
+
 def test_frame_writer_writes_the_chunks_zarr_writes(tiny_rig, tmp_path):
     rng = np.random.default_rng(2)
     frames = (rng.normal(100, 5, (3, 2, 160, 192)) + (rng.random((3, 2, 160, 192)) < 0.02) * 3000).astype(np.uint16)
