@@ -66,7 +66,8 @@ from typing import Any, NoReturn
 from .protocols import DeviceError, TimingPlan
 from .serial_link import LinkClosed, LinkError, SerialLink
 
-__all__ = ["ERROR_CODES", "QuantumComposers9520", "disarm_all", "install_signal_handlers", "signals_call"]
+__all__ = ["ERROR_CODES", "QuantumComposers9520", "disarm_all", "install_signal_handlers", "signals_call",
+           "signals_held"]
 
 log = logging.getLogger(__name__)
 
@@ -506,6 +507,40 @@ def signals_call(handler: Callable[[], None]) -> Iterator[None]:
 
 
 _HOOKS: list[Callable[[], None]] = []
+
+
+@contextlib.contextmanager
+def signals_held(note: Callable[[], None] | None = None) -> Iterator[list[int]]:
+    """Inside, Ctrl-C (SIGINT), SIGTERM and SIGHUP disarm every armed generator and are then
+    held, for cleanup that must finish (disarming, closing a run and writing its state) once a
+    first Ctrl-C has started it. The first signal held calls ``note()`` (to say "one moment");
+    a second one raises KeyboardInterrupt after all, for cleanup that hangs.
+
+    Yields the list of signal numbers held. Outside the main thread, where no handler can be
+    set, it holds nothing.
+    """
+    held: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield held
+        return
+
+    def hold(signum: int) -> None:
+        held.append(signum)
+        if len(held) > 1:
+            raise KeyboardInterrupt
+        if note is not None:
+            note()
+
+    def on_sigint(signum: int, frame: FrameType | None) -> None:
+        disarm_all()
+        hold(signum)
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        with signals_call(lambda: hold(signal.SIGTERM)):
+            yield held
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _on_signal(signum: int, frame: FrameType | None) -> None:

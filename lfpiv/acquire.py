@@ -27,11 +27,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from acquisition.protocols import Camera, DeviceError, PulseGenerator, TimingPlan
-from acquisition.pulse_generator import signals_call
+from acquisition.pulse_generator import signals_call, signals_held
 from acquisition.session import RecordingSession, SessionStats
 from acquisition.timing import TimingError, plan_timing
 from lfcore.rig import Rig
-from lfcore.runstore import RunStore
+from lfcore.runstore import RunStore, RunStoreError
 from lfpiv import __version__
 from lfpiv.errors import UsageError
 
@@ -245,20 +245,22 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
             raise DeviceError(f"{exc}; {laser}; the {session.committed_pairs} pair(s) recorded so far are kept "
                               f"in {out} (state 'aborted')") from None
         finally:
-            if undisarmed is None:
-                undisarmed = _disarm(gen)
-                if undisarmed and state != "complete":  # leaving on Ctrl-C or a signal
-                    print(f"lfpiv: warning: {_unconfirmed(undisarmed)}", file=sys.stderr)
-            signals.close()  # from here a second signal ends the process: the laser is off
-            session.close()
-            if state == "complete" and session.committed_pairs < pairs:
-                state, message = "aborted", f"only {session.committed_pairs} of {pairs} pairs could be written"
-            store.group.attrs.update({"abort_reason": message} if state == "aborted" else {})
-            store.set_state(state)
-            if rg.lab is not None and session.committed_pairs > 0:
-                _write_sim_truth(store, rg.lab, session.committed_pairs)
+            # a second Ctrl-C or a kill while the run is closed waits for it (a third one does
+            # not): every signal disarms the laser at once in any case
+            with signals_held(_closing):
+                if undisarmed is None:
+                    undisarmed = _disarm(gen)
+                    if undisarmed and state != "complete":  # leaving on Ctrl-C or a signal
+                        print(f"lfpiv: warning: {_unconfirmed(undisarmed)}", file=sys.stderr)
+                signals.close()
+                session.close()
+                if state == "complete" and session.committed_pairs < pairs:
+                    state, message = "aborted", f"only {session.committed_pairs} of {pairs} pairs could be written"
+                unclosed = _close_run(store, state, message, rg.lab, session.committed_pairs)
         if undisarmed:
             raise DeviceError(f"{message}: the run is kept in {out} (state '{state}'), but {_unconfirmed(undisarmed)}")
+        if unclosed:
+            raise RunStoreError(f"recorded {session.committed_pairs} pair(s) into {out}, but {unclosed}")
         stats = session.stats()
         return AcquireResult(store, state, stats, len(store.drops()), message)
 
@@ -373,6 +375,32 @@ def _disarm(gen: PulseGenerator) -> str:
 def _unconfirmed(problem: str) -> str:
     return (f"the laser could NOT be confirmed disarmed ({problem}): press STOP on the pulse generator or close "
             "the laser shutter, then check the generator's cable and power")
+
+
+def _closing() -> None:
+    print("\nlfpiv: the laser is disarmed; closing the run, one moment (once more to leave at once)", file=sys.stderr)
+
+
+def _close_run(store: RunStore, state: str, message: str, lab: Any, committed: int) -> str:
+    """Write the run's final state (and a simulated lab's truth); "" when done, else what could
+    not be written, also printed as a warning. Never raises OSError: a full disk must not hide
+    the fault that ended the recording, nor that the laser was disarmed."""
+    try:
+        store.group.attrs.update({"abort_reason": message} if state == "aborted" else {})
+        store.set_state(state)
+    except OSError as exc:
+        why = (f"the run could not be marked '{state}' ({exc.strerror or exc}), so it still says 'recording'; its "
+               f"{committed} committed pair(s) read back whole")
+    else:
+        if lab is None or committed == 0:
+            return ""
+        try:
+            _write_sim_truth(store, lab, committed)
+            return ""
+        except OSError as exc:
+            why = f"the simulated lab's truth could not be written ({exc.strerror or exc}); the frames are whole"
+    print(f"lfpiv: warning: {why}", file=sys.stderr)
+    return why
 
 
 def _write_sim_truth(store: RunStore, lab: Any, pairs: int) -> None:

@@ -17,7 +17,7 @@ import pytest
 
 from acquisition.protocols import DeviceError
 from lfcore.rig import Rig
-from lfcore.runstore import RunStore
+from lfcore.runstore import RunStore, RunStoreError
 from lfpiv.acquire import list_devices, open_rig, record
 from lfpiv.cli import main
 from lfpiv.errors import UsageError
@@ -160,6 +160,58 @@ def test_ctrl_c_disarms_and_marks_the_run_aborted(fast_rig, tmp_path: Path) -> N
     store = RunStore.open(tmp_path / "int.zarr")
     assert store.state == "aborted" and store.committed_pairs >= 5
     _check_every_frame_accounted(store, store.committed_pairs)
+
+
+def test_a_second_ctrl_c_while_the_run_is_closed_waits_for_it(fast_rig, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture) -> None:
+    """Two Ctrl-Cs in quick succession: the second arrives while the run is being closed, and is
+    held until the laser is disarmed and the run marked aborted with its truth."""
+    def interrupt(stats) -> None:
+        if stats.committed_pairs >= 5:
+            raise KeyboardInterrupt
+
+    def second_ctrl_c_on_close(session) -> None:
+        close = session.close
+
+        def close_after_ctrl_c(*args, **kwargs):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # the handler runs here
+            return close(*args, **kwargs)
+
+        session.close = close_after_ctrl_c
+
+    with _lab(fast_rig) as lab:
+        with pytest.raises(KeyboardInterrupt):
+            record(fast_rig, tmp_path / "int.zarr", 1000, sim_options={"lab": lab}, progress=interrupt,
+                   on_session=second_ctrl_c_on_close)
+        assert not lab.pulse_generator.outputs_enabled()
+    assert "closing the run, one moment" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    store = RunStore.open(tmp_path / "int.zarr")
+    assert store.state == "aborted" and store.committed_pairs >= 5 and store.truth() is not None
+
+
+def test_a_full_disk_at_the_end_keeps_the_fault_and_the_laser_report(fast_rig, tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch,
+                                                                    capsys: pytest.CaptureFixture) -> None:
+    def full(self, state):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(RunStore, "set_state", full)
+    with _lab(fast_rig, cam1={"fail_after_frames": 40}) as lab:
+        with pytest.raises(DeviceError, match="cam1.*the laser was disarmed"):
+            record(fast_rig, tmp_path / "fault.zarr", 500, sim_options={"lab": lab}, stall_s=1.0)
+        assert not lab.pulse_generator.outputs_enabled()
+    assert ("warning: the run could not be marked 'aborted' (No space left on device), so it still says "
+            "'recording'") in capsys.readouterr().err
+    store = RunStore.open(tmp_path / "fault.zarr")
+    assert store.state == "recording" and store.committed_pairs >= 5
+    _check_every_frame_accounted(store, store.committed_pairs)
+    # a recording that completes but cannot be marked so is an error too, and says what it kept
+    with _lab(fast_rig) as lab, pytest.raises(RunStoreError, match=r"recorded 10 pair\(s\) into .*done.zarr, but the "
+                                                                "run could not be marked 'complete'"):
+        record(fast_rig, tmp_path / "done.zarr", 10, sim_options={"lab": lab})
+    assert RunStore.open(tmp_path / "done.zarr").committed_pairs == 10
 
 
 def test_a_generator_that_stops_answering_stops_the_recording(fast_rig, tmp_path: Path) -> None:

@@ -309,3 +309,23 @@ def test_an_ignored_sighup_stays_ignored():
         assert signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
     finally:
         signal.signal(signal.SIGHUP, previous)
+
+
+def test_signals_held_disarm_hold_one_and_give_way_to_the_next(emu, gen, plan):
+    """While a run is closed, Ctrl-C and SIGTERM disarm and are held once; a second ends it."""
+    from acquisition.pulse_generator import signals_held
+
+    gen.program(plan)
+    notes = []
+    with signals_held(lambda: notes.append("one moment")) as held:
+        gen.arm()
+        assert wait_for(lambda: emu.firing)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)  # handlers run between bytecodes of the main thread
+        assert held == [signal.SIGTERM] and notes == ["one moment"]
+        assert_safe(emu)
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+        assert held == [signal.SIGTERM, signal.SIGINT] and len(notes) == 1
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
