@@ -7,13 +7,21 @@ import numpy as np
 from lfcore.mla import lenslet_count
 from lfcore.rig import LaserConfig, Rig, VolumeConfig
 
-__all__ = ["particle_count", "seed_particles", "sheet_weights"]
+__all__ = ["MAX_PPM", "particle_count", "seed_particles", "sheet_weights"]
+
+#: Densest seeding accepted, particles per microlens. About 1 PPM is the usual limit of a
+#: light-field reconstruction (the chapter tests up to 2); far beyond, the images are saturated
+#: and a synthetic run of a large sensor would take more memory than a workstation has.
+MAX_PPM = 10.0
 
 
 def particle_count(rig: Rig, ppm: float) -> int:
     """Particles for a seeding density in particles per microlens (PPM) of the first camera."""
     if not (np.isfinite(ppm) and ppm > 0):
         raise ValueError(f"ppm must be a positive number, got {ppm}")
+    if ppm > MAX_PPM:
+        raise ValueError(f"ppm {ppm:g} is beyond {MAX_PPM:g} particles per microlens (about 1 is the usual limit of "
+                         "a light-field reconstruction); give a lower density")
     return max(1, round(ppm * lenslet_count(rig.camera[0])))
 
 

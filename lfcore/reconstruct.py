@@ -50,6 +50,9 @@ WEIGHTS = {"drt-mart": "drt", "mart": "los", "mlos-mart": "los"}
 MAX_SIMULTANEOUS_RELAXATION = 2.0
 #: Widest smoothing sigma accepted, voxels.
 MAX_SMOOTH_VOXELS = 10.0
+#: Most main-lens sub-apertures per axis for the DRT weights: the default is the pixels per
+#: lenslet (about 14), and each voxel traces the square of this many bundles.
+MAX_SUB_APERTURES = 64
 FORMS = ("simultaneous", "sequential")
 
 
@@ -133,6 +136,10 @@ class ReconSettings:
         if not 0 <= self.smooth <= MAX_SMOOTH_VOXELS:
             # a sigma many voxels wide blurs particles (3 voxels across) into the background
             raise ValueError(f"smooth must be from 0 to {MAX_SMOOTH_VOXELS:g} voxels, got {self.smooth}")
+        if self.sub_apertures is not None and not 1 <= self.sub_apertures <= MAX_SUB_APERTURES:
+            # the build's time grows with the square: 1000 per axis took minutes on a tiny rig
+            raise ValueError(f"sub_apertures must be from 1 to {MAX_SUB_APERTURES} per axis, got "
+                             f"{self.sub_apertures}")
         if self.weight_storage not in STORAGE:
             raise ValueError(f"weight_storage must be one of {', '.join(STORAGE)}, got '{self.weight_storage}'")
         if self.weight_storage == "on-the-fly" and self.method == "drt-mart":

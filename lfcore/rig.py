@@ -119,7 +119,8 @@ class Camera(_Strict):
     """
 
     name: str
-    sensor_px: tuple[Annotated[int, Field(ge=8)], Annotated[int, Field(ge=8)]]
+    # up to 32768 a side: the largest scientific sensors are about 14,000 px wide
+    sensor_px: tuple[Annotated[int, Field(ge=8, le=32768)], Annotated[int, Field(ge=8, le=32768)]]
     pixel_pitch_um: PositiveFloat
     mla_grid: Literal["hex", "square"]
     mla_pitch_um: PositiveFloat
@@ -397,7 +398,7 @@ class RenderConfig(_Strict):
     signal one particle at the laser-sheet peak deposits through the whole aperture.
     """
 
-    rays_per_particle: Annotated[int, Field(ge=1)] = 10000
+    rays_per_particle: Annotated[int, Field(ge=1, le=1_000_000)] = 10000
     particle_counts: PositiveFloat = 50000.0
     particle_diameter_um: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
     diffraction: bool = True

@@ -197,6 +197,10 @@ def plot_grids(store: CalibrationStore, out: str | Path, lenslets: int = 8) -> P
     return out
 
 
+#: Fewest lenslets (in the volume, through the main lens) between neighbouring dots of a board.
+MIN_DOT_LENSLETS = 2
+
+
 def default_board(rig: Rig, spacing_mm: float | None = None, tilt_deg: float | None = None) -> DotBoard:
     """The board the volumetric run assumes unless told: 3 mm spacing (a quarter of the volume's
     smaller transverse size for small rigs), centred on the volume, tilted about world y so its
@@ -206,6 +210,13 @@ def default_board(rig: Rig, spacing_mm: float | None = None, tilt_deg: float | N
     vol = rig.volume
     if spacing_mm is None:
         spacing_mm = min(3.0, 0.25 * min(vol.size_mm[0], vol.size_mm[1]))
+    # a dot is found from the lenslets its light falls on: dots closer than two lenslets (in the
+    # object space of the coarsest camera) share them and cannot be told apart
+    least = max(MIN_DOT_LENSLETS * c.mla_pitch_mm / abs(c.magnification) for c in rig.camera)
+    if spacing_mm < least:
+        raise ValueError(f"dots {spacing_mm:g} mm apart are closer than {MIN_DOT_LENSLETS} lenslets of the cameras "
+                         f"({least:.3g} mm in the volume), where they cannot be told apart; use a spacing of at least "
+                         f"{least:.2g} mm")
     board = DotBoard.for_cameras(np.array([c.optical_axis for c in rig.camera]), spacing_mm=spacing_mm,
                                  centre_mm=vol.centre_mm, marker_scale=1.6 if len(rig.camera) > 1 else 1.0)
     return board if tilt_deg is None else dataclasses.replace(board, tilt_deg=tilt_deg)

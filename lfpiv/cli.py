@@ -90,6 +90,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("lfpiv: interrupted; what was recorded so far is kept", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except MemoryError as exc:
+        # what the memory checks did not foresee (NumPy says how much it wanted)
+        print(f"lfpiv: error: out of memory{f' ({exc})' if str(exc) else ''}; make the job smaller (fewer pairs, a "
+              "coarser --pvr, a smaller volume or sensor, a lower density) or run it on a machine with more memory",
+              file=sys.stderr)
+        return EXIT_USAGE
     except BrokenPipeError:
         # the reader went away (``lfpiv info run.zarr | head``): nothing left to say
         with contextlib.suppress(OSError):

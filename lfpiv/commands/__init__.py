@@ -16,14 +16,16 @@ COMMANDS = ("demo", "devices", "acquire", "monitor", "calibrate", "synth", "info
             "evaluate", "export")
 
 
-def whole_number(text: str, least: int = 0) -> int:
-    """argparse type: an integer of at least ``least``."""
+def whole_number(text: str, least: int = 0, most: int | None = None) -> int:
+    """argparse type: an integer of at least ``least`` (and at most ``most``)."""
     try:
         v = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
     if v < least:
         raise argparse.ArgumentTypeError(f"must be at least {least}, got {v}")
+    if most is not None and v > most:
+        raise argparse.ArgumentTypeError(f"must be at most {most}, got {v}")
     return v
 
 
@@ -49,6 +51,46 @@ def ring_slots(text: str) -> int:
     return whole_number(text, 2)
 
 
+def sub_apertures(text: str) -> int:
+    """argparse type of ``--sub-apertures``: 1 to :data:`lfcore.reconstruct.MAX_SUB_APERTURES`."""
+    from lfcore.reconstruct import MAX_SUB_APERTURES
+
+    return whole_number(text, 1, MAX_SUB_APERTURES)
+
+
+def rays_per_particle(text: str) -> int:
+    """argparse type of the rays per particle of a rendering: 1 to :data:`MAX_RAYS`."""
+    return whole_number(text, 1, MAX_RAYS)
+
+
+#: Most rays per particle a rendering may trace (the rigs' default is 10,000; a million gives
+#: the same image to a part in a thousand at a hundred times the time).
+MAX_RAYS = 1_000_000
+
+
+def seeding_ppm(text: str) -> float:
+    """argparse type of a seeding density, particles per microlens: positive, at most
+    :data:`lfcore.particles.MAX_PPM`."""
+    from lfcore.particles import MAX_PPM
+
+    v = positive_float(text)
+    if v > MAX_PPM:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_PPM:g} particles per microlens (about 1 is the usual "
+                                         f"limit of a light-field reconstruction), got {text}")
+    return v
+
+
+def camera_names(text: str) -> list[str]:
+    """argparse type of ``--cameras``: comma-separated names, each once."""
+    names = [c.strip() for c in text.split(",")]
+    if "" in names:
+        raise argparse.ArgumentTypeError(f"'{text}' has an empty name; give names like cam0,cam1")
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise argparse.ArgumentTypeError(f"'{twice[0]}' is named twice; give each camera once")
+    return names
+
+
 def png_path(text: str) -> str:
     """argparse type of a picture's path: it must end in .png (checked before any work)."""
     if not text.lower().endswith(".png"):
@@ -62,7 +104,7 @@ def positive_float(text: str) -> float:
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
     if not (v > 0 and v != float("inf")):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+        raise argparse.ArgumentTypeError(f"must be {'finite' if v > 0 else 'a positive number'}, got {text}")
     return v
 
 
@@ -73,7 +115,7 @@ def non_negative_float(text: str) -> float:
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
     if not 0 <= v < float("inf"):
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text}")
+        raise argparse.ArgumentTypeError(f"must be {'finite' if v > 0 else '0 or more'}, got {text}")
     return v
 
 
@@ -163,9 +205,9 @@ def add_sim_options(parser: argparse.ArgumentParser) -> None:
     """The ``--sim-*`` options of commands that can run on the simulated lab."""
     parser.add_argument("--sim-flow", default="vortex-ring", metavar="FLOW",
                         help="simulated lab only: the flow the simulated cameras see (default: vortex-ring)")
-    parser.add_argument("--sim-ppm", type=float, default=0.5, metavar="PPM",
+    parser.add_argument("--sim-ppm", type=seeding_ppm, default=0.5, metavar="PPM",
                         help="simulated lab only: seeding in particles per microlens (default: 0.5)")
-    parser.add_argument("--sim-rays", type=positive_int, default=None, metavar="N",
+    parser.add_argument("--sim-rays", type=rays_per_particle, default=None, metavar="N",
                         help="simulated lab only: rays per particle when rendering (default: the rig's)")
     parser.add_argument("--sim-pool", type=positive_int, default=4, metavar="PAIRS",
                         help="simulated lab only: distinct pairs rendered and cycled through (default: 4)")

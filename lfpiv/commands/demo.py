@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from lfpiv.commands import add_device, examples_dir, positive_int
+from lfpiv.commands import add_device, examples_dir, positive_int, rays_per_particle
 from lfpiv.errors import UsageError
 
 #: Marks a folder written by the demo, so that a later demo may replace it (and nothing else).
@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--out", default="demo-output", metavar="DIR", help="output folder (default: demo-output)")
     d.add_argument("--rig", default=None, metavar="RIG", help="rig file (default: examples/demo.toml)")
     d.add_argument("--pairs", type=positive_int, default=2, help="double-frame pairs to record (default: 2)")
-    d.add_argument("--rays", type=positive_int, default=None, help="rays per particle when rendering "
+    d.add_argument("--rays", type=rays_per_particle, default=None, help="rays per particle when rendering "
                    "(default: the rig's)")
     d.add_argument("--monitor", choices=("auto", "window", "screenshot", "no"), default="auto",
                    help="live monitor step: a window when a display is available, else a screenshot "

@@ -7,11 +7,13 @@ import argparse
 from lfpiv.commands import (
     add_device,
     add_workers,
+    camera_names,
     check_pvr,
     non_negative_float,
     pair_range,
     positive_float,
     positive_int,
+    sub_apertures,
     warn_voxel_shape,
     workers_phrase,
     xyz_triple,
@@ -39,7 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pixel-voxel ratio per axis (default: the rig's volume.pvr)")
     r.add_argument("--margin-mm", type=xyz_triple, default=(0.0, 0.0, 0.0), metavar="X,Y,Z",
                    help="grow the box beyond the rig's volume on every side (default: 0,0,0)")
-    r.add_argument("--cameras", default=None, metavar="NAMES", help="comma-separated cameras to use (default: all)")
+    r.add_argument("--cameras", type=camera_names, default=None, metavar="NAMES",
+                   help="comma-separated cameras to use (default: all)")
     r.add_argument("--pairs", type=pair_range, default=None, metavar="START:STOP",
                    help="pairs to reconstruct, e.g. 0:10 or 3 (default: every recorded pair)")
     r.add_argument("--background", type=non_negative_float, default=None, metavar="COUNTS",
@@ -48,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="a pixel is lit above background + this many noise sigmas (default: 2)")
     r.add_argument("--smooth", type=non_negative_float, default=0.6, metavar="VOXELS",
                    help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
-    r.add_argument("--sub-apertures", type=positive_int, default=None,
+    r.add_argument("--sub-apertures", type=sub_apertures, default=None,
                    help="main-lens sub-apertures per axis for the DRT weights (default: pixels per lenslet)")
     r.add_argument("--calibration", default=None, metavar="CALIB",
                    help="calibration store (lfpiv calibrate fit): reconstruct with its fitted camera models "
@@ -78,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     store = RunStore.open(args.run, mode="r+")
-    cameras = [c.strip() for c in args.cameras.split(",")] if args.cameras else None
+    cameras = args.cameras
     rig, calibration = None, None
     if args.calibration is not None:
         from lfpiv.calibrate import calibrated_rig

@@ -5,7 +5,15 @@ from __future__ import annotations
 import argparse
 import sys
 
-from lfpiv.commands import add_device, positive_float, positive_int, warn_optics, whole_number
+from lfpiv.commands import (
+    add_device,
+    positive_float,
+    positive_int,
+    rays_per_particle,
+    seeding_ppm,
+    warn_optics,
+    whole_number,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"one of {', '.join(FLOW_NAMES)} (default: vortex-ring)")
     s.add_argument("--omega", type=positive_float, default=1.0,
                    help="wavelength factor of the A/B cases; the chapter used 0.25, 0.5, 1, 2 (default: 1)")
-    s.add_argument("--ppm", type=positive_float, default=0.5, help="particles per microlens (default: 0.5)")
+    s.add_argument("--ppm", type=seeding_ppm, default=0.5, help="particles per microlens (default: 0.5)")
     s.add_argument("--pairs", type=positive_int, default=3, help="double-frame pairs (default: 3)")
     s.add_argument("--dt-ms", type=positive_float, default=None,
                    help="time between frames A and B in ms (default: the rig's timing.dt_us)")
@@ -30,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "(default: 25 for A1..B4 as in the chapter, 10 otherwise)")
     s.add_argument("--particles", metavar="CSV", default=None,
                    help="render one pair of these points (header x_mm,y_mm,z_mm) instead of a flow")
-    s.add_argument("--rays", type=positive_int, default=None, help="rays per particle (default: the rig's)")
+    s.add_argument("--rays", type=rays_per_particle, default=None, help="rays per particle (default: the rig's)")
     add_device(s)
     s.add_argument("--overwrite", action="store_true", help="replace an existing run store at --out")
     s.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import signal
 import subprocess
 import sys
@@ -190,8 +191,29 @@ BAD_INPUTS = [
     (lambda t: ["acquire", "--rig", TINY, "--out", str(t / "x.zarr"), "--pairs", "1", "--ring", "1"],
      "--ring: must be at least 2"),
     (lambda t: ["evaluate", str(t / "r.zarr"), "--plot", "q.txt"], "'q.txt' does not end in .png"),
-    (lambda t: ["reconstruct", str(t / "r.zarr"), "--smooth", "inf"], "--smooth: must be 0 or more"),
+    (lambda t: ["reconstruct", str(t / "r.zarr"), "--smooth", "inf"], "--smooth: must be finite, got inf"),
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--ppm", "1e6"],
+     "--ppm: must be at most 10 particles per microlens"),
+    (lambda t: ["acquire", "--rig", TINY, "--out", str(t / "x.zarr"), "--pairs", "1", "--sim-ppm", "-1"],
+     "--sim-ppm: must be a positive number"),
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--rays", "100000000"],
+     "--rays: must be at most 1000000"),
+    (lambda t: ["reconstruct", str(t / "r.zarr"), "--sub-apertures", "1000"], "--sub-apertures: must be at most 64"),
+    (lambda t: ["reconstruct", str(t / "r.zarr"), "--cameras", "cam0,cam0"], "--cameras: 'cam0' is named twice"),
+    (lambda t: ["reconstruct", str(t / "r.zarr"), "--cameras", "cam0,"], "--cameras: 'cam0,' has an empty name"),
+    (lambda t: ["calibrate", "volume", "--rig", TINY, "--out", str(t / "x.zarr"), "--spacing-mm", "0.0001"],
+     "dots 0.0001 mm apart are closer than 2 lenslets of the cameras (0.11 mm in the volume)"),
+    (lambda t: ["synth", "--rig", _huge_sensor(t), "--out", str(t / "x.zarr")],
+     "camera[0].sensor_px[0]: input should be less than or equal to 32768 (got 100000)"),
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--pairs", "3000000000"],
+     "out of memory (Unable to allocate"),
 ]
+
+
+def _huge_sensor(t):
+    text = re.sub(r"sensor_px = \[[^\]]*\]", "sensor_px = [100000, 64]", Path(TINY).read_text())
+    (t / "huge.toml").write_text(text)
+    return str(t / "huge.toml")
 
 
 def _not_utf8(t):
