@@ -208,6 +208,11 @@ class RunStore(RigStore):
         before long work whose result goes to ``path``, so that the user hears at once.
         """
         path = Path(path)
+        if path.is_symlink():
+            # replacing a run through a link would delete the folder it points to, or write
+            # beside a dangling one: say so rather than guess
+            raise RunStoreError(f"{path} is a symbolic link (to {os.readlink(path)}); give the real path, or another "
+                                "output path")
         if not path.exists():
             return
         if not overwrite:

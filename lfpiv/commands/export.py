@@ -13,6 +13,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("run", metavar="RUN", help="run store with vectors (a .zarr directory)")
     e.add_argument("--format", required=True, choices=("netcdf", "vtk"), help="netcdf or vtk")
     e.add_argument("--out", required=True, metavar="DIR", help="directory to write into (created if needed)")
+    e.add_argument("--overwrite", action="store_true",
+                   help="replace the files of an earlier export of this format in --out")
     e.set_defaults(func=run)
 
 
@@ -33,6 +35,12 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} is a file; give a directory")
+    earlier = sorted(out.glob("vectors.nc") if args.format == "netcdf" else
+                     [*out.glob("vectors.pvd"), *out.glob("vectors_pair[0-9][0-9][0-9][0-9].vti")])
+    if earlier and not args.overwrite:
+        raise UsageError(f"--out {out} already holds {earlier[0].name}"
+                         f"{f' and {len(earlier) - 1} more file(s)' if len(earlier) > 1 else ''} of an earlier "
+                         "export; pass --overwrite to replace them, or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     fields = fields_of(vectors, pairs, store.timing.get("rate_hz"))
     if args.format == "netcdf":

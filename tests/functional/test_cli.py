@@ -207,7 +207,14 @@ BAD_INPUTS = [
      "camera[0].sensor_px[0]: input should be less than or equal to 32768 (got 100000)"),
     (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--pairs", "3000000000"],
      "out of memory (Unable to allocate"),
+    (lambda t: ["synth", "--rig", TINY, "--out", _link_to_a_folder(t), "--overwrite"],
+     "link.zarr is a symbolic link (to "),
 ]
+
+
+def _link_to_a_folder(t):
+    (t / "link.zarr").symlink_to(_user_folder(t))
+    return str(t / "link.zarr")
 
 
 def _huge_sensor(t):

@@ -121,7 +121,10 @@ def test_export_vtk(correlated, tmp_path, capsys):
     (tmp_path / "vtk").mkdir()
     (tmp_path / "vtk" / "vectors_pair0007.vti").write_text("old")
     (tmp_path / "vtk" / "notes.txt").write_text("keep")
-    rc, out, _ = _run(capsys, "export", path, "--format", "vtk", "--out", tmp_path / "vtk")
+    rc, _, err = _run(capsys, "export", path, "--format", "vtk", "--out", tmp_path / "vtk")
+    assert rc == 2 and "already holds vectors_pair0007.vti of an earlier export; pass --overwrite" in err
+    assert (tmp_path / "vtk" / "vectors_pair0007.vti").read_text() == "old"
+    rc, out, _ = _run(capsys, "export", path, "--format", "vtk", "--out", tmp_path / "vtk", "--overwrite")
     assert rc == 0
     (tmp_path / "vtk" / "notes.txt").unlink()
     files = sorted(p.name for p in (tmp_path / "vtk").iterdir())
