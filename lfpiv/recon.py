@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import sys
 import warnings
 from collections.abc import Sequence
@@ -102,6 +103,13 @@ def _say_replaced(store: RunStore, grid: VolumeGrid, meta: dict[str, Any]) -> No
     print(f"lfpiv: note: the volumes of {len(done)} pair(s) made with other settings "
           f"({', '.join(changed[:4])}{' ...' if len(changed) > 4 else ''} differ) are replaced once the new ones "
           "are complete; vectors correlated from them will no longer match them", file=sys.stderr)
+    # both sets are on disk until the new one is complete
+    held = sum(f.stat().st_size for f in (Path(store.path) / "volumes").rglob("*") if f.is_file())
+    free = shutil.disk_usage(store.path).free
+    if free < held:
+        print(f"lfpiv: warning: the new volumes are made beside the old ones, which take {held / 2**30:.2f} GiB, and "
+              f"only {free / 2**30:.2f} GiB is free; free some space, or delete {store.path}/volumes first if "
+              "the old ones may go", file=sys.stderr)
 
 
 def _summary(res: ReconResult) -> ReconResult:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -166,16 +168,21 @@ def test_running_out_of_device_memory_is_one_line_and_keeps_volumes(capsys, tmp_
     assert vol[0, 0].max() > 0  # frame A is in the store
 
 
-def test_replacing_volumes_says_so_and_marks_their_vectors_outdated(capsys, tmp_path):
+def test_replacing_volumes_says_so_and_marks_their_vectors_outdated(capsys, tmp_path, monkeypatch):
     run = tmp_path / "run.zarr"
     assert main(["synth", "--rig", TINY, "--out", str(run), "--pairs", "2", "--ppm", "0.2", "--flow", "uniform",
                  "--quiet"]) == 0
     assert _run(capsys, "reconstruct", str(run), "--iterations", "2", "--quiet")[0] == 0
     rc, _, err = _run(capsys, "correlate", str(run), "--windows", "32x32x16,16x16x8", "--quiet")
     assert rc == 0 and not RunStore.open(run).vectors_outdated, err
+    import lfpiv.recon as recon
+
+    usage = shutil.disk_usage
+    monkeypatch.setattr(recon.shutil, "disk_usage", lambda path: usage(path)._replace(free=1000))
     rc, _, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--pairs", "0", "--quiet")
     assert rc == 0
     assert "note: the volumes of 2 pair(s) made with other settings (iterations differ) are replaced" in err
+    assert "warning: the new volumes are made beside the old ones, which take 0.00 GiB, and only 0.00 GiB" in err
     assert RunStore.open(run).vectors_outdated
     for argv in (["evaluate", run], ["export", run, "--format", "netcdf", "--out", tmp_path / "f"]):
         rc, _, err = _run(capsys, *argv)
