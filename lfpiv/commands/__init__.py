@@ -59,13 +59,11 @@ def sub_apertures(text: str) -> int:
 
 
 def rays_per_particle(text: str) -> int:
-    """argparse type of the rays per particle of a rendering: 1 to :data:`MAX_RAYS`."""
-    return whole_number(text, 1, MAX_RAYS)
+    """argparse type of the rays per particle of a rendering: 1 to
+    :data:`lfcore.rig.MAX_RAYS_PER_PARTICLE`."""
+    from lfcore.rig import MAX_RAYS_PER_PARTICLE
 
-
-#: Most rays per particle a rendering may trace (the rigs' default is 10,000; a million gives
-#: the same image to a part in a thousand at a hundred times the time).
-MAX_RAYS = 1_000_000
+    return whole_number(text, 1, MAX_RAYS_PER_PARTICLE)
 
 
 def seeding_ppm(text: str) -> float:

@@ -81,16 +81,15 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     store = RunStore.open(args.run, mode="r+")
-    cameras = args.cameras
     rig, calibration = None, None
     if args.calibration is not None:
         from lfpiv.calibrate import calibrated_rig
 
-        rig, calibration = calibrated_rig(store.rig, args.calibration, cameras)
-    warn_voxel_shape(rig or store.rig, cameras, args.pvr)
+        rig, calibration = calibrated_rig(store.rig, args.calibration, args.cameras)
+    warn_voxel_shape(rig or store.rig, args.cameras, args.pvr)
     with dask_client(args.workers, args.scheduler) as client:
         results = reconstruct_run(store, settings, pvr=args.pvr, margin_mm=args.margin_mm, pairs=args.pairs,
-                                  cameras=cameras, device=args.device, progress=not args.quiet, rig=rig,
+                                  cameras=args.cameras, device=args.device, progress=not args.quiet, rig=rig,
                                   calibration=calibration, skip_done=args.skip_done, client=client)
     if not results:
         print(f"every selected pair of {store.path} is already reconstructed with these settings; nothing to do")
