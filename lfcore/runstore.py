@@ -225,7 +225,8 @@ class RunStore(RigStore):
 
     @classmethod
     def open(cls, path: str | Path, mode: str = "r") -> RunStore:
-        """Open an existing run (``mode`` ``"r"`` or ``"r+"``).
+        """Open an existing run (``mode`` ``"r"`` or ``"r+"``); ``"r+"`` settles a replacement
+        of volumes or vectors killed as it was put in place (:meth:`recover`).
 
         Raises
         ------
@@ -239,7 +240,10 @@ class RunStore(RigStore):
             raise RunStoreError(f"{path} is incomplete: {missing} is missing (a store still being created, or a "
                                 "damaged one), so it cannot be read as a run; if it is not being created, copy what "
                                 "you need from it with zarr, or record it again")
-        return cls(root, path)
+        store = cls(root, path)
+        if mode != "r":
+            store.recover()
+        return store
 
     @staticmethod
     def _missing(root: zarr.Group) -> str | None:
@@ -609,6 +613,9 @@ class RunStore(RigStore):
         return out
 
     # --- replacing derived data whole ---------------------------------------------------
+    #: The attribute of ``volumes/`` and ``vectors/`` that lists the pairs written so far.
+    DONE = {"volumes": "reconstructed_pairs", "vectors": "correlated_pairs"}
+
     def _begin(self, name: str, *, staged: bool) -> zarr.Group:
         """A new, empty group where ``name`` (``volumes`` or ``vectors``) is made from now on:
         ``name`` itself, or with ``staged`` its pending replacement, which leaves ``name`` whole
@@ -645,21 +652,58 @@ class RunStore(RigStore):
             raise RunStoreError(f"{self.path} has no {key}/ group; create it first")
         return self.group[key]
 
-    def finish(self, name: str) -> None:
-        """Make the pending replacement of ``name`` being written the current ``name`` (two
-        directory renames); nothing to do when ``name`` itself is being written.
+    def plan(self, name: str, pairs: list[int]) -> None:
+        """Add ``pairs`` to those the pending replacement of ``name`` being written must hold
+        before :meth:`finish` puts it in place (nothing to do when ``name`` itself is written):
+        a replacement resumed for a few pairs does not drop the old set's others unasked."""
+        g = self.writing(name)
+        if g.basename != name:
+            g.attrs["planned_pairs"] = sorted(set(g.attrs.get("planned_pairs", [])) | {int(p) for p in pairs})
 
-        Call it once every selected pair is written: until then readers see the old ``name``
-        whole. A kill between the two renames leaves the old one as ``<name>.replaced/``.
+    def unfinished(self, name: str) -> list[int]:
+        """The planned pairs (:meth:`plan`) that the pending replacement of ``name`` being
+        written still lacks; [] when it is complete or ``name`` itself is written."""
+        g = self.writing(name)
+        if g.basename == name:
+            return []
+        return sorted(set(g.attrs.get("planned_pairs", [])) - set(g.attrs.get(self.DONE[name], [])))
+
+    def finish(self, name: str) -> bool:
+        """Put the pending replacement of ``name`` being written in place of ``name`` once it
+        holds every planned pair (:meth:`plan`): two directory renames, then the old set is
+        deleted. Returns True when it replaced ``name``.
+
+        Until then readers see the old ``name`` whole. A kill between the renames, or while the
+        old set is deleted, leaves ``<name>.replaced/``, which :meth:`recover` settles.
         """
         key = self._target[name]
-        if key == name:
-            return
+        if key == name or self.unfinished(name):
+            return False
         root = Path(self.path)
         old = root / f"{name}.replaced"
         shutil.rmtree(old, ignore_errors=True)
         if (root / name).exists():
             os.replace(root / name, old)
         os.replace(root / key, root / name)
-        shutil.rmtree(old, ignore_errors=True)
         self._target[name] = name
+        shutil.rmtree(old, ignore_errors=True)
+        return True
+
+    def replaced_left(self, name: str) -> bool:
+        """Whether ``<name>.replaced/`` is left by a replacement killed in :meth:`finish`."""
+        return (Path(self.path) / f"{name}.replaced").exists()
+
+    def recover(self) -> list[str]:
+        """Settle replacements killed in :meth:`finish`: one killed between its renames is
+        completed (its pending set was complete), and the old set's folder left by one killed
+        while deleting it is deleted. Returns what was done, one line each."""
+        root, done = Path(self.path), []
+        for name in self._target:
+            cur, pending, old = root / name, root / (name + self.PENDING), root / f"{name}.replaced"
+            if not old.exists():
+                continue
+            if not cur.exists():
+                os.replace(pending if pending.exists() else old, cur)
+                done.append(f"completed the replacement of {name}/ that was interrupted as it was put in place")
+            shutil.rmtree(old, ignore_errors=True)
+        return done

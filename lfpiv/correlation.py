@@ -16,6 +16,7 @@ from lfcore.correlate import CorrelationConfig, CorrelationError, Correlator, Wi
 from lfcore.runstore import RunStore
 from lfcore.vectors import centres_mm, displacement_to_velocity, flags_from_masks
 from lfcore.volume import VolumeGrid
+from lfpiv import replacement
 from lfpiv.errors import UsageError
 from lfpiv.overlap import prefetched
 
@@ -168,11 +169,16 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
         return g is not None and _same_vectors(g, store.volumes_id, windows, overlap, dt_s, (x_mm, y_mm, z_mm),
                                                settings)
 
-    if same(store.pending("vectors")):
-        # an earlier replacement by these settings, interrupted: go on with it
-        store.resume("vectors")
-    elif not same(store.group["vectors"] if store.has_vectors else None):
-        store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=windows, overlap=overlap, settings=settings)
+    def differences(g: Any) -> list[str]:
+        old = dict(g.attrs)
+        changed = ["volumes since replaced"] if old.get("volumes_id") != store.volumes_id else []
+        changed += [k for k, v in (("windows", windows), ("overlap", overlap)) if old.get(k) != v]
+        s = old.get("settings", {})
+        return changed + [k for k in sorted(set(s) | set(settings)) if k not in _PLACE and s.get(k) != settings.get(k)]
+
+    replacement.begin(store, "vectors", pairs, matches=same, differences=differences,
+                      create=lambda: store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=windows,
+                                                         overlap=overlap, settings=settings))
     if skip_done:
         done = set(store.writing("vectors").attrs["correlated_pairs"])
         pairs = [p for p in pairs if p not in done]
@@ -205,12 +211,11 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
                 for p, vols in prefetched(pairs, partial(_read_pair, store.volumes())):
                     written(p, _correlate_pair(correlator, target, p, vols, progress=bar.update))
     except KeyboardInterrupt:
-        if store.writing("vectors").basename != "vectors":
-            print(f"lfpiv: note: the vectors of {len(found)} pair(s) are kept aside and those correlated before "
-                  "with other settings are unchanged; the same command with --skip-done goes on with the new ones",
-                  file=sys.stderr)
+        aside = replacement.kept_aside(store, "vectors")
+        if aside:
+            print(f"lfpiv: note: interrupted{aside}", file=sys.stderr)
         raise
-    store.finish("vectors")
+    replacement.end(store, "vectors")
     dev = found[0].device if found else place[0]
     return CorrelationRun(pairs=[r.pair for r in found], grid=g, outliers=sum(r.outliers for r in found),
                           seconds=time.perf_counter() - t0, device=dev)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 import sys
 import warnings
 from collections.abc import Sequence
@@ -21,6 +20,7 @@ from lfcore.rig import Rig
 from lfcore.runstore import RunStore, RunStoreError
 from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
+from lfpiv import replacement
 from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
 
@@ -88,28 +88,6 @@ def _reconstruct_frame(projector: Projector, cache: WeightCache | None, store: R
         return reconstruct(projector, images, settings, progress=progress, cache=cache)
     except MemoryBudgetError as exc:
         raise UsageError(f"pair {pair} frame {'AB'[frame]}: {exc}") from None
-
-
-def _say_replaced(store: RunStore, grid: VolumeGrid, meta: dict[str, Any]) -> None:
-    """Tell the user that volumes made with other settings are about to be replaced (they are
-    derived data: the recorded frames stay, and the old settings can make them again)."""
-    done = store.reconstructed_pairs()
-    if not done:
-        return
-    old = store.group["volumes"].attrs["settings"]
-    changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k)]
-    if store.volume_grid() != grid:
-        changed.insert(0, "voxel grid")
-    print(f"lfpiv: note: the volumes of {len(done)} pair(s) made with other settings "
-          f"({', '.join(changed[:4])}{' ...' if len(changed) > 4 else ''} differ) are replaced once the new ones "
-          "are complete; vectors correlated from them will no longer match them", file=sys.stderr)
-    # both sets are on disk until the new one is complete
-    held = sum(f.stat().st_size for f in (Path(store.path) / "volumes").rglob("*") if f.is_file())
-    free = shutil.disk_usage(store.path).free
-    if free < held:
-        print(f"lfpiv: warning: the new volumes are made beside the old ones, which take {held / 2**30:.2f} GiB, and "
-              f"only {free / 2**30:.2f} GiB is free; free some space, or delete {store.path}/volumes first if "
-              "the old ones may go", file=sys.stderr)
 
 
 def _summary(res: ReconResult) -> ReconResult:
@@ -206,19 +184,21 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
             "cameras": names, "calibration": calibration}
-    pending = store.pending("volumes")
-    if _made_with(store, pending, grid, meta):
-        # an earlier replacement by these settings, interrupted: go on with it
-        store.resume("volumes")
-    elif not _made_with(store, store.group["volumes"] if store.has_volumes else None, grid, meta):
-        _say_replaced(store, grid, meta)
-        store.create_volumes(grid, method=settings.method, settings=meta)
+
+    def differences(g: Any) -> list[str]:
+        old = g.attrs.get("settings", {})
+        changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k)]
+        return (["voxel grid"] if "data" in g and store.grid_of(g) != grid else []) + changed
+
+    replacement.begin(store, "volumes", chosen, matches=lambda g: _made_with(store, g, grid, meta),
+                      differences=differences,
+                      create=lambda: store.create_volumes(grid, method=settings.method, settings=meta))
     if skip_done:
         done = set(store.writing("volumes").attrs["reconstructed_pairs"])
         chosen = [p for p in chosen if p not in done]
     results: list[ReconResult] = []
     if not chosen:
-        store.finish("volumes")
+        replacement.end(store, "volumes")
         return results
 
     def written(p: int, res: list[ReconResult]) -> None:
@@ -234,7 +214,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                            into=store.writing("volumes").basename)
             map_pairs(client, reconstruct_pair_task, job, chosen, on_done=written, desc="reconstructing",
                       progress=progress)
-            store.finish("volumes")
+            replacement.end(store, "volumes")
             return results
         total = len(chosen) * 2 * max(settings.iterations, 1)
         # each volume is written (and recorded) while the next frame is reconstructed
@@ -249,23 +229,19 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                         bar.update(1)
                     bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}")
     except UsageError as exc:
+        aside = replacement.kept_aside(store, "volumes")
+        if aside:
+            raise UsageError(f"{exc}{aside}") from None
         if results:
-            raise UsageError(f"{exc}; the {len(results)} volume(s) written before are kept{_aside(store)}") from None
+            raise UsageError(f"{exc}; the {len(results)} volume(s) written before are kept") from None
         raise
     except KeyboardInterrupt:
-        if _aside(store):
-            print(f"lfpiv: note: the {len(results)} new volume(s) are kept{_aside(store)}", file=sys.stderr)
+        aside = replacement.kept_aside(store, "volumes")
+        if aside:
+            print(f"lfpiv: note: interrupted{aside}", file=sys.stderr)
         raise
-    store.finish("volumes")
+    replacement.end(store, "volumes")
     return results
-
-
-def _aside(store: RunStore) -> str:
-    """How an unfinished replacement of the volumes is left, for an error message."""
-    if store.writing("volumes").basename == "volumes":
-        return ""
-    return (" aside and the volumes made before with other settings are unchanged; the same command with "
-            "--skip-done goes on with the new ones")
 
 
 def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, Any]) -> bool:

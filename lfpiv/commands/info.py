@@ -95,12 +95,21 @@ def run(args: argparse.Namespace) -> int:
         lines.append(("vectors", f"{_count(store.correlated_pairs())} correlated, windows "
                                  f"{' then '.join('x'.join(map(str, w)) for w in windows)}"
                                  + ("; from volumes since replaced" if store.vectors_outdated else "")))
-    for name, done in (("volumes", "reconstructed_pairs"), ("vectors", "correlated_pairs")):
+    for name, command in (("volumes", "reconstruct"), ("vectors", "correlate")):
         pending = store.pending(name)
         if pending is not None:
-            lines.append((f"{name}.pending", f"a replacement with other settings, interrupted after "
-                                             f"{_count(pending.attrs.get(done, []))}; it takes the place of {name}/ "
-                                             "once the same settings are given again with --skip-done"))
+            a = pending.attrs
+            made = (f"{a.get('method')}, {a.get('settings', {}).get('iterations')} iterations" if name == "volumes"
+                    else f"windows {' then '.join('x'.join(map(str, w)) for w in a.get('windows', []))}")
+            stale = name == "vectors" and a.get("volumes_id") != store.volumes_id
+            lines.append((f"{name}.pending", f"a replacement ({made}) interrupted after "
+                                             f"{_count(a.get(RunStore.DONE[name], []))}; "
+                          + ("it was correlated from volumes since replaced, and the next correlate drops it"
+                             if stale else f"it takes the place of {name}/ once the same settings are given "
+                                           f"again with --skip-done")))
+        if store.replaced_left(name):
+            lines.append((f"{name}.replaced", f"a replacement interrupted as it was put in place; the next "
+                                              f"'lfpiv {command}' of this run settles it"))
     width = max(len(k) for k, _ in lines)
     for k, val in lines:
         print(f"{k:<{width}}  {val}")

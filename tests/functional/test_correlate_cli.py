@@ -250,8 +250,10 @@ def test_an_interrupted_replacement_leaves_the_old_vectors_whole_and_goes_on(tmp
     monkeypatch.setattr(correlation, "_correlate_pair", interrupted_at_pair_1)
     rc, _, err = _run(capsys, "correlate", path, "--windows", WINDOWS, "--quiet")
     assert rc == 130
-    assert "the vectors of 1 pair(s) are kept aside and those correlated before with other settings are unchanged" \
-        in err
+    assert "note: the vectors of 2 pair(s) made with other settings (windows differ) are replaced once the new " \
+           "ones are complete" in err
+    assert "the 1 pair(s) of new vectors are kept aside and the vectors made before with other settings are " \
+           "unchanged" in err
     s = RunStore.open(path)
     now = s.vectors()
     assert now["attrs"]["windows"] == [[16, 16, 8]] and s.correlated_pairs() == [0, 1]

@@ -175,10 +175,10 @@ def test_replacing_volumes_says_so_and_marks_their_vectors_outdated(capsys, tmp_
     assert _run(capsys, "reconstruct", str(run), "--iterations", "2", "--quiet")[0] == 0
     rc, _, err = _run(capsys, "correlate", str(run), "--windows", "32x32x16,16x16x8", "--quiet")
     assert rc == 0 and not RunStore.open(run).vectors_outdated, err
-    import lfpiv.recon as recon
+    import lfpiv.replacement as replacement
 
     usage = shutil.disk_usage
-    monkeypatch.setattr(recon.shutil, "disk_usage", lambda path: usage(path)._replace(free=1000))
+    monkeypatch.setattr(replacement.shutil, "disk_usage", lambda path: usage(path)._replace(free=1000))
     rc, _, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--pairs", "0", "--quiet")
     assert rc == 0
     assert "note: the volumes of 2 pair(s) made with other settings (iterations differ) are replaced" in err
@@ -226,20 +226,28 @@ def test_an_interrupted_replacement_leaves_the_old_volumes_whole_and_goes_on(cap
     monkeypatch.setattr(recon, "_reconstruct_frame", interrupted_at_pair_1)
     rc, _, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--quiet")
     assert rc == 130
-    assert "the 2 new volume(s) are kept aside and the volumes made before with other settings are unchanged" in err
+    assert "interrupted; the 1 pair(s) of new volumes are kept aside and the volumes made before with other " \
+           "settings are unchanged" in err
     s = RunStore.open(run)
     assert np.array_equal(s.volumes()[...], before) and s.reconstructed_pairs() == [0, 1]
     assert s.group["volumes"].attrs["settings"]["iterations"] == 2 and not s.vectors_outdated
     assert s.pending("volumes").attrs["reconstructed_pairs"] == [0]
     rc, out, _ = _run(capsys, "info", str(run))
     assert "volumes          2 pair(s) (0 to 1) reconstructed by drt-mart, 2 iterations" in out
-    assert "volumes.pending  a replacement with other settings, interrupted after 1 pair(s) (0)" in out
+    assert "volumes.pending  a replacement (drt-mart, 3 iterations) interrupted after 1 pair(s) (0); it takes" in out
 
     frames.clear()
     monkeypatch.setattr(recon, "_reconstruct_frame", lambda *a, **k: (frames.append(a[4:6]), real(*a, **k))[1])
+    # going on for a part of the pairs: the replacement waits for the rest, the old volumes stay
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--pairs", "0", "--skip-done", "--quiet")
+    assert rc == 0 and frames == [], err
+    assert "going on with the interrupted replacement of volumes/ made with these settings (1 pair(s) done" in err
+    assert "the replacement of volumes/ still lacks 1 pair(s) (1) asked of it before" in err
+    assert np.array_equal(RunStore.open(run).volumes()[...], before)
     rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--skip-done", "--quiet")
     assert rc == 0, err
     assert frames == [(1, 0), (1, 1)]  # pair 0 of the interrupted replacement was kept
+    assert "volumes/ now holds the new volumes (2 pair(s))" in err
     s = RunStore.open(run)
     assert s.pending("volumes") is None and s.reconstructed_pairs() == [0, 1]
     assert s.group["volumes"].attrs["settings"]["iterations"] == 3 and s.vectors_outdated

@@ -217,6 +217,35 @@ def test_volumes_are_replaced_only_once_the_new_ones_are_finished(tiny_rig, tmp_
         r.resume("volumes")
 
 
+def test_a_replacement_killed_as_it_is_put_in_place_is_settled_on_the_next_write(tiny_rig, tmp_path):
+    import os
+
+    from lfcore.volume import VolumeGrid
+
+    path = tmp_path / "v.zarr"
+    s = RunStore.create(path, tiny_rig, 1, timing={}, software_version="x")
+    grid = VolumeGrid.from_rig(tiny_rig)
+    for iterations in (1, 2):
+        s.create_volumes(grid, method="mart", settings={"iterations": iterations})
+        s.plan("volumes", [0])
+        assert s.unfinished("volumes") == ([0] if iterations == 2 else [])
+        s.write_volume(0, 0, np.full(grid.shape, iterations, np.float32))
+        s.write_volume(0, 1, np.full(grid.shape, iterations, np.float32))
+        assert s.unfinished("volumes") == []
+        if iterations == 1:
+            assert not s.finish("volumes")  # written in place: nothing to put there
+    # killed between the two renames of finish: no volumes/, the old set aside, the new one pending
+    os.replace(path / "volumes", path / "volumes.replaced")
+    r = RunStore.open(path)
+    assert not r.has_volumes and r.replaced_left("volumes")
+    assert RunStore.open(path, mode="r+").group["volumes"].attrs["settings"] == {"iterations": 2}
+    r = RunStore.open(path)
+    assert r.volumes()[0, 1].min() == 2 and r.pending("volumes") is None and not r.replaced_left("volumes")
+    # killed while the old set was deleted: what is left of it goes
+    (path / "volumes.replaced" / "c").mkdir(parents=True)
+    assert RunStore.open(path, mode="r+").recover() == [] and not (path / "volumes.replaced").exists()
+
+
 def test_frame_writer_writes_the_chunks_zarr_writes(tiny_rig, tmp_path):
     rng = np.random.default_rng(2)
     frames = (rng.normal(100, 5, (3, 2, 160, 192)) + (rng.random((3, 2, 160, 192)) < 0.02) * 3000).astype(np.uint16)
