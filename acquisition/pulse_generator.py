@@ -59,6 +59,7 @@ import os
 import re
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
 from types import FrameType, TracebackType
 from typing import Any, NoReturn
@@ -510,11 +511,12 @@ _HOOKS: list[Callable[[], None]] = []
 
 
 @contextlib.contextmanager
-def signals_held(note: Callable[[], None] | None = None) -> Iterator[list[int]]:
+def signals_held(note: Callable[[], None] | None = None, grace_s: float = 5.0) -> Iterator[list[int]]:
     """Inside, Ctrl-C (SIGINT), SIGTERM and SIGHUP disarm every armed generator and are then
     held, for cleanup that must finish (disarming, closing a run and writing its state) once a
     first Ctrl-C has started it. The first signal held calls ``note()`` (to say "one moment");
-    a second one raises KeyboardInterrupt after all, for cleanup that hangs.
+    every signal in the first ``grace_s`` seconds is held (people press Ctrl-C several times),
+    and one after that raises KeyboardInterrupt after all, for cleanup that hangs.
 
     Yields the list of signal numbers held. Outside the main thread, where no handler can be
     set, it holds nothing.
@@ -523,17 +525,18 @@ def signals_held(note: Callable[[], None] | None = None) -> Iterator[list[int]]:
     if threading.current_thread() is not threading.main_thread():
         yield held
         return
+    since = time.monotonic()
 
     def hold(signum: int) -> None:
         held.append(signum)
-        if len(held) > 1:
+        if len(held) > 1 and time.monotonic() - since > grace_s:
             raise KeyboardInterrupt
-        if note is not None:
+        if len(held) == 1 and note is not None:
             note()
 
     def on_sigint(signum: int, frame: FrameType | None) -> None:
-        disarm_all()
-        hold(signum)
+        if _disarm_in_handler():
+            hold(signum)
 
     previous = signal.signal(signal.SIGINT, on_sigint)
     try:
@@ -543,8 +546,27 @@ def signals_held(note: Callable[[], None] | None = None) -> Iterator[list[int]]:
         signal.signal(signal.SIGINT, previous)
 
 
+_IN_HANDLER = False
+
+
+def _disarm_in_handler() -> bool:
+    """Disarm every generator from a signal handler; False (and nothing done) when this
+    interrupts a handler already disarming: that one goes on undisturbed, instead of meeting the
+    second handler's exception or serial exchange in the middle of its own."""
+    global _IN_HANDLER
+    if _IN_HANDLER:
+        return False
+    _IN_HANDLER = True
+    try:
+        disarm_all()
+    finally:
+        _IN_HANDLER = False
+    return True
+
+
 def _on_signal(signum: int, frame: FrameType | None) -> None:
-    disarm_all()
+    if not _disarm_in_handler():
+        return
     if _HOOKS:
         _HOOKS[-1]()
         return

@@ -192,10 +192,16 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
                   "channels": [{"channel": c.channel, "role": c.role, "delay_s": c.delay_s, "width_s": c.width_s,
                                 "polarity": c.polarity} for c in plan.channels]}
         store = RunStore.create(out, rig, pairs, timing=timing, software_version=__version__, overwrite=overwrite)
-        store.group.attrs.update({"hardware": rig.hardware})
-        session = RecordingSession(rg.cameras, store, pairs, ring_slots=ring_slots, writer_threads=writer_threads,
-                                   trigger_period_s=period)
+        try:
+            store.group.attrs.update({"hardware": rig.hardware})
+            session = RecordingSession(rg.cameras, store, pairs, ring_slots=ring_slots,
+                                       writer_threads=writer_threads, trigger_period_s=period)
+        except BaseException as exc:  # a Ctrl-C or a fault before recording: the run is not left "recording"
+            _close_run(store, "aborted", f"stopped before recording began ({type(exc).__name__})", None, 0)
+            raise
         state, message = "aborted", ""
+        # how the recording was stopped, when the reason ends with the pairs committed by the end
+        stopped_by = ""
         # undisarmed: None until the disarm below, then "" or what could not be confirmed
         undisarmed: str | None = None
         # SIGTERM / SIGHUP (a kill, a closed terminal) disarm and then end the recording as
@@ -233,10 +239,10 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
                     next_ping = now + 1.0
             state, message = "complete", f"recorded {pairs} pair(s)"
         except KeyboardInterrupt:
-            message = f"interrupted after {session.committed_pairs} committed pair(s)"
+            stopped_by = "interrupted"
             raise
         except Terminated:
-            message = f"terminated by a signal after {session.committed_pairs} committed pair(s)"
+            stopped_by = "terminated by a signal"
             raise KeyboardInterrupt from None
         except (DeviceError, RuntimeError) as exc:
             message = str(exc)
@@ -245,18 +251,25 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
             raise DeviceError(f"{exc}; {laser}; the {session.committed_pairs} pair(s) recorded so far are kept "
                               f"in {out} (state 'aborted')") from None
         finally:
-            # a second Ctrl-C or a kill while the run is closed waits for it (a third one does
-            # not): every signal disarms the laser at once in any case
-            with signals_held(_closing):
-                if undisarmed is None:
-                    undisarmed = _disarm(gen)
-                    if undisarmed and state != "complete":  # leaving on Ctrl-C or a signal
-                        print(f"lfpiv: warning: {_unconfirmed(undisarmed)}", file=sys.stderr)
-                signals.close()
-                session.close()
-                if state == "complete" and session.committed_pairs < pairs:
-                    state, message = "aborted", f"only {session.committed_pairs} of {pairs} pairs could be written"
-                unclosed = _close_run(store, state, message, rg.lab, session.committed_pairs)
+            # Ctrl-Cs or kills while the run is closed wait for it (one after the grace time
+            # does not); every signal disarms the laser at once in any case
+            try:
+                with signals_held(_closing, grace_s=CLOSE_GRACE_S):
+                    if undisarmed is None:
+                        undisarmed = _disarm(gen)
+                        if undisarmed and state != "complete":  # leaving on Ctrl-C or a signal
+                            print(f"lfpiv: warning: {_unconfirmed(undisarmed)}", file=sys.stderr)
+                    signals.close()
+                    session.close()
+                    if state == "complete" and session.committed_pairs < pairs:
+                        state, message = "aborted", f"only {session.committed_pairs} of {pairs} pairs could be written"
+                    if stopped_by:  # counted once the recorder has written what was settled
+                        message = f"{stopped_by} after {session.committed_pairs} committed pair(s)"
+                    unclosed = _close_run(store, state, message, rg.lab, session.committed_pairs)
+            except KeyboardInterrupt:
+                print(f"lfpiv: warning: left before the run was closed: {out} may still say 'recording'; its committed "
+                      "pairs read back whole", file=sys.stderr)
+                raise
         if undisarmed:
             raise DeviceError(f"{message}: the run is kept in {out} (state '{state}'), but {_unconfirmed(undisarmed)}")
         if unclosed:
@@ -377,8 +390,14 @@ def _unconfirmed(problem: str) -> str:
             "the laser shutter, then check the generator's cable and power")
 
 
+#: Seconds after a recording stops during which further Ctrl-Cs and kills wait for the run to be
+#: closed; one after that leaves at once (for a close that hangs).
+CLOSE_GRACE_S = 5.0
+
+
 def _closing() -> None:
-    print("\nlfpiv: the laser is disarmed; closing the run, one moment (once more to leave at once)", file=sys.stderr)
+    print(f"\nlfpiv: the laser is disarmed; closing the run, one moment (Ctrl-C after {CLOSE_GRACE_S:g} s leaves at "
+          "once)", file=sys.stderr)
 
 
 def _close_run(store: RunStore, state: str, message: str, lab: Any, committed: int) -> str:

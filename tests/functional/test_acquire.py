@@ -191,6 +191,21 @@ def test_a_second_ctrl_c_while_the_run_is_closed_waits_for_it(fast_rig, tmp_path
     assert store.state == "aborted" and store.committed_pairs >= 5 and store.truth() is not None
 
 
+def test_a_ctrl_c_before_recording_begins_marks_the_run_aborted(fast_rig, tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    import lfpiv.acquire as acquire
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(acquire, "RecordingSession", interrupted)
+    with _lab(fast_rig) as lab, pytest.raises(KeyboardInterrupt):
+        record(fast_rig, tmp_path / "early.zarr", 10, sim_options={"lab": lab})
+    store = RunStore.open(tmp_path / "early.zarr")
+    assert store.state == "aborted" and store.committed_pairs == 0
+    assert store.attrs["abort_reason"] == "stopped before recording began (KeyboardInterrupt)"
+
+
 def test_a_full_disk_at_the_end_keeps_the_fault_and_the_laser_report(fast_rig, tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch,
                                                                     capsys: pytest.CaptureFixture) -> None:

@@ -311,21 +311,60 @@ def test_an_ignored_sighup_stays_ignored():
         signal.signal(signal.SIGHUP, previous)
 
 
-def test_signals_held_disarm_hold_one_and_give_way_to_the_next(emu, gen, plan):
-    """While a run is closed, Ctrl-C and SIGTERM disarm and are held once; a second ends it."""
+def test_signals_held_disarm_and_wait_then_give_way(emu, gen, plan):
+    """While a run is closed, Ctrl-C and SIGTERM disarm and are held during the grace time; one
+    after it ends the cleanup."""
     from acquisition.pulse_generator import signals_held
 
     gen.program(plan)
     notes = []
-    with signals_held(lambda: notes.append("one moment")) as held:
+    with signals_held(lambda: notes.append("one moment"), grace_s=60.0) as held:
         gen.arm()
         assert wait_for(lambda: emu.firing)
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(0.05)  # handlers run between bytecodes of the main thread
         assert held == [signal.SIGTERM] and notes == ["one moment"]
         assert_safe(emu)
-        with pytest.raises(KeyboardInterrupt):
-            os.kill(os.getpid(), signal.SIGINT)
-            time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
         assert held == [signal.SIGTERM, signal.SIGINT] and len(notes) == 1
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with signals_held(grace_s=0.0) as held, pytest.raises(KeyboardInterrupt):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+    assert held == [signal.SIGINT, signal.SIGINT]
+
+
+def test_a_signal_during_a_signals_disarm_does_not_break_into_it(emu, gen, plan, monkeypatch):
+    """Two SIGTERMs milliseconds apart: the second arrives while the first handler talks to the
+    generator, and must neither interleave its own commands nor raise into that exchange (which
+    reported the laser state as unknown)."""
+    import acquisition.pulse_generator as pg
+
+    gen.program(plan)
+    gen.arm()
+    assert wait_for(lambda: emu.firing)
+    calls = []
+    shutdown = gen._shutdown
+
+    def second_signal_mid_shutdown():
+        calls.append("shutdown")
+        if len(calls) == 1:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)  # the nested handler runs here
+        return shutdown()
+
+    monkeypatch.setattr(gen, "_shutdown", second_signal_mid_shutdown)
+    hooks = []
+
+    def hook():
+        hooks.append("hook")
+        raise KeyboardInterrupt
+
+    with pg.signals_call(hook), pytest.raises(KeyboardInterrupt):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.2)
+    assert calls == ["shutdown"] and hooks == ["hook"]  # the nested signal did nothing
+    assert_safe(emu)
