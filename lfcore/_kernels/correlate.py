@@ -36,8 +36,18 @@ def voxel(vol: wp.array3d(dtype=wp.float32), x: int, y: int, z: int) -> float:
 
 
 @wp.func
+def near(vol: wp.array3d(dtype=wp.float32), p: wp.vec3) -> bool:
+    """Whether p = (x, y, z) lies within 4 voxels of the volume: false for NaN and for points so
+    far that their index would not fit an int (whose conversion is undefined)."""
+    return (p[0] > -4.0 and p[1] > -4.0 and p[2] > -4.0 and p[0] < float(vol.shape[2]) + 4.0
+            and p[1] < float(vol.shape[1]) + 4.0 and p[2] < float(vol.shape[0]) + 4.0)
+
+
+@wp.func
 def sample(vol: wp.array3d(dtype=wp.float32), p: wp.vec3) -> float:
     """Trilinear interpolation of the volume at voxel coordinates p = (x, y, z); zero outside."""
+    if not near(vol, p):
+        return 0.0
     fx = wp.floor(p[0])
     fy = wp.floor(p[1])
     fz = wp.floor(p[2])
@@ -112,6 +122,8 @@ def bspline_weights(t: float) -> wp.vec4:
 @wp.func
 def sample_bspline(coef: wp.array3d(dtype=wp.float32), p: wp.vec3) -> float:
     """Cubic B-spline interpolation at voxel coordinates p = (x, y, z) from prefiltered coefficients."""
+    if not near(coef, p):
+        return 0.0
     fx = wp.floor(p[0])
     fy = wp.floor(p[1])
     fz = wp.floor(p[2])

@@ -82,11 +82,10 @@ def trace_particles(
             y += cam.sigma_sensor * g[1]
         col = 0.5 * float(cam.ncols) - x / cam.pixel
         row = 0.5 * float(cam.nrows) + y / cam.pixel
-        if col >= 0.0 and row >= 0.0:
-            ic = int(col)
-            ir = int(row)
-            if ic < cam.ncols and ir < cam.nrows:
-                wp.atomic_add(image, ir, ic, w)
+        # bounds in floating point: a ray from a point far off the axis lands beyond any int,
+        # whose conversion is undefined (it gave negative indices and a crash)
+        if col >= 0.0 and row >= 0.0 and col < float(cam.ncols) and row < float(cam.nrows):
+            wp.atomic_add(image, int(row), int(col), w)
 
 
 @wp.kernel

@@ -238,6 +238,29 @@ def test_non_finite_volumes_are_refused(device):
         c(a, np.zeros_like(a))
 
 
+@pytest.mark.parametrize("bspline", [0, 1])
+def test_deforming_by_a_predictor_far_out_of_the_volume_samples_zeros(device, bspline):
+    """A predictor that is not finite or points far outside (beyond any int index) samples
+    nothing, on each device: its index conversion was undefined, and read out of bounds."""
+    import warp as wp
+
+    from lfcore._kernels import correlate as kc
+
+    vol = wp.array(np.ones((8, 9, 10), np.float32), device=device)
+    out_a, out_b = wp.zeros((8, 9, 10), dtype=wp.float32, device=device), wp.zeros((8, 9, 10), dtype=wp.float32,
+                                                                                     device=device)
+    for bad in (np.nan, 3e10, -3e10, 1e6):
+        pred = wp.array(np.full((2, 2, 2, 3), bad, np.float32), dtype=wp.vec3, device=device)
+        wp.launch(kc.deform_volumes, dim=(8, 9, 10), inputs=[vol, vol, pred, wp.vec3(0.0, 0.0, 0.0),
+                                                              wp.vec3(8.0, 8.0, 8.0), bspline, 0, out_a, out_b],
+                  device=device)
+        assert not out_a.numpy().any() and not out_b.numpy().any(), bad
+    pred = wp.array(np.zeros((2, 2, 2, 3), np.float32), dtype=wp.vec3, device=device)  # and no shift: the volume
+    wp.launch(kc.deform_volumes, dim=(8, 9, 10), inputs=[vol, vol, pred, wp.vec3(0.0, 0.0, 0.0), wp.vec3(8.0, 8.0, 8.0),
+                                                          0, 0, out_a, out_b], device=device)
+    assert np.allclose(out_a.numpy(), 1.0)
+
+
 def test_wrong_volume_shape(cpu_correlator):
     with pytest.raises(CorrelationError, match="takes volumes of shape"):
         cpu_correlator(np.zeros((8, 8, 8), np.float32), np.zeros((8, 8, 8), np.float32))

@@ -173,6 +173,16 @@ def test_diffraction_blur_is_the_airy_core(tiny_rig):
     assert r.params.sigma_mla == pytest.approx(0.42 * lam * 4.0)  # N (1 - M) = 4
 
 
+def test_a_particle_far_off_the_axis_lights_nothing(tiny_rig, device):
+    """Rays landing beyond any int index of the sensor are dropped (their conversion to an index
+    is undefined, and crashed the kernel)."""
+    r = _renderer(tiny_rig, device, rays_per_particle=2000)
+    cam = tiny_rig.camera[0]
+    far = cam.camera_to_world([[3e7, 0.0, 0.0], [0.0, -3e9, 0.2], [0.0, 0.0, 0.0]])
+    img = r.irradiance(far, np.array([1000.0, 1000.0, 1000.0]), seed=1)
+    assert img.sum() == pytest.approx(1000.0, rel=1e-5)  # only the particle at the focus
+
+
 def test_bad_particles_are_rejected(tiny_rig):
     r = _renderer(tiny_rig, "cpu")
     with pytest.raises(ValueError, match="finite"):
