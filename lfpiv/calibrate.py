@@ -199,6 +199,8 @@ def plot_grids(store: CalibrationStore, out: str | Path, lenslets: int = 8) -> P
 
 #: Fewest lenslets (in the volume, through the main lens) between neighbouring dots of a board.
 MIN_DOT_LENSLETS = 2
+#: Fewest dots across the narrowest camera's field of view.
+MIN_DOTS_ACROSS = 2
 
 
 def default_board(rig: Rig, spacing_mm: float | None = None, tilt_deg: float | None = None) -> DotBoard:
@@ -217,6 +219,12 @@ def default_board(rig: Rig, spacing_mm: float | None = None, tilt_deg: float | N
         raise ValueError(f"dots {spacing_mm:g} mm apart are closer than {MIN_DOT_LENSLETS} lenslets of the cameras "
                          f"({least:.3g} mm in the volume), where they cannot be told apart; use a spacing of at least "
                          f"{least:.2g} mm")
+    # and the fit needs a grid of dots in every camera's view, not one or two
+    most = min(min(c.field_of_view_mm) for c in rig.camera) / MIN_DOTS_ACROSS
+    if spacing_mm > most:
+        raise ValueError(f"dots {spacing_mm:g} mm apart leave fewer than {MIN_DOTS_ACROSS} across the narrowest "
+                         f"camera's field of view ({MIN_DOTS_ACROSS * most:.3g} mm); use a spacing of at most "
+                         f"{most:.2g} mm")
     board = DotBoard.for_cameras(np.array([c.optical_axis for c in rig.camera]), spacing_mm=spacing_mm,
                                  centre_mm=vol.centre_mm, marker_scale=1.6 if len(rig.camera) > 1 else 1.0)
     return board if tilt_deg is None else dataclasses.replace(board, tilt_deg=tilt_deg)

@@ -203,6 +203,8 @@ BAD_INPUTS = [
     (lambda t: ["reconstruct", str(t / "r.zarr"), "--cameras", "cam0,"], "--cameras: 'cam0,' has an empty name"),
     (lambda t: ["calibrate", "volume", "--rig", TINY, "--out", str(t / "x.zarr"), "--spacing-mm", "0.0001"],
      "dots 0.0001 mm apart are closer than 2 lenslets of the cameras (0.11 mm in the volume)"),
+    (lambda t: ["calibrate", "volume", "--rig", TINY, "--out", str(t / "x.zarr"), "--spacing-mm", "1e8"],
+     "dots 1e+08 mm apart leave fewer than 2 across the narrowest camera's field of view (0.88 mm)"),
     (lambda t: ["synth", "--rig", _huge_sensor(t), "--out", str(t / "x.zarr")],
      "camera[0].sensor_px[0]: input should be less than or equal to 32768 (got 100000)"),
     (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--pairs", "3000000000"],
