@@ -19,6 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import os
     from pathlib import Path
 
     from lfcore.runstore import RunStore, RunStoreError
@@ -33,10 +34,20 @@ def run(args: argparse.Namespace) -> int:
     if not pairs:
         raise RunStoreError(f"{store.path} has vectors/ but no correlated pair; run 'lfpiv correlate {store.path}'")
     out = Path(args.out)
+    if out.is_symlink() and not out.exists():
+        raise UsageError(f"--out {out} is a symbolic link to nothing ({os.readlink(out)}); give a directory")
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} is a file; give a directory")
-    earlier = sorted(out.glob("vectors.nc") if args.format == "netcdf" else
-                     [*out.glob("vectors.pvd"), *out.glob("vectors_pair[0-9][0-9][0-9][0-9].vti")])
+    # what this export writes, and what an earlier one left (a VTK series is replaced whole)
+    names = (["vectors.nc"] if args.format == "netcdf" else
+             ["vectors.pvd", *(f"vectors_pair{p:04d}.vti" for p in pairs),
+              *(f.name for f in out.glob("vectors_pair[0-9][0-9][0-9][0-9].vti"))])
+    targets = sorted({out / n for n in names})
+    links = [t for t in targets if t.is_symlink()]
+    if links:
+        raise UsageError(f"{links[0]} is a symbolic link, and export does not write through links; remove it or "
+                         "choose another --out")
+    earlier = [t for t in targets if t.exists()]
     if earlier and not args.overwrite:
         raise UsageError(f"--out {out} already holds {earlier[0].name}"
                          f"{f' and {len(earlier) - 1} more file(s)' if len(earlier) > 1 else ''} of an earlier "

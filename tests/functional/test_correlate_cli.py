@@ -115,6 +115,23 @@ def test_export_netcdf(correlated, tmp_path, capsys):
         assert np.allclose(nc.variables["time"][:], [0.0, 0.1])
 
 
+def test_export_never_writes_through_a_link(correlated, tmp_path, capsys):
+    path, _, _ = correlated
+    (tmp_path / "precious.txt").write_text("keep")
+    (tmp_path / "nc").mkdir()
+    (tmp_path / "nc" / "vectors.nc").symlink_to(tmp_path / "precious.txt")
+    (tmp_path / "vtk").mkdir()
+    (tmp_path / "vtk" / "vectors_pair0001.vti").symlink_to(tmp_path / "nothing.vti")
+    (tmp_path / "gone").symlink_to(tmp_path / "nowhere")
+    for fmt, out, expected in (("netcdf", "nc", "vectors.nc is a symbolic link, and export does not write through"),
+                               ("vtk", "vtk", "vectors_pair0001.vti is a symbolic link"),
+                               ("vtk", "gone", "is a symbolic link to nothing")):
+        rc, _, err = _run(capsys, "export", path, "--format", fmt, "--out", tmp_path / out, "--overwrite")
+        assert rc == 2 and expected in err, err
+    assert (tmp_path / "precious.txt").read_text() == "keep" and not (tmp_path / "nothing.vti").exists()
+    assert not (tmp_path / "nowhere").exists()
+
+
 def test_export_vtk(correlated, tmp_path, capsys):
     path, _, _ = correlated
     # a series left from another export (of more pairs) is replaced, not mixed in
