@@ -119,6 +119,9 @@ class QuantumComposers9520:
     ...     record()
     """
 
+    #: Most periods of one burst (``:PULSE0:BCO``); a plan of more pulses is answered ``?5``.
+    MAX_BURST = 1_000_000
+
     def __init__(self, port: str, baud: int = 115200, timeout_s: float = 0.5) -> None:
         self._link = SerialLink(port, baud, timeout_s, eol=b"\r\n")
         self._idn = ""

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from acquisition.protocols import Camera, DeviceError, PulseGenerator, TimingPlan
-from acquisition.pulse_generator import signals_call, signals_held
+from acquisition.pulse_generator import QuantumComposers9520, signals_call, signals_held
 from acquisition.session import RecordingSession, SessionStats
 from acquisition.timing import TimingError, plan_timing
 from lfcore.rig import Rig
@@ -124,6 +124,10 @@ def check_plan(rig: Rig, pairs: int) -> TimingPlan:
     the rig's timing is impossible."""
     if pairs < 1:
         raise UsageError(f"--pairs must be at least 1, got {pairs}")
+    if pairs > QuantumComposers9520.MAX_BURST:
+        # the generator stops by itself after a burst of that many periods
+        raise UsageError(f"--pairs {pairs} is more than one burst of the pulse generator fires "
+                         f"({QuantumComposers9520.MAX_BURST:,}); record the experiment as several runs")
     try:
         return plan_timing(rig, pulses=pairs)
     except TimingError as exc:

@@ -190,6 +190,8 @@ BAD_INPUTS = [
     (lambda t: ["synth", "--rig", _not_utf8(t), "--out", str(t / "x.zarr")], "latin1.toml is not UTF-8 text (byte 23)"),
     (lambda t: ["acquire", "--rig", TINY, "--out", str(t / "x.zarr"), "--pairs", "1", "--ring", "1"],
      "--ring: must be at least 2"),
+    (lambda t: ["acquire", "--rig", TINY, "--out", str(t / "x.zarr"), "--pairs", "100000000000"],
+     "--pairs 100000000000 is more than one burst of the pulse generator fires (1,000,000)"),
     (lambda t: ["evaluate", str(t / "r.zarr"), "--plot", "q.txt"], "'q.txt' does not end in .png"),
     (lambda t: ["reconstruct", str(t / "r.zarr"), "--smooth", "inf"], "--smooth: must be finite, got inf"),
     (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--ppm", "1e6"],
