@@ -190,7 +190,7 @@ def evaluate_vectors(store, pairs: slice | None = None) -> list[tuple[str, str]]
         rms = np.sqrt(np.nanmean(err**2, axis=(0, 1, 2, 3)))
         peak = float(np.nanmax(np.linalg.norm(ref, axis=-1)))
         vox = ""
-        if store.has_volumes:  # the same errors as displacements in voxels
+        if store.has_volumes and not store.vectors_outdated:  # the same errors in voxels of their volumes
             in_vox = rms * dt * 1e3 / np.asarray(store.volume_grid().voxel_mm)
             vox = " (" + ", ".join(f"{e:.3f}" for e in in_vox) + " voxel)"
         lines.append(("velocity error", f"RMS u, v, w {rms[0]:.3g}, {rms[1]:.3g}, {rms[2]:.3g} m/s{vox}; "
