@@ -450,7 +450,7 @@ class RunStore(RigStore):
 
     def volume_grid(self) -> VolumeGrid:
         """The voxel grid of ``volumes/``."""
-        return self.grid_of(self.group["volumes"]) if self.has_volumes else self.grid_of(None)
+        return self.grid_of(self.group["volumes"] if "volumes" in self.group else None)
 
     def grid_of(self, group: zarr.Group | None) -> VolumeGrid:
         """The voxel grid of a volumes group (``volumes/`` or its pending replacement)."""

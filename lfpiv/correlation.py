@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -195,7 +194,7 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
         found.append(res)
 
     t0 = time.perf_counter()
-    try:
+    with replacement.noting_interrupt(store, "vectors"):
         if client is not None and pairs:
             from lfpiv.batch import map_pairs, new_token
 
@@ -210,11 +209,6 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
                 target = _Target.of(store)
                 for p, vols in prefetched(pairs, partial(_read_pair, store.volumes())):
                     written(p, _correlate_pair(correlator, target, p, vols, progress=bar.update))
-    except KeyboardInterrupt:
-        aside = replacement.kept_aside(store, "vectors")
-        if aside:
-            print(f"lfpiv: note: interrupted{aside}", file=sys.stderr)
-        raise
     replacement.end(store, "vectors")
     dev = found[0].device if found else place[0]
     return CorrelationRun(pairs=[r.pair for r in found], grid=g, outliers=sum(r.outliers for r in found),

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -206,28 +205,17 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         results.extend(res)
 
     try:
-        if client is not None:
-            from lfpiv.batch import map_pairs, new_token
+        with replacement.noting_interrupt(store, "volumes"):
+            if client is not None:
+                from lfpiv.batch import map_pairs, new_token
 
-            job = ReconJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names), grid=grid,
-                           settings=settings, device=device, token=new_token(),
-                           into=store.writing("volumes").basename)
-            map_pairs(client, reconstruct_pair_task, job, chosen, on_done=written, desc="reconstructing",
-                      progress=progress)
-            replacement.end(store, "volumes")
-            return results
-        total = len(chosen) * 2 * max(settings.iterations, 1)
-        # each volume is written (and recorded) while the next frame is reconstructed
-        with (WriteBehind() as writer,
-              tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar):
-            for p in chosen:
-                for f in (0, 1):
-                    res = _reconstruct_frame(projector, cache, store, names, p, f, settings, bar.update)
-                    writer.submit(store.write_volume, p, f, res.volume)
-                    results.append(_summary(res))
-                    if settings.iterations == 0:
-                        bar.update(1)
-                    bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}")
+                job = ReconJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names), grid=grid,
+                               settings=settings, device=device, token=new_token(),
+                               into=store.writing("volumes").basename)
+                map_pairs(client, reconstruct_pair_task, job, chosen, on_done=written, desc="reconstructing",
+                          progress=progress)
+            else:
+                _reconstruct_here(projector, cache, store, names, chosen, settings, results, progress)
     except UsageError as exc:
         aside = replacement.kept_aside(store, "volumes")
         if aside:
@@ -235,13 +223,25 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         if results:
             raise UsageError(f"{exc}; the {len(results)} volume(s) written before are kept") from None
         raise
-    except KeyboardInterrupt:
-        aside = replacement.kept_aside(store, "volumes")
-        if aside:
-            print(f"lfpiv: note: interrupted{aside}", file=sys.stderr)
-        raise
     replacement.end(store, "volumes")
     return results
+
+
+def _reconstruct_here(projector: Projector, cache: WeightCache | None, store: RunStore, names: Sequence[str],
+                      chosen: list[int], settings: ReconSettings, results: list[ReconResult], progress: bool) -> None:
+    """Reconstruct both frames of the ``chosen`` pairs in this process, adding to ``results``;
+    each volume is written (and recorded) while the next frame is reconstructed."""
+    total = len(chosen) * 2 * max(settings.iterations, 1)
+    with (WriteBehind() as writer,
+          tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar):
+        for p in chosen:
+            for f in (0, 1):
+                res = _reconstruct_frame(projector, cache, store, names, p, f, settings, bar.update)
+                writer.submit(store.write_volume, p, f, res.volume)
+                results.append(_summary(res))
+                if settings.iterations == 0:
+                    bar.update(1)
+                bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}")
 
 
 def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, Any]) -> bool:

@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import shutil
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from lfcore.runstore import RunStore
 
-__all__ = ["begin", "end", "kept_aside"]
+__all__ = ["begin", "end", "kept_aside", "noting_interrupt"]
 
 #: The command that makes each kind of derived data.
 _COMMAND = {"volumes": "reconstruct", "vectors": "correlate"}
@@ -105,3 +106,16 @@ def kept_aside(store: RunStore, name: str) -> str:
         return ""
     return (f"; the {len(_pairs(g, name))} pair(s) of new {name} are kept aside and the {name} made before with "
             f"other settings are unchanged; the same command with --skip-done goes on with the new ones")
+
+
+@contextmanager
+def noting_interrupt(store: RunStore, name: str) -> Iterator[None]:
+    """Inside, a Ctrl-C that stops an unfinished replacement says how it is left (see
+    :func:`kept_aside`) before it ends the command."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        aside = kept_aside(store, name)
+        if aside:
+            _note(f"interrupted{aside}")
+        raise

@@ -32,6 +32,11 @@ def _count(pairs: list[int]) -> str:
     return f"{len(pairs)} pair(s) ({span})"
 
 
+def _windows(windows: list[list[int]]) -> str:
+    """``"32x32x16 then 16x16x8"``: the window sizes of every pass."""
+    return " then ".join("x".join(map(str, w)) for w in windows)
+
+
 def run(args: argparse.Namespace) -> int:
     from lfcore.mla import lenslet_count
     from lfcore.runstore import RunStore, RunStoreError
@@ -93,14 +98,14 @@ def run(args: argparse.Namespace) -> int:
     if store.has_vectors:
         windows = store.group["vectors"].attrs["windows"]
         lines.append(("vectors", f"{_count(store.correlated_pairs())} correlated, windows "
-                                 f"{' then '.join('x'.join(map(str, w)) for w in windows)}"
+                                 f"{_windows(windows)}"
                                  + ("; from volumes since replaced" if store.vectors_outdated else "")))
     for name, command in (("volumes", "reconstruct"), ("vectors", "correlate")):
         pending = store.pending(name)
         if pending is not None:
             a = pending.attrs
             made = (f"{a.get('method')}, {a.get('settings', {}).get('iterations')} iterations" if name == "volumes"
-                    else f"windows {' then '.join('x'.join(map(str, w)) for w in a.get('windows', []))}")
+                    else f"windows {_windows(a.get('windows', []))}")
             stale = name == "vectors" and a.get("volumes_id") != store.volumes_id
             lines.append((f"{name}.pending", f"a replacement ({made}) interrupted after "
                                              f"{_count(a.get(RunStore.DONE[name], []))}; "
