@@ -28,12 +28,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from lfcore.errors import DeviceError  # the one device error of every layer
 
-class DeviceError(RuntimeError):
-    """A device refused a command, stopped answering or is missing a required feature.
-
-    The message is one line that names the device and what to do.
-    """
+__all__ = ["Camera", "ChannelSetting", "DeviceError", "Frame", "PulseGenerator", "Stage", "TimingPlan"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -202,6 +199,10 @@ class PulseGenerator(Protocol):
     disarms.
     """
 
+    def open(self) -> None:
+        """Open the port and check that the instrument answers."""
+        ...
+
     def identify(self) -> str:
         """The instrument's identification string."""
         ...
@@ -230,7 +231,20 @@ class PulseGenerator(Protocol):
 
 @runtime_checkable
 class Stage(Protocol):
-    """The motorised stage that carries the calibration target along one axis, millimetres."""
+    """The motorised stage that carries the calibration target along one axis, millimetres.
+
+    Implementations are context managers: entering opens the port, leaving stops a move under way
+    if an error is leaving, then releases the port.
+    """
+
+    def open(self) -> None:
+        """Open the port, check that the device answers and read its travel limits."""
+        ...
+
+    @property
+    def travel_mm(self) -> tuple[float, float]:
+        """(min, max) positions the stage accepts, mm (known once open)."""
+        ...
 
     def home(self) -> None:
         """Move to the home sensor and zero the position; blocks until done."""
@@ -251,3 +265,7 @@ class Stage(Protocol):
     def close(self) -> None:
         """Release the port."""
         ...
+
+    def __enter__(self) -> Stage: ...
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object) -> None: ...

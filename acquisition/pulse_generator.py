@@ -62,13 +62,18 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from types import FrameType, TracebackType
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from .protocols import DeviceError, TimingPlan
 from .serial_link import LinkClosed, LinkError, SerialLink
 
-__all__ = ["ERROR_CODES", "QuantumComposers9520", "disarm_all", "install_signal_handlers", "signals_call",
-           "signals_held"]
+if TYPE_CHECKING:
+    from lfcore.rig import PulseGeneratorConfig
+
+    from .protocols import PulseGenerator
+
+__all__ = ["ERROR_CODES", "MAX_BURST", "QuantumComposers9520", "disarm_all", "install_signal_handlers",
+           "pulse_generator_for", "signals_call", "signals_held"]
 
 log = logging.getLogger(__name__)
 
@@ -448,6 +453,17 @@ _REGISTRY_LOCK = threading.RLock()
 _ATEXIT_DONE = False
 _PREVIOUS: dict[int, Any] = {}
 _SIGNALS = tuple(s for s in (getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)) if s is not None)
+
+
+#: Most double pulses one burst fires (the generator then stops by itself): a longer recording is
+#: several runs.
+MAX_BURST = QuantumComposers9520.MAX_BURST
+
+
+def pulse_generator_for(port: str, config: PulseGeneratorConfig) -> PulseGenerator:
+    """The pulse-generator driver for ``port`` with a rig's ``[pulse_generator]`` settings, not
+    yet open: the one place callers learn which driver that is."""
+    return QuantumComposers9520(port, baud=config.baud)
 
 
 def disarm_all() -> None:

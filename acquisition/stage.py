@@ -54,12 +54,17 @@ import re
 import time
 from dataclasses import dataclass
 from types import TracebackType
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 from .protocols import DeviceError
 from .serial_link import LinkClosed, LinkError, LinkTimeout, SerialLink
 
-__all__ = ["CorruptReply", "ZaberReply", "ZaberStage", "checksum", "parse_reply", "verified"]
+if TYPE_CHECKING:
+    from lfcore.rig import StageConfig
+
+    from .protocols import Stage
+
+__all__ = ["CorruptReply", "ZaberReply", "ZaberStage", "checksum", "parse_reply", "stage_for", "verified"]
 
 log = logging.getLogger(__name__)
 
@@ -491,3 +496,10 @@ def _describe(flags: list[str]) -> str:
     """``flag WL (unexpected limit trigger)`` or ``flags FS (...), WL (...)``."""
     items = ", ".join(f"{f} ({_flag_text(f)})" for f in flags)
     return f"flag{'s' if len(flags) > 1 else ''} {items}"
+
+
+def stage_for(port: str, config: StageConfig) -> Stage:
+    """The stage driver for ``port`` with a rig's ``[stage]`` settings (baud rate, Zaber
+    address, microstep size), not yet open: the one place callers learn which driver that is."""
+    return ZaberStage(port, baud=config.baud, device=config.device, axis=config.axis,
+                      microstep_um=config.microstep_um)

@@ -3,9 +3,9 @@
 Method. Each lenslet's micro-image holds all the light that reached the MLA through that
 lenslet, so the sum of its pixels (a Voronoi cell about its micro-image centre, background
 removed) samples the image the main lens forms on the MLA, one sample per lenslet. A dot's
-image there, sharp or defocused, is centred on its chief ray (:mod:`lfcore.projection`), so the
+image there, sharp or defocused, is centred on its chief ray (:mod:`lfcore.chief_ray`), so the
 flux-weighted mean of the micro-image centres of the lenslets it lights is where
-:func:`lfcore.projection.project` puts the dot, to a fraction of a lenslet: every ray of the
+:func:`lfcore.chief_ray.project` puts the dot, to a fraction of a lenslet: every ray of the
 dot counts (not only the central sub-aperture's), so Monte-Carlo and shot noise average out.
 
 1. Lenslet sums over cells of radius 0.6 pitch about the fitted lattice nodes of the white image
@@ -39,8 +39,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from calibration.mla_grid import MlaGrid, pixels_by_nearest_centre
+from lfcore.chief_ray import diffraction_sigma_mm
 from lfcore.mla import nearest_lenslet, pixel_to_sensor, sensor_to_pixel
-from lfcore.projection import diffraction_sigma_mm
 from lfcore.rig import Camera
 
 __all__ = ["VIEW_PUPILS", "DotError", "Dots", "LensletCells", "ViewGeometry", "detect_dots", "lenslet_cells",

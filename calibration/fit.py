@@ -12,9 +12,9 @@ Parameters: the pose (a small rotation vector applied to the nominal rotation in
 frame, which has no gimbal lock however the camera points, and the focus point), the
 magnification (the main-lens focal length stays nominal: with it, M fixes si and so, so the
 perspective of the planes at different depths checks the scale), the MLA offset and rotation,
-and optionally a radial distortion k1 (:func:`lfcore.projection.project`).
+and optionally a radial distortion k1 (:func:`lfcore.chief_ray.project`).
 
-Residuals, in pixels: found minus projected dot centroids (:func:`lfcore.projection.project`,
+Residuals, in pixels: found minus projected dot centroids (:func:`lfcore.chief_ray.project`,
 independent of the MLA) in the chief-ray view and the four half-aperture views (their parallax
 fixes the depth of the focal plane, so the magnification; each view's mean aperture point and
 displacement are those :func:`calibration.dots.view_geometry` finds for the optics, since light
@@ -46,8 +46,8 @@ from scipy.spatial.transform import Rotation
 
 from calibration.dots import ViewGeometry, view_geometry
 from calibration.mla_grid import MlaGrid
+from lfcore.chief_ray import chief_ray_mla, defocus_radius_mm, image_scale, project
 from lfcore.mla import nearest_lenslet, pixel_to_sensor, sensor_to_pixel
-from lfcore.projection import chief_ray_mla, defocus_radius_mm, image_scale, project
 from lfcore.rig import Camera
 from lfcore.target import DotBoard
 

@@ -19,13 +19,13 @@ from typing import Any
 
 import warp as wp
 
-__all__ = ["DeviceError", "MemoryBudgetError", "PerBlock", "RowOffset", "Rows", "available_bytes", "available_devices",
-           "cpu_threads", "launch_rows", "PrivateCopies", "out_of_memory_is_budget_error", "private_copies",
-           "resolve_device", "warp"]
+from lfcore.errors import ComputeDeviceError, DeviceError
+
+__all__ = ["ComputeDeviceError", "DeviceError", "MemoryBudgetError", "PerBlock", "RowOffset", "Rows", "available_bytes",
+           "available_devices", "cpu_threads", "launch_rows", "PrivateCopies", "out_of_memory_is_budget_error",
+           "private_copies", "resolve_device", "warp"]
 
 
-class DeviceError(ValueError):
-    """A compute device that does not exist on this machine."""
 
 
 class MemoryBudgetError(MemoryError):
@@ -131,7 +131,7 @@ def resolve_device(device: str | None = None) -> str:
 
     Raises
     ------
-    DeviceError
+    ComputeDeviceError
         If the device does not exist, with the list of devices that do.
     """
     found = available_devices()
@@ -139,7 +139,7 @@ def resolve_device(device: str | None = None) -> str:
         return "cuda:0" if "cuda:0" in found else "cpu"
     name = "cuda:0" if device == "cuda" else device
     if name not in found:
-        raise DeviceError(f"device '{device}' is not available here; choose one of: {', '.join(found)}")
+        raise ComputeDeviceError(f"device '{device}' is not available here; choose one of: {', '.join(found)}")
     return name
 
 
@@ -152,7 +152,7 @@ def cpu_threads() -> int:
         try:
             return max(1, int(env))
         except ValueError:
-            raise DeviceError(f"LFPIV_CPU_THREADS must be a whole number of threads, got '{env}'") from None
+            raise ComputeDeviceError(f"LFPIV_CPU_THREADS must be a whole number of threads, got '{env}'") from None
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not on Linux

@@ -17,8 +17,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from lfcore.chief_ray import diffraction_sigma_mm
 from lfcore.device import PrivateCopies, RowOffset, launch_rows, resolve_device, warp
-from lfcore.projection import diffraction_sigma_mm
 from lfcore.rig import Camera, RenderConfig
 
 __all__ = ["LightFieldRenderer", "derive_seed"]

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from lfcore.chief_ray import diffraction_sigma_mm
 from lfcore.mla import lenslet_centers, sensor_to_pixel
-from lfcore.projection import diffraction_sigma_mm
 from lfcore.rig import Camera, RenderConfig
 
 __all__ = ["WhiteImageConfig", "micro_image_centres", "micro_image_scale", "white_image", "white_irradiance"]

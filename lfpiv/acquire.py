@@ -24,19 +24,16 @@ from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from acquisition.protocols import Camera, DeviceError, PulseGenerator, TimingPlan
-from acquisition.pulse_generator import QuantumComposers9520, signals_call, signals_held
+from acquisition.protocols import Camera, DeviceError, PulseGenerator, Stage, TimingPlan
+from acquisition.pulse_generator import MAX_BURST, pulse_generator_for, signals_call, signals_held
 from acquisition.session import RecordingSession, SessionStats
 from acquisition.timing import TimingError, plan_timing
 from lfcore.rig import Rig
 from lfcore.runstore import RunStore, RunStoreError
 from lfpiv import __version__
 from lfpiv.errors import UsageError
-
-if TYPE_CHECKING:
-    from acquisition.stage import ZaberStage
 
 __all__ = ["AcquireResult", "Rigging", "check_plan", "list_devices", "make_stage", "open_rig", "record"]
 
@@ -84,8 +81,6 @@ def open_rig(rig: Rig, *, sim_options: dict[str, Any] | None = None) -> Iterator
         Keyword arguments of :class:`sim.lab.SimLab` (world, pool_pairs, camera_faults, ...), or
         ``{"lab": lab}`` to use an already entered :class:`sim.lab.SimLab`.
     """
-    from acquisition.pulse_generator import QuantumComposers9520
-
     with ExitStack() as stack:
         lab = None
         if rig.hardware == "sim":
@@ -110,7 +105,7 @@ def open_rig(rig: Rig, *, sim_options: dict[str, Any] | None = None) -> Iterator
                                  "cameras each needs its GenICam serial number (lfpiv devices lists them)")
             cameras = [GenICamCamera(c.name, serial=c.serial, producers=list(rig.gentl_producers) or None)
                        for c in rig.camera]
-        gen = QuantumComposers9520(pulse_port, baud=rig.pulse_generator.baud)
+        gen = pulse_generator_for(pulse_port, rig.pulse_generator)
         stack.callback(gen.close)
         gen.open()
         for cam in cameras:
@@ -124,10 +119,10 @@ def check_plan(rig: Rig, pairs: int) -> TimingPlan:
     the rig's timing is impossible."""
     if pairs < 1:
         raise UsageError(f"--pairs must be at least 1, got {pairs}")
-    if pairs > QuantumComposers9520.MAX_BURST:
+    if pairs > MAX_BURST:
         # the generator stops by itself after a burst of that many periods
         raise UsageError(f"--pairs {pairs} is more than one burst of the pulse generator fires "
-                         f"({QuantumComposers9520.MAX_BURST:,}); record the experiment as several runs")
+                         f"({MAX_BURST:,}); record the experiment as several runs")
     try:
         return plan_timing(rig, pulses=pairs)
     except TimingError as exc:
@@ -346,9 +341,7 @@ def _unpinned_camera(name: str, seen: list[Any], n_cameras: int) -> tuple[str, b
 
 
 def _probe_generator(port: str, rig: Rig) -> str:
-    from acquisition.pulse_generator import QuantumComposers9520
-
-    gen = QuantumComposers9520(port, baud=rig.pulse_generator.baud)
+    gen = pulse_generator_for(port, rig.pulse_generator)
     try:
         gen.open()
         return gen.identify()
@@ -356,12 +349,11 @@ def _probe_generator(port: str, rig: Rig) -> str:
         gen.close()
 
 
-def make_stage(port: str, rig: Rig) -> ZaberStage:
-    """The stage driver for ``port`` with the rig's baud rate, Zaber address and microstep size."""
-    from acquisition.stage import ZaberStage
+def make_stage(port: str, rig: Rig) -> Stage:
+    """The stage driver for ``port`` with the rig's ``[stage]`` settings, not yet open."""
+    from acquisition.stage import stage_for
 
-    st = rig.stage
-    return ZaberStage(port, baud=st.baud, device=st.device, axis=st.axis, microstep_um=st.microstep_um)
+    return stage_for(port, rig.stage)
 
 
 def _probe_stage(port: str, rig: Rig) -> str:

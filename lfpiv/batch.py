@@ -151,18 +151,18 @@ def this_worker_device(device: str | None) -> str:
 
     Raises
     ------
-    DeviceError
+    ComputeDeviceError
         If the worker has no such device, naming the worker.
     """
     from distributed import get_worker
 
-    from lfcore.device import DeviceError, available_devices, resolve_device
+    from lfcore.device import ComputeDeviceError, available_devices, resolve_device
 
     name = get_worker().name
     try:
         return resolve_device(worker_device(device, name, [d for d in available_devices() if d.startswith("cuda")]))
-    except DeviceError as exc:
-        raise DeviceError(f"Dask worker {name}: {exc}") from None
+    except ComputeDeviceError as exc:
+        raise ComputeDeviceError(f"Dask worker {name}: {exc}") from None
 
 
 def open_run_on_worker(path: str) -> Any:

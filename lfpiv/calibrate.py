@@ -27,7 +27,7 @@ from calibration.fit import CameraFit, FitError, PlaneDots, fit_camera
 from calibration.mla_grid import GridError, MlaGrid, check_white, detect_grid
 from calibration.runner import PlaneRun, camera_only_plan, capture_frames, plane_targets, run_planes
 from calibration.store import CalibrationStore, CalibrationStoreError
-from lfcore.projection import project
+from lfcore.chief_ray import project
 from lfcore.rig import Camera, Rig
 from lfcore.target import DotBoard
 from lfcore.white import WhiteImageConfig

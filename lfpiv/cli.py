@@ -63,10 +63,10 @@ def _interrupted() -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``lfpiv`` command; returns the exit code."""
     try:
-        from acquisition.protocols import DeviceError as HardwareError
         from acquisition.pulse_generator import signals_call
         from calibration.store import CalibrationStoreError
-        from lfcore.device import DeviceError, MemoryBudgetError
+        from lfcore.device import MemoryBudgetError
+        from lfcore.errors import ComputeDeviceError, DeviceError
         from lfcore.rig import RigError
         from lfcore.runstore import RunStoreError
     except KeyboardInterrupt:  # Ctrl-C while starting: nothing was done yet
@@ -81,10 +81,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # set), then ends the command as Ctrl-C does (acquire and monitor refine this)
         with signals_call(_interrupted):
             return args.func(args)
-    except (UsageError, RigError, RunStoreError, CalibrationStoreError, DeviceError, MemoryBudgetError) as exc:
+    except (UsageError, RigError, RunStoreError, CalibrationStoreError, ComputeDeviceError, MemoryBudgetError) as exc:
         print(f"lfpiv: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except HardwareError as exc:
+    except DeviceError as exc:  # a hardware fault (a compute device that is not here is the user's choice, above)
         print(f"lfpiv: device error: {exc}", file=sys.stderr)
         return EXIT_DEVICE
     except KeyboardInterrupt:

@@ -160,7 +160,7 @@ def test_the_views_parallax_is_what_view_geometry_predicts_for_the_rendered_came
     # 4 R / (3 pi). At f/4 the micro-images are half as wide and apart: no light crosses, and
     # only the pixels and the diffraction blur smooth the split between halves (2 % less).
     from calibration.dots import view_geometry, view_pupils_mm
-    from lfcore.projection import project
+    from lfcore.chief_ray import project
     from lfcore.render import LightFieldRenderer
     from lfpiv.rigfile import load_rig
     from tests.conftest import EXAMPLES

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.dots import view_geometry
 from calibration.fit import PlaneDots, fit_camera, rotation_deg_from_matrix
-from lfcore.projection import project
+from lfcore.chief_ray import project
 from lfcore.rig import rotation_angle_deg
 from lfcore.target import DotBoard
 from lfpiv.rigfile import load_rig

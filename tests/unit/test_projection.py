@@ -1,4 +1,4 @@
-"""lfcore.projection against the renderer: a point source's light, summed per lenslet and
+"""lfcore.chief_ray against the renderer: a point source's light, summed per lenslet and
 centred over the micro-image centres, lands where ``project`` says."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from lfcore.projection import project
+from lfcore.chief_ray import project
 from lfcore.render import LightFieldRenderer
 from lfcore.rig import Rig
 from lfcore.white import micro_image_centres
