@@ -43,8 +43,8 @@ from lfcore.reconstruct import ReconSettings  # noqa: E402
 from lfcore.runstore import RunStore  # noqa: E402
 from lfcore.volume import VolumeGrid  # noqa: E402
 from lfpiv.commands.correlate import parse_windows  # noqa: E402
-from lfpiv.correlation import _correlate_pair, _read_pair, _Target, correlate_run  # noqa: E402
-from lfpiv.recon import _operator, _reconstruct_frame, reconstruct_run  # noqa: E402
+from lfpiv.jobs.correlate import _correlate_pair, _read_pair, _Target, correlate_run  # noqa: E402
+from lfpiv.jobs.reconstruct import _operator, _reconstruct_frame, reconstruct_run  # noqa: E402
 
 
 def make_run(path: Path, case: str, pairs: int, device: str) -> RunStore:

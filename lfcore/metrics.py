@@ -9,6 +9,10 @@
 - Reconstructed particle diameters per axis, where the intensity falls to exp(-2) of the peak
   (two standard deviations of a Gaussian: 3 voxels for the ideal particle), as in the chapter.
 - Mean intensity against depth, and the fraction of intensity outside the seeded region.
+- :func:`evaluate_volume`: all of the above for one reconstructed volume against its truth.
+- Vector fields against the truth flow: the flow on the vector grid (:func:`grid_velocity`),
+  the RMS velocity error per component (:func:`velocity_errors`) and the chapter's divergence
+  error |du/dx + dv/dy + dw/dz| (:func:`divergence_error`).
 """
 
 from __future__ import annotations
@@ -19,17 +23,25 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from lfcore.flows import Flow
+from lfcore.vectors import divergence
 from lfcore.volume import VolumeGrid
 
 __all__ = [
     "MatchResult",
+    "VelocityErrors",
+    "VolumeEvaluation",
     "depth_profile",
     "detect_particles",
+    "divergence_error",
+    "evaluate_volume",
+    "grid_velocity",
     "match_particles",
     "outside_fraction",
     "particle_diameters",
     "q_recon",
     "truth_volume",
+    "velocity_errors",
 ]
 
 #: Gaussian sigma of a true particle in voxels: 4 sigma = 3 voxels at 1/e^2.
@@ -260,3 +272,134 @@ def outside_fraction(volume: np.ndarray, grid: VolumeGrid, centre_mm, size_mm) -
     inside = [((grid.axis_mm(a) >= lo[i]) & (grid.axis_mm(a) <= hi[i])) for i, a in enumerate("xyz")]
     mask = inside[2][:, None, None] & inside[1][None, :, None] & inside[0][None, None, :]
     return float(vol[~mask].sum() / total)
+
+
+@dataclass(frozen=True)
+class VolumeEvaluation:
+    """The quality of one reconstructed volume against the truth (see :func:`evaluate_volume`).
+
+    Attributes
+    ----------
+    q
+        Q_recon.
+    match
+        Detected particles matched to the true ones.
+    diameters_vox
+        (3,) median reconstructed particle diameter (x, y, z) in voxels; NaN without particles.
+    outside
+        Fraction of the intensity outside the seeded region.
+    depth_profile, truth_profile
+        (z,) mean intensity of each z slice of the volume and of the truth volume.
+    """
+
+    q: float
+    match: MatchResult
+    diameters_vox: np.ndarray
+    outside: float
+    depth_profile: np.ndarray
+    truth_profile: np.ndarray
+
+
+def evaluate_volume(volume: np.ndarray, grid: VolumeGrid, particles_mm: np.ndarray, brightness: np.ndarray, *,
+                    centre_mm: tuple[float, float, float], size_mm: tuple[float, float, float],
+                    threshold: float = 0.1, match_voxels: float = 2.0) -> VolumeEvaluation:
+    """Q, detection and matching, diameters and depth profile of one volume.
+
+    Parameters
+    ----------
+    volume
+        (z, y, x) reconstructed intensities on ``grid``.
+    grid
+        The voxel grid.
+    particles_mm, brightness
+        (n, 3) true world positions (x, y, z) in mm and (n,) their brightness.
+    centre_mm, size_mm
+        The seeded region (the rig's volume), mm.
+    threshold
+        Detect peaks above this fraction of the brightest voxel.
+    match_voxels
+        A detection matches a true particle within this many voxels per axis.
+    """
+    e0 = truth_volume(grid, particles_mm, brightness)
+    pos, _, idx = detect_particles(volume, grid, threshold)
+    match = match_particles(pos, particles_mm, match_voxels * np.asarray(grid.voxel_mm))
+    diam = particle_diameters(volume, idx)
+    return VolumeEvaluation(q=q_recon(volume, e0), match=match,
+                            diameters_vox=np.median(diam, axis=0) if len(diam) else np.full(3, np.nan),
+                            outside=outside_fraction(volume, grid, centre_mm, size_mm),
+                            depth_profile=depth_profile(volume), truth_profile=depth_profile(e0))
+
+
+def grid_velocity(flow: Flow, x_mm: np.ndarray, y_mm: np.ndarray, z_mm: np.ndarray, t_s: float) -> np.ndarray:
+    """The flow's velocity on a vector grid at time ``t_s``.
+
+    Parameters
+    ----------
+    flow
+        The analytic flow.
+    x_mm, y_mm, z_mm
+        1-D world coordinates of the grid, mm.
+    t_s
+        Time on the flow's clock, s (for a pair: its first pulse plus half of dt).
+
+    Returns
+    -------
+    numpy.ndarray
+        (z, y, x, 3) velocity (u, v, w) in m/s.
+    """
+    zz, yy, xx = np.meshgrid(z_mm, y_mm, x_mm, indexing="ij")
+    pts = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)
+    return flow.velocity(pts, t_s).reshape(*zz.shape, 3)
+
+
+@dataclass(frozen=True)
+class VelocityErrors:
+    """RMS velocity error of measured vectors against the truth.
+
+    Attributes
+    ----------
+    rms_m_s
+        (3,) RMS error of u, v and w in m/s, over every vector of every pair (NaN ignored).
+    peak_m_s
+        The truth's largest speed, m/s.
+    """
+
+    rms_m_s: np.ndarray
+    peak_m_s: float
+
+    @property
+    def of_peak(self) -> float:
+        """The magnitude of the RMS error vector over the peak speed."""
+        return float(np.linalg.norm(self.rms_m_s) / self.peak_m_s)
+
+
+def velocity_errors(measured: np.ndarray, truth: np.ndarray) -> VelocityErrors:
+    """The RMS error per component of ``measured`` against ``truth``.
+
+    Parameters
+    ----------
+    measured, truth
+        (..., 3) velocities (u, v, w) in m/s of the same shape, e.g. (pairs, z, y, x, 3).
+    """
+    err = np.asarray(measured, dtype=np.float64) - truth
+    axes = tuple(range(err.ndim - 1))
+    return VelocityErrors(rms_m_s=np.sqrt(np.nanmean(err**2, axis=axes)),
+                          peak_m_s=float(np.nanmax(np.linalg.norm(truth, axis=-1))))
+
+
+def divergence_error(velocity: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarray, z_mm: np.ndarray) -> np.ndarray:
+    """The chapter's divergence error |du/dx + dv/dy + dw/dz| of each pair's field.
+
+    Parameters
+    ----------
+    velocity
+        (pairs, z, y, x, 3) velocity in m/s.
+    x_mm, y_mm, z_mm
+        1-D world coordinates of the grid, mm.
+
+    Returns
+    -------
+    numpy.ndarray
+        (pairs, z, y, x) in 1/s.
+    """
+    return np.abs(np.stack([divergence(v, x_mm, y_mm, z_mm) for v in velocity]))

@@ -12,9 +12,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
+from calibration.store import CalibrationStore  # noqa: E402
 from lfcore.runstore import RunStore  # noqa: E402
+from lfpiv.errors import UsageError  # noqa: E402
 
-__all__ = ["plot_raw_images"]
+__all__ = ["plot_grids", "plot_raw_images", "plot_reconstruction", "plot_rms", "plot_vectors"]
 
 
 def _stretch(img: np.ndarray) -> tuple[float, float]:
@@ -121,6 +123,7 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
         The file written.
     """
     from lfcore.flows import flow_from_params
+    from lfcore.metrics import grid_velocity
     from lfcore.vectors import vorticity
 
     out = Path(out)
@@ -129,11 +132,8 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
     fields = [("measured", np.stack([vec[c][pair] for c in "uvw"], axis=-1))]
     truth = store.truth()
     if truth is not None and truth["attrs"].get("flow", {}).get("name") not in (None, "static-points"):
-        flow = flow_from_params(truth["attrs"]["flow"])
-        zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
-        pts = np.stack([xx, yy, zz], axis=-1).reshape(-1, 3)
         t_mid = float(truth["t0_s"][pair]) + 0.5 * float(store.timing["dt_s"])
-        fields.append(("truth", flow.velocity(pts, t_mid).reshape(*zz.shape, 3)))
+        fields.append(("truth", grid_velocity(flow_from_params(truth["attrs"]["flow"]), x, y, z, t_mid)))
     k = len(z) // 2
     fig, axes = plt.subplots(1, len(fields), figsize=(6.2 * len(fields), 5.4), squeeze=False)
     wz_max = max(float(np.abs(vorticity(f, x, y, z)[k, ..., 2]).max()) for _, f in fields) or 1.0
@@ -150,5 +150,85 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
+def plot_grids(store: CalibrationStore, out: str | Path, lenslets: int = 8) -> Path:
+    """Save a PNG: per camera, the white image around the sensor centre with the detected
+    centres (inliers +, outliers x) and fitted nodes (o), and the residuals over the sensor.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+
+    Raises
+    ------
+    UsageError
+        The store holds no microlens grid.
+    """
+    out = Path(out)
+    names = [n for n in store.cameras if store.grid(n) is not None]
+    if not names:
+        raise UsageError(f"{store.path} holds no microlens grid; run 'lfpiv calibrate mla' first")
+    fig, axes = plt.subplots(len(names), 2, figsize=(11, 5 * len(names)), squeeze=False)
+    for row, name in zip(axes, names, strict=True):
+        grid, white = store.grid(name), store.white(name)
+        rows, cols = white.shape
+        half = 0.5 * lenslets * grid.pitch_px
+        cx, cy = cols / 2, rows / 2
+        c0, c1 = int(max(0, cx - half)), int(min(cols, cx + half))
+        r0, r1 = int(max(0, cy - half)), int(min(rows, cy + half))
+        ax = row[0]
+        ax.imshow(white[r0:r1, c0:c1], cmap="gray", extent=(c0, c1, r1, r0), interpolation="nearest")
+        cen, fit, inl = grid.centres_px, grid.lattice_px(), grid.inliers
+        box = (cen[:, 0] > c0) & (cen[:, 0] < c1) & (cen[:, 1] > r0) & (cen[:, 1] < r1)
+        ax.plot(fit[box, 0], fit[box, 1], "o", mfc="none", mec="tab:cyan", ms=8, label="fitted lattice")
+        ax.plot(cen[box & inl, 0], cen[box & inl, 1], "+", color="tab:green", ms=8, label="detected")
+        ax.plot(cen[box & ~inl, 0], cen[box & ~inl, 1], "x", color="tab:red", ms=8, label="outlier")
+        ax.set_title(f"{name}: white image at the sensor centre")
+        ax.legend(loc="upper right", fontsize=8)
+        ax = row[1]
+        res = grid.residuals_px
+        scale = max(float(np.percentile(np.hypot(*res[inl].T), 95)), 1e-3)
+        ax.quiver(cen[inl, 0], cen[inl, 1], res[inl, 0], -res[inl, 1], np.hypot(*res[inl].T), angles="xy",
+                  scale_units="xy", scale=scale / grid.pitch_px, cmap="viridis")
+        ax.plot(cen[~inl, 0], cen[~inl, 1], "x", color="tab:red", ms=5)
+        ax.set_xlim(0, cols)
+        ax.set_ylim(rows, 0)
+        ax.set_aspect("equal")
+        ax.set_title(f"{name}: residuals (arrow of one pitch = {scale:.3f} px), RMS {grid.rms_px:.4f} px")
+    fig.tight_layout()
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
+
+
+def plot_rms(store: CalibrationStore, out: str | Path) -> Path:
+    """Save a PNG of each fitted camera's reprojection RMS per plane against the stage position.
+
+    Raises
+    ------
+    UsageError
+        No camera has a fitted model.
+    """
+    names = [n for n in store.cameras if store.model(n) is not None]
+    if not names:
+        raise UsageError(f"{store.path} holds no fitted camera model; run 'lfpiv calibrate fit' first")
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name in names:
+        m = store.model(name)
+        rms = np.array([np.nan if v is None else v for v in m["plane_rms_px"]], dtype=float)
+        ax.plot(store.stage_mm(name), rms, "o-", label=f"{name} (all planes {m['rms_px']:.3f} px)")
+    ax.set_xlabel("stage position, mm")
+    ax.set_ylabel("RMS reprojection error, px")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    ax.set_title("dot reprojection error per plane")
+    fig.tight_layout()
+    out = Path(out)
+    fig.savefig(out, dpi=90)
     plt.close(fig)
     return out

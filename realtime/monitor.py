@@ -25,6 +25,8 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -32,7 +34,7 @@ import numpy as np
 
 from realtime.pipeline import AXES, LivePipeline, LiveResult, plausible_latency
 
-__all__ = ["Controls", "GuiUnavailable", "MonitorWindow", "require_qt"]
+__all__ = ["Controls", "GuiUnavailable", "MonitorWindow", "WindowOutcome", "require_qt", "run_monitor_window"]
 
 INSTALL_HINT = "pip install 'lfpiv[gui]'"
 _HANDLER_INSTALLED = False
@@ -103,6 +105,10 @@ class Controls(Protocol):
     def status(self) -> dict[str, float]:
         """Numbers for the status line: ``committed_pairs``, ``pair_rate_hz``, ``frames_recorded``,
         ``frames_dropped``, ``overruns``."""
+        ...
+
+    def wait(self, timeout_s: float = 60.0) -> bool:
+        """Wait for the recording to end; True if none is running."""
         ...
 
 
@@ -438,3 +444,113 @@ def MonitorWindow(pipeline: LivePipeline, controls: Controls | None = None, *, t
     if _WINDOW_CLASS is None:
         _WINDOW_CLASS = _build_window_class()
     return _WINDOW_CLASS(pipeline, controls, title=title)
+
+
+@dataclass(frozen=True)
+class WindowOutcome:
+    """How a monitor session ended (:func:`run_monitor_window`).
+
+    Attributes
+    ----------
+    numbers
+        The status line's numbers when the window closed (``MonitorWindow.status_numbers``).
+    screenshot
+        The screenshot written, or None.
+    screenshot_error
+        Why the screenshot could not be written, or None.
+    interrupted
+        True if Ctrl-C, SIGTERM or SIGHUP closed the window.
+    stop_s
+        Seconds from the window closing to the recording and live path stopped.
+    """
+
+    numbers: dict[str, float]
+    screenshot: Path | None
+    screenshot_error: OSError | None
+    interrupted: bool
+    stop_s: float
+
+
+def run_monitor_window(pipeline: LivePipeline, controls: Controls, *, title: str, screenshot: str | Path | None = None,
+                       after: int = 3, say: Callable[[str], None] = lambda text: None) -> WindowOutcome:
+    """Show the monitor, arm, and run Qt's event loop until the window closes.
+
+    The pipeline is started and ``controls`` armed once the window shows. Ctrl-C, SIGTERM and
+    SIGHUP disarm the laser at once (:func:`acquisition.pulse_generator.signals_call`) and close
+    the window as its close button does. With ``screenshot`` (offscreen too) the window is
+    saved after ``after`` pairs were shown, or once the recording ended and the live path
+    caught up, and the loop ends when the recording has. Whatever ends the loop, the recording
+    is disarmed and waited for, and the pipeline stopped.
+
+    Raises
+    ------
+    GuiUnavailable
+        Without pyqtgraph and PySide6.
+    """
+    import signal
+
+    from acquisition.pulse_generator import signals_call
+
+    pg, QtCore, _, _ = require_qt()
+    shot: dict[str, Any] = {"path": None, "error": None}
+    interrupted: list[str] = []
+
+    def interrupt(*_: object) -> None:
+        # Only noted here: tick() closes the window from the event loop. A signal handler
+        # runs between any two bytecodes of the main thread, possibly inside a paint
+        # event, where destroying the widgets being painted is unsafe.
+        interrupted.append("signal")
+
+    app = pg.mkQApp("lfpiv monitor")
+    win = MonitorWindow(pipeline, controls, title=title)
+    win.show()
+    pipeline.start()
+    controls.arm()
+    previous_int = signal.signal(signal.SIGINT, interrupt)
+    try:
+        # a kill or a closed terminal: the laser off at once, then the window closes as on Ctrl-C
+        with signals_call(interrupt):
+
+            def tick() -> None:
+                if interrupted:
+                    win.close()
+                    app.quit()
+                    return
+                # Offscreen mode: the screenshot after `after` pairs were shown (or once the
+                # recording ended and the live path has caught up), then quit when the
+                # recording has ended.
+                if screenshot is None:
+                    return
+                st = pipeline.stats()
+                caught_up = (not controls.armed and st.state in ("waiting", "stopped")
+                             and st.last_pair >= controls.status()["committed_pairs"] - 1)
+                if shot["path"] is None and (win.displayed >= after or (caught_up and not win.drawing_pending)):
+                    win.refresh_status()
+                    try:
+                        shot["path"] = win.screenshot(screenshot)
+                    except OSError as exc:  # the monitor stops: the run it recorded is kept
+                        shot["path"], shot["error"] = Path(screenshot), exc
+                        controls.disarm()
+                    if win.displayed < after:
+                        say(f"the recording ended after {win.displayed} pair(s) were shown, fewer than --after "
+                            f"{after}")
+                if shot["path"] is not None and not controls.armed:
+                    app.quit()
+
+            timer = QtCore.QTimer()
+            timer.timeout.connect(tick)
+            timer.start(50)
+            app.exec()
+            timer.stop()
+            if win.isVisible():
+                win.close()
+            t0 = time.monotonic()
+            controls.disarm()
+            controls.wait(120.0)
+            pipeline.stop()
+            numbers = win.status_numbers()
+            stop_s = time.monotonic() - t0
+    finally:
+        signal.signal(signal.SIGINT, previous_int)
+    return WindowOutcome(numbers=numbers, screenshot=shot["path"] if shot["error"] is None else None,
+                         screenshot_error=shot["error"], interrupted=bool(interrupted), stop_s=stop_s)

@@ -1,7 +1,9 @@
 """One module per ``lfpiv`` subcommand, each with ``register(subparsers)`` that adds its parser
 and sets ``func`` to the function that runs it; shared argument types live here.
 
-To add a command, write its module and name it in :data:`COMMANDS`.
+A command parses its arguments, calls its job (:mod:`lfpiv.jobs`, the module of the same name)
+and prints; it never reaches below the application (``lint-imports`` checks that). To add a
+command, write its module here and its job, and name it in :data:`COMMANDS`.
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ def ring_slots(text: str) -> int:
 
 def sub_apertures(text: str) -> int:
     """argparse type of ``--sub-apertures``: 1 to :data:`lfcore.reconstruct.MAX_SUB_APERTURES`."""
-    from lfcore.reconstruct import MAX_SUB_APERTURES
+    from lfpiv.jobs.reconstruct import MAX_SUB_APERTURES
 
     return whole_number(text, 1, MAX_SUB_APERTURES)
 
@@ -61,7 +63,7 @@ def sub_apertures(text: str) -> int:
 def rays_per_particle(text: str) -> int:
     """argparse type of the rays per particle of a rendering: 1 to
     :data:`lfcore.rig.MAX_RAYS_PER_PARTICLE`."""
-    from lfcore.rig import MAX_RAYS_PER_PARTICLE
+    from lfpiv.jobs.synth import MAX_RAYS_PER_PARTICLE
 
     return whole_number(text, 1, MAX_RAYS_PER_PARTICLE)
 
@@ -69,7 +71,7 @@ def rays_per_particle(text: str) -> int:
 def seeding_ppm(text: str) -> float:
     """argparse type of a seeding density, particles per microlens: positive, at most
     :data:`lfcore.particles.MAX_PPM`."""
-    from lfcore.particles import MAX_PPM
+    from lfpiv.jobs.synth import MAX_PPM
 
     v = positive_float(text)
     if v > MAX_PPM:
@@ -183,19 +185,12 @@ def warn_outdated_vectors(store) -> None:
 
 def warn_optics(rig) -> None:
     """Print the rig's optics warnings, one line each, on stderr."""
-    for w in rig.optics_warnings():
-        print(f"lfpiv: warning: {w}", file=sys.stderr)
+    warn(rig.optics_warnings())
 
 
-def warn_voxel_shape(rig, cameras, pvr) -> None:
-    """Warn, on stderr, when crossed cameras are reconstructed on voxels far deeper than wide.
-
-    ``cameras`` are the names reconstructed (None: all of the rig's), ``pvr`` the ``--pvr``
-    given (None: the rig's)."""
-    from lfcore.rig import voxel_shape_warnings
-
-    cams = [c for c in rig.camera if cameras is None or c.name in cameras]
-    for w in voxel_shape_warnings(cams, rig.volume.pvr if pvr is None else pvr):
+def warn(lines: list[str]) -> None:
+    """Print warnings, one line each, on stderr."""
+    for w in lines:
         print(f"lfpiv: warning: {w}", file=sys.stderr)
 
 
@@ -212,15 +207,8 @@ def add_sim_options(parser: argparse.ArgumentParser) -> None:
 
 
 def sim_lab_options(rig, args: argparse.Namespace) -> dict | None:
-    """Keyword arguments of :class:`sim.lab.SimLab` from the ``--sim-*`` options, or None for
-    real hardware. A bad flow or density is a one-line :class:`~lfpiv.errors.UsageError`."""
-    if rig.hardware != "sim":
-        return None
-    from lfpiv.errors import UsageError
-    from sim.world import SimWorld  # the application is the one layer that wires the simulated lab
+    """Keyword arguments of the simulated lab from the ``--sim-*`` options, or None for real
+    hardware (:func:`lfpiv.rigging.sim_lab_options`)."""
+    from lfpiv.rigging import sim_lab_options as options
 
-    try:
-        world = SimWorld(rig, flow=args.sim_flow, ppm=args.sim_ppm)
-    except ValueError as exc:
-        raise UsageError(f"--sim-flow/--sim-ppm: {exc}") from None
-    return {"world": world, "pool_pairs": args.sim_pool, "rays_per_particle": args.sim_rays}
+    return options(rig, flow=args.sim_flow, ppm=args.sim_ppm, pool=args.sim_pool, rays=args.sim_rays)

@@ -26,15 +26,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lfcore.runstore import RunStore
-    from lfpiv.acquire import check_plan, record
+    from lfpiv.jobs.acquire import check_plan, record
     from lfpiv.rigfile import load_rig
+    from lfpiv.runs import check_new
 
     rig = load_rig(args.rig)
     warn_optics(rig)
     # refuse an impossible timing or a taken --out before the simulated lab renders
     check_plan(rig, args.pairs)
-    RunStore.check_new(args.out, args.overwrite)
+    check_new(args.out, args.overwrite)
     sim_options = sim_lab_options(rig, args)
     if sim_options is not None and not args.quiet:
         print(f"lfpiv: simulated lab: rendering {args.sim_pool} pair(s) of '{args.sim_flow}' per camera ...",

@@ -83,18 +83,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_mla(args: argparse.Namespace) -> int:
-    from lfcore.white import WhiteImageConfig
-    from lfpiv.calibrate import calibrate_mla
-    from lfpiv.errors import UsageError
+    from lfpiv.jobs.calibrate import calibrate_mla, white_config
     from lfpiv.rigfile import load_rig
 
     rig = load_rig(args.rig)
     warn_optics(rig)
-    try:
-        white = WhiteImageConfig(level_counts=args.sim_level, vignetting=args.sim_vignetting,
-                                 dead_lenslets=args.sim_dead)
-    except ValueError as exc:
-        raise UsageError(f"--sim-*: {exc}") from None
+    white = white_config(level_counts=args.sim_level, vignetting=args.sim_vignetting, dead_lenslets=args.sim_dead)
     mpx = max(c.sensor_px[0] * c.sensor_px[1] for c in rig.camera) / 1e6
     large = mpx > 8  # say what a long silence is: about 3 s per megapixel on a 2-core CPU
     if rig.hardware == "sim" and large:
@@ -117,9 +111,7 @@ def run_mla(args: argparse.Namespace) -> int:
 
 
 def run_volume(args: argparse.Namespace) -> int:
-    import sys
-
-    from lfpiv.calibrate import calibrate_volume
+    from lfpiv.jobs.calibrate import board_for, calibrate_volume
     from lfpiv.rigfile import load_rig
 
     rig = load_rig(args.rig)
@@ -131,13 +123,7 @@ def run_volume(args: argparse.Namespace) -> int:
             print(f"\rplanes [{'#' * filled}{'.' * (30 - filled)}] {done}/{total}", end="", file=sys.stderr,
                   flush=True)
 
-    from lfpiv.calibrate import default_board
-    from lfpiv.errors import UsageError
-
-    try:
-        board = default_board(rig, args.spacing_mm, args.tilt_deg)
-    except ValueError as exc:
-        raise UsageError(f"--spacing-mm/--tilt-deg: {exc}") from None
+    board = board_for(rig, args.spacing_mm, args.tilt_deg)
     try:
         res = calibrate_volume(rig, args.out, planes=args.planes, step_mm=args.step_mm, centre_mm=args.centre_mm,
                                settle_s=args.settle_s, exposure_us=args.exposure_us, board=board, progress=bar)
@@ -155,11 +141,9 @@ def run_volume(args: argparse.Namespace) -> int:
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    from calibration.store import CalibrationStore
-    from lfcore.rig import rotation_angle_deg
-    from lfpiv.calibrate import calibrate_fit
+    from lfpiv.jobs.calibrate import calibrate_fit, open_calibration, rotation_angle_deg
 
-    nominal = CalibrationStore.open(args.store).rig
+    nominal = open_calibration(args.store).rig
     for fit in calibrate_fit(args.store, fit_distortion=args.distortion, min_dots=args.min_dots):
         c = fit.camera
         turned = rotation_angle_deg(nominal.camera_named(c.name).rotation_deg, c.rotation_deg)
@@ -175,14 +159,10 @@ def run_fit(args: argparse.Namespace) -> int:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from calibration.store import CalibrationStore, CalibrationStoreError
-    from lfpiv.calibrate import plot_grids, plot_rms
-    from lfpiv.errors import UsageError
+    from lfpiv.jobs.calibrate import open_calibration
+    from lfpiv.plots import plot_grids, plot_rms
 
-    try:
-        store = CalibrationStore.open(args.store)
-    except CalibrationStoreError as exc:
-        raise UsageError(str(exc)) from None
+    store = open_calibration(args.store)
     for line in store.summary():
         print(line)
     for name in store.cameras:

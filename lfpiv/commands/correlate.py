@@ -1,14 +1,10 @@
-"""``lfpiv correlate``: 3D multi-grid cross-correlation of a run's volumes into ``vectors/``.
-
-Also :func:`evaluate_vectors`, the vector lines of ``lfpiv evaluate``.
-"""
+"""``lfpiv correlate``: 3D multi-grid cross-correlation of a run's volumes into ``vectors/``."""
 
 from __future__ import annotations
 
 import argparse
 import re
-
-import numpy as np
+import warnings
 
 from lfpiv.commands import add_device, add_workers, pair_range, positive_float, workers_phrase
 from lfpiv.errors import UsageError
@@ -99,43 +95,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.set_defaults(func=run)
 
 
-def _select_pairs(store, sel: slice | None) -> list[int]:
-    from lfcore.runstore import RunStoreError
-    from lfpiv.recon import select_pairs
-
-    store.volumes()  # a run without volumes says so
-    done = store.reconstructed_pairs()
-    if not done:
-        raise RunStoreError(f"{store.path} has no reconstructed pairs yet; run 'lfpiv reconstruct {store.path}' first")
-    if sel is None:
-        return done
-    wanted = select_pairs(sel, store.n_pairs)
-    missing = [p for p in wanted if p not in done]
-    if missing:
-        raise UsageError(f"--pairs: pair(s) {', '.join(map(str, missing[:5]))}{' ...' if len(missing) > 5 else ''} "
-                         f"are not reconstructed (reconstructed: {', '.join(map(str, done[:10]))})")
-    return wanted
-
-
 def run(args: argparse.Namespace) -> int:
-    from lfcore.correlate import CorrelationConfig, CorrelationError
-    from lfcore.runstore import RunStore
-    from lfcore.vectors import MedianTest
     from lfpiv.batch import dask_client
-    from lfpiv.correlation import correlate_run
+    from lfpiv.jobs.correlate import correlate_run, correlation_config, pairs_to_correlate
+    from lfpiv.runs import open_run
 
-    store = RunStore.open(args.run, mode="r+")
-    pairs = _select_pairs(store, args.pairs)
+    store = open_run(args.run, mode="r+")
+    pairs = pairs_to_correlate(store, args.pairs)
     if args.iterations < 0:
         raise UsageError(f"--iterations must be 0 or more, got {args.iterations}")
-    try:
-        cfg = CorrelationConfig(windows=args.windows, overlap=args.overlap, deform_iterations=args.iterations,
-                                zero_pad=args.zero_pad, median_filter=args.median_filter,
-                                median_test=MedianTest(epsilon=args.epsilon, threshold=args.threshold),
-                                interpolation=args.interpolation, search_radius=args.search_radius,
-                                first_overlap=args.first_overlap)
-    except CorrelationError as exc:
-        raise UsageError(str(exc)) from None
+    cfg = correlation_config(windows=args.windows, overlap=args.overlap, deform_iterations=args.iterations,
+                             zero_pad=args.zero_pad, median_filter=args.median_filter, epsilon=args.epsilon,
+                             threshold=args.threshold, interpolation=args.interpolation,
+                             search_radius=args.search_radius, first_overlap=args.first_overlap)
     with dask_client(args.workers, args.scheduler) as client:
         done = correlate_run(store, cfg, pairs, device=args.device, progress=not args.quiet,
                              skip_done=args.skip_done, client=client)
@@ -153,53 +125,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def evaluate_vectors(store, pairs: slice | None = None) -> list[tuple[str, str]]:
-    """Lines (label, text) about a run's vectors for ``lfpiv evaluate``, over the correlated
-    pairs among ``pairs`` (the ``--pairs`` range; None: all).
+    """Deprecated: :func:`lfpiv.jobs.evaluate.evaluate_vectors` (also ``lfpiv.evaluate``)."""
+    from lfpiv.jobs.evaluate import evaluate_vectors as moved
 
-    RMS velocity error per component against the synthetic truth flow (in m/s and in voxels,
-    evaluated at the window centres at mid-pair time), the outlier fraction, and the
-    chapter's divergence error |du/dx + dv/dy + dw/dz|.
-    """
-    from lfcore.flows import flow_from_params
-    from lfcore.vectors import FLAG_OUTLIER, FLAG_REPLACED, divergence
-    from lfpiv.recon import select_pairs
-
-    if not store.has_vectors:
-        return [("vectors", f"none yet (run 'lfpiv correlate {store.path}')")]
-    vec = store.vectors()
-    done = store.correlated_pairs()
-    if not done:
-        return [("vectors", "vectors/ exists but no pair has been correlated")]
-    pairs = [p for p in select_pairs(pairs, store.n_pairs) if p in done]
-    if not pairs:
-        return [("vectors", f"none of the selected pairs is correlated (correlated: {done})")]
-    a = vec["attrs"]
-    x, y, z = vec["x_mm"], vec["y_mm"], vec["z_mm"]
-    vel = np.stack([vec[c][pairs] for c in "uvw"], axis=-1).astype(np.float64)  # (pairs, z, y, x, 3)
-    flags = vec["flags"][pairs]
-    dt = float(a["dt_s"])
-    lines = [("vectors", f"{len(pairs)} pair(s) of {len(x)} x {len(y)} x {len(z)} vectors (x, y, z); windows "
-                         f"{', '.join('x'.join(map(str, w)) for w in a['windows'])} voxels")]
-    truth = store.truth()
-    if truth is not None:
-        flow = flow_from_params(truth["attrs"]["flow"])
-        zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
-        pts = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)
-        ref = np.stack([flow.velocity(pts, truth["t0_s"][p] + 0.5 * dt).reshape(vel.shape[1:]) for p in pairs])
-        err = vel - ref
-        rms = np.sqrt(np.nanmean(err**2, axis=(0, 1, 2, 3)))
-        peak = float(np.nanmax(np.linalg.norm(ref, axis=-1)))
-        vox = ""
-        if store.has_volumes and not store.vectors_outdated:  # the same errors in voxels of their volumes
-            in_vox = rms * dt * 1e3 / np.asarray(store.volume_grid().voxel_mm)
-            vox = " (" + ", ".join(f"{e:.3f}" for e in in_vox) + " voxel)"
-        lines.append(("velocity error", f"RMS u, v, w {rms[0]:.3g}, {rms[1]:.3g}, {rms[2]:.3g} m/s{vox}; "
-                                        f"{100 * np.linalg.norm(rms) / peak:.1f}% of the peak speed {peak:.3g} m/s"))
-    n = flags.size
-    lines.append(("outliers", f"{100.0 * np.count_nonzero(flags & FLAG_OUTLIER) / n:.1f}% of the vectors "
-                              f"({100.0 * np.count_nonzero(flags & FLAG_REPLACED) / n:.1f}% replaced)"))
-    div = np.abs(np.stack([divergence(v, x, y, z) for v in vel]))
-    lines.append(("divergence error", f"|du/dx + dv/dy + dw/dz| mean {np.nanmean(div):.3g} 1/s, median "
-                                      f"{np.nanmedian(div):.3g} 1/s"))
-    return lines
-
+    warnings.warn("lfpiv.commands.correlate.evaluate_vectors moved to lfpiv.jobs.evaluate.evaluate_vectors",
+                  DeprecationWarning, stacklevel=2)
+    return moved(store, pairs)

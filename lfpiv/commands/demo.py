@@ -10,16 +10,12 @@ import argparse
 import importlib.util
 import os
 import shlex
-import shutil
 import sys
 import time
 from pathlib import Path
 
 from lfpiv.commands import add_device, examples_dir, positive_int, rays_per_particle
 from lfpiv.errors import UsageError
-
-#: Marks a folder written by the demo, so that a later demo may replace it (and nothing else).
-MARKER = ".lfpiv-demo"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -41,29 +37,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "(default: auto)")
     add_device(d)
     d.set_defaults(func=run)
-
-
-def _prepare(out: Path) -> None:
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {out} is a file; give a folder for the demo's output")
-    if out.exists() and any(out.iterdir()):
-        if not (out / MARKER).exists() and not _legacy_demo(out):
-            raise UsageError(f"{out} is not empty and was not written by 'lfpiv demo'; choose another --out")
-        shutil.rmtree(out)  # only ever a previous demo's folder
-    out.mkdir(parents=True, exist_ok=True)
-    (out / MARKER).write_text("written by 'lfpiv demo'; the next demo replaces this folder\n")
-
-
-def _legacy_demo(out: Path) -> bool:
-    # lfpiv 0.1's demo left only run.zarr (with attrs demo = true) and raw_images.png.
-    from lfcore.runstore import RunStore, RunStoreError
-
-    if {p.name for p in out.iterdir()} - {"run.zarr", "raw_images.png"}:
-        return False
-    try:
-        return RunStore.open(out / "run.zarr").attrs.get("demo") is True
-    except RunStoreError:
-        return False
 
 
 def _step(title: str, argv: list[str]) -> None:
@@ -88,23 +61,8 @@ def _monitor_mode(choice: str) -> str:
     return choice
 
 
-def _windows(run: str) -> str:
-    """Two passes whose first windows are the largest power of two up to 32 voxels that fits
-    twice into the volume along each axis."""
-    from lfcore.runstore import RunStore
-
-    first = []
-    for n in RunStore.open(run).volume_grid().shape[::-1]:  # x, y, z
-        w = 32
-        while w > 4 and 2 * w > n:
-            w //= 2
-        first.append(w)
-    return f"{'x'.join(map(str, first))},{'x'.join(str(w // 2) for w in first)}"
-
-
 def run(args: argparse.Namespace) -> int:
-    from lfcore.runstore import RunStore
-    from lfpiv.plots import plot_raw_images, plot_vectors
+    from lfpiv.jobs.demo import check_device, demo_windows, pictures, prepare_folder
     from lfpiv.rigfile import load_rig
 
     rig_path = Path(args.rig) if args.rig else examples_dir() / "demo.toml"
@@ -112,11 +70,9 @@ def run(args: argparse.Namespace) -> int:
     if rig.hardware != "sim":
         raise UsageError(f"{rig_path} has hardware = \"{rig.hardware}\"; the demo runs on the simulated lab only")
     if args.device:  # checked before the previous demo's folder is cleared
-        from lfcore.device import resolve_device
-
-        resolve_device(args.device)
+        check_device(args.device)
     out = Path(args.out)
-    _prepare(out)
+    prepare_folder(out)
     rig_s, calib, run_ = str(rig_path), str(out / "calib.zarr"), str(out / "run.zarr")
     dev = ["--device", args.device] if args.device else []
     rays = ["--sim-rays", str(args.rays)] if args.rays else []
@@ -133,13 +89,11 @@ def run(args: argparse.Namespace) -> int:
           "triggers both cameras", ["acquire", "--rig", rig_s, "--pairs", str(args.pairs), "--out", run_,
                                     "--sim-pool", str(min(args.pairs, 4)), "--quiet", *rays])
     _step("reconstruction: DRT-MART, both cameras jointly", ["reconstruct", run_, *dev])
-    _step("3D multi-grid cross-correlation", ["correlate", run_, "--windows", _windows(run_), "--overlap", "0.5",
+    _step("3D multi-grid cross-correlation", ["correlate", run_, "--windows", demo_windows(run_), "--overlap", "0.5",
                                              "--quiet", *dev])
     _step("accuracy against the simulated truth", ["evaluate", run_, "--plot", str(out / "quality.png")])
     _step("export of the velocity field", ["export", run_, "--format", "netcdf", "--out", str(out / "field")])
-    store = RunStore.open(run_)
-    pictures = [plot_raw_images(store, out / "raw_images.png"), plot_vectors(store, out / "vectors.png"),
-                out / "quality.png", out / "calibration.png"]
+    shown = [*pictures(run_, out), out / "quality.png", out / "calibration.png"]
 
     mode = _monitor_mode(args.monitor)
     if mode != "no":
@@ -148,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
             os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
             live += ["--pairs", "30", "--out", str(out / "live.zarr"), "--screenshot", str(out / "monitor.png"),
                      "--after", "1"]
-            pictures.append(out / "monitor.png")
+            shown.append(out / "monitor.png")
             title = "the live monitor, offscreen (no display): a screenshot after the first processed pair"
         else:
             live += ["--out", str(out / "live.zarr")]
@@ -159,6 +113,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"  calib.zarr        calibration store        (lfpiv calibrate report {calib})")
     print(f"  run.zarr          the recorded run, with volumes/ and vectors/   (lfpiv info {run_})")
     print("  field/            the velocity field as netCDF")
-    for p in pictures:
+    for p in shown:
         print(f"  {p.name:<17} picture")
     return 0

@@ -16,7 +16,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lfpiv.acquire import list_devices
+    from lfpiv.jobs.devices import list_devices
     from lfpiv.rigfile import load_rig
 
     rig = load_rig(args.rig)

@@ -24,12 +24,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lfcore.runstore import RunStore
-    from lfpiv.commands.correlate import evaluate_vectors
     from lfpiv.errors import UsageError
-    from lfpiv.recon import evaluate_run, summary_rows
+    from lfpiv.jobs.evaluate import evaluate_run, evaluate_vectors, summary_rows
+    from lfpiv.runs import open_run
 
-    store = RunStore.open(args.run)
+    store = open_run(args.run)
     if store.truth() is None:
         raise UsageError(f"{store.path} is a recorded run with no truth; evaluate needs a synthetic run")
     if not (store.has_volumes or store.has_vectors):

@@ -5,10 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import signal
 import sys
-import time
-from contextlib import ExitStack
 from pathlib import Path
 
 from lfpiv.commands import (
@@ -67,23 +64,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.set_defaults(func=run)
 
 
-def _check_display(screenshot: bool) -> None:
-    if os.environ.get("QT_QPA_PLATFORM") or not sys.platform.startswith("linux"):
-        return
-    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
-        return
-    if screenshot:
-        os.environ["QT_QPA_PLATFORM"] = "offscreen"  # nothing to show on: draw offscreen for the PNG
-        return
-    raise UsageError("no display to show the monitor on (DISPLAY is not set); run it on a desktop, or give "
-                     "--screenshot out.png to draw offscreen")
-
-
-def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of set-up steps
-    from acquisition.pulse_generator import signals_call
-    from lfpiv.acquire import check_plan
+def run(args: argparse.Namespace) -> int:
+    from lfpiv.jobs.acquire import check_plan
+    from lfpiv.jobs.monitor import check_display, live_settings, require_gui, run_monitor
     from lfpiv.rigfile import load_rig
-    from realtime.monitor import GuiUnavailable, require_qt
+    from lfpiv.runs import check_new
 
     rig = load_rig(args.rig)
     warn_optics(rig)
@@ -92,138 +77,35 @@ def run(args: argparse.Namespace) -> int:  # noqa: C901 - one linear sequence of
         folder = Path(args.screenshot).parent
         if folder.exists() and not (folder.is_dir() and os.access(folder, os.W_OK)):
             raise UsageError(f"cannot write the screenshot into {folder}; give a writable --screenshot path")
-    _check_display(args.screenshot is not None)
-    try:
-        pg, QtCore, _, _ = require_qt()
-    except GuiUnavailable as exc:
-        raise UsageError(str(exc)) from None
-    from lfcore.correlate import CorrelationConfig, CorrelationError
-    from lfcore.device import resolve_device
-    from lfcore.runstore import RunStore
-    from lfcore.volume import VolumeGrid
-    from lfpiv.live import LiveRecorder
-    from realtime.monitor import MonitorWindow
-    from realtime.pipeline import LivePipeline, LiveSettings, default_windows, monitoring_recon
-
+    check_display(args.screenshot is not None)
+    require_gui()
     check_pvr(args.pvr)
     if args.out is not None:
-        RunStore.check_new(args.out, args.overwrite)
-    try:
-        settings = LiveSettings(iterations=args.iterations, relaxation=args.relaxation, slice_axis=args.slice)
-    except ValueError as exc:
-        raise UsageError(f"--iterations/--relaxation: {exc}") from None
-    device = resolve_device(args.device)
+        check_new(args.out, args.overwrite)
+    settings = live_settings(iterations=args.iterations, relaxation=args.relaxation, slice_axis=args.slice)
 
     def say(text: str) -> None:
         if not args.quiet:
             print(f"lfpiv monitor: {text}", file=sys.stderr)
 
-    with ExitStack() as stack:
-        sim_options = sim_lab_options(rig, args)
-        if sim_options is not None:
-            from sim.lab import SimLab  # the application is the one layer that wires the simulated lab
-
-            say(f"simulated lab: rendering {args.sim_pool} pair(s) of '{args.sim_flow}' per camera ...")
-            sim_options = {"lab": stack.enter_context(SimLab(rig, **sim_options))}
-        grid = VolumeGrid.from_rig(rig, args.pvr)
-        try:
-            corr = CorrelationConfig(windows=default_windows(grid.shape, args.passes), overlap=0.5,
-                                     deform_iterations=0)
-        except CorrelationError as exc:
-            raise UsageError(str(exc)) from None
-        pipe = LivePipeline(rig, settings=settings, recon=monitoring_recon(method=args.method), correlation=corr,
-                            pvr=args.pvr, device=device)
-        say(f"building the reconstruction ({'x'.join(map(str, pipe.grid.shape[::-1]))} voxels) and correlation "
-            f"on {device} ...")
-        pipe.build()
-        stack.callback(pipe.stop)
-        rec = LiveRecorder(rig, pipe, pairs=args.pairs, out=args.out, overwrite=args.overwrite,
-                           sim_options=sim_options, ring_slots=args.ring)
-
-        def end_recording() -> None:
-            rec.disarm()
-            rec.wait(120.0)
-
-        stack.callback(end_recording)  # the laser is disarmed whatever happens
-        app = pg.mkQApp("lfpiv monitor")
-        win = MonitorWindow(pipe, rec, title=f"lfpiv monitor: {args.rig}")
-        win.show()
-        pipe.start()
-        rec.arm()
-        shot: dict[str, object] = {"path": None, "error": None}
-        interrupted: list[str] = []
-
-        def interrupt(*_: object) -> None:
-            # Only noted here: tick() closes the window from the event loop. A signal handler
-            # runs between any two bytecodes of the main thread, possibly inside a paint
-            # event, where destroying the widgets being painted is unsafe.
-            interrupted.append("signal")
-
-        previous_int = signal.signal(signal.SIGINT, interrupt)
-        stack.callback(signal.signal, signal.SIGINT, previous_int)
-        # a kill or a closed terminal: the laser off at once, then the window closes as on Ctrl-C
-        stack.enter_context(signals_call(interrupt))
-
-        def tick() -> None:
-            if interrupted:
-                win.close()
-                app.quit()
-                return
-            # Offscreen mode: the screenshot after --after pairs were shown (or once the recording
-            # ended and the live path has caught up), then quit when the recording has ended.
-            if args.screenshot is None:
-                return
-            st = pipe.stats()
-            caught_up = (not rec.armed and st.state in ("waiting", "stopped")
-                         and st.last_pair >= rec.status()["committed_pairs"] - 1)
-            if shot["path"] is None and (win.displayed >= args.after or (caught_up and not win.drawing_pending)):
-                win.refresh_status()
-                try:
-                    shot["path"] = win.screenshot(args.screenshot)
-                except OSError as exc:  # the monitor stops: the run it recorded is kept
-                    shot["path"], shot["error"] = args.screenshot, exc
-                    rec.disarm()
-                if win.displayed < args.after:
-                    say(f"the recording ended after {win.displayed} pair(s) were shown, fewer than --after "
-                        f"{args.after}")
-            if shot["path"] is not None and not rec.armed:
-                app.quit()
-
-        timer = QtCore.QTimer()
-        timer.timeout.connect(tick)
-        timer.start(50)
-        app.exec()
-        timer.stop()
-        if win.isVisible():
-            win.close()
-        t0 = time.monotonic()
-        end_recording()
-        pipe.stop()
-        numbers = win.status_numbers()
-        say(f"window closed; recording and live path stopped {time.monotonic() - t0:.1f} s later")
-
-    for r in rec.recordings:
+    end = run_monitor(rig, pairs=args.pairs, settings=settings, method=args.method, passes=args.passes, pvr=args.pvr,
+                      device=args.device, out=args.out, overwrite=args.overwrite,
+                      sim_options=sim_lab_options(rig, args), ring_slots=args.ring,
+                      title=f"lfpiv monitor: {args.rig}", screenshot=args.screenshot, after=args.after, say=say)
+    for r in end.recordings:
         where = str(r.path) if r.path is not None else "not recorded (no --out)"
         print(f"recording: {where}: {r.committed_pairs} pair(s) x {len(rig.camera)} camera(s), {r.frames_recorded} "
               f"frames recorded, {r.frames_dropped} dropped, {r.overruns} overruns, state {r.state}")
+    numbers = end.numbers
     lat = numbers["latency_s"]
     print(f"live: {int(numbers['processed'])} pair(s) processed, {int(numbers['skipped'])} skipped, "
           f"{int(numbers['discarded'])} discarded, {int(numbers['displayed'])} shown; last trigger-to-display "
           f"latency {f'{lat:.2f} s' if math.isfinite(lat) else 'n/a'}; {args.method}, {args.iterations} iteration(s) "
-          f"on {device}, {'x'.join(map(str, pipe.grid.shape[::-1]))} voxels at PVR "
+          f"on {end.device}, {'x'.join(map(str, end.voxels))} voxels at PVR "
           f"{','.join(f'{v:g}' for v in args.pvr or rig.volume.pvr)}")
-    st = pipe.stats()
-    if st.error:
-        print(f"lfpiv monitor: warning: the live path reported: {st.error}", file=sys.stderr)
-    if shot["path"] is not None and shot["error"] is None:
-        print(f"screenshot: {shot['path']}")
-    failed = [r for r in rec.recordings if r.state == "failed"]
-    if failed:
-        from acquisition.protocols import DeviceError
-
-        raise DeviceError(failed[-1].message)
-    if shot["error"] is not None:
-        raise UsageError(f"{shot['error']}; give a writable --screenshot path")
-    if interrupted:
-        raise KeyboardInterrupt
+    if end.stats.error:
+        print(f"lfpiv monitor: warning: the live path reported: {end.stats.error}", file=sys.stderr)
+    if end.screenshot is not None:
+        print(f"screenshot: {end.screenshot}")
+    end.raise_for_end()
     return 0

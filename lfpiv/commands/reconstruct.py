@@ -14,11 +14,10 @@ from lfpiv.commands import (
     positive_float,
     positive_int,
     sub_apertures,
-    warn_voxel_shape,
+    warn,
     workers_phrase,
     xyz_triple,
 )
-from lfpiv.errors import UsageError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -67,26 +66,22 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lfcore.reconstruct import ReconSettings
-    from lfcore.runstore import RunStore
     from lfpiv.batch import dask_client
-    from lfpiv.recon import reconstruct_run
+    from lfpiv.jobs.reconstruct import recon_settings, reconstruct_run, voxel_shape_notes
+    from lfpiv.runs import open_run
 
     check_pvr(args.pvr)
-    try:
-        settings = ReconSettings(method=args.method, iterations=args.iterations, relaxation=args.relaxation,
-                                 form=args.form, sub_apertures=args.sub_apertures, background=args.background,
-                                 threshold_sigma=args.threshold_sigma, smooth=args.smooth,
-                                 weight_storage=args.weight_storage)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    store = RunStore.open(args.run, mode="r+")
+    settings = recon_settings(method=args.method, iterations=args.iterations, relaxation=args.relaxation,
+                              form=args.form, sub_apertures=args.sub_apertures, background=args.background,
+                              threshold_sigma=args.threshold_sigma, smooth=args.smooth,
+                              weight_storage=args.weight_storage)
+    store = open_run(args.run, mode="r+")
     rig, calibration = None, None
     if args.calibration is not None:
-        from lfpiv.calibrate import calibrated_rig
+        from lfpiv.jobs.calibrate import calibrated_rig
 
         rig, calibration = calibrated_rig(store.rig, args.calibration, args.cameras)
-    warn_voxel_shape(rig or store.rig, args.cameras, args.pvr)
+    warn(voxel_shape_notes(rig or store.rig, args.cameras, args.pvr))
     with dask_client(args.workers, args.scheduler) as client:
         results = reconstruct_run(store, settings, pvr=args.pvr, margin_mm=args.margin_mm, pairs=args.pairs,
                                   cameras=args.cameras, device=args.device, progress=not args.quiet, rig=rig,

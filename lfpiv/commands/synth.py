@@ -17,7 +17,7 @@ from lfpiv.commands import (
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from lfcore.flows import FLOW_NAMES
+    from lfpiv.jobs.synth import FLOW_NAMES
 
     s = sub.add_parser("synth", help="render a synthetic run of a known flow into a run store",
                        description="Seed particles, move them with a known flow and render every camera's "
@@ -46,8 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from lfpiv.jobs.synth import points_outside, read_points_csv, synthesize
     from lfpiv.rigfile import load_rig
-    from lfpiv.synth import points_outside, read_points_csv, synthesize
 
     rig = load_rig(args.rig)
     warn_optics(rig)

@@ -18,10 +18,12 @@ import pytest
 from acquisition.protocols import DeviceError
 from lfcore.rig import Rig
 from lfcore.runstore import RunStore, RunStoreError
-from lfpiv.acquire import list_devices, open_rig, record
 from lfpiv.cli import main
 from lfpiv.errors import UsageError
+from lfpiv.jobs.acquire import record
+from lfpiv.jobs.devices import list_devices
 from lfpiv.rigfile import load_rig
+from lfpiv.rigging import open_rig
 from sim.lab import SimLab
 from sim.world import SimWorld
 from tests.unit.acquisition.test_genicam import VIKY
@@ -193,7 +195,7 @@ def test_a_second_ctrl_c_while_the_run_is_closed_waits_for_it(fast_rig, tmp_path
 
 def test_a_ctrl_c_before_recording_begins_marks_the_run_aborted(fast_rig, tmp_path: Path,
                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
-    import lfpiv.acquire as acquire
+    import lfpiv.jobs.acquire as acquire
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt

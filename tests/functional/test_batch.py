@@ -151,7 +151,7 @@ def test_a_worker_that_cannot_see_the_run_store_says_so(tmp_path):
     from lfcore.correlate import CorrelationConfig
     from lfcore.runstore import RunStoreError
     from lfpiv.batch import dask_client, map_pairs, new_token
-    from lfpiv.correlation import CorrelateJob, correlate_pair_task
+    from lfpiv.jobs.correlate import CorrelateJob, correlate_pair_task
 
     job = CorrelateJob(path=str(tmp_path / "elsewhere.zarr"), shape=(16, 32, 32),
                        config=CorrelationConfig(windows=((16, 16, 8),)), device="cpu", token=new_token())

@@ -13,8 +13,8 @@ import pytest
 from calibration.store import CalibrationStore
 from lfcore.rig import Rig
 from lfcore.white import WhiteImageConfig, micro_image_scale
-from lfpiv.calibrate import calibrate_mla
 from lfpiv.cli import main
+from lfpiv.jobs.calibrate import calibrate_mla
 from lfpiv.rigfile import load_rig
 from sim.lab import SimLab
 from tests.functional.test_acquire import fast_rig_text
@@ -97,7 +97,7 @@ def test_report_of_a_missing_store_is_one_line(tmp_path: Path, capsys: pytest.Ca
 
 
 def test_volume_run_resumes_without_repeating_planes(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    from lfpiv.calibrate import calibrate_volume
+    from lfpiv.jobs.calibrate import calibrate_volume
 
     rig = Rig.from_dict(tomllib.loads(fast_rig_text(cameras=1)))
     out = tmp_path / "vol.zarr"
@@ -142,7 +142,7 @@ def _write(tmp_path: Path) -> Path:
 
 def test_a_stage_that_misses_a_plane_is_one_line_naming_it(tmp_path: Path) -> None:
     from acquisition.protocols import DeviceError
-    from lfpiv.calibrate import calibrate_volume
+    from lfpiv.jobs.calibrate import calibrate_volume
 
     rig = Rig.from_dict(tomllib.loads(fast_rig_text(cameras=1)))
     with SimLab(rig, pool_pairs=1, rays_per_particle=16, reply_latency_s=0.0005) as lab:

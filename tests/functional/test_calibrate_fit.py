@@ -20,8 +20,8 @@ from scipy.spatial.transform import Rotation
 
 from calibration.store import CalibrationStore
 from lfcore.rig import Rig
-from lfpiv.calibrate import calibrate_fit, calibrate_mla, calibrate_volume, default_board
 from lfpiv.cli import main
+from lfpiv.jobs.calibrate import calibrate_fit, calibrate_mla, calibrate_volume, default_board
 from sim.lab import SimLab
 from tests.functional.test_acquire import fast_rig_text
 
@@ -115,7 +115,7 @@ def test_a_plane_without_dots_is_one_line_naming_camera_and_plane(calibrated: tu
 @pytest.fixture(scope="module")
 def recorded_run(calibrated: tuple[Path, Rig, Rig]) -> Path:
     """One pair recorded with the NOMINAL rig file in the lab that renders the TRUE cameras."""
-    from lfpiv.acquire import record
+    from lfpiv.jobs.acquire import record
     from sim.world import SimWorld
 
     out, nominal, true = calibrated
@@ -130,7 +130,8 @@ def test_reconstruction_with_the_calibrated_models(calibrated: tuple[Path, Rig, 
     """Q with the calibrated models is close to Q with the true ones, far above the nominal rig's."""
     from lfcore.reconstruct import ReconSettings
     from lfcore.runstore import RunStore
-    from lfpiv.recon import evaluate_run, reconstruct_run
+    from lfpiv.jobs.evaluate import evaluate_run
+    from lfpiv.jobs.reconstruct import reconstruct_run
 
     out, _, true = calibrated
     if CalibrationStore.open(out).model("cam1") is None:
@@ -200,9 +201,10 @@ def test_issue_acceptance_on_the_demo_rig(tmp_path: Path) -> None:
     """
     from lfcore.reconstruct import ReconSettings
     from lfcore.runstore import RunStore
-    from lfpiv.acquire import record
-    from lfpiv.calibrate import calibrated_rig
-    from lfpiv.recon import evaluate_run, reconstruct_run
+    from lfpiv.jobs.acquire import record
+    from lfpiv.jobs.calibrate import calibrated_rig
+    from lfpiv.jobs.evaluate import evaluate_run
+    from lfpiv.jobs.reconstruct import reconstruct_run
     from lfpiv.rigfile import load_rig
     from sim.world import SimWorld
     from tests.conftest import EXAMPLES

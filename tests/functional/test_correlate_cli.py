@@ -14,7 +14,7 @@ from lfcore.flows import Uniform
 from lfcore.runstore import RunStore
 from lfcore.volume import VolumeGrid
 from lfpiv.cli import main
-from lfpiv.commands.correlate import evaluate_vectors
+from lfpiv.jobs.evaluate import evaluate_vectors
 from tests.blobs import blob_pair
 from tests.conftest import run_cli as _run
 
@@ -249,7 +249,7 @@ def test_console_script_help_and_exit_code(tmp_path, tiny_rig):
 
 def test_an_interrupted_replacement_leaves_the_old_vectors_whole_and_goes_on(tmp_path, tiny_rig, capsys,
                                                                             monkeypatch):
-    import lfpiv.correlation as correlation
+    import lfpiv.jobs.correlate as correlation
 
     path = tmp_path / "r.zarr"
     _make_run(path, tiny_rig)

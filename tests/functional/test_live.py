@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lfcore.runstore import RunStore
-from lfpiv.acquire import record
+from lfpiv.jobs.acquire import record
 from lfpiv.rigfile import load_rig
 from realtime.pipeline import LivePipeline, LiveSettings
 from tests.functional.test_acquire import _lab, fast_rig_text

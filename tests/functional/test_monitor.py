@@ -18,7 +18,7 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 from lfcore.runstore import RunStore  # noqa: E402
 from lfpiv import cli  # noqa: E402
-from lfpiv.live import LiveRecorder  # noqa: E402
+from lfpiv.jobs.monitor import LiveRecorder  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
 from realtime.pipeline import LivePipeline, LiveSettings  # noqa: E402
 from tests.functional.test_acquire import (  # noqa: E402

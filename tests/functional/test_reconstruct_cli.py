@@ -207,7 +207,7 @@ def test_an_interrupted_replacement_leaves_the_old_volumes_whole_and_goes_on(cap
     """Ctrl-C while volumes of other settings are made: the old volumes/ (and the vectors
     correlated from them) stay as they were; the same command with --skip-done finishes the new
     ones, which then replace them."""
-    import lfpiv.recon as recon
+    import lfpiv.jobs.reconstruct as recon
 
     run = tmp_path / "run.zarr"
     assert main(["synth", "--rig", TINY, "--out", str(run), "--pairs", "2", "--ppm", "0.2", "--quiet"]) == 0
@@ -256,7 +256,7 @@ def test_an_interrupted_replacement_leaves_the_old_volumes_whole_and_goes_on(cap
 
 
 def test_other_settings_after_an_interrupted_replacement_start_it_again(capsys, tmp_path, monkeypatch):
-    import lfpiv.recon as recon
+    import lfpiv.jobs.reconstruct as recon
 
     run = tmp_path / "run.zarr"
     assert main(["synth", "--rig", TINY, "--out", str(run), "--pairs", "2", "--ppm", "0.2", "--quiet"]) == 0

@@ -1,8 +1,7 @@
-"""Reconstructing a run store's pairs into ``volumes/``, and evaluating them against the truth."""
+"""Reconstructing a run store's pairs into ``volumes/`` (``lfpiv reconstruct``), in this process or on Dask workers."""
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -11,40 +10,40 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from lfcore import metrics
 from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
 from lfcore.projector import Projector
-from lfcore.reconstruct import WEIGHTS, ReconResult, ReconSettings, reconstruct
-from lfcore.rig import Rig
-from lfcore.runstore import RunStore, RunStoreError
+from lfcore.reconstruct import MAX_SUB_APERTURES, WEIGHTS, ReconResult, ReconSettings, reconstruct
+from lfcore.rig import Rig, voxel_shape_warnings
+from lfcore.runstore import RunStore
 from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
-from lfpiv import replacement
 from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
+from lfpiv.pair_runner import run_pairs, select_pairs
 
-__all__ = ["FrameEvaluation", "ReconJob", "evaluate_run", "reconstruct_pair_task", "reconstruct_run",
-           "select_pairs", "summary_rows"]
+__all__ = ["MAX_SUB_APERTURES", "ReconJob", "ReconResult", "ReconSettings", "recon_settings", "reconstruct_pair_task",
+           "reconstruct_run", "voxel_shape_notes"]
 
 #: Bytes per voxel of the box the elimination pass and the dense result need at once.
 BYTES_PER_BOX_VOXEL = 16
 
 
-def select_pairs(pairs: slice | None, n_pairs: int) -> list[int]:
-    """The pair indices ``pairs`` (the ``--pairs`` range) selects of a run of ``n_pairs``.
+def recon_settings(**options: Any) -> ReconSettings:
+    """:class:`lfcore.reconstruct.ReconSettings` of the given options (method, iterations,
+    relaxation, form, ...), or a one-line :class:`UsageError` naming what is wrong."""
+    try:
+        return ReconSettings(**options)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
 
-    Raises
-    ------
-    UsageError
-        A range that selects no pair.
-    """
-    if pairs is None:
-        return list(range(n_pairs))
-    chosen = list(range(n_pairs))[pairs]
-    if not chosen:
-        raise UsageError(f"--pairs selects no pair of this run (it has pairs 0 to {n_pairs - 1}); give START:STOP "
-                         "with START below STOP, e.g. 0:10")
-    return chosen
+
+def voxel_shape_notes(rig: Rig, cameras: Sequence[str] | None, pvr: Sequence[float] | None) -> list[str]:
+    """Warnings for crossed cameras reconstructed on voxels far deeper than wide.
+
+    ``cameras`` are the names reconstructed (None: all of the rig's), ``pvr`` the ``--pvr``
+    given (None: the rig's)."""
+    cams = [c for c in rig.camera if cameras is None or c.name in cameras]
+    return voxel_shape_warnings(cams, rig.volume.pvr if pvr is None else pvr)
 
 
 @dataclass(frozen=True)
@@ -189,41 +188,24 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k)]
         return (["voxel grid"] if "data" in g and store.grid_of(g) != grid else []) + changed
 
-    replacement.begin(store, "volumes", chosen, matches=lambda g: _made_with(store, g, grid, meta),
-                      differences=differences,
-                      create=lambda: store.create_volumes(grid, method=settings.method, settings=meta))
-    if skip_done:
-        done = set(store.writing("volumes").attrs["reconstructed_pairs"])
-        chosen = [p for p in chosen if p not in done]
     results: list[ReconResult] = []
-    if not chosen:
-        replacement.end(store, "volumes")
-        return results
 
     def written(p: int, res: list[ReconResult]) -> None:
         store.record_volumes([(p, 0), (p, 1)])
         results.extend(res)
 
-    try:
-        with replacement.noting_interrupt(store, "volumes"):
-            if client is not None:
-                from lfpiv.batch import map_pairs, new_token
+    def remote(into: str) -> tuple[Any, ReconJob]:
+        from lfpiv.batch import new_token
 
-                job = ReconJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names), grid=grid,
-                               settings=settings, device=device, token=new_token(),
-                               into=store.writing("volumes").basename)
-                map_pairs(client, reconstruct_pair_task, job, chosen, on_done=written, desc="reconstructing",
-                          progress=progress)
-            else:
-                _reconstruct_here(projector, cache, store, names, chosen, settings, results, progress)
-    except UsageError as exc:
-        aside = replacement.kept_aside(store, "volumes")
-        if aside:
-            raise UsageError(f"{exc}{aside}") from None
-        if results:
-            raise UsageError(f"{exc}; the {len(results)} volume(s) written before are kept") from None
-        raise
-    replacement.end(store, "volumes")
+        return reconstruct_pair_task, ReconJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names),
+                                               grid=grid, settings=settings, device=device, token=new_token(),
+                                               into=into)
+
+    run_pairs(store, "volumes", chosen, matches=lambda g: _made_with(store, g, grid, meta), differences=differences,
+              create=lambda: store.create_volumes(grid, method=settings.method, settings=meta), skip_done=skip_done,
+              here=lambda todo: _reconstruct_here(projector, cache, store, names, todo, settings, results, progress),
+              remote=remote, client=client, on_done=written, desc="reconstructing", progress=progress,
+              kept=lambda: f"the {len(results)} volume(s) written before are kept" if results else "")
     return results
 
 
@@ -248,83 +230,3 @@ def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, An
     """True when ``group`` (volumes or their pending replacement, None if absent) holds volumes
     on ``grid`` made with the settings ``meta``."""
     return group is not None and "data" in group and store.grid_of(group) == grid and group.attrs["settings"] == meta
-
-
-@dataclass(frozen=True)
-class FrameEvaluation:
-    """Quality of one reconstructed volume against the truth."""
-
-    pair: int
-    frame: int
-    q: float
-    match: metrics.MatchResult
-    diameters_vox: np.ndarray  # median (x, y, z)
-    outside: float
-    depth_profile: np.ndarray
-    truth_profile: np.ndarray
-
-
-def evaluate_run(store: RunStore, pairs: slice | None = None, threshold: float = 0.1,
-                 match_voxels: float = 2.0) -> list[FrameEvaluation]:
-    """Q, detection and matching, diameters and depth profile of every reconstructed frame.
-
-    Raises
-    ------
-    UsageError
-        A recorded run (no truth) or a run without volumes.
-    """
-    truth = store.truth()
-    if truth is None:
-        raise UsageError(f"{store.path} is a recorded run with no truth; evaluate needs a synthetic run")
-    try:
-        vols = store.volumes()
-    except RunStoreError as exc:
-        raise UsageError(str(exc)) from None
-    done = store.reconstructed_pairs()
-    chosen = [p for p in select_pairs(pairs, store.n_pairs) if p in done]
-    if not chosen:
-        raise UsageError(f"none of the selected pairs is reconstructed (reconstructed: {done or 'none'}); "
-                         f"run 'lfpiv reconstruct {store.path}' first")
-    grid = store.volume_grid()
-    rig = store.rig
-    tol = match_voxels * np.asarray(grid.voxel_mm)
-    out = []
-    for p in chosen:
-        for f in (0, 1):
-            vol = vols[p, f]
-            pts = truth["particles"][p, f]
-            bright = truth["brightness"][p, f]
-            e0 = metrics.truth_volume(grid, pts, bright)
-            pos, peaks, idx = metrics.detect_particles(vol, grid, threshold)
-            m = metrics.match_particles(pos, pts, tol)
-            diam = metrics.particle_diameters(vol, idx)
-            out.append(FrameEvaluation(
-                pair=p, frame=f, q=metrics.q_recon(vol, e0), match=m,
-                diameters_vox=np.median(diam, axis=0) if len(diam) else np.full(3, np.nan),
-                outside=metrics.outside_fraction(vol, grid, rig.volume.centre_mm, rig.volume.size_mm),
-                depth_profile=metrics.depth_profile(vol), truth_profile=metrics.depth_profile(e0)))
-    return out
-
-
-def summary_rows(evals: list[FrameEvaluation]) -> list[dict[str, Any]]:
-    """Printable rows, one per frame plus the mean."""
-    rows = []
-    for e in evals:
-        rms = e.match.rms_error_mm * 1e3
-        rows.append({"pair": str(e.pair), "frame": "AB"[e.frame], "Q": f"{e.q:.3f}",
-                     "recall": f"{e.match.recall:.2f}", "ghosts": f"{e.match.ghosts}/{e.match.n_detected}",
-                     "rms err x,y,z um": ", ".join(f"{v:.1f}" for v in rms),
-                     "diam x,y,z vox": ", ".join(f"{v:.1f}" for v in e.diameters_vox),
-                     "outside": f"{100 * e.outside:.2f}%"})
-    if len(evals) > 1:
-        with warnings.catch_warnings():  # no frame matched a particle: nan, printed as such
-            warnings.simplefilter("ignore", RuntimeWarning)
-            rms = np.nanmean([e.match.rms_error_mm for e in evals], axis=0) * 1e3
-            diam = np.nanmean([e.diameters_vox for e in evals], axis=0)
-        rows.append({"pair": "mean", "frame": "", "Q": f"{np.mean([e.q for e in evals]):.3f}",
-                     "recall": f"{np.mean([e.match.recall for e in evals]):.2f}",
-                     "ghosts": f"{sum(e.match.ghosts for e in evals)}/{sum(e.match.n_detected for e in evals)}",
-                     "rms err x,y,z um": ", ".join(f"{v:.1f}" for v in rms),
-                     "diam x,y,z vox": ", ".join(f"{v:.1f}" for v in diam),
-                     "outside": f"{100 * np.mean([e.outside for e in evals]):.2f}%"})
-    return rows

@@ -1,4 +1,4 @@
-"""Synthetic runs: seed particles, move them with a known flow, render every camera's frames.
+"""Synthetic runs (``lfpiv synth``): seed particles, move them with a known flow, render every camera's frames.
 
 The result is a run store with the same layout a recording has, plus ``truth/``.
 """
@@ -14,15 +14,16 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from lfcore.flows import Flow, advect, default_displacement_px, flow_for_displacement
-from lfcore.particles import particle_count, seed_particles, sheet_weights
+from lfcore.flows import FLOW_NAMES, Flow, advect, default_displacement_px, flow_for_displacement
+from lfcore.particles import MAX_PPM, particle_count, seed_particles, sheet_weights
 from lfcore.render import LightFieldRenderer, derive_seed
-from lfcore.rig import Rig
+from lfcore.rig import MAX_RAYS_PER_PARTICLE, Rig
 from lfcore.runstore import RunStore
 from lfpiv import __version__
 from lfpiv.errors import UsageError
 
-__all__ = ["SynthResult", "default_displacement_px", "points_outside", "read_points_csv", "synthesize"]
+__all__ = ["FLOW_NAMES", "MAX_PPM", "MAX_RAYS_PER_PARTICLE", "SynthResult", "default_displacement_px", "points_outside",
+           "read_points_csv", "synthesize"]
 
 
 @dataclass(frozen=True)

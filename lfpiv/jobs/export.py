@@ -1,4 +1,4 @@
-"""Export a run's vector fields for ParaView, Tecplot and xarray users.
+"""Export a run's vector fields for ParaView, Tecplot and xarray users (``lfpiv export``).
 
 netCDF
     One classic netCDF file (64-bit offsets, written with scipy's ``netcdf_file``) with the
@@ -14,14 +14,71 @@ Pairs that were not correlated are left out.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from lfcore.runstore import RunStore, RunStoreError
 from lfcore.vectors import divergence, q_criterion, vorticity
+from lfpiv.errors import UsageError
 
-__all__ = ["Fields", "fields_of", "write_netcdf", "write_vti_series"]
+__all__ = ["FORMATS", "Fields", "export_run", "fields_of", "write_netcdf", "write_vti_series"]
+
+#: Export formats (``lfpiv export --format``).
+FORMATS = ("netcdf", "vtk")
+
+
+def export_run(store: RunStore, fmt: str, out: str | Path, *, overwrite: bool = False) -> list[Path]:
+    """Write the correlated pairs of the run's ``vectors/`` into the folder ``out`` (created if needed).
+
+    ``fmt`` is one of :data:`FORMATS`. Files of an earlier export there are replaced only with
+    ``overwrite``, and never written through a symbolic link.
+
+    Returns
+    -------
+    list of pathlib.Path
+        The files written.
+
+    Raises
+    ------
+    RunStoreError
+        A run without vectors, or with none correlated.
+    UsageError
+        An ``out`` that is a file or a dangling link, a target that is a link, or an earlier
+        export without ``overwrite``.
+    """
+    if fmt not in FORMATS:
+        raise UsageError(f"--format must be one of {', '.join(FORMATS)}, got '{fmt}'")
+    vectors = store.vectors()
+    pairs = store.correlated_pairs()
+    if not pairs:
+        raise RunStoreError(f"{store.path} has vectors/ but no correlated pair; run 'lfpiv correlate {store.path}'")
+    out = Path(out)
+    if out.is_symlink() and not out.exists():
+        raise UsageError(f"--out {out} is a symbolic link to nothing ({os.readlink(out)}); give a directory")
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} is a file; give a directory")
+    # what this export writes, and what an earlier one left (a VTK series is replaced whole)
+    names = (["vectors.nc"] if fmt == "netcdf" else
+             ["vectors.pvd", *(f"vectors_pair{p:04d}.vti" for p in pairs),
+              *(f.name for f in out.glob("vectors_pair[0-9][0-9][0-9][0-9].vti"))])
+    targets = sorted({out / n for n in names})
+    links = [t for t in targets if t.is_symlink()]
+    if links:
+        raise UsageError(f"{links[0]} is a symbolic link, and export does not write through links; remove it or "
+                         "choose another --out")
+    earlier = [t for t in targets if t.exists()]
+    if earlier and not overwrite:
+        raise UsageError(f"--out {out} already holds {earlier[0].name}"
+                         f"{f' and {len(earlier) - 1} more file(s)' if len(earlier) > 1 else ''} of an earlier "
+                         "export; pass --overwrite to replace them, or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    fields = fields_of(vectors, pairs, store.timing.get("rate_hz"))
+    if fmt == "netcdf":
+        return [write_netcdf(out / "vectors.nc", fields, source=str(store.path))]
+    return write_vti_series(out, fields)
 
 
 @dataclass

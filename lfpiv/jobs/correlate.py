@@ -1,4 +1,5 @@
-"""Correlating a run store's reconstructed pairs into ``vectors/``, in this process or on Dask workers."""
+"""Correlating a run store's reconstructed pairs into ``vectors/`` (``lfpiv correlate``), in this process
+or on Dask workers."""
 
 from __future__ import annotations
 
@@ -12,14 +13,15 @@ import numpy as np
 from tqdm import tqdm
 
 from lfcore.correlate import CorrelationConfig, CorrelationError, Correlator, WindowGrid, pass_grids
-from lfcore.runstore import RunStore
-from lfcore.vectors import centres_mm, displacement_to_velocity, flags_from_masks
+from lfcore.runstore import RunStore, RunStoreError
+from lfcore.vectors import MedianTest, centres_mm, displacement_to_velocity, flags_from_masks
 from lfcore.volume import VolumeGrid
-from lfpiv import replacement
 from lfpiv.errors import UsageError
 from lfpiv.overlap import prefetched
+from lfpiv.pair_runner import run_pairs, select_pairs
 
-__all__ = ["CorrelateJob", "CorrelationRun", "PairVectors", "correlate_pair_task", "correlate_run"]
+__all__ = ["CorrelateJob", "CorrelationRun", "PairVectors", "correlate_pair_task", "correlate_run",
+           "correlation_config", "pairs_to_correlate"]
 
 # Settings that say where the vectors were computed, not what they are: a run correlated on
 # another device (or FFT engine, which follows the device) keeps its earlier pairs.
@@ -136,6 +138,55 @@ def correlate_pair_task(job: CorrelateJob, pair: int) -> PairVectors:
     return _correlate_pair(correlator, target, pair, _read_pair(volumes, pair))
 
 
+def correlation_config(*, windows: tuple[tuple[int, int, int], ...], overlap: tuple[float, float, float],
+                       deform_iterations: int = 2, zero_pad: bool = False, median_filter: bool = False,
+                       epsilon: float = 0.1, threshold: float = 2.0, interpolation: str = "cubic",
+                       search_radius: tuple[int, int, int] | None = None,
+                       first_overlap: tuple[float, float, float] | None = None) -> CorrelationConfig:
+    """The correlation of ``lfpiv correlate``'s options (see :class:`lfcore.correlate.CorrelationConfig`).
+
+    ``windows`` are (x, y, z) voxels per pass, largest first; ``epsilon`` and ``threshold`` are
+    the normalized median test's.
+
+    Raises
+    ------
+    UsageError
+        Settings that contradict each other, in one line.
+    """
+    try:
+        return CorrelationConfig(windows=windows, overlap=overlap, deform_iterations=deform_iterations,
+                                 zero_pad=zero_pad, median_filter=median_filter,
+                                 median_test=MedianTest(epsilon=epsilon, threshold=threshold),
+                                 interpolation=interpolation, search_radius=search_radius,
+                                 first_overlap=first_overlap)
+    except CorrelationError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def pairs_to_correlate(store: RunStore, pairs: slice | None = None) -> list[int]:
+    """The reconstructed pairs that ``pairs`` (the ``--pairs`` range; None: all) selects.
+
+    Raises
+    ------
+    RunStoreError
+        A run without volumes, or with none reconstructed.
+    UsageError
+        A selected pair that is not reconstructed.
+    """
+    store.volumes()  # a run without volumes says so
+    done = store.reconstructed_pairs()
+    if not done:
+        raise RunStoreError(f"{store.path} has no reconstructed pairs yet; run 'lfpiv reconstruct {store.path}' first")
+    if pairs is None:
+        return done
+    wanted = select_pairs(pairs, store.n_pairs)
+    missing = [p for p in wanted if p not in done]
+    if missing:
+        raise UsageError(f"--pairs: pair(s) {', '.join(map(str, missing[:5]))}{' ...' if len(missing) > 5 else ''} "
+                         f"are not reconstructed (reconstructed: {', '.join(map(str, done[:10]))})")
+    return wanted
+
+
 def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, device: str | None = None,
                   progress: bool = True, skip_done: bool = False, client: Any = None) -> CorrelationRun:
     """Correlate the volumes of ``pairs`` into the run's ``vectors/``.
@@ -164,6 +215,7 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
     place = (correlator.device, correlator.fft) if correlator is not None else (device or "auto", cfg.fft)
     settings = _settings(cfg, *place)
     windows, overlap = [list(w) for w in cfg.windows], list(cfg.overlap)
+
     def same(g: Any) -> bool:
         return g is not None and _same_vectors(g, store.volumes_id, windows, overlap, dt_s, (x_mm, y_mm, z_mm),
                                                settings)
@@ -175,12 +227,6 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
         s = old.get("settings", {})
         return changed + [k for k in sorted(set(s) | set(settings)) if k not in _PLACE and s.get(k) != settings.get(k)]
 
-    replacement.begin(store, "vectors", pairs, matches=same, differences=differences,
-                      create=lambda: store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=windows,
-                                                         overlap=overlap, settings=settings))
-    if skip_done:
-        done = set(store.writing("vectors").attrs["correlated_pairs"])
-        pairs = [p for p in pairs if p not in done]
     found: list[PairVectors] = []
 
     def written(p: int, res: PairVectors) -> None:
@@ -193,23 +239,25 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
         store.record_vectors([p])
         found.append(res)
 
-    t0 = time.perf_counter()
-    with replacement.noting_interrupt(store, "vectors"):
-        if client is not None and pairs:
-            from lfpiv.batch import map_pairs, new_token
+    def here(todo: list[int]) -> None:
+        with tqdm(total=len(todo) * len(cfg.passes), unit="pass", disable=not progress, desc="correlating") as bar:
+            # the next pair's volumes are read while this one is correlated
+            target = _Target.of(store)
+            for p, vols in prefetched(todo, partial(_read_pair, store.volumes())):
+                written(p, _correlate_pair(correlator, target, p, vols, progress=bar.update))
 
-            job = CorrelateJob(path=str(Path(store.path).resolve()), shape=grid.shape, config=cfg, device=device,
-                               token=new_token(), into=store.writing("vectors").basename)
-            map_pairs(client, correlate_pair_task, job, pairs, on_done=written, desc="correlating",
-                      progress=progress)
-        elif pairs:
-            with tqdm(total=len(pairs) * len(cfg.passes), unit="pass", disable=not progress,
-                      desc="correlating") as bar:
-                # the next pair's volumes are read while this one is correlated
-                target = _Target.of(store)
-                for p, vols in prefetched(pairs, partial(_read_pair, store.volumes())):
-                    written(p, _correlate_pair(correlator, target, p, vols, progress=bar.update))
-    replacement.end(store, "vectors")
+    def remote(into: str) -> tuple[Any, CorrelateJob]:
+        from lfpiv.batch import new_token
+
+        return correlate_pair_task, CorrelateJob(path=str(Path(store.path).resolve()), shape=grid.shape, config=cfg,
+                                                 device=device, token=new_token(), into=into)
+
+    t0 = time.perf_counter()
+    run_pairs(store, "vectors", pairs, matches=same, differences=differences,
+              create=lambda: store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=windows, overlap=overlap,
+                                                 settings=settings),
+              skip_done=skip_done, here=here, remote=remote, client=client, on_done=written, desc="correlating",
+              progress=progress)
     dev = found[0].device if found else place[0]
     return CorrelationRun(pairs=[r.pair for r in found], grid=g, outliers=sum(r.outliers for r in found),
                           seconds=time.perf_counter() - t0, device=dev)

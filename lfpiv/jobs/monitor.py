@@ -1,7 +1,10 @@
-"""Recording in the background for the live monitor (``lfpiv monitor``).
+"""The live monitor (``lfpiv monitor``): record in the background and watch the newest pair.
+
+:func:`run_monitor` builds the live pipeline (:mod:`realtime.pipeline`) and the recorder, and
+hands both to the monitor window's event loop (:func:`realtime.monitor.run_monitor_window`).
 
 :class:`LiveRecorder` implements the monitor's :class:`realtime.monitor.Controls`: each
-:meth:`~LiveRecorder.arm` records up to ``pairs`` pairs through :func:`lfpiv.acquire.record`, the
+:meth:`~LiveRecorder.arm` records up to ``pairs`` pairs through :func:`lfpiv.jobs.acquire.record`, the
 same path as ``lfpiv acquire`` (plan, program, configure, create the store, start the session,
 arm; disarm first whatever happens), in a thread of its own, and attaches the live pipeline to
 the session's ring before the laser is armed. :meth:`~LiveRecorder.disarm` ends the recording
@@ -12,22 +15,32 @@ store that is deleted afterwards: the live view still sees every pair.
 
 from __future__ import annotations
 
+import os
 import shutil
+import sys
 import tempfile
 import threading
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from acquisition.protocols import DeviceError
 from acquisition.session import SessionStats
+from lfcore.correlate import CorrelationConfig, CorrelationError
+from lfcore.device import resolve_device
 from lfcore.rig import Rig
 from lfcore.runstore import RunStore
-from lfpiv.acquire import record
-from realtime.pipeline import LivePipeline
+from lfcore.volume import VolumeGrid
+from lfpiv.errors import UsageError
+from lfpiv.jobs.acquire import record
+from realtime.pipeline import LIVE_METHODS, LivePipeline, LiveSettings, LiveStats, default_windows, monitoring_recon
 
-__all__ = ["LiveRecorder", "Recording"]
+__all__ = ["LIVE_METHODS", "LiveRecorder", "MonitorOutcome", "Recording", "check_display", "live_settings",
+           "require_gui", "run_monitor"]
 
 
 @dataclass(frozen=True)
@@ -73,7 +86,7 @@ class LiveRecorder:
     overwrite
         Replace an existing run store at ``out``.
     sim_options
-        For ``hardware = "sim"``: as :func:`lfpiv.acquire.record`'s (``{"lab": lab}`` to reuse a
+        For ``hardware = "sim"``: as :func:`lfpiv.jobs.acquire.record`'s (``{"lab": lab}`` to reuse a
         started simulated lab for every arming).
     ring_slots
         Ring depth in pairs.
@@ -200,3 +213,158 @@ class LiveRecorder:
         drops = store.drops()
         overruns = sum(1 for d in drops if str(d["reason"]).startswith("ring overrun"))
         return Recording(path, state, n, recorded, len(drops), overruns, message)
+
+
+def check_display(screenshot: bool) -> None:
+    """Draw offscreen when only a screenshot is wanted and there is no display; without one and
+    without a screenshot, a one-line :class:`UsageError`."""
+    if os.environ.get("QT_QPA_PLATFORM") or not sys.platform.startswith("linux"):
+        return
+    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return
+    if screenshot:
+        os.environ["QT_QPA_PLATFORM"] = "offscreen"  # nothing to show on: draw offscreen for the PNG
+        return
+    raise UsageError("no display to show the monitor on (DISPLAY is not set); run it on a desktop, or give "
+                     "--screenshot out.png to draw offscreen")
+
+
+def require_gui() -> None:
+    """A one-line :class:`UsageError` naming the install command when pyqtgraph or its Qt binding
+    is missing (checked before anything is built)."""
+    from realtime.monitor import GuiUnavailable, require_qt
+
+    try:
+        require_qt()
+    except GuiUnavailable as exc:
+        raise UsageError(str(exc)) from None
+
+
+def live_settings(*, iterations: int, relaxation: float, slice_axis: str) -> LiveSettings:
+    """The live pipeline's run-time settings, or a one-line :class:`UsageError`."""
+    try:
+        return LiveSettings(iterations=iterations, relaxation=relaxation, slice_axis=slice_axis)
+    except ValueError as exc:
+        raise UsageError(f"--iterations/--relaxation: {exc}") from None
+
+
+@dataclass(frozen=True)
+class MonitorOutcome:
+    """How ``lfpiv monitor`` ended.
+
+    Attributes
+    ----------
+    recordings
+        One per arming.
+    numbers
+        The status line's numbers when the window closed.
+    stats
+        The live pipeline's counters at the end.
+    device
+        The compute device of the live path.
+    voxels
+        (x, y, z) voxels of the live volume.
+    screenshot, screenshot_error
+        The screenshot written, or why it could not be.
+    interrupted
+        Ctrl-C or a signal closed the window.
+    """
+
+    recordings: list[Recording]
+    numbers: dict[str, float]
+    stats: LiveStats
+    device: str
+    voxels: tuple[int, int, int]
+    screenshot: Path | None
+    screenshot_error: OSError | None
+    interrupted: bool
+
+    def raise_for_end(self) -> None:
+        """Raise what ended the session badly: a device fault of a recording (the laser was
+        disarmed), a screenshot that could not be written, or the interrupt."""
+        failed = [r for r in self.recordings if r.state == "failed"]
+        if failed:
+            raise DeviceError(failed[-1].message)
+        if self.screenshot_error is not None:
+            raise UsageError(f"{self.screenshot_error}; give a writable --screenshot path")
+        if self.interrupted:
+            raise KeyboardInterrupt
+
+
+def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "drt-mart", passes: int = 2,
+                pvr: Sequence[float] | None = None, device: str | None = None, out: str | Path | None = None,
+                overwrite: bool = False, sim_options: dict[str, Any] | None = None, ring_slots: int = 32,
+                title: str = "lfpiv monitor", screenshot: str | Path | None = None, after: int = 3,
+                say: Callable[[str], None] = lambda text: None) -> MonitorOutcome:
+    """Arm the rig, record every pair (to ``out``, or to a scratch store) and show the newest live.
+
+    Parameters
+    ----------
+    rig
+        The rig, real or simulated.
+    pairs
+        Pairs to record per arming.
+    settings
+        The live path's run-time settings (iterations, relaxation, slice).
+    method
+        ``"drt-mart"`` or ``"mlos-mart"``.
+    passes
+        Correlation passes (1 or 2).
+    pvr
+        The live volume's pixel-voxel ratio (None: the rig's).
+    device
+        Compute device of the live path (None: a GPU if there is one).
+    out, overwrite
+        The run store the first arming records to (None: only shown), and whether it may replace
+        an earlier one.
+    sim_options
+        For ``hardware = "sim"``: the simulated lab's options (:func:`lfpiv.rigging.sim_lab_options`).
+    ring_slots
+        The ring buffer's depth in pairs.
+    title, screenshot, after
+        The window's title; a PNG to save after ``after`` pairs were shown (works offscreen).
+    say
+        Called with progress messages.
+
+    Raises
+    ------
+    UsageError
+        Windows that do not fit the live volume, or no Qt.
+    """
+    from realtime.monitor import GuiUnavailable, run_monitor_window
+
+    device = resolve_device(device)
+    with ExitStack() as stack:
+        if sim_options is not None:
+            from sim.lab import SimLab  # the application is the one layer that wires the simulated lab
+
+            say(f"simulated lab: rendering {sim_options['pool_pairs']} pair(s) of '{sim_options['world'].flow}' "
+                "per camera ...")
+            sim_options = {"lab": stack.enter_context(SimLab(rig, **sim_options))}
+        grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(pvr))
+        try:
+            corr = CorrelationConfig(windows=default_windows(grid.shape, passes), overlap=0.5, deform_iterations=0)
+        except CorrelationError as exc:
+            raise UsageError(str(exc)) from None
+        pipe = LivePipeline(rig, settings=settings, recon=monitoring_recon(method=method), correlation=corr, pvr=pvr,
+                            device=device)
+        say(f"building the reconstruction ({'x'.join(map(str, pipe.grid.shape[::-1]))} voxels) and correlation "
+            f"on {device} ...")
+        pipe.build()
+        stack.callback(pipe.stop)
+        rec = LiveRecorder(rig, pipe, pairs=pairs, out=out, overwrite=overwrite, sim_options=sim_options,
+                           ring_slots=ring_slots)
+
+        def end_recording() -> None:
+            rec.disarm()
+            rec.wait(120.0)
+
+        stack.callback(end_recording)  # the laser is disarmed whatever happens
+        try:
+            shown = run_monitor_window(pipe, rec, title=title, screenshot=screenshot, after=after, say=say)
+        except GuiUnavailable as exc:
+            raise UsageError(str(exc)) from None
+        say(f"window closed; recording and live path stopped {shown.stop_s:.1f} s later")
+    return MonitorOutcome(recordings=list(rec.recordings), numbers=shown.numbers, stats=pipe.stats(), device=device,
+                          voxels=tuple(pipe.grid.shape[::-1]), screenshot=shown.screenshot,
+                          screenshot_error=shown.screenshot_error, interrupted=shown.interrupted)

@@ -13,7 +13,6 @@ to every camera while the white images are taken, and the dot target
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,21 +21,21 @@ from typing import Any
 import numpy as np
 
 from acquisition.timing import TimingError
-from calibration.dots import DotError, Dots, detect_dots, lenslet_cells, match_dots, view_geometry
-from calibration.fit import CameraFit, FitError, PlaneDots, fit_camera
+from calibration.board import default_board
+from calibration.fit import CameraFit, FitError
 from calibration.mla_grid import GridError, MlaGrid, check_white, detect_grid
+from calibration.planes import fit_from_planes
 from calibration.runner import PlaneRun, camera_only_plan, capture_frames, plane_targets, run_planes
 from calibration.store import CalibrationStore, CalibrationStoreError
-from lfcore.chief_ray import project
-from lfcore.rig import Camera, Rig
+from lfcore.rig import Camera, Rig, rotation_angle_deg
 from lfcore.target import DotBoard
 from lfcore.white import WhiteImageConfig
 from lfpiv import __version__
-from lfpiv.acquire import make_stage, open_rig
 from lfpiv.errors import UsageError
+from lfpiv.rigging import make_stage, open_rig
 
-__all__ = ["MlaResult", "calibrate_fit", "calibrate_mla", "calibrate_volume", "calibrated_rig", "default_board",
-           "plot_grids", "plot_rms"]
+__all__ = ["MlaResult", "board_for", "calibrate_fit", "calibrate_mla", "calibrate_volume", "calibrated_rig",
+           "default_board", "open_calibration", "rotation_angle_deg", "white_config"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +47,32 @@ class MlaResult:
     mla: dict[str, Any]
     #: whether the store held a model fitted through an earlier grid, now removed
     removed_model: bool = False
+
+
+def white_config(*, level_counts: float, vignetting: float, dead_lenslets: int) -> WhiteImageConfig:
+    """The simulated white image of ``calibrate mla``'s ``--sim-*`` options, or a one-line
+    :class:`UsageError`."""
+    try:
+        return WhiteImageConfig(level_counts=level_counts, vignetting=vignetting, dead_lenslets=dead_lenslets)
+    except ValueError as exc:
+        raise UsageError(f"--sim-*: {exc}") from None
+
+
+def board_for(rig: Rig, spacing_mm: float | None = None, tilt_deg: float | None = None) -> DotBoard:
+    """:func:`calibration.board.default_board` of ``calibrate volume``'s options, or a one-line
+    :class:`UsageError`."""
+    try:
+        return default_board(rig, spacing_mm, tilt_deg)
+    except ValueError as exc:
+        raise UsageError(f"--spacing-mm/--tilt-deg: {exc}") from None
+
+
+def open_calibration(path: str | Path, *, mode: str = "r") -> CalibrationStore:
+    """The calibration store at ``path``, or a one-line :class:`UsageError`."""
+    try:
+        return CalibrationStore.open(path, mode=mode)
+    except CalibrationStoreError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: float | None = None,
@@ -135,99 +160,11 @@ def _check_timing(rig: Rig, triggers: int) -> None:
 
 
 def _open_store(out: str | Path, rig: Rig) -> CalibrationStore:
+    """The store at ``out`` for ``rig``'s cameras, created if it does not exist."""
     try:
         return CalibrationStore.open_or_create(out, rig, software_version=__version__)
     except CalibrationStoreError as exc:
         raise UsageError(str(exc)) from None
-
-
-def plot_grids(store: CalibrationStore, out: str | Path, lenslets: int = 8) -> Path:
-    """Save a PNG: per camera, the white image around the sensor centre with the detected
-    centres (inliers +, outliers x) and fitted nodes (o), and the residuals over the sensor.
-
-    Returns
-    -------
-    pathlib.Path
-        The file written.
-
-    Raises
-    ------
-    UsageError
-        The store holds no microlens grid.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out = Path(out)
-    names = [n for n in store.cameras if store.grid(n) is not None]
-    if not names:
-        raise UsageError(f"{store.path} holds no microlens grid; run 'lfpiv calibrate mla' first")
-    fig, axes = plt.subplots(len(names), 2, figsize=(11, 5 * len(names)), squeeze=False)
-    for row, name in zip(axes, names, strict=True):
-        grid, white = store.grid(name), store.white(name)
-        rows, cols = white.shape
-        half = 0.5 * lenslets * grid.pitch_px
-        cx, cy = cols / 2, rows / 2
-        c0, c1 = int(max(0, cx - half)), int(min(cols, cx + half))
-        r0, r1 = int(max(0, cy - half)), int(min(rows, cy + half))
-        ax = row[0]
-        ax.imshow(white[r0:r1, c0:c1], cmap="gray", extent=(c0, c1, r1, r0), interpolation="nearest")
-        cen, fit, inl = grid.centres_px, grid.lattice_px(), grid.inliers
-        box = (cen[:, 0] > c0) & (cen[:, 0] < c1) & (cen[:, 1] > r0) & (cen[:, 1] < r1)
-        ax.plot(fit[box, 0], fit[box, 1], "o", mfc="none", mec="tab:cyan", ms=8, label="fitted lattice")
-        ax.plot(cen[box & inl, 0], cen[box & inl, 1], "+", color="tab:green", ms=8, label="detected")
-        ax.plot(cen[box & ~inl, 0], cen[box & ~inl, 1], "x", color="tab:red", ms=8, label="outlier")
-        ax.set_title(f"{name}: white image at the sensor centre")
-        ax.legend(loc="upper right", fontsize=8)
-        ax = row[1]
-        res = grid.residuals_px
-        scale = max(float(np.percentile(np.hypot(*res[inl].T), 95)), 1e-3)
-        ax.quiver(cen[inl, 0], cen[inl, 1], res[inl, 0], -res[inl, 1], np.hypot(*res[inl].T), angles="xy",
-                  scale_units="xy", scale=scale / grid.pitch_px, cmap="viridis")
-        ax.plot(cen[~inl, 0], cen[~inl, 1], "x", color="tab:red", ms=5)
-        ax.set_xlim(0, cols)
-        ax.set_ylim(rows, 0)
-        ax.set_aspect("equal")
-        ax.set_title(f"{name}: residuals (arrow of one pitch = {scale:.3f} px), RMS {grid.rms_px:.4f} px")
-    fig.tight_layout()
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
-    return out
-
-
-#: Fewest lenslets (in the volume, through the main lens) between neighbouring dots of a board.
-MIN_DOT_LENSLETS = 2
-#: Fewest dots across the narrowest camera's field of view.
-MIN_DOTS_ACROSS = 2
-
-
-def default_board(rig: Rig, spacing_mm: float | None = None, tilt_deg: float | None = None) -> DotBoard:
-    """The board the volumetric run assumes unless told: 3 mm spacing (a quarter of the volume's
-    smaller transverse size for small rigs), centred on the volume, tilted about world y so its
-    normal bisects the cameras' optical axes (0 for one camera, 45 degrees for two at 90), with
-    a marker dot (1.6 times larger) at its origin for two or more cameras; one camera names its
-    dots from the nominal model alone (no marker)."""
-    vol = rig.volume
-    if spacing_mm is None:
-        spacing_mm = min(3.0, 0.25 * min(vol.size_mm[0], vol.size_mm[1]))
-    # a dot is found from the lenslets its light falls on: dots closer than two lenslets (in the
-    # object space of the coarsest camera) share them and cannot be told apart
-    least = max(MIN_DOT_LENSLETS * c.mla_pitch_mm / abs(c.magnification) for c in rig.camera)
-    if spacing_mm < least:
-        raise ValueError(f"dots {spacing_mm:g} mm apart are closer than {MIN_DOT_LENSLETS} lenslets of the cameras "
-                         f"({least:.3g} mm in the volume), where they cannot be told apart; use a spacing of at least "
-                         f"{least:.2g} mm")
-    # and the fit needs a grid of dots in every camera's view, not one or two
-    most = min(min(c.field_of_view_mm) for c in rig.camera) / MIN_DOTS_ACROSS
-    if spacing_mm > most:
-        raise ValueError(f"dots {spacing_mm:g} mm apart leave fewer than {MIN_DOTS_ACROSS} across the narrowest "
-                         f"camera's field of view ({MIN_DOTS_ACROSS * most:.3g} mm); use a spacing of at most "
-                         f"{most:.2g} mm")
-    board = DotBoard.for_cameras(np.array([c.optical_axis for c in rig.camera]), spacing_mm=spacing_mm,
-                                 centre_mm=vol.centre_mm, marker_scale=1.6 if len(rig.camera) > 1 else 1.0)
-    return board if tilt_deg is None else dataclasses.replace(board, tilt_deg=tilt_deg)
 
 
 def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: float = 0.5,
@@ -322,42 +259,6 @@ def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: fl
                     rg.lab.show(None)
 
 
-def _detected_dots(store: CalibrationStore, nominal: Camera) -> list[tuple[int, Dots]]:
-    """The dots of every taken plane of one camera, found once (naming them needs a model)."""
-    grid = store.grid(nominal.name)
-    if grid is None:
-        raise UsageError(f"camera '{nominal.name}': no microlens grid in {store.path}; run 'lfpiv calibrate mla' "
-                         "first")
-    stage = store.stage_mm(nominal.name)
-    frames = store.plane_frames(nominal.name)
-    cells = lenslet_cells(grid)
-    out = []
-    for p in np.flatnonzero(np.isfinite(stage)):
-        try:
-            out.append((int(p), detect_dots(frames[int(p)], grid, cells=cells)))
-        except DotError as exc:
-            raise UsageError(f"camera '{nominal.name}', plane {p + 1} of {len(stage)}: {exc}") from None
-    return out
-
-
-def _named_dots(store: CalibrationStore, nominal: Camera, board: DotBoard, detected: list[tuple[int, Dots]],
-                min_dots: int, model: Camera | None = None) -> list[PlaneDots]:
-    """Name the dots of every plane of one camera (``model`` predicts where they are)."""
-    cam = model or nominal
-    stage = store.stage_mm(nominal.name)
-    reach = 0.75 * math.hypot(*cam.field_of_view_mm) / math.cos(math.radians(board.tilt_deg)) + board.spacing_mm
-    ij = board.indices(board.half_extent(reach + abs(float(np.nanmax(np.abs(stage - board.stage_centre_mm))))))
-    out = []
-    for p, dots in detected:
-        found, which = match_dots(dots, project(cam, board.dot_centres(ij, stage[p])), ij)
-        if len(found) < min_dots:
-            raise UsageError(f"camera '{nominal.name}', plane {p + 1} of {len(stage)} (stage {stage[p]:.4f} mm): "
-                             f"{len(found)} dot(s) found and named (of {len(dots)} seen), need at least "
-                             f"{min_dots}; check the target's lighting, focus and the board settings")
-        out.append(PlaneDots(p, float(stage[p]), which, dots.views_px[found]))
-    return out
-
-
 def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: int = 2) -> list[CameraFit]:
     """Fit every camera's model to the stored planes and white-image grid; store the models.
 
@@ -383,29 +284,24 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
     UsageError
         No planes or grid, a plane with too few dots (naming camera and plane), a failed fit.
     """
-    try:
-        store = CalibrationStore.open(out, mode="r+")
-    except CalibrationStoreError as exc:
-        raise UsageError(str(exc)) from None
+    store = open_calibration(out, mode="r+")
     board = store.target()
     if board is None or store.plane_targets() is None:
         raise UsageError(f"{out} holds no target planes; run 'lfpiv calibrate volume' first")
     rig = store.rig
     fits = []
     for nominal in rig.camera:
+        grid = store.grid(nominal.name)
+        if grid is None:
+            raise UsageError(f"camera '{nominal.name}': no microlens grid in {store.path}; run 'lfpiv calibrate mla' "
+                             "first")
         try:
-            detected = _detected_dots(store, nominal)
-            planes = _named_dots(store, nominal, board, detected, min_dots)
-            grid = store.grid(nominal.name)
-            wavelength = rig.laser.wavelength_nm  # the sim lights the target at the laser's
-            opts = {"n_planes": len(store.stage_mm(nominal.name)), "fit_distortion": fit_distortion,
-                    "wavelength_nm": wavelength, "views": view_geometry(nominal, wavelength)}
-            fit = fit_camera(nominal, board, planes, grid, **opts)
-            planes = _named_dots(store, nominal, board, detected, min_dots, model=fit.camera)
-            fit = fit_camera(nominal, board, planes, grid, **opts)
+            # the sim lights the target at the laser's wavelength
+            fits.append(fit_from_planes(nominal, board, store.plane_frames(nominal.name), store.stage_mm(nominal.name),
+                                        grid, wavelength_nm=rig.laser.wavelength_nm, fit_distortion=fit_distortion,
+                                        min_dots=min_dots))
         except FitError as exc:
             raise UsageError(str(exc)) from None
-        fits.append(fit)
     for fit in fits:
         store.write_model(fit.camera.name, fit.model_dict(), {
             "rms_px": fit.rms_px, "plane_rms_px": [None if not np.isfinite(v) else float(v) for v in fit.plane_rms_px],
@@ -413,40 +309,6 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
             "radial_k1": fit.radial_k1, "std": fit.std, "dropped": fit.dropped, "set_aside": fit.set_aside,
             "views": "chief ray and four half-aperture views per dot"})
     return fits
-
-
-def plot_rms(store: CalibrationStore, out: str | Path) -> Path:
-    """Save a PNG of each fitted camera's reprojection RMS per plane against the stage position.
-
-    Raises
-    ------
-    UsageError
-        No camera has a fitted model.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    names = [n for n in store.cameras if store.model(n) is not None]
-    if not names:
-        raise UsageError(f"{store.path} holds no fitted camera model; run 'lfpiv calibrate fit' first")
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name in names:
-        m = store.model(name)
-        rms = np.array([np.nan if v is None else v for v in m["plane_rms_px"]], dtype=float)
-        ax.plot(store.stage_mm(name), rms, "o-", label=f"{name} (all planes {m['rms_px']:.3f} px)")
-    ax.set_xlabel("stage position, mm")
-    ax.set_ylabel("RMS reprojection error, px")
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    ax.set_title("dot reprojection error per plane")
-    fig.tight_layout()
-    out = Path(out)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
-    return out
 
 
 def calibrated_rig(run_rig: Rig, calibration: str | Path, cameras: Sequence[str] | None = None
@@ -479,10 +341,7 @@ def calibrated_rig(run_rig: Rig, calibration: str | Path, cameras: Sequence[str]
         A store that cannot be opened, a camera with no fitted model in it (naming the camera
         and ``lfpiv calibrate fit``), or a model whose sensor differs from the run's camera.
     """
-    try:
-        store = CalibrationStore.open(calibration)
-    except CalibrationStoreError as exc:
-        raise UsageError(str(exc)) from None
+    store = open_calibration(calibration)
     need = set(cameras) if cameras else {c.name for c in run_rig.camera}
     cams, rms = [], {}
     for cam in run_rig.camera:

@@ -1,4 +1,4 @@
-"""Recording double-frame runs from the rig, real or simulated (``lfpiv acquire``, ``lfpiv devices``).
+"""Recording double-frame runs from the rig, real or simulated (``lfpiv acquire``).
 
 The order of operations is what keeps the laser safe and the data whole:
 
@@ -20,22 +20,23 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable, Iterator
-from contextlib import ExitStack, contextmanager
+from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from acquisition.protocols import Camera, DeviceError, PulseGenerator, Stage, TimingPlan
-from acquisition.pulse_generator import MAX_BURST, pulse_generator_for, signals_call, signals_held
+from acquisition.protocols import DeviceError, PulseGenerator, TimingPlan
+from acquisition.pulse_generator import MAX_BURST, signals_call, signals_held
 from acquisition.session import RecordingSession, SessionStats
 from acquisition.timing import TimingError, plan_timing
 from lfcore.rig import Rig
 from lfcore.runstore import RunStore, RunStoreError
 from lfpiv import __version__
 from lfpiv.errors import UsageError
+from lfpiv.rigging import open_rig
 
-__all__ = ["AcquireResult", "Rigging", "check_plan", "list_devices", "make_stage", "open_rig", "record"]
+__all__ = ["AcquireResult", "check_plan", "record"]
 
 
 class Terminated(Exception):
@@ -44,17 +45,6 @@ class Terminated(Exception):
 
 def _terminated() -> None:
     raise Terminated()
-
-
-@dataclass
-class Rigging:
-    """The opened devices of a rig."""
-
-    pulse_generator: PulseGenerator
-    cameras: list[Camera]
-    lab: Any = None  # the SimLab for hardware = "sim"
-    stage_port: str | None = None
-
 
 @dataclass(frozen=True)
 class AcquireResult:
@@ -65,54 +55,6 @@ class AcquireResult:
     stats: SessionStats
     drops: int
     message: str
-
-
-@contextmanager
-def open_rig(rig: Rig, *, sim_options: dict[str, Any] | None = None) -> Iterator[Rigging]:
-    """Open the pulse generator and the cameras of ``rig`` (real or simulated).
-
-    The generator is disarmed and every device released on exit, whatever happened.
-
-    Parameters
-    ----------
-    rig
-        The rig; ``rig.hardware`` chooses real drivers or the simulated lab.
-    sim_options
-        Keyword arguments of :class:`sim.lab.SimLab` (world, pool_pairs, camera_faults, ...), or
-        ``{"lab": lab}`` to use an already entered :class:`sim.lab.SimLab`.
-    """
-    with ExitStack() as stack:
-        lab = None
-        if rig.hardware == "sim":
-            from sim.lab import SimLab  # the application is the one layer that may wire the simulated lab
-
-            opts = dict(sim_options or {})
-            given = opts.pop("lab", None)  # an already started lab (tests inspect its devices)
-            lab = given if given is not None else stack.enter_context(SimLab(rig, **opts))
-            pulse_port, stage_port = lab.pulse_port, lab.stage_port
-            cameras: list[Camera] = list(lab.cameras)
-        else:
-            from acquisition.genicam import GenICamCamera
-
-            if rig.pulse_generator.port is None:
-                raise UsageError("pulse_generator.port is not set in the rig file; give the serial port "
-                                 "of the pulse generator (e.g. /dev/ttyUSB0), or set hardware = \"sim\"")
-            pulse_port, stage_port = rig.pulse_generator.port, rig.stage.port
-            unnamed = [c.name for c in rig.camera if c.serial is None]
-            if unnamed and len(rig.camera) > 1:
-                # without serials both would open the first device found
-                raise UsageError(f"camera '{unnamed[0]}' has no serial in the rig file; with {len(rig.camera)} "
-                                 "cameras each needs its GenICam serial number (lfpiv devices lists them)")
-            cameras = [GenICamCamera(c.name, serial=c.serial, producers=list(rig.gentl_producers) or None)
-                       for c in rig.camera]
-        gen = pulse_generator_for(pulse_port, rig.pulse_generator)
-        stack.callback(gen.close)
-        gen.open()
-        for cam in cameras:
-            stack.callback(cam.close)
-            cam.open()
-        yield Rigging(gen, cameras, lab, stage_port)
-
 
 def check_plan(rig: Rig, pairs: int) -> TimingPlan:
     """The timing plan for ``pairs`` double pulses, or a one-line :class:`UsageError` saying why
@@ -275,95 +217,6 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
             raise RunStoreError(f"recorded {session.committed_pairs} pair(s) into {out}, but {unclosed}")
         stats = session.stats()
         return AcquireResult(store, state, stats, len(store.drops()), message)
-
-
-def list_devices(rig: Rig) -> list[tuple[str, bool]]:
-    """What answers of the devices ``rig`` names, one line each with whether it was found.
-
-    Nothing is armed or moved. For ``hardware = "sim"`` the simulated lab is started and its
-    emulated devices are queried with the real serial drivers.
-    """
-    lines: list[tuple[str, bool]] = []
-    with ExitStack() as stack:
-        if rig.hardware == "sim":
-            from sim.lab import SimLab
-
-            lab = stack.enter_context(SimLab(rig, reply_latency_s=0.0))
-            pulse_port, stage_port = lab.pulse_port, lab.stage_port
-            for cam in lab.cameras:
-                cols, rows = cam.sensor_px
-                lines.append((f"camera  {cam.name}: simulated light-field camera, {cols} x {rows} px", True))
-        else:
-            from acquisition.genicam import list_devices as genicam_devices
-
-            pulse_port, stage_port = rig.pulse_generator.port, rig.stage.port
-            try:
-                seen = genicam_devices(list(rig.gentl_producers) or None)
-            except DeviceError as exc:
-                seen = []
-                lines.append((f"cameras: {exc}", False))
-            by_serial = {d.serial_number: d for d in seen}
-            for cam in rig.camera:
-                if cam.serial is None:
-                    lines.append(_unpinned_camera(cam.name, seen, len(rig.camera)))
-                    continue
-                d = by_serial.get(cam.serial)
-                if d is not None:
-                    lines.append((f"camera  {cam.name}: {d.vendor} {d.model}, serial {d.serial_number} ({d.access})",
-                                  True))
-                else:
-                    lines.append((f"camera  {cam.name}: serial {cam.serial!r} not found (seen: "
-                                  f"{sorted(by_serial) or 'none'}); check the cable, power and the rig's serial",
-                                  False))
-        for label, port, probe in (("pulse generator", pulse_port, _probe_generator),
-                                   ("stage", stage_port, _probe_stage)):
-            if port is None:
-                lines.append((f"{label}: no port in the rig file", False))
-                continue
-            try:
-                lines.append((f"{label}: {probe(port, rig)} on {port}", True))
-            except DeviceError as exc:
-                lines.append((f"{label}: {exc}", False))
-    return lines
-
-
-def _unpinned_camera(name: str, seen: list[Any], n_cameras: int) -> tuple[str, bool]:
-    """The devices line of a camera with no serial in the rig file."""
-    serials = sorted(d.serial_number for d in seen)
-    if n_cameras > 1:
-        return (f"camera  {name}: no serial in the rig file; set serial to one of {serials or 'none found'} "
-                "(with several cameras each needs its own)", False)
-    if not seen:
-        return f"camera  {name}: no GenICam device found; check the cable, power and gentl_producers", False
-    d = seen[0]
-    return (f"camera  {name}: {d.vendor} {d.model}, serial {d.serial_number} ({d.access}), the first device "
-            f"found; set serial = \"{d.serial_number}\" in the rig file to pin it", True)
-
-
-def _probe_generator(port: str, rig: Rig) -> str:
-    gen = pulse_generator_for(port, rig.pulse_generator)
-    try:
-        gen.open()
-        return gen.identify()
-    finally:
-        gen.close()
-
-
-def make_stage(port: str, rig: Rig) -> Stage:
-    """The stage driver for ``port`` with the rig's ``[stage]`` settings, not yet open."""
-    from acquisition.stage import stage_for
-
-    return stage_for(port, rig.stage)
-
-
-def _probe_stage(port: str, rig: Rig) -> str:
-    stage = make_stage(port, rig)
-    try:
-        stage.open()
-        return f"Zaber stage at {stage.position_mm():.4f} mm, travel {stage.travel_mm[0]:g}..{stage.travel_mm[1]:g} mm"
-    finally:
-        stage.close()
-
 
 def _is_main_thread() -> bool:
     import threading

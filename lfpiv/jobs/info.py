@@ -1,0 +1,118 @@
+"""What a run store or a calibration store holds (``lfpiv info``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from calibration.store import CalibrationStore, CalibrationStoreError
+from lfcore.mla import lenslet_count
+from lfcore.runstore import RunStore, RunStoreError
+from lfcore.volume import VolumeGrid
+
+__all__ = ["describe"]
+
+
+def _fmt_params(params: dict) -> str:
+    def fmt(v):
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        if isinstance(v, list):
+            return "(" + ", ".join(fmt(x) for x in v) + ")"
+        return str(v)
+
+    return ", ".join(f"{k}={fmt(v)}" for k, v in params.items() if k != "name")
+
+
+def _count(pairs: list[int]) -> str:
+    """``"3 pair(s) (0 to 2)"``, or ``"no pair"``."""
+    if not pairs:
+        return "no pair"
+    span = f"{pairs[0]}" if len(pairs) == 1 else f"{pairs[0]} to {pairs[-1]}"
+    return f"{len(pairs)} pair(s) ({span})"
+
+
+def _windows(windows: list[list[int]]) -> str:
+    """``"32x32x16 then 16x16x8"``: the window sizes of every pass."""
+    return " then ".join("x".join(map(str, w)) for w in windows)
+
+
+def describe(path: str | Path) -> list[str]:
+    """The lines ``lfpiv info`` prints: a run's cameras, pairs, flow, state and derived data, or
+    what a calibration store holds (as ``lfpiv calibrate report``).
+
+    Raises
+    ------
+    RunStoreError
+        ``path`` is neither a run store nor a calibration store.
+    """
+    try:
+        store = RunStore.open(path)
+    except RunStoreError as not_a_run:
+        try:
+            calibration = CalibrationStore.open(path)
+        except CalibrationStoreError:
+            raise not_a_run from None
+        return list(calibration.summary())
+    a = store.attrs
+    rig = store.rig
+    t = store.timing
+    grid = VolumeGrid.from_rig(rig)
+    v = rig.volume
+    lines = [
+        ("run", str(store.path)),
+        ("state", f"{store.state} ({store.committed_pairs} of {store.n_pairs} pairs committed)"),
+        ("created", f"{a.get('created')} by lfpiv {a.get('software_version')}"),
+        ("timing", f"dt {t['dt_s'] * 1e3:g} ms, pairs at {t['rate_hz']:g} Hz"),
+        ("volume", f"{' x '.join(f'{s:g}' for s in v.size_mm)} mm centred at "
+                   f"({', '.join(f'{c:g}' for c in v.centre_mm)}); {' x '.join(str(n) for n in grid.shape[::-1])} "
+                   f"voxels (x, y, z) at PVR ({', '.join(f'{p:g}' for p in v.pvr)})"),
+    ]
+    for cam in rig.camera:
+        lines.append(("camera", f"{cam.name}: {cam.sensor_px[0]} x {cam.sensor_px[1]} px of {cam.pixel_pitch_um:g} um, "
+                                f"{cam.mla_grid} MLA {cam.mla_pitch_um:g} um ({lenslet_count(cam)} lenslets, "
+                                f"{cam.pixels_per_lenslet:.1f} px across), F {cam.main_focal_length_mm:g} mm "
+                                f"f/{cam.f_number:g}, M {cam.magnification:g}, rotation "
+                                f"({', '.join(f'{r:g}' for r in cam.rotation_deg)}) deg"))
+    truth = store.truth()
+    if truth:
+        flow = truth["attrs"]["flow"]
+        lines.append(("flow", f"{flow['name']}: {_fmt_params(flow)}"))
+        ppm = truth["attrs"].get("ppm")
+        lines.append(("truth", f"{truth['particles'].shape[2]} particles per frame"
+                               + (f" ({ppm:g} PPM)" if ppm else "") + f", seed {truth['attrs'].get('seed')}"))
+    else:
+        lines.append(("flow", "unknown (recorded run, no truth)"))
+    if a.get("abort_reason"):
+        lines.append(("aborted", str(a["abort_reason"])))
+    drops = store.drops()
+    lines.append(("drops", "none" if not drops else f"{len(drops)} frame(s) lost, e.g. {drops[0]['reason']}"))
+    if store.has_volumes:
+        va = store.group["volumes"].attrs
+        g = store.volume_grid()
+        lines.append(("volumes", f"{_count(store.reconstructed_pairs())} reconstructed by {va['method']}, "
+                                 f"{va['settings'].get('iterations')} iterations, "
+                                 f"{' x '.join(str(n) for n in g.shape[::-1])} voxels"))
+    else:
+        lines.append(("volumes", f"none (lfpiv reconstruct {store.path})"))
+    if store.has_vectors:
+        windows = store.group["vectors"].attrs["windows"]
+        lines.append(("vectors", f"{_count(store.correlated_pairs())} correlated, windows "
+                                 f"{_windows(windows)}"
+                                 + ("; from volumes since replaced" if store.vectors_outdated else "")))
+    for name, command in (("volumes", "reconstruct"), ("vectors", "correlate")):
+        pending = store.pending(name)
+        if pending is not None:
+            a = pending.attrs
+            made = (f"{a.get('method')}, {a.get('settings', {}).get('iterations')} iterations" if name == "volumes"
+                    else f"windows {_windows(a.get('windows', []))}")
+            stale = name == "vectors" and a.get("volumes_id") != store.volumes_id
+            lines.append((f"{name}.pending", f"a replacement ({made}) interrupted after "
+                                             f"{_count(a.get(RunStore.DONE[name], []))}; "
+                          + ("it was correlated from volumes since replaced, and the next correlate drops it"
+                             if stale else f"it takes the place of {name}/ once the same settings are given "
+                                           f"again with --skip-done")))
+        if store.replaced_left(name):
+            lines.append((f"{name}.replaced", f"a replacement interrupted as it was put in place; the next "
+                                              f"'lfpiv {command}' of this run settles it"))
+    width = max(len(k) for k, _ in lines)
+    return [f"{k:<{width}}  {val}" for k, val in lines]

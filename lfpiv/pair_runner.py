@@ -1,0 +1,112 @@
+"""The one per-pair runner behind ``reconstruct`` and ``correlate``.
+
+Both make derived data (``volumes/`` or ``vectors/``) pair by pair in the same sequence:
+
+1. **begin**: choose where the pairs are written (:func:`lfpiv.replacement.begin`): into the
+   current set when it was made with the same settings, into an interrupted replacement made with
+   them, or into a new set made beside the old one;
+2. **skip done**: with ``--skip-done``, leave out the pairs that set already holds;
+3. **map**: do each pair, in this process or on Dask workers (:func:`lfpiv.batch.map_pairs`),
+   recording each as it finishes (only this process records which pairs are done);
+4. **finish**: put a complete replacement in place (:func:`lfpiv.replacement.end`); an
+   interrupted or failed one says how it is left.
+
+The job supplies what differs: how to compare and create the set, how to do pairs here, and
+the worker task with its (picklable) job description.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from lfcore.runstore import RunStore
+from lfpiv import replacement
+from lfpiv.errors import UsageError
+
+__all__ = ["run_pairs", "select_pairs"]
+
+T = TypeVar("T")
+
+
+def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable[[Any], bool],
+              differences: Callable[[Any], list[str]], create: Callable[[], None], skip_done: bool,
+              here: Callable[[list[int]], None],
+              remote: Callable[[str], tuple[Callable[..., T], Any]] | None, client: Any,
+              on_done: Callable[[int, T], None], desc: str, progress: bool,
+              kept: Callable[[], str] = lambda: "") -> list[int]:
+    """Make ``name`` (``volumes`` or ``vectors``) of ``pairs``; returns the pairs done now.
+
+    Parameters
+    ----------
+    store
+        The run, open for writing.
+    name
+        ``"volumes"`` or ``"vectors"``.
+    pairs
+        The pairs asked for.
+    matches, differences, create
+        As :func:`lfpiv.replacement.begin`: whether a group holds data of these settings, the
+        settings in which it differs, and how to create a new set.
+    skip_done
+        Leave out the pairs the set being written already holds.
+    here
+        ``here(pairs)`` does the pairs in this process and records each as it is written.
+    remote
+        ``remote(into)`` gives the worker task and its job for the group ``into`` (``name`` or its
+        pending replacement), when ``client`` is a Dask client.
+    client
+        A Dask client (:func:`lfpiv.batch.dask_client`), or None for this process.
+    on_done
+        ``on_done(pair, result)`` records a pair a worker finished (called in this process, in the
+        order the pairs finish).
+    desc, progress
+        The progress bar of the workers' pairs.
+    kept
+        What a failure leaves of the pairs done before (e.g. "the 2 volume(s) written before are
+        kept"), or "" for nothing to say.
+
+    Raises
+    ------
+    UsageError
+        A pair's error, with how an unfinished replacement, or what was done before, is left.
+    """
+    replacement.begin(store, name, pairs, matches=matches, differences=differences, create=create)
+    if skip_done:
+        done = set(store.writing(name).attrs[RunStore.DONE[name]])
+        pairs = [p for p in pairs if p not in done]
+    if pairs:
+        try:
+            with replacement.noting_interrupt(store, name):
+                if client is not None:
+                    from lfpiv.batch import map_pairs
+
+                    task, job = remote(store.writing(name).basename)  # type: ignore[misc]
+                    map_pairs(client, task, job, pairs, on_done=on_done, desc=desc, progress=progress)
+                else:
+                    here(pairs)
+        except UsageError as exc:
+            aside = replacement.kept_aside(store, name)
+            before = "" if aside else kept()
+            if aside or before:
+                raise UsageError(f"{exc}{aside or '; ' + before}") from None
+            raise
+    replacement.end(store, name)
+    return pairs
+
+
+def select_pairs(pairs: slice | None, n_pairs: int) -> list[int]:
+    """The pair indices ``pairs`` (the ``--pairs`` range) selects of a run of ``n_pairs``.
+
+    Raises
+    ------
+    UsageError
+        A range that selects no pair.
+    """
+    if pairs is None:
+        return list(range(n_pairs))
+    chosen = list(range(n_pairs))[pairs]
+    if not chosen:
+        raise UsageError(f"--pairs selects no pair of this run (it has pairs 0 to {n_pairs - 1}); give START:STOP "
+                         "with START below STOP, e.g. 0:10")
+    return chosen
