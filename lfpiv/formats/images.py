@@ -227,7 +227,7 @@ def _tiff_info(path: Path) -> ImageInfo:
                 raise FormatError(f"{path} holds images of different sizes ({shapes}); export the frames of one "
                                   "camera as pages of one size")
             s = series[0]
-            page = tf.pages.first
+            page = tf.pages[0]
             if page.samplesperpixel > 1 or len(s.shape) > 3:
                 raise FormatError(f"{path} holds {'colour' if page.samplesperpixel > 1 else 'multi-channel'} "
                                   f"images (shape {s.shape}); export the camera's greyscale frames")
