@@ -456,7 +456,7 @@ class FrameSource:
     half: int | None = None
 
     def __str__(self) -> str:
-        where = f" page {self.frame}" if self.frame else ""
+        where = f" frame {self.frame}" if self.frame else ""
         return f"{self.path}{where}{'' if self.half is None else (' (top half)', ' (bottom half)')[self.half]}"
 
 

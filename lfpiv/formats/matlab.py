@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lfpiv.formats._files import replacing
 from lfpiv.formats.errors import FormatError
 from lfpiv.formats.fields import QUANTITIES, Fields, global_attributes
 
@@ -87,11 +88,6 @@ def write_mat(path: str | os.PathLike[str], fields: Fields) -> Path:
     g = global_attributes(fields)
     out["info"] = {**g, "overlap_xyz": np.asarray(g["overlap_xyz"], dtype=np.float64).reshape(1, -1),
                    "start": fields.start or "", "layout": "meshgrid order [ny nx nz npairs]"}
-    tmp = path.with_name(f".{path.name}.partial")
-    try:
-        with open(tmp, "wb") as fh:
-            savemat(fh, out, do_compression=True, oned_as="row")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with replacing(path) as tmp, open(tmp, "wb") as fh:
+        savemat(fh, out, do_compression=True, oned_as="row")
     return path

@@ -34,9 +34,11 @@ from __future__ import annotations
 import datetime as _dt
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from lfpiv.formats._files import replacing
 from lfpiv.formats.errors import FormatError
 from lfpiv.formats.fields import FLAG_MEANINGS, QUANTITIES, Fields, global_attributes
 
@@ -87,63 +89,57 @@ def write_netcdf(path: str | os.PathLike[str], fields: Fields, *, source: str = 
     """
     import netCDF4
 
-    from lfpiv import __version__
-
     if not 0 <= int(compression) <= 9:
         raise FormatError(f"the netCDF compression level must be 0 to 9, got {compression}")
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.partial")
+    units = time_units(fields.start)  # a bad start is refused before anything is written
+    with replacing(path) as tmp, netCDF4.Dataset(tmp, "w", format="NETCDF4") as ds:
+        _fill(ds, fields, units=units, source=source, compression=int(compression))
+    return path
+
+
+def _fill(ds: Any, fields: Fields, *, units: str, source: str, compression: int) -> None:
+    """Dimensions, coordinates, scalars and attributes of the file (see the module docstring)."""
+    from lfpiv import __version__
+
     nz, ny, nx = fields.shape
     x, y, z = fields.coords_m()
-    units = time_units(fields.start)
-    gattrs = global_attributes(fields)
-    ds = netCDF4.Dataset(tmp, "w", format="NETCDF4")
-    complete = False
-    try:
-        ds.setncatts({
-            "Conventions": "CF-1.8",
-            "title": "lfpiv 3D velocity fields",
-            "source": f"lfpiv {__version__} light-field PIV" + (f" from {source}" if source else ""),
-            "history": f"{_dt.datetime.now(_dt.UTC).isoformat(timespec='seconds')} written by lfpiv {__version__}",
-            "comment": f"positions in {gattrs['frame']}; one time step per correlated pair",
-            "dt_s": gattrs["dt_s"],
-            "windows_xyz_voxels": gattrs["windows_xyz_voxels"],
-            "overlap_xyz": np.asarray(gattrs["overlap_xyz"], dtype=np.float64),
-        })
-        ds.createDimension("time", len(fields.pairs))
-        for name, n in (("z", nz), ("y", ny), ("x", nx)):
-            ds.createDimension(name, n)
-        t = ds.createVariable("time", "f8", ("time",))
-        t[:] = np.asarray(fields.time_s, dtype=np.float64)
-        t.setncatts({"units": units, "standard_name": "time", "calendar": "standard", "axis": "T",
-                     "long_name": "time of frame A since the start of the run"})
-        p = ds.createVariable("pair", "i4", ("time",))
-        p[:] = np.asarray(fields.pairs, dtype=np.int32)
-        p.long_name = "index of the pair in the run"
-        for name, c in (("z", z), ("y", y), ("x", x)):
-            v = ds.createVariable(name, "f8", (name,))
-            v[:] = c
-            # no `axis`: VTK's CF reader takes X / Y as longitude / latitude (module docstring)
-            v.setncatts({"units": "m", "long_name": f"world {name} of the vector grid (window centres)"})
-        dims = ("time", "z", "y", "x")
-        chunks = (1, nz, ny, nx)
-        for q in QUANTITIES:
-            flags = q.name == "flags"
-            v = ds.createVariable(q.name, "u1" if flags else "f4", dims, compression="zlib" if compression else None,
-                                  complevel=int(compression), shuffle=True, chunksizes=chunks)
-            v[:] = np.asarray(q.get(fields), dtype=np.uint8 if flags else np.float32)
-            v.long_name = q.long_name
-            if flags:
-                v.setncatts({"standard_name": "status_flag",
-                             "flag_masks": np.array([m for m, _ in FLAG_MEANINGS], dtype=np.uint8),
-                             "flag_meanings": " ".join(n for _, n in FLAG_MEANINGS)})
-            else:
-                v.units = q.units
-        complete = True
-    finally:
-        if ds.isopen():
-            ds.close()
-        if not complete:
-            tmp.unlink(missing_ok=True)
-    os.replace(tmp, path)
-    return path
+    g = global_attributes(fields)
+    ds.setncatts({
+        "Conventions": "CF-1.8",
+        "title": "lfpiv 3D velocity fields",
+        "source": f"lfpiv {__version__} light-field PIV" + (f" from {source}" if source else ""),
+        "history": f"{_dt.datetime.now(_dt.UTC).isoformat(timespec='seconds')} written by lfpiv {__version__}",
+        "comment": f"positions in {g['frame']}; one time step per correlated pair",
+        "dt_s": g["dt_s"],
+        "windows_xyz_voxels": g["windows_xyz_voxels"],
+        "overlap_xyz": np.asarray(g["overlap_xyz"], dtype=np.float64),
+    })
+    ds.createDimension("time", len(fields.pairs))
+    for name, n in (("z", nz), ("y", ny), ("x", nx)):
+        ds.createDimension(name, n)
+    t = ds.createVariable("time", "f8", ("time",))
+    t[:] = np.asarray(fields.time_s, dtype=np.float64)
+    t.setncatts({"units": units, "standard_name": "time", "calendar": "standard", "axis": "T",
+                 "long_name": "time of frame A since the start of the run"})
+    p = ds.createVariable("pair", "i4", ("time",))
+    p[:] = np.asarray(fields.pairs, dtype=np.int32)
+    p.long_name = "index of the pair in the run"
+    for name, c in (("z", z), ("y", y), ("x", x)):
+        v = ds.createVariable(name, "f8", (name,))
+        v[:] = c
+        # no `axis`: VTK's CF reader takes X / Y as longitude / latitude (module docstring)
+        v.setncatts({"units": "m", "long_name": f"world {name} of the vector grid (window centres)"})
+    for q in QUANTITIES:
+        flags = q.name == "flags"
+        v = ds.createVariable(q.name, "u1" if flags else "f4", ("time", "z", "y", "x"),
+                              compression="zlib" if compression else None, complevel=compression, shuffle=True,
+                              chunksizes=(1, nz, ny, nx))  # one chunk a time step
+        v[:] = np.asarray(q.get(fields), dtype=np.uint8 if flags else np.float32)
+        v.long_name = q.long_name
+        if flags:
+            v.setncatts({"standard_name": "status_flag",
+                         "flag_masks": np.array([m for m, _ in FLAG_MEANINGS], dtype=np.uint8),
+                         "flag_meanings": " ".join(n for _, n in FLAG_MEANINGS)})
+        else:
+            v.units = q.units

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lfpiv.formats._files import replacing
 from lfpiv.formats.fields import QUANTITIES, Fields, global_attributes
 
 __all__ = ["write_tecplot"]
@@ -48,26 +49,21 @@ def write_tecplot(path: str | os.PathLike[str], fields: Fields) -> Path:
     coords = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
     names = " ".join(f'"{n}"' for n in ("x", "y", "z", *(q.name for q in QUANTITIES)))
     types = " ".join(["DOUBLE"] * 3 + ["BYTE" if q.name == "flags" else "SINGLE" for q in QUANTITIES])
-    fmt = ["%.17g"] * 3 + ["%d" if q.name == "flags" else "%.9g" for q in QUANTITIES]
+    fmt = ["%.12g"] * 3 + ["%d" if q.name == "flags" else "%.9g" for q in QUANTITIES]
     units = "; ".join(f"{q.name}: {q.symbol}" for q in QUANTITIES if q.units != "1")
     g = global_attributes(fields)
-    tmp = path.with_name(f".{path.name}.partial")
-    try:
-        with open(tmp, "w", encoding="ascii", newline="\n") as fh:
-            fh.write('TITLE = "lfpiv 3D velocity fields"\n')
-            fh.write(f"VARIABLES = {names}\n")
-            fh.write(f'DATASETAUXDATA Units = "x, y, z: m; {units}"\n')
-            fh.write(f'DATASETAUXDATA Frame = "{_aux(g["frame"])}"\n')
-            fh.write(f'DATASETAUXDATA dt_s = "{g["dt_s"]:.9g}"\n')
-            fh.write(f'DATASETAUXDATA Windows = "{_aux(g["windows_xyz_voxels"])}"\n')
-            for i, pair in enumerate(fields.pairs):
-                fh.write(f'ZONE T="pair {pair}", I={nx}, J={ny}, K={nz}, ZONETYPE=ORDERED, DATAPACKING=POINT, '
-                         f"SOLUTIONTIME={float(fields.time_s[i]):.17g}, STRANDID=1\n")
-                fh.write(f"DT=({types})\n")
-                values = [np.nan_to_num(np.asarray(q.get(fields)[i], dtype=np.float64), nan=0.0).ravel()
-                          for q in QUANTITIES]
-                np.savetxt(fh, np.column_stack([coords, *values]), fmt=fmt, delimiter=" ")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with replacing(path) as tmp, open(tmp, "w", encoding="ascii", newline="\n") as fh:
+        fh.write('TITLE = "lfpiv 3D velocity fields"\n')
+        fh.write(f"VARIABLES = {names}\n")
+        fh.write(f'DATASETAUXDATA Units = "x, y, z: m; {units}"\n')
+        fh.write(f'DATASETAUXDATA Frame = "{_aux(g["frame"])}"\n')
+        fh.write(f'DATASETAUXDATA dt_s = "{g["dt_s"]:.9g}"\n')
+        fh.write(f'DATASETAUXDATA Windows = "{_aux(g["windows_xyz_voxels"])}"\n')
+        for i, pair in enumerate(fields.pairs):
+            fh.write(f'ZONE T="pair {pair}", I={nx}, J={ny}, K={nz}, ZONETYPE=ORDERED, DATAPACKING=POINT, '
+                     f"SOLUTIONTIME={float(fields.time_s[i])!r}, STRANDID=1\n")
+            fh.write(f"DT=({types})\n")
+            values = [np.nan_to_num(np.asarray(q.get(fields)[i], dtype=np.float64), nan=0.0).ravel()
+                      for q in QUANTITIES]
+            np.savetxt(fh, np.column_stack([coords, *values]), fmt=fmt, delimiter=" ")
     return path

@@ -3,9 +3,10 @@
 One VTK XML ImageData file ``vectors_pairNNNN.vti`` per pair (NNNN the pair's index in the run)
 and a ParaView collection ``vectors.pvd`` that lists them with their times in seconds. Each file
 puts the grid's origin and spacing in metres and holds, as point data in raw appended binary
-(little-endian, 64-bit block headers): ``velocity`` (3 components, m/s), ``vorticity`` (3, 1/s),
-``divergence`` (1/s), ``q_criterion`` (1/s^2), ``peak_ratio`` and ``flags`` (UInt8), and the
-field data ``TimeValue`` (s). Because positions are in metres, ParaView's own Gradient filter
+(little-endian; block headers UInt32 as VTK writes them, UInt64 where an array exceeds 4 GiB):
+``velocity`` (3 components, m/s), ``vorticity`` (3, 1/s), ``divergence`` (1/s),
+``q_criterion`` (1/s^2), ``peak_ratio`` and ``flags`` (UInt8), and the field data
+``TimeValue`` (s). Because positions are in metres, ParaView's own Gradient filter
 (with vorticity on) gives the exported ``vorticity``. VTK ImageData needs evenly spaced
 coordinates; the vector grid of a run always is.
 """
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lfpiv.formats._files import replacing
 from lfpiv.formats.fields import Fields, uniform_spacing
 
 __all__ = ["PVD_NAME", "vti_name", "write_vti", "write_vti_series"]
@@ -25,6 +27,11 @@ __all__ = ["PVD_NAME", "vti_name", "write_vti", "write_vti_series"]
 #: The collection file of a series.
 PVD_NAME = "vectors.pvd"
 _VTI = re.compile(r"vectors_pair\d{4,}\.vti")
+
+
+def _num(v: float) -> str:
+    """The shortest text that reads back as the same double (0.1, not 0.10000000000000001)."""
+    return repr(float(v))
 
 
 def vti_name(pair: int) -> str:
@@ -69,22 +76,25 @@ def write_vti(path: str | os.PathLike[str], fields: Fields, index: int) -> Path:
     nz, ny, nx = fields.shape
     x, y, z = fields.coords_m()
     spacing = [uniform_spacing(c, axis=a) for c, a in ((x, "x"), (y, "y"), (z, "z"))]
+    arrays = _arrays(fields, index)
+    header = "<u8" if max(a[1].nbytes for a in arrays) >= 2**32 else "<u4"
     head, blobs, offset = [], [], 0
-    for name, data, vtype, ncomp in _arrays(fields, index):
+    for name, data, vtype, ncomp in arrays:
         raw = np.ascontiguousarray(data).tobytes()  # (z, y, x[, c]) C order: x varies fastest, as VTK wants
         head.append(f'        <DataArray type="{vtype}" Name="{name}" NumberOfComponents="{ncomp}" '
                     f'format="appended" offset="{offset}"/>')
-        blobs.append(np.uint64(len(raw)).astype("<u8").tobytes() + raw)
+        blobs.append(np.array(len(raw), dtype=header).tobytes() + raw)
         offset += len(blobs[-1])
     extent = f"0 {nx - 1} 0 {ny - 1} 0 {nz - 1}"
     xml = "\n".join([
         '<?xml version="1.0"?>',
-        '<VTKFile type="ImageData" version="1.0" byte_order="LittleEndian" header_type="UInt64">',
-        f'  <ImageData WholeExtent="{extent}" Origin="{x[0]:.17g} {y[0]:.17g} {z[0]:.17g}" '
-        f'Spacing="{spacing[0]:.17g} {spacing[1]:.17g} {spacing[2]:.17g}">',
+        '<VTKFile type="ImageData" version="1.0" byte_order="LittleEndian" '
+        f'header_type="{"UInt64" if header == "<u8" else "UInt32"}">',
+        f'  <ImageData WholeExtent="{extent}" Origin="{_num(x[0])} {_num(y[0])} {_num(z[0])}" '
+        f'Spacing="{_num(spacing[0])} {_num(spacing[1])} {_num(spacing[2])}">',
         "    <FieldData>",
         '      <DataArray type="Float64" Name="TimeValue" NumberOfTuples="1" format="ascii">'
-        f"{float(fields.time_s[index]):.17g}</DataArray>",
+        f"{_num(fields.time_s[index])}</DataArray>",
         "    </FieldData>",
         f'    <Piece Extent="{extent}">',
         '      <PointData Vectors="velocity" Scalars="divergence">',
@@ -95,16 +105,11 @@ def write_vti(path: str | os.PathLike[str], fields: Fields, index: int) -> Path:
         '  <AppendedData encoding="raw">',
         "   _",
     ])
-    tmp = path.with_name(f".{path.name}.partial")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(xml.encode())
-            for b in blobs:
-                fh.write(b)
-            fh.write(b"\n  </AppendedData>\n</VTKFile>\n")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with replacing(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(xml.encode())
+        for b in blobs:
+            fh.write(b)
+        fh.write(b"\n  </AppendedData>\n</VTKFile>\n")
     return path
 
 
@@ -133,11 +138,10 @@ def write_vti_series(out_dir: str | os.PathLike[str], fields: Fields) -> list[Pa
     for old in out.iterdir():
         if _VTI.fullmatch(old.name) and old.name not in keep:
             old.unlink()
-    entries = [f'    <DataSet timestep="{float(t):.17g}" part="0" file="{p.name}"/>'
+    entries = [f'    <DataSet timestep="{_num(t)}" part="0" file="{p.name}"/>'
                for t, p in zip(fields.time_s, files, strict=True)]
     pvd = out / PVD_NAME
-    tmp = out / f".{PVD_NAME}.partial"
-    tmp.write_text("\n".join(['<?xml version="1.0"?>', '<VTKFile type="Collection" version="1.0">',
-                              "  <Collection>", *entries, "  </Collection>", "</VTKFile>", ""]))
-    os.replace(tmp, pvd)
+    with replacing(pvd) as tmp:
+        tmp.write_text("\n".join(['<?xml version="1.0"?>', '<VTKFile type="Collection" version="1.0">',
+                                  "  <Collection>", *entries, "  </Collection>", "</VTKFile>", ""]))
     return [*files, pvd]

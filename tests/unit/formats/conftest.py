@@ -35,6 +35,27 @@ def rotation_vectors(pairs: int = 3, nx: int = 6, ny: int = 5, nz: int = 4) -> d
             "attrs": {"dt_s": 1e-4, "windows": [[16, 16, 8]], "overlap": [0.5, 0.5, 0.5]}}
 
 
+def assert_grid_in_metres(img, fields: Fields) -> None:
+    """A vtkImageData that VTK read is the fields' grid: its dimensions, origin and spacing in metres."""
+    x, y, z = fields.coords_m()
+    assert img.IsA("vtkImageData")
+    assert img.GetDimensions() == (len(x), len(y), len(z))
+    assert img.GetOrigin() == pytest.approx((x[0], y[0], z[0]))
+    assert img.GetSpacing() == pytest.approx((x[1] - x[0], y[1] - y[0], z[1] - z[0]))
+
+
+def paraview_gradient(algorithm, vectors: str = "velocity"):
+    """The point data after ParaView's Gradient filter (vorticity on) of the array ``vectors`` of a VTK pipeline."""
+    import vtk
+
+    grad = vtk.vtkGradientFilter()
+    grad.SetInputConnection(algorithm.GetOutputPort())
+    grad.SetInputArrayToProcess(0, 0, 0, vtk.vtkDataObject.FIELD_ASSOCIATION_POINTS, vectors)
+    grad.SetComputeVorticity(True)
+    grad.Update()
+    return grad.GetOutput().GetPointData()
+
+
 @pytest.fixture
 def rotation() -> Fields:
     """Pairs 0 and 2 of the rotation (pair 1 left out, as an uncorrelated pair is)."""

@@ -9,7 +9,7 @@ from lfcore.vectors import FLAG_OUTLIER, FLAG_REPLACED
 from lfpiv.formats import FormatError
 from lfpiv.formats.netcdf import time_units, write_netcdf
 
-from .conftest import omega
+from .conftest import assert_grid_in_metres, omega, paraview_gradient
 
 vtk = pytest.importorskip("vtk")
 from vtk.util.numpy_support import vtk_to_numpy  # noqa: E402
@@ -33,11 +33,7 @@ def test_vtk_reads_an_image_with_si_spacing_times_and_values(rotation, tmp_path)
     assert times == pytest.approx(rotation.time_s)
     r.UpdateTimeStep(times[1])
     img = r.GetOutput()
-    assert img.IsA("vtkImageData")
-    x, y, z = rotation.coords_m()
-    assert img.GetDimensions() == (len(x), len(y), len(z))
-    assert img.GetOrigin() == pytest.approx((x[0], y[0], z[0]))
-    assert img.GetSpacing() == pytest.approx((x[1] - x[0], y[1] - y[0], z[1] - z[0]))
+    assert_grid_in_metres(img, rotation)
     pd = img.GetPointData()
     nz, ny, nx = rotation.shape
     for c, name in enumerate("uvw"):
@@ -56,12 +52,7 @@ def test_paraviews_gradient_of_the_exported_velocity_is_the_exported_vorticity(r
         calc.AddScalarArrayName(name)
     calc.SetFunction("u*iHat + v*jHat + w*kHat")
     calc.SetResultArrayName("velocity")
-    grad = vtk.vtkGradientFilter()
-    grad.SetInputConnection(calc.GetOutputPort())
-    grad.SetInputArrayToProcess(0, 0, 0, vtk.vtkDataObject.FIELD_ASSOCIATION_POINTS, "velocity")
-    grad.SetComputeVorticity(True)
-    grad.Update()
-    pd = grad.GetOutput().GetPointData()
+    pd = paraview_gradient(calc)
     vort = vtk_to_numpy(pd.GetArray("Vorticity"))
     assert np.allclose(vort[:, 2], 2 * omega(2), rtol=1e-5)  # solid-body rotation: 2 Omega everywhere
     assert np.allclose(vort[:, 2], vtk_to_numpy(pd.GetArray("vorticity_z")), rtol=1e-5)

@@ -25,7 +25,7 @@ def test_tecplot_zones_read_back_by_vtk(rotation, tmp_path):
 
     path = write_tecplot(tmp_path / "vectors.dat", rotation)
     text = path.read_text()
-    assert 'SOLUTIONTIME=0.20000000000000001, STRANDID=1' in text and "ZONETYPE=ORDERED, DATAPACKING=POINT" in text
+    assert "SOLUTIONTIME=0.2, STRANDID=1" in text and "ZONETYPE=ORDERED, DATAPACKING=POINT" in text
     assert "u: m/s" in text
     vtk.vtkObject.GlobalWarningDisplayOff()  # VTK's reader warns that it ignores SOLUTIONTIME and STRANDID
     try:

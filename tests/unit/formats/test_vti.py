@@ -11,7 +11,7 @@ from lfpiv.formats import FormatError
 from lfpiv.formats.fields import fields_of
 from lfpiv.formats.vti import write_vti_series
 
-from .conftest import RATE_HZ, omega, rotation_vectors
+from .conftest import RATE_HZ, assert_grid_in_metres, omega, paraview_gradient, rotation_vectors
 
 vtk = pytest.importorskip("vtk")
 from vtk.util.numpy_support import vtk_to_numpy  # noqa: E402
@@ -33,10 +33,7 @@ def test_series_in_si_units_read_back_by_vtk(rotation, tmp_path):
         (0.0, "vectors_pair0000.vti"), (pytest.approx(2 / RATE_HZ), "vectors_pair0002.vti")]
     reader = read_vti(files[1])
     img = reader.GetOutput()
-    x, y, z = rotation.coords_m()
-    assert img.GetDimensions() == (len(x), len(y), len(z))
-    assert img.GetOrigin() == pytest.approx((x[0], y[0], z[0]))
-    assert img.GetSpacing() == pytest.approx((x[1] - x[0], y[1] - y[0], z[1] - z[0]))
+    assert_grid_in_metres(img, rotation)
     pd = img.GetPointData()
     nz, ny, nx = rotation.shape
     vel = vtk_to_numpy(pd.GetArray("velocity")).reshape(nz, ny, nx, 3)
@@ -51,12 +48,7 @@ def test_paraviews_gradient_of_the_velocity_is_the_exported_vorticity(rotation, 
     files = write_vti_series(tmp_path, rotation)
     for i, pair in enumerate(rotation.pairs):
         reader = read_vti(files[i])  # kept: the filter's input
-        grad = vtk.vtkGradientFilter()
-        grad.SetInputConnection(reader.GetOutputPort())
-        grad.SetInputArrayToProcess(0, 0, 0, vtk.vtkDataObject.FIELD_ASSOCIATION_POINTS, "velocity")
-        grad.SetComputeVorticity(True)
-        grad.Update()
-        pd = grad.GetOutput().GetPointData()
+        pd = paraview_gradient(reader)
         theirs, ours = vtk_to_numpy(pd.GetArray("Vorticity")), vtk_to_numpy(pd.GetArray("vorticity"))
         assert np.allclose(theirs[:, 2], 2 * omega(pair), rtol=1e-5)
         assert np.allclose(theirs, ours, rtol=1e-5, atol=1e-4)
