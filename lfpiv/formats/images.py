@@ -342,7 +342,7 @@ def _read(path: Path, frames: Sequence[int] | None = None) -> np.ndarray:
                 if any(k >= n for k in keys):
                     raise FormatError(f"{path} holds {n} page(s), not page {max(keys)}; was it changed since it was "
                                       "inspected?")
-                data = tf.asarray(key=keys) if keys != [0] or n > 1 else tf.asarray()
+                data = tf.asarray(key=keys, series=0) if n > 1 else tf.asarray(series=0)
                 if errors:
                     raise _damaged(path, errors[0])
         except FormatError:
