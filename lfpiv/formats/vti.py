@@ -50,7 +50,7 @@ def _arrays(f: Fields, i: int) -> list[tuple[str, np.ndarray, str, int]]:
     ]
 
 
-def write_vti(path: str | os.PathLike[str], fields: Fields, index: int) -> Path:
+def write_vti(path: str | os.PathLike[str], fields: Fields, *, index: int) -> Path:
     """Write one pair of the fields as VTK XML ImageData (see the module docstring).
 
     Parameters
@@ -133,7 +133,7 @@ def write_vti_series(out_dir: str | os.PathLike[str], fields: Fields) -> list[Pa
         The ``.vti`` files in pair order, then the ``.pvd``.
     """
     out = Path(out_dir)
-    files = [write_vti(out / vti_name(pair), fields, i) for i, pair in enumerate(fields.pairs)]
+    files = [write_vti(out / vti_name(pair), fields, index=i) for i, pair in enumerate(fields.pairs)]
     keep = {p.name for p in files}
     for old in out.iterdir():
         if _VTI.fullmatch(old.name) and old.name not in keep:
