@@ -1,10 +1,6 @@
-"""The simulated world the simulated cameras look at: seeded particles moving with a known flow.
-
-Each laser double pulse ``k`` lights a fresh, reproducible seeding (``seed`` and ``k`` fix it)
-at its positions at the first pulse and, advected over ``dt`` with the flow, at the second.
-Fresh seeding per pair is what a PIV recording of a steady flow looks like to the processing
-(particles that left the volume are replaced by new ones) and keeps every pair independent of
-how many pairs came before, so the truth of any pair can be regenerated later.
+"""The simulated world the simulated cameras look at: seeded particles moving with a known flow
+(:class:`lfcore.world.ParticleWorld`, the world ``lfpiv synth`` renders too), or a continuously
+lit calibration scene put in their place.
 """
 
 from __future__ import annotations
@@ -14,41 +10,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lfcore.flows import Flow, advect, flow_for_displacement
-from lfcore.particles import particle_count, seed_particles, sheet_weights
-from lfcore.render import derive_seed
-from lfcore.rig import Rig
+from lfcore.world import ParticleWorld
 
 __all__ = ["SimWorld"]
 
 
 @dataclass
-class SimWorld:
-    """Particles in a known flow, for one rig.
+class SimWorld(ParticleWorld):
+    """Particles in a known flow, for one rig (see :class:`lfcore.world.ParticleWorld` for the
+    parameters), and the scene the simulated cameras see in their place while one is shown."""
 
-    Parameters
-    ----------
-    rig
-        The rig (volume, laser sheet, first camera for the displacement scale, timing dt).
-    flow
-        A name of :data:`lfcore.flows.FLOW_NAMES`.
-    ppm
-        Seeding density, particles per microlens of the first camera.
-    displacement_px
-        Peak displacement over dt in object-side pixels (None: the flow's default).
-    seed
-        Fixes every seeding.
-    omega
-        Wavelength factor of the Table 4.1 flows.
-    """
-
-    rig: Rig
-    flow: str = "vortex-ring"
-    ppm: float = 0.5
-    displacement_px: float | None = None
-    seed: int = 0
-    omega: float = 1.0
-    _field: Flow = field(init=False, repr=False)
     #: A continuously lit scene that replaces the particles while set (calibration: a white
     #: diffuser, the dot target at the stage position). Called as ``scene(camera_index)``, it
     #: returns the uint16 (rows, columns) image that camera sees; ``scene_key`` changes whenever
@@ -56,40 +27,6 @@ class SimWorld:
     scene: Callable[[int], np.ndarray] | None = field(default=None, repr=False)
     scene_key: object = None
 
-    def __post_init__(self) -> None:
-        self.dt_s = self.rig.timing.dt_us * 1e-6
-        self._field = flow_for_displacement(self.flow, self.rig.volume, self.rig.camera[0].object_pixel_mm,
-                                            self.dt_s, self.displacement_px, self.omega,
-                                            period_s=1.0 / self.rig.laser.rate_hz)  # phase-locked ring
-        self.n_particles = particle_count(self.rig, self.ppm)
-
     def show(self, scene: Callable[[int], np.ndarray] | None, key: object = None) -> None:
         """Put a continuously lit scene in front of the cameras (None: back to the particles)."""
         self.scene, self.scene_key = scene, key
-
-    @property
-    def flow_params(self) -> dict:
-        """The flow's name and parameters, as stored in ``truth/``."""
-        return self._field.params()
-
-    def t0_s(self, k: int) -> float:
-        """Time of the first pulse of double pulse ``k`` on the flow's clock, s."""
-        return k / self.rig.laser.rate_hz
-
-    def pair(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Particles of double pulse ``k``.
-
-        Returns
-        -------
-        particles : numpy.ndarray
-            (2, n, 3) world positions in mm at the first and the second pulse.
-        brightness : numpy.ndarray
-            (2, n) counts each particle deposits (laser-sheet profile applied).
-        """
-        rng = np.random.default_rng(derive_seed(self.seed, k))
-        a = seed_particles(self.rig.volume, self.n_particles, rng)
-        b = advect(self._field, a, self.t0_s(k), self.dt_s)
-        particles = np.stack([a, b])
-        brightness = self.rig.render.particle_counts * sheet_weights(particles.reshape(-1, 3), self.rig.laser,
-                                                                     self.rig.volume)
-        return particles, brightness.reshape(2, -1)

@@ -14,11 +14,12 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from lfcore.flows import FLOW_NAMES, Flow, advect, default_displacement_px, flow_for_displacement
-from lfcore.particles import MAX_PPM, particle_count, seed_particles, sheet_weights
+from lfcore.flows import FLOW_NAMES, default_displacement_px
+from lfcore.particles import MAX_PPM, particle_count, sheet_weights
 from lfcore.render import LightFieldRenderer, derive_seed
 from lfcore.rig import MAX_RAYS_PER_PARTICLE, Rig
 from lfcore.runstore import RunStore
+from lfcore.world import ParticleWorld
 from lfpiv import __version__
 from lfpiv.errors import UsageError
 
@@ -157,7 +158,6 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         if rays_per_particle < 1:
             raise UsageError(f"--rays must be at least 1, got {rays_per_particle}")
         render = render.model_copy(update={"rays_per_particle": int(rays_per_particle)})
-    rng = np.random.default_rng(seed)
     rate = rig.laser.rate_hz
 
     if points is not None:
@@ -169,22 +169,24 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         if displacement_px is not None and not (np.isfinite(displacement_px) and displacement_px > 0):
             raise UsageError(f"--displacement-px must be positive, got {displacement_px}")
         try:
-            field: Flow = flow_for_displacement(flow, rig.volume, rig.camera[0].object_pixel_mm, dt_s,
-                                                displacement_px, omega, period_s=1.0 / rate)  # phase-locked ring
-        except ValueError as exc:
-            raise UsageError(str(exc)) from None
-        flow_params = field.params()
-        try:
-            n = particle_count(rig, ppm)
+            particle_count(rig, ppm)
         except ValueError as exc:
             raise UsageError(f"--ppm: {exc}") from None
-        particles = np.empty((pairs, 2, n, 3))
-        for i in range(pairs):
-            particles[i, 0] = seed_particles(rig.volume, n, rng)
-            particles[i, 1] = advect(field, particles[i, 0], i / rate, dt_s)
+        try:
+            # the world the simulated lab's cameras see too: a fresh seeding per pair
+            world = ParticleWorld(rig, flow=flow, ppm=ppm, displacement_px=displacement_px, seed=seed, omega=omega,
+                                  dt_s=dt_s)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+        flow_params = world.flow_params
+        made = [world.pair(i) for i in range(pairs)]
+        particles = np.stack([m[0] for m in made])
     _check_in_front(rig, particles.reshape(-1, 3))
-    brightness = render.particle_counts * sheet_weights(particles.reshape(-1, 3), rig.laser, rig.volume)
-    brightness = brightness.reshape(particles.shape[:3])
+    if points is not None:
+        brightness = render.particle_counts * sheet_weights(particles.reshape(-1, 3), rig.laser, rig.volume)
+        brightness = brightness.reshape(particles.shape[:3])
+    else:
+        brightness = np.stack([m[1] for m in made])
 
     renderers = [LightFieldRenderer(cam, render, rig.laser.wavelength_nm, device) for cam in rig.camera]
     timing = {"dt_s": dt_s, "rate_hz": rate}
