@@ -337,3 +337,19 @@ def test_elimination_off_the_sensor_edges_keeps_what_the_traced_table_keeps(tiny
     everything = np.ones((rig.camera[0].sensor_px[1], rig.camera[0].sensor_px[0]), bool)
     proj.precompute_checks(0)
     assert proj.eliminate([everything], 0.99, 0.0).numpy().size < proj.eliminate([everything], 0.01, 0.0).numpy().size
+
+
+def test_elimination_reuses_its_scratch_and_returns_arrays_of_its_own(small_dual_rig, device):
+    """Frames with many, few, then many lit pixels through one projector keep the voxels a fresh
+    projector keeps, and a result is not overwritten by the next call."""
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = Projector(small_dual_rig.camera, grid, device=device)
+    settings = ReconSettings()
+    lits = [_lit(_images(small_dual_rig, grid, device, n=n, seed=seed), settings) for n, seed in ((30, 3), (4, 4))]
+    fresh = [Projector(small_dual_rig.camera, grid, device=device).eliminate(lit, settings.min_seen,
+                                                                             settings.max_dark).numpy()
+             for lit in lits]
+    assert 0 < fresh[1].size < fresh[0].size < grid.n_voxels
+    got = [proj.eliminate(lits[k], settings.min_seen, settings.max_dark) for k in (0, 1, 0)]
+    for k, voxels in zip((0, 1, 0), got, strict=True):
+        assert np.array_equal(voxels.numpy(), fresh[k])
