@@ -28,6 +28,7 @@ from lfcore.device import (
     PerBlock,
     Rows,
     available_bytes,
+    cpu_threads,
     launch_rows,
     out_of_memory_is_budget_error,
     warp,
@@ -365,11 +366,14 @@ class WeightBuilder:
         def rows(a, empty):
             return empty if a is None else Rows(a)
 
+        if proj is None:  # a stand-in for every CPU block (one PerBlock array would make it one block)
+            proj = PerBlock((self._f32,) * cpu_threads())
+
         launch_rows(self._kw.los_weights, int(voxels.shape[0]),
                     [self.grid, self.views, self.n_views, Rows(voxels), rows(offsets, self._i64),
                      wp.int64(origin), float(min_weight), fill, rows(counts, self._i64), Rows(sums),
                      self._i32 if pix is None else pix, self._f32 if w is None else w, rows(e, self._f32),
-                     PerBlock((self._f32,)) if proj is None else proj, self._f32 if ratio is None else ratio,
+                     proj, self._f32 if ratio is None else ratio,
                      float(relaxation), self.overlap], self.device)
 
     def _check_budget(self, entries: int, n: int, budget: int) -> None:
