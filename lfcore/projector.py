@@ -292,24 +292,17 @@ class Projector:
                 storage: str = "stored") -> Weights:
         """Sparse weights of ``voxels`` (from :meth:`eliminate` or :meth:`all_voxels`).
 
-        Built by :meth:`lfcore.weight_build.WeightBuilder.weights` (see there for ``build``,
-        ``sort`` and ``storage``); weights made on the fly are applied by :meth:`forward` and
-        :meth:`smart_update` where they are used.
+        Built by this projector's :attr:`builder`; weights made on the fly are applied by
+        :meth:`forward` and :meth:`smart_update` where they are used.
 
         Parameters
         ----------
         voxels
             (n,) int32 flat voxel indices on this projector's device.
-        method
-            ``"drt"``: dense ray tracing; ``"los"``: the conventional line-of-sight cylinder
-            and voxel sphere (MART baseline).
-        min_weight
-            Raw entries below this are dropped.
-        budget_bytes
-            Memory the weights may take; default: what the device has free.
-        build, sort, storage
-            How to build and where to keep them (:meth:`WeightBuilder.weights
-            <lfcore.weight_build.WeightBuilder.weights>`).
+        method, min_weight, budget_bytes, build, sort, storage
+            As :meth:`WeightBuilder.weights <lfcore.weight_build.WeightBuilder.weights>` takes them
+            (here they may also be given by position); ``method`` is ``"drt"`` (dense ray tracing)
+            or ``"los"`` (line of sight, the MART baseline's).
 
         Returns
         -------
