@@ -7,6 +7,8 @@ depth better than one; nothing may appear outside the seeded region.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -357,3 +359,30 @@ def test_frame_reconstructor_stages_on_device_images(tiny_rig, device):
     got = frames.volume(w, done.e).numpy()
     ref = reconstruct(proj, [img], ReconSettings(iterations=8, relaxation=1.0)).volume
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-6 * float(ref.max()))
+
+
+def test_a_frame_reconstructor_s_own_buffers_do_not_shrink_the_weights_budget(tiny_rig, device, monkeypatch):
+    """On a device with a fixed amount of memory, less what the reconstructor holds, the same
+    frame twice makes (nearly) the same share of its weights on the fly: the buffers kept from
+    the first frame serve the second, so they are not set aside for it again."""
+    from lfcore import reconstruct as recon_module
+    from lfcore.reconstruct import FrameReconstructor
+
+    grid = VolumeGrid.from_rig(tiny_rig)
+    _, images = _scene_images(tiny_rig, 0.3, device)
+    proj = Projector(tiny_rig.camera, grid, device=device)
+    settings = ReconSettings(method="mlos-mart", iterations=2)
+    stored = reconstruct(proj, images, dataclasses.replace(settings, weight_storage="stored"))
+    total = stored.weight_bytes // 2 + 12 * proj.n_pixels + 12 * grid.n_voxels
+    frames = FrameReconstructor(proj, settings)
+    buffers = ("_image", "_proj", "_e", "_volume")
+
+    def free(_device: str) -> int:
+        held = sum(getattr(frames, b).capacity for b in buffers if getattr(frames, b) is not None)
+        return total - held - (frames.ops._tmp.capacity if frames.ops._tmp is not None else 0)
+
+    monkeypatch.setattr(recon_module, "available_bytes", free)
+    first, second = frames.reconstruct(images), frames.reconstruct(images)
+    assert 0 < first.on_the_fly_voxels < first.active_voxels
+    assert abs(second.on_the_fly_voxels - first.on_the_fly_voxels) <= 0.01 * first.active_voxels
+    np.testing.assert_allclose(second.volume, first.volume, rtol=1e-3, atol=1e-4 * float(first.volume.max()))
