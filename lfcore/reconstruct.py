@@ -31,16 +31,19 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
 
-from lfcore.device import MemoryBudgetError, available_bytes, out_of_memory_is_budget_error
+from lfcore.device import MemoryBudgetError, available_bytes, out_of_memory_is_budget_error, warp
 from lfcore.device_ops import VolumeOps
-from lfcore.projector import STORAGE, Projector
+from lfcore.projector import Projector
+from lfcore.weight_build import STORAGE, Weights
 from lfcore.weight_cache import WeightCache
 
-__all__ = ["METHODS", "WEIGHTS", "ReconResult", "ReconSettings", "estimate_background", "preprocess", "reconstruct"]
+__all__ = ["METHODS", "WEIGHTS", "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings",
+           "estimate_background", "preprocess", "reconstruct"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart")
 #: The weights each method iterates on (:meth:`Projector.weights` and :class:`WeightCache` names).
@@ -260,6 +263,9 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
                 budget_bytes: int | None = None) -> ReconResult:
     """Reconstruct one volume from one image per camera of the projector.
 
+    A one-frame :class:`FrameReconstructor`; a stream of frames should keep one of those, which
+    keeps its device buffers from frame to frame.
+
     Parameters
     ----------
     projector
@@ -289,89 +295,297 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
     MemoryBudgetError
         If the weights or the iteration buffers do not fit in the device's memory.
     """
-    if cache is not None and cache.projector is not projector:
-        raise ValueError("the weight cache belongs to another projector")
-    if len(images) != len(projector.cameras):
-        raise ValueError(f"got {len(images)} images for {len(projector.cameras)} cameras")
-    signals, lits, backgrounds, noises = [], [], [], []
-    for img, cam in zip(images, projector.cameras, strict=True):
-        if img.shape != (cam.sensor_px[1], cam.sensor_px[0]):
-            raise ValueError(f"camera '{cam.name}' images are {cam.sensor_px[1]} x {cam.sensor_px[0]}, "
-                             f"got {img.shape[0]} x {img.shape[1]}")
-        level, sigma = estimate_background(img)
-        if settings.background is not None:
-            level = settings.background
-        sig, lit = preprocess(img, level, sigma, settings.threshold_sigma, settings.lit_grow)
-        signals.append(sig)
-        lits.append(lit)
-        backgrounds.append(level)
-        noises.append(sigma)
-
-    what = f"{settings.method} of a {projector.grid.n_voxels:,}-voxel box"
-    with out_of_memory_is_budget_error(projector.device, what, "use a coarser --pvr or a smaller volume"):
-        return _reconstruct(projector, signals, lits, backgrounds, noises, settings, progress, cache, budget_bytes)
+    frames = FrameReconstructor(projector, settings, cache=cache, budget_bytes=budget_bytes)
+    return frames.reconstruct(images, progress=progress)
 
 
-def _weight_budget(projector: Projector, n_active: int, budget_bytes: int | None) -> int:
-    """Bytes the weights of ``n_active`` voxels may take: the budget less what the iterations
-    and the result need beside them (per pixel the image, its projection and log ratio; per
-    active voxel its intensity; the dense volume and its smoothing)."""
-    free = available_bytes(projector.device) if budget_bytes is None else int(budget_bytes)
-    return free - 12 * projector.n_pixels - 4 * n_active - 8 * projector.grid.n_voxels
+class Iterated(NamedTuple):
+    """The intensities :meth:`FrameReconstructor.iterate` reached, and the time it took.
+
+    Attributes
+    ----------
+    e
+        (max(n, 1),) float32 Warp array on the projector's device: the intensities of the
+        weights' n voxels, in their order (a view of the reconstructor's buffer, overwritten
+        by its next frame).
+    start_s
+        Seconds of the uniform start (one forward projection and two sums).
+    iterate_s
+        Seconds of the iterations.
+    """
+
+    e: object
+    start_s: float
+    iterate_s: float
 
 
-def _reconstruct(projector: Projector, signals: list[np.ndarray], lits: list[np.ndarray], backgrounds: list[float],
-                 noises: list[float], settings: ReconSettings, progress: Callable[[int], None] | None,
-                 cache: WeightCache | None, budget_bytes: int | None) -> ReconResult:
-    wp = projector.wp
-    t0 = time.perf_counter()
-    t_elim = t0
-    kind = WEIGHTS[settings.method]
-    storage = "stored" if kind == "drt" or settings.form == "sequential" else settings.weight_storage
-    if settings.method == "mart":
-        voxels = projector.all_voxels()
-    else:
-        voxels = projector.eliminate(lits, settings.min_seen, settings.max_dark)  # returns once counted: synced
-        t_elim = time.perf_counter()
-    weights = None
-    if cache is not None and cache.method == kind and settings.method != "mart" and storage != "on-the-fly":
-        try:
-            weights = cache.weights(voxels)
-        except MemoryBudgetError:
-            if storage == "stored":
-                raise
-    if weights is None:
-        budget = _weight_budget(projector, int(voxels.shape[0]), budget_bytes)
-        weights = projector.weights(voxels, kind, budget_bytes=budget, storage=storage)
-    dev = projector.device
-    image = wp.array(np.concatenate([s.ravel() for s in signals]), dtype=float, device=dev)
-    n = weights.n_voxels
-    e = wp.full(max(n, 1), 1.0, dtype=float, device=dev)
-    proj = projector.forward(weights, e)
-    # Start uniform, scaled so the projection carries the measured total signal.
-    total_proj = float(proj.numpy().sum())
-    start = float(image.numpy().sum()) / total_proj if total_proj > 0 else 0.0
-    e.fill_(start)
-    wp.synchronize_device(dev)
-    t1 = time.perf_counter()
-    floor = settings.floor * settings.threshold_sigma * float(np.mean(noises))
-    floor = max(floor, 1e-6)
-    transposed = projector.transpose(weights) if settings.form == "sequential" and n else None
-    for _ in range(settings.iterations if n else 0):
-        if transposed is not None:
-            projector.mart_sweep(transposed, image, e, settings.relaxation, floor)
+def _total(a) -> float:
+    """Sum of a float32 Warp array: NumPy's (pairwise) where it is host memory, a device reduction
+    elsewhere (no copy to the host)."""
+    if a.device.is_cpu:
+        return float(a.numpy().sum())
+    return float(warp().utils.array_sum(a))
+
+
+class FrameReconstructor:
+    """Reconstruct frame after frame with one projector and settings, the device buffers kept.
+
+    The stages of a frame are methods of their own, for a caller that has its images on the
+    device already and times each stage (the live pipeline): :meth:`eliminate`,
+    :meth:`weights`, :meth:`iterate` (the one simultaneous MART loop, batch and live) and
+    :meth:`volume`; :meth:`reconstruct` runs them all on host images.
+
+    Parameters
+    ----------
+    projector
+        Cameras and grid on a device.
+    settings
+        Method, iterations, relaxation, form, thresholds (see :class:`ReconSettings`).
+    cache
+        Weights kept across frames, built on ``projector`` (see :func:`reconstruct`).
+    budget_bytes
+        Device memory the weights and the iterations may take; None: what the device has free
+        (counting the buffers this reconstructor holds already as free to it).
+
+    Notes
+    -----
+    Buffers on the projector's device, each allocated on first use and kept: the image and its
+    projection ((n_pixels,) float32 each), the intensities (grown by half again when a frame
+    has more active voxels than any before), the (z, y, x) float32 volume and its smoothing
+    scratch. One thread at a time may use a reconstructor (and its projector).
+    """
+
+    def __init__(self, projector: Projector, settings: ReconSettings, *, cache: WeightCache | None = None,
+                 budget_bytes: int | None = None) -> None:
+        if cache is not None and cache.projector is not projector:
+            raise ValueError("the weight cache belongs to another projector")
+        self.projector = projector
+        self.settings = settings
+        self.cache = cache
+        self.budget_bytes = budget_bytes
+        self.wp = projector.wp
+        self.device = projector.device
+        self.ops = VolumeOps(projector.grid.shape, self.device)
+        self._image = None  # (n_pixels,) float32: the measured signal of reconstruct()
+        self._proj = None  # (n_pixels,) float32: the forward projection
+        self._e = None  # the intensities, at least as long as the most active voxels so far
+        self._volume = None  # (z, y, x) float32
+
+    # --- one frame from host images --------------------------------------------------------------
+    def reconstruct(self, images: Sequence[np.ndarray], *, progress: Callable[[int], None] | None = None
+                    ) -> ReconResult:
+        """Reconstruct one volume from one raw image per camera.
+
+        Parameters
+        ----------
+        images
+            One raw (rows, columns) image per camera, in the projector's camera order, in counts.
+        progress
+            Called with 1 after each iteration.
+
+        Returns
+        -------
+        ReconResult
+            Its ``volume`` is a host array of its own.
+
+        Raises
+        ------
+        MemoryBudgetError
+            If the weights or the iteration buffers do not fit in the device's memory.
+        """
+        p, settings = self.projector, self.settings
+        if len(images) != len(p.cameras):
+            raise ValueError(f"got {len(images)} images for {len(p.cameras)} cameras")
+        signals, lits, backgrounds, noises = [], [], [], []
+        for img, cam in zip(images, p.cameras, strict=True):
+            if img.shape != (cam.sensor_px[1], cam.sensor_px[0]):
+                raise ValueError(f"camera '{cam.name}' images are {cam.sensor_px[1]} x {cam.sensor_px[0]}, "
+                                 f"got {img.shape[0]} x {img.shape[1]}")
+            level, sigma = estimate_background(img)
+            if settings.background is not None:
+                level = settings.background
+            sig, lit = preprocess(img, level, sigma, settings.threshold_sigma, settings.lit_grow)
+            signals.append(sig)
+            lits.append(lit)
+            backgrounds.append(level)
+            noises.append(sigma)
+        what = f"{settings.method} of a {p.grid.n_voxels:,}-voxel box"
+        with out_of_memory_is_budget_error(p.device, what, "use a coarser --pvr or a smaller volume"):
+            return self._reconstruct(signals, lits, backgrounds, noises, progress)
+
+    def _reconstruct(self, signals: list[np.ndarray], lits: list[np.ndarray], backgrounds: list[float],
+                     noises: list[float], progress: Callable[[int], None] | None) -> ReconResult:
+        wp, p, settings = self.wp, self.projector, self.settings
+        t0 = time.perf_counter()
+        voxels = self.eliminate(lits)  # returns once counted: synced
+        t_elim = t0 if settings.method == "mart" else time.perf_counter()
+        weights = self.weights(voxels)
+        if self._image is None:
+            self._image = wp.empty(p.n_pixels, dtype=float, device=self.device)
+        flat = np.concatenate([s.ravel() for s in signals])
+        wp.copy(self._image, wp.array(flat, dtype=float, device="cpu", copy=False))
+        t1 = time.perf_counter()
+        done = self.iterate(weights, self._image, noises, progress=progress)
+        vol = self.volume(weights, done.e)
+        volume = vol.numpy()  # a copy from a GPU, a view of the buffer on the CPU
+        if self.device == "cpu":
+            volume = volume.copy()
+        n = weights.n_voxels
+        return ReconResult(volume=volume, active_voxels=n, active_fraction=n / p.grid.n_voxels,
+                           nnz=weights.nnz, weight_bytes=weights.nbytes, weights_s=t1 - t0 + done.start_s,
+                           iterate_s=done.iterate_s, iterations=settings.iterations, background=backgrounds,
+                           noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=weights.n_on_the_fly)
+
+    # --- the stages ------------------------------------------------------------------------------
+    def eliminate(self, lit) -> object:
+        """The voxels to reconstruct: the survivors of zero-voxel elimination, or every voxel of
+        the box for the MART baseline.
+
+        Parameters
+        ----------
+        lit
+            The lit pixels, as :meth:`Projector.eliminate` takes them: one boolean (rows,
+            columns) image per camera, or one (n_pixels,) uint8 Warp array on the device.
+
+        Returns
+        -------
+        warp.array
+            (n,) int32 flat voxel indices, ascending.
+        """
+        s = self.settings
+        if s.method == "mart":
+            return self.projector.all_voxels()
+        return self.projector.eliminate(lit, s.min_seen, s.max_dark)
+
+    def weights(self, voxels) -> Weights:
+        """The weights of ``voxels`` ((n,) int32 on the device): from the cache where it has them
+        and they fit, else built within the memory budget (line-of-sight ones partly on the fly
+        where ``settings.weight_storage`` allows).
+
+        Raises
+        ------
+        MemoryBudgetError
+            If the weights do not fit.
+        """
+        s = self.settings
+        kind = WEIGHTS[s.method]
+        storage = "stored" if kind == "drt" or s.form == "sequential" else s.weight_storage
+        cache = self.cache
+        if cache is not None and cache.method == kind and s.method != "mart" and storage != "on-the-fly":
+            try:
+                return cache.weights(voxels)
+            except MemoryBudgetError:
+                if storage == "stored":
+                    raise
+        budget = self._weight_budget(int(voxels.shape[0]))
+        return self.projector.weights(voxels, kind, budget_bytes=budget, storage=storage)
+
+    def iterate(self, weights: Weights, image, noise: Sequence[float], *, iterations: int | None = None,
+                relaxation: float | None = None, progress: Callable[[int], None] | None = None) -> Iterated:
+        """MART on ``weights``: a uniform start, then the iterations of ``settings.form``.
+
+        The start is uniform, scaled so that its projection carries the measured total signal.
+        The simultaneous form (SMART) then alternates a forward projection and the update of
+        every voxel; the sequential form sweeps eq. 4.1 pixel by pixel. In the update a pixel's
+        measurement counts as at least the floor, ``settings.floor`` times the lit threshold
+        (``settings.threshold_sigma`` times the mean noise sigma).
+
+        Parameters
+        ----------
+        weights
+            The voxels and their weights (:meth:`weights`).
+        image
+            (n_pixels,) float32 Warp array on the device: the background-subtracted signal of
+            every camera (zero on unlit pixels), in counts.
+        noise
+            Each camera's noise sigma, in counts.
+        iterations, relaxation
+            Override ``settings.iterations`` and ``settings.relaxation`` (the live path changes
+            them while it runs).
+        progress
+            Called with 1 after each iteration.
+
+        Returns
+        -------
+        Iterated
+            The intensities (in this reconstructor's buffer) and the seconds taken.
+        """
+        wp, p, s = self.wp, self.projector, self.settings
+        its = s.iterations if iterations is None else int(iterations)
+        mu = s.relaxation if relaxation is None else float(relaxation)
+        t0 = time.perf_counter()
+        n = weights.n_voxels
+        if self._e is None or self._e.shape[0] < n:
+            self._e = wp.empty(int(1.5 * n) + 1, dtype=float, device=self.device)
+        if self._proj is None:
+            self._proj = wp.zeros(p.n_pixels, dtype=float, device=self.device)
+        e, proj = self._e[: max(n, 1)], self._proj
+        if n == 0:  # nothing to reconstruct
+            e.fill_(0.0)
+            return Iterated(e, time.perf_counter() - t0, 0.0)
+        # Start uniform, scaled so the projection carries the measured total signal.
+        e.fill_(1.0)
+        p.forward(weights, e, proj)
+        total_proj = _total(proj)
+        e.fill_(_total(image) / total_proj if total_proj > 0 else 0.0)
+        wp.synchronize_device(self.device)
+        t1 = time.perf_counter()
+        floor = max(s.floor * s.threshold_sigma * float(np.mean(noise)), 1e-6)
+        transposed = p.transpose(weights) if s.form == "sequential" else None
+        for _ in range(its):
+            if transposed is not None:
+                p.mart_sweep(transposed, image, e, mu, floor)
+            else:
+                p.forward(weights, e, proj)
+                p.smart_update(weights, image, proj, e, mu, floor)
+            if progress is not None:
+                progress(1)
+        wp.synchronize_device(self.device)
+        return Iterated(e, t1 - t0, time.perf_counter() - t1)
+
+    def volume(self, weights: Weights, e, *, out=None) -> object:
+        """The dense (z, y, x) volume of intensities ``e`` of the weights' voxels, smoothed by
+        ``settings.smooth`` voxels, on the device.
+
+        Parameters
+        ----------
+        weights, e
+            The voxels and their intensities (:meth:`iterate`).
+        out
+            (nz, ny, nx) float32 Warp array to write; None: this reconstructor's volume buffer
+            (overwritten by its next frame).
+
+        Returns
+        -------
+        warp.array
+            The (nz, ny, nx) float32 volume.
+        """
+        if out is None:
+            if self._volume is None:
+                self._volume = self.ops.empty()
+            out = self._volume
+        vol = self.projector.scatter(weights, e, out)
+        if self.settings.smooth > 0:  # on the device: a host filter would dominate a large GPU volume
+            self.ops.smooth(vol, self.settings.smooth)
+        return vol
+
+    # --- memory ----------------------------------------------------------------------------------
+    def _held_bytes(self, n_active: int) -> int:
+        """Of what :meth:`_weight_budget` sets aside for the iterations, the bytes held already."""
+        p = self.projector
+        held = sum(4 * p.n_pixels for b in (self._image, self._proj) if b is not None)
+        held += 0 if self._e is None else 4 * min(n_active, int(self._e.shape[0]))
+        held += 0 if self._volume is None else 8 * p.grid.n_voxels  # with the smoothing's scratch
+        return held
+
+    def _weight_budget(self, n_active: int) -> int:
+        """Bytes the weights of ``n_active`` voxels may take: the budget less what the iterations
+        and the result need beside them (per pixel the image, its projection and log ratio; per
+        active voxel its intensity; the dense volume and its smoothing). Without a budget, the
+        device's free memory and the buffers held for those."""
+        p = self.projector
+        if self.budget_bytes is None:
+            free = available_bytes(p.device) + self._held_bytes(n_active)
         else:
-            projector.forward(weights, e, proj)
-            projector.smart_update(weights, image, proj, e, settings.relaxation, floor)
-        if progress is not None:
-            progress(1)
-    wp.synchronize_device(dev)
-    t2 = time.perf_counter()
-    vol = projector.scatter(weights, e)
-    if settings.smooth > 0:  # on the device: a host filter would dominate a large GPU volume
-        VolumeOps(projector.grid.shape, dev).smooth(vol, settings.smooth)
-    volume = vol.numpy()
-    return ReconResult(volume=volume, active_voxels=n, active_fraction=n / projector.grid.n_voxels,
-                       nnz=weights.nnz, weight_bytes=weights.nbytes, weights_s=t1 - t0, iterate_s=t2 - t1,
-                       iterations=settings.iterations, background=backgrounds, noise=noises,
-                       eliminate_s=t_elim - t0, on_the_fly_voxels=weights.n_on_the_fly)
+            free = int(self.budget_bytes)
+        return free - 12 * p.n_pixels - 4 * n_active - 8 * p.grid.n_voxels

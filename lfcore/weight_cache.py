@@ -33,7 +33,8 @@ from dataclasses import replace
 import numpy as np
 
 from lfcore.device import Rows, available_bytes, launch_rows
-from lfcore.projector import BYTES_PER_WEIGHT, CHUNK_ENTRIES, Projector, WeightChunk, Weights
+from lfcore.projector import Projector
+from lfcore.weight_build import BYTES_PER_WEIGHT, CHUNK_ENTRIES, WeightChunk, Weights
 
 __all__ = ["DEFAULT_BUDGET_FRACTION", "WeightCache"]
 

@@ -19,12 +19,12 @@ Stages, on the pipeline's own thread, for each pair:
    pairs, not per frame;
 2. DRT-MART (or MLOS-MART: the same elimination, line-of-sight weights) of frames A and B with
    monitoring settings (few iterations; the iterations and the relaxation can be changed while
-   it runs): the projector (geometry on the device), the pixel buffers and two volume buffers
-   are built once and reused; the elimination is per frame, as the active voxels follow the
-   particles, and a :class:`~lfcore.weight_cache.WeightCache` keeps the weights of every voxel
-   already traced,
-   so a frame traces only voxels no earlier frame activated; the volumes are scattered and
-   smoothed on the device;
+   it runs), by the batch path's :class:`~lfcore.reconstruct.FrameReconstructor` (one SMART
+   loop for both): the projector (geometry on the device), the pixel buffers and two volume
+   buffers are built once and reused; the elimination is per frame, as the active voxels
+   follow the particles, and a :class:`~lfcore.weight_cache.WeightCache` keeps the weights of
+   every voxel already traced, so a frame traces only voxels no earlier frame activated; the
+   volumes are scattered and smoothed on the device;
 3. 3D multi-grid correlation (one or two passes, no deformation by default) with a
    :class:`~lfcore.correlate.Correlator` whose device buffers are allocated once, reading the
    volumes where they are;
@@ -48,9 +48,9 @@ import numpy as np
 
 from acquisition.ring import PairView
 from lfcore.correlate import CorrelationConfig, Correlator, VectorField
-from lfcore.device_ops import ImagePreprocessor, VolumeOps
+from lfcore.device_ops import ImagePreprocessor
 from lfcore.projector import Projector
-from lfcore.reconstruct import WEIGHTS, ReconSettings, estimate_background
+from lfcore.reconstruct import WEIGHTS, FrameReconstructor, ReconSettings, estimate_background
 from lfcore.rig import Rig
 from lfcore.vectors import centres_mm, displacement_to_velocity, vorticity
 from lfcore.volume import VolumeGrid
@@ -288,9 +288,11 @@ class _Reconstructor:
     """DRT-MART or MLOS-MART of one frame at a time with everything but the per-frame weights built once.
 
     Everything per pair stays on the device: the raw frames arrive there as uint16, are
-    preprocessed there (:class:`~lfcore.device_ops.ImagePreprocessor`), reconstructed, scattered
-    into two preallocated volumes and smoothed there (:class:`~lfcore.device_ops.VolumeOps`),
-    and the correlator reads those volumes where they are.
+    preprocessed there (:class:`~lfcore.device_ops.ImagePreprocessor`) into two signal and lit
+    buffers, and reconstructed by the batch path's
+    :class:`~lfcore.reconstruct.FrameReconstructor` (the same elimination, weights, SMART loop,
+    scatter and smoothing, with its buffers kept) into two preallocated volumes, which the
+    correlator reads where they are.
     """
 
     def __init__(self, rig: Rig, cameras: Sequence[str], grid: VolumeGrid, recon: ReconSettings,
@@ -301,17 +303,16 @@ class _Reconstructor:
         p = self.projector
         # each voxel's weights traced once, on the first frame that keeps it (see WeightCache)
         self.cache = WeightCache(p, method=WEIGHTS[recon.method])
+        self.frames = FrameReconstructor(p, recon, cache=self.cache)
         self.wp = p.wp
         self.device = p.device
         self.offsets = [int(o) for o in p.pixel_offsets]
         self.pre = ImagePreprocessor(self.cams, device=self.device)
-        self.ops = VolumeOps(grid.shape, device=self.device)
+        self.ops = self.frames.ops
         wp = self.wp
         self.signal = [wp.zeros(p.n_pixels, dtype=float, device=self.device) for _ in range(2)]
         self.lit = [wp.zeros(p.n_pixels, dtype=wp.uint8, device=self.device) for _ in range(2)]
         self.volumes = [self.ops.empty() for _ in range(2)]
-        self.proj = wp.zeros(p.n_pixels, dtype=float, device=self.device)
-        self.e = wp.zeros(max(1024, grid.n_voxels // 64), dtype=float, device=self.device)
         self.background: list[tuple[float, float] | None] = [None] * len(self.cams)
 
     def camera_image(self, frames: np.ndarray, f: int, k: int) -> np.ndarray:
@@ -336,36 +337,16 @@ class _Reconstructor:
 
     def eliminate(self, f: int):
         """The voxels that survive zero-voxel elimination in frame ``f``, (n,) int32 on the device."""
-        r = self.recon
-        return self.projector.eliminate(self.lit[f], r.min_seen, r.max_dark)
+        return self.frames.eliminate(self.lit[f])
 
     def iterate(self, f: int, weights, iterations: int, relaxation: float):
         """Uniform start scaled to the measured signal, then ``iterations`` SMART updates."""
-        wp, p = self.wp, self.projector
-        n = weights.n_voxels
-        if self.e.shape[0] < n:
-            self.e = wp.zeros(int(n * 1.5) + 1, dtype=float, device=self.device)
-        e = self.e[: max(n, 1)]
-        if n == 0:
-            return e
-        image = self.signal[f]
-        e.fill_(1.0)
-        p.forward(weights, e, self.proj)
-        total = float(wp.utils.array_sum(self.proj))
-        e.fill_(float(wp.utils.array_sum(image)) / total if total > 0 else 0.0)
-        noise = np.mean([s for _, s in self.background])  # type: ignore[misc]
-        floor = max(self.recon.floor * self.recon.threshold_sigma * float(noise), 1e-6)
-        for _ in range(iterations):
-            p.forward(weights, e, self.proj)
-            p.smart_update(weights, image, self.proj, e, relaxation, floor)
-        wp.synchronize_device(self.device)
-        return e
+        noise = [sigma for _, sigma in self.background]  # type: ignore[misc]
+        return self.frames.iterate(weights, self.signal[f], noise, iterations=iterations, relaxation=relaxation).e
 
     def volume(self, f: int, weights, e):
         """Frame ``f``'s (z, y, x) volume, smoothed, in its device buffer."""
-        vol = self.projector.scatter(weights, e, self.volumes[f])
-        self.ops.smooth(vol, self.recon.smooth)
-        return vol
+        return self.frames.volume(weights, e, out=self.volumes[f])
 
 
 @dataclass(eq=False)
@@ -790,7 +771,7 @@ class LivePipeline:
             t0 = time.perf_counter()
             voxels = rc.eliminate(f)  # ends on the host (the count of survivors), so t1 is exact
             t1 = time.perf_counter()
-            w = rc.cache.weights(voxels)  # from the cache where it has them
+            w = rc.frames.weights(voxels)  # from the cache where it has them
             t2 = time.perf_counter()
             e = rc.iterate(f, w, s.iterations, s.relaxation)
             t3 = time.perf_counter()

@@ -145,12 +145,12 @@ def test_evaluate_needs_a_synthetic_run(capsys, tmp_path):
 
 def test_running_out_of_device_memory_is_one_line_and_keeps_volumes(capsys, tmp_path, monkeypatch):
     """A weight build whose allocation fails (as Warp reports it) midway through a run."""
-    from lfcore.projector import Projector
+    from lfcore.weight_build import WeightBuilder
 
     path = tmp_path / "run.zarr"
     assert main(["synth", "--rig", TINY, "--out", str(path), "--pairs", "1", "--ppm", "0.2", "--quiet"]) == 0
     capsys.readouterr()
-    build = Projector._weights
+    build = WeightBuilder._weights
     calls = []
 
     def failing(self, *args):
@@ -159,7 +159,7 @@ def test_running_out_of_device_memory_is_one_line_and_keeps_volumes(capsys, tmp_
             raise RuntimeError("Failed to allocate 3221225472 bytes on device 'cuda:0'")
         return build(self, *args)
 
-    monkeypatch.setattr(Projector, "_weights", failing)
+    monkeypatch.setattr(WeightBuilder, "_weights", failing)
     rc, out, err = _run(capsys, "reconstruct", str(path), "--iterations", "2", "--quiet")
     assert rc == 2 and out == "" and err.count("\n") == 1, err
     assert "pair 0 frame B: the weights of" in err and "ran out of memory on " in err and "(3.0 GiB more)" in err

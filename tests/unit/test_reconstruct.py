@@ -7,6 +7,8 @@ depth better than one; nothing may appear outside the seeded region.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -303,3 +305,84 @@ def test_bad_settings():
         ReconSettings(weight_storage="on-the-fly")
     with pytest.raises(ValueError, match="the sequential form needs stored weights"):
         ReconSettings(method="mlos-mart", form="sequential", weight_storage="on-the-fly")
+
+
+def test_a_frame_reconstructor_keeps_its_buffers_and_gives_reconstruct_s_volumes(tiny_rig, device):
+    """Frames of few, many, then few particles through one reconstructor: each volume is the
+    one-frame reconstruction's, its intensities and volume stay in the same device buffers, and
+    a result's volume is not overwritten by the next frame."""
+    from lfcore.reconstruct import FrameReconstructor
+
+    grid = VolumeGrid.from_rig(tiny_rig)
+    proj = Projector(tiny_rig.camera, grid, device=device)
+    settings = ReconSettings(iterations=5)
+    scenes = [(7, 0.1), (8, 0.4), (7, 0.1)]  # the third repeats the first
+    images = [_render(tiny_rig, seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm),
+                                               np.random.default_rng(seed)), device=device)
+              for seed, ppm in scenes]
+    frames = FrameReconstructor(proj, settings)
+    results, e_ptr, vol_ptr = [], [], []
+    for imgs in images:
+        results.append(frames.reconstruct(imgs))
+        e_ptr.append(frames._e.ptr)
+        vol_ptr.append(frames._volume.ptr)
+    assert results[0].active_voxels < results[1].active_voxels  # the second frame grows the intensities
+    assert e_ptr[1] == e_ptr[2] and vol_ptr[0] == vol_ptr[1] == vol_ptr[2]
+    for imgs, res in zip(images, results, strict=True):
+        ref = reconstruct(proj, imgs, settings)
+        assert res.active_voxels == ref.active_voxels and res.nnz == ref.nnz and ref.volume.max() > 0
+        np.testing.assert_allclose(res.volume, ref.volume, rtol=1e-5, atol=1e-6 * float(ref.volume.max()))
+    np.testing.assert_allclose(results[2].volume, results[0].volume, rtol=1e-5,
+                               atol=1e-6 * float(results[0].volume.max()))
+    assert not np.allclose(results[1].volume, results[0].volume)
+    with pytest.raises(ValueError, match="got 2 images for 1 cameras"):
+        frames.reconstruct(images[0] * 2)
+
+
+def test_frame_reconstructor_stages_on_device_images(tiny_rig, device):
+    """The stages one by one, from a device signal and lit mask (as the live path has them),
+    with iterations and relaxation given per call, equal the settings' own reconstruction."""
+    from lfcore.reconstruct import FrameReconstructor, preprocess
+
+    grid = VolumeGrid.from_rig(tiny_rig)
+    proj = Projector(tiny_rig.camera, grid, device=device)
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.3), np.random.default_rng(9))
+    (img,) = _render(tiny_rig, pts, device=device)
+    level, sigma = estimate_background(img)
+    signal, lit = preprocess(img, level, sigma, 2.0)
+    wp = proj.wp
+    frames = FrameReconstructor(proj, ReconSettings(iterations=50, relaxation=1.5))
+    w = frames.weights(frames.eliminate(wp.array(lit.ravel().astype(np.uint8), device=device)))
+    done = frames.iterate(w, wp.array(signal.ravel(), dtype=float, device=device), [sigma], iterations=8,
+                          relaxation=1.0)
+    assert done.iterate_s > 0 and done.start_s > 0
+    got = frames.volume(w, done.e).numpy()
+    ref = reconstruct(proj, [img], ReconSettings(iterations=8, relaxation=1.0)).volume
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-6 * float(ref.max()))
+
+
+def test_a_frame_reconstructor_s_own_buffers_do_not_shrink_the_weights_budget(tiny_rig, device, monkeypatch):
+    """On a device with a fixed amount of memory, less what the reconstructor holds, the same
+    frame twice makes (nearly) the same share of its weights on the fly: the buffers kept from
+    the first frame serve the second, so they are not set aside for it again."""
+    from lfcore import reconstruct as recon_module
+    from lfcore.reconstruct import FrameReconstructor
+
+    grid = VolumeGrid.from_rig(tiny_rig)
+    _, images = _scene_images(tiny_rig, 0.3, device)
+    proj = Projector(tiny_rig.camera, grid, device=device)
+    settings = ReconSettings(method="mlos-mart", iterations=2)
+    stored = reconstruct(proj, images, dataclasses.replace(settings, weight_storage="stored"))
+    total = stored.weight_bytes // 2 + 12 * proj.n_pixels + 12 * grid.n_voxels
+    frames = FrameReconstructor(proj, settings)
+    buffers = ("_image", "_proj", "_e", "_volume")
+
+    def free(_device: str) -> int:
+        held = sum(getattr(frames, b).capacity for b in buffers if getattr(frames, b) is not None)
+        return total - held - (frames.ops._tmp.capacity if frames.ops._tmp is not None else 0)
+
+    monkeypatch.setattr(recon_module, "available_bytes", free)
+    first, second = frames.reconstruct(images), frames.reconstruct(images)
+    assert 0 < first.on_the_fly_voxels < first.active_voxels
+    assert abs(second.on_the_fly_voxels - first.on_the_fly_voxels) <= 0.01 * first.active_voxels
+    np.testing.assert_allclose(second.volume, first.volume, rtol=1e-3, atol=1e-4 * float(first.volume.max()))

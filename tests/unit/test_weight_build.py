@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from lfcore import projector as projector_module
+from lfcore import weight_build as build_module
 from lfcore.particles import seed_particles
 from lfcore.projector import Projector
 from lfcore.reconstruct import ReconSettings, estimate_background, preprocess, reconstruct
@@ -71,17 +72,17 @@ def test_single_pass_build_matches_the_two_pass_build(small_dual_rig, device, mo
     assert los.nnz > 0
     _same(los, proj.weights(vox, "los", sort="per-voxel"))
     # a tiny capacity sample (voxels overflow their slots) and small chunks: still the same
-    monkeypatch.setattr(projector_module, "CAPACITY_SAMPLE", 1)
-    monkeypatch.setattr(projector_module, "SINGLE_PASS_ENTRIES", 5000)
+    monkeypatch.setattr(build_module, "CAPACITY_SAMPLE", 1)
+    monkeypatch.setattr(build_module, "SINGLE_PASS_ENTRIES", 5000)
     fast = proj.weights(vox, "drt", build="single-pass")
     assert len(fast.chunks) == 1  # the build's many small chunks joined: fewer launches an iteration
     _same(direct, fast)
     # joined up to the chunk size, and not at all where the copy would not fit the budget
-    monkeypatch.setitem(projector_module.CHUNK_ENTRIES, "cpu" if device == "cpu" else "cuda", direct.nnz // 3)
+    monkeypatch.setitem(build_module.CHUNK_ENTRIES, "cpu" if device == "cpu" else "cuda", direct.nnz // 3)
     fast = proj.weights(vox, "drt", build="single-pass")
     assert 3 <= len(fast.chunks) < 10 and max(c.nnz for c in fast.chunks) <= direct.nnz // 3
     _same(direct, fast)
-    tight = proj.weights(vox, "drt", build="single-pass", budget_bytes=projector_module.BYTES_PER_WEIGHT * direct.nnz)
+    tight = proj.weights(vox, "drt", build="single-pass", budget_bytes=build_module.BYTES_PER_WEIGHT * direct.nnz)
     assert len(tight.chunks) >= 10
     _same(direct, tight)
     _same(direct, proj.weights(vox, "drt"))  # the device's default build
@@ -154,8 +155,8 @@ def test_cache_over_budget_keeps_the_newest_frame(small_dual_rig, device, monkey
     _same_rows(direct, cache.weights(vox))
     assert cache.n_cached == 0
     # output chunks stay below the length limit of one array
-    monkeypatch.setitem(projector_module.CHUNK_ENTRIES, device.split(":")[0], direct.nnz // 5)
-    monkeypatch.setattr("lfcore.weight_cache.CHUNK_ENTRIES", projector_module.CHUNK_ENTRIES)
+    monkeypatch.setitem(build_module.CHUNK_ENTRIES, device.split(":")[0], direct.nnz // 5)
+    monkeypatch.setattr("lfcore.weight_cache.CHUNK_ENTRIES", build_module.CHUNK_ENTRIES)
     small = WeightCache(proj)
     small.weights(vox)
     chunked = small.weights(vox)
@@ -336,3 +337,19 @@ def test_elimination_off_the_sensor_edges_keeps_what_the_traced_table_keeps(tiny
     everything = np.ones((rig.camera[0].sensor_px[1], rig.camera[0].sensor_px[0]), bool)
     proj.precompute_checks(0)
     assert proj.eliminate([everything], 0.99, 0.0).numpy().size < proj.eliminate([everything], 0.01, 0.0).numpy().size
+
+
+def test_elimination_reuses_its_scratch_and_returns_arrays_of_its_own(small_dual_rig, device):
+    """Frames with many, few, then many lit pixels through one projector keep the voxels a fresh
+    projector keeps, and a result is not overwritten by the next call."""
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = Projector(small_dual_rig.camera, grid, device=device)
+    settings = ReconSettings()
+    lits = [_lit(_images(small_dual_rig, grid, device, n=n, seed=seed), settings) for n, seed in ((30, 3), (4, 4))]
+    fresh = [Projector(small_dual_rig.camera, grid, device=device).eliminate(lit, settings.min_seen,
+                                                                             settings.max_dark).numpy()
+             for lit in lits]
+    assert 0 < fresh[1].size < fresh[0].size < grid.n_voxels
+    got = [proj.eliminate(lits[k], settings.min_seen, settings.max_dark) for k in (0, 1, 0)]
+    for k, voxels in zip((0, 1, 0), got, strict=True):
+        assert np.array_equal(voxels.numpy(), fresh[k])
