@@ -71,19 +71,19 @@ def reconstruction(store: RunStore, settings: ReconSettings, device: str) -> Non
     reconstruct_run(store, settings, pairs=slice(0, 1), device=device, progress=False)
 
     t0 = time.perf_counter()
-    projector, cache = _operator(rig.camera, grid, settings, device)
+    frames = _operator(rig.camera, grid, settings, device)
     t_build = time.perf_counter() - t0
     t_rec = t_write = 0.0
     for p in pairs:
         for f in (0, 1):
             t = time.perf_counter()
-            res = _reconstruct_frame(projector, cache, store, names, p, f, settings)
+            res = _reconstruct_frame(frames, store, names, p, f)
             t_rec += time.perf_counter() - t
             t = time.perf_counter()
             store.write_volume(p, f, res.volume)
             t_write += time.perf_counter() - t
     serial = time.perf_counter() - t0
-    del projector, cache
+    del frames
 
     t0 = time.perf_counter()
     reconstruct_run(store, settings, device=device, progress=False)

@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
 from lfcore.projector import Projector
-from lfcore.reconstruct import MAX_SUB_APERTURES, WEIGHTS, ReconResult, ReconSettings, reconstruct
+from lfcore.reconstruct import MAX_SUB_APERTURES, WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
 from lfcore.rig import Rig, voxel_shape_warnings
 from lfcore.runstore import RunStore
 from lfcore.volume import VolumeGrid
@@ -61,9 +61,9 @@ class ReconJob:
     into: str = "volumes"
 
 
-def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings,
-              device: str | None) -> tuple[Projector, WeightCache | None]:
-    """The projector of a run's reconstruction and its weight cache, on a device with room for the box."""
+def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None) -> FrameReconstructor:
+    """The reconstructor of a run's frames (its projector, weight cache and device buffers, built
+    once per stream), on a device with room for the box."""
     device = resolve_device(device)
     need = BYTES_PER_BOX_VOXEL * grid.n_voxels
     if need > available_bytes(device):
@@ -74,16 +74,15 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings,
     cache = None
     if settings.method != "mart" and settings.weight_storage != "on-the-fly":
         cache = WeightCache(projector, method=WEIGHTS[settings.method])
-    return projector, cache
+    return FrameReconstructor(projector, settings, cache=cache)
 
 
-def _reconstruct_frame(projector: Projector, cache: WeightCache | None, store: RunStore, names: Sequence[str],
-                       pair: int, frame: int, settings: ReconSettings,
+def _reconstruct_frame(frames: FrameReconstructor, store: RunStore, names: Sequence[str], pair: int, frame: int,
                        progress: Any = None) -> ReconResult:
     """Reconstruct one frame of a pair from the run's images."""
     images = [store.frames(n)[pair, frame] for n in names]
     try:
-        return reconstruct(projector, images, settings, progress=progress, cache=cache)
+        return frames.reconstruct(images, progress=progress)
     except MemoryBudgetError as exc:
         raise UsageError(f"pair {pair} frame {'AB'[frame]}: {exc}") from None
 
@@ -99,7 +98,7 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
     back without their volumes, which stay in the store."""
     from lfpiv.batch import open_run_on_worker, this_worker_device, worker_state
 
-    def build() -> tuple[RunStore, Any, Projector, WeightCache | None]:
+    def build() -> tuple[RunStore, Any, FrameReconstructor]:
         store = open_run_on_worker(job.path)
         if job.into != "volumes":
             store.resume("volumes")
@@ -108,14 +107,14 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
         # as pairs finish, and re-reading them for every write could meet a half-replaced file
         # on a network file system
         return (store, store.writing("volumes")["data"],
-                *_operator(cams, job.grid, job.settings, this_worker_device(job.device)))
+                _operator(cams, job.grid, job.settings, this_worker_device(job.device)))
 
-    store, data, projector, cache = worker_state(job.token, build)
+    store, data, frames = worker_state(job.token, build)
     out = []
     # frame A is written while frame B is reconstructed; both are written when the task returns
     with WriteBehind() as writer:
         for f in (0, 1):
-            res = _reconstruct_frame(projector, cache, store, job.cameras, pair, f, job.settings)
+            res = _reconstruct_frame(frames, store, job.cameras, pair, f)
             writer.submit(data.__setitem__, (pair, f), res.volume)
             out.append(_summary(res))
     return out
@@ -177,7 +176,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     except ValueError as exc:
         raise UsageError(f"--pvr/--margin-mm: {exc}") from None
     # the cluster's workers hold the device; this process may have none (a login node)
-    projector, cache = _operator(cams, grid, settings, device) if client is None else (None, None)
+    frames = _operator(cams, grid, settings, device) if client is None else None
     # where the weights lived does not change a volume, so it does not make volumes/ a different set
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
@@ -203,14 +202,14 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
 
     run_pairs(store, "volumes", chosen, matches=lambda g: _made_with(store, g, grid, meta), differences=differences,
               create=lambda: store.create_volumes(grid, method=settings.method, settings=meta), skip_done=skip_done,
-              here=lambda todo: _reconstruct_here(projector, cache, store, names, todo, settings, results, progress),
+              here=lambda todo: _reconstruct_here(frames, store, names, todo, settings, results, progress),
               remote=remote, client=client, on_done=written, desc="reconstructing", progress=progress,
               kept=lambda: f"the {len(results)} volume(s) written before are kept" if results else "")
     return results
 
 
-def _reconstruct_here(projector: Projector, cache: WeightCache | None, store: RunStore, names: Sequence[str],
-                      chosen: list[int], settings: ReconSettings, results: list[ReconResult], progress: bool) -> None:
+def _reconstruct_here(frames: FrameReconstructor, store: RunStore, names: Sequence[str], chosen: list[int],
+                      settings: ReconSettings, results: list[ReconResult], progress: bool) -> None:
     """Reconstruct both frames of the ``chosen`` pairs in this process, adding to ``results``;
     each volume is written (and recorded) while the next frame is reconstructed."""
     total = len(chosen) * 2 * max(settings.iterations, 1)
@@ -218,7 +217,7 @@ def _reconstruct_here(projector: Projector, cache: WeightCache | None, store: Ru
           tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar):
         for p in chosen:
             for f in (0, 1):
-                res = _reconstruct_frame(projector, cache, store, names, p, f, settings, bar.update)
+                res = _reconstruct_frame(frames, store, names, p, f, bar.update)
                 writer.submit(store.write_volume, p, f, res.volume)
                 results.append(_summary(res))
                 if settings.iterations == 0:

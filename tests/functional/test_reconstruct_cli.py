@@ -217,11 +217,11 @@ def test_an_interrupted_replacement_leaves_the_old_volumes_whole_and_goes_on(cap
     frames = []
     real = recon._reconstruct_frame
 
-    def interrupted_at_pair_1(projector, cache, store, names, pair, frame, *args, **kwargs):
+    def interrupted_at_pair_1(recon_frames, store, names, pair, frame, *args, **kwargs):
         if pair == 1:
             raise KeyboardInterrupt
         frames.append((pair, frame))
-        return real(projector, cache, store, names, pair, frame, *args, **kwargs)
+        return real(recon_frames, store, names, pair, frame, *args, **kwargs)
 
     monkeypatch.setattr(recon, "_reconstruct_frame", interrupted_at_pair_1)
     rc, _, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--quiet")
@@ -237,7 +237,7 @@ def test_an_interrupted_replacement_leaves_the_old_volumes_whole_and_goes_on(cap
     assert "volumes.pending  a replacement (drt-mart, 3 iterations) interrupted after 1 pair(s) (0); it takes" in out
 
     frames.clear()
-    monkeypatch.setattr(recon, "_reconstruct_frame", lambda *a, **k: (frames.append(a[4:6]), real(*a, **k))[1])
+    monkeypatch.setattr(recon, "_reconstruct_frame", lambda *a, **k: (frames.append(a[3:5]), real(*a, **k))[1])
     # going on for a part of the pairs: the replacement waits for the rest, the old volumes stay
     rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--pairs", "0", "--skip-done", "--quiet")
     assert rc == 0 and frames == [], err
@@ -264,7 +264,7 @@ def test_other_settings_after_an_interrupted_replacement_start_it_again(capsys, 
     real = recon._reconstruct_frame
 
     def interrupted_at_pair_1(*args, **kwargs):
-        if args[4] == 1:
+        if args[3] == 1:
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
