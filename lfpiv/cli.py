@@ -69,6 +69,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from lfcore.errors import ComputeDeviceError, DeviceError
         from lfcore.rig import RigError
         from lfcore.runstore import RunStoreError
+        from lfpiv.formats import FormatError
     except KeyboardInterrupt:  # Ctrl-C while starting: nothing was done yet
         print("lfpiv: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -81,7 +82,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         # set), then ends the command as Ctrl-C does (acquire and monitor refine this)
         with signals_call(_interrupted):
             return args.func(args)
-    except (UsageError, RigError, RunStoreError, CalibrationStoreError, ComputeDeviceError, MemoryBudgetError) as exc:
+    except (UsageError, RigError, RunStoreError, CalibrationStoreError, ComputeDeviceError, MemoryBudgetError,
+            FormatError) as exc:
         print(f"lfpiv: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except DeviceError as exc:  # a hardware fault (a compute device that is not here is the user's choice, above)

@@ -1,4 +1,4 @@
-"""``lfpiv export``: write a run's vector fields as netCDF or VTK files."""
+"""``lfpiv export``: write a run's vector fields for the tools labs open them with."""
 
 from __future__ import annotations
 
@@ -6,12 +6,16 @@ import argparse
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    e = sub.add_parser("export", help="write a run's vector fields as netCDF or VTK for ParaView, Tecplot, xarray",
+    from lfpiv.jobs.export import FORMATS
+
+    e = sub.add_parser("export", help="write a run's vector fields for ParaView, Tecplot, DaVis, MATLAB, xarray",
                        description="Write the correlated pairs of a run's vectors/ with vorticity, divergence and "
-                       "Q-criterion: --format netcdf gives one vectors.nc (dimensions pair, z, y, x; mm, m/s); "
-                       "--format vtk gives one VTK ImageData file per pair and a ParaView collection vectors.pvd.")
+                       "Q-criterion, in SI units (m, m/s, 1/s): --format netcdf gives vectors.nc (netCDF-4, CF-1.8, "
+                       "dimensions time, z, y, x; ParaView, xarray); vtk one VTK ImageData file per pair and a "
+                       "ParaView collection vectors.pvd; tecplot vectors.dat (ASCII, one zone per pair); davis a "
+                       "DaVis vector set vectors.set; mat vectors.mat (MATLAB, meshgrid order).")
     e.add_argument("run", metavar="RUN", help="run store with vectors (a .zarr directory)")
-    e.add_argument("--format", required=True, choices=("netcdf", "vtk"), help="netcdf or vtk")
+    e.add_argument("--format", required=True, choices=tuple(FORMATS), help=", ".join(FORMATS))
     e.add_argument("--out", required=True, metavar="DIR", help="directory to write into (created if needed)")
     e.add_argument("--overwrite", action="store_true",
                    help="replace the files of an earlier export of this format in --out")

@@ -54,7 +54,7 @@ if TYPE_CHECKING:
 
 __all__ = ["DavisImage", "DavisTiming", "davis_timing", "read_davis_image", "write_davis_set"]
 
-_INSTALL = "install it with 'pip install lvpyio'"
+_INSTALL = "install it with: pip install 'lfpiv[davis]' (or pip install lvpyio)"
 
 
 def _lvpyio() -> Any:

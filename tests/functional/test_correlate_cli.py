@@ -99,20 +99,21 @@ def test_evaluate_without_vectors(tmp_path, tiny_rig):
 
 
 def test_export_netcdf(correlated, tmp_path, capsys):
-    from scipy.io import netcdf_file
+    """netCDF-4, CF-1.8, in SI: the time dimension VTK's CF reader needs, positions in metres."""
+    import netCDF4
 
     path, _, vel = correlated
     rc, out, err = _run(capsys, "export", path, "--format", "netcdf", "--out", tmp_path / "nc")
     assert rc == 0 and "vectors.nc" in out
     v = RunStore.open(path).vectors()
-    with netcdf_file(tmp_path / "nc" / "vectors.nc", "r", mmap=False) as nc:
-        assert nc.variables["u"].dimensions == (b"pair", b"z", b"y", b"x") or nc.variables["u"].dimensions == (
-            "pair", "z", "y", "x")
-        assert np.allclose(nc.variables["u"][:], v["u"]) and np.allclose(nc.variables["x"][:], v["x_mm"])
-        assert nc.variables["w"].units in (b"m/s", "m/s") and nc.variables["x"].units in (b"mm", "mm")
+    with netCDF4.Dataset(tmp_path / "nc" / "vectors.nc") as nc:
+        nc.set_auto_mask(False)
+        assert nc.variables["u"].dimensions == ("time", "z", "y", "x")
+        assert np.allclose(nc.variables["u"][:], v["u"]) and np.allclose(nc.variables["x"][:], v["x_mm"] * 1e-3)
+        assert nc.variables["w"].units == "m s-1" and nc.variables["x"].units == "m"
         assert np.abs(nc.variables["divergence"][:]).mean() < 20.0  # 1/s; noise on a uniform field
         assert nc.variables["pair"][:].tolist() == [0, 1]
-        assert np.allclose(nc.variables["time"][:], [0.0, 0.1])
+        assert np.allclose(nc.variables["time"][:], [0.0, 0.1]) and nc.variables["time"].units.startswith("seconds")
 
 
 def test_export_never_writes_through_a_link(correlated, tmp_path, capsys):
@@ -159,7 +160,7 @@ def test_export_vtk(correlated, tmp_path, capsys):
     velocity = np.frombuffer(data[off + 4:off + 4 + n], np.float32).reshape(nz, ny, nx, 3)
     assert np.allclose(velocity, np.stack([v[c][1] for c in "uvw"], axis=-1))
     origin = [float(t) for t in re.search(r'Origin="([^"]+)"', head).group(1).split()]
-    assert np.allclose(origin, [v["x_mm"][0], v["y_mm"][0], v["z_mm"][0]])
+    assert np.allclose(origin, [v["x_mm"][0] * 1e-3, v["y_mm"][0] * 1e-3, v["z_mm"][0] * 1e-3])  # metres
     assert 'timestep="0.1"' in (tmp_path / "vtk" / "vectors.pvd").read_text()
 
 
