@@ -24,21 +24,23 @@ MIN_DOTS_ACROSS = 2
 
 
 def default_board(rig: Rig, spacing_mm: float | None = None, tilt_deg: float | None = None) -> DotBoard:
-    """The board the volumetric run assumes unless told.
+    """The board of the volumetric calibration: the rig's ``[target]`` where it describes the plate,
+    else the default board.
 
-    3 mm spacing (a quarter of the volume's smaller transverse size for small rigs), centred on
-    the volume, tilted about world y so its normal bisects the cameras' optical axes (0 for one
-    camera, 45 degrees for two at 90), with a marker dot (1.6 times larger) at its origin for two
-    or more cameras; one camera names its dots from the nominal model alone (no marker).
+    The default board has a 3 mm spacing (a quarter of the volume's smaller transverse size for
+    small rigs) and dots 0.3 spacings across, is centred on the volume, tilted about world y so
+    its normal bisects the cameras' optical axes (0 for one camera, 45 degrees for two at 90), and
+    has a marker dot (1.6 times larger) at its origin for two or more cameras; one camera names
+    its dots from the nominal model alone (no marker).
 
     Parameters
     ----------
     rig
-        The rig (cameras, volume).
+        The rig (cameras, volume, ``[target]``).
     spacing_mm
-        Dot pitch, mm (None: the default above).
+        Dot pitch, mm (None: ``target.dot_pitch_mm``, else the default above).
     tilt_deg
-        Tilt about world y, degrees (None: the bisecting tilt).
+        Tilt about world y, degrees (None: ``target.tilt_deg``, else the bisecting tilt).
 
     Raises
     ------
@@ -46,9 +48,11 @@ def default_board(rig: Rig, spacing_mm: float | None = None, tilt_deg: float | N
         A spacing below :data:`MIN_DOT_LENSLETS` lenslets of the coarsest camera, or one that
         leaves fewer than :data:`MIN_DOTS_ACROSS` dots across the narrowest field of view.
     """
-    vol = rig.volume
+    vol, plate = rig.volume, rig.target
     if spacing_mm is None:
-        spacing_mm = min(3.0, 0.25 * min(vol.size_mm[0], vol.size_mm[1]))
+        spacing_mm = plate.dot_pitch_mm or min(3.0, 0.25 * min(vol.size_mm[0], vol.size_mm[1]))
+    if tilt_deg is None:
+        tilt_deg = plate.tilt_deg
     least = max(MIN_DOT_LENSLETS * c.mla_pitch_mm / abs(c.magnification) for c in rig.camera)
     if spacing_mm < least:
         raise ValueError(f"dots {spacing_mm:g} mm apart are closer than {MIN_DOT_LENSLETS} lenslets of the cameras "
@@ -59,6 +63,15 @@ def default_board(rig: Rig, spacing_mm: float | None = None, tilt_deg: float | N
         raise ValueError(f"dots {spacing_mm:g} mm apart leave fewer than {MIN_DOTS_ACROSS} across the narrowest "
                          f"camera's field of view ({MIN_DOTS_ACROSS * most:.3g} mm); use a spacing of at most "
                          f"{most:.2g} mm")
-    board = DotBoard.for_cameras(np.array([c.optical_axis for c in rig.camera]), spacing_mm=spacing_mm,
-                                 centre_mm=vol.centre_mm, marker_scale=1.6 if len(rig.camera) > 1 else 1.0)
+    shape: dict[str, float] = {"marker_scale": 1.6 if len(rig.camera) > 1 else 1.0}
+    if plate.dot_diameter_mm is not None:
+        shape["radius_fraction"] = 0.5 * plate.dot_diameter_mm / spacing_mm
+    if plate.marker_diameter_mm is not None:  # 0: the plate has no marker dot
+        dot = plate.dot_diameter_mm or 2 * DotBoard.radius_fraction * spacing_mm
+        shape["marker_scale"] = max(1.0, plate.marker_diameter_mm / dot)
+    try:
+        board = DotBoard.for_cameras(np.array([c.optical_axis for c in rig.camera]), spacing_mm=spacing_mm,
+                                     centre_mm=vol.centre_mm, level_step_mm=plate.level_step_mm, **shape)
+    except ValueError as exc:
+        raise ValueError(f"[target]: {exc}") from None
     return board if tilt_deg is None else dataclasses.replace(board, tilt_deg=tilt_deg)

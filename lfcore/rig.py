@@ -33,6 +33,7 @@ __all__ = [
     "Rig",
     "RigError",
     "StageConfig",
+    "TargetConfig",
     "TimingConfig",
     "VolumeConfig",
     "rotation_angle_deg",
@@ -134,6 +135,9 @@ class Camera(_Strict):
     mla_rotation_deg: FiniteFloat = 0.0
     mla_offset_um: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
     serial: str | None = None
+    #: Bits per pixel of the real sensor: its full scale (2**bit_depth - 1) judges clipping of
+    #: white images and the values of imported frames; apart from [render]'s synthetic images.
+    bit_depth: Annotated[int, Field(ge=8, le=16)] = 16
 
     @field_validator("name")
     @classmethod
@@ -415,6 +419,24 @@ class RenderConfig(_Strict):
     bit_depth: Annotated[int, Field(ge=8, le=16)] = 16
 
 
+class TargetConfig(_Strict):
+    """The calibration plate (``[target]``), so that a lab's own dot plate can serve.
+
+    Every key is optional: what is not given is the default board's (see
+    :func:`calibration.board.default_board`). ``dot_pitch_mm`` is the distance between
+    neighbouring dot centres, ``dot_diameter_mm`` a dot's diameter, ``marker_diameter_mm`` the
+    diameter of the larger marker dot at the plate's origin (0: no marker), ``tilt_deg`` the
+    plate's rotation about world y, and ``level_step_mm`` the depth of a two-level plate's second
+    level (its odd columns) behind the first (0: one level).
+    """
+
+    dot_pitch_mm: PositiveFloat | None = None
+    dot_diameter_mm: PositiveFloat | None = None
+    marker_diameter_mm: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
+    tilt_deg: FiniteFloat | None = None
+    level_step_mm: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+
+
 class Rig(_Strict):
     """A whole LF-PIV rig: the volume, one or more cameras, laser, timing and devices."""
 
@@ -429,6 +451,7 @@ class Rig(_Strict):
     stage: StageConfig = StageConfig()
     pulse_generator: PulseGeneratorConfig = PulseGeneratorConfig()
     render: RenderConfig = RenderConfig()
+    target: TargetConfig = TargetConfig()
 
     @model_validator(mode="after")
     def _consistent(self) -> Rig:

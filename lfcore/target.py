@@ -13,6 +13,8 @@ so both cameras see it; the stage still moves it along world z.
 
 Dot ``(0, 0)`` is the marker: ``marker_scale`` times the radius of the others, as commercial
 targets carry, so a camera that sees only part of the board can still tell which dot is which.
+A two-level plate (``level_step_mm`` > 0) has the dots of odd columns ``i`` on a second level,
+that much behind the first along the board's normal.
 
 Pure geometry: numbers in, arrays out.
 """
@@ -46,6 +48,9 @@ class DotBoard:
         World (x, y, z) of dot (0, 0) when the stage reads ``stage_centre_mm``.
     stage_centre_mm
         Stage position at which the board's origin is at ``centre_mm``, mm.
+    level_step_mm
+        Two-level plates: depth of the second level (the odd columns) behind the first, mm (0:
+        one level).
     """
 
     spacing_mm: float = 3.0
@@ -54,6 +59,7 @@ class DotBoard:
     tilt_deg: float = 0.0
     centre_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     stage_centre_mm: float = 0.0
+    level_step_mm: float = 0.0
 
     def __post_init__(self) -> None:
         if not (self.spacing_mm > 0 and math.isfinite(self.spacing_mm)):
@@ -63,6 +69,9 @@ class DotBoard:
                              f"radius_fraction {self.radius_fraction}, marker_scale {self.marker_scale}")
         if not -80.0 <= self.tilt_deg <= 80.0:
             raise ValueError(f"tilt_deg must be within +-80 degrees, got {self.tilt_deg}")
+        if not (0.0 <= self.level_step_mm < 10 * self.spacing_mm):
+            raise ValueError(f"level_step_mm must be 0 (one level) or a depth below ten dot pitches, got "
+                             f"{self.level_step_mm}")
         object.__setattr__(self, "centre_mm", tuple(float(v) for v in self.centre_mm))
 
     @property
@@ -98,9 +107,11 @@ class DotBoard:
             (n, 3) world (x, y, z), mm.
         """
         ij = np.asarray(indices, dtype=np.float64).reshape(-1, 2)
-        e1, e2, _ = self.axes
+        e1, e2, normal = self.axes
         s = np.broadcast_to(np.asarray(stage_mm, dtype=np.float64), (len(ij),))
         out = np.asarray(self.centre_mm) + self.spacing_mm * (ij[:, :1] * e1 + ij[:, 1:] * e2)
+        if self.level_step_mm:  # the second level of a two-level plate lies behind the first
+            out -= self.level_step_mm * (np.mod(ij[:, :1], 2) == 1) * normal
         out[:, 2] += s - self.stage_centre_mm
         return out
 
