@@ -30,6 +30,7 @@ from __future__ import annotations
 import contextlib
 import glob
 import hashlib
+import io
 import logging
 import os
 import re
@@ -58,6 +59,7 @@ __all__ = [
     "read_frame",
     "read_image",
     "read_pair",
+    "read_sources",
     "source_file",
 ]
 
@@ -252,13 +254,16 @@ def _tiff_info(path: Path) -> ImageInfo:
 _PIL_BITS = {"1": 1, "L": 8, "P": 8, "I;16": 16, "I;16B": 16, "I;16L": 16, "I;16N": 16, "I": 32}
 
 
-def _pillow_read(path: Path) -> tuple[np.ndarray, int]:
-    """The pixels (rows, columns) and the declared bits of a PNG or BMP, through imageio."""
+def _pillow_read(path: Path, raw: bytes | None = None) -> tuple[np.ndarray, int]:
+    """The pixels (rows, columns) and the declared bits of a PNG or BMP, through imageio (from
+    the file's bytes ``raw`` when they were read already)."""
     import imageio.v3 as iio
 
+    src: Any = path if raw is None else raw
+    ext = path.suffix.lower()
     try:
-        mode = iio.immeta(path).get("mode", "")
-        data = iio.imread(path)
+        mode = iio.immeta(src, extension=ext).get("mode", "")
+        data = iio.imread(src, extension=ext)
     except MemoryError:
         raise
     except Exception as exc:
@@ -328,15 +333,17 @@ def _as_uint16(data: np.ndarray, path: Path) -> np.ndarray:
     return data.astype(np.uint16)
 
 
-def _read(path: Path, frames: Sequence[int] | None = None) -> np.ndarray:
-    """Frames ``frames`` (all: None) of a file as uint16 (n, rows, columns)."""
+def _read(path: Path, frames: Sequence[int] | None = None, raw: bytes | None = None) -> np.ndarray:
+    """Frames ``frames`` (all: None) of a file as uint16 (n, rows, columns); from the file's bytes
+    ``raw`` when they were read already (TIFF, PNG, BMP; DaVis files are read by path)."""
     fam = _family(path)
-    _check_readable(path)
+    if raw is None:
+        _check_readable(path)
     if fam == "tiff":
         import tifffile
 
         try:
-            with _tiff_errors() as errors, tifffile.TiffFile(path) as tf:
+            with _tiff_errors() as errors, tifffile.TiffFile(path if raw is None else io.BytesIO(raw)) as tf:
                 n = len(tf.series[0].pages) if tf.series else 0
                 keys = list(range(n)) if frames is None else list(frames)
                 if any(k >= n for k in keys):
@@ -358,7 +365,7 @@ def _read(path: Path, frames: Sequence[int] | None = None) -> np.ndarray:
 
         all_frames = _as_uint16(read_davis_image(path).frames, path)
     else:
-        all_frames = _as_uint16(_pillow_read(path)[0], path)[None]
+        all_frames = _as_uint16(_pillow_read(path, raw)[0], path)[None]
     if frames is None:
         return all_frames
     if any(k >= len(all_frames) for k in frames):
@@ -498,7 +505,8 @@ def _frame_shape(src: FrameSource, info: ImageInfo) -> tuple[int, int]:
 
 def pair_frames(files: Sequence[str | os.PathLike[str]], *, layout: str,
                 files_b: Sequence[str | os.PathLike[str]] | None = None, camera: int = 0,
-                sensor_px: tuple[int, int] | None = None) -> list[PairSource]:
+                sensor_px: tuple[int, int] | None = None,
+                unpaired: list[FrameSource] | None = None) -> list[PairSource]:
     """Where the frames A and B of each pair lie, for one of the :data:`LAYOUTS`.
 
     Every file is inspected (:func:`inspect_image`) and every frame must have the same size
@@ -517,6 +525,9 @@ def pair_frames(files: Sequence[str | os.PathLike[str]], *, layout: str,
         For DaVis files that hold the frames of several cameras: which one, from 0.
     sensor_px
         (columns, rows) of the camera's sensor, as the rig gives it; None: not checked.
+    unpaired
+        Where a last frame A without its frame B (an odd number of frames, interleaved) goes,
+        for the caller to record as lost; None: such a set is refused.
 
     Returns
     -------
@@ -540,6 +551,8 @@ def pair_frames(files: Sequence[str | os.PathLike[str]], *, layout: str,
     seq = [infos[Path(p)] for p in files]
     if layout == "interleaved":
         frames = _frames_in_order(seq)
+        if len(frames) % 2 and unpaired is not None:
+            unpaired.append(frames.pop())
         if len(frames) % 2:
             raise FormatError(f"the files hold {len(frames)} frames, an odd number, so the last ({frames[-1]}) has no "
                               "partner in the interleaved layout; remove it, or check the layout")
@@ -552,6 +565,9 @@ def pair_frames(files: Sequence[str | os.PathLike[str]], *, layout: str,
             raise FormatError(f"the files of frames A hold {len(frames_a)} frames and those of frames B "
                               f"{len(frames_b)}; each frame A needs its frame B: check both patterns")
         pairs = [PairSource(a, b) for a, b in zip(frames_a, frames_b, strict=True)]
+    if not pairs:
+        raise FormatError(f"the files hold a single frame ({unpaired[-1] if unpaired else files[0]}), no pair; a "
+                          "double-frame recording needs frames A and B")
     first = pairs[0].a
     shape0 = _frame_shape(first, infos[first.path])
     for p in pairs:
@@ -660,6 +676,51 @@ class SourceFile:
     def to_dict(self) -> dict[str, Any]:
         """``{"path": ..., "size": ..., "sha256": ...}`` (JSON-ready)."""
         return asdict(self)
+
+
+def read_sources(path: str | os.PathLike[str], sources: Sequence[FrameSource], *,
+                 sensor_px: tuple[int, int] | None = None,
+                 bit_depth: int | None = None) -> tuple[list[np.ndarray], SourceFile]:
+    """The frames ``sources`` of one file, checked as :func:`read_frame` checks them, and the
+    file's provenance (:func:`source_file`), from ONE read of the file: an import reads every
+    byte of a recording once, for its pixels and its checksum alike.
+
+    Parameters
+    ----------
+    path
+        The file.
+    sources
+        Frames of that file (:func:`pair_frames`), in any order.
+    sensor_px, bit_depth
+        As :func:`read_frame`.
+
+    Returns
+    -------
+    frames : list of numpy.ndarray
+        uint16 (rows, columns), one per source, in the order given.
+    source : SourceFile
+        The file's absolute path, size and SHA-256.
+
+    Raises
+    ------
+    FormatError
+        As :func:`read_frame` and :func:`source_file`.
+    """
+    p = Path(path)
+    _check_readable(p)
+    if _family(p) == "davis":  # lvpyio reads by path: the checksum is a second (cached) read
+        images = _read(p, sorted({s.frame for s in sources}))
+        prov = source_file(p)
+    else:
+        try:
+            raw = p.read_bytes()
+        except OSError as exc:
+            raise FormatError(f"{p} cannot be read ({one_line(exc.strerror or exc)}); check the file and its "
+                              "permissions") from None
+        prov = SourceFile(str(p.resolve()), len(raw), hashlib.sha256(raw).hexdigest())
+        images = _read(p, sorted({s.frame for s in sources}), raw)
+    at = {k: i for i, k in enumerate(sorted({s.frame for s in sources}))}
+    return [_checked(images[at[s.frame]], s, sensor_px, bit_depth) for s in sources], prov
 
 
 def source_file(path: str | os.PathLike[str], *, block: int = 1 << 20) -> SourceFile:
