@@ -17,6 +17,7 @@ pseudo-terminal) or any pyserial URL (``socket://host:port``, ``loop://``).
 from __future__ import annotations
 
 import threading
+import time
 
 import serial
 
@@ -67,6 +68,8 @@ class SerialLink:
         self.timeout_s = timeout_s
         self.eol = eol
         self.lock = threading.RLock()
+        #: Set when :meth:`query` passed over an echo of the command (see ``skip_echo``).
+        self.echo_seen = False
         self._ser: serial.Serial | None = None
 
     @property
@@ -103,6 +106,25 @@ class SerialLink:
                 ser.close()
             except (serial.SerialException, OSError):
                 pass
+
+    def reopen(self, wait_s: float, poll_s: float = 0.05) -> bool:
+        """Close the port and open it again, trying for up to ``wait_s`` seconds.
+
+        A USB serial adapter that was unplugged and plugged back in is a new device behind
+        the same name: the old handle stays dead, a new one works. Returns True once the port
+        is open again, False if it did not come back in time (it is then closed).
+        """
+        with self.lock:
+            self.close()
+            deadline = time.monotonic() + max(0.0, wait_s)
+            while True:
+                try:
+                    self.open()
+                    return True
+                except LinkClosed:
+                    if time.monotonic() >= deadline:
+                        return False
+                    time.sleep(poll_s)
 
     def write_line(self, line: str) -> None:
         """Send one command line without waiting for a reply."""
@@ -146,12 +168,20 @@ class SerialLink:
                 raise LinkGarbled(f"garbled reply {text[:16]!r}")
             return text.decode("ascii")
 
-    def query(self, line: str, timeout_s: float | None = None) -> str:
-        """Discard stale input, send ``line`` and return the reply line."""
+    def query(self, line: str, timeout_s: float | None = None, *, skip_echo: bool = False) -> str:
+        """Discard stale input, send ``line`` and return the reply line.
+
+        With ``skip_echo``, a first line that repeats ``line`` (a device or terminal echoing
+        what it receives) is passed over and :attr:`echo_seen` is set.
+        """
         with self.lock:
             self.discard_input()
             self.write_line(line)
-            return self.read_line(timeout_s)
+            reply = self.read_line(timeout_s)
+            if skip_echo and reply.strip() == line.strip():
+                self.echo_seen = True
+                reply = self.read_line(timeout_s)
+            return reply
 
     def discard_input(self) -> None:
         """Throw away whatever the device sent that nobody read yet."""
