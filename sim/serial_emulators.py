@@ -1391,9 +1391,9 @@ class StageEmulator(_PtyEmulator):
     def _packets(self, dev: ZaberDevice, axis: int, msg_id: int | None, flag: str, data: str,
                  corrupt: bool) -> list[str]:
         """The reply as the packets the device sends: ``@...`` then ``#... cont`` continuations."""
-        axes = dev.axes if axis == 0 else [dev.axes[axis - 1]]
+        axes = dev.axes if axis == 0 else dev.axes[axis - 1:axis]  # none for an axis it lacks
         status = "BUSY" if any(a.moving for a in axes) else "IDLE"
-        active = set().union(*(a.flags for a in axes))
+        active: set[str] = set().union(*(a.flags for a in axes))
         warn = next((f for f in _FLAG_ORDER if f in active), "--")
         head = f"{self._header(dev, axis, msg_id)} {flag} {status} {warn}"
         room = dev.packet_size - 1 - (3 if dev.checksums else 0)  # marker and ":XX"
