@@ -192,6 +192,7 @@ class QuantumComposers9520:
         self._plan: TimingPlan | None = None
         self._programmed: TimingPlan | None = None
         self._armed = False
+        self._reconnected = False
         self.reconnect_s = reconnect_s
 
     # --- life cycle ----------------------------------------------------------------------
@@ -524,12 +525,13 @@ class QuantumComposers9520:
         comm_failed : bool
             True when the instrument did not answer (or the port failed), so nothing is known.
         """
+        self._reconnected = False
         problem, comm_failed, port_lost = self._shutdown_commands()
         if port_lost and self.reconnect_s > 0 and self._link.reopen(self.reconnect_s):
             again, failed_again, _ = self._shutdown_commands()
             if not failed_again:
-                note = f"{problem}; the port came back and every output was switched off"
-                return note + (f"; {again}" if again else ""), False
+                self._reconnected = True  # the adapter came back: switched off through it
+                return again, False
         return problem, comm_failed
 
     def _shutdown_commands(self) -> tuple[str, bool, bool]:
@@ -583,6 +585,8 @@ class QuantumComposers9520:
         self._mark_disarmed()
         state = (_UNKNOWN if comm_failed else
                  "outputs switched off" if not problem else f"outputs may not all be off ({problem})")
+        if self._reconnected and not comm_failed:
+            state = f"the port came back and {state}"
         raise DeviceError(f"pulse generator on {self.port}: {cmd!r}: {what}; {fix}; {state}")
 
     def _ask(self, cmd: str) -> str:

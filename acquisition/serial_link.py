@@ -21,6 +21,13 @@ import time
 
 import serial
 
+try:  # POSIX: pyserial lets termios errors through when a port vanishes under it
+    import termios
+
+    _PORT_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException, OSError, termios.error)
+except ImportError:  # pragma: no cover - Windows
+    _PORT_ERRORS = (serial.SerialException, OSError)
+
 __all__ = ["LinkClosed", "LinkError", "LinkGarbled", "LinkTimeout", "SerialLink"]
 
 
@@ -134,7 +141,7 @@ class SerialLink:
                 ser.write(line.encode("ascii") + self.eol)
             except serial.SerialTimeoutException as exc:
                 raise LinkTimeout(f"the port did not accept the command within {self.timeout_s:g} s") from exc
-            except (serial.SerialException, OSError) as exc:
+            except _PORT_ERRORS as exc:
                 raise LinkClosed(f"the port failed while writing ({_short(exc)})") from exc
 
     def read_line(self, timeout_s: float | None = None) -> str:
@@ -157,7 +164,7 @@ class SerialLink:
                     ser.timeout = timeout
                 # pyserial's read_until applies the timeout to the whole call.
                 buf = ser.read_until(b"\n")
-            except (serial.SerialException, OSError) as exc:
+            except _PORT_ERRORS as exc:
                 raise LinkClosed(f"the port failed while reading ({_short(exc)})") from exc
             if not buf:
                 raise LinkTimeout(f"no reply within {timeout:g} s")
@@ -189,7 +196,7 @@ class SerialLink:
             ser = self._require()
             try:
                 ser.reset_input_buffer()
-            except (serial.SerialException, OSError) as exc:
+            except _PORT_ERRORS as exc:
                 raise LinkClosed(f"the port failed ({_short(exc)})") from exc
 
     def _require(self) -> serial.Serial:

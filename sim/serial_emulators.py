@@ -147,9 +147,16 @@ class _PtyEmulator:
                 os.close(old_slave)
 
     def disconnect(self) -> None:
-        """Unplug the USB adapter now (the instrument keeps running)."""
+        """Unplug the USB adapter now (the instrument keeps running); its device node vanishes."""
         self._disconnected = True
         self._close_master()
+        with self._lock:
+            slave, self._slave = self._slave, -1
+        with contextlib.suppress(OSError):
+            os.unlink(self.port)
+        if slave >= 0:
+            with contextlib.suppress(OSError):
+                os.close(slave)
 
     def reconnect(self) -> None:
         """Plug the adapter back in: a new pseudo-terminal behind the same :attr:`port`."""
