@@ -15,23 +15,7 @@ from acquisition.session import RecordingSession
 from lfcore.runstore import RunStore
 from sim.camera import SIM_VENDOR, SimCamera
 from sim.world import SimWorld
-
-PERIOD_NS = 50_000_000
-T0_NS = 9_000_000_000_000
-
-
-class HandTrigger:
-    def __init__(self, rig) -> None:
-        self.listeners = []
-        self.outputs = {ch: 0.0 for ch in rig.pulse_generator.channels.values()}
-        self.outputs[rig.pulse_generator.channels["camera"]] = 100e-6
-
-    def add_listener(self, callback) -> None:
-        self.listeners.append(callback)
-
-    def fire(self, tick: int) -> None:
-        for cb in self.listeners:
-            cb(tick, T0_NS + tick * PERIOD_NS, self.outputs)
+from tests.unit.sim.test_camera import PERIOD_NS, T0_NS, HandTrigger
 
 
 @pytest.fixture(scope="module")
