@@ -65,6 +65,8 @@ __all__ = [
     "POLL_INTERVAL_S",
     "DeviceInfo",
     "GenICamCamera",
+    "configure_node_map",
+    "frames_per_trigger_of",
     "image_to_uint16",
     "list_devices",
     "producer_paths",
@@ -496,7 +498,7 @@ def _burst_misses_pulse_2(nm: Any, exposure_us: float, dt_us: float | None) -> s
             f"to be {lo:.1f}-{hi:.1f} us)")
 
 
-def _configure_node_map(
+def configure_node_map(
     nm: Any,
     *,
     where: str,
@@ -508,7 +510,12 @@ def _configure_node_map(
     allow_software_pairing: bool,
     dt_us: float | None = None,
 ) -> str:
-    """Apply the SFNC trigger and exposure set-up; return a short description of the mode.
+    """Apply the SFNC trigger and exposure set-up to a GenApi node map; return a short
+    description of the mode (what :meth:`GenICamCamera.configure` does, and what simulated
+    cameras run on their own node map).
+
+    The description ends in "one frame per trigger (paired in software...)" when a double frame
+    was asked for and the camera is left taking one frame per trigger.
 
     For ``frames_per_trigger=2`` without a vendor hook, ``FrameBurstStart`` is used only when
     :func:`_burst_misses_pulse_2` finds that frame B catches laser pulse 2; otherwise the camera
@@ -591,6 +598,14 @@ def _configure_node_map(
     elif frames_per_trigger == 2:
         mode += ", one frame per trigger (paired in software" + ("; no usable burst)" if unfit else ")")
     return mode
+
+
+_configure_node_map = configure_node_map  # the name the tests of the set-up use
+
+
+def frames_per_trigger_of(mode: str, asked: int) -> int:
+    """Frames one trigger makes, from :func:`configure_node_map`'s description of the mode."""
+    return 1 if asked == 1 or "one frame per trigger" in mode else 2
 
 
 # --------------------------------------------------------------------------------------------
@@ -731,6 +746,7 @@ class GenICamCamera:
         self._id_base = 0  # added to it for the 16-bit GigE Vision ids that wrapped
         self._tick_hz: float | None = None
         self._mode = "not configured"
+        self._frames_per_trigger = 2
 
     # --- description -----------------------------------------------------------------------
     def __repr__(self) -> str:
@@ -752,6 +768,13 @@ class GenICamCamera:
     def mode(self) -> str:
         """How :meth:`configure` set the camera up, in words (for logs)."""
         return self._mode
+
+    @property
+    def frames_per_trigger(self) -> int:
+        """Frames one trigger makes as configured: 1 when the camera was left taking one frame per
+        trigger (``allow_software_pairing``), so that the recording session pairs consecutive
+        triggers by the camera's time stamps; 2 otherwise (and in free run)."""
+        return self._frames_per_trigger
 
     @property
     def node_map(self) -> Any:
@@ -944,7 +967,7 @@ class GenICamCamera:
                 raise DeviceError(f"{self._where} is acquiring; stop it before configure")
             if self.pixel_format is not None:
                 _set(nm, "PixelFormat", self.pixel_format, self._where)
-            self._mode = _configure_node_map(
+            self._mode = configure_node_map(
                 nm,
                 where=self._where,
                 vendor=self._info.vendor if self._info else "",
@@ -955,6 +978,7 @@ class GenICamCamera:
                 allow_software_pairing=self.allow_software_pairing,
                 dt_us=dt_us,
             )
+            self._frames_per_trigger = frames_per_trigger_of(self._mode, frames_per_trigger) if triggered else 2
             self._read_size()
         _log.info("%s: %s", self._where, self._mode)
 

@@ -25,6 +25,15 @@ Channel 0 is T0, 1 is channel A, 2 is B, and so on. Commands used here::
     :PULSEn:DELAY <s>           delay after T0, seconds
     :PULSEn:WIDT <s>            pulse width, seconds
 
+Read-back. After loading a plan, :meth:`QuantumComposers9520.program` reads every setting
+back: the instrument rounds each time to its resolution (:data:`PULSE_GENERATOR_MODELS`: 250 ps
+on a 9520 or BNC 575, 1 ns on a 9500 Plus), and a read-back further from the plan than that
+resolution (or any other setting that does not read back as sent) refuses the plan, so
+:meth:`~QuantumComposers9520.arm` cannot fire it. :attr:`~QuantumComposers9520.programmed` is
+the plan as the instrument holds it (rounded), which is what a run records.
+:meth:`~QuantumComposers9520.verify` reads the state back during a run: a generator that was
+power-cycled, reset or changed from its front panel is disarmed and reported.
+
 Safety. A laser must never keep firing because software lost track of it:
 
 - :meth:`QuantumComposers9520.program` stops T0 and disables every output before it loads a
@@ -41,6 +50,11 @@ Safety. A laser must never keep firing because software lost track of it:
   would have). Install your own handlers for these signals before the first :meth:`arm`.
 - With ``pulses > 0`` the plan runs in burst mode: the generator itself stops after that many
   periods, whatever happens to the computer.
+- A port that fails (an unplugged USB adapter) is opened again for up to ``reconnect_s``; if
+  the adapter comes back in that time, the outputs are switched off through it.
+- A generator that echoes commands (serial echo switched on) is noticed: the echoes are
+  skipped, the echo is switched off at :meth:`~QuantumComposers9520.open`, and one that starts
+  echoing while armed is disarmed and reported.
 
 What a hard kill cannot guarantee. SIGKILL, a kernel panic, a power cut of the computer or an
 unplugged USB cable give the software no chance to run: a generator armed in continuous mode
@@ -55,12 +69,14 @@ from __future__ import annotations
 import atexit
 import contextlib
 import logging
+import math
 import os
 import re
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
 from types import FrameType, TracebackType
 from typing import TYPE_CHECKING, Any, NoReturn
 
@@ -72,12 +88,51 @@ if TYPE_CHECKING:
 
     from .protocols import PulseGenerator
 
-__all__ = ["ERROR_CODES", "MAX_BURST", "QuantumComposers9520", "disarm_all", "install_signal_handlers",
-           "pulse_generator_for", "signals_call", "signals_held"]
+__all__ = ["ERROR_CODES", "MAX_BURST", "PULSE_GENERATOR_MODELS", "PulseGeneratorModel", "QuantumComposers9520",
+           "disarm_all", "install_signal_handlers", "pulse_generator_for", "signals_call", "signals_held"]
 
 log = logging.getLogger(__name__)
 
-#: Meaning of the ``?n`` error replies (9500/9520 series and BNC 575 manuals; 8 on newer firmware).
+@dataclass(frozen=True)
+class PulseGeneratorModel:
+    """What sets one model apart: maker, outputs and time resolutions.
+
+    Attributes
+    ----------
+    maker : str
+        First field of ``*IDN?`` ("QC" or "BNC").
+    channels : int
+        Outputs, not counting T0.
+    resolution_s : float
+        Resolution of channel delays and widths, seconds (read-backs show values rounded to it).
+    period_resolution_s : float
+        Resolution of the T0 period, seconds.
+    """
+
+    maker: str
+    channels: int
+    resolution_s: float
+    period_resolution_s: float
+
+    @property
+    def decimals(self) -> int:
+        """Decimal places of a delay or width in the instrument's replies (seconds)."""
+        return 11 if self.resolution_s < 1e-9 else 9  # to 10 ps, or to 1 ns
+
+
+#: Models by the second field of ``*IDN?``: the Quantum Composers 9520 series and the BNC 575
+#: (250 ps delay and width resolution, 10 ns period resolution) and the older 9500 Plus series
+#: (1 ns), which share the SCPI command set.
+PULSE_GENERATOR_MODELS: dict[str, PulseGeneratorModel] = {
+    "9524": PulseGeneratorModel("QC", 4, 250e-12, 10e-9),
+    "9528": PulseGeneratorModel("QC", 8, 250e-12, 10e-9),
+    "575-4": PulseGeneratorModel("BNC", 4, 250e-12, 10e-9),
+    "575-8": PulseGeneratorModel("BNC", 8, 250e-12, 10e-9),
+    "9514": PulseGeneratorModel("QC", 4, 1e-9, 10e-9),
+    "9518": PulseGeneratorModel("QC", 8, 1e-9, 10e-9),
+}
+
+#: Meaning of the ``?n`` error replies (9500/9520 series, BNC 575 / 577 manuals; 8 and 9 on newer firmware).
 ERROR_CODES = {
     1: "incorrect prefix (no colon or * to start the command)",
     2: "missing command keyword",
@@ -87,6 +142,7 @@ ERROR_CODES = {
     6: "query only, the command needs a question mark",
     7: "invalid query, the command has no query form",
     8: "command unavailable in the current system state",
+    9: "parameter out of bounds for the channel",
 }
 
 _FIX = {
@@ -98,6 +154,7 @@ _FIX = {
     6: "the driver and the firmware disagree; check that this is a 9520-series or BNC 575 generator",
     7: "the driver and the firmware disagree; check that this is a 9520-series or BNC 575 generator",
     8: "press STOP on the generator, leave its menus and try again",
+    9: "the value conflicts with another channel's settings; check the timing plan",
 }
 
 _CHANNEL_LETTERS = "ABCDEFGH"
@@ -127,12 +184,16 @@ class QuantumComposers9520:
     #: Most periods of one burst (``:PULSE0:BCO``); a plan of more pulses is answered ``?5``.
     MAX_BURST = 1_000_000
 
-    def __init__(self, port: str, baud: int = 115200, timeout_s: float = 0.5) -> None:
+    def __init__(self, port: str, baud: int = 115200, timeout_s: float = 0.5, *, reconnect_s: float = 1.0) -> None:
         self._link = SerialLink(port, baud, timeout_s, eol=b"\r\n")
         self._idn = ""
         self._n_channels = 0
+        self._model = PULSE_GENERATOR_MODELS["9528"]
         self._plan: TimingPlan | None = None
+        self._programmed: TimingPlan | None = None
         self._armed = False
+        self._reconnected = False
+        self.reconnect_s = reconnect_s
 
     # --- life cycle ----------------------------------------------------------------------
     @property
@@ -154,6 +215,18 @@ class QuantumComposers9520:
         """The plan last programmed."""
         return self._plan
 
+    @property
+    def model(self) -> PulseGeneratorModel:
+        """The model found at :meth:`open` (its resolutions)."""
+        return self._model
+
+    @property
+    def programmed(self) -> TimingPlan | None:
+        """The plan as the instrument holds it: every time as read back (rounded to the
+        instrument's resolution); None until :meth:`program` succeeded. This is the timing a
+        run records."""
+        return self._programmed
+
     def open(self) -> None:
         """Open the port, check the identification and stop T0 with every output disabled.
 
@@ -171,7 +244,7 @@ class QuantumComposers9520:
             raise DeviceError(f"pulse generator on {self.port}: {exc}; check the port name and that no "
                               "other program holds it") from None
         try:
-            idn = self._link.query("*IDN?")
+            idn = self._link.query("*IDN?", skip_echo=True)
         except LinkError as exc:
             self._link.close()
             raise DeviceError(
@@ -186,8 +259,19 @@ class QuantumComposers9520:
                 "BNC 575 identification; check that this is the generator's port"
             )
         self._idn = idn
+        model = PULSE_GENERATOR_MODELS.get(fields[1].upper())
+        if model is None:
+            log.warning("pulse generator on %s: model %r is not in lfpiv's table; assuming 250 ps resolution",
+                        self.port, fields[1])
+            model = PULSE_GENERATOR_MODELS["9528"]
+        self._model = model
         self._n_channels = self._count_channels(fields)
         try:
+            if self._link.echo_seen:
+                # serial echo switched on (front panel): off, so every reply is the answer
+                log.warning("pulse generator on %s: serial echo was on; switching it off", self.port)
+                self._link.query(":SYST:COMM:SER:ECHO OFF", skip_echo=True)
+                self._link.echo_seen = False
             self._stop_everything("open")
         except DeviceError:
             self._link.close()
@@ -256,7 +340,7 @@ class QuantumComposers9520:
         if plan.period_s <= 0 or plan.pulses < 0:
             self._fail(":PULSE0:PER", f"period {plan.period_s} s / pulses {plan.pulses} impossible",
                        "build the plan with acquisition.timing.plan_timing")
-        self._plan = None
+        self._plan = self._programmed = None
         self._cmd(":PULSE0:TRIG:MODE DIS")  # T0 from the internal rate generator
         self._cmd(":PULSE0:GATE:MODE DIS")  # no external gate may hold the pulses back
         self._cmd(f":PULSE0:PER {plan.period_s:.9f}")
@@ -275,6 +359,7 @@ class QuantumComposers9520:
             self._cmd(f":PULSE{n}:POL {c.polarity}")
             self._cmd(f":PULSE{n}:DELAY {c.delay_s:.11f}")
             self._cmd(f":PULSE{n}:WIDT {c.width_s:.11f}")
+        self._programmed = self._read_back(plan)
         self._plan = plan
 
     def arm(self) -> None:
@@ -325,10 +410,82 @@ class QuantumComposers9520:
         """Whether T0 runs now (False after a burst has completed), from ``:PULSE0:STATE?``."""
         return self._ask(":PULSE0:STATE?").strip() in ("1", "ON")
 
+    def verify(self) -> None:
+        """Read the programmed settings and, when armed, the outputs back; call it during a run.
+
+        Raises
+        ------
+        DeviceError
+            A setting differs from what was programmed, or an armed generator's outputs are
+            off or its T0 stopped before its burst was due to end: it was power-cycled, reset
+            or changed from its front panel. The generator is disarmed first.
+        """
+        self._require_open("verify")
+        if self._programmed is None:
+            return
+        self._read_back(self._programmed, during="verify")
+        if not self._armed:
+            return
+        off = [c.channel for c in self._programmed.channels
+               if self._ask(f":PULSE{c.channel}:STATE?").strip() not in ("1", "ON")]
+        if off:
+            self._fail(f":PULSE{off[0]}:STATE?", f"output {off[0]} is off although armed (the generator was "
+                       "reset, power-cycled or stopped from its front panel)",
+                       "check the generator and program the plan again")
+        if self._programmed.pulses == 0 and not self.is_running():
+            self._fail(":PULSE0:STATE?", "T0 stopped although armed in continuous mode (the generator was reset, "
+                       "power-cycled or stopped from its front panel)",
+                       "check the generator and program the plan again")
+
+    def _read_back(self, plan: TimingPlan, during: str = "program") -> TimingPlan:
+        """Query every setting of ``plan``; the plan with the times as read back.
+
+        Any read-back that differs from the plan (a time by more than the instrument's
+        resolution) disarms and raises DeviceError.
+        """
+        res, per_res = self._model.resolution_s, self._model.period_resolution_s
+        period = self._read_time(":PULSE0:PER?", plan.period_s, per_res, during)
+        expect = {":PULSE0:TRIG:MODE?": "DIS", ":PULSE0:GATE:MODE?": "DIS",
+                  ":PULSE0:MODE?": "BURS" if plan.pulses > 0 else "NORM"}
+        if plan.pulses > 0:
+            expect[":PULSE0:BCO?"] = str(plan.pulses)
+        channels = []
+        for c in plan.channels:
+            n = c.channel
+            expect.update({f":PULSE{n}:SYNC?": "T0", f":PULSE{n}:CMODE?": "NORM", f":PULSE{n}:MUX?": str(1 << (n - 1)),
+                           f":PULSE{n}:POL?": c.polarity})
+            delay = self._read_time(f":PULSE{n}:DELAY?", c.delay_s, res, during)
+            width = self._read_time(f":PULSE{n}:WIDT?", c.width_s, res, during)
+            channels.append(replace(c, delay_s=delay, width_s=width))
+        for cmd, want in expect.items():
+            got = self._ask(cmd).strip()
+            if got.upper() != want.upper():
+                self._fail(cmd, f"reads back {got!r}, programmed {want!r} ({self._changed(during)})",
+                           "check that nothing else (front panel, another program) changes the generator")
+        return replace(plan, period_s=period, channels=tuple(channels))
+
+    def _read_time(self, cmd: str, planned: float, resolution: float, during: str) -> float:
+        reply = self._ask(cmd)
+        try:
+            value = float(reply)
+        except ValueError:
+            self._fail(cmd, f"unexpected reply {reply!r} instead of a time", "check that this is a 9520-series or BNC "
+                       "575 generator and nothing else shares the port")
+        if not math.isfinite(value) or abs(value - planned) > resolution * (1 + 1e-6):
+            self._fail(cmd, f"reads back {value:.12g} s, planned {planned:.12g} s, more than the instrument's "
+                       f"{resolution * 1e12:g} ps resolution apart ({self._changed(during)})",
+                       "check the timing plan against the generator's ranges, and that nothing else changes it")
+        return value
+
+    @staticmethod
+    def _changed(during: str) -> str:
+        return ("refused before arming" if during == "program"
+                else "changed since programming: power cycle, reset or front panel")
+
     # --- internals -----------------------------------------------------------------------
     def _count_channels(self, idn_fields: list[str]) -> int:
         try:
-            reply = self._link.query(":INST:CAT?")
+            reply = self._link.query(":INST:CAT?", skip_echo=True)
         except LinkError:
             reply = ""
         names = [n.strip().upper() for n in reply.split(",")] if reply and not reply.startswith("?") else []
@@ -358,6 +515,9 @@ class QuantumComposers9520:
     def _shutdown(self) -> tuple[str, bool]:
         """Best effort: T0 off, then every output off. Never raises.
 
+        When the port has failed (an unplugged USB adapter), it is opened again for up to
+        ``reconnect_s`` seconds and, if it came back, the outputs are switched off through it.
+
         Returns
         -------
         problem : str
@@ -365,9 +525,20 @@ class QuantumComposers9520:
         comm_failed : bool
             True when the instrument did not answer (or the port failed), so nothing is known.
         """
+        self._reconnected = False
+        problem, comm_failed, port_lost = self._shutdown_commands()
+        if port_lost and self.reconnect_s > 0 and self._link.reopen(self.reconnect_s):
+            again, failed_again, _ = self._shutdown_commands()
+            if not failed_again:
+                self._reconnected = True  # the adapter came back: switched off through it
+                return again, False
+        return problem, comm_failed
+
+    def _shutdown_commands(self) -> tuple[str, bool, bool]:
+        """Send the shutdown once: (problem, comm_failed, port_lost). Never raises."""
         cmds = [":PULSE0:STATE OFF"] + [f":PULSE{n}:STATE OFF" for n in range(1, max(self._n_channels, 1) + 1)]
         problems: list[str] = []
-        comm_failed = False
+        comm_failed = port_lost = False
         wait = True
         with self._link.lock:
             for cmd in cmds:
@@ -377,14 +548,14 @@ class QuantumComposers9520:
                         # waiting a timeout for each, in case it still listens.
                         self._link.write_line(cmd)
                         continue
-                    reply = self._link.query(cmd)
+                    reply = self._link.query(cmd, skip_echo=True)
                     if reply.strip() == "?3" and cmd != cmds[0]:
                         continue  # no such channel on this model
                     if reply.strip().lower() != "ok":
                         problems.append(f"{cmd!r} answered {_describe(reply)}")
                 except LinkClosed as exc:
                     problems.append(f"{cmd!r}: {exc}")
-                    comm_failed = True
+                    comm_failed = port_lost = True
                     break
                 except LinkError as exc:
                     problems.append(f"{cmd!r}: {exc}")
@@ -394,7 +565,8 @@ class QuantumComposers9520:
                     problems.append(f"{cmd!r}: {exc!r}")
                     comm_failed = True
                     break
-        return "; ".join(problems[:2]) + (f" (+{len(problems) - 2} more)" if len(problems) > 2 else ""), comm_failed
+        problem = "; ".join(problems[:2]) + (f" (+{len(problems) - 2} more)" if len(problems) > 2 else "")
+        return problem, comm_failed, port_lost
 
     def _emergency_disarm(self) -> None:
         """Disarm from atexit or a signal handler: never raises, logs what it could not do."""
@@ -413,17 +585,25 @@ class QuantumComposers9520:
         self._mark_disarmed()
         state = (_UNKNOWN if comm_failed else
                  "outputs switched off" if not problem else f"outputs may not all be off ({problem})")
+        if self._reconnected and not comm_failed:
+            state = f"the port came back and {state}"
         raise DeviceError(f"pulse generator on {self.port}: {cmd!r}: {what}; {fix}; {state}")
 
     def _ask(self, cmd: str) -> str:
         """Send a query or command and return the reply; any failure disarms and raises."""
         self._require_open(cmd)
         try:
-            reply = self._link.query(cmd)
+            reply = self._link.query(cmd, skip_echo=True)
         except LinkClosed as exc:
             self._fail(cmd, str(exc), "check the USB/serial cable and the generator's power")
         except LinkError as exc:
             self._fail(cmd, str(exc), f"check the cable, the generator's power and baud rate ({self._link.baud})")
+        if self._link.echo_seen:
+            # someone switched the serial echo on (front panel): the generator is not in the
+            # state this program set up
+            self._link.echo_seen = False
+            self._fail(cmd, "the generator started echoing every command (serial echo switched on from its "
+                       "front panel?)", "switch its serial echo off (:SYST:COMM:SER:ECHO OFF) and check its settings")
         m = re.fullmatch(r"\?(\d+)", reply.strip())
         if m:
             code = int(m.group(1))

@@ -17,8 +17,16 @@ pseudo-terminal) or any pyserial URL (``socket://host:port``, ``loop://``).
 from __future__ import annotations
 
 import threading
+import time
 
 import serial
+
+try:  # POSIX: pyserial lets termios errors through when a port vanishes under it
+    import termios
+
+    _PORT_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException, OSError, termios.error)
+except ImportError:  # pragma: no cover - Windows
+    _PORT_ERRORS = (serial.SerialException, OSError)
 
 __all__ = ["LinkClosed", "LinkError", "LinkGarbled", "LinkTimeout", "SerialLink"]
 
@@ -67,6 +75,8 @@ class SerialLink:
         self.timeout_s = timeout_s
         self.eol = eol
         self.lock = threading.RLock()
+        #: Set when :meth:`query` passed over an echo of the command (see ``skip_echo``).
+        self.echo_seen = False
         self._ser: serial.Serial | None = None
 
     @property
@@ -104,6 +114,25 @@ class SerialLink:
             except (serial.SerialException, OSError):
                 pass
 
+    def reopen(self, wait_s: float, poll_s: float = 0.05) -> bool:
+        """Close the port and open it again, trying for up to ``wait_s`` seconds.
+
+        A USB serial adapter that was unplugged and plugged back in is a new device behind
+        the same name: the old handle stays dead, a new one works. Returns True once the port
+        is open again, False if it did not come back in time (it is then closed).
+        """
+        with self.lock:
+            self.close()
+            deadline = time.monotonic() + max(0.0, wait_s)
+            while True:
+                try:
+                    self.open()
+                    return True
+                except LinkClosed:
+                    if time.monotonic() >= deadline:
+                        return False
+                    time.sleep(poll_s)
+
     def write_line(self, line: str) -> None:
         """Send one command line without waiting for a reply."""
         with self.lock:
@@ -112,7 +141,7 @@ class SerialLink:
                 ser.write(line.encode("ascii") + self.eol)
             except serial.SerialTimeoutException as exc:
                 raise LinkTimeout(f"the port did not accept the command within {self.timeout_s:g} s") from exc
-            except (serial.SerialException, OSError) as exc:
+            except _PORT_ERRORS as exc:
                 raise LinkClosed(f"the port failed while writing ({_short(exc)})") from exc
 
     def read_line(self, timeout_s: float | None = None) -> str:
@@ -135,7 +164,7 @@ class SerialLink:
                     ser.timeout = timeout
                 # pyserial's read_until applies the timeout to the whole call.
                 buf = ser.read_until(b"\n")
-            except (serial.SerialException, OSError) as exc:
+            except _PORT_ERRORS as exc:
                 raise LinkClosed(f"the port failed while reading ({_short(exc)})") from exc
             if not buf:
                 raise LinkTimeout(f"no reply within {timeout:g} s")
@@ -146,12 +175,20 @@ class SerialLink:
                 raise LinkGarbled(f"garbled reply {text[:16]!r}")
             return text.decode("ascii")
 
-    def query(self, line: str, timeout_s: float | None = None) -> str:
-        """Discard stale input, send ``line`` and return the reply line."""
+    def query(self, line: str, timeout_s: float | None = None, *, skip_echo: bool = False) -> str:
+        """Discard stale input, send ``line`` and return the reply line.
+
+        With ``skip_echo``, a first line that repeats ``line`` (a device or terminal echoing
+        what it receives) is passed over and :attr:`echo_seen` is set.
+        """
         with self.lock:
             self.discard_input()
             self.write_line(line)
-            return self.read_line(timeout_s)
+            reply = self.read_line(timeout_s)
+            if skip_echo and reply.strip() == line.strip():
+                self.echo_seen = True
+                reply = self.read_line(timeout_s)
+            return reply
 
     def discard_input(self) -> None:
         """Throw away whatever the device sent that nobody read yet."""
@@ -159,7 +196,7 @@ class SerialLink:
             ser = self._require()
             try:
                 ser.reset_input_buffer()
-            except (serial.SerialException, OSError) as exc:
+            except _PORT_ERRORS as exc:
                 raise LinkClosed(f"the port failed ({_short(exc)})") from exc
 
     def _require(self) -> serial.Serial:

@@ -191,6 +191,9 @@ class RecordingSession:
         self._last_stamp: dict[str, list[tuple[int, int, int] | None]] = {n: [None, None] for n in names}
         self._incomplete_seen: dict[str, int | None] = {n: None for n in names}
         self._missed = 0
+        # Frames one trigger makes, per camera (2: double exposure; 1: software pairing of
+        # consecutive triggers), as the camera's configure() left it.
+        self._per_trigger = {c.name: 1 if getattr(c, "frames_per_trigger", 2) == 1 else 2 for c in cameras}
         if trigger_period_s is None:
             rate = store.timing.get("rate_hz")
             trigger_period_s = 1.0 / float(rate) if rate else None
@@ -320,11 +323,12 @@ class RecordingSession:
         # period apart, n periods when n - 1 triggers made no frames.
         if self._period_ns is None or not frame.device_clock or not frame.complete:
             return 0
-        ref = self._last_stamp[name][place % 2]
+        step = self._per_trigger[name]
+        ref = self._last_stamp[name][place % 2 if step == 2 else 0]
         if ref is None:
             return 0
         ref_place, ref_ns, ref_id = ref
-        by_id = (place - ref_place) // 2
+        by_id = (place - ref_place) // step
         by_time = round((frame.timestamp_ns - ref_ns) / self._period_ns)
         if by_time < by_id:
             raise DeviceError(
@@ -376,24 +380,25 @@ class RecordingSession:
                             f"{first} it should start at: its frame counter did not restart with the "
                             "acquisition, so its frames cannot be paired; power-cycle it or reset its counter")
                     self._last_frame[name] = time.monotonic()
+                    step = self._per_trigger[name]
                     missed = self._missed_triggers(name, rel, frame)
-                    missed_from = rel - rel % 2  # the missed pairs come just before this frame's pair
+                    # the frames of the missed triggers come just before this frame's trigger
+                    missed_from = rel - rel % 2 if step == 2 else rel
                     shift = self._shift[name]
                     if missed:
-                        if rel % 2 and expected == rel:
+                        if step == 2 and rel % 2 and expected == rel:
                             # frame A of this frame's trigger is already placed, missed pairs too early
                             raise DeviceError(
                                 f"camera '{name}': frame {frame.frame_id} (B) is {missed} trigger(s) later than the "
                                 f"frame A before it, so that frame A was paired wrongly and its frames can no longer "
                                 "be paired; check the camera's time stamps and trigger cable")
                         self._missed += missed
-                        self._shift[name] += 2 * missed
-                        rel += 2 * missed
+                        self._shift[name] += step * missed
+                        rel += step * missed
                         _log.warning("camera '%s' missed %d trigger(s) before frame %d (its time stamps say so); "
-                                     "pairs %d-%d are listed as dropped and later frames moved %d pair(s) on",
-                                     name, missed, frame.frame_id, missed_from // 2, missed_from // 2 + missed - 1,
-                                     missed)
-                    gap = rel - expected - 2 * missed  # frames whose ids never came
+                                     "their %d frame(s) are listed as dropped and later frames moved on",
+                                     name, missed, frame.frame_id, step * missed)
+                    gap = rel - expected - step * missed  # frames whose ids never came
                     incomplete = self._incomplete_rise(cam)
                     gap_reason = _gap_reason(gap, incomplete) if gap else ""
                     for missing in range(expected, min(rel, self.n_frames)):
@@ -402,13 +407,13 @@ class RecordingSession:
                             continue
                         if missing < missed_from:  # ids before the missed triggers
                             self._add_drop(name, pair, k, first + missing - shift, gap_reason)
-                        elif missing < missed_from + 2 * missed:  # no frame was made
+                        elif missing < missed_from + step * missed:  # no frame was made
                             self._add_drop(name, pair, k, -1, "missed trigger: the camera made no frames for this "
                                            "trigger (its time stamps say so)")
                         else:  # frame A of this frame B's trigger
                             self._add_drop(name, pair, k, first + missing - self._shift[name], gap_reason)
                     if frame.device_clock and frame.complete:
-                        self._last_stamp[name][rel % 2] = (rel, frame.timestamp_ns, frame.frame_id)
+                        self._last_stamp[name][rel % 2 if step == 2 else 0] = (rel, frame.timestamp_ns, frame.frame_id)
                     self._expected[name] = rel + 1
                     if rel >= self.n_frames:
                         self._extra += 1

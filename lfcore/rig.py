@@ -356,9 +356,14 @@ class StageConfig(_Strict):
     """The motorised calibration stage (serial, Zaber ASCII protocol).
 
     ``device`` is the controller's address on the daisy chain and ``axis`` its axis (both as
-    the Zaber Console shows them); ``microstep_um`` is the size of one native step, the
-    product's "microstep size" (0.1 um on most Zaber linear stages, but 0.047625 um on some
-    lead-screw models), which converts every position the stage reports into millimetres.
+    the Zaber Console shows them).
+
+    ``microstep_um`` is deprecated and optional: the driver reads the product (``deviceid``, or
+    ``peripheral.id`` on a controller) and its ``resolution`` from the stage and works out the
+    size of one native step itself. Set it only for a product missing from
+    ``acquisition.stage.ZABER_PRODUCTS`` (the size of one microstep as the device is set up,
+    as Zaber Launcher shows it); for a known product a value that disagrees with the device is
+    reported in a warning and not used.
     """
 
     port: str | None = None

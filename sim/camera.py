@@ -26,6 +26,19 @@ camera misses a trigger pulse; only the time stamps show it.
 
 Time stamps are the camera's clock (``Frame.device_clock``): the emulated generator's T0 edge
 plus the camera output's delay for frame A, and frame B the exposure and interframe time later.
+
+GenICam. Each camera has a GenICam-style node map (:class:`SimNodeMap`, :attr:`SimCamera.node_map`)
+with the SFNC features the GenICam driver sets: ``TriggerSelector`` (FrameStart,
+FrameBurstStart) with ``TriggerMode``, ``TriggerSource`` and ``TriggerActivation`` per
+selector, ``AcquisitionBurstFrameCount``, ``ExposureAuto``, ``ExposureMode``, ``ExposureTime``,
+``AcquisitionMode``, ``PixelFormat`` (Mono12 / Mono16), ``Width``, ``Height``,
+``ResultingFrameRate``, ``GevTimestampTickFrequency``, and one vendor feature,
+``PIVDoubleExposure``, that the double-exposure hook registered for :data:`SIM_VENDOR`
+switches on. :meth:`SimCamera.configure` runs the driver's own set-up
+(:func:`acquisition.genicam.configure_node_map`) on it and then behaves as the nodes say: two
+frames per trigger in PIV mode (or a burst of two), one frame per trigger otherwise (software
+pairing, with ``allow_software_pairing``), triggered only from ``Line0`` (the generator's camera
+output) on the edge ``TriggerActivation`` names.
 """
 
 from __future__ import annotations
@@ -37,12 +50,91 @@ from collections.abc import Callable
 
 import numpy as np
 
+from acquisition.genicam import configure_node_map, register_double_exposure
 from acquisition.protocols import DeviceError, Frame
 from lfcore.render import LightFieldRenderer, derive_seed
 from lfcore.rig import Rig
 from sim.world import SimWorld
 
-__all__ = ["SimCamera", "TriggerSource"]
+__all__ = ["SIM_VENDOR", "SimCamera", "SimNode", "SimNodeMap", "TriggerSource"]
+
+#: ``DeviceVendorName`` of the simulated cameras; a double-exposure hook is registered for it.
+SIM_VENDOR = "lfpiv simulated cameras"
+
+
+class SimNode:
+    """One GenApi-style feature: ``value`` with its entries (``symbolics``) or ``min``/``max``."""
+
+    def __init__(self, value: object, symbolics: tuple[str, ...] = (), lo: float | None = None,
+                 hi: float | None = None, writable: bool = True) -> None:
+        self._value, self.symbolics, self.min, self.max = value, symbolics, lo, hi
+        self.writable, self.available = writable, True
+
+    @property
+    def value(self) -> object:
+        return self._value
+
+    @value.setter
+    def value(self, v: object) -> None:
+        if not self.writable:
+            raise DeviceError("the feature is read-only")
+        if self.symbolics and v not in self.symbolics:
+            raise DeviceError(f"no entry {v!r}")
+        if self.min is not None and not self.min <= float(v) <= self.max:  # type: ignore[arg-type]
+            raise DeviceError(f"{v} is out of range")
+        self._value = v
+
+
+class SimNodeMap:
+    """The simulated camera's node map; ``TriggerMode``, ``TriggerSource`` and
+    ``TriggerActivation`` depend on ``TriggerSelector``, as in the SFNC."""
+
+    SELECTORS = ("FrameStart", "FrameBurstStart")
+
+    def __init__(self, sensor_px: tuple[int, int], max_fps: float) -> None:
+        cols, rows = sensor_px
+        self.DeviceVendorName = SimNode(SIM_VENDOR, writable=False)
+        self.TriggerSelector = SimNode("FrameStart", self.SELECTORS)
+        self._mode = {s: SimNode("Off", ("Off", "On")) for s in self.SELECTORS}
+        self._source = {s: SimNode("Software", ("Software", "Line0", "Line1")) for s in self.SELECTORS}
+        self._activation = {s: SimNode("RisingEdge", ("RisingEdge", "FallingEdge")) for s in self.SELECTORS}
+        self.AcquisitionBurstFrameCount = SimNode(1, lo=1, hi=255)
+        self.AcquisitionMode = SimNode("Continuous", ("Continuous", "SingleFrame", "MultiFrame"))
+        self.ExposureAuto = SimNode("Continuous", ("Off", "Continuous"))
+        self.ExposureMode = SimNode("TriggerWidth", ("Timed", "TriggerWidth"))
+        self.ExposureTime = SimNode(1000.0, lo=1.0, hi=1e7)
+        self.PixelFormat = SimNode("Mono16", ("Mono12", "Mono16"))
+        self.Width = SimNode(cols, writable=False)
+        self.Height = SimNode(rows, writable=False)
+        self.ResultingFrameRate = SimNode(float(max_fps), writable=False)
+        self.GevTimestampTickFrequency = SimNode(1_000_000_000, writable=False)
+        #: The vendor's double-exposure (PIV) switch, set by the hook for :data:`SIM_VENDOR`.
+        self.PIVDoubleExposure = SimNode("Off", ("Off", "On"))
+
+    @property
+    def TriggerMode(self) -> SimNode:  # noqa: N802 - GenICam feature name
+        return self._mode[str(self.TriggerSelector.value)]
+
+    @property
+    def TriggerSource(self) -> SimNode:  # noqa: N802
+        return self._source[str(self.TriggerSelector.value)]
+
+    @property
+    def TriggerActivation(self) -> SimNode:  # noqa: N802
+        return self._activation[str(self.TriggerSelector.value)]
+
+    def trigger(self, selector: str) -> tuple[bool, str, str]:
+        """(mode on, source, activation) of one trigger selector."""
+        return self._mode[selector].value == "On", str(self._source[selector].value), \
+            str(self._activation[selector].value)
+
+
+def _piv_double_exposure(nm: SimNodeMap) -> None:
+    """The simulated vendor's double-exposure mode: frame B right after frame A."""
+    nm.PIVDoubleExposure.value = "On"
+
+
+register_double_exposure(SIM_VENDOR, _piv_double_exposure)
 
 TriggerCallback = Callable[[int, int, dict[int, float]], None]
 
@@ -87,7 +179,8 @@ class SimCamera:
                  buffers: int = 16, rays_per_particle: int | None = None, device: str | None = None,
                  lose_frames: set[int] | None = None, incomplete_frames: set[int] | None = None,
                  lose_rate: float = 0.0, fail_after_frames: int | None = None,
-                 miss_triggers: set[int] | None = None, seed: int = 0) -> None:
+                 miss_triggers: set[int] | None = None, seed: int = 0, allow_software_pairing: bool = False,
+                 pixel_format: str = "Mono16") -> None:
         self.name = name
         self.rig = rig
         self.camera = rig.camera_named(name)
@@ -124,6 +217,13 @@ class SimCamera:
         self._ch = {role: roles[role] for role in roles}
         t = rig.timing
         self._frame_b_delay_ns = round((t.camera_exposure_us + t.camera_interframe_us) * 1e3)
+        self.allow_software_pairing = allow_software_pairing
+        self.pixel_format = pixel_format
+        #: The GenICam-style node map the driver's trigger set-up runs on (see the module docstring).
+        self.node_map = SimNodeMap(self.camera.sensor_px, t.camera_max_fps)
+        self.frames_per_trigger = 2
+        self._selector = "FrameStart"
+        self.mode = "not configured"
 
     # --- Camera protocol ------------------------------------------------------------------
     @property
@@ -156,15 +256,34 @@ class SimCamera:
 
     def configure(self, *, triggered: bool, frames_per_trigger: int, exposure_us: float,
                   dt_us: float | None = None) -> None:
-        """Check the set-up; the simulated camera is a double-shutter PIV camera whose frame B
-        opens the rig's interframe time after frame A, so ``exposure_us`` and ``dt_us`` change
-        nothing (the rig's timing decides)."""
+        """Run the GenICam driver's trigger set-up on :attr:`node_map` and take frames as it left
+        the nodes: a double-shutter PIV camera (frame B the rig's interframe time after frame A)
+        when the vendor's ``PIVDoubleExposure`` or a ``FrameBurstStart`` burst of two is on, one
+        frame per trigger otherwise. The exposure itself follows the rig's timing."""
         self._require_open()
         if not triggered:
             raise DeviceError(f"simulated camera '{self.name}' runs triggered only; configure it with triggered=True")
         if frames_per_trigger not in (1, 2):
             raise DeviceError(f"simulated camera '{self.name}': frames_per_trigger must be 1 or 2")
-        self.frames_per_trigger = frames_per_trigger
+        nm = self.node_map
+        nm.PIVDoubleExposure.value = "Off"
+        nm.PixelFormat.value = self.pixel_format
+        self.mode = configure_node_map(
+            nm, where=f"simulated camera '{self.name}'", vendor=str(nm.DeviceVendorName.value), triggered=True,
+            frames_per_trigger=frames_per_trigger, exposure_us=exposure_us, trigger_line="Line0",
+            allow_software_pairing=self.allow_software_pairing, dt_us=dt_us)
+        burst_on, source, _ = nm.trigger("FrameBurstStart")
+        start_on, start_source, _ = nm.trigger("FrameStart")
+        if burst_on and nm.AcquisitionBurstFrameCount.value == 2:
+            self.frames_per_trigger, self._selector = 2, "FrameBurstStart"
+        elif start_on:
+            self.frames_per_trigger = 2 if nm.PIVDoubleExposure.value == "On" else 1
+            source, self._selector = start_source, "FrameStart"
+        else:
+            raise DeviceError(f"simulated camera '{self.name}': no trigger is on after the set-up ({self.mode})")
+        if source != "Line0":
+            raise DeviceError(f"simulated camera '{self.name}': triggered from {source}, but only Line0 is wired "
+                              "(to the pulse generator's camera output)")
         self._configured = True
 
     def start(self) -> None:
@@ -226,6 +345,8 @@ class SimCamera:
                 return
         fired = [ch[f"flashlamp{c}"] in outputs and ch[f"qswitch{c}"] in outputs for c in (1, 2)]
         t_a = t0_ns + round(outputs[ch["camera"]] * 1e9)
+        if self.node_map.trigger(self._selector)[2] == "FallingEdge":  # exposure starts as the pulse ends
+            t_a += round(self.rig.timing.camera_exposure_us * 1e3)
         if self.world.scene is not None:
             # A continuously lit scene (calibration) shows in every frame, laser or not.
             image = self._scene_image()
@@ -237,6 +358,8 @@ class SimCamera:
             if not self._running:
                 return
             for f, image in enumerate(images):
+                if self.node_map.PixelFormat.value == "Mono12":
+                    image = np.minimum(image, 4095)
                 self._emit(image, t_a + f * self._frame_b_delay_ns)
             self._cond.notify_all()
 

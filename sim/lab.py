@@ -15,12 +15,18 @@ from typing import Any
 
 import numpy as np
 
+from acquisition.stage import ZABER_PRODUCTS
 from lfcore.rig import Rig
 from sim.camera import SimCamera
 from sim.serial_emulators import PulseGeneratorEmulator, StageEmulator
 from sim.world import SimWorld
 
 __all__ = ["SimLab"]
+
+
+def _emulated(microstep_um: float) -> bool:
+    """Whether an emulated Zaber stage has microsteps of this size at resolution 64."""
+    return any(p.integrated and abs(p.full_step_um / 64 - microstep_um) < 1e-12 for p in ZABER_PRODUCTS.values())
 
 
 class SimLab:
@@ -62,8 +68,11 @@ class SimLab:
         try:
             self.pulse_generator = self._stack.enter_context(PulseGeneratorEmulator(latency_s=self._latency))
             st = self.rig.stage
+            # the emulated product whose microstep the rig names (the default stage otherwise: the
+            # driver reads the real size from the device and reports a rig value that disagrees)
+            microstep = st.microstep_um if _emulated(st.microstep_um) else 0.1
             self.stage = self._stack.enter_context(StageEmulator(
-                device=st.device, axis=st.axis, microstep_um=st.microstep_um, latency_s=self._latency))
+                device=st.device, axis=st.axis, microstep_um=microstep, latency_s=self._latency))
             self.cameras = [
                 SimCamera(cam.name, self.rig, self.world, self.pulse_generator, pool_pairs=self._pool_pairs,
                           rays_per_particle=self._rays, device=self._device, **self._faults.get(cam.name, {}))
