@@ -43,7 +43,8 @@ from scipy.spatial import cKDTree
 from lfcore.rig import Camera
 from lfcore.white import micro_image_scale
 
-__all__ = ["GridError", "MlaGrid", "check_white", "detect_grid", "pixels_by_nearest_centre"]
+__all__ = ["GridError", "MlaGrid", "WhiteImage", "check_white", "detect_grid", "pixels_by_nearest_centre",
+           "white_from_frames"]
 
 #: Angle between the two basis vectors of each lattice, degrees.
 _BASIS_ANGLE = {"hex": 60.0, "square": 90.0}
@@ -159,6 +160,65 @@ def check_white(image: np.ndarray, full_scale: int = 65535) -> None:
     if hi < 0.05 * full_scale or hi - lo < 0.02 * full_scale:
         raise GridError(f"white image too dark (brightest pixels {hi:.0f} counts, {hi / full_scale:.1%} of full "
                         f"scale {full_scale}); brighten the diffuser, open the lens or expose longer")
+
+
+#: A hot pixel outshines every one of its eight neighbours by this fraction of the white level:
+#: no pixel of a real micro-image does (light varies smoothly within one, and an edge pixel has a
+#: brighter neighbour inside), while a stuck or hot pixel does, in a micro-image or between them.
+HOT_PIXEL_EXCESS = 0.2
+
+
+@dataclass(frozen=True)
+class WhiteImage:
+    """A white image made of several frames (:func:`white_from_frames`).
+
+    Attributes
+    ----------
+    image
+        (rows, columns) float64 mean of the frames, hot pixels replaced.
+    frames
+        Frames averaged.
+    hot_pixels
+        Pixels replaced by the brightest of their neighbours.
+    """
+
+    image: np.ndarray
+    frames: int
+    hot_pixels: int
+
+
+def white_from_frames(frames: np.ndarray, *, full_scale: int) -> WhiteImage:
+    """The white image of a stack of white frames: checked, averaged, hot pixels rejected.
+
+    Parameters
+    ----------
+    frames
+        (n, rows, columns) raw counts of one camera under uniform illumination.
+    full_scale
+        The sensor's saturation level (2**bit_depth - 1 of the real camera), counts.
+
+    Raises
+    ------
+    GridError
+        Frames saturated or too dark to show the micro-images (:func:`check_white`).
+    """
+    stack = np.asarray(frames)
+    if stack.ndim == 2:
+        stack = stack[None]
+    check_white(stack.max(axis=0), full_scale)
+    mean = stack.astype(np.float64).mean(axis=0)
+    # the brightest of the eight neighbours of every pixel
+    padded = np.pad(mean, 1, mode="edge")
+    rows, cols = mean.shape
+    around = np.full_like(mean, -np.inf)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy or dx:
+                np.maximum(around, padded[1 + dy:1 + dy + rows, 1 + dx:1 + dx + cols], out=around)
+    level = float(np.percentile(mean, 99.5))
+    hot = mean - around > HOT_PIXEL_EXCESS * level
+    mean[hot] = around[hot]
+    return WhiteImage(mean, len(stack), int(hot.sum()))
 
 
 def _quadratic_surface(img: np.ndarray) -> np.ndarray:

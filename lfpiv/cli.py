@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import logging
 import os
 import re
 import sys
@@ -18,7 +19,7 @@ import warnings
 from collections.abc import Sequence
 
 from lfpiv import __version__
-from lfpiv.commands import COMMANDS
+from lfpiv.commands import COMMANDS, module_of
 from lfpiv.errors import UsageError
 
 EXIT_USAGE = 2
@@ -33,14 +34,72 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
 
 
+def _logging_options(parser: argparse.ArgumentParser, *, top: bool) -> None:
+    """``-v/--verbose`` and ``--log-file``, before the command or after it (``top`` False: the
+    command's own copy, which leaves the values given before it alone)."""
+    keep = {} if top else {"default": argparse.SUPPRESS}
+    parser.add_argument("-v", "--verbose", action="count", help="say more on stderr: -v what each step does, "
+                        "-vv every detail (devices, files)", **({"default": 0} if top else keep))
+    parser.add_argument("--log-file", metavar="PATH", help="also write every detail, time-stamped, to PATH",
+                        **({"default": None} if top else keep))
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """Every (sub)command parser below ``parser``."""
+    out = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for p in dict.fromkeys(action.choices.values()):
+                out += [p, *_subparsers(p)]
+    return out
+
+
 def _build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="lfpiv", description="Light-field particle image velocimetry: rigs, runs, "
                 "synthetic images.")
     p.add_argument("--version", action="version", version=f"lfpiv {__version__}")
+    _logging_options(p, top=True)
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     for name in COMMANDS:
-        importlib.import_module(f"lfpiv.commands.{name}").register(sub)
+        importlib.import_module(f"lfpiv.commands.{module_of(name)}").register(sub)
+    for command in _subparsers(p):
+        _logging_options(command, top=False)
     return p
+
+
+#: The packages whose loggers -v and --log-file show.
+_LOGGERS = ("lfpiv", "lfcore", "acquisition", "calibration", "realtime", "sim")
+
+
+def _start_logging(verbose: int, log_file: str | None) -> None:
+    """Our packages' loggers on stderr (warnings; -v steps; -vv details) and, with ``log_file``,
+    every detail in that file."""
+    level = {0: logging.WARNING, 1: logging.INFO}.get(verbose, logging.DEBUG)
+    handlers: list[logging.Handler] = []
+    err = logging.StreamHandler(sys.stderr)
+    err.setLevel(level)
+    err.setFormatter(logging.Formatter("lfpiv: %(levelname)s: %(message)s" if verbose else "lfpiv: %(message)s"))
+    handlers.append(err)
+    if log_file is not None:
+        try:
+            fh = logging.FileHandler(log_file, encoding="utf-8")
+        except OSError as exc:
+            raise UsageError(f"--log-file {log_file} cannot be written ({exc.strerror or exc}); give a writable "
+                             "path") from None
+        fh.setLevel(logging.DEBUG)
+        fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        handlers.append(fh)
+    for name in _LOGGERS:
+        lg = logging.getLogger(name)
+        for h in list(lg.handlers):  # a second main() in one process (the demo, tests) starts afresh
+            if getattr(h, "_lfpiv", False):
+                lg.removeHandler(h)
+                h.close()
+        lg.setLevel(logging.DEBUG if log_file is not None else level)
+        for h in handlers:
+            h._lfpiv = True  # type: ignore[attr-defined]
+            lg.addHandler(h)
+        lg.propagate = False
 
 
 def _negative_lists(argv: list[str]) -> list[str]:
@@ -77,6 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     warnings.filterwarnings("ignore", category=UserWarning, module="zarr")
     try:
         args = _build_parser().parse_args(_negative_lists(sys.argv[1:] if argv is None else list(argv)))
+        _start_logging(args.verbose or 0, args.log_file)
         # installed before any thread starts: a kill or a closed terminal disarms a laser armed
         # from any thread (the monitor arms from its recording thread, where no handler can be
         # set), then ends the command as Ctrl-C does (acquire and monitor refine this)

@@ -17,6 +17,7 @@ the worker task with its (picklable) job description.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -27,6 +28,7 @@ from lfpiv.errors import UsageError
 __all__ = ["run_pairs", "select_pairs"]
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 
 def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable[[Any], bool],
@@ -75,6 +77,8 @@ def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable
     if skip_done:
         done = set(store.writing(name).attrs[RunStore.DONE[name]])
         pairs = [p for p in pairs if p not in done]
+    log.info("%s: %s of %d pair(s) into %s/%s", store.path, desc, len(pairs), store.path,
+             store.writing(name).basename)
     if pairs:
         try:
             with replacement.noting_interrupt(store, name):
@@ -95,8 +99,9 @@ def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable
     return pairs
 
 
-def select_pairs(pairs: slice | None, n_pairs: int) -> list[int]:
-    """The pair indices ``pairs`` (the ``--pairs`` range) selects of a run of ``n_pairs``.
+def select_pairs(pairs: slice | None, n_pairs: int, *, option: str = "--pair-range") -> list[int]:
+    """The pair indices ``pairs`` (the ``--pair-range``, ``option`` in messages) selects of a run
+    of ``n_pairs``.
 
     Raises
     ------
@@ -107,6 +112,6 @@ def select_pairs(pairs: slice | None, n_pairs: int) -> list[int]:
         return list(range(n_pairs))
     chosen = list(range(n_pairs))[pairs]
     if not chosen:
-        raise UsageError(f"--pairs selects no pair of this run (it has pairs 0 to {n_pairs - 1}); give START:STOP "
+        raise UsageError(f"{option} selects no pair of this run (it has pairs 0 to {n_pairs - 1}); give START:STOP "
                          "with START below STOP, e.g. 0:10")
     return chosen

@@ -11,11 +11,24 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
-#: Subcommand modules in the order ``lfpiv --help`` lists them.
-COMMANDS = ("demo", "devices", "acquire", "monitor", "calibrate", "synth", "info", "reconstruct", "correlate",
-            "evaluate", "export")
+from lfpiv.errors import UsageError
+
+#: Subcommands in the order ``lfpiv --help`` lists them; each is the module of its name (with a
+#: trailing underscore where the name is a Python keyword: ``import`` is :mod:`lfpiv.commands.import_`).
+COMMANDS = ("demo", "devices", "acquire", "monitor", "calibrate", "import", "synth", "info", "reconstruct",
+            "correlate", "evaluate", "export")
+
+
+def module_of(command: str) -> str:
+    """The module name of a command (:data:`COMMANDS`)."""
+    import keyword
+
+    return f"{command}_" if keyword.iskeyword(command) else command
 
 
 def whole_number(text: str, least: int = 0, most: int | None = None) -> int:
@@ -41,6 +54,98 @@ def pair_range(text: str) -> slice:
     if not m.group(2):
         return slice(start, start + 1)
     return slice(start, int(m.group(3)) if m.group(3) else None)
+
+
+#: ``CAM=VALUE``: a camera name as the rig allows one, then the value.
+_NAMED = re.compile(r"([A-Za-z][A-Za-z0-9_-]{0,31})=(.+)")
+
+
+def by_camera(values: list[str], option: str, cameras: list[str], *, bare: str = "only",
+              many: bool = False) -> dict[str, Any]:
+    """``CAM=VALUE`` options (``--frames cam0=rec/*.tif``) as camera -> value.
+
+    Parameters
+    ----------
+    values
+        The option's values, in order.
+    option
+        Its name, for the messages.
+    cameras
+        The rig's camera names.
+    bare
+        What a VALUE without ``CAM=`` means: ``"only"``, the rig's one camera (an error with
+        several); ``"every"``, every camera.
+    many
+        Collect every value of a camera in a list (``--white cam0=a.tif --white cam0=b.tif``)
+        instead of refusing a camera given twice.
+
+    Raises
+    ------
+    UsageError
+        A bare value for a rig of several cameras, or a camera given twice.
+    """
+    out: dict[str, Any] = {}
+    for v in values:
+        m = _NAMED.fullmatch(v)
+        if m:
+            names, value = [m.group(1)], m.group(2)
+        elif bare == "every" or len(cameras) == 1:
+            names, value = cameras, v
+        else:
+            raise UsageError(f"{option} {v}: name the camera, e.g. {option} {cameras[0]}={v} (the rig has "
+                             f"{len(cameras)} cameras)")
+        for n in names:
+            if many:
+                out.setdefault(n, []).append(value)
+            elif n in out:
+                raise UsageError(f"{option}: camera '{n}' is given twice; give each camera's files once")
+            else:
+                out[n] = value
+    return out
+
+
+class _OldSpelling(argparse.Action):
+    """An option's old spelling: stores its value where the new one does and notes that it was
+    used (:func:`old_spelling_notes`)."""
+
+    def __init__(self, option_strings: list[str], dest: str, *, new: str, **kwargs: Any) -> None:
+        self.new = new
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        setattr(namespace, self.dest, values)
+        namespace.old_spellings = [*getattr(namespace, "old_spellings", []), (option_string, self.new)]
+
+
+def add_old_spelling(parser: argparse.ArgumentParser, old: str, new: str, dest: str, **kwargs: Any) -> None:
+    """Accept ``old`` (hidden from --help) for the option now called ``new``, storing to ``dest``."""
+    parser.add_argument(old, action=_OldSpelling, new=new, dest=dest, help=argparse.SUPPRESS, **kwargs)
+
+
+def add_pair_range(parser: argparse.ArgumentParser, default: str) -> None:
+    """``--pair-range START:STOP`` (``args.pairs``, a slice or None); the old ``--pairs START:STOP``
+    still works (``--pairs`` counts pairs in synth, acquire, monitor and demo)."""
+    parser.add_argument("--pair-range", dest="pairs", type=pair_range, default=None, metavar="START:STOP",
+                        help=f"pairs, e.g. 0:10 or 3 (default: {default})")
+    add_old_spelling(parser, "--pairs", "--pair-range", "pairs", type=pair_range)
+
+
+def named(args: argparse.Namespace, option: str) -> str:
+    """How the user spelt ``option`` (for messages): itself, or the old spelling that was used."""
+    return next((old for old, new in getattr(args, "old_spellings", []) if new == option), option)
+
+
+def pairs_option(args: argparse.Namespace) -> str:
+    """How the user named the pair range (for messages): ``--pair-range`` or the old ``--pairs``."""
+    return named(args, "--pair-range")
+
+
+def old_spelling_notes(args: argparse.Namespace) -> None:
+    """One line on stderr for each old option spelling used (after the command succeeded)."""
+    for old, new in dict(getattr(args, "old_spellings", [])).items():
+        what = " (--pairs counts pairs in synth, acquire, monitor and demo)" if old == "--pairs" else ""
+        print(f"lfpiv: note: {old} is now {new}{what}; the old spelling still works for now", file=sys.stderr)
 
 
 def positive_int(text: str) -> int:
@@ -140,10 +245,26 @@ def xyz_triple(text: str) -> tuple[float, float, float]:
 
 def check_pvr(pvr: tuple[float, float, float] | None) -> None:
     """A one-line usage error unless ``pvr`` is None or three positive finite numbers."""
-    from lfpiv.errors import UsageError
-
     if pvr is not None and not all(0 < v < float("inf") for v in pvr):
         raise UsageError(f"--pvr must be three positive numbers, got {','.join(f'{v:g}' for v in pvr)}")
+
+
+@contextmanager
+def progress_bar(total: int, desc: str, unit: str, quiet: bool) -> Iterator[Any]:
+    """A progress bar on stderr for a job's ``progress(done, total)`` callback; its ``write(line)``
+    prints a line above the bar (also when ``quiet`` hides the bar)."""
+    from tqdm import tqdm
+
+    with tqdm(total=total, desc=desc, unit=unit, disable=quiet, leave=False) as bar:
+
+        def update(done: int, of: int | None = None) -> None:
+            if of is not None:
+                bar.total = of
+            bar.n = done
+            bar.refresh()
+
+        update.write = lambda line: tqdm.write(line, file=sys.stderr)  # type: ignore[attr-defined]
+        yield update
 
 
 def add_device(parser: argparse.ArgumentParser) -> None:

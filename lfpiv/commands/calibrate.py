@@ -5,7 +5,17 @@ from __future__ import annotations
 import argparse
 import sys
 
-from lfpiv.commands import non_negative_float, png_path, positive_float, positive_int, warn_optics, whole_number
+from lfpiv.commands import (
+    by_camera,
+    non_negative_float,
+    png_path,
+    positive_float,
+    positive_int,
+    progress_bar,
+    warn_optics,
+    whole_number,
+)
+from lfpiv.errors import UsageError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,14 +29,19 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     m = steps.add_parser("mla", help="white images -> every microlens centre, pitch, rotation, offset",
                          description="Trigger every camera a few times on a uniformly lit diffuser (white "
-                         "image), average the frames, detect every micro-image centre and fit the microlens "
-                         "lattice; store the white images and grids. With hardware = \"sim\" the simulated lab "
-                         "shows a white diffuser.")
+                         "image), or read white images the lab recorded (--white), average the frames, reject hot "
+                         "pixels, judge clipping against each camera's bit_depth, detect every micro-image centre "
+                         "and fit the microlens lattice; store the white images and grids. With hardware = \"sim\" "
+                         "the simulated lab shows a white diffuser.")
     m.add_argument("--rig", required=True, metavar="RIG", help="rig file (TOML)")
     m.add_argument("--out", required=True, metavar="CALIB", help="calibration store (created or updated)")
+    m.add_argument("--white", action="append", default=[], metavar="CAM=FILE",
+                   help="a white image file of camera CAM (TIFF, PNG, BMP, DaVis; repeat to average several; FILE "
+                   "alone for a one-camera rig): no device is opened")
     m.add_argument("--frames", type=positive_int, default=4, help="white frames averaged per camera (default: 4)")
     m.add_argument("--exposure-us", type=positive_float, default=None, metavar="US",
                    help="exposure per frame (default: the rig's timing.camera_exposure_us)")
+    m.add_argument("--quiet", action="store_true", help="no progress bar")
     m.add_argument("--sim-level", type=positive_float, default=20000.0, metavar="COUNTS",
                    help="simulated lab only: white level at the sensor centre (default: 20000)")
     m.add_argument("--sim-vignetting", type=float, default=0.3, metavar="FRACTION",
@@ -38,10 +53,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     v = steps.add_parser("volume", help="move the dot target through the planes and take every camera's image",
                          description="Home the stage, move the calibration target (white dots on black) through "
                          "the planes, wait for each readback, trigger every camera once and store each plane with "
-                         "the stage readback. An interrupted run resumes where it stopped with the same command. "
-                         "With hardware = \"sim\" the simulated lab renders the target at the stage's position.")
+                         "the stage readback; or, with --images and --positions, store the target images the lab "
+                         "took with its own stage. An interrupted run resumes where it stopped with the same "
+                         "command. With hardware = \"sim\" the simulated lab renders the target at the stage's "
+                         "position. The board is the rig's [target] (dot pitch, diameter, marker, tilt, levels).")
     v.add_argument("--rig", required=True, metavar="RIG", help="rig file (TOML)")
     v.add_argument("--out", required=True, metavar="CALIB", help="calibration store (created or resumed)")
+    v.add_argument("--images", action="append", default=[], metavar="CAM=PATTERN",
+                   help="target images camera CAM took, one per plane in the order of --positions (PATTERN alone "
+                   "for a one-camera rig): no device is opened")
+    v.add_argument("--positions", default=None, metavar="CSV",
+                   help="with --images: each plane's stage position, a CSV with a stage_mm column")
     v.add_argument("--planes", type=positive_int, default=51, help="number of planes (default: 51)")
     v.add_argument("--step-mm", type=positive_float, default=0.5, metavar="MM",
                    help="distance between planes (default: 0.5)")
@@ -68,6 +90,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("store", metavar="CALIB", help="calibration store with grids and planes")
     f.add_argument("--distortion", action="store_true", help="also fit a radial distortion k1 (reported only)")
     f.add_argument("--min-dots", type=positive_int, default=2, help="fewest dots accepted per plane (default: 2)")
+    f.add_argument("--quiet", action="store_true", help="no progress bar")
     f.set_defaults(func=run_fit)
 
     r = steps.add_parser("report", help="what a calibration store holds, how good it is",
@@ -91,10 +114,14 @@ def run_mla(args: argparse.Namespace) -> int:
     white = white_config(level_counts=args.sim_level, vignetting=args.sim_vignetting, dead_lenslets=args.sim_dead)
     mpx = max(c.sensor_px[0] * c.sensor_px[1] for c in rig.camera) / 1e6
     large = mpx > 8  # say what a long silence is: about 3 s per megapixel on a 2-core CPU
-    if rig.hardware == "sim" and large:
+    names = [c.name for c in rig.camera]
+    whites = by_camera(args.white, "--white", names, many=True) if args.white else None
+    if rig.hardware == "sim" and large and whites is None:
         print("lfpiv: simulated lab: rendering each camera's white image ...", file=sys.stderr)
-    results = calibrate_mla(rig, args.out, frames=args.frames, exposure_us=args.exposure_us, white=white,
-                            status=(lambda line: print(f"lfpiv: {line}", file=sys.stderr)) if large else None)
+    with progress_bar(len(names), "finding grids", "camera", args.quiet) as bar:
+        results = calibrate_mla(rig, args.out, frames=args.frames, exposure_us=args.exposure_us, white=white,
+                                whites=whites, progress=bar,
+                                status=(lambda line: bar.write(f"lfpiv: {line}")) if large else None)
     for res in results:
         g = res.grid
         ox, oy = res.mla["mla_offset_um"]
@@ -102,6 +129,10 @@ def run_mla(args: argparse.Namespace) -> int:
               f"offset ({g.offset_px[0]:+.3f}, {g.offset_px[1]:+.3f}) px, RMS {g.rms_px:.4f} px, "
               f"{int(g.inliers.sum())} of {g.n_lenslets} lenslets; MLA pitch {res.mla['mla_pitch_um']:.3f} um, "
               f"offset ({ox:+.2f}, {oy:+.2f}) um")
+    for res in results:
+        if res.hot_pixels:
+            print(f"lfpiv: note: {res.camera}: {res.hot_pixels} hot pixel(s) of the white image replaced by their "
+                  "neighbours", file=sys.stderr)
     stale = [res.camera for res in results if res.removed_model]
     if stale:
         print(f"lfpiv: note: removed the fitted model of {', '.join(stale)}, made through the earlier grid; "
@@ -111,7 +142,7 @@ def run_mla(args: argparse.Namespace) -> int:
 
 
 def run_volume(args: argparse.Namespace) -> int:
-    from lfpiv.jobs.calibrate import board_for, calibrate_volume
+    from lfpiv.jobs.calibrate import board_for, calibrate_volume, calibrate_volume_from_files
     from lfpiv.rigfile import load_rig
 
     rig = load_rig(args.rig)
@@ -124,9 +155,16 @@ def run_volume(args: argparse.Namespace) -> int:
                   flush=True)
 
     board = board_for(rig, args.spacing_mm, args.tilt_deg)
+    if bool(args.images) != (args.positions is not None):
+        raise UsageError("--images and --positions go together: the lab's target images and their stage positions")
     try:
-        res = calibrate_volume(rig, args.out, planes=args.planes, step_mm=args.step_mm, centre_mm=args.centre_mm,
-                               settle_s=args.settle_s, exposure_us=args.exposure_us, board=board, progress=bar)
+        if args.images:
+            images = by_camera(args.images, "--images", [c.name for c in rig.camera])
+            res = calibrate_volume_from_files(rig, args.out, images=images, positions=args.positions, board=board,
+                                              progress=bar)
+        else:
+            res = calibrate_volume(rig, args.out, planes=args.planes, step_mm=args.step_mm, centre_mm=args.centre_mm,
+                                   settle_s=args.settle_s, exposure_us=args.exposure_us, board=board, progress=bar)
     finally:
         if not args.quiet:
             print(file=sys.stderr)
@@ -144,7 +182,9 @@ def run_fit(args: argparse.Namespace) -> int:
     from lfpiv.jobs.calibrate import calibrate_fit, open_calibration, rotation_angle_deg
 
     nominal = open_calibration(args.store).rig
-    for fit in calibrate_fit(args.store, fit_distortion=args.distortion, min_dots=args.min_dots):
+    with progress_bar(len(nominal.camera), "fitting", "camera", args.quiet) as bar:
+        fits = calibrate_fit(args.store, fit_distortion=args.distortion, min_dots=args.min_dots, progress=bar)
+    for fit in fits:
         c = fit.camera
         turned = rotation_angle_deg(nominal.camera_named(c.name).rotation_deg, c.rotation_deg)
         ox, oy = c.mla_offset_um

@@ -6,7 +6,17 @@ import argparse
 import re
 import warnings
 
-from lfpiv.commands import add_device, add_workers, pair_range, positive_float, workers_phrase
+from lfpiv.commands import (
+    add_device,
+    add_old_spelling,
+    add_pair_range,
+    add_workers,
+    named,
+    old_spelling_notes,
+    pairs_option,
+    positive_float,
+    workers_phrase,
+)
 from lfpiv.errors import UsageError
 
 DEFAULT_WINDOWS = "320x320x64,160x160x32"
@@ -70,10 +80,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    f"(default: {DEFAULT_WINDOWS}, the chapter's)")
     c.add_argument("--overlap", type=parse_overlap, default=(0.75, 0.75, 0.75), metavar="F[,F,F]",
                    help="overlap of neighbouring windows, one fraction or x,y,z (default: 0.75)")
-    c.add_argument("--iterations", type=int, default=2, metavar="N",
+    c.add_argument("--deform-passes", dest="deform_passes", type=int, default=2, metavar="N",
                    help="passes with volume deformation at the final window size (default: 2)")
-    c.add_argument("--pairs", type=pair_range, default=None, metavar="START:STOP",
-                   help="pairs to correlate, e.g. 0:10 or 3 (default: every reconstructed pair)")
+    # --iterations means MART sweeps wherever it appears: the old spelling of --deform-passes
+    add_old_spelling(c, "--iterations", "--deform-passes", "deform_passes", type=int)
+    add_pair_range(c, "every reconstructed pair")
     c.add_argument("--epsilon", type=positive_float, default=0.1,
                    help="median test: acceptable fluctuation in voxels (default: 0.1)")
     c.add_argument("--threshold", type=positive_float, default=2.0,
@@ -101,10 +112,10 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.runs import open_run
 
     store = open_run(args.run, mode="r+")
-    pairs = pairs_to_correlate(store, args.pairs)
-    if args.iterations < 0:
-        raise UsageError(f"--iterations must be 0 or more, got {args.iterations}")
-    cfg = correlation_config(windows=args.windows, overlap=args.overlap, deform_iterations=args.iterations,
+    pairs = pairs_to_correlate(store, args.pairs, option=pairs_option(args))
+    if args.deform_passes < 0:
+        raise UsageError(f"{named(args, '--deform-passes')} must be 0 or more, got {args.deform_passes}")
+    cfg = correlation_config(windows=args.windows, overlap=args.overlap, deform_iterations=args.deform_passes,
                              zero_pad=args.zero_pad, median_filter=args.median_filter, epsilon=args.epsilon,
                              threshold=args.threshold, interpolation=args.interpolation,
                              search_radius=args.search_radius, first_overlap=args.first_overlap)
@@ -113,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
                              skip_done=args.skip_done, client=client)
     if not done.pairs:
         print(f"every selected pair of {store.path} is already correlated with these settings; nothing to do")
+        old_spelling_notes(args)
         return 0
     g = done.grid
     n_vec = g.size * len(done.pairs)
@@ -121,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
           f"final windows {'x'.join(map(str, g.window))} voxels; {100.0 * done.outliers / n_vec:.1f}% outliers "
           f"replaced; {done.seconds:.1f} s{workers_phrase(args)} on {done.device} "
           f"({n_vec / done.seconds:.3g} vectors/s)")
+    old_spelling_notes(args)
     return 0
 
 

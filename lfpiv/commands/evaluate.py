@@ -4,16 +4,25 @@ from __future__ import annotations
 
 import argparse
 
-from lfpiv.commands import fraction, pair_range, png_path, positive_float, warn_outdated_vectors
+from lfpiv.commands import (
+    add_pair_range,
+    fraction,
+    old_spelling_notes,
+    pairs_option,
+    png_path,
+    positive_float,
+    warn_outdated_vectors,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("evaluate", help="compare a synthetic run's volumes (and vectors) with the truth",
                        description="Print Q_recon, particle recall, ghosts, position errors, particle "
-                       "diameters and the intensity outside the seeded region for every reconstructed frame.")
+                       "diameters and the intensity outside the seeded region for every reconstructed frame, and "
+                       "the velocity error, outliers and divergence error of the vectors. A recorded or imported "
+                       "run has no truth: only the outliers and the divergence error are measured.")
     e.add_argument("run", metavar="RUN", help="synthetic run store with volumes/")
-    e.add_argument("--pairs", type=pair_range, default=None, metavar="START:STOP",
-                   help="pairs to evaluate, e.g. 0:10 or 3 (default: every pair reconstructed or correlated)")
+    add_pair_range(e, "every pair reconstructed or correlated")
     e.add_argument("--threshold", type=fraction, default=0.1,
                    help="detect peaks above this fraction of the brightest voxel (default: 0.1)")
     e.add_argument("--match-voxels", type=positive_float, default=2.0,
@@ -29,13 +38,17 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.runs import open_run
 
     store = open_run(args.run)
-    if store.truth() is None:
-        raise UsageError(f"{store.path} is a recorded run with no truth; evaluate needs a synthetic run")
+    truth = store.truth() is not None
     if not (store.has_volumes or store.has_vectors):
-        raise UsageError(f"{store.path} has neither volumes nor vectors yet; "
+        what = "" if truth else " is a recorded run with no truth and"
+        raise UsageError(f"{store.path}{what} has neither volumes nor vectors yet; "
                          f"run 'lfpiv reconstruct {store.path}' first")
-    if store.has_volumes:
-        evals = evaluate_run(store, pairs=args.pairs, threshold=args.threshold, match_voxels=args.match_voxels)
+    if not truth:
+        # a recorded or imported run: what needs no truth (outliers, divergence) is still measured
+        print("reconstruction: a recorded run with no truth: Q, recall and position errors need a synthetic run")
+    elif store.has_volumes:
+        evals = evaluate_run(store, pairs=args.pairs, threshold=args.threshold, match_voxels=args.match_voxels,
+                             option=pairs_option(args))
         rows = summary_rows(evals)
         cols = list(rows[0])
         width = {c: max(len(c), *(len(r[c]) for r in rows)) for c in cols}
@@ -51,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"volumes: none (run 'lfpiv reconstruct {store.path}')")
     warn_outdated_vectors(store)
-    for label, text in evaluate_vectors(store, args.pairs):
+    for label, text in evaluate_vectors(store, args.pairs, option=pairs_option(args)):
         print(f"{label}: {text}")
+    old_spelling_notes(args)
     return 0

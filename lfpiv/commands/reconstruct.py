@@ -6,11 +6,13 @@ import argparse
 
 from lfpiv.commands import (
     add_device,
+    add_pair_range,
     add_workers,
     camera_names,
     check_pvr,
     non_negative_float,
-    pair_range,
+    old_spelling_notes,
+    pairs_option,
     positive_float,
     positive_int,
     sub_apertures,
@@ -42,8 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="grow the box beyond the rig's volume on every side (default: 0,0,0)")
     r.add_argument("--cameras", type=camera_names, default=None, metavar="NAMES",
                    help="comma-separated cameras to use (default: all)")
-    r.add_argument("--pairs", type=pair_range, default=None, metavar="START:STOP",
-                   help="pairs to reconstruct, e.g. 0:10 or 3 (default: every recorded pair)")
+    add_pair_range(r, "every recorded pair")
     r.add_argument("--background", type=non_negative_float, default=None, metavar="COUNTS",
                    help="background level to subtract (default: estimated per image)")
     r.add_argument("--threshold-sigma", type=positive_float, default=2.0,
@@ -85,7 +86,9 @@ def run(args: argparse.Namespace) -> int:
     with dask_client(args.workers, args.scheduler) as client:
         results = reconstruct_run(store, settings, pvr=args.pvr, margin_mm=args.margin_mm, pairs=args.pairs,
                                   cameras=args.cameras, device=args.device, progress=not args.quiet, rig=rig,
-                                  calibration=calibration, skip_done=args.skip_done, client=client)
+                                  calibration=calibration, skip_done=args.skip_done, client=client,
+                                  option=pairs_option(args))
+    old_spelling_notes(args)
     if not results:
         print(f"every selected pair of {store.path} is already reconstructed with these settings; nothing to do")
         return 0

@@ -13,7 +13,7 @@ to every camera while the white images are taken, and the dot target
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,7 +23,7 @@ import numpy as np
 from acquisition.timing import TimingError
 from calibration.board import default_board
 from calibration.fit import CameraFit, FitError
-from calibration.mla_grid import GridError, MlaGrid, check_white, detect_grid
+from calibration.mla_grid import GridError, MlaGrid, WhiteImage, detect_grid, white_from_frames
 from calibration.planes import fit_from_planes
 from calibration.runner import PlaneRun, camera_only_plan, capture_frames, plane_targets, run_planes
 from calibration.store import CalibrationStore, CalibrationStoreError
@@ -34,8 +34,9 @@ from lfpiv import __version__
 from lfpiv.errors import UsageError
 from lfpiv.rigging import make_stage, open_rig
 
-__all__ = ["MlaResult", "board_for", "calibrate_fit", "calibrate_mla", "calibrate_volume", "calibrated_rig",
-           "default_board", "open_calibration", "rotation_angle_deg", "white_config"]
+__all__ = ["MlaResult", "board_for", "calibrate_fit", "calibrate_mla", "calibrate_volume",
+           "calibrate_volume_from_files", "calibrated_rig", "default_board", "open_calibration", "read_positions",
+           "rotation_angle_deg", "white_config"]
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,8 @@ class MlaResult:
     mla: dict[str, Any]
     #: whether the store held a model fitted through an earlier grid, now removed
     removed_model: bool = False
+    #: hot pixels of the white image, replaced before the grid was found
+    hot_pixels: int = 0
 
 
 def white_config(*, level_counts: float, vignetting: float, dead_lenslets: int) -> WhiteImageConfig:
@@ -77,8 +80,16 @@ def open_calibration(path: str | Path, *, mode: str = "r") -> CalibrationStore:
 
 def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: float | None = None,
                   sim_options: dict[str, Any] | None = None, white: WhiteImageConfig | None = None,
-                  status: Callable[[str], None] | None = None) -> list[MlaResult]:
-    """Take white images with every camera, detect each microlens grid and store both.
+                  whites: Mapping[str, Sequence[str | Path]] | None = None,
+                  status: Callable[[str], None] | None = None,
+                  progress: Callable[[int, int], None] | None = None) -> list[MlaResult]:
+    """White images of every camera -> its microlens grid; both stored.
+
+    The white images are taken with the rig's cameras (the laser cannot fire: only the camera
+    output is programmed), or, with ``whites``, read from files the lab recorded. Either way each
+    camera's frames are averaged, hot pixels rejected and clipping judged against the camera's
+    own ``bit_depth`` (:func:`calibration.mla_grid.white_from_frames`), then every micro-image
+    centre is found and the lattice fitted.
 
     Parameters
     ----------
@@ -87,31 +98,72 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
     out
         Calibration store (created, or updated if it exists for the same cameras).
     frames
-        White frames averaged per camera.
+        White frames taken and averaged per camera (not with ``whites``).
     exposure_us
         Exposure (default: the rig's ``timing.camera_exposure_us``).
     sim_options
         For ``hardware = "sim"``: keyword arguments of :class:`sim.lab.SimLab`, or ``{"lab": lab}``.
     white
         For ``hardware = "sim"``: the simulated white image (level, vignetting, dead lenslets).
+    whites
+        Camera name -> white image files (TIFF, PNG, BMP, DaVis; every page of each is averaged);
+        no device is opened. Every camera of the rig needs at least one.
     status
         Called with a one-line message before each camera's grid detection (a minute on a
         29 MP sensor with two cores).
+    progress
+        Called as ``progress(done, total)`` as the cameras' grids are found.
 
     Raises
     ------
     UsageError
-        A white image that is not white (too dark, saturated, no microlens structure), naming
-        the camera; a store that belongs to other cameras.
+        A white image that is not white (too dark, saturated, no microlens structure) or a file
+        that cannot be read, naming the camera; a store that belongs to other cameras.
     DeviceError
         A device fault (the generator was disarmed).
     """
     if frames < 1:
         raise UsageError(f"--frames must be at least 1, got {frames}")
-    exposure = rig.timing.camera_exposure_us if exposure_us is None else exposure_us
-    _check_timing(rig, frames)
     if Path(out).exists():  # an existing store must be one of these cameras: say so before any device opens
         _open_store(out, rig)
+    images = _white_files(rig, whites) if whites is not None else _white_frames(rig, frames, exposure_us,
+                                                                                 sim_options, white)
+    results = []
+    found: dict[str, WhiteImage] = {}
+    for k, cam in enumerate(rig.camera):
+        try:
+            w = white_from_frames(images[cam.name], full_scale=_full_scale(rig, cam))
+            if status is not None:
+                status(f"{cam.name}: detecting every micro-image centre in {w.image.size / 1e6:.0f} MP ...")
+            grid = detect_grid(w.image)
+        except GridError as exc:
+            raise UsageError(f"camera '{cam.name}': {exc}") from None
+        found[cam.name] = w
+        results.append(MlaResult(cam.name, grid, grid.to_mla(cam), hot_pixels=w.hot_pixels))
+        if progress is not None:
+            progress(k + 1, len(rig.camera))
+    store = _open_store(out, rig)  # written only when every camera's grid was found
+    written = []
+    for res in results:
+        w = found[res.camera]
+        store.write_white(res.camera, w.image, frames_averaged=w.frames)
+        removed = store.write_grid(res.camera, res.grid, mla=res.mla)
+        written.append(dataclasses.replace(res, removed_model=removed))
+    return written
+
+
+def _full_scale(rig: Rig, cam: Camera) -> int:
+    """Where a camera's pixels saturate: its ``bit_depth`` (a simulated one renders at most the
+    ``[render]`` bit depth)."""
+    bits = cam.bit_depth if rig.hardware != "sim" else min(cam.bit_depth, rig.render.bit_depth)
+    return 2**bits - 1
+
+
+def _white_frames(rig: Rig, frames: int, exposure_us: float | None, sim_options: dict[str, Any] | None,
+                  white: WhiteImageConfig | None) -> dict[str, np.ndarray]:
+    """``frames`` white frames of every camera, taken with the rig (laser off)."""
+    exposure = rig.timing.camera_exposure_us if exposure_us is None else exposure_us
+    _check_timing(rig, frames)
     opts = {"pool_pairs": 1, "rays_per_particle": 16, **(sim_options or {})}
     with open_rig(rig, sim_options=opts) as rg:
         if rg.lab is not None:
@@ -126,29 +178,34 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
         images = capture_frames(rig, rg.cameras, rg.pulse_generator, frames, exposure)
         if rg.lab is not None:
             rg.lab.show(None)
-    full_scale = 2**rig.render.bit_depth - 1
-    results = []
-    grids = {}
+    return images
+
+
+def _white_files(rig: Rig, whites: Mapping[str, Sequence[str | Path]]) -> dict[str, np.ndarray]:
+    """Every frame of the white image files of every camera, checked against its sensor and bit depth."""
+    from lfpiv.formats import FormatError
+    from lfpiv.formats.images import FrameSource, inspect_image, read_frame
+
+    names = [c.name for c in rig.camera]
+    unknown = sorted(set(whites) - set(names))
+    if unknown:
+        raise UsageError(f"--white: camera '{unknown[0]}' is not in the rig (it has {', '.join(names)})")
+    missing = [n for n in names if not whites.get(n)]
+    if missing:
+        raise UsageError(f"--white: no white image for camera '{missing[0]}'; give --white {missing[0]}=FILE for "
+                         "every camera of the rig")
+    out = {}
     for cam in rig.camera:
-        stack = images[cam.name]
-        mean = stack.astype(np.float64).mean(axis=0)
+        stack = []
         try:
-            check_white(stack.max(axis=0), full_scale)
-            if status is not None:
-                status(f"{cam.name}: detecting every micro-image centre in {mean.size / 1e6:.0f} MP ...")
-            grid = detect_grid(mean)
-        except GridError as exc:
+            for f in whites[cam.name]:
+                info = inspect_image(f)
+                stack += [read_frame(FrameSource(Path(f), k), sensor_px=tuple(cam.sensor_px), bit_depth=cam.bit_depth)
+                          for k in range(info.frames)]
+        except FormatError as exc:
             raise UsageError(f"camera '{cam.name}': {exc}") from None
-        grids[cam.name] = (mean, len(stack))
-        results.append(MlaResult(cam.name, grid, grid.to_mla(cam)))
-    store = _open_store(out, rig)  # written only when every camera's grid was found
-    written = []
-    for res in results:
-        mean, n = grids[res.camera]
-        store.write_white(res.camera, mean, frames_averaged=n)
-        removed = store.write_grid(res.camera, res.grid, mla=res.mla)
-        written.append(dataclasses.replace(res, removed_model=removed))
-    return written
+        out[cam.name] = np.stack(stack)
+    return out
 
 
 def _check_timing(rig: Rig, triggers: int) -> None:
@@ -259,7 +316,152 @@ def calibrate_volume(rig: Rig, out: str | Path, *, planes: int = 51, step_mm: fl
                     rg.lab.show(None)
 
 
-def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: int = 2) -> list[CameraFit]:
+def read_positions(path: str | Path) -> np.ndarray:
+    """Each target plane's stage position from a CSV file: a header line naming ``stage_mm``
+    (other columns, e.g. ``plane`` or ``file``, are ignored), then one row per plane in the order
+    the images were taken.
+
+    Returns
+    -------
+    numpy.ndarray
+        (planes,) stage positions, mm.
+
+    Raises
+    ------
+    UsageError
+        A missing file, no ``stage_mm`` column, a value that is not a finite number, fewer than
+        two planes, or positions that repeat.
+    """
+    import csv
+
+    path = Path(path)
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    except FileNotFoundError:
+        raise UsageError(f"positions file {path} not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UsageError(f"positions file {path} cannot be read ({exc}); save it as UTF-8 CSV") from None
+    head = [c.strip() for c in rows[0]] if rows else []
+    if "stage_mm" not in head:
+        raise UsageError(f"{path}: the first line must be a header naming the column stage_mm (e.g. 'plane,stage_mm')")
+    col = head.index("stage_mm")
+    out = []
+    for lineno, row in enumerate(rows[1:], start=2):
+        try:
+            v = float(row[col])
+            if not np.isfinite(v):
+                raise ValueError
+        except (ValueError, IndexError):
+            raise UsageError(f"{path}:{lineno}: stage_mm must be a number of mm, got {','.join(row)!r}") from None
+        out.append(v)
+    if len(out) < 2:
+        raise UsageError(f"{path}: {len(out)} plane(s); the volumetric calibration needs at least two")
+    if len(set(out)) != len(out):
+        raise UsageError(f"{path}: a stage position appears twice; give each plane's own position")
+    return np.asarray(out, dtype=np.float64)
+
+
+class _RecordedPlanes:
+    """Target images a lab took with its own stage, served as the volumetric run takes planes: a
+    "stage" whose readback is the recorded position, and the images of the plane it is at."""
+
+    def __init__(self, rig: Rig, images: Mapping[str, str], positions: np.ndarray) -> None:
+        from lfpiv.formats import FormatError
+        from lfpiv.formats.images import FrameSource, image_files, inspect_image
+
+        names = [c.name for c in rig.camera]
+        unknown = sorted(set(images) - set(names))
+        if unknown:
+            raise UsageError(f"--images: camera '{unknown[0]}' is not in the rig (it has {', '.join(names)})")
+        missing = [n for n in names if n not in images]
+        if missing:
+            raise UsageError(f"--images: no target images for camera '{missing[0]}'; give --images "
+                             f"{missing[0]}=PATTERN for every camera of the rig")
+        self.rig, self.positions = rig, positions
+        self.sources: dict[str, list[FrameSource]] = {}
+        for cam in rig.camera:
+            try:
+                files = image_files(images[cam.name])
+                frames = [FrameSource(f, k) for f in files for k in range(inspect_image(f).frames)]
+            except FormatError as exc:
+                raise UsageError(f"camera '{cam.name}': {exc}") from None
+            if len(frames) != len(positions):
+                raise UsageError(f"camera '{cam.name}': {images[cam.name]} holds {len(frames)} image(s) but the "
+                                 f"positions list {len(positions)} plane(s); give one position per plane, in the "
+                                 "order of the images")
+            self.sources[cam.name] = frames
+        self.at = 0
+
+    def move_to(self, position_mm: float) -> float:
+        self.at = int(np.argmin(np.abs(self.positions - position_mm)))
+        return float(self.positions[self.at])
+
+    def grab(self) -> dict[str, np.ndarray]:
+        from lfpiv.formats import FormatError
+        from lfpiv.formats.images import read_frame
+
+        out = {}
+        for cam in self.rig.camera:
+            try:
+                out[cam.name] = read_frame(self.sources[cam.name][self.at], sensor_px=tuple(cam.sensor_px),
+                                           bit_depth=cam.bit_depth)
+            except FormatError as exc:
+                raise UsageError(f"camera '{cam.name}', plane {self.at + 1}: {exc}") from None
+        return out
+
+
+def calibrate_volume_from_files(rig: Rig, out: str | Path, *, images: Mapping[str, str], positions: str | Path,
+                                board: DotBoard | None = None,
+                                progress: Callable[[int, int, int], None] | None = None) -> PlaneRun:
+    """Store target images the lab took with its own stage as the calibration's planes.
+
+    After it, ``calibrate fit`` and ``reconstruct --calibration`` work as on planes that
+    ``calibrate volume`` took with the rig's stage. The board is the rig's ``[target]`` (or the
+    default board); its origin is at the volume's centre when the stage reads the middle of the
+    positions. Resumable as ``calibrate volume`` is.
+
+    Parameters
+    ----------
+    rig
+        The rig.
+    out
+        Calibration store (with the microlens grids of ``calibrate mla``, or new).
+    images
+        Camera name -> glob pattern, folder or DaVis set of its target images, one image (or page)
+        per plane in the order of ``positions``.
+    positions
+        CSV file of each plane's stage position (:func:`read_positions`).
+    board
+        The board (None: :func:`calibration.board.default_board` of the rig).
+    progress
+        Called as ``progress(plane, done, total)`` after each stored plane.
+
+    Raises
+    ------
+    UsageError
+        Unreadable or missing images, a positions file that does not match them, a store of
+        other cameras or another target.
+    """
+    stage_mm = read_positions(positions)
+    planes = _RecordedPlanes(rig, images, stage_mm)
+    store = _open_store(out, rig)
+    order = np.sort(stage_mm)
+    centre = 0.5 * (order[0] + order[-1])
+    brd = dataclasses.replace(board or default_board(rig), stage_centre_mm=float(centre))
+    old = store.target()
+    if old is not None and store.plane_targets() is not None and old != brd:
+        raise UsageError(f"{out} holds planes of another target ({old}); give a new --out path")
+    store.write_target(brd)
+    step = float(np.median(np.abs(np.diff(stage_mm))))
+    try:
+        return run_planes(store, planes, planes.grab, stage_mm, step, tolerance_mm=0.0, progress=progress)
+    except CalibrationStoreError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: int = 2,
+                  progress: Callable[[int, int], None] | None = None) -> list[CameraFit]:
     """Fit every camera's model to the stored planes and white-image grid; store the models.
 
     Dots are found and named with the nominal camera (the rig in the store), the model fitted,
@@ -273,6 +475,8 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
         Also fit a radial distortion (stored as ``radial_k1``; not used by the reconstruction).
     min_dots
         Fewest named dots accepted in a plane.
+    progress
+        Called as ``progress(done, total)`` as each camera's fit is done.
 
     Returns
     -------
@@ -302,6 +506,8 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
                                         min_dots=min_dots))
         except FitError as exc:
             raise UsageError(str(exc)) from None
+        if progress is not None:
+            progress(len(fits), len(rig.camera))
     for fit in fits:
         store.write_model(fit.camera.name, fit.model_dict(), {
             "rms_px": fit.rms_px, "plane_rms_px": [None if not np.isfinite(v) else float(v) for v in fit.plane_rms_px],

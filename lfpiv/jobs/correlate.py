@@ -21,7 +21,7 @@ from lfpiv.overlap import prefetched
 from lfpiv.pair_runner import run_pairs, select_pairs
 
 __all__ = ["CorrelateJob", "CorrelationRun", "PairVectors", "correlate_pair_task", "correlate_run",
-           "correlation_config", "pairs_to_correlate"]
+           "correlation_config", "fitting_windows", "pairs_to_correlate"]
 
 # Settings that say where the vectors were computed, not what they are: a run correlated on
 # another device (or FFT engine, which follows the device) keeps its earlier pairs.
@@ -138,6 +138,24 @@ def correlate_pair_task(job: CorrelateJob, pair: int) -> PairVectors:
     return _correlate_pair(correlator, target, pair, _read_pair(volumes, pair))
 
 
+def fitting_windows(shape: tuple[int, int, int]) -> tuple[tuple[int, int, int], ...]:
+    """Two passes for volumes of ``shape`` (z, y, x): the first window the largest power of two up
+    to 32 voxels that fits twice into the volume along each axis, the second half of it.
+
+    Returns
+    -------
+    tuple
+        ((x, y, z), (x, y, z)) voxels, largest first.
+    """
+    first = []
+    for n in shape[::-1]:  # x, y, z
+        w = 32
+        while w > 4 and 2 * w > n:
+            w //= 2
+        first.append(w)
+    return tuple(first), tuple(w // 2 for w in first)  # type: ignore[return-value]
+
+
 def correlation_config(*, windows: tuple[tuple[int, int, int], ...], overlap: tuple[float, float, float],
                        deform_iterations: int = 2, zero_pad: bool = False, median_filter: bool = False,
                        epsilon: float = 0.1, threshold: float = 2.0, interpolation: str = "cubic",
@@ -163,8 +181,9 @@ def correlation_config(*, windows: tuple[tuple[int, int, int], ...], overlap: tu
         raise UsageError(str(exc)) from None
 
 
-def pairs_to_correlate(store: RunStore, pairs: slice | None = None) -> list[int]:
-    """The reconstructed pairs that ``pairs`` (the ``--pairs`` range; None: all) selects.
+def pairs_to_correlate(store: RunStore, pairs: slice | None = None, *, option: str = "--pair-range") -> list[int]:
+    """The reconstructed pairs that ``pairs`` (the ``--pair-range``, named ``option`` in messages;
+    None: all) selects.
 
     Raises
     ------
@@ -179,10 +198,10 @@ def pairs_to_correlate(store: RunStore, pairs: slice | None = None) -> list[int]
         raise RunStoreError(f"{store.path} has no reconstructed pairs yet; run 'lfpiv reconstruct {store.path}' first")
     if pairs is None:
         return done
-    wanted = select_pairs(pairs, store.n_pairs)
+    wanted = select_pairs(pairs, store.n_pairs, option=option)
     missing = [p for p in wanted if p not in done]
     if missing:
-        raise UsageError(f"--pairs: pair(s) {', '.join(map(str, missing[:5]))}{' ...' if len(missing) > 5 else ''} "
+        raise UsageError(f"{option}: pair(s) {', '.join(map(str, missing[:5]))}{' ...' if len(missing) > 5 else ''} "
                          f"are not reconstructed (reconstructed: {', '.join(map(str, done[:10]))})")
     return wanted
 

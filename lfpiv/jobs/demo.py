@@ -11,6 +11,7 @@ from pathlib import Path
 from lfcore.device import resolve_device
 from lfcore.runstore import RunStore, RunStoreError
 from lfpiv.errors import UsageError
+from lfpiv.jobs.correlate import fitting_windows
 from lfpiv.plots import plot_raw_images, plot_vectors
 
 __all__ = ["MARKER", "check_device", "demo_windows", "pictures", "prepare_folder"]
@@ -48,15 +49,8 @@ def _legacy_demo(out: Path) -> bool:
 
 
 def demo_windows(run: str) -> str:
-    """Two passes whose first windows are the largest power of two up to 32 voxels that fits
-    twice into the volume along each axis."""
-    first = []
-    for n in RunStore.open(run).volume_grid().shape[::-1]:  # x, y, z
-        w = 32
-        while w > 4 and 2 * w > n:
-            w //= 2
-        first.append(w)
-    return f"{'x'.join(map(str, first))},{'x'.join(str(w // 2) for w in first)}"
+    """``--windows`` for the run's volumes (:func:`lfpiv.jobs.correlate.fitting_windows`)."""
+    return ",".join("x".join(map(str, w)) for w in fitting_windows(RunStore.open(run).volume_grid().shape))
 
 
 def pictures(run: str, out: Path) -> list[Path]:

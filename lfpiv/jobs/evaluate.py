@@ -19,7 +19,8 @@ from lfcore.vectors import FLAG_OUTLIER, FLAG_REPLACED
 from lfpiv.errors import UsageError
 from lfpiv.pair_runner import select_pairs
 
-__all__ = ["FrameEvaluation", "evaluate_run", "evaluate_vectors", "summary_rows"]
+__all__ = ["FrameEvaluation", "VectorEvaluation", "evaluate_run", "evaluate_vector_fields", "evaluate_vectors",
+           "summary_rows"]
 
 
 @dataclass(frozen=True)
@@ -31,7 +32,7 @@ class FrameEvaluation(metrics.VolumeEvaluation):
 
 
 def evaluate_run(store: RunStore, pairs: slice | None = None, threshold: float = 0.1,
-                 match_voxels: float = 2.0) -> list[FrameEvaluation]:
+                 match_voxels: float = 2.0, *, option: str = "--pair-range") -> list[FrameEvaluation]:
     """Q, detection and matching, diameters and depth profile of every reconstructed frame.
 
     Parameters
@@ -39,7 +40,7 @@ def evaluate_run(store: RunStore, pairs: slice | None = None, threshold: float =
     store
         A synthetic run with ``volumes/``.
     pairs
-        The ``--pairs`` range (None: every reconstructed pair).
+        The ``--pair-range`` (None: every reconstructed pair); ``option`` names it in messages.
     threshold, match_voxels
         As :func:`lfcore.metrics.evaluate_volume`.
 
@@ -56,7 +57,7 @@ def evaluate_run(store: RunStore, pairs: slice | None = None, threshold: float =
     except RunStoreError as exc:
         raise UsageError(str(exc)) from None
     done = store.reconstructed_pairs()
-    chosen = [p for p in select_pairs(pairs, store.n_pairs) if p in done]
+    chosen = [p for p in select_pairs(pairs, store.n_pairs, option=option) if p in done]
     if not chosen:
         raise UsageError(f"none of the selected pairs is reconstructed (reconstructed: {done or 'none'}); "
                          f"run 'lfpiv reconstruct {store.path}' first")
@@ -96,46 +97,91 @@ def summary_rows(evals: list[FrameEvaluation]) -> list[dict[str, Any]]:
     return rows
 
 
-def evaluate_vectors(store: RunStore, pairs: slice | None = None) -> list[tuple[str, str]]:
-    """Lines (label, text) about a run's vectors for ``lfpiv evaluate``, over the correlated
-    pairs among ``pairs`` (the ``--pairs`` range; None: all).
+@dataclass(frozen=True)
+class VectorEvaluation:
+    """A run's vectors against its truth (:func:`evaluate_vector_fields`).
 
-    RMS velocity error per component against the synthetic truth flow (in m/s and in voxels,
-    evaluated at the window centres at mid-pair time), the outlier fraction, and the
-    chapter's divergence error |du/dx + dv/dy + dw/dz|.
+    Attributes
+    ----------
+    pairs
+        The correlated pairs evaluated.
+    counts
+        (x, y, z) vectors per pair.
+    windows
+        Window sizes (x, y, z) of every pass, voxels.
+    errors
+        RMS velocity error per component and the peak speed, against the truth flow at the
+        window centres at mid-pair time (None without truth).
+    rms_voxels
+        The RMS errors as displacements in voxels of the current volumes (None without truth, or
+        when the vectors came from volumes since replaced).
+    outliers, replaced
+        Fractions of the vectors flagged outliers and replaced.
+    divergence_mean, divergence_median
+        The chapter's divergence error |du/dx + dv/dy + dw/dz|, 1/s.
     """
+
+    pairs: list[int]
+    counts: tuple[int, int, int]
+    windows: list[list[int]]
+    errors: metrics.VelocityErrors | None
+    rms_voxels: np.ndarray | None
+    outliers: float
+    replaced: float
+    divergence_mean: float
+    divergence_median: float
+
+
+def evaluate_vector_fields(store: RunStore, pairs: slice | None = None, *,
+                           option: str = "--pair-range") -> VectorEvaluation | str:
+    """The figures of a run's vectors over the correlated pairs among ``pairs`` (None: all), or
+    why there are none (a one-line reason). ``option`` names the pair range in messages."""
     if not store.has_vectors:
-        return [("vectors", f"none yet (run 'lfpiv correlate {store.path}')")]
+        return f"none yet (run 'lfpiv correlate {store.path}')"
     vec = store.vectors()
     done = store.correlated_pairs()
     if not done:
-        return [("vectors", "vectors/ exists but no pair has been correlated")]
-    pairs = [p for p in select_pairs(pairs, store.n_pairs) if p in done]
+        return "vectors/ exists but no pair has been correlated"
+    pairs = [p for p in select_pairs(pairs, store.n_pairs, option=option) if p in done]
     if not pairs:
-        return [("vectors", f"none of the selected pairs is correlated (correlated: {done})")]
+        return f"none of the selected pairs is correlated (correlated: {done})"
     a = vec["attrs"]
     x, y, z = vec["x_mm"], vec["y_mm"], vec["z_mm"]
     vel = np.stack([vec[c][pairs] for c in "uvw"], axis=-1).astype(np.float64)  # (pairs, z, y, x, 3)
     flags = vec["flags"][pairs]
     dt = float(a["dt_s"])
-    lines = [("vectors", f"{len(pairs)} pair(s) of {len(x)} x {len(y)} x {len(z)} vectors (x, y, z); windows "
-                         f"{', '.join('x'.join(map(str, w)) for w in a['windows'])} voxels")]
     truth = store.truth()
+    errors = vox = None
     if truth is not None:
         flow = flow_from_params(truth["attrs"]["flow"])
         ref = np.stack([metrics.grid_velocity(flow, x, y, z, truth["t0_s"][p] + 0.5 * dt) for p in pairs])
-        err = metrics.velocity_errors(vel, ref)
-        rms = err.rms_m_s
-        vox = ""
+        errors = metrics.velocity_errors(vel, ref)
         if store.has_volumes and not store.vectors_outdated:  # the same errors in voxels of their volumes
-            in_vox = rms * dt * 1e3 / np.asarray(store.volume_grid().voxel_mm)
-            vox = " (" + ", ".join(f"{e:.3f}" for e in in_vox) + " voxel)"
-        lines.append(("velocity error", f"RMS u, v, w {rms[0]:.3g}, {rms[1]:.3g}, {rms[2]:.3g} m/s{vox}; "
-                                        f"{100 * err.of_peak:.1f}% of the peak speed {err.peak_m_s:.3g} m/s"))
-    n = flags.size
-    lines.append(("outliers", f"{100.0 * np.count_nonzero(flags & FLAG_OUTLIER) / n:.1f}% of the vectors "
-                              f"({100.0 * np.count_nonzero(flags & FLAG_REPLACED) / n:.1f}% replaced)"))
+            vox = errors.rms_m_s * dt * 1e3 / np.asarray(store.volume_grid().voxel_mm)
     div = metrics.divergence_error(vel, x, y, z)
-    lines.append(("divergence error", f"|du/dx + dv/dy + dw/dz| mean {np.nanmean(div):.3g} 1/s, median "
-                                      f"{np.nanmedian(div):.3g} 1/s"))
+    return VectorEvaluation(pairs=pairs, counts=(len(x), len(y), len(z)), windows=[list(w) for w in a["windows"]],
+                            errors=errors, rms_voxels=vox,
+                            outliers=float(np.count_nonzero(flags & FLAG_OUTLIER) / flags.size),
+                            replaced=float(np.count_nonzero(flags & FLAG_REPLACED) / flags.size),
+                            divergence_mean=float(np.nanmean(div)), divergence_median=float(np.nanmedian(div)))
+
+
+def evaluate_vectors(store: RunStore, pairs: slice | None = None, *, option: str = "--pair-range"
+                     ) -> list[tuple[str, str]]:
+    """Lines (label, text) about a run's vectors for ``lfpiv evaluate`` (:func:`evaluate_vector_fields`)."""
+    ev = evaluate_vector_fields(store, pairs, option=option)
+    if isinstance(ev, str):
+        return [("vectors", ev)]
+    nx, ny, nz = ev.counts
+    lines = [("vectors", f"{len(ev.pairs)} pair(s) of {nx} x {ny} x {nz} vectors (x, y, z); windows "
+                         f"{', '.join('x'.join(map(str, w)) for w in ev.windows)} voxels")]
+    if ev.errors is not None:
+        rms = ev.errors.rms_m_s
+        vox = "" if ev.rms_voxels is None else " (" + ", ".join(f"{e:.3f}" for e in ev.rms_voxels) + " voxel)"
+        lines.append(("velocity error", f"RMS u, v, w {rms[0]:.3g}, {rms[1]:.3g}, {rms[2]:.3g} m/s{vox}; "
+                                        f"{100 * ev.errors.of_peak:.1f}% of the peak speed "
+                                        f"{ev.errors.peak_m_s:.3g} m/s"))
+    lines.append(("outliers", f"{100.0 * ev.outliers:.1f}% of the vectors ({100.0 * ev.replaced:.1f}% replaced)"))
+    lines.append(("divergence error", f"|du/dx + dv/dy + dw/dz| mean {ev.divergence_mean:.3g} 1/s, median "
+                                      f"{ev.divergence_median:.3g} 1/s"))
     return lines

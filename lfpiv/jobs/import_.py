@@ -24,6 +24,7 @@ codecs and file I/O release the interpreter lock).
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from collections.abc import Mapping
@@ -44,6 +45,8 @@ from lfpiv.formats import FormatError
 from lfpiv.formats.images import LAYOUTS, FrameSource, PairSource, image_files, pair_frames, read_sources
 
 __all__ = ["LAYOUTS", "ImportResult", "import_files"]
+
+log = logging.getLogger(__name__)
 
 #: Seconds between writes of the frame ids, time stamps, provenance and commit while importing.
 FLUSH_S = 2.0
@@ -144,6 +147,8 @@ def _sources_of(rig: Rig, frames: Mapping[str, str], frames_b: Mapping[str, str]
         except FormatError as exc:
             raise UsageError(f"camera '{cam.name}': {exc}") from None
         cams.append(_Camera(cam.name, tuple(cam.sensor_px), cam.bit_depth, str(pattern), pairs, unpaired))
+        log.info("camera %s: %d pair(s) in %d file(s) of %s (%s)", cam.name, len(pairs), len(files), pattern,
+                 "double-frame" if cam.name in (davis or {}) else layout)
     return cams, timing
 
 
@@ -364,6 +369,7 @@ def _copy(store: RunStore, cams: list[_Camera], first: int, n_pairs: int, *, pro
         nonlocal committed, read
         prov, written = fut.result()
         if prov is not None:
+            log.debug("read %s (%d bytes, sha256 %s)", prov["path"], prov["size"], prov["sha256"])
             read += prov["size"]
             if prov["path"] not in seen:
                 sources.append(prov)

@@ -62,7 +62,8 @@ def describe(path: str | Path) -> list[str]:
         ("run", str(store.path)),
         ("state", f"{store.state} ({store.committed_pairs} of {store.n_pairs} pairs committed)"),
         ("created", f"{a.get('created')} by lfpiv {a.get('software_version')}"),
-        ("timing", f"dt {t['dt_s'] * 1e3:g} ms, pairs at {t['rate_hz']:g} Hz"),
+        ("timing", f"dt {t['dt_s'] * 1e3:g} ms, "
+                   + (f"pairs at {t['rate_hz']:g} Hz" if t.get("rate_hz") else "pair rate unknown")),
         ("volume", f"{' x '.join(f'{s:g}' for s in v.size_mm)} mm centred at "
                    f"({', '.join(f'{c:g}' for c in v.centre_mm)}); {' x '.join(str(n) for n in grid.shape[::-1])} "
                    f"voxels (x, y, z) at PVR ({', '.join(f'{p:g}' for p in v.pvr)})"),
@@ -82,6 +83,11 @@ def describe(path: str | Path) -> list[str]:
                                + (f" ({ppm:g} PPM)" if ppm else "") + f", seed {truth['attrs'].get('seed')}"))
     else:
         lines.append(("flow", "unknown (recorded run, no truth)"))
+    made = a.get("import")
+    if made:
+        cams = made.get("plan", {}).get("cameras", {})
+        lines.append(("imported", f"{len(made.get('sources', []))} file(s) ({made.get('plan', {}).get('layout')} "
+                                  f"layout) from " + "; ".join(f"{n}: {c.get('pattern')}" for n, c in cams.items())))
     if a.get("abort_reason"):
         lines.append(("aborted", str(a["abort_reason"])))
     drops = store.drops()

@@ -125,7 +125,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                     cameras: Sequence[str] | None = None, device: str | None = None,
                     progress: bool = True, rig: Rig | None = None,
                     calibration: dict[str, Any] | None = None, skip_done: bool = False,
-                    client: Any = None) -> list[ReconResult]:
+                    client: Any = None, option: str = "--pair-range") -> list[ReconResult]:
     """Reconstruct both frames of the selected pairs and store them in ``volumes/``.
 
     Existing volumes with the same grid, cameras, settings and calibration are kept and added
@@ -140,7 +140,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     calibration that is and is kept in the ``volumes/`` settings (None: the run's own rig).
 
     ``client``, a Dask client (:func:`lfpiv.batch.dask_client`), spreads the pairs over its
-    workers, which resolve ``device`` each for itself.
+    workers, which resolve ``device`` each for itself. ``option`` names the pair range in
+    messages.
 
     Each volume is written into the store while the next frame is reconstructed.
 
@@ -161,11 +162,12 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     if store.committed_pairs == 0:
         raise UsageError(f"{store.path} has no recorded pairs (committed_pairs = 0); nothing to reconstruct")
     # by default every recorded pair: a run cut short (Ctrl-C, a fault) has fewer than it planned
-    chosen = select_pairs(pairs, store.n_pairs) if pairs is not None else list(range(store.committed_pairs))
+    chosen = (select_pairs(pairs, store.n_pairs, option=option) if pairs is not None
+              else list(range(store.committed_pairs)))
     late = [p for p in chosen if p >= store.committed_pairs]
     if late:
         raise UsageError(f"pair {late[0]} was never recorded (the run has {store.committed_pairs} committed "
-                         f"pair(s)); choose --pairs within 0:{store.committed_pairs}")
+                         f"pair(s)); choose {option} within 0:{store.committed_pairs}")
     names = list(cameras) if cameras else [c.name for c in rig.camera]
     unknown = [n for n in names if n not in store.cameras]
     if unknown:

@@ -179,14 +179,15 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         except ValueError as exc:
             raise UsageError(str(exc)) from None
         flow_params = world.flow_params
-        made = [world.pair(i) for i in range(pairs)]
-        particles = np.stack([m[0] for m in made])
+        # the whole run's truth at once: a run too large for memory fails here, before any work
+        particles = np.empty((pairs, 2, world.n_particles, 3))
+        brightness = np.empty((pairs, 2, world.n_particles))
+        for i in range(pairs):
+            particles[i], brightness[i] = world.pair(i)
     _check_in_front(rig, particles.reshape(-1, 3))
     if points is not None:
         brightness = render.particle_counts * sheet_weights(particles.reshape(-1, 3), rig.laser, rig.volume)
         brightness = brightness.reshape(particles.shape[:3])
-    else:
-        brightness = np.stack([m[1] for m in made])
 
     renderers = [LightFieldRenderer(cam, render, rig.laser.wavelength_nm, device) for cam in rig.camera]
     timing = {"dt_s": dt_s, "rate_hz": rate}

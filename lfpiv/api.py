@@ -1,0 +1,210 @@
+"""The notebook-sized Python API: what ``import lfpiv`` gives (:mod:`lfpiv` re-exports it).
+
+The same jobs the ``lfpiv`` commands run, with keyword options::
+
+    import lfpiv
+
+    rig = lfpiv.load_rig("examples/one_camera.toml")
+    run = lfpiv.import_files(rig, "run.zarr", frames={"cam0": "rec/*.tif"}, dt_us=500, rate_hz=10).store
+    lfpiv.reconstruct(run, iterations=50)
+    lfpiv.correlate(run)
+    print(lfpiv.evaluate(run).vectors.divergence_mean)
+    lfpiv.export(run, "netcdf", "field")
+
+A run is given as a path or as the store :func:`open_run` returns. Errors are the commands':
+:class:`lfpiv.errors.UsageError` for bad input (one line naming the problem and the fix),
+:class:`lfcore.errors.DeviceError` for a device fault.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from lfcore.rig import Rig
+from lfcore.runstore import RunStore
+from lfpiv.errors import UsageError
+from lfpiv.rigfile import load_rig
+
+__all__ = ["Evaluation", "correlate", "evaluate", "export", "import_files", "load_rig", "open_run", "reconstruct"]
+
+PairsLike = slice | int | str | None
+
+
+def open_run(path: str | os.PathLike[str] | RunStore, *, mode: str = "r") -> RunStore:
+    """The run store at ``path`` (``mode="r+"`` to add volumes or vectors); a store given is
+    returned as it is to read, opened again to write."""
+    if isinstance(path, RunStore):
+        return path if mode == "r" else RunStore.open(path.path, mode=mode)
+    return RunStore.open(path, mode=mode)
+
+
+def _pairs(pairs: PairsLike) -> slice | None:
+    """A pair selection: None (all), a pair index, ``"START:STOP"`` or a slice."""
+    if pairs is None or isinstance(pairs, slice):
+        return pairs
+    if isinstance(pairs, int):
+        return slice(pairs, pairs + 1)
+    from lfpiv.commands import pair_range
+
+    try:
+        return pair_range(str(pairs))
+    except Exception as exc:  # argparse's ArgumentTypeError: say it as the API's error
+        raise UsageError(f"pairs: {exc}") from None
+
+
+def _rig(rig: Rig | str | os.PathLike[str]) -> Rig:
+    return rig if isinstance(rig, Rig) else load_rig(rig)
+
+
+def import_files(rig: Rig | str | os.PathLike[str], out: str | os.PathLike[str], *, frames: Mapping[str, str],
+                 frames_b: Mapping[str, str] | None = None, davis: Mapping[str, str] | None = None,
+                 layout: str = "interleaved", dt_us: float | None = None, rate_hz: float | None = None,
+                 overwrite: bool = False, skip_done: bool = False, progress: bool = True) -> Any:
+    """A run store made from image files recorded elsewhere (``lfpiv import``).
+
+    Parameters are :func:`lfpiv.jobs.import_.import_files`' (``rig`` may be a rig file's path);
+    returns its :class:`~lfpiv.jobs.import_.ImportResult` (``.store`` is the run).
+    """
+    from lfpiv.jobs.import_ import import_files as job
+
+    return job(_rig(rig), out, frames=frames, frames_b=frames_b, davis=davis, layout=layout, dt_us=dt_us,
+               rate_hz=rate_hz, overwrite=overwrite, skip_done=skip_done, progress=progress)
+
+
+def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str = "drt-mart", iterations: int = 50,
+                relaxation: float = 1.0, form: str = "simultaneous", pvr: Sequence[float] | None = None,
+                margin_mm: Sequence[float] = (0.0, 0.0, 0.0), pairs: PairsLike = None,
+                cameras: Sequence[str] | None = None, calibration: str | os.PathLike[str] | None = None,
+                device: str | None = None, workers: int | None = None, scheduler: str | None = None,
+                skip_done: bool = False, progress: bool = True, **options: Any) -> list[Any]:
+    """Reconstruct both frames of the selected pairs into the run's ``volumes/`` (``lfpiv reconstruct``).
+
+    Parameters
+    ----------
+    run
+        The run (a path or a store).
+    method, iterations, relaxation, form
+        DRT-MART (default), MART or MLOS-MART; MART sweeps; relaxation; simultaneous or sequential.
+    pvr, margin_mm
+        Pixel-voxel ratio (x, y, z) of the voxel grid (None: the rig's) and the margin around
+        the rig's volume, mm.
+    pairs
+        None (every recorded pair), a pair index, ``"START:STOP"`` or a slice.
+    cameras
+        Camera names to reconstruct from (None: all).
+    calibration
+        A calibration store whose fitted camera models replace the run's rig.
+    device, workers, scheduler, skip_done
+        As the command's ``--device``, ``--workers``, ``--scheduler``, ``--skip-done``.
+    progress
+        A progress bar on stderr.
+    **options
+        Further :class:`lfcore.reconstruct.ReconSettings` fields (``background``,
+        ``threshold_sigma``, ``smooth``, ``sub_apertures``, ``weight_storage``, ...).
+
+    Returns
+    -------
+    list of lfcore.reconstruct.ReconResult
+        One per frame reconstructed (the volumes are in the store).
+    """
+    from lfpiv.batch import dask_client
+    from lfpiv.jobs.calibrate import calibrated_rig
+    from lfpiv.jobs.reconstruct import recon_settings, reconstruct_run
+
+    store = open_run(run, mode="r+")
+    settings = recon_settings(method=method, iterations=iterations, relaxation=relaxation, form=form, **options)
+    rig, cal = calibrated_rig(store.rig, calibration, cameras) if calibration is not None else (None, None)
+    with dask_client(workers, scheduler) as client:
+        return reconstruct_run(store, settings, pvr=pvr, margin_mm=margin_mm, pairs=_pairs(pairs), cameras=cameras,
+                               device=device, progress=progress, rig=rig, calibration=cal, skip_done=skip_done,
+                               client=client, option="pairs")
+
+
+def correlate(run: str | os.PathLike[str] | RunStore, *,
+              windows: Sequence[Sequence[int]] | None = None, overlap: float | Sequence[float] = 0.75,
+              deform_passes: int = 2, pairs: PairsLike = None, device: str | None = None, workers: int | None = None,
+              scheduler: str | None = None, skip_done: bool = False, progress: bool = True,
+              **options: Any) -> Any:
+    """3D multi-grid cross-correlation of the run's volumes into ``vectors/`` (``lfpiv correlate``).
+
+    Parameters
+    ----------
+    run
+        The run, with volumes.
+    windows
+        (x, y, z) voxels of each pass, largest first (None: two passes that fit the volume,
+        :func:`lfpiv.jobs.correlate.fitting_windows`).
+    overlap
+        Overlap of neighbouring windows, one fraction or (x, y, z).
+    deform_passes
+        Passes with volume deformation at the final window size.
+    pairs
+        None (every reconstructed pair), a pair index, ``"START:STOP"`` or a slice.
+    device, workers, scheduler, skip_done, progress
+        As :func:`reconstruct`.
+    **options
+        Further options of :func:`lfpiv.jobs.correlate.correlation_config` (``zero_pad``,
+        ``median_filter``, ``epsilon``, ``threshold``, ``interpolation``, ``search_radius``, ...).
+
+    Returns
+    -------
+    lfpiv.jobs.correlate.CorrelationRun
+        The pairs correlated, the vector grid, the outliers, the time taken.
+    """
+    from lfpiv.batch import dask_client
+    from lfpiv.jobs.correlate import correlate_run, correlation_config, fitting_windows, pairs_to_correlate
+
+    store = open_run(run, mode="r+")
+    chosen = pairs_to_correlate(store, _pairs(pairs), option="pairs")
+    wins = tuple(tuple(int(v) for v in w) for w in windows) if windows is not None else \
+        fitting_windows(store.volume_grid().shape)
+    ov = (float(overlap),) * 3 if isinstance(overlap, int | float) else tuple(float(v) for v in overlap)
+    cfg = correlation_config(windows=wins, overlap=ov, deform_iterations=deform_passes, **options)  # type: ignore[arg-type]
+    with dask_client(workers, scheduler) as client:
+        return correlate_run(store, cfg, chosen, device=device, progress=progress, skip_done=skip_done, client=client)
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """What :func:`evaluate` found.
+
+    Attributes
+    ----------
+    volumes
+        Per reconstructed frame, its quality against the truth
+        (:class:`lfpiv.jobs.evaluate.FrameEvaluation`); None without volumes or without truth.
+    vectors
+        The vectors' figures (:class:`lfpiv.jobs.evaluate.VectorEvaluation`: velocity error
+        against the truth where there is one, outliers, divergence error); None without vectors.
+    """
+
+    volumes: list[Any] | None
+    vectors: Any
+
+
+def evaluate(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, threshold: float = 0.1,
+             match_voxels: float = 2.0) -> Evaluation:
+    """The run's volumes and vectors against its truth (``lfpiv evaluate``); a recorded or imported
+    run has no truth, and only the vectors' outliers and divergence error are measured."""
+    from lfpiv.jobs.evaluate import evaluate_run, evaluate_vector_fields
+
+    store = open_run(run)
+    sel = _pairs(pairs)
+    vols = None
+    if store.has_volumes and store.truth() is not None:
+        vols = evaluate_run(store, sel, threshold, match_voxels, option="pairs")
+    vec = evaluate_vector_fields(store, sel, option="pairs")
+    return Evaluation(volumes=vols, vectors=None if isinstance(vec, str) else vec)
+
+
+def export(run: str | os.PathLike[str] | RunStore, fmt: str, out: str | os.PathLike[str], *,
+           overwrite: bool = False) -> list[Path]:
+    """Write the run's vector fields for other tools (``lfpiv export``): ``fmt`` is ``"netcdf"``,
+    ``"vtk"``, ``"tecplot"``, ``"davis"`` or ``"mat"`` (:mod:`lfpiv.jobs.export`); returns the files."""
+    from lfpiv.jobs.export import export_run
+
+    return export_run(open_run(run), fmt, out, overwrite=overwrite)
