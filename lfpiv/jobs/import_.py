@@ -16,7 +16,8 @@ What keeps the lab's data safe:
   is a row of ``drops`` with its reason, never silent;
 - an existing store is replaced only with ``overwrite``; an interrupted import (Ctrl-C, an
   unreadable file found late) keeps its committed pairs, says ``aborted``, and goes on with
-  ``skip_done`` from the first pair it lacks.
+  ``skip_done`` from the first pair it lacks; one that stops before its first pair is whole
+  removes the store it began.
 
 Frames are compressed and written by several threads while the next files are read (zarr's
 codecs and file I/O release the interpreter lock).
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import time
 from collections.abc import Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -286,6 +288,10 @@ def import_files(rig: Rig, out: str | os.PathLike[str], *, frames: Mapping[str, 
     try:
         read = _copy(store, cams, done, n_pairs, progress=progress, threads=threads or max(2, cpu_threads()))
     except BaseException as exc:
+        if done == 0 and store.committed_pairs == 0:
+            # nothing imported yet: the store this call made is removed, not left half-written
+            shutil.rmtree(store.path, ignore_errors=True)
+            raise
         reason = str(exc) if isinstance(exc, UsageError) else f"interrupted ({type(exc).__name__})"
         store.group.attrs.update({"abort_reason": reason})
         store.set_state("aborted")
