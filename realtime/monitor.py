@@ -20,6 +20,7 @@ Qt is imported lazily: ``import realtime.monitor`` works without the ``gui`` ext
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 import sys
@@ -34,14 +35,52 @@ import numpy as np
 
 from realtime.pipeline import AXES, LivePipeline, LiveResult, plausible_latency
 
-__all__ = ["Controls", "GuiUnavailable", "MonitorWindow", "WindowOutcome", "require_qt", "run_monitor_window"]
+__all__ = ["Controls", "GuiUnavailable", "MonitorWindow", "WindowOutcome", "drops_none_references", "require_qt",
+           "run_monitor_window"]
 
 INSTALL_HINT = "pip install 'lfpiv[gui]'"
 _HANDLER_INSTALLED = False
+_BINDING_FAULT: str | None = None  # once checked: "" for a sound binding, else why the monitor refuses it
 
 
 class GuiUnavailable(RuntimeError):
     """pyqtgraph or its Qt binding is missing, or Qt cannot start (the message says which)."""
+
+
+def drops_none_references(QtCore: Any, calls: int = 256) -> bool:  # noqa: N803 - Qt's module name
+    """True if the Qt binding gives back ``None`` without a reference from methods that return nothing.
+
+    Up to Python 3.11 ``None`` is reference-counted like any object, and an extension that returns
+    it without adding a reference takes one away from every other holder; at zero the interpreter
+    aborts ("Fatal Python error: none_dealloc"). PySide6 6.12.0 does so on every call of a C++
+    method returning ``void`` (``QLabel.setText``, ``ImageItem.setImage`` through pyqtgraph, the
+    event loop's ``processEvents``), which ended ``lfpiv monitor`` after about a thousand pairs.
+    From Python 3.12 on ``None`` is immortal and such a binding does no harm.
+
+    Parameters
+    ----------
+    QtCore
+        The binding's ``QtCore`` module.
+    calls
+        Calls of ``QObject.setObjectName`` (a ``void`` method) made to find out; a faulty binding
+        takes ``calls`` references from ``None`` (harmless at a few hundred), a sound one none.
+    """
+    if sys.version_info >= (3, 12):
+        return False  # None is immortal: its count never reaches zero
+    obj = QtCore.QObject()
+    set_name = obj.setObjectName
+    collecting = gc.isenabled()
+    gc.disable()  # a collection meanwhile could free objects that refer to None
+    try:
+        before = sys.getrefcount(None)
+        for _ in range(calls):
+            set_name("")
+        drift = sys.getrefcount(None) - before
+    finally:
+        if collecting:
+            gc.enable()
+    # Half the calls leaves room for other threads holding or letting go of a few references meanwhile.
+    return drift <= -(calls // 2)
 
 
 def require_qt() -> tuple[Any, Any, Any, Any]:
@@ -50,7 +89,8 @@ def require_qt() -> tuple[Any, Any, Any, Any]:
     Raises
     ------
     GuiUnavailable
-        Without the ``gui`` extra, with the command that installs it.
+        Without the ``gui`` extra, or with a Qt binding that loses references to ``None``
+        (:func:`drops_none_references`), with the command that installs the tested one.
     """
     os.environ.setdefault("PYQTGRAPH_QT_LIB", "PySide6")  # the binding the gui extra pins and tests
     try:
@@ -59,7 +99,17 @@ def require_qt() -> tuple[Any, Any, Any, Any]:
     except ImportError as exc:
         raise GuiUnavailable(f"the monitor needs pyqtgraph and PySide6 ({exc.name or exc} is missing); "
                              f"install them with: {INSTALL_HINT}") from None
-    global _HANDLER_INSTALLED
+    global _BINDING_FAULT, _HANDLER_INSTALLED
+    if _BINDING_FAULT is None:
+        _BINDING_FAULT = ""
+        if drops_none_references(QtCore):
+            lib = pg.Qt.QT_LIB
+            version = getattr(sys.modules.get(lib), "__version__", "")
+            _BINDING_FAULT = (f"the Qt binding {lib} {version} loses a reference to None on every call (a refcount "
+                              f"bug of that build on Python {sys.version_info[0]}.{sys.version_info[1]}) and would "
+                              f"abort the monitor mid-run; install the tested one with: {INSTALL_HINT}")
+    if _BINDING_FAULT:
+        raise GuiUnavailable(_BINDING_FAULT)
     if not _HANDLER_INSTALLED:
         _HANDLER_INSTALLED = True
         previous = None

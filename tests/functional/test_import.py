@@ -46,8 +46,8 @@ def test_tiffs_import_exactly_and_reconstruct_to_the_original_volumes(original, 
     files = _tiffs(tmp_path / "tiffs", frames)
     before = {f: f.read_bytes() for f in files}
     out = tmp_path / "imported.zarr"
-    rc, text, err = _run(capsys, "import", "--rig", TINY, "--out", out, "--frames", f"cam0={tmp_path / 'tiffs' / '*.tif'}",
-                         "--dt-us", "2000", "--rate-hz", "10", "--quiet")
+    rc, text, err = _run(capsys, "import", "--rig", TINY, "--out", out, "--frames",
+                         f"cam0={tmp_path / 'tiffs' / '*.tif'}", "--dt-us", "2000", "--rate-hz", "10", "--quiet")
     assert rc == 0, err
     assert "3 pair(s) x 1 camera(s) from 6 file(s), 0 frame(s) lost" in text
     run = RunStore.open(out)
@@ -302,8 +302,8 @@ def test_a_calibration_from_the_lab_s_own_files_equals_the_one_the_rig_took(tmp_
     files_made = tmp_path / "files.zarr"
     rc, out, err = _run(capsys, "calibrate", "mla", "--rig", demo, *whites, "--out", files_made, "--quiet")
     assert rc == 0, err
-    rc, out, err = _run(capsys, "calibrate", "volume", "--rig", demo, *images, "--positions", tmp_path / "positions.csv",
-                        "--out", files_made, "--quiet")
+    rc, out, err = _run(capsys, "calibrate", "volume", "--rig", demo, *images, "--positions",
+                        tmp_path / "positions.csv", "--out", files_made, "--quiet")
     assert rc == 0 and "took 5 plane(s)" in out, err
     rc, out, err = _run(capsys, "calibrate", "fit", files_made, "--quiet")
     assert rc == 0, err
@@ -392,7 +392,7 @@ def test_imported_files_to_every_export_each_opened_by_its_reader(original, tmp_
     nz, ny, nx = v["u"].shape[1:]
     x_m, y_m, z_m = (v[f"{a}_mm"] * 1e-3 for a in "xyz")
     formats = ("netcdf", "vtk", "tecplot", "davis", "mat")
-    lv = pytest.importorskip("lvpyio") if True else None
+    lv = pytest.importorskip("lvpyio")
     for fmt in formats:
         rc, out, err = _run(capsys, "export", run, "--format", fmt, "--out", tmp_path / fmt)
         assert rc == 0, (fmt, err)
