@@ -251,11 +251,12 @@ def check_pvr(pvr: tuple[float, float, float] | None) -> None:
 
 @contextmanager
 def progress_bar(total: int, desc: str, unit: str, quiet: bool) -> Iterator[Any]:
-    """A progress bar on stderr for a job's ``progress(done, total)`` callback; its ``write(line)``
-    prints a line above the bar (also when ``quiet`` hides the bar)."""
+    """A progress bar on stderr for a job's ``progress(done, total)`` callback, shown on a terminal
+    unless ``quiet`` (a log or a pipe gets no bar lines); its ``write(line)`` prints a line above
+    the bar (also when there is no bar)."""
     from tqdm import tqdm
 
-    with tqdm(total=total, desc=desc, unit=unit, disable=quiet, leave=False) as bar:
+    with tqdm(total=total, desc=desc, unit=unit, disable=quiet or not sys.stderr.isatty(), leave=False) as bar:
 
         def update(done: int, of: int | None = None) -> None:
             if of is not None:
