@@ -219,6 +219,12 @@ class PulseGenerator(Protocol):
         """Stop T0 and disable every output. Never raises for a device that answers."""
         ...
 
+    def verify(self) -> None:
+        """Read the programmed settings (and, armed, the outputs) back; a difference means the
+        instrument was reset, power-cycled or changed from its front panel: disarm and raise
+        :class:`DeviceError`. Called about once a second during a recording."""
+        ...
+
     @property
     def armed(self) -> bool:
         """True between :meth:`arm` and :meth:`disarm`."""
@@ -239,6 +245,10 @@ class Stage(Protocol):
 
     def open(self) -> None:
         """Open the port, check that the device answers and read its travel limits."""
+        ...
+
+    def describe(self) -> str:
+        """One line naming the stage (its product and device id, serial, firmware)."""
         ...
 
     @property

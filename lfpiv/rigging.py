@@ -35,7 +35,8 @@ class Rigging:
 
 
 @contextmanager
-def open_rig(rig: Rig, *, sim_options: dict[str, Any] | None = None) -> Iterator[Rigging]:
+def open_rig(rig: Rig, *, sim_options: dict[str, Any] | None = None,
+             software_pairing: bool = False) -> Iterator[Rigging]:
     """Open the pulse generator and the cameras of ``rig`` (real or simulated).
 
     The generator is disarmed and every device released on exit, whatever happened.
@@ -47,6 +48,9 @@ def open_rig(rig: Rig, *, sim_options: dict[str, Any] | None = None) -> Iterator
     sim_options
         Keyword arguments of :class:`sim.lab.SimLab` (world, pool_pairs, camera_faults, ...), or
         ``{"lab": lab}`` to use an already entered :class:`sim.lab.SimLab`.
+    software_pairing
+        Real GenICam cameras without a double-exposure (PIV) mode may take one frame per trigger,
+        paired in software by their time stamps (``lfpiv acquire --pairing timestamps``).
     """
     with ExitStack() as stack:
         lab = None
@@ -70,8 +74,8 @@ def open_rig(rig: Rig, *, sim_options: dict[str, Any] | None = None) -> Iterator
                 # without serials both would open the first device found
                 raise UsageError(f"camera '{unnamed[0]}' has no serial in the rig file; with {len(rig.camera)} "
                                  "cameras each needs its GenICam serial number (lfpiv devices lists them)")
-            cameras = [GenICamCamera(c.name, serial=c.serial, producers=list(rig.gentl_producers) or None)
-                       for c in rig.camera]
+            cameras = [GenICamCamera(c.name, serial=c.serial, producers=list(rig.gentl_producers) or None,
+                                     allow_software_pairing=software_pairing) for c in rig.camera]
         gen = pulse_generator_for(pulse_port, rig.pulse_generator)
         stack.callback(gen.close)
         gen.open()

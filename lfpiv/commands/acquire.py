@@ -20,6 +20,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--overwrite", action="store_true", help="replace an existing run store at --out")
     s.add_argument("--ring", type=ring_slots, default=32, metavar="PAIRS",
                    help="ring-buffer depth in pairs (default: 32)")
+    s.add_argument("--pairing", choices=("counter", "timestamps"), default="counter",
+                   help="counter (default): frames A and B of one trigger, a camera's double-exposure mode; "
+                   "timestamps: GenICam cameras without one take a frame per trigger, paired in software by their "
+                   "time stamps (real hardware only)")
     add_sim_options(s)
     s.add_argument("--quiet", action="store_true", help="no progress line")
     s.set_defaults(func=run)
@@ -33,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(args.rig)
     warn_optics(rig)
     # refuse an impossible timing or a taken --out before the simulated lab renders
-    check_plan(rig, args.pairs)
+    check_plan(rig, args.pairs, pairing=args.pairing)
     check_new(args.out, args.overwrite)
     sim_options = sim_lab_options(rig, args)
     if sim_options is not None and not args.quiet:
@@ -47,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
                   f"{st.elapsed_s:6.1f} s", end="", file=sys.stderr, flush=True)
 
     res = record(rig, args.out, args.pairs, overwrite=args.overwrite, sim_options=sim_options, ring_slots=args.ring,
-                 progress=show)
+                 progress=show, pairing=args.pairing)
     show(res.stats)
     if not args.quiet:
         print(file=sys.stderr)

@@ -36,7 +36,10 @@ from lfpiv import __version__
 from lfpiv.errors import UsageError
 from lfpiv.rigging import open_rig
 
-__all__ = ["AcquireResult", "check_plan", "record"]
+__all__ = ["PAIRINGS", "AcquireResult", "check_plan", "record"]
+
+#: How frames A and B are paired (``lfpiv acquire --pairing``).
+PAIRINGS = ("counter", "timestamps")
 
 
 class Terminated(Exception):
@@ -56,15 +59,20 @@ class AcquireResult:
     drops: int
     message: str
 
-def check_plan(rig: Rig, pairs: int) -> TimingPlan:
+def check_plan(rig: Rig, pairs: int, *, pairing: str = "counter") -> TimingPlan:
     """The timing plan for ``pairs`` double pulses, or a one-line :class:`UsageError` saying why
-    the rig's timing is impossible."""
+    the rig's timing (or the ``pairing``, see :func:`record`) is impossible."""
     if pairs < 1:
         raise UsageError(f"--pairs must be at least 1, got {pairs}")
     if pairs > MAX_BURST:
         # the generator stops by itself after a burst of that many periods
         raise UsageError(f"--pairs {pairs} is more than one burst of the pulse generator fires "
                          f"({MAX_BURST:,}); record the experiment as several runs")
+    if pairing not in PAIRINGS:
+        raise UsageError(f"--pairing must be one of {', '.join(PAIRINGS)}, got '{pairing}'")
+    if pairing == "timestamps" and rig.hardware == "sim":
+        raise UsageError("--pairing timestamps is for real GenICam cameras without a double-exposure mode; the "
+                         "simulated cameras expose both frames of each trigger (leave it out)")
     try:
         return plan_timing(rig, pulses=pairs)
     except TimingError as exc:
@@ -74,7 +82,8 @@ def check_plan(rig: Rig, pairs: int) -> TimingPlan:
 def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
            sim_options: dict[str, Any] | None = None, ring_slots: int = 32, writer_threads: int = 4,
            stall_s: float = 3.0, progress: Callable[[SessionStats], None] | None = None,
-           on_session: Callable[[RecordingSession], None] | None = None) -> AcquireResult:
+           on_session: Callable[[RecordingSession], None] | None = None,
+           pairing: str = "counter") -> AcquireResult:
     """Record ``pairs`` double-frame pairs from every camera of ``rig`` into a new run store.
 
     Parameters
@@ -99,6 +108,10 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
     on_session
         Called with the recording session once it started and before the laser is armed (the
         live pipeline attaches to ``session.ring`` here); it must return quickly.
+    pairing
+        ``"counter"`` (frames A and B of one trigger, by frame counter) or ``"timestamps"``: real
+        GenICam cameras without a double-exposure mode take one frame per trigger, paired in
+        software by their time stamps (the simulated cameras expose both frames of a trigger).
 
     Returns
     -------
@@ -114,11 +127,11 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
     KeyboardInterrupt
         Ctrl-C; the laser was disarmed and the run marked aborted.
     """
-    plan = check_plan(rig, pairs)
+    plan = check_plan(rig, pairs, pairing=pairing)
     RunStore.check_new(out, overwrite)
     period = plan.period_s
 
-    with open_rig(rig, sim_options=sim_options) as rg:
+    with open_rig(rig, sim_options=sim_options, software_pairing=pairing == "timestamps") as rg:
         gen = rg.pulse_generator
         gen.program(plan)
         for cam in rg.cameras:
@@ -129,9 +142,12 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
                                  f"sensor_px = {list(want)}; correct the rig file")
             cam.configure(triggered=True, frames_per_trigger=2, exposure_us=rig.timing.camera_exposure_us,
                           dt_us=rig.timing.dt_us)
-        timing = {"dt_s": plan.dt_s, "rate_hz": 1.0 / period, "pulses": pairs,
+        # the timing as the instrument holds it (every time rounded to its resolution), not as asked
+        held = getattr(gen, "programmed", None) or plan
+        timing = {"dt_s": held.dt_s, "rate_hz": 1.0 / held.period_s, "pulses": pairs,
                   "channels": [{"channel": c.channel, "role": c.role, "delay_s": c.delay_s, "width_s": c.width_s,
-                                "polarity": c.polarity} for c in plan.channels]}
+                                "polarity": c.polarity} for c in held.channels],
+                  "planned": {"dt_s": plan.dt_s, "rate_hz": 1.0 / period}}
         store = RunStore.create(out, rig, pairs, timing=timing, software_version=__version__, overwrite=overwrite)
         try:
             store.group.attrs.update({"hardware": rig.hardware})
@@ -176,7 +192,9 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
                             raise DeviceError(f"camera '{cam.name}' delivered no frame for {stall_s + period:.1f} s "
                                               "while triggered; check its trigger cable, power and link")
                 if now > next_ping:
-                    gen.identify()  # a generator that stops answering stops the recording
+                    # a generator that stops answering, was reset or was changed from its front panel
+                    # stops the recording (the driver disarms first)
+                    gen.verify()
                     next_ping = now + 1.0
             state, message = "complete", f"recorded {pairs} pair(s)"
         except KeyboardInterrupt:

@@ -89,6 +89,7 @@ def _probe_stage(port: str, rig: Rig) -> str:
     stage = make_stage(port, rig)
     try:
         stage.open()
-        return f"Zaber stage at {stage.position_mm():.4f} mm, travel {stage.travel_mm[0]:g}..{stage.travel_mm[1]:g} mm"
+        return (f"Zaber stage at {stage.position_mm():.4f} mm, travel {stage.travel_mm[0]:g}..{stage.travel_mm[1]:g} "
+                f"mm: {stage.describe()}")
     finally:
         stage.close()

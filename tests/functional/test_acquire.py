@@ -388,3 +388,25 @@ def test_interrupt_signals_abort_cleanly(fast_rig_file: Path, tmp_path: Path, si
     store = RunStore.open(out)
     assert store.state == "aborted"
     _check_every_frame_accounted(store, store.committed_pairs)
+
+
+def test_the_run_records_the_timing_as_the_generator_holds_it_and_devices_names_the_stage(fast_rig, tmp_path,
+                                                                                           capsys):
+    """The timing a run records is read back from the generator (rounded to its resolution), and
+    ``lfpiv devices`` names the stage by its device id; ``--pairing timestamps`` is for real
+    cameras only."""
+    with _lab(fast_rig) as lab:
+        res = record(fast_rig, tmp_path / "t.zarr", 3, sim_options={"lab": lab})
+    t = RunStore.open(res.store.path).timing
+    assert t["dt_s"] == pytest.approx(fast_rig.timing.dt_us * 1e-6, abs=1e-12)
+    assert t["planned"]["dt_s"] == pytest.approx(fast_rig.timing.dt_us * 1e-6)
+    assert all(round(c["delay_s"] / 250e-12) * 250e-12 == pytest.approx(c["delay_s"], abs=1e-15)
+               for c in t["channels"])  # on the instrument's 250 ps grid
+    rig_file = tmp_path / "fast.toml"
+    rig_file.write_text(fast_rig_text())
+    lines = list_devices(load_rig(rig_file))
+    stage = next(text for text, _ in lines if text.startswith("stage"))
+    assert "deviceid" in stage and "serial" in stage, stage
+    rc = main(["acquire", "--rig", str(rig_file), "--pairs", "2", "--out", str(tmp_path / "p.zarr"), "--pairing",
+               "timestamps"])
+    assert rc == 2 and "--pairing timestamps is for real GenICam cameras" in capsys.readouterr().err
