@@ -349,7 +349,12 @@ def _read(path: Path, frames: Sequence[int] | None = None, raw: bytes | None = N
                 if any(k >= n for k in keys):
                     raise FormatError(f"{path} holds {n} page(s), not page {max(keys)}; was it changed since it was "
                                       "inspected?")
-                data = tf.asarray(key=keys, series=0) if n > 1 else tf.asarray(series=0)
+                pages = tf.series[0].pages
+                views = None if raw is None else [_raw_view(raw, pages[k], tf.byteorder) for k in keys]
+                if views is not None and all(v is not None for v in views):
+                    data = np.stack(views)  # uncompressed pages of a file read already: no decoding
+                else:
+                    data = tf.asarray(key=keys, series=0) if n > 1 else tf.asarray(series=0)
                 if errors:
                     raise _damaged(path, errors[0])
         except FormatError:
@@ -372,6 +377,23 @@ def _read(path: Path, frames: Sequence[int] | None = None, raw: bytes | None = N
         raise FormatError(f"{path} holds {len(all_frames)} frame(s), not frame {max(frames)}; was it changed since "
                           "it was inspected?")
     return all_frames[list(frames)]
+
+
+def _raw_view(raw: bytes, page: Any, byteorder: str) -> np.ndarray | None:
+    """An uncompressed, contiguous 16-bit TIFF page as a view of the file's bytes (None for any
+    other page: tifffile decodes those)."""
+    try:
+        if (page is None or page.compression != 1 or page.predictor != 1 or page.fillorder != 1
+                or page.bitspersample != 16 or page.samplesperpixel != 1 or not page.is_contiguous
+                or len(page.shape) != 2):
+            return None
+        offset, count = page.dataoffsets[0], int(np.prod(page.shape)) * 2
+    except (AttributeError, IndexError, TypeError):
+        return None
+    if offset + count > len(raw):
+        return None  # truncated: tifffile's own read says how
+    return np.frombuffer(raw, dtype=np.dtype("u2").newbyteorder(byteorder), count=count // 2,
+                         offset=offset).reshape(page.shape)
 
 
 def read_image(path: str | os.PathLike[str], *, frame: int | None = None) -> np.ndarray:
