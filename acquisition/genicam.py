@@ -130,7 +130,7 @@ def producer_paths(producers: Rig | Iterable[str | os.PathLike[str]] | None = No
 
     Parameters
     ----------
-    producers : Rig, iterable of path-like, or None
+    producers
         A rig (its ``gentl_producers`` are used) or an explicit list of ``.cti`` files.
         Relative paths are taken from the current directory; ``~`` and ``$VARS`` are expanded.
         When the list is empty (or None), every ``*.cti`` file in the directories listed in
@@ -244,17 +244,17 @@ class DeviceInfo:
 
     Attributes
     ----------
-    vendor, model, serial_number : str
+    vendor, model, serial_number
         As the producer reports them; ``serial_number`` is what a rig file's ``serial`` matches.
-    id : str
+    id
         The producer's device id (unique within the producer).
-    tl_type : str
+    tl_type
         Transport layer: "GEV" (GigE Vision), "U3V" (USB3 Vision), "CL", "Custom", ...
-    display_name, user_defined_name, version : str
+    display_name, user_defined_name, version
         Empty where the producer does not report them.
-    access : str
+    access
         "available", "busy" (open elsewhere), "open" (by this process), "read-only", ...
-    producer : str
+    producer
         Path of the ``.cti`` file that reported the device.
     """
 
@@ -316,7 +316,7 @@ def list_devices(producers: Rig | Iterable[str | os.PathLike[str]] | None = None
 
     Parameters
     ----------
-    producers : Rig, iterable of path-like, or None
+    producers
         See :func:`producer_paths`.
 
     Returns
@@ -346,10 +346,10 @@ def register_double_exposure(vendor_prefix: str, fn: Callable[[Any], None]) -> N
 
     Parameters
     ----------
-    vendor_prefix : str
+    vendor_prefix
         Matched, case-insensitively, against the start of the device's vendor name; the longest
         matching prefix wins.
-    fn : callable
+    fn
         ``fn(node_map) -> None``, called by :meth:`GenICamCamera.configure` with the remote
         device's GenApi node map when ``triggered=True`` and ``frames_per_trigger=2``, after the
         standard SFNC set-up (all trigger modes off, then ``TriggerSelector=FrameStart``,
@@ -624,13 +624,13 @@ def image_to_uint16(data: np.ndarray, pixel_format: str, width: int, height: int
 
     Parameters
     ----------
-    data : numpy.ndarray
+    data
         The 1-D pixel data of the buffer as harvesters expands it (uint8 for 8-bit formats,
         uint16 for 10- to 16-bit ones, packed formats already unpacked), possibly with padding
         at the end of each line.
-    pixel_format : str
+    pixel_format
         PFNC name, e.g. "Mono8", "Mono12", "RGBa8".
-    width, height : int
+    width, height
         Image size in pixels.
 
     Returns
@@ -674,30 +674,30 @@ class GenICamCamera:
 
     Parameters
     ----------
-    name : str
+    name
         The camera's name in the rig file (goes into every :class:`Frame`).
-    serial : str, optional
+    serial
         GenICam serial number (``DeviceInfo.serial_number``) of the device to open. When
         None, the device at ``index`` in the producers' device list is opened.
-    producers : Rig, iterable of path-like, or None
+    producers
         GenTL producers, see :func:`producer_paths`. Every camera of a process should be given
         the same producers (they share one Harvester, loaded once).
-    index : int, optional
+    index
         Position in :func:`list_devices` when ``serial`` is None (default 0).
-    trigger_line : str
+    trigger_line
         ``TriggerSource`` for external triggering, e.g. "Line0".
-    pixel_format : str, optional
+    pixel_format
         PFNC name written to ``PixelFormat`` by :meth:`configure` (e.g. "Mono12"); None keeps
         the camera's current format.
-    num_buffers : int
+    num_buffers
         Buffers announced to the producer. Each holds one frame; with ``OldestFirst`` handling
         the producer drops new frames once all are waiting to be fetched.
-    allow_software_pairing : bool
+    allow_software_pairing
         With ``triggered=True, frames_per_trigger=2`` on a camera without a double-exposure
         mode (no vendor hook, and no ``FrameBurstStart`` burst whose frame B catches laser
         pulse 2, see :meth:`configure`): accept a plain one-frame-per-trigger set-up and let
         consecutive frames form the pairs, instead of raising.
-    first_frame_id : int, optional
+    first_frame_id
         ``frame_id`` of the first frame after :meth:`start`. Default: 0 for USB3 Vision
         ("U3V", block ids start at 0), 1 otherwise (GigE Vision block ids start at 1; viky
         also starts at 1).
@@ -942,7 +942,7 @@ class GenICamCamera:
         ----------
         triggered, frames_per_trigger, exposure_us
             See :meth:`acquisition.protocols.Camera.configure`.
-        dt_us : float, optional
+        dt_us
             Time between the two laser pulses of a pair, microseconds (the rig's
             ``timing.dt_us``); needed to accept a ``FrameBurstStart`` burst.
 

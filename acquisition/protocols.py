@@ -39,19 +39,19 @@ class Frame:
 
     Attributes
     ----------
-    data : numpy.ndarray
+    data
         uint16 array of shape (rows, columns), row 0 at the top of the sensor.
-    camera : str
+    camera
         Name of the camera in the rig file.
-    frame_id : int
+    frame_id
         Frame counter since acquisition start (see the module docstring).
-    timestamp_ns : int
+    timestamp_ns
         Exposure time stamp in nanoseconds: the camera's clock where it has one, otherwise the
         host's ``time.time_ns()`` when the frame was fetched.
-    complete : bool
+    complete
         False when the transport delivered a partial image (lost packets); the session records
         such a frame as a drop with the reason "incomplete".
-    device_clock : bool
+    device_clock
         True when ``timestamp_ns`` comes from the camera's own clock (latched at the same point
         of every exposure, so differences are multiples of the trigger period); False for host
         fetch times, which carry transport and scheduling delays and prove nothing about
@@ -96,15 +96,15 @@ class Camera(Protocol):
 
         Parameters
         ----------
-        triggered : bool
+        triggered
             True: one trigger on the camera's trigger line starts a burst of
             ``frames_per_trigger`` frames. False: free run (for cameras without trigger
             features, such as the GenTL simulator).
-        frames_per_trigger : int
+        frames_per_trigger
             2 for double-frame PIV (frame straddling), 1 otherwise.
-        exposure_us : float
+        exposure_us
             Exposure of the first frame of a burst, microseconds.
-        dt_us : float, optional
+        dt_us
             Time between the two laser pulses of a pair, microseconds, for cameras that must
             check that frame B catches the second pulse (see
             :meth:`acquisition.genicam.GenICamCamera.configure`); None when not known.
@@ -134,14 +134,14 @@ class ChannelSetting:
 
     Attributes
     ----------
-    channel : int
+    channel
         Output channel number, 1-based (A = 1).
-    role : str
+    role
         What the output drives, e.g. "flashlamp1", "qswitch1", "flashlamp2", "qswitch2",
         "camera".
-    delay_s, width_s : float
+    delay_s, width_s
         Delay after the generator's T0 and pulse width, seconds.
-    polarity : str
+    polarity
         "NORM" (active high) or "INV".
     """
 
@@ -158,19 +158,19 @@ class TimingPlan:
 
     Attributes
     ----------
-    period_s : float
+    period_s
         T0 period, the inverse of the double-pulse rate.
-    dt_s : float
+    dt_s
         Time between the two laser pulses of a pair.
-    channels : tuple of ChannelSetting
+    channels
         One entry per output used.
-    pulses : int
+    pulses
         Number of T0 periods (pairs) to fire; 0 means run until disarmed.
-    notes : tuple of str
+    notes
         Human-readable lines explaining the plan (derived times, shifts, margins).
-    pulse_times_s : tuple of float
+    pulse_times_s
         Laser pulse 1 and pulse 2 after T0, seconds (empty if the planner does not derive them).
-    frame_windows_s : tuple of (float, float)
+    frame_windows_s
         Exposure windows (start, end) of frame A and frame B after T0, seconds.
     """
 

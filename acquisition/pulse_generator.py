@@ -99,13 +99,13 @@ class PulseGeneratorModel:
 
     Attributes
     ----------
-    maker : str
+    maker
         First field of ``*IDN?`` ("QC" or "BNC").
-    channels : int
+    channels
         Outputs, not counting T0.
-    resolution_s : float
+    resolution_s
         Resolution of channel delays and widths, seconds (read-backs show values rounded to it).
-    period_resolution_s : float
+    period_resolution_s
         Resolution of the T0 period, seconds.
     """
 
@@ -166,11 +166,11 @@ class QuantumComposers9520:
 
     Parameters
     ----------
-    port : str
+    port
         Serial device (``/dev/ttyUSB0``, ``COM3``) or pyserial URL.
-    baud : int
+    baud
         Baud rate; must match the instrument's interface setting (some units ship at 38400).
-    timeout_s : float
+    timeout_s
         Time allowed for each reply, seconds.
 
     Examples
@@ -314,7 +314,7 @@ class QuantumComposers9520:
 
         Parameters
         ----------
-        plan : TimingPlan
+        plan
             Period, channel delays and widths, and the number of pairs (0: continuous; more:
             burst mode, the generator stops by itself after that many periods).
 

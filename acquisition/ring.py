@@ -25,13 +25,13 @@ class PairView:
 
     Attributes
     ----------
-    pair : int
+    pair
         Pair index in the run.
-    frames : dict of str to numpy.ndarray
+    frames
         Per camera, the uint16 (2, rows, columns) frames A and B (views into the ring).
-    frame_id, timestamp_ns : dict of str to numpy.ndarray
+    frame_id, timestamp_ns
         Per camera, the (2,) frame ids and timestamps.
-    slot, generation : int
+    slot, generation
         Where the pair lives, and the slot's generation when the view was taken; see
         :meth:`PairRing.still_valid`.
     """
@@ -49,9 +49,9 @@ class PairRing:
 
     Parameters
     ----------
-    shapes : dict of str to (rows, columns)
+    shapes
         Image shape of each camera.
-    slots : int
+    slots
         Number of pairs the ring holds; how far the recorder may fall behind the cameras.
     """
 

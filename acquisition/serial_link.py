@@ -52,13 +52,13 @@ class SerialLink:
 
     Parameters
     ----------
-    port : str
+    port
         Device path or pyserial URL.
-    baud : int
+    baud
         Baud rate (8 data bits, no parity, 1 stop bit, no flow control).
-    timeout_s : float
+    timeout_s
         Default time allowed for a reply, seconds.
-    eol : bytes
+    eol
         Terminator appended to every command line.
 
     Notes

@@ -81,24 +81,24 @@ class SessionStats:
 
     Attributes
     ----------
-    committed_pairs : int
+    committed_pairs
         Pairs written and committed to the run store.
-    frames_recorded, frames_dropped : int
+    frames_recorded, frames_dropped
         Frames written, and frames listed in ``drops`` (including pending drops of pairs not
         yet committed).
-    overruns : int
+    overruns
         Frames lost because the recorder fell a whole ring behind.
-    extra_frames : int
+    extra_frames
         Frames delivered beyond the requested pairs (ignored, not recorded).
-    elapsed_s : float
+    elapsed_s
         Seconds since :meth:`RecordingSession.start`.
-    pair_rate_hz : float
+    pair_rate_hz
         Committed pairs per second since the first commit.
-    late_frames : int
+    late_frames
         Frames that arrived after their place was settled (already listed as not delivered,
         or a repeat); ignored, not recorded: each one's place holds a recorded frame or a drop
         row already.
-    missed_triggers : int
+    missed_triggers
         Triggers a camera made no frames for, found from its time stamps (summed over the
         cameras); their frames are in ``frames_dropped``.
     """

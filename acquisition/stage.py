@@ -122,7 +122,7 @@ def checksum(body: str) -> str:
 
     Parameters
     ----------
-    body : str
+    body
         The message between its leading ``/``, ``@``, ``#`` or ``!`` and the ``:`` that
         introduces the checksum, e.g. ``"01 1 OK IDLE -- 0"``.
 
@@ -178,7 +178,7 @@ def parse_reply(line: str) -> ZaberReply | None:
 
     Parameters
     ----------
-    line : str
+    line
         One line from the device, without or with its terminator.
 
     Returns
@@ -204,14 +204,14 @@ class ZaberProduct:
 
     Attributes
     ----------
-    name : str
+    name
         Product name.
-    full_step_um : float
+    full_step_um
         Carriage travel of one full motor step, micrometres; one microstep is this divided by
         the axis' ``resolution``.
-    travel_mm : float
+    travel_mm
         Travel between the home sensor and the far end.
-    integrated : bool
+    integrated
         True for a device with its own controller (found by ``deviceid``), False for a
         peripheral on a controller (found by the axis' ``peripheral.id``).
     """
@@ -261,34 +261,34 @@ class ZaberStage:
 
     Parameters
     ----------
-    port : str
+    port
         Serial device (``/dev/ttyUSB0``, ``COM4``) or pyserial URL.
-    baud : int
+    baud
         Baud rate (115200 for the ASCII protocol by default).
-    device, axis : int
+    device, axis
         Address on the daisy chain and axis number.
-    timeout_s : float
+    timeout_s
         Time allowed for each reply, seconds.
-    microstep_um : float, optional
+    microstep_um
         Size of one native step as the device is set up, micrometres. Needed only for a
         product missing from :data:`ZABER_PRODUCTS`; for a known product the size follows from
         the device's ``resolution``, and a value that disagrees is reported and not used.
-    move_timeout_s : float
+    move_timeout_s
         Longest a move or homing may take before it counts as stalled.
-    tolerance_um : float
+    tolerance_um
         Largest accepted difference between a target and the position read back.
-    poll_s : float
+    poll_s
         Interval between status polls while the axis moves.
-    retries : int
+    retries
         How many more times a command is sent when its reply is corrupt (bad checksum, a stray
         byte) or the device rejects it with ``AGAIN``.
-    retry_pause_s : float
+    retry_pause_s
         Pause before each repeat, seconds.
-    send_checksums : bool
+    send_checksums
         Append a checksum to every command (the device then refuses corrupted commands).
-    message_ids : bool
+    message_ids
         Put a message id (0-99, cycling) on every command and take only the reply with that id.
-    reconnect_s : float
+    reconnect_s
         After the port fails (an unplugged USB adapter), how long to try opening it again to
         stop the stage before reporting the failure.
     """

@@ -55,9 +55,9 @@ def plan_timing(rig: Rig, pulses: int = 0) -> TimingPlan:
 
     Parameters
     ----------
-    rig : lfcore.rig.Rig
+    rig
         The rig; its ``laser``, ``timing`` and ``pulse_generator.channels`` are used.
-    pulses : int, optional
+    pulses
         Number of pairs (T0 periods) to fire; 0 (default) runs until the generator is disarmed.
 
     Returns

@@ -18,7 +18,7 @@ recorder
     grabbers, the ring buffer, parallel compressed zarr writes, in-order commits, then
     ``os.sync()``. MB/s of (uncompressed) frame data and pairs/s.
 
-Goals (issue 5): recorder >= 70% of raw, and at least the data rate of two 4 MP cameras in
+Goals: recorder >= 70% of raw, and at least the data rate of two 4 MP cameras in
 double-frame mode at 15 Hz (2 x 2 x 4.19 MP x 2 bytes x 15 = 503 MB/s). Record results in
 benchmarks/RESULTS.md.
 """

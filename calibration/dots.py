@@ -64,9 +64,9 @@ class ViewGeometry:
 
     Attributes
     ----------
-    pupils_mm : numpy.ndarray
+    pupils_mm
         (views, 2) light-weighted mean aperture point (camera-frame x, y, mm) of each view.
-    offsets_px : numpy.ndarray
+    offsets_px
         (views, 2) mean displacement (column, row) of a view's light from where its rays meet
         the MLA, pixels: the light of one micro-image counted in a neighbour's cell is placed at
         the neighbour's centre.
@@ -146,12 +146,12 @@ class Dots:
 
     Attributes
     ----------
-    views_px : numpy.ndarray
+    views_px
         (m, views, 2) continuous (column, row) centroids, pixels, in each view of
         :data:`VIEW_PUPILS` (view 0: all the light, centred on the chief ray).
-    flux : numpy.ndarray
+    flux
         (m,) background-subtracted light of each dot, counts.
-    lenslets : numpy.ndarray
+    lenslets
         (m,) int, lenslets above threshold in each dot.
     """
 
@@ -177,23 +177,23 @@ class LensletCells:
 
     Attributes
     ----------
-    image_shape : tuple of int
+    image_shape
         (rows, columns) of the frames.
-    pixels : numpy.ndarray
+    pixels
         (m,) int64 flat indices of the pixels within 0.6 pitch of a lattice node, grouped by
         that node (in the order of ``grid.indices``).
-    lenslet : numpy.ndarray
+    lenslet
         (m,) int32 index of that node, in the order of ``grid.indices`` (non-decreasing).
-    wx, wy : numpy.ndarray
+    wx, wy
         (m,) float32 fraction of each pixel on the +x and +y side of the main-lens aperture.
-    n_lenslets : int
+    n_lenslets
         Number of lattice nodes.
-    npix_median : float
+    npix_median
         Median number of pixels per cell.
-    view_pixels : numpy.ndarray
+    view_pixels
         (n_lenslets, 5) pixels of each cell in each view of :data:`VIEW_PUPILS` (fractions
         counted): what a background error of one count per pixel adds to each lenslet sum.
-    starts : numpy.ndarray
+    starts
         (n_lenslets + 1,) int64: lenslet ``i``'s pixels are ``pixels[starts[i]:starts[i + 1]]``.
     """
 

@@ -64,13 +64,13 @@ class PlaneDots:
 
     Attributes
     ----------
-    plane : int
+    plane
         Plane index in the store.
-    stage_mm : float
+    stage_mm
         Stage readback of the plane, mm.
-    indices : numpy.ndarray
+    indices
         (m, 2) int64 board indices (i, j).
-    views_px : numpy.ndarray
+    views_px
         (m, views, 2) found centroids (column, row), pixels, in the views of
         :data:`calibration.dots.VIEW_PUPILS`.
     """
@@ -87,27 +87,27 @@ class CameraFit:
 
     Attributes
     ----------
-    camera : Camera
+    camera
         The fitted model.
-    radial_k1 : float
+    radial_k1
         Fitted radial distortion (0 unless fitted; not part of :class:`Camera`).
-    rms_px : float
+    rms_px
         RMS distance between found and projected dots (chief-ray view) over all planes, pixels,
         of the clear dots (all used dots if fewer than 3 are clear).
-    plane_rms_px : numpy.ndarray
+    plane_rms_px
         (planes,) the same per plane; NaN for planes without dots.
-    plane_dots : numpy.ndarray
+    plane_dots
         (planes,) int, dots used per plane.
-    lattice_rms_px : float
+    lattice_rms_px
         RMS distance of the white image's micro-image centres from the model's, pixels (NaN
         without a grid).
-    std : dict
+    std
         1-sigma uncertainty of each parameter from the fit's covariance.
-    residuals_px : list of numpy.ndarray
+    residuals_px
         Per plane, (m, 2) found minus projected, pixels.
-    dropped : int
+    dropped
         Dots rejected as outliers.
-    set_aside : int
+    set_aside
         Named dots left out because their centroid is biased by the sampling (in sharp focus)
         or by a neighbour's blur disc (see :func:`clear_dots`).
     """

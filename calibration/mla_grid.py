@@ -68,32 +68,32 @@ class MlaGrid:
 
     Attributes
     ----------
-    grid : str
+    grid
         "hex" or "square".
-    pitch_px : float
+    pitch_px
         Distance between neighbouring micro-image centres, pixels.
-    rotation_deg : float
+    rotation_deg
         Lattice rotation in the sensor-plane frame of :mod:`lfcore.mla` (the sign of
         ``Camera.mla_rotation_deg``), in (-30, 30] for hex and (-45, 45] for square grids. The
         image's (column, row) axes are mirrored, so lenslet rows run at ``-rotation_deg`` there.
-    offset_px : tuple of float
+    offset_px
         (column, row) of the lattice node nearest the sensor centre (Nc/2, Nr/2), minus that
         centre, pixels.
-    image_shape : tuple of int
+    image_shape
         (rows, columns) of the white image.
-    centres_px : numpy.ndarray
+    centres_px
         (n, 2) measured micro-image centres (column, row), pixels.
-    indices : numpy.ndarray
+    indices
         (n, 2) int64 lattice indices (n1, n2) of each centre along :attr:`basis_px`.
-    residuals_px : numpy.ndarray
+    residuals_px
         (n, 2) measured minus fitted centre, pixels.
-    inliers : numpy.ndarray
+    inliers
         (n,) bool, the centres the lattice was fitted to.
-    rms_px : float
+    rms_px
         RMS distance of the inlier centres from the fitted lattice, pixels.
-    origin_px : tuple of float
+    origin_px
         (column, row) of lattice node (0, 0).
-    basis_px : numpy.ndarray
+    basis_px
         (2, 2): rows are the basis vectors a1, a2 in (column, row) pixels.
     """
 

@@ -1,1 +1,32 @@
-"""lfcore: pure light-field PIV computation (optics, rendering, reconstruction, vectors)."""
+"""lfcore: pure light-field PIV computation: optics, rendering, weights, reconstruction,
+correlation, vector post-processing, metrics, flows and the run format.
+
+Arrays and frozen configurations in, arrays out: nothing here opens a file, port or camera (the
+run store's format, :mod:`lfcore.runstore`, is the one exception). Warp kernels live in
+:mod:`lfcore._kernels` behind the plain functions of these modules, which users import:
+"""
+
+__all__ = [
+    "chief_ray",    # where a world point appears in a raw light-field image
+    "correlate",    # 3D multi-grid cross-correlation
+    "device",       # Warp devices and CPU threading
+    "device_ops",   # image and volume operations on the device
+    "errors",       # DeviceError, ComputeDeviceError
+    "flows",        # the test flows and particle advection
+    "metrics",      # Q_recon, particle matching, diameters, velocity and divergence errors
+    "mla",          # the microlens lattice and the sensor's pixel coordinates
+    "particles",    # seeding and the laser sheet
+    "projector",    # cameras bound to a voxel grid on a device: elimination, projection, MART updates
+    "reconstruct",  # DRT-MART, MART and MLOS-MART
+    "render",       # Monte-Carlo light-field particle images
+    "rig",          # the rig description
+    "runstore",     # the run store (zarr)
+    "target",       # the calibration dot board
+    "vectors",      # outliers, replacement, units, vorticity, divergence, Q-criterion
+    "volume",       # the voxel grid
+    "weight_build",  # building the voxel-to-pixel weights (DRT and line of sight)
+    "weight_cache",  # weights traced once per voxel across frames
+    "white",        # the white image of a plenoptic camera
+    "world",        # seeded particles moving with a known flow
+    "zarrstore",    # what the run and calibration stores share
+]

@@ -482,7 +482,7 @@ class RunStore(RigStore):
         return {"particles": g["particles"][...], "brightness": g["brightness"][...], "t0_s": t0,
                 "attrs": dict(g.attrs)}
 
-    # --- vector fields (appended for issue 4: correlation) --------------------------------
+    # --- vector fields --------------------------------
     def create_vectors(self, x_mm: np.ndarray, y_mm: np.ndarray, z_mm: np.ndarray, *, dt_s: float,
                        windows: list[list[int]], overlap: list[float], settings: dict[str, Any]) -> None:
         """Create (or replace) ``vectors/`` for every pair of the run, all NaN.

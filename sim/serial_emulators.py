@@ -181,9 +181,9 @@ class _PtyEmulator:
 
         Parameters
         ----------
-        fault : str
+        fault
             One of :attr:`FAULTS` (see the module docstring).
-        after : int
+        after
             Serve this many more commands normally before the fault starts.
         **options
             The fault's options (``code=``, ``count=``, ``gap_s=``, ``byte=``, ``down_s=``, ...).
@@ -506,23 +506,23 @@ class PulseGeneratorEmulator(_PtyEmulator):
 
     Parameters
     ----------
-    channels : int, optional
+    channels
         Number of outputs; by default the model's (8 for a 9528, 4 for a 9524).
-    latency_s : float
+    latency_s
         Reply latency, seconds (0 for fast tests).
-    model : str
+    model
         A key of :data:`~acquisition.pulse_generator.PULSE_GENERATOR_MODELS` ("9528", "9524",
         "575-8", "575-4", ...): its maker, channels and time resolutions.
-    serial : str
+    serial
         What ``*IDN?`` reports as the serial number.
 
     Attributes
     ----------
-    port : str
+    port
         Path for the driver.
-    ticks_fired : int
+    ticks_fired
         T0 periods fired since the emulator was created.
-    commands : list of str
+    commands
         Every command line received.
 
     Besides the common faults: ``"error"`` the next command is refused with ``?code`` (5).
@@ -1136,28 +1136,28 @@ class StageEmulator(_PtyEmulator):
 
     Parameters
     ----------
-    device : int
+    device
         Address of the (first) device on the daisy chain.
-    axis : int
+    axis
         The axis the simulated world and :attr:`position_mm` follow.
-    microstep_um : float
+    microstep_um
         Native step at resolution 64 of the stage emulated (a product of
         :data:`~acquisition.stage.ZABER_PRODUCTS`).
-    travel_mm : float, optional
+    travel_mm
         Travel between the home sensor (0) and ``limit.max`` (default: the product's).
-    speed_mm_s : float
+    speed_mm_s
         ``maxspeed`` of every axis, mm/s (settable later as :attr:`speed_mm_s`).
-    accel_mm_s2 : float
+    accel_mm_s2
         ``accel`` of every axis, mm/s^2 (``stop`` decelerates at it).
-    position_mm : float
+    position_mm
         True carriage position at power-up.
-    homed : bool
+    homed
         Start homed (no ``WR`` flag) instead of freshly powered up.
-    latency_s : float
+    latency_s
         Reply latency, seconds.
-    checksums : bool
+    checksums
         Append a checksum ``:XX`` to every reply (the device setting ``comm.checksum 1``).
-    chain : list of ZaberDevice, optional
+    chain
         The whole chain instead (addresses, products, axes), for several devices on one port.
 
     Faults (besides the common ones): ``"stall"`` the next move never progresses and the axis

@@ -4,3 +4,6 @@
 (the same functions serve Python users: see :mod:`lfpiv`); the computation itself is in the
 package that owns it (``lfcore``, ``calibration``, ``acquisition``, ``realtime``).
 """
+
+__all__ = ["acquire", "calibrate", "correlate", "demo", "devices", "evaluate", "export", "import_", "info", "monitor",
+           "reconstruct", "synth"]
