@@ -19,8 +19,8 @@ import
     ``os.sync()``: MB/s of file data.
 
 The files are double-frame two-page 16-bit TIFFs (frame A, frame B), 12-bit light-field-like
-content (a background with read noise and sparse bright micro-images). Goal (the "real data in"
-issue): import at least 70% of the plain read rate. Record results in benchmarks/RESULTS.md.
+content (a background with read noise and sparse bright micro-images). Goal: import at least 70%
+of the plain read rate. Record results in benchmarks/RESULTS.md.
 """
 
 from __future__ import annotations
