@@ -81,6 +81,15 @@ def name_plane_dots(model: Camera, board: DotBoard, detected: list[tuple[int, Do
     ij = board.indices(board.half_extent(reach + abs(float(np.nanmax(np.abs(stage_mm - board.stage_centre_mm))))))
     out = []
     for p, dots in detected:
+        if not len(dots):
+            # nothing lit enough to be a dot: most often a plane beyond the depth of field, where
+            # each dot's light spreads over so many lenslets that it sinks into the noise
+            depth = float(np.dot(board.dot_centres(np.zeros((1, 2)), stage_mm[p])[0] - np.asarray(model.focus_mm),
+                                 model.optical_axis))
+            raise FitError(f"camera '{camera}', plane {p + 1} of {len(stage_mm)} (stage {stage_mm[p]:.4f} mm): no "
+                           f"dot seen; the plane is {abs(depth):.2f} mm {'in front of' if depth > 0 else 'behind'} "
+                           "the camera's focus, likely beyond its depth of field: take planes nearer the focus (a "
+                           "smaller --step-mm or fewer --planes), or check the target's lighting")
         found, which = match_dots(dots, project(model, board.dot_centres(ij, stage_mm[p])), ij)
         if len(found) < min_dots:
             raise FitError(f"camera '{camera}', plane {p + 1} of {len(stage_mm)} (stage {stage_mm[p]:.4f} mm): "

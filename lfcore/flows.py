@@ -332,11 +332,19 @@ def flow_for_displacement(name: str, volume: VolumeConfig, object_pixel_mm: floa
     Raises
     ------
     ValueError
-        For an unknown flow or a non-positive displacement or dt.
+        For an unknown flow, a non-positive displacement or dt, or a displacement beyond the
+        volume's extent.
     """
     disp = default_displacement_px(name) if displacement_px is None else float(displacement_px)
     if not (np.isfinite(disp) and disp > 0):
         raise ValueError(f"the displacement must be positive, got {disp}")
+    # a particle moving further than the volume is long between the frames of a pair leaves it:
+    # nothing to correlate, and advecting the flows at such speeds takes minutes
+    most = max(volume.size_mm) / object_pixel_mm
+    if disp > most:
+        raise ValueError(f"a displacement of {disp:g} px is more than the volume's extent ({most:.0f} px of "
+                         f"{object_pixel_mm * 1e3:.3g} um): every particle would leave it between frames A and B; "
+                         "give at most a few tens of pixels (PIV windows follow a quarter of their size)")
     if not (np.isfinite(dt_s) and dt_s > 0):
         raise ValueError(f"dt must be positive, got {dt_s}")
     field = standard_flow(name, volume, omega)

@@ -414,7 +414,9 @@ class RenderConfig(_Strict):
     """
 
     rays_per_particle: Annotated[int, Field(ge=1, le=MAX_RAYS_PER_PARTICLE)] = 10000
-    particle_counts: PositiveFloat = 50000.0
+    #: counts a particle deposits in all: beyond 1e9 (16-bit pixels saturate at 65535) a frame is
+    #: white, and the integer accumulation of the renderer overflows
+    particle_counts: Annotated[float, Field(gt=0, le=1e9, allow_inf_nan=False)] = 50000.0
     particle_diameter_um: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
     diffraction: bool = True
     background_counts: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 100.0

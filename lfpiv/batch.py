@@ -20,7 +20,9 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import signal
+import tempfile
 import threading
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -102,11 +104,18 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
     # parts of a reconstruction do not hold each other up on the interpreter lock
     # a task's error comes back to this process and is reported there once, as one line: the
     # workers' own logs of it would repeat it with a traceback
-    with _quiet_worker_processes():
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=logging.CRITICAL, env={"LFPIV_CPU_THREADS": str(share)})
-    with cluster, Client(cluster) as client:
-        yield client
+    # the workers' scratch space (spill files, their lock files) in a folder of this command's own,
+    # removed with the cluster: nothing is left in $TMPDIR/dask-scratch-space
+    scratch = tempfile.mkdtemp(prefix="lfpiv-dask-")
+    try:
+        with _quiet_worker_processes():
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   silence_logs=logging.CRITICAL, env={"LFPIV_CPU_THREADS": str(share)},
+                                   local_directory=scratch)
+        with cluster, Client(cluster) as client:
+            yield client
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
 
 
 @contextmanager

@@ -95,6 +95,11 @@ def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable
             if aside or before:
                 raise UsageError(f"{exc}{aside or '; ' + before}") from None
             raise
+        except OSError as exc:
+            if exc.filename is None:  # a full disk under zarr's writes: say where it was writing
+                raise OSError(exc.errno, exc.strerror or str(exc),
+                              f"{store.path}/{store.writing(name).basename}") from None
+            raise
     replacement.end(store, name)
     return pairs
 

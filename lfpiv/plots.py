@@ -64,7 +64,6 @@ def plot_raw_images(store: RunStore, out: str | Path, pair: int = 0, zoom_lensle
     fig.suptitle(f"{store.path.name}: raw light-field images of pair {pair} ({flow}{extra}, "
                  f"dt = {store.timing['dt_s'] * 1e3:g} ms)")
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out
@@ -107,7 +106,6 @@ def plot_reconstruction(store: RunStore, evals, out: str | Path) -> Path:
         a.set_xlabel("x (mm)")
         a.set_ylabel("z (mm)")
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=100)
     plt.close(fig)
     return out
@@ -148,7 +146,6 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
         fig.colorbar(im, ax=ax, label="w_z (1/s)", shrink=0.85)
     fig.suptitle(f"{store.path.name}: pair {pair}, {len(x)} x {len(y)} x {len(z)} vectors")
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=100)
     plt.close(fig)
     return out

@@ -21,7 +21,11 @@ from acquisition.stage import stage_for
 from lfcore.rig import Rig
 from lfpiv.errors import UsageError
 
-__all__ = ["Rigging", "make_stage", "open_rig", "sim_lab_options"]
+__all__ = ["MAX_SIM_POOL", "Rigging", "make_stage", "open_rig", "sim_lab_options"]
+
+#: Most distinct pairs the simulated lab renders before a recording (trigger k shows entry
+#: k % pool): each takes a light field's rendering per camera, seconds on a CPU.
+MAX_SIM_POOL = 1000
 
 
 @dataclass
@@ -112,6 +116,9 @@ def sim_lab_options(rig: Rig, *, flow: str, ppm: float, pool: int, rays: int | N
     """
     if rig.hardware != "sim":
         return None
+    if not 1 <= pool <= MAX_SIM_POOL:
+        raise UsageError(f"--sim-pool must be from 1 to {MAX_SIM_POOL} pairs, got {pool}: each is rendered (for every "
+                         "camera) before the recording starts, and trigger k shows entry k % pool")
     from sim.world import SimWorld
 
     try:

@@ -459,7 +459,6 @@ def _build_window_class():  # noqa: C901 - one Qt class, built once Qt is import
         def screenshot(self, path: str | Path) -> Path:
             """Save the window as a PNG (works offscreen)."""
             path = Path(path)
-            path.parent.mkdir(parents=True, exist_ok=True)
             QtWidgets.QApplication.processEvents()
             if not self.grab().save(str(path)):
                 raise OSError(f"could not write the screenshot {path}")

@@ -197,9 +197,14 @@ def camera_names(text: str) -> list[str]:
 
 
 def png_path(text: str) -> str:
-    """argparse type of a picture's path: it must end in .png (checked before any work)."""
+    """argparse type of a picture's path: it must end in .png, in a folder that exists (checked
+    before any work; no folder is made, anywhere on the disk)."""
     if not text.lower().endswith(".png"):
         raise argparse.ArgumentTypeError(f"'{text}' does not end in .png; pictures are written as PNG")
+    folder = Path(text).parent
+    if not folder.exists():
+        raise argparse.ArgumentTypeError(f"the folder {folder} does not exist; create it first, or give a picture "
+                                         "path in a folder that exists")
     return text
 
 

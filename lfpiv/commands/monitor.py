@@ -18,7 +18,6 @@ from lfpiv.commands import (
     ring_slots,
     sim_lab_options,
     warn_optics,
-    whole_number,
     xyz_triple,
 )
 from lfpiv.errors import UsageError
@@ -46,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--method", choices=("drt-mart", "mlos-mart"), default="drt-mart",
                    help="reconstruction: drt-mart (dense ray-traced weights) or mlos-mart (the same elimination, "
                    "line-of-sight weights; faster on a GPU) (default: drt-mart)")
-    m.add_argument("--iterations", type=lambda t: whole_number(t, 0), default=5,
+    m.add_argument("--iterations", type=positive_int, default=5,
                    help="MART iterations per frame (default: 5; changeable in the window)")
     m.add_argument("--relaxation", type=positive_float, default=1.0,
                    help="MART relaxation, at most 2 (default: 1; changeable in the window)")

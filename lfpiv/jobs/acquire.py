@@ -161,6 +161,8 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
         stopped_by = ""
         # undisarmed: None until the disarm below, then "" or what could not be confirmed
         undisarmed: str | None = None
+        # a device fault that stopped the recording: what became of the laser
+        fault: str | None = None
         # SIGTERM / SIGHUP (a kill, a closed terminal) disarm and then end the recording as
         # Ctrl-C does, so the run is closed and marked; signals reach only the main thread
         signals = ExitStack()
@@ -206,9 +208,8 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
         except (DeviceError, RuntimeError) as exc:
             message = str(exc)
             undisarmed = _disarm(gen)
-            laser = "the laser was disarmed" if not undisarmed else _unconfirmed(undisarmed)
-            raise DeviceError(f"{exc}; {laser}; the {session.committed_pairs} pair(s) recorded so far are kept "
-                              f"in {out} (state 'aborted')") from None
+            # reported once the run is closed, with the state it could be marked
+            fault = "the laser was disarmed" if not undisarmed else _unconfirmed(undisarmed)
         finally:
             # Ctrl-Cs or kills while the run is closed wait for it (one after the grace time
             # does not); every signal disarms the laser at once in any case
@@ -229,6 +230,11 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
                 print(f"lfpiv: warning: left before the run was closed: {out} may still say 'recording'; its committed "
                       "pairs read back whole", file=sys.stderr)
                 raise
+        if fault is not None:
+            marked = (f"state '{state}'" if not unclosed else
+                      f"it could not be marked '{state}', so it still says 'recording'")
+            raise DeviceError(f"{message}; {fault}; the {session.committed_pairs} pair(s) recorded so far are kept "
+                              f"in {out} ({marked})")
         if undisarmed:
             raise DeviceError(f"{message}: the run is kept in {out} (state '{state}'), but {_unconfirmed(undisarmed)}")
         if unclosed:

@@ -224,6 +224,10 @@ def test_a_full_disk_at_the_end_keeps_the_fault_and_the_laser_report(fast_rig, t
     store = RunStore.open(tmp_path / "fault.zarr")
     assert store.state == "recording" and store.committed_pairs >= 5
     _check_every_frame_accounted(store, store.committed_pairs)
+    # the error says the same as the warning: the run still says 'recording', not 'aborted'
+    with _lab(fast_rig, cam1={"fail_after_frames": 40}) as lab, \
+            pytest.raises(DeviceError, match="could not be marked 'aborted', so it still says 'recording'"):
+        record(fast_rig, tmp_path / "fault2.zarr", 500, sim_options={"lab": lab}, stall_s=1.0)
     # a recording that completes but cannot be marked so is an error too, and says what it kept
     with _lab(fast_rig) as lab, pytest.raises(RunStoreError, match=r"recorded 10 pair\(s\) into .*done.zarr, but the "
                                                                 "run could not be marked 'complete'"):

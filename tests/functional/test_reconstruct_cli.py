@@ -281,3 +281,20 @@ def test_other_settings_after_an_interrupted_replacement_start_it_again(capsys, 
     s = RunStore.open(run)
     assert s.group["volumes"].attrs["settings"]["iterations"] == 3 and s.pending("volumes") is None
     assert s.reconstructed_pairs() == [0, 1]
+
+
+def test_a_full_disk_while_reconstructing_names_the_store(capsys, tmp_path, monkeypatch):
+    """ENOSPC under zarr's writes carries no file name: the message names where it was writing."""
+    import lfcore.runstore as runstore
+
+    path = tmp_path / "run.zarr"
+    assert main(["synth", "--rig", TINY, "--out", str(path), "--pairs", "1", "--ppm", "0.2", "--quiet"]) == 0
+    capsys.readouterr()
+
+    def full(self, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(runstore.RunStore, "write_volume", full)
+    rc, out, err = _run(capsys, "reconstruct", str(path), "--iterations", "1", "--quiet")
+    assert rc == 2 and err.count("\n") == 1, err
+    assert f"cannot use {path}/volumes: No space left on device" in err
