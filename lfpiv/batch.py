@@ -106,14 +106,17 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
     # workers' own logs of it would repeat it with a traceback
     # the workers' scratch space (spill files, their lock files) in a folder of this command's own,
     # removed with the cluster: nothing is left in $TMPDIR/dask-scratch-space
+    import dask
+
     scratch = tempfile.mkdtemp(prefix="lfpiv-dask-")
     try:
-        with _quiet_worker_processes():
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                                   silence_logs=logging.CRITICAL, env={"LFPIV_CPU_THREADS": str(share)},
-                                   local_directory=scratch)
-        with cluster, Client(cluster) as client:
-            yield client
+        with dask.config.set({"temporary-directory": scratch}):
+            with _quiet_worker_processes():
+                cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                       dashboard_address=None, silence_logs=logging.CRITICAL,
+                                       env={"LFPIV_CPU_THREADS": str(share)}, local_directory=scratch)
+            with cluster, Client(cluster) as client:
+                yield client
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
 

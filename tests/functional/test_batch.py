@@ -76,7 +76,12 @@ def test_local_workers_give_the_serial_volumes_and_vectors(serial, tmp_path, cap
     assert v["attrs"]["settings"]["device"] == "cpu"
 
 
-def test_skip_done_resumes_where_a_run_stopped(serial, tmp_path, capsys):
+def test_skip_done_resumes_where_a_run_stopped(serial, tmp_path, capsys, monkeypatch):
+    import tempfile
+
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))  # $TMPDIR of this test
     path = _copy_frames(serial, tmp_path)
     assert _run(capsys, "reconstruct", path, *RECON, "--pairs", "1")[0] == 0
     first = RunStore.open(path).volumes()[1].copy()
@@ -88,6 +93,7 @@ def test_skip_done_resumes_where_a_run_stopped(serial, tmp_path, capsys):
     assert np.array_equal(s.volumes()[1], first)
     rc, out, err = _run(capsys, "reconstruct", path, *RECON, "--skip-done", "--workers", "1")
     assert rc == 0 and "already reconstructed with these settings; nothing to do" in out
+    assert list(scratch.iterdir()) == []  # the workers' scratch space (and its lock files) went with them
     # other settings are another set of volumes: nothing is skipped, volumes/ starts again
     rc, out, err = _run(capsys, "reconstruct", path, "--iterations", "3", "--device", "cpu", "--quiet",
                         "--skip-done", "--pairs", "0")

@@ -213,7 +213,22 @@ BAD_INPUTS = [
      "out of memory (Unable to allocate"),
     (lambda t: ["synth", "--rig", TINY, "--out", _link_to_a_folder(t), "--overwrite"],
      "link.zarr is a symbolic link (to "),
+    # inputs that would have run for minutes or hours, or rendered nothing
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "x.zarr"), "--displacement-px", "1e7"],
+     "a displacement of 1e+07 px is more than the volume's extent (291 px"),
+    (lambda t: ["acquire", "--rig", TINY, "--out", str(t / "x.zarr"), "--pairs", "3", "--sim-pool", "100000"],
+     "--sim-pool must be from 1 to 1000 pairs, got 100000"),
+    (lambda t: ["synth", "--rig", _rig_with(t, "particle_counts = 50000.0", "particle_counts = 1e300"), "--out",
+                str(t / "x.zarr")], "render.particle_counts: input should be less than or equal to 1000000000"),
+    (lambda t: ["monitor", "--rig", TINY, "--iterations", "0"], "--iterations: must be at least 1"),
+    (lambda t: ["evaluate", str(t / "r.zarr"), "--plot", str(t / "nowhere" / "q.png")],
+     "nowhere does not exist; create it first"),
 ]
+
+
+def _rig_with(t, old, new):
+    (t / "changed.toml").write_text(Path(TINY).read_text().replace(old, new))
+    return str(t / "changed.toml")
 
 
 def _link_to_a_folder(t):
