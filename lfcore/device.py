@@ -100,7 +100,7 @@ def warp():
     return wp
 
 
-def host_available_bytes(meminfo: str = "/proc/meminfo") -> int:
+def host_available_bytes(*, meminfo: str = "/proc/meminfo") -> int:
     """RAM a new allocation can have without swapping: Linux's MemAvailable, which counts the page
     cache the kernel gives back on demand (free pages alone can be a small part of it on a
     workstation that has just read a run store); elsewhere the free pages."""

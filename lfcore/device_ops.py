@@ -19,7 +19,7 @@ from lfcore.rig import Camera
 __all__ = ["ImagePreprocessor", "VolumeOps", "gaussian_taps"]
 
 
-def gaussian_taps(sigma: float, truncate: float = 3.0) -> np.ndarray:
+def gaussian_taps(sigma: float, *, truncate: float = 3.0) -> np.ndarray:
     """Normalised 1-D Gaussian taps (2 r + 1,), r = int(truncate sigma + 0.5), as SciPy's."""
     radius = int(truncate * float(sigma) + 0.5)
     x = np.arange(-radius, radius + 1, dtype=np.float64)

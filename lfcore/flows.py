@@ -269,7 +269,7 @@ class RoundJet(Flow):
         return replace(self, centreline_m_s=factor * self.centreline_m_s)
 
 
-def standard_flow(name: str, volume: VolumeConfig, omega: float = 1.0) -> Flow:
+def standard_flow(name: str, volume: VolumeConfig, *, omega: float = 1.0) -> Flow:
     """The named test flow laid out in ``volume``, at an arbitrary velocity scale.
 
     Use :func:`peak_speed` and :meth:`Flow.scaled` to set its speed. Vortex rings and jets have
@@ -309,7 +309,7 @@ def default_displacement_px(name: str) -> float:
     return 25.0 if name in OSCILLATORY_CASES else 10.0
 
 
-def flow_for_displacement(name: str, volume: VolumeConfig, object_pixel_mm: float, dt_s: float,
+def flow_for_displacement(name: str, volume: VolumeConfig, object_pixel_mm: float, dt_s: float, *,
                           displacement_px: float | None = None, omega: float = 1.0,
                           period_s: float | None = None) -> Flow:
     """The named test flow, scaled so its fastest particle moves ``displacement_px`` in ``dt_s``.
@@ -347,7 +347,7 @@ def flow_for_displacement(name: str, volume: VolumeConfig, object_pixel_mm: floa
                          "give at most a few tens of pixels (PIV windows follow a quarter of their size)")
     if not (np.isfinite(dt_s) and dt_s > 0):
         raise ValueError(f"dt must be positive, got {dt_s}")
-    field = standard_flow(name, volume, omega)
+    field = standard_flow(name, volume, omega=omega)
     if period_s is not None and not (np.isfinite(period_s) and period_s > 0):
         raise ValueError(f"the ring period must be positive, got {period_s}")
     target = disp * object_pixel_mm * 1e-3 / dt_s  # m/s
@@ -359,14 +359,14 @@ def flow_for_displacement(name: str, volume: VolumeConfig, object_pixel_mm: floa
     return field
 
 
-def peak_speed(flow: Flow, volume: VolumeConfig, t_s: float = 0.0, n: int = 24) -> float:
+def peak_speed(flow: Flow, volume: VolumeConfig, *, t_s: float = 0.0, n: int = 24) -> float:
     """Largest speed (m/s) of ``flow`` on an n^3 grid spanning ``volume`` at time ``t_s``."""
     axes = [c + s * np.linspace(-0.5, 0.5, n) for c, s in zip(volume.centre_mm, volume.size_mm, strict=True)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     return float(np.linalg.norm(flow.velocity(grid, t_s), axis=1).max())
 
 
-def advect(flow: Flow, points_mm: np.ndarray, t0_s: float, dt_s: float, rtol: float = 1e-9) -> np.ndarray:
+def advect(flow: Flow, points_mm: np.ndarray, t0_s: float, dt_s: float, *, rtol: float = 1e-9) -> np.ndarray:
     """Move particles with the flow from ``t0_s`` to ``t0_s + dt_s``.
 
     Integrates dx/dt = 1000 v(x, t) (mm/s) with scipy's adaptive 8th-order Dormand-Prince

@@ -48,7 +48,7 @@ __all__ = [
 TRUTH_SIGMA_VOXELS = 0.75
 
 
-def truth_volume(grid: VolumeGrid, particles_mm: np.ndarray, brightness: np.ndarray | None = None,
+def truth_volume(grid: VolumeGrid, particles_mm: np.ndarray, brightness: np.ndarray | None = None, *,
                  sigma_voxels: float = TRUTH_SIGMA_VOXELS) -> np.ndarray:
     """E0: the true particles as Gaussian blobs on the grid.
 
@@ -118,7 +118,7 @@ def _subvoxel(vol: np.ndarray, peaks: np.ndarray) -> np.ndarray:
     return out
 
 
-def detect_particles(volume: np.ndarray, grid: VolumeGrid, threshold: float = 0.1
+def detect_particles(volume: np.ndarray, grid: VolumeGrid, *, threshold: float = 0.1
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Particles in a reconstructed volume.
 
@@ -222,7 +222,8 @@ def match_particles(detected_mm: np.ndarray, true_mm: np.ndarray, tolerance_mm: 
                        n_true=len(tru), n_detected=len(det), n_matched=n_m)
 
 
-def particle_diameters(volume: np.ndarray, indices: np.ndarray, level: float = float(np.exp(-2.0))) -> np.ndarray:
+def particle_diameters(volume: np.ndarray, indices: np.ndarray, *, level: float = float(np.exp(-2.0))
+                       ) -> np.ndarray:
     """Diameter of each reconstructed particle along x, y, z, in voxels.
 
     Measured through the peak voxel along each axis: the distance between the two points where
@@ -321,7 +322,7 @@ def evaluate_volume(volume: np.ndarray, grid: VolumeGrid, particles_mm: np.ndarr
         A detection matches a true particle within this many voxels per axis.
     """
     e0 = truth_volume(grid, particles_mm, brightness)
-    pos, _, idx = detect_particles(volume, grid, threshold)
+    pos, _, idx = detect_particles(volume, grid, threshold=threshold)
     match = match_particles(pos, particles_mm, match_voxels * np.asarray(grid.voxel_mm))
     diam = particle_diameters(volume, idx)
     return VolumeEvaluation(q=q_recon(volume, e0), match=match,

@@ -84,7 +84,7 @@ def nearest_lenslet(cam: Camera, xy_mm: np.ndarray) -> np.ndarray:
     return _from_lattice(cam, best)
 
 
-def lenslet_centers(cam: Camera, margin_mm: float = 0.0) -> np.ndarray:
+def lenslet_centers(cam: Camera, *, margin_mm: float = 0.0) -> np.ndarray:
     """Centres of every lenslet whose centre lies on the sensor.
 
     Parameters

@@ -117,7 +117,7 @@ def _keys(camera: Camera, centres_mm: np.ndarray) -> np.ndarray:
     return q[..., 0] * (1 << 32) + q[..., 1]
 
 
-def white_irradiance(camera: Camera, config: WhiteImageConfig = WhiteImageConfig(),
+def white_irradiance(camera: Camera, *, config: WhiteImageConfig = WhiteImageConfig(),
                      blur_sigma_px: float = 0.0) -> np.ndarray:
     """Noise-free white image: every micro-image a pupil disc, integrated over each pixel.
 
@@ -181,7 +181,7 @@ def white_irradiance(camera: Camera, config: WhiteImageConfig = WhiteImageConfig
     return out
 
 
-def white_image(camera: Camera, render: RenderConfig | None = None,
+def white_image(camera: Camera, *, render: RenderConfig | None = None,
                 config: WhiteImageConfig = WhiteImageConfig(), wavelength_nm: float = 532.0) -> np.ndarray:
     """A raw white image as the camera delivers it.
 
@@ -208,7 +208,7 @@ def white_image(camera: Camera, render: RenderConfig | None = None,
     render = RenderConfig() if render is None else render
     lam = wavelength_nm if render.diffraction else 0.0  # no diffraction: no blur
     sigma = diffraction_sigma_mm(lam, camera.lenslet_f_number) / camera.pixel_mm
-    mean = white_irradiance(camera, config, sigma) + render.background_counts
+    mean = white_irradiance(camera, config=config, blur_sigma_px=sigma) + render.background_counts
     rng = np.random.default_rng([config.seed, 0x3417E])
     v = rng.poisson(mean * render.gain_e_per_count) / render.gain_e_per_count if render.shot_noise else mean
     if render.read_noise_counts > 0:

@@ -64,7 +64,7 @@ class ParticleWorld:
         if self.dt_s is None:
             self.dt_s = self.rig.timing.dt_us * 1e-6
         self._field = flow_for_displacement(self.flow, self.rig.volume, self.rig.camera[0].object_pixel_mm,
-                                            self.dt_s, self.displacement_px, self.omega,
+                                            self.dt_s, displacement_px=self.displacement_px, omega=self.omega,
                                             period_s=1.0 / self.rig.laser.rate_hz)  # phase-locked ring
         self.n_particles = particle_count(self.rig, self.ppm)
 

@@ -44,7 +44,7 @@ def white_scene(rig: Rig, config: WhiteImageConfig | None = None) -> tuple[Calla
 
     def scene(ci: int) -> np.ndarray:
         cfg = dataclasses.replace(config, seed=derive_seed(config.seed, 0x3417E, ci))
-        return white_image(rig.camera[ci], rig.render, cfg, rig.laser.wavelength_nm)
+        return white_image(rig.camera[ci], render=rig.render, config=cfg, wavelength_nm=rig.laser.wavelength_nm)
 
     return scene, ("white", config)
 

@@ -335,7 +335,7 @@ def test_white_images_from_files_are_judged_against_the_camera_s_bit_depth(tmp_p
                                                     'focus_mm = [0.0, 0.0, 0.0]\nbit_depth = 12'))
     rig = load_rig(rig12)
     cam = rig.camera[0]
-    white = white_image(cam, rig.render, WhiteImageConfig(level_counts=2500.0))
+    white = white_image(cam, render=rig.render, config=WhiteImageConfig(level_counts=2500.0))
     white = np.minimum(white, 4095).astype(np.uint16)
     hot = white.copy()
     hot[7, 9] = 4000  # a hot pixel between micro-images

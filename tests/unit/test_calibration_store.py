@@ -16,7 +16,7 @@ from tests.conftest import tiny_variant
 def test_round_trip_and_plain_zarr_layout(tiny_rig, tmp_path):
     rig = tiny_variant(tiny_rig, mla_rotation_deg=0.2)
     cam = rig.camera[0]
-    img = white_image(cam, rig.render, WhiteImageConfig())
+    img = white_image(cam, render=rig.render, config=WhiteImageConfig())
     grid = detect_grid(img)
     path = tmp_path / "calib.zarr"
     s = CalibrationStore.create(path, rig, software_version="test")

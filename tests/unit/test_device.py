@@ -183,7 +183,7 @@ def test_host_memory_counts_the_page_cache_the_kernel_gives_back(tmp_path):
     # a workstation that has just read a run store: little free, much in the page cache
     info = tmp_path / "meminfo"
     info.write_text("MemTotal:       131072000 kB\nMemFree:          2048000 kB\nMemAvailable:   120000000 kB\n")
-    assert dev.host_available_bytes(str(info)) == 120000000 * 1024
+    assert dev.host_available_bytes(meminfo=str(info)) == 120000000 * 1024
     # no MemAvailable (not Linux, or an old kernel): the free pages
-    assert dev.host_available_bytes(str(tmp_path / "none")) > 0
+    assert dev.host_available_bytes(meminfo=str(tmp_path / "none")) > 0
     assert 0 < dev.available_bytes("cpu") <= 2**50

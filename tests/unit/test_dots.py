@@ -19,8 +19,8 @@ from tests.conftest import tiny_variant
 @pytest.fixture(scope="module")
 def lattice(tiny_rig):
     cam = tiny_variant(tiny_rig, sensor_px=[640, 480]).camera[0]  # about 64 x 48 lenslets
-    grid = detect_grid(white_image(cam, tiny_rig.render, WhiteImageConfig(seed=3)))
-    disc = white_irradiance(cam, WhiteImageConfig(level_counts=1.0))
+    grid = detect_grid(white_image(cam, render=tiny_rig.render, config=WhiteImageConfig(seed=3)))
+    disc = white_irradiance(cam, config=WhiteImageConfig(level_counts=1.0))
     return grid, disc, lenslet_cells(grid)
 
 
@@ -167,7 +167,7 @@ def test_the_views_parallax_is_what_view_geometry_predicts_for_the_rendered_came
 
     rig = load_rig(EXAMPLES / "two_cameras.toml")
     cam = rig.camera[0].model_copy(update={"sensor_px": (1400, 1300), "f_number": f_number})  # 7.7 mm: a period
-    grid = detect_grid(white_image(cam, rig.render, WhiteImageConfig(seed=1)))
+    grid = detect_grid(white_image(cam, render=rig.render, config=WhiteImageConfig(seed=1)))
     geo = view_geometry(cam, rig.laser.wavelength_nm)
     xs = np.linspace(-3.0, 3.0, 5)
     pts = np.array([[x, y, z] for x in xs for y, z in ((-2.0, -2.0), (1.5, 2.0))])  # 1.4 mm apart at least

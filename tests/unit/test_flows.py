@@ -32,7 +32,7 @@ def _gd(u):
 def test_table_4_1_paths_are_exact(case, omega):
     # Velocity A cos(phi) along e with phi = k.(x - c): d(phi)/dt = (k.e) A cos(phi), solved by
     # phi(t) = gd((k.e) A t + gd^-1(phi0)); if k.e = 0 the particle moves in a straight line.
-    flow = standard_flow(case, VOLUME, omega).scaled(0.8)  # 0.8 m/s peak
+    flow = standard_flow(case, VOLUME, omega=omega).scaled(0.8)  # 0.8 m/s peak
     assert isinstance(flow, Oscillatory)
     e = np.eye(3)[0 if case[0] == "A" else 2]
     k = flow.wave_vector
@@ -59,7 +59,7 @@ def test_table_4_1_paths_are_exact(case, omega):
 
 def test_wave_vectors_follow_table_4_1():
     L = VOLUME.size_mm[0]
-    k = {c: standard_flow(c, VOLUME, 0.5).wave_vector for c in OSCILLATORY_CASES}
+    k = {c: standard_flow(c, VOLUME, omega=0.5).wave_vector for c in OSCILLATORY_CASES}
     assert np.allclose(k["A1"], [2 * math.pi / (0.5 * L), 0, 0])
     # L_xy = sqrt(2) L and k_x = k_y = 2 pi / (sqrt(2) omega L_xy)
     d = 2 * math.pi / (math.sqrt(2) * 0.5 * math.sqrt(2) * L)
@@ -76,7 +76,7 @@ def _divergence(flow, pts, t=0.0, h=1e-4):
 
 @pytest.mark.parametrize("name", ["vortex-ring", "jet", "A4", "B1", "B2"])
 def test_flows_are_divergence_free(name):
-    flow = standard_flow(name, VOLUME, 0.5)
+    flow = standard_flow(name, VOLUME, omega=0.5)
     pts = np.asarray(VOLUME.centre_mm) + np.random.default_rng(4).uniform(-0.5, 0.5, (300, 3)) * VOLUME.size_mm
     scale = np.linalg.norm(flow.velocity(pts, 0.05), axis=1).max() / (0.3 * min(VOLUME.size_mm[::2]))
     assert np.abs(_divergence(flow, pts, 0.05)).max() < 1e-5 * scale

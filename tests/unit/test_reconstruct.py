@@ -143,7 +143,7 @@ def test_drt_mart_beats_mart_at_equal_work(tiny_rig, device):
     out = {}
     tol = 2 * np.asarray(grid.voxel_mm)
     for name, res in (("drt", drt), ("mart", mart)):
-        pos, _, idx = metrics.detect_particles(res.volume, grid, 0.1)
+        pos, _, idx = metrics.detect_particles(res.volume, grid, threshold=0.1)
         m = metrics.match_particles(pos, pts, tol)
         real = np.linalg.norm((pos[:, None] - pts[None]) / tol, axis=-1).min(axis=1) <= 1  # not ghosts
         depth = np.median(metrics.particle_diameters(res.volume, idx[real])[:, 2])

@@ -48,7 +48,7 @@ def test_white_image_noise_vignetting_and_dead_lenslets(tiny_rig):
     cam = _camera(tiny_rig, "square")
     render = tiny_rig.render
     cfg = WhiteImageConfig(level_counts=20000, vignetting=0.5, dead_lenslets=4, seed=3)
-    img = white_image(cam, render, cfg)
+    img = white_image(cam, render=render, config=cfg)
     assert img.dtype == np.uint16 and img.shape == (160, 192)
     truth = np.rint(micro_image_centres(cam) - 0.5).astype(int)
     inside = (truth[:, 0] >= 0) & (truth[:, 0] < 192) & (truth[:, 1] >= 0) & (truth[:, 1] < 160)
@@ -58,13 +58,13 @@ def test_white_image_noise_vignetting_and_dead_lenslets(tiny_rig):
     assert 19000 < centre < 21500
     corner_lit = np.sort(at[at > 1000])
     assert corner_lit[0] < 0.62 * centre  # corners darker by about half (cos^4 profile)
-    assert np.array_equal(img, white_image(cam, render, cfg))  # reproducible
+    assert np.array_equal(img, white_image(cam, render=render, config=cfg))  # reproducible
 
 
 @pytest.mark.parametrize("grid", ["hex", "square"])
 def test_grid_recovers_rotation_offset_and_pitch(tiny_rig, grid):
     cam = _camera(tiny_rig, grid)
-    img = white_image(cam, tiny_rig.render, WhiteImageConfig(vignetting=0.5, dead_lenslets=4, seed=1))
+    img = white_image(cam, render=tiny_rig.render, config=WhiteImageConfig(vignetting=0.5, dead_lenslets=4, seed=1))
     g = detect_grid(img)
     k = micro_image_scale(cam)
     assert g.grid == grid
@@ -88,10 +88,10 @@ def test_grid_recovers_rotation_offset_and_pitch(tiny_rig, grid):
 def test_dead_lenslets_are_not_detected(tiny_rig):
     cam = _camera(tiny_rig, "hex")
     cfg = WhiteImageConfig(dead_lenslets=6, dead_at_edge=False, seed=5)
-    img = white_image(cam, tiny_rig.render, cfg)
+    img = white_image(cam, render=tiny_rig.render, config=cfg)
     g = detect_grid(img, grid="hex")
     truth = micro_image_centres(cam)
-    lit = np.asarray(white_irradiance(cam, cfg))
+    lit = np.asarray(white_irradiance(cam, config=cfg))
     cr = np.rint(truth - 0.5).astype(int)
     ok = (cr[:, 0] >= 0) & (cr[:, 0] < 192) & (cr[:, 1] >= 0) & (cr[:, 1] < 160)
     dead = truth[ok][lit[cr[ok, 1], cr[ok, 0]] < 1.0]
@@ -132,7 +132,7 @@ def test_splatted_white_image_equals_every_disc_summed_at_every_subsample(tiny_r
     d = np.hypot(x[None, None, :] - centres[:, 0, None, None], y[None, :, None] - centres[:, 1, None, None])
     cover = np.clip((r_px - d) * 3 + 0.5, 0.0, 1.0)  # (lenslet, sub-row, sub-column)
     truth = np.einsum("l,lrc->rc", weight, cover).reshape(nr, 3, nc, 3).mean(axis=(1, 3))
-    img = white_irradiance(cam, cfg)
+    img = white_irradiance(cam, config=cfg)
     assert np.allclose(img, truth, rtol=0, atol=1e-9)
     if f_number < 2:
         assert img.max() > 1.2  # overlapping discs add up
@@ -142,7 +142,7 @@ def test_grid_centring_in_parallel_blocks_equals_one_block(tiny_rig):
     from calibration.mla_grid import _flat_field, _symmetric_centres
 
     cam = _camera(tiny_rig, "hex")
-    img = white_image(cam, tiny_rig.render, WhiteImageConfig(vignetting=0.3, seed=2)).astype(np.float64)
+    img = white_image(cam, render=tiny_rig.render, config=WhiteImageConfig(vignetting=0.3, seed=2)).astype(np.float64)
     start = micro_image_centres(cam)
     start = start[np.all((start > 8) & (start < np.array(cam.sensor_px) - 8), axis=1)] + 0.3
     flat = _flat_field(img, cam.pixels_per_lenslet)
