@@ -1,3 +1,6 @@
-from lfpiv.cli import main
+try:
+    from lfpiv.cli import run
+except KeyboardInterrupt:  # Ctrl-C while Python starts: nothing was done yet
+    raise SystemExit(130) from None
 
-raise SystemExit(main())
+run()

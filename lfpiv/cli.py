@@ -171,5 +171,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
 
 
+def run() -> None:
+    """The ``lfpiv`` program: :func:`main`, then exit with its code. Ctrl-Cs or kills that come
+    once the code is decided (a second or third Ctrl-C while the interpreter shuts down) no
+    longer change it: the command has said how it ended, and the laser was disarmed."""
+    code = main()
+    import signal
+
+    for sig in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)):
+        if sig is not None:
+            with contextlib.suppress(ValueError, OSError):  # not in the main thread
+                signal.signal(sig, signal.SIG_IGN)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run()

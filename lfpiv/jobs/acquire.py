@@ -226,6 +226,10 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
                     if stopped_by:  # counted once the recorder has written what was settled
                         message = f"{stopped_by} after {session.committed_pairs} committed pair(s)"
                     unclosed = _close_run(store, state, message, rg.lab, session.committed_pairs)
+                    if stopped_by and not undisarmed and _is_main_thread():  # Ctrl-C or a kill: say so at once
+                        kept = f"state '{state}'" if not unclosed else "still saying 'recording'"
+                        print(f"lfpiv: the laser is disarmed; {session.committed_pairs} pair(s) are kept in {out} "
+                              f"({kept})", file=sys.stderr)
             except KeyboardInterrupt:
                 print(f"lfpiv: warning: left before the run was closed: {out} may still say 'recording'; its committed "
                       "pairs read back whole", file=sys.stderr)

@@ -414,3 +414,23 @@ def test_the_run_records_the_timing_as_the_generator_holds_it_and_devices_names_
     rc = main(["acquire", "--rig", str(rig_file), "--pairs", "2", "--out", str(tmp_path / "p.zarr"), "--pairing",
                "timestamps"])
     assert rc == 2 and "--pairing timestamps is for real GenICam cameras" in capsys.readouterr().err
+
+
+def test_ctrl_c_three_times_says_the_laser_is_disarmed_and_exits_130(fast_rig_file: Path, tmp_path: Path) -> None:
+    """One Ctrl-C says at once that the laser is disarmed and what is kept; Ctrl-Cs that follow it
+    0.2 s apart, while the run is closed and the interpreter shuts down, change nothing: exit 130,
+    no traceback (they used to kill the process by SIGINT, exit -2)."""
+    out = tmp_path / "ctrl-c.zarr"
+    proc = _start(fast_rig_file, out, 5000)
+    try:
+        _wait_committed(out, 10, proc)
+        for _ in range(3):
+            proc.send_signal(signal.SIGINT)
+            time.sleep(0.2)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "lfpiv: the laser is disarmed; " in err and "(state 'aborted')" in err, err
+    store = RunStore.open(out)
+    assert store.state == "aborted" and store.committed_pairs >= 10
