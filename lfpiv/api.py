@@ -63,7 +63,8 @@ def _rig(rig: Rig | str | os.PathLike[str]) -> Rig:
 def import_files(rig: Rig | str | os.PathLike[str], out: str | os.PathLike[str], *, frames: Mapping[str, str],
                  frames_b: Mapping[str, str] | None = None, davis: Mapping[str, str] | None = None,
                  layout: str = "interleaved", dt_us: float | None = None, rate_hz: float | None = None,
-                 overwrite: bool = False, skip_done: bool = False, progress: bool = True) -> Any:
+                 overwrite: bool = False, skip_done: bool = False, progress: bool = True,
+                 checksum: str = "crc32c") -> Any:
     """A run store made from image files recorded elsewhere (``lfpiv import``).
 
     Parameters are :func:`lfpiv.jobs.import_.import_files`' (``rig`` may be a rig file's path);
@@ -72,7 +73,7 @@ def import_files(rig: Rig | str | os.PathLike[str], out: str | os.PathLike[str],
     from lfpiv.jobs.import_ import import_files as job
 
     return job(_rig(rig), out, frames=frames, frames_b=frames_b, davis=davis, layout=layout, dt_us=dt_us,
-               rate_hz=rate_hz, overwrite=overwrite, skip_done=skip_done, progress=progress)
+               rate_hz=rate_hz, overwrite=overwrite, skip_done=skip_done, progress=progress, checksum=checksum)
 
 
 def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str = "drt-mart", iterations: int = 50,

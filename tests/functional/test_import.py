@@ -47,7 +47,8 @@ def test_tiffs_import_exactly_and_reconstruct_to_the_original_volumes(original, 
     before = {f: f.read_bytes() for f in files}
     out = tmp_path / "imported.zarr"
     rc, text, err = _run(capsys, "import", "--rig", TINY, "--out", out, "--frames",
-                         f"cam0={tmp_path / 'tiffs' / '*.tif'}", "--dt-us", "2000", "--rate-hz", "10", "--quiet")
+                         f"cam0={tmp_path / 'tiffs' / '*.tif'}", "--dt-us", "2000", "--rate-hz", "10", "--quiet",
+                         "--checksum", "sha256")
     assert rc == 0, err
     assert "3 pair(s) x 1 camera(s) from 6 file(s), 0 frame(s) lost" in text
     run = RunStore.open(out)
@@ -270,6 +271,10 @@ def test_an_interrupted_import_goes_on_with_skip_done(original, tmp_path, capsys
     assert run.state == "complete" and run.committed_pairs == 3 and np.array_equal(run.frames("cam0")[...], frames)
     assert len(calls) == 2 * (3 - kept)  # only the pairs it lacked were read again
     assert len(run.attrs["import"]["sources"]) == 6
+    import google_crc32c
+
+    for s in run.attrs["import"]["sources"]:  # the default checksum is CRC32C
+        assert s["crc32c"] == google_crc32c.value(Path(s["path"]).read_bytes()).to_bytes(4, "big").hex()
 
 
 def test_a_calibration_from_the_lab_s_own_files_equals_the_one_the_rig_took(tmp_path, capsys):
