@@ -15,19 +15,24 @@ Layout::
                               (pairs, 2, n) counts; attrs: flow (name and parameters), seeding
       volumes/data            float32 (pairs, 2, z, y, x); attrs: origin_mm, voxel_mm, method,
                               settings, reconstructed_pairs
+      volumes/x, y, z, time   coordinates: voxel centres (mm), time of each pair (s)
       vectors/                u, v, w, flags, peak_ratio (pairs, z, y, x); x_mm, y_mm, z_mm
+      vectors/x, y, z, time   coordinates: window centres (mm, = x_mm ...), time of each pair (s)
       volumes.pending/,       a replacement of volumes/ or vectors/ (other settings) being made,
       vectors.pending/        same layout; it becomes volumes/ or vectors/ only once complete, so
                               an interrupted replacement leaves the old ones whole; readers
                               ignore it
 
 Every array carries ``units`` and ``axes`` attributes, so plain zarr or xarray users can read a
-run without lfpiv. Pairs ``0 .. committed_pairs - 1`` are complete; ``state`` says whether the
-run is still ``recording``, ``complete`` or ``aborted``.
+run without lfpiv; ``xr.open_zarr(run, group="volumes")`` or ``group="vectors"`` labels the axes
+with the coordinate arrays (:mod:`lfcore.runstore._coords`; stores made before them have none,
+and read the same otherwise). Pairs ``0 .. committed_pairs - 1`` are complete; ``state`` says
+whether the run is still ``recording``, ``complete`` or ``aborted``.
 
 The store is split by what it holds: ``_frames`` (frames, ids, time stamps, state and commits,
-and :class:`FrameWriter`), ``_drops``, ``_truth``, ``_volumes``, ``_vectors`` and
-``_replacement`` (the ``*.pending`` machinery), put together as :class:`RunStore` in ``_store``.
+and :class:`FrameWriter`), ``_drops``, ``_truth``, ``_volumes``, ``_vectors`` (with ``_coords``,
+their coordinate arrays) and ``_replacement`` (the ``*.pending`` machinery), put together as
+:class:`RunStore` in ``_store``.
 """
 
 from lfcore.runstore._common import FORMAT, FORMAT_VERSION, STATES, RunStoreError

@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 
 from lfcore.runstore._common import Part, RunStoreError
+from lfcore.runstore._coords import pair_times_s
 from lfcore.zarrstore import described_array
 
 
@@ -50,8 +51,8 @@ class Truth(Part):
                         shape=t0.shape, chunks=t0.shape, dtype=np.float64)[...] = t0
 
     def _pair_times_s(self) -> np.ndarray:
-        rate = self.timing.get("rate_hz")
-        return np.arange(self.n_pairs) / float(rate) if rate else np.zeros(self.n_pairs)
+        t = pair_times_s(self.n_pairs, self.timing)
+        return np.zeros(self.n_pairs) if t is None else t
 
     def truth(self) -> dict[str, Any] | None:
         """``{"particles", "brightness", "t0_s", "attrs"}`` of a synthetic run, or None if recorded.

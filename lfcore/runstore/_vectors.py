@@ -8,6 +8,7 @@ import numpy as np
 import zarr
 
 from lfcore.runstore._common import Part, RunStoreError
+from lfcore.runstore._coords import COORDINATES, add_coordinates
 from lfcore.zarrstore import described_array
 
 
@@ -37,7 +38,9 @@ class Vectors(Part):
         ``u``, ``v``, ``w`` are float32 (pairs, z, y, x) in m/s, ``flags`` uint8 (bit 1: outlier,
         bit 2: replaced), ``peak_ratio`` float32; the group's ``correlated_pairs`` attribute lists
         the pairs written so far, and ``volumes_id`` the :attr:`volumes_id` of the volumes they are
-        correlated from.
+        correlated from. The coordinate arrays ``x``, ``y``, ``z`` (mm, the same as ``x_mm``,
+        ``y_mm``, ``z_mm``) and ``time`` (s, per pair) label the axes for xarray
+        (:mod:`lfcore.runstore._coords`).
         """
         g = self._begin("vectors", staged=bool(self.correlated_pairs()))
         g.attrs.update({"dt_s": float(dt_s), "windows": [[int(n) for n in w] for w in windows],
@@ -45,22 +48,26 @@ class Vectors(Part):
                         "volumes_id": self.volumes_id,
                         "description": "3D velocity from multi-grid cross-correlation of volumes/data; windows "
                                        "are (x, y, z) voxels per pass"})
-        coords = {"x_mm": x_mm, "y_mm": y_mm, "z_mm": z_mm}
-        for name, c in coords.items():
-            c = np.asarray(c, dtype=np.float64)
-            described_array(g, name, "mm", [name[0]], f"world {name[0]} of the window centres", shape=c.shape,
+        axes = {"x": np.asarray(x_mm, dtype=np.float64), "y": np.asarray(y_mm, dtype=np.float64),
+                "z": np.asarray(z_mm, dtype=np.float64)}
+        for name, c in axes.items():  # the grid as lfpiv has always kept it
+            described_array(g, f"{name}_mm", "mm", [name], f"world {name} of the window centres", shape=c.shape,
                             dtype=np.float64)[...] = c
-        shape = (self.n_pairs, len(coords["z_mm"]), len(coords["y_mm"]), len(coords["x_mm"]))
+        add_coordinates(g, axes, n_pairs=self.n_pairs, timing=self.timing, of="the window centres")
+        shape = (self.n_pairs, len(axes["z"]), len(axes["y"]), len(axes["x"]))
         chunks = (1, *shape[1:])
-        axes = ["pair", "z", "y", "x"]
-        for name, what in (("u", "x"), ("v", "y"), ("w", "z")):
-            described_array(g, name, "m/s", axes, f"velocity along world {what}; NaN where not measured",
-                            shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
-        a = described_array(g, "flags", "1", axes, "vector quality flags (bits)", shape=shape, chunks=chunks,
-                            dtype=np.uint8, fill_value=0)
-        a.attrs.update({"flag_masks": [1, 2], "flag_meanings": "outlier replaced"})
-        described_array(g, "peak_ratio", "1", axes, "highest over second-highest correlation peak of the last pass",
-                        shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
+        dims = ["pair", "z", "y", "x"]
+        fields = [described_array(g, name, "m/s", dims, f"velocity along world {what}; NaN where not measured",
+                                  shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
+                  for name, what in (("u", "x"), ("v", "y"), ("w", "z"))]
+        fields.append(described_array(g, "flags", "1", dims, "vector quality flags (bits)", shape=shape,
+                                      chunks=chunks, dtype=np.uint8, fill_value=0))
+        fields[-1].attrs.update({"flag_masks": [1, 2], "flag_meanings": "outlier replaced"})
+        fields.append(described_array(g, "peak_ratio", "1", dims, "highest over second-highest correlation peak "
+                                      "of the last pass", shape=shape, chunks=chunks, dtype=np.float32,
+                                      fill_value=np.nan))
+        for a in fields:
+            a.attrs["coordinates"] = COORDINATES
 
     def vector_arrays(self) -> dict[str, zarr.Array]:
         """The ``u``, ``v``, ``w``, ``flags`` and ``peak_ratio`` arrays being written (``vectors/``

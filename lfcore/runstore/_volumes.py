@@ -9,6 +9,7 @@ import numpy as np
 import zarr
 
 from lfcore.runstore._common import Part, RunStoreError
+from lfcore.runstore._coords import COORDINATES, add_coordinates
 from lfcore.volume import VolumeGrid
 from lfcore.zarrstore import described_array
 
@@ -26,17 +27,23 @@ class Volumes(Part):
         ``volumes/data`` is float32 (pairs, 2, z, y, x) in chunks of at most 16 x 256 x 256
         voxels; the group's attributes hold the grid (``origin_mm``, ``voxel_mm``), the method
         and its settings, ``reconstructed_pairs``, the pairs written so far, and ``volumes_id``, a
-        name new with every ``volumes/`` made, which the vectors correlated from it record.
+        name new with every ``volumes/`` made, which the vectors correlated from it record. The
+        coordinate arrays ``x``, ``y``, ``z`` (mm, voxel centres) and ``time`` (s, per pair) label
+        the axes for xarray (:mod:`lfcore.runstore._coords`).
         """
         g = self._begin("volumes", staged=bool(self.reconstructed_pairs()))
         g.attrs.update({"origin_mm": list(grid.origin_mm), "voxel_mm": list(grid.voxel_mm), "method": method,
                         "settings": settings, "reconstructed_pairs": [], "volumes_id": uuid.uuid4().hex,
                         "description": "reconstructed particle volumes; origin_mm is the world (x, y, z) "
                                        "of the centre of voxel [0, 0, 0]"})
+        add_coordinates(g, {a: grid.axis_mm(a) for a in "xyz"}, n_pairs=self.n_pairs, timing=self.timing,
+                        of="the voxel centres")
         nz, ny, nx = grid.shape
-        return described_array(g, "data", "intensity", ["pair", "frame", "z", "y", "x"], "voxel intensity",
+        data = described_array(g, "data", "intensity", ["pair", "frame", "z", "y", "x"], "voxel intensity",
                                shape=(self.n_pairs, 2, nz, ny, nx), dtype=np.float32, fill_value=0.0,
                                chunks=(1, 1, min(nz, 16), min(ny, 256), min(nx, 256)))
+        data.attrs["coordinates"] = COORDINATES
+        return data
 
     def write_volume(self, pair: int, frame: int, volume: np.ndarray, *, record: bool = True) -> None:
         """Store one reconstructed volume (z, y, x) float32 of pair ``pair``, frame 0 (A) or 1 (B).
