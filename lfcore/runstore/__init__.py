@@ -22,6 +22,7 @@ Layout::
       vectors.pending/        same layout; it becomes volumes/ or vectors/ only once complete, so
                               an interrupted replacement leaves the old ones whole; readers
                               ignore it
+      .lfpiv-writer.lock      the writer lock, naming the process that writes the run (not zarr)
 
 Every array carries ``units`` and ``axes`` attributes, so plain zarr or xarray users can read a
 run without lfpiv; ``xr.open_zarr(run, group="volumes")`` or ``group="vectors"`` labels the axes
@@ -29,9 +30,17 @@ with the coordinate arrays (:mod:`lfcore.runstore._coords`; stores made before t
 and read the same otherwise). Pairs ``0 .. committed_pairs - 1`` are complete; ``state`` says
 whether the run is still ``recording``, ``complete`` or ``aborted``.
 
+One process writes a run at a time (:mod:`lfcore.runstore._lock`: a POSIX lock the kernel
+releases when its holder dies; readers take none). Every chunk carries a CRC-32C (zarr's
+``crc32c`` codec) and every chunk written is stored, so a chunk of a recorded pair that is
+missing, changed or cut short is damage: :meth:`RunStore.read_frame`, :meth:`~RunStore.read_volume`
+and :meth:`~RunStore.read_vectors` raise naming it, and :meth:`RunStore.verify` lists every
+problem of a run (:mod:`lfcore.runstore._integrity`). Stores made before both still open.
+
 The store is split by what it holds: ``_frames`` (frames, ids, time stamps, state and commits,
 and :class:`FrameWriter`), ``_drops``, ``_truth``, ``_volumes``, ``_vectors`` (with ``_coords``,
-their coordinate arrays) and ``_replacement`` (the ``*.pending`` machinery), put together as
+their coordinate arrays), ``_replacement`` (the ``*.pending`` machinery), ``_integrity``
+(checked reads and verification, with ``_chunks``) and ``_lock``, put together as
 :class:`RunStore` in ``_store``.
 """
 

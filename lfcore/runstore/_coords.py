@@ -20,8 +20,10 @@ from typing import Any
 import numpy as np
 import zarr
 
-from lfcore.zarrstore import described_array
+from lfcore.runstore._common import run_array
 
+#: The coordinate arrays (float64) of ``volumes/`` and ``vectors/``.
+COORDINATE_ARRAYS = ("x", "y", "z", "time")
 #: The CF ``coordinates`` attribute of every (pair, ...) array of ``volumes/`` and ``vectors/``.
 COORDINATES = "time"
 
@@ -52,13 +54,12 @@ def add_coordinates(group: zarr.Group, axes_mm: Mapping[str, np.ndarray], *, n_p
     """
     for name in ("x", "y", "z"):
         c = np.asarray(axes_mm[name], dtype=np.float64)
-        a = described_array(group, name, "mm", [name], f"world {name} of {of}", shape=c.shape, dtype=np.float64)
+        a = run_array(group, name, "mm", [name], f"world {name} of {of}", shape=c.shape, dtype=np.float64)
         a[...] = c
         a.attrs["axis"] = name.upper()
     t = pair_times_s(n_pairs, timing)
-    a = described_array(group, "time", "s", ["pair"], "time of each pair's first pulse since the first pair's "
-                        "(pair / timing.rate_hz; NaN: the run's timing has no rate)", shape=(n_pairs,),
-                        dtype=np.float64, fill_value=np.nan)
-    if t is not None:
-        a[...] = t
+    a = run_array(group, "time", "s", ["pair"], "time of each pair's first pulse since the first pair's "
+                  "(pair / timing.rate_hz; NaN: the run's timing has no rate)", shape=(n_pairs,),
+                  dtype=np.float64, fill_value=np.nan)
+    a[...] = np.full(n_pairs, np.nan) if t is None else t  # stored either way: a missing chunk is damage
     a.attrs["axis"] = "T"

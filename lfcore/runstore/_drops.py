@@ -7,8 +7,7 @@ from typing import Any
 import numpy as np
 import zarr
 
-from lfcore.runstore._common import Part, RunStoreError
-from lfcore.zarrstore import described_array
+from lfcore.runstore._common import Part, RunStoreError, run_array
 
 #: The columns of ``drops/``: (type, fill value, what it holds).
 DROP_FIELDS = {
@@ -27,8 +26,8 @@ def create_drops(root: zarr.Group) -> None:
     drops.attrs.update({"description": "every frame that was not recorded, with the reason; a row with an "
                                        "empty reason was never written (a recorder killed while adding it)"})
     for name, (dtype, fill, what) in DROP_FIELDS.items():
-        described_array(drops, name, "ns" if name == "timestamp_ns" else "1", ["drop"], what, shape=(0,),
-                        chunks=(4096,), dtype=dtype, fill_value=fill)
+        run_array(drops, name, "ns" if name == "timestamp_ns" else "1", ["drop"], what, shape=(0,),
+                  chunks=(4096,), dtype=dtype, fill_value=fill)
 
 
 class Drops(Part):

@@ -6,9 +6,11 @@ from typing import Any
 
 import numpy as np
 
-from lfcore.runstore._common import Part, RunStoreError
+from lfcore.runstore._common import Part, RunStoreError, run_array
 from lfcore.runstore._coords import pair_times_s
-from lfcore.zarrstore import described_array
+
+#: The arrays of ``truth/``, with their data types (``t0_s`` is missing from older stores).
+TRUTH_ARRAYS = {"particles": np.float64, "brightness": np.float32, "t0_s": np.float64}
 
 
 class Truth(Part):
@@ -39,16 +41,16 @@ class Truth(Part):
         g = self.group.create_group("truth")
         g.attrs.update({"flow": flow, **attrs})
         p = np.asarray(particles_mm, dtype=np.float64)
-        described_array(g, "particles", "mm", ["pair", "frame", "particle", "xyz"], "true particle positions",
-                        shape=p.shape, chunks=(1, 2, *p.shape[2:]), dtype=np.float64)[...] = p
+        run_array(g, "particles", "mm", ["pair", "frame", "particle", "xyz"], "true particle positions",
+                  shape=p.shape, chunks=(1, 2, *p.shape[2:]), dtype=np.float64)[...] = p
         b = np.asarray(brightness, dtype=np.float32)
-        described_array(g, "brightness", "counts", ["pair", "frame", "particle"], "signal of each particle",
-                        shape=b.shape, chunks=(1, 2, b.shape[2]), dtype=np.float32)[...] = b
+        run_array(g, "brightness", "counts", ["pair", "frame", "particle"], "signal of each particle",
+                  shape=b.shape, chunks=(1, 2, b.shape[2]), dtype=np.float32)[...] = b
         t0 = self._pair_times_s() if t0_s is None else np.asarray(t0_s, dtype=np.float64)
         if t0.shape != (p.shape[0],):
             raise ValueError(f"t0_s must hold one time per pair ({p.shape[0]}), got shape {t0.shape}")
-        described_array(g, "t0_s", "s", ["pair"], "time of each pair's first pulse on the flow's clock",
-                        shape=t0.shape, chunks=t0.shape, dtype=np.float64)[...] = t0
+        run_array(g, "t0_s", "s", ["pair"], "time of each pair's first pulse on the flow's clock",
+                  shape=t0.shape, chunks=t0.shape, dtype=np.float64)[...] = t0
 
     def _pair_times_s(self) -> np.ndarray:
         t = pair_times_s(self.n_pairs, self.timing)

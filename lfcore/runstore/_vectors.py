@@ -7,9 +7,13 @@ from typing import Any
 import numpy as np
 import zarr
 
-from lfcore.runstore._common import Part, RunStoreError
+from lfcore.runstore._common import Part, RunStoreError, run_array
 from lfcore.runstore._coords import COORDINATES, add_coordinates
-from lfcore.zarrstore import described_array
+
+#: The (pairs, z, y, x) arrays of ``vectors/``, with their data types.
+VECTOR_FIELDS = {"u": np.float32, "v": np.float32, "w": np.float32, "flags": np.uint8, "peak_ratio": np.float32}
+#: The grid's 1-D world coordinates (mm) as lfpiv has always kept them.
+GRID_ARRAYS = ("x_mm", "y_mm", "z_mm")
 
 
 class Vectors(Part):
@@ -51,21 +55,21 @@ class Vectors(Part):
         axes = {"x": np.asarray(x_mm, dtype=np.float64), "y": np.asarray(y_mm, dtype=np.float64),
                 "z": np.asarray(z_mm, dtype=np.float64)}
         for name, c in axes.items():  # the grid as lfpiv has always kept it
-            described_array(g, f"{name}_mm", "mm", [name], f"world {name} of the window centres", shape=c.shape,
-                            dtype=np.float64)[...] = c
+            run_array(g, f"{name}_mm", "mm", [name], f"world {name} of the window centres", shape=c.shape,
+                      dtype=np.float64)[...] = c
         add_coordinates(g, axes, n_pairs=self.n_pairs, timing=self.timing, of="the window centres")
         shape = (self.n_pairs, len(axes["z"]), len(axes["y"]), len(axes["x"]))
         chunks = (1, *shape[1:])
         dims = ["pair", "z", "y", "x"]
-        fields = [described_array(g, name, "m/s", dims, f"velocity along world {what}; NaN where not measured",
-                                  shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
+        fields = [run_array(g, name, "m/s", dims, f"velocity along world {what}; NaN where not measured",
+                            shape=shape, chunks=chunks, dtype=np.float32, fill_value=np.nan)
                   for name, what in (("u", "x"), ("v", "y"), ("w", "z"))]
-        fields.append(described_array(g, "flags", "1", dims, "vector quality flags (bits)", shape=shape,
-                                      chunks=chunks, dtype=np.uint8, fill_value=0))
+        fields.append(run_array(g, "flags", "1", dims, "vector quality flags (bits)", shape=shape,
+                                chunks=chunks, dtype=np.uint8, fill_value=0))
         fields[-1].attrs.update({"flag_masks": [1, 2], "flag_meanings": "outlier replaced"})
-        fields.append(described_array(g, "peak_ratio", "1", dims, "highest over second-highest correlation peak "
-                                      "of the last pass", shape=shape, chunks=chunks, dtype=np.float32,
-                                      fill_value=np.nan))
+        fields.append(run_array(g, "peak_ratio", "1", dims, "highest over second-highest correlation peak "
+                                "of the last pass", shape=shape, chunks=chunks, dtype=np.float32,
+                                fill_value=np.nan))
         for a in fields:
             a.attrs["coordinates"] = COORDINATES
 
@@ -81,7 +85,7 @@ class Vectors(Part):
         if key not in self.group:
             raise RunStoreError(f"{self.path} has no {key}/ group; create it first")
         g = self.group[key]
-        return {n: g[n] for n in ("u", "v", "w", "flags", "peak_ratio")}
+        return {n: g[n] for n in VECTOR_FIELDS}
 
     def write_vectors(self, pair: int, velocity_m_s: np.ndarray, flags: np.ndarray, peak_ratio: np.ndarray, *,
                       record: bool = True, arrays: dict[str, zarr.Array] | None = None) -> None:
@@ -135,8 +139,8 @@ class Vectors(Part):
     def correlated_pairs(self) -> list[int]:
         return list(self.group["vectors"].attrs["correlated_pairs"]) if self.has_vectors else []
 
-    def vectors(self) -> dict[str, Any]:
-        """``vectors/`` as NumPy arrays: u, v, w, flags, peak_ratio (pairs, z, y, x); x_mm, y_mm, z_mm; attrs.
+    def vectors_group(self) -> zarr.Group:
+        """The ``vectors/`` group.
 
         Raises
         ------
@@ -145,7 +149,17 @@ class Vectors(Part):
         """
         if not self.has_vectors:
             raise RunStoreError(f"{self.path} has no vectors; run 'lfpiv correlate {self.path}' first")
-        g = self.group["vectors"]
-        out: dict[str, Any] = {n: g[n][...] for n in ("u", "v", "w", "flags", "peak_ratio", "x_mm", "y_mm", "z_mm")}
+        return self.group["vectors"]
+
+    def vectors(self) -> dict[str, Any]:
+        """``vectors/`` as NumPy arrays: u, v, w, flags, peak_ratio (pairs, z, y, x); x_mm, y_mm, z_mm; attrs.
+
+        Raises
+        ------
+        RunStoreError
+            If the run has no vectors.
+        """
+        g = self.vectors_group()
+        out: dict[str, Any] = {n: g[n][...] for n in (*VECTOR_FIELDS, *GRID_ARRAYS)}
         out["attrs"] = dict(g.attrs)
         return out

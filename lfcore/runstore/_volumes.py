@@ -8,10 +8,12 @@ from typing import Any
 import numpy as np
 import zarr
 
-from lfcore.runstore._common import Part, RunStoreError
+from lfcore.runstore._common import Part, RunStoreError, run_array
 from lfcore.runstore._coords import COORDINATES, add_coordinates
 from lfcore.volume import VolumeGrid
-from lfcore.zarrstore import described_array
+
+#: The data type of ``volumes/data``.
+VOLUME_DTYPE = np.float32
 
 
 class Volumes(Part):
@@ -39,9 +41,9 @@ class Volumes(Part):
         add_coordinates(g, {a: grid.axis_mm(a) for a in "xyz"}, n_pairs=self.n_pairs, timing=self.timing,
                         of="the voxel centres")
         nz, ny, nx = grid.shape
-        data = described_array(g, "data", "intensity", ["pair", "frame", "z", "y", "x"], "voxel intensity",
-                               shape=(self.n_pairs, 2, nz, ny, nx), dtype=np.float32, fill_value=0.0,
-                               chunks=(1, 1, min(nz, 16), min(ny, 256), min(nx, 256)))
+        data = run_array(g, "data", "intensity", ["pair", "frame", "z", "y", "x"], "voxel intensity",
+                         shape=(self.n_pairs, 2, nz, ny, nx), dtype=VOLUME_DTYPE, fill_value=0.0,
+                         chunks=(1, 1, min(nz, 16), min(ny, 256), min(nx, 256)))
         data.attrs["coordinates"] = COORDINATES
         return data
 
@@ -76,10 +78,13 @@ class Volumes(Part):
         (or it was made before lfpiv recorded one)."""
         return self.group["volumes"].attrs.get("volumes_id") if self.has_volumes else None
 
+    #: What a run without volumes says (formatted with ``path``).
+    NO_VOLUMES = "{path} has no reconstructed volumes; run 'lfpiv reconstruct {path}' first"
+
     def volumes(self) -> zarr.Array:
         """The (pairs, 2, z, y, x) float32 ``volumes/data`` array."""
         if not self.has_volumes:
-            raise RunStoreError(f"{self.path} has no reconstructed volumes; run 'lfpiv reconstruct {self.path}' first")
+            raise RunStoreError(self.NO_VOLUMES.format(path=self.path))
         return self.group["volumes/data"]
 
     def volume_grid(self) -> VolumeGrid:
@@ -89,8 +94,7 @@ class Volumes(Part):
     def grid_of(self, group: zarr.Group | None) -> VolumeGrid:
         """The voxel grid of a volumes group (``volumes/`` or its pending replacement)."""
         if group is None or "data" not in group:
-            raise RunStoreError(f"{self.path} has no reconstructed volumes; run 'lfpiv reconstruct {self.path}' "
-                                "first")
+            raise RunStoreError(self.NO_VOLUMES.format(path=self.path))
         a = group.attrs
         shape = tuple(int(n) for n in group["data"].shape[2:])
         return VolumeGrid(shape=shape, voxel_mm=tuple(a["voxel_mm"]), origin_mm=tuple(a["origin_mm"]))
