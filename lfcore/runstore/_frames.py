@@ -153,7 +153,11 @@ class Frames(Part):
         return dict(self.group.attrs["timing"])
 
     def frames(self, camera: str) -> zarr.Array:
-        """The (pairs, 2, rows, columns) uint16 frames array of one camera."""
+        """The (pairs, 2, rows, columns) uint16 frames array of one camera.
+
+        Indexing it reads a chunk that is not there as zeros, as zarr does; :meth:`read_frame`
+        reads a recorded frame and raises where its chunk is missing or damaged.
+        """
         return self.group[f"{camera}/frames"]
 
     def frame_ids(self, camera: str) -> np.ndarray:

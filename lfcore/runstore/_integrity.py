@@ -142,7 +142,7 @@ class Integrity(Part):
             One line: the run has no volumes, the volume is not reconstructed, or one of its
             chunks is missing or damaged (naming the array, pair, frame and chunk).
         """
-        a = self._checked("volumes/data", VOLUME_DTYPE, missing=self.NO_VOLUMES.format(path=self.path))
+        a = self._checked("volumes/data", VOLUME_DTYPE, missing=self._NO_VOLUMES.format(path=self.path))
         n = a.shape[0]
         if not (0 <= pair < n and frame in (0, 1)):
             raise RunStoreError(self._line(f"volumes/data has pairs 0-{n - 1}, frames 0 (A) and 1 (B): pair {pair} "
@@ -164,7 +164,7 @@ class Integrity(Part):
             One line: the run has no vectors, the pair is not correlated, or a chunk of it is
             missing or damaged (naming the array, pair and chunk).
         """
-        self.vectors_group()  # says so when there are none
+        self._vectors_group()  # says so when there are none
         if pair not in self.correlated_pairs():
             raise RunStoreError(self._line(f"vectors/ has no vectors of pair {pair}: it is not correlated; run "
                                            f"'lfpiv correlate {self.path}'"))

@@ -139,7 +139,7 @@ class Vectors(Part):
     def correlated_pairs(self) -> list[int]:
         return list(self.group["vectors"].attrs["correlated_pairs"]) if self.has_vectors else []
 
-    def vectors_group(self) -> zarr.Group:
+    def _vectors_group(self) -> zarr.Group:
         """The ``vectors/`` group.
 
         Raises
@@ -152,14 +152,15 @@ class Vectors(Part):
         return self.group["vectors"]
 
     def vectors(self) -> dict[str, Any]:
-        """``vectors/`` as NumPy arrays: u, v, w, flags, peak_ratio (pairs, z, y, x); x_mm, y_mm, z_mm; attrs.
+        """``vectors/`` as NumPy arrays: u, v, w, flags, peak_ratio (pairs, z, y, x); x_mm, y_mm, z_mm; attrs
+        (:meth:`read_vectors` reads one pair checking its chunks).
 
         Raises
         ------
         RunStoreError
             If the run has no vectors.
         """
-        g = self.vectors_group()
+        g = self._vectors_group()
         out: dict[str, Any] = {n: g[n][...] for n in (*VECTOR_FIELDS, *GRID_ARRAYS)}
         out["attrs"] = dict(g.attrs)
         return out

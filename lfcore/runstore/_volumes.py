@@ -78,13 +78,14 @@ class Volumes(Part):
         (or it was made before lfpiv recorded one)."""
         return self.group["volumes"].attrs.get("volumes_id") if self.has_volumes else None
 
-    #: What a run without volumes says (formatted with ``path``).
-    NO_VOLUMES = "{path} has no reconstructed volumes; run 'lfpiv reconstruct {path}' first"
+    # what a run without volumes says (formatted with path)
+    _NO_VOLUMES = "{path} has no reconstructed volumes; run 'lfpiv reconstruct {path}' first"
 
     def volumes(self) -> zarr.Array:
-        """The (pairs, 2, z, y, x) float32 ``volumes/data`` array."""
+        """The (pairs, 2, z, y, x) float32 ``volumes/data`` array (:meth:`read_volume` reads one
+        volume checking its chunks)."""
         if not self.has_volumes:
-            raise RunStoreError(self.NO_VOLUMES.format(path=self.path))
+            raise RunStoreError(self._NO_VOLUMES.format(path=self.path))
         return self.group["volumes/data"]
 
     def volume_grid(self) -> VolumeGrid:
@@ -94,7 +95,7 @@ class Volumes(Part):
     def grid_of(self, group: zarr.Group | None) -> VolumeGrid:
         """The voxel grid of a volumes group (``volumes/`` or its pending replacement)."""
         if group is None or "data" not in group:
-            raise RunStoreError(self.NO_VOLUMES.format(path=self.path))
+            raise RunStoreError(self._NO_VOLUMES.format(path=self.path))
         a = group.attrs
         shape = tuple(int(n) for n in group["data"].shape[2:])
         return VolumeGrid(shape=shape, voxel_mm=tuple(a["voxel_mm"]), origin_mm=tuple(a["origin_mm"]))

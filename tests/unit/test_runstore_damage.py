@@ -234,3 +234,9 @@ def test_stores_made_before_checksums_still_read_and_verify(run):
     assert s.verify() == [f"{run}: cam0/frames pair 2 frame A: chunk c/2/0/0/0 is missing (or, in a store written "
                           "before lfpiv kept checksums, one that held only its fill value); restore it from a copy of "
                           "the run"]
+    (run / CHUNK).write_bytes(b"\x02" * 1000)  # without a checksum, only bytes that do not decode show
+    line = _one(s.verify(), run)
+    assert line.startswith(f"{run}: cam0/frames pair 2 frame A: chunk c/2/0/0/0 cannot be decoded (")
+    with pytest.raises(RunStoreError) as err:
+        s.read_frame("cam0", 2, 0)
+    assert str(err.value) == line
