@@ -6,14 +6,16 @@ Like :mod:`lfcore.runstore`, this owns an on-disk format, so it is allowed to op
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any, ClassVar
 
 import zarr
+from zarr.codecs import Crc32cCodec, ZstdCodec
 
 from lfcore.rig import Rig, RigError
 
-__all__ = ["RigStore", "array_attrs", "described_array"]
+__all__ = ["CHECKSUM", "DEFAULT_COMPRESSOR", "RigStore", "array_attrs", "damaged_metadata", "described_array"]
 
 
 def array_attrs(units: str, axes: list[str], description: str) -> dict[str, Any]:
@@ -21,8 +23,15 @@ def array_attrs(units: str, axes: list[str], description: str) -> dict[str, Any]
     return {"units": units, "axes": axes, "description": description}
 
 
-def described_array(group: zarr.Group, name: str, units: str, axes: list[str], description: str,
-                    **create: Any) -> zarr.Array:
+#: zarr v3's ``crc32c`` codec: the CRC-32C of every encoded chunk appended to it, checked by
+#: every read, which fails on a chunk damaged since it was written.
+CHECKSUM = Crc32cCodec()
+#: zarr's own default compressor for zarr v3 arrays (Zstandard, level 0), where a checksum is added.
+DEFAULT_COMPRESSOR = ZstdCodec(level=0)
+
+
+def described_array(group: zarr.Group, name: str, units: str, axes: list[str], description: str, *,
+                    checksum: bool = False, **create: Any) -> zarr.Array:
     """Create array ``name`` in ``group`` with its axes as zarr v3 ``dimension_names`` (which
     xarray reads) and the :func:`array_attrs` attributes.
 
@@ -32,12 +41,24 @@ def described_array(group: zarr.Group, name: str, units: str, axes: list[str], d
         The group to create it in.
     name, units, axes, description
         Its name, units, one name per axis, and what it holds.
+    checksum
+        Append :data:`CHECKSUM` to the codecs (after the compressors given, or zarr's default
+        :data:`DEFAULT_COMPRESSOR`), so that a damaged chunk fails to read instead of decoding.
     **create
         Passed to :meth:`zarr.Group.create_array` (shape, chunks, dtype, fill_value, ...).
     """
+    if checksum:
+        given = create.get("compressors", DEFAULT_COMPRESSOR)
+        create["compressors"] = (*(given if isinstance(given, (list, tuple)) else (given,)), CHECKSUM)
     a = group.create_array(name, dimension_names=list(axes), **create)
     a.attrs.update(array_attrs(units, list(axes), description))
     return a
+
+
+def damaged_metadata(where: str, exc: json.JSONDecodeError) -> str:
+    """How a message names a zarr.json that is not valid JSON (cut short or overwritten):
+    ``where`` is the folder it is in."""
+    return f"{where}/zarr.json is damaged (not valid JSON: {exc.msg} at character {exc.pos})"
 
 
 class RigStore:
@@ -73,6 +94,9 @@ class RigStore:
             raise cls.Error(f"{path} does not exist; {cls.HINT}")
         try:
             root = zarr.open_group(str(path), mode=mode, zarr_format=3)
+        except json.JSONDecodeError as exc:  # a zarr.json cut short or overwritten
+            raise cls.Error(f"{damaged_metadata(str(path), exc)}, so the {cls.KIND} cannot be opened; restore that "
+                            "file from a copy") from None
         except Exception as exc:  # zarr raises several types for "not a group"
             raise cls.Error(f"{path} is not an {cls.KIND} (no zarr v3 group there: {type(exc).__name__})") from None
         fmt = root.attrs.get("format")
@@ -81,7 +105,11 @@ class RigStore:
             if other is not None:
                 raise cls.Error(f"{path} is an {other}, not an {cls.KIND}; {cls.HINT}")
             raise cls.Error(f"{path} is a zarr group but not an {cls.KIND} (format {fmt!r})")
-        if root.attrs.get("format_version", 0) > cls.FORMAT_VERSION:
+        version = root.attrs.get("format_version", 0)
+        if isinstance(version, bool) or not isinstance(version, int):
+            raise cls.Error(f"{path}: format_version is {version!r}, not a whole number (its zarr.json was edited or "
+                            f"damaged); restore it from a copy, or set it to {cls.FORMAT_VERSION}")
+        if version > cls.FORMAT_VERSION:
             raise cls.Error(f"{path} was written by a newer lfpiv (format_version "
                             f"{root.attrs['format_version']}); upgrade lfpiv")
         return root

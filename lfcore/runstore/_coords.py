@@ -1,0 +1,65 @@
+"""Coordinate arrays of ``volumes/`` and ``vectors/``, so that plain xarray labels their axes.
+
+Each group gets ``x``, ``y`` and ``z`` (float64, mm, world coordinates of the voxel or window
+centres), whose names equal their zarr v3 ``dimension_names``, so xarray makes them index
+coordinates, and ``time`` (float64, s) along ``pair``: the time of each pair's first pulse since
+the first pair's, ``pair / timing.rate_hz`` (NaN where the run's timing has no rate). ``time``
+is not a dimension, so every (pair, ...) array names it in its CF ``coordinates`` attribute,
+which xarray's ``decode_coords`` (on by default) reads to attach it. Its units are plain ``"s"``
+(not ``"seconds since ..."``), so xarray leaves it float seconds rather than decoding dates.
+
+The run clock, not the truth's: ``truth/t0_s`` of a synthetic run is the flow's clock, which
+repeats when a simulated lab shows a pool of pairs again; ``time`` is when the pairs were taken.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import zarr
+
+from lfcore.runstore._common import run_array
+
+#: The coordinate arrays (float64) of ``volumes/`` and ``vectors/``.
+COORDINATE_ARRAYS = ("x", "y", "z", "time")
+#: The CF ``coordinates`` attribute of every (pair, ...) array of ``volumes/`` and ``vectors/``.
+COORDINATES = "time"
+
+
+def pair_times_s(n_pairs: int, timing: Mapping[str, Any]) -> np.ndarray | None:
+    """(n_pairs,) time of each pair's first pulse since the first pair's, s: pair / ``rate_hz``
+    of the run's ``timing``; None if it has no rate."""
+    rate = timing.get("rate_hz")
+    return np.arange(n_pairs) / float(rate) if rate else None
+
+
+def add_coordinates(group: zarr.Group, axes_mm: Mapping[str, np.ndarray], *, n_pairs: int,
+                    timing: Mapping[str, Any], of: str) -> None:
+    """Create the ``x``, ``y``, ``z`` and ``time`` coordinate arrays in ``group``.
+
+    Parameters
+    ----------
+    group
+        ``volumes/``, ``vectors/`` or their pending replacement, being made.
+    axes_mm
+        1-D world coordinates (mm) along ``"x"``, ``"y"`` and ``"z"``.
+    n_pairs
+        Pairs of the run (the length of ``time``).
+    timing
+        The run's timing attributes (``rate_hz``).
+    of
+        What the coordinates are of, for their descriptions ("the voxel centres").
+    """
+    for name in ("x", "y", "z"):
+        c = np.asarray(axes_mm[name], dtype=np.float64)
+        a = run_array(group, name, "mm", [name], f"world {name} of {of}", shape=c.shape, dtype=np.float64)
+        a[...] = c
+        a.attrs["axis"] = name.upper()
+    t = pair_times_s(n_pairs, timing)
+    a = run_array(group, "time", "s", ["pair"], "time of each pair's first pulse since the first pair's "
+                  "(pair / timing.rate_hz; NaN: the run's timing has no rate)", shape=(n_pairs,),
+                  dtype=np.float64, fill_value=np.nan)
+    a[...] = np.full(n_pairs, np.nan) if t is None else t  # stored either way: a missing chunk is damage
+    a.attrs["axis"] = "T"

@@ -1,0 +1,105 @@
+"""Reconstructed volumes: ``volumes/data`` and the voxel grid in its attributes."""
+
+from __future__ import annotations
+
+import uuid
+from typing import Any
+
+import numpy as np
+import zarr
+
+from lfcore.runstore._common import Part, RunStoreError, run_array
+from lfcore.runstore._coords import COORDINATES, add_coordinates
+from lfcore.volume import VolumeGrid
+
+#: The data type of ``volumes/data``.
+VOLUME_DTYPE = np.float32
+
+
+class Volumes(Part):
+    """The particle volumes reconstructed from the frames, two per pair."""
+
+    def create_volumes(self, grid: VolumeGrid, *, method: str, settings: dict[str, Any]) -> zarr.Array:
+        """Create (or replace) ``volumes/`` for every pair of the run, all zero.
+
+        Volumes already reconstructed are not deleted: the new ones are made in
+        ``volumes.pending/``, which :meth:`finish` makes ``volumes/`` once they are all written
+        (see :meth:`writing`).
+
+        ``volumes/data`` is float32 (pairs, 2, z, y, x) in chunks of at most 16 x 256 x 256
+        voxels; the group's attributes hold the grid (``origin_mm``, ``voxel_mm``), the method
+        and its settings, ``reconstructed_pairs``, the pairs written so far, and ``volumes_id``, a
+        name new with every ``volumes/`` made, which the vectors correlated from it record. The
+        coordinate arrays ``x``, ``y``, ``z`` (mm, voxel centres) and ``time`` (s, per pair) label
+        the axes for xarray (:mod:`lfcore.runstore._coords`).
+        """
+        g = self._begin("volumes", staged=bool(self.reconstructed_pairs()))
+        g.attrs.update({"origin_mm": list(grid.origin_mm), "voxel_mm": list(grid.voxel_mm), "method": method,
+                        "settings": settings, "reconstructed_pairs": [], "volumes_id": uuid.uuid4().hex,
+                        "description": "reconstructed particle volumes; origin_mm is the world (x, y, z) "
+                                       "of the centre of voxel [0, 0, 0]"})
+        add_coordinates(g, {a: grid.axis_mm(a) for a in "xyz"}, n_pairs=self.n_pairs, timing=self.timing,
+                        of="the voxel centres")
+        nz, ny, nx = grid.shape
+        data = run_array(g, "data", "intensity", ["pair", "frame", "z", "y", "x"], "voxel intensity",
+                         shape=(self.n_pairs, 2, nz, ny, nx), dtype=VOLUME_DTYPE, fill_value=0.0,
+                         chunks=(1, 1, min(nz, 16), min(ny, 256), min(nx, 256)))
+        data.attrs["coordinates"] = COORDINATES
+        return data
+
+    def write_volume(self, pair: int, frame: int, volume: np.ndarray, *, record: bool = True) -> None:
+        """Store one reconstructed volume (z, y, x) float32 of pair ``pair``, frame 0 (A) or 1 (B).
+
+        A pair counts as reconstructed once both of its frames are written. With ``record``
+        False only the voxels are written, not the bookkeeping: for worker processes that write
+        distinct volumes at once, while one coordinator records them (:meth:`record_volumes`),
+        since attributes are rewritten whole and concurrent writers would lose each other's.
+        """
+        self.writing("volumes")["data"][pair, frame] = volume
+        if record:
+            self.record_volumes([(pair, frame)])
+
+    def record_volumes(self, written: list[tuple[int, int]]) -> None:
+        """Add (pair, frame) volumes, already written, to ``reconstructed_pairs``."""
+        g = self.writing("volumes")
+        key = "_frames_written"
+        done = {tuple(x) for x in g.attrs.get(key, [])} | {(int(p), int(f)) for p, f in written}
+        pairs = sorted({p for p, _ in done if (p, 0) in done and (p, 1) in done})
+        g.attrs.update({key: sorted(done), "reconstructed_pairs": pairs})
+
+    @property
+    def has_volumes(self) -> bool:
+        # a group without its array is a reconstruction killed as it began: none, to make again
+        return "volumes/data" in self.group
+
+    @property
+    def volumes_id(self) -> str | None:
+        """The name of the current ``volumes/`` (new each time it is made), None if there is none
+        (or it was made before lfpiv recorded one)."""
+        return self.group["volumes"].attrs.get("volumes_id") if self.has_volumes else None
+
+    # what a run without volumes says (formatted with path)
+    _NO_VOLUMES = "{path} has no reconstructed volumes; run 'lfpiv reconstruct {path}' first"
+
+    def volumes(self) -> zarr.Array:
+        """The (pairs, 2, z, y, x) float32 ``volumes/data`` array (:meth:`read_volume` reads one
+        volume checking its chunks)."""
+        if not self.has_volumes:
+            raise RunStoreError(self._NO_VOLUMES.format(path=self.path))
+        return self.group["volumes/data"]
+
+    def volume_grid(self) -> VolumeGrid:
+        """The voxel grid of ``volumes/``."""
+        return self.grid_of(self.group["volumes"] if "volumes" in self.group else None)
+
+    def grid_of(self, group: zarr.Group | None) -> VolumeGrid:
+        """The voxel grid of a volumes group (``volumes/`` or its pending replacement)."""
+        if group is None or "data" not in group:
+            raise RunStoreError(self._NO_VOLUMES.format(path=self.path))
+        a = group.attrs
+        shape = tuple(int(n) for n in group["data"].shape[2:])
+        return VolumeGrid(shape=shape, voxel_mm=tuple(a["voxel_mm"]), origin_mm=tuple(a["origin_mm"]))
+
+    def reconstructed_pairs(self) -> list[int]:
+        """The pairs of ``volumes/`` whose two volumes are written."""
+        return list(self.group["volumes"].attrs["reconstructed_pairs"]) if self.has_volumes else []
