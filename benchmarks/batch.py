@@ -105,10 +105,10 @@ def correlation(store: RunStore, cfg: CorrelationConfig, device: str) -> None:
     correlator = Correlator(grid.shape, cfg, device=device)
     t_build = time.perf_counter() - t0
     t_read = t_corr = 0.0
-    target, volumes = _Target.of(store), store.volumes()
+    target = _Target.of(store)
     for p in pairs:
         t = time.perf_counter()
-        vols = _read_pair(volumes, p)
+        vols = _read_pair(store, p)
         t_read += time.perf_counter() - t
         t = time.perf_counter()
         _correlate_pair(correlator, target, p, vols)

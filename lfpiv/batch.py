@@ -177,8 +177,12 @@ def this_worker_device(device: str | None) -> str:
         raise ComputeDeviceError(f"Dask worker {name}: {exc}") from None
 
 
-def open_run_on_worker(path: str) -> Any:
+def open_run_on_worker(path: str, writer: str | None = None) -> Any:
     """The run store at ``path``, opened for writing by the worker process calling it.
+
+    ``writer`` is the coordinator's :attr:`lfcore.runstore.RunStore.writer_token`: the
+    coordinator holds the store's writer lock while its workers write distinct chunks, and a
+    worker on another host of a cluster shows the token to share it.
 
     Raises
     ------
@@ -190,7 +194,7 @@ def open_run_on_worker(path: str) -> Any:
     from lfcore.runstore import RunStore, RunStoreError
 
     try:
-        return RunStore.open(path, mode="r+")
+        return RunStore.open(path, mode="r+", shared_with=writer)
     except RunStoreError as exc:
         raise RunStoreError(f"Dask worker {get_worker().name}: {exc} (every worker must see the run store at the "
                             "same absolute path: a shared file system)") from None

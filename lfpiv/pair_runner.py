@@ -21,7 +21,7 @@ import logging
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from lfcore.runstore import RunStore
+from lfcore.runstore import RunStore, RunStoreError
 from lfpiv import replacement
 from lfpiv.errors import UsageError
 
@@ -89,11 +89,11 @@ def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable
                     map_pairs(client, task, job, pairs, on_done=on_done, desc=desc, progress=progress)
                 else:
                     here(pairs)
-        except UsageError as exc:
+        except (UsageError, RunStoreError) as exc:  # RunStoreError: damaged input, named
             aside = replacement.kept_aside(store, name)
             before = "" if aside else kept()
             if aside or before:
-                raise UsageError(f"{exc}{aside or '; ' + before}") from None
+                raise type(exc)(f"{exc}{aside or '; ' + before}") from None
             raise
         except OSError as exc:
             if exc.filename is None:  # a full disk under zarr's writes: say where it was writing

@@ -83,7 +83,7 @@ def plot_reconstruction(store: RunStore, evals, out: str | Path) -> Path:
     out = Path(out)
     e = evals[0]
     grid = store.volume_grid()
-    vol = store.volumes()[e.pair, e.frame]
+    vol = store.read_volume(e.pair, e.frame)
     truth = store.truth()
     e0 = metrics.truth_volume(grid, truth["particles"][e.pair, e.frame], truth["brightness"][e.pair, e.frame])
     z = grid.axis_mm("z")

@@ -10,6 +10,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Print a run's cameras, pairs, flow and state; given a calibration store, "
                        "what it holds (as 'lfpiv calibrate report').")
     i.add_argument("run", metavar="STORE", help="run store or calibration store (a .zarr directory)")
+    i.add_argument("--check", action="store_true",
+                   help="also check every chunk of a run (as 'lfpiv check'); exit code 1 if anything is damaged")
     i.set_defaults(func=run)
 
 
@@ -18,4 +20,8 @@ def run(args: argparse.Namespace) -> int:
 
     for line in describe(args.run):
         print(line)
+    if args.check:
+        from lfpiv.commands.check import run as check
+
+        return check(args)
     return 0

@@ -92,7 +92,8 @@ class Fields:
         return tuple(np.asarray(c, dtype=np.float64) * 1e-3 for c in (self.x_mm, self.y_mm, self.z_mm))  # type: ignore[return-value]
 
 
-def fields_of(vectors: dict, pairs: list[int], rate_hz: float | None, *, start: str | None = None) -> Fields:
+def fields_of(vectors: dict, pairs: list[int], rate_hz: float | None, *, start: str | None = None,
+              rows: list[int] | None = None) -> Fields:
     """The fields of the pairs ``pairs`` of ``RunStore.vectors()``, with vorticity, divergence and Q.
 
     Parameters
@@ -106,20 +107,24 @@ def fields_of(vectors: dict, pairs: list[int], rate_hz: float | None, *, start: 
         Pairs per second, for each pair's time (pair / rate); None: the pair index.
     start
         When the run started (ISO 8601), see :class:`Fields`.
+    rows
+        Where the pairs lie along the arrays' first axis, when the arrays hold only them (the
+        pairs read one by one); None: at their indices.
 
     Returns
     -------
     Fields
     """
     x, y, z = vectors["x_mm"], vectors["y_mm"], vectors["z_mm"]
-    vel = np.stack([vectors[c][pairs] for c in "uvw"], axis=-1).astype(np.float64)
+    at = pairs if rows is None else rows
+    vel = np.stack([vectors[c][at] for c in "uvw"], axis=-1).astype(np.float64)
     vort = np.stack([vorticity(v, x, y, z) for v in vel]) if pairs else np.zeros_like(vel)
     div = np.stack([divergence(v, x, y, z) for v in vel]) if pairs else vel[..., 0]
     q = np.stack([q_criterion(v, x, y, z) for v in vel]) if pairs else vel[..., 0]
     t = np.asarray(pairs, dtype=np.float64) / rate_hz if rate_hz else np.asarray(pairs, dtype=np.float64)
     return Fields(pairs=list(pairs), time_s=t, x_mm=x, y_mm=y, z_mm=z, velocity=vel, vorticity=vort, divergence=div,
-                  q_criterion=q, flags=np.asarray(vectors["flags"][pairs], dtype=np.uint8),
-                  peak_ratio=vectors["peak_ratio"][pairs], attrs=dict(vectors["attrs"]), start=start)
+                  q_criterion=q, flags=np.asarray(vectors["flags"][at], dtype=np.uint8),
+                  peak_ratio=vectors["peak_ratio"][at], attrs=dict(vectors["attrs"]), start=start)
 
 
 @dataclass(frozen=True)

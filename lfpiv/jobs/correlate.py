@@ -37,6 +37,8 @@ class CorrelateJob:
     config: CorrelationConfig
     device: str | None
     token: str
+    #: the coordinator's writer token, which lets a cluster's workers write while it holds the lock
+    writer: str | None = None
     #: the group the vectors go to: ``vectors``, or ``vectors.pending`` while they replace others
     into: str = "vectors"
 
@@ -91,9 +93,10 @@ def _correlator(shape: tuple[int, int, int], cfg: CorrelationConfig, device: str
         raise UsageError(str(exc)) from None
 
 
-def _read_pair(volumes: Any, pair: int) -> tuple[np.ndarray, np.ndarray]:
-    """Frames A and B of ``pair`` from the (pairs, 2, z, y, x) ``volumes/data`` array."""
-    return volumes[pair, 0], volumes[pair, 1]
+def _read_pair(store: RunStore, pair: int) -> tuple[np.ndarray, np.ndarray]:
+    """The volumes of frames A and B of ``pair``, every chunk stored and intact (a damaged or
+    missing one is a one-line error, never zeros that would make vectors)."""
+    return store.read_volume(pair, 0), store.read_volume(pair, 1)
 
 
 @dataclass(frozen=True)
@@ -124,18 +127,17 @@ def correlate_pair_task(job: CorrelateJob, pair: int) -> PairVectors:
     """Worker task: correlate ``pair`` of the run into its ``vectors/``."""
     from lfpiv.batch import open_run_on_worker, this_worker_device, worker_state
 
-    def build() -> tuple[_Target, Any, Correlator]:
-        # the arrays are opened once: the group's attributes are rewritten by the coordinator as
-        # pairs finish, and re-reading them for every write could meet a half-replaced file on a
-        # network file system
-        store = open_run_on_worker(job.path)
+    def build() -> tuple[_Target, RunStore, Correlator]:
+        # the vector arrays are opened once: the group's attributes are rewritten by the
+        # coordinator as pairs finish, and re-reading them for every write could meet a
+        # half-replaced file on a network file system (volumes/ stays as it is meanwhile)
+        store = open_run_on_worker(job.path, job.writer)
         if job.into != "vectors":
             store.resume("vectors")
-        return (_Target.of(store), store.volumes(),
-                _correlator(job.shape, job.config, this_worker_device(job.device)))
+        return (_Target.of(store), store, _correlator(job.shape, job.config, this_worker_device(job.device)))
 
-    target, volumes, correlator = worker_state(job.token, build)
-    return _correlate_pair(correlator, target, pair, _read_pair(volumes, pair))
+    target, store, correlator = worker_state(job.token, build)
+    return _correlate_pair(correlator, target, pair, _read_pair(store, pair))
 
 
 def fitting_windows(shape: tuple[int, int, int]) -> tuple[tuple[int, int, int], ...]:
@@ -262,14 +264,15 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
         with tqdm(total=len(todo) * len(cfg.passes), unit="pass", disable=not progress, desc="correlating") as bar:
             # the next pair's volumes are read while this one is correlated
             target = _Target.of(store)
-            for p, vols in prefetched(todo, partial(_read_pair, store.volumes())):
+            for p, vols in prefetched(todo, partial(_read_pair, store)):
                 written(p, _correlate_pair(correlator, target, p, vols, progress=bar.update))
 
     def remote(into: str) -> tuple[Any, CorrelateJob]:
         from lfpiv.batch import new_token
 
         return correlate_pair_task, CorrelateJob(path=str(Path(store.path).resolve()), shape=grid.shape, config=cfg,
-                                                 device=device, token=new_token(), into=into)
+                                                 device=device, token=new_token(), writer=store.writer_token,
+                                                 into=into)
 
     t0 = time.perf_counter()
     run_pairs(store, "vectors", pairs, matches=same, differences=differences,

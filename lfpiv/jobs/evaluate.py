@@ -53,7 +53,7 @@ def evaluate_run(store: RunStore, pairs: slice | None = None, threshold: float =
     if truth is None:
         raise UsageError(f"{store.path} is a recorded run with no truth; evaluate needs a synthetic run")
     try:
-        vols = store.volumes()
+        store.volumes()
     except RunStoreError as exc:
         raise UsageError(str(exc)) from None
     done = store.reconstructed_pairs()
@@ -66,7 +66,8 @@ def evaluate_run(store: RunStore, pairs: slice | None = None, threshold: float =
     out = []
     for p in chosen:
         for f in (0, 1):
-            e = metrics.evaluate_volume(vols[p, f], grid, truth["particles"][p, f], truth["brightness"][p, f],
+            vol = store.read_volume(p, f)  # a damaged or missing chunk is an error, not zeros
+            e = metrics.evaluate_volume(vol, grid, truth["particles"][p, f], truth["brightness"][p, f],
                                         centre_mm=seeded.centre_mm, size_mm=seeded.size_mm, threshold=threshold,
                                         match_voxels=match_voxels)
             out.append(FrameEvaluation(**vars(e), pair=p, frame=f))
@@ -147,8 +148,10 @@ def evaluate_vector_fields(store: RunStore, pairs: slice | None = None, *,
         return f"none of the selected pairs is correlated (correlated: {done})"
     a = vec["attrs"]
     x, y, z = vec["x_mm"], vec["y_mm"], vec["z_mm"]
-    vel = np.stack([vec[c][pairs] for c in "uvw"], axis=-1).astype(np.float64)  # (pairs, z, y, x, 3)
-    flags = vec["flags"][pairs]
+    held = [store.read_vectors(p) for p in pairs]  # a damaged or missing chunk is an error, not zeros
+    # (pairs, z, y, x, 3)
+    vel = np.stack([np.stack([h[c] for c in "uvw"], axis=-1) for h in held]).astype(np.float64)
+    flags = np.stack([h["flags"] for h in held])
     dt = float(a["dt_s"])
     truth = store.truth()
     errors = vox = None

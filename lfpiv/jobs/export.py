@@ -25,6 +25,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
+
 from lfcore.runstore import RunStore, RunStoreError
 from lfpiv.errors import UsageError
 from lfpiv.formats import FormatError
@@ -119,7 +121,11 @@ def export_run(store: RunStore, fmt: str, out: str | Path, *, overwrite: bool = 
                          "export; pass --overwrite to replace them, or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     try:
-        fields = fields_of(vectors, pairs, store.timing.get("rate_hz"), start=store.attrs.get("created"))
+        # every pair read from its chunks, checked: a damaged or missing one is an error, not zeros
+        held = [store.read_vectors(p) for p in pairs]
+        checked = {**vectors, **{k: np.stack([h[k] for h in held]) for k in held[0]}}
+        fields = fields_of(checked, pairs, store.timing.get("rate_hz"), start=store.attrs.get("created"),
+                           rows=list(range(len(pairs))))
         return _write(fmt, out, fields, str(store.path))
     except FormatError as exc:
         raise UsageError(str(exc)) from None

@@ -92,6 +92,10 @@ def describe(path: str | Path) -> list[str]:
         lines.append(("aborted", str(a["abort_reason"])))
     drops = store.drops()
     lines.append(("drops", "none" if not drops else f"{len(drops)} frame(s) lost, e.g. {drops[0]['reason']}"))
+    w = store.writer
+    if w:
+        lines.append(("writer", f"being written by pid {w.get('pid')} on {w.get('host')} ({w.get('command')!r}, since "
+                                f"{w.get('since')})"))
     if store.has_volumes:
         va = store.group["volumes"].attrs
         g = store.volume_grid()

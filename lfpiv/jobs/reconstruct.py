@@ -57,6 +57,8 @@ class ReconJob:
     settings: ReconSettings
     device: str | None
     token: str
+    #: the coordinator's writer token, which lets a cluster's workers write while it holds the lock
+    writer: str | None = None
     #: the group the volumes go to: ``volumes``, or ``volumes.pending`` while they replace others
     into: str = "volumes"
 
@@ -80,7 +82,7 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, de
 def _reconstruct_frame(frames: FrameReconstructor, store: RunStore, names: Sequence[str], pair: int, frame: int,
                        progress: Any = None) -> ReconResult:
     """Reconstruct one frame of a pair from the run's images."""
-    images = [store.frames(n)[pair, frame] for n in names]
+    images = [store.read_frame(n, pair, frame) for n in names]  # a damaged or missing frame is an error
     try:
         return frames.reconstruct(images, progress=progress)
     except MemoryBudgetError as exc:
@@ -99,7 +101,7 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
     from lfpiv.batch import open_run_on_worker, this_worker_device, worker_state
 
     def build() -> tuple[RunStore, Any, FrameReconstructor]:
-        store = open_run_on_worker(job.path)
+        store = open_run_on_worker(job.path, job.writer)
         if job.into != "volumes":
             store.resume("volumes")
         cams = [job.rig.camera_named(n) for n in job.cameras]
@@ -200,7 +202,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
 
         return reconstruct_pair_task, ReconJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names),
                                                grid=grid, settings=settings, device=device, token=new_token(),
-                                               into=into)
+                                               writer=store.writer_token, into=into)
 
     run_pairs(store, "volumes", chosen, matches=lambda g: _made_with(store, g, grid, meta), differences=differences,
               create=lambda: store.create_volumes(grid, method=settings.method, settings=meta), skip_done=skip_done,
