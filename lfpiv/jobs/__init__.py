@@ -5,5 +5,5 @@
 package that owns it (``lfcore``, ``calibration``, ``acquisition``, ``realtime``).
 """
 
-__all__ = ["acquire", "calibrate", "check", "correlate", "demo", "devices", "evaluate", "export", "import_", "info", "monitor",
-           "reconstruct", "synth"]
+__all__ = ["acquire", "calibrate", "check", "correlate", "demo", "devices", "evaluate", "export", "import_", "info",
+           "monitor", "reconstruct", "synth"]
