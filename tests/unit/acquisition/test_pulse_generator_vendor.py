@@ -29,7 +29,8 @@ def plan(tiny_rig) -> TimingPlan:
 
 
 def _gen(emu, **kw) -> QuantumComposers9520:
-    g = QuantumComposers9520(emu.port, timeout_s=0.2, reconnect_s=kw.pop("reconnect_s", 1.0), **kw)
+    # a reply may wait for a busy CPU (the emulator is a thread of this process): 1 s, not the default 0.5 s
+    g = QuantumComposers9520(emu.port, timeout_s=1.0, reconnect_s=kw.pop("reconnect_s", 1.0), **kw)
     g.open()
     return g
 
