@@ -70,18 +70,18 @@ elif [ "$stage" = live ]; then
     step pytest 240 python3 -m pytest tests -q -k "cuda or functional" -p no:cacheprovider \
         --continue-on-collection-errors --timeout 150 --junitxml "$out/pytest.xml"
 elif [ "$stage" = short ]; then
-    step pytest-correlate-cuda 80 python3 -m pytest tests/unit/test_correlate.py -q -k cuda -p no:cacheprovider \
+    step pytest-correlate-cuda 80 python3 -m pytest tests/unit/lfcore/test_correlate.py -q -k cuda -p no:cacheprovider \
         --timeout 60
     step correlate 70 python3 benchmarks/correlate.py --case gpu --profile
     step recon-M-mlos 140 python3 benchmarks/recon.py --case M --device cuda --no-drt --no-mart --iterations 50
     step weights-Mc 80 python3 benchmarks/recon.py --case Mc --ppm 1 --device cuda --profile-weights
 elif [ "$stage" = corr ]; then
-    step pytest-correlate 200 python3 -m pytest tests/unit/test_correlate.py tests/functional/test_correlate_cli.py -q \
+    step pytest-correlate 200 python3 -m pytest tests/unit/lfcore/test_correlate.py tests/functional/test_correlate_cli.py -q \
         -p no:cacheprovider --timeout 100
     step correlate 200 python3 benchmarks/correlate.py --case gpu --profile
     step correlate-r4 100 python3 benchmarks/correlate.py --case gpu --variant direct-first50 --search-radius 4
 elif [ "$stage" = monitor ]; then
-    step pytest-elim-live-cuda 120 python3 -m pytest tests/unit/test_weight_build.py tests/unit/realtime -q -k cuda \
+    step pytest-elim-live-cuda 120 python3 -m pytest tests/unit/lfcore/test_weight_build.py tests/unit/realtime -q -k cuda \
         -p no:cacheprovider --timeout 100
     step live-M-mlos 110 python3 benchmarks/live.py --case M --device cuda --seconds 15 --method mlos-mart \
         --distinct 8 --warmup-limit 60
@@ -96,7 +96,7 @@ elif [ "$stage" = quality ]; then
     step recon-S2-400 60 python3 benchmarks/recon.py --case S2 --device cuda --iterations 400
     step recon-Mc2-ppm1 120 python3 benchmarks/recon.py --case Mc2 --ppm 1 --device cuda
 elif [ "$stage" = fly ]; then
-    step pytest-fly-cuda 150 python3 -m pytest tests/unit/test_reconstruct.py -q -k "cuda and (fly or single)" \
+    step pytest-fly-cuda 150 python3 -m pytest tests/unit/lfcore/test_reconstruct.py -q -k "cuda and (fly or single)" \
         -p no:cacheprovider --timeout 100
     step recon-M-stored 100 python3 benchmarks/recon.py --case M --device cuda --no-drt --no-mart --iterations 20 \
         --weight-storage stored
@@ -107,7 +107,7 @@ elif [ "$stage" = batch ]; then
     step batch-S 60 python3 benchmarks/batch.py --case S --pairs 3 --device cuda
     step batch-M 300 python3 benchmarks/batch.py --case M --pairs 3 --device cuda
 elif [ "$stage" = profile ]; then
-    step pytest-correlate 150 python3 -m pytest tests/unit/test_correlate.py tests/functional/test_correlate_cli.py -q \
+    step pytest-correlate 150 python3 -m pytest tests/unit/lfcore/test_correlate.py tests/functional/test_correlate_cli.py -q \
         -p no:cacheprovider --timeout 100
     step correlate 90 python3 benchmarks/correlate.py --case gpu --profile
     step weights-Mc 150 python3 benchmarks/recon.py --case Mc --ppm 1 --device cuda --profile-weights

@@ -8,7 +8,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -24,24 +23,17 @@ from lfpiv.jobs.acquire import record
 from lfpiv.jobs.devices import list_devices
 from lfpiv.rigfile import load_rig
 from lfpiv.rigging import open_rig
-from sim.lab import SimLab
-from sim.world import SimWorld
-from tests.unit.acquisition.test_genicam import VIKY
+from tests.helpers import (
+    LFPIV,
+    VIKY,
+    fast_rig_text,
+    signal_when_committed,
+    sim_lab,
+    terminal_signals,
+    wait_committed,
+)
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
-LFPIV = [sys.executable, "-m", "lfpiv.cli"]
-
-
-def fast_rig_text(rate_hz: float = 60.0, cameras: int = 2) -> str:
-    """The tiny rig with a fast laser (pairs at ``rate_hz``) and a second camera at 90 degrees."""
-    text = (EXAMPLES / "tiny.toml").read_text()
-    text = text.replace("rate_hz = 10.0", f"rate_hz = {rate_hz}\nmax_rate_hz = {2 * rate_hz}")
-    text = text.replace("dt_us = 2000.0", "dt_us = 1000.0\ncamera_max_fps = 500.0")
-    if cameras == 2:
-        cam = text[text.index("[[camera]]"):text.index("[laser]")]
-        cam = cam.replace('"cam0"', '"cam1"').replace("[0.0, 0.0, 0.0]  # camera", "[0.0, 90.0, 0.0]  # camera")
-        text += "\n" + cam
-    return text
 
 
 @pytest.fixture(scope="module")
@@ -54,11 +46,6 @@ def fast_rig_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def fast_rig(fast_rig_file: Path):
     return load_rig(fast_rig_file)
-
-
-def _lab(rig, **faults) -> SimLab:
-    return SimLab(rig, world=SimWorld(rig, ppm=0.2), pool_pairs=3, rays_per_particle=300, reply_latency_s=0.0005,
-                  camera_faults=faults)
 
 
 def _check_every_frame_accounted(store: RunStore, pairs: int) -> dict[str, list[dict]]:
@@ -84,7 +71,7 @@ def test_soak_2000_pairs_two_cameras_with_faults(fast_rig, tmp_path: Path) -> No
     pairs = 2000
     faults = {"cam0": {"lose_frames": {5, 777, 1500}, "incomplete_frames": {42, 43}, "lose_rate": 0.002},
               "cam1": {"incomplete_frames": {1001}, "lose_rate": 0.002}}
-    with _lab(fast_rig, **faults) as lab:
+    with sim_lab(fast_rig, **faults) as lab:
         res = record(fast_rig, tmp_path / "soak.zarr", pairs, sim_options={"lab": lab}, ring_slots=128)
         gen = lab.pulse_generator
         triggered = gen.ticks_fired
@@ -121,7 +108,7 @@ def test_missed_triggers_are_dropped_and_later_frames_keep_their_pair(fast_rig, 
     # cam0 misses triggers 4 and 9: it makes no frames for them and its frame ids stay
     # consecutive, so only its time stamps tell that every later frame belongs one or two pairs on
     pairs = 15
-    with _lab(fast_rig, cam0={"miss_triggers": {4, 9}}) as lab:
+    with sim_lab(fast_rig, cam0={"miss_triggers": {4, 9}}) as lab:
         res = record(fast_rig, tmp_path / "missed.zarr", pairs, sim_options={"lab": lab})
         triggered = lab.pulse_generator.ticks_fired
         lit = {c.name: c._lit for c in lab.cameras}
@@ -139,7 +126,7 @@ def test_missed_triggers_are_dropped_and_later_frames_keep_their_pair(fast_rig, 
 
 
 def test_camera_fault_stops_recording_disarms_and_keeps_the_data(fast_rig, tmp_path: Path) -> None:
-    with _lab(fast_rig, cam1={"fail_after_frames": 60}) as lab:
+    with sim_lab(fast_rig, cam1={"fail_after_frames": 60}) as lab:
         with pytest.raises(DeviceError, match="cam1.*laser was disarmed"):
             record(fast_rig, tmp_path / "fault.zarr", 500, sim_options={"lab": lab}, stall_s=1.0)
         assert not lab.pulse_generator.firing and not lab.pulse_generator.outputs_enabled()
@@ -155,7 +142,7 @@ def test_ctrl_c_disarms_and_marks_the_run_aborted(fast_rig, tmp_path: Path) -> N
         if stats.committed_pairs >= 5:
             raise KeyboardInterrupt
 
-    with _lab(fast_rig) as lab:
+    with sim_lab(fast_rig) as lab:
         with pytest.raises(KeyboardInterrupt):
             record(fast_rig, tmp_path / "int.zarr", 1000, sim_options={"lab": lab}, progress=interrupt)
         assert not lab.pulse_generator.firing and not lab.pulse_generator.outputs_enabled()
@@ -182,7 +169,7 @@ def test_a_second_ctrl_c_while_the_run_is_closed_waits_for_it(fast_rig, tmp_path
 
         session.close = close_after_ctrl_c
 
-    with _lab(fast_rig) as lab:
+    with sim_lab(fast_rig) as lab:
         with pytest.raises(KeyboardInterrupt):
             record(fast_rig, tmp_path / "int.zarr", 1000, sim_options={"lab": lab}, progress=interrupt,
                    on_session=second_ctrl_c_on_close)
@@ -201,7 +188,7 @@ def test_a_ctrl_c_before_recording_begins_marks_the_run_aborted(fast_rig, tmp_pa
         raise KeyboardInterrupt
 
     monkeypatch.setattr(acquire, "RecordingSession", interrupted)
-    with _lab(fast_rig) as lab, pytest.raises(KeyboardInterrupt):
+    with sim_lab(fast_rig) as lab, pytest.raises(KeyboardInterrupt):
         record(fast_rig, tmp_path / "early.zarr", 10, sim_options={"lab": lab})
     store = RunStore.open(tmp_path / "early.zarr")
     assert store.state == "aborted" and store.committed_pairs == 0
@@ -215,7 +202,7 @@ def test_a_full_disk_at_the_end_keeps_the_fault_and_the_laser_report(fast_rig, t
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(RunStore, "set_state", full)
-    with _lab(fast_rig, cam1={"fail_after_frames": 40}) as lab:
+    with sim_lab(fast_rig, cam1={"fail_after_frames": 40}) as lab:
         with pytest.raises(DeviceError, match="cam1.*the laser was disarmed"):
             record(fast_rig, tmp_path / "fault.zarr", 500, sim_options={"lab": lab}, stall_s=1.0)
         assert not lab.pulse_generator.outputs_enabled()
@@ -225,12 +212,12 @@ def test_a_full_disk_at_the_end_keeps_the_fault_and_the_laser_report(fast_rig, t
     assert store.state == "recording" and store.committed_pairs >= 5
     _check_every_frame_accounted(store, store.committed_pairs)
     # the error says the same as the warning: the run still says 'recording', not 'aborted'
-    with _lab(fast_rig, cam1={"fail_after_frames": 40}) as lab, \
+    with sim_lab(fast_rig, cam1={"fail_after_frames": 40}) as lab, \
             pytest.raises(DeviceError, match="could not be marked 'aborted', so it still says 'recording'"):
         record(fast_rig, tmp_path / "fault2.zarr", 500, sim_options={"lab": lab}, stall_s=1.0)
     # a recording that completes but cannot be marked so is an error too, and says what it kept
-    with _lab(fast_rig) as lab, pytest.raises(RunStoreError, match=r"recorded 10 pair\(s\) into .*done.zarr, but the "
-                                                                "run could not be marked 'complete'"):
+    with sim_lab(fast_rig) as lab, pytest.raises(RunStoreError, match=r"recorded 10 pair\(s\) into .*done.zarr, "
+                                                 "but the run could not be marked 'complete'"):
         record(fast_rig, tmp_path / "done.zarr", 10, sim_options={"lab": lab})
     assert RunStore.open(tmp_path / "done.zarr").committed_pairs == 10
 
@@ -240,7 +227,7 @@ def test_a_generator_that_stops_answering_stops_the_recording(fast_rig, tmp_path
         if stats.committed_pairs >= 5:
             lab.pulse_generator.inject("no_reply")
 
-    with _lab(fast_rig) as lab:
+    with sim_lab(fast_rig) as lab:
         with pytest.raises(DeviceError, match="pulse generator") as err:
             record(fast_rig, tmp_path / "gen.zarr", 400, sim_options={"lab": lab}, progress=pull_the_cable)
         # The driver could not confirm the disarm, and the error says so (not that it was
@@ -260,7 +247,7 @@ def test_a_complete_recording_whose_disarm_is_unconfirmed_is_an_error(fast_rig, 
         if stats.committed_pairs >= 1:
             lab.pulse_generator.inject("no_reply")
 
-    with _lab(fast_rig) as lab:
+    with sim_lab(fast_rig) as lab:
         with pytest.raises(DeviceError, match=r"recorded 20 pair\(s\): the run is kept in .*state 'complete'.*"
                                               "laser could NOT be confirmed disarmed"):
             record(fast_rig, tmp_path / "done.zarr", 20, sim_options={"lab": lab}, progress=pull_the_cable)
@@ -278,7 +265,7 @@ def test_impossible_timing_is_refused_before_any_device_opens(fast_rig_file: Pat
     assert not (tmp_path / "x.zarr").exists()
 
 
-def test_devices_lists_the_simulated_lab(fast_rig_file: Path, capsys: pytest.CaptureFixture) -> None:
+def test_devices_lists_the_simulatedsim_lab(fast_rig_file: Path, capsys: pytest.CaptureFixture) -> None:
     assert main(["devices", "--rig", str(fast_rig_file)]) == 0
     out = capsys.readouterr().out
     assert "cam0" in out and "cam1" in out and "QC," in out and "Zaber" in out
@@ -321,40 +308,6 @@ def test_devices_of_cameras_without_a_serial(cameras: int, tmp_path: Path) -> No
     assert ("pulse generator: no port in the rig file", False) in lines
 
 
-def _wait_committed(path: Path, at_least: int, proc: subprocess.Popen, timeout_s: float = 60.0) -> int:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
-        try:
-            n = RunStore.open(path).committed_pairs
-            if n >= at_least:
-                return n
-        except Exception:  # noqa: BLE001 - the store may not exist yet
-            pass
-        time.sleep(0.05)
-    raise AssertionError(f"{path} did not reach {at_least} committed pairs")
-
-
-def signal_when_committed(proc: subprocess.Popen, path: Path, at_least: int, sig: int, *,
-                          timeout_s: float = 60.0, exit_timeout_s: float = 60.0) -> tuple[str, str]:
-    """Send ``sig`` to ``proc`` once the run at ``path`` has ``at_least`` committed pairs; its
-    stdout and stderr when it has ended (it is killed if it has not)."""
-    try:
-        _wait_committed(path, at_least, proc, timeout_s)
-        proc.send_signal(sig)
-        return proc.communicate(timeout=exit_timeout_s)
-    finally:
-        proc.kill()
-
-
-def terminal_signals() -> None:
-    """In a child before exec: SIGINT and SIGHUP as from a terminal. A test run started with
-    ``nohup`` or as a background job ignores them, its children inherit that, and the program
-    then keeps them ignored by design (``nohup`` means "keep recording")."""
-    for sig in (signal.SIGINT, signal.SIGHUP):
-        signal.signal(sig, signal.SIG_DFL)
-
-
 def _start(fast_rig_file: Path, out: Path, pairs: int) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     cmd = [*LFPIV, "acquire", "--rig", str(fast_rig_file), "--pairs", str(pairs), "--out", str(out), "--quiet",
@@ -367,7 +320,7 @@ def test_sigkill_leaves_every_committed_pair_intact(fast_rig_file: Path, tmp_pat
     out = tmp_path / "killed.zarr"
     proc = _start(fast_rig_file, out, 5000)
     try:
-        _wait_committed(out, 30, proc)
+        wait_committed(out, 30, proc)
     finally:
         proc.kill()
         proc.wait(10)
@@ -399,7 +352,7 @@ def test_the_run_records_the_timing_as_the_generator_holds_it_and_devices_names_
     """The timing a run records is read back from the generator (rounded to its resolution), and
     ``lfpiv devices`` names the stage by its device id; ``--pairing timestamps`` is for real
     cameras only."""
-    with _lab(fast_rig) as lab:
+    with sim_lab(fast_rig) as lab:
         res = record(fast_rig, tmp_path / "t.zarr", 3, sim_options={"lab": lab})
     t = RunStore.open(res.store.path).timing
     assert t["dt_s"] == pytest.approx(fast_rig.timing.dt_us * 1e-6, abs=1e-12)
@@ -423,7 +376,7 @@ def test_ctrl_c_three_times_says_the_laser_is_disarmed_and_exits_130(fast_rig_fi
     out = tmp_path / "ctrl-c.zarr"
     proc = _start(fast_rig_file, out, 5000)
     try:
-        _wait_committed(out, 10, proc)
+        wait_committed(out, 10, proc)
         for _ in range(3):
             proc.send_signal(signal.SIGINT)
             time.sleep(0.2)

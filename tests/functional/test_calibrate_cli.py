@@ -17,7 +17,7 @@ from lfpiv.cli import main
 from lfpiv.jobs.calibrate import calibrate_mla
 from lfpiv.rigfile import load_rig
 from sim.lab import SimLab
-from tests.functional.test_acquire import fast_rig_text
+from tests.helpers import fast_rig_text
 
 PITCH_UM = 55.0
 

@@ -23,7 +23,7 @@ from lfcore.rig import Rig
 from lfpiv.cli import main
 from lfpiv.jobs.calibrate import calibrate_fit, calibrate_mla, calibrate_volume, default_board
 from sim.lab import SimLab
-from tests.functional.test_acquire import fast_rig_text
+from tests.helpers import fast_rig_text
 
 PITCH_UM = 55.0
 

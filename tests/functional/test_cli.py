@@ -16,7 +16,7 @@ from lfcore.render import LightFieldRenderer
 from lfcore.runstore import RunStore
 from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
-from tests.functional.test_acquire import signal_when_committed
+from tests.helpers import signal_when_committed
 
 TINY = str(EXAMPLES / "tiny.toml")
 

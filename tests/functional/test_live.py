@@ -12,7 +12,7 @@ from lfcore.runstore import RunStore
 from lfpiv.jobs.acquire import record
 from lfpiv.rigfile import load_rig
 from realtime.pipeline import LivePipeline, LiveSettings
-from tests.functional.test_acquire import _lab, fast_rig_text
+from tests.helpers import fast_rig_text, sim_lab
 
 
 @pytest.mark.parametrize("cameras", [1, 2])
@@ -25,7 +25,7 @@ def test_live_pipeline_beside_a_recording(tmp_path: Path, cameras: int) -> None:
     pipe = LivePipeline(rig, settings=LiveSettings(iterations=3), device="cpu")
     pipe.subscribe(results.append)
     pipe.build()
-    with pipe, _lab(rig) as lab:
+    with pipe, sim_lab(rig) as lab:
         res = record(rig, tmp_path / "run.zarr", pairs, sim_options={"lab": lab},
                      on_session=lambda s: pipe.attach(s.ring))
         triggered = lab.pulse_generator.ticks_fired

@@ -23,7 +23,7 @@ pytest.importorskip("pyqtgraph")
 
 from lfcore.runstore import RunStore  # noqa: E402
 from lfpiv.cli import main  # noqa: E402
-from tests.functional.test_acquire import fast_rig_text  # noqa: E402
+from tests.helpers import fast_rig_text  # noqa: E402
 
 
 @pytest.mark.skipif(sys.version_info >= (3, 12), reason="None is immortal from Python 3.12 on")

@@ -21,11 +21,11 @@ from lfpiv import cli  # noqa: E402
 from lfpiv.jobs.monitor import LiveRecorder  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
 from realtime.pipeline import LivePipeline, LiveSettings  # noqa: E402
-from tests.functional.test_acquire import (  # noqa: E402
+from tests.helpers import (  # noqa: E402
     LFPIV,
-    _lab,
     fast_rig_text,
     signal_when_committed,
+    sim_lab,
     terminal_signals,
 )
 
@@ -143,7 +143,7 @@ def test_monitor_without_a_display_is_one_line(main, rig_file: Path, capsys, mon
 def test_disarm_from_every_state(rig_file: Path, tmp_path: Path) -> None:
     rig = load_rig(rig_file)
     pipe = LivePipeline(rig, settings=LiveSettings(iterations=1), device="cpu")
-    with _lab(rig) as lab, pipe:
+    with sim_lab(rig) as lab, pipe:
         gen = lab.pulse_generator
         rec = LiveRecorder(rig, pipe, pairs=2000, out=tmp_path / "run.zarr", sim_options={"lab": lab})
         rec.disarm()  # never armed: nothing happens

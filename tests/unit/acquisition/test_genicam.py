@@ -18,18 +18,8 @@ import pytest
 
 from acquisition import genicam as gc
 from acquisition.protocols import Camera, DeviceError
+from tests.helpers import VIKY
 
-
-def _viky() -> Path | None:
-    try:
-        import genicam
-    except ImportError:
-        return None
-    path = Path(genicam.__file__).parent / "viky.cti"
-    return path if path.is_file() else None
-
-
-VIKY = _viky()
 needs_viky = pytest.mark.skipif(
     VIKY is None, reason="GenTL simulator viky.cti not found (pip install 'lfpiv[genicam]')"
 )

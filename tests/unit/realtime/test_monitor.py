@@ -13,7 +13,7 @@ pytest.importorskip("pyqtgraph")
 
 from realtime.monitor import MonitorWindow, require_qt  # noqa: E402
 from realtime.pipeline import LivePipeline  # noqa: E402
-from tests.unit.realtime.test_pipeline import _ring  # noqa: E402
+from tests.helpers import filled_ring as _ring  # noqa: E402
 
 
 class FakeControls:

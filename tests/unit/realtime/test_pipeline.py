@@ -11,27 +11,9 @@ import pytest
 from acquisition.ring import PairRing
 from lfcore.volume import VolumeGrid
 from realtime.pipeline import LivePipeline, LiveSettings, default_windows
-
-SHAPE = (160, 192)  # the tiny rig's rows, columns
-
-
-def _frames(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    img = rng.normal(100.0, 3.0, size=(2, *SHAPE))
-    for f in range(2):  # a few bright spots, shifted one pixel in frame B
-        for r, c in rng.integers(20, 140, size=(30, 2)):
-            img[f, r:r + 3, c + f:c + f + 3] += 400.0
-    return np.clip(img, 0, 65535).astype(np.uint16)
-
-
-def _ring(pairs: int, slots: int = 8) -> PairRing:
-    ring = PairRing({"cam0": SHAPE}, slots=slots)
-    for p in range(pairs):
-        fr = _frames(p)
-        for f in range(2):
-            assert ring.put("cam0", p, f, fr[f], 2 * p + f, time.time_ns())
-        ring.publish(p)
-    return ring
+from tests.helpers import RING_SHAPE as SHAPE
+from tests.helpers import filled_ring as _ring
+from tests.helpers import ring_frames as _frames
 
 
 def _wait(cond, timeout_s: float = 20.0) -> bool:

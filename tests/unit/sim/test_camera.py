@@ -13,25 +13,7 @@ from acquisition.session import RecordingSession
 from lfcore.runstore import RunStore
 from sim.camera import SimCamera
 from sim.world import SimWorld
-
-PERIOD_NS = 50_000_000  # 20 Hz T0
-T0_NS = 7_000_000_000_000
-
-
-class HandTrigger:
-    """A trigger source fired by the test: ``fire(k)`` is T0 tick ``k`` with every output on."""
-
-    def __init__(self, rig) -> None:
-        self.listeners = []
-        self.outputs = {ch: 0.0 for ch in rig.pulse_generator.channels.values()}
-        self.outputs[rig.pulse_generator.channels["camera"]] = 100e-6
-
-    def add_listener(self, callback) -> None:
-        self.listeners.append(callback)
-
-    def fire(self, tick: int) -> None:
-        for cb in self.listeners:
-            cb(tick, T0_NS + tick * PERIOD_NS, self.outputs)
+from tests.helpers import PERIOD_NS, T0_NS, HandTrigger
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from acquisition.session import RecordingSession
 from lfcore.runstore import RunStore
 from sim.camera import SIM_VENDOR, SimCamera
 from sim.world import SimWorld
-from tests.unit.sim.test_camera import PERIOD_NS, T0_NS, HandTrigger
+from tests.helpers import PERIOD_NS, T0_NS, HandTrigger
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ import pytest
 
 from lfcore.runstore import RunStore, RunStoreError
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 HOLDER = """
 import json, os, sys

@@ -15,7 +15,7 @@ from lfcore.render import LightFieldRenderer
 from lfcore.rig import Rig
 from lfcore.white import micro_image_centres
 
-EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+EXAMPLES = Path(__file__).resolve().parents[3] / "examples"
 
 
 def _centroid(img: np.ndarray, centres: np.ndarray, pitch_px: float) -> np.ndarray:

@@ -1,0 +1,132 @@
+"""What several test files share: the fast two-camera rig, the simulated lab of the recording
+tests, running ``lfpiv`` in a child process and signalling it, the GenTL simulator, the hand
+trigger of the simulated cameras and a hand-filled ring buffer."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from acquisition.ring import PairRing
+from lfcore.runstore import RunStore
+from sim.lab import SimLab
+from sim.world import SimWorld
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+#: The ``lfpiv`` program in a child process.
+LFPIV = [sys.executable, "-m", "lfpiv.cli"]
+
+
+def fast_rig_text(rate_hz: float = 60.0, cameras: int = 2) -> str:
+    """The tiny rig with a fast laser (pairs at ``rate_hz``) and a second camera at 90 degrees."""
+    text = (EXAMPLES / "tiny.toml").read_text()
+    text = text.replace("rate_hz = 10.0", f"rate_hz = {rate_hz}\nmax_rate_hz = {2 * rate_hz}")
+    text = text.replace("dt_us = 2000.0", "dt_us = 1000.0\ncamera_max_fps = 500.0")
+    if cameras == 2:
+        cam = text[text.index("[[camera]]"):text.index("[laser]")]
+        cam = cam.replace('"cam0"', '"cam1"').replace("[0.0, 0.0, 0.0]  # camera", "[0.0, 90.0, 0.0]  # camera")
+        text += "\n" + cam
+    return text
+
+
+def sim_lab(rig, **faults) -> SimLab:
+    """The simulated lab of the recording tests: sparse seeding, few rays, a quick emulator."""
+    return SimLab(rig, world=SimWorld(rig, ppm=0.2), pool_pairs=3, rays_per_particle=300, reply_latency_s=0.0005,
+                  camera_faults=faults)
+
+
+def wait_committed(path: Path, at_least: int, proc: subprocess.Popen, timeout_s: float = 60.0) -> int:
+    """Wait until the run at ``path`` has ``at_least`` committed pairs while ``proc`` runs."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+        try:
+            n = RunStore.open(path).committed_pairs
+            if n >= at_least:
+                return n
+        except Exception:  # noqa: BLE001 - the store may not exist yet
+            pass
+        time.sleep(0.05)
+    raise AssertionError(f"{path} did not reach {at_least} committed pairs")
+
+
+def signal_when_committed(proc: subprocess.Popen, path: Path, at_least: int, sig: int, *,
+                          timeout_s: float = 60.0, exit_timeout_s: float = 60.0) -> tuple[str, str]:
+    """Send ``sig`` to ``proc`` once the run at ``path`` has ``at_least`` committed pairs; its
+    stdout and stderr when it has ended (it is killed if it has not)."""
+    try:
+        wait_committed(path, at_least, proc, timeout_s)
+        proc.send_signal(sig)
+        return proc.communicate(timeout=exit_timeout_s)
+    finally:
+        proc.kill()
+
+
+def terminal_signals() -> None:
+    """In a child before exec: SIGINT and SIGHUP as from a terminal. A test run started with
+    ``nohup`` or as a background job ignores them, its children inherit that, and the program
+    then keeps them ignored by design (``nohup`` means "keep recording")."""
+    for sig in (signal.SIGINT, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
+
+
+def _viky() -> Path | None:
+    try:
+        import genicam
+    except ImportError:
+        return None
+    path = Path(genicam.__file__).parent / "viky.cti"
+    return path if path.is_file() else None
+
+
+#: The GenTL simulator that ships with the genicam wheel, or None.
+VIKY = _viky()
+
+PERIOD_NS = 50_000_000  # 20 Hz T0
+T0_NS = 7_000_000_000_000
+
+
+class HandTrigger:
+    """A trigger source fired by the test: ``fire(k)`` is T0 tick ``k`` with every output on."""
+
+    def __init__(self, rig) -> None:
+        self.listeners = []
+        self.outputs = {ch: 0.0 for ch in rig.pulse_generator.channels.values()}
+        self.outputs[rig.pulse_generator.channels["camera"]] = 100e-6
+
+    def add_listener(self, callback) -> None:
+        self.listeners.append(callback)
+
+    def fire(self, tick: int) -> None:
+        for cb in self.listeners:
+            cb(tick, T0_NS + tick * PERIOD_NS, self.outputs)
+
+
+#: The tiny rig's (rows, columns).
+RING_SHAPE = (160, 192)
+
+
+def ring_frames(seed: int) -> np.ndarray:
+    """(2, rows, columns) uint16: noise and a few bright spots, shifted one pixel in frame B."""
+    rng = np.random.default_rng(seed)
+    img = rng.normal(100.0, 3.0, size=(2, *RING_SHAPE))
+    for f in range(2):
+        for r, c in rng.integers(20, 140, size=(30, 2)):
+            img[f, r:r + 3, c + f:c + f + 3] += 400.0
+    return np.clip(img, 0, 65535).astype(np.uint16)
+
+
+def filled_ring(pairs: int, slots: int = 8) -> PairRing:
+    """A ring of one camera ("cam0") with ``pairs`` pairs published."""
+    ring = PairRing({"cam0": RING_SHAPE}, slots=slots)
+    for p in range(pairs):
+        fr = ring_frames(p)
+        for f in range(2):
+            assert ring.put("cam0", p, f, fr[f], 2 * p + f, time.time_ns())
+        ring.publish(p)
+    return ring
