@@ -688,7 +688,9 @@ class PulseGeneratorEmulator(_PtyEmulator):
                 due = time.perf_counter_ns()
             else:
                 wait = (due - time.perf_counter_ns()) / 1e9
-                if stop.wait(wait) if wait > 0 else stop.is_set():
+                # a late tick fires at once, but after a pause that lets the serial thread have the
+                # lock: catching up on a busy CPU must not starve the commands (STATE OFF among them)
+                if stop.wait(wait if wait > 0 else 0.0002):
                     return
             with self._lock:
                 if stop.is_set():
