@@ -13,6 +13,7 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
 from calibration.store import CalibrationStore  # noqa: E402
+from lfcore.rig import is_pinhole  # noqa: E402
 from lfcore.runstore import RunStore  # noqa: E402
 from lfpiv.errors import UsageError  # noqa: E402
 
@@ -46,7 +47,9 @@ def plot_raw_images(store: RunStore, out: str | Path, pair: int = 0, zoom_lensle
         a, b = store.frames(cam.name)[pair]
         lo, hi = _stretch(a)
         rows, cols = a.shape
-        half = int(round(0.5 * zoom_lenslets * cam.pixels_per_lenslet))
+        # a pinhole camera's particle images are a few pixels across: zoom on as many pixels as
+        # the light-field camera's lenslets
+        half = int(round(0.5 * zoom_lenslets * (4.0 if is_pinhole(cam) else cam.pixels_per_lenslet)))
         r0, c0 = max(0, rows // 2 - half), max(0, cols // 2 - half)
         r1, c1 = min(rows, rows // 2 + half), min(cols, cols // 2 + half)
         row[0].imshow(a, cmap="gray", vmin=lo, vmax=hi, interpolation="antialiased")
@@ -55,7 +58,8 @@ def plot_raw_images(store: RunStore, out: str | Path, pair: int = 0, zoom_lensle
         for ax, img, name in ((row[1], a, "A"), (row[2], b, "B")):
             ax.imshow(img[r0:r1, c0:c1], cmap="gray", vmin=lo, vmax=hi, interpolation="nearest",
                       extent=(c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5))
-            ax.set_title(f"frame {name}, centre ({zoom_lenslets} lenslets across)")
+            across = f"{c1 - c0} px" if is_pinhole(cam) else f"{zoom_lenslets} lenslets"
+            ax.set_title(f"frame {name}, centre ({across} across)")
         for ax in row:
             ax.set_xlabel("column (px)")
             ax.set_ylabel("row (px)")
