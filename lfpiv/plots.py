@@ -221,7 +221,11 @@ def plot_rms(store: CalibrationStore, out: str | Path) -> Path:
     for name in names:
         m = store.model(name)
         rms = np.array([np.nan if v is None else v for v in m["plane_rms_px"]], dtype=float)
-        ax.plot(store.stage_mm(name), rms, "o-", label=f"{name} (all planes {m['rms_px']:.3f} px)")
+        line, = ax.plot(store.stage_mm(name), rms, "o-", label=f"{name} (all planes {m['rms_px']:.3f} px)")
+        if m.get("soloff_plane_rms_px"):  # a pinhole camera's Soloff polynomial, beside its pinhole model
+            soloff = np.array([np.nan if v is None else v for v in m["soloff_plane_rms_px"]], dtype=float)
+            ax.plot(store.stage_mm(name), soloff, "s--", color=line.get_color(), mfc="none",
+                    label=f"{name}, Soloff ({m['soloff_rms_px']:.3f} px)")
     ax.set_xlabel("stage position, mm")
     ax.set_ylabel("RMS reprojection error, px")
     ax.set_ylim(bottom=0)
