@@ -22,7 +22,8 @@ the error on the particles themselves:
 4. **Correction** (:func:`correct_pinhole`, :func:`correct_soloff`): each camera's mapping is made
    to put those points where its particles are (the model's image plus the disparity): the
    pinhole model by refitting it (:func:`calibration.pinhole.refine_pinhole`), the Soloff
-   polynomial by adding the low-order polynomial that fits the disparities.
+   polynomial by adding the low-order polynomial that fits the disparities (affine, or quadratic
+   from denser maps).
 
 Steps 2-4 are repeated with the search disc halved each time (fewer ghosts once the error is
 small), and a last triangulation measures what disparity remains (:func:`self_calibrate`).
@@ -266,7 +267,8 @@ def correct_pinhole(camera: PinholeCamera, where_mm: np.ndarray, disparity: np.n
 
 def correct_soloff(mapping: SoloffMap, where_mm: np.ndarray, disparity: np.ndarray) -> SoloffMap:
     """The Soloff polynomial plus the low-order polynomial (of its own terms) that fits the
-    disparities: degree 1 in x, y and z from 4 points, degree 2 from 20.
+    disparities: degree 1 in x, y and z (what an error of pose or scale makes over a field of
+    view), degree 2 from 60 points (denser maps: a field that a mislaid lens distortion bends).
 
     Parameters
     ----------
@@ -279,7 +281,7 @@ def correct_soloff(mapping: SoloffMap, where_mm: np.ndarray, disparity: np.ndarr
     if ok.sum() < 4:
         return mapping
     terms = SOLOFF_TERMS[SOLOFF_TERMS[:, 2] <= mapping.z_order]
-    degree = 2 if ok.sum() >= 20 else 1
+    degree = 2 if ok.sum() >= 60 else 1
     use = terms.sum(axis=1) <= degree
     u = (where_mm[ok] - mapping.centre_mm) / mapping.scale_mm
     a = np.prod(u[:, None, :] ** terms[use], axis=-1)
