@@ -69,12 +69,11 @@ def run(args: argparse.Namespace) -> int:
                      omega=args.omega, displacement_px=args.displacement_px, points=points,
                      rays_per_particle=args.rays, device=args.device, overwrite=args.overwrite,
                      progress=not args.quiet)
-    work = []
-    if res.rays:
-        work.append(f"{res.rays:.3g} rays ({res.rays / res.seconds:.3g} rays/s)")
-    if res.particle_images:
-        work.append(f"{res.particle_images:.3g} particle images")
+    if not res.particle_images:  # light-field cameras only
+        work = f"{res.rays:.3g} rays in {res.seconds:.1f} s ({res.rays / res.seconds:.3g} rays/s)"
+    else:
+        rays = f"{res.rays:.3g} rays ({res.rays / res.seconds:.3g} rays/s) and " if res.rays else ""
+        work = f"{rays}{res.particle_images:.3g} particle images in {res.seconds:.1f} s"
     print(f"wrote {res.store.path}: {res.store.n_pairs} pair(s) x {len(rig.camera)} camera(s), "
-          f"{res.particles_per_frame} particles per frame, flow {res.flow['name']}; "
-          f"{' and '.join(work)} in {res.seconds:.1f} s")
+          f"{res.particles_per_frame} particles per frame, flow {res.flow['name']}; {work}")
     return 0
