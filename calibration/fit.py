@@ -52,7 +52,8 @@ from lfcore.rig import AnyCamera, Camera, PinholeCamera, camera_from_dict
 from lfcore.soloff import SoloffMap
 from lfcore.target import DotBoard
 
-__all__ = ["CameraFit", "FitError", "PlaneDots", "clear_dots", "fit_camera", "rotation_deg_from_matrix"]
+__all__ = ["CameraFit", "FitError", "PlaneDots", "clear_dots", "fit_camera", "planes_with_dots",
+           "rotation_deg_from_matrix"]
 
 
 class FitError(ValueError):
@@ -256,6 +257,25 @@ def clear_dots(camera: Camera, board: DotBoard, indices: np.ndarray, stage_mm: f
         return (2.0 * blur >= min_blur_lenslets * pitch) & (gap >= min_gap_lenslets * pitch)
 
 
+def planes_with_dots(camera: str, board: DotBoard, planes: Sequence[PlaneDots], n_planes: int | None
+                     ) -> tuple[list[PlaneDots], int, list[np.ndarray]]:
+    """The planes that have dots, the number of planes (default: highest plane + 1) and each plane's
+    (m, 3) world dot centres, mm.
+
+    Raises
+    ------
+    FitError
+        Fewer than 8 dots on 2 planes, too few to fit a pose and a magnification.
+    """
+    planes = [p for p in planes if len(p.indices)]
+    total = sum(len(p.indices) for p in planes)
+    if total < 8 or len(planes) < 2:
+        raise FitError(f"camera '{camera}': {total} dot(s) on {len(planes)} plane(s); need at least 8 "
+                       "dots on 2 planes at different depths to fit the pose and magnification")
+    n_planes = max(p.plane for p in planes) + 1 if n_planes is None else n_planes
+    return planes, n_planes, [board.dot_centres(p.indices, p.stage_mm) for p in planes]
+
+
 def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], grid: MlaGrid | None = None, *,
                n_planes: int | None = None, fit_distortion: bool = False, max_lattice_points: int = 600,
                outlier_sigma: float = 5.0, min_blur_lenslets: float = 0.75, min_gap_lenslets: float = 0.25,
@@ -304,13 +324,7 @@ def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], gr
     FitError
         Too few dots for the parameters, or a fit that does not converge.
     """
-    planes = [p for p in planes if len(p.indices)]
-    total = sum(len(p.indices) for p in planes)
-    if total < 8 or len(planes) < 2:
-        raise FitError(f"camera '{nominal.name}': {total} dot(s) on {len(planes)} plane(s); need at least 8 "
-                       "dots on 2 planes at different depths to fit the pose and magnification")
-    n_planes = max(p.plane for p in planes) + 1 if n_planes is None else n_planes
-    world = [board.dot_centres(p.indices, p.stage_mm) for p in planes]
+    planes, n_planes, world = planes_with_dots(nominal.name, board, planes, n_planes)
     found = [np.asarray(p.views_px, dtype=np.float64) for p in planes]  # (m, views, 2) each
     if views is None:
         views = view_geometry(nominal, wavelength_nm)  # what each view sees, for the nominal optics

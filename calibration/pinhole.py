@@ -38,7 +38,7 @@ from scipy.optimize import OptimizeResult, least_squares
 from scipy.spatial.transform import Rotation
 
 from calibration.dots import Dots, background_level
-from calibration.fit import CameraFit, FitError, PlaneDots, _PosedPinhole, rotation_deg_from_matrix
+from calibration.fit import CameraFit, FitError, PlaneDots, _PosedPinhole, planes_with_dots, rotation_deg_from_matrix
 from lfcore import pinhole
 from lfcore.rig import PinholeCamera
 from lfcore.soloff import SoloffMap
@@ -217,13 +217,7 @@ def fit_pinhole(nominal: PinholeCamera, board: DotBoard, planes: Sequence[PlaneD
     FitError
         Too few dots (8 on 2 planes at different depths), or a fit that does not converge.
     """
-    planes = [p for p in planes if len(p.indices)]
-    total = sum(len(p.indices) for p in planes)
-    if total < 8 or len(planes) < 2:
-        raise FitError(f"camera '{nominal.name}': {total} dot(s) on {len(planes)} plane(s); need at least 8 "
-                       "dots on 2 planes at different depths to fit the pose and magnification")
-    n_planes = max(p.plane for p in planes) + 1 if n_planes is None else n_planes
-    world = [board.dot_centres(p.indices, p.stage_mm) for p in planes]
+    planes, n_planes, world = planes_with_dots(nominal.name, board, planes, n_planes)
     found = [np.asarray(p.views_px, dtype=np.float64)[:, 0] for p in planes]
     keep = [np.ones(len(f), dtype=bool) for f in found]
 

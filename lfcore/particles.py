@@ -44,24 +44,24 @@ def seeding_density(rig: Rig, ppm: float | None = None, ppp: float | None = None
     if ppm is None and ppp is None:
         return (DEFAULT_PPM, None) if rig.lightfield_cameras else (None, DEFAULT_PPP)
     if ppm is not None:
-        if not (np.isfinite(ppm) and ppm > 0):
-            raise ValueError(f"ppm must be a positive number, got {ppm}")
-        if ppm > MAX_PPM:
-            raise ValueError(f"ppm {ppm:g} is beyond {MAX_PPM:g} particles per microlens (about 1 is the usual limit "
-                             "of a light-field reconstruction); give a lower density")
-        if not rig.lightfield_cameras:
-            raise ValueError("the rig has only pinhole cameras, which have no microlenses; give the seeding in "
-                             "particles per pixel (ppp) instead of ppm")
+        _check_density(ppm, "ppm", MAX_PPM, "particles per microlens (about 1 is the usual limit of a light-field "
+                       "reconstruction)", rig.lightfield_cameras, "the rig has only pinhole cameras, which have no "
+                       "microlenses; give the seeding in particles per pixel (ppp) instead of ppm")
         return float(ppm), None
-    if not (np.isfinite(ppp) and ppp > 0):
-        raise ValueError(f"ppp must be a positive number, got {ppp}")
-    if ppp > MAX_PPP:
-        raise ValueError(f"ppp {ppp:g} is beyond {MAX_PPP:g} particles per pixel (Tomo-PIV reconstructs up to about "
-                         "0.1); give a lower density")
-    if not rig.pinhole_cameras:
-        raise ValueError("the rig has no pinhole camera; give the seeding in particles per microlens (ppm) instead "
-                         "of ppp")
+    _check_density(ppp, "ppp", MAX_PPP, "particles per pixel (Tomo-PIV reconstructs up to about 0.1)",
+                   rig.pinhole_cameras, "the rig has no pinhole camera; give the seeding in particles per microlens "
+                   "(ppm) instead of ppp")
     return None, float(ppp)
+
+
+def _check_density(value: float, name: str, most: float, unit: str, cameras: tuple, none_of_them: str) -> None:
+    """A density that is not positive, beyond ``most`` or of a kind of camera the rig lacks: ValueError."""
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive number, got {value}")
+    if value > most:
+        raise ValueError(f"{name} {value:g} is beyond {most:g} {unit}; give a lower density")
+    if not cameras:
+        raise ValueError(none_of_them)
 
 
 def particle_count(rig: Rig, ppm: float | None = None, *, ppp: float | None = None) -> int:

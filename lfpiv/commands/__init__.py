@@ -178,11 +178,8 @@ def seeding_ppm(text: str) -> float:
     :data:`lfcore.particles.MAX_PPM`."""
     from lfpiv.jobs.synth import MAX_PPM
 
-    v = positive_float(text)
-    if v > MAX_PPM:
-        raise argparse.ArgumentTypeError(f"must be at most {MAX_PPM:g} particles per microlens (about 1 is the usual "
-                                         f"limit of a light-field reconstruction), got {text}")
-    return v
+    return _at_most(text, MAX_PPM, "particles per microlens (about 1 is the usual limit of a light-field "
+                    "reconstruction)")
 
 
 def seeding_ppp(text: str) -> float:
@@ -190,10 +187,13 @@ def seeding_ppp(text: str) -> float:
     :data:`lfcore.particles.MAX_PPP`."""
     from lfpiv.jobs.synth import MAX_PPP
 
+    return _at_most(text, MAX_PPP, "particles per pixel (Tomo-PIV reconstructs up to about 0.1)")
+
+
+def _at_most(text: str, most: float, unit: str) -> float:
     v = positive_float(text)
-    if v > MAX_PPP:
-        raise argparse.ArgumentTypeError(f"must be at most {MAX_PPP:g} particles per pixel (Tomo-PIV reconstructs up "
-                                         f"to about 0.1), got {text}")
+    if v > most:
+        raise argparse.ArgumentTypeError(f"must be at most {most:g} {unit}, got {text}")
     return v
 
 
