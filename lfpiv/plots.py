@@ -65,7 +65,7 @@ def plot_raw_images(store: RunStore, out: str | Path, pair: int = 0, zoom_lensle
             ax.set_ylabel("row (px)")
     n_part = truth["particles"].shape[2] if truth else None
     extra = f", {n_part} particles per frame" if n_part else ""
-    fig.suptitle(f"{store.path.name}: raw light-field images of pair {pair} ({flow}{extra}, "
+    fig.suptitle(f"{store.path.name}: raw images of pair {pair} ({flow}{extra}, "
                  f"dt = {store.timing['dt_s'] * 1e3:g} ms)")
     fig.tight_layout()
     fig.savefig(out, dpi=110)

@@ -129,3 +129,30 @@ def test_selfcal_corrects_an_injected_pixel_of_error(tomo_run: Path, tomo_calibr
     assert tuple(rig.camera_named("cam1").model_dump()["rotation_deg"]) == tuple(sc["camera"]["rotation_deg"])
     rc, _, err = run_cli(capsys, "calibrate", "selfcal", tomo_run, "--calibration", calib, "--subvolumes", "4,4")
     assert rc == 2 and "NX,NY,NZ" in err
+
+
+def test_the_lab_files_path_calibrates_pinhole_cameras(tomo_calibration: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture) -> None:
+    """Target images the lab took with its own stage (TIFF files and a positions CSV) fit the same
+    models as the planes the rig's stage took."""
+    import tifffile
+
+    took = CalibrationStore.open(tomo_calibration)
+    images = []
+    for cam in took.cameras:
+        (tmp_path / cam).mkdir()
+        for p, img in enumerate(took.plane_frames(cam)[...]):
+            tifffile.imwrite(tmp_path / cam / f"plane{p + 1}.tif", img)
+        images += ["--images", f"{cam}={tmp_path / cam / '*.tif'}"]
+    stage = took.stage_mm(took.cameras[0])
+    (tmp_path / "positions.csv").write_text("plane,stage_mm\n" + "".join(f"{p + 1},{float(s)!r}\n"
+                                                                        for p, s in enumerate(stage)))
+    out = tmp_path / "files.zarr"
+    rc, text, err = run_cli(capsys, "calibrate", "volume", "--rig", TOMO4, *images, "--positions",
+                            tmp_path / "positions.csv", "--out", out, "--fit", "--quiet")
+    assert rc == 0 and "took 3 plane(s)" in text and "cam2: RMS" in text, err
+    made = CalibrationStore.open(out)
+    for cam in took.cameras:
+        a, b = took.model(cam), made.model(cam)
+        assert b["rms_px"] == pytest.approx(a["rms_px"], abs=1e-6)
+        assert np.allclose(b["camera"]["rotation_deg"], a["camera"]["rotation_deg"], atol=1e-6)
