@@ -2,7 +2,8 @@
 
 A dot is found from the lenslets its light falls on, so neighbouring dots closer than
 :data:`MIN_DOT_LENSLETS` lenslets (in the object space of the coarsest camera) share lenslets and
-cannot be told apart; and the fit needs a grid of dots in every camera's view, at least
+cannot be told apart; a pinhole camera's dots are blobs of pixels, told apart from
+:data:`MIN_DOT_PIXELS` pixels; and the fit needs a grid of dots in every camera's view, at least
 :data:`MIN_DOTS_ACROSS` across the narrowest field of view.
 """
 
@@ -12,13 +13,16 @@ import dataclasses
 
 import numpy as np
 
-from lfcore.rig import Rig
+from lfcore.rig import Rig, is_pinhole
 from lfcore.target import DotBoard
 
-__all__ = ["MIN_DOTS_ACROSS", "MIN_DOT_LENSLETS", "default_board"]
+__all__ = ["MIN_DOTS_ACROSS", "MIN_DOT_LENSLETS", "MIN_DOT_PIXELS", "default_board"]
 
 #: Fewest lenslets (in the volume, through the main lens) between neighbouring dots of a board.
 MIN_DOT_LENSLETS = 2
+#: Fewest pixels (in the volume) between neighbouring dots of a board, for a pinhole camera: a dot
+#: a third of the spacing across, blurred by about 3 px, still stands apart from its neighbours.
+MIN_DOT_PIXELS = 8
 #: Fewest dots across the narrowest camera's field of view.
 MIN_DOTS_ACROSS = 2
 
@@ -53,9 +57,11 @@ def default_board(rig: Rig, spacing_mm: float | None = None, tilt_deg: float | N
         spacing_mm = plate.dot_pitch_mm or min(3.0, 0.25 * min(vol.size_mm[0], vol.size_mm[1]))
     if tilt_deg is None:
         tilt_deg = plate.tilt_deg
-    least = max(MIN_DOT_LENSLETS * c.mla_pitch_mm / abs(c.magnification) for c in rig.camera)
+    least, unit = max((MIN_DOT_PIXELS * c.object_pixel_mm, f"{MIN_DOT_PIXELS} pixels") if is_pinhole(c) else
+                      (MIN_DOT_LENSLETS * c.mla_pitch_mm / abs(c.magnification), f"{MIN_DOT_LENSLETS} lenslets")
+                      for c in rig.camera)
     if spacing_mm < least:
-        raise ValueError(f"dots {spacing_mm:g} mm apart are closer than {MIN_DOT_LENSLETS} lenslets of the cameras "
+        raise ValueError(f"dots {spacing_mm:g} mm apart are closer than {unit} of the cameras "
                          f"({least:.3g} mm in the volume), where they cannot be told apart; use a spacing of at least "
                          f"{least:.2g} mm")
     most = min(min(c.field_of_view_mm) for c in rig.camera) / MIN_DOTS_ACROSS

@@ -43,8 +43,8 @@ from lfcore.chief_ray import diffraction_sigma_mm
 from lfcore.mla import nearest_lenslet, pixel_to_sensor, sensor_to_pixel
 from lfcore.rig import Camera
 
-__all__ = ["VIEW_PUPILS", "DotError", "Dots", "LensletCells", "ViewGeometry", "detect_dots", "lenslet_cells",
-           "lenslet_sums", "match_dots", "view_geometry", "view_pupils_mm"]
+__all__ = ["VIEW_PUPILS", "DotError", "Dots", "LensletCells", "ViewGeometry", "background_level", "detect_dots",
+           "lenslet_cells", "lenslet_sums", "match_dots", "view_geometry", "view_pupils_mm"]
 
 #: The views a dot is centred in, as the mean aperture point of the light each takes, in units
 #: of 4 R / (3 pi) (the centroid of a half disc of radius R): all the light (the chief ray),
@@ -282,7 +282,7 @@ def lenslet_sums(frame: np.ndarray, grid: MlaGrid, cells: LensletCells | None = 
         raise DotError(f"frame of {cols} x {rows} pixels does not match the white image's "
                        f"{grid.image_shape[1]} x {grid.image_shape[0]}")
     cells = lenslet_cells(grid) if cells is None else cells
-    bg, sig_px = _background(img)
+    bg, sig_px = background_level(img)
     v = img.ravel()[cells.pixels].astype(np.float64) - bg
     total, plus_x, plus_y = (_cell_sums(w, cells.starts) for w in (v, v * cells.wx, v * cells.wy))
     # a pixel's light is split between the two halves of each axis, so each minus half is
@@ -291,7 +291,7 @@ def lenslet_sums(frame: np.ndarray, grid: MlaGrid, cells: LensletCells | None = 
     return sums, max(sig_px, 1e-3) * float(np.sqrt(cells.npix_median))
 
 
-def _background(img: np.ndarray) -> tuple[float, float]:
+def background_level(img: np.ndarray) -> tuple[float, float]:
     """Median of ``img`` (the dark board fills most of a frame) and the noise sigma of one
     pixel (1.4826 times the median absolute deviation of the pixels at or below it).
 
@@ -308,6 +308,9 @@ def _background(img: np.ndarray) -> tuple[float, float]:
     bg = float(np.median(img))
     low = img[img <= bg]
     return bg, 1.4826 * float(np.median(bg - low)) if len(low) else 1.0
+
+
+_background = background_level  # the name it had before pinhole cameras needed it too
 
 
 def _hist_median(hist: np.ndarray, offset: float) -> float:

@@ -48,10 +48,12 @@ from calibration.dots import ViewGeometry, view_geometry
 from calibration.mla_grid import MlaGrid
 from lfcore.chief_ray import chief_ray_mla, defocus_radius_mm, image_scale, project
 from lfcore.mla import nearest_lenslet, pixel_to_sensor, sensor_to_pixel
-from lfcore.rig import Camera
+from lfcore.rig import AnyCamera, Camera, PinholeCamera, camera_from_dict
+from lfcore.soloff import SoloffMap
 from lfcore.target import DotBoard
 
-__all__ = ["CameraFit", "FitError", "PlaneDots", "clear_dots", "fit_camera", "rotation_deg_from_matrix"]
+__all__ = ["CameraFit", "FitError", "PlaneDots", "clear_dots", "fit_camera", "planes_with_dots",
+           "rotation_deg_from_matrix"]
 
 
 class FitError(ValueError):
@@ -90,7 +92,8 @@ class CameraFit:
     camera
         The fitted model.
     radial_k1
-        Fitted radial distortion (0 unless fitted; not part of :class:`Camera`).
+        Fitted radial distortion (0 unless fitted; not part of :class:`Camera`; a pinhole
+        camera's k1, which is part of it).
     rms_px
         RMS distance between found and projected dots (chief-ray view) over all planes, pixels,
         of the clear dots (all used dots if fewer than 3 are clear).
@@ -122,6 +125,11 @@ class CameraFit:
     residuals_px: list[np.ndarray] = field(repr=False)
     dropped: int = 0
     set_aside: int = 0
+    #: pinhole cameras: the third-order Soloff polynomial fitted to the same dots, its RMS over them
+    #: and per plane (NaN without dots), pixels
+    soloff: SoloffMap | None = None
+    soloff_rms_px: float = math.nan
+    soloff_plane_rms_px: np.ndarray | None = None
 
     def model_dict(self) -> dict[str, Any]:
         """The fitted camera as a rig-file ``[[camera]]`` table (JSON-compatible; keys without a
@@ -129,7 +137,27 @@ class CameraFit:
         return self.camera.model_dump(mode="json", exclude_none=True)
 
 
-class _PosedCamera(Camera):
+class _MatrixPose:
+    """What :class:`_PosedCamera` and its pinhole twin share: the rotation is a given matrix."""
+
+    _matrix: np.ndarray
+
+    @classmethod
+    def posed(cls, camera: AnyCamera, r: np.ndarray) -> Any:
+        out = cls.model_construct(**dict(camera))  # its fields are a validated camera's
+        out._matrix = np.array(r, dtype=np.float64)
+        return out
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return self._matrix.copy()
+
+    def plain(self) -> AnyCamera:
+        """The camera as stored (rotation from its Euler angles)."""
+        return camera_from_dict(dict(self))
+
+
+class _PosedCamera(_MatrixPose, Camera):
     """A camera whose rotation is a given matrix rather than the matrix of its Euler angles.
 
     Near ry = +-90 degrees (a second camera at 90 degrees) a turn smaller than about 1e-6 rad
@@ -143,19 +171,11 @@ class _PosedCamera(Camera):
 
     _matrix: np.ndarray = PrivateAttr(default=None)
 
-    @classmethod
-    def posed(cls, camera: Camera, r: np.ndarray) -> _PosedCamera:
-        out = cls.model_construct(**dict(camera))  # its fields are a validated camera's
-        out._matrix = np.array(r, dtype=np.float64)
-        return out
 
-    @property
-    def rotation(self) -> np.ndarray:
-        return self._matrix.copy()
+class _PosedPinhole(_MatrixPose, PinholeCamera):
+    """A pinhole camera posed by its exact rotation matrix (see :class:`_PosedCamera`)."""
 
-    def plain(self) -> Camera:
-        """The camera as stored (rotation from its Euler angles)."""
-        return Camera.model_validate(dict(self))
+    _matrix: np.ndarray = PrivateAttr(default=None)
 
 
 def rotation_deg_from_matrix(r: np.ndarray) -> tuple[float, float, float]:
@@ -237,6 +257,25 @@ def clear_dots(camera: Camera, board: DotBoard, indices: np.ndarray, stage_mm: f
         return (2.0 * blur >= min_blur_lenslets * pitch) & (gap >= min_gap_lenslets * pitch)
 
 
+def planes_with_dots(camera: str, board: DotBoard, planes: Sequence[PlaneDots], n_planes: int | None
+                     ) -> tuple[list[PlaneDots], int, list[np.ndarray]]:
+    """The planes that have dots, the number of planes (default: highest plane + 1) and each plane's
+    (m, 3) world dot centres, mm.
+
+    Raises
+    ------
+    FitError
+        Fewer than 8 dots on 2 planes, too few to fit a pose and a magnification.
+    """
+    planes = [p for p in planes if len(p.indices)]
+    total = sum(len(p.indices) for p in planes)
+    if total < 8 or len(planes) < 2:
+        raise FitError(f"camera '{camera}': {total} dot(s) on {len(planes)} plane(s); need at least 8 "
+                       "dots on 2 planes at different depths to fit the pose and magnification")
+    n_planes = max(p.plane for p in planes) + 1 if n_planes is None else n_planes
+    return planes, n_planes, [board.dot_centres(p.indices, p.stage_mm) for p in planes]
+
+
 def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], grid: MlaGrid | None = None, *,
                n_planes: int | None = None, fit_distortion: bool = False, max_lattice_points: int = 600,
                outlier_sigma: float = 5.0, min_blur_lenslets: float = 0.75, min_gap_lenslets: float = 0.25,
@@ -285,13 +324,7 @@ def fit_camera(nominal: Camera, board: DotBoard, planes: Sequence[PlaneDots], gr
     FitError
         Too few dots for the parameters, or a fit that does not converge.
     """
-    planes = [p for p in planes if len(p.indices)]
-    total = sum(len(p.indices) for p in planes)
-    if total < 8 or len(planes) < 2:
-        raise FitError(f"camera '{nominal.name}': {total} dot(s) on {len(planes)} plane(s); need at least 8 "
-                       "dots on 2 planes at different depths to fit the pose and magnification")
-    n_planes = max(p.plane for p in planes) + 1 if n_planes is None else n_planes
-    world = [board.dot_centres(p.indices, p.stage_mm) for p in planes]
+    planes, n_planes, world = planes_with_dots(nominal.name, board, planes, n_planes)
     found = [np.asarray(p.views_px, dtype=np.float64) for p in planes]  # (m, views, 2) each
     if views is None:
         views = view_geometry(nominal, wavelength_nm)  # what each view sees, for the nominal optics

@@ -6,6 +6,11 @@ The volumetric calibration's fit, step by step: find the dots of every plane tak
 (:func:`calibration.fit.fit_camera`), name the dots again with the fitted model (a nominal
 model can be a few dots off at the edges of the field of view) and fit again. Pure: images,
 stage positions, the microlens grid and the board in; the fit out.
+
+A pinhole (Tomo-PIV) camera takes the same steps with its own pieces: its dots are blobs
+(:func:`calibration.pinhole.detect_blobs`, no microlens grid), predicted by the pinhole model
+(:func:`lfcore.pinhole.project`), and fitted by :func:`calibration.pinhole.fit_pinhole` (the
+pinhole model with distortion, and the Soloff polynomial).
 """
 
 from __future__ import annotations
@@ -17,14 +22,22 @@ import numpy as np
 from calibration.dots import DotError, Dots, detect_dots, lenslet_cells, match_dots, view_geometry
 from calibration.fit import CameraFit, FitError, PlaneDots, fit_camera
 from calibration.mla_grid import MlaGrid
+from calibration.pinhole import detect_blobs, fit_pinhole
+from lfcore import pinhole
 from lfcore.chief_ray import project
-from lfcore.rig import Camera
+from lfcore.rig import AnyCamera, is_pinhole
 from lfcore.target import DotBoard
 
-__all__ = ["find_plane_dots", "fit_from_planes", "name_plane_dots"]
+__all__ = ["find_plane_dots", "fit_from_planes", "name_plane_dots", "predicted_px"]
 
 
-def find_plane_dots(frames, stage_mm: np.ndarray, grid: MlaGrid, *, camera: str) -> list[tuple[int, Dots]]:
+def predicted_px(model: AnyCamera, points_mm: np.ndarray) -> np.ndarray:
+    """(..., 2) where ``model`` images (..., 3) world points: the chief-ray view of a light-field
+    camera (:func:`lfcore.chief_ray.project`), the pinhole image of a pinhole one."""
+    return pinhole.project(model, points_mm) if is_pinhole(model) else project(model, points_mm)
+
+
+def find_plane_dots(frames, stage_mm: np.ndarray, grid: MlaGrid | None, *, camera: str) -> list[tuple[int, Dots]]:
     """The dots of every plane taken, found once (naming them needs a model).
 
     Parameters
@@ -34,7 +47,8 @@ def find_plane_dots(frames, stage_mm: np.ndarray, grid: MlaGrid, *, camera: str)
     stage_mm
         (planes,) stage readback of each plane, mm; NaN for a plane not taken.
     grid
-        The camera's microlens grid (from its white image).
+        The camera's microlens grid (from its white image); None for a pinhole camera, whose
+        dots are blobs (:func:`calibration.pinhole.detect_blobs`).
     camera
         The camera's name, for the messages.
 
@@ -43,17 +57,18 @@ def find_plane_dots(frames, stage_mm: np.ndarray, grid: MlaGrid, *, camera: str)
     FitError
         A plane whose dots cannot be found, naming the camera and the plane.
     """
-    cells = lenslet_cells(grid)
+    cells = lenslet_cells(grid) if grid is not None else None
     out = []
     for p in np.flatnonzero(np.isfinite(stage_mm)):
         try:
-            out.append((int(p), detect_dots(frames[int(p)], grid, cells=cells)))
+            frame = frames[int(p)]
+            out.append((int(p), detect_dots(frame, grid, cells=cells) if grid is not None else detect_blobs(frame)))
         except DotError as exc:
             raise FitError(f"camera '{camera}', plane {p + 1} of {len(stage_mm)}: {exc}") from None
     return out
 
 
-def name_plane_dots(model: Camera, board: DotBoard, detected: list[tuple[int, Dots]], stage_mm: np.ndarray, *,
+def name_plane_dots(model: AnyCamera, board: DotBoard, detected: list[tuple[int, Dots]], stage_mm: np.ndarray, *,
                     min_dots: int, camera: str) -> list[PlaneDots]:
     """Name the dots of every plane on the board, where ``model`` predicts them.
 
@@ -90,7 +105,7 @@ def name_plane_dots(model: Camera, board: DotBoard, detected: list[tuple[int, Do
                            f"dot seen; the plane is {abs(depth):.2f} mm {'in front of' if depth > 0 else 'behind'} "
                            "the camera's focus, likely beyond its depth of field: take planes nearer the focus (a "
                            "smaller --step-mm or fewer --planes), or check the target's lighting")
-        found, which = match_dots(dots, project(model, board.dot_centres(ij, stage_mm[p])), ij)
+        found, which = match_dots(dots, predicted_px(model, board.dot_centres(ij, stage_mm[p])), ij)
         if len(found) < min_dots:
             raise FitError(f"camera '{camera}', plane {p + 1} of {len(stage_mm)} (stage {stage_mm[p]:.4f} mm): "
                            f"{len(found)} dot(s) found and named (of {len(dots)} seen), need at least "
@@ -99,7 +114,7 @@ def name_plane_dots(model: Camera, board: DotBoard, detected: list[tuple[int, Do
     return out
 
 
-def fit_from_planes(nominal: Camera, board: DotBoard, frames, stage_mm: np.ndarray, grid: MlaGrid, *,
+def fit_from_planes(nominal: AnyCamera, board: DotBoard, frames, stage_mm: np.ndarray, grid: MlaGrid | None, *,
                     wavelength_nm: float, fit_distortion: bool = False, min_dots: int = 2) -> CameraFit:
     """Find, name and fit, then name again with the fitted model and refit (module docstring).
 
@@ -112,11 +127,11 @@ def fit_from_planes(nominal: Camera, board: DotBoard, frames, stage_mm: np.ndarr
     frames, stage_mm
         As :func:`find_plane_dots`.
     grid
-        The camera's microlens grid.
+        The camera's microlens grid (None for a pinhole camera).
     wavelength_nm
         The light the target was imaged in (the views' diffraction).
     fit_distortion
-        Also fit a radial distortion k1.
+        Also fit a radial distortion k1 (a pinhole camera always fits k1, k2, p1 and p2).
     min_dots
         Fewest named dots accepted in a plane.
 
@@ -126,8 +141,12 @@ def fit_from_planes(nominal: Camera, board: DotBoard, frames, stage_mm: np.ndarr
         Dots that cannot be found or named, too few of them, or a fit that fails, in one line
         naming the camera.
     """
-    detected = find_plane_dots(frames, stage_mm, grid, camera=nominal.name)
+    detected = find_plane_dots(frames, stage_mm, None if is_pinhole(nominal) else grid, camera=nominal.name)
     planes = name_plane_dots(nominal, board, detected, stage_mm, min_dots=min_dots, camera=nominal.name)
+    if is_pinhole(nominal):
+        fit = fit_pinhole(nominal, board, planes, n_planes=len(stage_mm))
+        planes = name_plane_dots(fit.camera, board, detected, stage_mm, min_dots=min_dots, camera=nominal.name)
+        return fit_pinhole(nominal, board, planes, n_planes=len(stage_mm))
     opts = {"n_planes": len(stage_mm), "fit_distortion": fit_distortion, "wavelength_nm": wavelength_nm,
             "views": view_geometry(nominal, wavelength_nm)}
     fit = fit_camera(nominal, board, planes, grid, **opts)

@@ -14,7 +14,13 @@ Layout::
       <camera>/planes/stage_mm   float64 (planes,): stage readback, NaN while not yet taken
       <camera>/planes/target_mm  float64 (planes,): where the stage was sent
       <camera>/model          attrs only: the fitted camera model (when fitted): camera (a
-                              rig-file [[camera]] table), rms_px, plane_rms_px, plane_dots, ...
+                              rig-file [[camera]] table), rms_px, plane_rms_px, plane_dots, ...;
+                              a pinhole camera's also its Soloff polynomial (soloff, soloff_rms_px,
+                              soloff_plane_rms_px)
+      <camera>/selfcal        pinhole cameras, after a volume self-calibration: attrs camera (the
+                              corrected model), soloff (corrected), the run, frames, rms_px and
+                              max_px per pass; disparity_px float32 (passes, nz, ny, nx, 2) the
+                              disparity maps, matches int64 (passes, nz, ny, nx)
 
 Root attrs ``target`` hold the dot board (:class:`lfcore.target.DotBoard`) of the planes.
 
@@ -33,7 +39,7 @@ import numpy as np
 import zarr
 
 from calibration.mla_grid import MlaGrid
-from lfcore.rig import Camera, Rig, rotation_angle_deg
+from lfcore.rig import Rig, camera_from_dict, is_pinhole, rotation_angle_deg
 from lfcore.runstore import FRAME_CODEC
 from lfcore.target import DotBoard
 from lfcore.zarrstore import RigStore, described_array
@@ -265,17 +271,70 @@ class CalibrationStore(RigStore):
         t = self.group.attrs.get("target")
         return DotBoard.from_dict(t) if t else None
 
-    def write_model(self, camera: str, model: dict[str, Any], stats: dict[str, Any]) -> None:
-        """Store ``camera``'s fitted model (a rig-file camera table) and its fit statistics."""
+    def write_model(self, camera: str, model: dict[str, Any], stats: dict[str, Any]) -> bool:
+        """Store ``camera``'s fitted model (a rig-file camera table) and its fit statistics.
+
+        A self-calibration of ``camera`` is removed: it corrected the earlier model.
+
+        Returns
+        -------
+        bool
+            Whether a self-calibration was removed.
+        """
+        stale = "selfcal" in self._camera(camera)
+        if stale:
+            del self._camera(camera)["selfcal"]
         g = self._camera(camera).require_group("model")
         g.attrs.update({"camera": model, **stats,
                         "description": "fitted camera model (rig-file [[camera]] table) and its reprojection "
                                        "RMS (px) over all planes and per plane (NaN: no dots)"})
+        return stale
 
     def model(self, camera: str) -> dict[str, Any] | None:
         """The fitted model attrs of ``camera`` (``camera``: the rig-file table, rms_px, ...), or None."""
         g = self._camera(camera)
         return dict(g["model"].attrs) if "model" in g else None
+
+    def write_selfcal(self, camera: str, model: dict[str, Any], stats: dict[str, Any], maps_px: np.ndarray,
+                      matches: np.ndarray) -> None:
+        """Store a pinhole camera's self-calibrated model and the disparity maps that corrected it.
+
+        Parameters
+        ----------
+        camera
+            The camera's name.
+        model
+            The corrected model (a rig-file camera table).
+        stats
+            JSON-compatible attributes: the run, frames, rms_px and max_px per pass, ...
+        maps_px
+            (passes, nz, ny, nx, 2) this camera's disparity map of each pass, pixels.
+        matches
+            (passes, nz, ny, nx) matched particles per sub-volume.
+        """
+        g = self._camera(camera)
+        if "model" not in g:
+            raise CalibrationStoreError(f"camera '{camera}' has no fitted model in {self.path} to self-calibrate; "
+                                        "run 'lfpiv calibrate fit' first")
+        if "selfcal" in g:
+            del g["selfcal"]
+        sc = g.create_group("selfcal")
+        sc.attrs.update({"camera": model, **stats,
+                         "description": "volume self-calibration (Wieneke 2008): the model corrected by the "
+                                        "disparity maps of a recording's particles; pass 0 before, the last after"})
+        m = np.asarray(maps_px, dtype=np.float32)
+        described_array(sc, "disparity_px", "px", ["pass", "z", "y", "x", "column_row"], "disparity of each "
+                        "sub-volume (particle minus the model's image of the triangulated point); NaN: too few "
+                        "matches", shape=m.shape, chunks=m.shape, dtype=np.float32, fill_value=np.nan)[...] = m
+        n = np.asarray(matches, dtype=np.int64)
+        described_array(sc, "matches", "1", ["pass", "z", "y", "x"], "matched particles (true and ghost) per "
+                        "sub-volume", shape=n.shape, chunks=n.shape, dtype=np.int64)[...] = n
+
+    def selfcal(self, camera: str) -> dict[str, Any] | None:
+        """The self-calibration attrs of ``camera`` (``camera``: the corrected model, rms_px, ...),
+        or None."""
+        g = self._camera(camera)
+        return dict(g["selfcal"].attrs) if "selfcal" in g else None
 
     def fitted_rig(self) -> Rig:
         """The store's rig with every fitted camera replaced by its model.
@@ -289,7 +348,7 @@ class CalibrationStore(RigStore):
         cams = []
         for cam in rig.camera:
             m = self.model(cam.name)
-            cams.append(Camera.model_validate(m["camera"]) if m else cam)
+            cams.append(camera_from_dict(m["camera"]) if m else cam)
         if all(self.model(c.name) is None for c in rig.camera):
             raise CalibrationStoreError(f"{self.path} holds no fitted camera model; run 'lfpiv calibrate fit'")
         return rig.model_copy(update={"camera": tuple(cams)})
@@ -303,7 +362,9 @@ class CalibrationStore(RigStore):
         for name in self.cameras:
             g = self._camera(name)
             white = self.white(name)
-            if white is None:
+            if is_pinhole(self.rig.camera_named(name)):
+                lines.append(f"  {name}: pinhole camera (no microlenses, no white image)")
+            elif white is None:
                 lines.append(f"  {name}: no white image (run 'lfpiv calibrate mla')")
             else:
                 lines.append(f"  {name}: white image {white.shape[1]} x {white.shape[0]} px, "
@@ -331,15 +392,29 @@ class CalibrationStore(RigStore):
                 # Near ry = +-90 deg, rx and rz of R = Rz Ry Rx act about nearly one axis, so a tiny
                 # turn moves both a lot (gimbal lock): the angle from the rig file's pose says more.
                 turn = rotation_angle_deg(self.rig.camera_named(name).rotation_deg, c["rotation_deg"])
-                lines.append(f"  {name}: fitted model: magnification {c['magnification']:.5f}, rotation "
-                             f"{[round(v, 4) for v in c['rotation_deg']]} deg ({turn:.4f} deg from the rig "
-                             f"file's), focus "
-                             f"{[round(v, 4) for v in c['focus_mm']]} mm, MLA offset "
-                             f"({c['mla_offset_um'][0]:+.3f}, {c['mla_offset_um'][1]:+.3f}) um, rotation "
-                             f"{c['mla_rotation_deg']:+.4f} deg")
-                lines.append(f"  {name}: reprojection RMS {m['rms_px']:.4f} px over {sum(m['plane_dots'])} dots "
-                             f"on {sum(1 for n in m['plane_dots'] if n)} planes (white-image lattice "
-                             f"{m['lattice_rms_px']:.4f} px)")
+                pose = (f"magnification {c['magnification']:.5f}, rotation {[round(v, 4) for v in c['rotation_deg']]} "
+                        f"deg ({turn:.4f} deg from the rig file's), focus {[round(v, 4) for v in c['focus_mm']]} mm")
+                dots = f"over {sum(m['plane_dots'])} dots on {sum(1 for n in m['plane_dots'] if n)} planes"
+                if c.get("kind") == "pinhole":
+                    pp = c["principal_point_px"]
+                    lines.append(f"  {name}: fitted pinhole model: {pose}, principal point ({pp[0]:+.3f}, "
+                                 f"{pp[1]:+.3f}) px from the sensor centre, k1 {c['k1']:+.3g} k2 {c['k2']:+.3g} "
+                                 f"p1 {c['p1']:+.3g} p2 {c['p2']:+.3g}")
+                    lines.append(f"  {name}: reprojection RMS {m['rms_px']:.4f} px (pinhole), "
+                                 f"{m['soloff_rms_px']:.4f} px (Soloff polynomial, cubic in x and y, quadratic in z) "
+                                 f"{dots}")
+                else:
+                    lines.append(f"  {name}: fitted model: {pose}, MLA offset "
+                                 f"({c['mla_offset_um'][0]:+.3f}, {c['mla_offset_um'][1]:+.3f}) um, rotation "
+                                 f"{c['mla_rotation_deg']:+.4f} deg")
+                    lines.append(f"  {name}: reprojection RMS {m['rms_px']:.4f} px {dots} (white-image lattice "
+                                 f"{m['lattice_rms_px']:.4f} px)")
+                sc = self.selfcal(name)
+                if sc is not None:
+                    rms, mine = sc["rms_px"], sc.get("camera_rms_px", sc["rms_px"])
+                    lines.append(f"  {name}: self-calibrated on {sc['run']} ({sc['frames']} frames): its disparity "
+                                 f"RMS {mine[0]:.3f} -> {mine[-1]:.3f} px (all cameras {rms[0]:.3f} -> {rms[-1]:.3f} "
+                                 f"px) over {len(rms) - 1} correction(s)")
             else:
                 lines.append(f"  {name}: no fitted camera model yet")
         return lines
@@ -350,6 +425,8 @@ def _first_change(stored: Rig, rig: Rig) -> str | None:
     for old in stored.camera:
         new = rig.camera_named(old.name)
         a, b = old.model_dump(exclude={"serial"}), new.model_dump(exclude={"serial"})
+        if a["kind"] != b["kind"]:
+            return f"camera '{old.name}' kind {a['kind']} in the store, {b['kind']} now"
         for key in a:
             if a[key] != b[key]:
                 return f"camera '{old.name}' {key} {a[key]} in the store, {b[key]} now"

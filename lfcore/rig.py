@@ -10,11 +10,18 @@ seconds for time. A camera's pose is its rotation and the world point its focal 
 centred on; the rotation R = Rz(rz) Ry(ry) Rx(rx) maps camera-frame vectors to world vectors.
 In the camera frame the optical axis is +z, the main lens sits at ``z = so`` looking toward -z,
 and depth ``dz`` is positive toward the camera.
+
+A camera is of one of two kinds (``kind`` in its ``[[camera]]`` table): a plenoptic
+:class:`Camera` (``"lightfield"``, the default) or a conventional Tomo-PIV :class:`PinholeCamera`
+(``"pinhole"``). Both share the pose, the sensor and the thin-lens distances; only the
+light-field camera has a microlens array, and code that needs one refuses a pinhole camera with
+a one-line :class:`NotLightFieldError` naming it.
 """
 
 from __future__ import annotations
 
 import difflib
+import functools
 import json
 import math
 import re
@@ -22,11 +29,24 @@ from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    TypeAdapter,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 __all__ = [
     "MAX_RAYS_PER_PARTICLE",
+    "AnyCamera",
     "Camera",
+    "NotLightFieldError",
+    "PinholeCamera",
     "LaserConfig",
     "PulseGeneratorConfig",
     "RenderConfig",
@@ -36,6 +56,9 @@ __all__ = [
     "TargetConfig",
     "TimingConfig",
     "VolumeConfig",
+    "camera_from_dict",
+    "is_pinhole",
+    "require_lightfield",
     "rotation_angle_deg",
     "rotation_matrix",
     "voxel_shape_warnings",
@@ -70,6 +93,16 @@ DEEP_VOXEL_RATIO = 2.0
 
 class RigError(ValueError):
     """A rig description that cannot be used; the message is one line naming the key."""
+
+
+class NotLightFieldError(ValueError):
+    """Light-field optics (microlens array, white image, DRT weights) asked of a pinhole camera;
+    one line naming the camera."""
+
+
+class _NoSuchOptics(NotLightFieldError, AttributeError):
+    """A light-field attribute read from a pinhole camera (an AttributeError too, so ``hasattr``
+    and ``getattr(..., default)`` keep working)."""
 
 
 class _Strict(BaseModel):
@@ -112,7 +145,98 @@ def rotation_angle_deg(a_deg: tuple[float, float, float], b_deg: tuple[float, fl
     return float(np.degrees(math.atan2(0.5 * np.linalg.norm(axis), 0.5 * (np.trace(r) - 1.0))))
 
 
-class Camera(_Strict):
+def _check_name(v: str) -> str:
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]{0,31}", v):
+        raise ValueError("must be 1-32 letters, digits, '_' or '-', starting with a letter")
+    if v in RESERVED_NAMES:
+        raise ValueError(f"'{v}' is reserved by the run store; choose another name")
+    return v
+
+
+class _Posed:
+    """What every kind of camera derives alike from its pose, sensor and thin-lens distances.
+
+    Thin lens of focal length F (:attr:`lens_focal_length_mm`) at magnification M < 0: image
+    distance si = F (1 - M), object distance so = si / (-M). The camera frame has its origin at
+    the focus point, +z toward the lens (which sits at z = so).
+    """
+
+    # each kind declares the fields used here: sensor_px, pixel_pitch_um, magnification,
+    # rotation_deg and focus_mm (annotations here would become fields, first in every dump)
+
+    @property
+    def lens_focal_length_mm(self) -> float:  # pragma: no cover - each kind defines it
+        raise NotImplementedError
+
+    @property
+    def image_distance_mm(self) -> float:
+        """si = F (1 - M): lens to the image plane (the MLA, or a pinhole camera's sensor)."""
+        return self.lens_focal_length_mm * (1.0 - self.magnification)
+
+    @property
+    def object_distance_mm(self) -> float:
+        """so = si / (-M): lens to the focal plane."""
+        return self.image_distance_mm / -self.magnification
+
+    @property
+    def pixel_mm(self) -> float:
+        return self.pixel_pitch_um * 1e-3
+
+    @property
+    def object_pixel_mm(self) -> float:
+        """Size of one pixel projected onto the focal plane, pixel pitch / |M|."""
+        return self.pixel_mm / abs(self.magnification)
+
+    @property
+    def sensor_size_mm(self) -> tuple[float, float]:
+        """(width, height) of the sensor."""
+        return (self.sensor_px[0] * self.pixel_mm, self.sensor_px[1] * self.pixel_mm)
+
+    @property
+    def field_of_view_mm(self) -> tuple[float, float]:
+        """(width, height) of the focal plane seen by the sensor."""
+        w, h = self.sensor_size_mm
+        m = abs(self.magnification)
+        return (w / m, h / m)
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """(3, 3) camera-to-world rotation matrix."""
+        return rotation_matrix(self.rotation_deg)
+
+    @property
+    def optical_axis(self) -> np.ndarray:
+        """World direction from the focal plane toward the camera (camera +z)."""
+        return self.rotation[:, 2].copy()
+
+    @property
+    def lens_centre_mm(self) -> np.ndarray:
+        """(3,) world position of the lens centre (a pinhole camera's projection centre)."""
+        return np.asarray(self.focus_mm, dtype=np.float64) + self.object_distance_mm * self.optical_axis
+
+    def world_to_camera(self, points_mm: np.ndarray) -> np.ndarray:
+        """World points to the camera frame (origin at the focus point, +z toward the lens).
+
+        Parameters
+        ----------
+        points_mm
+            (..., 3) world coordinates in mm, last axis (x, y, z).
+
+        Returns
+        -------
+        numpy.ndarray
+            (..., 3) camera-frame coordinates in mm; the last component is the depth dz.
+        """
+        p = np.asarray(points_mm, dtype=np.float64) - np.asarray(self.focus_mm)
+        return p @ self.rotation  # row-vector form of R^T p
+
+    def camera_to_world(self, points_mm: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`world_to_camera`."""
+        p = np.asarray(points_mm, dtype=np.float64)
+        return p @ self.rotation.T + np.asarray(self.focus_mm)
+
+
+class Camera(_Posed, _Strict):
     """One unfocused plenoptic (light-field) camera: main lens, microlens array, sensor.
 
     Thin-lens model: main-lens focal length F, magnification M < 0, image distance
@@ -120,6 +244,8 @@ class Camera(_Strict):
     behind the main lens, the sensor one lenslet focal length f_ml behind the MLA.
     """
 
+    #: ``"lightfield"``, the default kind of a ``[[camera]]`` table (see :class:`PinholeCamera`)
+    kind: Literal["lightfield"] = "lightfield"
     name: str
     # up to 32768 a side: the largest scientific sensors are about 14,000 px wide
     sensor_px: tuple[Annotated[int, Field(ge=8, le=32768)], Annotated[int, Field(ge=8, le=32768)]]
@@ -142,11 +268,7 @@ class Camera(_Strict):
     @field_validator("name")
     @classmethod
     def _name_ok(cls, v: str) -> str:
-        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]{0,31}", v):
-            raise ValueError("must be 1-32 letters, digits, '_' or '-', starting with a letter")
-        if v in RESERVED_NAMES:
-            raise ValueError(f"'{v}' is reserved by the run store; choose another name")
-        return v
+        return _check_name(v)
 
     @model_validator(mode="after")
     def _optics_possible(self) -> Camera:
@@ -166,20 +288,15 @@ class Camera(_Strict):
 
     # --- derived optics (mm unless the name says otherwise) -----------------------------
     @property
+    def lens_focal_length_mm(self) -> float:
+        """F of the thin lens that forms the image: the main lens."""
+        return self.main_focal_length_mm
+
+    @property
     def lenslets_across(self) -> tuple[float, float]:
         """Lenslets across the sensor (columns, rows): sensor_px x pixel_pitch_um / mla_pitch_um."""
         cols, rows = self.sensor_px
         return cols / self.pixels_per_lenslet, rows / self.pixels_per_lenslet
-
-    @property
-    def image_distance_mm(self) -> float:
-        """si = F (1 - M): main lens to MLA."""
-        return self.main_focal_length_mm * (1.0 - self.magnification)
-
-    @property
-    def object_distance_mm(self) -> float:
-        """so = si / (-M): main lens to the focal plane."""
-        return self.image_distance_mm / -self.magnification
 
     @property
     def aperture_mm(self) -> float:
@@ -197,10 +314,6 @@ class Camera(_Strict):
         return self.mla_focal_length_um / self.mla_pitch_um
 
     @property
-    def pixel_mm(self) -> float:
-        return self.pixel_pitch_um * 1e-3
-
-    @property
     def mla_pitch_mm(self) -> float:
         return self.mla_pitch_um * 1e-3
 
@@ -209,25 +322,8 @@ class Camera(_Strict):
         return self.mla_focal_length_um * 1e-3
 
     @property
-    def object_pixel_mm(self) -> float:
-        """Size of one pixel projected onto the focal plane, pixel pitch / |M|."""
-        return self.pixel_mm / abs(self.magnification)
-
-    @property
     def pixels_per_lenslet(self) -> float:
         return self.mla_pitch_um / self.pixel_pitch_um
-
-    @property
-    def sensor_size_mm(self) -> tuple[float, float]:
-        """(width, height) of the sensor."""
-        return (self.sensor_px[0] * self.pixel_mm, self.sensor_px[1] * self.pixel_mm)
-
-    @property
-    def field_of_view_mm(self) -> tuple[float, float]:
-        """(width, height) of the focal plane seen by the sensor."""
-        w, h = self.sensor_size_mm
-        m = abs(self.magnification)
-        return (w / m, h / m)
 
     @property
     def depth_per_lenslet_mm(self) -> float:
@@ -237,37 +333,6 @@ class Camera(_Strict):
         magnification M^2), so one pitch is reached at p_ml si / (D M^2).
         """
         return self.mla_pitch_mm * self.image_side_f_number / self.magnification**2
-
-    @property
-    def rotation(self) -> np.ndarray:
-        """(3, 3) camera-to-world rotation matrix."""
-        return rotation_matrix(self.rotation_deg)
-
-    @property
-    def optical_axis(self) -> np.ndarray:
-        """World direction from the focal plane toward the camera (camera +z)."""
-        return self.rotation[:, 2].copy()
-
-    def world_to_camera(self, points_mm: np.ndarray) -> np.ndarray:
-        """World points to the camera frame (origin at the focus point, +z toward the lens).
-
-        Parameters
-        ----------
-        points_mm
-            (..., 3) world coordinates in mm, last axis (x, y, z).
-
-        Returns
-        -------
-        numpy.ndarray
-            (..., 3) camera-frame coordinates in mm; the last component is the depth dz.
-        """
-        p = np.asarray(points_mm, dtype=np.float64) - np.asarray(self.focus_mm)
-        return p @ self.rotation  # row-vector form of R^T p
-
-    def camera_to_world(self, points_mm: np.ndarray) -> np.ndarray:
-        """Inverse of :meth:`world_to_camera`."""
-        p = np.asarray(points_mm, dtype=np.float64)
-        return p @ self.rotation.T + np.asarray(self.focus_mm)
 
     def optics_warnings(self) -> list[str]:
         """Human-readable warnings about optics that work but are not as intended."""
@@ -295,6 +360,173 @@ class Camera(_Strict):
                 f"set f_number = {matched:.3g} to match"
             )
         return out
+
+
+class PinholeCamera(_Posed, _Strict):
+    """One conventional (Tomo-PIV) camera: a thin lens imaging the volume onto the sensor,
+    modelled as a pinhole with lens distortion (``kind = "pinhole"``).
+
+    Same pose and distances as :class:`Camera`: focal length F, magnification M < 0 (or, in the
+    rig file, ``object_distance_mm`` so instead, M = -F / (so - F)), image distance
+    si = F (1 - M) from the lens (the projection centre, :attr:`lens_centre_mm`) to the sensor.
+    The depth of field is taken to hold the whole volume (a Tomo-PIV lens stopped down for it).
+
+    The image of a point is the pinhole image moved by the Brown-Conrady distortion of
+    OpenCV's model, ``k1``, ``k2`` (radial) and ``p1``, ``p2`` (tangential), applied to the
+    normalised image coordinates (x, y) = ((column - cx) / f_px, (row - cy) / f_px), x to the
+    right and y down the image as OpenCV has them; f_px = si / pixel pitch, and (cx, cy) the
+    sensor centre plus ``principal_point_px``. Coefficients from an OpenCV calibration of the
+    same camera therefore carry over. See :mod:`lfcore.pinhole` for the projection and the line
+    of sight of a pixel.
+    """
+
+    kind: Literal["pinhole"]
+    name: str
+    sensor_px: tuple[Annotated[int, Field(ge=8, le=32768)], Annotated[int, Field(ge=8, le=32768)]]
+    pixel_pitch_um: PositiveFloat
+    focal_length_mm: PositiveFloat
+    magnification: Annotated[float, Field(lt=0, allow_inf_nan=False)]
+    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    focus_mm: Vec3 = (0.0, 0.0, 0.0)
+    #: where the optical axis meets the sensor, from the sensor centre, (columns, rows) pixels
+    principal_point_px: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+    k1: FiniteFloat = 0.0
+    k2: FiniteFloat = 0.0
+    p1: FiniteFloat = 0.0
+    p2: FiniteFloat = 0.0
+    serial: str | None = None
+    #: Bits per pixel of the real sensor (full scale 2**bit_depth - 1); a simulated pinhole
+    #: camera saturates there too (or at ``[render]``'s bit depth, whichever is lower).
+    bit_depth: Annotated[int, Field(ge=8, le=16)] = 16
+
+    @field_validator("name")
+    @classmethod
+    def _name_ok(cls, v: str) -> str:
+        return _check_name(v)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _from_object_distance(cls, data: Any) -> Any:
+        """``object_distance_mm`` (the lens-to-focal-plane distance a Tomo-PIV user measures)
+        in place of ``magnification``: M = -F / (so - F)."""
+        if not isinstance(data, dict):
+            return data
+        # validation goes on in Python mode after this, where strict tuples refuse JSON's lists
+        data = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+        if "object_distance_mm" not in data:
+            return data
+        so = data.pop("object_distance_mm")
+        if "magnification" in data:
+            raise ValueError("give magnification or object_distance_mm, not both")
+        f = data.get("focal_length_mm")
+        if isinstance(so, int | float) and isinstance(f, int | float) and f > 0:
+            if not (math.isfinite(so) and so > f):
+                raise ValueError(f"object_distance_mm must be beyond the focal length ({f:g} mm), got {so:g}")
+            data["magnification"] = -f / (so - f)
+        return data
+
+    @property
+    def lens_focal_length_mm(self) -> float:
+        """F of the lens."""
+        return self.focal_length_mm
+
+    @property
+    def main_focal_length_mm(self) -> float:
+        """F of the lens (the name the light-field camera gives it)."""
+        return self.focal_length_mm
+
+    @property
+    def focal_length_px(self) -> float:
+        """si / pixel pitch: the pinhole's focal length in pixels (OpenCV's fx = fy)."""
+        return self.image_distance_mm / self.pixel_mm
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        """(cx, cy): continuous (column, row) pixel coordinates of the principal point."""
+        (dx, dy), (cols, rows) = self.principal_point_px, self.sensor_px
+        return (0.5 * cols + dx, 0.5 * rows + dy)
+
+    @property
+    def distortion(self) -> tuple[float, float, float, float]:
+        """(k1, k2, p1, p2), OpenCV's order."""
+        return (self.k1, self.k2, self.p1, self.p2)
+
+    def optics_warnings(self) -> list[str]:
+        """Human-readable warnings about optics that work but are not as intended."""
+        out = []
+        w, h = self.sensor_px
+        if abs(self.principal_point_px[0]) > 0.5 * w or abs(self.principal_point_px[1]) > 0.5 * h:
+            out.append(f"camera '{self.name}': the principal point is off the sensor (principal_point_px = "
+                       f"{list(self.principal_point_px)} from its centre); check the sign and the units (pixels)")
+        return out
+
+    def __getattr__(self, item: str) -> Any:
+        if item in _lightfield_only():
+            raise _NoSuchOptics(f"camera '{self.name}' is a pinhole camera: it has no {item} (light-field optics); "
+                                "use a light-field camera here, or leave this camera out")
+        return super().__getattr__(item)
+
+
+@functools.cache
+def _lightfield_only() -> frozenset[str]:
+    """Public attributes of a light-field camera that a pinhole camera lacks."""
+    return frozenset(n for n in dir(Camera) if not n.startswith("_") and not hasattr(PinholeCamera, n)) | frozenset(
+        n for n in Camera.model_fields if n not in PinholeCamera.model_fields)
+
+
+#: A camera of either kind.
+AnyCamera = Camera | PinholeCamera
+
+
+def is_pinhole(camera: Any) -> bool:
+    """Whether ``camera`` is a pinhole (Tomo-PIV) camera."""
+    return getattr(camera, "kind", "lightfield") == "pinhole"
+
+
+def require_lightfield(camera: Any, what: str) -> Camera:
+    """``camera``, if it is a light-field camera.
+
+    Parameters
+    ----------
+    camera
+        A camera of either kind.
+    what
+        What needs the light-field optics, for the message (e.g. ``"a white image"``).
+
+    Raises
+    ------
+    NotLightFieldError
+        A pinhole camera, in one line naming it and ``what``.
+    """
+    if is_pinhole(camera):
+        raise NotLightFieldError(f"camera '{camera.name}' is a pinhole camera: {what} needs a light-field camera "
+                                 "(microlens array)")
+    return camera
+
+
+def _camera_kind(value: Any) -> str:
+    """The tag of a ``[[camera]]`` table or camera object: its ``kind``, light-field by default."""
+    if isinstance(value, dict):
+        kind = value.get("kind", "lightfield")
+        return kind if isinstance(kind, str) else repr(kind)
+    return getattr(value, "kind", "lightfield")
+
+
+_KINDS = "kind must be 'lightfield' (the default) or 'pinhole'"
+_CameraOfKind = Annotated[Annotated[Camera, Tag("lightfield")] | Annotated[PinholeCamera, Tag("pinhole")],
+                          Discriminator(_camera_kind, custom_error_type="camera_kind", custom_error_message=_KINDS)]
+_CAMERA_ADAPTER: TypeAdapter = TypeAdapter(_CameraOfKind)
+
+
+def camera_from_dict(data: dict[str, Any]) -> AnyCamera:
+    """A camera of either kind from its ``[[camera]]`` table (as :meth:`Rig.to_dict` writes it).
+
+    Raises
+    ------
+    pydantic.ValidationError
+        A table that is not a valid camera.
+    """
+    return _CAMERA_ADAPTER.validate_python(data)
 
 
 class VolumeConfig(_Strict):
@@ -418,6 +650,10 @@ class RenderConfig(_Strict):
     #: white, and the integer accumulation of the renderer overflows
     particle_counts: Annotated[float, Field(gt=0, le=1e9, allow_inf_nan=False)] = 50000.0
     particle_diameter_um: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+    #: Diameter (at 1/e^2 of the peak) of a particle's Gaussian image on a pinhole camera's
+    #: sensor, pixels: Tomo-PIV's usual 2-3 px, what diffraction at the working f-number gives
+    #: (light-field cameras trace their rays instead and ignore it)
+    particle_image_px: Annotated[float, Field(gt=0, le=64, allow_inf_nan=False)] = 3.0
     diffraction: bool = True
     background_counts: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 100.0
     gain_e_per_count: PositiveFloat = 1.0
@@ -452,7 +688,7 @@ class Rig(_Strict):
     #: standard GENICAM_GENTL64_PATH environment variable is searched.
     gentl_producers: tuple[str, ...] = ()
     volume: VolumeConfig
-    camera: Annotated[tuple[Camera, ...], Field(min_length=1)]
+    camera: Annotated[tuple[_CameraOfKind, ...], Field(min_length=1)]
     laser: LaserConfig = LaserConfig()
     timing: TimingConfig = TimingConfig()
     stage: StageConfig = StageConfig()
@@ -470,19 +706,29 @@ class Rig(_Strict):
         corners = np.asarray(self.volume.centre_mm) + corners * np.asarray(self.volume.size_mm)
         for cam in self.camera:
             nearest = cam.object_distance_mm - cam.world_to_camera(corners)[:, 2].max()
-            if nearest <= cam.main_focal_length_mm:
+            if nearest <= cam.lens_focal_length_mm:
                 raise ValueError(
                     f"the volume reaches within the focal length of camera '{cam.name}' "
-                    f"(nearest point {nearest:.1f} mm from its lens, F = {cam.main_focal_length_mm} mm); "
+                    f"(nearest point {nearest:.1f} mm from its lens, F = {cam.lens_focal_length_mm} mm); "
                     "shrink volume.size_mm or move the camera back"
                 )
         return self
 
     @property
-    def cameras(self) -> tuple[Camera, ...]:
+    def cameras(self) -> tuple[AnyCamera, ...]:
         return self.camera
 
-    def camera_named(self, name: str) -> Camera:
+    @property
+    def lightfield_cameras(self) -> tuple[Camera, ...]:
+        """The light-field cameras, in rig order."""
+        return tuple(c for c in self.camera if not is_pinhole(c))
+
+    @property
+    def pinhole_cameras(self) -> tuple[PinholeCamera, ...]:
+        """The pinhole (Tomo-PIV) cameras, in rig order."""
+        return tuple(c for c in self.camera if is_pinhole(c))
+
+    def camera_named(self, name: str) -> AnyCamera:
         for cam in self.camera:
             if cam.name == name:
                 return cam
@@ -583,18 +829,20 @@ def _plain(value: Any) -> Any:
 
 #: The tables of a rig file and the model of each, to suggest the key a misspelt one meant.
 _TABLES: dict[str, type[BaseModel]] = {
-    "camera": Camera, "volume": VolumeConfig, "laser": LaserConfig, "timing": TimingConfig, "stage": StageConfig,
-    "pulse_generator": PulseGeneratorConfig, "render": RenderConfig,
+    "camera": Camera, "lightfield": Camera, "pinhole": PinholeCamera, "volume": VolumeConfig, "laser": LaserConfig,
+    "timing": TimingConfig, "stage": StageConfig, "pulse_generator": PulseGeneratorConfig, "render": RenderConfig,
 }
 
 
 def _where(loc: tuple[int | str, ...]) -> str:
     parts: list[str] = []
-    for item in loc:
+    for k, item in enumerate(loc):
         if isinstance(item, int):
             if parts:
                 parts[-1] += f"[{item}]"
             continue
+        if k and isinstance(loc[k - 1], int) and item in ("lightfield", "pinhole"):
+            continue  # the camera's kind (the union's tag), not a key
         parts.append(str(item))
     return ".".join(parts)
 
@@ -615,6 +863,13 @@ def _first_error(exc: ValidationError) -> str:
     kind = err["type"]
     if kind == "extra_forbidden":
         model = _model_at(err["loc"])
+        key = str(err["loc"][-1])
+        if model is PinholeCamera and key in Camera.model_fields:
+            return (f"{where}: a pinhole camera (kind = \"pinhole\") has no {key}; remove it, or set kind = "
+                    "\"lightfield\" for a light-field camera")
+        if model is Camera and key in PinholeCamera.model_fields | {"object_distance_mm": None}:
+            return (f"{where}: {key} is a key of pinhole cameras; set kind = \"pinhole\" for a Tomo-PIV camera, or "
+                    "remove it")
         known = list(model.model_fields) if model is not None else []
         close = difflib.get_close_matches(str(err["loc"][-1]), known, n=1, cutoff=0.6)
         hint = f"did you mean {close[0]}?" if close else "check its spelling against examples/ and DESIGN.md"

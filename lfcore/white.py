@@ -25,7 +25,7 @@ from scipy import ndimage
 
 from lfcore.chief_ray import diffraction_sigma_mm
 from lfcore.mla import lenslet_centers, sensor_to_pixel
-from lfcore.rig import Camera, RenderConfig
+from lfcore.rig import Camera, RenderConfig, require_lightfield
 
 __all__ = ["WhiteImageConfig", "micro_image_centres", "micro_image_scale", "white_image", "white_irradiance"]
 
@@ -140,6 +140,7 @@ def white_irradiance(camera: Camera, *, config: WhiteImageConfig = WhiteImageCon
     numpy.ndarray
         (rows, columns) float64 counts, no background or noise.
     """
+    require_lightfield(camera, "a white image")
     k = micro_image_scale(camera)
     ss = config.supersample
     r_px = camera.mla_focal_length_mm * 0.5 * camera.aperture_mm / camera.image_distance_mm / camera.pixel_mm
@@ -205,6 +206,7 @@ def white_image(camera: Camera, *, render: RenderConfig | None = None,
     numpy.ndarray
         (rows, columns) uint16 counts.
     """
+    require_lightfield(camera, "a white image")
     render = RenderConfig() if render is None else render
     lam = wavelength_nm if render.diffraction else 0.0  # no diffraction: no blur
     sigma = diffraction_sigma_mm(lam, camera.lenslet_f_number) / camera.pixel_mm

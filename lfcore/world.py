@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lfcore.flows import Flow, advect, flow_for_displacement
-from lfcore.particles import particle_count, seed_particles, sheet_weights
+from lfcore.particles import particle_count, seed_particles, seeding_density, sheet_weights
 from lfcore.render import derive_seed
 from lfcore.rig import Rig
 
@@ -34,7 +34,10 @@ class ParticleWorld:
     flow
         A name of :data:`lfcore.flows.FLOW_NAMES`.
     ppm
-        Seeding density, particles per microlens of the first camera.
+        Seeding density, particles per microlens of the first light-field camera (see
+        :func:`lfcore.particles.seeding_density`: with neither ``ppm`` nor ``ppp``, 0.5 PPM, or
+        0.05 ppp for a rig of pinhole cameras only; after construction both hold the density
+        used, one of them None).
     displacement_px
         Peak displacement over dt in object-side pixels of the first camera (None: the flow's
         default).
@@ -44,6 +47,8 @@ class ParticleWorld:
         Wavelength factor of the Table 4.1 flows.
     dt_s
         Time between the two pulses of a pair, s (None: the rig's ``timing.dt_us``).
+    ppp
+        Seeding density instead, particles per pixel of the first pinhole camera.
 
     Raises
     ------
@@ -53,11 +58,12 @@ class ParticleWorld:
 
     rig: Rig
     flow: str = "vortex-ring"
-    ppm: float = 0.5
+    ppm: float | None = None
     displacement_px: float | None = None
     seed: int = 0
     omega: float = 1.0
     dt_s: float | None = None
+    ppp: float | None = None
     _field: Flow = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -66,7 +72,8 @@ class ParticleWorld:
         self._field = flow_for_displacement(self.flow, self.rig.volume, self.rig.camera[0].object_pixel_mm,
                                             self.dt_s, displacement_px=self.displacement_px, omega=self.omega,
                                             period_s=1.0 / self.rig.laser.rate_hz)  # phase-locked ring
-        self.n_particles = particle_count(self.rig, self.ppm)
+        self.ppm, self.ppp = seeding_density(self.rig, self.ppm, self.ppp)
+        self.n_particles = particle_count(self.rig, self.ppm, ppp=self.ppp)
 
     @property
     def flow_params(self) -> dict:

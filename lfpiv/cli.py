@@ -126,7 +126,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from calibration.store import CalibrationStoreError
         from lfcore.device import MemoryBudgetError
         from lfcore.errors import ComputeDeviceError, DeviceError
-        from lfcore.rig import RigError
+        from lfcore.rig import NotLightFieldError, RigError
         from lfcore.runstore import RunStoreError
         from lfpiv.formats import FormatError
     except KeyboardInterrupt:  # Ctrl-C while starting: nothing was done yet
@@ -143,7 +143,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with signals_call(_interrupted):
             return args.func(args)
     except (UsageError, RigError, RunStoreError, CalibrationStoreError, ComputeDeviceError, MemoryBudgetError,
-            FormatError) as exc:
+            FormatError, NotLightFieldError) as exc:
         print(f"lfpiv: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except DeviceError as exc:  # a hardware fault (a compute device that is not here is the user's choice, above)

@@ -13,6 +13,7 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
 from calibration.store import CalibrationStore  # noqa: E402
+from lfcore.rig import is_pinhole  # noqa: E402
 from lfcore.runstore import RunStore  # noqa: E402
 from lfpiv.errors import UsageError  # noqa: E402
 
@@ -46,7 +47,9 @@ def plot_raw_images(store: RunStore, out: str | Path, pair: int = 0, zoom_lensle
         a, b = store.frames(cam.name)[pair]
         lo, hi = _stretch(a)
         rows, cols = a.shape
-        half = int(round(0.5 * zoom_lenslets * cam.pixels_per_lenslet))
+        # a pinhole camera's particle images are a few pixels across: zoom on as many pixels as
+        # the light-field camera's lenslets
+        half = int(round(0.5 * zoom_lenslets * (4.0 if is_pinhole(cam) else cam.pixels_per_lenslet)))
         r0, c0 = max(0, rows // 2 - half), max(0, cols // 2 - half)
         r1, c1 = min(rows, rows // 2 + half), min(cols, cols // 2 + half)
         row[0].imshow(a, cmap="gray", vmin=lo, vmax=hi, interpolation="antialiased")
@@ -55,13 +58,14 @@ def plot_raw_images(store: RunStore, out: str | Path, pair: int = 0, zoom_lensle
         for ax, img, name in ((row[1], a, "A"), (row[2], b, "B")):
             ax.imshow(img[r0:r1, c0:c1], cmap="gray", vmin=lo, vmax=hi, interpolation="nearest",
                       extent=(c0 - 0.5, c1 - 0.5, r1 - 0.5, r0 - 0.5))
-            ax.set_title(f"frame {name}, centre ({zoom_lenslets} lenslets across)")
+            across = f"{c1 - c0} px" if is_pinhole(cam) else f"{zoom_lenslets} lenslets"
+            ax.set_title(f"frame {name}, centre ({across} across)")
         for ax in row:
             ax.set_xlabel("column (px)")
             ax.set_ylabel("row (px)")
     n_part = truth["particles"].shape[2] if truth else None
     extra = f", {n_part} particles per frame" if n_part else ""
-    fig.suptitle(f"{store.path.name}: raw light-field images of pair {pair} ({flow}{extra}, "
+    fig.suptitle(f"{store.path.name}: raw images of pair {pair} ({flow}{extra}, "
                  f"dt = {store.timing['dt_s'] * 1e3:g} ms)")
     fig.tight_layout()
     fig.savefig(out, dpi=110)
@@ -217,7 +221,11 @@ def plot_rms(store: CalibrationStore, out: str | Path) -> Path:
     for name in names:
         m = store.model(name)
         rms = np.array([np.nan if v is None else v for v in m["plane_rms_px"]], dtype=float)
-        ax.plot(store.stage_mm(name), rms, "o-", label=f"{name} (all planes {m['rms_px']:.3f} px)")
+        line, = ax.plot(store.stage_mm(name), rms, "o-", label=f"{name} (all planes {m['rms_px']:.3f} px)")
+        if m.get("soloff_plane_rms_px"):  # a pinhole camera's Soloff polynomial, beside its pinhole model
+            soloff = np.array([np.nan if v is None else v for v in m["soloff_plane_rms_px"]], dtype=float)
+            ax.plot(store.stage_mm(name), soloff, "s--", color=line.get_color(), mfc="none",
+                    label=f"{name}, Soloff ({m['soloff_rms_px']:.3f} px)")
     ax.set_xlabel("stage position, mm")
     ax.set_ylabel("RMS reprojection error, px")
     ax.set_ylim(bottom=0)

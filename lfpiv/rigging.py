@@ -94,7 +94,8 @@ def make_stage(port: str, rig: Rig) -> Stage:
     return stage_for(port, rig.stage)
 
 
-def sim_lab_options(rig: Rig, *, flow: str, ppm: float, pool: int, rays: int | None) -> dict[str, Any] | None:
+def sim_lab_options(rig: Rig, *, flow: str, ppm: float | None, pool: int, rays: int | None,
+                    ppp: float | None = None) -> dict[str, Any] | None:
     """Keyword arguments of :class:`sim.lab.SimLab` from the ``--sim-*`` options, or None for
     real hardware.
 
@@ -102,8 +103,9 @@ def sim_lab_options(rig: Rig, *, flow: str, ppm: float, pool: int, rays: int | N
     ----------
     rig
         The rig; only ``hardware = "sim"`` uses the options.
-    flow, ppm
-        The flow the simulated cameras see and its seeding, particles per microlens.
+    flow, ppm, ppp
+        The flow the simulated cameras see and its seeding, particles per microlens or per pixel
+        of the first pinhole camera (neither: see :func:`lfcore.particles.seeding_density`).
     pool
         Distinct pairs rendered when the lab opens and cycled through.
     rays
@@ -122,7 +124,7 @@ def sim_lab_options(rig: Rig, *, flow: str, ppm: float, pool: int, rays: int | N
     from sim.world import SimWorld
 
     try:
-        world = SimWorld(rig, flow=flow, ppm=ppm)
+        world = SimWorld(rig, flow=flow, ppm=ppm, ppp=ppp)
     except ValueError as exc:
-        raise UsageError(f"--sim-flow/--sim-ppm: {exc}") from None
+        raise UsageError(f"--sim-flow/--sim-{'ppp' if ppp is not None else 'ppm'}: {exc}") from None
     return {"world": world, "pool_pairs": pool, "rays_per_particle": rays}

@@ -51,7 +51,7 @@ from lfcore.correlate import CorrelationConfig, Correlator, VectorField
 from lfcore.device_ops import ImagePreprocessor
 from lfcore.projector import Projector
 from lfcore.reconstruct import WEIGHTS, FrameReconstructor, ReconSettings, estimate_background
-from lfcore.rig import Rig
+from lfcore.rig import Rig, require_lightfield
 from lfcore.vectors import centres_mm, displacement_to_velocity, vorticity
 from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
@@ -410,7 +410,8 @@ class LivePipeline:
         self.rig = rig
         self.cameras = list(cameras) if cameras else [c.name for c in rig.camera]
         for n in self.cameras:
-            rig.camera_named(n)  # an unknown camera fails here
+            # an unknown camera fails here, and a pinhole one: its live reconstruction is not built yet
+            require_lightfield(rig.camera_named(n), "the live reconstruction (DRT-MART)")
         self.grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(float(v) for v in pvr))
         self._settings = settings or LiveSettings()
         base = recon or monitoring_recon()

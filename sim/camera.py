@@ -1,4 +1,4 @@
-"""Simulated light-field cameras that satisfy :class:`acquisition.protocols.Camera`.
+"""Simulated cameras (light-field or pinhole) that satisfy :class:`acquisition.protocols.Camera`.
 
 A :class:`SimCamera` is wired to the trigger output of the emulated pulse generator: each T0
 tick in which the generator's camera output is enabled triggers one double-frame burst. Frame A
@@ -52,7 +52,7 @@ import numpy as np
 
 from acquisition.genicam import configure_node_map, register_double_exposure
 from acquisition.protocols import DeviceError, Frame
-from lfcore.render import LightFieldRenderer, derive_seed
+from lfcore.render import derive_seed, renderer_for
 from lfcore.rig import Rig
 from sim.world import SimWorld
 
@@ -241,7 +241,7 @@ class SimCamera:
         render = self.rig.render
         if self.rays_per_particle is not None:
             render = render.model_copy(update={"rays_per_particle": int(self.rays_per_particle)})
-        r = LightFieldRenderer(self.camera, render, self.rig.laser.wavelength_nm, self.device)
+        r = renderer_for(self.camera, render, self.rig.laser.wavelength_nm, self.device)
         ci = self.rig.camera.index(self.camera)
         self._lit = []
         for j in range(self.pool_pairs):

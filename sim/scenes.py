@@ -14,8 +14,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from lfcore.render import derive_seed
-from lfcore.rig import Rig
+from lfcore.render import derive_seed, renderer_for
+from lfcore.rig import Rig, is_pinhole
 from lfcore.target import DotBoard
 from lfcore.white import WhiteImageConfig, white_image
 
@@ -44,7 +44,10 @@ def white_scene(rig: Rig, config: WhiteImageConfig | None = None) -> tuple[Calla
 
     def scene(ci: int) -> np.ndarray:
         cfg = dataclasses.replace(config, seed=derive_seed(config.seed, 0x3417E, ci))
-        return white_image(rig.camera[ci], render=rig.render, config=cfg, wavelength_nm=rig.laser.wavelength_nm)
+        cam = rig.camera[ci]
+        if is_pinhole(cam):  # no microlenses, nothing to calibrate from a white image: its dark frame
+            return renderer_for(cam, rig.render, rig.laser.wavelength_nm).frame(np.zeros((0, 3)), 0.0, seed=cfg.seed)
+        return white_image(cam, render=rig.render, config=cfg, wavelength_nm=rig.laser.wavelength_nm)
 
     return scene, ("white", config)
 
@@ -64,7 +67,8 @@ def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, 
     ``z_mm``). Default: an untilted board ``spacing_mm`` apart (default 3 mm, the chapter's
     board, or a quarter of the volume's smaller transverse size for small rigs) centred on the
     volume centre. Each dot is a disc of ``points_per_dot`` points (scaled with its area) through
-    the light-field renderer, ``rays_per_point`` rays each. The points lie on a sunflower spiral
+    the light-field renderer, ``rays_per_point`` rays each (a pinhole camera images each point as a
+    Gaussian spot of ``render.particle_image_px``: the dot blurred by the lens). The points lie on a sunflower spiral
     and come in pairs mirrored about the dot centre, so every dot's light is centred exactly on
     it (a board printed without error) and spread evenly over it (random points left a dot in
     sharp focus a few points per lenslet, grainy enough to split it in two). A defocused dot
@@ -76,8 +80,6 @@ def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, 
     scene, key
         As :func:`white_scene`; the key changes with ``z_mm`` and the board.
     """
-    from lfcore.render import LightFieldRenderer
-
     vol = rig.volume
     if board is None:
         if spacing_mm is None:
@@ -111,7 +113,7 @@ def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, 
     render = rig.render.model_copy(update={"rays_per_particle": int(rays_per_point)})
 
     def scene(ci: int) -> np.ndarray:
-        rend = LightFieldRenderer(rig.camera[ci], render, rig.laser.wavelength_nm, device)
+        rend = renderer_for(rig.camera[ci], render, rig.laser.wavelength_nm, device)
         return rend.frame(pts, per_point, seed=derive_seed(seed, 0xD075, plane_key, ci))
 
     return scene, ("dots", round(float(z_mm), 6), board, points_per_dot, rays_per_point, dot_counts, seed)

@@ -178,10 +178,22 @@ def seeding_ppm(text: str) -> float:
     :data:`lfcore.particles.MAX_PPM`."""
     from lfpiv.jobs.synth import MAX_PPM
 
+    return _at_most(text, MAX_PPM, "particles per microlens (about 1 is the usual limit of a light-field "
+                    "reconstruction)")
+
+
+def seeding_ppp(text: str) -> float:
+    """argparse type of a seeding density, particles per pixel: positive, at most
+    :data:`lfcore.particles.MAX_PPP`."""
+    from lfpiv.jobs.synth import MAX_PPP
+
+    return _at_most(text, MAX_PPP, "particles per pixel (Tomo-PIV reconstructs up to about 0.1)")
+
+
+def _at_most(text: str, most: float, unit: str) -> float:
     v = positive_float(text)
-    if v > MAX_PPM:
-        raise argparse.ArgumentTypeError(f"must be at most {MAX_PPM:g} particles per microlens (about 1 is the usual "
-                                         f"limit of a light-field reconstruction), got {text}")
+    if v > most:
+        raise argparse.ArgumentTypeError(f"must be at most {most:g} {unit}, got {text}")
     return v
 
 
@@ -325,8 +337,12 @@ def add_sim_options(parser: argparse.ArgumentParser) -> None:
     """The ``--sim-*`` options of commands that can run on the simulated lab."""
     parser.add_argument("--sim-flow", default="vortex-ring", metavar="FLOW",
                         help="simulated lab only: the flow the simulated cameras see (default: vortex-ring)")
-    parser.add_argument("--sim-ppm", type=seeding_ppm, default=0.5, metavar="PPM",
-                        help="simulated lab only: seeding in particles per microlens (default: 0.5)")
+    density = parser.add_mutually_exclusive_group()
+    density.add_argument("--sim-ppm", type=seeding_ppm, default=None, metavar="PPM",
+                         help="simulated lab only: seeding in particles per microlens (default: 0.5)")
+    density.add_argument("--sim-ppp", type=seeding_ppp, default=None, metavar="PPP",
+                         help="simulated lab only: seeding in particles per pixel of the first pinhole camera instead "
+                         "(default for a rig of pinhole cameras only: 0.05)")
     parser.add_argument("--sim-rays", type=rays_per_particle, default=None, metavar="N",
                         help="simulated lab only: rays per particle when rendering (default: the rig's)")
     parser.add_argument("--sim-pool", type=positive_int, default=4, metavar="PAIRS",
@@ -338,4 +354,5 @@ def sim_lab_options(rig, args: argparse.Namespace) -> dict | None:
     hardware (:func:`lfpiv.rigging.sim_lab_options`)."""
     from lfpiv.rigging import sim_lab_options as options
 
-    return options(rig, flow=args.sim_flow, ppm=args.sim_ppm, pool=args.sim_pool, rays=args.sim_rays)
+    return options(rig, flow=args.sim_flow, ppm=args.sim_ppm, ppp=args.sim_ppp, pool=args.sim_pool,
+                   rays=args.sim_rays)

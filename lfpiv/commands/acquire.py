@@ -10,10 +10,10 @@ from lfpiv.commands import add_sim_options, positive_int, ring_slots, sim_lab_op
 
 def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser("acquire", help="arm the laser and cameras and record double-frame pairs",
-                       description="Program the pulse generator, arm the laser and the light-field cameras and "
-                       "record N double-frame pairs into a new run store. Every frame is recorded or listed in "
-                       "drops with its reason; Ctrl-C or a device fault disarms the laser and keeps what was "
-                       "recorded. With hardware = \"sim\" in the rig file it runs on the simulated lab.")
+                       description="Program the pulse generator, arm the laser and the cameras (light-field or "
+                       "pinhole) and record N double-frame pairs into a new run store. Every frame is recorded "
+                       "or listed in drops with its reason; Ctrl-C or a device fault disarms the laser and keeps "
+                       "what was recorded. With hardware = \"sim\" in the rig file it runs on the simulated lab.")
     s.add_argument("--rig", required=True, metavar="RIG", help="rig file (TOML)")
     s.add_argument("--pairs", required=True, type=positive_int, help="double-frame pairs to record")
     s.add_argument("--out", required=True, metavar="RUN", help="run store to create (a .zarr directory)")

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from lfpiv.commands import (
+    add_pair_range,
     by_camera,
     non_negative_float,
     png_path,
@@ -20,10 +21,13 @@ from lfpiv.errors import UsageError
 
 def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser("calibrate", help="calibrate the rig: microlens grids, target planes, report",
-                       description="Calibrate the light-field cameras of a rig into a calibration store "
-                       "(a .zarr directory). 'mla' takes white images and detects every microlens grid; "
-                       "'volume' moves the dot target through the planes; 'fit' fits every camera's model to "
-                       "them; 'report' says what a store holds and how well the models reproject. "
+                       description="Calibrate the cameras of a rig, light-field and pinhole, into a calibration "
+                       "store (a .zarr directory). 'mla' takes white images and detects every microlens grid "
+                       "(pinhole cameras have none and are skipped); 'volume' moves the dot target through the "
+                       "planes; 'fit' fits every camera's model to them (a pinhole camera's pinhole model with "
+                       "distortion and its Soloff polynomial); 'selfcal' corrects the pinhole cameras' models on "
+                       "a recorded run's particles (volume self-calibration); 'report' says what a store holds and "
+                       "how well the models reproject. "
                        "The laser is never armed: only the camera trigger output is programmed.")
     steps = s.add_subparsers(dest="step", required=True, metavar="STEP", parser_class=type(s))
 
@@ -88,10 +92,32 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "and rotation by least squares on the reprojection error, with the board positions from "
                          "the stage readback as the world frame. Stores the models and prints the RMS per camera.")
     f.add_argument("store", metavar="CALIB", help="calibration store with grids and planes")
-    f.add_argument("--distortion", action="store_true", help="also fit a radial distortion k1 (reported only)")
+    f.add_argument("--distortion", action="store_true", help="also fit a radial distortion k1 of the light-field "
+                   "cameras (reported only; pinhole cameras always fit k1, k2, p1, p2)")
     f.add_argument("--min-dots", type=positive_int, default=2, help="fewest dots accepted per plane (default: 2)")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
     f.set_defaults(func=run_fit)
+
+    c = steps.add_parser("selfcal", help="volume self-calibration of the pinhole cameras on a recorded run",
+                         description="Correct the fitted models of the pinhole (Tomo-PIV) cameras on the particles "
+                         "of a recorded run (Wieneke 2008): find the particles in every frame, triangulate them "
+                         "through the models, measure each camera's disparity in sub-volumes (the peak of the "
+                         "disparities of every match, true and ghost), and correct each camera's pinhole model and "
+                         "Soloff polynomial by it, several times with a shrinking search radius. The corrected "
+                         "models are stored beside the fitted ones, which stay; 'reconstruct --calibration' uses "
+                         "them. Light-field cameras are left out.")
+    c.add_argument("run", metavar="RUN", help="run store of particle images recorded with the calibrated rig")
+    c.add_argument("--calibration", required=True, metavar="CALIB", help="calibration store with fitted models")
+    add_pair_range(c, "every committed pair")
+    c.add_argument("--subvolumes", type=whole_triple, default=(4, 4, 2), metavar="NX,NY,NZ",
+                   help="sub-volumes of the disparity maps along x, y, z (default: 4,4,2)")
+    c.add_argument("--radius-px", type=positive_float, default=2.0, metavar="PX",
+                   help="first search radius, more than the calibration's error (default: 2)")
+    c.add_argument("--iterations", type=lambda t: whole_number(t, 0, 20), default=3,
+                   help="correction passes, each halving the search radius down to 1 px (default: 3)")
+    c.add_argument("--min-matches", type=positive_int, default=20,
+                   help="fewest matched particles a sub-volume needs (default: 20)")
+    c.set_defaults(func=run_selfcal)
 
     r = steps.add_parser("report", help="what a calibration store holds, how good it is",
                          description="Print what a calibration store holds (white images, microlens grids with "
@@ -102,11 +128,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--rms-plot", type=png_path, metavar="PNG", default=None,
                    help="write a PNG of the reprojection RMS per plane of every fitted camera")
     r.set_defaults(func=run_report)
-    s.set_defaults(func=lambda args: s.error("give a step: mla, volume, fit or report"))
+    s.set_defaults(func=lambda args: s.error("give a step: mla, volume, fit, selfcal or report"))
 
 
 def run_mla(args: argparse.Namespace) -> int:
-    from lfpiv.jobs.calibrate import calibrate_mla, white_config
+    from lfpiv.jobs.calibrate import calibrate_mla, pinhole_cameras_skipped, white_config
     from lfpiv.rigfile import load_rig
 
     rig = load_rig(args.rig)
@@ -118,7 +144,9 @@ def run_mla(args: argparse.Namespace) -> int:
     whites = by_camera(args.white, "--white", names, many=True) if args.white else None
     if rig.hardware == "sim" and large and whites is None:
         print("lfpiv: simulated lab: rendering each camera's white image ...", file=sys.stderr)
-    with progress_bar(len(names), "finding grids", "camera", args.quiet) as bar:
+    for name in pinhole_cameras_skipped(rig):
+        print(f"lfpiv: note: camera '{name}' is a pinhole camera (no microlenses): skipped", file=sys.stderr)
+    with progress_bar(len(rig.lightfield_cameras), "finding grids", "camera", args.quiet) as bar:
         results = calibrate_mla(rig, args.out, frames=args.frames, exposure_us=args.exposure_us, white=white,
                                 whites=whites, progress=bar,
                                 status=(lambda line: bar.write(f"lfpiv: {line}")) if large else None)
@@ -181,12 +209,26 @@ def run_volume(args: argparse.Namespace) -> int:
 def run_fit(args: argparse.Namespace) -> int:
     from lfpiv.jobs.calibrate import calibrate_fit, open_calibration, rotation_angle_deg
 
-    nominal = open_calibration(args.store).rig
+    before = open_calibration(args.store)
+    nominal = before.rig
+    stale = [n for n in before.cameras if before.selfcal(n) is not None]
     with progress_bar(len(nominal.camera), "fitting", "camera", args.quiet) as bar:
         fits = calibrate_fit(args.store, fit_distortion=args.distortion, min_dots=args.min_dots, progress=bar)
+    if stale:
+        print(f"lfpiv: note: removed the self-calibration of {', '.join(stale)}, made on the earlier models; run "
+              "'lfpiv calibrate selfcal' again", file=sys.stderr)
     for fit in fits:
         c = fit.camera
         turned = rotation_angle_deg(nominal.camera_named(c.name).rotation_deg, c.rotation_deg)
+        if c.kind == "pinhole":
+            pp = c.principal_point_px
+            print(f"{c.name}: RMS {fit.rms_px:.4f} px (pinhole), {fit.soloff_rms_px:.4f} px (Soloff) over "
+                  f"{int(fit.plane_dots.sum())} dots on {int((fit.plane_dots > 0).sum())} planes ({fit.dropped} "
+                  f"dropped); magnification {c.magnification:.5f}, rotation "
+                  f"[{', '.join(f'{v:.4f}' for v in c.rotation_deg)}] deg ({turned:.3f} deg from the rig file), focus "
+                  f"[{', '.join(f'{v:.4f}' for v in c.focus_mm)}] mm, principal point ({pp[0]:+.2f}, {pp[1]:+.2f}) px, "
+                  f"k1 {c.k1:+.2e} k2 {c.k2:+.2e} p1 {c.p1:+.2e} p2 {c.p2:+.2e}")
+            continue
         ox, oy = c.mla_offset_um
         print(f"{c.name}: RMS {fit.rms_px:.4f} px over {int(fit.plane_dots.sum())} clear dots on "
               f"{int((fit.plane_dots > 0).sum())} planes ({fit.set_aside} weighted down or left out as "
@@ -195,6 +237,33 @@ def run_fit(args: argparse.Namespace) -> int:
               f"[{', '.join(f'{v:.4f}' for v in c.focus_mm)}] mm, MLA offset ({ox:+.3f}, {oy:+.3f}) um, rotation "
               f"{c.mla_rotation_deg:+.4f} deg" + (f", k1 {fit.radial_k1:+.2e}" if args.distortion else ""))
     print(f"wrote the models to {args.store}")
+    return 0
+
+
+def whole_triple(text: str) -> tuple[int, int, int]:
+    """argparse type of ``--subvolumes``: three whole numbers of at least 1, 'NX,NY,NZ'."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"give three whole numbers NX,NY,NZ, got '{text}'")
+    return tuple(whole_number(p, 1, 64) for p in parts)  # type: ignore[return-value]
+
+
+def run_selfcal(args: argparse.Namespace) -> int:
+    from lfpiv.jobs.calibrate import calibrate_selfcal
+
+    out = calibrate_selfcal(args.run, args.calibration, pairs=args.pairs, subvolumes=args.subvolumes,
+                            radius_px=args.radius_px, iterations=args.iterations, min_matches=args.min_matches)
+    res = out.result
+    if out.left_out:
+        print(f"lfpiv: note: light-field camera(s) {', '.join(out.left_out)} left out (their particle images are "
+              "not points)", file=sys.stderr)
+    print(f"self-calibrated {', '.join(out.cameras)} from the {out.started_from} models on {out.frames} frames of "
+          f"{len(out.pairs)} pair(s), {args.subvolumes[0]} x {args.subvolumes[1]} x {args.subvolumes[2]} sub-volumes")
+    for k in range(len(res.rms_px)):
+        label = "before" if k == 0 else f"after correction {k}"
+        print(f"  pass {k + 1} ({label}, search radius {res.radius_px[k]:g} px): {int(res.counts[k].sum())} "
+              f"matches, disparity RMS {res.rms_px[k]:.3f} px, largest {res.max_px[k]:.3f} px")
+    print(f"wrote the corrected models to {args.calibration}")
     return 0
 
 
@@ -210,9 +279,13 @@ def run_report(args: argparse.Namespace) -> int:
         if m is None:
             continue
         stage = store.stage_mm(name)
-        print(f"  {name}: plane  stage_mm  dots  rms_px")
+        soloff = m.get("soloff_plane_rms_px")  # pinhole cameras: the Soloff polynomial's too
+        print(f"  {name}: plane  stage_mm  dots  rms_px" + ("  soloff_rms_px" if soloff else ""))
         for i, (s_mm, n, rms) in enumerate(zip(stage, m["plane_dots"], m["plane_rms_px"], strict=True)):
-            print(f"  {name}: {i + 1:5d}  {s_mm:8.4f}  {n:4d}  " + ("   -" if rms is None else f"{rms:.4f}"))
+            line = f"  {name}: {i + 1:5d}  {s_mm:8.4f}  {n:4d}  " + ("   -" if rms is None else f"{rms:.4f}")
+            if soloff:
+                line += "  " + ("   -" if soloff[i] is None else f"{soloff[i]:.4f}").rjust(13)
+            print(line)
     if args.plot:
         print(f"wrote {plot_grids(store, args.plot)}")
     if args.rms_plot:

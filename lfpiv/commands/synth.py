@@ -11,6 +11,7 @@ from lfpiv.commands import (
     positive_int,
     rays_per_particle,
     seeding_ppm,
+    seeding_ppp,
     warn_optics,
     whole_number,
 )
@@ -28,7 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"one of {', '.join(FLOW_NAMES)} (default: vortex-ring)")
     s.add_argument("--omega", type=positive_float, default=1.0,
                    help="wavelength factor of the A/B cases; the chapter used 0.25, 0.5, 1, 2 (default: 1)")
-    s.add_argument("--ppm", type=seeding_ppm, default=0.5, help="particles per microlens (default: 0.5)")
+    density = s.add_mutually_exclusive_group()
+    density.add_argument("--ppm", type=seeding_ppm, default=None,
+                         help="particles per microlens of the first light-field camera (default: 0.5)")
+    density.add_argument("--ppp", type=seeding_ppp, default=None,
+                         help="particles per pixel of the first pinhole camera instead (Tomo-PIV; default for a rig of "
+                         "pinhole cameras only: 0.05)")
     s.add_argument("--pairs", type=positive_int, default=3, help="double-frame pairs (default: 3)")
     s.add_argument("--dt-ms", type=positive_float, default=None,
                    help="time between frames A and B in ms (default: the rig's timing.dt_us)")
@@ -58,12 +64,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"lfpiv: warning: {outside} of {len(points)} particles in {args.particles} lie outside the rig's "
               f"volume (centre {list(v.centre_mm)} mm, size {list(v.size_mm)} mm); they are rendered, but a "
               "reconstruction of the volume cannot hold them (positions are world millimetres)", file=sys.stderr)
-    res = synthesize(rig, args.out, flow=args.flow, ppm=args.ppm, pairs=args.pairs,
+    res = synthesize(rig, args.out, flow=args.flow, ppm=args.ppm, ppp=args.ppp, pairs=args.pairs,
                      dt_s=None if args.dt_ms is None else args.dt_ms * 1e-3, seed=args.seed,
                      omega=args.omega, displacement_px=args.displacement_px, points=points,
                      rays_per_particle=args.rays, device=args.device, overwrite=args.overwrite,
                      progress=not args.quiet)
+    if not res.particle_images:  # light-field cameras only
+        work = f"{res.rays:.3g} rays in {res.seconds:.1f} s ({res.rays / res.seconds:.3g} rays/s)"
+    else:
+        rays = f"{res.rays:.3g} rays ({res.rays / res.seconds:.3g} rays/s) and " if res.rays else ""
+        work = f"{rays}{res.particle_images:.3g} particle images in {res.seconds:.1f} s"
     print(f"wrote {res.store.path}: {res.store.n_pairs} pair(s) x {len(rig.camera)} camera(s), "
-          f"{res.particles_per_frame} particles per frame, flow {res.flow['name']}; "
-          f"{res.rays:.3g} rays in {res.seconds:.1f} s ({res.rays / res.seconds:.3g} rays/s)")
+          f"{res.particles_per_frame} particles per frame, flow {res.flow['name']}; {work}")
     return 0

@@ -311,5 +311,6 @@ def _write_sim_truth(store: RunStore, lab: Any, pairs: int) -> None:
     bright[:pairs] = brightness
     world = lab.world
     t0 = lab.truth_times_s(store.n_pairs)  # the lab shows its pool of pairs over and over
-    store.write_truth(full, bright, world.flow_params, t0, ppm=world.ppm, seed=world.seed, source="simulated lab",
+    density = {"ppm": world.ppm} if world.ppp is None else {"ppm": None, "ppp": world.ppp}
+    store.write_truth(full, bright, world.flow_params, t0, **density, seed=world.seed, source="simulated lab",
                       pairs_with_truth=pairs)

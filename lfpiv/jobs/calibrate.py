@@ -26,17 +26,21 @@ from calibration.fit import CameraFit, FitError
 from calibration.mla_grid import GridError, MlaGrid, WhiteImage, detect_grid, white_from_frames
 from calibration.planes import fit_from_planes
 from calibration.runner import PlaneRun, camera_only_plan, capture_frames, plane_targets, run_planes
+from calibration.selfcal import SelfCalError, SelfCalResult, self_calibrate
 from calibration.store import CalibrationStore, CalibrationStoreError
-from lfcore.rig import Camera, Rig, rotation_angle_deg
+from lfcore.rig import Camera, Rig, camera_from_dict, is_pinhole, rotation_angle_deg
+from lfcore.runstore import RunStore
+from lfcore.soloff import SoloffMap
 from lfcore.target import DotBoard
 from lfcore.white import WhiteImageConfig
 from lfpiv import __version__
 from lfpiv.errors import UsageError
 from lfpiv.rigging import make_stage, open_rig
 
-__all__ = ["MlaResult", "board_for", "calibrate_fit", "calibrate_mla", "calibrate_volume",
-           "calibrate_volume_from_files", "calibrated_rig", "default_board", "open_calibration", "read_positions",
-           "rotation_angle_deg", "white_config"]
+__all__ = ["MlaResult", "SelfCalSummary", "board_for", "calibrate_fit", "calibrate_mla", "calibrate_selfcal",
+           "calibrate_volume",
+           "calibrate_volume_from_files", "calibrated_rig", "default_board", "open_calibration",
+           "pinhole_cameras_skipped", "read_positions", "rotation_angle_deg", "white_config"]
 
 
 @dataclass(frozen=True)
@@ -114,6 +118,9 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
     progress
         Called as ``progress(done, total)`` as the cameras' grids are found.
 
+    Pinhole cameras have no microlenses: they are skipped (no white image is taken or read for
+    them; :func:`pinhole_cameras_skipped` names them for the note).
+
     Raises
     ------
     UsageError
@@ -126,11 +133,20 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
         raise UsageError(f"--frames must be at least 1, got {frames}")
     if Path(out).exists():  # an existing store must be one of these cameras: say so before any device opens
         _open_store(out, rig)
+    lightfield = rig.lightfield_cameras
+    if whites is not None:
+        tomo = sorted(set(whites) & {c.name for c in rig.pinhole_cameras})
+        if tomo:
+            raise UsageError(f"--white: camera '{tomo[0]}' is a pinhole camera, which has no microlenses to find in a "
+                             "white image; give white images of the light-field cameras only")
+    if not lightfield:
+        _open_store(out, rig)  # the store the volumetric calibration adds its planes to
+        return []
     images = _white_files(rig, whites) if whites is not None else _white_frames(rig, frames, exposure_us,
                                                                                  sim_options, white)
     results = []
     found: dict[str, WhiteImage] = {}
-    for k, cam in enumerate(rig.camera):
+    for k, cam in enumerate(lightfield):
         try:
             w = white_from_frames(images[cam.name], full_scale=_full_scale(rig, cam))
             if status is not None:
@@ -141,7 +157,7 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
         found[cam.name] = w
         results.append(MlaResult(cam.name, grid, grid.to_mla(cam), hot_pixels=w.hot_pixels))
         if progress is not None:
-            progress(k + 1, len(rig.camera))
+            progress(k + 1, len(lightfield))
     store = _open_store(out, rig)  # written only when every camera's grid was found
     written = []
     for res in results:
@@ -150,6 +166,11 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
         removed = store.write_grid(res.camera, res.grid, mla=res.mla)
         written.append(dataclasses.replace(res, removed_model=removed))
     return written
+
+
+def pinhole_cameras_skipped(rig: Rig) -> list[str]:
+    """The cameras ``calibrate mla`` skips: pinhole cameras, which have no microlenses."""
+    return [c.name for c in rig.pinhole_cameras]
 
 
 def _full_scale(rig: Rig, cam: Camera) -> int:
@@ -170,12 +191,13 @@ def _white_frames(rig: Rig, frames: int, exposure_us: float | None, sim_options:
             from sim.scenes import white_scene  # the application wires the simulated lab
 
             rg.lab.show(*white_scene(rg.lab.rig, white))  # the lab renders its own (true) rig
-        for cam in rg.cameras:
+        lightfield = [cam for cam in rg.cameras if not is_pinhole(rig.camera_named(cam.name))]
+        for cam in lightfield:
             want = tuple(rig.camera_named(cam.name).sensor_px)
             if tuple(cam.sensor_px) != want:
                 raise UsageError(f"camera '{cam.name}' delivers {cam.sensor_px[0]} x {cam.sensor_px[1]} pixels but "
                                  f"the rig file says sensor_px = {list(want)}; correct the rig file")
-        images = capture_frames(rig, rg.cameras, rg.pulse_generator, frames, exposure)
+        images = capture_frames(rig, lightfield, rg.pulse_generator, frames, exposure)
         if rg.lab is not None:
             rg.lab.show(None)
     return images
@@ -190,12 +212,12 @@ def _white_files(rig: Rig, whites: Mapping[str, Sequence[str | Path]]) -> dict[s
     unknown = sorted(set(whites) - set(names))
     if unknown:
         raise UsageError(f"--white: camera '{unknown[0]}' is not in the rig (it has {', '.join(names)})")
-    missing = [n for n in names if not whites.get(n)]
+    missing = [c.name for c in rig.lightfield_cameras if not whites.get(c.name)]
     if missing:
         raise UsageError(f"--white: no white image for camera '{missing[0]}'; give --white {missing[0]}=FILE for "
                          "every camera of the rig")
     out = {}
-    for cam in rig.camera:
+    for cam in rig.lightfield_cameras:
         stack = []
         try:
             for f in whites[cam.name]:
@@ -465,7 +487,9 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
     """Fit every camera's model to the stored planes and white-image grid; store the models.
 
     Dots are found and named with the nominal camera (the rig in the store), the model fitted,
-    then the dots named again with the fitted model and the model refitted.
+    then the dots named again with the fitted model and the model refitted. A pinhole camera
+    needs no microlens grid: its dots are blobs, and it is fitted with the pinhole model and
+    distortion and with the Soloff polynomial (:mod:`calibration.pinhole`), both stored.
 
     Parameters
     ----------
@@ -481,7 +505,8 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
     Returns
     -------
     list of CameraFit
-        One per camera, in rig order.
+        One per camera, in rig order. A self-calibration of a camera's earlier model is removed
+        with it (see :meth:`CalibrationStore.write_model`).
 
     Raises
     ------
@@ -495,8 +520,8 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
     rig = store.rig
     fits = []
     for nominal in rig.camera:
-        grid = store.grid(nominal.name)
-        if grid is None:
+        grid = None if is_pinhole(nominal) else store.grid(nominal.name)
+        if grid is None and not is_pinhole(nominal):
             raise UsageError(f"camera '{nominal.name}': no microlens grid in {store.path}; run 'lfpiv calibrate mla' "
                              "first")
         try:
@@ -509,12 +534,22 @@ def calibrate_fit(out: str | Path, *, fit_distortion: bool = False, min_dots: in
         if progress is not None:
             progress(len(fits), len(rig.camera))
     for fit in fits:
-        store.write_model(fit.camera.name, fit.model_dict(), {
-            "rms_px": fit.rms_px, "plane_rms_px": [None if not np.isfinite(v) else float(v) for v in fit.plane_rms_px],
+        stats = {
+            "rms_px": fit.rms_px, "plane_rms_px": _per_plane(fit.plane_rms_px),
             "plane_dots": [int(n) for n in fit.plane_dots], "lattice_rms_px": fit.lattice_rms_px,
             "radial_k1": fit.radial_k1, "std": fit.std, "dropped": fit.dropped, "set_aside": fit.set_aside,
-            "views": "chief ray and four half-aperture views per dot"})
+            "views": "chief ray and four half-aperture views per dot"}
+        if fit.soloff is not None:
+            stats.update({"views": "one centroid per dot (a blob)", "soloff": fit.soloff.to_dict(),
+                          "soloff_rms_px": fit.soloff_rms_px,
+                          "soloff_plane_rms_px": _per_plane(fit.soloff_plane_rms_px)})
+        store.write_model(fit.camera.name, fit.model_dict(), stats)  # and any self-calibration of the earlier one
     return fits
+
+
+def _per_plane(values: np.ndarray) -> list[float | None]:
+    """A per-plane array for the store's attributes (JSON has no NaN: None)."""
+    return [None if not np.isfinite(v) else float(v) for v in values]
 
 
 def calibrated_rig(run_rig: Rig, calibration: str | Path, cameras: Sequence[str] | None = None
@@ -522,7 +557,8 @@ def calibrated_rig(run_rig: Rig, calibration: str | Path, cameras: Sequence[str]
     """A run's rig with its cameras replaced by the fitted models of a calibration store.
 
     Everything but the cameras (volume, laser, timing) stays the run's; each camera of the run
-    takes the fitted model of the camera of the same name.
+    takes the fitted model of the camera of the same name, or its self-calibrated model where
+    ``lfpiv calibrate selfcal`` corrected it.
 
     Parameters
     ----------
@@ -549,16 +585,20 @@ def calibrated_rig(run_rig: Rig, calibration: str | Path, cameras: Sequence[str]
     """
     store = open_calibration(calibration)
     need = set(cameras) if cameras else {c.name for c in run_rig.camera}
-    cams, rms = [], {}
+    cams, rms, selfcalibrated = [], {}, []
     for cam in run_rig.camera:
         model = store.model(cam.name) if cam.name in store.cameras else None
+        selfcal = store.selfcal(cam.name) if model is not None else None
+        if selfcal is not None:  # a pinhole camera's model corrected by the volume self-calibration
+            model = {**model, "camera": selfcal["camera"]}
+            selfcalibrated.append(cam.name)
         if model is None:
             if cam.name in need:
                 raise UsageError(f"camera '{cam.name}': no fitted model in {store.path}; run 'lfpiv calibrate fit "
                                  f"{store.path}' first")
             cams.append(cam)
             continue
-        fitted = Camera.model_validate(model["camera"])
+        fitted = camera_from_dict(model["camera"])
         if tuple(fitted.sensor_px) != tuple(cam.sensor_px):
             raise UsageError(f"camera '{cam.name}': the calibration's model has {fitted.sensor_px[0]} x "
                              f"{fitted.sensor_px[1]} pixels but the run's camera {cam.sensor_px[0]} x "
@@ -567,4 +607,105 @@ def calibrated_rig(run_rig: Rig, calibration: str | Path, cameras: Sequence[str]
         rms[cam.name] = float(model["rms_px"])
     info = {"store": str(Path(store.path).resolve()), "created": str(store.attrs.get("created", "")),
             "rms_px": rms}
+    if selfcalibrated:
+        info["self_calibrated"] = selfcalibrated
     return run_rig.model_copy(update={"camera": tuple(cams)}), info
+
+
+@dataclass(frozen=True)
+class SelfCalSummary:
+    """What ``calibrate selfcal`` did: the result and where it came from."""
+
+    result: SelfCalResult
+    cameras: tuple[str, ...]
+    #: the models it started from: "self-calibrated" (an earlier self-calibration) or "fitted"
+    started_from: str
+    frames: int
+    pairs: tuple[int, ...]
+    #: the light-field cameras of the run, left out
+    left_out: tuple[str, ...]
+
+
+def calibrate_selfcal(run: str | Path, calibration: str | Path, *, pairs: slice | None = None,
+                      subvolumes: Sequence[int] = (4, 4, 2), radius_px: float = 2.0, iterations: int = 3,
+                      min_matches: int = 20) -> SelfCalSummary:
+    """Volume self-calibration of a calibration store's pinhole cameras on a recorded run.
+
+    The particles of every frame of the chosen pairs are triangulated through the store's models
+    (an earlier self-calibration's if there is one, else the fitted ones), the disparity maps of
+    the sub-volumes measured, and each pinhole camera's model and Soloff polynomial corrected,
+    ``iterations`` times (:func:`calibration.selfcal.self_calibrate`). The corrected models are
+    stored beside the fitted ones (``<camera>/selfcal``), which stay as they were; a run
+    reconstructed with ``--calibration`` then uses them.
+
+    Parameters
+    ----------
+    run
+        Run store of particle images recorded (or synthesized) with the calibrated rig.
+    calibration
+        Calibration store with fitted pinhole models (``lfpiv calibrate fit``).
+    pairs
+        The pairs whose frames (A and B) are used (default: every committed pair).
+    subvolumes
+        (nx, ny, nz) sub-volumes of the disparity maps.
+    radius_px
+        The first pass's search radius, pixels: more than the calibration's error.
+    iterations
+        Correction passes.
+    min_matches
+        Fewest matched particles a sub-volume needs for a disparity.
+
+    Raises
+    ------
+    UsageError
+        A store that cannot be opened, fewer than two pinhole cameras with fitted models, a run of
+        other cameras, bad options, or too few matched particles.
+    """
+    from lfpiv.runs import open_run
+
+    if len(subvolumes) != 3 or min(subvolumes) < 1:
+        raise UsageError(f"--subvolumes must be three whole numbers of at least 1 (x, y, z), got {list(subvolumes)}")
+    if not radius_px > 0 or iterations < 0 or min_matches < 1:
+        raise UsageError("--radius-px must be positive, --iterations at least 0 and --min-matches at least 1")
+    store: RunStore = open_run(run)
+    calib = open_calibration(calibration, mode="r+")
+    tomo = [c.name for c in store.rig.pinhole_cameras]
+    left_out = tuple(c.name for c in store.rig.lightfield_cameras)
+    if len(tomo) < 2:
+        raise UsageError(f"{store.path} has {len(tomo)} pinhole camera(s); volume self-calibration needs two or more "
+                         "(light-field cameras are not self-calibrated)")
+    missing = [n for n in tomo if n not in calib.cameras or calib.model(n) is None]
+    if missing:
+        raise UsageError(f"camera '{missing[0]}': no fitted model in {calib.path}; run 'lfpiv calibrate fit "
+                         f"{calib.path}' first")
+    done = store.committed_pairs
+    chosen = list(range(done))[pairs] if pairs is not None else list(range(done))
+    if not chosen:
+        raise UsageError(f"{store.path}: no committed pair in the chosen range (it has {done})")
+    started = "self-calibrated" if all(calib.selfcal(n) is not None for n in tomo) else "fitted"
+    cams, soloff = [], []
+    for name in tomo:
+        m = calib.selfcal(name) if started == "self-calibrated" else calib.model(name)
+        cam = camera_from_dict(m["camera"])
+        if tuple(cam.sensor_px) != tuple(store.rig.camera_named(name).sensor_px):
+            raise UsageError(f"camera '{name}': the calibration's model has another sensor than the run's camera; "
+                             "use the calibration of this rig")
+        cams.append(cam)
+        soloff.append(SoloffMap.from_dict(m["soloff"]) if m.get("soloff") else None)
+    frames = [np.concatenate([np.asarray(store.frames(n)[p]) for p in chosen]) for n in tomo]
+    try:
+        res = self_calibrate(cams, frames, store.rig.volume.bounds_mm, subvolumes=tuple(int(v) for v in subvolumes),
+                             radius_px=radius_px, iterations=iterations, min_matches=min_matches, soloff=soloff)
+    except SelfCalError as exc:
+        raise UsageError(str(exc)) from None
+    nx, ny, nz = (int(v) for v in subvolumes)
+    for k, name in enumerate(tomo):
+        stats = {"run": str(Path(store.path).resolve()), "pairs": chosen, "frames": res.frames,
+                 "started_from": started, "subvolumes": [nx, ny, nz], "rms_px": res.rms_px.tolist(),
+                 "max_px": res.max_px.tolist(), "radius_px": res.radius_px.tolist(),
+                 "camera_rms_px": [float(np.sqrt(np.nanmean(np.sum(m[k] ** 2, axis=-1)))) for m in res.maps_px]}
+        if res.soloff[k] is not None:
+            stats["soloff"] = res.soloff[k].to_dict()
+        calib.write_selfcal(name, res.cameras[k].model_dump(mode="json", exclude_none=True), stats,
+                            res.maps_px[:, k], res.counts)
+    return SelfCalSummary(res, tuple(tomo), started, res.frames, tuple(chosen), left_out)

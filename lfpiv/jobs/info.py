@@ -6,6 +6,7 @@ from pathlib import Path
 
 from calibration.store import CalibrationStore, CalibrationStoreError
 from lfcore.mla import lenslet_count
+from lfcore.rig import is_pinhole
 from lfcore.runstore import RunStore, RunStoreError
 from lfcore.volume import VolumeGrid
 
@@ -69,18 +70,25 @@ def describe(path: str | Path) -> list[str]:
                    f"voxels (x, y, z) at PVR ({', '.join(f'{p:g}' for p in v.pvr)})"),
     ]
     for cam in rig.camera:
+        rotation = f"rotation ({', '.join(f'{r:g}' for r in cam.rotation_deg)}) deg"
+        if is_pinhole(cam):
+            lines.append(("camera", f"{cam.name}: pinhole, {cam.sensor_px[0]} x {cam.sensor_px[1]} px of "
+                                    f"{cam.pixel_pitch_um:g} um, F {cam.focal_length_mm:g} mm, "
+                                    f"M {cam.magnification:.5g} "
+                                    f"({cam.object_pixel_mm * 1e3:.4g} um per pixel in the volume), {rotation}"))
+            continue
         lines.append(("camera", f"{cam.name}: {cam.sensor_px[0]} x {cam.sensor_px[1]} px of {cam.pixel_pitch_um:g} um, "
                                 f"{cam.mla_grid} MLA {cam.mla_pitch_um:g} um ({lenslet_count(cam)} lenslets, "
                                 f"{cam.pixels_per_lenslet:.1f} px across), F {cam.main_focal_length_mm:g} mm "
-                                f"f/{cam.f_number:g}, M {cam.magnification:g}, rotation "
-                                f"({', '.join(f'{r:g}' for r in cam.rotation_deg)}) deg"))
+                                f"f/{cam.f_number:g}, M {cam.magnification:g}, {rotation}"))
     truth = store.truth()
     if truth:
         flow = truth["attrs"]["flow"]
         lines.append(("flow", f"{flow['name']}: {_fmt_params(flow)}"))
-        ppm = truth["attrs"].get("ppm")
+        ppm, ppp = truth["attrs"].get("ppm"), truth["attrs"].get("ppp")
         lines.append(("truth", f"{truth['particles'].shape[2]} particles per frame"
-                               + (f" ({ppm:g} PPM)" if ppm else "") + f", seed {truth['attrs'].get('seed')}"))
+                               + (f" ({ppm:g} PPM)" if ppm else f" ({ppp:g} ppp)" if ppp else "")
+                               + f", seed {truth['attrs'].get('seed')}"))
     else:
         lines.append(("flow", "unknown (recorded run, no truth)"))
     made = a.get("import")

@@ -13,7 +13,7 @@ from tqdm import tqdm
 from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
 from lfcore.projector import Projector
 from lfcore.reconstruct import MAX_SUB_APERTURES, WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
-from lfcore.rig import Rig, voxel_shape_warnings
+from lfcore.rig import Rig, is_pinhole, voxel_shape_warnings
 from lfcore.runstore import RunStore
 from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
@@ -175,6 +175,12 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     if unknown:
         raise UsageError(f"--cameras: no camera '{unknown[0]}' in this run (it has {', '.join(store.cameras)})")
     cams = [rig.camera_named(n) for n in names]
+    tomo = [c.name for c in cams if is_pinhole(c)]
+    if tomo:
+        keep = [n for n in names if n not in tomo]
+        raise UsageError(f"camera '{tomo[0]}' is a pinhole camera: its reconstruction (MLOS-SMART) is not built yet, "
+                         "the DRT-MART reconstruction needs light-field cameras; "
+                         + (f"give --cameras {','.join(keep)}" if keep else "this run has no light-field camera"))
     try:
         grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(pvr), tuple(margin_mm))
     except ValueError as exc:

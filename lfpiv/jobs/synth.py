@@ -15,16 +15,16 @@ import numpy as np
 from tqdm import tqdm
 
 from lfcore.flows import FLOW_NAMES, default_displacement_px
-from lfcore.particles import MAX_PPM, particle_count, sheet_weights
-from lfcore.render import LightFieldRenderer, derive_seed
-from lfcore.rig import MAX_RAYS_PER_PARTICLE, Rig
+from lfcore.particles import MAX_PPM, MAX_PPP, seeding_density, sheet_weights
+from lfcore.render import derive_seed, renderer_for
+from lfcore.rig import MAX_RAYS_PER_PARTICLE, Rig, is_pinhole
 from lfcore.runstore import RunStore
 from lfcore.world import ParticleWorld
 from lfpiv import __version__
 from lfpiv.errors import UsageError
 
-__all__ = ["FLOW_NAMES", "MAX_PPM", "MAX_RAYS_PER_PARTICLE", "SynthResult", "default_displacement_px", "points_outside",
-           "read_points_csv", "synthesize"]
+__all__ = ["FLOW_NAMES", "MAX_PPM", "MAX_PPP", "MAX_RAYS_PER_PARTICLE", "SynthResult", "default_displacement_px",
+           "points_outside", "read_points_csv", "synthesize"]
 
 
 @dataclass(frozen=True)
@@ -33,9 +33,12 @@ class SynthResult:
 
     store: RunStore
     particles_per_frame: int
+    #: rays traced through the light-field cameras (0 for a rig of pinhole cameras only)
     rays: int
     seconds: float
     flow: dict[str, Any]
+    #: Gaussian particle images drawn on the pinhole cameras
+    particle_images: int = 0
 
 
 def read_points_csv(path: str | Path) -> np.ndarray:
@@ -98,14 +101,15 @@ def points_outside(rig: Rig, points: np.ndarray) -> int:
 def _check_in_front(rig: Rig, points: np.ndarray) -> None:
     for cam in rig.camera:
         depth = cam.world_to_camera(points)[:, 2]
-        limit = cam.object_distance_mm - cam.main_focal_length_mm
+        limit = cam.object_distance_mm - cam.lens_focal_length_mm
         if np.any(depth >= limit):
             i = int(np.argmax(depth))
             raise UsageError(f"particle {i} at {points[i].round(3).tolist()} mm is inside the focal length "
                              f"of camera '{cam.name}'; it cannot be imaged")
 
 
-def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: float = 0.5, pairs: int = 3,
+def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: float | None = None,
+               ppp: float | None = None, pairs: int = 3,
                dt_s: float | None = None, seed: int = 1, omega: float = 1.0,
                displacement_px: float | None = None, points: np.ndarray | None = None,
                rays_per_particle: int | None = None, device: str | None = None, overwrite: bool = False,
@@ -121,7 +125,11 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
     flow
         A name of :data:`lfcore.flows.FLOW_NAMES`; ignored when ``points`` is given.
     ppm
-        Seeding density, particles per microlens of the first camera.
+        Seeding density, particles per microlens of the first light-field camera (with neither
+        ``ppm`` nor ``ppp``: 0.5, or 0.05 ppp for a rig of pinhole cameras only).
+    ppp
+        Seeding density instead, particles per pixel of the first pinhole camera (Tomo-PIV's
+        usual measure: the chapter's 0.05 and 0.1).
     pairs
         Number of double-frame pairs; pair i starts at i / laser rate.
     dt_s
@@ -169,13 +177,13 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         if displacement_px is not None and not (np.isfinite(displacement_px) and displacement_px > 0):
             raise UsageError(f"--displacement-px must be positive, got {displacement_px}")
         try:
-            particle_count(rig, ppm)
+            ppm, ppp = seeding_density(rig, ppm, ppp)
         except ValueError as exc:
-            raise UsageError(f"--ppm: {exc}") from None
+            raise UsageError(f"--{'ppp' if ppp is not None else 'ppm'}: {exc}") from None
         try:
             # the world the simulated lab's cameras see too: a fresh seeding per pair
             world = ParticleWorld(rig, flow=flow, ppm=ppm, displacement_px=displacement_px, seed=seed, omega=omega,
-                                  dt_s=dt_s)
+                                  dt_s=dt_s, ppp=ppp)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
         flow_params = world.flow_params
@@ -189,25 +197,29 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         brightness = render.particle_counts * sheet_weights(particles.reshape(-1, 3), rig.laser, rig.volume)
         brightness = brightness.reshape(particles.shape[:3])
 
-    renderers = [LightFieldRenderer(cam, render, rig.laser.wavelength_nm, device) for cam in rig.camera]
+    renderers = [renderer_for(cam, render, rig.laser.wavelength_nm, device) for cam in rig.camera]
     timing = {"dt_s": dt_s, "rate_hz": rate}
     store = RunStore.create(out, rig, pairs, timing=timing, software_version=__version__, overwrite=overwrite)
     n_part = particles.shape[2]
-    total_rays = pairs * 2 * len(renderers) * n_part * render.rays_per_particle
+    # the work of a particle: its rays through a light-field camera, one Gaussian image on a pinhole one
+    work = [1 if is_pinhole(r.camera) else render.rays_per_particle for r in renderers]
+    total_rays = pairs * 2 * n_part * sum(w for w, r in zip(work, renderers, strict=True) if not is_pinhole(r.camera))
+    spots = pairs * 2 * n_part * sum(1 for r in renderers if is_pinhole(r.camera))
     start = time.perf_counter()
-    bar = tqdm(total=total_rays, unit="ray", unit_scale=True, disable=not progress, desc="rendering",
-               leave=False)
+    bar = tqdm(total=pairs * 2 * n_part * sum(work), unit="ray" if total_rays else "particle", unit_scale=True,
+               disable=not progress, desc="rendering", leave=False)
     try:  # from the store's creation on: an interrupted run is marked aborted, truth or not
         if attrs:
             store.group.attrs.update(attrs)
-        store.write_truth(particles, brightness, flow_params, ppm=None if points is not None else ppm, seed=seed,
+        density = {"ppm": None} if points is not None else {"ppm": ppm} if ppp is None else {"ppm": None, "ppp": ppp}
+        store.write_truth(particles, brightness, flow_params, **density, seed=seed,
                           render=render.model_dump(mode="json"), device=renderers[0].device)
         for i in range(pairs):
             for f in range(2):
                 t_ns = round((i / rate + f * dt_s) * 1e9)
                 for c, r in enumerate(renderers):
                     img = r.frame(particles[i, f], brightness[i, f], seed=derive_seed(seed, i, f, c),
-                                  progress=lambda k: bar.update(k * render.rays_per_particle))
+                                  progress=lambda k, w=work[c]: bar.update(k * w))
                     store.write_frame(r.camera.name, i, f, img, frame_id=2 * i + f, timestamp_ns=t_ns)
             store.commit(i + 1)
     except BaseException:
@@ -217,4 +229,4 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         bar.close()
     store.set_state("complete")
     return SynthResult(store=store, particles_per_frame=n_part, rays=total_rays,
-                       seconds=time.perf_counter() - start, flow=flow_params)
+                       seconds=time.perf_counter() - start, flow=flow_params, particle_images=spots)
