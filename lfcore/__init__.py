@@ -16,11 +16,13 @@ __all__ = [
     "metrics",      # Q_recon, particle matching, diameters, velocity and divergence errors
     "mla",          # the microlens lattice and the sensor's pixel coordinates
     "particles",    # seeding and the laser sheet
+    "pinhole",      # the pinhole (Tomo-PIV) camera model: projection, lines of sight, triangulation
     "projector",    # cameras bound to a voxel grid on a device: elimination, projection, MART updates
     "reconstruct",  # DRT-MART, MART and MLOS-MART
     "render",       # Monte-Carlo light-field particle images
     "rig",          # the rig description
     "runstore",     # the run store (zarr)
+    "soloff",       # the third-order Soloff polynomial mapping
     "target",       # the calibration dot board
     "vectors",      # outliers, replacement, units, vorticity, divergence, Q-criterion
     "volume",       # the voxel grid
