@@ -6,7 +6,7 @@ name them so that they sort in recording order and alternate frame A, frame B (`
 ``img0002.tif``, ...), and give the rig file they were recorded with (``--rig``), the time
 between the frames (``--dt-us``) and the pair rate (``--rate-hz``). Without one, it first writes
 stand-in TIFF files as a camera's own software would (16-bit, one frame per file, with
-``tifffile``), so the example runs anywhere; the CI runs it that way.
+``tifffile``), so the example runs anywhere; the tests (tests/functional/test_examples.py) run it that way.
 """
 
 # %% The files, the rig and where the results go
