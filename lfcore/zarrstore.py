@@ -105,10 +105,10 @@ class RigStore:
             if other is not None:
                 raise cls.Error(f"{path} is an {other}, not an {cls.KIND}; {cls.HINT}")
             raise cls.Error(f"{path} is a zarr group but not an {cls.KIND} (format {fmt!r})")
-        version = root.attrs.get("format_version", 0)
-        if isinstance(version, bool) or not isinstance(version, int):
-            raise cls.Error(f"{path}: format_version is {version!r}, not a whole number (its zarr.json was edited or "
-                            f"damaged); restore it from a copy, or set it to {cls.FORMAT_VERSION}")
+        version = root.attrs.get("format_version", 1)  # the first format had no other
+        if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+            raise cls.Error(f"{path}: format_version is {version!r}, not a format lfpiv writes (its zarr.json was "
+                            f"edited or damaged); restore it from a copy, or set it to {cls.FORMAT_VERSION}")
         if version > cls.FORMAT_VERSION:
             raise cls.Error(f"{path} was written by a newer lfpiv (format_version "
                             f"{root.attrs['format_version']}); upgrade lfpiv")

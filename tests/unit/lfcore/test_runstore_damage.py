@@ -203,12 +203,13 @@ def test_a_truncated_zarr_json_of_derived_data_is_named_by_verify(run):
     assert line.startswith(f"{run}: volumes/data/zarr.json is damaged (not valid JSON: ")
 
 
-def test_a_format_version_that_is_not_a_number_is_one_line(run):
-    _edit_json(run / "zarr.json", lambda d: d["attributes"].update(format_version="1"))
+@pytest.mark.parametrize("version", ["1", 0, -3, True])
+def test_a_format_version_lfpiv_never_wrote_is_one_line(run, version):
+    _edit_json(run / "zarr.json", lambda d: d["attributes"].update(format_version=version))
     with pytest.raises(RunStoreError) as err:
         RunStore.open(run)
-    assert str(err.value) == (f"{run}: format_version is '1', not a whole number (its zarr.json was edited or "
-                              "damaged); restore it from a copy, or set it to 1")
+    assert str(err.value) == (f"{run}: format_version is {version!r}, not a format lfpiv writes (its zarr.json was "
+                              "edited or damaged); restore it from a copy, or set it to 1")
     assert RunStore.check(run) == [str(err.value)]
 
 
