@@ -21,7 +21,8 @@ from lfpiv.errors import UsageError
 #: Subcommands in the order ``lfpiv --help`` lists them; each is the module of its name (with a
 #: trailing underscore where the name is a Python keyword: ``import`` is :mod:`lfpiv.commands.import_`).
 COMMANDS = ("demo", "devices", "acquire", "monitor", "calibrate", "import", "synth", "info", "check", "reconstruct",
-            "correlate", "evaluate", "export")
+            "correlate", "evaluate", "export",
+            "study")
 
 
 def module_of(command: str) -> str:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,7 @@ from tqdm import tqdm
 
 from lfcore.flows import FLOW_NAMES, default_displacement_px
 from lfcore.particles import MAX_PPM, MAX_PPP, seeding_density, sheet_weights
-from lfcore.render import derive_seed, renderer_for
+from lfcore.render import LightFieldRenderer, PinholeRenderer, derive_seed, renderer_for
 from lfcore.rig import MAX_RAYS_PER_PARTICLE, Rig, is_pinhole
 from lfcore.runstore import RunStore
 from lfcore.world import ParticleWorld
@@ -24,7 +25,10 @@ from lfpiv import __version__
 from lfpiv.errors import UsageError
 
 __all__ = ["FLOW_NAMES", "MAX_PPM", "MAX_PPP", "MAX_RAYS_PER_PARTICLE", "SynthResult", "default_displacement_px",
-           "points_outside", "read_points_csv", "synthesize"]
+           "points_outside", "read_points_csv", "render_pair", "synthesize"]
+
+#: A renderer of either kind of camera (:func:`lfcore.render.renderer_for`).
+Renderer = LightFieldRenderer | PinholeRenderer
 
 
 @dataclass(frozen=True)
@@ -106,6 +110,34 @@ def _check_in_front(rig: Rig, points: np.ndarray) -> None:
             i = int(np.argmax(depth))
             raise UsageError(f"particle {i} at {points[i].round(3).tolist()} mm is inside the focal length "
                              f"of camera '{cam.name}'; it cannot be imaged")
+
+
+def render_pair(renderers: Sequence[Renderer], particles: np.ndarray, brightness: np.ndarray, *,
+                seed: int, pair: int, progress: Callable[[int, int], None] | None = None) -> list[np.ndarray]:
+    """Both frames of one pair as every camera records them, each frame's rays and noise seeded
+    from the run's ``seed``, the pair, the frame and the camera (so any pair can be made again).
+
+    Parameters
+    ----------
+    renderers
+        One renderer per camera, in the rig's order (light-field or pinhole).
+    particles, brightness
+        (2, n, 3) world positions (x, y, z) in mm at the two pulses and (2, n) their counts.
+    seed, pair
+        The run's seed and the pair's index.
+    progress
+        Called with the camera's index and the number of particles finished after each launch.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        Per camera, (2, rows, columns) uint16 frames A and B.
+    """
+    def step(c: int) -> Callable[[int], None] | None:
+        return None if progress is None else lambda k: progress(c, k)
+
+    return [np.stack([r.frame(particles[f], brightness[f], seed=derive_seed(seed, pair, f, c), progress=step(c))
+                      for f in range(2)]) for c, r in enumerate(renderers)]
 
 
 def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: float | None = None,
@@ -215,12 +247,12 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         store.write_truth(particles, brightness, flow_params, **density, seed=seed,
                           render=render.model_dump(mode="json"), device=renderers[0].device)
         for i in range(pairs):
+            images = render_pair(renderers, particles[i], brightness[i], seed=seed, pair=i,
+                                 progress=lambda c, k: bar.update(k * work[c]))
             for f in range(2):
                 t_ns = round((i / rate + f * dt_s) * 1e9)
-                for c, r in enumerate(renderers):
-                    img = r.frame(particles[i, f], brightness[i, f], seed=derive_seed(seed, i, f, c),
-                                  progress=lambda k, w=work[c]: bar.update(k * w))
-                    store.write_frame(r.camera.name, i, f, img, frame_id=2 * i + f, timestamp_ns=t_ns)
+                for r, img in zip(renderers, images, strict=True):
+                    store.write_frame(r.camera.name, i, f, img[f], frame_id=2 * i + f, timestamp_ns=t_ns)
             store.commit(i + 1)
     except BaseException:
         store.set_state("aborted")

@@ -1,0 +1,43 @@
+"""``lfpiv study`` end to end: the CSV, the PNG and the report, resuming, workers, bad input."""
+
+from __future__ import annotations
+
+import csv
+
+from tests.conftest import EXAMPLES, run_cli
+
+
+def test_study_writes_table_figure_and_report(tmp_path, capsys):
+    rc, out, err = run_cli(capsys, "study", "iterations", "--scale", "tiny", "--out", tmp_path, "--device", "cpu")
+    assert rc == 0, err
+    folder = tmp_path / "iterations"
+    rows = list(csv.DictReader((folder / "table.csv").open()))
+    assert len(rows) == 7 and rows[0]["method"] == "truth" and float(rows[0]["Q"]) == 1.0
+    assert (folder / "figure.png").read_bytes()[:4] == b"\x89PNG"
+    report = (folder / "report.md").read_text()
+    assert "Fig. 4.6" in report and "![figure](figure.png)" in report and "| Chapter |" in report
+    assert "study iterations: 6 cases (6 run now)" in out and "Fig. 4.6:" in out
+    assert "case drt-mart_mu1 done" in err
+    # again: refused in one line, nothing lost; resumed with --skip-done
+    rc, out, err = run_cli(capsys, "study", "iterations", "--scale", "tiny", "--out", tmp_path)
+    assert rc == 2 and err.count("\n") == 1 and "--skip-done" in err
+    rc, out, err = run_cli(capsys, "study", "iterations", "--scale", "tiny", "--out", tmp_path, "--skip-done",
+                           "--quiet")
+    assert rc == 0 and "(0 run now, 6 kept)" in out and err == ""
+
+
+def test_study_on_workers_and_a_users_rig(tmp_path, capsys):
+    rc, out, err = run_cli(capsys, "study", "iterations", "--scale", "tiny", "--out", tmp_path, "--device", "cpu",
+                           "--workers", "2", "--rig", EXAMPLES / "tiny.toml", "--quiet")
+    assert rc == 0, err
+    assert "6 cases (6 run now)" in out
+    assert "`tiny.toml` rig" in (tmp_path / "iterations" / "report.md").read_text()
+
+
+def test_study_bad_input(tmp_path, capsys):
+    rc, _, err = run_cli(capsys, "study", "nope", "--out", tmp_path)
+    assert rc == 2 and "invalid choice" in err
+    rc, _, err = run_cli(capsys, "study", "dual", "--out", tmp_path, "--rig", tmp_path / "missing.toml")
+    assert rc == 2 and err.count("\n") == 1
+    rc, _, err = run_cli(capsys, "study", "dual", "--out", tmp_path, "--workers", "0")
+    assert rc == 2 and "at least 1" in err
