@@ -72,11 +72,13 @@ def lattice_vector(hexagonal: wp.int32, pitch: float, a: float, b: float) -> wp.
 class Placement:
     tmpl: int  # global template index; -1 if the view cannot see the voxel
     shift: wp.vec2  # sensor-plane shift of the template's spots, mm
+    weight: float  # the template's share of the voxel (bilinear in the phase)
 
 
 @wp.func
-def place(grid: Grid, view: View, plan: Plan, v: int) -> Placement:
-    """The template of voxel v in one view and the shift of its spots (see the module docstring)."""
+def place(grid: Grid, view: View, plan: Plan, v: int, corner: int) -> Placement:
+    """One of the four templates around voxel v's phase in one view (``corner`` 0-3), its
+    bilinear weight and the shift of its spots (see the module docstring)."""
     out = Placement()
     out.tmpl = -1
     cam = view.cam
@@ -101,17 +103,37 @@ def place(grid: Grid, view: View, plan: Plan, v: int) -> Placement:
     u = cam.cos_t * gx + cam.sin_t * gy
     w = -cam.sin_t * gx + cam.cos_t * gy
     f = lattice_basis_inv(cam.hex, cam.pitch, wp.vec2(u, w))
-    n0 = wp.floor(f[0])
-    n1 = wp.floor(f[1])
     nph = float(plan.n_phase)
-    b0 = wp.min(int((f[0] - n0) * nph), plan.n_phase - 1)
-    b1 = wp.min(int((f[1] - n1) * nph), plan.n_phase - 1)
+    # bin centres sit at (b + 1/2) / n_phase: the two either side of f along each axis
+    t0 = f[0] * nph - 0.5
+    t1 = f[1] * nph - 0.5
+    c0 = wp.floor(t0)
+    c1 = wp.floor(t1)
+    a0 = t0 - c0
+    a1 = t1 - c1
+    wgt = float(1.0)
+    if corner % 2 == 1:
+        c0 += 1.0
+        wgt *= a0
+    else:
+        wgt *= 1.0 - a0
+    if corner >= 2:
+        c1 += 1.0
+        wgt *= a1
+    else:
+        wgt *= 1.0 - a1
+    # the bin c in lattice cell n = floor(c / n_phase), as bin c - n n_phase of the templates (cell 0)
+    n0 = wp.floor(c0 / nph)
+    n1 = wp.floor(c1 / nph)
+    b0 = int(c0 - n0 * nph)
+    b1 = int(c1 - n1 * nph)
     lv = lattice_vector(cam.hex, cam.pitch, n0, n1)
     dv = lattice_vector(cam.hex, cam.pitch, f[0] - n0 - (float(b0) + 0.5) / nph, f[1] - n1 - (float(b1) + 0.5) / nph)
     su = (1.0 + plan.k_spot) * lv[0] + plan.k_spot * dv[0]
     sv = (1.0 + plan.k_spot) * lv[1] + plan.k_spot * dv[1]
     out.shift = wp.vec2(cam.cos_t * su - cam.sin_t * sv, cam.sin_t * su + cam.cos_t * sv)
     out.tmpl = plan.first + (d * plan.n_phase + b1) * plan.n_phase + b0
+    out.weight = wgt
     return out
 
 
@@ -247,26 +269,27 @@ def project(
     for iv in range(n_views):
         view = views[iv]
         cam = view.cam
-        pl = place(grid, view, plans[iv], v)
-        if pl.tmpl < 0:
-            continue
-        for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
-            q = spot_pixels(view, spots[t], pl.shift)
-            colc = q[0]
-            rowc = q[1]
-            hx = q[2]
-            hy = q[3]
-            wk = shares[t]
-            c0 = wp.max(0, int(wp.floor(colc - hx)))
-            c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
-            r0 = wp.max(0, int(wp.floor(rowc - hy)))
-            r1 = wp.min(cam.nrows - 1, int(wp.floor(rowc + hy)))
-            for r in range(r0, r1 + 1):
-                oy = pixel_overlap(rowc - hy, rowc + hy, r) / (2.0 * hy)
-                for cc in range(c0, c1 + 1):
-                    wt = wk * oy * pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
-                    if wt > min_weight:
-                        wp.atomic_add(proj, view.pix_offset + r * cam.ncols + cc, wt * ej)
+        for corner in range(4):
+            pl = place(grid, view, plans[iv], v, corner)
+            if pl.tmpl < 0 or pl.weight <= 0.0:
+                continue
+            for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
+                q = spot_pixels(view, spots[t], pl.shift)
+                colc = q[0]
+                rowc = q[1]
+                hx = q[2]
+                hy = q[3]
+                wk = shares[t]
+                c0 = wp.max(0, int(wp.floor(colc - hx)))
+                c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
+                r0 = wp.max(0, int(wp.floor(rowc - hy)))
+                r1 = wp.min(cam.nrows - 1, int(wp.floor(rowc + hy)))
+                for r in range(r0, r1 + 1):
+                    oy = pixel_overlap(rowc - hy, rowc + hy, r) / (2.0 * hy)
+                    for cc in range(c0, c1 + 1):
+                        wt = wk * oy * pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
+                        if wt > min_weight:
+                            wp.atomic_add(proj, view.pix_offset + r * cam.ncols + cc, wt * pl.weight * ej)
 
 
 @wp.func
@@ -287,26 +310,27 @@ def weighted_sum(
     for iv in range(n_views):
         view = views[iv]
         cam = view.cam
-        pl = place(grid, view, plans[iv], v)
-        if pl.tmpl < 0:
-            continue
-        for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
-            q = spot_pixels(view, spots[t], pl.shift)
-            colc = q[0]
-            rowc = q[1]
-            hx = q[2]
-            hy = q[3]
-            wk = shares[t]
-            c0 = wp.max(0, int(wp.floor(colc - hx)))
-            c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
-            r0 = wp.max(0, int(wp.floor(rowc - hy)))
-            r1 = wp.min(cam.nrows - 1, int(wp.floor(rowc + hy)))
-            for r in range(r0, r1 + 1):
-                oy = pixel_overlap(rowc - hy, rowc + hy, r) / (2.0 * hy)
-                for cc in range(c0, c1 + 1):
-                    wt = wk * oy * pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
-                    if wt > min_weight:
-                        total += wt * values[view.pix_offset + r * cam.ncols + cc]
+        for corner in range(4):
+            pl = place(grid, view, plans[iv], v, corner)
+            if pl.tmpl < 0 or pl.weight <= 0.0:
+                continue
+            for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
+                q = spot_pixels(view, spots[t], pl.shift)
+                colc = q[0]
+                rowc = q[1]
+                hx = q[2]
+                hy = q[3]
+                wk = shares[t]
+                c0 = wp.max(0, int(wp.floor(colc - hx)))
+                c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
+                r0 = wp.max(0, int(wp.floor(rowc - hy)))
+                r1 = wp.min(cam.nrows - 1, int(wp.floor(rowc + hy)))
+                for r in range(r0, r1 + 1):
+                    oy = pixel_overlap(rowc - hy, rowc + hy, r) / (2.0 * hy)
+                    for cc in range(c0, c1 + 1):
+                        wt = wk * oy * pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
+                        if wt > min_weight:
+                            total += wt * pl.weight * values[view.pix_offset + r * cam.ncols + cc]
     return total
 
 
@@ -353,23 +377,24 @@ def voxel_image(
     for iv in range(n_views):
         view = views[iv]
         cam = view.cam
-        pl = place(grid, view, plans[iv], v)
-        if pl.tmpl < 0:
-            continue
-        for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
-            q = spot_pixels(view, spots[t], pl.shift)
-            colc = q[0]
-            rowc = q[1]
-            hx = q[2]
-            hy = q[3]
-            wk = shares[t]
-            c0 = wp.max(0, int(wp.floor(colc - hx)))
-            c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
-            r0 = wp.max(0, int(wp.floor(rowc - hy)))
-            r1 = wp.min(cam.nrows - 1, int(wp.floor(rowc + hy)))
-            for r in range(r0, r1 + 1):
-                oy = pixel_overlap(rowc - hy, rowc + hy, r) / (2.0 * hy)
-                for cc in range(c0, c1 + 1):
-                    wt = wk * oy * pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
-                    if wt > min_weight:
-                        images[tid, view.pix_offset + r * cam.ncols + cc] += wt
+        for corner in range(4):
+            pl = place(grid, view, plans[iv], v, corner)
+            if pl.tmpl < 0 or pl.weight <= 0.0:
+                continue
+            for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
+                q = spot_pixels(view, spots[t], pl.shift)
+                colc = q[0]
+                rowc = q[1]
+                hx = q[2]
+                hy = q[3]
+                wk = shares[t]
+                c0 = wp.max(0, int(wp.floor(colc - hx)))
+                c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
+                r0 = wp.max(0, int(wp.floor(rowc - hy)))
+                r1 = wp.min(cam.nrows - 1, int(wp.floor(rowc + hy)))
+                for r in range(r0, r1 + 1):
+                    oy = pixel_overlap(rowc - hy, rowc + hy, r) / (2.0 * hy)
+                    for cc in range(c0, c1 + 1):
+                        wt = wk * oy * pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
+                        if wt > min_weight:
+                            images[tid, view.pix_offset + r * cam.ncols + cc] += wt * pl.weight
