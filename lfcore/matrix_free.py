@@ -44,13 +44,18 @@ from lfcore.device import PrivateCopies, RowOffset, Rows, launch_rows, warp
 from lfcore.projector import Projector
 from lfcore.weight_build import MemoryBudgetError
 
-__all__ = ["DEFAULT_PHASES", "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "PROJECTORS",
-           "SPOT_BYTES", "fidelity"]
+__all__ = ["MAX_PHASES", "MIN_PHASES", "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "PHASES_PER_FOOTPRINT",
+           "PROJECTORS", "SPOT_BYTES", "fidelity"]
 
-#: Phase bins per lattice axis of the templates.
-DEFAULT_PHASES = 16
-#: Bytes per template spot: (sx, sy, hx, hy) float32 and its share.
-SPOT_BYTES = 20
+#: Phase bins per lattice axis of a depth's templates, per lenslet pitch over a sub-aperture's
+#: footprint width on the MLA (bins are a quarter of the footprint: correlation >= 0.999 on the
+#: tiny rig's voxels, hexagonal and square).
+PHASES_PER_FOOTPRINT = 4.0
+#: Fewest and most phase bins per lattice axis of a depth.
+MIN_PHASES = 4
+MAX_PHASES = 32
+#: Bytes per template spot: (sx, sy, x and y parts) float32, its share and its sub-aperture.
+SPOT_BYTES = 24
 #: The projectors reconstruction can run on.
 PROJECTORS = ("auto", "stored", "matrix-free")
 
@@ -100,26 +105,27 @@ class DrtTemplates:
         If a camera does not look along a grid axis.
     """
 
-    def __init__(self, projector: Projector, *, n_phase: int = DEFAULT_PHASES, budget_bytes: int | None = None
-                 ) -> None:
+    def __init__(self, projector: Projector, *, phases_per_footprint: float = PHASES_PER_FOOTPRINT,
+                 max_phases: int = MAX_PHASES, budget_bytes: int | None = None) -> None:
         import time
 
         from lfcore._kernels import matrix_free as km
 
         t0 = time.perf_counter()
-        if n_phase < 1:
-            raise ValueError(f"n_phase must be at least 1, got {n_phase}")
+        if not phases_per_footprint > 0 or max_phases < MIN_PHASES:
+            raise ValueError(f"phases_per_footprint must be positive and max_phases at least {MIN_PHASES}")
         wp = warp()
         self.wp, self._km = wp, km
         self.projector = projector
-        self.n_phase = int(n_phase)
+        self.phases_per_footprint = float(phases_per_footprint)
+        self.max_phases = int(max_phases)
         self.device = projector.device
         grid = projector.grid
         nz, ny, nx = grid.shape
         dims = (nx, ny, nz)
         origin = np.asarray(grid.origin_mm, dtype=np.float64)
         step = np.asarray(grid.voxel_mm, dtype=np.float64)
-        plans, t_view, t_point = [], [], []
+        plans, t_view, t_point, depth_first, depth_phase = [], [], [], [], []
         blur = 0.0
         for iv, cam in enumerate(projector.cameras):
             rot = cam.rotation.T  # world -> camera
@@ -141,25 +147,36 @@ class DrtTemplates:
             off = np.asarray(cam.mla_offset_um, dtype=np.float64) * 1e-3
             th = np.radians(cam.mla_rotation_deg)
             c, s = np.cos(th), np.sin(th)
-            fr = (np.arange(self.n_phase) + 0.5) / self.n_phase
-            f0, f1 = np.meshgrid(fr, fr)  # [b1, b0]
-            f0, f1 = f0.ravel(), f1.ravel()
-            if cam.mla_grid == "hex":
-                u, v = pitch * (f0 + 0.5 * f1), pitch * 0.8660254037844386 * f1
-            else:
-                u, v = pitch * f0, pitch * f1
-            gx = c * u - s * v + off[0]
-            gy = s * u + c * v + off[1]
+            # phase bins per depth: enough that a bin is a small part of a sub-aperture's footprint
+            # (its width on the MLA: the sub-aperture's blur and the voxel's own lateral extent)
+            n_sub = max(1, round(cam.pixels_per_lenslet)) if projector.sub_apertures is None else \
+                projector.sub_apertures
+            sub_side = cam.aperture_mm / n_sub
+            half = np.abs(rot) @ (0.5 * step)
             for d in range(n_depth):
-                lat = si / (so - z_cam[d])
+                sop = so - z_cam[d]
+                lat = si / sop
+                a = 1.0 - si * (1.0 / cam.main_focal_length_mm - 1.0 / sop)
+                width = np.hypot(abs(a) * sub_side, 2.0 * lat * half[0])
+                n_ph = int(np.clip(np.ceil(self.phases_per_footprint * pitch / width), MIN_PHASES, self.max_phases))
+                fr = (np.arange(n_ph) + 0.5) / n_ph
+                f0, f1 = np.meshgrid(fr, fr)  # [b1, b0]
+                f0, f1 = f0.ravel(), f1.ravel()
+                if cam.mla_grid == "hex":
+                    u, v = pitch * (f0 + 0.5 * f1), pitch * 0.8660254037844386 * f1
+                else:
+                    u, v = pitch * f0, pitch * f1
+                gx = c * u - s * v + off[0]
+                gy = s * u + c * v + off[1]
+                depth_first.append(sum(len(x) for x in t_view))
+                depth_phase.append(n_ph)
                 pts = np.stack([-gx / lat, -gy / lat, np.full(gx.shape, z_cam[d])], axis=1)
                 t_point.append(pts)
                 t_view.append(np.full(len(pts), iv, dtype=np.int32))
             pl = km.Plan()
             pl.depth_axis = axis
             pl.n_depth = n_depth
-            pl.n_phase = self.n_phase
-            pl.first = sum(len(x) for x in t_view) - n_depth * self.n_phase**2
+            pl.depth_base = len(depth_phase) - n_depth
             pl.k_spot = cam.mla_focal_length_mm / si
             plans.append(pl)
             # the depth blur's lateral term |A - p| dq against the voxel's own lateral blur
@@ -173,6 +190,9 @@ class DrtTemplates:
             blur = max(blur, float(np.max(np.hypot(p_cam[:, 0], p_cam[:, 1]) * dq / lateral)))
         self.blur_error = blur
         self.plans = wp.array(plans, dtype=km.Plan, device=self.device)
+        self.depth_phase = np.asarray(depth_phase, dtype=np.int32)
+        self._depth_first = wp.array(np.asarray(depth_first, dtype=np.int32), dtype=wp.int32, device=self.device)
+        self._depth_phase = wp.array(self.depth_phase, dtype=wp.int32, device=self.device)
         t_view_a = np.concatenate(t_view)
         t_point_a = np.concatenate(t_point).astype(np.float32)
         n_t = len(t_view_a)
@@ -183,9 +203,11 @@ class DrtTemplates:
         counts = wp.zeros(n_t, dtype=wp.int32, device=self.device)
         dummy4 = wp.empty(1, dtype=wp.vec4, device=self.device)
         dummyf = wp.empty(1, dtype=float, device=self.device)
+        dummyi = wp.empty(1, dtype=wp.int32, device=self.device)
         offs0 = wp.zeros(n_t + 1, dtype=wp.int32, device=self.device)
         launch_rows(km.template_spots, n_t, [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp),
-                                             Rows(offs0, extra=1), 0, Rows(counts), dummy4, dummyf], self.device)
+                                             Rows(offs0, extra=1), 0, Rows(counts), dummy4, dummyf, dummyi],
+                    self.device)
         cnt = counts.numpy().astype(np.int64)
         offsets = np.zeros(n_t + 1, dtype=np.int64)
         np.cumsum(cnt, out=offsets[1:])
@@ -199,9 +221,11 @@ class DrtTemplates:
         self.t_offsets = wp.array(offsets.astype(np.int32), dtype=wp.int32, device=self.device)
         self.spots = wp.empty(max(self.n_spots, 1), dtype=wp.vec4, device=self.device)
         self.shares = wp.empty(max(self.n_spots, 1), dtype=float, device=self.device)
+        self.spot_sub = wp.empty(max(self.n_spots, 1), dtype=wp.int32, device=self.device)
         # each block writes its own templates' spots: from the global offsets, so no Rows on them
         launch_rows(km.template_spots, n_t, [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp),
-                                             Rows(self.t_offsets, extra=1), 1, Rows(counts), self.spots, self.shares],
+                                             Rows(self.t_offsets, extra=1), 1, Rows(counts), self.spots, self.shares,
+                                             self.spot_sub],
                     self.device)
         self.nbytes = int(need)
         wp.synchronize_device(self.device)
@@ -209,7 +233,8 @@ class DrtTemplates:
 
     def _common(self) -> list:
         p = self.projector
-        return [p._grid, p.views, self.plans, len(p.cameras), self.t_offsets, self.spots, self.shares]
+        return [p._grid, p.views, self.plans, self._depth_first, self._depth_phase, len(p.cameras), self.t_offsets, self.spots, self.shares,
+                self.spot_sub, p.sub_a]
 
 
 @dataclass

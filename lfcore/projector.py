@@ -95,6 +95,7 @@ class Projector:
         self._kw = kw
         self.cameras = tuple(cameras)
         self.grid = grid
+        self.sub_apertures = sub_apertures  # None: each camera's pixels per lenslet
         self.device = resolve_device(device)
         wp = self.wp
         g = kw.Grid()

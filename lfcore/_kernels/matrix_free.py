@@ -45,8 +45,7 @@ class Plan:
 
     depth_axis: int  # grid axis (0 x, 1 y, 2 z) along which the camera's depth changes
     n_depth: int
-    n_phase: int  # phase bins per lattice axis
-    first: int  # this view's first template
+    depth_base: int  # this view's first entry of the per-depth tables (first template, phase bins)
     k_spot: float  # f_ml / si
 
 
@@ -73,10 +72,16 @@ class Placement:
     tmpl: int  # global template index; -1 if the view cannot see the voxel
     shift: wp.vec2  # sensor-plane shift of the template's spots, mm
     weight: float  # the template's share of the voxel (bilinear in the phase)
+    px: float  # the voxel's camera-frame lateral position, mm
+    py: float
+    spr: wp.vec2  # its footprints' lateral blur on the MLA, before the |A - p| dq term, mm
+    dq: float  # the depth extent's blur per mm of |A - p| (see drt_weights)
+    wspot2: float  # (|1 - a| sub_side)^2: the sub-aperture's spot width on the sensor squared, mm^2
 
 
 @wp.func
-def place(grid: Grid, view: View, plan: Plan, v: int, corner: int) -> Placement:
+def place(grid: Grid, view: View, plan: Plan, depth_first: wp.array(dtype=wp.int32),
+          depth_phase: wp.array(dtype=wp.int32), v: int, corner: int) -> Placement:
     """One of the four templates around voxel v's phase in one view (``corner`` 0-3), its
     bilinear weight and the shift of its spots (see the module docstring)."""
     out = Placement()
@@ -103,7 +108,8 @@ def place(grid: Grid, view: View, plan: Plan, v: int, corner: int) -> Placement:
     u = cam.cos_t * gx + cam.sin_t * gy
     w = -cam.sin_t * gx + cam.cos_t * gy
     f = lattice_basis_inv(cam.hex, cam.pitch, wp.vec2(u, w))
-    nph = float(plan.n_phase)
+    n_phase = depth_phase[plan.depth_base + d]
+    nph = float(n_phase)
     # bin centres sit at (b + 1/2) / n_phase: the two either side of f along each axis
     t0 = f[0] * nph - 0.5
     t1 = f[1] * nph - 0.5
@@ -132,9 +138,28 @@ def place(grid: Grid, view: View, plan: Plan, v: int, corner: int) -> Placement:
     su = (1.0 + plan.k_spot) * lv[0] + plan.k_spot * dv[0]
     sv = (1.0 + plan.k_spot) * lv[1] + plan.k_spot * dv[1]
     out.shift = wp.vec2(cam.cos_t * su - cam.sin_t * sv, cam.sin_t * su + cam.cos_t * sv)
-    out.tmpl = plan.first + (d * plan.n_phase + b1) * plan.n_phase + b0
+    out.tmpl = depth_first[plan.depth_base + d] + b1 * n_phase + b0
     out.weight = wgt
+    inv = 1.0 / sop
+    a = 1.0 - cam.si * (cam.inv_f - inv)
+    out.px = p[0]
+    out.py = p[1]
+    out.spr = wp.vec2(lat * view.half[0], lat * view.half[1])
+    out.dq = cam.si * inv * inv * view.half[2]
+    ws = wp.abs(1.0 - a) * view.sub_side
+    out.wspot2 = ws * ws
     return out
+
+
+@wp.func
+def spot_size(view: View, pl: Placement, ax: float, ay: float, s: wp.vec4) -> wp.vec2:
+    """Half-sizes (pixels) of a template spot for the voxel of ``pl``: the sub-aperture's spot
+    with the voxel's own depth blur, |A - p| dq at the voxel's p (not the template's), times the
+    spot's part of its footprint ``s[2], s[3]`` (as drt_weights sizes it)."""
+    sprx = pl.spr[0] + wp.abs(ax - pl.px) * pl.dq
+    spry = pl.spr[1] + wp.abs(ay - pl.py) * pl.dq
+    k = 0.5 * view.cam.f_ml / (view.cam.si * view.cam.pixel)
+    return wp.vec2(k * wp.sqrt(pl.wspot2 + 4.0 * sprx * sprx) * s[2], k * wp.sqrt(pl.wspot2 + 4.0 * spry * spry) * s[3])
 
 
 @wp.kernel
@@ -149,12 +174,15 @@ def template_spots(
     counts: wp.array(dtype=wp.int32),
     spots: wp.array(dtype=wp.vec4),
     shares: wp.array(dtype=float),
+    spot_sub: wp.array(dtype=wp.int32),
 ):
     """The spots of template ``tid``: view ``t_view[tid]`` seeing camera-frame point ``t_point[tid]``.
 
     The body is :func:`lfcore._kernels.weights.drt_weights`'s for one view, stopping where that
     kernel cuts a spot into pixels. ``fill = 0`` counts the spots into ``counts``; ``fill = 1``
-    writes them from ``offsets[tid]``: ``spots`` (sx, sy mm, hx, hy pixels), ``shares`` w.
+    writes them from ``offsets[tid]``: ``spots`` (sx, sy mm, and the part's extent over the
+    footprint's along x and y, which scale the spot's size), ``shares`` w, ``spot_sub`` the
+    sub-aperture.
     """
     tid = wp.tid()
     view = views[t_view[tid]]
@@ -172,7 +200,6 @@ def template_spots(
         gy = -p[1] * cam.si * inv
         dq = cam.si * inv * inv * view.half[2]
         lat = cam.si * inv
-        k_spot = cam.f_ml / cam.si
         for k in range(view.sub_first, view.sub_first + view.sub_count):
             ax = sub_a[k][0]
             ay = sub_a[k][1]
@@ -189,9 +216,6 @@ def template_spots(
             y0 = qy - fy
             y1 = qy + fy
             inv_area = 1.0 / (4.0 * fx * fy)
-            wspot = wp.abs(1.0 - a) * view.sub_side
-            hx_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * sprx * sprx) / cam.pixel
-            hy_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * spry * spry) / cam.pixel
             home = lenslet_centre(cam, qx, qy)
             inside = int(1)
             for e in range(view.n_edges):
@@ -230,16 +254,17 @@ def template_spots(
                     if fill == 1:
                         sx = c[0] + cam.f_ml * (ov.cx - ax) / cam.si
                         sy = c[1] + cam.f_ml * (ov.cy - ay) / cam.si
-                        spots[base + n] = wp.vec4(sx, sy, hx_full * ov.wx / (2.0 * fx), hy_full * ov.wy / (2.0 * fy))
+                        spots[base + n] = wp.vec4(sx, sy, ov.wx / (2.0 * fx), ov.wy / (2.0 * fy))
                         shares[base + n] = wk * ov.area * inv_area
+                        spot_sub[base + n] = k
                     n += 1
     counts[tid] = n
 
 
 @wp.func
 def spot_pixels(view: View, s: wp.vec4, shift: wp.vec2) -> wp.vec4:
-    """(column, row, hx, hy) of a spot shifted by ``shift`` mm: its centre in pixels (as the stored
-    weights place it) and its half-sizes in pixels."""
+    """(column, row) of a spot's centre shifted by ``shift`` mm, in pixels (as the stored weights
+    place it); the rest of the vector is unused."""
     cam = view.cam
     sx = s[0] + shift[0]
     sy = s[1] + shift[1]
@@ -251,10 +276,14 @@ def project(
     grid: Grid,
     views: wp.array(dtype=View),
     plans: wp.array(dtype=Plan),
+    depth_first: wp.array(dtype=wp.int32),
+    depth_phase: wp.array(dtype=wp.int32),
     n_views: int,
     t_offsets: wp.array(dtype=wp.int32),
     spots: wp.array(dtype=wp.vec4),
     shares: wp.array(dtype=float),
+    spot_sub: wp.array(dtype=wp.int32),
+    sub_a: wp.array(dtype=wp.vec2),
     min_weight: float,
     voxels: wp.array(dtype=wp.int32),
     e: wp.array(dtype=float),
@@ -270,15 +299,18 @@ def project(
         view = views[iv]
         cam = view.cam
         for corner in range(4):
-            pl = place(grid, view, plans[iv], v, corner)
+            pl = place(grid, view, plans[iv], depth_first, depth_phase, v, corner)
             if pl.tmpl < 0 or pl.weight <= 0.0:
                 continue
             for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
-                q = spot_pixels(view, spots[t], pl.shift)
+                st = spots[t]
+                q = spot_pixels(view, st, pl.shift)
                 colc = q[0]
                 rowc = q[1]
-                hx = q[2]
-                hy = q[3]
+                ak = sub_a[spot_sub[t]]
+                hsz = spot_size(view, pl, ak[0], ak[1], st)
+                hx = hsz[0]
+                hy = hsz[1]
                 wk = shares[t]
                 c0 = wp.max(0, int(wp.floor(colc - hx)))
                 c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
@@ -297,10 +329,14 @@ def weighted_sum(
     grid: Grid,
     views: wp.array(dtype=View),
     plans: wp.array(dtype=Plan),
+    depth_first: wp.array(dtype=wp.int32),
+    depth_phase: wp.array(dtype=wp.int32),
     n_views: int,
     t_offsets: wp.array(dtype=wp.int32),
     spots: wp.array(dtype=wp.vec4),
     shares: wp.array(dtype=float),
+    spot_sub: wp.array(dtype=wp.int32),
+    sub_a: wp.array(dtype=wp.vec2),
     min_weight: float,
     v: int,
     values: wp.array(dtype=float),
@@ -311,15 +347,18 @@ def weighted_sum(
         view = views[iv]
         cam = view.cam
         for corner in range(4):
-            pl = place(grid, view, plans[iv], v, corner)
+            pl = place(grid, view, plans[iv], depth_first, depth_phase, v, corner)
             if pl.tmpl < 0 or pl.weight <= 0.0:
                 continue
             for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
-                q = spot_pixels(view, spots[t], pl.shift)
+                st = spots[t]
+                q = spot_pixels(view, st, pl.shift)
                 colc = q[0]
                 rowc = q[1]
-                hx = q[2]
-                hy = q[3]
+                ak = sub_a[spot_sub[t]]
+                hsz = spot_size(view, pl, ak[0], ak[1], st)
+                hx = hsz[0]
+                hy = hsz[1]
                 wk = shares[t]
                 c0 = wp.max(0, int(wp.floor(colc - hx)))
                 c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
@@ -339,10 +378,14 @@ def smart_update(
     grid: Grid,
     views: wp.array(dtype=View),
     plans: wp.array(dtype=Plan),
+    depth_first: wp.array(dtype=wp.int32),
+    depth_phase: wp.array(dtype=wp.int32),
     n_views: int,
     t_offsets: wp.array(dtype=wp.int32),
     spots: wp.array(dtype=wp.vec4),
     shares: wp.array(dtype=float),
+    spot_sub: wp.array(dtype=wp.int32),
+    sub_a: wp.array(dtype=wp.vec2),
     min_weight: float,
     voxels: wp.array(dtype=wp.int32),
     ratio: wp.array(dtype=float),
@@ -354,7 +397,8 @@ def smart_update(
     ej = e[tid]
     if ej == 0.0:
         return
-    s = weighted_sum(grid, views, plans, n_views, t_offsets, spots, shares, min_weight, voxels[tid], ratio)
+    s = weighted_sum(grid, views, plans, depth_first, depth_phase, n_views, t_offsets, spots, shares,
+                     spot_sub, sub_a, min_weight, voxels[tid], ratio)
     e[tid] = multiplied(ej, s, relaxation)
 
 
@@ -363,10 +407,14 @@ def voxel_image(
     grid: Grid,
     views: wp.array(dtype=View),
     plans: wp.array(dtype=Plan),
+    depth_first: wp.array(dtype=wp.int32),
+    depth_phase: wp.array(dtype=wp.int32),
     n_views: int,
     t_offsets: wp.array(dtype=wp.int32),
     spots: wp.array(dtype=wp.vec4),
     shares: wp.array(dtype=float),
+    spot_sub: wp.array(dtype=wp.int32),
+    sub_a: wp.array(dtype=wp.vec2),
     min_weight: float,
     voxels: wp.array(dtype=wp.int32),
     images: wp.array2d(dtype=float),
@@ -378,15 +426,18 @@ def voxel_image(
         view = views[iv]
         cam = view.cam
         for corner in range(4):
-            pl = place(grid, view, plans[iv], v, corner)
+            pl = place(grid, view, plans[iv], depth_first, depth_phase, v, corner)
             if pl.tmpl < 0 or pl.weight <= 0.0:
                 continue
             for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
-                q = spot_pixels(view, spots[t], pl.shift)
+                st = spots[t]
+                q = spot_pixels(view, st, pl.shift)
                 colc = q[0]
                 rowc = q[1]
-                hx = q[2]
-                hy = q[3]
+                ak = sub_a[spot_sub[t]]
+                hsz = spot_size(view, pl, ak[0], ak[1], st)
+                hx = hsz[0]
+                hy = hsz[1]
                 wk = shares[t]
                 c0 = wp.max(0, int(wp.floor(colc - hx)))
                 c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
