@@ -48,9 +48,9 @@ __all__ = ["MAX_PHASES", "MIN_PHASES", "DrtTemplates", "MatrixFreeUnsupported", 
            "PROJECTORS", "SPOT_BYTES", "fidelity"]
 
 #: Phase bins per lattice axis of a depth's templates, per lenslet pitch over a sub-aperture's
-#: footprint width on the MLA (bins are a quarter of the footprint: correlation >= 0.999 on the
+#: footprint width on the MLA (bins a fifth of the footprint: correlation >= 0.999 on the
 #: tiny rig's voxels, hexagonal and square).
-PHASES_PER_FOOTPRINT = 4.0
+PHASES_PER_FOOTPRINT = 5.0
 #: Fewest and most phase bins per lattice axis of a depth.
 MIN_PHASES = 4
 MAX_PHASES = 32
@@ -157,7 +157,7 @@ class DrtTemplates:
                 sop = so - z_cam[d]
                 lat = si / sop
                 a = 1.0 - si * (1.0 / cam.main_focal_length_mm - 1.0 / sop)
-                width = np.hypot(abs(a) * sub_side, 2.0 * lat * half[0])
+                width = np.hypot(abs(a) * sub_side, 2.0 * lat * min(half[0], half[1]))
                 n_ph = int(np.clip(np.ceil(self.phases_per_footprint * pitch / width), MIN_PHASES, self.max_phases))
                 fr = (np.arange(n_ph) + 0.5) / n_ph
                 f0, f1 = np.meshgrid(fr, fr)  # [b1, b0]
