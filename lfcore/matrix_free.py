@@ -40,12 +40,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfcore.device import PrivateCopies, RowOffset, Rows, launch_rows, warp
+from lfcore.device import PrivateCopies, Rows, launch_rows, warp
 from lfcore.projector import Projector
 from lfcore.weight_build import MemoryBudgetError
 
-__all__ = ["MAX_PHASES", "MIN_PHASES", "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "PHASES_PER_FOOTPRINT",
-           "PROJECTORS", "SPOT_BYTES", "fidelity"]
+__all__ = ["MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS", "SPOT_BYTES", "DrtTemplates",
+           "MatrixFreeUnsupported", "MatrixFreeWeights", "fidelity"]
 
 #: Phase bins per lattice axis of a depth's templates, per lenslet pitch over a sub-aperture's
 #: footprint width on the MLA (bins a fifth of the footprint: correlation >= 0.999 on the
@@ -54,8 +54,8 @@ PHASES_PER_FOOTPRINT = 5.0
 #: Fewest and most phase bins per lattice axis of a depth.
 MIN_PHASES = 4
 MAX_PHASES = 32
-#: Bytes per template spot: (sx, sy, x and y parts) float32, its share and its sub-aperture.
-SPOT_BYTES = 24
+#: Bytes per template spot: (column, row, hx, hy) float32 and its share per pixel area.
+SPOT_BYTES = 20
 #: The projectors reconstruction can run on.
 PROJECTORS = ("auto", "stored", "matrix-free")
 
@@ -203,11 +203,9 @@ class DrtTemplates:
         counts = wp.zeros(n_t, dtype=wp.int32, device=self.device)
         dummy4 = wp.empty(1, dtype=wp.vec4, device=self.device)
         dummyf = wp.empty(1, dtype=float, device=self.device)
-        dummyi = wp.empty(1, dtype=wp.int32, device=self.device)
         offs0 = wp.zeros(n_t + 1, dtype=wp.int32, device=self.device)
         launch_rows(km.template_spots, n_t, [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp),
-                                             Rows(offs0, extra=1), 0, Rows(counts), dummy4, dummyf, dummyi],
-                    self.device)
+                                             Rows(offs0, extra=1), 0, Rows(counts), dummy4, dummyf], self.device)
         cnt = counts.numpy().astype(np.int64)
         offsets = np.zeros(n_t + 1, dtype=np.int64)
         np.cumsum(cnt, out=offsets[1:])
@@ -221,20 +219,20 @@ class DrtTemplates:
         self.t_offsets = wp.array(offsets.astype(np.int32), dtype=wp.int32, device=self.device)
         self.spots = wp.empty(max(self.n_spots, 1), dtype=wp.vec4, device=self.device)
         self.shares = wp.empty(max(self.n_spots, 1), dtype=float, device=self.device)
-        self.spot_sub = wp.empty(max(self.n_spots, 1), dtype=wp.int32, device=self.device)
         # each block writes its own templates' spots: from the global offsets, so no Rows on them
         launch_rows(km.template_spots, n_t, [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp),
-                                             Rows(self.t_offsets, extra=1), 1, Rows(counts), self.spots, self.shares,
-                                             self.spot_sub],
+                                             Rows(self.t_offsets, extra=1), 1, Rows(counts), self.spots, self.shares],
                     self.device)
         self.nbytes = int(need)
+        self._none1 = wp.empty(1, dtype=float, device=self.device)  # stand-ins for a kernel's unused outputs
+        self._none2 = wp.empty((1, 1), dtype=float, device=self.device)
         wp.synchronize_device(self.device)
         self.build_s = time.perf_counter() - t0
 
     def _common(self) -> list:
         p = self.projector
-        return [p._grid, p.views, self.plans, self._depth_first, self._depth_phase, len(p.cameras), self.t_offsets, self.spots, self.shares,
-                self.spot_sub, p.sub_a]
+        return [p._grid, p.views, self.plans, self._depth_first, self._depth_phase, len(p.cameras), self.t_offsets,
+                self.spots, self.shares]
 
 
 @dataclass
@@ -289,7 +287,8 @@ class MatrixFreeWeights:
         out.zero_()
         parts = PrivateCopies()
         per = parts.open(out)
-        launch_rows(km.project, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels), Rows(e), per],
+        launch_rows(km.project, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels), Rows(e), per,
+                                              t._none2],
                     t.device)
         parts.close(out)
         return out
@@ -298,7 +297,7 @@ class MatrixFreeWeights:
         """E_v <- E_v exp(mu sum_i w_iv ratio_i) in place, ``ratio`` the pixels' log ratios."""
         t, km = self.templates, self.templates._km
         launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels), ratio,
-                                                     float(relaxation), Rows(e)], t.device)
+                                                     float(relaxation), Rows(e), t._none2], t.device)
 
     def images(self) -> np.ndarray:
         """(n, n_pixels) float32: each voxel's image, for checks on small rigs."""
@@ -306,11 +305,9 @@ class MatrixFreeWeights:
         n_pix = t.projector.n_pixels
         out = wp.zeros((self.n_voxels, n_pix), dtype=float, device=t.device)
         launch_rows(km.voxel_image, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels),
-                                                    Rows(out)], t.device)
+                                                    Rows(out), t._none1], t.device)
         return out.numpy()
 
-
-_ = RowOffset  # (launch_rows' row offsets are not needed: each voxel's row is its own)
 
 
 def fidelity(projector: Projector, voxels: np.ndarray, templates: DrtTemplates, *, min_weight: float = 1e-6

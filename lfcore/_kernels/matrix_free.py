@@ -19,6 +19,7 @@ from __future__ import annotations
 import warp as wp
 
 from lfcore._kernels.mart import multiplied
+from lfcore._kernels.optics import HEX_ROW, lenslet_centre
 from lfcore._kernels.weights import (
     Grid,
     Overlap,
@@ -29,10 +30,9 @@ from lfcore._kernels.weights import (
     pixel_overlap,
     row_shift,
     row_step,
-    voxel_centre,
     view_point,
+    voxel_centre,
 )
-from lfcore._kernels.optics import HEX_ROW, lenslet_centre
 from lfcore.device import warp as _init
 
 _init()
@@ -72,11 +72,6 @@ class Placement:
     tmpl: int  # global template index; -1 if the view cannot see the voxel
     shift: wp.vec2  # sensor-plane shift of the template's spots, mm
     weight: float  # the template's share of the voxel (bilinear in the phase)
-    px: float  # the voxel's camera-frame lateral position, mm
-    py: float
-    spr: wp.vec2  # its footprints' lateral blur on the MLA, before the |A - p| dq term, mm
-    dq: float  # the depth extent's blur per mm of |A - p| (see drt_weights)
-    wspot2: float  # (|1 - a| sub_side)^2: the sub-aperture's spot width on the sensor squared, mm^2
 
 
 @wp.func
@@ -140,26 +135,7 @@ def place(grid: Grid, view: View, plan: Plan, depth_first: wp.array(dtype=wp.int
     out.shift = wp.vec2(cam.cos_t * su - cam.sin_t * sv, cam.sin_t * su + cam.cos_t * sv)
     out.tmpl = depth_first[plan.depth_base + d] + b1 * n_phase + b0
     out.weight = wgt
-    inv = 1.0 / sop
-    a = 1.0 - cam.si * (cam.inv_f - inv)
-    out.px = p[0]
-    out.py = p[1]
-    out.spr = wp.vec2(lat * view.half[0], lat * view.half[1])
-    out.dq = cam.si * inv * inv * view.half[2]
-    ws = wp.abs(1.0 - a) * view.sub_side
-    out.wspot2 = ws * ws
     return out
-
-
-@wp.func
-def spot_size(view: View, pl: Placement, ax: float, ay: float, s: wp.vec4) -> wp.vec2:
-    """Half-sizes (pixels) of a template spot for the voxel of ``pl``: the sub-aperture's spot
-    with the voxel's own depth blur, |A - p| dq at the voxel's p (not the template's), times the
-    spot's part of its footprint ``s[2], s[3]`` (as drt_weights sizes it)."""
-    sprx = pl.spr[0] + wp.abs(ax - pl.px) * pl.dq
-    spry = pl.spr[1] + wp.abs(ay - pl.py) * pl.dq
-    k = 0.5 * view.cam.f_ml / (view.cam.si * view.cam.pixel)
-    return wp.vec2(k * wp.sqrt(pl.wspot2 + 4.0 * sprx * sprx) * s[2], k * wp.sqrt(pl.wspot2 + 4.0 * spry * spry) * s[3])
 
 
 @wp.kernel
@@ -174,15 +150,14 @@ def template_spots(
     counts: wp.array(dtype=wp.int32),
     spots: wp.array(dtype=wp.vec4),
     shares: wp.array(dtype=float),
-    spot_sub: wp.array(dtype=wp.int32),
 ):
     """The spots of template ``tid``: view ``t_view[tid]`` seeing camera-frame point ``t_point[tid]``.
 
     The body is :func:`lfcore._kernels.weights.drt_weights`'s for one view, stopping where that
     kernel cuts a spot into pixels. ``fill = 0`` counts the spots into ``counts``; ``fill = 1``
-    writes them from ``offsets[tid]``: ``spots`` (sx, sy mm, and the part's extent over the
-    footprint's along x and y, which scale the spot's size), ``shares`` w, ``spot_sub`` the
-    sub-aperture.
+    writes them from ``offsets[tid]``: ``spots`` (column and row of the centre, half-sizes
+    hx, hy, all in pixels, as drt_weights places and sizes them) and ``shares``, the spot's share
+    of the light per pixel area (share / (4 hx hy)).
     """
     tid = wp.tid()
     view = views[t_view[tid]]
@@ -200,6 +175,7 @@ def template_spots(
         gy = -p[1] * cam.si * inv
         dq = cam.si * inv * inv * view.half[2]
         lat = cam.si * inv
+        k_spot = cam.f_ml / cam.si
         for k in range(view.sub_first, view.sub_first + view.sub_count):
             ax = sub_a[k][0]
             ay = sub_a[k][1]
@@ -216,6 +192,10 @@ def template_spots(
             y0 = qy - fy
             y1 = qy + fy
             inv_area = 1.0 / (4.0 * fx * fy)
+            # spot half-sizes on the sensor, in pixels
+            wspot = wp.abs(1.0 - a) * view.sub_side
+            hx_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * sprx * sprx) / cam.pixel
+            hy_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * spry * spry) / cam.pixel
             home = lenslet_centre(cam, qx, qy)
             inside = int(1)
             for e in range(view.n_edges):
@@ -254,21 +234,78 @@ def template_spots(
                     if fill == 1:
                         sx = c[0] + cam.f_ml * (ov.cx - ax) / cam.si
                         sy = c[1] + cam.f_ml * (ov.cy - ay) / cam.si
-                        spots[base + n] = wp.vec4(sx, sy, ov.wx / (2.0 * fx), ov.wy / (2.0 * fy))
-                        shares[base + n] = wk * ov.area * inv_area
-                        spot_sub[base + n] = k
+                        hx = hx_full * ov.wx / (2.0 * fx)
+                        hy = hy_full * ov.wy / (2.0 * fy)
+                        spots[base + n] = wp.vec4(0.5 * float(cam.ncols) - sx / cam.pixel,
+                                                  0.5 * float(cam.nrows) + sy / cam.pixel, hx, hy)
+                        # the share per pixel area of the spot: a pixel's weight is this times its overlap
+                        shares[base + n] = wk * ov.area * inv_area / (4.0 * hx * hy)
                     n += 1
     counts[tid] = n
 
 
 @wp.func
-def spot_pixels(view: View, s: wp.vec4, shift: wp.vec2) -> wp.vec4:
-    """(column, row) of a spot's centre shifted by ``shift`` mm, in pixels (as the stored weights
-    place it); the rest of the vector is unused."""
+def apply_templates(
+    mode: int,
+    grid: Grid,
+    view: View,
+    plan: Plan,
+    depth_first: wp.array(dtype=wp.int32),
+    depth_phase: wp.array(dtype=wp.int32),
+    t_offsets: wp.array(dtype=wp.int32),
+    spots: wp.array(dtype=wp.vec4),
+    shares: wp.array(dtype=float),
+    min_weight: float,
+    v: int,
+    ej: float,
+    values: wp.array(dtype=float),
+    images: wp.array2d(dtype=float),
+    row: int,
+) -> float:
+    """Voxel v's pixels in one view, from its four templates: ``mode`` 0 adds w ``ej`` to
+    ``values[pixel]`` (projection), 1 returns sum w ``values[pixel]`` (the update's gather), 2 adds
+    w to ``images[row, pixel]`` (checks).
+
+    Each spot is shifted by its template's placement and cut into pixels as the stored weights
+    are (box overlap, clipped at the sensor, entries at or below ``min_weight`` dropped).
+    """
     cam = view.cam
-    sx = s[0] + shift[0]
-    sy = s[1] + shift[1]
-    return wp.vec4(0.5 * float(cam.ncols) - sx / cam.pixel, 0.5 * float(cam.nrows) + sy / cam.pixel, s[2], s[3])
+    ncols = cam.ncols
+    nrows = cam.nrows
+    inv_pix = 1.0 / cam.pixel
+    base = view.pix_offset
+    total = float(0.0)
+    for corner in range(4):
+        pl = place(grid, view, plan, depth_first, depth_phase, v, corner)
+        if pl.tmpl < 0 or pl.weight <= 0.0:
+            continue
+        dc = -pl.shift[0] * inv_pix  # the shift in pixels: columns run against x, rows with y
+        dr = pl.shift[1] * inv_pix
+        blend = pl.weight
+        for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
+            st = spots[t]
+            colc = st[0] + dc
+            rowc = st[1] + dr
+            hx = st[2]
+            hy = st[3]
+            wk = shares[t]
+            c0 = wp.max(0, int(wp.floor(colc - hx)))
+            c1 = wp.min(ncols - 1, int(wp.floor(colc + hx)))
+            r0 = wp.max(0, int(wp.floor(rowc - hy)))
+            r1 = wp.min(nrows - 1, int(wp.floor(rowc + hy)))
+            for r in range(r0, r1 + 1):
+                oy = wk * pixel_overlap(rowc - hy, rowc + hy, r)
+                for cc in range(c0, c1 + 1):
+                    wt = oy * pixel_overlap(colc - hx, colc + hx, cc)
+                    if wt > min_weight:
+                        q = base + r * ncols + cc
+                        if mode == 0:
+                            wp.atomic_add(values, q, wt * blend * ej)
+                        elif mode == 1:
+                            total += wt * blend * values[q]
+                        else:
+                            images[row, q] += wt * blend
+    return total
 
 
 @wp.kernel
@@ -282,95 +319,21 @@ def project(
     t_offsets: wp.array(dtype=wp.int32),
     spots: wp.array(dtype=wp.vec4),
     shares: wp.array(dtype=float),
-    spot_sub: wp.array(dtype=wp.int32),
-    sub_a: wp.array(dtype=wp.vec2),
     min_weight: float,
     voxels: wp.array(dtype=wp.int32),
     e: wp.array(dtype=float),
     proj: wp.array(dtype=float),
+    none: wp.array2d(dtype=float),
 ):
-    """proj[pixel] += w E of voxel ``voxels[tid]``'s shifted template spots, every view."""
+    """proj[pixel] += w E of voxel ``voxels[tid]``, every view (see :func:`apply_templates`;
+    ``none`` is unused)."""
     tid = wp.tid()
     ej = e[tid]
     if ej == 0.0:
         return
-    v = voxels[tid]
     for iv in range(n_views):
-        view = views[iv]
-        cam = view.cam
-        for corner in range(4):
-            pl = place(grid, view, plans[iv], depth_first, depth_phase, v, corner)
-            if pl.tmpl < 0 or pl.weight <= 0.0:
-                continue
-            for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
-                st = spots[t]
-                q = spot_pixels(view, st, pl.shift)
-                colc = q[0]
-                rowc = q[1]
-                ak = sub_a[spot_sub[t]]
-                hsz = spot_size(view, pl, ak[0], ak[1], st)
-                hx = hsz[0]
-                hy = hsz[1]
-                wk = shares[t]
-                c0 = wp.max(0, int(wp.floor(colc - hx)))
-                c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
-                r0 = wp.max(0, int(wp.floor(rowc - hy)))
-                r1 = wp.min(cam.nrows - 1, int(wp.floor(rowc + hy)))
-                for r in range(r0, r1 + 1):
-                    oy = pixel_overlap(rowc - hy, rowc + hy, r) / (2.0 * hy)
-                    for cc in range(c0, c1 + 1):
-                        wt = wk * oy * pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
-                        if wt > min_weight:
-                            wp.atomic_add(proj, view.pix_offset + r * cam.ncols + cc, wt * pl.weight * ej)
-
-
-@wp.func
-def weighted_sum(
-    grid: Grid,
-    views: wp.array(dtype=View),
-    plans: wp.array(dtype=Plan),
-    depth_first: wp.array(dtype=wp.int32),
-    depth_phase: wp.array(dtype=wp.int32),
-    n_views: int,
-    t_offsets: wp.array(dtype=wp.int32),
-    spots: wp.array(dtype=wp.vec4),
-    shares: wp.array(dtype=float),
-    spot_sub: wp.array(dtype=wp.int32),
-    sub_a: wp.array(dtype=wp.vec2),
-    min_weight: float,
-    v: int,
-    values: wp.array(dtype=float),
-) -> float:
-    """sum_i w_iv values[i] over the pixels i of voxel v's shifted template spots."""
-    total = float(0.0)
-    for iv in range(n_views):
-        view = views[iv]
-        cam = view.cam
-        for corner in range(4):
-            pl = place(grid, view, plans[iv], depth_first, depth_phase, v, corner)
-            if pl.tmpl < 0 or pl.weight <= 0.0:
-                continue
-            for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
-                st = spots[t]
-                q = spot_pixels(view, st, pl.shift)
-                colc = q[0]
-                rowc = q[1]
-                ak = sub_a[spot_sub[t]]
-                hsz = spot_size(view, pl, ak[0], ak[1], st)
-                hx = hsz[0]
-                hy = hsz[1]
-                wk = shares[t]
-                c0 = wp.max(0, int(wp.floor(colc - hx)))
-                c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
-                r0 = wp.max(0, int(wp.floor(rowc - hy)))
-                r1 = wp.min(cam.nrows - 1, int(wp.floor(rowc + hy)))
-                for r in range(r0, r1 + 1):
-                    oy = pixel_overlap(rowc - hy, rowc + hy, r) / (2.0 * hy)
-                    for cc in range(c0, c1 + 1):
-                        wt = wk * oy * pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
-                        if wt > min_weight:
-                            total += wt * pl.weight * values[view.pix_offset + r * cam.ncols + cc]
-    return total
+        apply_templates(0, grid, views[iv], plans[iv], depth_first, depth_phase, t_offsets, spots, shares,
+                        min_weight, voxels[tid], ej, proj, none, 0)
 
 
 @wp.kernel
@@ -384,21 +347,23 @@ def smart_update(
     t_offsets: wp.array(dtype=wp.int32),
     spots: wp.array(dtype=wp.vec4),
     shares: wp.array(dtype=float),
-    spot_sub: wp.array(dtype=wp.int32),
-    sub_a: wp.array(dtype=wp.vec2),
     min_weight: float,
     voxels: wp.array(dtype=wp.int32),
     ratio: wp.array(dtype=float),
     relaxation: float,
     e: wp.array(dtype=float),
+    none: wp.array2d(dtype=float),
 ):
-    """E_v <- E_v exp(mu sum_i w_iv ratio_i), a gather per voxel (see :func:`lfcore._kernels.mart.smart_update`)."""
+    """E_v <- E_v exp(mu sum_i w_iv ratio_i), a gather per voxel (see :func:`lfcore._kernels.mart.smart_update`;
+    ``none`` is unused)."""
     tid = wp.tid()
     ej = e[tid]
     if ej == 0.0:
         return
-    s = weighted_sum(grid, views, plans, depth_first, depth_phase, n_views, t_offsets, spots, shares,
-                     spot_sub, sub_a, min_weight, voxels[tid], ratio)
+    s = float(0.0)
+    for iv in range(n_views):
+        s += apply_templates(1, grid, views[iv], plans[iv], depth_first, depth_phase, t_offsets, spots, shares,
+                             min_weight, voxels[tid], ej, ratio, none, 0)
     e[tid] = multiplied(ej, s, relaxation)
 
 
@@ -413,39 +378,14 @@ def voxel_image(
     t_offsets: wp.array(dtype=wp.int32),
     spots: wp.array(dtype=wp.vec4),
     shares: wp.array(dtype=float),
-    spot_sub: wp.array(dtype=wp.int32),
-    sub_a: wp.array(dtype=wp.vec2),
     min_weight: float,
     voxels: wp.array(dtype=wp.int32),
     images: wp.array2d(dtype=float),
+    none: wp.array(dtype=float),
 ):
-    """images[tid, pixel] += w of voxel ``voxels[tid]`` (for the fidelity checks; one row per voxel)."""
+    """images[tid, pixel] += w of voxel ``voxels[tid]`` (for the fidelity checks; one row per voxel;
+    ``none`` is unused)."""
     tid = wp.tid()
-    v = voxels[tid]
     for iv in range(n_views):
-        view = views[iv]
-        cam = view.cam
-        for corner in range(4):
-            pl = place(grid, view, plans[iv], depth_first, depth_phase, v, corner)
-            if pl.tmpl < 0 or pl.weight <= 0.0:
-                continue
-            for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
-                st = spots[t]
-                q = spot_pixels(view, st, pl.shift)
-                colc = q[0]
-                rowc = q[1]
-                ak = sub_a[spot_sub[t]]
-                hsz = spot_size(view, pl, ak[0], ak[1], st)
-                hx = hsz[0]
-                hy = hsz[1]
-                wk = shares[t]
-                c0 = wp.max(0, int(wp.floor(colc - hx)))
-                c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
-                r0 = wp.max(0, int(wp.floor(rowc - hy)))
-                r1 = wp.min(cam.nrows - 1, int(wp.floor(rowc + hy)))
-                for r in range(r0, r1 + 1):
-                    oy = pixel_overlap(rowc - hy, rowc + hy, r) / (2.0 * hy)
-                    for cc in range(c0, c1 + 1):
-                        wt = wk * oy * pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
-                        if wt > min_weight:
-                            images[tid, view.pix_offset + r * cam.ncols + cc] += wt * pl.weight
+        apply_templates(2, grid, views[iv], plans[iv], depth_first, depth_phase, t_offsets, spots, shares,
+                        min_weight, voxels[tid], 1.0, none, images, tid)
