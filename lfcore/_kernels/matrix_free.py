@@ -77,8 +77,8 @@ class Placement:
 @wp.func
 def place(grid: Grid, view: View, plan: Plan, depth_first: wp.array(dtype=wp.int32),
           depth_phase: wp.array(dtype=wp.int32), v: int, corner: int) -> Placement:
-    """One of the four templates around voxel v's phase in one view (``corner`` 0-3), its
-    bilinear weight and the shift of its spots (see the module docstring)."""
+    """One of the three templates around voxel v's phase in one view (``corner`` 0-2), its
+    weight (linear in the phase) and the shift of its spots (see the module docstring)."""
     out = Placement()
     out.tmpl = -1
     cam = view.cam
@@ -112,17 +112,29 @@ def place(grid: Grid, view: View, plan: Plan, depth_first: wp.array(dtype=wp.int
     c1 = wp.floor(t1)
     a0 = t0 - c0
     a1 = t1 - c1
-    wgt = float(1.0)
-    if corner % 2 == 1:
-        c0 += 1.0
-        wgt *= a0
+    # linear on the triangle of bin centres around f (the cell of four cut along its diagonal):
+    # three templates, their barycentric weights
+    wgt = float(0.0)
+    if a0 + a1 <= 1.0:
+        if corner == 0:
+            wgt = 1.0 - a0 - a1
+        elif corner == 1:
+            c0 += 1.0
+            wgt = a0
+        else:
+            c1 += 1.0
+            wgt = a1
     else:
-        wgt *= 1.0 - a0
-    if corner >= 2:
-        c1 += 1.0
-        wgt *= a1
-    else:
-        wgt *= 1.0 - a1
+        if corner == 0:
+            c0 += 1.0
+            c1 += 1.0
+            wgt = a0 + a1 - 1.0
+        elif corner == 1:
+            c0 += 1.0
+            wgt = 1.0 - a1
+        else:
+            c1 += 1.0
+            wgt = 1.0 - a0
     # the bin c in lattice cell n = floor(c / n_phase), as bin c - n n_phase of the templates (cell 0)
     n0 = wp.floor(c0 / nph)
     n1 = wp.floor(c1 / nph)
@@ -262,7 +274,7 @@ def apply_templates(
     images: wp.array2d(dtype=float),
     row: int,
 ) -> float:
-    """Voxel v's pixels in one view, from its four templates: ``mode`` 0 adds w ``ej`` to
+    """Voxel v's pixels in one view, from its three templates: ``mode`` 0 adds w ``ej`` to
     ``values[pixel]`` (projection), 1 returns sum w ``values[pixel]`` (the update's gather), 2 adds
     w to ``images[row, pixel]`` (checks).
 
@@ -275,7 +287,7 @@ def apply_templates(
     inv_pix = 1.0 / cam.pixel
     base = view.pix_offset
     total = float(0.0)
-    for corner in range(4):
+    for corner in range(3):
         pl = place(grid, view, plan, depth_first, depth_phase, v, corner)
         if pl.tmpl < 0 or pl.weight <= 0.0:
             continue
