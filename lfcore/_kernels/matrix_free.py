@@ -301,10 +301,12 @@ def apply_templates(
             hx = st[2]
             hy = st[3]
             wk = shares[t]
-            c0 = wp.max(0, int(wp.floor(colc - hx)))
-            c1 = wp.min(ncols - 1, int(wp.floor(colc + hx)))
-            r0 = wp.max(0, int(wp.floor(rowc - hy)))
-            r1 = wp.min(nrows - 1, int(wp.floor(rowc + hy)))
+            # int() truncates where floor would round down, but only below 0, where the range is
+            # clamped to 0 anyway (or, wholly left of the sensor, meets pixel 0 with no overlap)
+            c0 = wp.max(0, int(colc - hx))
+            c1 = wp.min(ncols - 1, int(colc + hx))
+            r0 = wp.max(0, int(rowc - hy))
+            r1 = wp.min(nrows - 1, int(rowc + hy))
             for r in range(r0, r1 + 1):
                 oy = wk * pixel_overlap(rowc - hy, rowc + hy, r)
                 for cc in range(c0, c1 + 1):
