@@ -336,20 +336,23 @@ def fidelity(projector: Projector, voxels: np.ndarray, templates: DrtTemplates, 
         matrix-free image over the stored one's (1 where both are dark).
     """
     wp = warp()
-    vox = wp.array(np.asarray(voxels, dtype=np.int32), dtype=wp.int32, device=projector.device)
-    stored = projector.weights(vox, "drt", min_weight=min_weight, storage="stored")
-    offs, pix, w = stored.to_numpy()
-    ref = np.zeros((len(voxels), projector.n_pixels), dtype=np.float64)
-    rows = np.repeat(np.arange(len(voxels)), np.diff(offs))
-    np.add.at(ref, (rows, pix), w)
-    mf = MatrixFreeWeights(templates, vox, min_weight).images().astype(np.float64)
+    voxels = np.asarray(voxels, dtype=np.int32)
     corr = np.ones(len(voxels))
     light = np.ones(len(voxels))
-    for i in range(len(voxels)):
-        a, b = ref[i], mf[i]
-        if a.sum() > 0 or b.sum() > 0:
-            light[i] = b.sum() / a.sum() if a.sum() > 0 else np.inf
-            da, db = a - a.mean(), b - b.mean()
-            den = np.sqrt((da * da).sum() * (db * db).sum())
-            corr[i] = (da * db).sum() / den if den > 0 else 0.0
+    per = max(1, (1 << 28) // (12 * projector.n_pixels))  # dense images of about 256 MiB at a time
+    for lo in range(0, len(voxels), per):
+        part = voxels[lo:lo + per]
+        vox = wp.array(part, dtype=wp.int32, device=projector.device)
+        stored = projector.weights(vox, "drt", min_weight=min_weight, storage="stored")
+        offs, pix, w = stored.to_numpy()
+        ref = np.zeros((len(part), projector.n_pixels), dtype=np.float64)
+        np.add.at(ref, (np.repeat(np.arange(len(part)), np.diff(offs)), pix), w)
+        mf = MatrixFreeWeights(templates, vox, min_weight).images()
+        for i in range(len(part)):
+            a, b = ref[i], mf[i].astype(np.float64)
+            if a.sum() > 0 or b.sum() > 0:
+                light[lo + i] = b.sum() / a.sum() if a.sum() > 0 else np.inf
+                da, db = a - a.mean(), b - b.mean()
+                den = np.sqrt((da * da).sum() * (db * db).sum())
+                corr[lo + i] = (da * db).sum() / den if den > 0 else 0.0
     return {"correlation": corr, "light": light}
