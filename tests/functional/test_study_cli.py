@@ -41,3 +41,14 @@ def test_study_bad_input(tmp_path, capsys):
     assert rc == 2 and err.count("\n") == 1
     rc, _, err = run_cli(capsys, "study", "dual", "--out", tmp_path, "--workers", "0")
     assert rc == 2 and "at least 1" in err
+    # the studies are of light-field PIV: a rig of pinhole cameras only is refused in one line
+    rc, _, err = run_cli(capsys, "study", "iterations", "--out", tmp_path, "--rig", EXAMPLES / "tomo_4_cameras.toml")
+    assert rc == 2 and err.count("\n") == 1 and "only pinhole cameras" in err
+
+
+def test_study_on_a_mixed_rig_uses_its_light_field_cameras():
+    from lfpiv.jobs.study import study_setup
+
+    setup = study_setup(scale="tiny", rig=EXAMPLES / "mixed_cameras.toml")
+    assert len(setup.rig["camera"]) == 1 and setup.rig["camera"][0].get("kind", "lightfield") == "lightfield"
+    assert "light-field cameras" in setup.rig_name
