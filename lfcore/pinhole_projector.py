@@ -31,6 +31,7 @@ import numpy as np
 from lfcore.device import (
     MemoryBudgetError,
     PrivateCopies,
+    RowOffset,
     Rows,
     available_bytes,
     launch_rows,
@@ -169,7 +170,8 @@ class PinholeProjector(Projector):
             wp.copy(lit_dev, wp.array(flat, dtype=wp.uint8, device="cpu", copy=False))
         n = self.grid.n_voxels
         mask = self._scratch("mask", n, wp.int32)
-        launch_rows(kp.mlos_eliminate, n, [self._grid, self.views, len(self.cameras), lit_dev, Rows(mask)],
+        launch_rows(kp.mlos_eliminate, n, [self._grid, self.views, len(self.cameras), lit_dev, RowOffset(0),
+                                                 Rows(mask)],
                     self.device)
         return self._compact(mask)
 

@@ -116,13 +116,15 @@ def mlos_eliminate(
     views: wp.array(dtype=PinholeView),
     n_views: int,
     lit: wp.array(dtype=wp.uint8),
+    first: int,
     mask: wp.array(dtype=wp.int32),
 ):
     """MLOS (Atkinson and Soria 2009): voxel v is kept (``mask[v] = 1``) only if the pixel of
     its image is lit in every camera (or one within ``grow`` pixels of it); a voxel imaged off
-    any camera's sensor is dropped (the volume must be seen by every camera)."""
-    v = wp.tid()
-    p = voxel_centre(grid, v)
+    any camera's sensor is dropped (the volume must be seen by every camera). Thread t is voxel
+    ``first + t``, its flag ``mask[t]``."""
+    t = wp.tid()
+    p = voxel_centre(grid, first + t)
     keep = int(1)
     for c in range(n_views):
         if keep == 1:
@@ -143,4 +145,4 @@ def mlos_eliminate(
                                 seen = 1
             if seen == 0:
                 keep = 0
-    mask[v] = keep
+    mask[t] = keep
