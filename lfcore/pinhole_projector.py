@@ -44,7 +44,7 @@ from lfcore.rig import PinholeCamera, is_pinhole
 from lfcore.volume import VolumeGrid
 from lfcore.weight_build import ADVICE, BYTES_PER_WEIGHT, CHUNK_ENTRIES, WeightChunk, Weights
 
-__all__ = ["DEFAULT_FOOTPRINT", "PinholeProjector", "footprint_sigma_px"]
+__all__ = ["DEFAULT_FOOTPRINT", "PinholeProjector", "footprint_sigma_px", "projector_for"]
 
 #: Sigma of the footprint's Gaussian, in units of the voxel's projected width: 0.5 spreads a
 #: voxel of one pixel over about the 2 x 2 pixels a disc of its size would touch.
@@ -247,3 +247,24 @@ class PinholeProjector(Projector):
             chunks.append(WeightChunk(first=lo, n=m, offsets=offsets, pix=out_pix, w=out_w, nnz=nnz))
             total += nnz
         return Weights(voxels=voxels, chunks=chunks, nnz=total, min_weight=min_weight)
+
+
+def projector_for(cameras: Sequence, grid: VolumeGrid, *, sub_apertures: int | None = None,
+                  device: str | None = None) -> Projector:
+    """The projector of ``cameras``' kind: :class:`PinholeProjector` for pinhole cameras, the
+    light-field :class:`~lfcore.projector.Projector` for light-field ones.
+
+    Raises
+    ------
+    ValueError
+        For a mix of both kinds (their joint reconstruction is not built yet).
+    """
+    cameras = tuple(cameras)
+    tomo = [c for c in cameras if is_pinhole(c)]
+    if not tomo:
+        return Projector(cameras, grid, sub_apertures=sub_apertures, device=device)
+    if len(tomo) < len(cameras):
+        lf = next(c for c in cameras if not is_pinhole(c))
+        raise ValueError(f"camera '{tomo[0].name}' is a pinhole camera and '{lf.name}' a light-field one: their joint "
+                         "reconstruction is not built yet; reconstruct the cameras of one kind")
+    return PinholeProjector(cameras, grid, device=device)
