@@ -291,7 +291,8 @@ class LfVsTomoStudy(Study):
             qs = {n: (results[f"tomo{n}_ppp{lo:g}"]["q"], results[f"tomo{n}_ppp{hi:g}"]["q"]) for n in p["cameras"]}
             worse = [n for n in p["cameras"] if c[n][1] > c[n][0] and qs[n][1] < qs[n][0]]
             out.append(Finding("Fig. 4.23a-b", f"Tomo-PIV reconstructs less accurately at {hi:g} ppp than at "
-                               f"{lo:g} ppp (ghost particles)", "particle centres' RMS error, Q at " + f"{lo:g} / {hi:g} ppp: "
+                               f"{lo:g} ppp (ghost particles)",
+                               f"particle centres' RMS error, Q at {lo:g} / {hi:g} ppp: "
                                + ", ".join(f"{n} cameras {a:.1f} / {b:.1f} um, {qs[n][0]:.3f} / {qs[n][1]:.3f}"
                                            for n, (a, b) in c.items()),
                                "reproduced" if len(worse) == len(p["cameras"]) else ("partly" if worse else
