@@ -245,6 +245,8 @@ class LfVsTomoStudy(Study):
             a.set_ylabel(label)
             if key == "q":
                 a.set_ylim(0, 1)
+            else:
+                a.set_yscale("log")  # the two kinds' errors differ by an order of magnitude
             a.legend(fontsize=7)
             figures.label(a, letter, f"{label.split(' (')[0]} against LTPR (Fig. 4.24)")
         a = ax[1, 0]
