@@ -12,7 +12,7 @@ from lfcore.render import PinholeRenderer
 from lfcore.rig import Rig
 from lfcore.volume import VolumeGrid
 from lfpiv.rigfile import load_rig
-from tests.conftest import EXAMPLES, tiny_variant
+from tests.conftest import EXAMPLES
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +61,7 @@ def test_the_footprint_follows_the_voxels_projected_width(small):
     assert footprint_sigma_px(cam, VolumeGrid.from_rig(small)) == pytest.approx(0.5, rel=1e-3)
     assert footprint_sigma_px(cam, VolumeGrid.from_rig(small, pvr=(2.0, 2.0, 2.0))) == pytest.approx(1.0, rel=1e-3)
     with pytest.raises(ValueError, match="light-field camera"):
-        PinholeProjector(list(small.camera) + [tiny_variant(load_rig(EXAMPLES / "tiny.toml")).camera[0]],
+        PinholeProjector(list(small.camera) + [load_rig(EXAMPLES / "tiny.toml").camera[0]],
                          VolumeGrid.from_rig(small), device="cpu")
     with pytest.raises(ValueError, match="dense ray tracing"):
         p = PinholeProjector(small.camera, VolumeGrid.from_rig(small), device="cpu")
@@ -99,3 +99,16 @@ def test_a_point_source_reconstructs_at_its_voxel(small, device):
     assert res.active_fraction < 0.02
     near = res.volume[target[0] - 2:target[0] + 3, target[1] - 2:target[1] + 3, target[2] - 2:target[2] + 3].sum()
     assert near > 0.9 * res.volume.sum()  # the light is where the particle is, not along its lines of sight
+
+
+def test_projector_for_picks_the_cameras_kind(small):
+    from lfcore.pinhole_projector import projector_for
+    from lfcore.projector import Projector
+
+    tiny = load_rig(EXAMPLES / "tiny.toml")
+    grid = VolumeGrid.from_rig(small)
+    assert isinstance(projector_for(small.camera, grid, device="cpu"), PinholeProjector)
+    lf = projector_for(tiny.camera, VolumeGrid.from_rig(tiny), device="cpu")
+    assert type(lf) is Projector
+    with pytest.raises(ValueError, match="joint reconstruction is not built yet"):
+        projector_for([*small.camera, tiny.camera[0]], grid, device="cpu")
