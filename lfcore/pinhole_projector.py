@@ -18,7 +18,8 @@ unchanged:
   every camera (the product of the lines of sight' intensities is not zero).
 
 Forward projection, the updates and the scatter are :class:`~lfcore.projector.Projector`'s own
-(inherited): they only read the weights.
+(inherited): they only read the weights. :class:`JointProjector` reconstructs a mixed rig (light-field
+and pinhole cameras) jointly, and :func:`projector_for` picks the projector of a camera set.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from lfcore.rig import PinholeCamera, is_pinhole
 from lfcore.volume import VolumeGrid
 from lfcore.weight_build import ADVICE, BYTES_PER_WEIGHT, CHUNK_ENTRIES, WeightChunk, Weights
 
-__all__ = ["DEFAULT_FOOTPRINT", "PinholeProjector", "footprint_sigma_px", "projector_for"]
+__all__ = ["DEFAULT_FOOTPRINT", "JointProjector", "PinholeProjector", "footprint_sigma_px", "projector_for"]
 
 #: Sigma of the footprint's Gaussian, in units of the voxel's projected width: 0.5 spreads a
 #: voxel of one pixel over about the 2 x 2 pixels a disc of its size would touch.
@@ -249,22 +250,119 @@ class PinholeProjector(Projector):
         return Weights(voxels=voxels, chunks=chunks, nnz=total, min_weight=min_weight)
 
 
+class JointProjector(Projector):
+    """Light-field and pinhole cameras reconstructed jointly: a mixed rig on one voxel grid.
+
+    Each kind keeps its own projector (:class:`~lfcore.projector.Projector`, :class:`PinholeProjector`);
+    a voxel is kept where both eliminations keep it, and its weights are both kinds' rows joined
+    (their pixels renumbered into this projector's global numbering, in the given camera order),
+    each kind's weighted by its share of the cameras, so a voxel's weights still sum to one.
+    Projection, updates and the scatter are the light-field projector's own (inherited).
+
+    Parameters
+    ----------
+    cameras
+        Light-field and pinhole cameras, in the order of their images.
+    grid
+        The voxel grid.
+    sub_apertures
+        As :class:`~lfcore.projector.Projector` takes it (the light-field cameras' DRT weights).
+    device
+        Warp device; None for the first GPU, else the CPU.
+    """
+
+    def __init__(self, cameras: Sequence, grid: VolumeGrid, *, sub_apertures: int | None = None,
+                 device: str | None = None) -> None:
+        cameras = tuple(cameras)
+        self._tomo = [k for k, c in enumerate(cameras) if is_pinhole(c)]
+        self._lf = [k for k, c in enumerate(cameras) if not is_pinhole(c)]
+        if not self._tomo or not self._lf:
+            raise ValueError("a joint projector needs light-field and pinhole cameras; use projector_for")
+        self.wp = wp = warp()
+        self.device = resolve_device(device)
+        self.lf = Projector([cameras[k] for k in self._lf], grid, sub_apertures=sub_apertures, device=self.device)
+        self.ph = PinholeProjector([cameras[k] for k in self._tomo], grid, device=self.device)
+        self._kw = self.lf._kw
+        self.cameras = cameras
+        self.grid = grid
+        self._grid = self.lf._grid
+        self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in cameras])
+        self.n_pixels = int(self.pixel_offsets[-1])
+        self.builder = None
+        self.max_checks = 0
+        self._n_checks = 0
+        self._parts = PrivateCopies()
+        self._ratio = None
+        self._buffers: dict[str, object] = {}
+        self._none = wp.empty(0, dtype=wp.int32, device=self.device)
+
+    def _split(self, lit) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Each kind's lit images, in its projector's order (a device mask is copied to the host)."""
+        if isinstance(lit, self.wp.array):
+            flat = lit.numpy()
+            lit = [flat[a:b].reshape(c.sensor_px[1], c.sensor_px[0])
+                   for a, b, c in zip(self.pixel_offsets[:-1], self.pixel_offsets[1:], self.cameras, strict=True)]
+        lit = list(lit)
+        if len(lit) != len(self.cameras):
+            raise ValueError(f"got {len(lit)} lit masks for {len(self.cameras)} cameras")
+        return [lit[k] for k in self._lf], [lit[k] for k in self._tomo]
+
+    def eliminate(self, lit, min_seen: float = 0.5, max_dark: float = 0.05) -> object:
+        """Voxels that both kinds' eliminations keep (see :meth:`Projector.eliminate` and
+        :meth:`PinholeProjector.eliminate`), as (n,) int32 flat indices, ascending."""
+        lf_lit, ph_lit = self._split(lit)
+        kept = np.intersect1d(self.lf.eliminate(lf_lit, min_seen, max_dark).numpy(), self.ph.eliminate(ph_lit).numpy())
+        return self.wp.array(kept.astype(np.int32), dtype=self.wp.int32, device=self.device)
+
+    def precompute_checks(self, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
+        """No elimination table is kept for a joint projector (returns 0 bytes)."""
+        return 0
+
+    def weights(self, voxels, method: str = "los", min_weight: float = 1e-6, budget_bytes: int | None = None,
+                build: str = "auto", sort: str = "auto", storage: str = "stored") -> Weights:
+        """Both kinds' weights of ``voxels`` joined row by row (``method`` is the light-field
+        cameras' kind, ``"drt"`` or ``"los"``; the pinhole cameras' are line of sight), stored."""
+        wp = self.wp
+        parts = []
+        for sub, idx, w in ((self.lf, self._lf, self.lf.weights(voxels, method, min_weight, budget_bytes, build, sort,
+                                                                 "stored")),
+                            (self.ph, self._tomo, self.ph.weights(voxels, "los", min_weight, budget_bytes))):
+            offs, pix, val = w.to_numpy()
+            cam = np.searchsorted(sub.pixel_offsets, pix, side="right") - 1
+            shift = self.pixel_offsets[idx] - sub.pixel_offsets[:-1]  # each camera's pixels renumbered
+            parts.append((offs, (pix + shift[cam]).astype(np.int32), val * np.float32(len(idx) / len(self.cameras))))
+        (o1, p1, w1), (o2, p2, w2) = parts
+        n1, n2 = np.diff(o1), np.diff(o2)
+        offs = np.zeros(len(n1) + 1, dtype=np.int64)
+        np.cumsum(n1 + n2, out=offs[1:])
+        nnz = int(offs[-1])
+        pix = np.empty(nnz, dtype=np.int32)
+        val = np.empty(nnz, dtype=np.float32)
+        # a voxel's light-field entries first, then its pinhole ones
+        at1 = np.repeat(offs[:-1] - o1[:-1], n1) + np.arange(len(p1))
+        at2 = np.repeat(offs[:-1] + n1 - o2[:-1], n2) + np.arange(len(p2))
+        pix[at1], val[at1], pix[at2], val[at2] = p1, w1, p2, w2
+        if budget_bytes is not None and BYTES_PER_WEIGHT * nnz > budget_bytes:
+            raise MemoryBudgetError(f"the joint weights need {BYTES_PER_WEIGHT * nnz / 2**30:.1f} GiB for "
+                                    f"{len(n1)} voxels, more than the {budget_bytes / 2**30:.1f} GiB allowed; {ADVICE}")
+        dev = self.device
+        chunk = WeightChunk(first=0, n=len(n1), offsets=wp.array(offs, dtype=wp.int64, device=dev),
+                            pix=wp.array(pix if nnz else np.zeros(1, np.int32), dtype=wp.int32, device=dev),
+                            w=wp.array(val if nnz else np.zeros(1, np.float32), dtype=float, device=dev), nnz=nnz)
+        return Weights(voxels=voxels, chunks=[chunk], nnz=nnz, min_weight=float(min_weight))
+
+
 def projector_for(cameras: Sequence, grid: VolumeGrid, *, sub_apertures: int | None = None,
                   device: str | None = None) -> Projector:
     """The projector of ``cameras``' kind: :class:`PinholeProjector` for pinhole cameras, the
     light-field :class:`~lfcore.projector.Projector` for light-field ones.
 
-    Raises
-    ------
-    ValueError
-        For a mix of both kinds (their joint reconstruction is not built yet).
+    A mix of both kinds gets a :class:`JointProjector`.
     """
     cameras = tuple(cameras)
     tomo = [c for c in cameras if is_pinhole(c)]
     if not tomo:
         return Projector(cameras, grid, sub_apertures=sub_apertures, device=device)
     if len(tomo) < len(cameras):
-        lf = next(c for c in cameras if not is_pinhole(c))
-        raise ValueError(f"camera '{tomo[0].name}' is a pinhole camera and '{lf.name}' a light-field one: their joint "
-                         "reconstruction is not built yet; reconstruct the cameras of one kind")
+        return JointProjector(cameras, grid, sub_apertures=sub_apertures, device=device)
     return PinholeProjector(cameras, grid, device=device)

@@ -43,7 +43,8 @@ def recon_settings(**options: Any) -> ReconSettings:
 
 def default_method(rig: Rig, cameras: Sequence[str] | None = None) -> str:
     """The reconstruction of the cameras named (None: all of the rig's): ``mlos-smart`` where they
-    are all pinhole cameras, ``drt-mart`` otherwise."""
+    are all pinhole cameras, ``drt-mart`` otherwise (a mixed rig's light-field cameras by DRT-MART's
+    weights, its pinhole cameras by their line of sight, jointly)."""
     cams = [c for c in rig.camera if cameras is None or c.name in cameras]
     return "mlos-smart" if cams and all(is_pinhole(c) for c in cams) else "drt-mart"
 
@@ -188,12 +189,9 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         raise UsageError(f"--cameras: no camera '{unknown[0]}' in this run (it has {', '.join(store.cameras)})")
     cams = [rig.camera_named(n) for n in names]
     tomo = [c.name for c in cams if is_pinhole(c)]
-    if tomo and len(tomo) < len(cams):
-        keep = [n for n in names if n not in tomo]
-        raise UsageError(f"camera '{tomo[0]}' is a pinhole camera and '{keep[0]}' a light-field one: their joint "
-                         f"reconstruction is not built yet; give --cameras {','.join(keep)} (light-field, drt-mart) "
-                         f"or --cameras {','.join(tomo)} (pinhole, mlos-smart)")
-    if tomo and settings.method not in PINHOLE_METHODS:
+    # pinhole cameras alone: MLOS-SMART or MART; beside light-field ones, every method (the
+    # light-field cameras take its weights, the pinhole ones their line of sight)
+    if tomo and len(tomo) == len(cams) and settings.method not in PINHOLE_METHODS:
         raise UsageError(f"camera '{tomo[0]}' is a pinhole camera: --method {settings.method} needs light-field "
                          "cameras; use --method mlos-smart (the default for pinhole cameras) or mart")
     try:

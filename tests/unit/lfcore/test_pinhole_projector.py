@@ -102,7 +102,7 @@ def test_a_point_source_reconstructs_at_its_voxel(small, device):
 
 
 def test_projector_for_picks_the_cameras_kind(small):
-    from lfcore.pinhole_projector import projector_for
+    from lfcore.pinhole_projector import JointProjector, projector_for
     from lfcore.projector import Projector
 
     tiny = load_rig(EXAMPLES / "tiny.toml")
@@ -110,5 +110,32 @@ def test_projector_for_picks_the_cameras_kind(small):
     assert isinstance(projector_for(small.camera, grid, device="cpu"), PinholeProjector)
     lf = projector_for(tiny.camera, VolumeGrid.from_rig(tiny), device="cpu")
     assert type(lf) is Projector
-    with pytest.raises(ValueError, match="joint reconstruction is not built yet"):
-        projector_for([*small.camera, tiny.camera[0]], grid, device="cpu")
+    assert isinstance(projector_for([*small.camera, tiny.camera[0]], grid, device="cpu"), JointProjector)
+
+
+def test_a_mixed_rig_joins_both_kinds_weights_and_eliminations(device):
+    from lfcore.pinhole_projector import JointProjector, projector_for
+
+    rig = load_rig(EXAMPLES / "mixed_cameras.toml")  # lf0, then the pinhole cameras tomo0 and tomo1
+    rig = rig.model_copy(update={"volume": rig.volume.model_copy(update={"size_mm": (0.3, 0.3, 0.3)})})
+    grid = VolumeGrid.from_rig(rig)
+    joint = projector_for(rig.camera, grid, device=device)
+    assert isinstance(joint, JointProjector) and joint.n_pixels == 192 * 160 + 2 * 160 * 160
+    voxels = joint.wp.array(np.arange(0, grid.n_voxels, 97, dtype=np.int32), dtype=joint.wp.int32, device=device)
+    offs, pix, w = joint.weights(voxels, "los").to_numpy()
+    lo, lp, lw = joint.lf.weights(voxels, "los").to_numpy()
+    po, pp, pw = joint.ph.weights(voxels).to_numpy()
+    for j in range(voxels.shape[0]):
+        row = slice(offs[j], offs[j + 1])
+        n_lf = lo[j + 1] - lo[j]
+        # the light-field camera's pixels first, as they are (it is camera 0), then the pinhole ones after them
+        np.testing.assert_array_equal(pix[row][:n_lf], lp[lo[j]:lo[j + 1]])
+        np.testing.assert_array_equal(pix[row][n_lf:], pp[po[j]:po[j + 1]] + 192 * 160)
+        np.testing.assert_allclose(w[row][:n_lf], lw[lo[j]:lo[j + 1]] / 3, rtol=1e-6)  # 1 camera of 3
+        np.testing.assert_allclose(w[row][n_lf:], pw[po[j]:po[j + 1]] * 2 / 3, rtol=1e-6)  # 2 of 3
+    lits = [np.ones((c.sensor_px[1], c.sensor_px[0]), bool) for c in rig.camera]
+    lits[2][:, :80] = False  # tomo1 sees nothing on its left half: the voxels imaged there go
+    kept = joint.eliminate(lits).numpy()
+    assert 0 < len(kept) < grid.n_voxels
+    np.testing.assert_array_equal(kept, np.intersect1d(joint.lf.eliminate(lits[:1]).numpy(),
+                                                       joint.ph.eliminate(lits[1:]).numpy()))
