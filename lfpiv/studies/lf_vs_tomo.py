@@ -360,6 +360,8 @@ class LfVsTomoStudy(Study):
         tomo = tomo_rig(p["cameras"][0], setup.scale)
         grid_t = VolumeGrid.from_rig(tomo)
         lines = []
+        if setup.rig is not None:
+            lines.append(f"This study compares the chapter's own rigs (below); the {setup.rig_name} rig is not used.")
         if f < 1:
             lines.append(f"Scaled down: every sensor and the volume are {f:g} of the chapter's (Tomo-PIV cameras "
                          f"{tomo.camera[0].sensor_px[0]} px across instead of {TOMO_PX}, light-field cameras "
