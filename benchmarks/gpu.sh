@@ -23,6 +23,9 @@
 #   bash benchmarks/gpu.sh matrixfree # the matrix-free projector: its CUDA tests, S and Mc by both
 #                                  # projectors, M by it at 400 iterations (goal <= 2 s) and L at 400
 #                                  # (goal <= 60 s; about 9 minutes)
+#   bash benchmarks/gpu.sh tomo    # Tomo-PIV: the pinhole projector's CUDA tests and the Tomo functional
+#                                  # tests, T4, T6, T8 by MLOS-SMART and the MART baseline, then
+#                                  # lfpiv study lf-vs-tomo --scale quick on the GPU (about 8 minutes)
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
 #                                  # iterations), then the weight-build profile (what fits in 6 min)
 #
@@ -54,8 +57,14 @@ if [ "$stage" = tests ]; then
         --continue-on-collection-errors --timeout 150 --junitxml "$out/pytest.xml"
     step render 60 python3 benchmarks/render.py --device cuda:0
     step correlate 90 python3 benchmarks/correlate.py --case gpu --profile
-    step recon-S 60 python3 benchmarks/recon.py --case S --case S2 --device cuda
+    step recon-S 60 python3 benchmarks/recon.py --case S --case S2 --case T4 --device cuda
     step live-S 60 python3 benchmarks/live.py --case S --device cuda --seconds 10
+elif [ "$stage" = tomo ]; then
+    step pytest-tomo 200 python3 -m pytest tests/unit/lfcore/test_pinhole_projector.py tests/functional/test_tomo_cli.py \
+        -q -p no:cacheprovider --timeout 150 --junitxml "$out/pytest-tomo.xml"
+    step recon-T 120 python3 benchmarks/recon.py --case T4 --case T6 --case T8 --device cuda
+    step study-lf-vs-tomo 240 python3 -m lfpiv study lf-vs-tomo --scale quick --out "$out/studies" --device cuda \
+        --overwrite
 elif [ "$stage" = iter ]; then
     step pytest-unit-cuda 200 python3 -m pytest tests/unit -q -k cuda -p no:cacheprovider --timeout 100 \
         --junitxml "$out/pytest-unit.xml"

@@ -18,8 +18,9 @@ __all__ = [
     "mla",          # the microlens lattice and the sensor's pixel coordinates
     "particles",    # seeding and the laser sheet
     "pinhole",      # the pinhole (Tomo-PIV) camera model: projection, lines of sight, triangulation
+    "pinhole_projector",  # pinhole cameras bound to a voxel grid: MLOS, line-of-sight weights (MLOS-SMART)
     "projector",    # cameras bound to a voxel grid on a device: elimination, projection, MART updates
-    "reconstruct",  # DRT-MART, MART and MLOS-MART
+    "reconstruct",  # DRT-MART, MART, MLOS-MART and MLOS-SMART
     "render",       # Monte-Carlo light-field particle images
     "rig",          # the rig description
     "runstore",     # the run store (zarr)

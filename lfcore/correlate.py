@@ -791,7 +791,7 @@ class Correlator:
             disp, replaced = replace_outliers(disp, outlier, device=self.device)
             pred_field = np.where(np.isnan(disp), 0.0, disp)  # nothing left to predict from: rest
             if cfg.smooth_predictor > 0 and i + 1 < len(cfg.passes) and cfg.passes[i + 1][1] == "deform":
-                pred_field = smooth(pred_field, cfg.smooth_predictor)
+                pred_field = smooth(pred_field, sigma=cfg.smooth_predictor)
             pred = (pred_field, g)
             if progress is not None:
                 progress(1)
@@ -807,7 +807,7 @@ class Correlator:
                            outlier=outlier, replaced=replaced, grid=g)
 
 
-def correlate(volume_a: np.ndarray, volume_b: np.ndarray, config: CorrelationConfig = CorrelationConfig(),
+def correlate(volume_a: np.ndarray, volume_b: np.ndarray, config: CorrelationConfig = CorrelationConfig(), *,
               device: str | None = None) -> VectorField:
     """Multi-grid cross-correlation of one volume pair (see :class:`Correlator`).
 

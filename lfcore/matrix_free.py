@@ -120,6 +120,9 @@ class DrtTemplates:
         from lfcore._kernels import matrix_free as km
 
         t0 = time.perf_counter()
+        if not isinstance(projector, Projector):
+            raise MatrixFreeUnsupported("the matrix-free projector is for light-field cameras alone; use --projector "
+                                        "stored")
         if not phases_per_footprint > 0 or max_phases < MIN_PHASES:
             raise ValueError(f"phases_per_footprint must be positive and max_phases at least {MIN_PHASES}")
         wp = warp()

@@ -46,9 +46,11 @@ from lfcore.weight_cache import WeightCache
 __all__ = ["METHODS", "WEIGHTS", "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings",
            "estimate_background", "preprocess", "reconstruct"]
 
-METHODS = ("drt-mart", "mart", "mlos-mart")
+METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: The weights each method iterates on (:meth:`Projector.weights` and :class:`WeightCache` names).
-WEIGHTS = {"drt-mart": "drt", "mart": "los", "mlos-mart": "los"}
+#: ``mlos-smart`` is Tomo-PIV's MLOS-SMART on pinhole cameras (:mod:`lfcore.pinhole_projector`);
+#: on light-field cameras it is MLOS-MART.
+WEIGHTS = {"drt-mart": "drt", "mart": "los", "mlos-mart": "los", "mlos-smart": "los"}
 #: Above this the simultaneous update overshoots: every voxel on an under-projected pixel grows at
 #: once (sequential MART takes the chapter's 2.5 because each pixel's step is small).
 MAX_SIMULTANEOUS_RELAXATION = 2.0
@@ -67,8 +69,9 @@ class ReconSettings:
     Attributes
     ----------
     method
-        ``"drt-mart"``, ``"mart"`` (the conventional baseline) or ``"mlos-mart"`` (DRT-MART's
-        elimination with the baseline's weights).
+        ``"drt-mart"``, ``"mart"`` (the conventional baseline), ``"mlos-mart"`` (DRT-MART's
+        elimination with the baseline's weights) or ``"mlos-smart"`` (pinhole cameras' MLOS
+        and line-of-sight weights, :class:`~lfcore.pinhole_projector.PinholeProjector`).
     iterations
         MART iterations (sweeps).
     relaxation

@@ -83,7 +83,7 @@ def _device_field(field: np.ndarray, device: str | None):
     return wp, d, wp.array(np.ascontiguousarray(field, dtype=np.float32), dtype=wp.vec3, device=d)
 
 
-def normalized_median_test(field: np.ndarray, test: MedianTest = MedianTest(),
+def normalized_median_test(field: np.ndarray, test: MedianTest = MedianTest(), *,
                            device: str | None = "cpu") -> np.ndarray:
     """Outliers of a displacement field by the normalized median test over 26 neighbours.
 
@@ -111,7 +111,7 @@ def normalized_median_test(field: np.ndarray, test: MedianTest = MedianTest(),
     return out.numpy() != 0
 
 
-def replace_outliers(field: np.ndarray, outlier: np.ndarray, max_iterations: int = 10,
+def replace_outliers(field: np.ndarray, outlier: np.ndarray, *, max_iterations: int = 10,
                      device: str | None = "cpu") -> tuple[np.ndarray, np.ndarray]:
     """Replace outliers by the median of their valid neighbours.
 
@@ -163,7 +163,7 @@ def replace_outliers(field: np.ndarray, outlier: np.ndarray, max_iterations: int
     return out, replaced
 
 
-def median_filter(field: np.ndarray, size: int = 3) -> np.ndarray:
+def median_filter(field: np.ndarray, *, size: int = 3) -> np.ndarray:
     """The chapter's median filter: each component replaced by its median over size^3 vectors.
 
     Applied to every vector (it smooths as well as rejects), with the grid's edge values
@@ -175,7 +175,7 @@ def median_filter(field: np.ndarray, size: int = 3) -> np.ndarray:
     return np.stack([ndimage.median_filter(f[..., c], size=size, mode="nearest") for c in range(3)], axis=-1)
 
 
-def smooth(field: np.ndarray, sigma: float = 1.0) -> np.ndarray:
+def smooth(field: np.ndarray, *, sigma: float = 1.0) -> np.ndarray:
     """Gaussian smoothing of each component over the grid (sigma in grid spacings).
 
     Used on the predictor between deformation passes: iterating with an unfiltered predictor

@@ -76,7 +76,7 @@ def import_files(rig: Rig | str | os.PathLike[str], out: str | os.PathLike[str],
                rate_hz=rate_hz, overwrite=overwrite, skip_done=skip_done, progress=progress, checksum=checksum)
 
 
-def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str = "drt-mart", iterations: int = 50,
+def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = None, iterations: int = 50,
                 relaxation: float = 1.0, form: str = "simultaneous", pvr: Sequence[float] | None = None,
                 margin_mm: Sequence[float] = (0.0, 0.0, 0.0), pairs: PairsLike = None,
                 cameras: Sequence[str] | None = None, calibration: str | os.PathLike[str] | None = None,
@@ -89,7 +89,8 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str = "drt-ma
     run
         The run (a path or a store).
     method, iterations, relaxation, form
-        DRT-MART (default), MART or MLOS-MART; MART sweeps; relaxation; simultaneous or sequential.
+        DRT-MART, MART, MLOS-MART or MLOS-SMART (None: DRT-MART for light-field cameras,
+        MLOS-SMART for pinhole ones); MART sweeps; relaxation; simultaneous or sequential.
     pvr, margin_mm
         Pixel-voxel ratio (x, y, z) of the voxel grid (None: the rig's) and the margin around
         the rig's volume, mm.
@@ -114,9 +115,10 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str = "drt-ma
     """
     from lfpiv.batch import dask_client
     from lfpiv.jobs.calibrate import calibrated_rig
-    from lfpiv.jobs.reconstruct import recon_settings, reconstruct_run
+    from lfpiv.jobs.reconstruct import default_method, recon_settings, reconstruct_run
 
     store = open_run(run, mode="r+")
+    method = method or default_method(store.rig, cameras)
     settings = recon_settings(method=method, iterations=iterations, relaxation=relaxation, form=form, **options)
     rig, cal = calibrated_rig(store.rig, calibration, cameras) if calibration is not None else (None, None)
     with dask_client(workers, scheduler) as client:

@@ -29,9 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "jointly from every camera's image (or those given by --cameras). DRT-MART eliminates the voxels "
         "that cannot hold a particle, builds dense ray-traced weights for the rest and iterates MART on "
         "them; --method mart is the conventional baseline (line-of-sight weights, no elimination); --method "
-        "mlos-mart eliminates as DRT-MART does, then iterates with the baseline's weights.")
+        "mlos-mart eliminates as DRT-MART does, then iterates with the baseline's weights. Pinhole (Tomo-PIV) "
+        "cameras are reconstructed by --method mlos-smart (their default): MLOS elimination, line-of-sight "
+        "weights and SMART iterations.")
     r.add_argument("run", metavar="RUN", help="run store (a .zarr directory)")
-    r.add_argument("--method", choices=("drt-mart", "mart", "mlos-mart"), default="drt-mart", help="default: drt-mart")
+    r.add_argument("--method", choices=("drt-mart", "mart", "mlos-mart", "mlos-smart"), default=None,
+                   help="default: drt-mart for light-field cameras, mlos-smart for pinhole ones")
     r.add_argument("--iterations", type=positive_int, default=50, help="MART iterations (default: 50)")
     r.add_argument("--relaxation", type=positive_float, default=1.0,
                    help="relaxation mu (default: 1; at most 2 for the simultaneous form; the chapter's "
@@ -72,15 +75,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.reconstruct import recon_settings, reconstruct_run, voxel_shape_notes
+    from lfpiv.jobs.reconstruct import default_method, recon_settings, reconstruct_run, voxel_shape_notes
     from lfpiv.runs import open_run
 
     check_pvr(args.pvr)
-    settings = recon_settings(method=args.method, iterations=args.iterations, relaxation=args.relaxation,
-                              form=args.form, sub_apertures=args.sub_apertures, background=args.background,
-                              threshold_sigma=args.threshold_sigma, smooth=args.smooth,
-                              weight_storage=args.weight_storage, projector=args.projector)
+    # the options checked before the run is opened (the method's own checks again once it is known;
+    # the projector's too, since it applies to drt-mart only)
+    settings = recon_settings(method=args.method or "mlos-smart", iterations=args.iterations,
+                              relaxation=args.relaxation, form=args.form, sub_apertures=args.sub_apertures,
+                              background=args.background, threshold_sigma=args.threshold_sigma, smooth=args.smooth,
+                              weight_storage=args.weight_storage,
+                              projector=args.projector if args.method else "auto")
     store = open_run(args.run, mode="r+")
+    if args.method is None:  # the default of the cameras' kind
+        args.method = default_method(store.rig, args.cameras)
+        settings = recon_settings(**{**settings.as_dict(), "method": args.method, "projector": args.projector})
     rig, calibration = None, None
     if args.calibration is not None:
         from lfpiv.jobs.calibrate import calibrated_rig

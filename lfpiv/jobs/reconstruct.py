@@ -11,6 +11,8 @@ import numpy as np
 from tqdm import tqdm
 
 from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
+from lfcore.matrix_free import MatrixFreeUnsupported
+from lfcore.pinhole_projector import projector_for
 from lfcore.projector import Projector
 from lfcore.reconstruct import MAX_SUB_APERTURES, WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
 from lfcore.rig import Rig, is_pinhole, voxel_shape_warnings
@@ -21,8 +23,11 @@ from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
 from lfpiv.pair_runner import run_pairs, select_pairs
 
-__all__ = ["MAX_SUB_APERTURES", "ReconJob", "ReconResult", "ReconSettings", "recon_settings", "reconstruct_pair_task",
-           "reconstruct_run", "voxel_shape_notes"]
+__all__ = ["MAX_SUB_APERTURES", "PINHOLE_METHODS", "ReconJob", "ReconResult", "ReconSettings", "default_method",
+           "recon_settings", "reconstruct_pair_task", "reconstruct_run", "voxel_shape_notes"]
+
+#: The methods of pinhole (Tomo-PIV) cameras: MLOS-SMART, and MART on every voxel of the box.
+PINHOLE_METHODS = ("mlos-smart", "mart")
 
 #: Bytes per voxel of the box the elimination pass and the dense result need at once.
 BYTES_PER_BOX_VOXEL = 16
@@ -35,6 +40,14 @@ def recon_settings(**options: Any) -> ReconSettings:
         return ReconSettings(**options)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+
+
+def default_method(rig: Rig, cameras: Sequence[str] | None = None) -> str:
+    """The reconstruction of the cameras named (None: all of the rig's): ``mlos-smart`` where they
+    are all pinhole cameras, ``drt-mart`` otherwise (a mixed rig's light-field cameras by DRT-MART's
+    weights, its pinhole cameras by their line of sight, jointly)."""
+    cams = [c for c in rig.camera if cameras is None or c.name in cameras]
+    return "mlos-smart" if cams and all(is_pinhole(c) for c in cams) else "drt-mart"
 
 
 def voxel_shape_notes(rig: Rig, cameras: Sequence[str] | None, pvr: Sequence[float] | None) -> list[str]:
@@ -71,10 +84,11 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, de
     if need > available_bytes(device):
         raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
                          "has free; use a coarser --pvr")
-    projector = Projector(cams, grid, sub_apertures=settings.sub_apertures, device=device)
-    # weights reused across frames (the baseline's cover the whole box and are built per frame)
+    projector = projector_for(cams, grid, sub_apertures=settings.sub_apertures, device=device)
+    # weights reused across frames (the baseline's cover the whole box and are built per frame;
+    # a pinhole camera's, a handful per voxel, are built per frame in less than the iterations take)
     cache = None
-    if settings.method != "mart" and settings.weight_storage != "on-the-fly":
+    if type(projector) is Projector and settings.method != "mart" and settings.weight_storage != "on-the-fly":
         cache = WeightCache(projector, method=WEIGHTS[settings.method])
     return FrameReconstructor(projector, settings, cache=cache)
 
@@ -85,7 +99,7 @@ def _reconstruct_frame(frames: FrameReconstructor, store: RunStore, names: Seque
     images = [store.read_frame(n, pair, frame) for n in names]  # a damaged or missing frame is an error
     try:
         return frames.reconstruct(images, progress=progress)
-    except MemoryBudgetError as exc:
+    except (MemoryBudgetError, MatrixFreeUnsupported) as exc:
         raise UsageError(f"pair {pair} frame {'AB'[frame]}: {exc}") from None
 
 
@@ -176,11 +190,11 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         raise UsageError(f"--cameras: no camera '{unknown[0]}' in this run (it has {', '.join(store.cameras)})")
     cams = [rig.camera_named(n) for n in names]
     tomo = [c.name for c in cams if is_pinhole(c)]
-    if tomo:
-        keep = [n for n in names if n not in tomo]
-        raise UsageError(f"camera '{tomo[0]}' is a pinhole camera: its reconstruction (MLOS-SMART) is not built yet, "
-                         "the DRT-MART reconstruction needs light-field cameras; "
-                         + (f"give --cameras {','.join(keep)}" if keep else "this run has no light-field camera"))
+    # pinhole cameras alone: MLOS-SMART or MART; beside light-field ones, every method (the
+    # light-field cameras take its weights, the pinhole ones their line of sight)
+    if tomo and len(tomo) == len(cams) and settings.method not in PINHOLE_METHODS:
+        raise UsageError(f"camera '{tomo[0]}' is a pinhole camera: --method {settings.method} needs light-field "
+                         "cameras; use --method mlos-smart (the default for pinhole cameras) or mart")
     try:
         grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(pvr), tuple(margin_mm))
     except ValueError as exc:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from lfcore.rig import is_pinhole
 from lfpiv.batch import dask_client
 from lfpiv.errors import UsageError
 from lfpiv.rigfile import load_rig
@@ -24,7 +25,9 @@ def study_setup(*, scale: str = "quick", rig: str | Path | None = None, device: 
     Raises
     ------
     UsageError
-        An unknown scale; a rig file that cannot be read (:class:`lfcore.rig.RigError`, one line).
+        An unknown scale; a rig file that cannot be read (:class:`lfcore.rig.RigError`, one line);
+        a rig without a light-field camera (the studies are of light-field PIV; a mixed rig's
+        pinhole cameras are left out of them, and its name says so).
     """
     if scale not in SCALES:
         raise UsageError(f"--scale must be one of {', '.join(SCALES)}, got '{scale}'")
@@ -35,7 +38,16 @@ def study_setup(*, scale: str = "quick", rig: str | Path | None = None, device: 
     if rig is None:
         return Setup(scale=scale, device=device)
     loaded = load_rig(rig)
-    return Setup(scale=scale, rig=loaded.to_dict(), rig_name=f"`{Path(rig).name}`", device=device)
+    d = loaded.to_dict()
+    name = f"`{Path(rig).name}`"
+    light_field = [c for c, cam in zip(d["camera"], loaded.camera, strict=True) if not is_pinhole(cam)]
+    if not light_field:
+        raise UsageError(f"rig {rig} has only pinhole cameras; the chapter's studies are of light-field PIV: "
+                         "give a rig with at least one light-field camera (kind = \"lightfield\")")
+    if len(light_field) < len(d["camera"]):
+        d["camera"] = light_field
+        name += " (its light-field cameras)"
+    return Setup(scale=scale, rig=d, rig_name=name, device=device)
 
 
 def run_studies(names: Sequence[str], setup: Setup, out: str | Path, *, skip_done: bool = False,

@@ -11,6 +11,9 @@
   depth-resolution maps (Fig. 4.35).
 - ``vortex-ring``: divergence-error PDFs of one and two cameras, with and without post-processing
   (Fig. 4.40), and the velocity error against the truth.
+- ``lf-vs-tomo``: one light-field camera (800 and 1600 pixels across, PMR 7, 14, 28) against
+  Tomo-PIV of 4, 6 and 8 pinhole cameras: Q and displacement error against LTPR (eq. 4.5,
+  Figs. 4.23-4.24).
 
 Each study is a :class:`lfpiv.studies.runner.Study`; :func:`lfpiv.studies.runner.run_study` runs it.
 """
@@ -24,9 +27,9 @@ from lfpiv.studies.runner import Study
 __all__ = ["STUDY_NAMES", "study_named"]
 
 #: The studies in the order ``lfpiv study all`` runs them.
-STUDY_NAMES = ("iterations", "diameters", "density", "oscillatory", "dual", "vortex-ring")
+STUDY_NAMES = ("iterations", "diameters", "density", "oscillatory", "dual", "vortex-ring", "lf-vs-tomo")
 
-_MODULES = {"vortex-ring": "vortex_ring"}
+_MODULES = {"vortex-ring": "vortex_ring", "lf-vs-tomo": "lf_vs_tomo"}
 
 
 def study_named(name: str) -> Study:

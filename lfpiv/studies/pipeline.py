@@ -20,9 +20,10 @@ import numpy as np
 from lfcore import metrics
 from lfcore.correlate import CorrelationConfig, Correlator, VectorField
 from lfcore.flows import Flow, flow_from_params
+from lfcore.pinhole_projector import projector_for
 from lfcore.projector import Projector
 from lfcore.reconstruct import WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
-from lfcore.render import LightFieldRenderer
+from lfcore.render import renderer_for
 from lfcore.rig import Camera, Rig
 from lfcore.vectors import centres_mm, displacement_to_velocity
 from lfcore.volume import VolumeGrid
@@ -72,6 +73,9 @@ class Scene:
         displacement's pixels, as in ``lfpiv synth``).
     flow, ppm, displacement_px, omega, seed
         As :class:`lfcore.world.ParticleWorld`.
+    ppp
+        Seeding in particles per pixel of the first camera instead of ``ppm`` (a rig of pinhole
+        cameras, Tomo-PIV's measure).
     rays_per_particle
         Overrides the rig's ``render.rays_per_particle``.
     device
@@ -80,15 +84,17 @@ class Scene:
 
     def __init__(self, rig: Rig, *, flow: str = "uniform", ppm: float = 0.5, displacement_px: float | None = None,
                  omega: float = 1.0, seed: int = 1, rays_per_particle: int | None = None,
-                 device: str | None = None) -> None:
+                 device: str | None = None, ppp: float | None = None) -> None:
         self.rig = rig
-        self.world = ParticleWorld(rig, flow=flow, ppm=ppm, displacement_px=displacement_px, seed=seed, omega=omega)
+        self.world = ParticleWorld(rig, flow=flow, ppm=None if ppp is not None else ppm,
+                                   displacement_px=displacement_px, seed=seed, omega=omega, ppp=ppp)
         self.flow: Flow = flow_from_params(self.world.flow_params)
         self.seed = seed
         render = rig.render
         if rays_per_particle is not None:
             render = render.model_copy(update={"rays_per_particle": int(rays_per_particle)})
-        self.renderers = [LightFieldRenderer(cam, render, rig.laser.wavelength_nm, device) for cam in rig.camera]
+        # each camera's own renderer: ray-traced light fields, or Gaussian images of pinhole cameras
+        self.renderers = [renderer_for(cam, render, rig.laser.wavelength_nm, device) for cam in rig.camera]
 
     @property
     def dt_s(self) -> float:
@@ -108,7 +114,8 @@ class Reconstructor:
     Parameters
     ----------
     cameras
-        The cameras reconstructed jointly.
+        The cameras reconstructed jointly (all light-field, or all pinhole:
+        :func:`lfcore.pinhole_projector.projector_for`).
     grid
         The voxel grid.
     device
@@ -121,7 +128,7 @@ class Reconstructor:
 
     def __init__(self, cameras: Sequence[Camera], grid: VolumeGrid, *, device: str | None = None,
                  cache: bool = False) -> None:
-        self.projector = Projector(list(cameras), grid, device=device)
+        self.projector: Projector = projector_for(list(cameras), grid, device=device)
         self.grid = grid
         self.use_cache = cache
         self._caches: dict[str, WeightCache] = {}
@@ -135,7 +142,7 @@ class Reconstructor:
         if settings not in self._frames:
             cache = None
             kind = WEIGHTS[settings.method]
-            if self.use_cache and settings.method != "mart":
+            if self.use_cache and settings.method != "mart" and type(self.projector) is Projector:
                 if kind not in self._caches:
                     # no stored elimination table (checks=0): it costs seconds to build for each projector
                     self._caches[kind] = WeightCache(self.projector, method=kind, checks=0)

@@ -44,3 +44,15 @@ def test_matrix_free_needs_drt_mart(capsys, synthetic_run):
                         "--iterations", "2", "--quiet")
     assert rc == 2
     assert len(err.strip().splitlines()) == 1 and "drt-mart" in err
+
+
+def test_a_camera_off_the_grid_axes_is_one_line(capsys, tmp_path):
+    rig_path = tmp_path / "tilted.toml"
+    text = (EXAMPLES / "tiny.toml").read_text()
+    rig_path.write_text(text.replace("rotation_deg = [0.0, 0.0, 0.0]", "rotation_deg = [0.0, 20.0, 0.0]"))
+    run = tmp_path / "run.zarr"
+    assert main(["synth", "--rig", str(rig_path), "--out", str(run), "--pairs", "1", "--ppm", "0.1", "--quiet"]) == 0
+    capsys.readouterr()
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--projector", "matrix-free", "--iterations", "2", "--quiet")
+    assert rc == 2, err
+    assert len(err.strip().splitlines()) == 1 and "grid axis" in err

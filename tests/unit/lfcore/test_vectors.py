@@ -89,7 +89,7 @@ def test_median_filter_removes_a_spike_and_keeps_a_linear_field():
 
 def test_smoothing_keeps_linear_fields():
     f = linear_field()
-    assert np.allclose(smooth(f, 1.0), f, atol=1e-12)
+    assert np.allclose(smooth(f, sigma=1.0), f, atol=1e-12)
 
 
 def test_flags():

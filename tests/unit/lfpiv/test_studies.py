@@ -172,3 +172,40 @@ def test_setup_refuses_bad_input_in_one_line(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(UsageError, match="is a file"):
         run_studies(["dual"], Setup(scale="tiny"), tmp_path / "file")
+
+
+def test_ltpr_is_the_chapters_eq_4_5():
+    from lfpiv.studies.lf_vs_tomo import ltpr
+
+    got = sorted(round(ltpr(px, n), 2) for px in (800, 1600) for n in (4, 6, 8))
+    assert got == [3.12, 4.17, 6.25, 12.5, 16.67, 25.0]  # the chapter's six ratios (3.125 rounds to even)
+
+
+def test_lf_vs_tomo_rigs_keep_the_chapters_pixels_in_a_smaller_field_of_view():
+    from lfpiv.studies.lf_vs_tomo import lf_rig, tomo_rig
+
+    for scale, f in (("tiny", 0.125), ("chapter", 1.0)):
+        t = tomo_rig(6, scale)
+        assert len(t.camera) == 6 and t.camera[0].sensor_px == (round(160 * f),) * 2
+        assert t.camera[0].object_pixel_mm == pytest.approx(0.075, rel=1e-3)
+        lf = lf_rig(1600, 14, scale)
+        cam = lf.camera[0]
+        assert cam.pixels_per_lenslet == pytest.approx(14.0) and cam.sensor_px[0] == pytest.approx(1600 * f, abs=1)
+        # the light-field sensor spans the Tomo-PIV cameras' field of view
+        assert cam.sensor_px[0] * cam.object_pixel_mm == pytest.approx(t.camera[0].sensor_px[0] * 0.075, rel=0.01)
+        assert lf.volume.size_mm == t.volume.size_mm
+
+
+def test_lf_vs_tomo_measures_both_kinds_against_ltpr(tiny_all):
+    out, outcomes = tiny_all
+    r = _results(out, "lf-vs-tomo")
+    assert set(r) == {"tomo4_ppp0.05", "tomo8_ppp0.05", "lf800_pmr7", "lf800_pmr14", "lf1600_pmr7", "lf1600_pmr14"}
+    for key in ("tomo4_ppp0.05", "tomo8_ppp0.05"):
+        assert r[key]["q"] > 0.75  # MLOS-SMART of the 4- and 8-camera arcs at 0.05 ppp
+        # the shift is known: (0.8, 0.5, 0.33) of 0.15 mm, and the error is a fraction of it
+        assert np.linalg.norm(r[key]["shift_um"]) == pytest.approx(150.0, rel=1e-6)
+        assert max(r[key]["displacement_rms_um"]) < 0.5 * 150.0
+    rows = _rows(out, "lf-vs-tomo")
+    lf = [row for row in rows if row["kind"] == "lf"]
+    assert len(lf) == 8 and sorted({float(row["LTPR"]) for row in lf}) == [3.125, 6.25, 12.5, 25.0]
+    assert any("LTPR" in f.claim for f in outcomes["lf-vs-tomo"].findings)
