@@ -20,6 +20,9 @@
 #                                  # with on-the-fly weights, L by MLOS-MART (part on the fly; about 9 min)
 #   bash benchmarks/gpu.sh batch   # a whole run of M: volumes written behind the reconstruction and
 #                                  # read ahead of the correlation, against one after the other (~6 min)
+#   bash benchmarks/gpu.sh matrixfree # the matrix-free projector: its CUDA tests, S and Mc by both
+#                                  # projectors, M by it at 400 iterations (goal <= 2 s) and L at 400
+#                                  # (goal <= 60 s; about 9 minutes)
 #   bash benchmarks/gpu.sh tomo    # Tomo-PIV: the pinhole projector's CUDA tests and the Tomo functional
 #                                  # tests, T4, T6, T8 by MLOS-SMART and the MART baseline, then
 #                                  # lfpiv study lf-vs-tomo --scale quick on the GPU (about 8 minutes)
@@ -78,6 +81,13 @@ elif [ "$stage" = live ]; then
         --weight-storage stored
     step pytest 240 python3 -m pytest tests -q -k "cuda or functional" -p no:cacheprovider \
         --continue-on-collection-errors --timeout 150 --junitxml "$out/pytest.xml"
+elif [ "$stage" = matrixfree ]; then
+    step pytest-mf-cuda 120 python3 -m pytest tests/unit/lfcore/test_matrix_free.py -q -k cuda -p no:cacheprovider \
+        --timeout 100
+    step recon-S-mf 60 python3 benchmarks/recon.py --case S --device cuda --projector both --no-mart
+    step recon-Mc-mf 90 python3 benchmarks/recon.py --case Mc --device cuda --projector both --no-mart
+    step recon-M-mf 120 python3 benchmarks/recon.py --case M --device cuda --projector matrix-free --no-mart
+    step recon-L-mf 180 python3 benchmarks/recon.py --case L --device cuda --projector matrix-free --no-mart
 elif [ "$stage" = short ]; then
     step pytest-correlate-cuda 80 python3 -m pytest tests/unit/lfcore/test_correlate.py -q -k cuda -p no:cacheprovider \
         --timeout 60

@@ -38,6 +38,10 @@ floor: the bytes one iteration must move (every stored weight read twice, its pi
 updated and read, each voxel's intensity read and written) divided by the copy bandwidth of the
 same device measured here.
 
+``--projector matrix-free`` (or ``both``) runs DRT-MART on the matrix-free templates of
+:mod:`lfcore.matrix_free` instead (or as well): the templates' build time and memory, ms per
+iteration, Q, and the fidelity of 200 random active voxels' images against the stored weights.
+
 Line-of-sight weights that do not fit in the device's memory are made on the fly in each
 iteration (``--weight-storage auto``, the default; L by MLOS-MART on one GPU): such a run
 reports how many voxels' weights were, and no bandwidth floor, since it traces rather than
@@ -141,8 +145,47 @@ def floor_text(r, floor_ms) -> str:
     return f"{r.ms_per_iteration / floor_ms(r):.1f}x the bandwidth floor of {floor_ms(r):.3f} ms"
 
 
+def matrix_free_figures(proj, img, its: int, e0, drt) -> None:
+    """DRT-MART on the matrix-free templates: their build, memory, ms per iteration, Q, and the
+    fidelity of random active voxels' images against the stored weights (the reference)."""
+    from lfcore.matrix_free import fidelity
+
+    mf = reconstruct(proj, img, ReconSettings(iterations=its, projector="matrix-free"))
+    q = metrics.q_recon(mf.volume, e0)
+    # the templates are those the reconstruction built (the projector's geometry alone)
+    from lfcore.matrix_free import DrtTemplates
+
+    t = time.perf_counter()
+    templates = DrtTemplates(proj)
+    build = time.perf_counter() - t
+    lit = []
+    st = ReconSettings()
+    for im in img:
+        level, sigma = estimate_background(im)
+        lit.append(preprocess(im, level, sigma, st.threshold_sigma, st.lit_grow)[1])
+    active = proj.eliminate(lit, st.min_seen, st.max_dark).numpy()
+    rng = np.random.default_rng(5)
+    sample = rng.choice(active, size=min(200, active.size), replace=False) if active.size else active
+    f = fidelity(proj, sample, templates) if sample.size else {"correlation": np.ones(1), "light": np.ones(1)}
+    c, light = f["correlation"], np.abs(f["light"] - 1.0)
+    print(f"  DRT-MART matrix-free: templates {build:.2f} s ({templates.n_templates} templates, {templates.n_spots} "
+          f"spots, phase bins {templates.depth_phase.min()}-{templates.depth_phase.max()} per axis, "
+          f"{templates.nbytes / 2**20:.0f} MiB), first frame's weights_s {mf.weights_s:.2f} s (elimination "
+          f"{mf.eliminate_s:.2f} s), memory {mf.weight_bytes / 2**20:.0f} MiB, {mf.ms_per_iteration:.2f} ms/iteration, "
+          f"total {mf.weights_s + mf.iterate_s:.2f} s, Q {q:.3f}, "
+          f"peak memory {peak_bytes(proj.device) / 2**30:.2f} GiB")
+    print(f"    fidelity on {sample.size} active voxels: correlation min {c.min():.5f} median {np.median(c):.6f}, "
+          f"total light off by at most {light.max():.2%} (median {np.median(light):.4%}); depth-blur bound "
+          f"{templates.blur_error:.1%} of a footprint's lateral blur")
+    if drt is not None:
+        print(f"    against stored weights: {mf.ms_per_iteration / drt.ms_per_iteration:.1f}x the time per iteration, "
+              f"{drt.weight_bytes / max(mf.weight_bytes, 1):.1f}x less memory, "
+              f"build {drt.weights_s - drt.eliminate_s:.2f} s -> {build:.2f} s, "
+              f"Q {q:.3f} vs {metrics.q_recon(drt.volume, e0):.3f}")
+
+
 def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, with_drt: bool = True,
-        storage: str = "auto") -> None:
+        storage: str = "auto", projector: str = "stored") -> None:
     t = time.perf_counter()
     _, its, cams, grid, pts, img = scene(case, device, ppm)
     its = iterations or its
@@ -161,7 +204,7 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, 
         return 1e3 * (BYTES_PER_ENTRY * r.nnz + BYTES_PER_VOXEL * r.active_voxels) / bw
 
     drt = None
-    if with_drt:
+    if with_drt and projector in ("stored", "both"):
         drt = reconstruct(proj, img, ReconSettings(iterations=its))
         q = metrics.q_recon(drt.volume, e0)
         print(f"  DRT-MART: weights {drt.weights_s:.2f} s (elimination {drt.eliminate_s:.2f} s), "
@@ -169,6 +212,10 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, 
               f"voxels, {drt.nnz} weights, {drt.weight_bytes / 2**20:.0f} MiB), {drt.ms_per_iteration:.2f} "
               f"ms/iteration ({floor_text(drt, floor_ms)}), total {drt.weights_s + drt.iterate_s:.2f} s, Q {q:.3f}, "
               f"peak memory {peak_bytes(device) / 2**30:.2f} GiB")
+    if with_drt and projector in ("matrix-free", "both"):
+        matrix_free_figures(proj, img, its, e0, drt)
+        if projector == "matrix-free":
+            return
     # MLOS-MART: the same elimination, the baseline's weights on the surviving voxels
     mlos = reconstruct(proj, img, ReconSettings(method="mlos-mart", iterations=its, weight_storage=storage))
     tm = mlos.weights_s + mlos.iterate_s
@@ -304,6 +351,9 @@ def main() -> int:
     ap.add_argument("--no-drt", action="store_true", help="skip DRT-MART (MLOS-MART only, with --no-mart)")
     ap.add_argument("--weight-storage", choices=STORAGE, default="auto",
                     help="line-of-sight weights of MLOS-MART and the baseline (default: auto, stored if they fit)")
+    ap.add_argument("--projector", choices=("stored", "matrix-free", "both"), default="stored",
+                    help="DRT-MART on stored weights (default), on the matrix-free templates (then nothing else), "
+                    "or both, with the templates' fidelity against the stored weights")
     ap.add_argument("--profile-weights", action="store_true",
                     help="instead: time the elimination, each DRT weight build and every kernel of the builds")
     args = ap.parse_args()
@@ -317,7 +367,8 @@ def main() -> int:
             if case in TOMO_CASES:
                 run_tomo(case, device, args.ppp, args.iterations, not args.no_mart)
                 continue
-            run(case, device, args.ppm, args.iterations, not args.no_mart, not args.no_drt, args.weight_storage)
+            run(case, device, args.ppm, args.iterations, not args.no_mart, not args.no_drt, args.weight_storage,
+                args.projector)
         except MemoryBudgetError as exc:  # the case does not fit this device: say so, go on
             print(f"  case {case}: {exc}")
         sys.stdout.flush()

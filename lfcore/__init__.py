@@ -13,6 +13,7 @@ __all__ = [
     "device_ops",   # image and volume operations on the device
     "errors",       # DeviceError, ComputeDeviceError
     "flows",        # the test flows and particle advection
+    "matrix_free",  # the matrix-free DRT operator: templates per depth and lenslet phase
     "metrics",      # Q_recon, particle matching, diameters, velocity and divergence errors
     "mla",          # the microlens lattice and the sensor's pixel coordinates
     "particles",    # seeding and the laser sheet

@@ -95,6 +95,7 @@ class Projector:
         self._kw = kw
         self.cameras = tuple(cameras)
         self.grid = grid
+        self.sub_apertures = sub_apertures  # None: each camera's pixels per lenslet
         self.device = resolve_device(device)
         wp = self.wp
         g = kw.Grid()
@@ -323,6 +324,8 @@ class Projector:
 
         wp = self.wp
         out = wp.zeros(self.n_pixels, dtype=float, device=self.device) if out is None else out
+        if getattr(weights, "matrix_free", False):  # lfcore.matrix_free.MatrixFreeWeights
+            return weights.forward(e, out)
         out.zero_()
         # The projection accumulates into pixels with atomics, which are plain adds on the CPU:
         # there each CPU block sums into a private image, and the images are added after.
@@ -351,6 +354,9 @@ class Projector:
             self._ratio = wp.empty(self.n_pixels, dtype=float, device=self.device)
         wp.launch(km.log_ratio, dim=self.n_pixels, inputs=[image, proj, float(floor), self._ratio], device=self.device)
         mu = float(relaxation)
+        if getattr(weights, "matrix_free", False):  # lfcore.matrix_free.MatrixFreeWeights
+            weights.smart_update(self._ratio, e, mu)
+            return
         k = weights.n_stored
         if k < weights.n_voxels:
             self.builder.trace_los(weights.voxels[k:], 3, weights.min_weight, sums=weights.sums,

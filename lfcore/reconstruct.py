@@ -38,6 +38,7 @@ from scipy import ndimage
 
 from lfcore.device import MemoryBudgetError, available_bytes, out_of_memory_is_budget_error, warp
 from lfcore.device_ops import VolumeOps
+from lfcore.matrix_free import PROJECTORS, DrtTemplates, MatrixFreeUnsupported, MatrixFreeWeights
 from lfcore.projector import Projector
 from lfcore.weight_build import STORAGE, Weights
 from lfcore.weight_cache import WeightCache
@@ -109,6 +110,11 @@ class ReconSettings:
         made on the fly cost two traces per iteration instead of two reads, so a volume whose
         weights do not fit is reconstructed slowly rather than refused. DRT weights and the
         sequential form are always stored.
+    projector
+        What applies DRT-MART's operator: ``"stored"`` weights, the ``"matrix-free"`` templates
+        of :mod:`lfcore.matrix_free` (simultaneous form only), or ``"auto"``: stored weights,
+        and the templates where the stored weights would not fit in memory and the cameras
+        allow them.
     """
 
     method: str = "drt-mart"
@@ -124,6 +130,7 @@ class ReconSettings:
     lit_grow: int = 0
     smooth: float = 0.6
     weight_storage: str = "auto"
+    projector: str = "auto"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -150,6 +157,12 @@ class ReconSettings:
             raise ValueError(f"weight_storage must be one of {', '.join(STORAGE)}, got '{self.weight_storage}'")
         if self.weight_storage == "on-the-fly" and self.method == "drt-mart":
             raise ValueError("DRT-MART's weights are always stored; on-the-fly weights are for mart and mlos-mart")
+        if self.projector not in PROJECTORS:
+            raise ValueError(f"projector must be one of {', '.join(PROJECTORS)}, got '{self.projector}'")
+        if self.projector == "matrix-free" and self.method != "drt-mart":
+            raise ValueError("the matrix-free projector applies DRT weights; use it with drt-mart")
+        if self.projector == "matrix-free" and self.form == "sequential":
+            raise ValueError("the matrix-free projector runs the simultaneous form; use form 'simultaneous'")
         if self.weight_storage == "on-the-fly" and self.form == "sequential":
             raise ValueError("the sequential form needs stored weights; use the simultaneous form for on-the-fly "
                              "weights")
@@ -180,6 +193,9 @@ class ReconResult:
         Of ``weights_s``, the seconds of zero-voxel elimination (0 for the MART baseline).
     on_the_fly_voxels
         Voxels whose weights were made in each iteration instead of stored (0: all stored).
+    projector
+        What applied the operator: ``"stored"`` weights or the ``"matrix-free"`` templates
+        (``weight_bytes`` is then the templates' memory and the voxels' indices).
     background, noise
         Per camera: the background subtracted and the noise sigma, in counts.
     """
@@ -196,6 +212,7 @@ class ReconResult:
     noise: list[float] = field(default_factory=list)
     eliminate_s: float = 0.0
     on_the_fly_voxels: int = 0
+    projector: str = "stored"
 
     @property
     def ms_per_iteration(self) -> float:
@@ -371,6 +388,7 @@ class FrameReconstructor:
         self.ops = VolumeOps(projector.grid.shape, self.device)
         self._image = None  # (n_pixels,) float32: the measured signal of reconstruct()
         self._proj = None  # (n_pixels,) float32: the forward projection
+        self._templates = None  # the matrix-free projector's templates (lfcore.matrix_free), once built
         self._e = None  # the intensities, at least as long as the most active voxels so far
         self._volume = None  # (z, y, x) float32
 
@@ -437,7 +455,8 @@ class FrameReconstructor:
         return ReconResult(volume=volume, active_voxels=n, active_fraction=n / p.grid.n_voxels,
                            nnz=weights.nnz, weight_bytes=weights.nbytes, weights_s=t1 - t0 + done.start_s,
                            iterate_s=done.iterate_s, iterations=settings.iterations, background=backgrounds,
-                           noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=weights.n_on_the_fly)
+                           noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=weights.n_on_the_fly,
+                           projector="matrix-free" if getattr(weights, "matrix_free", False) else "stored")
 
     # --- the stages ------------------------------------------------------------------------------
     def eliminate(self, lit) -> object:
@@ -470,6 +489,28 @@ class FrameReconstructor:
         MemoryBudgetError
             If the weights do not fit.
         """
+        s = self.settings
+        kind = WEIGHTS[s.method]
+        if s.projector == "matrix-free":
+            return self._matrix_free(voxels)
+        if s.projector == "auto" and kind == "drt" and s.form == "simultaneous":
+            try:
+                return self._stored_weights(voxels)
+            except MemoryBudgetError:
+                try:
+                    return self._matrix_free(voxels)
+                except (MatrixFreeUnsupported, MemoryBudgetError):
+                    pass
+                raise
+        return self._stored_weights(voxels)
+
+    def _matrix_free(self, voxels) -> MatrixFreeWeights:
+        """The matrix-free operator on ``voxels``, its templates built on first use and kept."""
+        if self._templates is None:
+            self._templates = DrtTemplates(self.projector, budget_bytes=self._weight_budget(int(voxels.shape[0])))
+        return MatrixFreeWeights(self._templates, voxels)
+
+    def _stored_weights(self, voxels) -> Weights:
         s = self.settings
         kind = WEIGHTS[s.method]
         storage = "stored" if kind == "drt" or s.form == "sequential" else s.weight_storage

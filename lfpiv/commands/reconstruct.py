@@ -63,6 +63,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="line-of-sight weights (mart, mlos-mart): auto (default) stores them if they fit in the "
                    "device's memory and makes the rest again in each iteration (slower, the same volume); "
                    "stored refuses a volume whose weights do not fit; on-the-fly stores none")
+    r.add_argument("--projector", choices=("auto", "stored", "matrix-free"), default="auto",
+                   help="what applies DRT-MART's operator: stored weights, or matrix-free templates per depth and "
+                   "lenslet phase (memory set by the cameras and depth planes, not the voxels; slower per "
+                   "iteration on a CPU); auto (default): stored weights unless they do not fit in memory")
     add_device(r)
     add_workers(r, "reconstruct")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -75,15 +79,17 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.runs import open_run
 
     check_pvr(args.pvr)
-    # the options checked before the run is opened (the method's own checks again once it is known)
+    # the options checked before the run is opened (the method's own checks again once it is known;
+    # the projector's too, since it applies to drt-mart only)
     settings = recon_settings(method=args.method or "mlos-smart", iterations=args.iterations,
                               relaxation=args.relaxation, form=args.form, sub_apertures=args.sub_apertures,
                               background=args.background, threshold_sigma=args.threshold_sigma, smooth=args.smooth,
-                              weight_storage=args.weight_storage)
+                              weight_storage=args.weight_storage,
+                              projector=args.projector if args.method else "auto")
     store = open_run(args.run, mode="r+")
     if args.method is None:  # the default of the cameras' kind
         args.method = default_method(store.rig, args.cameras)
-        settings = recon_settings(**{**settings.as_dict(), "method": args.method})
+        settings = recon_settings(**{**settings.as_dict(), "method": args.method, "projector": args.projector})
     rig, calibration = None, None
     if args.calibration is not None:
         from lfpiv.jobs.calibrate import calibrated_rig
@@ -104,10 +110,14 @@ def run(args: argparse.Namespace) -> int:
     ms = sum(r.ms_per_iteration for r in results) / len(results)
     wb = max(r.weight_bytes for r in results)
     ws = sum(r.weights_s for r in results) / len(results)
+    ran = sorted({r.projector for r in results})
+    operator = (f"matrix-free templates {wb / 2**20:.1f} MiB" if ran == ["matrix-free"] else
+                f"weights {wb / 2**20:.1f} MiB" if ran == ["stored"] else
+                f"stored weights or matrix-free templates, at most {wb / 2**20:.1f} MiB")
     print(f"reconstructed {len(results)} volume(s) of {' x '.join(map(str, grid.shape[::-1]))} voxels (x, y, z) "
           f"with {args.method}{' and the models of ' + args.calibration if calibration else ''} into "
           f"{store.path}/volumes{workers_phrase(args)}; per volume: {act:.2%} of voxels active, "
-          f"weights {wb / 2**20:.1f} MiB built in {ws:.2f} s, {ms:.1f} ms per iteration")
+          f"{operator} built in {ws:.2f} s, {ms:.1f} ms per iteration")
     fly = max(r.on_the_fly_voxels for r in results)
     if fly:
         why = " (they did not fit in the device's memory)" if args.weight_storage == "auto" else ""

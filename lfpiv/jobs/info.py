@@ -109,7 +109,8 @@ def describe(path: str | Path) -> list[str]:
         g = store.volume_grid()
         lines.append(("volumes", f"{_count(store.reconstructed_pairs())} reconstructed by {va['method']}, "
                                  f"{va['settings'].get('iterations')} iterations, "
-                                 f"{' x '.join(str(n) for n in g.shape[::-1])} voxels"))
+                                 f"{' x '.join(str(n) for n in g.shape[::-1])} voxels, "
+                                 f"projector {va['settings'].get('projector', 'auto')}"))
     else:
         lines.append(("volumes", f"none (lfpiv reconstruct {store.path})"))
     if store.has_vectors:

@@ -11,6 +11,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
+from lfcore.matrix_free import MatrixFreeUnsupported
 from lfcore.pinhole_projector import projector_for
 from lfcore.projector import Projector
 from lfcore.reconstruct import MAX_SUB_APERTURES, WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
@@ -98,7 +99,7 @@ def _reconstruct_frame(frames: FrameReconstructor, store: RunStore, names: Seque
     images = [store.read_frame(n, pair, frame) for n in names]  # a damaged or missing frame is an error
     try:
         return frames.reconstruct(images, progress=progress)
-    except MemoryBudgetError as exc:
+    except (MemoryBudgetError, MatrixFreeUnsupported) as exc:
         raise UsageError(f"pair {pair} frame {'AB'[frame]}: {exc}") from None
 
 
@@ -206,7 +207,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
             "cameras": names, "calibration": calibration}
 
     def differences(g: Any) -> list[str]:
-        old = g.attrs.get("settings", {})
+        old = _recorded(g.attrs.get("settings", {}))
         changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k)]
         return (["voxel grid"] if "data" in g and store.grid_of(g) != grid else []) + changed
 
@@ -245,10 +246,18 @@ def _reconstruct_here(frames: FrameReconstructor, store: RunStore, names: Sequen
                 results.append(_summary(res))
                 if settings.iterations == 0:
                     bar.update(1)
-                bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}")
+                bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}", projector=res.projector,
+                                mem=f"{res.weight_bytes / 2**20:.0f}MiB", ms_it=f"{res.ms_per_iteration:.0f}")
 
 
 def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, Any]) -> bool:
     """True when ``group`` (volumes or their pending replacement, None if absent) holds volumes
     on ``grid`` made with the settings ``meta``."""
-    return group is not None and "data" in group and store.grid_of(group) == grid and group.attrs["settings"] == meta
+    return (group is not None and "data" in group and store.grid_of(group) == grid
+            and _recorded(group.attrs["settings"]) == meta)
+
+
+def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
+    """Volumes' recorded settings, with those of settings added since at the value they had
+    (volumes made before ``projector`` was recorded were made by ``auto``'s stored weights)."""
+    return {"projector": "auto", **settings}

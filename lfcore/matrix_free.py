@@ -1,0 +1,361 @@
+"""The matrix-free DRT operator: templates per depth and lenslet phase instead of per-voxel weights.
+
+An unfocused plenoptic camera's light field repeats with its lenslet lattice. In one depth
+plane of the camera, every sub-aperture's footprint on the MLA of a voxel at lateral position
+p sits at ``a A + g`` with ``g = -p si / (so - z)``: the whole pattern moves rigidly with g.
+Moving g by a lattice vector L moves every lenslet it meets by L and every spot on the sensor by
+``(1 + f_ml / si) L`` (the micro-image pitch). Within one lenslet period, a small move delta of
+g moves the spots by ``(f_ml / si) delta`` as long as the lenslets met do not change.
+
+So per camera and depth plane, the voxel images are a small set of templates: one per phase
+bin of g within the lattice cell (``n`` per lattice axis, more near focus where footprints are
+small: :data:`PHASES_PER_FOOTPRINT`), each the spots that the dense ray tracing of
+:func:`lfcore._kernels.weights.drt_weights` makes for one point (the same arithmetic, stopped
+before the spots are cut into pixels). A voxel takes the three templates whose bin centres
+surround its phase, weighted linearly in the phase (barycentric on the triangle), shifts each
+one's spots by ``(1 + f_ml / si) L + (f_ml / si) delta`` and cuts them into pixels exactly as
+the stored weights are cut. What this handles exactly and what it bounds:
+
+- drift of micro-images against the pixel grid and non-integer voxels per lenslet period:
+  exact, since spots are shifted in millimetres and cut into pixels afterwards;
+- rotated and offset (fitted) MLAs: exact, the phase is taken in the MLA's own lattice frame;
+- the phase between bin centres: exact for footprints inside one lenslet; where a footprint
+  straddles lenslet edges, its split is interpolated between the bins' (second order in the
+  bin width): the error that :func:`fidelity` measures against the stored weights (the
+  reference): correlation >= 0.999 and total light within 0.1% on the tests' rigs;
+- vignetting at the sensor's edges: spots are clipped where the voxel's land; the light of
+  spots that cross the edge is interpolated as above (the largest light errors, about 0.1%,
+  are at the sensor's edges);
+- the depth extent's blur, which grows with the distance of a sub-aperture from the voxel's
+  own lateral position (``|A - p| dq`` in the tracing), is taken at the template's point, near
+  the optical axis: off by ``|p| dq`` at lateral position p, bounded relative to a
+  footprint's lateral blur by :attr:`DrtTemplates.blur_error` (3% on S, 6% on Mc; no change in
+  the fidelity figures was measurable when it was taken at the voxel's own p).
+
+Cameras must look along a grid axis (a camera's depth then is one grid index); others need the
+stored weights (:class:`MatrixFreeUnsupported`).
+
+Memory: 20 bytes per spot (centre and half-sizes in pixels, share) plus an offset per template:
+set by the cameras, depth planes and sub-apertures, not by the voxels (40 MiB for S, about
+400 MiB for Mc), plus 4 bytes per reconstructed voxel (its index). The work per voxel is three
+templates' spots, several times a stored voxel's merged weights: on a CPU it is slower per
+iteration than stored weights, and it is what is left where those do not fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lfcore.device import PrivateCopies, Rows, launch_rows, warp
+from lfcore.projector import Projector
+from lfcore.weight_build import MemoryBudgetError
+
+__all__ = ["MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS", "SPOT_BYTES", "DrtTemplates",
+           "MatrixFreeUnsupported", "MatrixFreeWeights", "fidelity"]
+
+#: Phase bins per lattice axis of a depth's templates, per lenslet pitch over a sub-aperture's
+#: footprint width on the MLA (bins a fifth of the footprint: correlation >= 0.999 on the
+#: tiny rig's voxels, hexagonal and square).
+PHASES_PER_FOOTPRINT = 5.0
+#: Fewest and most phase bins per lattice axis of a depth.
+MIN_PHASES = 4
+MAX_PHASES = 32
+#: Bytes per template spot: (column, row, hx, hy) float32 and its share per pixel area.
+SPOT_BYTES = 20
+#: The projectors reconstruction can run on.
+PROJECTORS = ("auto", "stored", "matrix-free")
+
+
+class MatrixFreeUnsupported(ValueError):
+    """The geometry has no matrix-free form (a camera not looking along a grid axis)."""
+
+
+def _depth_axis(rot_world_to_cam: np.ndarray) -> tuple[int, int] | None:
+    """Grid axis (0 x, 1 y, 2 z) along which the camera's depth changes, with its sign; None if
+    the optical axis is not along a grid axis."""
+    row = rot_world_to_cam[2]
+    axis = int(np.argmax(np.abs(row)))
+    others = np.delete(np.abs(row), axis)
+    if np.max(others) > 1e-9:
+        return None
+    return axis, int(np.sign(row[axis]))
+
+
+class DrtTemplates:
+    """The templates of a projector's cameras and grid (independent of the voxels reconstructed).
+
+    Parameters
+    ----------
+    projector
+        The projector (its cameras, grid, sub-apertures and device).
+    n_phase
+        Phase bins per lattice axis.
+    budget_bytes
+        Most bytes the templates may take; None: no limit beyond the device's.
+
+    Attributes
+    ----------
+    nbytes
+        Device bytes of the templates.
+    n_templates, n_spots
+        Templates (cameras x depth planes x ``n_phase`` squared) and their spots in all.
+    build_s
+        Seconds the build took.
+    blur_error
+        Largest relative change, over the grid's lateral extent, of a footprint's depth blur
+        against the template's (see the module docstring).
+
+    Raises
+    ------
+    MatrixFreeUnsupported
+        If a camera does not look along a grid axis.
+    """
+
+    def __init__(self, projector: Projector, *, phases_per_footprint: float = PHASES_PER_FOOTPRINT,
+                 max_phases: int = MAX_PHASES, budget_bytes: int | None = None) -> None:
+        import time
+
+        from lfcore._kernels import matrix_free as km
+
+        t0 = time.perf_counter()
+        if not isinstance(projector, Projector):
+            raise MatrixFreeUnsupported("the matrix-free projector is for light-field cameras alone; use --projector "
+                                        "stored")
+        if not phases_per_footprint > 0 or max_phases < MIN_PHASES:
+            raise ValueError(f"phases_per_footprint must be positive and max_phases at least {MIN_PHASES}")
+        wp = warp()
+        self.wp, self._km = wp, km
+        self.projector = projector
+        self.phases_per_footprint = float(phases_per_footprint)
+        self.max_phases = int(max_phases)
+        self.device = projector.device
+        grid = projector.grid
+        nz, ny, nx = grid.shape
+        dims = (nx, ny, nz)
+        origin = np.asarray(grid.origin_mm, dtype=np.float64)
+        step = np.asarray(grid.voxel_mm, dtype=np.float64)
+        plans, t_view, t_point, depth_first, depth_phase = [], [], [], [], []
+        blur = 0.0
+        for iv, cam in enumerate(projector.cameras):
+            rot = cam.rotation.T  # world -> camera
+            found = _depth_axis(rot)
+            if found is None:
+                raise MatrixFreeUnsupported(f"camera '{cam.name}' does not look along a grid axis; the matrix-free "
+                                            "projector needs that (use --projector stored)")
+            axis, _ = found
+            n_depth = dims[axis]
+            # camera depth of each grid plane along the axis (the voxel centre's camera z)
+            idx = np.arange(n_depth)
+            centres = np.zeros((n_depth, 3))
+            centres[:] = origin
+            centres[:, axis] = origin[axis] + step[axis] * idx
+            z_cam = (centres - np.asarray(cam.focus_mm)) @ rot.T
+            z_cam = z_cam[:, 2]
+            so, si = cam.object_distance_mm, cam.image_distance_mm
+            pitch = cam.mla_pitch_mm
+            off = np.asarray(cam.mla_offset_um, dtype=np.float64) * 1e-3
+            th = np.radians(cam.mla_rotation_deg)
+            c, s = np.cos(th), np.sin(th)
+            # phase bins per depth: enough that a bin is a small part of a sub-aperture's footprint
+            # (its width on the MLA: the sub-aperture's blur and the voxel's own lateral extent)
+            n_sub = max(1, round(cam.pixels_per_lenslet)) if projector.sub_apertures is None else \
+                projector.sub_apertures
+            sub_side = cam.aperture_mm / n_sub
+            half = np.abs(rot) @ (0.5 * step)
+            for d in range(n_depth):
+                sop = so - z_cam[d]
+                lat = si / sop
+                a = 1.0 - si * (1.0 / cam.main_focal_length_mm - 1.0 / sop)
+                width = np.hypot(abs(a) * sub_side, 2.0 * lat * min(half[0], half[1]))
+                n_ph = int(np.clip(np.ceil(self.phases_per_footprint * pitch / width), MIN_PHASES, self.max_phases))
+                fr = (np.arange(n_ph) + 0.5) / n_ph
+                f0, f1 = np.meshgrid(fr, fr)  # [b1, b0]
+                f0, f1 = f0.ravel(), f1.ravel()
+                if cam.mla_grid == "hex":
+                    u, v = pitch * (f0 + 0.5 * f1), pitch * 0.8660254037844386 * f1
+                else:
+                    u, v = pitch * f0, pitch * f1
+                gx = c * u - s * v + off[0]
+                gy = s * u + c * v + off[1]
+                depth_first.append(sum(len(x) for x in t_view))
+                depth_phase.append(n_ph)
+                pts = np.stack([-gx / lat, -gy / lat, np.full(gx.shape, z_cam[d])], axis=1)
+                t_point.append(pts)
+                t_view.append(np.full(len(pts), iv, dtype=np.int32))
+            pl = km.Plan()
+            pl.depth_axis = axis
+            pl.n_depth = n_depth
+            pl.depth_base = len(depth_phase) - n_depth
+            pl.k_spot = cam.mla_focal_length_mm / si
+            plans.append(pl)
+            # the depth blur's lateral term |A - p| dq against the voxel's own lateral blur
+            corners = np.array([[origin[0] + step[0] * i * (nx - 1), origin[1] + step[1] * j * (ny - 1),
+                                 origin[2] + step[2] * k * (nz - 1)] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+            p_cam = (corners - np.asarray(cam.focus_mm)) @ rot.T
+            half = np.abs(rot) @ (0.5 * step)
+            sop = so - p_cam[:, 2]
+            lateral = si / sop * half[0]
+            dq = si / sop**2 * half[2]
+            blur = max(blur, float(np.max(np.hypot(p_cam[:, 0], p_cam[:, 1]) * dq / lateral)))
+        self.blur_error = blur
+        self.plans = wp.array(plans, dtype=km.Plan, device=self.device)
+        self.depth_phase = np.asarray(depth_phase, dtype=np.int32)
+        self._depth_first = wp.array(np.asarray(depth_first, dtype=np.int32), dtype=wp.int32, device=self.device)
+        self._depth_phase = wp.array(self.depth_phase, dtype=wp.int32, device=self.device)
+        t_view_a = np.concatenate(t_view)
+        t_point_a = np.concatenate(t_point).astype(np.float32)
+        n_t = len(t_view_a)
+        self.n_templates = n_t
+        views = projector.views
+        tv = wp.array(t_view_a, dtype=wp.int32, device=self.device)
+        tp = wp.array(t_point_a, dtype=wp.vec3, device=self.device)
+        counts = wp.zeros(n_t, dtype=wp.int32, device=self.device)
+        dummy4 = wp.empty(1, dtype=wp.vec4, device=self.device)
+        dummyf = wp.empty(1, dtype=float, device=self.device)
+        offs0 = wp.zeros(n_t + 1, dtype=wp.int32, device=self.device)
+        launch_rows(km.template_spots, n_t, [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp),
+                                             Rows(offs0, extra=1), 0, Rows(counts), dummy4, dummyf], self.device)
+        cnt = counts.numpy().astype(np.int64)
+        offsets = np.zeros(n_t + 1, dtype=np.int64)
+        np.cumsum(cnt, out=offsets[1:])
+        self.n_spots = int(offsets[-1])
+        need = SPOT_BYTES * self.n_spots + 4 * (n_t + 1)
+        if budget_bytes is not None and need > budget_bytes:
+            raise MemoryBudgetError(f"the matrix-free templates need {need / 2**20:.1f} MiB, more than the "
+                                    f"{budget_bytes / 2**20:.1f} MiB allowed; use fewer phase bins or sub-apertures")
+        if self.n_spots >= 2**31:
+            raise MemoryBudgetError("more than 2**31 template spots; use fewer phase bins or sub-apertures")
+        self.t_offsets = wp.array(offsets.astype(np.int32), dtype=wp.int32, device=self.device)
+        self.spots = wp.empty(max(self.n_spots, 1), dtype=wp.vec4, device=self.device)
+        self.shares = wp.empty(max(self.n_spots, 1), dtype=float, device=self.device)
+        # each block writes its own templates' spots: from the global offsets, so no Rows on them
+        launch_rows(km.template_spots, n_t, [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp),
+                                             Rows(self.t_offsets, extra=1), 1, Rows(counts), self.spots, self.shares],
+                    self.device)
+        self.nbytes = int(need)
+        self._none1 = wp.empty(1, dtype=float, device=self.device)  # stand-ins for a kernel's unused outputs
+        self._none2 = wp.empty((1, 1), dtype=float, device=self.device)
+        wp.synchronize_device(self.device)
+        self.build_s = time.perf_counter() - t0
+
+    def _common(self) -> list:
+        p = self.projector
+        return [p._grid, p.views, self.plans, self._depth_first, self._depth_phase, len(p.cameras), self.t_offsets,
+                self.spots, self.shares]
+
+
+@dataclass
+class MatrixFreeWeights:
+    """The voxels of one frame on the matrix-free operator: what the reconstruction loop holds in
+    place of :class:`~lfcore.weight_build.Weights` (:meth:`Projector.forward` and
+    :meth:`Projector.smart_update` hand such weights to :meth:`forward` and :meth:`smart_update`).
+
+    Attributes
+    ----------
+    templates
+        The geometry's :class:`DrtTemplates`.
+    voxels
+        (n,) int32 flat voxel indices on the device.
+    min_weight
+        Pixel entries at or below this are dropped (as in the stored build).
+    """
+
+    templates: DrtTemplates
+    voxels: object
+    min_weight: float = 1e-6
+
+    matrix_free = True  # the projector's dispatch mark
+    nnz = 0
+    sums = None
+    chunks = ()
+
+    @property
+    def n_voxels(self) -> int:
+        return int(self.voxels.shape[0])
+
+    @property
+    def n_on_the_fly(self) -> int:
+        return 0
+
+    @property
+    def n_stored(self) -> int:
+        return self.n_voxels
+
+    @property
+    def stored(self) -> bool:
+        return False
+
+    @property
+    def nbytes(self) -> int:
+        """The templates' bytes and the voxels' indices."""
+        return self.templates.nbytes + 4 * self.n_voxels
+
+    def forward(self, e, out) -> object:
+        """Project intensities ``e`` (n,) into ``out`` (n_pixels,) float32 (zeroed first)."""
+        t, km = self.templates, self.templates._km
+        out.zero_()
+        parts = PrivateCopies()
+        per = parts.open(out)
+        launch_rows(km.project, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels), Rows(e), per,
+                                              t._none2],
+                    t.device)
+        parts.close(out)
+        return out
+
+    def smart_update(self, ratio, e, relaxation: float) -> None:
+        """E_v <- E_v exp(mu sum_i w_iv ratio_i) in place, ``ratio`` the pixels' log ratios."""
+        t, km = self.templates, self.templates._km
+        launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels), ratio,
+                                                     float(relaxation), Rows(e), t._none2], t.device)
+
+    def images(self) -> np.ndarray:
+        """(n, n_pixels) float32: each voxel's image, for checks on small rigs."""
+        t, km, wp = self.templates, self.templates._km, self.templates.wp
+        n_pix = t.projector.n_pixels
+        out = wp.zeros((self.n_voxels, n_pix), dtype=float, device=t.device)
+        launch_rows(km.voxel_image, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels),
+                                                    Rows(out), t._none1], t.device)
+        return out.numpy()
+
+
+
+def fidelity(projector: Projector, voxels: np.ndarray, templates: DrtTemplates, *, min_weight: float = 1e-6
+             ) -> dict[str, np.ndarray]:
+    """Per voxel, the matrix-free image against the stored DRT weights (the reference).
+
+    Parameters
+    ----------
+    projector, templates
+        The geometry and its templates.
+    voxels
+        (n,) int32 flat voxel indices (a few hundred at most: the images are dense).
+
+    Returns
+    -------
+    dict
+        ``"correlation"`` (n,) of the two images; ``"light"`` (n,) total light of the
+        matrix-free image over the stored one's (1 where both are dark).
+    """
+    wp = warp()
+    voxels = np.asarray(voxels, dtype=np.int32)
+    corr = np.ones(len(voxels))
+    light = np.ones(len(voxels))
+    per = max(1, (1 << 28) // (12 * projector.n_pixels))  # dense images of about 256 MiB at a time
+    for lo in range(0, len(voxels), per):
+        part = voxels[lo:lo + per]
+        vox = wp.array(part, dtype=wp.int32, device=projector.device)
+        stored = projector.weights(vox, "drt", min_weight=min_weight, storage="stored")
+        offs, pix, w = stored.to_numpy()
+        ref = np.zeros((len(part), projector.n_pixels), dtype=np.float64)
+        np.add.at(ref, (np.repeat(np.arange(len(part)), np.diff(offs)), pix), w)
+        mf = MatrixFreeWeights(templates, vox, min_weight).images()
+        for i in range(len(part)):
+            a, b = ref[i], mf[i].astype(np.float64)
+            if a.sum() > 0 or b.sum() > 0:
+                light[lo + i] = b.sum() / a.sum() if a.sum() > 0 else np.inf
+                da, db = a - a.mean(), b - b.mean()
+                den = np.sqrt((da * da).sum() * (db * db).sum())
+                corr[lo + i] = (da * db).sum() / den if den > 0 else 0.0
+    return {"correlation": corr, "light": light}
