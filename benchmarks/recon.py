@@ -162,8 +162,8 @@ def matrix_free_figures(proj, img, its: int, e0, drt) -> None:
     st = ReconSettings()
     for im in img:
         level, sigma = estimate_background(im)
-        lit.append(preprocess(im, level, sigma, st.threshold_sigma, st.lit_grow)[1])
-    active = proj.eliminate(lit, st.min_seen, st.max_dark).numpy()
+        lit.append(preprocess(im, level, sigma, st.threshold_sigma, grow=st.lit_grow)[1])
+    active = proj.eliminate(lit, min_seen=st.min_seen, max_dark=st.max_dark).numpy()
     rng = np.random.default_rng(5)
     sample = rng.choice(active, size=min(200, active.size), replace=False) if active.size else active
     f = fidelity(proj, sample, templates) if sample.size else {"correlation": np.ones(1), "light": np.ones(1)}
@@ -301,7 +301,7 @@ def profile_weights(case: str, device: str, ppm: float) -> None:
     lit = []
     for im in img:  # the lit pixels, as reconstruct() finds them
         level, sigma = estimate_background(im)
-        lit.append(preprocess(im, level, sigma, st.threshold_sigma, st.lit_grow)[1])
+        lit.append(preprocess(im, level, sigma, st.threshold_sigma, grow=st.lit_grow)[1])
 
     def timed(fn):
         wp.synchronize_device(device)
@@ -310,8 +310,8 @@ def profile_weights(case: str, device: str, ppm: float) -> None:
         wp.synchronize_device(device)
         return out, time.perf_counter() - t
 
-    proj.eliminate(lit, st.min_seen, st.max_dark)
-    voxels, te = timed(lambda: proj.eliminate(lit, st.min_seen, st.max_dark))
+    proj.eliminate(lit, min_seen=st.min_seen, max_dark=st.max_dark)
+    voxels, te = timed(lambda: proj.eliminate(lit, min_seen=st.min_seen, max_dark=st.max_dark))
     print(f"profile of the weight build, case {case} at {ppm:g} PPM on {device}: elimination {te:.3f} s, "
           f"{voxels.shape[0]} active voxels")
     variants = [("two-pass", "library"), ("two-pass", "per-voxel"), ("single-pass", "per-voxel")]

@@ -45,7 +45,29 @@ from lfcore.rig import PinholeCamera, is_pinhole
 from lfcore.volume import VolumeGrid
 from lfcore.weight_build import ADVICE, BYTES_PER_WEIGHT, CHUNK_ENTRIES, WeightChunk, Weights
 
-__all__ = ["DEFAULT_FOOTPRINT", "JointProjector", "PinholeProjector", "footprint_sigma_px", "projector_for"]
+__all__ = ["DEFAULT_FOOTPRINT", "JointProjector", "PINHOLE_METHODS", "PinholeProjector", "default_method",
+           "footprint_sigma_px", "projector_for", "unsupported_method"]
+
+#: The methods of pinhole (Tomo-PIV) cameras alone: MLOS-SMART, and MART on every voxel of the box.
+#: DRT weights and MLOS-MART's elimination need microlenses.
+PINHOLE_METHODS = ("mlos-smart", "mart")
+
+
+def default_method(cameras: Sequence) -> str:
+    """The default reconstruction of ``cameras``: ``mlos-smart`` where they are all pinhole
+    cameras, ``drt-mart`` otherwise (a mixed rig's light-field cameras by DRT-MART's weights, its
+    pinhole cameras by their line of sight, jointly)."""
+    cameras = list(cameras)
+    return "mlos-smart" if cameras and all(is_pinhole(c) for c in cameras) else "drt-mart"
+
+
+def unsupported_method(cameras: Sequence, method: str) -> str | None:
+    """The name of a pinhole camera that rules ``method`` out (pinhole cameras alone take only
+    :data:`PINHOLE_METHODS`), or None where ``method`` can reconstruct ``cameras``."""
+    tomo = [c.name for c in cameras if is_pinhole(c)]
+    if tomo and len(tomo) == len(cameras) and method not in PINHOLE_METHODS:
+        return tomo[0]
+    return None
 
 #: Sigma of the footprint's Gaussian, in units of the voxel's projected width: 0.5 spreads a
 #: voxel of one pixel over about the 2 x 2 pixels a disc of its size would touch.
@@ -140,7 +162,7 @@ class PinholeProjector(Projector):
         self._none = wp.empty(0, dtype=wp.int32, device=self.device)
 
     # --- MLOS elimination ---------------------------------------------------------------
-    def eliminate(self, lit, min_seen: float = 0.5, max_dark: float = 0.05) -> object:
+    def eliminate(self, lit, *, min_seen: float = 0.5, max_dark: float = 0.05) -> object:
         """Voxels whose image is on a lit pixel in every camera (MLOS).
 
         Parameters
@@ -307,11 +329,12 @@ class JointProjector(Projector):
             raise ValueError(f"got {len(lit)} lit masks for {len(self.cameras)} cameras")
         return [lit[k] for k in self._lf], [lit[k] for k in self._tomo]
 
-    def eliminate(self, lit, min_seen: float = 0.5, max_dark: float = 0.05) -> object:
+    def eliminate(self, lit, *, min_seen: float = 0.5, max_dark: float = 0.05) -> object:
         """Voxels that both kinds' eliminations keep (see :meth:`Projector.eliminate` and
         :meth:`PinholeProjector.eliminate`), as (n,) int32 flat indices, ascending."""
         lf_lit, ph_lit = self._split(lit)
-        kept = np.intersect1d(self.lf.eliminate(lf_lit, min_seen, max_dark).numpy(), self.ph.eliminate(ph_lit).numpy())
+        kept = np.intersect1d(self.lf.eliminate(lf_lit, min_seen=min_seen, max_dark=max_dark).numpy(),
+                              self.ph.eliminate(ph_lit).numpy())
         return self.wp.array(kept.astype(np.int32), dtype=self.wp.int32, device=self.device)
 
     def precompute_checks(self, n_checks: int | None = None, budget_bytes: int | None = None) -> int:

@@ -167,7 +167,7 @@ class Projector:
         self._none = wp.empty(0, dtype=wp.int32, device=self.device)
 
     # --- zero-voxel elimination ---------------------------------------------------------
-    def eliminate(self, lit: Sequence[np.ndarray], min_seen: float = 0.5, max_dark: float = 0.05) -> object:
+    def eliminate(self, lit: Sequence[np.ndarray], *, min_seen: float = 0.5, max_dark: float = 0.05) -> object:
         """Voxels that can hold a particle: their sub-apertures land on lit pixels.
 
         Parameters

@@ -254,7 +254,7 @@ def estimate_background(image: np.ndarray) -> tuple[float, float]:
     return level, max(sigma, 1e-6)
 
 
-def preprocess(image: np.ndarray, background: float, sigma: float, threshold_sigma: float, grow: int = 0
+def preprocess(image: np.ndarray, background: float, sigma: float, threshold_sigma: float, *, grow: int = 0
                ) -> tuple[np.ndarray, np.ndarray]:
     """Background-subtracted signal and the lit-pixel mask.
 
@@ -278,7 +278,7 @@ def preprocess(image: np.ndarray, background: float, sigma: float, threshold_sig
     return signal, lit
 
 
-def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: ReconSettings,
+def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: ReconSettings, *,
                 progress: Callable[[int], None] | None = None, cache: WeightCache | None = None,
                 budget_bytes: int | None = None) -> ReconResult:
     """Reconstruct one volume from one image per camera of the projector.
@@ -425,7 +425,7 @@ class FrameReconstructor:
             level, sigma = estimate_background(img)
             if settings.background is not None:
                 level = settings.background
-            sig, lit = preprocess(img, level, sigma, settings.threshold_sigma, settings.lit_grow)
+            sig, lit = preprocess(img, level, sigma, settings.threshold_sigma, grow=settings.lit_grow)
             signals.append(sig)
             lits.append(lit)
             backgrounds.append(level)
@@ -477,7 +477,7 @@ class FrameReconstructor:
         s = self.settings
         if s.method == "mart":
             return self.projector.all_voxels()
-        return self.projector.eliminate(lit, s.min_seen, s.max_dark)
+        return self.projector.eliminate(lit, min_seen=s.min_seen, max_dark=s.max_dark)
 
     def weights(self, voxels) -> Weights:
         """The weights of ``voxels`` ((n,) int32 on the device): from the cache where it has them

@@ -258,7 +258,7 @@ class PinholeRenderer(_Renderer):
         self._parts.close(self._quanta)
 
 
-def renderer_for(camera: AnyCamera, render: RenderConfig, wavelength_nm: float = 532.0,
+def renderer_for(camera: AnyCamera, render: RenderConfig, *, wavelength_nm: float = 532.0,
                  device: str | None = None) -> LightFieldRenderer | PinholeRenderer:
     """The renderer of ``camera``'s kind: :class:`LightFieldRenderer` or :class:`PinholeRenderer`
     (same parameters as either)."""

@@ -49,9 +49,9 @@ import numpy as np
 from acquisition.ring import PairView
 from lfcore.correlate import CorrelationConfig, Correlator, VectorField
 from lfcore.device_ops import ImagePreprocessor
-from lfcore.projector import Projector
+from lfcore.pinhole_projector import default_method, projector_for, unsupported_method
 from lfcore.reconstruct import WEIGHTS, FrameReconstructor, ReconSettings, estimate_background
-from lfcore.rig import Rig, require_lightfield
+from lfcore.rig import NotLightFieldError, Rig
 from lfcore.vectors import centres_mm, displacement_to_velocity, vorticity
 from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
@@ -80,15 +80,15 @@ class PairSource(Protocol):
     def still_valid(self, view: PairView) -> bool: ...
 
 
-#: Reconstruction methods the live path runs: both eliminate zero voxels, so their weights
-#: follow the particles and can be cached.
-LIVE_METHODS = ("drt-mart", "mlos-mart")
+#: Reconstruction methods the live path runs: all eliminate zero voxels, so their weights
+#: follow the particles and can be cached. ``mlos-smart`` is for pinhole (Tomo-PIV) cameras.
+LIVE_METHODS = ("drt-mart", "mlos-mart", "mlos-smart")
 
 
 def monitoring_recon(iterations: int = 5, relaxation: float = 1.0, method: str = "drt-mart") -> ReconSettings:
     """Settings for monitoring: few simultaneous iterations, the default thresholds.
 
-    ``method`` is ``"drt-mart"`` or ``"mlos-mart"`` (see :data:`LIVE_METHODS`).
+    ``method`` is one of :data:`LIVE_METHODS`.
     """
     _check_live_method(method)
     return ReconSettings(method=method, iterations=iterations, relaxation=relaxation, form="simultaneous")
@@ -96,7 +96,7 @@ def monitoring_recon(iterations: int = 5, relaxation: float = 1.0, method: str =
 
 def _check_live_method(method: str) -> None:
     if method not in LIVE_METHODS:
-        raise ValueError(f"the live path runs {' or '.join(LIVE_METHODS)}, not '{method}'")
+        raise ValueError(f"the live path runs {', '.join(LIVE_METHODS[:-1])} or {LIVE_METHODS[-1]}, not '{method}'")
 
 
 def default_windows(shape: tuple[int, int, int], passes: int = 2) -> tuple[tuple[int, int, int], ...]:
@@ -299,7 +299,8 @@ class _Reconstructor:
                  device: str | None) -> None:
         self.cams = [rig.camera_named(n) for n in cameras]
         self.recon = recon
-        self.projector = Projector(self.cams, grid, sub_apertures=recon.sub_apertures, device=device)
+        # light-field cameras, pinhole ones or a mix: the projector of their kind
+        self.projector = projector_for(self.cams, grid, sub_apertures=recon.sub_apertures, device=device)
         p = self.projector
         # each voxel's weights traced once, on the first frame that keeps it (see WeightCache)
         self.cache = WeightCache(p, method=WEIGHTS[recon.method])
@@ -409,13 +410,15 @@ class LivePipeline:
                  poll_s: float = 0.005) -> None:
         self.rig = rig
         self.cameras = list(cameras) if cameras else [c.name for c in rig.camera]
-        for n in self.cameras:
-            # an unknown camera fails here, and a pinhole one: its live reconstruction is not built yet
-            require_lightfield(rig.camera_named(n), "the live reconstruction (DRT-MART)")
+        cams = [rig.camera_named(n) for n in self.cameras]  # an unknown camera fails here
         self.grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(float(v) for v in pvr))
         self._settings = settings or LiveSettings()
-        base = recon or monitoring_recon()
+        base = recon or monitoring_recon(method=default_method(cams))
         _check_live_method(base.method)
+        tomo = unsupported_method(cams, base.method)
+        if tomo is not None:
+            raise NotLightFieldError(f"camera '{tomo}' is a pinhole camera: the live {base.method} needs light-field "
+                                     "cameras; use mlos-smart (the default for pinhole cameras)")
         self.recon = replace(base, form="simultaneous")
         self.correlation = correlation or CorrelationConfig(windows=default_windows(self.grid.shape), overlap=0.5,
                                                             deform_iterations=0)

@@ -241,7 +241,7 @@ class SimCamera:
         render = self.rig.render
         if self.rays_per_particle is not None:
             render = render.model_copy(update={"rays_per_particle": int(self.rays_per_particle)})
-        r = renderer_for(self.camera, render, self.rig.laser.wavelength_nm, self.device)
+        r = renderer_for(self.camera, render, wavelength_nm=self.rig.laser.wavelength_nm, device=self.device)
         ci = self.rig.camera.index(self.camera)
         self._lit = []
         for j in range(self.pool_pairs):

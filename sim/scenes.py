@@ -46,7 +46,8 @@ def white_scene(rig: Rig, config: WhiteImageConfig | None = None) -> tuple[Calla
         cfg = dataclasses.replace(config, seed=derive_seed(config.seed, 0x3417E, ci))
         cam = rig.camera[ci]
         if is_pinhole(cam):  # no microlenses, nothing to calibrate from a white image: its dark frame
-            return renderer_for(cam, rig.render, rig.laser.wavelength_nm).frame(np.zeros((0, 3)), 0.0, seed=cfg.seed)
+            blank = renderer_for(cam, rig.render, wavelength_nm=rig.laser.wavelength_nm)
+            return blank.frame(np.zeros((0, 3)), 0.0, seed=cfg.seed)
         return white_image(cam, render=rig.render, config=cfg, wavelength_nm=rig.laser.wavelength_nm)
 
     return scene, ("white", config)
@@ -113,7 +114,7 @@ def dot_target_scene(rig: Rig, z_mm: float, *, spacing_mm: float | None = None, 
     render = rig.render.model_copy(update={"rays_per_particle": int(rays_per_point)})
 
     def scene(ci: int) -> np.ndarray:
-        rend = renderer_for(rig.camera[ci], render, rig.laser.wavelength_nm, device)
+        rend = renderer_for(rig.camera[ci], render, wavelength_nm=rig.laser.wavelength_nm, device=device)
         return rend.frame(pts, per_point, seed=derive_seed(seed, 0xD075, plane_key, ci))
 
     return scene, ("dots", round(float(z_mm), 6), board, points_per_dot, rays_per_point, dot_counts, seed)

@@ -42,9 +42,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "does (works without a display)")
     m.add_argument("--after", type=positive_int, default=3, metavar="N",
                    help="pairs shown before the screenshot (default: 3)")
-    m.add_argument("--method", choices=("drt-mart", "mlos-mart"), default="drt-mart",
+    m.add_argument("--method", choices=("drt-mart", "mlos-mart", "mlos-smart"), default=None,
                    help="reconstruction: drt-mart (dense ray-traced weights) or mlos-mart (the same elimination, "
-                   "line-of-sight weights; faster on a GPU) (default: drt-mart)")
+                   "line-of-sight weights; faster on a GPU) for light-field cameras, mlos-smart for pinhole "
+                   "(Tomo-PIV) ones (default: drt-mart, or mlos-smart where every camera is a pinhole camera)")
     m.add_argument("--iterations", type=positive_int, default=5,
                    help="MART iterations per frame (default: 5; changeable in the window)")
     m.add_argument("--relaxation", type=positive_float, default=1.0,
@@ -66,6 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from lfpiv.jobs.acquire import check_plan
     from lfpiv.jobs.monitor import check_display, live_settings, require_gui, run_monitor
+    from lfpiv.jobs.reconstruct import default_method
     from lfpiv.rigfile import load_rig
     from lfpiv.runs import check_new
 
@@ -87,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"lfpiv monitor: {text}", file=sys.stderr)
 
-    end = run_monitor(rig, pairs=args.pairs, settings=settings, method=args.method, passes=args.passes, pvr=args.pvr,
+    method = args.method or default_method(rig)
+    end = run_monitor(rig, pairs=args.pairs, settings=settings, method=method, passes=args.passes, pvr=args.pvr,
                       device=args.device, out=args.out, overwrite=args.overwrite,
                       sim_options=sim_lab_options(rig, args), ring_slots=args.ring,
                       title=f"lfpiv monitor: {args.rig}", screenshot=args.screenshot, after=args.after, say=say)
@@ -99,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     lat = numbers["latency_s"]
     print(f"live: {int(numbers['processed'])} pair(s) processed, {int(numbers['skipped'])} skipped, "
           f"{int(numbers['discarded'])} discarded, {int(numbers['displayed'])} shown; last trigger-to-display "
-          f"latency {f'{lat:.2f} s' if math.isfinite(lat) else 'n/a'}; {args.method}, {args.iterations} iteration(s) "
+          f"latency {f'{lat:.2f} s' if math.isfinite(lat) else 'n/a'}; {method}, {args.iterations} iteration(s) "
           f"on {end.device}, {'x'.join(map(str, end.voxels))} voxels at PVR "
           f"{','.join(f'{v:g}' for v in args.pvr or rig.volume.pvr)}")
     if end.stats.error:

@@ -307,7 +307,8 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
     settings
         The live path's run-time settings (iterations, relaxation, slice).
     method
-        ``"drt-mart"`` or ``"mlos-mart"``.
+        ``"drt-mart"`` or ``"mlos-mart"`` for light-field cameras (and mixed rigs), ``"mlos-smart"``
+        for pinhole ones (see :data:`realtime.pipeline.LIVE_METHODS`).
     passes
         Correlation passes (1 or 2).
     pvr

@@ -12,10 +12,11 @@ from tqdm import tqdm
 
 from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
 from lfcore.matrix_free import MatrixFreeUnsupported
-from lfcore.pinhole_projector import projector_for
+from lfcore.pinhole_projector import PINHOLE_METHODS, projector_for, unsupported_method
+from lfcore.pinhole_projector import default_method as pinhole_default_method
 from lfcore.projector import Projector
 from lfcore.reconstruct import MAX_SUB_APERTURES, WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
-from lfcore.rig import Rig, is_pinhole, voxel_shape_warnings
+from lfcore.rig import Rig, voxel_shape_warnings
 from lfcore.runstore import RunStore
 from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
@@ -25,9 +26,6 @@ from lfpiv.pair_runner import run_pairs, select_pairs
 
 __all__ = ["MAX_SUB_APERTURES", "PINHOLE_METHODS", "ReconJob", "ReconResult", "ReconSettings", "default_method",
            "recon_settings", "reconstruct_pair_task", "reconstruct_run", "voxel_shape_notes"]
-
-#: The methods of pinhole (Tomo-PIV) cameras: MLOS-SMART, and MART on every voxel of the box.
-PINHOLE_METHODS = ("mlos-smart", "mart")
 
 #: Bytes per voxel of the box the elimination pass and the dense result need at once.
 BYTES_PER_BOX_VOXEL = 16
@@ -46,8 +44,7 @@ def default_method(rig: Rig, cameras: Sequence[str] | None = None) -> str:
     """The reconstruction of the cameras named (None: all of the rig's): ``mlos-smart`` where they
     are all pinhole cameras, ``drt-mart`` otherwise (a mixed rig's light-field cameras by DRT-MART's
     weights, its pinhole cameras by their line of sight, jointly)."""
-    cams = [c for c in rig.camera if cameras is None or c.name in cameras]
-    return "mlos-smart" if cams and all(is_pinhole(c) for c in cams) else "drt-mart"
+    return pinhole_default_method([c for c in rig.camera if cameras is None or c.name in cameras])
 
 
 def voxel_shape_notes(rig: Rig, cameras: Sequence[str] | None, pvr: Sequence[float] | None) -> list[str]:
@@ -189,11 +186,11 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     if unknown:
         raise UsageError(f"--cameras: no camera '{unknown[0]}' in this run (it has {', '.join(store.cameras)})")
     cams = [rig.camera_named(n) for n in names]
-    tomo = [c.name for c in cams if is_pinhole(c)]
     # pinhole cameras alone: MLOS-SMART or MART; beside light-field ones, every method (the
     # light-field cameras take its weights, the pinhole ones their line of sight)
-    if tomo and len(tomo) == len(cams) and settings.method not in PINHOLE_METHODS:
-        raise UsageError(f"camera '{tomo[0]}' is a pinhole camera: --method {settings.method} needs light-field "
+    tomo = unsupported_method(cams, settings.method)
+    if tomo is not None:
+        raise UsageError(f"camera '{tomo}' is a pinhole camera: --method {settings.method} needs light-field "
                          "cameras; use --method mlos-smart (the default for pinhole cameras) or mart")
     try:
         grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(pvr), tuple(margin_mm))

@@ -229,7 +229,7 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         brightness = render.particle_counts * sheet_weights(particles.reshape(-1, 3), rig.laser, rig.volume)
         brightness = brightness.reshape(particles.shape[:3])
 
-    renderers = [renderer_for(cam, render, rig.laser.wavelength_nm, device) for cam in rig.camera]
+    renderers = [renderer_for(cam, render, wavelength_nm=rig.laser.wavelength_nm, device=device) for cam in rig.camera]
     timing = {"dt_s": dt_s, "rate_hz": rate}
     store = RunStore.create(out, rig, pairs, timing=timing, software_version=__version__, overwrite=overwrite)
     n_part = particles.shape[2]

@@ -94,7 +94,8 @@ class Scene:
         if rays_per_particle is not None:
             render = render.model_copy(update={"rays_per_particle": int(rays_per_particle)})
         # each camera's own renderer: ray-traced light fields, or Gaussian images of pinhole cameras
-        self.renderers = [renderer_for(cam, render, rig.laser.wavelength_nm, device) for cam in rig.camera]
+        self.renderers = [renderer_for(cam, render, wavelength_nm=rig.laser.wavelength_nm, device=device)
+                          for cam in rig.camera]
 
     @property
     def dt_s(self) -> float:

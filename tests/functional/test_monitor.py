@@ -199,3 +199,24 @@ def test_a_killed_monitor_disarms_and_closes_its_recording(rig_file: Path, tmp_p
     assert f"{store.committed_pairs} pair(s) x 2 camera(s)" in stdout and "state aborted" in stdout
     recorded = sum(int(np.count_nonzero(store.frame_ids(c) >= 0)) for c in store.cameras)
     assert recorded + len(store.drops()) == store.committed_pairs * 2 * 2
+
+
+def test_monitor_on_pinhole_cameras_runs_mlos_smart(main, tmp_path: Path, capsys) -> None:
+    """A Tomo-PIV rig live: MLOS-SMART by default, every camera's raw panel, a complete recording."""
+    from tests.conftest import EXAMPLES
+
+    text = (EXAMPLES / "tomo_4_cameras.toml").read_text()
+    rig = tmp_path / "tomo4.toml"
+    rig.write_text(text.replace("size_mm = [10.0, 10.0, 4.0]", "size_mm = [3.0, 3.0, 2.0]"))
+    out, shot = tmp_path / "run.zarr", tmp_path / "shot.png"
+    rc = main(["monitor", "--rig", str(rig), "--pairs", "4", "--out", str(out), "--screenshot", str(shot),
+               "--after", "1", "--device", "cpu", "--iterations", "3", "--sim-pool", "2", "--quiet"])
+    stdout, stderr = capsys.readouterr()
+    assert rc == 0, stderr
+    assert "state complete" in stdout and RunStore.open(out).committed_pairs == 4
+    assert re.search(r"mlos-smart, 3 iteration\(s\) on cpu, 40x40x27 voxels at PVR 1,1,1", stdout), stdout
+    assert shot.exists()
+    rc = main(["monitor", "--rig", str(rig), "--pairs", "2", "--method", "drt-mart", "--device", "cpu", "--quiet",
+               "--sim-pool", "1"])
+    _, stderr = capsys.readouterr()
+    assert rc == 2 and stderr.count("\n") == 1 and "is a pinhole camera" in stderr

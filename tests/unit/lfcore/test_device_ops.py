@@ -42,7 +42,7 @@ def test_preprocessing_equals_the_host_rule(tiny_rig, device, grow) -> None:
     pre(raw, levels, [thr * s for s in sigmas], signal, lit, grow=grow)
     got_s, got_l = signal.numpy(), lit.numpy()
     for k, img in enumerate(imgs):
-        ref_s, ref_l = preprocess(img, levels[k], sigmas[k], thr, grow)
+        ref_s, ref_l = preprocess(img, levels[k], sigmas[k], thr, grow=grow)
         sl = slice(pre.offsets[k], pre.offsets[k + 1])
         assert np.array_equal(got_s[sl].reshape(rows, cols), ref_s)
         assert np.array_equal(got_l[sl].reshape(rows, cols).astype(bool), ref_l)

@@ -102,7 +102,7 @@ def test_cache_gives_the_direct_operator_frame_after_frame(small_dual_rig, devic
     seen = 0
     for seed in (3, 4, 3):  # the third frame repeats the first: nothing new to trace
         lit = _lit(_images(small_dual_rig, grid, device, seed=seed), settings)
-        voxels = proj.eliminate(lit, settings.min_seen, settings.max_dark)
+        voxels = proj.eliminate(lit, min_seen=settings.min_seen, max_dark=settings.max_dark)
         assert voxels.shape[0] > 0
         direct = proj.weights(voxels, "drt", build="two-pass")
         cached = cache.weights(voxels)
@@ -189,13 +189,13 @@ def test_elimination_with_stored_checks_keeps_the_same_voxels(small_dual_rig, de
     settings = ReconSettings()
     lit = _lit(_images(small_dual_rig, grid, device, n=30), settings)
     for min_seen, max_dark in ((settings.min_seen, settings.max_dark), (0.5, 0.2)):
-        ref = proj.eliminate(lit, min_seen, max_dark).numpy()
+        ref = proj.eliminate(lit, min_seen=min_seen, max_dark=max_dark).numpy()
         assert 0 < ref.size < grid.n_voxels
         for n_checks in (3, None, 0):
             nbytes = proj.precompute_checks(n_checks)
             expect = 0 if n_checks == 0 else 20 * grid.n_voxels * 2 * (n_checks or proj.max_checks)
             assert nbytes == expect
-            assert np.array_equal(proj.eliminate(lit, min_seen, max_dark).numpy(), ref)
+            assert np.array_equal(proj.eliminate(lit, min_seen=min_seen, max_dark=max_dark).numpy(), ref)
     # a budget too small for every check stores fewer; one too small for any stores none
     assert proj.precompute_checks(None, budget_bytes=20 * grid.n_voxels * 2 * 5) == 20 * grid.n_voxels * 2 * 5
     assert proj.precompute_checks(None, budget_bytes=10) == 0
@@ -218,8 +218,8 @@ def test_elimination_in_two_passes_keeps_what_one_full_pass_keeps(small_dual_rig
                           proj._checks, proj._n_checks, wp.empty(0, dtype=wp.int32, device=device), 2**30, 0, mask])
         one_pass = np.flatnonzero(mask.numpy())
         assert 0 < one_pass.size < grid.n_voxels
-        assert np.array_equal(proj.eliminate(lit, min_seen, max_dark).numpy(), one_pass)
-        assert np.array_equal(proj.eliminate(flat, min_seen, max_dark).numpy(), one_pass)
+        assert np.array_equal(proj.eliminate(lit, min_seen=min_seen, max_dark=max_dark).numpy(), one_pass)
+        assert np.array_equal(proj.eliminate(flat, min_seen=min_seen, max_dark=max_dark).numpy(), one_pass)
 
 
 def _clipped_reference(rect, normals, h):
@@ -329,14 +329,15 @@ def test_elimination_off_the_sensor_edges_keeps_what_the_traced_table_keeps(tiny
     lit = _lit(_images(rig, grid, device, n=40), settings)
     for min_seen, max_dark in ((settings.min_seen, settings.max_dark), (0.9, 0.2), (0.2, 0.0)):
         proj.precompute_checks(0)
-        traced = proj.eliminate(lit, min_seen, max_dark).numpy()
+        traced = proj.eliminate(lit, min_seen=min_seen, max_dark=max_dark).numpy()
         proj.precompute_checks(None)
-        assert np.array_equal(proj.eliminate(lit, min_seen, max_dark).numpy(), traced)
+        assert np.array_equal(proj.eliminate(lit, min_seen=min_seen, max_dark=max_dark).numpy(), traced)
         assert 0 < traced.size < grid.n_voxels
     # the test means something only if some voxels are seen through few sub-apertures
     everything = np.ones((rig.camera[0].sensor_px[1], rig.camera[0].sensor_px[0]), bool)
     proj.precompute_checks(0)
-    assert proj.eliminate([everything], 0.99, 0.0).numpy().size < proj.eliminate([everything], 0.01, 0.0).numpy().size
+    strict = proj.eliminate([everything], min_seen=0.99, max_dark=0.0).numpy().size
+    assert strict < proj.eliminate([everything], min_seen=0.01, max_dark=0.0).numpy().size
 
 
 def test_elimination_reuses_its_scratch_and_returns_arrays_of_its_own(small_dual_rig, device):
@@ -346,10 +347,10 @@ def test_elimination_reuses_its_scratch_and_returns_arrays_of_its_own(small_dual
     proj = Projector(small_dual_rig.camera, grid, device=device)
     settings = ReconSettings()
     lits = [_lit(_images(small_dual_rig, grid, device, n=n, seed=seed), settings) for n, seed in ((30, 3), (4, 4))]
-    fresh = [Projector(small_dual_rig.camera, grid, device=device).eliminate(lit, settings.min_seen,
-                                                                             settings.max_dark).numpy()
+    fresh = [Projector(small_dual_rig.camera, grid, device=device).eliminate(lit, min_seen=settings.min_seen,
+                                                                             max_dark=settings.max_dark).numpy()
              for lit in lits]
     assert 0 < fresh[1].size < fresh[0].size < grid.n_voxels
-    got = [proj.eliminate(lits[k], settings.min_seen, settings.max_dark) for k in (0, 1, 0)]
+    got = [proj.eliminate(lits[k], min_seen=settings.min_seen, max_dark=settings.max_dark) for k in (0, 1, 0)]
     for k, voxels in zip((0, 1, 0), got, strict=True):
         assert np.array_equal(voxels.numpy(), fresh[k])

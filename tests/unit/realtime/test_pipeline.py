@@ -211,11 +211,51 @@ def test_live_volume_equals_the_batch_reconstruction(tiny_rig, method, pvr) -> N
     assert np.allclose(r.slice_image, ref[14], rtol=1e-3, atol=1e-4 * scale)
 
 
+def test_live_mlos_smart_on_pinhole_cameras_equals_the_batch_reconstruction() -> None:
+    """Four pinhole (Tomo-PIV) cameras live: the projector of their kind, MLOS-SMART by default,
+    and the batch path's volume; a light-field method on them is one line naming the camera."""
+    from lfcore.particles import seed_particles
+    from lfcore.pinhole_projector import PinholeProjector
+    from lfcore.reconstruct import reconstruct
+    from lfcore.render import PinholeRenderer
+    from lfcore.rig import NotLightFieldError
+    from lfpiv.rigfile import load_rig
+    from realtime.pipeline import monitoring_recon
+    from tests.conftest import EXAMPLES
+
+    rig = load_rig(EXAMPLES / "tomo_4_cameras.toml")
+    rig = rig.model_copy(update={"volume": rig.volume.model_copy(update={"size_mm": (3.0, 3.0, 2.0)})})
+    pts = seed_particles(rig.volume, 60, np.random.default_rng(3))  # sparse enough for MLOS to eliminate
+    frames = {c.name: np.stack([PinholeRenderer(c, rig.render, device="cpu").frame(pts + [0.02 * f, 0.0, 0.0], 10000.0,
+                                                                                    seed=f) for f in (0, 1)])
+              for c in rig.camera}
+    ring = PairRing({n: f.shape[1:] for n, f in frames.items()}, slots=2)
+    for n, f in frames.items():
+        for k in range(2):
+            assert ring.put(n, 0, k, f[k], k, time.time_ns())
+    ring.publish(0)
+    results = []
+    pipe = LivePipeline(rig, ring, settings=LiveSettings(iterations=3), device="cpu")
+    pipe.build()
+    assert pipe.recon.method == "mlos-smart" and isinstance(pipe._recon.projector, PinholeProjector)
+    pipe.subscribe(results.append)
+    with pipe:
+        assert pipe.wait_processed(1, 60.0)
+    proj = PinholeProjector(rig.camera, pipe.grid, device="cpu")
+    ref = reconstruct(proj, [frames[c.name][0] for c in rig.camera], monitoring_recon(3, 1.0, "mlos-smart")).volume
+    r = results[0]
+    assert ref.max() > 0 and 0.0 < r.active_fraction < 0.5
+    for ax, a in enumerate("zyx"):
+        assert np.allclose(r.mip[a], ref.max(axis=ax), rtol=1e-3, atol=1e-4 * float(ref.max()))
+    with pytest.raises(NotLightFieldError, match="camera 'cam0' is a pinhole camera"):
+        LivePipeline(rig, ring, recon=monitoring_recon(method="drt-mart"), device="cpu")
+
+
 def test_the_live_path_runs_only_eliminating_methods(tiny_rig) -> None:
     from lfcore.reconstruct import ReconSettings
     from realtime.pipeline import monitoring_recon
 
-    with pytest.raises(ValueError, match="runs drt-mart or mlos-mart, not 'mart'"):
+    with pytest.raises(ValueError, match="runs drt-mart, mlos-mart or mlos-smart, not 'mart'"):
         monitoring_recon(method="mart")
     with pytest.raises(ValueError, match="not 'mart'"):
         LivePipeline(tiny_rig, recon=ReconSettings(method="mart"), device="cpu")

@@ -14,7 +14,7 @@ from tests.conftest import wait_for
 
 class Raw:
     def __init__(self, port: str) -> None:
-        self.ser = serial.Serial(port, 115200, timeout=2.0)  # a busy CPU may delay the emulator thread
+        self.ser = serial.Serial(port, 115200, timeout=5.0)  # a busy CPU may delay the emulator thread
 
     def __call__(self, line: str) -> str:
         self.ser.reset_input_buffer()
