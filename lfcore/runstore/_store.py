@@ -122,6 +122,9 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
             raise RunStoreError(f"{path} is a symbolic link (to {os.readlink(path)}); give the real path, or another "
                                 "output path")
         if not path.exists():
+            if not path.parent.exists():  # never a tree of folders made wherever a typo points
+                raise RunStoreError(f"{path.parent} does not exist (to hold {path.name}); create it first, or give "
+                                    "another output path")
             return
         if not overwrite:
             raise RunStoreError(f"{path} already exists; choose another output path or pass --overwrite")

@@ -12,6 +12,7 @@ from lfpiv.commands import (
     add_device,
     add_sim_options,
     check_pvr,
+    iterations,
     png_path,
     positive_float,
     positive_int,
@@ -45,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--method", choices=("drt-mart", "mlos-mart"), default="drt-mart",
                    help="reconstruction: drt-mart (dense ray-traced weights) or mlos-mart (the same elimination, "
                    "line-of-sight weights; faster on a GPU) (default: drt-mart)")
-    m.add_argument("--iterations", type=positive_int, default=5,
+    m.add_argument("--iterations", type=iterations, default=5,
                    help="MART iterations per frame (default: 5; changeable in the window)")
     m.add_argument("--relaxation", type=positive_float, default=1.0,
                    help="MART relaxation, at most 2 (default: 1; changeable in the window)")
@@ -72,6 +73,9 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(args.rig)
     warn_optics(rig)
     check_plan(rig, args.pairs)
+    if args.screenshot is not None and args.after > args.pairs:
+        raise UsageError(f"--after {args.after} is more pairs than --pairs {args.pairs} shows; the screenshot "
+                         f"comes after at most {args.pairs}")
     if args.screenshot is not None:
         folder = Path(args.screenshot).parent
         if folder.exists() and not (folder.is_dir() and os.access(folder, os.W_OK)):

@@ -170,6 +170,9 @@ BAD_INPUTS = [
      "not an lfpiv run store (no zarr v3 group there: GroupNotFoundError), and --overwrite replaces only run stores"),
     (lambda t: ["synth", "--rig", TINY, "--out", _under_a_file(t)], "cannot use"),
     (lambda t: ["reconstruct", str(t / "r.zarr"), "--iterations", "0"], "--iterations: must be at least 1"),
+    (lambda t: ["reconstruct", str(t / "r.zarr"), "--iterations", "1000000000"], "--iterations: must be at most 10000"),
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "no" / "such" / "x.zarr")], "no/such does not exist (to hold "
+     "x.zarr); create it first"),
     (lambda t: ["reconstruct", str(t / "r.zarr"), "--background", "-5"], "--background: must be 0 or more"),
     (lambda t: ["reconstruct", str(t / "r.zarr"), "--pvr", "-2,2,10"], "--pvr must be three positive numbers"),
     (lambda t: ["evaluate", str(t / "r.zarr"), "--threshold", "2"], "--threshold: must be a fraction above 0"),

@@ -125,6 +125,14 @@ def test_monitor_with_a_bad_pvr_is_one_line(main, rig_file: Path, capsys) -> Non
     assert len(err.splitlines()) == 1 and "--pvr must be three positive numbers, got 0,2,10" in err
 
 
+def test_monitor_screenshot_after_more_pairs_than_shown_is_one_line(main, rig_file: Path, capsys) -> None:
+    assert main(["monitor", "--rig", str(rig_file), "--pairs", "3", "--after", "1000000", "--screenshot", "x.png"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--after 1000000 is more pairs than --pairs 3 shows" in err
+    assert main(["monitor", "--rig", str(rig_file), "--iterations", "20000", "--screenshot", "x.png"]) == 2
+    assert "--iterations: must be at most 10000" in capsys.readouterr().err
+
+
 def test_monitor_with_an_unwritable_screenshot_is_one_line(main, rig_file: Path, tmp_path: Path, capsys) -> None:
     (tmp_path / "afile").write_text("")
     assert main(["monitor", "--rig", str(rig_file), "--screenshot", str(tmp_path / "afile" / "m.png")]) == 2
