@@ -100,3 +100,15 @@ def test_a_second_writer_is_refused_naming_the_first(made, tmp_path, capsys):
             break
         time.sleep(0.2)
     assert RunStore.open(run).group["volumes"].attrs["settings"]["iterations"] == 3
+
+
+@pytest.mark.parametrize("how", ["random", "truncated"])
+def test_a_damaged_vectors_chunk_is_one_line_in_export_and_evaluate(made, tmp_path, capsys, how):
+    """The adversarial sweep's find: export and evaluate read every vector field whole first, and
+    a damaged chunk was zarr's checksum ValueError in a traceback."""
+    run = _copy(made, tmp_path)
+    damage_chunk(chunk_file(run, "vectors/u", 1), how)
+    for argv in (["export", run, "--format", "vtk", "--out", tmp_path / "x"], ["evaluate", run]):
+        rc, out, err = _run(capsys, *argv)
+        assert rc == 2 and one_error(err) and "vectors/u pair 1: chunk c/1/0/0/0 is damaged" in err, (argv, err)
+    assert not list((tmp_path / "x").glob("*.vti"))  # nothing exported from damaged vectors
