@@ -282,7 +282,7 @@ def rig_variants(tiny: str) -> list[tuple[str, str, str]]:
         ("size-huge", rep("size_mm = [0.9, 0.75, 1.6]", "size_mm = [1e6, 1e6, 1e6]"), "error"),
         ("size-inf", rep("size_mm = [0.9, 0.75, 1.6]", "size_mm = [inf, 0.75, 1.6]"), "error"),
         ("pvr-zero", rep("pvr = [2.0, 2.0, 10.0]", "pvr = [0.0, 2.0, 10.0]"), "error"),
-        ("pvr-tiny", rep("pvr = [2.0, 2.0, 10.0]", "pvr = [1e-6, 1e-6, 1e-6]"), "error"),
+        ("pvr-tiny", rep("pvr = [2.0, 2.0, 10.0]", "pvr = [1e-6, 1e-6, 1e-6]"), "either"),  # synth needs no voxels
         ("centre-nan", rep("centre_mm = [0.0, 0.0, 0.0]", "centre_mm = [nan, 0.0, 0.0]"), "error"),
         ("wavelength-zero", rep("wavelength_nm = 532.0", "wavelength_nm = 0.0"), "error"),
         ("rate-zero", rep("rate_hz = 10.0", "rate_hz = 0.0"), "error"),
@@ -421,10 +421,10 @@ def _committed(path: Path, n: int) -> Callable[[], bool]:
     return lambda: RunStore.open(path).committed_pairs >= n
 
 
-def _volumes(path: Path, n: int) -> Callable[[], bool]:
+def _volumes(path: Path, n: int, names: tuple[str, ...] = ("volumes.pending", "volumes")) -> Callable[[], bool]:
     def cond() -> bool:
         s = RunStore.open(path)
-        for name in ("volumes.pending", "volumes"):
+        for name in names:
             if name in s.group:
                 if len(s.group[name].attrs.get("reconstructed_pairs", [])) >= n:
                     return True
@@ -432,10 +432,10 @@ def _volumes(path: Path, n: int) -> Callable[[], bool]:
     return cond
 
 
-def _vectors(path: Path, n: int) -> Callable[[], bool]:
+def _vectors(path: Path, n: int, names: tuple[str, ...] = ("vectors.pending", "vectors")) -> Callable[[], bool]:
     def cond() -> bool:
         s = RunStore.open(path)
-        for name in ("vectors.pending", "vectors"):
+        for name in names:
             if name in s.group and len(s.group[name].attrs.get("correlated_pairs", [])) >= n:
                 return True
         return False
@@ -467,12 +467,12 @@ def signal_case(command: str, sig: int, *, times: int = 1) -> Callable[[Ctx, Pat
         elif command == "reconstruct-replacement":
             shutil.copytree(ctx.made, run_)
             args = ["reconstruct", run_, "--iterations", "7", "--quiet"]
-            cond = _volumes(run_, 1)
+            cond = _volumes(run_, 1, ("volumes.pending",))  # made is reconstructed: wait for the replacement
             again = None
         else:  # correlate
             shutil.copytree(ctx.made, run_)
             args = ["correlate", run_, "--windows", "16x16x8", "--quiet"]
-            cond = _vectors(run_, 1)
+            cond = _vectors(run_, 1, ("vectors.pending",))  # made is correlated: wait for the replacement
             again = None
         before = snapshot(run_)
         proc = _start(args, d)
@@ -494,8 +494,11 @@ def signal_case(command: str, sig: int, *, times: int = 1) -> Callable[[Ctx, Pat
                 proc.wait()
         secs = time.monotonic() - t
         rc = proc.returncode
-        if crashed(rc, err, sent=sig if sig == signal.SIGKILL else None):
+        if crashed(rc, err, sent=sig):
             return Outcome("traceback", rc, secs, last_line(out, err))
+        if sig != signal.SIGKILL and rc == -sig:
+            return Outcome("wrong result", rc, secs, f"exit {rc} (ended by the signal), not 130, after: "
+                           f"{last_line(out, err) or 'nothing said'}")
         if not reached and rc == 0:
             return Outcome("accepted", rc, secs, "finished before the signal: " + last_line(out, err))
         if sig != signal.SIGKILL and rc != 130:
@@ -595,7 +598,7 @@ def disk_case(command: str) -> Callable[[Ctx, Path], Outcome]:
     def run(ctx: Ctx, d: Path) -> Outcome:
         mnt = d / "disk"
         mnt.mkdir()
-        made_kib = sum(p.stat().st_size for p in ctx.made.rglob("*") if p.is_file()) // 1024
+        made_kib = sum(4 * (1 + p.stat().st_size // 4096) for p in ctx.made.rglob("*")) + 64  # tmpfs blocks
         size = {"synth": 200, "reconstruct": made_kib + 400, "correlate": made_kib + 40, "export": made_kib + 60,
                 "acquire": 1500}[command]
         r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}k", "tmpfs", str(mnt)], capture_output=True)
@@ -817,22 +820,23 @@ def cases(ctx: Ctx) -> list[Case]:
         ("frames-data-type", meta_damage("data_type", "float64", "cam0/frames!"), (X, R, E, X)),
         ("frames-shape", meta_damage("shape", [1, 2, 160, 192], "cam0/frames!"), (X, R, E, X)),
         ("committed-too-many", meta_damage("committed_pairs", 99), (X, R, E, X)),
-        ("committed-negative", meta_damage("committed_pairs", -1), (E, R, E, E)),
-        ("committed-string", meta_damage("committed_pairs", "two"), (E, R, E, E)),
+        # evaluate reads derived data and the truth, not the commit record: either is right
+        ("committed-negative", meta_damage("committed_pairs", -1), (E, R, E, X)),
+        ("committed-string", meta_damage("committed_pairs", "two"), (E, R, E, X)),
         ("format-version-string", meta_damage("format_version", "1"), (E, R, E, E)),
         ("format-version-zero", meta_damage("format_version", 0), (E, R, E, E)),
         ("format-version-future", meta_damage("format_version", 999), (X, X, E, X)),
-        ("state-unknown", meta_damage("state", "weird"), (X, R, E, X)),
+        ("state-unknown", meta_damage("state", "weird"), (X, R, X, X)),
         ("rig-deleted", meta_damage("rig", _DELETE), (E, R, E, E)),
         ("rig-garbage", meta_damage("rig", {"volume": 5}), (E, R, E, E)),
         ("timing-deleted", meta_damage("timing", _DELETE), (X, R, E, X)),
         ("volumes-pairs-garbage", meta_damage("reconstructed_pairs", "x", "volumes"), (X, R, X, E)),
-        ("volumes-pairs-out-of-range", meta_damage("reconstructed_pairs", [0, 1, 50], "volumes"), (X, R, X, E)),
+        ("volumes-pairs-out-of-range", meta_damage("reconstructed_pairs", [0, 1, 50], "volumes"), (X, R, X, X)),
         ("volumes-json-deleted", file_damage("volumes/zarr.json", "deleted"), (X, R, X, E)),
         ("volumes-data-deleted", file_damage("volumes/data", "rmtree"), (X, R, X, E)),
         ("vectors-group-deleted", file_damage("vectors", "rmtree"), (X, X, X, X)),
         ("drops-deleted", file_damage("drops", "rmtree"), (X, X, X, X)),
-        ("truth-deleted", file_damage("truth", "rmtree"), (X, X, X, E)),
+        ("truth-deleted", file_damage("truth", "rmtree"), (X, X, X, X)),
         ("lock-garbage", lambda run: (run / ".lfpiv-writer.lock").write_bytes(os.urandom(100)), (A, A, A, A)),
     ]
     for name, dmg, expects in metas:
@@ -869,7 +873,7 @@ def cases(ctx: Ctx) -> list[Case]:
     add("writer-reconstruct-synth", "writer", writer_case("reconstruct", [
         "synth", "--rig", "TINY", "--out", "RUN", "--overwrite", "--pairs", "1", "--rays", "50", "--quiet"]), "synth")
     add("writer-reconstruct-import", "writer", writer_case("reconstruct", [
-        "import", "--rig", "TINY", "--out", "RUN", "--overwrite", "--frames", "D/*.tif"]), "import")
+        "import", "--rig", "TINY", "--out", "RUN", "--overwrite", "--frames", "D/*.tif", "--dt-us", "1000"]), "import")
     add("writer-reconstruct-monitor", "writer", writer_case("reconstruct", [
         "monitor", "--rig", "TINY", "--pairs", "3", "--out", "RUN", "--overwrite", "--screenshot", "D/m.png",
         "--quiet"]), "monitor")

@@ -16,7 +16,7 @@ from lfcore.render import LightFieldRenderer
 from lfcore.runstore import RunStore
 from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
-from tests.helpers import signal_when_committed
+from tests.helpers import no_space, one_error, signal_when_committed
 
 TINY = str(EXAMPLES / "tiny.toml")
 
@@ -337,3 +337,14 @@ def test_console_script_exit_code_and_no_traceback(tmp_path):
                                              "pass the path of a rig TOML file (see examples/)"]
     h = subprocess.run([sys.executable, "-m", "lfpiv", "--help"], capture_output=True, text=True, timeout=120)
     assert h.returncode == 0 and "synth" in h.stdout and "demo" in h.stdout
+
+
+def test_a_full_disk_while_synthesizing_names_the_store_and_keeps_what_was_committed(capsys, tmp_path, monkeypatch):
+    """The adversarial sweep's find (a real full disk, a tmpfs): synth said "cannot use: No space
+    left on device" without the path."""
+    path = tmp_path / "r.zarr"
+    monkeypatch.setattr(RunStore, "write_frame", no_space(RunStore.write_frame, 4))
+    rc, _, err = _run(capsys, "synth", "--rig", TINY, "--out", path, "--pairs", "4", "--rays", "50", "--quiet")
+    assert rc == 2 and one_error(err) and f"cannot use {path}: No space left on device" in err, err
+    s = RunStore.open(path)
+    assert s.state == "aborted" and s.committed_pairs == 2 and RunStore.check(path) == []

@@ -112,3 +112,25 @@ def test_a_damaged_vectors_chunk_is_one_line_in_export_and_evaluate(made, tmp_pa
         rc, out, err = _run(capsys, *argv)
         assert rc == 2 and one_error(err) and "vectors/u pair 1: chunk c/1/0/0/0 is damaged" in err, (argv, err)
     assert not list((tmp_path / "x").glob("*.vti"))  # nothing exported from damaged vectors
+
+
+@pytest.mark.parametrize("damage", ["volumes/zarr.json", "volumes/data"])
+def test_volumes_without_their_record_or_data_are_named_not_a_traceback(made, tmp_path, capsys, damage):
+    """The adversarial sweep's find: volumes/zarr.json deleted was a KeyError traceback in info,
+    evaluate and reconstruct and 'whole' to check; volumes/data deleted was 'whole' too."""
+    run = _copy(made, tmp_path)
+    (run / damage).unlink() if damage.endswith(".json") else shutil.rmtree(run / damage)
+    want = "volumes/zarr.json is missing" if damage.endswith(".json") else "volumes/data is missing, though"
+    rc, out, _ = _run(capsys, "check", run)
+    assert rc == 1 and want in out, out
+    for argv in (["info", run], ["evaluate", run], ["reconstruct", run, "--iterations", "1", "--quiet"]):
+        rc, out, err = _run(capsys, *argv)
+        assert rc == 2 and one_error(err) and want in err and f"remove {run}/volumes" in err, (argv, err)
+
+
+def test_a_state_of_no_kind_is_named(made, tmp_path, capsys):
+    run = _copy(made, tmp_path)
+    meta = run / "zarr.json"
+    meta.write_text(meta.read_text().replace('"state": "complete"', '"state": "weird"'))
+    rc, out, err = _run(capsys, "info", run)
+    assert rc == 2 and one_error(err) and "state is 'weird', not one of recording, complete, aborted" in err, err
