@@ -11,7 +11,7 @@ have been named in one line (exit 2) and nothing derived from it. Recordings (``
 simulated lab) are killed, refused to a second writer and cut short by a full disk between the
 rounds; their committed frames must equal the frames the simulated cameras made.
 
-The frames are tiny (64 x 48 pixels) so that the default soak (176 synthetic pairs, about 450
+The frames are tiny (64 x 48 pixels) so that the default soak (132 synthetic pairs, about 400
 with the recordings, every fault kind at least once) stays well within CI's time on 2 cores.
 ``LFPIV_LONG_SOAK=1`` runs the long version: 720 synthetic pairs, every fault kind three times.
 """
@@ -56,7 +56,7 @@ SCHEDULE = ("kill-reconstruct", "frame-deleted", "full-disk-reconstruct", "acqui
             "frame-truncated", "acquire-full-disk", "volume-truncated", "frame-damaged-replacement")
 SYNTH_ROUNDS = [f for f in SCHEDULE if not f.startswith("acquire-")] * (3 if LONG else 1)
 ACQUIRE_ROUNDS = [f for f in SCHEDULE if f.startswith("acquire-")] * (3 if LONG else 1)
-SLICE = 60 if LONG else 16  # pairs per round
+SLICE = 60 if LONG else 12  # pairs per round
 PAIRS = SLICE * len(SYNTH_ROUNDS)
 ITER = ["--iterations", "2"]
 WINDOWS = ["--windows", "16x16x8"]
