@@ -712,6 +712,15 @@ class Rig(_Strict):
                     f"(nearest point {nearest:.1f} mm from its lens, F = {cam.lens_focal_length_mm} mm); "
                     "shrink volume.size_mm or move the camera back"
                 )
+            # a focus farther from every point of the volume than the camera's object distance
+            # leaves the particles blurred to nothing (a typo in focus_mm, not a rig)
+            depth = cam.world_to_camera(corners)[:, 2]
+            off = 0.0 if depth.min() <= 0.0 <= depth.max() else float(np.abs(depth).min())
+            if off > cam.object_distance_mm:
+                raise ValueError(
+                    f"the volume lies {off:.4g} mm from the focal plane of camera '{cam.name}', more than its object "
+                    f"distance ({cam.object_distance_mm:.4g} mm); set its focus_mm inside or near the volume"
+                )
         return self
 
     @property

@@ -16,7 +16,7 @@ import os
 import re
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 from lfpiv import __version__
 from lfpiv.commands import COMMANDS, module_of
@@ -119,8 +119,43 @@ def _interrupted() -> None:
     raise KeyboardInterrupt
 
 
+@contextlib.contextmanager
+def _one_ctrl_c(grace_s: float = 5.0) -> Iterator[None]:
+    """Inside, the first Ctrl-C raises KeyboardInterrupt and those that follow it within
+    ``grace_s`` seconds are ignored: the stop it began (notes of what is kept, a run marked
+    aborted, buffers freed) runs to its end, without a second KeyboardInterrupt in the middle of
+    it (people press Ctrl-C several times). One after that raises again, for a stop that hangs.
+    Commands that hold signals themselves (acquire, monitor) put their handler inside this one."""
+    import signal
+    import threading
+    import time
+
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield  # not ours to change: ignored on purpose (nohup, a background job), or a caller's own
+        return
+    first: list[float] = []
+
+    def on_sigint(signum: int, frame: object) -> None:
+        if first and time.monotonic() - first[0] < grace_s:
+            return
+        first[:] = [time.monotonic()]
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``lfpiv`` command; returns the exit code."""
+    with _one_ctrl_c():
+        return _main(argv)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     try:
         from acquisition.pulse_generator import signals_call
         from calibration.store import CalibrationStoreError

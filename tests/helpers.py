@@ -4,10 +4,14 @@ trigger of the simulated cameras and a hand-filled ring buffer."""
 
 from __future__ import annotations
 
+import errno
+import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -40,19 +44,78 @@ def sim_lab(rig, **faults) -> SimLab:
                   camera_faults=faults)
 
 
-def wait_committed(path: Path, at_least: int, proc: subprocess.Popen, timeout_s: float = 60.0) -> int:
-    """Wait until the run at ``path`` has ``at_least`` committed pairs while ``proc`` runs."""
+def wait_store(path: Path, count: Callable[[RunStore], int], at_least: int, proc: subprocess.Popen,
+               timeout_s: float = 60.0, what: str = "committed pairs") -> int:
+    """Wait until ``count(store)`` of the run at ``path`` is ``at_least`` while ``proc`` runs."""
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
         assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
         try:
-            n = RunStore.open(path).committed_pairs
+            n = count(RunStore.open(path))
             if n >= at_least:
                 return n
         except Exception:  # noqa: BLE001 - the store may not exist yet
             pass
         time.sleep(0.05)
-    raise AssertionError(f"{path} did not reach {at_least} committed pairs")
+    raise AssertionError(f"{path} did not reach {at_least} {what}")
+
+
+def wait_committed(path: Path, at_least: int, proc: subprocess.Popen, timeout_s: float = 60.0) -> int:
+    """Wait until the run at ``path`` has ``at_least`` committed pairs while ``proc`` runs."""
+    return wait_store(path, lambda s: s.committed_pairs, at_least, proc, timeout_s)
+
+
+def chunk_file(run: Path, array: str, first: int) -> Path:
+    """The chunk file of ``array`` (e.g. "cam0/frames") whose first chunk index is ``first`` (pair)."""
+    return next(p for p in sorted((run / array / "c").rglob("*")) if p.is_file()
+                and p.relative_to(run / array / "c").parts[0] == str(first))
+
+
+def damage_chunk(path: Path, how: str) -> None:
+    """Damage a chunk file as disks and people do: "deleted", "random" bytes or "truncated" to half."""
+    if how == "deleted":
+        path.unlink()
+    elif how == "random":
+        path.write_bytes(os.urandom(path.stat().st_size))
+    elif how == "truncated":
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    else:
+        raise ValueError(how)
+
+
+def one_error(err: str) -> bool:
+    """One line of error, last, no traceback (notes of what the command began may come before)."""
+    lines = err.strip().splitlines()
+    return bool(lines) and lines[-1].startswith("lfpiv: error: ") and sum("error" in x for x in lines) == 1 and \
+        "Traceback" not in err
+
+
+@contextmanager
+def store_held(path: Path) -> Iterator[subprocess.Popen]:
+    """A second process holding the run at ``path`` open for writing (the writer lock) until the
+    block ends; it is killed then, which must leave nothing held."""
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from lfcore.runstore import RunStore; "
+                               "s = RunStore.open(sys.argv[1], mode='r+'); print('held', flush=True); time.sleep(600)",
+                               str(path)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        yield holder
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def no_space(real: Callable, after: int) -> Callable:
+    """A store write that fills the disk: the first ``after`` calls are the ``real`` write, then
+    every call raises ENOSPC as a full disk does (with no file name, as zarr's writes do)."""
+    calls = [0]
+
+    def write(*args, **kwargs):
+        calls[0] += 1
+        if calls[0] > after:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(*args, **kwargs)
+    return write
 
 
 def signal_when_committed(proc: subprocess.Popen, path: Path, at_least: int, sig: int, *,

@@ -125,8 +125,18 @@ class Frames(Part):
 
     @property
     def state(self) -> str:
-        """``"recording"``, ``"complete"`` or ``"aborted"``."""
-        return str(self.group.attrs["state"])
+        """``"recording"``, ``"complete"`` or ``"aborted"``.
+
+        Raises
+        ------
+        RunStoreError
+            If it is none of these (the root zarr.json was edited or damaged).
+        """
+        state = self.group.attrs["state"]
+        if state not in STATES:
+            raise RunStoreError(f"{self.path}: state is {state!r}, not one of {', '.join(STATES)} (the root zarr.json "
+                                "was edited or damaged); restore it from a copy of the run")
+        return str(state)
 
     @property
     def committed_pairs(self) -> int:

@@ -330,6 +330,9 @@ class Integrity(Part):
         chunk of those pairs."""
         try:
             if name not in self.group:
+                if any((Path(self.path) / name).glob("*/zarr.json")):  # its arrays, without the group's record
+                    out.append(self._line(f"{name}/zarr.json is missing, the record of which pairs {name}/ holds; "
+                                          f"{RESTORE}"))
                 return
             g = self.group[name]
         except json.JSONDecodeError as exc:
@@ -339,6 +342,9 @@ class Integrity(Part):
         if name == "volumes":
             a, problem = self._array("volumes/data", missing_ok=True)
             if a is None and problem is None:  # a reconstruction killed as it began: none
+                if g.attrs.get(self.DONE[name]):  # type: ignore[attr-defined]
+                    out.append(self._line(f"volumes/data is missing, though volumes/ records reconstructed pairs; "
+                                          f"{RESTORE}"))
                 return
         arrays = {n: self._layout(f"{name}/{n}", t, out) for n, t in fields.items()}
         done_key = self.DONE[name]  # type: ignore[attr-defined]

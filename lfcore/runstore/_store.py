@@ -14,6 +14,7 @@ from typing import Any
 import zarr
 
 from lfcore.rig import Rig
+from lfcore.runstore import _lock
 from lfcore.runstore._common import FORMAT, FORMAT_VERSION, RunStoreError, StoreGroup
 from lfcore.runstore._drops import DROP_FIELDS, Drops, create_drops
 from lfcore.runstore._frames import CAMERA_ARRAYS, Frames, create_frames
@@ -122,6 +123,9 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
             raise RunStoreError(f"{path} is a symbolic link (to {os.readlink(path)}); give the real path, or another "
                                 "output path")
         if not path.exists():
+            if not path.parent.exists():  # never a tree of folders made wherever a typo points
+                raise RunStoreError(f"{path.parent} does not exist (to hold {path.name}); create it first, or give "
+                                    "another output path")
             return
         if not overwrite:
             raise RunStoreError(f"{path} already exists; choose another output path or pass --overwrite")
@@ -130,6 +134,11 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
         except RunStoreError as exc:
             raise RunStoreError(f"{exc}, and --overwrite replaces only run stores; choose another output path") \
                 from None
+        # said now, not once the devices are open and the recording thread meets the lock
+        writer = _lock.current_writer(path)
+        if writer is not None and writer.get("pid") != os.getpid() and not _lock._is_ancestor(writer):
+            raise RunStoreError(f"{path} is being written by {_lock.describe(writer)}; wait for it to finish or stop "
+                                "it, then try again (reading it needs no lock: open it read-only)")
 
     @classmethod
     def open(cls, path: str | Path, mode: str = "r", *, shared_with: str | None = None) -> RunStore:

@@ -161,6 +161,14 @@ class Vectors(Part):
             If the run has no vectors.
         """
         g = self._vectors_group()
-        out: dict[str, Any] = {n: g[n][...] for n in (*VECTOR_FIELDS, *GRID_ARRAYS)}
+        out: dict[str, Any] = {}
+        for n in (*VECTOR_FIELDS, *GRID_ARRAYS):
+            try:
+                out[n] = g[n][...]
+            except Exception as exc:  # noqa: BLE001 - a damaged chunk (checksum, codec, size): name it
+                for pair in self.correlated_pairs():
+                    self.read_vectors(pair)  # type: ignore[attr-defined] - raises naming the pair and chunk
+                raise RunStoreError(f"{self.path}: vectors/{n} cannot be read ({type(exc).__name__}: {exc}); "
+                                    f"'lfpiv check {self.path}' lists what is damaged") from None
         out["attrs"] = dict(g.attrs)
         return out

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 import zarr
 
+from lfcore.runstore._chunks import RESTORE
 from lfcore.runstore._common import Part, RunStoreError, run_array
 from lfcore.runstore._coords import COORDINATES, add_coordinates
 from lfcore.volume import VolumeGrid
@@ -69,8 +70,25 @@ class Volumes(Part):
 
     @property
     def has_volumes(self) -> bool:
+        """True when the run holds ``volumes/``.
+
+        Raises
+        ------
+        RunStoreError
+            If ``volumes/`` is damaged: its data without its zarr.json (the record of which pairs
+            it holds), or pairs recorded as reconstructed whose data is gone.
+        """
+        if "volumes/data" in self.group:
+            if "volumes" not in self.group:
+                raise RunStoreError(f"{self.path}: volumes/zarr.json is missing, the record of which pairs "
+                                    f"volumes/data holds; {RESTORE}, or remove {self.path}/volumes to make the "
+                                    "volumes again")
+            return True
         # a group without its array is a reconstruction killed as it began: none, to make again
-        return "volumes/data" in self.group
+        if "volumes" in self.group and self.group["volumes"].attrs.get("reconstructed_pairs"):
+            raise RunStoreError(f"{self.path}: volumes/data is missing, though volumes/ records reconstructed pairs; "
+                                f"{RESTORE}, or remove {self.path}/volumes to make the volumes again")
+        return False
 
     @property
     def volumes_id(self) -> str | None:

@@ -153,6 +153,16 @@ def positive_int(text: str) -> int:
     return whole_number(text, 1)
 
 
+#: The most MART iterations a command takes: the chapter's converge within 50; a billion would
+#: run for weeks with no word of it.
+MAX_ITERATIONS = 10_000
+
+
+def iterations(text: str) -> int:
+    """argparse type of ``--iterations``: a whole number from 1 to :data:`MAX_ITERATIONS`."""
+    return whole_number(text, 1, MAX_ITERATIONS)
+
+
 def ring_slots(text: str) -> int:
     """argparse type of ``--ring``: pairs the ring buffer holds, at least 2 (one being filled
     while the recorder writes another)."""

@@ -12,6 +12,7 @@ from lfpiv.commands import (
     add_device,
     add_sim_options,
     check_pvr,
+    iterations,
     png_path,
     positive_float,
     positive_int,
@@ -46,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="reconstruction: drt-mart (dense ray-traced weights) or mlos-mart (the same elimination, "
                    "line-of-sight weights; faster on a GPU) for light-field cameras, mlos-smart for pinhole "
                    "(Tomo-PIV) ones (default: drt-mart, or mlos-smart where every camera is a pinhole camera)")
-    m.add_argument("--iterations", type=positive_int, default=5,
+    m.add_argument("--iterations", type=iterations, default=5,
                    help="MART iterations per frame (default: 5; changeable in the window)")
     m.add_argument("--relaxation", type=positive_float, default=1.0,
                    help="MART relaxation, at most 2 (default: 1; changeable in the window)")
@@ -74,6 +75,9 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(args.rig)
     warn_optics(rig)
     check_plan(rig, args.pairs)
+    if args.screenshot is not None and args.after > args.pairs:
+        raise UsageError(f"--after {args.after} is more pairs than --pairs {args.pairs} shows; the screenshot "
+                         f"comes after at most {args.pairs}")
     if args.screenshot is not None:
         folder = Path(args.screenshot).parent
         if folder.exists() and not (folder.is_dir() and os.access(folder, os.W_OK)):

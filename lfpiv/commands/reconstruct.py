@@ -10,11 +10,11 @@ from lfpiv.commands import (
     add_workers,
     camera_names,
     check_pvr,
+    iterations,
     non_negative_float,
     old_spelling_notes,
     pairs_option,
     positive_float,
-    positive_int,
     sub_apertures,
     warn,
     workers_phrase,
@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("run", metavar="RUN", help="run store (a .zarr directory)")
     r.add_argument("--method", choices=("drt-mart", "mart", "mlos-mart", "mlos-smart"), default=None,
                    help="default: drt-mart for light-field cameras, mlos-smart for pinhole ones")
-    r.add_argument("--iterations", type=positive_int, default=50, help="MART iterations (default: 50)")
+    r.add_argument("--iterations", type=iterations, default=50, help="MART iterations (default: 50)")
     r.add_argument("--relaxation", type=positive_float, default=1.0,
                    help="relaxation mu (default: 1; at most 2 for the simultaneous form; the chapter's "
                    "sequential MART used 2.5)")

@@ -129,3 +129,7 @@ def export_run(store: RunStore, fmt: str, out: str | Path, *, overwrite: bool = 
         return _write(fmt, out, fields, str(store.path))
     except FormatError as exc:
         raise UsageError(str(exc)) from None
+    except OSError as exc:
+        if exc.filename is None:  # a full disk under a writer that names no file: say where it was writing
+            raise OSError(exc.errno, exc.strerror or str(exc), str(out)) from None
+        raise

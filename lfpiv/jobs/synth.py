@@ -5,6 +5,7 @@ The result is a run store with the same layout a recording has, plus ``truth/``.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import time
 from collections.abc import Callable, Sequence
@@ -140,6 +141,11 @@ def render_pair(renderers: Sequence[Renderer], particles: np.ndarray, brightness
                       for f in range(2)]) for c, r in enumerate(renderers)]
 
 
+def _named(exc: OSError, path: str | Path) -> OSError:
+    """``exc`` naming ``path`` where it names no file (ENOSPC under zarr's writes carries none)."""
+    return exc if exc.filename is not None else OSError(exc.errno, exc.strerror or str(exc), str(path))
+
+
 def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: float | None = None,
                ppp: float | None = None, pairs: int = 3,
                dt_s: float | None = None, seed: int = 1, omega: float = 1.0,
@@ -231,7 +237,10 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
 
     renderers = [renderer_for(cam, render, wavelength_nm=rig.laser.wavelength_nm, device=device) for cam in rig.camera]
     timing = {"dt_s": dt_s, "rate_hz": rate}
-    store = RunStore.create(out, rig, pairs, timing=timing, software_version=__version__, overwrite=overwrite)
+    try:
+        store = RunStore.create(out, rig, pairs, timing=timing, software_version=__version__, overwrite=overwrite)
+    except OSError as exc:
+        raise _named(exc, out) from None
     n_part = particles.shape[2]
     # the work of a particle: its rays through a light-field camera, one Gaussian image on a pinhole one
     work = [1 if is_pinhole(r.camera) else render.rays_per_particle for r in renderers]
@@ -254,6 +263,10 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
                 for r, img in zip(renderers, images, strict=True):
                     store.write_frame(r.camera.name, i, f, img[f], frame_id=2 * i + f, timestamp_ns=t_ns)
             store.commit(i + 1)
+    except OSError as exc:  # a full disk: the pairs committed so far are kept, the run says so
+        with contextlib.suppress(OSError):
+            store.set_state("aborted")
+        raise _named(exc, store.path) from None
     except BaseException:
         store.set_state("aborted")
         raise

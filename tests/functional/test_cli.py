@@ -16,7 +16,7 @@ from lfcore.render import LightFieldRenderer
 from lfcore.runstore import RunStore
 from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
-from tests.helpers import signal_when_committed
+from tests.helpers import no_space, one_error, signal_when_committed
 
 TINY = str(EXAMPLES / "tiny.toml")
 
@@ -170,6 +170,9 @@ BAD_INPUTS = [
      "not an lfpiv run store (no zarr v3 group there: GroupNotFoundError), and --overwrite replaces only run stores"),
     (lambda t: ["synth", "--rig", TINY, "--out", _under_a_file(t)], "cannot use"),
     (lambda t: ["reconstruct", str(t / "r.zarr"), "--iterations", "0"], "--iterations: must be at least 1"),
+    (lambda t: ["reconstruct", str(t / "r.zarr"), "--iterations", "1000000000"], "--iterations: must be at most 10000"),
+    (lambda t: ["synth", "--rig", TINY, "--out", str(t / "no" / "such" / "x.zarr")], "no/such does not exist (to hold "
+     "x.zarr); create it first"),
     (lambda t: ["reconstruct", str(t / "r.zarr"), "--background", "-5"], "--background: must be 0 or more"),
     (lambda t: ["reconstruct", str(t / "r.zarr"), "--pvr", "-2,2,10"], "--pvr must be three positive numbers"),
     (lambda t: ["evaluate", str(t / "r.zarr"), "--threshold", "2"], "--threshold: must be a fraction above 0"),
@@ -334,3 +337,14 @@ def test_console_script_exit_code_and_no_traceback(tmp_path):
                                              "pass the path of a rig TOML file (see examples/)"]
     h = subprocess.run([sys.executable, "-m", "lfpiv", "--help"], capture_output=True, text=True, timeout=120)
     assert h.returncode == 0 and "synth" in h.stdout and "demo" in h.stdout
+
+
+def test_a_full_disk_while_synthesizing_names_the_store_and_keeps_what_was_committed(capsys, tmp_path, monkeypatch):
+    """The adversarial sweep's find (a real full disk, a tmpfs): synth said "cannot use: No space
+    left on device" without the path."""
+    path = tmp_path / "r.zarr"
+    monkeypatch.setattr(RunStore, "write_frame", no_space(RunStore.write_frame, 4))
+    rc, _, err = _run(capsys, "synth", "--rig", TINY, "--out", path, "--pairs", "4", "--rays", "50", "--quiet")
+    assert rc == 2 and one_error(err) and f"cannot use {path}: No space left on device" in err, err
+    s = RunStore.open(path)
+    assert s.state == "aborted" and s.committed_pairs == 2 and RunStore.check(path) == []

@@ -286,3 +286,19 @@ def test_an_interrupted_replacement_leaves_the_old_vectors_whole_and_goes_on(tmp
     s = RunStore.open(path)
     assert s.vectors()["attrs"]["windows"] == [[32, 32, 16], [16, 16, 8]] and s.correlated_pairs() == [0, 1]
     assert s.pending("vectors") is None
+
+
+def test_a_full_disk_while_exporting_names_the_folder(correlated, tmp_path, capsys, monkeypatch):
+    """The adversarial sweep's find (a real full disk, a tmpfs): export said "cannot use: No space
+    left on device" without the folder."""
+    import errno
+
+    import lfpiv.jobs.export as export
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(export, "_write", full)
+    out = tmp_path / "x"
+    rc, _, err = _run(capsys, "export", correlated[0], "--format", "vtk", "--out", out)
+    assert rc == 2 and err.count("\n") == 1 and f"cannot use {out}: No space left on device" in err, err

@@ -26,6 +26,7 @@ from tests.helpers import (  # noqa: E402
     fast_rig_text,
     signal_when_committed,
     sim_lab,
+    store_held,
     terminal_signals,
 )
 
@@ -123,6 +124,29 @@ def test_monitor_with_a_bad_pvr_is_one_line(main, rig_file: Path, capsys) -> Non
     assert main(["monitor", "--rig", str(rig_file), "--pvr", "0,2,10", "--screenshot", "x.png"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--pvr must be three positive numbers, got 0,2,10" in err
+
+
+def test_monitor_screenshot_after_more_pairs_than_shown_is_one_line(main, rig_file: Path, capsys) -> None:
+    assert main(["monitor", "--rig", str(rig_file), "--pairs", "3", "--after", "1000000", "--screenshot", "x.png"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--after 1000000 is more pairs than --pairs 3 shows" in err
+    assert main(["monitor", "--rig", str(rig_file), "--iterations", "20000", "--screenshot", "x.png"]) == 2
+    assert "--iterations: must be at most 10000" in capsys.readouterr().err
+
+
+def test_monitor_over_a_run_another_process_writes_is_refused_at_once(main, rig_file: Path, tmp_path: Path,
+                                                                      capsys) -> None:
+    """The adversarial sweep's find: ``monitor --out RUN --overwrite`` while another process wrote
+    RUN opened the devices and the window, the recording thread met the lock, and the window
+    waited on (a hang) instead of the one line naming the writer that the other writers give."""
+    run = tmp_path / "busy.zarr"
+    RunStore.create(run, load_rig(rig_file), 2, timing={"dt_s": 0.001, "rate_hz": 20.0}, software_version="x").close()
+    with store_held(run) as holder:
+        rc = main(["monitor", "--rig", str(rig_file), "--pairs", "3", "--out", str(run), "--overwrite",
+                   "--screenshot", str(tmp_path / "m.png")])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and len(err.splitlines()) == 1 and f"being written by pid {holder.pid}" in err, err
+    assert not (tmp_path / "m.png").exists()
 
 
 def test_monitor_with_an_unwritable_screenshot_is_one_line(main, rig_file: Path, tmp_path: Path, capsys) -> None:

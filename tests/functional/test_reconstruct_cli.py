@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import shutil
+import signal
+import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -12,6 +15,7 @@ from lfpiv.cli import main
 from lfpiv.rigfile import load_rig
 from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
+from tests.helpers import LFPIV, terminal_signals, wait_store
 
 TINY = str(EXAMPLES / "tiny.toml")
 
@@ -299,3 +303,27 @@ def test_a_full_disk_while_reconstructing_names_the_store(capsys, tmp_path, monk
     rc, out, err = _run(capsys, "reconstruct", str(path), "--iterations", "1", "--quiet")
     assert rc == 2 and err.count("\n") == 1, err
     assert f"cannot use {path}/volumes: No space left on device" in err
+
+
+def test_three_ctrl_cs_while_reconstructing_exit_130_without_a_traceback(capsys, tmp_path):
+    """The adversarial sweep's find: Ctrl-Cs 0.2 s apart met the first one's stop half way (a
+    KeyboardInterrupt "ignored" in a Warp array's __del__, with its traceback); now the first
+    stops the command and those that follow it within a few seconds are ignored."""
+    run = tmp_path / "run.zarr"
+    assert main(["synth", "--rig", TINY, "--out", str(run), "--pairs", "12", "--ppm", "0.2", "--rays", "500",
+                 "--quiet"]) == 0
+    proc = subprocess.Popen([*LFPIV, "reconstruct", str(run), "--iterations", "3", "--quiet"],
+                            stderr=subprocess.PIPE, text=True, preexec_fn=terminal_signals)
+    try:
+        wait_store(run, lambda s: len(s.group["volumes"].attrs.get("reconstructed_pairs", [])), 2, proc,
+                   timeout_s=120, what="reconstructed pairs")
+        for _ in range(3):
+            proc.send_signal(signal.SIGINT)
+            time.sleep(0.2)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130 and "Traceback" not in err and "Exception ignored" not in err, err
+    assert err.strip().splitlines()[-1] == "lfpiv: interrupted; what was recorded so far is kept"
+    n = len(RunStore.open(run).reconstructed_pairs())
+    assert 2 <= n < 12 and RunStore.check(run) == []

@@ -80,6 +80,7 @@ def test_crossed_cameras_on_deep_voxels_warn_with_the_fix(tiny_rig, second, pvr,
         ({"sensor_px": [192]}, "camera[0].sensor_px"),
         ({"name": "truth"}, "camera[0].name: 'truth' is reserved"),
         ({"main_focal_length_mm": 0.7}, "the volume reaches within the focal length of camera 'cam0'"),
+        ({"focus_mm": [0.0, 0.0, 1e9]}, "the volume lies 1e+09 mm from the focal plane of camera 'cam0'"),
     ],
 )
 def test_bad_camera_values_name_their_key(tiny_rig, change, expected):
