@@ -111,6 +111,7 @@ def test_demo_runs_the_whole_instrument_on_the_simulated_lab(capsys, tmp_path):
 
 def test_demo_never_replaces_a_users_run(capsys, tmp_path):
     out = tmp_path / "lab"
+    out.mkdir()
     _synth(capsys, out / "run.zarr", "--pairs", "1")
     before = RunStore.open(out / "run.zarr").frames("cam0")[...]
     rc, _, err = _run(capsys, "demo", "--rig", TINY, "--out", str(out), "--pairs", "1")

@@ -212,7 +212,7 @@ def test_a_killed_monitor_disarms_and_closes_its_recording(rig_file: Path, tmp_p
     # a closed terminal must still disarm, and the recording end as after "disarm".
     out = tmp_path / "run.zarr"
     cmd = [*LFPIV, "monitor", "--rig", str(rig_file), "--pairs", "5000", "--out", str(out), "--screenshot",
-           str(tmp_path / "shot.png"), "--after", "100000", "--device", "cpu", "--iterations", "1", "--method",
+           str(tmp_path / "shot.png"), "--after", "5000", "--device", "cpu", "--iterations", "1", "--method",
            "mlos-mart", "--sim-rays", "300", "--sim-pool", "2", "--pvr", "4,4,20", "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=terminal_signals)
