@@ -75,3 +75,15 @@ def test_the_sequential_form_is_not_split(capsys, one_pair, tmp_path):
     rc, _, err = _run(capsys, "reconstruct", run, "--iterations", "2", "--quiet", "--slabs", "3", "--form",
                       "sequential", "--relaxation", "1")
     assert rc == 2 and err.count("\n") == 1 and "depth slabs need the simultaneous form" in err, err
+
+
+def test_slabs_on_a_dask_worker_give_the_in_memory_volume(capsys, one_pair, tmp_path):
+    here, there = tmp_path / "memory.zarr", tmp_path / "worker.zarr"
+    shutil.copytree(one_pair, here)
+    shutil.copytree(one_pair, there)
+    assert _run(capsys, "reconstruct", here, "--iterations", "5", "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "reconstruct", there, "--iterations", "5", "--quiet", "--slabs", "3", "--workers", "1")
+    assert rc == 0 and "in 3 depth slabs" in out, err
+    want, got = RunStore.open(here).volumes()[0], RunStore.open(there).volumes()[0]
+    assert RunStore.open(there).reconstructed_pairs() == [0] and want.max() > 0
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(want.max()))
