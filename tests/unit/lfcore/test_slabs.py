@@ -99,3 +99,17 @@ def test_planning():
         plan_slabs(5, 6)
     with pytest.raises(ValueError, match="simultaneous form"):
         SlabReconstructor(None, ReconSettings(form="sequential", relaxation=1.0), slabs=plan_slabs(5, 1))
+
+
+@pytest.mark.parametrize("options", [{"projector": "matrix-free"},
+                                     {"method": "mlos-mart", "weight_storage": "on-the-fly"}])
+def test_slabs_with_matrix_free_templates_and_weights_made_on_the_fly(tiny_rig, device, options):
+    grid = VolumeGrid.from_rig(tiny_rig)
+    proj = Projector(tiny_rig.camera, grid, device=device)
+    images = _images(tiny_rig, device=device)
+    settings = ReconSettings(iterations=5, **options)
+    want = reconstruct(proj, images, settings)
+    got, res = _by_slabs(proj, images, settings, plan_slabs(grid.shape[0], 3))
+    assert res.projector == want.projector and res.on_the_fly_voxels == want.on_the_fly_voxels
+    assert want.volume.max() > 0
+    np.testing.assert_allclose(got, want.volume, rtol=1e-5, atol=1e-5 * float(want.volume.max()))
