@@ -116,7 +116,10 @@ def _slab_count(slabs: int | str | None, grid: VolumeGrid, settings: ReconSettin
     if slabs is None:
         return 1
     if slabs != "auto":
-        n = int(slabs)
+        try:
+            n = int(slabs)
+        except (TypeError, ValueError):
+            raise UsageError(f"--slabs: expected a whole number of slabs or auto, got {slabs!r}") from None
         if not 1 <= n <= nz:
             raise UsageError(f"--slabs {n}: the box is {nz} voxels deep; give from 1 to {nz} slabs, or auto")
         return n

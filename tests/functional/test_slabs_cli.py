@@ -36,8 +36,8 @@ def test_a_box_too_big_for_the_memory_proceeds_in_slabs_with_the_in_memory_volum
     here, sliced = tmp_path / "memory.zarr", tmp_path / "slabs.zarr"
     shutil.copytree(one_pair, here)
     shutil.copytree(one_pair, sliced)
-    rc, out, err = _run(capsys, "reconstruct", here, "--iterations", "10", "--quiet")
-    assert rc == 0 and "depth slabs" not in out, err
+    rc, out, err = _run(capsys, "reconstruct", here, "--iterations", "10", "--quiet", "--slabs", "auto")
+    assert rc == 0 and "depth slabs" not in out, err  # the box fits: in memory
     _small_memory(monkeypatch)
     rc, out, err = _run(capsys, "reconstruct", sliced, "--iterations", "10", "--quiet")  # as before: refused
     assert rc == 2 and err.count("\n") == 1 and "more than it has free; use a coarser --pvr, or --slabs auto" in err
@@ -87,3 +87,15 @@ def test_slabs_on_a_dask_worker_give_the_in_memory_volume(capsys, one_pair, tmp_
     want, got = RunStore.open(here).volumes()[0], RunStore.open(there).volumes()[0]
     assert RunStore.open(there).reconstructed_pairs() == [0] and want.max() > 0
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(want.max()))
+
+
+def test_the_python_api_takes_slabs(one_pair, tmp_path):
+    import lfpiv
+    from lfpiv.errors import UsageError
+
+    run = tmp_path / "run.zarr"
+    shutil.copytree(one_pair, run)
+    with pytest.raises(UsageError, match="expected a whole number of slabs or auto, got 'some'"):
+        lfpiv.reconstruct(run, iterations=2, progress=False, slabs="some")
+    (a, b) = lfpiv.reconstruct(run, iterations=2, progress=False, slabs=2)
+    assert a.slabs == b.slabs == 2 and RunStore.open(run).reconstructed_pairs() == [0]
