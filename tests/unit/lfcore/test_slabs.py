@@ -66,12 +66,14 @@ def test_slabs_thinner_than_the_smoothing_halo_and_no_smoothing(tiny_rig, device
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(want.max()))
 
 
-def test_a_mixed_rig_by_slabs(device):
+@pytest.mark.parametrize(("rig_file", "method"), [("mixed_cameras.toml", "drt-mart"),
+                                                 ("tomo_4_cameras.toml", "mlos-smart")])
+def test_pinhole_and_mixed_rigs_by_slabs(device, rig_file, method):
     from lfcore.pinhole_projector import projector_for
     from lfpiv.rigfile import load_rig
     from tests.conftest import EXAMPLES
 
-    rig = load_rig(EXAMPLES / "mixed_cameras.toml")
+    rig = load_rig(EXAMPLES / rig_file)
     rig = rig.model_copy(update={"volume": rig.volume.model_copy(update={"size_mm": (0.3, 0.3, 0.3)})})
     grid = VolumeGrid.from_rig(rig)
     proj = projector_for(rig.camera, grid, device=device)
@@ -79,7 +81,7 @@ def test_a_mixed_rig_by_slabs(device):
     images = [(100 + rng.poisson(3.0, (c.sensor_px[1], c.sensor_px[0]))).astype(np.uint16) for c in rig.camera]
     for im in images:  # a few bright spots, so something survives elimination
         im[70:90, 70:90] += 400
-    settings = ReconSettings(iterations=5)
+    settings = ReconSettings(method=method, iterations=5)
     want = reconstruct(proj, images, settings).volume
     assert want.max() > 0
     got, _ = _by_slabs(proj, images, settings, plan_slabs(grid.shape[0], 3))
