@@ -196,6 +196,11 @@ class ReconResult:
     projector
         What applied the operator: ``"stored"`` weights or the ``"matrix-free"`` templates
         (``weight_bytes`` is then the templates' memory and the voxels' indices).
+    slabs
+        Depth slabs the volume was reconstructed in (1: in memory; see :mod:`lfcore.slabs`).
+    peak_bytes
+        Of a reconstruction in slabs, the most bytes its weights and buffers took at once
+        (0: not measured).
     background, noise
         Per camera: the background subtracted and the noise sigma, in counts.
     """
@@ -213,6 +218,8 @@ class ReconResult:
     eliminate_s: float = 0.0
     on_the_fly_voxels: int = 0
     projector: str = "stored"
+    slabs: int = 1
+    peak_bytes: int = 0
 
     @property
     def ms_per_iteration(self) -> float:

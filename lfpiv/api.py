@@ -81,7 +81,8 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
                 margin_mm: Sequence[float] = (0.0, 0.0, 0.0), pairs: PairsLike = None,
                 cameras: Sequence[str] | None = None, calibration: str | os.PathLike[str] | None = None,
                 device: str | None = None, workers: int | None = None, scheduler: str | None = None,
-                skip_done: bool = False, progress: bool = True, **options: Any) -> list[Any]:
+                skip_done: bool = False, progress: bool = True, slabs: int | str | None = None,
+                **options: Any) -> list[Any]:
     """Reconstruct both frames of the selected pairs into the run's ``volumes/`` (``lfpiv reconstruct``).
 
     Parameters
@@ -104,6 +105,9 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
         As the command's ``--device``, ``--workers``, ``--scheduler``, ``--skip-done``.
     progress
         A progress bar on stderr.
+    slabs
+        As the command's ``--slabs``: a number of depth slabs, ``"auto"`` (in slabs only where the
+        box does not fit the memory) or None (in memory).
     **options
         Further :class:`lfcore.reconstruct.ReconSettings` fields (``background``,
         ``threshold_sigma``, ``smooth``, ``sub_apertures``, ``weight_storage``, ...).
@@ -124,7 +128,7 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
     with dask_client(workers, scheduler) as client:
         return reconstruct_run(store, settings, pvr=pvr, margin_mm=margin_mm, pairs=_pairs(pairs), cameras=cameras,
                                device=device, progress=progress, rig=rig, calibration=cal, skip_done=skip_done,
-                               client=client, option="pairs")
+                               client=client, option="pairs", slabs=slabs)
 
 
 def correlate(run: str | os.PathLike[str] | RunStore, *,

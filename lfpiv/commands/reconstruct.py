@@ -22,6 +22,19 @@ from lfpiv.commands import (
 )
 
 
+def slabs_option(text: str) -> int | str:
+    """``--slabs``: a whole number of depth slabs (1 or more) or ``auto``."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number of slabs (1 or more) or auto, got '{text}'")
+    return n
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     r = sub.add_parser(
         "reconstruct", help="reconstruct 3D particle volumes from a run's light-field images",
@@ -67,6 +80,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="what applies DRT-MART's operator: stored weights, or matrix-free templates per depth and "
                    "lenslet phase (memory set by the cameras and depth planes, not the voxels; slower per "
                    "iteration on a CPU); auto (default): stored weights unless they do not fit in memory")
+    r.add_argument("--slabs", type=slabs_option, default=None, metavar="N|auto",
+                   help="reconstruct each volume in N depth slabs, written into the store slab by slab (the same "
+                   "volume, without a buffer of the whole box: for volumes larger than memory); auto: in memory "
+                   "where the box fits, otherwise in as many slabs as the memory needs (default: in memory)")
     add_device(r)
     add_workers(r, "reconstruct")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -100,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         results = reconstruct_run(store, settings, pvr=args.pvr, margin_mm=args.margin_mm, pairs=args.pairs,
                                   cameras=args.cameras, device=args.device, progress=not args.quiet, rig=rig,
                                   calibration=calibration, skip_done=args.skip_done, client=client,
-                                  option=pairs_option(args))
+                                  option=pairs_option(args), slabs=args.slabs)
     old_spelling_notes(args)
     if not results:
         print(f"every selected pair of {store.path} is already reconstructed with these settings; nothing to do")
@@ -118,6 +135,12 @@ def run(args: argparse.Namespace) -> int:
           f"with {args.method}{' and the models of ' + args.calibration if calibration else ''} into "
           f"{store.path}/volumes{workers_phrase(args)}; per volume: {act:.2%} of voxels active, "
           f"{operator} built in {ws:.2f} s, {ms:.1f} ms per iteration")
+    split = max(r.slabs for r in results)
+    if split > 1:
+        peak = max(r.peak_bytes for r in results)
+        print(f"each volume was reconstructed in {split} depth slabs, written into the store slab by slab; peak "
+              f"memory of the weights and buffers {peak / 2**20:.1f} MiB (in memory the box's buffers alone take "
+              f"{16 * grid.n_voxels / 2**20:.1f} MiB)")
     fly = max(r.on_the_fly_voxels for r in results)
     if fly:
         why = " (they did not fit in the device's memory)" if args.weight_storage == "auto" else ""

@@ -18,6 +18,7 @@ from lfcore.projector import Projector
 from lfcore.reconstruct import MAX_SUB_APERTURES, WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
 from lfcore.rig import Rig, voxel_shape_warnings
 from lfcore.runstore import RunStore
+from lfcore.slabs import SlabReconstructor, plan_slabs, slab_halo, slabs_for_budget
 from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
 from lfpiv.errors import UsageError
@@ -29,6 +30,9 @@ __all__ = ["MAX_SUB_APERTURES", "PINHOLE_METHODS", "ReconJob", "ReconResult", "R
 
 #: Bytes per voxel of the box the elimination pass and the dense result need at once.
 BYTES_PER_BOX_VOXEL = 16
+#: Of the memory free, the share ``--slabs auto`` gives one slab's buffers (the rest is left to
+#: the active voxels' weights and intensities, which every slab keeps).
+SLAB_SHARE = 0.5
 
 
 def recon_settings(**options: Any) -> ReconSettings:
@@ -71,16 +75,29 @@ class ReconJob:
     writer: str | None = None
     #: the group the volumes go to: ``volumes``, or ``volumes.pending`` while they replace others
     into: str = "volumes"
+    #: depth slabs: None or 1 in memory, a number of slabs, or ``"auto"`` (see :func:`reconstruct_run`)
+    slabs: int | str | None = None
 
 
-def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None) -> FrameReconstructor:
+def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None,
+              slabs: int | str | None = None) -> FrameReconstructor | SlabReconstructor:
     """The reconstructor of a run's frames (its projector, weight cache and device buffers, built
-    once per stream), on a device with room for the box."""
+    once per stream), on a device with room for the box, or for one depth slab of it at a time
+    (``slabs``: a number of slabs, or ``"auto"``: as many as the memory needs, 1 if the box fits)."""
     device = resolve_device(device)
     need = BYTES_PER_BOX_VOXEL * grid.n_voxels
-    if need > available_bytes(device):
+    free = available_bytes(device)
+    n_slabs = _slab_count(slabs, grid, settings, need, free, device)
+    if n_slabs > 1:
+        projector = projector_for(cams, grid, sub_apertures=settings.sub_apertures, device=device)
+        try:
+            return SlabReconstructor(projector, settings, slabs=plan_slabs(grid.shape[0], n_slabs))
+        except ValueError as exc:
+            raise UsageError(f"--slabs: {exc}") from None
+    if need > free:
+        hint = "" if slabs is not None else ", or --slabs auto to reconstruct it in depth slabs"
         raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
-                         "has free; use a coarser --pvr")
+                         f"has free; use a coarser --pvr{hint}")
     projector = projector_for(cams, grid, sub_apertures=settings.sub_apertures, device=device)
     # weights reused across frames (the baseline's cover the whole box and are built per frame;
     # a pinhole camera's, a handful per voxel, are built per frame in less than the iterations take)
@@ -90,11 +107,48 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, de
     return FrameReconstructor(projector, settings, cache=cache)
 
 
-def _reconstruct_frame(frames: FrameReconstructor, store: RunStore, names: Sequence[str], pair: int, frame: int,
-                       progress: Any = None) -> ReconResult:
-    """Reconstruct one frame of a pair from the run's images."""
+def _slab_count(slabs: int | str | None, grid: VolumeGrid, settings: ReconSettings, need: int, free: int,
+                device: str) -> int:
+    """The depth slabs to reconstruct ``grid`` in: ``slabs`` as given (None: 1), or for ``"auto"`` 1
+    where the box's ``need`` bytes fit in the ``free`` ones, else the fewest whose buffers fit in
+    :data:`SLAB_SHARE` of them."""
+    nz = grid.shape[0]
+    if slabs is None:
+        return 1
+    if slabs != "auto":
+        try:
+            n = int(slabs)
+        except (TypeError, ValueError):
+            raise UsageError(f"--slabs: expected a whole number of slabs or auto, got {slabs!r}") from None
+        if not 1 <= n <= nz:
+            raise UsageError(f"--slabs {n}: the box is {nz} voxels deep; give from 1 to {nz} slabs, or auto")
+        return n
+    if need <= free:
+        return 1
+    if settings.form != "simultaneous":
+        raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
+                         "has free, and the sequential form cannot be split into depth slabs; use --form "
+                         "simultaneous or a coarser --pvr")
+    try:
+        return slabs_for_budget(grid, int(SLAB_SHARE * free), halo=slab_halo(settings))
+    except MemoryBudgetError as exc:
+        raise UsageError(f"--slabs auto: {exc}") from None
+
+
+def _reconstruct_frame(frames: FrameReconstructor | SlabReconstructor, store: RunStore, names: Sequence[str],
+                       pair: int, frame: int, progress: Any = None, data: Any = None) -> ReconResult:
+    """Reconstruct one frame of a pair from the run's images. A :class:`SlabReconstructor` writes
+    its volume into ``data`` (the volumes' zarr array; None: the store's) slab by slab and returns
+    it empty; a :class:`FrameReconstructor` returns it for the caller to write."""
     images = [store.read_frame(n, pair, frame) for n in names]  # a damaged or missing frame is an error
     try:
+        if isinstance(frames, SlabReconstructor):
+            out = store.writing("volumes")["data"] if data is None else data
+
+            def write(z0: int, z1: int, planes: np.ndarray) -> None:
+                out[pair, frame, z0:z1] = planes
+
+            return frames.reconstruct(images, write=write, progress=progress)
         return frames.reconstruct(images, progress=progress)
     except (MemoryBudgetError, MatrixFreeUnsupported) as exc:
         raise UsageError(f"pair {pair} frame {'AB'[frame]}: {exc}") from None
@@ -120,15 +174,16 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
         # as pairs finish, and re-reading them for every write could meet a half-replaced file
         # on a network file system
         return (store, store.writing("volumes")["data"],
-                _operator(cams, job.grid, job.settings, this_worker_device(job.device)))
+                _operator(cams, job.grid, job.settings, this_worker_device(job.device), job.slabs))
 
     store, data, frames = worker_state(job.token, build)
     out = []
     # frame A is written while frame B is reconstructed; both are written when the task returns
     with WriteBehind() as writer:
         for f in (0, 1):
-            res = _reconstruct_frame(frames, store, job.cameras, pair, f)
-            writer.submit(data.__setitem__, (pair, f), res.volume)
+            res = _reconstruct_frame(frames, store, job.cameras, pair, f, data=data)
+            if res.slabs == 1:  # a volume in slabs is in the store already
+                writer.submit(data.__setitem__, (pair, f), res.volume)
             out.append(_summary(res))
     return out
 
@@ -138,7 +193,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                     cameras: Sequence[str] | None = None, device: str | None = None,
                     progress: bool = True, rig: Rig | None = None,
                     calibration: dict[str, Any] | None = None, skip_done: bool = False,
-                    client: Any = None, option: str = "--pair-range") -> list[ReconResult]:
+                    client: Any = None, option: str = "--pair-range", slabs: int | str | None = None
+                    ) -> list[ReconResult]:
     """Reconstruct both frames of the selected pairs and store them in ``volumes/``.
 
     Existing volumes with the same grid, cameras, settings and calibration are kept and added
@@ -155,6 +211,11 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     ``client``, a Dask client (:func:`lfpiv.batch.dask_client`), spreads the pairs over its
     workers, which resolve ``device`` each for itself. ``option`` names the pair range in
     messages.
+
+    ``slabs`` reconstructs each volume in depth slabs (:mod:`lfcore.slabs`; the same volume, with
+    no buffer of the whole box): a number of slabs, or ``"auto"``, in memory where the box fits and
+    otherwise in as many slabs as the memory needs; None (default): in memory. Volumes in slabs
+    are written into the store slab by slab.
 
     Each volume is written into the store while the next frame is reconstructed.
 
@@ -197,7 +258,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     except ValueError as exc:
         raise UsageError(f"--pvr/--margin-mm: {exc}") from None
     # the cluster's workers hold the device; this process may have none (a login node)
-    frames = _operator(cams, grid, settings, device) if client is None else None
+    frames = _operator(cams, grid, settings, device, slabs) if client is None else None
     # where the weights lived does not change a volume, so it does not make volumes/ a different set
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
@@ -219,7 +280,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
 
         return reconstruct_pair_task, ReconJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names),
                                                grid=grid, settings=settings, device=device, token=new_token(),
-                                               writer=store.writer_token, into=into)
+                                               writer=store.writer_token, into=into, slabs=slabs)
 
     run_pairs(store, "volumes", chosen, matches=lambda g: _made_with(store, g, grid, meta), differences=differences,
               create=lambda: store.create_volumes(grid, method=settings.method, settings=meta), skip_done=skip_done,
@@ -229,8 +290,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     return results
 
 
-def _reconstruct_here(frames: FrameReconstructor, store: RunStore, names: Sequence[str], chosen: list[int],
-                      settings: ReconSettings, results: list[ReconResult], progress: bool) -> None:
+def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, store: RunStore, names: Sequence[str],
+                      chosen: list[int], settings: ReconSettings, results: list[ReconResult], progress: bool) -> None:
     """Reconstruct both frames of the ``chosen`` pairs in this process, adding to ``results``;
     each volume is written (and recorded) while the next frame is reconstructed."""
     total = len(chosen) * 2 * max(settings.iterations, 1)
@@ -239,7 +300,10 @@ def _reconstruct_here(frames: FrameReconstructor, store: RunStore, names: Sequen
         for p in chosen:
             for f in (0, 1):
                 res = _reconstruct_frame(frames, store, names, p, f, bar.update)
-                writer.submit(store.write_volume, p, f, res.volume)
+                if res.slabs > 1:  # written slab by slab already
+                    writer.submit(store.record_volumes, [(p, f)])
+                else:
+                    writer.submit(store.write_volume, p, f, res.volume)
                 results.append(_summary(res))
                 if settings.iterations == 0:
                     bar.update(1)

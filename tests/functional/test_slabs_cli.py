@@ -1,0 +1,101 @@
+"""`lfpiv reconstruct --slabs`: a box too big for the memory proceeds in depth slabs, with the
+in-memory volume."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from lfcore.runstore import RunStore
+from lfpiv.cli import main
+from tests.conftest import EXAMPLES
+from tests.conftest import run_cli as _run
+
+TINY = str(EXAMPLES / "tiny.toml")
+#: Below the 2.6 MB the tiny rig's box (82 x 68 x 29 voxels, 16 bytes each) needs in memory.
+SMALL_BUDGET = 2_400_000
+
+
+@pytest.fixture(scope="module")
+def one_pair(tmp_path_factory):
+    path = tmp_path_factory.mktemp("slabs") / "run.zarr"
+    assert main(["synth", "--rig", TINY, "--out", str(path), "--pairs", "1", "--ppm", "0.2", "--quiet"]) == 0
+    return path
+
+
+def _small_memory(monkeypatch):
+    import lfpiv.jobs.reconstruct as job
+
+    monkeypatch.setattr(job, "available_bytes", lambda device: SMALL_BUDGET)
+
+
+def test_a_box_too_big_for_the_memory_proceeds_in_slabs_with_the_in_memory_volume(capsys, one_pair, tmp_path,
+                                                                                  monkeypatch):
+    here, sliced = tmp_path / "memory.zarr", tmp_path / "slabs.zarr"
+    shutil.copytree(one_pair, here)
+    shutil.copytree(one_pair, sliced)
+    rc, out, err = _run(capsys, "reconstruct", here, "--iterations", "10", "--quiet", "--slabs", "auto")
+    assert rc == 0 and "depth slabs" not in out, err  # the box fits: in memory
+    _small_memory(monkeypatch)
+    rc, out, err = _run(capsys, "reconstruct", sliced, "--iterations", "10", "--quiet")  # as before: refused
+    assert rc == 2 and err.count("\n") == 1 and "more than it has free; use a coarser --pvr, or --slabs auto" in err
+    rc, out, err = _run(capsys, "reconstruct", sliced, "--iterations", "10", "--quiet", "--slabs", "auto")
+    assert rc == 0, err
+    assert "reconstructed 2 volume(s) of 82 x 68 x 29 voxels (x, y, z) with drt-mart" in out
+    # half the budget for one slab's buffers: 10 planes of 20 bytes a voxel, less the halo of 2 + 2: 6 planes
+    assert "each volume was reconstructed in 5 depth slabs, written into the store slab by slab; peak memory" in out
+    a, b = RunStore.open(here), RunStore.open(sliced)
+    assert b.reconstructed_pairs() == [0]
+    want, got = a.volumes()[0], b.volumes()[0]
+    assert want.max() > 0
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(want.max()))
+    # the slabs do not change the volumes' settings: the same volumes, nothing to do again in memory
+    monkeypatch.undo()
+    rc, out, _ = _run(capsys, "reconstruct", sliced, "--iterations", "10", "--quiet", "--skip-done")
+    assert rc == 0 and "already reconstructed with these settings" in out
+
+
+@pytest.mark.parametrize(("value", "expected"), [
+    ("0", "--slabs: expected a whole number of slabs (1 or more) or auto, got '0'"),
+    ("many", "got 'many'"),
+    ("30", "--slabs 30: the box is 29 voxels deep; give from 1 to 29 slabs, or auto"),
+])
+def test_bad_slabs_are_one_line(capsys, one_pair, tmp_path, value, expected):
+    run = tmp_path / "run.zarr"
+    shutil.copytree(one_pair, run)
+    rc, out, err = _run(capsys, "reconstruct", run, "--iterations", "2", "--quiet", "--slabs", value)
+    assert rc == 2 and out == "" and err.count("\n") == 1 and expected in err, err
+
+
+def test_the_sequential_form_is_not_split(capsys, one_pair, tmp_path):
+    run = tmp_path / "run.zarr"
+    shutil.copytree(one_pair, run)
+    rc, _, err = _run(capsys, "reconstruct", run, "--iterations", "2", "--quiet", "--slabs", "3", "--form",
+                      "sequential", "--relaxation", "1")
+    assert rc == 2 and err.count("\n") == 1 and "depth slabs need the simultaneous form" in err, err
+
+
+def test_slabs_on_a_dask_worker_give_the_in_memory_volume(capsys, one_pair, tmp_path):
+    here, there = tmp_path / "memory.zarr", tmp_path / "worker.zarr"
+    shutil.copytree(one_pair, here)
+    shutil.copytree(one_pair, there)
+    assert _run(capsys, "reconstruct", here, "--iterations", "5", "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "reconstruct", there, "--iterations", "5", "--quiet", "--slabs", "3", "--workers", "1")
+    assert rc == 0 and "in 3 depth slabs" in out, err
+    want, got = RunStore.open(here).volumes()[0], RunStore.open(there).volumes()[0]
+    assert RunStore.open(there).reconstructed_pairs() == [0] and want.max() > 0
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(want.max()))
+
+
+def test_the_python_api_takes_slabs(one_pair, tmp_path):
+    import lfpiv
+    from lfpiv.errors import UsageError
+
+    run = tmp_path / "run.zarr"
+    shutil.copytree(one_pair, run)
+    with pytest.raises(UsageError, match="expected a whole number of slabs or auto, got 'some'"):
+        lfpiv.reconstruct(run, iterations=2, progress=False, slabs="some")
+    (a, b) = lfpiv.reconstruct(run, iterations=2, progress=False, slabs=2)
+    assert a.slabs == b.slabs == 2 and RunStore.open(run).reconstructed_pairs() == [0]
