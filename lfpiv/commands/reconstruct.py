@@ -92,7 +92,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.reconstruct import default_method, recon_settings, reconstruct_run, voxel_shape_notes
+    from lfpiv.jobs.reconstruct import (
+        BYTES_PER_BOX_VOXEL,
+        default_method,
+        recon_settings,
+        reconstruct_run,
+        voxel_shape_notes,
+    )
     from lfpiv.runs import open_run
 
     check_pvr(args.pvr)
@@ -140,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
         peak = max(r.peak_bytes for r in results)
         print(f"each volume was reconstructed in {split} depth slabs, written into the store slab by slab; peak "
               f"memory of the weights and buffers {peak / 2**20:.1f} MiB (in memory the box's buffers alone take "
-              f"{16 * grid.n_voxels / 2**20:.1f} MiB)")
+              f"{BYTES_PER_BOX_VOXEL * grid.n_voxels / 2**20:.1f} MiB)")
     fly = max(r.on_the_fly_voxels for r in results)
     if fly:
         why = " (they did not fit in the device's memory)" if args.weight_storage == "auto" else ""
