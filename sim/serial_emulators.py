@@ -552,6 +552,7 @@ class PulseGeneratorEmulator(_PtyEmulator):
         self._running = False
         self._run_stop: threading.Event | None = None
         self._ticker: threading.Thread | None = None
+        self._stopped_ticker: threading.Thread | None = None  # joined once the lock is let go
         self._triggers = threading.Semaphore(0)
         self._listeners: list[TickListener] = []
         super().__init__(latency_s)
@@ -631,10 +632,12 @@ class PulseGeneratorEmulator(_PtyEmulator):
 
     def close(self) -> None:
         self._set_running(False)
+        self._join_stopped_ticker()
         super().close()
 
     def _power_cycle(self) -> None:
         self._set_running(False)
+        self._join_stopped_ticker()
         with self._lock:
             self._sys = _System()
             self._channels = self._default_channels()
@@ -660,6 +663,13 @@ class PulseGeneratorEmulator(_PtyEmulator):
             self._run_stop = self._ticker = None
         if stop is not None:
             stop.set()
+        # Joined by the caller once it lets go of the lock: a command (STATE OFF, *RST) runs under
+        # the lock, which the ticker may be waiting for; joining here would stall the reply.
+        self._stopped_ticker = ticker
+
+    def _join_stopped_ticker(self) -> None:
+        """Wait for a stopped T0 ticker to end (its last tick delivered), outside the lock."""
+        ticker, self._stopped_ticker = self._stopped_ticker, None
         if ticker is not None and ticker is not threading.current_thread():
             ticker.join(timeout=2.0)
 
@@ -735,9 +745,11 @@ class PulseGeneratorEmulator(_PtyEmulator):
             return f"?{int(self._consume_fault('error').get('code', 5))}"
         try:
             with self._lock:
-                return self._execute(line)
+                reply = self._execute(line)
         except _ScpiError as e:
-            return f"?{e.code}"
+            reply = f"?{e.code}"
+        self._join_stopped_ticker()  # T0 switched off: its last tick delivered before the reply
+        return reply
 
     def _execute(self, line: str) -> str:
         header, _, arg = line.strip().partition(" ")

@@ -138,9 +138,13 @@ def _start(*argv: object) -> subprocess.Popen:
 
 def _kill_when(proc: subprocess.Popen, path: Path, count, at_least: int, what: str, capsys, second) -> None:
     """SIGKILL ``proc`` once ``count(store)`` reaches ``at_least``; just before, ``second`` (a
-    command line) must be refused in one line naming it."""
+    command line) must be refused in one line naming it. ``proc`` is stopped (SIGSTOP) as soon as
+    the count is reached, so that on a fast machine it cannot finish its slice, and let go of the
+    store, while the second writer starts."""
     try:
         wait_store(path, count, at_least, proc, timeout_s=120, what=what)
+        proc.send_signal(signal.SIGSTOP)  # holds the store, alive, mid-way
+        assert proc.poll() is None, "the process finished its slice before it could be stopped"
         rc, _, err = _run(capsys, *second)
         assert rc == 2 and one_error(err) and f"pid {proc.pid}" in err, err
         proc.kill()
@@ -165,13 +169,13 @@ def _synth_round(fault: str, r: int, ledger: Ledger, capsys, monkeypatch, tmp: P
     damaged: Path | None = None
     if fault == "kill-reconstruct":  # mid-way through the slice, after a second writer is refused
         proc = _start("reconstruct", path, *ITER, *_pairs(r), "--quiet")
-        _kill_when(proc, path, lambda s: len([p for p in s.reconstructed_pairs() if p >= first]), 3, "volumes",
+        _kill_when(proc, path, lambda s: len([p for p in s.reconstructed_pairs() if p >= first]), 1, "volumes",
                    capsys, ["correlate", path, *WINDOWS, "--quiet"])
     elif fault == "kill-correlate":
         assert _run(capsys, "reconstruct", path, *ITER, *_pairs(r), "--quiet")[0] == 0
         ledger.check(fault + " (before)")
         proc = _start("correlate", path, *WINDOWS, *_pairs(r), "--quiet")
-        _kill_when(proc, path, lambda s: len([p for p in s.correlated_pairs() if p >= first]), 3, "vectors",
+        _kill_when(proc, path, lambda s: len([p for p in s.correlated_pairs() if p >= first]), 1, "vectors",
                    capsys, ["reconstruct", path, *ITER, *_pairs(r), "--quiet"])
     elif fault.startswith("full-disk-"):  # the disk fills after a third of the slice
         import lfcore.runstore as runstore
