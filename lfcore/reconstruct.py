@@ -44,7 +44,7 @@ from lfcore.weight_build import STORAGE, Weights
 from lfcore.weight_cache import WeightCache
 
 __all__ = ["METHODS", "WEIGHTS", "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings",
-           "estimate_background", "preprocess", "reconstruct"]
+           "estimate_background", "preprocess", "preprocess_images", "reconstruct"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: The weights each method iterates on (:meth:`Projector.weights` and :class:`WeightCache` names).
@@ -326,6 +326,41 @@ def reconstruct(projector: Projector, images: Sequence[np.ndarray], settings: Re
     return frames.reconstruct(images, progress=progress)
 
 
+def preprocess_images(projector: Projector, images: Sequence[np.ndarray], settings: ReconSettings
+                      ) -> tuple[list[np.ndarray], list[np.ndarray], list[float], list[float]]:
+    """Check one image per camera of ``projector`` and preprocess each (:func:`preprocess`).
+
+    Returns
+    -------
+    signals, lits : list of numpy.ndarray
+        Per camera, the (rows, columns) background-subtracted signal and lit-pixel mask.
+    backgrounds, noises : list of float
+        Per camera, the background level used (``settings.background`` where given) and the
+        estimated noise, in counts.
+
+    Raises
+    ------
+    ValueError
+        The wrong number of images, or an image of another size than its camera's sensor.
+    """
+    if len(images) != len(projector.cameras):
+        raise ValueError(f"got {len(images)} images for {len(projector.cameras)} cameras")
+    signals, lits, backgrounds, noises = [], [], [], []
+    for img, cam in zip(images, projector.cameras, strict=True):
+        if img.shape != (cam.sensor_px[1], cam.sensor_px[0]):
+            raise ValueError(f"camera '{cam.name}' images are {cam.sensor_px[1]} x {cam.sensor_px[0]}, "
+                             f"got {img.shape[0]} x {img.shape[1]}")
+        level, sigma = estimate_background(img)
+        if settings.background is not None:
+            level = settings.background
+        sig, lit = preprocess(img, level, sigma, settings.threshold_sigma, grow=settings.lit_grow)
+        signals.append(sig)
+        lits.append(lit)
+        backgrounds.append(level)
+        noises.append(sigma)
+    return signals, lits, backgrounds, noises
+
+
 class Iterated(NamedTuple):
     """The intensities :meth:`FrameReconstructor.iterate` reached, and the time it took.
 
@@ -422,21 +457,7 @@ class FrameReconstructor:
             If the weights or the iteration buffers do not fit in the device's memory.
         """
         p, settings = self.projector, self.settings
-        if len(images) != len(p.cameras):
-            raise ValueError(f"got {len(images)} images for {len(p.cameras)} cameras")
-        signals, lits, backgrounds, noises = [], [], [], []
-        for img, cam in zip(images, p.cameras, strict=True):
-            if img.shape != (cam.sensor_px[1], cam.sensor_px[0]):
-                raise ValueError(f"camera '{cam.name}' images are {cam.sensor_px[1]} x {cam.sensor_px[0]}, "
-                                 f"got {img.shape[0]} x {img.shape[1]}")
-            level, sigma = estimate_background(img)
-            if settings.background is not None:
-                level = settings.background
-            sig, lit = preprocess(img, level, sigma, settings.threshold_sigma, grow=settings.lit_grow)
-            signals.append(sig)
-            lits.append(lit)
-            backgrounds.append(level)
-            noises.append(sigma)
+        signals, lits, backgrounds, noises = preprocess_images(p, images, settings)
         what = f"{settings.method} of a {p.grid.n_voxels:,}-voxel box"
         with out_of_memory_is_budget_error(p.device, what, "use a coarser --pvr or a smaller volume"):
             return self._reconstruct(signals, lits, backgrounds, noises, progress)

@@ -38,7 +38,7 @@ import numpy as np
 from lfcore.device import MemoryBudgetError, Rows, available_bytes, launch_rows, out_of_memory_is_budget_error
 from lfcore.device_ops import VolumeOps, gaussian_taps
 from lfcore.projector import PREFILTER_CHECKS, Projector
-from lfcore.reconstruct import FrameReconstructor, ReconResult, ReconSettings, _total, estimate_background, preprocess
+from lfcore.reconstruct import FrameReconstructor, ReconResult, ReconSettings, _total, preprocess_images
 from lfcore.volume import VolumeGrid
 
 __all__ = ["BYTES_PER_SLAB_VOXEL", "Slab", "SlabReconstructor", "plan_slabs", "slab_halo", "slabs_for_budget"]
@@ -176,21 +176,7 @@ class SlabReconstructor:
             If the weights or a slab's buffers do not fit.
         """
         p, s = self.projector, self.settings
-        if len(images) != len(p.cameras):
-            raise ValueError(f"got {len(images)} images for {len(p.cameras)} cameras")
-        signals, lits, backgrounds, noises = [], [], [], []
-        for img, cam in zip(images, p.cameras, strict=True):
-            if img.shape != (cam.sensor_px[1], cam.sensor_px[0]):
-                raise ValueError(f"camera '{cam.name}' images are {cam.sensor_px[1]} x {cam.sensor_px[0]}, "
-                                 f"got {img.shape[0]} x {img.shape[1]}")
-            level, sigma = estimate_background(img)
-            if s.background is not None:
-                level = s.background
-            sig, lit = preprocess(img, level, sigma, s.threshold_sigma, grow=s.lit_grow)
-            signals.append(sig)
-            lits.append(lit)
-            backgrounds.append(level)
-            noises.append(sigma)
+        signals, lits, backgrounds, noises = preprocess_images(p, images, s)
         what = f"{s.method} of a {p.grid.n_voxels:,}-voxel box in {len(self.slabs)} slabs"
         with out_of_memory_is_budget_error(p.device, what, "use more --slabs or a coarser --pvr"):
             return self._reconstruct(signals, lits, backgrounds, noises, write, progress)
