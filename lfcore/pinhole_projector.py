@@ -180,17 +180,7 @@ class PinholeProjector(Projector):
             (n,) int32 flat voxel indices, ascending (a new array).
         """
         wp, kp = self.wp, self._kp
-        if isinstance(lit, wp.array):
-            if lit.dtype != wp.uint8 or lit.shape != (self.n_pixels,) or str(lit.device) != self.device:
-                raise ValueError(f"a device lit mask must be ({self.n_pixels},) uint8 on {self.device}, got "
-                                 f"{lit.shape} {lit.dtype.__name__} on {lit.device}")
-            lit_dev = lit
-        else:
-            flat = np.concatenate([np.asarray(m, dtype=np.uint8).ravel() for m in lit])
-            if flat.size != self.n_pixels:
-                raise ValueError(f"lit masks hold {flat.size} pixels, the cameras {self.n_pixels}")
-            lit_dev = self._scratch("lit", self.n_pixels, wp.uint8)
-            wp.copy(lit_dev, wp.array(flat, dtype=wp.uint8, device="cpu", copy=False))
+        lit_dev = self._lit_on_device(lit)
         n = self.grid.n_voxels
         mask = self._scratch("mask", n, wp.int32)
         launch_rows(kp.mlos_eliminate, n, [self._grid, self.views, len(self.cameras), lit_dev, RowOffset(0),

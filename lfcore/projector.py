@@ -192,17 +192,7 @@ class Projector:
         pass; host masks uploaded) is allocated on the first call and kept for the next ones.
         """
         wp, kw = self.wp, self._kw
-        if isinstance(lit, wp.array):
-            if lit.dtype != wp.uint8 or lit.shape != (self.n_pixels,) or str(lit.device) != self.device:
-                raise ValueError(f"a device lit mask must be ({self.n_pixels},) uint8 on {self.device}, got "
-                                 f"{lit.shape} {lit.dtype.__name__} on {lit.device}")
-            lit_dev = lit
-        else:
-            flat = np.concatenate([np.asarray(m, dtype=np.uint8).ravel() for m in lit])
-            if flat.size != self.n_pixels:
-                raise ValueError(f"lit masks hold {flat.size} pixels, the cameras {self.n_pixels}")
-            lit_dev = self._scratch("lit", self.n_pixels, wp.uint8)
-            wp.copy(lit_dev, wp.array(flat, dtype=wp.uint8, device="cpu", copy=False))
+        lit_dev = self._lit_on_device(lit)
         common = [self._grid, self.views, len(self.cameras), self.sub_a, self.check_order, lit_dev, float(min_seen),
                   float(max_dark), self._checks, self._n_checks]
         # First the whole grid with a few checks per view, then every check on the candidates
@@ -217,6 +207,22 @@ class Projector:
         mask.zero_()
         launch_rows(kw.eliminate, n, [*common, candidates, 2**30, RowOffset(0), mask], self.device)
         return self._compact(mask[:n], candidates)
+
+    def _lit_on_device(self, lit) -> object:
+        """The lit mask as one (n_pixels,) uint8 device array: a device mask as it is (checked),
+        per-camera host masks concatenated and uploaded into a kept scratch buffer."""
+        wp = self.wp
+        if isinstance(lit, wp.array):
+            if lit.dtype != wp.uint8 or lit.shape != (self.n_pixels,) or str(lit.device) != self.device:
+                raise ValueError(f"a device lit mask must be ({self.n_pixels},) uint8 on {self.device}, got "
+                                 f"{lit.shape} {lit.dtype.__name__} on {lit.device}")
+            return lit
+        flat = np.concatenate([np.asarray(m, dtype=np.uint8).ravel() for m in lit])
+        if flat.size != self.n_pixels:
+            raise ValueError(f"lit masks hold {flat.size} pixels, the cameras {self.n_pixels}")
+        lit_dev = self._scratch("lit", self.n_pixels, wp.uint8)
+        wp.copy(lit_dev, wp.array(flat, dtype=wp.uint8, device="cpu", copy=False))
+        return lit_dev
 
     def precompute_checks(self, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
         """Trace once the pixels of every voxel's first ``n_checks`` elimination checks.

@@ -303,16 +303,6 @@ class SlabReconstructor:
         raise TypeError(f"depth slabs do not know the projector {type(p).__name__}")
 
 
-def _lit_on_device(p: Projector, lits: list[np.ndarray]) -> object:
-    wp = p.wp
-    flat = np.concatenate([np.asarray(m, dtype=np.uint8).ravel() for m in lits])
-    if flat.size != p.n_pixels:
-        raise ValueError(f"lit masks hold {flat.size} pixels, the cameras {p.n_pixels}")
-    lit = p._scratch("lit", p.n_pixels, wp.uint8)
-    wp.copy(lit, wp.array(flat, dtype=wp.uint8, device="cpu", copy=False))
-    return lit
-
-
 def _eliminate_range(p: Projector, lits: list[np.ndarray], first: int, n: int, s: ReconSettings) -> object:
     """The voxels ``first .. first + n - 1`` of the grid that the projector's elimination keeps
     (the kernels of :meth:`Projector.eliminate` and :meth:`PinholeProjector.eliminate`, run on
@@ -322,7 +312,7 @@ def _eliminate_range(p: Projector, lits: list[np.ndarray], first: int, n: int, s
     from lfcore.pinhole_projector import PinholeProjector
 
     wp = p.wp
-    lit = _lit_on_device(p, lits)
+    lit = p._lit_on_device(lits)
     mask = p._scratch("mask", n, wp.int32)
     mask.zero_()
     ids = p._scratch("slab_ids", n, wp.int32)
