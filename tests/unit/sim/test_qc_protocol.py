@@ -271,8 +271,12 @@ def row_disp(emu, q):
 
 def row_echo(emu, q):
     assert q(":SYST:COMM:SER:ECHO ON") == "ok"
-    assert q(":PULSE0:STATE?") == ":PULSE0:STATE?"  # the echo comes first
+    # With echo on every command gives two lines, the echo first; read both, so that a late
+    # reply is never left in the buffer for the next command.
+    assert q(":PULSE0:STATE?") == ":PULSE0:STATE?"
+    assert q.ser.read_until(b"\n").decode().strip() == "0"
     assert q(":SYST:COMM:SER:ECHO OFF") == ":SYST:COMM:SER:ECHO OFF"
+    assert q.ser.read_until(b"\n").decode().strip() == "ok"
     assert q(":PULSE0:STATE?") == "0"
 
 
