@@ -74,7 +74,7 @@ def test_monitor_reconstructs_live_on_the_matrix_free_templates(tmp_path, capsys
     assert shot.exists()
 
 
-def test_monitor_matrix_free_on_pinhole_cameras_is_reconstructs_one_line(tmp_path, capsys) -> None:
+def test_monitor_matrix_free_on_pinhole_cameras_gives_reconstructs_one_line_error(tmp_path, capsys) -> None:
     """The same one-line error as ``reconstruct`` gives, before anything is rendered or armed."""
     pytest.importorskip("pyqtgraph")
     text = (EXAMPLES / "tomo_4_cameras.toml").read_text()
