@@ -85,13 +85,22 @@ class PairSource(Protocol):
 LIVE_METHODS = ("drt-mart", "mlos-mart", "mlos-smart")
 
 
-def monitoring_recon(iterations: int = 5, relaxation: float = 1.0, method: str = "drt-mart") -> ReconSettings:
+def monitoring_recon(iterations: int = 5, relaxation: float = 1.0, method: str = "drt-mart", *,
+                     projector: str = "auto") -> ReconSettings:
     """Settings for monitoring: few simultaneous iterations, the default thresholds.
 
-    ``method`` is one of :data:`LIVE_METHODS`.
+    ``method`` is one of :data:`LIVE_METHODS`; ``projector`` one of
+    :data:`lfcore.matrix_free.PROJECTORS` (what applies DRT-MART's operator, as in
+    :class:`~lfcore.reconstruct.ReconSettings`).
+
+    Raises
+    ------
+    ValueError
+        A method the live path does not run, or a projector the method cannot use.
     """
     _check_live_method(method)
-    return ReconSettings(method=method, iterations=iterations, relaxation=relaxation, form="simultaneous")
+    return ReconSettings(method=method, iterations=iterations, relaxation=relaxation, form="simultaneous",
+                         projector=projector)
 
 
 def _check_live_method(method: str) -> None:
@@ -228,6 +237,9 @@ class LiveResult:
     skipped, discarded
         Pairs skipped, and pairs discarded because the ring reused their slot during the copy,
         up to this result.
+    projector
+        What applied the operator to both frames: ``"stored"`` weights or the ``"matrix-free"``
+        templates (``"matrix-free, stored"`` where ``auto`` used each for one frame).
     """
 
     pair: int
@@ -250,6 +262,7 @@ class LiveResult:
     settings: LiveSettings
     skipped: int
     discarded: int
+    projector: str = "stored"
 
 
 @dataclass(frozen=True)
@@ -272,6 +285,9 @@ class LiveStats:
         Trigger-to-result latency of the last result (NaN if unknown).
     error
         The last error of a stage (the pipeline keeps going), or None.
+    projector
+        What applied the operator to the last result (:attr:`LiveResult.projector`); ``""``
+        before the first.
     """
 
     state: str
@@ -282,6 +298,7 @@ class LiveStats:
     rate_hz: float
     latency_s: float
     error: str | None
+    projector: str = ""
 
 
 class _Reconstructor:
@@ -307,6 +324,10 @@ class _Reconstructor:
         self.frames = FrameReconstructor(p, recon, cache=self.cache)
         self.wp = p.wp
         self.device = p.device
+        if recon.projector == "matrix-free":
+            # the templates built now (kept by the reconstructor), not in the first pair's time; a
+            # geometry without them (MatrixFreeUnsupported) or no room for them fails the build
+            self.frames.weights(self.wp.zeros(0, dtype=self.wp.int32, device=self.device))
         self.offsets = [int(o) for o in p.pixel_offsets]
         self.pre = ImagePreprocessor(self.cams, device=self.device)
         self.ops = self.frames.ops
@@ -437,6 +458,7 @@ class LivePipeline:
         self._processed = self._skipped = self._discarded = 0
         self._done_times: list[float] = []
         self._latency = float("nan")
+        self._projector = ""
         self._error: str | None = None
         self._recon: _Reconstructor | None = None
         self._correlator: Correlator | None = None
@@ -561,7 +583,7 @@ class LivePipeline:
             t = self._done_times
             rate = (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
             return LiveStats(self._state, self._processed, self._skipped, self._discarded, self._last_taken, rate,
-                             self._latency, self._error)
+                             self._latency, self._error, self._projector)
 
     def wait_processed(self, n: int, timeout_s: float) -> bool:
         """Block until ``n`` pairs were processed or ``timeout_s`` passed (for scripts and tests)."""
@@ -770,7 +792,7 @@ class LivePipeline:
         raw = {c: rc.camera_image(slot.frames, 0, k).copy() for k, c in enumerate(self.cameras)}
         self._release(job)
         t["preprocess"] = time.perf_counter() - start
-        vols, active = [], []
+        vols, active, projectors = [], [], set()
         for f in (0, 1):
             t0 = time.perf_counter()
             voxels = rc.eliminate(f)  # ends on the host (the count of survivors), so t1 is exact
@@ -782,6 +804,7 @@ class LivePipeline:
             vols.append(rc.volume(f, w, e))
             t4 = time.perf_counter()
             active.append(w.n_voxels / self.grid.n_voxels)
+            projectors.add("matrix-free" if getattr(w, "matrix_free", False) else "stored")
             for k, a, b in (("eliminate", t0, t1), ("weights", t1, t2), ("iterate", t2, t3), ("volume", t3, t4)):
                 t[k] += b - a
             del voxels, w, e  # frame A's weights go before frame B's are built (tens of GB for a large volume)
@@ -789,7 +812,8 @@ class LivePipeline:
         t0 = time.perf_counter()
         vf = self._correlator(vols[0], vols[1])
         t1 = time.perf_counter()
-        result = self._derive(view, raw, vols[0], vf, s, float(np.mean(active)), t)
+        result = replace(self._derive(view, raw, vols[0], vf, s, float(np.mean(active)), t),
+                         projector=", ".join(sorted(projectors)))
         t["correlate"] = t1 - t0
         t["derive"] = time.perf_counter() - t1
         t["total"] = time.perf_counter() - start + slot.copy_s
@@ -836,6 +860,7 @@ class LivePipeline:
         with self._lock:
             self._processed += 1
             self._latency = result.latency_s
+            self._projector = result.projector
             self._done_times = [*self._done_times[-9:], time.monotonic()]
             subs = list(self._subscribers)
         for cb in subs:

@@ -14,7 +14,11 @@ Layout::
       truth/                  synthetic runs: particles (pairs, 2, n, 3) mm, brightness
                               (pairs, 2, n) counts; attrs: flow (name and parameters), seeding
       volumes/data            float32 (pairs, 2, z, y, x); attrs: origin_mm, voxel_mm, method,
-                              settings, reconstructed_pairs
+                              settings, reconstructed_pairs, and (since the matrix-free projector)
+                              operator: {projector ("stored" | "matrix-free" | both, comma-
+                              separated), bytes (the largest frame's operator: weights, or
+                              templates and voxel indices), ms_per_iteration (mean over the
+                              frames), frames}; stores made before it have none
       volumes/x, y, z, time   coordinates: voxel centres (mm), time of each pair (s)
       vectors/                u, v, w, flags, peak_ratio (pairs, z, y, x); x_mm, y_mm, z_mm
       vectors/x, y, z, time   coordinates: window centres (mm, = x_mm ...), time of each pair (s)

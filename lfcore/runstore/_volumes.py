@@ -32,7 +32,10 @@ class Volumes(Part):
         and its settings, ``reconstructed_pairs``, the pairs written so far, and ``volumes_id``, a
         name new with every ``volumes/`` made, which the vectors correlated from it record. The
         coordinate arrays ``x``, ``y``, ``z`` (mm, voxel centres) and ``time`` (s, per pair) label
-        the axes for xarray (:mod:`lfcore.runstore._coords`).
+        the axes for xarray (:mod:`lfcore.runstore._coords`). The reconstruction adds
+        ``operator`` as frames are written (what applied the operator, its memory and the mean
+        milliseconds per iteration; see the layout in :mod:`lfcore.runstore`); volumes made before
+        it have none.
         """
         g = self._begin("volumes", staged=bool(self.reconstructed_pairs()))
         g.attrs.update({"origin_mm": list(grid.origin_mm), "voxel_mm": list(grid.voxel_mm), "method": method,

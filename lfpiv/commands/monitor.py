@@ -21,6 +21,7 @@ from lfpiv.commands import (
     warn_optics,
     xyz_triple,
 )
+from lfpiv.commands.reconstruct import add_projector
 from lfpiv.errors import UsageError
 
 
@@ -47,6 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="reconstruction: drt-mart (dense ray-traced weights) or mlos-mart (the same elimination, "
                    "line-of-sight weights; faster on a GPU) for light-field cameras, mlos-smart for pinhole "
                    "(Tomo-PIV) ones (default: drt-mart, or mlos-smart where every camera is a pinhole camera)")
+    add_projector(m)
     m.add_argument("--iterations", type=iterations, default=5,
                    help="MART iterations per frame (default: 5; changeable in the window)")
     m.add_argument("--relaxation", type=positive_float, default=1.0,
@@ -94,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"lfpiv monitor: {text}", file=sys.stderr)
 
     method = args.method or default_method(rig)
-    end = run_monitor(rig, pairs=args.pairs, settings=settings, method=method, passes=args.passes, pvr=args.pvr,
+    end = run_monitor(rig, pairs=args.pairs, settings=settings, method=method, projector=args.projector,
+                      passes=args.passes, pvr=args.pvr,
                       device=args.device, out=args.out, overwrite=args.overwrite,
                       sim_options=sim_lab_options(rig, args), ring_slots=args.ring,
                       title=f"lfpiv monitor: {args.rig}", screenshot=args.screenshot, after=args.after, say=say)
@@ -108,7 +111,8 @@ def run(args: argparse.Namespace) -> int:
           f"{int(numbers['discarded'])} discarded, {int(numbers['displayed'])} shown; last trigger-to-display "
           f"latency {f'{lat:.2f} s' if math.isfinite(lat) else 'n/a'}; {method}, {args.iterations} iteration(s) "
           f"on {end.device}, {'x'.join(map(str, end.voxels))} voxels at PVR "
-          f"{','.join(f'{v:g}' for v in args.pvr or rig.volume.pvr)}")
+          f"{','.join(f'{v:g}' for v in args.pvr or rig.volume.pvr)}"
+          + (f", projector {end.projector}" if end.projector else ""))
     if end.stats.error:
         print(f"lfpiv monitor: warning: the live path reported: {end.stats.error}", file=sys.stderr)
     if end.screenshot is not None:

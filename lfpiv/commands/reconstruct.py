@@ -35,6 +35,19 @@ def slabs_option(text: str) -> int | str:
     return n
 
 
+#: ``--projector``'s help, the same for every command that reconstructs (reconstruct, monitor).
+PROJECTOR_HELP = ("what applies DRT-MART's operator: stored weights, or matrix-free templates per depth and lenslet "
+                  "phase (memory set by the cameras and depth planes, not the voxels; slower per iteration on a CPU); "
+                  "auto (default): stored weights unless they do not fit in memory")
+
+
+def add_projector(parser: argparse.ArgumentParser) -> None:
+    """``--projector auto|stored|matrix-free`` (the choices of :data:`lfcore.matrix_free.PROJECTORS`)."""
+    from lfpiv.jobs.reconstruct import PROJECTORS
+
+    parser.add_argument("--projector", choices=PROJECTORS, default="auto", help=PROJECTOR_HELP)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     r = sub.add_parser(
         "reconstruct", help="reconstruct 3D particle volumes from a run's light-field images",
@@ -76,10 +89,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="line-of-sight weights (mart, mlos-mart): auto (default) stores them if they fit in the "
                    "device's memory and makes the rest again in each iteration (slower, the same volume); "
                    "stored refuses a volume whose weights do not fit; on-the-fly stores none")
-    r.add_argument("--projector", choices=("auto", "stored", "matrix-free"), default="auto",
-                   help="what applies DRT-MART's operator: stored weights, or matrix-free templates per depth and "
-                   "lenslet phase (memory set by the cameras and depth planes, not the voxels; slower per "
-                   "iteration on a CPU); auto (default): stored weights unless they do not fit in memory")
+    add_projector(r)
     r.add_argument("--slabs", type=slabs_option, default=None, metavar="N|auto",
                    help="reconstruct each volume in N depth slabs, written into the store slab by slab (the same "
                    "volume, without a buffer of the whole box: for volumes larger than memory); auto: in memory "

@@ -37,6 +37,19 @@ def _windows(windows: list[list[int]]) -> str:
     return " then ".join("x".join(map(str, w)) for w in windows)
 
 
+def _projector(asked: str, operator: dict | None) -> str:
+    """``"projector matrix-free, operator 35.1 MiB, 29.5 ms per iteration"``: the projector asked
+    for (with what ran, where ``auto`` chose) and the operator's figures of ``volumes/``
+    (:func:`lfpiv.jobs.reconstruct.operator_figures`; volumes made before they were recorded
+    have none, and say only the projector)."""
+    if not isinstance(operator, dict) or not operator.get("frames"):
+        return f"projector {asked}"
+    ran = operator.get("projector") or asked
+    return (f"projector {asked}{f' ({ran})' if ran != asked else ''}, operator "
+            f"{float(operator.get('bytes', 0)) / 2**20:.1f} MiB, {float(operator.get('ms_per_iteration', 0.0)):.1f} "
+            "ms per iteration")
+
+
 def describe(path: str | Path) -> list[str]:
     """The lines ``lfpiv info`` prints: a run's cameras, pairs, flow, state and derived data, or
     what a calibration store holds (as ``lfpiv calibrate report``).
@@ -110,7 +123,7 @@ def describe(path: str | Path) -> list[str]:
         lines.append(("volumes", f"{_count(store.reconstructed_pairs())} reconstructed by {va['method']}, "
                                  f"{va['settings'].get('iterations')} iterations, "
                                  f"{' x '.join(str(n) for n in g.shape[::-1])} voxels, "
-                                 f"projector {va['settings'].get('projector', 'auto')}"))
+                                 f"{_projector(va['settings'].get('projector', 'auto'), va.get('operator'))}"))
     else:
         lines.append(("volumes", f"none (lfpiv reconstruct {store.path})"))
     if store.has_vectors:

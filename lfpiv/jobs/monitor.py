@@ -31,7 +31,9 @@ import numpy as np
 from acquisition.protocols import DeviceError
 from acquisition.session import SessionStats
 from lfcore.correlate import CorrelationConfig, CorrelationError
-from lfcore.device import resolve_device
+from lfcore.device import MemoryBudgetError, resolve_device
+from lfcore.matrix_free import MatrixFreeUnsupported
+from lfcore.reconstruct import ReconSettings
 from lfcore.rig import Rig
 from lfcore.runstore import RunStore
 from lfcore.volume import VolumeGrid
@@ -39,8 +41,8 @@ from lfpiv.errors import UsageError
 from lfpiv.jobs.acquire import record
 from realtime.pipeline import LIVE_METHODS, LivePipeline, LiveSettings, LiveStats, default_windows, monitoring_recon
 
-__all__ = ["LIVE_METHODS", "LiveRecorder", "MonitorOutcome", "Recording", "check_display", "live_settings",
-           "require_gui", "run_monitor"]
+__all__ = ["LIVE_METHODS", "LiveRecorder", "MonitorOutcome", "Recording", "check_display",
+           "live_recon", "live_settings", "require_gui", "run_monitor"]
 
 
 @dataclass(frozen=True)
@@ -248,6 +250,16 @@ def live_settings(*, iterations: int, relaxation: float, slice_axis: str) -> Liv
         raise UsageError(f"--iterations/--relaxation: {exc}") from None
 
 
+def live_recon(method: str, projector: str = "auto") -> ReconSettings:
+    """The live path's fixed reconstruction settings (:func:`realtime.pipeline.monitoring_recon`)
+    for ``method`` and ``projector``, or the one-line :class:`UsageError` ``lfpiv reconstruct``
+    gives for the same pair (e.g. the matrix-free projector with a method other than drt-mart)."""
+    try:
+        return monitoring_recon(method=method, projector=projector)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
 @dataclass(frozen=True)
 class MonitorOutcome:
     """How ``lfpiv monitor`` ended.
@@ -264,6 +276,9 @@ class MonitorOutcome:
         The compute device of the live path.
     voxels
         (x, y, z) voxels of the live volume.
+    projector
+        What applied the operator to the last pair shown (``"stored"`` weights or the
+        ``"matrix-free"`` templates; ``""`` if none was).
     screenshot, screenshot_error
         The screenshot written, or why it could not be.
     interrupted
@@ -275,6 +290,7 @@ class MonitorOutcome:
     stats: LiveStats
     device: str
     voxels: tuple[int, int, int]
+    projector: str
     screenshot: Path | None
     screenshot_error: OSError | None
     interrupted: bool
@@ -291,11 +307,11 @@ class MonitorOutcome:
             raise KeyboardInterrupt
 
 
-def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "drt-mart", passes: int = 2,
-                pvr: Sequence[float] | None = None, device: str | None = None, out: str | Path | None = None,
-                overwrite: bool = False, sim_options: dict[str, Any] | None = None, ring_slots: int = 32,
-                title: str = "lfpiv monitor", screenshot: str | Path | None = None, after: int = 3,
-                say: Callable[[str], None] = lambda text: None) -> MonitorOutcome:
+def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "drt-mart", projector: str = "auto",
+                passes: int = 2, pvr: Sequence[float] | None = None, device: str | None = None,
+                out: str | Path | None = None, overwrite: bool = False, sim_options: dict[str, Any] | None = None,
+                ring_slots: int = 32, title: str = "lfpiv monitor", screenshot: str | Path | None = None,
+                after: int = 3, say: Callable[[str], None] = lambda text: None) -> MonitorOutcome:
     """Arm the rig, record every pair (to ``out``, or to a scratch store) and show the newest live.
 
     Parameters
@@ -309,6 +325,10 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
     method
         ``"drt-mart"`` or ``"mlos-mart"`` for light-field cameras (and mixed rigs), ``"mlos-smart"``
         for pinhole ones (see :data:`realtime.pipeline.LIVE_METHODS`).
+    projector
+        What applies DRT-MART's operator (:data:`lfcore.matrix_free.PROJECTORS`): ``"stored"`` weights, the
+        ``"matrix-free"`` templates (built with the pipeline), or ``"auto"``: stored weights
+        unless they do not fit in memory.
     passes
         Correlation passes (1 or 2).
     pvr
@@ -330,10 +350,13 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
     Raises
     ------
     UsageError
-        Windows that do not fit the live volume, or no Qt.
+        Windows that do not fit the live volume, a projector the method or the cameras cannot
+        use (the matrix-free one: drt-mart on light-field cameras looking along a grid axis), or
+        no Qt.
     """
     from realtime.monitor import GuiUnavailable, run_monitor_window
 
+    recon = live_recon(method, projector)  # before the simulated lab renders anything
     device = resolve_device(device)
     with ExitStack() as stack:
         if sim_options is not None:
@@ -347,11 +370,13 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
             corr = CorrelationConfig(windows=default_windows(grid.shape, passes), overlap=0.5, deform_iterations=0)
         except CorrelationError as exc:
             raise UsageError(str(exc)) from None
-        pipe = LivePipeline(rig, settings=settings, recon=monitoring_recon(method=method), correlation=corr, pvr=pvr,
-                            device=device)
+        pipe = LivePipeline(rig, settings=settings, recon=recon, correlation=corr, pvr=pvr, device=device)
         say(f"building the reconstruction ({'x'.join(map(str, pipe.grid.shape[::-1]))} voxels) and correlation "
             f"on {device} ...")
-        pipe.build()
+        try:
+            pipe.build()
+        except (MatrixFreeUnsupported, MemoryBudgetError) as exc:
+            raise UsageError(str(exc)) from None
         stack.callback(pipe.stop)
         rec = LiveRecorder(rig, pipe, pairs=pairs, out=out, overwrite=overwrite, sim_options=sim_options,
                            ring_slots=ring_slots)
@@ -366,6 +391,7 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
         except GuiUnavailable as exc:
             raise UsageError(str(exc)) from None
         say(f"window closed; recording and live path stopped {shown.stop_s:.1f} s later")
-    return MonitorOutcome(recordings=list(rec.recordings), numbers=shown.numbers, stats=pipe.stats(), device=device,
-                          voxels=tuple(pipe.grid.shape[::-1]), screenshot=shown.screenshot,
+    stats = pipe.stats()
+    return MonitorOutcome(recordings=list(rec.recordings), numbers=shown.numbers, stats=stats, device=device,
+                          voxels=tuple(pipe.grid.shape[::-1]), projector=stats.projector, screenshot=shown.screenshot,
                           screenshot_error=shown.screenshot_error, interrupted=shown.interrupted)

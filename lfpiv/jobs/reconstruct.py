@@ -11,7 +11,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
-from lfcore.matrix_free import MatrixFreeUnsupported
+from lfcore.matrix_free import PROJECTORS, MatrixFreeUnsupported
 from lfcore.pinhole_projector import PINHOLE_METHODS, projector_for, unsupported_method
 from lfcore.pinhole_projector import default_method as pinhole_default_method
 from lfcore.projector import Projector
@@ -25,11 +25,14 @@ from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
 from lfpiv.pair_runner import run_pairs, select_pairs
 
-__all__ = ["MAX_SUB_APERTURES", "PINHOLE_METHODS", "ReconJob", "ReconResult", "ReconSettings", "default_method",
-           "recon_settings", "reconstruct_pair_task", "reconstruct_run", "voxel_shape_notes"]
+__all__ = ["MAX_SUB_APERTURES", "OPERATOR_ATTR", "PINHOLE_METHODS", "PROJECTORS", "ReconJob", "ReconResult",
+           "ReconSettings", "default_method", "operator_figures", "recon_settings", "reconstruct_pair_task",
+           "reconstruct_run", "voxel_shape_notes"]
 
 #: Bytes per voxel of the box the elimination pass and the dense result need at once.
 BYTES_PER_BOX_VOXEL = 16
+#: The attribute of ``volumes/`` that holds what the operator took (see :func:`operator_figures`).
+OPERATOR_ATTR = "operator"
 #: Of the memory free, the share ``--slabs auto`` gives one slab's buffers (the rest is left to
 #: the active voxels' weights and intensities, which every slab keeps).
 SLAB_SHARE = 0.5
@@ -154,6 +157,37 @@ def _reconstruct_frame(frames: FrameReconstructor | SlabReconstructor, store: Ru
         raise UsageError(f"pair {pair} frame {'AB'[frame]}: {exc}") from None
 
 
+def operator_figures(results: Sequence[ReconResult], before: dict[str, Any] | None = None) -> dict[str, Any]:
+    """What the operator took over the frames of a set of volumes: the ``volumes/`` attribute
+    :data:`OPERATOR_ATTR`, the figures of ``before`` (the attribute as it was, or None) with
+    those of ``results`` added.
+
+    Returns
+    -------
+    dict
+        ``projector``: what applied the operator (``"stored"`` weights or the ``"matrix-free"``
+        templates; ``"matrix-free, stored"`` where ``auto`` used each for some frames);
+        ``bytes``: the largest frame's operator memory (the weights, or the templates and the
+        voxels' indices); ``ms_per_iteration``: the mean over the frames of the milliseconds an
+        iteration took; ``frames``: how many frames the figures are of.
+    """
+    before = before or {}
+    n0 = int(before.get("frames", 0))
+    n = n0 + len(results)
+    ran = set(filter(None, str(before.get("projector", "")).split(", "))) | {r.projector for r in results}
+    ms = (n0 * float(before.get("ms_per_iteration", 0.0)) + sum(r.ms_per_iteration for r in results)) / max(n, 1)
+    return {"projector": ", ".join(sorted(ran)),
+            "bytes": max([int(before.get("bytes", 0)), *(int(r.weight_bytes) for r in results)]),
+            "ms_per_iteration": round(ms, 3), "frames": n}
+
+
+def _record_operator(store: RunStore, results: Sequence[ReconResult]) -> None:
+    """Add the frames of ``results`` to the operator figures of the volumes being written (by
+    the one process that writes the store's bookkeeping)."""
+    g = store.writing("volumes")
+    g.attrs[OPERATOR_ATTR] = operator_figures(results, g.attrs.get(OPERATOR_ATTR))
+
+
 def _summary(res: ReconResult) -> ReconResult:
     # a run's results are kept for its summary line, its volumes are in the store: holding
     # them all would take a whole run's volumes of memory (482 MiB a frame for the M case)
@@ -273,6 +307,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
 
     def written(p: int, res: list[ReconResult]) -> None:
         store.record_volumes([(p, 0), (p, 1)])
+        _record_operator(store, res)
         results.extend(res)
 
     def remote(into: str) -> tuple[Any, ReconJob]:
@@ -300,15 +335,22 @@ def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, store: Run
         for p in chosen:
             for f in (0, 1):
                 res = _reconstruct_frame(frames, store, names, p, f, bar.update)
-                if res.slabs > 1:  # written slab by slab already
-                    writer.submit(store.record_volumes, [(p, f)])
-                else:
-                    writer.submit(store.write_volume, p, f, res.volume)
+                # the volume, then its bookkeeping and operator figures, on the writer's thread
+                writer.submit(_write_frame, store, p, f, res)
                 results.append(_summary(res))
                 if settings.iterations == 0:
                     bar.update(1)
                 bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}", projector=res.projector,
-                                mem=f"{res.weight_bytes / 2**20:.0f}MiB", ms_it=f"{res.ms_per_iteration:.0f}")
+                                mem=f"{res.weight_bytes / 2**20:.1f}MiB", ms_it=f"{res.ms_per_iteration:.1f}")
+
+
+def _write_frame(store: RunStore, pair: int, frame: int, res: ReconResult) -> None:
+    """Write a frame's volume (none of one written slab by slab) and record it with its operator
+    figures."""
+    if res.slabs == 1:
+        store.write_volume(pair, frame, res.volume, record=False)
+    store.record_volumes([(pair, frame)])
+    _record_operator(store, [res])
 
 
 def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, Any]) -> bool:
