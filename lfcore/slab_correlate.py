@@ -444,21 +444,26 @@ class SlabCorrelator:
             k = _first_row(self._plan.grids[i], s.lo)
             rows = slice(ea - k, eb - k + 1)
             if i + 1 < n:
-                shift = max(shift, _largest_z(field[rows], self._plan.grids[i], self.shape))
+                shift = max(shift, _largest_z(field[rows], self._plan.grids[i], self.shape, self._plan.grids[i + 1],
+                                              self._plan.modes[i + 1]))
             if out[rows].any():
                 reach = max(reach, _sweeps(out)[rows].max(initial=0))
         return _Assumed(max_shift=shift, reach=int(reach))
 
 
-def _largest_z(field: np.ndarray, g: WindowGrid, shape: tuple[int, int, int]) -> float:
-    """Largest |z displacement| of the predictor ``field`` (rows of grid ``g``) at any voxel of its
-    rows' planes: a trilinear field extrapolated linearly past the outermost centres along x and y
-    (as the deformation does) is largest at its nodes or at the volume's sides."""
+def _largest_z(field: np.ndarray, g: WindowGrid, shape: tuple[int, int, int], nxt: WindowGrid, mode: str) -> float:
+    """Largest |z displacement| the predictor ``field`` (rows of grid ``g``) gives the next pass
+    (grid ``nxt``) within those rows' planes: at the next windows' centres for a window shift, at
+    every voxel for a deformation. Its trilinear interpolation, continued linearly past the
+    outermost centres along x and y, is largest at its nodes or at the ends of that range."""
     if field.size == 0:
         return 0.0
     sx, sy, _ = g.centres()
-    wx = _axis_weights(sx, np.concatenate([[0.0], sx, [shape[2] - 1.0]]))
-    wy = _axis_weights(sy, np.concatenate([[0.0], sy, [shape[1] - 1.0]]))
+    nx_c, ny_c, _ = nxt.centres()
+    ends = ((nx_c[0], nx_c[-1]), (ny_c[0], ny_c[-1])) if mode == "shift" else ((0.0, shape[2] - 1.0),
+                                                                               (0.0, shape[1] - 1.0))
+    wx = _axis_weights(sx, np.concatenate([[ends[0][0]], sx, [ends[0][1]]]))
+    wy = _axis_weights(sy, np.concatenate([[ends[1][0]], sy, [ends[1][1]]]))
     return float(np.abs(np.einsum("jb,ia,kba->kji", wy, wx, field[..., 2])).max())
 
 
