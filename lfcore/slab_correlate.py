@@ -59,6 +59,8 @@ from lfcore.correlate import (
     VectorField,
     WindowGrid,
     _axis_weights,
+    _lag_plan,
+    _padded,
     pass_grids,
 )
 from lfcore.device import MemoryBudgetError
@@ -277,11 +279,27 @@ def plan_correlation_slabs(shape: tuple[int, int, int], config: CorrelationConfi
 
 
 def correlation_bytes(depth: int, shape: tuple[int, int, int], config: CorrelationConfig, device: str) -> int:
-    """Bytes correlating ``depth`` planes of volumes of ``shape`` (z, y, x) takes: the slab's
-    :data:`BYTES_PER_SLAB_VOXEL` per voxel and the batch buffers of the FFT passes."""
+    """Bytes correlating ``depth`` planes of volumes of ``shape`` (z, y, x) takes (an estimate of
+    :func:`correlator_bytes` and the two volumes): :data:`BYTES_PER_SLAB_VOXEL` per voxel, and the
+    batch buffers of the passes (two complex FFT buffers of as many windows as the budget holds,
+    or the direct correlation's lag sums), for the windows of the whole volume's grids that lie in
+    ``depth`` planes."""
     kind = "cpu" if device == "cpu" else "cuda"
-    return BYTES_PER_SLAB_VOXEL * int(depth) * int(shape[1]) * int(shape[2]) + int(
-        config.batch_bytes or DEFAULT_BATCH_BYTES[kind])
+    budget = int(config.batch_bytes or DEFAULT_BATCH_BYTES[kind])
+    fft = lags = 0
+    for i, g in enumerate(pass_grids(shape, config)):
+        rows = max(1, min(g.counts[2], (int(depth) - g.window[2]) // g.step[2] + 1))
+        part = WindowGrid(window=g.window, step=g.step, first=g.first, counts=(g.counts[0], g.counts[1], rows))
+        if config.search_radius is not None and i > 0:
+            lags = max(lags, 24 * _lag_plan(part, config.search_radius, budget).entries)  # two vec3f buffers
+            continue
+        dims = _padded(g.window, config.zero_pad)
+        p = int(np.prod(dims))
+        nb = max(2, min(part.size, budget // (16 * p)))
+        nb += nb % 2
+        # two vec2f buffers, and per buffer row the sums (vec4) and the row peaks (value, index)
+        fft = max(fft, 16 * nb * p + 24 * nb * dims[0] * dims[1])
+    return BYTES_PER_SLAB_VOXEL * int(depth) * int(shape[1]) * int(shape[2]) + fft + lags
 
 
 def slabs_for_budget(shape: tuple[int, int, int], config: CorrelationConfig, budget_bytes: int, *, device: str,
