@@ -446,6 +446,7 @@ class SlabCorrelator:
             replaced[s.k0:s.k1] = f.replaced[rows]
             fallback += corr.last_fallback_fraction * (s.k1 - s.k0) / cz
             del corr, f
+            _release_freed_memory()
         self.last_fallback_fraction = fallback
         x, y, z = g.centres()
         return VectorField(x=x, y=y, z=z, displacement=disp, peak_ratio=ratio, peak_height=height, outlier=outlier,
@@ -483,6 +484,21 @@ def _largest_z(field: np.ndarray, g: WindowGrid, shape: tuple[int, int, int], nx
     wx = _axis_weights(sx, np.concatenate([[ends[0][0]], sx, [ends[0][1]]]))
     wy = _axis_weights(sy, np.concatenate([[ends[1][0]], sy, [ends[1][1]]]))
     return float(np.abs(np.einsum("jb,ia,kba->kji", wy, wx, field[..., 2])).max())
+
+
+def _release_freed_memory() -> None:
+    """Hand the heap's freed pages back to the system (glibc's ``malloc_trim``), where there is one.
+
+    Each slab frees its volumes and buffers (tens of MiB, of a slightly different size for each
+    slab) before the next allocates its own; glibc serves allocations of that size from the heap
+    once one has been freed, and without a trim the freed pages of earlier slabs stay resident
+    beside the next slab's (measured: 458 MiB peak instead of 328 MiB over 8 slabs)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc
+        pass
 
 
 def _first_row(g: WindowGrid, lo: int) -> int:
