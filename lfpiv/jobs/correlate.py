@@ -343,7 +343,9 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
         found.append(res)
 
     def here(todo: list[int]) -> None:
-        with tqdm(total=len(todo) * len(cfg.passes), unit="pass", disable=not progress, desc="correlating") as bar:
+        # a pair in slabs makes every pass once per slab
+        per_pair = len(cfg.passes) * (len(correlator.slabs) if isinstance(correlator, SlabCorrelator) else 1)
+        with tqdm(total=len(todo) * per_pair, unit="pass", disable=not progress, desc="correlating") as bar:
             # the next pair's volumes are read while this one is correlated
             target = _Target.of(store)
             if isinstance(correlator, SlabCorrelator):  # read slab by slab, never a whole volume

@@ -145,3 +145,16 @@ def test_bad_slabs_are_one_line(capsys, reconstructed, tmp_path, value, expected
     shutil.copytree(reconstructed, run)
     rc, out, err = _run(capsys, "correlate", run, *CORR, "--slabs", value)
     assert rc == 2 and out == "" and err.count("\n") == 1 and expected in err, err
+
+
+def test_slabs_on_a_dask_worker_give_the_in_memory_vectors(capsys, deep, tmp_path):
+    path, _ = deep
+    here, there = tmp_path / "memory.zarr", tmp_path / "worker.zarr"
+    shutil.copytree(path, here)
+    shutil.copytree(path, there)
+    deep_corr = ("--windows", DEEP_WINDOWS, "--device", "cpu", "--quiet")
+    assert _run(capsys, "correlate", here, *deep_corr)[0] == 0
+    rc, out, err = _run(capsys, "correlate", there, *deep_corr, "--slabs", "3", "--workers", "1")
+    assert rc == 0 and "in 3 depth slabs" in out, err
+    assert RunStore.open(there).correlated_pairs() == [0]
+    _assert_same_vectors(_vectors(there), _vectors(here))
