@@ -106,6 +106,9 @@ class CorrelationSlab:
     grids: tuple[WindowGrid, ...]
     #: per pass: (first, last) rows of the slab's grid (whole-grid indices) computed as in memory
     exact: tuple[tuple[int, int], ...]
+    #: per pass: (first, last) rows whose outlier test and replacement are as in memory (the
+    #: smoothing of the predictor and the final median filter read these)
+    validated: tuple[tuple[int, int], ...]
 
     @property
     def halo(self) -> tuple[int, int]:
@@ -143,9 +146,11 @@ class _Plan:
         g = self.grids[i]
         return g.first[2] + g.step[2] * k + 0.5 * (g.window[2] - 1)
 
-    def exact(self, lo: int, hi: int, a: _Assumed) -> list[tuple[int, int]] | None:
+    def exact(self, lo: int, hi: int, a: _Assumed) -> list[tuple[int, int, int, int]] | None:
         """Per pass, the (first, last) whole-grid rows the planes ``lo .. hi - 1`` compute as the
-        whole volume does (first > last: none), or None if a pass has no window in them."""
+        whole volume does (first > last: none), then the (first, last) rows whose outlier test and
+        replacement are (before the smoothing and median filter), or None if a pass has no window
+        in them."""
         cut_lo, cut_hi = lo > 0, hi < self.nz
         vol = (lo if cut_lo else -_INF, hi - 1 if cut_hi else _INF)
         p = self.prefilter
@@ -174,19 +179,19 @@ class _Plan:
                 ok = ((z0 >= vol[0]) & (z1 <= vol[1]) & (z0 >= pred[0]) & (z1 <= pred[1]) & (z0 - d >= coef[0])
                       & (z1 + d <= coef[1]))
             if not ok.any():
-                out.append((1, 0))
+                out.append((1, 0, 1, 0))
                 pred = (_INF, -_INF)
                 continue
             ra, rb = int(k[ok][0]), int(k[ok][-1])
-            erode = 1 + a.reach + self.smooth_rows[i] + (1 if i == len(self.grids) - 1 and self.config.median_filter
-                                                           else 0)
             # the whole grid's own first and last rows have the same neighbours in the slab (and the
             # smoothing continues the grid by as many rows, min(radius, rows - 1), as there)
             t = max(1, self.smooth_rows[i])
             same = not self.smooth_rows[i] or min(t, k_hi - k_lo) == min(t, c - 1)
-            ea = ra if ra == 0 and same else ra + erode
-            eb = rb if rb == c - 1 and same else rb - erode
-            out.append((ea, eb))
+            # the median test and the replacement, then the smoothing and the final median filter
+            va, vb = _erode(ra, rb, 1 + a.reach, c - 1, same)
+            ea, eb = _erode(va, vb, self.smooth_rows[i] + (1 if i == len(self.grids) - 1 and self.config.median_filter
+                                                           else 0), c - 1, same)
+            out.append((ea, eb, va, vb))
             if ea > eb:
                 pred = (_INF, -_INF)
             else:
@@ -222,7 +227,14 @@ class _Plan:
             ka, kb = max(0, -((f - lo) // s)), min(c - 1, (hi - w - f) // s)
             grids.append(WindowGrid(window=gg.window, step=gg.step, first=(gg.first[0], gg.first[1], f + s * ka - lo),
                                     counts=(gg.counts[0], gg.counts[1], kb - ka + 1)))
-        return CorrelationSlab(z0=z0, z1=z1, lo=lo, hi=hi, k0=k0, k1=k1, grids=tuple(grids), exact=tuple(exact))
+        return CorrelationSlab(z0=z0, z1=z1, lo=lo, hi=hi, k0=k0, k1=k1, grids=tuple(grids),
+                               exact=tuple(e[:2] for e in exact), validated=tuple(e[2:] for e in exact))
+
+
+def _erode(first: int, last: int, rows: int, end: int, keep_ends: bool) -> tuple[int, int]:
+    """The rows ``first .. last`` less ``rows`` on each side, except at the grid's own ends (row 0
+    and ``end``), which see the same neighbours in a slab as in the whole grid if ``keep_ends``."""
+    return (first if first == 0 and keep_ends else first + rows, last if last == end and keep_ends else last - rows)
 
 
 def _final_rows(plan: _Plan, slabs: Sequence[tuple[int, int]]) -> list[tuple[int, int, int, int]]:
@@ -457,15 +469,14 @@ class SlabCorrelator:
         computes as in memory (the only rows the kept vectors depend on)."""
         shift, reach = 0.0, 0
         n = len(corr.last_passes)
-        for i, ((field, out), (ea, eb)) in enumerate(zip(corr.last_passes, s.exact, strict=True)):
-            if ea > eb:
-                continue
+        for i, ((field, out), (ea, eb), (va, vb)) in enumerate(zip(corr.last_passes, s.exact, s.validated,
+                                                                    strict=True)):
             k = _first_row(self._plan.grids[i], s.lo)
-            rows = slice(ea - k, eb - k + 1)
-            if i + 1 < n:
-                shift = max(shift, _largest_z(field[rows], self._plan.grids[i], self.shape, self._plan.grids[i + 1],
-                                              self._plan.modes[i + 1]))
-            if out[rows].any():
+            if i + 1 < n and ea <= eb:  # the predictor of the next pass, where it is as in memory
+                shift = max(shift, _largest_z(field[ea - k:eb - k + 1], self._plan.grids[i], self.shape,
+                                              self._plan.grids[i + 1], self._plan.modes[i + 1]))
+            rows = slice(va - k, vb - k + 1)  # every replaced vector the kept ones read
+            if va <= vb and out[rows].any():
                 reach = max(reach, _sweeps(out)[rows].max(initial=0))
         return _Assumed(max_shift=shift, reach=int(reach))
 
