@@ -158,3 +158,16 @@ def test_slabs_on_a_dask_worker_give_the_in_memory_vectors(capsys, deep, tmp_pat
     assert rc == 0 and "in 3 depth slabs" in out, err
     assert RunStore.open(there).correlated_pairs() == [0]
     _assert_same_vectors(_vectors(there), _vectors(here))
+
+
+def test_the_python_api_takes_slabs(deep, tmp_path):
+    import lfpiv
+    from lfpiv.errors import UsageError
+
+    path, _ = deep
+    run = tmp_path / "run.zarr"
+    shutil.copytree(path, run)
+    with pytest.raises(UsageError, match="expected a whole number of slabs or auto, got 'some'"):
+        lfpiv.correlate(run, windows=((16, 16, 16), (16, 16, 8)), device="cpu", progress=False, slabs="some")
+    done = lfpiv.correlate(run, windows=((16, 16, 16), (16, 16, 8)), device="cpu", progress=False, slabs=2)
+    assert done.slabs == 2 and done.peak_bytes > 0 and RunStore.open(run).correlated_pairs() == [0]
