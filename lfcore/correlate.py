@@ -64,7 +64,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -281,6 +281,23 @@ def window_grid(shape: tuple[int, int, int], window: tuple[int, int, int],
     return WindowGrid(window=tuple(window), step=tuple(steps), first=tuple(firsts), counts=tuple(counts))
 
 
+def _checked_grids(shape: tuple[int, int, int], config: CorrelationConfig,
+                   grids: Sequence[WindowGrid]) -> list[WindowGrid]:
+    """``grids``, one per pass of ``config``, each of the pass's window and inside ``shape`` (z, y, x)."""
+    grids = list(grids)
+    if len(grids) != len(config.passes):
+        raise CorrelationError(f"{len(config.passes)} passes need as many window grids, got {len(grids)}")
+    n_xyz = (shape[2], shape[1], shape[0])
+    for g, (w, _) in zip(grids, config.passes, strict=True):
+        if tuple(g.window) != tuple(w):
+            raise CorrelationError(f"a window grid of {_fmt(g.window)} voxels for a pass of {_fmt(w)}")
+        if min(g.counts) < 1 or min(g.step) < 1 or min(g.first) < 0 or any(
+                f + (c - 1) * s + ww > n for f, c, s, ww, n in zip(g.first, g.counts, g.step, g.window, n_xyz,
+                                                                 strict=True)):
+            raise CorrelationError(f"the window grid {g} does not lie inside the volume {_fmt(n_xyz)} (x, y, z)")
+    return grids
+
+
 def pass_grids(shape: tuple[int, int, int], config: CorrelationConfig) -> list[WindowGrid]:
     """The window grid of every pass of ``config`` over volumes of ``shape`` (z, y, x); the last
     one is the grid of the vectors.
@@ -443,6 +460,10 @@ class Correlator:
         per sample, so that a GPU's neighbouring threads touch neighbouring addresses, and short
         y and z axes transformed by a direct DFT) or ``"auto"`` (rows on the CPU, elements on
         a GPU). The results are the same to float round-off.
+    grids
+        The window grid of every pass (:func:`pass_grids` of ``shape`` by default). Depth slabs
+        (:mod:`lfcore.slab_correlate`) give a part of the volume the whole volume's windows
+        that lie in it, so that its vectors sit where the whole volume's do.
 
     Raises
     ------
@@ -451,7 +472,8 @@ class Correlator:
     """
 
     def __init__(self, shape: tuple[int, int, int], config: CorrelationConfig = CorrelationConfig(),
-                 device: str | None = None, *, layout: str = "auto") -> None:
+                 device: str | None = None, *, layout: str = "auto",
+                 grids: Sequence[WindowGrid] | None = None) -> None:
         from lfcore._kernels import correlate as kc
 
         self._k = kc
@@ -470,7 +492,7 @@ class Correlator:
             raise CorrelationError("fft='scipy' runs on the CPU only; use fft='warp' or 'auto' on a GPU")
         self.fft = fft
         self.threads = REDUCE_THREADS[kind]
-        self.grids = pass_grids(self.shape, config)
+        self.grids = pass_grids(self.shape, config) if grids is None else _checked_grids(self.shape, config, grids)
         budget = config.batch_bytes or DEFAULT_BATCH_BYTES[kind]
         wp = self.wp
         # passes correlated directly around the predictor (all after the first, with a search radius)
@@ -531,6 +553,9 @@ class Correlator:
         self._fallback = wp.empty(n_max, dtype=int, device=d)
         self._valid = wp.empty(n_max, dtype=int, device=d)
         self.last_fallback_fraction = 0.0
+        #: per pass of the last call: the field that predicts the next pass (outliers replaced,
+        #: smoothed where a deformation follows; (nz, ny, nx, 3) voxels) and the outlier mask
+        self.last_passes: list[tuple[np.ndarray, np.ndarray]] = []
         self._twiddles: dict = {}
         self._nonfinite = wp.zeros(1, dtype=int, device=d)
 
@@ -765,6 +790,7 @@ class Correlator:
         if self._coef_a.shape == self.shape:
             self._prefilter(vol_a, vol_b)
         pred: tuple[np.ndarray, WindowGrid] | None = None
+        self.last_passes = []
         for i, (_, mode) in enumerate(cfg.passes):
             g = self.grids[i]
             base = np.zeros((g.size, 3))
@@ -793,6 +819,7 @@ class Correlator:
             if cfg.smooth_predictor > 0 and i + 1 < len(cfg.passes) and cfg.passes[i + 1][1] == "deform":
                 pred_field = smooth(pred_field, sigma=cfg.smooth_predictor)
             pred = (pred_field, g)
+            self.last_passes.append((pred_field, outlier))
             if progress is not None:
                 progress(1)
         if cfg.median_filter:

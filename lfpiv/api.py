@@ -135,7 +135,7 @@ def correlate(run: str | os.PathLike[str] | RunStore, *,
               windows: Sequence[Sequence[int]] | None = None, overlap: float | Sequence[float] = 0.75,
               deform_passes: int = 2, pairs: PairsLike = None, device: str | None = None, workers: int | None = None,
               scheduler: str | None = None, skip_done: bool = False, progress: bool = True,
-              **options: Any) -> Any:
+              slabs: int | str | None = None, **options: Any) -> Any:
     """3D multi-grid cross-correlation of the run's volumes into ``vectors/`` (``lfpiv correlate``).
 
     Parameters
@@ -153,6 +153,10 @@ def correlate(run: str | os.PathLike[str] | RunStore, *,
         None (every reconstructed pair), a pair index, ``"START:STOP"`` or a slice.
     device, workers, scheduler, skip_done, progress
         As :func:`reconstruct`.
+    slabs
+        As the command's ``--slabs``: a number of depth slabs, each read from the store with the
+        halo its passes need (the in-memory vectors), ``"auto"`` (in slabs only where the pair does
+        not fit in memory) or None (in memory).
     **options
         Further options of :func:`lfpiv.jobs.correlate.correlation_config` (``zero_pad``,
         ``median_filter``, ``epsilon``, ``threshold``, ``interpolation``, ``search_radius``, ...).
@@ -172,7 +176,8 @@ def correlate(run: str | os.PathLike[str] | RunStore, *,
     ov = (float(overlap),) * 3 if isinstance(overlap, int | float) else tuple(float(v) for v in overlap)
     cfg = correlation_config(windows=wins, overlap=ov, deform_iterations=deform_passes, **options)  # type: ignore[arg-type]
     with dask_client(workers, scheduler) as client:
-        return correlate_run(store, cfg, chosen, device=device, progress=progress, skip_done=skip_done, client=client)
+        return correlate_run(store, cfg, chosen, device=device, progress=progress, skip_done=skip_done, client=client,
+                             slabs=slabs)
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from lfcore.runstore._chunks import (
     chunk_problem,
     chunk_stored,
     damage,
+    decode_problem,
     dtype_problem,
     read_slab,
 )
@@ -133,8 +134,11 @@ class Integrity(Part):
                 raise RunStoreError(self._line(f"{camera} {where} was lost while recording ({lost}); it has no image"))
         return self._read(a, (pair, frame), where, strict=True)
 
-    def read_volume(self, pair: int, frame: int) -> np.ndarray:
+    def read_volume(self, pair: int, frame: int, *, planes: tuple[int, int] | None = None) -> np.ndarray:
         """One reconstructed volume (z, y, x) float32 of ``volumes/``, every chunk stored and intact.
+
+        ``planes`` (z0, z1) reads only planes z0 .. z1 - 1 (depth slabs), and checks only the
+        chunks that hold them.
 
         Raises
         ------
@@ -152,7 +156,25 @@ class Integrity(Part):
         if pair not in self.reconstructed_pairs() and (pair, frame) not in written:
             raise RunStoreError(self._line(f"volumes/ has no volume of {where}: it is not reconstructed; run 'lfpiv "
                                            f"reconstruct {self.path} --pairs {pair}:{pair + 1}'"))
-        return self._read(a, (pair, frame), where)
+        if planes is None:
+            return self._read(a, (pair, frame), where)
+        z0, z1 = (int(v) for v in planes)
+        nz, cz = a.shape[2], a.chunks[2]
+        if not 0 <= z0 < z1 <= nz:
+            raise RunStoreError(self._line(f"volumes/data is {nz} planes deep: planes {z0}-{z1 - 1} are not all in it"))
+        chunks = [c for c in chunk_coords(a, (pair, frame)) if z0 // cz <= c[2] <= (z1 - 1) // cz]
+        if checksummed(a):
+            for c in chunks:
+                if not chunk_stored(a, c):
+                    raise RunStoreError(self._line(damage(a, where, c, "is missing")))
+        try:
+            return a[pair, frame, z0:z1]
+        except Exception as exc:  # noqa: BLE001 - find the chunk and say what is wrong with it
+            for c in chunks:
+                problem = chunk_problem(a, c, required=False)
+                if problem is not None:
+                    raise RunStoreError(self._line(damage(a, where, c, problem))) from None
+            raise RunStoreError(self._line(f"{a.path} {where}: {decode_problem(exc)}; {RESTORE}")) from None
 
     def read_vectors(self, pair: int) -> dict[str, np.ndarray]:
         """The vectors of one correlated pair: u, v, w (m/s), flags and peak_ratio, each (z, y, x),

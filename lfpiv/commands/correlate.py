@@ -17,6 +17,7 @@ from lfpiv.commands import (
     positive_float,
     workers_phrase,
 )
+from lfpiv.commands.reconstruct import slabs_option
 from lfpiv.errors import UsageError
 
 DEFAULT_WINDOWS = "320x320x64,160x160x32"
@@ -100,6 +101,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "passes deform the volumes (default: FFT in every pass)")
     c.add_argument("--first-overlap", type=parse_overlap, default=None, metavar="F[,F,F]",
                    help="overlap of the first pass's windows, which only predict (default: --overlap)")
+    c.add_argument("--slabs", type=slabs_option, default=None, metavar="N|auto",
+                   help="correlate each pair in N depth slabs, each read from the store with the halo of planes its "
+                   "passes need (the same vectors, without the whole volumes in memory); auto: in memory where the "
+                   "pair fits, otherwise in as many slabs as the memory needs (default: in memory)")
     add_device(c)
     add_workers(c, "correlate")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -121,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
                              search_radius=args.search_radius, first_overlap=args.first_overlap)
     with dask_client(args.workers, args.scheduler) as client:
         done = correlate_run(store, cfg, pairs, device=args.device, progress=not args.quiet,
-                             skip_done=args.skip_done, client=client)
+                             skip_done=args.skip_done, client=client, slabs=args.slabs)
     if not done.pairs:
         print(f"every selected pair of {store.path} is already correlated with these settings; nothing to do")
         old_spelling_notes(args)
@@ -133,6 +138,11 @@ def run(args: argparse.Namespace) -> int:
           f"final windows {'x'.join(map(str, g.window))} voxels; {100.0 * done.outliers / n_vec:.1f}% outliers "
           f"replaced; {done.seconds:.1f} s{workers_phrase(args)} on {done.device} "
           f"({n_vec / done.seconds:.3g} vectors/s)")
+    if done.slabs > 1:
+        print(f"each pair was correlated in {done.slabs} depth slabs, read from the store slab by slab with the halo "
+              f"its passes need; peak memory of the volumes and buffers {done.peak_bytes / 2**20:.1f} MiB, of which "
+              f"{done.slab_bytes / 2**20:.1f} MiB for the deepest slab's volumes (the whole pair's take "
+              f"{done.box_bytes / 2**20:.1f} MiB)")
     old_spelling_notes(args)
     return 0
 

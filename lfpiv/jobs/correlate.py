@@ -13,7 +13,15 @@ import numpy as np
 from tqdm import tqdm
 
 from lfcore.correlate import CorrelationConfig, CorrelationError, Correlator, WindowGrid, pass_grids
+from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
 from lfcore.runstore import RunStore, RunStoreError
+from lfcore.slab_correlate import (
+    BYTES_PER_SLAB_VOXEL,
+    SlabCorrelator,
+    correlation_bytes,
+    correlator_bytes,
+    slabs_for_budget,
+)
 from lfcore.vectors import MedianTest, centres_mm, displacement_to_velocity, flags_from_masks
 from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError
@@ -26,6 +34,8 @@ __all__ = ["CorrelateJob", "CorrelationRun", "PairVectors", "correlate_pair_task
 # Settings that say where the vectors were computed, not what they are: a run correlated on
 # another device (or FFT engine, which follows the device) keeps its earlier pairs.
 _PLACE = ("device", "fft")
+#: Of the memory free, the share ``--slabs auto`` gives one slab (as ``lfpiv reconstruct``'s).
+SLAB_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -41,6 +51,8 @@ class CorrelateJob:
     writer: str | None = None
     #: the group the vectors go to: ``vectors``, or ``vectors.pending`` while they replace others
     into: str = "vectors"
+    #: depth slabs: None or 1 in memory, a number of slabs, or ``"auto"`` (see :func:`correlate_run`)
+    slabs: int | str | None = None
 
 
 @dataclass(frozen=True)
@@ -51,6 +63,12 @@ class PairVectors:
     outliers: int
     device: str
     fft: str
+    #: depth slabs the pair was correlated in (1: in memory)
+    slabs: int = 1
+    #: the most bytes of volumes and correlator buffers held at once
+    peak_bytes: int = 0
+    #: of those, the bytes per voxel of the deepest slab (:data:`BYTES_PER_SLAB_VOXEL`)
+    slab_bytes: int = 0
 
 
 @dataclass(frozen=True)
@@ -62,6 +80,14 @@ class CorrelationRun:
     outliers: int
     seconds: float
     device: str
+    #: the most depth slabs a pair was correlated in (1: in memory)
+    slabs: int = 1
+    #: the most bytes of volumes and correlator buffers a pair held at once
+    peak_bytes: int = 0
+    #: of those, the bytes per voxel of the deepest slab
+    slab_bytes: int = 0
+    #: the same bytes per voxel of the whole box (:data:`BYTES_PER_SLAB_VOXEL`)
+    box_bytes: int = 0
 
 
 def _settings(cfg: CorrelationConfig, device: str, fft: str) -> dict[str, Any]:
@@ -86,11 +112,42 @@ def _same_vectors(g: Any, volumes_id: str | None, windows: list[list[int]], over
             == {k: v for k, v in settings.items() if k not in _PLACE})
 
 
-def _correlator(shape: tuple[int, int, int], cfg: CorrelationConfig, device: str | None) -> Correlator:
+def _correlator(shape: tuple[int, int, int], cfg: CorrelationConfig, device: str | None,
+                slabs: int | str | None = None) -> Correlator | SlabCorrelator:
+    """The correlator of a run's pairs, in memory or in depth slabs (``slabs``: a number of slabs,
+    or ``"auto"``: as many as the memory needs, 1 where the pair fits)."""
     try:
+        n = _slab_count(slabs, shape, cfg, resolve_device(device))
+        if n > 1:
+            return SlabCorrelator(shape, cfg, n, device=device)
         return Correlator(shape, cfg, device=device)
     except CorrelationError as exc:
         raise UsageError(str(exc)) from None
+
+
+def _slab_count(slabs: int | str | None, shape: tuple[int, int, int], cfg: CorrelationConfig, device: str) -> int:
+    """Depth slabs to correlate volumes of ``shape`` in: ``slabs`` as given (None: 1), or for
+    ``"auto"`` 1 where the whole pair fits in the memory free, else the fewest whose deepest slab
+    fits in :data:`SLAB_SHARE` of it."""
+    nz = shape[0]
+    if slabs is None:
+        return 1
+    if slabs != "auto":
+        try:
+            n = int(slabs)
+        except (TypeError, ValueError):
+            raise UsageError(f"--slabs: expected a whole number of slabs or auto, got {slabs!r}") from None
+        if not 1 <= n <= nz:
+            raise UsageError(f"--slabs {n}: the box is {nz} voxels deep; give from 1 to {nz} slabs, or auto")
+        return n
+    free = available_bytes(device)
+    pass_grids(shape, cfg)  # windows that do not fit say so first
+    if correlation_bytes(nz, shape, cfg, device) <= free:
+        return 1
+    try:
+        return slabs_for_budget(shape, cfg, int(SLAB_SHARE * free), device=device)
+    except MemoryBudgetError as exc:
+        raise UsageError(f"--slabs auto: {exc}") from None
 
 
 def _read_pair(store: RunStore, pair: int) -> tuple[np.ndarray, np.ndarray]:
@@ -113,14 +170,29 @@ class _Target:
         return cls(store, store.volume_grid(), float(store.timing["dt_s"]), store.vector_arrays())
 
 
-def _correlate_pair(correlator: Correlator, target: _Target, pair: int,
-                    volumes: tuple[np.ndarray, np.ndarray], progress: Any = None) -> PairVectors:
-    """Correlate one pair's volumes (A, B) and write its vectors (not the bookkeeping) into ``vectors/``."""
-    field = correlator(*volumes, progress=progress)
+def _read_planes(store: RunStore, pair: int) -> Any:
+    """``read(lo, hi)``: planes lo .. hi - 1 of the volumes of frames A and B of ``pair``, every
+    chunk that holds them stored and intact."""
+    return lambda lo, hi: (store.read_volume(pair, 0, planes=(lo, hi)), store.read_volume(pair, 1, planes=(lo, hi)))
+
+
+def _correlate_pair(correlator: Correlator | SlabCorrelator, target: _Target, pair: int,
+                    volumes: tuple[np.ndarray, np.ndarray] | None, progress: Any = None) -> PairVectors:
+    """Correlate one pair's volumes (A, B; None: read slab by slab from the store by a
+    :class:`SlabCorrelator`) and write its vectors (not the bookkeeping) into ``vectors/``."""
+    if isinstance(correlator, SlabCorrelator):
+        field = correlator(_read_planes(target.store, pair), progress=progress)
+        slabs, peak = len(correlator.slabs), correlator.peak_bytes
+        per_voxel = BYTES_PER_SLAB_VOXEL * max(s.depth for s in correlator.slabs) * int(np.prod(correlator.shape[1:]))
+    else:
+        field = correlator(*volumes, progress=progress)
+        slabs, peak = 1, correlator_bytes(correlator) + sum(int(v.nbytes) for v in volumes)
+        per_voxel = BYTES_PER_SLAB_VOXEL * int(np.prod(correlator.shape))
     vel = displacement_to_velocity(field.displacement, target.grid.voxel_mm, target.dt_s)
     target.store.write_vectors(pair, vel, flags_from_masks(field.outlier, field.replaced), field.peak_ratio,
                                record=False, arrays=target.arrays)
-    return PairVectors(pair=pair, outliers=int(field.outlier.sum()), device=correlator.device, fft=correlator.fft)
+    return PairVectors(pair=pair, outliers=int(field.outlier.sum()), device=correlator.device, fft=correlator.fft,
+                       slabs=slabs, peak_bytes=peak, slab_bytes=per_voxel)
 
 
 def correlate_pair_task(job: CorrelateJob, pair: int) -> PairVectors:
@@ -134,10 +206,12 @@ def correlate_pair_task(job: CorrelateJob, pair: int) -> PairVectors:
         store = open_run_on_worker(job.path, job.writer)
         if job.into != "vectors":
             store.resume("vectors")
-        return (_Target.of(store), store, _correlator(job.shape, job.config, this_worker_device(job.device)))
+        return (_Target.of(store), store, _correlator(job.shape, job.config, this_worker_device(job.device),
+                                                      job.slabs))
 
     target, store, correlator = worker_state(job.token, build)
-    return _correlate_pair(correlator, target, pair, _read_pair(store, pair))
+    volumes = None if isinstance(correlator, SlabCorrelator) else _read_pair(store, pair)
+    return _correlate_pair(correlator, target, pair, volumes)
 
 
 def fitting_windows(shape: tuple[int, int, int]) -> tuple[tuple[int, int, int], ...]:
@@ -209,7 +283,8 @@ def pairs_to_correlate(store: RunStore, pairs: slice | None = None, *, option: s
 
 
 def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, device: str | None = None,
-                  progress: bool = True, skip_done: bool = False, client: Any = None) -> CorrelationRun:
+                  progress: bool = True, skip_done: bool = False, client: Any = None,
+                  slabs: int | str | None = None) -> CorrelationRun:
     """Correlate the volumes of ``pairs`` into the run's ``vectors/``.
 
     Vectors already there with the same windows, overlap and settings are kept and added to;
@@ -219,13 +294,20 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
     left out. ``client``, a Dask client (:func:`lfpiv.batch.dask_client`), spreads the pairs
     over its workers, each correlating on its own ``device``.
 
+    ``slabs`` correlates each pair in depth slabs read from the store slab by slab
+    (:mod:`lfcore.slab_correlate`; the in-memory vectors, without the whole volumes): a number of
+    slabs, or ``"auto"``, in memory where the pair fits and otherwise in as many slabs as the
+    memory needs; None (default): in memory. The slabs do not change the vectors' settings.
+
     Raises
     ------
     UsageError
         Windows that do not fit the volume or settings the device cannot run.
     """
     grid = store.volume_grid()
-    correlator = _correlator(grid.shape, cfg, device) if client is None else None
+    if client is not None and slabs not in (None, "auto"):
+        _slab_count(slabs, grid.shape, cfg, "cpu")  # a bad count says so here, not on a worker
+    correlator = _correlator(grid.shape, cfg, device, slabs) if client is None else None
     try:
         g = pass_grids(grid.shape, cfg)[-1]
     except CorrelationError as exc:
@@ -261,9 +343,15 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
         found.append(res)
 
     def here(todo: list[int]) -> None:
-        with tqdm(total=len(todo) * len(cfg.passes), unit="pass", disable=not progress, desc="correlating") as bar:
+        # a pair in slabs makes every pass once per slab
+        per_pair = len(cfg.passes) * (len(correlator.slabs) if isinstance(correlator, SlabCorrelator) else 1)
+        with tqdm(total=len(todo) * per_pair, unit="pass", disable=not progress, desc="correlating") as bar:
             # the next pair's volumes are read while this one is correlated
             target = _Target.of(store)
+            if isinstance(correlator, SlabCorrelator):  # read slab by slab, never a whole volume
+                for p in todo:
+                    written(p, _correlate_pair(correlator, target, p, None, progress=bar.update))
+                return
             for p, vols in prefetched(todo, partial(_read_pair, store)):
                 written(p, _correlate_pair(correlator, target, p, vols, progress=bar.update))
 
@@ -272,7 +360,7 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
 
         return correlate_pair_task, CorrelateJob(path=str(Path(store.path).resolve()), shape=grid.shape, config=cfg,
                                                  device=device, token=new_token(), writer=store.writer_token,
-                                                 into=into)
+                                                 into=into, slabs=slabs)
 
     t0 = time.perf_counter()
     run_pairs(store, "vectors", pairs, matches=same, differences=differences,
@@ -282,4 +370,7 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
               progress=progress)
     dev = found[0].device if found else place[0]
     return CorrelationRun(pairs=[r.pair for r in found], grid=g, outliers=sum(r.outliers for r in found),
-                          seconds=time.perf_counter() - t0, device=dev)
+                          seconds=time.perf_counter() - t0, device=dev, slabs=max((r.slabs for r in found), default=1),
+                          peak_bytes=max((r.peak_bytes for r in found), default=0),
+                          slab_bytes=max((r.slab_bytes for r in found), default=0),
+                          box_bytes=BYTES_PER_SLAB_VOXEL * grid.n_voxels)
