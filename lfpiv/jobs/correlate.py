@@ -26,7 +26,7 @@ from lfcore.vectors import MedianTest, centres_mm, displacement_to_velocity, fla
 from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError
 from lfpiv.overlap import prefetched
-from lfpiv.pair_runner import run_pairs, select_pairs
+from lfpiv.pair_runner import SLAB_SHARE, run_pairs, select_pairs, slabs_asked
 
 __all__ = ["CorrelateJob", "CorrelationRun", "PairVectors", "correlate_pair_task", "correlate_run",
            "correlation_config", "fitting_windows", "pairs_to_correlate"]
@@ -34,9 +34,6 @@ __all__ = ["CorrelateJob", "CorrelationRun", "PairVectors", "correlate_pair_task
 # Settings that say where the vectors were computed, not what they are: a run correlated on
 # another device (or FFT engine, which follows the device) keeps its earlier pairs.
 _PLACE = ("device", "fft")
-#: Of the memory free, the share ``--slabs auto`` gives one slab (as ``lfpiv reconstruct``'s).
-SLAB_SHARE = 0.5
-
 
 @dataclass(frozen=True)
 class CorrelateJob:
@@ -130,16 +127,9 @@ def _slab_count(slabs: int | str | None, shape: tuple[int, int, int], cfg: Corre
     ``"auto"`` 1 where the whole pair fits in the memory free, else the fewest whose deepest slab
     fits in :data:`SLAB_SHARE` of it."""
     nz = shape[0]
-    if slabs is None:
-        return 1
-    if slabs != "auto":
-        try:
-            n = int(slabs)
-        except (TypeError, ValueError):
-            raise UsageError(f"--slabs: expected a whole number of slabs or auto, got {slabs!r}") from None
-        if not 1 <= n <= nz:
-            raise UsageError(f"--slabs {n}: the box is {nz} voxels deep; give from 1 to {nz} slabs, or auto")
-        return n
+    asked = slabs_asked(slabs, nz)
+    if asked is not None:
+        return asked
     free = available_bytes(device)
     pass_grids(shape, cfg)  # windows that do not fit say so first
     if correlation_bytes(nz, shape, cfg, device) <= free:

@@ -23,7 +23,7 @@ from lfcore.volume import VolumeGrid
 from lfcore.weight_cache import WeightCache
 from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
-from lfpiv.pair_runner import run_pairs, select_pairs
+from lfpiv.pair_runner import SLAB_SHARE, run_pairs, select_pairs, slabs_asked
 
 __all__ = ["MAX_SUB_APERTURES", "OPERATOR_ATTR", "PINHOLE_METHODS", "PROJECTORS", "ReconJob", "ReconResult",
            "ReconSettings", "default_method", "operator_figures", "recon_settings", "reconstruct_pair_task",
@@ -33,10 +33,6 @@ __all__ = ["MAX_SUB_APERTURES", "OPERATOR_ATTR", "PINHOLE_METHODS", "PROJECTORS"
 BYTES_PER_BOX_VOXEL = 16
 #: The attribute of ``volumes/`` that holds what the operator took (see :func:`operator_figures`).
 OPERATOR_ATTR = "operator"
-#: Of the memory free, the share ``--slabs auto`` gives one slab's buffers (the rest is left to
-#: the active voxels' weights and intensities, which every slab keeps).
-SLAB_SHARE = 0.5
-
 
 def recon_settings(**options: Any) -> ReconSettings:
     """:class:`lfcore.reconstruct.ReconSettings` of the given options (method, iterations,
@@ -115,17 +111,9 @@ def _slab_count(slabs: int | str | None, grid: VolumeGrid, settings: ReconSettin
     """The depth slabs to reconstruct ``grid`` in: ``slabs`` as given (None: 1), or for ``"auto"`` 1
     where the box's ``need`` bytes fit in the ``free`` ones, else the fewest whose buffers fit in
     :data:`SLAB_SHARE` of them."""
-    nz = grid.shape[0]
-    if slabs is None:
-        return 1
-    if slabs != "auto":
-        try:
-            n = int(slabs)
-        except (TypeError, ValueError):
-            raise UsageError(f"--slabs: expected a whole number of slabs or auto, got {slabs!r}") from None
-        if not 1 <= n <= nz:
-            raise UsageError(f"--slabs {n}: the box is {nz} voxels deep; give from 1 to {nz} slabs, or auto")
-        return n
+    asked = slabs_asked(slabs, grid.shape[0])
+    if asked is not None:
+        return asked
     if need <= free:
         return 1
     if settings.form != "simultaneous":
