@@ -52,18 +52,21 @@ from lfcore.device import PrivateCopies, Rows, launch_rows, warp
 from lfcore.projector import Projector
 from lfcore.weight_build import MemoryBudgetError
 
-__all__ = ["MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS", "SPOT_BYTES", "DrtTemplates",
-           "MatrixFreeUnsupported", "MatrixFreeWeights", "fidelity"]
+__all__ = ["CUT_SPOT_BYTES", "MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS", "RIGID_SPOT_BYTES",
+           "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "fidelity"]
 
 #: Phase bins per lattice axis of a depth's templates, per lenslet pitch over a sub-aperture's
 #: footprint width on the MLA (bins a fifth of the footprint: correlation >= 0.999 on the
 #: tiny rig's voxels, hexagonal and square).
-PHASES_PER_FOOTPRINT = 5.0
+PHASES_PER_FOOTPRINT = 3.0
 #: Fewest and most phase bins per lattice axis of a depth.
 MIN_PHASES = 4
 MAX_PHASES = 32
-#: Bytes per template spot: (column, row, hx, hy) float32 and its share per pixel area.
-SPOT_BYTES = 20
+#: Bytes per rigid template spot: (column, row, hx, hy) float32 and its share per pixel area.
+RIGID_SPOT_BYTES = 20
+#: Bytes per cut template spot: (column, row, hx, hy) and its share at the bin centre, and the
+#: change of all five per bin along each lattice axis.
+CUT_SPOT_BYTES = 84
 #: The projectors reconstruction can run on.
 PROJECTORS = ("auto", "stored", "matrix-free")
 
@@ -136,7 +139,7 @@ class DrtTemplates:
         dims = (nx, ny, nz)
         origin = np.asarray(grid.origin_mm, dtype=np.float64)
         step = np.asarray(grid.voxel_mm, dtype=np.float64)
-        plans, t_view, t_point, depth_first, depth_phase = [], [], [], [], []
+        plans, t_view, t_point, t_probe, depth_first, depth_phase = [], [], [], [], [], []
         blur = 0.0
         for iv, cam in enumerate(projector.cameras):
             rot = cam.rotation.T  # world -> camera
@@ -179,6 +182,12 @@ class DrtTemplates:
                     u, v = pitch * f0, pitch * f1
                 gx = c * u - s * v + off[0]
                 gy = s * u + c * v + off[1]
+                # half a bin along each lattice axis, in the camera frame (the cut spots' probes)
+                h0 = np.array([0.5 * pitch / n_ph, 0.0])
+                h1 = np.array([0.25 * pitch / n_ph, 0.5 * pitch * 0.8660254037844386 / n_ph]) \
+                    if cam.mla_grid == "hex" else np.array([0.0, 0.5 * pitch / n_ph])
+                probe = [c * h0[0] - s * h0[1], s * h0[0] + c * h0[1], c * h1[0] - s * h1[1], s * h1[0] + c * h1[1]]
+                t_probe.append(np.tile(np.asarray(probe, dtype=np.float32), (len(gx), 1)))
                 depth_first.append(sum(len(x) for x in t_view))
                 depth_phase.append(n_ph)
                 pts = np.stack([-gx / lat, -gy / lat, np.full(gx.shape, z_cam[d])], axis=1)
@@ -202,8 +211,6 @@ class DrtTemplates:
         self.blur_error = blur
         self.plans = wp.array(plans, dtype=km.Plan, device=self.device)
         self.depth_phase = np.asarray(depth_phase, dtype=np.int32)
-        self._depth_first = wp.array(np.asarray(depth_first, dtype=np.int32), dtype=wp.int32, device=self.device)
-        self._depth_phase = wp.array(self.depth_phase, dtype=wp.int32, device=self.device)
         t_view_a = np.concatenate(t_view)
         t_point_a = np.concatenate(t_point).astype(np.float32)
         n_t = len(t_view_a)
@@ -211,29 +218,37 @@ class DrtTemplates:
         views = projector.views
         tv = wp.array(t_view_a, dtype=wp.int32, device=self.device)
         tp = wp.array(t_point_a, dtype=wp.vec3, device=self.device)
-        counts = wp.zeros(n_t, dtype=wp.int32, device=self.device)
-        dummy4 = wp.empty(1, dtype=wp.vec4, device=self.device)
-        dummyf = wp.empty(1, dtype=float, device=self.device)
-        offs0 = wp.zeros(n_t + 1, dtype=wp.int32, device=self.device)
-        launch_rows(km.template_spots, n_t, [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp),
-                                             Rows(offs0, extra=1), 0, Rows(counts), dummy4, dummyf], self.device)
-        cnt = counts.numpy().astype(np.int64)
-        offsets = np.zeros(n_t + 1, dtype=np.int64)
-        np.cumsum(cnt, out=offsets[1:])
-        self.n_spots = int(offsets[-1])
-        need = SPOT_BYTES * self.n_spots + 4 * (n_t + 1)
+        tq = wp.array(np.concatenate(t_probe), dtype=wp.vec4, device=self.device)
+        tables = km.Tables()
+        tables.depth_first = wp.array(np.asarray(depth_first, dtype=np.int32), dtype=wp.int32, device=self.device)
+        tables.depth_phase = wp.array(self.depth_phase, dtype=wp.int32, device=self.device)
+        rigid_counts = wp.zeros(n_t, dtype=wp.int32, device=self.device)
+        cut_counts = wp.zeros(n_t, dtype=wp.int32, device=self.device)
+        inputs = [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp), Rows(tq)]
+        launch_rows(km.template_spots, n_t, [*inputs, 0, Rows(rigid_counts), Rows(cut_counts), Rows(rigid_counts),
+                                             Rows(cut_counts), tables], self.device)
+        offsets = []
+        for cnt in (rigid_counts, cut_counts):
+            o = np.zeros(n_t + 1, dtype=np.int64)
+            np.cumsum(cnt.numpy().astype(np.int64), out=o[1:])
+            offsets.append(o)
+        self.n_rigid, self.n_cut = int(offsets[0][-1]), int(offsets[1][-1])
+        self.n_spots = self.n_rigid + self.n_cut
+        need = RIGID_SPOT_BYTES * self.n_rigid + CUT_SPOT_BYTES * self.n_cut + 8 * (n_t + 1)
         if budget_bytes is not None and need > budget_bytes:
             raise MemoryBudgetError(f"the matrix-free templates need {need / 2**20:.1f} MiB, more than the "
                                     f"{budget_bytes / 2**20:.1f} MiB allowed; use fewer phase bins or sub-apertures")
-        if self.n_spots >= 2**31:
+        if max(self.n_rigid, self.n_cut) >= 2**31:
             raise MemoryBudgetError("more than 2**31 template spots; use fewer phase bins or sub-apertures")
-        self.t_offsets = wp.array(offsets.astype(np.int32), dtype=wp.int32, device=self.device)
-        self.spots = wp.empty(max(self.n_spots, 1), dtype=wp.vec4, device=self.device)
-        self.shares = wp.empty(max(self.n_spots, 1), dtype=float, device=self.device)
-        # each block writes its own templates' spots: from the global offsets, so no Rows on them
-        launch_rows(km.template_spots, n_t, [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp),
-                                             Rows(self.t_offsets, extra=1), 1, Rows(counts), self.spots, self.shares],
-                    self.device)
+        tables.rigid_offsets = wp.array(offsets[0].astype(np.int32), dtype=wp.int32, device=self.device)
+        tables.cut_offsets = wp.array(offsets[1].astype(np.int32), dtype=wp.int32, device=self.device)
+        nr, nc = max(self.n_rigid, 1), max(self.n_cut, 1)
+        tables.rigid = wp.zeros(nr, dtype=km.RigidSpot, device=self.device)
+        tables.cut = wp.zeros(nc, dtype=km.CutSpot, device=self.device)
+        self.tables = tables
+        # each block writes its own templates' spots: from the global offsets in the tables
+        launch_rows(km.template_spots, n_t, [*inputs, 1, Rows(tables.rigid_offsets), Rows(tables.cut_offsets),
+                                             Rows(rigid_counts), Rows(cut_counts), tables], self.device)
         self.nbytes = int(need)
         self._none1 = wp.empty(1, dtype=float, device=self.device)  # stand-ins for a kernel's unused outputs
         self._none2 = wp.empty((1, 1), dtype=float, device=self.device)
@@ -242,8 +257,7 @@ class DrtTemplates:
 
     def _common(self) -> list:
         p = self.projector
-        return [p._grid, p.views, self.plans, self._depth_first, self._depth_phase, len(p.cameras), self.t_offsets,
-                self.spots, self.shares]
+        return [p._grid, p.views, self.plans, self.tables, len(p.cameras)]
 
 
 @dataclass
