@@ -66,7 +66,7 @@ MAX_PHASES = 32
 RIGID_SPOT_BYTES = 20
 #: Bytes per cut template spot: (column, row, hx, hy) and its share at the bin centre, and the
 #: change of all five per bin along each lattice axis.
-CUT_SPOT_BYTES = 84
+CUT_SPOT_BYTES = 56
 #: The projectors reconstruction can run on.
 PROJECTORS = ("auto", "stored", "matrix-free")
 

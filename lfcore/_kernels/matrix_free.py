@@ -78,16 +78,43 @@ class RigidSpot:
     density: float  # its share of the light per pixel area
 
 
+#: Fixed-point vectors of the cut spots' changes (conversions inline on every device).
+vec4us = wp.types.vector(length=4, dtype=wp.uint16)
+vec4s = wp.types.vector(length=4, dtype=wp.int16)
+#: Steps of the fixed-point shares (over the part's peak) and geometry changes (pixels per bin;
+#: within +-16 pixels per bin, far more than a spot of about a pixel moves or grows in a bin).
+SHARE_STEP = wp.constant(1.0 / 65535.0)
+GEO_STEP = wp.constant(1.0 / 2048.0)
+
+
+@wp.func
+def to_fraction(v: wp.vec4) -> vec4us:
+    """Fractions 0..1 in steps of :data:`SHARE_STEP`."""
+    q = wp.min(wp.max(v / SHARE_STEP, wp.vec4(0.0)), wp.vec4(65535.0)) + wp.vec4(0.5)
+    return vec4us(wp.uint16(int(q[0])), wp.uint16(int(q[1])), wp.uint16(int(q[2])), wp.uint16(int(q[3])))
+
+
+@wp.func
+def to_steps(v: wp.vec4) -> vec4s:
+    """Pixels in steps of :data:`GEO_STEP`, clamped to the int16 range."""
+    q = wp.min(wp.max(v / GEO_STEP, wp.vec4(-32767.0)), wp.vec4(32767.0))
+    return vec4s(wp.int16(int(wp.round(q[0]))), wp.int16(int(wp.round(q[1]))), wp.int16(int(wp.round(q[2]))),
+                 wp.int16(int(wp.round(q[3]))))
+
+
 @wp.struct
 class CutSpot:
-    """The part of a footprint that meets a lenslet edge somewhere in the phase bin and enters one lenslet."""
+    """The part of a footprint that meets a lenslet edge somewhere in the phase bin and enters one
+    lenslet. Its changes in the phase are fixed point (steps of 5e-4 pixel and 1.5e-5 of the
+    part's most light)."""
 
     geo: wp.vec4  # (column, row, hx, hy) pixels at the bin centre
-    d0: wp.vec4  # their change per bin along lattice axis 0, less the rigid shift
-    d1: wp.vec4  # and along axis 1
     share: float  # share of the light at the bin centre
-    axes: wp.vec4  # at half a bin up and down lattice axis 0, then axis 1
-    diag: wp.vec4  # at the bin's corners (+0 +1, -0 +1, +0 -1, -0 -1)
+    peak: float  # the most of the centre's and the probes' shares
+    d0: vec4s  # the geometry's change per bin along lattice axis 0, less the rigid shift (GEO_STEP)
+    d1: vec4s  # and along axis 1
+    axes: vec4us  # the share at half a bin up and down lattice axis 0, then axis 1, over peak (SHARE_STEP)
+    diag: vec4us  # the share at the bin's corners (+0 +1, -0 +1, +0 -1, -0 -1), over peak
 
 
 @wp.struct
@@ -354,13 +381,18 @@ def template_spots(
                             else:
                                 centre = mm.geo + r0 + r1
                         else:
-                            cs.d0 = per_bin(m, p0, m0, r0)
-                            cs.d1 = per_bin(m, p1, m1, r1)
+                            cs.d0 = to_steps(per_bin(m, p0, m0, r0))
+                            cs.d1 = to_steps(per_bin(m, p1, m1, r1))
                         cs.geo = centre
                         # the share at the centre and at the eight probes around it
+                        axes = wp.vec4(p0.share, m0.share, p1.share, m1.share)
+                        diag = wp.vec4(pp.share, mp.share, pm.share, mm.share)
+                        peak = wp.max(m.share, wp.max(wp.max(wp.max(axes[0], axes[1]), wp.max(axes[2], axes[3])),
+                                                      wp.max(wp.max(diag[0], diag[1]), wp.max(diag[2], diag[3]))))
                         cs.share = m.share
-                        cs.axes = wp.vec4(p0.share, m0.share, p1.share, m1.share)
-                        cs.diag = wp.vec4(pp.share, mp.share, pm.share, mm.share)
+                        cs.peak = peak
+                        cs.axes = to_fraction(axes / peak)
+                        cs.diag = to_fraction(diag / peak)
                         tables.cut[cbase + nc] = cs
                     nc += 1
     rigid_counts[tid] = nr
@@ -406,14 +438,11 @@ def cut_spot(mode: int, cam: CameraParams, base: int, colc: float, rowc: float, 
                      + wp.where(w10 > min_weight, w10 * values[q + ncols], 0.0)
                      + wp.where(w11 > min_weight, w11 * values[q + ncols + 1], 0.0))
         elif mode == 0:
-            if w00 > min_weight:
-                wp.atomic_add(values, q, w00 * ej)
-            if w01 > min_weight:
-                wp.atomic_add(values, q + 1, w01 * ej)
-            if w10 > min_weight:
-                wp.atomic_add(values, q + ncols, w10 * ej)
-            if w11 > min_weight:
-                wp.atomic_add(values, q + ncols + 1, w11 * ej)
+            # all four, those at or below min_weight as 0 (no branches to mispredict)
+            wp.atomic_add(values, q, wp.where(w00 > min_weight, w00 * ej, 0.0))
+            wp.atomic_add(values, q + 1, wp.where(w01 > min_weight, w01 * ej, 0.0))
+            wp.atomic_add(values, q + ncols, wp.where(w10 > min_weight, w10 * ej, 0.0))
+            wp.atomic_add(values, q + ncols + 1, wp.where(w11 > min_weight, w11 * ej, 0.0))
         else:
             if w00 > min_weight:
                 images[row, q] += w00
@@ -480,22 +509,26 @@ def apply_templates(
                           images, row)
     u0 = pl.phase[0]
     u1 = pl.phase[1]
+    # the share is bilinear in the quadrant of the probes the phase is in (never below 0, and over
+    # a sub-aperture's parts its sum, the sub-aperture's light, is whole at every phase): the
+    # quadrant's probes and the four bilinear weights, once per voxel
+    ia = wp.where(u0 > 0.0, 0, 1)
+    ib = wp.where(u1 > 0.0, 2, 3)
+    iab = wp.where(u1 > 0.0, 0, 2) + wp.where(u0 > 0.0, 0, 1)
+    a = wp.min(2.0 * wp.abs(u0), 1.0)
+    b = wp.min(2.0 * wp.abs(u1), 1.0)
+    c00 = (1.0 - a) * (1.0 - b)
+    ca = a * (1.0 - b) * SHARE_STEP
+    cb = (1.0 - a) * b * SHARE_STEP
+    cab = a * b * SHARE_STEP
+    g0 = u0 * GEO_STEP
+    g1 = u1 * GEO_STEP
     for t in range(tables.cut_offsets[pl.tmpl], tables.cut_offsets[pl.tmpl + 1]):
-        # the share bilinear in the quadrant of the probes the phase is in: never below 0, and
-        # over a sub-aperture's parts its sum (the sub-aperture's light) is whole at every phase
         cs = tables.cut[t]
-        ax4 = cs.axes
-        dg4 = cs.diag
-        s0 = cs.share
-        sa = wp.where(u0 > 0.0, ax4[0], ax4[1])
-        sb = wp.where(u1 > 0.0, ax4[2], ax4[3])
-        sab = wp.where(u1 > 0.0, wp.where(u0 > 0.0, dg4[0], dg4[1]), wp.where(u0 > 0.0, dg4[2], dg4[3]))
-        a = wp.min(2.0 * wp.abs(u0), 1.0)
-        b = wp.min(2.0 * wp.abs(u1), 1.0)
-        s = s0 + a * (sa - s0) + b * (sb - s0) + a * b * (sab - sa - sb + s0)
+        s = c00 * cs.share + cs.peak * (ca * float(cs.axes[ia]) + cb * float(cs.axes[ib]) + cab * float(cs.diag[iab]))
         if s <= 0.0:
             continue
-        st = cs.geo + u0 * cs.d0 + u1 * cs.d1 + move
+        st = cs.geo + g0 * wp.vec4(cs.d0) + g1 * wp.vec4(cs.d1) + move
         # a part that (extrapolated) shrinks to nothing still lands its share
         hx = wp.max(st[2], MIN_HALF)
         hy = wp.max(st[3], MIN_HALF)
