@@ -11,21 +11,30 @@ So per camera and depth plane, the voxel images are a small set of templates: on
 bin of g within the lattice cell (``n`` per lattice axis, more near focus where footprints are
 small: :data:`PHASES_PER_FOOTPRINT`), each the spots that the dense ray tracing of
 :func:`lfcore._kernels.weights.drt_weights` makes for one point (the same arithmetic, stopped
-before the spots are cut into pixels). A voxel takes the three templates whose bin centres
-surround its phase, weighted linearly in the phase (barycentric on the triangle), shifts each
-one's spots by ``(1 + f_ml / si) L + (f_ml / si) delta`` and cuts them into pixels exactly as
-the stored weights are cut. What this handles exactly and what it bounds:
+before the spots are cut into pixels). A voxel takes the template of the bin nearest its
+phase, shifts its spots by ``(1 + f_ml / si) L + (f_ml / si) delta`` and cuts them into pixels
+exactly as the stored weights are cut. A template's spots are of two kinds:
+
+- rigid: the sub-aperture's footprint stays inside one lenslet wherever the phase is in the
+  bin; the spot only moves, and the shift is exact;
+- cut: the footprint meets a lenslet edge somewhere in the bin, one spot per lenslet it meets.
+  Such a part's geometry (centre, half-sizes) is moved on by its change per bin along each
+  lattice axis (secants of probes half a bin either side), and its share of the light is
+  interpolated bilinearly in the voxel's quadrant of the bin from its shares at the centre and
+  at the 8 probes around it: never below 0, and over a sub-aperture's parts the shares sum to
+  its whole light at every phase (the probes' do), so the voxel's light is kept.
+
+What this handles exactly and what it bounds:
 
 - drift of micro-images against the pixel grid and non-integer voxels per lenslet period:
   exact, since spots are shifted in millimetres and cut into pixels afterwards;
 - rotated and offset (fitted) MLAs: exact, the phase is taken in the MLA's own lattice frame;
-- the phase between bin centres: exact for footprints inside one lenslet; where a footprint
-  straddles lenslet edges, its split is interpolated between the bins' (second order in the
-  bin width): the error that :func:`fidelity` measures against the stored weights (the
-  reference): correlation >= 0.999 and total light within 0.1% on the tests' rigs;
-- vignetting at the sensor's edges: spots are clipped where the voxel's land; the light of
-  spots that cross the edge is interpolated as above (the largest light errors, about 0.1%,
-  are at the sensor's edges);
+- the phase within a bin: exact for rigid spots; for cut ones, the parts' shares are exact
+  where a footprint crosses one edge of a square or hexagonal cell (the overlap is linear in
+  the move there) or two edges of a square one (bilinear), and their geometry to first order:
+  the error that :func:`fidelity` measures against the stored weights (the reference):
+  correlation >= 0.9995 and total light within 4e-5 on the tests' rigs, 0.9995 and 0.02% on S;
+- vignetting at the sensor's edges: spots are clipped where the voxel's land;
 - the depth extent's blur, which grows with the distance of a sub-aperture from the voxel's
   own lateral position (``|A - p| dq`` in the tracing), is taken at the template's point, near
   the optical axis: off by ``|p| dq`` at lateral position p, bounded relative to a
@@ -35,11 +44,13 @@ the stored weights are cut. What this handles exactly and what it bounds:
 Cameras must look along a grid axis (a camera's depth then is one grid index); others need the
 stored weights (:class:`MatrixFreeUnsupported`).
 
-Memory: 20 bytes per spot (centre and half-sizes in pixels, share) plus an offset per template:
-set by the cameras, depth planes and sub-apertures, not by the voxels (40 MiB for S, about
-400 MiB for Mc), plus 4 bytes per reconstructed voxel (its index). The work per voxel is three
-templates' spots, several times a stored voxel's merged weights: on a CPU it is slower per
-iteration than stored weights, and it is what is left where those do not fit.
+Memory: :data:`RIGID_SPOT_BYTES` per rigid spot and :data:`CUT_SPOT_BYTES` per cut one (about
+seven in eight on S) plus two offsets per template: set by the cameras, depth planes and
+sub-apertures, not by the voxels (39 MiB for S), plus 4 bytes per reconstructed voxel (its
+index). The work per voxel is one template's spots, each cut into (mostly) 2 x 2 pixels, where
+a stored voxel reads its merged weights: on a CPU it is still slower per iteration than stored
+weights (about 12x on S, was 30-47x with three templates a voxel), and it is what is left where
+those do not fit.
 """
 
 from __future__ import annotations
@@ -56,16 +67,17 @@ __all__ = ["CUT_SPOT_BYTES", "MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT",
            "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "fidelity"]
 
 #: Phase bins per lattice axis of a depth's templates, per lenslet pitch over a sub-aperture's
-#: footprint width on the MLA (bins a fifth of the footprint: correlation >= 0.999 on the
-#: tiny rig's voxels, hexagonal and square).
+#: footprint width on the MLA (bins a third of the footprint: correlation >= 0.9995 on the
+#: tiny rig's voxels, hexagonal and square; at a half, 0.9989 on the hexagonal).
 PHASES_PER_FOOTPRINT = 3.0
 #: Fewest and most phase bins per lattice axis of a depth.
 MIN_PHASES = 4
 MAX_PHASES = 32
 #: Bytes per rigid template spot: (column, row, hx, hy) float32 and its share per pixel area.
 RIGID_SPOT_BYTES = 20
-#: Bytes per cut template spot: (column, row, hx, hy) and its share at the bin centre, and the
-#: change of all five per bin along each lattice axis.
+#: Bytes per cut template spot: (column, row, hx, hy) float32 at the bin centre, its share there
+#: and the most of its shares (float32), the geometry's change per bin along each lattice axis
+#: (int16 steps) and its shares at the 8 probes around the centre (uint16 fractions of the most).
 CUT_SPOT_BYTES = 56
 #: The projectors reconstruction can run on.
 PROJECTORS = ("auto", "stored", "matrix-free")
@@ -93,8 +105,11 @@ class DrtTemplates:
     ----------
     projector
         The projector (its cameras, grid, sub-apertures and device).
-    n_phase
-        Phase bins per lattice axis.
+    phases_per_footprint
+        Phase bins per lattice axis of a depth, per lenslet pitch over a sub-aperture's
+        footprint width on the MLA (:data:`PHASES_PER_FOOTPRINT`).
+    max_phases
+        Most phase bins per lattice axis (at least :data:`MIN_PHASES`).
     budget_bytes
         Most bytes the templates may take; None: no limit beyond the device's.
 
@@ -103,7 +118,12 @@ class DrtTemplates:
     nbytes
         Device bytes of the templates.
     n_templates, n_spots
-        Templates (cameras x depth planes x ``n_phase`` squared) and their spots in all.
+        Templates (over cameras and depth planes, the depth's phase bins squared) and their
+        spots in all.
+    n_rigid, n_cut
+        Of those spots, the rigid and the cut ones (see the module docstring).
+    tables
+        The device tables (:class:`lfcore._kernels.matrix_free.Tables`).
     build_s
         Seconds the build took.
     blur_error

@@ -21,11 +21,16 @@ import warp as wp
 from lfcore._kernels.mart import multiplied
 from lfcore._kernels.optics import HEX_ROW, CameraParams, lenslet_centre
 from lfcore._kernels.weights import (
+    Footprint,
     Grid,
+    Overlap,
     View,
     cell_overlap,
+    footprint,
     from_lattice,
+    inside_cell,
     lattice_box,
+    part_spot,
     pixel_overlap,
     row_shift,
     row_step,
@@ -194,22 +199,16 @@ class Part:
 
 
 @wp.func
-def spot_part(view: View, c: wp.vec2, x0: float, x1: float, y0: float, y1: float, ax: float, ay: float, fx: float,
-              fy: float, hx_full: float, hy_full: float, wk: float) -> Part:
-    """The spot of the part of footprint [x0, x1] x [y0, y1] (half-sizes fx, fy, from sub-aperture
-    point (ax, ay) of weight wk) that enters the lenslet centred at c, as drt_weights makes it."""
-    cam = view.cam
+def spot_part(view: View, c: wp.vec2, fp: Footprint, dx: float, dy: float, ax: float, ay: float, wk: float) -> Part:
+    """The spot of the part of footprint ``fp`` moved by (dx, dy) mm on the MLA that enters the
+    lenslet centred at c (sub-aperture point (ax, ay) of weight wk), as drt_weights makes it."""
     out = Part()
-    ov = cell_overlap(view, c[0], c[1], x0, x1, y0, y1)
+    ov = cell_overlap(view, c[0], c[1], fp.qx - fp.fx + dx, fp.qx + fp.fx + dx, fp.qy - fp.fy + dy,
+                      fp.qy + fp.fy + dy)
     if ov.area <= 0.0:
         return out
-    # the part entering this lenslet lands around the image of its centroid, as a spot shrunk
-    # like the part's extent on the MLA
-    sx = c[0] + cam.f_ml * (ov.cx - ax) / cam.si
-    sy = c[1] + cam.f_ml * (ov.cy - ay) / cam.si
-    out.geo = wp.vec4(0.5 * float(cam.ncols) - sx / cam.pixel, 0.5 * float(cam.nrows) + sy / cam.pixel,
-                      hx_full * ov.wx / (2.0 * fx), hy_full * ov.wy / (2.0 * fy))
-    out.share = wk * ov.area / (4.0 * fx * fy)
+    out.geo = part_spot(view, c, ov, ax, ay, fp)
+    out.share = wk * ov.area / (4.0 * fp.fx * fp.fy)
     return out
 
 
@@ -289,44 +288,27 @@ def template_spots(
             ax = sub_a[k][0]
             ay = sub_a[k][1]
             wk = sub_w[k]
-            qx = a * ax + gx
-            qy = a * ay + gy
-            sprx = lat * view.half[0] + wp.abs(ax - p[0]) * dq
-            spry = lat * view.half[1] + wp.abs(ay - p[1]) * dq
-            wsub = wp.abs(a) * view.sub_side
-            fx = 0.5 * wp.sqrt(wsub * wsub + 4.0 * sprx * sprx)
-            fy = 0.5 * wp.sqrt(wsub * wsub + 4.0 * spry * spry)
-            x0 = qx - fx
-            x1 = qx + fx
-            y0 = qy - fy
-            y1 = qy + fy
-            # spot half-sizes on the sensor, in pixels
-            wspot = wp.abs(1.0 - a) * view.sub_side
-            hx_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * sprx * sprx) / cam.pixel
-            hy_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * spry * spry) / cam.pixel
-            home = lenslet_centre(cam, qx, qy)
+            fp = footprint(view, p, a, gx, gy, lat, dq, ax, ay)
+            home = lenslet_centre(cam, fp.qx, fp.qy)
             # inside its lenslet wherever the voxel's phase is in the bin: one rigid spot
-            inside = int(1)
-            for e in range(view.n_edges):
-                nx = view.edge_nx[e]
-                ny = view.edge_ny[e]
-                if (nx * (qx - home[0]) + ny * (qy - home[1]) + wp.abs(nx) * (fx + reach_x)
-                        + wp.abs(ny) * (fy + reach_y) > 0.5 * cam.pitch):
-                    inside = int(0)
-            if inside == 1:
+            if inside_cell(view, fp.qx, fp.qy, home, fp.fx + reach_x, fp.fy + reach_y) == 1:
                 if fill == 1:
-                    sx = home[0] + cam.f_ml * (qx - ax) / cam.si
-                    sy = home[1] + cam.f_ml * (qy - ay) / cam.si
+                    whole = Overlap()
+                    whole.area = 4.0 * fp.fx * fp.fy
+                    whole.cx = fp.qx
+                    whole.cy = fp.qy
+                    whole.wx = 2.0 * fp.fx
+                    whole.wy = 2.0 * fp.fy
                     rs = RigidSpot()
-                    rs.geo = wp.vec4(0.5 * float(cam.ncols) - sx / cam.pixel, 0.5 * float(cam.nrows) + sy / cam.pixel,
-                                     hx_full, hy_full)
+                    rs.geo = part_spot(view, home, whole, ax, ay, fp)
                     # the share per pixel area of the spot: a pixel's weight is this times its overlap
-                    rs.density = wk / (4.0 * hx_full * hy_full)
+                    rs.density = wk / (4.0 * rs.geo[2] * rs.geo[3])
                     tables.rigid[rbase + nr] = rs
                 nr += 1
                 continue
             # every lenslet the footprint meets anywhere in the bin
-            box = lattice_box(cam, x0 - reach_x, x1 + reach_x, y0 - reach_y, y1 + reach_y, view.cell_r)
+            box = lattice_box(cam, fp.qx - fp.fx - reach_x, fp.qx + fp.fx + reach_x, fp.qy - fp.fy - reach_y,
+                              fp.qy + fp.fy + reach_y, view.cell_r)
             h = row_step(cam)
             j0 = int(wp.ceil(box[2] / h))
             j1 = int(wp.floor(box[3] / h))
@@ -336,25 +318,17 @@ def template_spots(
                 i1 = int(wp.floor((box[1] - shift) / cam.pitch))
                 for i in range(i0, i1 + 1):
                     c = from_lattice(cam, float(i) * cam.pitch + shift, float(j) * h)
-                    m = spot_part(view, c, x0, x1, y0, y1, ax, ay, fx, fy, hx_full, hy_full, wk)
-                    p0 = spot_part(view, c, x0 + d0[0], x1 + d0[0], y0 + d0[1], y1 + d0[1], ax, ay, fx, fy, hx_full,
-                                   hy_full, wk)
-                    m0 = spot_part(view, c, x0 - d0[0], x1 - d0[0], y0 - d0[1], y1 - d0[1], ax, ay, fx, fy, hx_full,
-                                   hy_full, wk)
-                    p1 = spot_part(view, c, x0 + d1[0], x1 + d1[0], y0 + d1[1], y1 + d1[1], ax, ay, fx, fy, hx_full,
-                                   hy_full, wk)
-                    m1 = spot_part(view, c, x0 - d1[0], x1 - d1[0], y0 - d1[1], y1 - d1[1], ax, ay, fx, fy, hx_full,
-                                   hy_full, wk)
                     dp = d0 + d1
                     dm = d1 - d0
-                    pp = spot_part(view, c, x0 + dp[0], x1 + dp[0], y0 + dp[1], y1 + dp[1], ax, ay, fx, fy, hx_full,
-                                   hy_full, wk)
-                    mp = spot_part(view, c, x0 + dm[0], x1 + dm[0], y0 + dm[1], y1 + dm[1], ax, ay, fx, fy, hx_full,
-                                   hy_full, wk)
-                    pm = spot_part(view, c, x0 - dm[0], x1 - dm[0], y0 - dm[1], y1 - dm[1], ax, ay, fx, fy, hx_full,
-                                   hy_full, wk)
-                    mm = spot_part(view, c, x0 - dp[0], x1 - dp[0], y0 - dp[1], y1 - dp[1], ax, ay, fx, fy, hx_full,
-                                   hy_full, wk)
+                    m = spot_part(view, c, fp, 0.0, 0.0, ax, ay, wk)
+                    p0 = spot_part(view, c, fp, d0[0], d0[1], ax, ay, wk)
+                    m0 = spot_part(view, c, fp, -d0[0], -d0[1], ax, ay, wk)
+                    p1 = spot_part(view, c, fp, d1[0], d1[1], ax, ay, wk)
+                    m1 = spot_part(view, c, fp, -d1[0], -d1[1], ax, ay, wk)
+                    pp = spot_part(view, c, fp, dp[0], dp[1], ax, ay, wk)
+                    mp = spot_part(view, c, fp, dm[0], dm[1], ax, ay, wk)
+                    pm = spot_part(view, c, fp, -dm[0], -dm[1], ax, ay, wk)
+                    mm = spot_part(view, c, fp, -dp[0], -dp[1], ax, ay, wk)
                     if wp.max(wp.max(wp.max(m.share, p0.share), wp.max(m0.share, p1.share)),
                               wp.max(wp.max(m1.share, pp.share), wp.max(mp.share, wp.max(pm.share, mm.share)))) <= 0.0:
                         continue
