@@ -245,6 +245,7 @@ class DrtTemplates:
         rigid_counts = wp.zeros(n_t, dtype=wp.int32, device=self.device)
         cut_counts = wp.zeros(n_t, dtype=wp.int32, device=self.device)
         inputs = [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp), Rows(tq)]
+        # count (the offsets' places take the counts: unread when counting)
         launch_rows(km.template_spots, n_t, [*inputs, 0, Rows(rigid_counts), Rows(cut_counts), Rows(rigid_counts),
                                              Rows(cut_counts), tables], self.device)
         offsets = []
@@ -266,7 +267,7 @@ class DrtTemplates:
         tables.rigid = wp.zeros(nr, dtype=km.RigidSpot, device=self.device)
         tables.cut = wp.zeros(nc, dtype=km.CutSpot, device=self.device)
         self.tables = tables
-        # each block writes its own templates' spots: from the global offsets in the tables
+        # each block writes its own templates' spots, from their offsets (the global places in the tables)
         launch_rows(km.template_spots, n_t, [*inputs, 1, Rows(tables.rigid_offsets), Rows(tables.cut_offsets),
                                              Rows(rigid_counts), Rows(cut_counts), tables], self.device)
         self.nbytes = int(need)

@@ -1,17 +1,21 @@
 """Kernels of the matrix-free DRT operator (:mod:`lfcore.matrix_free`).
 
 A template is the DRT image of one camera-frame point, kept as the spots the dense ray tracing
-makes (:func:`lfcore._kernels.weights.drt_weights`, the same arithmetic line by line) before
-they are cut into pixels: a spot is the part of one sub-aperture's footprint that enters one
-lenslet, landing on the sensor as a box of half-sizes (hx, hy) pixels around a sensor point
-(sx, sy) mm, with a share w of the voxel's light.
+makes (:func:`lfcore._kernels.weights.drt_weights`, sharing its footprint arithmetic:
+:func:`~lfcore._kernels.weights.footprint`, :func:`~lfcore._kernels.weights.inside_cell`,
+:func:`~lfcore._kernels.weights.part_spot`) before they are cut into pixels: a spot is the part
+of one sub-aperture's footprint that enters one lenslet, landing on the sensor as a box of
+half-sizes (hx, hy) pixels around a sensor point, with a share of the voxel's light.
 
-A voxel whose footprint centre on the MLA sits at g = g_b + L + delta (L a lattice vector,
-delta within its phase bin) lands where the template of point g_b lands, shifted on the sensor
-by (1 + f_ml / si) L + (f_ml / si) delta: the lenslets move with L, and within a lenslet a
-footprint moving by delta lands f_ml / si delta further. The spots are then cut into the pixels
-the voxel's shifted spots cover, exactly as the stored weights are (pixel overlap of the box,
-clipped at the sensor's edges, entries at or below ``min_weight`` dropped).
+A voxel whose footprint centre on the MLA sits at g = g_b + L + delta (g_b the centre of the
+phase bin nearest it, L a lattice vector, delta within half a bin) lands where the template of
+point g_b lands, shifted on the sensor by (1 + f_ml / si) L + (f_ml / si) delta: the lenslets
+move with L, and within a lenslet a footprint moving by delta lands f_ml / si delta further.
+That is exact for a rigid spot (its footprint inside one lenslet over the whole bin); a cut
+spot (its footprint meets a lenslet edge somewhere in the bin) is also moved and resized
+linearly in delta and its share taken bilinearly from probes around the bin centre. The spots
+are then cut into the pixels they cover, exactly as the stored weights are (pixel overlap of
+the box, clipped at the sensor's edges, entries at or below ``min_weight`` dropped).
 """
 
 from __future__ import annotations
@@ -306,9 +310,12 @@ def template_spots(
                     tables.rigid[rbase + nr] = rs
                 nr += 1
                 continue
-            # every lenslet the footprint meets anywhere in the bin
-            box = lattice_box(cam, fp.qx - fp.fx - reach_x, fp.qx + fp.fx + reach_x, fp.qy - fp.fy - reach_y,
-                              fp.qy + fp.fy + reach_y, view.cell_r)
+            # every lenslet the footprint meets anywhere in the bin (the box it sweeps)
+            sx0 = fp.qx - fp.fx - reach_x
+            sx1 = fp.qx + fp.fx + reach_x
+            sy0 = fp.qy - fp.fy - reach_y
+            sy1 = fp.qy + fp.fy + reach_y
+            box = lattice_box(cam, sx0, sx1, sy0, sy1, view.cell_r)
             h = row_step(cam)
             j0 = int(wp.ceil(box[2] / h))
             j1 = int(wp.floor(box[3] / h))
@@ -318,21 +325,22 @@ def template_spots(
                 i1 = int(wp.floor((box[1] - shift) / cam.pitch))
                 for i in range(i0, i1 + 1):
                     c = from_lattice(cam, float(i) * cam.pitch + shift, float(j) * h)
-                    dp = d0 + d1
-                    dm = d1 - d0
-                    m = spot_part(view, c, fp, 0.0, 0.0, ax, ay, wk)
-                    p0 = spot_part(view, c, fp, d0[0], d0[1], ax, ay, wk)
-                    m0 = spot_part(view, c, fp, -d0[0], -d0[1], ax, ay, wk)
-                    p1 = spot_part(view, c, fp, d1[0], d1[1], ax, ay, wk)
-                    m1 = spot_part(view, c, fp, -d1[0], -d1[1], ax, ay, wk)
-                    pp = spot_part(view, c, fp, dp[0], dp[1], ax, ay, wk)
-                    mp = spot_part(view, c, fp, dm[0], dm[1], ax, ay, wk)
-                    pm = spot_part(view, c, fp, -dm[0], -dm[1], ax, ay, wk)
-                    mm = spot_part(view, c, fp, -dp[0], -dp[1], ax, ay, wk)
-                    if wp.max(wp.max(wp.max(m.share, p0.share), wp.max(m0.share, p1.share)),
-                              wp.max(wp.max(m1.share, pp.share), wp.max(mp.share, wp.max(pm.share, mm.share)))) <= 0.0:
+                    # a lenslet the swept box meets gets a spot (the count needs no probes; one that
+                    # no probe's footprint meets is kept with no light)
+                    if cell_overlap(view, c[0], c[1], sx0, sx1, sy0, sy1).area <= 0.0:
                         continue
                     if fill == 1:
+                        dp = d0 + d1
+                        dm = d1 - d0
+                        m = spot_part(view, c, fp, 0.0, 0.0, ax, ay, wk)
+                        p0 = spot_part(view, c, fp, d0[0], d0[1], ax, ay, wk)
+                        m0 = spot_part(view, c, fp, -d0[0], -d0[1], ax, ay, wk)
+                        p1 = spot_part(view, c, fp, d1[0], d1[1], ax, ay, wk)
+                        m1 = spot_part(view, c, fp, -d1[0], -d1[1], ax, ay, wk)
+                        pp = spot_part(view, c, fp, dp[0], dp[1], ax, ay, wk)
+                        mp = spot_part(view, c, fp, dm[0], dm[1], ax, ay, wk)
+                        pm = spot_part(view, c, fp, -dm[0], -dm[1], ax, ay, wk)
+                        mm = spot_part(view, c, fp, -dp[0], -dp[1], ax, ay, wk)
                         cs = CutSpot()
                         centre = m.geo
                         if m.share <= 0.0:
@@ -363,10 +371,11 @@ def template_spots(
                         diag = wp.vec4(pp.share, mp.share, pm.share, mm.share)
                         peak = wp.max(m.share, wp.max(wp.max(wp.max(axes[0], axes[1]), wp.max(axes[2], axes[3])),
                                                       wp.max(wp.max(diag[0], diag[1]), wp.max(diag[2], diag[3]))))
-                        cs.share = m.share
-                        cs.peak = peak
-                        cs.axes = to_fraction(axes / peak)
-                        cs.diag = to_fraction(diag / peak)
+                        if peak > 0.0:
+                            cs.share = m.share
+                            cs.peak = peak
+                            cs.axes = to_fraction(axes / peak)
+                            cs.diag = to_fraction(diag / peak)
                         tables.cut[cbase + nc] = cs
                     nc += 1
     rigid_counts[tid] = nr
