@@ -33,7 +33,8 @@ What this handles exactly and what it bounds:
   where a footprint crosses one edge of a square or hexagonal cell (the overlap is linear in
   the move there) or two edges of a square one (bilinear), and their geometry to first order:
   the error that :func:`fidelity` measures against the stored weights (the reference):
-  correlation >= 0.9995 and total light within 4e-5 on the tests' rigs, 0.9995 and 0.02% on S;
+  correlation >= 0.9995 and total light within 4e-5 on the tests' rigs, 0.9995 and 0.02% on S,
+  0.9995 and 0.06% on Mc (200 active voxels each);
 - vignetting at the sensor's edges: spots are clipped where the voxel's land;
 - the depth extent's blur, which grows with the distance of a sub-aperture from the voxel's
   own lateral position (``|A - p| dq`` in the tracing), is taken at the template's point, near
@@ -44,13 +45,14 @@ What this handles exactly and what it bounds:
 Cameras must look along a grid axis (a camera's depth then is one grid index); others need the
 stored weights (:class:`MatrixFreeUnsupported`).
 
-Memory: :data:`RIGID_SPOT_BYTES` per rigid spot and :data:`CUT_SPOT_BYTES` per cut one (about
-seven in eight on S) plus two offsets per template: set by the cameras, depth planes and
-sub-apertures, not by the voxels (39 MiB for S), plus 4 bytes per reconstructed voxel (its
-index). The work per voxel is one template's spots, each cut into (mostly) 2 x 2 pixels, where
-a stored voxel reads its merged weights: on a CPU it is still slower per iteration than stored
-weights (about 12x on S, was 30-47x with three templates a voxel), and it is what is left where
-those do not fit.
+Memory: :data:`RIGID_SPOT_BYTES` per rigid spot and :data:`CUT_SPOT_BYTES` per cut one (seven
+in eight on S, four in five on Mc) plus two offsets per template: set by the cameras, depth
+planes and sub-apertures, not by the voxels (40 MiB for S, 356 MiB for Mc against its stored
+weights' 1618 MiB), plus 4 bytes per reconstructed voxel (its index). The work per voxel is one
+template's spots (about 190 on S, 330 on Mc), each cut into (mostly) 2 x 2 pixels, where a
+stored voxel reads its merged weights (about 195 on S): on a CPU it is still slower per
+iteration than stored weights (11-12x on S, 5.5-6.6x on Mc; 27x and 13x with three templates a
+voxel), and it is what is left where those do not fit.
 """
 
 from __future__ import annotations
