@@ -169,7 +169,8 @@ def matrix_free_figures(proj, img, its: int, e0, drt) -> None:
     f = fidelity(proj, sample, templates) if sample.size else {"correlation": np.ones(1), "light": np.ones(1)}
     c, light = f["correlation"], np.abs(f["light"] - 1.0)
     print(f"  DRT-MART matrix-free: templates {build:.2f} s ({templates.n_templates} templates, {templates.n_spots} "
-          f"spots, phase bins {templates.depth_phase.min()}-{templates.depth_phase.max()} per axis, "
+          f"spots ({templates.n_rigid} rigid, {templates.n_cut} cut), phase bins {templates.depth_phase.min()}-"
+          f"{templates.depth_phase.max()} per axis, "
           f"{templates.nbytes / 2**20:.0f} MiB), first frame's weights_s {mf.weights_s:.2f} s (elimination "
           f"{mf.eliminate_s:.2f} s), memory {mf.weight_bytes / 2**20:.0f} MiB, {mf.ms_per_iteration:.2f} ms/iteration, "
           f"total {mf.weights_s + mf.iterate_s:.2f} s, Q {q:.3f}, "
@@ -179,7 +180,8 @@ def matrix_free_figures(proj, img, its: int, e0, drt) -> None:
           f"{templates.blur_error:.1%} of a footprint's lateral blur")
     if drt is not None:
         print(f"    against stored weights: {mf.ms_per_iteration / drt.ms_per_iteration:.1f}x the time per iteration, "
-              f"{drt.weight_bytes / max(mf.weight_bytes, 1):.1f}x less memory, "
+              f"memory {mf.weight_bytes / 2**20:.0f} MiB vs {drt.weight_bytes / 2**20:.0f} MiB "
+              f"({drt.weight_bytes / max(mf.weight_bytes, 1):.1f}x less), "
               f"build {drt.weights_s - drt.eliminate_s:.2f} s -> {build:.2f} s, "
               f"Q {q:.3f} vs {metrics.q_recon(drt.volume, e0):.3f}")
 

@@ -11,21 +11,31 @@ So per camera and depth plane, the voxel images are a small set of templates: on
 bin of g within the lattice cell (``n`` per lattice axis, more near focus where footprints are
 small: :data:`PHASES_PER_FOOTPRINT`), each the spots that the dense ray tracing of
 :func:`lfcore._kernels.weights.drt_weights` makes for one point (the same arithmetic, stopped
-before the spots are cut into pixels). A voxel takes the three templates whose bin centres
-surround its phase, weighted linearly in the phase (barycentric on the triangle), shifts each
-one's spots by ``(1 + f_ml / si) L + (f_ml / si) delta`` and cuts them into pixels exactly as
-the stored weights are cut. What this handles exactly and what it bounds:
+before the spots are cut into pixels). A voxel takes the template of the bin nearest its
+phase, shifts its spots by ``(1 + f_ml / si) L + (f_ml / si) delta`` and cuts them into pixels
+exactly as the stored weights are cut. A template's spots are of two kinds:
+
+- rigid: the sub-aperture's footprint stays inside one lenslet wherever the phase is in the
+  bin; the spot only moves, and the shift is exact;
+- cut: the footprint meets a lenslet edge somewhere in the bin, one spot per lenslet it meets.
+  Such a part's geometry (centre, half-sizes) is moved on by its change per bin along each
+  lattice axis (secants of probes half a bin either side), and its share of the light is
+  interpolated bilinearly in the voxel's quadrant of the bin from its shares at the centre and
+  at the 8 probes around it: never below 0, and over a sub-aperture's parts the shares sum to
+  its whole light at every phase (the probes' do), so the voxel's light is kept.
+
+What this handles exactly and what it bounds:
 
 - drift of micro-images against the pixel grid and non-integer voxels per lenslet period:
   exact, since spots are shifted in millimetres and cut into pixels afterwards;
 - rotated and offset (fitted) MLAs: exact, the phase is taken in the MLA's own lattice frame;
-- the phase between bin centres: exact for footprints inside one lenslet; where a footprint
-  straddles lenslet edges, its split is interpolated between the bins' (second order in the
-  bin width): the error that :func:`fidelity` measures against the stored weights (the
-  reference): correlation >= 0.999 and total light within 0.1% on the tests' rigs;
-- vignetting at the sensor's edges: spots are clipped where the voxel's land; the light of
-  spots that cross the edge is interpolated as above (the largest light errors, about 0.1%,
-  are at the sensor's edges);
+- the phase within a bin: exact for rigid spots; for cut ones, the parts' shares are exact
+  where a footprint crosses one edge of a square or hexagonal cell (the overlap is linear in
+  the move there) or two edges of a square one (bilinear), and their geometry to first order:
+  the error that :func:`fidelity` measures against the stored weights (the reference):
+  correlation >= 0.9995 and total light within 4e-5 on the tests' rigs, 0.9995 and 0.02% on S,
+  0.9995 and 0.06% on Mc (200 active voxels each);
+- vignetting at the sensor's edges: spots are clipped where the voxel's land;
 - the depth extent's blur, which grows with the distance of a sub-aperture from the voxel's
   own lateral position (``|A - p| dq`` in the tracing), is taken at the template's point, near
   the optical axis: off by ``|p| dq`` at lateral position p, bounded relative to a
@@ -35,11 +45,14 @@ the stored weights are cut. What this handles exactly and what it bounds:
 Cameras must look along a grid axis (a camera's depth then is one grid index); others need the
 stored weights (:class:`MatrixFreeUnsupported`).
 
-Memory: 20 bytes per spot (centre and half-sizes in pixels, share) plus an offset per template:
-set by the cameras, depth planes and sub-apertures, not by the voxels (40 MiB for S, about
-400 MiB for Mc), plus 4 bytes per reconstructed voxel (its index). The work per voxel is three
-templates' spots, several times a stored voxel's merged weights: on a CPU it is slower per
-iteration than stored weights, and it is what is left where those do not fit.
+Memory: :data:`RIGID_SPOT_BYTES` per rigid spot and :data:`CUT_SPOT_BYTES` per cut one (seven
+in eight on S, four in five on Mc) plus two offsets per template: set by the cameras, depth
+planes and sub-apertures, not by the voxels (40 MiB for S, 356 MiB for Mc against its stored
+weights' 1618 MiB), plus 4 bytes per reconstructed voxel (its index). The work per voxel is one
+template's spots (about 190 on S, 330 on Mc), each cut into (mostly) 2 x 2 pixels, where a
+stored voxel reads its merged weights (about 195 on S): on a CPU it is still slower per
+iteration than stored weights (11-12x on S, 5.5-6.6x on Mc; 27x and 13x with three templates a
+voxel), and it is what is left where those do not fit.
 """
 
 from __future__ import annotations
@@ -52,18 +65,22 @@ from lfcore.device import PrivateCopies, Rows, launch_rows, warp
 from lfcore.projector import Projector
 from lfcore.weight_build import MemoryBudgetError
 
-__all__ = ["MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS", "SPOT_BYTES", "DrtTemplates",
-           "MatrixFreeUnsupported", "MatrixFreeWeights", "fidelity"]
+__all__ = ["CUT_SPOT_BYTES", "MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS", "RIGID_SPOT_BYTES",
+           "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "fidelity"]
 
 #: Phase bins per lattice axis of a depth's templates, per lenslet pitch over a sub-aperture's
-#: footprint width on the MLA (bins a fifth of the footprint: correlation >= 0.999 on the
-#: tiny rig's voxels, hexagonal and square).
-PHASES_PER_FOOTPRINT = 5.0
+#: footprint width on the MLA (bins a third of the footprint: correlation >= 0.9995 on the
+#: tiny rig's voxels, hexagonal and square; at a half, 0.9989 on the hexagonal).
+PHASES_PER_FOOTPRINT = 3.0
 #: Fewest and most phase bins per lattice axis of a depth.
 MIN_PHASES = 4
 MAX_PHASES = 32
-#: Bytes per template spot: (column, row, hx, hy) float32 and its share per pixel area.
-SPOT_BYTES = 20
+#: Bytes per rigid template spot: (column, row, hx, hy) float32 and its share per pixel area.
+RIGID_SPOT_BYTES = 20
+#: Bytes per cut template spot: (column, row, hx, hy) float32 at the bin centre, its share there
+#: and the most of its shares (float32), the geometry's change per bin along each lattice axis
+#: (int16 steps) and its shares at the 8 probes around the centre (uint16 fractions of the most).
+CUT_SPOT_BYTES = 56
 #: The projectors reconstruction can run on.
 PROJECTORS = ("auto", "stored", "matrix-free")
 
@@ -90,8 +107,11 @@ class DrtTemplates:
     ----------
     projector
         The projector (its cameras, grid, sub-apertures and device).
-    n_phase
-        Phase bins per lattice axis.
+    phases_per_footprint
+        Phase bins per lattice axis of a depth, per lenslet pitch over a sub-aperture's
+        footprint width on the MLA (:data:`PHASES_PER_FOOTPRINT`).
+    max_phases
+        Most phase bins per lattice axis (at least :data:`MIN_PHASES`).
     budget_bytes
         Most bytes the templates may take; None: no limit beyond the device's.
 
@@ -100,7 +120,12 @@ class DrtTemplates:
     nbytes
         Device bytes of the templates.
     n_templates, n_spots
-        Templates (cameras x depth planes x ``n_phase`` squared) and their spots in all.
+        Templates (over cameras and depth planes, the depth's phase bins squared) and their
+        spots in all.
+    n_rigid, n_cut
+        Of those spots, the rigid and the cut ones (see the module docstring).
+    tables
+        The device tables (:class:`lfcore._kernels.matrix_free.Tables`).
     build_s
         Seconds the build took.
     blur_error
@@ -136,7 +161,7 @@ class DrtTemplates:
         dims = (nx, ny, nz)
         origin = np.asarray(grid.origin_mm, dtype=np.float64)
         step = np.asarray(grid.voxel_mm, dtype=np.float64)
-        plans, t_view, t_point, depth_first, depth_phase = [], [], [], [], []
+        plans, t_view, t_point, t_probe, depth_first, depth_phase = [], [], [], [], [], []
         blur = 0.0
         for iv, cam in enumerate(projector.cameras):
             rot = cam.rotation.T  # world -> camera
@@ -179,6 +204,12 @@ class DrtTemplates:
                     u, v = pitch * f0, pitch * f1
                 gx = c * u - s * v + off[0]
                 gy = s * u + c * v + off[1]
+                # half a bin along each lattice axis, in the camera frame (the cut spots' probes)
+                h0 = np.array([0.5 * pitch / n_ph, 0.0])
+                h1 = np.array([0.25 * pitch / n_ph, 0.5 * pitch * 0.8660254037844386 / n_ph]) \
+                    if cam.mla_grid == "hex" else np.array([0.0, 0.5 * pitch / n_ph])
+                probe = [c * h0[0] - s * h0[1], s * h0[0] + c * h0[1], c * h1[0] - s * h1[1], s * h1[0] + c * h1[1]]
+                t_probe.append(np.tile(np.asarray(probe, dtype=np.float32), (len(gx), 1)))
                 depth_first.append(sum(len(x) for x in t_view))
                 depth_phase.append(n_ph)
                 pts = np.stack([-gx / lat, -gy / lat, np.full(gx.shape, z_cam[d])], axis=1)
@@ -202,8 +233,6 @@ class DrtTemplates:
         self.blur_error = blur
         self.plans = wp.array(plans, dtype=km.Plan, device=self.device)
         self.depth_phase = np.asarray(depth_phase, dtype=np.int32)
-        self._depth_first = wp.array(np.asarray(depth_first, dtype=np.int32), dtype=wp.int32, device=self.device)
-        self._depth_phase = wp.array(self.depth_phase, dtype=wp.int32, device=self.device)
         t_view_a = np.concatenate(t_view)
         t_point_a = np.concatenate(t_point).astype(np.float32)
         n_t = len(t_view_a)
@@ -211,29 +240,38 @@ class DrtTemplates:
         views = projector.views
         tv = wp.array(t_view_a, dtype=wp.int32, device=self.device)
         tp = wp.array(t_point_a, dtype=wp.vec3, device=self.device)
-        counts = wp.zeros(n_t, dtype=wp.int32, device=self.device)
-        dummy4 = wp.empty(1, dtype=wp.vec4, device=self.device)
-        dummyf = wp.empty(1, dtype=float, device=self.device)
-        offs0 = wp.zeros(n_t + 1, dtype=wp.int32, device=self.device)
-        launch_rows(km.template_spots, n_t, [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp),
-                                             Rows(offs0, extra=1), 0, Rows(counts), dummy4, dummyf], self.device)
-        cnt = counts.numpy().astype(np.int64)
-        offsets = np.zeros(n_t + 1, dtype=np.int64)
-        np.cumsum(cnt, out=offsets[1:])
-        self.n_spots = int(offsets[-1])
-        need = SPOT_BYTES * self.n_spots + 4 * (n_t + 1)
+        tq = wp.array(np.concatenate(t_probe), dtype=wp.vec4, device=self.device)
+        tables = km.Tables()
+        tables.depth_first = wp.array(np.asarray(depth_first, dtype=np.int32), dtype=wp.int32, device=self.device)
+        tables.depth_phase = wp.array(self.depth_phase, dtype=wp.int32, device=self.device)
+        rigid_counts = wp.zeros(n_t, dtype=wp.int32, device=self.device)
+        cut_counts = wp.zeros(n_t, dtype=wp.int32, device=self.device)
+        inputs = [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp), Rows(tq)]
+        # count (the offsets' places take the counts: unread when counting)
+        launch_rows(km.template_spots, n_t, [*inputs, 0, Rows(rigid_counts), Rows(cut_counts), Rows(rigid_counts),
+                                             Rows(cut_counts), tables], self.device)
+        offsets = []
+        for cnt in (rigid_counts, cut_counts):
+            o = np.zeros(n_t + 1, dtype=np.int64)
+            np.cumsum(cnt.numpy().astype(np.int64), out=o[1:])
+            offsets.append(o)
+        self.n_rigid, self.n_cut = int(offsets[0][-1]), int(offsets[1][-1])
+        self.n_spots = self.n_rigid + self.n_cut
+        need = RIGID_SPOT_BYTES * self.n_rigid + CUT_SPOT_BYTES * self.n_cut + 8 * (n_t + 1)
         if budget_bytes is not None and need > budget_bytes:
             raise MemoryBudgetError(f"the matrix-free templates need {need / 2**20:.1f} MiB, more than the "
                                     f"{budget_bytes / 2**20:.1f} MiB allowed; use fewer phase bins or sub-apertures")
-        if self.n_spots >= 2**31:
+        if max(self.n_rigid, self.n_cut) >= 2**31:
             raise MemoryBudgetError("more than 2**31 template spots; use fewer phase bins or sub-apertures")
-        self.t_offsets = wp.array(offsets.astype(np.int32), dtype=wp.int32, device=self.device)
-        self.spots = wp.empty(max(self.n_spots, 1), dtype=wp.vec4, device=self.device)
-        self.shares = wp.empty(max(self.n_spots, 1), dtype=float, device=self.device)
-        # each block writes its own templates' spots: from the global offsets, so no Rows on them
-        launch_rows(km.template_spots, n_t, [views, projector.sub_a, projector.sub_w, Rows(tv), Rows(tp),
-                                             Rows(self.t_offsets, extra=1), 1, Rows(counts), self.spots, self.shares],
-                    self.device)
+        tables.rigid_offsets = wp.array(offsets[0].astype(np.int32), dtype=wp.int32, device=self.device)
+        tables.cut_offsets = wp.array(offsets[1].astype(np.int32), dtype=wp.int32, device=self.device)
+        nr, nc = max(self.n_rigid, 1), max(self.n_cut, 1)
+        tables.rigid = wp.zeros(nr, dtype=km.RigidSpot, device=self.device)
+        tables.cut = wp.zeros(nc, dtype=km.CutSpot, device=self.device)
+        self.tables = tables
+        # each block writes its own templates' spots, from their offsets (the global places in the tables)
+        launch_rows(km.template_spots, n_t, [*inputs, 1, Rows(tables.rigid_offsets), Rows(tables.cut_offsets),
+                                             Rows(rigid_counts), Rows(cut_counts), tables], self.device)
         self.nbytes = int(need)
         self._none1 = wp.empty(1, dtype=float, device=self.device)  # stand-ins for a kernel's unused outputs
         self._none2 = wp.empty((1, 1), dtype=float, device=self.device)
@@ -242,8 +280,7 @@ class DrtTemplates:
 
     def _common(self) -> list:
         p = self.projector
-        return [p._grid, p.views, self.plans, self._depth_first, self._depth_phase, len(p.cameras), self.t_offsets,
-                self.spots, self.shares]
+        return [p._grid, p.views, self.plans, self.tables, len(p.cameras)]
 
 
 @dataclass

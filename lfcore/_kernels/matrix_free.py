@@ -1,17 +1,21 @@
 """Kernels of the matrix-free DRT operator (:mod:`lfcore.matrix_free`).
 
 A template is the DRT image of one camera-frame point, kept as the spots the dense ray tracing
-makes (:func:`lfcore._kernels.weights.drt_weights`, the same arithmetic line by line) before
-they are cut into pixels: a spot is the part of one sub-aperture's footprint that enters one
-lenslet, landing on the sensor as a box of half-sizes (hx, hy) pixels around a sensor point
-(sx, sy) mm, with a share w of the voxel's light.
+makes (:func:`lfcore._kernels.weights.drt_weights`, sharing its footprint arithmetic:
+:func:`~lfcore._kernels.weights.footprint`, :func:`~lfcore._kernels.weights.inside_cell`,
+:func:`~lfcore._kernels.weights.part_spot`) before they are cut into pixels: a spot is the part
+of one sub-aperture's footprint that enters one lenslet, landing on the sensor as a box of
+half-sizes (hx, hy) pixels around a sensor point, with a share of the voxel's light.
 
-A voxel whose footprint centre on the MLA sits at g = g_b + L + delta (L a lattice vector,
-delta within its phase bin) lands where the template of point g_b lands, shifted on the sensor
-by (1 + f_ml / si) L + (f_ml / si) delta: the lenslets move with L, and within a lenslet a
-footprint moving by delta lands f_ml / si delta further. The spots are then cut into the pixels
-the voxel's shifted spots cover, exactly as the stored weights are (pixel overlap of the box,
-clipped at the sensor's edges, entries at or below ``min_weight`` dropped).
+A voxel whose footprint centre on the MLA sits at g = g_b + L + delta (g_b the centre of the
+phase bin nearest it, L a lattice vector, delta within half a bin) lands where the template of
+point g_b lands, shifted on the sensor by (1 + f_ml / si) L + (f_ml / si) delta: the lenslets
+move with L, and within a lenslet a footprint moving by delta lands f_ml / si delta further.
+That is exact for a rigid spot (its footprint inside one lenslet over the whole bin); a cut
+spot (its footprint meets a lenslet edge somewhere in the bin) is also moved and resized
+linearly in delta and its share taken bilinearly from probes around the bin centre. The spots
+are then cut into the pixels they cover, exactly as the stored weights are (pixel overlap of
+the box, clipped at the sensor's edges, entries at or below ``min_weight`` dropped).
 """
 
 from __future__ import annotations
@@ -19,14 +23,18 @@ from __future__ import annotations
 import warp as wp
 
 from lfcore._kernels.mart import multiplied
-from lfcore._kernels.optics import HEX_ROW, lenslet_centre
+from lfcore._kernels.optics import HEX_ROW, CameraParams, lenslet_centre
 from lfcore._kernels.weights import (
+    Footprint,
     Grid,
     Overlap,
     View,
     cell_overlap,
+    footprint,
     from_lattice,
+    inside_cell,
     lattice_box,
+    part_spot,
     pixel_overlap,
     row_shift,
     row_step,
@@ -67,18 +75,81 @@ def lattice_vector(hexagonal: wp.int32, pitch: float, a: float, b: float) -> wp.
     return wp.vec2(pitch * a, pitch * b)
 
 
+#: Least half-size of a cut spot, pixels.
+MIN_HALF = wp.constant(1.0e-3)
+
+
+@wp.struct
+class RigidSpot:
+    """A spot of a footprint inside one lenslet over the whole phase bin: it moves rigidly."""
+
+    geo: wp.vec4  # (column, row, hx, hy) pixels
+    density: float  # its share of the light per pixel area
+
+
+#: Fixed-point vectors of the cut spots' changes (conversions inline on every device).
+vec4us = wp.types.vector(length=4, dtype=wp.uint16)
+vec4s = wp.types.vector(length=4, dtype=wp.int16)
+#: Steps of the fixed-point shares (over the part's peak) and geometry changes (pixels per bin;
+#: within +-16 pixels per bin, far more than a spot of about a pixel moves or grows in a bin).
+SHARE_STEP = wp.constant(1.0 / 65535.0)
+GEO_STEP = wp.constant(1.0 / 2048.0)
+
+
+@wp.func
+def to_fraction(v: wp.vec4) -> vec4us:
+    """Fractions 0..1 in steps of :data:`SHARE_STEP`."""
+    q = wp.min(wp.max(v / SHARE_STEP, wp.vec4(0.0)), wp.vec4(65535.0)) + wp.vec4(0.5)
+    return vec4us(wp.uint16(int(q[0])), wp.uint16(int(q[1])), wp.uint16(int(q[2])), wp.uint16(int(q[3])))
+
+
+@wp.func
+def to_steps(v: wp.vec4) -> vec4s:
+    """Pixels in steps of :data:`GEO_STEP`, clamped to the int16 range."""
+    q = wp.min(wp.max(v / GEO_STEP, wp.vec4(-32767.0)), wp.vec4(32767.0))
+    return vec4s(wp.int16(int(wp.round(q[0]))), wp.int16(int(wp.round(q[1]))), wp.int16(int(wp.round(q[2]))),
+                 wp.int16(int(wp.round(q[3]))))
+
+
+@wp.struct
+class CutSpot:
+    """The part of a footprint that meets a lenslet edge somewhere in the phase bin and enters one
+    lenslet. Its changes in the phase are fixed point (steps of 5e-4 pixel and 1.5e-5 of the
+    part's most light)."""
+
+    geo: wp.vec4  # (column, row, hx, hy) pixels at the bin centre
+    share: float  # share of the light at the bin centre
+    peak: float  # the most of the centre's and the probes' shares
+    d0: vec4s  # the geometry's change per bin along lattice axis 0, less the rigid shift (GEO_STEP)
+    d1: vec4s  # and along axis 1
+    axes: vec4us  # the share at half a bin up and down lattice axis 0, then axis 1, over peak (SHARE_STEP)
+    diag: vec4us  # the share at the bin's corners (+0 +1, -0 +1, +0 -1, -0 -1), over peak
+
+
+@wp.struct
+class Tables:
+    """The templates of all views (see :class:`lfcore.matrix_free.DrtTemplates`)."""
+
+    depth_first: wp.array(dtype=wp.int32)  # per depth plane of every view: its first template
+    depth_phase: wp.array(dtype=wp.int32)  # and its phase bins per lattice axis
+    rigid_offsets: wp.array(dtype=wp.int32)  # per template: its range of rigid spots
+    rigid: wp.array(dtype=RigidSpot)
+    cut_offsets: wp.array(dtype=wp.int32)  # per template: its range of cut spots
+    cut: wp.array(dtype=CutSpot)
+
+
 @wp.struct
 class Placement:
     tmpl: int  # global template index; -1 if the view cannot see the voxel
     shift: wp.vec2  # sensor-plane shift of the template's spots, mm
-    weight: float  # the template's share of the voxel (bilinear in the phase)
+    phase: wp.vec2  # the voxel's phase from the bin centre, in bins (each within -1/2 .. 1/2)
 
 
 @wp.func
 def place(grid: Grid, view: View, plan: Plan, depth_first: wp.array(dtype=wp.int32),
-          depth_phase: wp.array(dtype=wp.int32), v: int, corner: int) -> Placement:
-    """One of the three templates around voxel v's phase in one view (``corner`` 0-2), its
-    weight (linear in the phase) and the shift of its spots (see the module docstring)."""
+          depth_phase: wp.array(dtype=wp.int32), v: int) -> Placement:
+    """The template of the phase bin nearest voxel v's phase in one view, the shift of its spots
+    and the voxel's phase from the bin's centre (see the module docstring)."""
     out = Placement()
     out.tmpl = -1
     cam = view.cam
@@ -105,36 +176,11 @@ def place(grid: Grid, view: View, plan: Plan, depth_first: wp.array(dtype=wp.int
     f = lattice_basis_inv(cam.hex, cam.pitch, wp.vec2(u, w))
     n_phase = depth_phase[plan.depth_base + d]
     nph = float(n_phase)
-    # bin centres sit at (b + 1/2) / n_phase: the two either side of f along each axis
+    # bin centres sit at (b + 1/2) / n_phase: the nearest along each axis, and the phase from it
     t0 = f[0] * nph - 0.5
     t1 = f[1] * nph - 0.5
-    c0 = wp.floor(t0)
-    c1 = wp.floor(t1)
-    a0 = t0 - c0
-    a1 = t1 - c1
-    # linear on the triangle of bin centres around f (the cell of four cut along its diagonal):
-    # three templates, their barycentric weights
-    wgt = float(0.0)
-    if a0 + a1 <= 1.0:
-        if corner == 0:
-            wgt = 1.0 - a0 - a1
-        elif corner == 1:
-            c0 += 1.0
-            wgt = a0
-        else:
-            c1 += 1.0
-            wgt = a1
-    else:
-        if corner == 0:
-            c0 += 1.0
-            c1 += 1.0
-            wgt = a0 + a1 - 1.0
-        elif corner == 1:
-            c0 += 1.0
-            wgt = 1.0 - a1
-        else:
-            c1 += 1.0
-            wgt = 1.0 - a0
+    c0 = wp.floor(t0 + 0.5)
+    c1 = wp.floor(t1 + 0.5)
     # the bin c in lattice cell n = floor(c / n_phase), as bin c - n n_phase of the templates (cell 0)
     n0 = wp.floor(c0 / nph)
     n1 = wp.floor(c1 / nph)
@@ -146,8 +192,44 @@ def place(grid: Grid, view: View, plan: Plan, depth_first: wp.array(dtype=wp.int
     sv = (1.0 + plan.k_spot) * lv[1] + plan.k_spot * dv[1]
     out.shift = wp.vec2(cam.cos_t * su - cam.sin_t * sv, cam.sin_t * su + cam.cos_t * sv)
     out.tmpl = depth_first[plan.depth_base + d] + b1 * n_phase + b0
-    out.weight = wgt
+    out.phase = wp.vec2(t0 - c0, t1 - c1)
     return out
+
+
+@wp.struct
+class Part:
+    geo: wp.vec4  # column and row of the spot's centre, half-sizes hx, hy (pixels)
+    share: float  # its share of the voxel's light (0: the footprint misses the lenslet)
+
+
+@wp.func
+def spot_part(view: View, c: wp.vec2, fp: Footprint, dx: float, dy: float, ax: float, ay: float, wk: float) -> Part:
+    """The spot of the part of footprint ``fp`` moved by (dx, dy) mm on the MLA that enters the
+    lenslet centred at c (sub-aperture point (ax, ay) of weight wk), as drt_weights makes it."""
+    out = Part()
+    ov = cell_overlap(view, c[0], c[1], fp.qx - fp.fx + dx, fp.qx + fp.fx + dx, fp.qy - fp.fy + dy,
+                      fp.qy + fp.fy + dy)
+    if ov.area <= 0.0:
+        return out
+    out.geo = part_spot(view, c, ov, ax, ay, fp)
+    out.share = wk * ov.area / (4.0 * fp.fx * fp.fy)
+    return out
+
+
+@wp.func
+def per_bin(m: Part, plus: Part, minus: Part, rigid: wp.vec4) -> wp.vec4:
+    """Change per bin of a cut spot's geometry along one lattice axis, less the rigid shift
+    (``rigid``: a half bin's move of a spot inside one lenslet), from probes half a bin either
+    side: the secant where the part is there at both, else one-sided from the centre."""
+    gp = plus.geo - rigid
+    gm = minus.geo + rigid
+    if plus.share > 0.0 and minus.share > 0.0:
+        return gp - gm
+    if plus.share > 0.0:
+        return 2.0 * (gp - m.geo)
+    if minus.share > 0.0:
+        return 2.0 * (m.geo - gm)
+    return wp.vec4(0.0, 0.0, 0.0, 0.0)
 
 
 @wp.kernel
@@ -157,28 +239,43 @@ def template_spots(
     sub_w: wp.array(dtype=float),
     t_view: wp.array(dtype=wp.int32),
     t_point: wp.array(dtype=wp.vec3),
-    offsets: wp.array(dtype=wp.int32),
+    t_probe: wp.array(dtype=wp.vec4),
     fill: int,
-    counts: wp.array(dtype=wp.int32),
-    spots: wp.array(dtype=wp.vec4),
-    shares: wp.array(dtype=float),
+    rigid_offsets: wp.array(dtype=wp.int32),
+    cut_offsets: wp.array(dtype=wp.int32),
+    rigid_counts: wp.array(dtype=wp.int32),
+    cut_counts: wp.array(dtype=wp.int32),
+    tables: Tables,
 ):
-    """The spots of template ``tid``: view ``t_view[tid]`` seeing camera-frame point ``t_point[tid]``.
+    """The spots of template ``tid``: view ``t_view[tid]`` seeing camera-frame point ``t_point[tid]``,
+    whose footprint centre on the MLA moves by ``(t_probe[tid][0], t_probe[tid][1])`` mm per half
+    bin along lattice axis 0 and by ``(t_probe[tid][2], t_probe[tid][3])`` along axis 1.
 
     The body is :func:`lfcore._kernels.weights.drt_weights`'s for one view, stopping where that
-    kernel cuts a spot into pixels. ``fill = 0`` counts the spots into ``counts``; ``fill = 1``
-    writes them from ``offsets[tid]``: ``spots`` (column and row of the centre, half-sizes
-    hx, hy, all in pixels, as drt_weights places and sizes them) and ``shares``, the spot's share
-    of the light per pixel area (share / (4 hx hy)).
+    kernel cuts a spot into pixels. A sub-aperture's footprint that stays inside one lenslet over
+    the whole bin gives one rigid spot (it moves with the template's shift alone); one that meets
+    a lenslet edge gives a cut spot per lenslet it meets, with its change per bin along each
+    lattice axis (from probes half a bin either side). ``fill = 0`` counts the spots into
+    ``rigid_counts`` and ``cut_counts``; ``fill = 1`` writes them to ``tables`` from
+    ``rigid_offsets[tid]`` and ``cut_offsets[tid]`` (the tables' own offsets, given apart so that
+    a CPU block sees its templates' rows).
     """
     tid = wp.tid()
     view = views[t_view[tid]]
     cam = view.cam
     p = t_point[tid]
-    n = int(0)
-    base = int(0)
+    probe = t_probe[tid]
+    d0 = wp.vec2(probe[0], probe[1])
+    d1 = wp.vec2(probe[2], probe[3])
+    reach_x = wp.abs(d0[0]) + wp.abs(d1[0])
+    reach_y = wp.abs(d0[1]) + wp.abs(d1[1])
+    nr = int(0)
+    nc = int(0)
+    rbase = int(0)
+    cbase = int(0)
     if fill == 1:
-        base = offsets[tid]
+        rbase = rigid_offsets[tid]
+        cbase = cut_offsets[tid]
     sop = cam.so - p[2]
     if sop * cam.inv_f > 1.0:
         inv = 1.0 / sop
@@ -188,72 +285,174 @@ def template_spots(
         dq = cam.si * inv * inv * view.half[2]
         lat = cam.si * inv
         k_spot = cam.f_ml / cam.si
+        # a half bin's rigid move of a spot on the sensor, in pixels (columns run against x)
+        r0 = wp.vec4(-k_spot * d0[0] / cam.pixel, k_spot * d0[1] / cam.pixel, 0.0, 0.0)
+        r1 = wp.vec4(-k_spot * d1[0] / cam.pixel, k_spot * d1[1] / cam.pixel, 0.0, 0.0)
         for k in range(view.sub_first, view.sub_first + view.sub_count):
             ax = sub_a[k][0]
             ay = sub_a[k][1]
             wk = sub_w[k]
-            qx = a * ax + gx
-            qy = a * ay + gy
-            sprx = lat * view.half[0] + wp.abs(ax - p[0]) * dq
-            spry = lat * view.half[1] + wp.abs(ay - p[1]) * dq
-            wsub = wp.abs(a) * view.sub_side
-            fx = 0.5 * wp.sqrt(wsub * wsub + 4.0 * sprx * sprx)
-            fy = 0.5 * wp.sqrt(wsub * wsub + 4.0 * spry * spry)
-            x0 = qx - fx
-            x1 = qx + fx
-            y0 = qy - fy
-            y1 = qy + fy
-            inv_area = 1.0 / (4.0 * fx * fy)
-            # spot half-sizes on the sensor, in pixels
-            wspot = wp.abs(1.0 - a) * view.sub_side
-            hx_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * sprx * sprx) / cam.pixel
-            hy_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * spry * spry) / cam.pixel
-            home = lenslet_centre(cam, qx, qy)
-            inside = int(1)
-            for e in range(view.n_edges):
-                nx = view.edge_nx[e]
-                ny = view.edge_ny[e]
-                if nx * (qx - home[0]) + ny * (qy - home[1]) + wp.abs(nx) * fx + wp.abs(ny) * fy > 0.5 * cam.pitch:
-                    inside = int(0)
-            box = lattice_box(cam, x0, x1, y0, y1, view.cell_r)
+            fp = footprint(view, p, a, gx, gy, lat, dq, ax, ay)
+            home = lenslet_centre(cam, fp.qx, fp.qy)
+            # inside its lenslet wherever the voxel's phase is in the bin: one rigid spot
+            if inside_cell(view, fp.qx, fp.qy, home, fp.fx + reach_x, fp.fy + reach_y) == 1:
+                if fill == 1:
+                    whole = Overlap()
+                    whole.area = 4.0 * fp.fx * fp.fy
+                    whole.cx = fp.qx
+                    whole.cy = fp.qy
+                    whole.wx = 2.0 * fp.fx
+                    whole.wy = 2.0 * fp.fy
+                    rs = RigidSpot()
+                    rs.geo = part_spot(view, home, whole, ax, ay, fp)
+                    # the share per pixel area of the spot: a pixel's weight is this times its overlap
+                    rs.density = wk / (4.0 * rs.geo[2] * rs.geo[3])
+                    tables.rigid[rbase + nr] = rs
+                nr += 1
+                continue
+            # every lenslet the footprint meets anywhere in the bin (the box it sweeps)
+            sx0 = fp.qx - fp.fx - reach_x
+            sx1 = fp.qx + fp.fx + reach_x
+            sy0 = fp.qy - fp.fy - reach_y
+            sy1 = fp.qy + fp.fy + reach_y
+            box = lattice_box(cam, sx0, sx1, sy0, sy1, view.cell_r)
             h = row_step(cam)
             j0 = int(wp.ceil(box[2] / h))
             j1 = int(wp.floor(box[3] / h))
-            if inside == 1:
-                j0 = int(0)
-                j1 = int(0)
             for j in range(j0, j1 + 1):
                 shift = row_shift(cam, j)
                 i0 = int(wp.ceil((box[0] - shift) / cam.pitch))
                 i1 = int(wp.floor((box[1] - shift) / cam.pitch))
-                if inside == 1:
-                    i0 = int(0)
-                    i1 = int(0)
                 for i in range(i0, i1 + 1):
-                    c = home
-                    ov = Overlap()
-                    if inside == 1:
-                        ov.area = 4.0 * fx * fy
-                        ov.cx = qx
-                        ov.cy = qy
-                        ov.wx = 2.0 * fx
-                        ov.wy = 2.0 * fy
-                    else:
-                        c = from_lattice(cam, float(i) * cam.pitch + shift, float(j) * h)
-                        ov = cell_overlap(view, c[0], c[1], x0, x1, y0, y1)
-                    if ov.area <= 0.0:
+                    c = from_lattice(cam, float(i) * cam.pitch + shift, float(j) * h)
+                    # a lenslet the swept box meets gets a spot (the count needs no probes; one that
+                    # no probe's footprint meets is kept with no light)
+                    if cell_overlap(view, c[0], c[1], sx0, sx1, sy0, sy1).area <= 0.0:
                         continue
                     if fill == 1:
-                        sx = c[0] + cam.f_ml * (ov.cx - ax) / cam.si
-                        sy = c[1] + cam.f_ml * (ov.cy - ay) / cam.si
-                        hx = hx_full * ov.wx / (2.0 * fx)
-                        hy = hy_full * ov.wy / (2.0 * fy)
-                        spots[base + n] = wp.vec4(0.5 * float(cam.ncols) - sx / cam.pixel,
-                                                  0.5 * float(cam.nrows) + sy / cam.pixel, hx, hy)
-                        # the share per pixel area of the spot: a pixel's weight is this times its overlap
-                        shares[base + n] = wk * ov.area * inv_area / (4.0 * hx * hy)
-                    n += 1
-    counts[tid] = n
+                        dp = d0 + d1
+                        dm = d1 - d0
+                        m = spot_part(view, c, fp, 0.0, 0.0, ax, ay, wk)
+                        p0 = spot_part(view, c, fp, d0[0], d0[1], ax, ay, wk)
+                        m0 = spot_part(view, c, fp, -d0[0], -d0[1], ax, ay, wk)
+                        p1 = spot_part(view, c, fp, d1[0], d1[1], ax, ay, wk)
+                        m1 = spot_part(view, c, fp, -d1[0], -d1[1], ax, ay, wk)
+                        pp = spot_part(view, c, fp, dp[0], dp[1], ax, ay, wk)
+                        mp = spot_part(view, c, fp, dm[0], dm[1], ax, ay, wk)
+                        pm = spot_part(view, c, fp, -dm[0], -dm[1], ax, ay, wk)
+                        mm = spot_part(view, c, fp, -dp[0], -dp[1], ax, ay, wk)
+                        cs = CutSpot()
+                        centre = m.geo
+                        if m.share <= 0.0:
+                            # a part only the moved footprint reaches: its geometry where it is there
+                            # (less that probe's rigid move), unchanged over the bin
+                            if p0.share > 0.0:
+                                centre = p0.geo - r0
+                            elif m0.share > 0.0:
+                                centre = m0.geo + r0
+                            elif p1.share > 0.0:
+                                centre = p1.geo - r1
+                            elif m1.share > 0.0:
+                                centre = m1.geo + r1
+                            elif pp.share > 0.0:
+                                centre = pp.geo - r0 - r1
+                            elif mp.share > 0.0:
+                                centre = mp.geo + r0 - r1
+                            elif pm.share > 0.0:
+                                centre = pm.geo - r0 + r1
+                            else:
+                                centre = mm.geo + r0 + r1
+                        else:
+                            cs.d0 = to_steps(per_bin(m, p0, m0, r0))
+                            cs.d1 = to_steps(per_bin(m, p1, m1, r1))
+                        cs.geo = centre
+                        # the share at the centre and at the eight probes around it
+                        axes = wp.vec4(p0.share, m0.share, p1.share, m1.share)
+                        diag = wp.vec4(pp.share, mp.share, pm.share, mm.share)
+                        peak = wp.max(m.share, wp.max(wp.max(wp.max(axes[0], axes[1]), wp.max(axes[2], axes[3])),
+                                                      wp.max(wp.max(diag[0], diag[1]), wp.max(diag[2], diag[3]))))
+                        if peak > 0.0:
+                            cs.share = m.share
+                            cs.peak = peak
+                            cs.axes = to_fraction(axes / peak)
+                            cs.diag = to_fraction(diag / peak)
+                        tables.cut[cbase + nc] = cs
+                    nc += 1
+    rigid_counts[tid] = nr
+    cut_counts[tid] = nc
+
+
+@wp.func
+def cut_spot(mode: int, cam: CameraParams, base: int, colc: float, rowc: float, hx: float, hy: float, wk: float,
+             min_weight: float, ej: float, values: wp.array(dtype=float), images: wp.array2d(dtype=float),
+             row: int) -> float:
+    """One spot (centre column, row, half-sizes in pixels; ``wk`` its share per pixel area) cut
+    into the pixels of a camera as the stored weights are: ``mode`` 0 adds w ``ej`` to
+    ``values[pixel]``, 1 returns sum w ``values[pixel]``, 2 adds w to ``images[row, pixel]``."""
+    ncols = cam.ncols
+    nrows = cam.nrows
+    total = float(0.0)
+    lo_c = colc - hx
+    hi_c = colc + hx
+    lo_r = rowc - hy
+    hi_r = rowc + hy
+    # int() truncates where floor would round down, but only below 0, where the range is
+    # clamped to 0 anyway (or, wholly left of the sensor, meets pixel 0 with no overlap)
+    c0 = int(lo_c)
+    r0 = int(lo_r)
+    if (lo_c >= 0.0 and lo_r >= 0.0 and hi_c < float(c0 + 2) and hi_r < float(r0 + 2) and c0 < ncols - 1
+            and r0 < nrows - 1):
+        # within 2 x 2 pixels of the sensor (nearly every spot: they are about a pixel wide):
+        # their four weights without loops, a pixel the spot misses getting weight 0
+        fc = float(c0 + 1)
+        fr = float(r0 + 1)
+        ox0 = wp.min(fc, hi_c) - lo_c
+        ox1 = wp.max(hi_c - fc, 0.0)
+        oy0 = wk * (wp.min(fr, hi_r) - lo_r)
+        oy1 = wk * wp.max(hi_r - fr, 0.0)
+        w00 = oy0 * ox0
+        w01 = oy0 * ox1
+        w10 = oy1 * ox0
+        w11 = oy1 * ox1
+        q = base + r0 * ncols + c0
+        if mode == 1:
+            total = (wp.where(w00 > min_weight, w00 * values[q], 0.0)
+                     + wp.where(w01 > min_weight, w01 * values[q + 1], 0.0)
+                     + wp.where(w10 > min_weight, w10 * values[q + ncols], 0.0)
+                     + wp.where(w11 > min_weight, w11 * values[q + ncols + 1], 0.0))
+        elif mode == 0:
+            # all four, those at or below min_weight as 0 (no branches to mispredict)
+            wp.atomic_add(values, q, wp.where(w00 > min_weight, w00 * ej, 0.0))
+            wp.atomic_add(values, q + 1, wp.where(w01 > min_weight, w01 * ej, 0.0))
+            wp.atomic_add(values, q + ncols, wp.where(w10 > min_weight, w10 * ej, 0.0))
+            wp.atomic_add(values, q + ncols + 1, wp.where(w11 > min_weight, w11 * ej, 0.0))
+        else:
+            if w00 > min_weight:
+                images[row, q] += w00
+            if w01 > min_weight:
+                images[row, q + 1] += w01
+            if w10 > min_weight:
+                images[row, q + ncols] += w10
+            if w11 > min_weight:
+                images[row, q + ncols + 1] += w11
+        return total
+    c0 = wp.max(0, c0)
+    c1 = wp.min(ncols - 1, int(hi_c))
+    r0 = wp.max(0, r0)
+    r1 = wp.min(nrows - 1, int(hi_r))
+    for r in range(r0, r1 + 1):
+        oy = wk * pixel_overlap(lo_r, hi_r, r)
+        q = base + r * ncols
+        for cc in range(c0, c1 + 1):
+            wt = oy * pixel_overlap(lo_c, hi_c, cc)
+            if wt > min_weight:
+                if mode == 0:
+                    wp.atomic_add(values, q + cc, wt * ej)
+                elif mode == 1:
+                    total += wt * values[q + cc]
+                else:
+                    images[row, q + cc] += wt
+    return total
 
 
 @wp.func
@@ -262,11 +461,7 @@ def apply_templates(
     grid: Grid,
     view: View,
     plan: Plan,
-    depth_first: wp.array(dtype=wp.int32),
-    depth_phase: wp.array(dtype=wp.int32),
-    t_offsets: wp.array(dtype=wp.int32),
-    spots: wp.array(dtype=wp.vec4),
-    shares: wp.array(dtype=float),
+    tables: Tables,
     min_weight: float,
     v: int,
     ej: float,
@@ -274,51 +469,54 @@ def apply_templates(
     images: wp.array2d(dtype=float),
     row: int,
 ) -> float:
-    """Voxel v's pixels in one view, from its three templates: ``mode`` 0 adds w ``ej`` to
-    ``values[pixel]`` (projection), 1 returns sum w ``values[pixel]`` (the update's gather), 2 adds
-    w to ``images[row, pixel]`` (checks).
+    """Voxel v's pixels in one view, from the template of its nearest phase bin: ``mode`` 0 adds
+    w ``ej`` to ``values[pixel]`` (projection), 1 returns sum w ``values[pixel]`` (the update's
+    gather), 2 adds w to ``images[row, pixel]`` (checks).
 
-    Each spot is shifted by its template's placement and cut into pixels as the stored weights
-    are (box overlap, clipped at the sensor, entries at or below ``min_weight`` dropped).
+    Each spot is shifted by the template's placement (a cut spot also moved, resized and
+    reweighted linearly in the voxel's phase within the bin) and cut into pixels as the stored
+    weights are (box overlap, clipped at the sensor, entries at or below ``min_weight`` dropped).
     """
     cam = view.cam
-    ncols = cam.ncols
-    nrows = cam.nrows
+    total = float(0.0)
+    pl = place(grid, view, plan, tables.depth_first, tables.depth_phase, v)
+    if pl.tmpl < 0:
+        return total
     inv_pix = 1.0 / cam.pixel
     base = view.pix_offset
-    total = float(0.0)
-    for corner in range(3):
-        pl = place(grid, view, plan, depth_first, depth_phase, v, corner)
-        if pl.tmpl < 0 or pl.weight <= 0.0:
+    move = wp.vec4(-pl.shift[0] * inv_pix, pl.shift[1] * inv_pix, 0.0, 0.0)  # columns run against x, rows with y
+    for t in range(tables.rigid_offsets[pl.tmpl], tables.rigid_offsets[pl.tmpl + 1]):
+        rs = tables.rigid[t]
+        st = rs.geo + move
+        total += cut_spot(mode, cam, base, st[0], st[1], st[2], st[3], rs.density, min_weight, ej, values,
+                          images, row)
+    u0 = pl.phase[0]
+    u1 = pl.phase[1]
+    # the share is bilinear in the quadrant of the probes the phase is in (never below 0, and over
+    # a sub-aperture's parts its sum, the sub-aperture's light, is whole at every phase): the
+    # quadrant's probes and the four bilinear weights, once per voxel
+    ia = wp.where(u0 > 0.0, 0, 1)
+    ib = wp.where(u1 > 0.0, 2, 3)
+    iab = wp.where(u1 > 0.0, 0, 2) + wp.where(u0 > 0.0, 0, 1)
+    a = wp.min(2.0 * wp.abs(u0), 1.0)
+    b = wp.min(2.0 * wp.abs(u1), 1.0)
+    c00 = (1.0 - a) * (1.0 - b)
+    ca = a * (1.0 - b) * SHARE_STEP
+    cb = (1.0 - a) * b * SHARE_STEP
+    cab = a * b * SHARE_STEP
+    g0 = u0 * GEO_STEP
+    g1 = u1 * GEO_STEP
+    for t in range(tables.cut_offsets[pl.tmpl], tables.cut_offsets[pl.tmpl + 1]):
+        cs = tables.cut[t]
+        s = c00 * cs.share + cs.peak * (ca * float(cs.axes[ia]) + cb * float(cs.axes[ib]) + cab * float(cs.diag[iab]))
+        if s <= 0.0:
             continue
-        dc = -pl.shift[0] * inv_pix  # the shift in pixels: columns run against x, rows with y
-        dr = pl.shift[1] * inv_pix
-        blend = pl.weight
-        for t in range(t_offsets[pl.tmpl], t_offsets[pl.tmpl + 1]):
-            st = spots[t]
-            colc = st[0] + dc
-            rowc = st[1] + dr
-            hx = st[2]
-            hy = st[3]
-            wk = shares[t]
-            # int() truncates where floor would round down, but only below 0, where the range is
-            # clamped to 0 anyway (or, wholly left of the sensor, meets pixel 0 with no overlap)
-            c0 = wp.max(0, int(colc - hx))
-            c1 = wp.min(ncols - 1, int(colc + hx))
-            r0 = wp.max(0, int(rowc - hy))
-            r1 = wp.min(nrows - 1, int(rowc + hy))
-            for r in range(r0, r1 + 1):
-                oy = wk * pixel_overlap(rowc - hy, rowc + hy, r)
-                for cc in range(c0, c1 + 1):
-                    wt = oy * pixel_overlap(colc - hx, colc + hx, cc)
-                    if wt > min_weight:
-                        q = base + r * ncols + cc
-                        if mode == 0:
-                            wp.atomic_add(values, q, wt * blend * ej)
-                        elif mode == 1:
-                            total += wt * blend * values[q]
-                        else:
-                            images[row, q] += wt * blend
+        st = cs.geo + g0 * wp.vec4(cs.d0) + g1 * wp.vec4(cs.d1) + move
+        # a part that (extrapolated) shrinks to nothing still lands its share
+        hx = wp.max(st[2], MIN_HALF)
+        hy = wp.max(st[3], MIN_HALF)
+        total += cut_spot(mode, cam, base, st[0], st[1], hx, hy, s / (4.0 * hx * hy), min_weight, ej, values, images,
+                          row)
     return total
 
 
@@ -327,12 +525,8 @@ def project(
     grid: Grid,
     views: wp.array(dtype=View),
     plans: wp.array(dtype=Plan),
-    depth_first: wp.array(dtype=wp.int32),
-    depth_phase: wp.array(dtype=wp.int32),
+    tables: Tables,
     n_views: int,
-    t_offsets: wp.array(dtype=wp.int32),
-    spots: wp.array(dtype=wp.vec4),
-    shares: wp.array(dtype=float),
     min_weight: float,
     voxels: wp.array(dtype=wp.int32),
     e: wp.array(dtype=float),
@@ -346,8 +540,7 @@ def project(
     if ej == 0.0:
         return
     for iv in range(n_views):
-        apply_templates(0, grid, views[iv], plans[iv], depth_first, depth_phase, t_offsets, spots, shares,
-                        min_weight, voxels[tid], ej, proj, none, 0)
+        apply_templates(0, grid, views[iv], plans[iv], tables, min_weight, voxels[tid], ej, proj, none, 0)
 
 
 @wp.kernel
@@ -355,12 +548,8 @@ def smart_update(
     grid: Grid,
     views: wp.array(dtype=View),
     plans: wp.array(dtype=Plan),
-    depth_first: wp.array(dtype=wp.int32),
-    depth_phase: wp.array(dtype=wp.int32),
+    tables: Tables,
     n_views: int,
-    t_offsets: wp.array(dtype=wp.int32),
-    spots: wp.array(dtype=wp.vec4),
-    shares: wp.array(dtype=float),
     min_weight: float,
     voxels: wp.array(dtype=wp.int32),
     ratio: wp.array(dtype=float),
@@ -376,7 +565,7 @@ def smart_update(
         return
     s = float(0.0)
     for iv in range(n_views):
-        s += apply_templates(1, grid, views[iv], plans[iv], depth_first, depth_phase, t_offsets, spots, shares,
+        s += apply_templates(1, grid, views[iv], plans[iv], tables,
                              min_weight, voxels[tid], ej, ratio, none, 0)
     e[tid] = multiplied(ej, s, relaxation)
 
@@ -386,12 +575,8 @@ def voxel_image(
     grid: Grid,
     views: wp.array(dtype=View),
     plans: wp.array(dtype=Plan),
-    depth_first: wp.array(dtype=wp.int32),
-    depth_phase: wp.array(dtype=wp.int32),
+    tables: Tables,
     n_views: int,
-    t_offsets: wp.array(dtype=wp.int32),
-    spots: wp.array(dtype=wp.vec4),
-    shares: wp.array(dtype=float),
     min_weight: float,
     voxels: wp.array(dtype=wp.int32),
     images: wp.array2d(dtype=float),
@@ -401,5 +586,5 @@ def voxel_image(
     ``none`` is unused)."""
     tid = wp.tid()
     for iv in range(n_views):
-        apply_templates(2, grid, views[iv], plans[iv], depth_first, depth_phase, t_offsets, spots, shares,
+        apply_templates(2, grid, views[iv], plans[iv], tables,
                         min_weight, voxels[tid], 1.0, none, images, tid)

@@ -517,6 +517,67 @@ def check_pixels(
                         table[row + corner] = -1
 
 
+@wp.struct
+class Footprint:
+    """One sub-aperture's footprint of a voxel on the MLA and the size of its spot on the sensor."""
+
+    qx: float  # centre on the MLA, camera frame, mm
+    qy: float
+    fx: float  # half-sizes on the MLA, mm
+    fy: float
+    hx: float  # half-sizes on the sensor of the whole footprint's spot, pixels
+    hy: float
+
+
+@wp.func
+def footprint(view: View, p: wp.vec3, a: float, gx: float, gy: float, lat: float, dq: float, ax: float,
+              ay: float) -> Footprint:
+    """The footprint through sub-aperture point (ax, ay) of camera-frame point p, with ``a``,
+    ``g`` = (gx, gy), ``lat`` and ``dq`` the point's (see :func:`drt_weights`; the one copy of
+    this arithmetic, which :mod:`lfcore._kernels.matrix_free` shares)."""
+    cam = view.cam
+    out = Footprint()
+    out.qx = a * ax + gx
+    out.qy = a * ay + gy
+    # Footprint on the MLA: the sub-aperture's spread convolved with the voxel's own lateral and
+    # depth extent, as the box with the same second moment (widths add in quadrature).
+    sprx = lat * view.half[0] + wp.abs(ax - p[0]) * dq
+    spry = lat * view.half[1] + wp.abs(ay - p[1]) * dq
+    wsub = wp.abs(a) * view.sub_side
+    out.fx = 0.5 * wp.sqrt(wsub * wsub + 4.0 * sprx * sprx)
+    out.fy = 0.5 * wp.sqrt(wsub * wsub + 4.0 * spry * spry)
+    # spot half-sizes on the sensor, in pixels
+    k_spot = cam.f_ml / cam.si
+    wspot = wp.abs(1.0 - a) * view.sub_side
+    out.hx = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * sprx * sprx) / cam.pixel
+    out.hy = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * spry * spry) / cam.pixel
+    return out
+
+
+@wp.func
+def inside_cell(view: View, qx: float, qy: float, home: wp.vec2, ex: float, ey: float) -> int:
+    """1 if the box (qx, qy) +- (ex, ey) lies inside the lenslet cell centred at ``home``, else 0."""
+    inside = int(1)
+    for e in range(view.n_edges):
+        nx = view.edge_nx[e]
+        ny = view.edge_ny[e]
+        if nx * (qx - home[0]) + ny * (qy - home[1]) + wp.abs(nx) * ex + wp.abs(ny) * ey > 0.5 * view.cam.pitch:
+            inside = int(0)
+    return inside
+
+
+@wp.func
+def part_spot(view: View, c: wp.vec2, ov: Overlap, ax: float, ay: float, fp: Footprint) -> wp.vec4:
+    """(column, row, hx, hy) pixels of the spot of the part ``ov`` of footprint ``fp`` that
+    enters the lenslet centred at c: it lands around the image of the part's centroid, as a
+    spot shrunk like the part's extent on the MLA."""
+    cam = view.cam
+    sx = c[0] + cam.f_ml * (ov.cx - ax) / cam.si
+    sy = c[1] + cam.f_ml * (ov.cy - ay) / cam.si
+    return wp.vec4(0.5 * float(cam.ncols) - sx / cam.pixel, 0.5 * float(cam.nrows) + sy / cam.pixel,
+                   fp.hx * ov.wx / (2.0 * fp.fx), fp.hy * ov.wy / (2.0 * fp.fy))
+
+
 @wp.kernel
 def drt_weights(
     grid: Grid,
@@ -560,38 +621,23 @@ def drt_weights(
         gy = -p[1] * cam.si * inv
         dq = cam.si * inv * inv * view.half[2]
         lat = cam.si * inv
-        k_spot = cam.f_ml / cam.si
         for k in range(view.sub_first, view.sub_first + view.sub_count):
             ax = sub_a[k][0]
             ay = sub_a[k][1]
             wk = sub_w[k]
-            qx = a * ax + gx
-            qy = a * ay + gy
-            # Footprint on the MLA: the sub-aperture's spread convolved with the voxel's own
-            # lateral and depth extent, as the box with the same second moment (widths add in
-            # quadrature).
-            sprx = lat * view.half[0] + wp.abs(ax - p[0]) * dq
-            spry = lat * view.half[1] + wp.abs(ay - p[1]) * dq
-            wsub = wp.abs(a) * view.sub_side
-            fx = 0.5 * wp.sqrt(wsub * wsub + 4.0 * sprx * sprx)
-            fy = 0.5 * wp.sqrt(wsub * wsub + 4.0 * spry * spry)
+            fp = footprint(view, p, a, gx, gy, lat, dq, ax, ay)
+            qx = fp.qx
+            qy = fp.qy
+            fx = fp.fx
+            fy = fp.fy
             x0 = qx - fx
             x1 = qx + fx
             y0 = qy - fy
             y1 = qy + fy
             inv_area = 1.0 / (4.0 * fx * fy)
-            # spot half-sizes on the sensor, in pixels
-            wspot = wp.abs(1.0 - a) * view.sub_side
-            hx_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * sprx * sprx) / cam.pixel
-            hy_full = 0.5 * k_spot * wp.sqrt(wspot * wspot + 4.0 * spry * spry) / cam.pixel
             # Most footprints near focus lie inside one lenslet: no clipping needed then.
             home = lenslet_centre(cam, qx, qy)
-            inside = int(1)
-            for e in range(view.n_edges):
-                nx = view.edge_nx[e]
-                ny = view.edge_ny[e]
-                if nx * (qx - home[0]) + ny * (qy - home[1]) + wp.abs(nx) * fx + wp.abs(ny) * fy > 0.5 * cam.pitch:
-                    inside = int(0)
+            inside = inside_cell(view, qx, qy, home, fx, fy)
             box = lattice_box(cam, x0, x1, y0, y1, view.cell_r)
             h = row_step(cam)
             j0 = int(wp.ceil(box[2] / h))
@@ -621,14 +667,11 @@ def drt_weights(
                     if ov.area <= 0.0:
                         continue
                     w1 = ov.area * inv_area
-                    # the part entering this lenslet lands around the image of its centroid,
-                    # as a spot shrunk like the part's extent on the MLA
-                    sx = c[0] + cam.f_ml * (ov.cx - ax) / cam.si
-                    sy = c[1] + cam.f_ml * (ov.cy - ay) / cam.si
-                    colc = 0.5 * float(cam.ncols) - sx / cam.pixel
-                    rowc = 0.5 * float(cam.nrows) + sy / cam.pixel
-                    hx = hx_full * ov.wx / (2.0 * fx)
-                    hy = hy_full * ov.wy / (2.0 * fy)
+                    spot = part_spot(view, c, ov, ax, ay, fp)
+                    colc = spot[0]
+                    rowc = spot[1]
+                    hx = spot[2]
+                    hy = spot[3]
                     c0 = wp.max(0, int(wp.floor(colc - hx)))
                     c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
                     r0 = wp.max(0, int(wp.floor(rowc - hy)))
