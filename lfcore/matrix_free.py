@@ -145,7 +145,9 @@ class DrtTemplates:
         from lfcore._kernels import matrix_free as km
 
         t0 = time.perf_counter()
-        if not isinstance(projector, Projector):
+        # light-field cameras alone: the pinhole and the joint (mixed-rig) projectors subclass
+        # Projector but have no lenslets to take templates of
+        if type(projector) is not Projector:
             raise MatrixFreeUnsupported("the matrix-free projector is for light-field cameras alone; use --projector "
                                         "stored")
         if not phases_per_footprint > 0 or max_phases < MIN_PHASES:

@@ -154,3 +154,18 @@ def test_settings_and_geometry_that_have_no_matrix_free_form(tiny_rig):
     proj = Projector(rig.camera, VolumeGrid.from_rig(rig), device="cpu")
     with pytest.raises(MatrixFreeUnsupported, match="grid axis"):
         DrtTemplates(proj)
+
+
+def test_pinhole_and_mixed_rigs_have_no_matrix_free_form():
+    from pathlib import Path
+
+    from lfcore.pinhole_projector import projector_for
+    from lfpiv.rigfile import load_rig
+
+    # a mixed rig's joint projector is a Projector too, but its pinhole cameras have no lenslets
+    rig = load_rig(Path(__file__).resolve().parents[3] / "examples" / "mixed_cameras.toml")
+    rig = rig.model_copy(update={"volume": rig.volume.model_copy(update={"size_mm": (0.3, 0.3, 0.3)})})
+    grid = VolumeGrid.from_rig(rig)
+    for cams in (rig.camera, [c for c in rig.camera if c.kind == "pinhole"]):
+        with pytest.raises(MatrixFreeUnsupported, match="light-field cameras alone"):
+            DrtTemplates(projector_for(cams, grid, device="cpu"))
