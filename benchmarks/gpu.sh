@@ -26,8 +26,9 @@
 #   bash benchmarks/gpu.sh tomo    # Tomo-PIV: the pinhole projector's CUDA tests and the Tomo functional
 #                                  # tests, T4, T6, T8 by MLOS-SMART and the MART baseline, then
 #                                  # lfpiv study lf-vs-tomo --scale quick on the GPU (about 8 minutes)
-#   bash benchmarks/gpu.sh slabs   # depth slabs: their CUDA tests, and the slab path against the in-memory
-#                                  # one on the GPU at two sizes (about 3 minutes)
+#   bash benchmarks/gpu.sh slabs   # depth slabs: their CUDA tests (reconstruction and correlation), the
+#                                  # slab path against the in-memory one on the GPU at two sizes, and a
+#                                  # 256 x 256 x 512 pair correlated in 8 slabs (about 6 minutes)
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
 #                                  # iterations), then the weight-build profile (what fits in 6 min)
 #
@@ -91,10 +92,11 @@ elif [ "$stage" = matrixfree ]; then
     step recon-M-mf 120 python3 benchmarks/recon.py --case M --device cuda --projector matrix-free --no-mart
     step recon-L-mf 180 python3 benchmarks/recon.py --case L --device cuda --projector matrix-free --no-mart
 elif [ "$stage" = slabs ]; then
-    step pytest-slabs-cuda 120 python3 -m pytest tests/unit/lfcore/test_slabs.py -q -k cuda -p no:cacheprovider \
-        --timeout 100
+    step pytest-slabs-cuda 120 python3 -m pytest tests/unit/lfcore/test_slabs.py tests/unit/lfcore/test_slab_correlate.py \
+        -q -k cuda -p no:cacheprovider --timeout 100
     step slabs-12M 60 python3 benchmarks/slabs.py --device cuda --pvr 0.5,0.5,2 --slabs 8
     step slabs-52M 120 python3 benchmarks/slabs.py --device cuda --pvr 0.25,0.25,2 --slabs 8
+    step slabs-correlate-34M 180 python3 benchmarks/slabs.py --device cuda --correlate --shape 256,256,512 --slabs 8
 elif [ "$stage" = short ]; then
     step pytest-correlate-cuda 80 python3 -m pytest tests/unit/lfcore/test_correlate.py -q -k cuda -p no:cacheprovider \
         --timeout 60
