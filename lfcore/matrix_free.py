@@ -57,7 +57,7 @@ voxel), and it is what is left where those do not fit.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -304,6 +304,7 @@ class MatrixFreeWeights:
     templates: DrtTemplates
     voxels: object
     min_weight: float = 1e-6
+    _order: object = field(default=None, init=False, repr=False, compare=False)
 
     matrix_free = True  # the projector's dispatch mark
     nnz = 0
@@ -331,14 +332,28 @@ class MatrixFreeWeights:
         """The templates' bytes and the voxels' indices."""
         return self.templates.nbytes + 4 * self.n_voxels
 
+    def order(self) -> object:
+        """(n,) int32 on the device: the rows in the order the operator visits them, the voxels of
+        one template (in the first view) together so that its spots are read from the cache
+        (computed once, at the first use)."""
+        if self._order is None:
+            t, km, wp = self.templates, self.templates._km, self.templates.wp
+            p = t.projector
+            key = wp.empty(self.n_voxels, dtype=wp.int32, device=t.device)
+            launch_rows(km.template_key, self.n_voxels, [p._grid, p.views, t.plans, t.tables, Rows(self.voxels),
+                                                         Rows(key)], t.device)
+            rows = np.argsort(key.numpy(), kind="stable").astype(np.int32)
+            self._order = wp.array(rows, dtype=wp.int32, device=t.device)
+        return self._order
+
     def forward(self, e, out) -> object:
         """Project intensities ``e`` (n,) into ``out`` (n_pixels,) float32 (zeroed first)."""
         t, km = self.templates, self.templates._km
         out.zero_()
         parts = PrivateCopies()
         per = parts.open(out)
-        launch_rows(km.project, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels), Rows(e), per,
-                                              t._none2],
+        launch_rows(km.project, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.order()), self.voxels,
+                                              e, per, t._none2],
                     t.device)
         parts.close(out)
         return out
@@ -346,8 +361,8 @@ class MatrixFreeWeights:
     def smart_update(self, ratio, e, relaxation: float) -> None:
         """E_v <- E_v exp(mu sum_i w_iv ratio_i) in place, ``ratio`` the pixels' log ratios."""
         t, km = self.templates, self.templates._km
-        launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels), ratio,
-                                                     float(relaxation), Rows(e), t._none2], t.device)
+        launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.order()),
+                                                     self.voxels, ratio, float(relaxation), e, t._none2], t.device)
 
     def images(self) -> np.ndarray:
         """(n, n_pixels) float32: each voxel's image, for checks on small rigs."""

@@ -521,6 +521,22 @@ def apply_templates(
 
 
 @wp.kernel
+def template_key(
+    grid: Grid,
+    views: wp.array(dtype=View),
+    plans: wp.array(dtype=Plan),
+    tables: Tables,
+    voxels: wp.array(dtype=wp.int32),
+    key: wp.array(dtype=wp.int32),
+):
+    """key[tid]: the template voxel ``voxels[tid]`` takes in the first view (-1 where that view
+    cannot see it), the order in which the operator's launches visit the voxels: voxels of one
+    template one after another, so that its spots are read from the cache."""
+    tid = wp.tid()
+    key[tid] = place(grid, views[0], plans[0], tables.depth_first, tables.depth_phase, voxels[tid]).tmpl
+
+
+@wp.kernel
 def project(
     grid: Grid,
     views: wp.array(dtype=View),
@@ -528,19 +544,20 @@ def project(
     tables: Tables,
     n_views: int,
     min_weight: float,
+    order: wp.array(dtype=wp.int32),
     voxels: wp.array(dtype=wp.int32),
     e: wp.array(dtype=float),
     proj: wp.array(dtype=float),
     none: wp.array2d(dtype=float),
 ):
-    """proj[pixel] += w E of voxel ``voxels[tid]``, every view (see :func:`apply_templates`;
-    ``none`` is unused)."""
-    tid = wp.tid()
-    ej = e[tid]
+    """proj[pixel] += w E of voxel ``voxels[order[tid]]``, every view (see :func:`apply_templates`;
+    ``order`` a permutation of the voxels, see :func:`template_key`; ``none`` is unused)."""
+    k = order[wp.tid()]
+    ej = e[k]
     if ej == 0.0:
         return
     for iv in range(n_views):
-        apply_templates(0, grid, views[iv], plans[iv], tables, min_weight, voxels[tid], ej, proj, none, 0)
+        apply_templates(0, grid, views[iv], plans[iv], tables, min_weight, voxels[k], ej, proj, none, 0)
 
 
 @wp.kernel
@@ -551,23 +568,24 @@ def smart_update(
     tables: Tables,
     n_views: int,
     min_weight: float,
+    order: wp.array(dtype=wp.int32),
     voxels: wp.array(dtype=wp.int32),
     ratio: wp.array(dtype=float),
     relaxation: float,
     e: wp.array(dtype=float),
     none: wp.array2d(dtype=float),
 ):
-    """E_v <- E_v exp(mu sum_i w_iv ratio_i), a gather per voxel (see :func:`lfcore._kernels.mart.smart_update`;
-    ``none`` is unused)."""
-    tid = wp.tid()
-    ej = e[tid]
+    """E_v <- E_v exp(mu sum_i w_iv ratio_i), a gather per voxel ``voxels[order[tid]]`` (see
+    :func:`lfcore._kernels.mart.smart_update`; ``none`` is unused)."""
+    k = order[wp.tid()]
+    ej = e[k]
     if ej == 0.0:
         return
     s = float(0.0)
     for iv in range(n_views):
         s += apply_templates(1, grid, views[iv], plans[iv], tables,
-                             min_weight, voxels[tid], ej, ratio, none, 0)
-    e[tid] = multiplied(ej, s, relaxation)
+                             min_weight, voxels[k], ej, ratio, none, 0)
+    e[k] = multiplied(ej, s, relaxation)
 
 
 @wp.kernel
