@@ -79,8 +79,8 @@ MAX_PHASES = 32
 RIGID_SPOT_BYTES = 20
 #: Bytes per cut template spot: (column, row, hx, hy) float32 at the bin centre, its share there
 #: and the most of its shares (float32), the geometry's change per bin along each lattice axis
-#: (int16 steps) and its shares at the 8 probes around the centre (uint16 fractions of the most).
-CUT_SPOT_BYTES = 56
+#: (float32) and its shares at the 8 probes around the centre (uint16 fractions of the most).
+CUT_SPOT_BYTES = 72
 #: The projectors reconstruction can run on.
 PROJECTORS = ("auto", "stored", "matrix-free")
 
