@@ -47,12 +47,14 @@ stored weights (:class:`MatrixFreeUnsupported`).
 
 Memory: :data:`RIGID_SPOT_BYTES` per rigid spot and :data:`CUT_SPOT_BYTES` per cut one (seven
 in eight on S, four in five on Mc) plus two offsets per template: set by the cameras, depth
-planes and sub-apertures, not by the voxels (40 MiB for S, 356 MiB for Mc against its stored
-weights' 1618 MiB), plus 4 bytes per reconstructed voxel (its index). The work per voxel is one
-template's spots (about 190 on S, 330 on Mc), each cut into (mostly) 2 x 2 pixels, where a
-stored voxel reads its merged weights (about 195 on S): on a CPU it is still slower per
-iteration than stored weights (11-12x on S, 5.5-6.6x on Mc; 27x and 13x with three templates a
-voxel), and it is what is left where those do not fit.
+planes and sub-apertures, not by the voxels (51 MiB for S, 449 MiB for Mc against its stored
+weights' 1618 MiB), plus 8 bytes per reconstructed voxel (its index and its place in the order
+the launches visit the voxels: those of one template together, so that its spots are read from
+the cache). The work per voxel is one template's spots (about 190 on S, 330 on Mc), each cut
+into (mostly) 2 x 2 pixels, where a stored voxel reads its merged weights (about 195 on S): on
+a CPU it is still slower per iteration than stored weights (9.8-11.2x on S, 8.2x on Mc; with
+16-bit spot changes and the voxels in their own order 13.0x and 9.5x in the same back-to-back
+runs; 27x and 13x with three templates a voxel), and it is what is left where those do not fit.
 """
 
 from __future__ import annotations
@@ -329,8 +331,8 @@ class MatrixFreeWeights:
 
     @property
     def nbytes(self) -> int:
-        """The templates' bytes and the voxels' indices."""
-        return self.templates.nbytes + 4 * self.n_voxels
+        """The templates' bytes and the voxels' indices and order."""
+        return self.templates.nbytes + 8 * self.n_voxels
 
     def order(self) -> object:
         """(n,) int32 on the device: the rows in the order the operator visits them, the voxels of
