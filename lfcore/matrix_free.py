@@ -53,7 +53,7 @@ the launches visit the voxels: those of one template together, so that its spots
 the cache). The work per voxel is one template's spots (about 190 on S, 330 on Mc), each cut
 into (mostly) 2 x 2 pixels, where a stored voxel reads its merged weights (about 195 on S): on
 a CPU it is still slower per iteration than stored weights (S 78-156 ms against 7-16 ms, 8-11x
-as the shared machine's load goes; Mc 2.7 s against 0.33 s, 8.2x), 11-19% faster than with
+as the shared machine's load goes; Mc 2.6-2.7 s against 0.33-0.37 s, 7.0-8.2x), 11-19% faster than with
 16-bit spot changes and the voxels in their own order (run back to back; 27x and 13x with three
 templates a voxel), and it is what is left where those do not fit.
 """
