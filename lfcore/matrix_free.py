@@ -47,17 +47,20 @@ stored weights (:class:`MatrixFreeUnsupported`).
 
 Memory: :data:`RIGID_SPOT_BYTES` per rigid spot and :data:`CUT_SPOT_BYTES` per cut one (seven
 in eight on S, four in five on Mc) plus two offsets per template: set by the cameras, depth
-planes and sub-apertures, not by the voxels (40 MiB for S, 356 MiB for Mc against its stored
-weights' 1618 MiB), plus 4 bytes per reconstructed voxel (its index). The work per voxel is one
-template's spots (about 190 on S, 330 on Mc), each cut into (mostly) 2 x 2 pixels, where a
-stored voxel reads its merged weights (about 195 on S): on a CPU it is still slower per
-iteration than stored weights (11-12x on S, 5.5-6.6x on Mc; 27x and 13x with three templates a
-voxel), and it is what is left where those do not fit.
+planes and sub-apertures, not by the voxels (51 MiB for S, 449 MiB for Mc against its stored
+weights' 1618 MiB), plus 8 bytes per reconstructed voxel (its index and its place in the order
+the launches visit the voxels: those of one template together, so that its spots are read from
+the cache). The work per voxel is one template's spots (about 190 on S, 330 on Mc), each cut
+into (mostly) 2 x 2 pixels, where a stored voxel reads its merged weights (about 195 on S): on
+a CPU it is still slower per iteration than stored weights (S 78-156 ms against 7-16 ms, 8-11x
+as the shared machine's load goes; Mc 2.6-2.7 s against 0.33-0.37 s, 7.0-8.2x), 11-19% faster than with
+16-bit spot changes and the voxels in their own order (run back to back; 27x and 13x with three
+templates a voxel), and it is what is left where those do not fit.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -79,8 +82,8 @@ MAX_PHASES = 32
 RIGID_SPOT_BYTES = 20
 #: Bytes per cut template spot: (column, row, hx, hy) float32 at the bin centre, its share there
 #: and the most of its shares (float32), the geometry's change per bin along each lattice axis
-#: (int16 steps) and its shares at the 8 probes around the centre (uint16 fractions of the most).
-CUT_SPOT_BYTES = 56
+#: (float32) and its shares at the 8 probes around the centre (uint16 fractions of the most).
+CUT_SPOT_BYTES = 72
 #: The projectors reconstruction can run on.
 PROJECTORS = ("auto", "stored", "matrix-free")
 
@@ -304,6 +307,7 @@ class MatrixFreeWeights:
     templates: DrtTemplates
     voxels: object
     min_weight: float = 1e-6
+    _order: object = field(default=None, init=False, repr=False, compare=False)
 
     matrix_free = True  # the projector's dispatch mark
     nnz = 0
@@ -328,8 +332,22 @@ class MatrixFreeWeights:
 
     @property
     def nbytes(self) -> int:
-        """The templates' bytes and the voxels' indices."""
-        return self.templates.nbytes + 4 * self.n_voxels
+        """The templates' bytes and the voxels' indices and order."""
+        return self.templates.nbytes + 8 * self.n_voxels
+
+    def order(self) -> object:
+        """(n,) int32 on the device: the rows in the order the operator visits them, the voxels of
+        one template (in the first view) together so that its spots are read from the cache
+        (computed once, at the first use)."""
+        if self._order is None:
+            t, km, wp = self.templates, self.templates._km, self.templates.wp
+            p = t.projector
+            key = wp.empty(self.n_voxels, dtype=wp.int32, device=t.device)
+            launch_rows(km.template_key, self.n_voxels, [p._grid, p.views, t.plans, t.tables, Rows(self.voxels),
+                                                         Rows(key)], t.device)
+            rows = np.argsort(key.numpy(), kind="stable").astype(np.int32)
+            self._order = wp.array(rows, dtype=wp.int32, device=t.device)
+        return self._order
 
     def forward(self, e, out) -> object:
         """Project intensities ``e`` (n,) into ``out`` (n_pixels,) float32 (zeroed first)."""
@@ -337,8 +355,8 @@ class MatrixFreeWeights:
         out.zero_()
         parts = PrivateCopies()
         per = parts.open(out)
-        launch_rows(km.project, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels), Rows(e), per,
-                                              t._none2],
+        launch_rows(km.project, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.order()), self.voxels,
+                                              e, per, t._none2],
                     t.device)
         parts.close(out)
         return out
@@ -346,8 +364,8 @@ class MatrixFreeWeights:
     def smart_update(self, ratio, e, relaxation: float) -> None:
         """E_v <- E_v exp(mu sum_i w_iv ratio_i) in place, ``ratio`` the pixels' log ratios."""
         t, km = self.templates, self.templates._km
-        launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels), ratio,
-                                                     float(relaxation), Rows(e), t._none2], t.device)
+        launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.order()),
+                                                     self.voxels, ratio, float(relaxation), e, t._none2], t.device)
 
     def images(self) -> np.ndarray:
         """(n, n_pixels) float32: each voxel's image, for checks on small rigs."""

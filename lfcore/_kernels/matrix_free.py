@@ -87,13 +87,10 @@ class RigidSpot:
     density: float  # its share of the light per pixel area
 
 
-#: Fixed-point vectors of the cut spots' changes (conversions inline on every device).
+#: Fixed-point vectors of the cut spots' probe shares (conversions inline on every device).
 vec4us = wp.types.vector(length=4, dtype=wp.uint16)
-vec4s = wp.types.vector(length=4, dtype=wp.int16)
-#: Steps of the fixed-point shares (over the part's peak) and geometry changes (pixels per bin;
-#: within +-16 pixels per bin, far more than a spot of about a pixel moves or grows in a bin).
+#: Step of the fixed-point shares (over the part's peak).
 SHARE_STEP = wp.constant(1.0 / 65535.0)
-GEO_STEP = wp.constant(1.0 / 2048.0)
 
 
 @wp.func
@@ -103,25 +100,18 @@ def to_fraction(v: wp.vec4) -> vec4us:
     return vec4us(wp.uint16(int(q[0])), wp.uint16(int(q[1])), wp.uint16(int(q[2])), wp.uint16(int(q[3])))
 
 
-@wp.func
-def to_steps(v: wp.vec4) -> vec4s:
-    """Pixels in steps of :data:`GEO_STEP`, clamped to the int16 range."""
-    q = wp.min(wp.max(v / GEO_STEP, wp.vec4(-32767.0)), wp.vec4(32767.0))
-    return vec4s(wp.int16(int(wp.round(q[0]))), wp.int16(int(wp.round(q[1]))), wp.int16(int(wp.round(q[2]))),
-                 wp.int16(int(wp.round(q[3]))))
-
-
 @wp.struct
 class CutSpot:
     """The part of a footprint that meets a lenslet edge somewhere in the phase bin and enters one
-    lenslet. Its changes in the phase are fixed point (steps of 5e-4 pixel and 1.5e-5 of the
-    part's most light)."""
+    lenslet. Its geometry's changes in the phase are float32 (decoding 16-bit steps for every voxel
+    took about a tenth of the operator's time on the CPU); its probe shares are fixed point
+    (steps of 1.5e-5 of the part's most light)."""
 
     geo: wp.vec4  # (column, row, hx, hy) pixels at the bin centre
     share: float  # share of the light at the bin centre
     peak: float  # the most of the centre's and the probes' shares
-    d0: vec4s  # the geometry's change per bin along lattice axis 0, less the rigid shift (GEO_STEP)
-    d1: vec4s  # and along axis 1
+    d0: wp.vec4  # the geometry's change per bin along lattice axis 0, less the rigid shift (pixels)
+    d1: wp.vec4  # and along axis 1
     axes: vec4us  # the share at half a bin up and down lattice axis 0, then axis 1, over peak (SHARE_STEP)
     diag: vec4us  # the share at the bin's corners (+0 +1, -0 +1, +0 -1, -0 -1), over peak
 
@@ -363,8 +353,8 @@ def template_spots(
                             else:
                                 centre = mm.geo + r0 + r1
                         else:
-                            cs.d0 = to_steps(per_bin(m, p0, m0, r0))
-                            cs.d1 = to_steps(per_bin(m, p1, m1, r1))
+                            cs.d0 = per_bin(m, p0, m0, r0)
+                            cs.d1 = per_bin(m, p1, m1, r1)
                         cs.geo = centre
                         # the share at the centre and at the eight probes around it
                         axes = wp.vec4(p0.share, m0.share, p1.share, m1.share)
@@ -504,20 +494,37 @@ def apply_templates(
     ca = a * (1.0 - b) * SHARE_STEP
     cb = (1.0 - a) * b * SHARE_STEP
     cab = a * b * SHARE_STEP
-    g0 = u0 * GEO_STEP
-    g1 = u1 * GEO_STEP
+    g0 = u0
+    g1 = u1
     for t in range(tables.cut_offsets[pl.tmpl], tables.cut_offsets[pl.tmpl + 1]):
         cs = tables.cut[t]
         s = c00 * cs.share + cs.peak * (ca * float(cs.axes[ia]) + cb * float(cs.axes[ib]) + cab * float(cs.diag[iab]))
-        if s <= 0.0:
+        # a pixel's weight is at most the spot's share: at or below min_weight, every one is dropped
+        if s <= min_weight:
             continue
-        st = cs.geo + g0 * wp.vec4(cs.d0) + g1 * wp.vec4(cs.d1) + move
+        st = cs.geo + g0 * cs.d0 + g1 * cs.d1 + move
         # a part that (extrapolated) shrinks to nothing still lands its share
         hx = wp.max(st[2], MIN_HALF)
         hy = wp.max(st[3], MIN_HALF)
         total += cut_spot(mode, cam, base, st[0], st[1], hx, hy, s / (4.0 * hx * hy), min_weight, ej, values, images,
                           row)
     return total
+
+
+@wp.kernel
+def template_key(
+    grid: Grid,
+    views: wp.array(dtype=View),
+    plans: wp.array(dtype=Plan),
+    tables: Tables,
+    voxels: wp.array(dtype=wp.int32),
+    key: wp.array(dtype=wp.int32),
+):
+    """key[tid]: the template voxel ``voxels[tid]`` takes in the first view (-1 where that view
+    cannot see it), the order in which the operator's launches visit the voxels: voxels of one
+    template one after another, so that its spots are read from the cache."""
+    tid = wp.tid()
+    key[tid] = place(grid, views[0], plans[0], tables.depth_first, tables.depth_phase, voxels[tid]).tmpl
 
 
 @wp.kernel
@@ -528,19 +535,20 @@ def project(
     tables: Tables,
     n_views: int,
     min_weight: float,
+    order: wp.array(dtype=wp.int32),
     voxels: wp.array(dtype=wp.int32),
     e: wp.array(dtype=float),
     proj: wp.array(dtype=float),
     none: wp.array2d(dtype=float),
 ):
-    """proj[pixel] += w E of voxel ``voxels[tid]``, every view (see :func:`apply_templates`;
-    ``none`` is unused)."""
-    tid = wp.tid()
-    ej = e[tid]
+    """proj[pixel] += w E of voxel ``voxels[order[tid]]``, every view (see :func:`apply_templates`;
+    ``order`` a permutation of the voxels, see :func:`template_key`; ``none`` is unused)."""
+    k = order[wp.tid()]
+    ej = e[k]
     if ej == 0.0:
         return
     for iv in range(n_views):
-        apply_templates(0, grid, views[iv], plans[iv], tables, min_weight, voxels[tid], ej, proj, none, 0)
+        apply_templates(0, grid, views[iv], plans[iv], tables, min_weight, voxels[k], ej, proj, none, 0)
 
 
 @wp.kernel
@@ -551,23 +559,24 @@ def smart_update(
     tables: Tables,
     n_views: int,
     min_weight: float,
+    order: wp.array(dtype=wp.int32),
     voxels: wp.array(dtype=wp.int32),
     ratio: wp.array(dtype=float),
     relaxation: float,
     e: wp.array(dtype=float),
     none: wp.array2d(dtype=float),
 ):
-    """E_v <- E_v exp(mu sum_i w_iv ratio_i), a gather per voxel (see :func:`lfcore._kernels.mart.smart_update`;
-    ``none`` is unused)."""
-    tid = wp.tid()
-    ej = e[tid]
+    """E_v <- E_v exp(mu sum_i w_iv ratio_i), a gather per voxel ``voxels[order[tid]]`` (see
+    :func:`lfcore._kernels.mart.smart_update`; ``none`` is unused)."""
+    k = order[wp.tid()]
+    ej = e[k]
     if ej == 0.0:
         return
     s = float(0.0)
     for iv in range(n_views):
         s += apply_templates(1, grid, views[iv], plans[iv], tables,
-                             min_weight, voxels[tid], ej, ratio, none, 0)
-    e[tid] = multiplied(ej, s, relaxation)
+                             min_weight, voxels[k], ej, ratio, none, 0)
+    e[k] = multiplied(ej, s, relaxation)
 
 
 @wp.kernel

@@ -111,6 +111,40 @@ def test_forward_projection_and_update_match_the_stored_weights(scene, device):
     assert np.linalg.norm(step_b - step_a) <= 1e-2 * np.linalg.norm(step_a)
 
 
+def test_launches_visit_the_voxels_of_one_template_together(scene, device):
+    """The launch order is a permutation that groups the voxels by their template in the first
+    view; projections and updates do not depend on it (up to float summation order)."""
+    from lfcore._kernels import matrix_free as km
+
+    rig, grid, _, _ = scene
+    proj = Projector(rig.camera, grid, device=device)
+    wp = proj.wp
+    rng = np.random.default_rng(5)
+    vox_np = np.sort(rng.choice(grid.n_voxels, grid.n_voxels // 4, replace=False)).astype(np.int32)
+    vox = wp.array(vox_np, dtype=wp.int32, device=device)
+    t = DrtTemplates(proj)
+    mf = MatrixFreeWeights(t, vox)
+    order = mf.order().numpy()
+    assert np.array_equal(np.sort(order), np.arange(len(vox_np)))
+    key = wp.empty(len(vox_np), dtype=wp.int32, device=device)
+    wp.launch(km.template_key, dim=len(vox_np), inputs=[proj._grid, proj.views, t.plans, t.tables, vox, key],
+              device=device)
+    k = key.numpy()[order]
+    assert np.all(np.diff(k) >= 0) and k.max() >= 0
+    own = MatrixFreeWeights(t, vox)
+    own._order = wp.array(np.arange(len(vox_np), dtype=np.int32), dtype=wp.int32, device=device)
+    e_np = rng.random(len(vox_np)).astype(np.float32)
+    a = proj.forward(mf, wp.array(e_np, device=device)).numpy()
+    b = proj.forward(own, wp.array(e_np, device=device)).numpy()
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6 * a.max())
+    image = wp.array((a * rng.uniform(0.5, 1.5, a.size)).astype(np.float32), device=device)
+    proj_a = wp.array(a, device=device)
+    ea, eb = wp.array(e_np, device=device), wp.array(e_np, device=device)
+    proj.smart_update(mf, image, proj_a, ea, 1.0, 1e-3)
+    proj.smart_update(own, image, proj_a, eb, 1.0, 1e-3)
+    np.testing.assert_allclose(ea.numpy(), eb.numpy(), rtol=1e-5)
+
+
 def test_reconstruction_quality_matches_the_stored_path(scene, device):
     rig, grid, pts, img = scene
     proj = Projector(rig.camera, grid, device=device)
