@@ -35,6 +35,7 @@ __all__ = ["CorrelateJob", "CorrelationRun", "PairVectors", "correlate_pair_task
 # another device (or FFT engine, which follows the device) keeps its earlier pairs.
 _PLACE = ("device", "fft")
 
+
 @dataclass(frozen=True)
 class CorrelateJob:
     """What a worker needs to correlate pairs of a run (:mod:`lfpiv.batch`)."""

@@ -34,6 +34,7 @@ BYTES_PER_BOX_VOXEL = 16
 #: The attribute of ``volumes/`` that holds what the operator took (see :func:`operator_figures`).
 OPERATOR_ATTR = "operator"
 
+
 def recon_settings(**options: Any) -> ReconSettings:
     """:class:`lfcore.reconstruct.ReconSettings` of the given options (method, iterations,
     relaxation, form, ...), or a one-line :class:`UsageError` naming what is wrong."""
