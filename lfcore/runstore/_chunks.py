@@ -22,12 +22,19 @@ def checksummed(array: zarr.Array) -> bool:
     return any(isinstance(c, Crc32cCodec) for c in getattr(array.metadata, "codecs", ()))
 
 
-def chunk_coords(array: zarr.Array, lead: tuple[int, ...]) -> list[tuple[int, ...]]:
-    """Chunk-grid coordinates of the chunks that hold ``array[lead]`` (``lead``: indices along
-    the first axes), in C order."""
-    first = tuple(int(i) // int(c) for i, c in zip(lead, array.chunks, strict=False))
+def chunk_coords(array: zarr.Array, lead: tuple[int | slice, ...]) -> list[tuple[int, ...]]:
+    """Chunk-grid coordinates of the chunks that hold ``array[lead]`` (``lead``: along the first
+    axes, indices or ranges ``slice(start, stop)`` of step 1, such as a volume's planes), in C
+    order."""
+    axes = []
+    for i, c, n in zip(lead, array.chunks, array.shape, strict=False):
+        if isinstance(i, slice):
+            lo, hi, _ = i.indices(n)
+            axes.append(range(lo // c, (hi - 1) // c + 1))
+        else:
+            axes.append((int(i) // int(c),))
     rest = array.cdata_shape[len(lead):]
-    return [first + r for r in itertools.product(*(range(n) for n in rest))]
+    return list(itertools.product(*axes, *(range(n) for n in rest)))
 
 
 def chunk_key(array: zarr.Array, coords: tuple[int, ...]) -> str:
@@ -73,7 +80,7 @@ def damage(array: zarr.Array, where: str, coords: tuple[int, ...], problem: str)
     return f"{array.path} {where}: chunk {chunk_key(array, coords)} {problem}{hint}; {RESTORE}"
 
 
-def read_slab(array: zarr.Array, lead: tuple[int, ...], where: str) -> tuple[np.ndarray | None, str | None]:
+def read_slab(array: zarr.Array, lead: tuple[int | slice, ...], where: str) -> tuple[np.ndarray | None, str | None]:
     """``array[lead]``, or None and the line naming the first of its chunks that fails to decode."""
     try:
         return array[lead], None

@@ -29,7 +29,6 @@ from lfcore.runstore._chunks import (
     chunk_problem,
     chunk_stored,
     damage,
-    decode_problem,
     dtype_problem,
     read_slab,
 )
@@ -89,7 +88,7 @@ class Integrity(Part):
             return None, self._line(wrong)
         return a, problem
 
-    def _read(self, a: zarr.Array, lead: tuple[int, ...], where: str, *, strict: bool = False) -> np.ndarray:
+    def _read(self, a: zarr.Array, lead: tuple[int | slice, ...], where: str, *, strict: bool = False) -> np.ndarray:
         """``a[lead]`` of a recorded item, every chunk of it intact, and stored (in a store with
         checksums, or ``strict``: stores before them did not store chunks of fill values)."""
         if strict or checksummed(a):
@@ -159,22 +158,10 @@ class Integrity(Part):
         if planes is None:
             return self._read(a, (pair, frame), where)
         z0, z1 = (int(v) for v in planes)
-        nz, cz = a.shape[2], a.chunks[2]
+        nz = a.shape[2]
         if not 0 <= z0 < z1 <= nz:
             raise RunStoreError(self._line(f"volumes/data is {nz} planes deep: planes {z0}-{z1 - 1} are not all in it"))
-        chunks = [c for c in chunk_coords(a, (pair, frame)) if z0 // cz <= c[2] <= (z1 - 1) // cz]
-        if checksummed(a):
-            for c in chunks:
-                if not chunk_stored(a, c):
-                    raise RunStoreError(self._line(damage(a, where, c, "is missing")))
-        try:
-            return a[pair, frame, z0:z1]
-        except Exception as exc:  # noqa: BLE001 - find the chunk and say what is wrong with it
-            for c in chunks:
-                problem = chunk_problem(a, c, required=False)
-                if problem is not None:
-                    raise RunStoreError(self._line(damage(a, where, c, problem))) from None
-            raise RunStoreError(self._line(f"{a.path} {where}: {decode_problem(exc)}; {RESTORE}")) from None
+        return self._read(a, (pair, frame, slice(z0, z1)), where)
 
     def read_vectors(self, pair: int) -> dict[str, np.ndarray]:
         """The vectors of one correlated pair: u, v, w (m/s), flags and peak_ratio, each (z, y, x),
