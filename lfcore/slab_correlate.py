@@ -68,6 +68,7 @@ from lfcore.correlate import (
 )
 from lfcore.device import MemoryBudgetError
 from lfcore.slabs import plan_slabs
+from lfcore.vectors import REPLACE_SWEEPS
 
 __all__ = ["BSPLINE_ERROR_GAIN", "BYTES_PER_SLAB_VOXEL", "CorrelationSlab", "SlabCorrelator", "correlation_bytes",
            "correlator_bytes", "plan_correlation_slabs", "prefilter_planes", "slabs_for_budget"]
@@ -81,8 +82,6 @@ PREFILTER_TOLERANCE = 1e-6
 #: Bytes per voxel a slab (with its halo) takes while it is correlated: its two volumes as read
 #: (host), the correlator's two copies, two deformed volumes and two coefficient volumes (float32).
 BYTES_PER_SLAB_VOXEL = 32
-#: Sweeps of the outlier replacement (:func:`lfcore.vectors.replace_outliers`' default).
-MAX_SWEEPS = 10
 _INF = 1 << 40
 
 
@@ -163,7 +162,7 @@ class _Plan:
         out = []
         for i, g in enumerate(self.grids):
             f, s, c, w = g.first[2], g.step[2], g.counts[2], g.window[2]
-            k_lo, k_hi = max(0, -((f - lo) // s)), min(c - 1, (hi - w - f) // s)
+            k_lo, k_hi = _rows_in(g, lo, hi)
             if k_lo > k_hi:
                 return None
             k = np.arange(k_lo, k_hi + 1)
@@ -226,9 +225,9 @@ class _Plan:
         exact = self.exact(lo, hi, a)
         grids = []
         for gg in self.grids:
-            f, s, c, w = gg.first[2], gg.step[2], gg.counts[2], gg.window[2]
-            ka, kb = max(0, -((f - lo) // s)), min(c - 1, (hi - w - f) // s)
-            grids.append(WindowGrid(window=gg.window, step=gg.step, first=(gg.first[0], gg.first[1], f + s * ka - lo),
+            ka, kb = _rows_in(gg, lo, hi)
+            grids.append(WindowGrid(window=gg.window, step=gg.step,
+                                    first=(gg.first[0], gg.first[1], gg.first[2] + gg.step[2] * ka - lo),
                                     counts=(gg.counts[0], gg.counts[1], kb - ka + 1)))
         return CorrelationSlab(z0=z0, z1=z1, lo=lo, hi=hi, k0=k0, k1=k1, grids=tuple(grids),
                                exact=tuple(e[:2] for e in exact), validated=tuple(e[2:] for e in exact))
@@ -520,14 +519,20 @@ def _first_row(g: WindowGrid, lo: int) -> int:
     return max(0, -((g.first[2] - lo) // g.step[2]))
 
 
+def _rows_in(g: WindowGrid, lo: int, hi: int) -> tuple[int, int]:
+    """The whole grid's first and last rows (z) whose windows lie in planes ``lo .. hi - 1``
+    (first > last: none)."""
+    return _first_row(g, lo), min(g.counts[2] - 1, (hi - g.window[2] - g.first[2]) // g.step[2])
+
+
 def _sweeps(outlier: np.ndarray) -> np.ndarray:
     """The replacement sweep that fills each outlier: its chessboard distance to the nearest
     vector that is not one (every 26-neighbour of a valid vector is filled in the first sweep);
-    :data:`MAX_SWEEPS` where none is that near (those are left unfilled, which also depends on
+    :data:`REPLACE_SWEEPS` where none is that near (those are left unfilled, which also depends on
     that many rows)."""
     if outlier.all():
-        return np.full(outlier.shape, MAX_SWEEPS)
+        return np.full(outlier.shape, REPLACE_SWEEPS)
     d = ndimage.distance_transform_cdt(outlier, metric="chessboard")
-    return np.minimum(d, MAX_SWEEPS)
+    return np.minimum(d, REPLACE_SWEEPS)
 
 

@@ -27,6 +27,7 @@ from scipy import ndimage
 __all__ = [
     "FLAG_OUTLIER",
     "FLAG_REPLACED",
+    "REPLACE_SWEEPS",
     "MedianTest",
     "centres_mm",
     "displacement_to_velocity",
@@ -41,6 +42,9 @@ __all__ = [
     "vorticity",
 ]
 
+#: Sweeps :func:`replace_outliers` makes at most by default (each fills the outliers next to a
+#: valid or already filled vector).
+REPLACE_SWEEPS = 10
 #: Bits of the ``flags`` array: the vector failed the outlier test; it was replaced.
 FLAG_OUTLIER = 1
 FLAG_REPLACED = 2
@@ -111,7 +115,7 @@ def normalized_median_test(field: np.ndarray, test: MedianTest = MedianTest(), *
     return out.numpy() != 0
 
 
-def replace_outliers(field: np.ndarray, outlier: np.ndarray, *, max_iterations: int = 10,
+def replace_outliers(field: np.ndarray, outlier: np.ndarray, *, max_iterations: int = REPLACE_SWEEPS,
                      device: str | None = "cpu") -> tuple[np.ndarray, np.ndarray]:
     """Replace outliers by the median of their valid neighbours.
 
