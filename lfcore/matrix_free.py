@@ -65,6 +65,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lfcore.device import PrivateCopies, Rows, launch_rows, warp
+from lfcore.mla import HEX_ROW
 from lfcore.projector import Projector
 from lfcore.weight_build import MemoryBudgetError
 
@@ -204,14 +205,14 @@ class DrtTemplates:
                 f0, f1 = np.meshgrid(fr, fr)  # [b1, b0]
                 f0, f1 = f0.ravel(), f1.ravel()
                 if cam.mla_grid == "hex":
-                    u, v = pitch * (f0 + 0.5 * f1), pitch * 0.8660254037844386 * f1
+                    u, v = pitch * (f0 + 0.5 * f1), pitch * HEX_ROW * f1
                 else:
                     u, v = pitch * f0, pitch * f1
                 gx = c * u - s * v + off[0]
                 gy = s * u + c * v + off[1]
                 # half a bin along each lattice axis, in the camera frame (the cut spots' probes)
                 h0 = np.array([0.5 * pitch / n_ph, 0.0])
-                h1 = np.array([0.25 * pitch / n_ph, 0.5 * pitch * 0.8660254037844386 / n_ph]) \
+                h1 = np.array([0.25 * pitch / n_ph, 0.5 * pitch * HEX_ROW / n_ph]) \
                     if cam.mla_grid == "hex" else np.array([0.0, 0.5 * pitch / n_ph])
                 probe = [c * h0[0] - s * h0[1], s * h0[0] + c * h0[1], c * h1[0] - s * h1[1], s * h1[0] + c * h1[1]]
                 t_probe.append(np.tile(np.asarray(probe, dtype=np.float32), (len(gx), 1)))
