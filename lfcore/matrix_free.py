@@ -70,7 +70,7 @@ from lfcore.projector import Projector
 from lfcore.weight_build import MemoryBudgetError
 
 __all__ = ["CUT_SPOT_BYTES", "MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS", "RIGID_SPOT_BYTES",
-           "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "fidelity"]
+           "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "applied_by", "fidelity"]
 
 #: Phase bins per lattice axis of a depth's templates, per lenslet pitch over a sub-aperture's
 #: footprint width on the MLA (bins a third of the footprint: correlation >= 0.9995 on the
@@ -87,6 +87,13 @@ RIGID_SPOT_BYTES = 20
 CUT_SPOT_BYTES = 72
 #: The projectors reconstruction can run on.
 PROJECTORS = ("auto", "stored", "matrix-free")
+
+
+def applied_by(weights: object) -> str:
+    """What applies the operator of ``weights``: ``"matrix-free"`` for :class:`MatrixFreeWeights`,
+    ``"stored"`` for stored weights (the name :attr:`lfcore.reconstruct.ReconResult.projector`
+    reports)."""
+    return "matrix-free" if getattr(weights, "matrix_free", False) else "stored"
 
 
 class MatrixFreeUnsupported(ValueError):

@@ -38,7 +38,7 @@ from scipy import ndimage
 
 from lfcore.device import MemoryBudgetError, available_bytes, out_of_memory_is_budget_error, warp
 from lfcore.device_ops import VolumeOps
-from lfcore.matrix_free import PROJECTORS, DrtTemplates, MatrixFreeUnsupported, MatrixFreeWeights
+from lfcore.matrix_free import PROJECTORS, DrtTemplates, MatrixFreeUnsupported, MatrixFreeWeights, applied_by
 from lfcore.projector import Projector
 from lfcore.weight_build import STORAGE, Weights
 from lfcore.weight_cache import WeightCache
@@ -484,7 +484,7 @@ class FrameReconstructor:
                            nnz=weights.nnz, weight_bytes=weights.nbytes, weights_s=t1 - t0 + done.start_s,
                            iterate_s=done.iterate_s, iterations=settings.iterations, background=backgrounds,
                            noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=weights.n_on_the_fly,
-                           projector="matrix-free" if getattr(weights, "matrix_free", False) else "stored")
+                           projector=applied_by(weights))
 
     # --- the stages ------------------------------------------------------------------------------
     def eliminate(self, lit) -> object:

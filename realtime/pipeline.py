@@ -49,6 +49,7 @@ import numpy as np
 from acquisition.ring import PairView
 from lfcore.correlate import CorrelationConfig, Correlator, VectorField
 from lfcore.device_ops import ImagePreprocessor
+from lfcore.matrix_free import applied_by
 from lfcore.pinhole_projector import default_method, projector_for, unsupported_method
 from lfcore.reconstruct import WEIGHTS, FrameReconstructor, ReconSettings, estimate_background
 from lfcore.rig import NotLightFieldError, Rig
@@ -804,7 +805,7 @@ class LivePipeline:
             vols.append(rc.volume(f, w, e))
             t4 = time.perf_counter()
             active.append(w.n_voxels / self.grid.n_voxels)
-            projectors.add("matrix-free" if getattr(w, "matrix_free", False) else "stored")
+            projectors.add(applied_by(w))
             for k, a, b in (("eliminate", t0, t1), ("weights", t1, t2), ("iterate", t2, t3), ("volume", t3, t4)):
                 t[k] += b - a
             del voxels, w, e  # frame A's weights go before frame B's are built (tens of GB for a large volume)
