@@ -67,7 +67,7 @@ import numpy as np
 from lfcore.device import PrivateCopies, Rows, launch_rows, warp
 from lfcore.mla import HEX_ROW
 from lfcore.projector import Projector
-from lfcore.weight_build import MemoryBudgetError
+from lfcore.weight_build import MemoryBudgetError, Weights
 
 __all__ = ["CUT_SPOT_BYTES", "MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS", "RIGID_SPOT_BYTES",
            "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "applied_by", "fidelity"]
@@ -90,10 +90,11 @@ PROJECTORS = ("auto", "stored", "matrix-free")
 
 
 def applied_by(weights: object) -> str:
-    """What applies the operator of ``weights``: ``"matrix-free"`` for :class:`MatrixFreeWeights`,
-    ``"stored"`` for stored weights (the name :attr:`lfcore.reconstruct.ReconResult.projector`
-    reports)."""
-    return "matrix-free" if getattr(weights, "matrix_free", False) else "stored"
+    """What applies the operator of ``weights``: ``"matrix-free"`` for :class:`MatrixFreeWeights`
+    and for the templates' images stored (:meth:`MatrixFreeWeights.expanded`), ``"stored"`` for
+    ray-traced stored weights (the name :attr:`lfcore.reconstruct.ReconResult.projector` reports)."""
+    matrix_free = getattr(weights, "matrix_free", False) or getattr(weights, "from_templates", False)
+    return "matrix-free" if matrix_free else "stored"
 
 
 class MatrixFreeUnsupported(ValueError):
@@ -287,7 +288,7 @@ class DrtTemplates:
                                              Rows(rigid_counts), Rows(cut_counts), tables], self.device)
         self.nbytes = int(need)
         self._none1 = wp.empty(1, dtype=float, device=self.device)  # stand-ins for a kernel's unused outputs
-        self._none2 = wp.empty((1, 1), dtype=float, device=self.device)
+        self._none_i = wp.empty(1, dtype=wp.int32, device=self.device)
         wp.synchronize_device(self.device)
         self.build_s = time.perf_counter() - t0
 
@@ -364,7 +365,7 @@ class MatrixFreeWeights:
         parts = PrivateCopies()
         per = parts.open(out)
         launch_rows(km.project, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.order()), self.voxels,
-                                              e, per, t._none2],
+                                              e, per, t._none_i],
                     t.device)
         parts.close(out)
         return out
@@ -373,17 +374,73 @@ class MatrixFreeWeights:
         """E_v <- E_v exp(mu sum_i w_iv ratio_i) in place, ``ratio`` the pixels' log ratios."""
         t, km = self.templates, self.templates._km
         launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.order()),
-                                                     self.voxels, ratio, float(relaxation), e, t._none2], t.device)
+                                                     self.voxels, ratio, float(relaxation), e, t._none_i], t.device)
+
+    def _trace(self, vox, offs, fill, limit, counts, pix, w) -> None:
+        """The templates' raw entries of ``vox``, with the interface of the stored weights' tracer
+        (see :meth:`lfcore.weight_build.WeightBuilder.merged`)."""
+        t, km, wp = self.templates, self.templates._km, self.templates.wp
+        launch_rows(km.template_entries, int(vox.shape[0]),
+                    [*t._common(), float(self.min_weight), Rows(vox), Rows(offs), wp.int64(0), fill, wp.int64(limit),
+                     Rows(counts), pix, w], t.device)
+
+    def expanded(self, *, budget_bytes: int | None = None) -> Weights:
+        """The templates' images of these voxels as stored weights: made once (no ray tracing; the
+        same entries the operator applies, merged per pixel as the stored build merges its own) so
+        that the iterations run at the stored weights' speed where their memory allows.
+
+        Parameters
+        ----------
+        budget_bytes
+            Memory the weights may take; default: what the device has free.
+
+        Returns
+        -------
+        lfcore.weight_build.Weights
+            Stored weights, marked ``from_templates``.
+
+        Raises
+        ------
+        MemoryBudgetError
+            If they would not fit.
+        """
+        out = self.templates.projector.builder.merged(self.voxels, self._trace, budget_bytes=budget_bytes)
+        out.min_weight = float(self.min_weight)
+        out.from_templates = True
+        return out
+
+    def entries_per_voxel(self, *, sample: int = 256) -> float:
+        """Mean raw entries (before their merge) per voxel, over up to ``sample`` voxels spread
+        over the list: what the expansion's scratch holds per voxel, an upper bound of its merged
+        weights."""
+        wp = self.templates.wp
+        n = self.n_voxels
+        if n == 0:
+            return 0.0
+        take = np.unique(np.linspace(0, n - 1, min(n, sample)).astype(np.int64))
+        dev = self.templates.device
+        vox = wp.array(self.voxels.numpy()[take], dtype=wp.int32, device=dev)
+        counts = wp.zeros(len(take), dtype=wp.int64, device=dev)
+        self._trace(vox, wp.zeros(len(take) + 1, dtype=wp.int64, device=dev), 0, 0, counts, self.templates._none_i,
+                    self.templates._none1)
+        return float(counts.numpy().mean())
 
     def images(self) -> np.ndarray:
         """(n, n_pixels) float32: each voxel's image, for checks on small rigs."""
-        t, km, wp = self.templates, self.templates._km, self.templates.wp
-        n_pix = t.projector.n_pixels
-        out = wp.zeros((self.n_voxels, n_pix), dtype=float, device=t.device)
-        launch_rows(km.voxel_image, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.voxels),
-                                                    Rows(out), t._none1], t.device)
-        return out.numpy()
-
+        t, wp = self.templates, self.templates.wp
+        n, dev = self.n_voxels, t.device
+        counts = wp.zeros(max(n, 1), dtype=wp.int64, device=dev)
+        zeros = wp.zeros(n + 1, dtype=wp.int64, device=dev)
+        self._trace(self.voxels, zeros, 0, 0, counts, t._none_i, t._none1)
+        offs = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(counts.numpy()[:n], out=offs[1:])
+        pix = wp.empty(max(int(offs[-1]), 1), dtype=wp.int32, device=dev)
+        w = wp.empty(max(int(offs[-1]), 1), dtype=float, device=dev)
+        self._trace(self.voxels, wp.array(offs, dtype=wp.int64, device=dev), 1, 2**62, counts, pix, w)
+        out = np.zeros((n, t.projector.n_pixels), dtype=np.float32)
+        m = int(offs[-1])
+        np.add.at(out, (np.repeat(np.arange(n), np.diff(offs)), pix.numpy()[:m]), w.numpy()[:m])
+        return out
 
 
 def fidelity(projector: Projector, voxels: np.ndarray, templates: DrtTemplates, *, min_weight: float = 1e-6

@@ -40,7 +40,7 @@ from lfcore.device import MemoryBudgetError, available_bytes, out_of_memory_is_b
 from lfcore.device_ops import VolumeOps
 from lfcore.matrix_free import PROJECTORS, DrtTemplates, MatrixFreeUnsupported, MatrixFreeWeights, applied_by
 from lfcore.projector import Projector
-from lfcore.weight_build import STORAGE, Weights
+from lfcore.weight_build import BYTES_PER_WEIGHT, STORAGE, Weights
 from lfcore.weight_cache import WeightCache
 
 __all__ = ["METHODS", "WEIGHTS", "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings",
@@ -108,8 +108,10 @@ class ReconSettings:
         again in each iteration), ``"stored"`` (all stored, or a :class:`MemoryBudgetError`) or
         ``"on-the-fly"`` (none stored). The volume is the same (to float round-off); weights
         made on the fly cost two traces per iteration instead of two reads, so a volume whose
-        weights do not fit is reconstructed slowly rather than refused. DRT weights and the
-        sequential form are always stored.
+        weights do not fit is reconstructed slowly rather than refused. On the matrix-free
+        projector the same choice holds for the templates' images of the voxels (stored where
+        they fit, else applied from the templates in every iteration). Ray-traced DRT weights
+        and the sequential form are always stored.
     projector
         What applies DRT-MART's operator: ``"stored"`` weights, the ``"matrix-free"`` templates
         of :mod:`lfcore.matrix_free` (simultaneous form only), or ``"auto"``: stored weights,
@@ -155,8 +157,9 @@ class ReconSettings:
                              f"{self.sub_apertures}")
         if self.weight_storage not in STORAGE:
             raise ValueError(f"weight_storage must be one of {', '.join(STORAGE)}, got '{self.weight_storage}'")
-        if self.weight_storage == "on-the-fly" and self.method == "drt-mart":
-            raise ValueError("DRT-MART's weights are always stored; on-the-fly weights are for mart and mlos-mart")
+        if self.weight_storage == "on-the-fly" and self.method == "drt-mart" and self.projector != "matrix-free":
+            raise ValueError("DRT-MART's weights are made on the fly by the matrix-free projector alone; use projector "
+                             "'matrix-free', or stored weights")
         if self.projector not in PROJECTORS:
             raise ValueError(f"projector must be one of {', '.join(PROJECTORS)}, got '{self.projector}'")
         if self.projector == "matrix-free" and self.method != "drt-mart":
@@ -481,7 +484,8 @@ class FrameReconstructor:
             volume = volume.copy()
         n = weights.n_voxels
         return ReconResult(volume=volume, active_voxels=n, active_fraction=n / p.grid.n_voxels,
-                           nnz=weights.nnz, weight_bytes=weights.nbytes, weights_s=t1 - t0 + done.start_s,
+                           nnz=weights.nnz, weight_bytes=self.operator_bytes(weights),
+                           weights_s=t1 - t0 + done.start_s,
                            iterate_s=done.iterate_s, iterations=settings.iterations, background=backgrounds,
                            noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=weights.n_on_the_fly,
                            projector=applied_by(weights))
@@ -532,11 +536,39 @@ class FrameReconstructor:
                 raise
         return self._stored_weights(voxels)
 
-    def _matrix_free(self, voxels) -> MatrixFreeWeights:
-        """The matrix-free operator on ``voxels``, its templates built on first use and kept."""
+    def operator_bytes(self, weights) -> int:
+        """Device bytes of the operator ``weights`` applies: the weights, and the templates they
+        were made from where they are the templates' images (kept for the next frames)."""
+        held = self._templates.nbytes if getattr(weights, "from_templates", False) and self._templates else 0
+        return int(weights.nbytes) + held
+
+    def _matrix_free(self, voxels) -> MatrixFreeWeights | Weights:
+        """The matrix-free operator on ``voxels``, its templates built on first use and kept.
+
+        With ``settings.weight_storage`` ``"auto"`` the templates' images of the voxels are
+        stored (:meth:`MatrixFreeWeights.expanded`: no ray tracing, iterations at the stored
+        weights' speed) where they fit beside the templates, and applied from the templates in
+        every iteration where they do not; ``"stored"``: stored or a :class:`MemoryBudgetError`;
+        ``"on-the-fly"``: always applied from the templates.
+        """
+        n = int(voxels.shape[0])
         if self._templates is None:
-            self._templates = DrtTemplates(self.projector, budget_bytes=self._weight_budget(int(voxels.shape[0])))
-        return MatrixFreeWeights(self._templates, voxels)
+            self._templates = DrtTemplates(self.projector, budget_bytes=self._weight_budget(n))
+        mf = MatrixFreeWeights(self._templates, voxels)
+        storage = self.settings.weight_storage
+        if storage == "on-the-fly":
+            return mf
+        budget = self._weight_budget(n) - self._templates.nbytes
+        # the raw entries (before their merge) bound the stored images from above: where even
+        # those would not fit, go on without trying
+        if storage == "auto" and BYTES_PER_WEIGHT * mf.entries_per_voxel() * n > budget:
+            return mf
+        try:
+            return mf.expanded(budget_bytes=budget)
+        except MemoryBudgetError:
+            if storage == "stored":
+                raise
+            return mf
 
     def _stored_weights(self, voxels) -> Weights:
         s = self.settings

@@ -37,6 +37,7 @@ import numpy as np
 
 from lfcore.device import MemoryBudgetError, Rows, available_bytes, launch_rows, out_of_memory_is_budget_error
 from lfcore.device_ops import VolumeOps, gaussian_taps
+from lfcore.matrix_free import applied_by
 from lfcore.projector import PREFILTER_CHECKS, Projector
 from lfcore.reconstruct import FrameReconstructor, ReconResult, ReconSettings, _total, preprocess_images
 from lfcore.volume import VolumeGrid
@@ -272,7 +273,7 @@ class SlabReconstructor:
                            weight_bytes=sum(w.nbytes for w in weights), weights_s=t1 - t0 + start_s,
                            iterate_s=iterate_s, iterations=s.iterations, background=backgrounds, noise=noises,
                            eliminate_s=t_elim, on_the_fly_voxels=sum(w.n_on_the_fly for w in weights),
-                           projector=("matrix-free" if any(getattr(w, "matrix_free", False) for w in weights)
+                           projector=("matrix-free" if any(applied_by(w) == "matrix-free" for w in weights)
                                       else "stored"),
                            slabs=len(self.slabs), peak_bytes=self.peak_bytes)
 

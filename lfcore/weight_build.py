@@ -19,6 +19,7 @@ weights do not fit (:class:`~lfcore.device.MemoryBudgetError`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,6 +94,9 @@ class Weights:
         every weight is stored.
     min_weight
         The raw weights below this were dropped (made on the fly, they are dropped again).
+    from_templates
+        The entries are the matrix-free templates' images (:meth:`MatrixFreeWeights.expanded
+        <lfcore.matrix_free.MatrixFreeWeights.expanded>`), not ray traced.
     """
 
     voxels: object
@@ -100,6 +104,7 @@ class Weights:
     nnz: int
     sums: object = None
     min_weight: float = 1e-6
+    from_templates: bool = False
 
     @property
     def n_voxels(self) -> int:
@@ -399,8 +404,34 @@ class WeightBuilder:
                                                 out_pix, out_w], self.device)
         return WeightChunk(first=lo, n=hi - lo, offsets=c_offsets, pix=out_pix, w=out_w, nnz=nnz)
 
-    def _drt_single_pass(self, voxels, min_weight: float, budget: int) -> Weights:
-        """DRT weights traced once per voxel into fixed-capacity slots (see :meth:`weights`)."""
+    def merged(self, voxels, trace: Callable, *, budget_bytes: int | None = None) -> Weights:
+        """Stored weights of ``voxels`` from another maker of raw entries, merged and packed as the
+        DRT build's are (the matrix-free templates' entries: :meth:`MatrixFreeWeights.expanded
+        <lfcore.matrix_free.MatrixFreeWeights.expanded>`).
+
+        Parameters
+        ----------
+        voxels
+            (n,) int32 flat voxel indices on the builder's device.
+        trace
+            ``trace(voxels, offsets, fill, limit, counts, pix, w)`` launches a kernel with
+            :func:`lfcore._kernels.weights.drt_weights`' interface on ``voxels`` (its own entries
+            dropped below its own least weight).
+        budget_bytes
+            Memory the weights may take; default: what the device has free.
+
+        Raises
+        ------
+        MemoryBudgetError
+            If the weights would not fit, with their size.
+        """
+        budget = available_bytes(self.device) if budget_bytes is None else budget_bytes
+        with out_of_memory_is_budget_error(self.device, f"the weights of {int(voxels.shape[0]):,} voxels", ADVICE):
+            return self._drt_single_pass(voxels, 0.0, budget, trace)
+
+    def _drt_single_pass(self, voxels, min_weight: float, budget: int, trace: Callable | None = None) -> Weights:
+        """DRT weights traced once per voxel into fixed-capacity slots (see :meth:`weights`), or
+        ``trace``'s entries (see :meth:`merged`)."""
         wp, kw = self.wp, self._kw
         dev = self.device
         n = int(voxels.shape[0])
@@ -408,9 +439,10 @@ class WeightBuilder:
             return Weights(voxels=voxels, chunks=[], nnz=0)
         common = [self.grid, self.views, self.n_views, self.sub_a, self.sub_w]
 
-        def trace(vox, offs, fill, limit, counts, pix, w):
-            launch_rows(kw.drt_weights, vox.shape[0], [*common, Rows(vox), Rows(offs), wp.int64(0), min_weight, fill,
-                                                       wp.int64(limit), Rows(counts), pix, w], dev)
+        if trace is None:
+            def trace(vox, offs, fill, limit, counts, pix, w):
+                launch_rows(kw.drt_weights, vox.shape[0], [*common, Rows(vox), Rows(offs), wp.int64(0), min_weight,
+                                                           fill, wp.int64(limit), Rows(counts), pix, w], dev)
 
         # Slot capacity: the most entries of a sample of voxels spread over the list, plus a margin.
         take = np.unique(np.linspace(0, n - 1, min(n, CAPACITY_SAMPLE)).astype(np.int64))

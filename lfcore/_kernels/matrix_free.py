@@ -373,12 +373,27 @@ def template_spots(
 
 
 @wp.func
+def entry(pix: wp.array(dtype=wp.int32), w: wp.array(dtype=float), k: wp.int64, end: wp.int64, q: int, wt: float,
+          min_weight: float) -> wp.int64:
+    """Entry k of a voxel's weights (pixel q, weight wt) where wt passes ``min_weight``, written
+    if k is before ``end``; the next k."""
+    if wt <= min_weight:
+        return k
+    if k < end:
+        pix[k] = q
+        w[k] = wt
+    return k + wp.int64(1)
+
+
+@wp.func
 def cut_spot(mode: int, cam: CameraParams, base: int, colc: float, rowc: float, hx: float, hy: float, wk: float,
-             min_weight: float, ej: float, values: wp.array(dtype=float), images: wp.array2d(dtype=float),
-             row: int) -> float:
+             min_weight: float, ej: float, values: wp.array(dtype=float), pix: wp.array(dtype=wp.int32),
+             at: wp.int64, end: wp.int64) -> float:
     """One spot (centre column, row, half-sizes in pixels; ``wk`` its share per pixel area) cut
     into the pixels of a camera as the stored weights are: ``mode`` 0 adds w ``ej`` to
-    ``values[pixel]``, 1 returns sum w ``values[pixel]``, 2 adds w to ``images[row, pixel]``."""
+    ``values[pixel]``, 1 returns sum w ``values[pixel]``, 2 writes its entries (pixel, w) to
+    ``pix[k]``, ``values[k]`` from k = ``at`` on, those before ``end``, and returns how many it
+    has (a float, exact below 2**24)."""
     ncols = cam.ncols
     nrows = cam.nrows
     total = float(0.0)
@@ -417,19 +432,18 @@ def cut_spot(mode: int, cam: CameraParams, base: int, colc: float, rowc: float, 
             wp.atomic_add(values, q + ncols, wp.where(w10 > min_weight, w10 * ej, 0.0))
             wp.atomic_add(values, q + ncols + 1, wp.where(w11 > min_weight, w11 * ej, 0.0))
         else:
-            if w00 > min_weight:
-                images[row, q] += w00
-            if w01 > min_weight:
-                images[row, q + 1] += w01
-            if w10 > min_weight:
-                images[row, q + ncols] += w10
-            if w11 > min_weight:
-                images[row, q + ncols + 1] += w11
+            k = at
+            k = entry(pix, values, k, end, q, w00, min_weight)
+            k = entry(pix, values, k, end, q + 1, w01, min_weight)
+            k = entry(pix, values, k, end, q + ncols, w10, min_weight)
+            k = entry(pix, values, k, end, q + ncols + 1, w11, min_weight)
+            total = float(k - at)
         return total
     c0 = wp.max(0, c0)
     c1 = wp.min(ncols - 1, int(hi_c))
     r0 = wp.max(0, r0)
     r1 = wp.min(nrows - 1, int(hi_r))
+    k = at
     for r in range(r0, r1 + 1):
         oy = wk * pixel_overlap(lo_r, hi_r, r)
         q = base + r * ncols
@@ -441,7 +455,9 @@ def cut_spot(mode: int, cam: CameraParams, base: int, colc: float, rowc: float, 
                 elif mode == 1:
                     total += wt * values[q + cc]
                 else:
-                    images[row, q + cc] += wt
+                    k = entry(pix, values, k, end, q + cc, wt, min_weight)
+    if mode == 2:
+        total = float(k - at)
     return total
 
 
@@ -456,12 +472,14 @@ def apply_templates(
     v: int,
     ej: float,
     values: wp.array(dtype=float),
-    images: wp.array2d(dtype=float),
-    row: int,
+    pix: wp.array(dtype=wp.int32),
+    at: wp.int64,
+    end: wp.int64,
 ) -> float:
     """Voxel v's pixels in one view, from the template of its nearest phase bin: ``mode`` 0 adds
     w ``ej`` to ``values[pixel]`` (projection), 1 returns sum w ``values[pixel]`` (the update's
-    gather), 2 adds w to ``images[row, pixel]`` (checks).
+    gather), 2 writes its entries (pixel, w) to ``pix[k]``, ``values[k]`` from k = ``at`` on,
+    those before ``end``, and returns how many it has (see :func:`cut_spot`).
 
     Each spot is shifted by the template's placement (a cut spot also moved, resized and
     reweighted linearly in the voxel's phase within the bin) and cut into pixels as the stored
@@ -474,12 +492,15 @@ def apply_templates(
         return total
     inv_pix = 1.0 / cam.pixel
     base = view.pix_offset
+    k = at  # mode 2: where the next entry goes
     move = wp.vec4(-pl.shift[0] * inv_pix, pl.shift[1] * inv_pix, 0.0, 0.0)  # columns run against x, rows with y
     for t in range(tables.rigid_offsets[pl.tmpl], tables.rigid_offsets[pl.tmpl + 1]):
         rs = tables.rigid[t]
         st = rs.geo + move
-        total += cut_spot(mode, cam, base, st[0], st[1], st[2], st[3], rs.density, min_weight, ej, values,
-                          images, row)
+        total += cut_spot(mode, cam, base, st[0], st[1], st[2], st[3], rs.density, min_weight, ej, values, pix, k,
+                          end)
+        if mode == 2:
+            k = at + wp.int64(int(total))
     u0 = pl.phase[0]
     u1 = pl.phase[1]
     # the share is bilinear in the quadrant of the probes the phase is in (never below 0, and over
@@ -506,8 +527,10 @@ def apply_templates(
         # a part that (extrapolated) shrinks to nothing still lands its share
         hx = wp.max(st[2], MIN_HALF)
         hy = wp.max(st[3], MIN_HALF)
-        total += cut_spot(mode, cam, base, st[0], st[1], hx, hy, s / (4.0 * hx * hy), min_weight, ej, values, images,
-                          row)
+        total += cut_spot(mode, cam, base, st[0], st[1], hx, hy, s / (4.0 * hx * hy), min_weight, ej, values, pix, k,
+                          end)
+        if mode == 2:
+            k = at + wp.int64(int(total))
     return total
 
 
@@ -539,7 +562,7 @@ def project(
     voxels: wp.array(dtype=wp.int32),
     e: wp.array(dtype=float),
     proj: wp.array(dtype=float),
-    none: wp.array2d(dtype=float),
+    none: wp.array(dtype=wp.int32),
 ):
     """proj[pixel] += w E of voxel ``voxels[order[tid]]``, every view (see :func:`apply_templates`;
     ``order`` a permutation of the voxels, see :func:`template_key`; ``none`` is unused)."""
@@ -548,7 +571,8 @@ def project(
     if ej == 0.0:
         return
     for iv in range(n_views):
-        apply_templates(0, grid, views[iv], plans[iv], tables, min_weight, voxels[k], ej, proj, none, 0)
+        apply_templates(0, grid, views[iv], plans[iv], tables, min_weight, voxels[k], ej, proj, none, wp.int64(0),
+                        wp.int64(0))
 
 
 @wp.kernel
@@ -564,7 +588,7 @@ def smart_update(
     ratio: wp.array(dtype=float),
     relaxation: float,
     e: wp.array(dtype=float),
-    none: wp.array2d(dtype=float),
+    none: wp.array(dtype=wp.int32),
 ):
     """E_v <- E_v exp(mu sum_i w_iv ratio_i), a gather per voxel ``voxels[order[tid]]`` (see
     :func:`lfcore._kernels.mart.smart_update`; ``none`` is unused)."""
@@ -575,12 +599,12 @@ def smart_update(
     s = float(0.0)
     for iv in range(n_views):
         s += apply_templates(1, grid, views[iv], plans[iv], tables,
-                             min_weight, voxels[k], ej, ratio, none, 0)
+                             min_weight, voxels[k], ej, ratio, none, wp.int64(0), wp.int64(0))
     e[k] = multiplied(ej, s, relaxation)
 
 
 @wp.kernel
-def voxel_image(
+def template_entries(
     grid: Grid,
     views: wp.array(dtype=View),
     plans: wp.array(dtype=Plan),
@@ -588,12 +612,30 @@ def voxel_image(
     n_views: int,
     min_weight: float,
     voxels: wp.array(dtype=wp.int32),
-    images: wp.array2d(dtype=float),
-    none: wp.array(dtype=float),
+    offsets: wp.array(dtype=wp.int64),
+    origin: wp.int64,
+    fill: int,
+    limit: wp.int64,
+    counts: wp.array(dtype=wp.int64),
+    pix: wp.array(dtype=wp.int32),
+    w: wp.array(dtype=float),
 ):
-    """images[tid, pixel] += w of voxel ``voxels[tid]`` (for the fidelity checks; one row per voxel;
-    ``none`` is unused)."""
+    """The raw entries (pixel, weight) of voxel ``voxels[tid]`` from its templates, every view:
+    :func:`lfcore._kernels.weights.drt_weights`' interface (its entries unmerged, in the same
+    units), so that the stored weights' build merges and packs them.
+
+    With ``fill = 1`` the first ``limit`` entries go to ``pix``/``w`` from ``offsets[tid] -
+    origin``. ``counts[tid]`` gets the voxel's number of entries in both modes.
+    """
     tid = wp.tid()
+    at = wp.int64(0)
+    end = wp.int64(0)
+    if fill == 1:
+        at = offsets[tid] - origin
+        end = at + limit
+    n = wp.int64(0)
     for iv in range(n_views):
-        apply_templates(2, grid, views[iv], plans[iv], tables,
-                        min_weight, voxels[tid], 1.0, none, images, tid)
+        got = apply_templates(2, grid, views[iv], plans[iv], tables, min_weight, voxels[tid], 1.0, w, pix, at + n,
+                              end)
+        n += wp.int64(int(got))
+    counts[tid] = n

@@ -36,9 +36,11 @@ def slabs_option(text: str) -> int | str:
 
 
 #: ``--projector``'s help, the same for every command that reconstructs (reconstruct, monitor).
-PROJECTOR_HELP = ("what applies DRT-MART's operator: stored weights, or matrix-free templates per depth and lenslet "
-                  "phase (memory set by the cameras and depth planes, not the voxels; slower per iteration on a CPU); "
-                  "auto (default): stored weights unless they do not fit in memory")
+PROJECTOR_HELP = ("what applies DRT-MART's operator: stored ray-traced weights, or matrix-free templates per depth and "
+                  "lenslet phase (no ray tracing; their images of the active voxels are stored where they fit, at the "
+                  "stored weights' speed, else applied in every iteration, in memory set by the cameras and depth "
+                  "planes, not the voxels, but slower; see --weight-storage); auto (default): stored weights unless "
+                  "they do not fit in memory")
 
 
 def add_projector(parser: argparse.ArgumentParser) -> None:
@@ -86,9 +88,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="calibration store (lfpiv calibrate fit): reconstruct with its fitted camera models "
                    "instead of the rig stored in the run")
     r.add_argument("--weight-storage", choices=("auto", "stored", "on-the-fly"), default="auto",
-                   help="line-of-sight weights (mart, mlos-mart): auto (default) stores them if they fit in the "
-                   "device's memory and makes the rest again in each iteration (slower, the same volume); "
-                   "stored refuses a volume whose weights do not fit; on-the-fly stores none")
+                   help="line-of-sight weights (mart, mlos-mart) and the matrix-free templates' images "
+                   "(--projector matrix-free): auto (default) stores them if they fit in the device's memory and "
+                   "makes the rest again in each iteration (slower, the same volume); stored refuses a volume whose "
+                   "weights do not fit; on-the-fly stores none")
     add_projector(r)
     r.add_argument("--slabs", type=slabs_option, default=None, metavar="N|auto",
                    help="reconstruct each volume in N depth slabs, written into the store slab by slab (the same "
@@ -144,7 +147,8 @@ def run(args: argparse.Namespace) -> int:
     wb = max(r.weight_bytes for r in results)
     ws = sum(r.weights_s for r in results) / len(results)
     ran = sorted({r.projector for r in results})
-    operator = (f"matrix-free templates {wb / 2**20:.1f} MiB" if ran == ["matrix-free"] else
+    images = " and their images" if any(r.nnz for r in results if r.projector == "matrix-free") else ""
+    operator = (f"matrix-free templates{images} {wb / 2**20:.1f} MiB" if ran == ["matrix-free"] else
                 f"weights {wb / 2**20:.1f} MiB" if ran == ["stored"] else
                 f"stored weights or matrix-free templates, at most {wb / 2**20:.1f} MiB")
     print(f"reconstructed {len(results)} volume(s) of {' x '.join(map(str, grid.shape[::-1]))} voxels (x, y, z) "
@@ -157,6 +161,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"each volume was reconstructed in {split} depth slabs, written into the store slab by slab; peak "
               f"memory of the weights and buffers {peak / 2**20:.1f} MiB (in memory the box's buffers alone take "
               f"{BYTES_PER_BOX_VOXEL * grid.n_voxels / 2**20:.1f} MiB)")
+    applied = sum(1 for r in results if r.projector == "matrix-free" and not r.nnz and r.active_voxels)
+    if applied and args.weight_storage == "auto":
+        print(f"the matrix-free templates' images of {applied} of {len(results)} volume(s) did not fit in the device's "
+              "memory beside the templates: applied from the templates in each iteration instead (the same volume, "
+              "more slowly)")
     fly = max(r.on_the_fly_voxels for r in results)
     if fly:
         why = " (they did not fit in the device's memory)" if args.weight_storage == "auto" else ""

@@ -121,7 +121,8 @@ BAD = [
     (lambda t, r: ["reconstruct", r, "--pairs", "2 0"], "--pairs: '2 0' is not a pair or a range START:STOP"),
     (lambda t, r: ["reconstruct", r, "--relaxation", "3"], "diverge; use at most 2, or the sequential form"),
     (lambda t, r: ["reconstruct", r, "--cameras", "camX"], "no camera 'camX' in this run"),
-    (lambda t, r: ["reconstruct", r, "--weight-storage", "on-the-fly"], "DRT-MART's weights are always stored"),
+    (lambda t, r: ["reconstruct", r, "--weight-storage", "on-the-fly"],
+     "made on the fly by the matrix-free projector alone"),
 ]
 
 

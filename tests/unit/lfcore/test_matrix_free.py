@@ -20,6 +20,7 @@ from lfcore.matrix_free import (
     DrtTemplates,
     MatrixFreeUnsupported,
     MatrixFreeWeights,
+    applied_by,
     fidelity,
 )
 from lfcore.particles import particle_count, seed_particles
@@ -151,13 +152,69 @@ def test_reconstruction_quality_matches_the_stored_path(scene, device):
     truth = metrics.truth_volume(grid, pts)
     base = ReconSettings(iterations=20)
     stored = reconstruct(proj, [img], base)
-    mf = reconstruct(proj, [img], ReconSettings(iterations=20, projector="matrix-free"))
+    mf = reconstruct(proj, [img], ReconSettings(iterations=20, projector="matrix-free", weight_storage="on-the-fly"))
     assert stored.projector == "stored" and mf.projector == "matrix-free"
     assert mf.active_voxels == stored.active_voxels  # the same elimination
     assert mf.nnz == 0 and 0 < mf.weight_bytes < 64 * 2**20
     q_stored, q_mf = metrics.q_recon(stored.volume, truth), metrics.q_recon(mf.volume, truth)
     assert q_stored > 0.3
     assert abs(q_mf - q_stored) <= 0.005, (q_mf, q_stored)
+    # the templates' images stored (where they fit: here) reconstruct the same volume as the templates
+    # applied in every iteration, with as many entries as the ray-traced weights give, to a few percent
+    ex = reconstruct(proj, [img], ReconSettings(iterations=20, projector="matrix-free"))
+    assert ex.projector == "matrix-free" and abs(ex.nnz - stored.nnz) <= 0.1 * stored.nnz, (ex.nnz, stored.nnz)
+    assert np.abs(ex.volume - mf.volume).max() <= 1e-3 * mf.volume.max()
+
+
+def test_the_templates_images_stored_apply_the_same_operator(scene, device):
+    """The expansion (once per frame, no ray tracing) gives stored weights whose projection and
+    update are the templates' own, and its images are the stored weights' to the fidelity goals."""
+    rig, grid, _, _ = scene
+    proj = Projector(rig.camera, grid, device=device)
+    wp = proj.wp
+    rng = np.random.default_rng(2)
+    vox_np = np.sort(rng.choice(grid.n_voxels, grid.n_voxels // 3, replace=False)).astype(np.int32)
+    vox = wp.array(vox_np, dtype=wp.int32, device=device)
+    mf = MatrixFreeWeights(DrtTemplates(proj), vox)
+    ex = mf.expanded()
+    assert ex.from_templates and applied_by(ex) == "matrix-free" and applied_by(proj.weights(vox[:5])) == "stored"
+    assert ex.n_voxels == len(vox_np) and ex.nnz <= mf.entries_per_voxel() * len(vox_np) * 1.2
+    e_np = rng.random(len(vox_np)).astype(np.float32)
+    a = proj.forward(mf, wp.array(e_np, device=device)).numpy()
+    b = proj.forward(ex, wp.array(e_np, device=device)).numpy()
+    np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-6 * a.max())
+    image = wp.array((a * rng.uniform(0.5, 1.5, a.size)).astype(np.float32), device=device)
+    proj_a = wp.array(a, device=device)
+    ea, eb = wp.array(e_np, device=device), wp.array(e_np, device=device)
+    proj.smart_update(mf, image, proj_a, ea, 1.0, 1e-3)
+    proj.smart_update(ex, image, proj_a, eb, 1.0, 1e-3)
+    np.testing.assert_allclose(eb.numpy(), ea.numpy(), rtol=1e-5)
+    # each voxel's merged entries are its image (the dense check's own)
+    offs, pix, w = ex.to_numpy()
+    dense = np.zeros((len(vox_np), proj.n_pixels), dtype=np.float64)
+    np.add.at(dense, (np.repeat(np.arange(len(vox_np)), np.diff(offs)), pix), w)
+    np.testing.assert_allclose(dense[:50], mf.images()[:50], rtol=1e-5, atol=1e-7)
+    assert all(len(np.unique(pix[offs[i]:offs[i + 1]])) == offs[i + 1] - offs[i] for i in range(50))  # merged
+
+
+def test_the_templates_images_are_stored_only_where_they_fit(scene, monkeypatch):
+    rig, grid, _, img = scene
+    proj = Projector(rig.camera, grid, device="cpu")
+    big = FrameReconstructor(proj, ReconSettings(iterations=3, projector="matrix-free"))
+    fits = big.reconstruct([img])
+    assert fits.nnz > 0 and fits.weight_bytes > big._templates.nbytes
+    # a budget that holds the templates but not their images: applied from the templates instead
+    small = FrameReconstructor(proj, ReconSettings(iterations=3, projector="matrix-free"),
+                               budget_bytes=big._templates.nbytes + 12 * proj.n_pixels + 8 * grid.n_voxels
+                               + 4 * fits.active_voxels + fits.nnz)
+    slow = small.reconstruct([img])
+    assert slow.nnz == 0 and slow.projector == "matrix-free"
+    assert np.abs(slow.volume - fits.volume).max() <= 1e-3 * fits.volume.max()
+    with pytest.raises(MemoryBudgetError):
+        FrameReconstructor(proj, ReconSettings(iterations=3, projector="matrix-free", weight_storage="stored"),
+                           budget_bytes=small.budget_bytes).reconstruct([img])
+    with pytest.raises(ValueError, match="matrix-free projector alone"):
+        ReconSettings(weight_storage="on-the-fly", projector="stored")
 
 
 def test_auto_takes_the_templates_where_stored_weights_do_not_fit(scene, device, monkeypatch):

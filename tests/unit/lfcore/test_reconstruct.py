@@ -301,7 +301,7 @@ def test_bad_settings():
     assert ReconSettings(relaxation=2.5, form="sequential").relaxation == 2.5
     with pytest.raises(ValueError, match="weight_storage must be one of auto, stored, on-the-fly"):
         ReconSettings(method="mlos-mart", weight_storage="disk")
-    with pytest.raises(ValueError, match="DRT-MART's weights are always stored"):
+    with pytest.raises(ValueError, match="made on the fly by the matrix-free projector alone"):
         ReconSettings(weight_storage="on-the-fly")
     with pytest.raises(ValueError, match="the sequential form needs stored weights"):
         ReconSettings(method="mlos-mart", form="sequential", weight_storage="on-the-fly")
