@@ -70,7 +70,8 @@ from lfcore.projector import Projector
 from lfcore.weight_build import MemoryBudgetError, Weights
 
 __all__ = ["CUT_SPOT_BYTES", "MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS", "RIGID_SPOT_BYTES",
-           "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "applied_by", "fidelity"]
+           "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "applied_by", "fidelity", "phase_bins",
+           "template_count"]
 
 #: Phase bins per lattice axis of a depth's templates, per lenslet pitch over a sub-aperture's
 #: footprint width on the MLA (bins a third of the footprint: correlation >= 0.9995 on the
@@ -110,6 +111,78 @@ def _depth_axis(rot_world_to_cam: np.ndarray) -> tuple[int, int] | None:
     if np.max(others) > 1e-9:
         return None
     return axis, int(np.sign(row[axis]))
+
+
+def _light_field_alone(projector: Projector) -> None:
+    """Raise :class:`MatrixFreeUnsupported` unless ``projector`` has light-field cameras alone (the
+    pinhole and the joint, mixed-rig, projectors subclass Projector but have no lenslets to take
+    templates of)."""
+    if type(projector) is not Projector:
+        raise MatrixFreeUnsupported("the matrix-free projector is for light-field cameras alone; use --projector "
+                                    "stored")
+
+
+def _camera_depths(cam, grid) -> tuple[int, np.ndarray]:
+    """The grid axis along which camera ``cam`` looks and the camera depth (mm) of each grid plane
+    along it (the voxel centres' camera z).
+
+    Raises
+    ------
+    MatrixFreeUnsupported
+        If the camera does not look along a grid axis.
+    """
+    rot = cam.rotation.T  # world -> camera
+    found = _depth_axis(rot)
+    if found is None:
+        raise MatrixFreeUnsupported(f"camera '{cam.name}' does not look along a grid axis; the matrix-free "
+                                    "projector needs that (use --projector stored)")
+    axis = found[0]
+    nz, ny, nx = grid.shape
+    n_depth = (nx, ny, nz)[axis]
+    origin = np.asarray(grid.origin_mm, dtype=np.float64)
+    centres = np.zeros((n_depth, 3))
+    centres[:] = origin
+    centres[:, axis] = origin[axis] + np.asarray(grid.voxel_mm, dtype=np.float64)[axis] * np.arange(n_depth)
+    return axis, ((centres - np.asarray(cam.focus_mm)) @ rot.T)[:, 2]
+
+
+def phase_bins(projector: Projector, *, phases_per_footprint: float = PHASES_PER_FOOTPRINT,
+               max_phases: int = MAX_PHASES) -> list[np.ndarray]:
+    """Phase bins per lattice axis of each depth plane, per camera: enough that a bin is a small
+    part of a sub-aperture's footprint on the MLA (its width there: the sub-aperture's blur and
+    the voxel's own lateral extent). A depth plane has the square of its count in templates.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        Per camera, (depth planes,) int bins per axis, from :data:`MIN_PHASES` to ``max_phases``.
+
+    Raises
+    ------
+    MatrixFreeUnsupported
+        If a camera does not look along a grid axis.
+    """
+    _light_field_alone(projector)
+    step = np.asarray(projector.grid.voxel_mm, dtype=np.float64)
+    out = []
+    for cam in projector.cameras:
+        _, z_cam = _camera_depths(cam, projector.grid)
+        so, si = cam.object_distance_mm, cam.image_distance_mm
+        n_sub = max(1, round(cam.pixels_per_lenslet)) if projector.sub_apertures is None else projector.sub_apertures
+        half = np.abs(cam.rotation.T) @ (0.5 * step)
+        sop = so - z_cam
+        lat = si / sop
+        a = 1.0 - si * (1.0 / cam.main_focal_length_mm - 1.0 / sop)
+        width = np.hypot(np.abs(a) * cam.aperture_mm / n_sub, 2.0 * lat * min(half[0], half[1]))
+        out.append(np.clip(np.ceil(phases_per_footprint * cam.mla_pitch_mm / width), MIN_PHASES,
+                           max_phases).astype(np.int64))
+    return out
+
+
+def template_count(projector: Projector, **bins) -> int:
+    """Templates the projector's :class:`DrtTemplates` would have (keywords as :func:`phase_bins`),
+    without building them."""
+    return int(sum(int((b * b).sum()) for b in phase_bins(projector, **bins)))
 
 
 class DrtTemplates:
@@ -157,11 +230,7 @@ class DrtTemplates:
         from lfcore._kernels import matrix_free as km
 
         t0 = time.perf_counter()
-        # light-field cameras alone: the pinhole and the joint (mixed-rig) projectors subclass
-        # Projector but have no lenslets to take templates of
-        if type(projector) is not Projector:
-            raise MatrixFreeUnsupported("the matrix-free projector is for light-field cameras alone; use --projector "
-                                        "stored")
+        _light_field_alone(projector)
         if not phases_per_footprint > 0 or max_phases < MIN_PHASES:
             raise ValueError(f"phases_per_footprint must be positive and max_phases at least {MIN_PHASES}")
         wp = warp()
@@ -177,38 +246,19 @@ class DrtTemplates:
         step = np.asarray(grid.voxel_mm, dtype=np.float64)
         plans, t_view, t_point, t_probe, depth_first, depth_phase = [], [], [], [], [], []
         blur = 0.0
+        bins = phase_bins(projector, phases_per_footprint=self.phases_per_footprint, max_phases=self.max_phases)
         for iv, cam in enumerate(projector.cameras):
             rot = cam.rotation.T  # world -> camera
-            found = _depth_axis(rot)
-            if found is None:
-                raise MatrixFreeUnsupported(f"camera '{cam.name}' does not look along a grid axis; the matrix-free "
-                                            "projector needs that (use --projector stored)")
-            axis, _ = found
+            axis, z_cam = _camera_depths(cam, grid)
             n_depth = dims[axis]
-            # camera depth of each grid plane along the axis (the voxel centre's camera z)
-            idx = np.arange(n_depth)
-            centres = np.zeros((n_depth, 3))
-            centres[:] = origin
-            centres[:, axis] = origin[axis] + step[axis] * idx
-            z_cam = (centres - np.asarray(cam.focus_mm)) @ rot.T
-            z_cam = z_cam[:, 2]
             so, si = cam.object_distance_mm, cam.image_distance_mm
             pitch = cam.mla_pitch_mm
             off = np.asarray(cam.mla_offset_um, dtype=np.float64) * 1e-3
             th = np.radians(cam.mla_rotation_deg)
             c, s = np.cos(th), np.sin(th)
-            # phase bins per depth: enough that a bin is a small part of a sub-aperture's footprint
-            # (its width on the MLA: the sub-aperture's blur and the voxel's own lateral extent)
-            n_sub = max(1, round(cam.pixels_per_lenslet)) if projector.sub_apertures is None else \
-                projector.sub_apertures
-            sub_side = cam.aperture_mm / n_sub
-            half = np.abs(rot) @ (0.5 * step)
             for d in range(n_depth):
-                sop = so - z_cam[d]
-                lat = si / sop
-                a = 1.0 - si * (1.0 / cam.main_focal_length_mm - 1.0 / sop)
-                width = np.hypot(abs(a) * sub_side, 2.0 * lat * min(half[0], half[1]))
-                n_ph = int(np.clip(np.ceil(self.phases_per_footprint * pitch / width), MIN_PHASES, self.max_phases))
+                n_ph = int(bins[iv][d])
+                lat = si / (so - z_cam[d])
                 fr = (np.arange(n_ph) + 0.5) / n_ph
                 f0, f1 = np.meshgrid(fr, fr)  # [b1, b0]
                 f0, f1 = f0.ravel(), f1.ravel()
