@@ -64,10 +64,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lfcore.device import PrivateCopies, Rows, launch_rows, warp
+from lfcore.device import PerBlock, PrivateCopies, Rows, available_bytes, cpu_threads, launch_rows, warp
 from lfcore.mla import HEX_ROW
 from lfcore.projector import Projector
-from lfcore.weight_build import MemoryBudgetError, Weights
+from lfcore.weight_build import BYTES_PER_WEIGHT, CHUNK_ENTRIES, MemoryBudgetError, WeightChunk, Weights
 
 __all__ = ["CUT_SPOT_BYTES", "MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS", "RIGID_SPOT_BYTES",
            "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "applied_by", "fidelity", "phase_bins",
@@ -454,10 +454,51 @@ class MatrixFreeWeights:
         MemoryBudgetError
             If they would not fit.
         """
-        out = self.templates.projector.builder.merged(self.voxels, self._trace, budget_bytes=budget_bytes)
+        t = self.templates
+        budget = available_bytes(t.device) if budget_bytes is None else int(budget_bytes)
+        if t.device == "cpu":
+            out = self._merged_in_place(budget)
+        else:  # a thread per voxel: raw entries, sorted and merged as the stored build's
+            out = t.projector.builder.merged(self.voxels, self._trace, budget_bytes=budget)
         out.min_weight = float(self.min_weight)
         out.from_templates = True
         return out
+
+    def _merged_in_place(self, budget: int) -> Weights:
+        """The expansion on the CPU: each block merges its voxels' entries in a dense image of its
+        own (:func:`lfcore._kernels.matrix_free.template_merged`), counted first, so that the
+        weights' size is known before they are written."""
+        t, km, wp = self.templates, self.templates._km, self.templates.wp
+        n, dev, n_pix = self.n_voxels, t.device, t.projector.n_pixels
+        blocks = max(1, min(cpu_threads(), n))
+        dense = PerBlock(tuple(wp.zeros(n_pix, dtype=float, device=dev) for _ in range(blocks)))
+        touched = PerBlock(tuple(wp.empty(n_pix, dtype=wp.int32, device=dev) for _ in range(blocks)))
+        common = [*t._common(), float(self.min_weight)]
+        counts = wp.zeros(max(n, 1), dtype=wp.int64, device=dev)
+        none_offsets = wp.zeros(max(n, 1), dtype=wp.int64, device=dev)
+        launch_rows(km.template_merged, n, [*common, Rows(self.voxels), Rows(none_offsets), 0, Rows(counts), t._none_i,
+                                            t._none1, dense, touched], dev)
+        per = counts.numpy()[:n].astype(np.int64)
+        raw = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(per, out=raw[1:])
+        total = int(raw[-1])
+        if BYTES_PER_WEIGHT * total > budget:
+            raise MemoryBudgetError(f"the matrix-free templates' images of {n:,} voxels need "
+                                    f"{BYTES_PER_WEIGHT * total / 2**30:.2f} GiB but {budget / 2**30:.2f} GiB are free")
+        chunks, lo = [], 0
+        while lo < n:  # chunks of whole voxels with at most CHUNK_ENTRIES entries (a voxel with more alone)
+            hi = int(np.searchsorted(raw, raw[lo] + CHUNK_ENTRIES["cpu"], side="right")) - 1
+            hi = min(n, max(hi, lo + 1))
+            local = raw[lo:hi + 1] - raw[lo]
+            nnz = int(local[-1])
+            offsets = wp.array(local, dtype=wp.int64, device=dev)
+            pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=dev)
+            w = wp.empty(max(nnz, 1), dtype=float, device=dev)
+            launch_rows(km.template_merged, hi - lo, [*common, Rows(self.voxels[lo:hi]), Rows(offsets), 1,
+                                                      Rows(counts[lo:hi]), pix, w, dense, touched], dev)
+            chunks.append(WeightChunk(first=lo, n=hi - lo, offsets=offsets, pix=pix, w=w, nnz=nnz))
+            lo = hi
+        return Weights(voxels=self.voxels, chunks=chunks, nnz=total)
 
     def entries_per_voxel(self, *, sample: int = 256) -> float:
         """Mean raw entries (before their merge) per voxel, over up to ``sample`` voxels spread

@@ -373,12 +373,21 @@ def template_spots(
 
 
 @wp.func
-def entry(pix: wp.array(dtype=wp.int32), w: wp.array(dtype=float), k: wp.int64, end: wp.int64, q: int, wt: float,
-          min_weight: float) -> wp.int64:
-    """Entry k of a voxel's weights (pixel q, weight wt) where wt passes ``min_weight``, written
-    if k is before ``end``; the next k."""
+def entry(mode: int, pix: wp.array(dtype=wp.int32), w: wp.array(dtype=float), k: wp.int64, end: wp.int64, q: int,
+          wt: float, min_weight: float) -> wp.int64:
+    """A voxel's weight wt on pixel q, where wt passes ``min_weight``; the next k. ``mode`` 2:
+    entry k (pixel, weight), written if k is before ``end``. ``mode`` 3, merged in place: ``w``
+    is a dense image that gathers the voxel's weight per pixel (zero where the voxel has none
+    yet), and ``pix[k]`` lists each pixel it lights once, in the order they are first met."""
     if wt <= min_weight:
         return k
+    if mode == 3:
+        n = k
+        if w[q] == 0.0:
+            pix[k] = q
+            n = k + wp.int64(1)
+        w[q] = w[q] + wt
+        return n
     if k < end:
         pix[k] = q
         w[k] = wt
@@ -393,7 +402,8 @@ def cut_spot(mode: int, cam: CameraParams, base: int, colc: float, rowc: float, 
     into the pixels of a camera as the stored weights are: ``mode`` 0 adds w ``ej`` to
     ``values[pixel]``, 1 returns sum w ``values[pixel]``, 2 writes its entries (pixel, w) to
     ``pix[k]``, ``values[k]`` from k = ``at`` on, those before ``end``, and returns how many it
-    has (a float, exact below 2**24)."""
+    has (a float, exact below 2**24), 3 merges them into the dense ``values`` and returns how
+    many pixels it lit first (see :func:`entry`)."""
     ncols = cam.ncols
     nrows = cam.nrows
     total = float(0.0)
@@ -433,10 +443,10 @@ def cut_spot(mode: int, cam: CameraParams, base: int, colc: float, rowc: float, 
             wp.atomic_add(values, q + ncols + 1, wp.where(w11 > min_weight, w11 * ej, 0.0))
         else:
             k = at
-            k = entry(pix, values, k, end, q, w00, min_weight)
-            k = entry(pix, values, k, end, q + 1, w01, min_weight)
-            k = entry(pix, values, k, end, q + ncols, w10, min_weight)
-            k = entry(pix, values, k, end, q + ncols + 1, w11, min_weight)
+            k = entry(mode, pix, values, k, end, q, w00, min_weight)
+            k = entry(mode, pix, values, k, end, q + 1, w01, min_weight)
+            k = entry(mode, pix, values, k, end, q + ncols, w10, min_weight)
+            k = entry(mode, pix, values, k, end, q + ncols + 1, w11, min_weight)
             total = float(k - at)
         return total
     c0 = wp.max(0, c0)
@@ -455,8 +465,8 @@ def cut_spot(mode: int, cam: CameraParams, base: int, colc: float, rowc: float, 
                 elif mode == 1:
                     total += wt * values[q + cc]
                 else:
-                    k = entry(pix, values, k, end, q + cc, wt, min_weight)
-    if mode == 2:
+                    k = entry(mode, pix, values, k, end, q + cc, wt, min_weight)
+    if mode >= 2:
         total = float(k - at)
     return total
 
@@ -479,7 +489,8 @@ def apply_templates(
     """Voxel v's pixels in one view, from the template of its nearest phase bin: ``mode`` 0 adds
     w ``ej`` to ``values[pixel]`` (projection), 1 returns sum w ``values[pixel]`` (the update's
     gather), 2 writes its entries (pixel, w) to ``pix[k]``, ``values[k]`` from k = ``at`` on,
-    those before ``end``, and returns how many it has (see :func:`cut_spot`).
+    those before ``end``, and returns how many it has, 3 merges them per pixel (see
+    :func:`cut_spot`).
 
     Each spot is shifted by the template's placement (a cut spot also moved, resized and
     reweighted linearly in the voxel's phase within the bin) and cut into pixels as the stored
@@ -492,14 +503,14 @@ def apply_templates(
         return total
     inv_pix = 1.0 / cam.pixel
     base = view.pix_offset
-    k = at  # mode 2: where the next entry goes
+    k = at  # modes 2 and 3: where the next entry goes
     move = wp.vec4(-pl.shift[0] * inv_pix, pl.shift[1] * inv_pix, 0.0, 0.0)  # columns run against x, rows with y
     for t in range(tables.rigid_offsets[pl.tmpl], tables.rigid_offsets[pl.tmpl + 1]):
         rs = tables.rigid[t]
         st = rs.geo + move
         total += cut_spot(mode, cam, base, st[0], st[1], st[2], st[3], rs.density, min_weight, ej, values, pix, k,
                           end)
-        if mode == 2:
+        if mode >= 2:
             k = at + wp.int64(int(total))
     u0 = pl.phase[0]
     u1 = pl.phase[1]
@@ -529,7 +540,7 @@ def apply_templates(
         hy = wp.max(st[3], MIN_HALF)
         total += cut_spot(mode, cam, base, st[0], st[1], hx, hy, s / (4.0 * hx * hy), min_weight, ej, values, pix, k,
                           end)
-        if mode == 2:
+        if mode >= 2:
             k = at + wp.int64(int(total))
     return total
 
@@ -639,3 +650,47 @@ def template_entries(
                               end)
         n += wp.int64(int(got))
     counts[tid] = n
+
+
+@wp.kernel
+def template_merged(
+    grid: Grid,
+    views: wp.array(dtype=View),
+    plans: wp.array(dtype=Plan),
+    tables: Tables,
+    n_views: int,
+    min_weight: float,
+    voxels: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int64),
+    fill: int,
+    counts: wp.array(dtype=wp.int64),
+    pix: wp.array(dtype=wp.int32),
+    w: wp.array(dtype=float),
+    dense: wp.array(dtype=float),
+    touched: wp.array(dtype=wp.int32),
+):
+    """The merged weights of voxel ``voxels[tid]`` from its templates, every view, one entry per
+    pixel (in the order the pixels are first met): ``counts[tid]`` gets their number, and with
+    ``fill = 1`` they go to ``pix``/``w`` from ``offsets[tid]``.
+
+    A CPU block's threads run one after another, so each block gathers its voxels' weights in its
+    own dense image ``dense`` (all pixels, zero between voxels) and lists the pixels met in
+    ``touched`` (as long as the image): a merge without a sort (CPU only).
+    """
+    tid = wp.tid()
+    n = wp.int64(0)
+    cap = wp.int64(touched.shape[0])
+    for iv in range(n_views):
+        got = apply_templates(3, grid, views[iv], plans[iv], tables, min_weight, voxels[tid], 1.0, dense, touched, n,
+                              cap)
+        n += wp.int64(int(got))
+    counts[tid] = n
+    base = wp.int64(0)
+    if fill == 1:
+        base = offsets[tid]
+    for j in range(int(n)):
+        q = touched[j]
+        if fill == 1:
+            pix[base + wp.int64(j)] = q
+            w[base + wp.int64(j)] = dense[q]
+        dense[q] = 0.0
