@@ -145,12 +145,13 @@ def floor_text(r, floor_ms) -> str:
     return f"{r.ms_per_iteration / floor_ms(r):.1f}x the bandwidth floor of {floor_ms(r):.3f} ms"
 
 
-def matrix_free_figures(proj, img, its: int, e0, drt) -> None:
+def matrix_free_figures(proj, img, its: int, e0, drt, fly_its: int | None = None) -> None:
     """DRT-MART on the matrix-free templates: their build, memory, ms per iteration, Q, and the
     fidelity of random active voxels' images against the stored weights (the reference)."""
     from lfcore.matrix_free import fidelity
 
-    mf = reconstruct(proj, img, ReconSettings(iterations=its, projector="matrix-free", weight_storage="on-the-fly"))
+    fly_its = its if fly_its is None else fly_its  # the templates applied in every iteration: slower
+    mf = reconstruct(proj, img, ReconSettings(iterations=fly_its, projector="matrix-free", weight_storage="on-the-fly"))
     q = metrics.q_recon(mf.volume, e0)
     # the templates' images of the active voxels stored once, then the stored weights' iterations
     ex = reconstruct(proj, img, ReconSettings(iterations=its, projector="matrix-free", weight_storage="stored"))
@@ -171,7 +172,8 @@ def matrix_free_figures(proj, img, its: int, e0, drt) -> None:
     sample = rng.choice(active, size=min(200, active.size), replace=False) if active.size else active
     f = fidelity(proj, sample, templates) if sample.size else {"correlation": np.ones(1), "light": np.ones(1)}
     c, light = f["correlation"], np.abs(f["light"] - 1.0)
-    print(f"  DRT-MART matrix-free: templates {build:.2f} s ({templates.n_templates} templates, {templates.n_spots} "
+    print(f"  DRT-MART matrix-free, applied in every iteration ({fly_its} iterations): templates {build:.2f} s "
+          f"({templates.n_templates} templates, {templates.n_spots} "
           f"spots ({templates.n_rigid} rigid, {templates.n_cut} cut), phase bins {templates.depth_phase.min()}-"
           f"{templates.depth_phase.max()} per axis, "
           f"{templates.nbytes / 2**20:.0f} MiB), first frame's weights_s {mf.weights_s:.2f} s (elimination "
@@ -195,7 +197,7 @@ def matrix_free_figures(proj, img, its: int, e0, drt) -> None:
               f"memory {mf.weight_bytes / 2**20:.0f} MiB vs {drt.weight_bytes / 2**20:.0f} MiB "
               f"({memory_ratio(mf.weight_bytes, drt.weight_bytes)}), "
               f"build {drt.weights_s - drt.eliminate_s:.2f} s -> {build:.2f} s, "
-              f"Q {q:.3f} vs {metrics.q_recon(drt.volume, e0):.3f}")
+              f"Q {q:.3f} ({fly_its} iterations) vs {metrics.q_recon(drt.volume, e0):.3f} ({its})")
 
 
 def memory_ratio(mine: int, stored: int) -> str:
@@ -206,7 +208,7 @@ def memory_ratio(mine: int, stored: int) -> str:
 
 
 def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, with_drt: bool = True,
-        storage: str = "auto", projector: str = "stored") -> None:
+        storage: str = "auto", projector: str = "stored", fly_its: int | None = None) -> None:
     t = time.perf_counter()
     _, its, cams, grid, pts, img = scene(case, device, ppm)
     its = iterations or its
@@ -234,7 +236,7 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, 
               f"ms/iteration ({floor_text(drt, floor_ms)}), total {drt.weights_s + drt.iterate_s:.2f} s, Q {q:.3f}, "
               f"peak memory {peak_bytes(device) / 2**30:.2f} GiB")
     if with_drt and projector in ("matrix-free", "both"):
-        matrix_free_figures(proj, img, its, e0, drt)
+        matrix_free_figures(proj, img, its, e0, drt, fly_its)
         if projector == "matrix-free":
             return
     # MLOS-MART: the same elimination, the baseline's weights on the surviving voxels
@@ -375,6 +377,9 @@ def main() -> int:
     ap.add_argument("--projector", choices=("stored", "matrix-free", "both"), default="stored",
                     help="DRT-MART on stored weights (default), on the matrix-free templates (then nothing else), "
                     "or both, with the templates' fidelity against the stored weights")
+    ap.add_argument("--on-the-fly-iterations", type=int, default=None, metavar="N",
+                    help="with --projector matrix-free or both: the templates applied in every iteration run only N "
+                    "iterations (default: as many as the others)")
     ap.add_argument("--profile-weights", action="store_true",
                     help="instead: time the elimination, each DRT weight build and every kernel of the builds")
     args = ap.parse_args()
@@ -389,7 +394,7 @@ def main() -> int:
                 run_tomo(case, device, args.ppp, args.iterations, not args.no_mart)
                 continue
             run(case, device, args.ppm, args.iterations, not args.no_mart, not args.no_drt, args.weight_storage,
-                args.projector)
+                args.projector, args.on_the_fly_iterations)
         except MemoryBudgetError as exc:  # the case does not fit this device: say so, go on
             print(f"  case {case}: {exc}")
         sys.stdout.flush()

@@ -44,7 +44,6 @@ from lfcore.matrix_free import (
     MatrixFreeUnsupported,
     MatrixFreeWeights,
     applied_by,
-    template_count,
 )
 from lfcore.projector import Projector
 from lfcore.weight_build import BYTES_PER_WEIGHT, STORAGE, Weights
@@ -61,11 +60,6 @@ WEIGHTS = {"drt-mart": "drt", "mart": "los", "mlos-mart": "los", "mlos-smart": "
 #: Above this the simultaneous update overshoots: every voxel on an under-projected pixel grows at
 #: once (sequential MART takes the chapter's 2.5 because each pixel's step is small).
 MAX_SIMULTANEOUS_RELAXATION = 2.0
-#: ``projector = "auto"`` takes the matrix-free templates for a frame whose active voxels number
-#: more than this many times the templates (their build per template costs about as much as
-#: the stored build saves on 7-20 voxels, the templates' images made without ray tracing:
-#: measured on a 2-core CPU, Mc's 471,702 voxels and 22,757 templates, and S).
-TEMPLATE_COST_VOXELS = 10.0
 #: Widest smoothing sigma accepted, voxels.
 MAX_SMOOTH_VOXELS = 10.0
 #: Most main-lens sub-apertures per axis for the DRT weights: the default is the pixels per
@@ -127,10 +121,8 @@ class ReconSettings:
     projector
         What applies DRT-MART's operator: ``"stored"`` ray-traced weights, the ``"matrix-free"``
         templates of :mod:`lfcore.matrix_free` (simultaneous form only; their images stored as
-        ``weight_storage`` allows), or ``"auto"``: the templates where the cameras allow them
-        and building them would be faster than tracing the frame's weights
-        (:data:`TEMPLATE_COST_VOXELS`), else stored weights, and the templates where those would
-        not fit in memory.
+        ``weight_storage`` allows), or ``"auto"``: stored weights, and the templates where the
+        stored weights would not fit in memory and the cameras allow them.
     """
 
     method: str = "drt-mart"
@@ -540,11 +532,6 @@ class FrameReconstructor:
         if s.projector == "matrix-free":
             return self._matrix_free(voxels)
         if s.projector == "auto" and kind == "drt" and s.form == "simultaneous":
-            if self._templates_pay(int(voxels.shape[0])):
-                try:
-                    return self._matrix_free(voxels)
-                except MemoryBudgetError:
-                    pass  # no room for the templates: the stored weights, or their error
             try:
                 return self._stored_weights(voxels)
             except MemoryBudgetError:
@@ -554,20 +541,6 @@ class FrameReconstructor:
                     pass
                 raise
         return self._stored_weights(voxels)
-
-    def _templates_pay(self, n: int) -> bool:
-        """Whether ``auto`` takes the matrix-free templates for a frame of ``n`` active voxels: where
-        they are built already, or where building them and their images would take less time than
-        ray-tracing the voxels' weights (:data:`TEMPLATE_COST_VOXELS`); never where the live
-        pipeline's weight cache holds traced weights, nor where the cameras have no templates."""
-        if self._templates is not None:
-            return True
-        if self.cache is not None:
-            return False
-        try:
-            return n > TEMPLATE_COST_VOXELS * template_count(self.projector)
-        except MatrixFreeUnsupported:
-            return False
 
     def operator_bytes(self, weights) -> int:
         """Device bytes of the operator ``weights`` applies: the weights, and the templates they

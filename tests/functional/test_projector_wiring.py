@@ -164,7 +164,7 @@ def test_the_progress_line_shows_the_operator_memory_and_time_per_iteration(fram
     assert rc == 0, err
     op = RunStore.open(path).group["volumes"].attrs["operator"]
     assert "projector=matrix-free" in err
-    # each frame's: the templates and that frame's voxel indices (the record keeps the largest)
+    # each frame's: the templates and that frame's images of its voxels (the record keeps the largest)
     mem = [float(m) for m in re.findall(r"mem=(\d+\.\d)MiB", err)]
-    assert mem and all(abs(m - op["bytes"] / 2**20) <= 0.1 for m in mem), err
+    assert mem and abs(max(mem) - op["bytes"] / 2**20) <= 0.1 and min(mem) > 0, err
     assert re.search(r"ms_it=\d+\.\d", err), err
