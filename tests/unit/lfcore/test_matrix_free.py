@@ -113,6 +113,22 @@ def test_forward_projection_and_update_match_the_stored_weights(scene, device):
     assert np.linalg.norm(step_b - step_a) <= 1e-2 * np.linalg.norm(step_a)
 
 
+def _same_operator(proj, reference, other, rng) -> None:
+    """``other`` projects random intensities and updates them (one SMART step) as ``reference``
+    does, up to float summation order."""
+    wp, device = proj.wp, proj.device
+    e_np = rng.random(reference.n_voxels).astype(np.float32)
+    a = proj.forward(reference, wp.array(e_np, device=device)).numpy()
+    b = proj.forward(other, wp.array(e_np, device=device)).numpy()
+    np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-6 * a.max())
+    image = wp.array((a * rng.uniform(0.5, 1.5, a.size)).astype(np.float32), device=device)
+    proj_a = wp.array(a, device=device)
+    ea, eb = wp.array(e_np, device=device), wp.array(e_np, device=device)
+    proj.smart_update(reference, image, proj_a, ea, 1.0, 1e-3)
+    proj.smart_update(other, image, proj_a, eb, 1.0, 1e-3)
+    np.testing.assert_allclose(eb.numpy(), ea.numpy(), rtol=1e-5)
+
+
 def test_launches_visit_the_voxels_of_one_template_together(scene, device):
     """The launch order is a permutation that groups the voxels by their template in the first
     view; projections and updates do not depend on it (up to float summation order)."""
@@ -135,16 +151,7 @@ def test_launches_visit_the_voxels_of_one_template_together(scene, device):
     assert np.all(np.diff(k) >= 0) and k.max() >= 0
     own = MatrixFreeWeights(t, vox)
     own._order = wp.array(np.arange(len(vox_np), dtype=np.int32), dtype=wp.int32, device=device)
-    e_np = rng.random(len(vox_np)).astype(np.float32)
-    a = proj.forward(mf, wp.array(e_np, device=device)).numpy()
-    b = proj.forward(own, wp.array(e_np, device=device)).numpy()
-    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6 * a.max())
-    image = wp.array((a * rng.uniform(0.5, 1.5, a.size)).astype(np.float32), device=device)
-    proj_a = wp.array(a, device=device)
-    ea, eb = wp.array(e_np, device=device), wp.array(e_np, device=device)
-    proj.smart_update(mf, image, proj_a, ea, 1.0, 1e-3)
-    proj.smart_update(own, image, proj_a, eb, 1.0, 1e-3)
-    np.testing.assert_allclose(ea.numpy(), eb.numpy(), rtol=1e-5)
+    _same_operator(proj, own, mf, rng)
 
 
 def test_reconstruction_quality_matches_the_stored_path(scene, device):
@@ -180,16 +187,7 @@ def test_the_templates_images_stored_apply_the_same_operator(scene, device):
     ex = mf.expanded()
     assert ex.from_templates and applied_by(ex) == "matrix-free" and applied_by(proj.weights(vox[:5])) == "stored"
     assert ex.n_voxels == len(vox_np) and ex.nnz <= mf.entries_per_voxel() * len(vox_np) * 1.2
-    e_np = rng.random(len(vox_np)).astype(np.float32)
-    a = proj.forward(mf, wp.array(e_np, device=device)).numpy()
-    b = proj.forward(ex, wp.array(e_np, device=device)).numpy()
-    np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-6 * a.max())
-    image = wp.array((a * rng.uniform(0.5, 1.5, a.size)).astype(np.float32), device=device)
-    proj_a = wp.array(a, device=device)
-    ea, eb = wp.array(e_np, device=device), wp.array(e_np, device=device)
-    proj.smart_update(mf, image, proj_a, ea, 1.0, 1e-3)
-    proj.smart_update(ex, image, proj_a, eb, 1.0, 1e-3)
-    np.testing.assert_allclose(eb.numpy(), ea.numpy(), rtol=1e-5)
+    _same_operator(proj, mf, ex, rng)
     # each voxel's merged entries are its image (the dense check's own)
     offs, pix, w = ex.to_numpy()
     dense = np.zeros((len(vox_np), proj.n_pixels), dtype=np.float64)
