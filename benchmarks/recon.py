@@ -7,6 +7,7 @@ Run from the repository root::
     python benchmarks/recon.py --case S2                 # two cameras at 90 degrees
     python benchmarks/recon.py --case M --device cuda    # 2048 x 2048, 14 px per lenslet
     python benchmarks/recon.py --case L --device cuda    # 6600 x 4400, 3300 x 2200 x 182 voxels
+    python benchmarks/recon.py --case L --device cpu --slabs 8 --iterations 1   # hours: every stage logged
 
 Cases (single camera, 0.5 PPM unless --ppm, PVR (2, 2, 10), except S2 and Mc2):
 
@@ -41,6 +42,11 @@ same device measured here.
 ``--projector matrix-free`` (or ``both``) runs DRT-MART on the matrix-free templates of
 :mod:`lfcore.matrix_free` instead (or as well): the templates' build time and memory, ms per
 iteration, Q, and the fidelity of 200 random active voxels' images against the stored weights.
+
+``--slabs N`` runs DRT-MART on the matrix-free projector in N depth slabs instead
+(:class:`lfcore.slabs.SlabReconstructor`: the templates' images stored where they fit, else applied
+in every iteration), logging each stage with the time since the start and the resident memory, then
+the peak resident memory, and Q where the box's volume and its truth fit in a quarter of the memory.
 
 Line-of-sight weights that do not fit in the device's memory are made on the fly in each
 iteration (``--weight-storage auto``, the default; L by MLOS-MART on one GPU): such a run
@@ -198,6 +204,66 @@ def matrix_free_figures(proj, img, its: int, e0, drt, fly_its: int | None = None
               f"({memory_ratio(mf.weight_bytes, drt.weight_bytes)}), "
               f"build {drt.weights_s - drt.eliminate_s:.2f} s -> {build:.2f} s, "
               f"Q {q:.3f} ({fly_its} iterations) vs {metrics.q_recon(drt.volume, e0):.3f} ({its})")
+
+
+def run_slabs(case: str, device: str, ppm: float, iterations: int | None, n_slabs: int, storage: str,
+              planes: tuple[int, int] | None = None) -> None:
+    """DRT-MART on the matrix-free projector in ``n_slabs`` depth slabs, every stage logged; with
+    ``planes`` (z0, z1) only the box's planes z0 .. z1 - 1 are reconstructed (from the whole
+    scene's images): a sample of a box too large to reconstruct whole in the time there is."""
+    from lfcore.slabs import SlabReconstructor, plan_slabs
+
+    t0 = time.perf_counter()
+
+    def log(line: str) -> None:
+        print(f"  [{time.perf_counter() - t0:7.1f} s, RSS {rss_bytes() / 2**30:5.2f} GiB] {line}", flush=True)
+
+    _, its, cams, grid, pts, img = scene(case, device, ppm)
+    its = iterations or its
+    cam = cams[0]
+    print(f"case {case} in {n_slabs} depth slabs: {len(cams)} x {cam.sensor_px[0]} x {cam.sensor_px[1]} px, "
+          f"{' x '.join(map(str, grid.shape[::-1]))} voxels (x, y, z), {len(pts)} particles ({ppm:g} PPM), "
+          f"{its} iterations, device {device}", flush=True)
+    log("rendered")
+    if planes is not None:  # the box's planes z0 .. z1 - 1 only, each voxel where it was
+        z0, z1 = planes
+        if not 0 <= z0 < z1 <= grid.shape[0]:
+            raise SystemExit(f"--planes {z0}:{z1} is outside the box's planes 0:{grid.shape[0]}")
+        o = grid.origin_mm
+        grid = VolumeGrid(shape=(z1 - z0, *grid.shape[1:]), voxel_mm=grid.voxel_mm,
+                          origin_mm=(o[0], o[1], o[2] + z0 * grid.voxel_mm[2]))
+        pts = pts[np.abs(pts[:, 2] - o[2] - 0.5 * (z0 + z1 - 1) * grid.voxel_mm[2]) <= 0.5 * (z1 - z0) *
+                  grid.voxel_mm[2]]  # the truth of Q: the particles inside those planes
+        print(f"  planes {z0}-{z1 - 1} only: {' x '.join(map(str, grid.shape[::-1]))} voxels", flush=True)
+    proj = Projector(cams, grid, device=device)
+    log("projector built")
+    nz = grid.shape[0]
+    # Q needs the whole volume and its truth on the host: only where both fit in a quarter of memory
+    whole = np.zeros(grid.shape, np.float32) if 8 * grid.n_voxels < peak_capacity("cpu") // 4 else None
+
+    def write(z0: int, z1: int, planes: np.ndarray) -> None:
+        if whole is not None:
+            whole[z0:z1] = planes
+
+    settings = ReconSettings(iterations=its, projector="matrix-free", weight_storage=storage)
+    res = SlabReconstructor(proj, settings, slabs=plan_slabs(nz, n_slabs)).reconstruct(img, write=write, log=log)
+    q = f", Q {metrics.q_recon(whole, metrics.truth_volume(grid, pts)):.3f}" if whole is not None else ""
+    print(f"  DRT-MART matrix-free in {res.slabs} slabs: {res.active_voxels:,} active voxels "
+          f"({res.active_fraction:.3%}), elimination {res.eliminate_s:.1f} s, weights_s {res.weights_s:.1f} s "
+          f"(elimination, operators and start), {res.ms_per_iteration:.1f} ms/iteration, operator "
+          f"{res.weight_bytes / 2**20:.0f} MiB ({res.projector}, {res.on_the_fly_voxels:,} voxels on the fly), "
+          f"accounted peak {res.peak_bytes / 2**30:.2f} GiB, peak RSS {peak_bytes('cpu') / 2**30:.2f} GiB"
+          f"{'' if device == 'cpu' else f', device peak {peak_bytes(device) / 2**30:.2f} GiB'}, total "
+          f"{time.perf_counter() - t0:.0f} s{q}", flush=True)
+
+
+def rss_bytes() -> int:
+    """This process's resident memory now."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    return 0
 
 
 def memory_ratio(mine: int, stored: int) -> str:
@@ -380,6 +446,10 @@ def main() -> int:
     ap.add_argument("--on-the-fly-iterations", type=int, default=None, metavar="N",
                     help="with --projector matrix-free or both: the templates applied in every iteration run only N "
                     "iterations (default: as many as the others)")
+    ap.add_argument("--slabs", type=int, default=None, metavar="N",
+                    help="instead: DRT-MART on the matrix-free projector in N depth slabs, every stage logged")
+    ap.add_argument("--planes", default=None, metavar="Z0:Z1",
+                    help="with --slabs: reconstruct only the box's planes Z0 .. Z1 - 1 (from the whole scene's images)")
     ap.add_argument("--profile-weights", action="store_true",
                     help="instead: time the elimination, each DRT weight build and every kernel of the builds")
     args = ap.parse_args()
@@ -390,6 +460,10 @@ def main() -> int:
         return 0
     for case in args.case or ["S"]:
         try:
+            if args.slabs:
+                planes = tuple(int(v) for v in args.planes.split(":")) if args.planes else None
+                run_slabs(case, device, args.ppm, args.iterations, args.slabs, args.weight_storage, planes)
+                continue
             if case in TOMO_CASES:
                 run_tomo(case, device, args.ppp, args.iterations, not args.no_mart)
                 continue

@@ -151,7 +151,8 @@ class SlabReconstructor:
 
     # --- one frame ---------------------------------------------------------------------------
     def reconstruct(self, images: Sequence[np.ndarray], *, write: Callable[[int, int, np.ndarray], None],
-                    progress: Callable[[int], None] | None = None) -> ReconResult:
+                    progress: Callable[[int], None] | None = None,
+                    log: Callable[[str], None] | None = None) -> ReconResult:
         """Reconstruct one volume from one raw image per camera, handing it to ``write`` slab by slab.
 
         Parameters
@@ -164,6 +165,10 @@ class SlabReconstructor:
             ``lambda z0, z1, a: data[pair, frame, z0:z1] = a`` on a zarr array).
         progress
             Called with 1 after each iteration.
+        log
+            Called with one line per stage (each slab's elimination and operator, the start, each
+            iteration, the writing) and the seconds it took: a frame of the chapter's 29 MP camera
+            takes hours on a CPU, and this says where they go.
 
         Returns
         -------
@@ -180,9 +185,9 @@ class SlabReconstructor:
         signals, lits, backgrounds, noises = preprocess_images(p, images, s)
         what = f"{s.method} of a {p.grid.n_voxels:,}-voxel box in {len(self.slabs)} slabs"
         with out_of_memory_is_budget_error(p.device, what, "use more --slabs or a coarser --pvr"):
-            return self._reconstruct(signals, lits, backgrounds, noises, write, progress)
+            return self._reconstruct(signals, lits, backgrounds, noises, write, progress, log or (lambda _: None))
 
-    def _reconstruct(self, signals, lits, backgrounds, noises, write, progress) -> ReconResult:
+    def _reconstruct(self, signals, lits, backgrounds, noises, write, progress, log) -> ReconResult:
         from lfcore._kernels import slabs as ks
 
         wp, p, s = self.wp, self.projector, self.settings
@@ -196,10 +201,12 @@ class SlabReconstructor:
         lit_host = [np.asarray(m, dtype=np.uint8) for m in lits]
         voxels, weights = [], []
         t_elim = 0.0
-        for slab in self.slabs:
+        for i, slab in enumerate(self.slabs):
             ta = time.perf_counter()
             vox = self._eliminate(lit_host, slab)
-            t_elim += time.perf_counter() - ta
+            wp.synchronize_device(dev)
+            tb = time.perf_counter()
+            t_elim += tb - ta
             self._peak(held + BYTES_PER_SLAB_VOXEL * slab.nz * plane)
             # the weights may take what the budget leaves beside those held already and this slab's
             # intensities (FrameReconstructor's weight budget sets the box's dense volume aside: add it back)
@@ -208,6 +215,10 @@ class SlabReconstructor:
             w = self._frames.weights(vox)
             held += w.nbytes + 4 * w.n_voxels
             self._peak(held)
+            wp.synchronize_device(dev)
+            log(f"slab {i + 1}/{len(self.slabs)} (planes {slab.z0}-{slab.z1 - 1}): elimination {tb - ta:.1f} s, "
+                f"{int(vox.shape[0]):,} active voxels; operator ({_operator_kind(w)}) {time.perf_counter() - tb:.1f} s, "
+                f"{w.nbytes / 2**20:.0f} MiB")
             voxels.append(vox)
             weights.append(w)
         if s.method == "mart":
@@ -242,16 +253,22 @@ class SlabReconstructor:
             wp.synchronize_device(dev)
             t2 = time.perf_counter()
             start_s = t2 - t1
+            log(f"start (one projection of {n_total:,} voxels) {start_s:.1f} s")
             floor = max(s.floor * s.threshold_sigma * float(np.mean(noises)), 1e-6)
-            for _ in range(s.iterations):
+            for it in range(s.iterations):
+                ti = time.perf_counter()
                 project()
                 for w, e in zip(weights, es, strict=True):
                     if w.n_voxels:
                         p.smart_update(w, image, proj, e, s.relaxation, floor)
                 if progress is not None:
                     progress(1)
+                if it < 3 or it == s.iterations - 1:  # the first few and the last: not 400 lines
+                    wp.synchronize_device(dev)
+                    log(f"iteration {it + 1}/{s.iterations} {time.perf_counter() - ti:.1f} s")
             wp.synchronize_device(dev)
             iterate_s = time.perf_counter() - t2
+        t3 = time.perf_counter()
         # the result, slab by slab, each with the halo its smoothing reads
         for slab in self.slabs:
             lo, hi = max(0, slab.z0 - self.halo), min(nz, slab.z1 + self.halo)
@@ -268,6 +285,7 @@ class SlabReconstructor:
             planes = buf.numpy()[slab.z0 - lo: slab.z1 - lo]
             write(slab.z0, slab.z1, np.ascontiguousarray(planes, dtype=np.float32))
             del ops, buf, flat
+        log(f"volume smoothed and written, slab by slab, in {time.perf_counter() - t3:.1f} s")
         return ReconResult(volume=np.zeros((0, 0, 0), np.float32), active_voxels=n_total,
                            active_fraction=n_total / p.grid.n_voxels, nnz=sum(w.nnz for w in weights),
                            weight_bytes=sum(w.nbytes for w in weights), weights_s=t1 - t0 + start_s,
@@ -302,6 +320,15 @@ class SlabReconstructor:
         if isinstance(p, PinholeProjector) or type(p) is Projector:
             return _eliminate_range(p, lits, first, n, s)
         raise TypeError(f"depth slabs do not know the projector {type(p).__name__}")
+
+
+def _operator_kind(w) -> str:
+    """What applies a slab's operator, in words, for the stage log."""
+    if getattr(w, "matrix_free", False):
+        return "matrix-free templates, applied in every iteration"
+    if getattr(w, "from_templates", False):
+        return "matrix-free templates' images, stored"
+    return "stored weights" + (f", {w.n_on_the_fly:,} voxels' made on the fly" if w.n_on_the_fly else "")
 
 
 def _eliminate_range(p: Projector, lits: list[np.ndarray], first: int, n: int, s: ReconSettings) -> object:

@@ -652,6 +652,35 @@ def template_entries(
     counts[tid] = n
 
 
+@wp.func
+def sift_down(a: wp.array(dtype=wp.int32), root: int, end: int):
+    """Move ``a[root]`` down the max-heap ``a[0 .. end - 1]`` to its place."""
+    r = root
+    while 2 * r + 1 < end:
+        c = 2 * r + 1
+        if c + 1 < end and a[c + 1] > a[c]:
+            c += 1
+        if a[r] >= a[c]:
+            return
+        t = a[r]
+        a[r] = a[c]
+        a[c] = t
+        r = c
+
+
+@wp.func
+def heap_sort(a: wp.array(dtype=wp.int32), n: int):
+    """Sort ``a[0 .. n - 1]`` ascending in place (heap sort: no scratch, n log n)."""
+    for k in range(n // 2):
+        sift_down(a, n // 2 - 1 - k, n)
+    for k in range(n - 1):
+        last = n - 1 - k
+        t = a[0]
+        a[0] = a[last]
+        a[last] = t
+        sift_down(a, 0, last)
+
+
 @wp.kernel
 def template_merged(
     grid: Grid,
@@ -670,8 +699,9 @@ def template_merged(
     touched: wp.array(dtype=wp.int32),
 ):
     """The merged weights of voxel ``voxels[tid]`` from its templates, every view, one entry per
-    pixel (in the order the pixels are first met): ``counts[tid]`` gets their number, and with
-    ``fill = 1`` they go to ``pix``/``w`` from ``offsets[tid]``.
+    pixel: ``counts[tid]`` gets their number, and with ``fill = 1`` they go to ``pix``/``w`` from
+    ``offsets[tid]``, sorted by pixel as the stored build sorts its own (the iterations' scattered
+    reads and writes then walk the image in order).
 
     A CPU block's threads run one after another, so each block gathers its voxels' weights in its
     own dense image ``dense`` (all pixels, zero between voxels) and lists the pixels met in
@@ -688,6 +718,7 @@ def template_merged(
     base = wp.int64(0)
     if fill == 1:
         base = offsets[tid]
+        heap_sort(touched, int(n))
     for j in range(int(n)):
         q = touched[j]
         if fill == 1:

@@ -28,14 +28,21 @@ def _images(rig, ppm=0.3, device="cpu"):
 
 def _by_slabs(proj, images, settings, slabs):
     out = np.full(proj.grid.shape, np.nan, np.float32)
-    written = []
+    written, lines = [], []
 
     def write(z0, z1, planes):
         written.append((z0, z1))
         out[z0:z1] = planes
 
-    res = SlabReconstructor(proj, settings, slabs=slabs).reconstruct(images, write=write)
+    res = SlabReconstructor(proj, settings, slabs=slabs).reconstruct(images, write=write, log=lines.append)
     assert written == [(s.z0, s.z1) for s in slabs]  # front to back, each slab once
+    # one line per stage: each slab's elimination and operator, the start, the iterations, the writing
+    n = len(slabs)
+    assert [f"slab {i + 1}/{n} (planes {s.z0}-{s.z1 - 1})" in line for i, (s, line) in
+            enumerate(zip(slabs, lines, strict=False))] == [True] * n, lines
+    if res.active_voxels:
+        assert lines[n].startswith("start (one projection of") and f"iteration {settings.iterations}/" in lines[-2]
+    assert lines[-1].startswith("volume smoothed and written"), lines
     return out, res
 
 
