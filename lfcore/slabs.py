@@ -201,6 +201,7 @@ class SlabReconstructor:
         lit_host = [np.asarray(m, dtype=np.uint8) for m in lits]
         voxels, weights = [], []
         t_elim = 0.0
+        operator_bytes = 0
         for i, slab in enumerate(self.slabs):
             ta = time.perf_counter()
             vox = self._eliminate(lit_host, slab)
@@ -213,7 +214,9 @@ class SlabReconstructor:
             room = budget - held - 4 * int(vox.shape[0]) - BYTES_PER_SLAB_VOXEL * slab.nz * plane
             self._frames.budget_bytes = room + 12 * p.n_pixels + 4 * int(vox.shape[0]) + 8 * p.grid.n_voxels
             w = self._frames.weights(vox)
-            held += w.nbytes + 4 * w.n_voxels
+            own = self._own_bytes(w, first=not any(applied_by(x) == "matrix-free" for x in weights))
+            operator_bytes += own
+            held += own + 4 * w.n_voxels
             self._peak(held)
             wp.synchronize_device(dev)
             log(f"slab {i + 1}/{len(self.slabs)} (planes {slab.z0}-{slab.z1 - 1}): elimination {tb - ta:.1f} s, "
@@ -288,12 +291,23 @@ class SlabReconstructor:
         log(f"volume smoothed and written, slab by slab, in {time.perf_counter() - t3:.1f} s")
         return ReconResult(volume=np.zeros((0, 0, 0), np.float32), active_voxels=n_total,
                            active_fraction=n_total / p.grid.n_voxels, nnz=sum(w.nnz for w in weights),
-                           weight_bytes=sum(w.nbytes for w in weights), weights_s=t1 - t0 + start_s,
+                           weight_bytes=operator_bytes, weights_s=t1 - t0 + start_s,
                            iterate_s=iterate_s, iterations=s.iterations, background=backgrounds, noise=noises,
                            eliminate_s=t_elim, on_the_fly_voxels=sum(w.n_on_the_fly for w in weights),
                            projector=("matrix-free" if any(applied_by(w) == "matrix-free" for w in weights)
                                       else "stored"),
                            slabs=len(self.slabs), peak_bytes=self.peak_bytes)
+
+    def _own_bytes(self, w, *, first: bool) -> int:
+        """Bytes of a slab's operator ``w``, the matrix-free templates (one set for all slabs)
+        counted with the first slab that uses them only."""
+        templates = self._frames._templates
+        own = int(w.nbytes)
+        if getattr(w, "matrix_free", False):  # its nbytes holds the templates' too
+            own -= templates.nbytes
+        if first and applied_by(w) == "matrix-free":
+            own += templates.nbytes
+        return own
 
     def _peak(self, nbytes: int) -> None:
         self.peak_bytes = max(self.peak_bytes, int(nbytes))

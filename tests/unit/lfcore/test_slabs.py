@@ -120,5 +120,7 @@ def test_slabs_with_matrix_free_templates_and_weights_made_on_the_fly(tiny_rig, 
     want = reconstruct(proj, images, settings)
     got, res = _by_slabs(proj, images, settings, plan_slabs(grid.shape[0], 3))
     assert res.projector == want.projector and res.on_the_fly_voxels == want.on_the_fly_voxels
+    # the operator's memory as in memory: the templates (one set for every slab) counted once
+    assert abs(res.weight_bytes - want.weight_bytes) <= 0.01 * want.weight_bytes, (res.weight_bytes, want.weight_bytes)
     assert want.volume.max() > 0
     np.testing.assert_allclose(got, want.volume, rtol=1e-5, atol=1e-5 * float(want.volume.max()))
