@@ -212,16 +212,20 @@ class SlabReconstructor:
             # the weights may take what the budget leaves beside those held already and this slab's
             # intensities (FrameReconstructor's weight budget sets the box's dense volume aside: add it back)
             room = budget - held - 4 * int(vox.shape[0]) - BYTES_PER_SLAB_VOXEL * slab.nz * plane
-            self._frames.budget_bytes = room + 12 * p.n_pixels + 4 * int(vox.shape[0]) + 8 * p.grid.n_voxels
+            # and the matrix-free templates, held already, which it sets aside itself
+            first = not any(applied_by(x) == "matrix-free" for x in weights)
+            shared = 0 if first or self._frames._templates is None else self._frames._templates.nbytes
+            self._frames.budget_bytes = (room + 12 * p.n_pixels + 4 * int(vox.shape[0]) + 8 * p.grid.n_voxels
+                                         + shared)
             w = self._frames.weights(vox)
-            own = self._own_bytes(w, first=not any(applied_by(x) == "matrix-free" for x in weights))
+            own = self._own_bytes(w, first=first)
             operator_bytes += own
             held += own + 4 * w.n_voxels
             self._peak(held)
             wp.synchronize_device(dev)
             log(f"slab {i + 1}/{len(self.slabs)} (planes {slab.z0}-{slab.z1 - 1}): elimination {tb - ta:.1f} s, "
-                f"{int(vox.shape[0]):,} active voxels; operator ({_operator_kind(w)}) {time.perf_counter() - tb:.1f} s, "
-                f"{w.nbytes / 2**20:.0f} MiB")
+                f"{int(vox.shape[0]):,} active voxels; operator ({_operator_kind(w)}) "
+                f"{time.perf_counter() - tb:.1f} s, {own / 2**20:.0f} MiB")
             voxels.append(vox)
             weights.append(w)
         if s.method == "mart":
