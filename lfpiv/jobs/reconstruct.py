@@ -128,10 +128,12 @@ def _slab_count(slabs: int | str | None, grid: VolumeGrid, settings: ReconSettin
 
 
 def _reconstruct_frame(frames: FrameReconstructor | SlabReconstructor, store: RunStore, names: Sequence[str],
-                       pair: int, frame: int, progress: Any = None, data: Any = None) -> ReconResult:
+                       pair: int, frame: int, progress: Any = None, data: Any = None,
+                       log: Any = None) -> ReconResult:
     """Reconstruct one frame of a pair from the run's images. A :class:`SlabReconstructor` writes
     its volume into ``data`` (the volumes' zarr array; None: the store's) slab by slab and returns
-    it empty; a :class:`FrameReconstructor` returns it for the caller to write."""
+    it empty, telling ``log`` (if given) each stage as it ends; a :class:`FrameReconstructor`
+    returns it for the caller to write."""
     images = [store.read_frame(n, pair, frame) for n in names]  # a damaged or missing frame is an error
     try:
         if isinstance(frames, SlabReconstructor):
@@ -140,7 +142,7 @@ def _reconstruct_frame(frames: FrameReconstructor | SlabReconstructor, store: Ru
             def write(z0: int, z1: int, planes: np.ndarray) -> None:
                 out[pair, frame, z0:z1] = planes
 
-            return frames.reconstruct(images, write=write, progress=progress)
+            return frames.reconstruct(images, write=write, progress=progress, log=log)
         return frames.reconstruct(images, progress=progress)
     except (MemoryBudgetError, MatrixFreeUnsupported) as exc:
         raise UsageError(f"pair {pair} frame {'AB'[frame]}: {exc}") from None
@@ -323,7 +325,10 @@ def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, store: Run
           tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar):
         for p in chosen:
             for f in (0, 1):
-                res = _reconstruct_frame(frames, store, names, p, f, bar.update)
+                # a slab-by-slab frame can spend long stages (each slab's elimination) without an
+                # iteration: the progress line says which ended last
+                res = _reconstruct_frame(frames, store, names, p, f, bar.update,
+                                         log=lambda line, p=p, f=f: bar.set_postfix_str(f"pair {p} {'AB'[f]}: {line}"))
                 # the volume, then its bookkeeping and operator figures, on the writer's thread
                 writer.submit(_write_frame, store, p, f, res)
                 results.append(_summary(res))
