@@ -226,9 +226,11 @@ def worker_state(token: str, build: Callable[[], T]) -> T:
 
 
 def map_pairs(client: Any, task: Callable[..., T], job: Any, pairs: Iterable[int], *,
-              on_done: Callable[[int, T], None], desc: str, progress: bool = True) -> None:
+              on_done: Callable[[int, T], None], desc: str, progress: bool = True,
+              postfix: Callable[[int, T], dict[str, Any]] | None = None) -> None:
     """Run ``task(job, pair)`` on the cluster for every pair; ``on_done(pair, result)`` here, in
-    the order the tasks finish.
+    the order the tasks finish, and the progress bar shows ``postfix(pair, result)`` (its fields)
+    where it is given.
 
     No more tasks are given out than the cluster has worker threads, so after a failure the
     others given out are all under way: they are waited for, the pairs among them that succeed
@@ -272,6 +274,8 @@ def map_pairs(client: Any, task: Callable[..., T], job: Any, pairs: Iterable[int
                         first = _task_error(exc, p)
                     continue
                 on_done(p, result)
+                if postfix is not None:
+                    bar.set_postfix(postfix(p, result), refresh=False)
                 bar.update(1)
                 if first is None:
                     running.update(give_out())

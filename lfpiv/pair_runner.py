@@ -63,7 +63,8 @@ def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable
               here: Callable[[list[int]], None],
               remote: Callable[[str], tuple[Callable[..., T], Any]] | None, client: Any,
               on_done: Callable[[int, T], None], desc: str, progress: bool,
-              kept: Callable[[], str] = lambda: "") -> list[int]:
+              kept: Callable[[], str] = lambda: "",
+              postfix: Callable[[int, T], dict[str, Any]] | None = None) -> list[int]:
     """Make ``name`` (``volumes`` or ``vectors``) of ``pairs``; returns the pairs done now.
 
     Parameters
@@ -94,6 +95,9 @@ def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable
     kept
         What a failure leaves of the pairs done before (e.g. "the 2 volume(s) written before are
         kept"), or "" for nothing to say.
+    postfix
+        ``postfix(pair, result)``: what the workers' progress bar shows of a pair just finished
+        (its fields, as :meth:`tqdm.tqdm.set_postfix` takes them), or None for nothing.
 
     Raises
     ------
@@ -113,7 +117,8 @@ def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable
                     from lfpiv.batch import map_pairs
 
                     task, job = remote(store.writing(name).basename)  # type: ignore[misc]
-                    map_pairs(client, task, job, pairs, on_done=on_done, desc=desc, progress=progress)
+                    map_pairs(client, task, job, pairs, on_done=on_done, desc=desc, progress=progress,
+                              postfix=postfix)
                 else:
                     here(pairs)
         except (UsageError, RunStoreError) as exc:  # RunStoreError: damaged input, named

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import uuid
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -63,13 +64,19 @@ class Volumes(Part):
         if record:
             self.record_volumes([(pair, frame)])
 
-    def record_volumes(self, written: list[tuple[int, int]]) -> None:
-        """Add (pair, frame) volumes, already written, to ``reconstructed_pairs``."""
+    def record_volumes(self, written: list[tuple[int, int]], *,
+                       attrs: Callable[[Mapping[str, Any]], dict[str, Any]] | None = None) -> None:
+        """Add (pair, frame) volumes, already written, to ``reconstructed_pairs``.
+
+        ``attrs(current)`` gives further attributes of ``volumes/`` to record in the same write
+        (from its current ones), e.g. the operator figures of the frames written.
+        """
         g = self.writing("volumes")
         key = "_frames_written"
         done = {tuple(x) for x in g.attrs.get(key, [])} | {(int(p), int(f)) for p, f in written}
         pairs = sorted({p for p, _ in done if (p, 0) in done and (p, 1) in done})
-        g.attrs.update({key: sorted(done), "reconstructed_pairs": pairs})
+        more = {} if attrs is None else attrs(g.attrs)
+        g.attrs.update({**more, key: sorted(done), "reconstructed_pairs": pairs})
 
     @property
     def has_volumes(self) -> bool:

@@ -172,11 +172,12 @@ def operator_figures(results: Sequence[ReconResult], before: dict[str, Any] | No
             "ms_per_iteration": round(ms, 3), "frames": n}
 
 
-def _record_operator(store: RunStore, results: Sequence[ReconResult]) -> None:
-    """Add the frames of ``results`` to the operator figures of the volumes being written (by
-    the one process that writes the store's bookkeeping)."""
-    g = store.writing("volumes")
-    g.attrs[OPERATOR_ATTR] = operator_figures(results, g.attrs.get(OPERATOR_ATTR))
+def _record(store: RunStore, written: list[tuple[int, int]], results: Sequence[ReconResult]) -> None:
+    """Record the (pair, frame) volumes ``written`` and add the frames of ``results`` to the
+    operator figures of the volumes being written, in one write of their attributes (by the one
+    process that writes the store's bookkeeping)."""
+    store.record_volumes(written, attrs=lambda now: {OPERATOR_ATTR: operator_figures(results,
+                                                                                     now.get(OPERATOR_ATTR))})
 
 
 def _summary(res: ReconResult) -> ReconResult:
@@ -297,8 +298,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     results: list[ReconResult] = []
 
     def written(p: int, res: list[ReconResult]) -> None:
-        store.record_volumes([(p, 0), (p, 1)])
-        _record_operator(store, res)
+        _record(store, [(p, 0), (p, 1)], res)
         results.extend(res)
 
     def remote(into: str) -> tuple[Any, ReconJob]:
@@ -312,6 +312,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
               create=lambda: store.create_volumes(grid, method=settings.method, settings=meta), skip_done=skip_done,
               here=lambda todo: _reconstruct_here(frames, store, names, todo, settings, results, progress),
               remote=remote, client=client, on_done=written, desc="reconstructing", progress=progress,
+              postfix=_shown,
               kept=lambda: f"the {len(results)} volume(s) written before are kept" if results else "")
     return results
 
@@ -334,8 +335,15 @@ def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, store: Run
                 results.append(_summary(res))
                 if settings.iterations == 0:
                     bar.update(1)
-                bar.set_postfix(pair=p, active=f"{res.active_fraction:.2%}", projector=res.projector,
-                                mem=f"{res.weight_bytes / 2**20:.1f}MiB", ms_it=f"{res.ms_per_iteration:.1f}")
+                bar.set_postfix(_shown(p, [res]))
+
+
+def _shown(pair: int, res: Sequence[ReconResult]) -> dict[str, str]:
+    """What the progress bar shows of the last frame of ``res`` (pair ``pair``): its active
+    voxels, projector, operator memory and milliseconds per iteration."""
+    last = res[-1]
+    return {"pair": str(pair), "active": f"{last.active_fraction:.2%}", "projector": last.projector,
+            "mem": f"{last.weight_bytes / 2**20:.1f}MiB", "ms_it": f"{last.ms_per_iteration:.1f}"}
 
 
 def _write_frame(store: RunStore, pair: int, frame: int, res: ReconResult) -> None:
@@ -343,8 +351,7 @@ def _write_frame(store: RunStore, pair: int, frame: int, res: ReconResult) -> No
     figures."""
     if res.slabs == 1:
         store.write_volume(pair, frame, res.volume, record=False)
-    store.record_volumes([(pair, frame)])
-    _record_operator(store, [res])
+    _record(store, [(pair, frame)], [res])
 
 
 def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, Any]) -> bool:

@@ -7,6 +7,7 @@ run store's bookkeeping must list every pair they finished, and only those.
 from __future__ import annotations
 
 import logging
+import re
 
 import numpy as np
 import pytest
@@ -116,6 +117,18 @@ def test_skip_done_resumes_where_a_run_stopped(serial, tmp_path, capsys, monkeyp
     assert s.correlated_pairs() == [0] and s.vectors()["attrs"]["volumes_id"] == s.volumes_id is not None
 
 
+def test_the_workers_progress_line_shows_the_operator_memory_and_time_per_iteration(serial, tmp_path, capsys):
+    path = _copy_frames(serial, tmp_path)
+    rc, out, err = _run(capsys, "reconstruct", path, "--iterations", "10", "--device", "cpu", "--workers", "1",
+                        "--pairs", "0:2", "--projector", "matrix-free")
+    assert rc == 0, err
+    op = RunStore.open(path).group["volumes"].attrs["operator"]
+    # as the command's own line shows them (tests/functional/test_projector_wiring.py), for a pair a worker finished
+    assert "projector=matrix-free" in err and re.search(r"ms_it=\d+\.\d", err), err
+    mem = [float(m) for m in re.findall(r"mem=(\d+\.\d)MiB", err)]
+    assert mem and max(mem) <= op["bytes"] / 2**20 + 0.1 and min(mem) > 0, err
+
+
 def test_workers_of_a_running_scheduler(serial, tmp_path, capsys):
     from distributed import LocalCluster
 
@@ -175,11 +188,11 @@ def test_ctrl_c_keeps_the_pairs_the_workers_finished(serial, tmp_path, capsys, m
     record = RunStore.record_volumes
     calls = []
 
-    def interrupted(self, written):
+    def interrupted(self, written, **kw):
         calls.append(written)
         if len(calls) == 2:
             raise KeyboardInterrupt
-        record(self, written)
+        record(self, written, **kw)
 
     monkeypatch.setattr(RunStore, "record_volumes", interrupted)
     rc, out, err = _run(capsys, "reconstruct", path, *RECON, "--workers", "1")

@@ -204,10 +204,12 @@ def test_volumes_are_replaced_only_once_the_new_ones_are_finished(tiny_rig, tmp_
     w.resume("volumes")
     w.write_volume(1, 0, 3 * old, record=False)
     s.write_volume(1, 1, 3 * old, record=False)
-    s.record_volumes([(1, 0), (1, 1)])
+    # further attributes in the same write, made from the current ones (the operator figures)
+    s.record_volumes([(1, 0)], attrs=lambda now: {"frames": now.get("frames", 0) + 1})
+    s.record_volumes([(1, 1)], attrs=lambda now: {"frames": now.get("frames", 0) + 1})
     r = RunStore.open(path)
     assert r.volumes_id == old_id and r.reconstructed_pairs() == [0] and r.volumes()[0, 1].min() == 1
-    assert r.pending("volumes").attrs["reconstructed_pairs"] == [1]
+    assert r.pending("volumes").attrs["reconstructed_pairs"] == [1] and r.pending("volumes").attrs["frames"] == 2
     s.finish("volumes")
     r = RunStore.open(path)
     assert r.pending("volumes") is None and r.volumes_id != old_id and r.reconstructed_pairs() == [1]
