@@ -435,7 +435,9 @@ def _build_window_class():  # noqa: C901 - one Qt class, built once Qt is import
             rate = f"{st.rate_hz:.1f} pairs/s" if st.rate_hz > 0 else "rate n/a"
             parts.append(f"live ({st.state}): pair {st.last_pair}, processed {st.processed} "
                          f"({rate}), skipped {st.skipped}, discarded {st.discarded}, latency "
-                         + (f"{lat:.2f} s" if math.isfinite(lat) else "n/a"))
+                         + (f"{lat:.2f} s" if math.isfinite(lat) else "n/a")
+                         # what applied the last pair's operator (stored weights or matrix-free)
+                         + (f", projector {st.projector}" if st.projector else ""))
             text = "  |  ".join(parts) + _gpu_memory(self.pipeline.device)
             if st.error:
                 text += f"  |  error: {st.error}"

@@ -57,6 +57,8 @@ def test_window_draws_results_and_controls_act(tiny_rig, tmp_path) -> None:
     text = win.status.text()
     assert "disarmed, recording: 7 pairs" in text and "frames 27, drops 1, overruns 0" in text
     assert "processed 1" in text and "skipped 2" in text
+    # the tiny rig's weights fit: the live path's auto projector stores them
+    assert f"projector {win.last_result.projector}" in text and win.last_result.projector == "stored"
     # acquisition controls
     win.arm_button.click()
     assert ctl.calls == ["arm"] and win.arm_button.text() == "disarm"
