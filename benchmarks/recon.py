@@ -42,6 +42,9 @@ same device measured here.
 ``--projector matrix-free`` (or ``both``) runs DRT-MART on the matrix-free templates of
 :mod:`lfcore.matrix_free` instead (or as well): the templates' build time and memory, ms per
 iteration, Q, and the fidelity of 200 random active voxels' images against the stored weights.
+With ``both``, ``--interleaved ROUNDS`` also times the ray-traced weights and the templates'
+images of one frame in alternating blocks of 5 iterations: on a shared VM, whose memory bandwidth
+drifts by 20% within minutes, their ratio is measured only so.
 
 ``--slabs N`` runs DRT-MART on the matrix-free projector in N depth slabs instead
 (:class:`lfcore.slabs.SlabReconstructor`: the templates' images stored where they fit, else applied
@@ -206,6 +209,33 @@ def matrix_free_figures(proj, img, its: int, e0, drt, fly_its: int | None = None
               f"Q {q:.3f} ({fly_its} iterations) vs {metrics.q_recon(drt.volume, e0):.3f} ({its})")
 
 
+def interleaved(proj, img, *, rounds: int, its: int) -> None:
+    """Per-iteration time of the ray-traced weights and of the templates' images on one frame,
+    measured in alternating blocks of ``its`` iterations (each from the uniform start), so that
+    the machine's drift over a run (other tenants' memory traffic on a shared VM) falls on both:
+    the median of the rounds' ratios, with their range."""
+    from lfcore.reconstruct import FrameReconstructor, preprocess_images
+
+    wp = warp()
+    traced = FrameReconstructor(proj, ReconSettings(projector="stored"))
+    images = FrameReconstructor(proj, ReconSettings(projector="matrix-free", weight_storage="stored"))
+    signals, lits, _, noise = preprocess_images(proj, img, traced.settings)
+    image = wp.array(np.concatenate([s.ravel() for s in signals]), dtype=float, device=proj.device)
+    voxels = traced.eliminate(lits)
+    ops = ((traced, traced.weights(voxels)), (images, images.weights(voxels)))
+    ms = np.zeros((rounds, 2))
+    for r in range(rounds):
+        for k, (fr, w) in enumerate(ops if r % 2 == 0 else ops[::-1]):
+            ms[r, k if r % 2 == 0 else 1 - k] = 1e3 * fr.iterate(w, image, noise, iterations=its).iterate_s / its
+    ratio = ms[:, 1] / ms[:, 0]
+    nnz = [w.nnz for _, w in ops]
+    print(f"  interleaved, {rounds} rounds of {its} iterations each: ray-traced weights median "
+          f"{np.median(ms[:, 0]):.1f} ms/iteration ({ms[:, 0].min():.1f}-{ms[:, 0].max():.1f}), the templates' "
+          f"images {np.median(ms[:, 1]):.1f} ({ms[:, 1].min():.1f}-{ms[:, 1].max():.1f}); images/traced per round: "
+          f"median {np.median(ratio):.3f} (range {ratio.min():.3f}-{ratio.max():.3f}); entries {nnz[0]} vs {nnz[1]} "
+          f"({nnz[1] / nnz[0]:.3f}x)")
+
+
 def run_slabs(case: str, device: str, ppm: float, iterations: int | None, n_slabs: int, storage: str,
               planes: tuple[int, int] | None = None) -> None:
     """DRT-MART on the matrix-free projector in ``n_slabs`` depth slabs, every stage logged; with
@@ -274,7 +304,8 @@ def memory_ratio(mine: int, stored: int) -> str:
 
 
 def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, with_drt: bool = True,
-        storage: str = "auto", projector: str = "stored", fly_its: int | None = None) -> None:
+        storage: str = "auto", projector: str = "stored", fly_its: int | None = None,
+        rounds: int | None = None) -> None:
     t = time.perf_counter()
     _, its, cams, grid, pts, img = scene(case, device, ppm)
     its = iterations or its
@@ -303,6 +334,8 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, 
               f"peak memory {peak_bytes(device) / 2**30:.2f} GiB")
     if with_drt and projector in ("matrix-free", "both"):
         matrix_free_figures(proj, img, its, e0, drt, fly_its)
+        if rounds and projector == "both":
+            interleaved(proj, img, rounds=rounds, its=5)
         if projector == "matrix-free":
             return
     # MLOS-MART: the same elimination, the baseline's weights on the surviving voxels
@@ -446,6 +479,9 @@ def main() -> int:
     ap.add_argument("--on-the-fly-iterations", type=int, default=None, metavar="N",
                     help="with --projector matrix-free or both: the templates applied in every iteration run only N "
                     "iterations (default: as many as the others)")
+    ap.add_argument("--interleaved", type=int, default=None, metavar="ROUNDS",
+                    help="with --projector both: also time the ray-traced weights and the templates' images in "
+                    "ROUNDS alternating blocks of 5 iterations on one frame (their ratio, free of the machine's drift)")
     ap.add_argument("--slabs", type=int, default=None, metavar="N",
                     help="instead: DRT-MART on the matrix-free projector in N depth slabs, every stage logged")
     ap.add_argument("--planes", default=None, metavar="Z0:Z1",
@@ -468,7 +504,7 @@ def main() -> int:
                 run_tomo(case, device, args.ppp, args.iterations, not args.no_mart)
                 continue
             run(case, device, args.ppm, args.iterations, not args.no_mart, not args.no_drt, args.weight_storage,
-                args.projector, args.on_the_fly_iterations)
+                args.projector, args.on_the_fly_iterations, args.interleaved)
         except MemoryBudgetError as exc:  # the case does not fit this device: say so, go on
             print(f"  case {case}: {exc}")
         sys.stdout.flush()
