@@ -225,8 +225,9 @@ def interleaved(proj, img, *, rounds: int, its: int) -> None:
     ops = ((traced, traced.weights(voxels)), (images, images.weights(voxels)))
     ms = np.zeros((rounds, 2))
     for r in range(rounds):
-        for k, (fr, w) in enumerate(ops if r % 2 == 0 else ops[::-1]):
-            ms[r, k if r % 2 == 0 else 1 - k] = 1e3 * fr.iterate(w, image, noise, iterations=its).iterate_s / its
+        for k in (0, 1) if r % 2 == 0 else (1, 0):  # each operator first in every other round
+            fr, w = ops[k]
+            ms[r, k] = 1e3 * fr.iterate(w, image, noise, iterations=its).iterate_s / its
     ratio = ms[:, 1] / ms[:, 0]
     nnz = [w.nnz for _, w in ops]
     print(f"  interleaved, {rounds} rounds of {its} iterations each: ray-traced weights median "
