@@ -22,6 +22,7 @@ import os
 import shutil
 import signal
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +46,6 @@ from tests.helpers import (
     store_held,
     terminal_signals,
     wait_committed,
-    wait_store,
 )
 
 LONG = os.environ.get("LFPIV_LONG_SOAK", "") not in ("", "0")
@@ -136,15 +136,34 @@ def _start(*argv: object) -> subprocess.Popen:
                             env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=terminal_signals)
 
 
+def _stop_when(proc: subprocess.Popen, path: Path, count, at_least: int, what: str,
+               timeout_s: float = 120.0) -> int:
+    """Stop ``proc`` (SIGSTOP) once ``count(store)`` is ``at_least``, reading the store only while
+    ``proc`` is stopped; ``proc`` is left stopped, short of the end of its slice."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+        proc.send_signal(signal.SIGSTOP)
+        try:
+            n = count(RunStore.open(path))
+        except Exception:  # noqa: BLE001 - the store may not exist yet, or be mid-write
+            n = 0
+        if n >= at_least:
+            assert n < SLICE, f"the process finished its slice ({n} {what}) before it could be stopped"
+            return n
+        proc.send_signal(signal.SIGCONT)
+        time.sleep(0.05)
+    raise AssertionError(f"{path} did not reach {at_least} {what}")
+
+
 def _kill_when(proc: subprocess.Popen, path: Path, count, at_least: int, what: str, capsys, second) -> None:
     """SIGKILL ``proc`` once ``count(store)`` reaches ``at_least``; just before, ``second`` (a
-    command line) must be refused in one line naming it. ``proc`` is stopped (SIGSTOP) as soon as
-    the count is reached, so that on a fast machine it cannot finish its slice, and let go of the
-    store, while the second writer starts."""
+    command line) must be refused in one line naming it. The store is read only while ``proc`` is
+    stopped (SIGSTOP), and ``proc`` stays stopped once the count is reached: it runs only during the
+    waits between reads, so even on a loaded machine, where opening the store is slow, it cannot
+    finish its slice, and let go of the store, while it is read or while the second writer starts."""
     try:
-        wait_store(path, count, at_least, proc, timeout_s=120, what=what)
-        proc.send_signal(signal.SIGSTOP)  # holds the store, alive, mid-way
-        assert proc.poll() is None, "the process finished its slice before it could be stopped"
+        _stop_when(proc, path, count, at_least, what)  # holds the store, alive, mid-way
         rc, _, err = _run(capsys, *second)
         assert rc == 2 and one_error(err) and f"pid {proc.pid}" in err, err
         proc.kill()
