@@ -60,6 +60,29 @@ def wait_store(path: Path, count: Callable[[RunStore], int], at_least: int, proc
     raise AssertionError(f"{path} did not reach {at_least} {what}")
 
 
+def stop_when(proc: subprocess.Popen, path: Path, count: Callable[[RunStore], int], at_least: int, *,
+              timeout_s: float = 120.0, what: str = "committed pairs") -> int:
+    """Stop ``proc`` (SIGSTOP) once ``count(store)`` of the run at ``path`` is ``at_least``, and
+    return the count. The store is read only while ``proc`` is stopped, which runs only during the
+    waits between reads (SIGCONT): on a loaded machine, where opening a store is slow, ``proc``
+    cannot go on far past the count, or finish and let go of the store, before it is stopped.
+    ``proc`` is left stopped; SIGCONT or SIGKILL it."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+        proc.send_signal(signal.SIGSTOP)
+        try:
+            n = count(RunStore.open(path))
+        except Exception:  # noqa: BLE001 - the store may not exist yet, or be mid-write
+            n = 0
+        if n >= at_least:
+            return n
+        proc.send_signal(signal.SIGCONT)
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGCONT)
+    raise AssertionError(f"{path} did not reach {at_least} {what}")
+
+
 def wait_committed(path: Path, at_least: int, proc: subprocess.Popen, timeout_s: float = 60.0) -> int:
     """Wait until the run at ``path`` has ``at_least`` committed pairs while ``proc`` runs."""
     return wait_store(path, lambda s: s.committed_pairs, at_least, proc, timeout_s)

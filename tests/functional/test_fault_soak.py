@@ -22,7 +22,6 @@ import os
 import shutil
 import signal
 import subprocess
-import time
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +42,7 @@ from tests.helpers import (
     no_space,
     one_error,
     sim_lab,
+    stop_when,
     store_held,
     terminal_signals,
     wait_committed,
@@ -136,26 +136,6 @@ def _start(*argv: object) -> subprocess.Popen:
                             env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=terminal_signals)
 
 
-def _stop_when(proc: subprocess.Popen, path: Path, count, at_least: int, what: str,
-               timeout_s: float = 120.0) -> int:
-    """Stop ``proc`` (SIGSTOP) once ``count(store)`` is ``at_least``, reading the store only while
-    ``proc`` is stopped; ``proc`` is left stopped, short of the end of its slice."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
-        proc.send_signal(signal.SIGSTOP)
-        try:
-            n = count(RunStore.open(path))
-        except Exception:  # noqa: BLE001 - the store may not exist yet, or be mid-write
-            n = 0
-        if n >= at_least:
-            assert n < SLICE, f"the process finished its slice ({n} {what}) before it could be stopped"
-            return n
-        proc.send_signal(signal.SIGCONT)
-        time.sleep(0.05)
-    raise AssertionError(f"{path} did not reach {at_least} {what}")
-
-
 def _kill_when(proc: subprocess.Popen, path: Path, count, at_least: int, what: str, capsys, second) -> None:
     """SIGKILL ``proc`` once ``count(store)`` reaches ``at_least``; just before, ``second`` (a
     command line) must be refused in one line naming it. The store is read only while ``proc`` is
@@ -163,7 +143,8 @@ def _kill_when(proc: subprocess.Popen, path: Path, count, at_least: int, what: s
     waits between reads, so even on a loaded machine, where opening the store is slow, it cannot
     finish its slice, and let go of the store, while it is read or while the second writer starts."""
     try:
-        _stop_when(proc, path, count, at_least, what)  # holds the store, alive, mid-way
+        n = stop_when(proc, path, count, at_least, what=what)  # holds the store, alive, mid-way
+        assert n < SLICE, f"the process finished its slice ({n} {what}) before it could be stopped"
         rc, _, err = _run(capsys, *second)
         assert rc == 2 and one_error(err) and f"pid {proc.pid}" in err, err
         proc.kill()
