@@ -44,6 +44,7 @@ from lfcore.matrix_free import (
     MatrixFreeUnsupported,
     MatrixFreeWeights,
     applied_by,
+    template_count,
 )
 from lfcore.projector import Projector
 from lfcore.weight_build import BYTES_PER_WEIGHT, STORAGE, Weights
@@ -66,6 +67,13 @@ MAX_SMOOTH_VOXELS = 10.0
 #: lenslet (about 14), and each voxel traces the square of this many bundles.
 MAX_SUB_APERTURES = 64
 FORMS = ("simultaneous", "sequential")
+#: ``projector = "auto"``'s costs of the templates' images, in voxels' DRT tracings. A template
+#: (one voxel's rays, traced finely across its phase bin) costs about as much as this many voxels'
+#: tracing (4.7 measured on the Mc crop's optics, at most 7 on the tiny rig's, CPU) ...
+TEMPLATE_TRACES = 8.0
+#: ... and a voxel's image, merged from its templates' spots, this share of its own tracing
+#: (0.27 on the Mc crop, CPU).
+IMAGE_SHARE = 0.3
 
 
 @dataclass(frozen=True)
@@ -121,8 +129,11 @@ class ReconSettings:
     projector
         What applies DRT-MART's operator: ``"stored"`` ray-traced weights, the ``"matrix-free"``
         templates of :mod:`lfcore.matrix_free` (simultaneous form only; their images stored as
-        ``weight_storage`` allows), or ``"auto"``: stored weights, and the templates where the
-        stored weights would not fit in memory and the cameras allow them.
+        ``weight_storage`` allows), or ``"auto"``: per frame, the templates' images where they
+        cost less to build than tracing the voxels (:meth:`FrameReconstructor.templates_pay`)
+        and fit in memory, else stored traced weights, and the templates applied in every
+        iteration where neither fits (always the traced weights where the cameras have no
+        templates).
     """
 
     method: str = "drt-mart"
@@ -440,6 +451,7 @@ class FrameReconstructor:
         self._image = None  # (n_pixels,) float32: the measured signal of reconstruct()
         self._proj = None  # (n_pixels,) float32: the forward projection
         self._templates = None  # the matrix-free projector's templates (lfcore.matrix_free), once built
+        self._n_templates = None  # how many there would be (0: the cameras have none), once counted
         self._e = None  # the intensities, at least as long as the most active voxels so far
         self._volume = None  # (z, y, x) float32
 
@@ -532,6 +544,11 @@ class FrameReconstructor:
         if s.projector == "matrix-free":
             return self._matrix_free(voxels)
         if s.projector == "auto" and kind == "drt" and s.form == "simultaneous":
+            if self.templates_pay(voxels):
+                try:  # the images stored, or the traced weights (stored iterate 8-12x faster)
+                    return self._matrix_free(voxels, storage="stored")
+                except (MatrixFreeUnsupported, MemoryBudgetError):
+                    pass
             try:
                 return self._stored_weights(voxels)
             except MemoryBudgetError:
@@ -548,20 +565,41 @@ class FrameReconstructor:
         held = self._templates.nbytes if getattr(weights, "from_templates", False) and self._templates else 0
         return int(weights.nbytes) + held
 
-    def _matrix_free(self, voxels) -> MatrixFreeWeights | Weights:
+    def templates_pay(self, voxels) -> bool:
+        """Whether ``projector = "auto"`` takes the templates' images for ``voxels`` ((n,) int32
+        on the device): where building them (the templates once per run, :data:`TEMPLATE_TRACES`
+        voxels' tracing each, and the images, :data:`IMAGE_SHARE` of a tracing per voxel) costs
+        less than tracing the voxels the weight cache lacks. So a frame with many more active
+        voxels than templates (the Mc crop: 385,000-472,000 against 22,757) takes the images, a
+        small one (the tiny rig's 26,000 against 4,180) its traced weights. False where the
+        cameras have no templates.
+        """
+        if self._n_templates is None:
+            try:
+                self._n_templates = template_count(self.projector)
+            except MatrixFreeUnsupported:
+                self._n_templates = 0
+        if self._n_templates == 0:
+            return False
+        n = int(voxels.shape[0])
+        traced = n if self.cache is None or self.cache.method != "drt" else self.cache.uncached(voxels)
+        templates = 0.0 if self._templates is not None else TEMPLATE_TRACES * self._n_templates
+        return traced > templates + IMAGE_SHARE * n
+
+    def _matrix_free(self, voxels, *, storage: str | None = None) -> MatrixFreeWeights | Weights:
         """The matrix-free operator on ``voxels``, its templates built on first use and kept.
 
-        With ``settings.weight_storage`` ``"auto"`` the templates' images of the voxels are
-        stored (:meth:`MatrixFreeWeights.expanded`: no ray tracing, iterations at the stored
-        weights' speed) where they fit beside the templates, and applied from the templates in
-        every iteration where they do not; ``"stored"``: stored or a :class:`MemoryBudgetError`;
-        ``"on-the-fly"``: always applied from the templates.
+        With ``storage`` (default: ``settings.weight_storage``) ``"auto"`` the templates'
+        images of the voxels are stored (:meth:`MatrixFreeWeights.expanded`: no ray tracing,
+        iterations at the stored weights' speed) where they fit beside the templates, and
+        applied from the templates in every iteration where they do not; ``"stored"``: stored
+        or a :class:`MemoryBudgetError`; ``"on-the-fly"``: always applied from the templates.
         """
         n = int(voxels.shape[0])
         if self._templates is None:
             self._templates = DrtTemplates(self.projector, budget_bytes=self._weight_budget(n))
         mf = MatrixFreeWeights(self._templates, voxels)
-        storage = self.settings.weight_storage
+        storage = self.settings.weight_storage if storage is None else storage
         if storage == "on-the-fly":
             return mf
         budget = self._weight_budget(n) - self._templates.nbytes

@@ -93,6 +93,12 @@ class WeightCache:
         """Voxels whose weights are stored."""
         return int(np.count_nonzero(self._start >= 0))
 
+    def uncached(self, voxels) -> int:
+        """How many of ``voxels`` ((n,) int32 flat indices, on the device or the host) have no
+        stored weights, so that :meth:`weights` would trace them."""
+        vox = voxels.numpy() if hasattr(voxels, "numpy") else np.asarray(voxels)
+        return int(np.count_nonzero(self._start[vox.astype(np.int64)] < 0))
+
     @property
     def nbytes(self) -> int:
         """Bytes of stored weights (the pool itself may be up to twice as large)."""

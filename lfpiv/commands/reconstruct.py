@@ -39,8 +39,9 @@ def slabs_option(text: str) -> int | str:
 PROJECTOR_HELP = ("what applies DRT-MART's operator: stored ray-traced weights, or matrix-free templates per depth and "
                   "lenslet phase (no ray tracing; their images of the active voxels are stored where they fit, at the "
                   "stored weights' speed, else applied in every iteration, in memory set by the cameras and depth "
-                  "planes, not the voxels, but slower; see --weight-storage); auto (default): stored weights unless "
-                  "they do not fit in memory")
+                  "planes, not the voxels, but slower; see --weight-storage); auto (default): per frame the templates' "
+                  "images where they cost less to build than tracing the voxels (frames with many more active voxels "
+                  "than templates) and fit, else stored weights, and the templates where neither fits")
 
 
 def add_projector(parser: argparse.ArgumentParser) -> None:

@@ -327,8 +327,9 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
         for pinhole ones (see :data:`realtime.pipeline.LIVE_METHODS`).
     projector
         What applies DRT-MART's operator (:data:`lfcore.matrix_free.PROJECTORS`): ``"stored"`` weights, the
-        ``"matrix-free"`` templates (built with the pipeline), or ``"auto"``: stored weights
-        unless they do not fit in memory.
+        ``"matrix-free"`` templates (built with the pipeline), or ``"auto"``: per pair the
+        templates' images where they cost less to build than tracing the voxels the weight
+        cache lacks, else stored weights (:meth:`lfcore.reconstruct.FrameReconstructor.templates_pay`).
     passes
         Correlation passes (1 or 2).
     pvr

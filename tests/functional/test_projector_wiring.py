@@ -122,7 +122,8 @@ def test_info_shows_the_operator_memory_and_time_per_iteration(frames_only, matr
         path = _copy(frames_only, tmp_path)
         assert main(["reconstruct", str(path), "--projector", projector, *RECON]) == 0
     op = RunStore.open(path).group["volumes"].attrs["operator"]
-    ran = "matrix-free" if projector == "matrix-free" else "stored"  # auto: the weights fit
+    # auto: these few thousand active voxels cost less to trace than the templates to build
+    ran = "matrix-free" if projector == "matrix-free" else "stored"
     assert op["projector"] == ran and op["frames"] == 4 and op["bytes"] > 0 and op["ms_per_iteration"] > 0
     capsys.readouterr()
     rc, out, err = _run(capsys, "info", path)
@@ -130,6 +131,25 @@ def test_info_shows_the_operator_memory_and_time_per_iteration(frames_only, matr
     shown = f"projector {projector}{' (stored)' if projector == 'auto' else ''}, operator " \
             f"{op['bytes'] / 2**20:.1f} MiB, {op['ms_per_iteration']:.1f} ms per iteration"
     assert shown in out, out
+
+
+def test_auto_takes_the_templates_images_where_they_pay(frames_only, matrix_free_here, tmp_path, capsys,
+                                                        monkeypatch) -> None:
+    """With the templates made cheap to build (as they are against the Mc crop's 400,000 active
+    voxels), ``--projector auto`` takes their images for every frame, and ``info`` says so."""
+    import lfcore.reconstruct as recon
+
+    monkeypatch.setattr(recon, "TEMPLATE_TRACES", 0.0)
+    path = _copy(frames_only, tmp_path)
+    rc, out, err = _run(capsys, "reconstruct", path, *RECON)
+    assert rc == 0, err
+    assert "matrix-free templates and their images" in out
+    s, ref = RunStore.open(path), RunStore.open(matrix_free_here)
+    assert s.group["volumes"].attrs["operator"]["projector"] == "matrix-free"
+    a, b = s.volumes()[...], ref.volumes()[...]
+    assert np.abs(a - b).max() <= 1e-4 * b.max()  # the images the matrix-free run stored: the same volumes
+    rc, out, err = _run(capsys, "info", path)
+    assert rc == 0 and "projector auto (matrix-free), operator" in out, out
 
 
 def test_info_on_volumes_made_before_the_operator_was_recorded(matrix_free_here, tmp_path, capsys) -> None:

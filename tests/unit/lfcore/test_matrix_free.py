@@ -234,6 +234,43 @@ def test_auto_takes_the_templates_where_stored_weights_do_not_fit(scene, device,
         FrameReconstructor(proj, ReconSettings(iterations=2, projector="stored")).reconstruct([img])
 
 
+def test_auto_takes_the_templates_images_where_they_cost_less_than_tracing(scene, device, monkeypatch):
+    """projector auto per frame: the small box's few thousand active voxels cost less to trace
+    than its templates to build; with templates made cheap (a frame of many more voxels than
+    templates, as on the Mc crop) the templates' images; with the weight cache holding the
+    frame's voxels nothing is left to trace, so its stored weights."""
+    import lfcore.reconstruct as recon
+    from lfcore.weight_cache import WeightCache
+
+    rig, grid, _, img = scene
+    proj = Projector(rig.camera, grid, device=device)
+    settings = ReconSettings(iterations=2)
+    frames = FrameReconstructor(proj, settings)
+    traced = frames.reconstruct([img])
+    n, n_templates = traced.active_voxels, template_count(proj)
+    assert n < recon.TEMPLATE_TRACES * n_templates  # so tracing pays here
+    assert traced.projector == "stored" and frames._templates is None
+    # templates that cost nothing to build: the images are cheaper than tracing every voxel
+    monkeypatch.setattr(recon, "TEMPLATE_TRACES", 0.0)
+    imaged = FrameReconstructor(proj, settings).reconstruct([img])
+    assert imaged.projector == "matrix-free" and imaged.nnz > 0  # the images stored, not applied
+    assert imaged.active_voxels == n
+    assert np.abs(imaged.volume - traced.volume).max() <= 0.05 * traced.volume.max()
+    # the same frame again with its weights cached: no voxel left to trace, so the cache serves
+    cache = WeightCache(proj)
+    cached = FrameReconstructor(proj, settings, cache=cache)
+    monkeypatch.setattr(recon, "TEMPLATE_TRACES", 1e9)
+    assert cached.reconstruct([img]).projector == "stored" and cache.n_cached >= n
+    monkeypatch.setattr(recon, "TEMPLATE_TRACES", 0.0)
+    vox = proj.wp.array(np.arange(grid.n_voxels, dtype=np.int32), device=device)
+    assert cache.uncached(vox) == grid.n_voxels - cache.n_cached
+    again = cached.reconstruct([img])
+    assert again.projector == "stored" and cached._templates is None
+    # cameras with no templates (a pinhole camera's) never take them
+    monkeypatch.setattr(recon, "template_count", lambda p: (_ for _ in ()).throw(MatrixFreeUnsupported("no")))
+    assert not FrameReconstructor(proj, settings).templates_pay(vox)
+
+
 def test_the_template_count_is_the_builds(scene):
     rig, grid, _, _ = scene
     proj = Projector(rig.camera, grid, device="cpu")
