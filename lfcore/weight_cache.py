@@ -96,8 +96,12 @@ class WeightCache:
     def uncached(self, voxels) -> int:
         """How many of ``voxels`` ((n,) int32 flat indices, on the device or the host) have no
         stored weights, so that :meth:`weights` would trace them."""
-        vox = voxels.numpy() if hasattr(voxels, "numpy") else np.asarray(voxels)
-        return int(np.count_nonzero(self._start[vox.astype(np.int64)] < 0))
+        return int(np.count_nonzero(~self._hits(voxels)[1]))
+
+    def _hits(self, voxels) -> tuple[np.ndarray, np.ndarray]:
+        """``voxels`` on the host as (n,) int64, and which of them have stored weights."""
+        vox_h = (voxels.numpy() if hasattr(voxels, "numpy") else np.asarray(voxels)).astype(np.int64)
+        return vox_h, self._start[vox_h] >= 0
 
     @property
     def nbytes(self) -> int:
@@ -178,8 +182,7 @@ class WeightCache:
         voxels with this one than with older frames.
         """
         wp, p = self.wp, self.projector
-        vox_h = voxels.numpy().astype(np.int64)
-        hit = self._start[vox_h] >= 0
+        vox_h, hit = self._hits(voxels)
         if hit.all():
             return self._copy_out(voxels, vox_h)
         missing = vox_h[~hit]
