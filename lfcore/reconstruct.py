@@ -547,8 +547,10 @@ class FrameReconstructor:
             if self.templates_pay(voxels):
                 try:  # the images stored, or the traced weights (stored iterate 8-12x faster)
                     return self._matrix_free(voxels, storage="stored")
-                except (MatrixFreeUnsupported, MemoryBudgetError):
+                except MatrixFreeUnsupported:
                     pass
+                except MemoryBudgetError:  # the images do not fit beside the templates: their room to the weights
+                    self._templates = None
             try:
                 return self._stored_weights(voxels)
             except MemoryBudgetError:

@@ -252,10 +252,17 @@ def test_auto_takes_the_templates_images_where_they_cost_less_than_tracing(scene
     assert traced.projector == "stored" and frames._templates is None
     # templates that cost nothing to build: the images are cheaper than tracing every voxel
     monkeypatch.setattr(recon, "TEMPLATE_TRACES", 0.0)
-    imaged = FrameReconstructor(proj, settings).reconstruct([img])
+    imager = FrameReconstructor(proj, settings)
+    imaged = imager.reconstruct([img])
     assert imaged.projector == "matrix-free" and imaged.nnz > 0  # the images stored, not applied
     assert imaged.active_voxels == n
     assert np.abs(imaged.volume - traced.volume).max() <= 0.05 * traced.volume.max()
+    # room for the templates but not their images beside them: the templates let go, the traced weights
+    held = imager._templates.nbytes
+    assert traced.weight_bytes < held
+    tight = FrameReconstructor(proj, settings, budget_bytes=12 * proj.n_pixels + 4 * n + 8 * grid.n_voxels + held
+                               + (imaged.weight_bytes - held) // 2)
+    assert tight.reconstruct([img]).projector == "stored" and tight._templates is None
     # the same frame again with its weights cached: no voxel left to trace, so the cache serves
     cache = WeightCache(proj)
     cached = FrameReconstructor(proj, settings, cache=cache)
