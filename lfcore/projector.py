@@ -340,10 +340,13 @@ class Projector:
         if k < weights.n_voxels:
             self.builder.trace_los(weights.voxels[k:], 2, weights.min_weight, sums=weights.sums,
                                    e=e[k:weights.n_voxels], proj=parts)
-        lanes = 1 if self.device == "cpu" else LANES
         for c in weights.chunks:
-            launch_rows(km.project, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), lanes, e, parts],
-                        self.device, rest=(lanes,))
+            if self.device == "cpu":  # a thread per voxel
+                launch_rows(km.project_rows, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), e, parts],
+                            self.device)
+            else:  # a warp's lanes per voxel
+                launch_rows(km.project, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), LANES, e,
+                                              parts], self.device, rest=(LANES,))
         self._parts.close(out)
         return out
 

@@ -48,7 +48,7 @@ def project(
     The chunk's voxel t is voxel ``first + t`` of ``e``; its entries start at ``offsets[t]``.
     Lane k takes entries k, k + lanes, ...: on a GPU the 32 lanes of a warp then read 32
     consecutive weights (one coalesced transaction) where a thread per voxel would read 32
-    scattered rows. On the CPU ``lanes`` is 1.
+    scattered rows. (The CPU runs :func:`project_rows`.)
     """
     t0, lane = wp.tid()
     ej = e[first + t0]
@@ -59,6 +59,47 @@ def project(
     while t < end:
         wp.atomic_add(proj, pix[t], w[t] * ej)
         t += wp.int64(lanes)
+
+
+@wp.kernel
+def project_rows(
+    offsets: wp.array(dtype=wp.int64),
+    pix: wp.array(dtype=wp.int32),
+    w: wp.array(dtype=float),
+    first: int,
+    e: wp.array(dtype=float),
+    proj: wp.array(dtype=float),
+):
+    """:func:`project` with a thread per voxel, four entries a step: the CPU's form.
+
+    The four entries' pixels and weights are read before any of them is added to: the compiler
+    cannot move a read of ``pix`` or ``w`` past a write to ``proj`` (they might alias), so one
+    entry at a time waits on the last one's add. Four at a time took 10-13% less time a pass
+    than one on the Mc crop's 220 M entries (2-core CPU, alternating rounds); eight no less.
+    """
+    t0 = wp.tid()
+    ej = e[first + t0]
+    if ej == 0.0:
+        return
+    t = offsets[t0]
+    end = offsets[t0 + 1]
+    while t + wp.int64(4) <= end:
+        a0 = pix[t]
+        a1 = pix[t + wp.int64(1)]
+        a2 = pix[t + wp.int64(2)]
+        a3 = pix[t + wp.int64(3)]
+        v0 = w[t] * ej
+        v1 = w[t + wp.int64(1)] * ej
+        v2 = w[t + wp.int64(2)] * ej
+        v3 = w[t + wp.int64(3)] * ej
+        wp.atomic_add(proj, a0, v0)
+        wp.atomic_add(proj, a1, v1)
+        wp.atomic_add(proj, a2, v2)
+        wp.atomic_add(proj, a3, v3)
+        t += wp.int64(4)
+    while t < end:
+        wp.atomic_add(proj, pix[t], w[t] * ej)
+        t += wp.int64(1)
 
 
 @wp.func
@@ -109,14 +150,30 @@ def smart_update(
     equivalent of one sweep of eq. 4.1 over the voxel's pixels. ``ratio`` is the pixels'
     :func:`log_ratio`, where pixels below the floor count as the floor, so a dark pixel pulls
     its voxels down hard without zeroing them in one step. The CPU's form (see
-    :func:`smart_update_tiled` for the GPU's).
+    :func:`smart_update_tiled` for the GPU's), four entries a step.
     """
     t0 = wp.tid()
     j = first + t0
     ej = e[j]
     if ej == 0.0:
         return
-    e[j] = multiplied(ej, row_sum(offsets, pix, w, ratio, t0, 0, 1), relaxation)
+    # four partial sums, so that each add need not wait for the last (as in project_rows)
+    t = offsets[t0]
+    end = offsets[t0 + 1]
+    s0 = float(0.0)
+    s1 = float(0.0)
+    s2 = float(0.0)
+    s3 = float(0.0)
+    while t + wp.int64(4) <= end:
+        s0 += w[t] * ratio[pix[t]]
+        s1 += w[t + wp.int64(1)] * ratio[pix[t + wp.int64(1)]]
+        s2 += w[t + wp.int64(2)] * ratio[pix[t + wp.int64(2)]]
+        s3 += w[t + wp.int64(3)] * ratio[pix[t + wp.int64(3)]]
+        t += wp.int64(4)
+    while t < end:
+        s0 += w[t] * ratio[pix[t]]
+        t += wp.int64(1)
+    e[j] = multiplied(ej, (s0 + s1) + (s2 + s3), relaxation)
 
 
 @wp.kernel

@@ -2,8 +2,9 @@
 
 Known truth: the forward projection is proj_i = sum_j w_ij E_j and the simultaneous update is
 E_j exp(mu sum_i w_ij ln(max(I_i, floor) / proj_i)), both written out in NumPy. Every launch
-form is checked: the projection with one lane per voxel (the CPU's) and with a warp per voxel
-(the GPU's), the update with a thread per voxel and with a block per voxel.
+form is checked: the projection with a thread per voxel taking four entries a step (the CPU's),
+with one lane per voxel and with a warp per voxel (the GPU's), the update with a thread per voxel
+(four entries a step) and with a block per voxel; rows of every length modulo four, and empty.
 """
 
 from __future__ import annotations
@@ -56,6 +57,21 @@ def test_forward_projection_in_both_launch_forms(sparse, device, lanes):
     for lo, hi in ((0, 200), (200, e.size)):
         wp.launch(km.project, dim=(hi - lo, lanes), device=device,
                   inputs=[wp.array(offsets[lo:hi + 1], device=device), a[1], a[2], lo, lanes, a[3], out])
+    np.testing.assert_allclose(out.numpy(), proj_ref, rtol=1e-5, atol=1e-7)
+
+
+def test_forward_projection_four_entries_a_step(sparse, device):
+    from lfcore._kernels import mart as km
+
+    wp = warp()
+    offsets, pix, w, e, image, n_pix = sparse
+    assert set(np.diff(offsets) % 4) == {0, 1, 2, 3} and (np.diff(offsets) == 0).any()
+    proj_ref, _ = _reference(*sparse)
+    a = [wp.array(x, device=device) for x in (pix, w, e)]
+    out = wp.zeros(n_pix, dtype=float, device=device)
+    for lo, hi in ((0, 200), (200, e.size)):
+        wp.launch(km.project_rows, dim=hi - lo, device=device,
+                  inputs=[wp.array(offsets[lo:hi + 1], device=device), a[0], a[1], lo, a[2], out])
     np.testing.assert_allclose(out.numpy(), proj_ref, rtol=1e-5, atol=1e-7)
 
 
