@@ -340,13 +340,13 @@ class WeightBuilder:
                 # library's segmented sort, which runs on one CPU thread and is several times slower
                 order, tmp_pix, tmp_ord = (wp.empty(scratch, dtype=wp.int32, device=self.device) for _ in range(3))
                 launch_rows(kw.sort_merge, hi - lo, [Rows(starts), Rows(ends), pix, order, tmp_pix, tmp_ord, w_raw,
-                                                     merged_pix, merged_w, Rows(kept)], self.device)
+                                                     merged_pix, merged_w, Rows(kept), 0.0], self.device)
                 del tmp_pix, tmp_ord
             else:
                 order = device_range(scratch, device=self.device)
                 wp.utils.segmented_sort_pairs(pix, order, m, starts, ends)
                 launch_rows(kw.merge_sorted, hi - lo, [Rows(starts), Rows(ends), pix, order, w_raw, merged_pix,
-                                                       merged_w, Rows(kept)], self.device)
+                                                       merged_w, Rows(kept), 0.0], self.device)
             del pix, order, w_raw
             chunk = self._pack(lo, hi, starts, kept, merged_pix, merged_w, total, n, budget)
             total += chunk.nnz
@@ -404,7 +404,7 @@ class WeightBuilder:
                                                 out_pix, out_w], self.device)
         return WeightChunk(first=lo, n=hi - lo, offsets=c_offsets, pix=out_pix, w=out_w, nnz=nnz)
 
-    def merged(self, voxels, trace: Callable, *, budget_bytes: int | None = None) -> Weights:
+    def merged(self, voxels, trace: Callable, *, budget_bytes: int | None = None, floor: float = 0.0) -> Weights:
         """Stored weights of ``voxels`` from another maker of raw entries, merged and packed as the
         DRT build's are (the matrix-free templates' entries: :meth:`MatrixFreeWeights.expanded
         <lfcore.matrix_free.MatrixFreeWeights.expanded>`).
@@ -419,6 +419,9 @@ class WeightBuilder:
             dropped below its own least weight).
         budget_bytes
             Memory the weights may take; default: what the device has free.
+        floor
+            Merged entries at or below this are dropped, each voxel's others scaled to keep its
+            light (0: none dropped).
 
         Raises
         ------
@@ -427,9 +430,10 @@ class WeightBuilder:
         """
         budget = available_bytes(self.device) if budget_bytes is None else budget_bytes
         with out_of_memory_is_budget_error(self.device, f"the weights of {int(voxels.shape[0]):,} voxels", ADVICE):
-            return self._drt_single_pass(voxels, 0.0, budget, trace)
+            return self._drt_single_pass(voxels, 0.0, budget, trace, floor=floor)
 
-    def _drt_single_pass(self, voxels, min_weight: float, budget: int, trace: Callable | None = None) -> Weights:
+    def _drt_single_pass(self, voxels, min_weight: float, budget: int, trace: Callable | None = None, *,
+                         floor: float = 0.0) -> Weights:
         """DRT weights traced once per voxel into fixed-capacity slots (see :meth:`weights`), or
         ``trace``'s entries (see :meth:`merged`)."""
         wp, kw = self.wp, self._kw
@@ -477,7 +481,7 @@ class WeightBuilder:
             merged_w = wp.empty(pix.shape[0], dtype=float, device=dev)
             kept = wp.empty(m, dtype=wp.int32, device=dev)
             launch_rows(kw.sort_merge, m, [Rows(starts), Rows(ends), pix, order, tmp_pix, tmp_ord, w_raw, merged_pix,
-                                           merged_w, Rows(kept)], dev)
+                                           merged_w, Rows(kept), floor], dev)
             del pix, order, tmp_pix, tmp_ord, w_raw
             chunk = self._pack(lo, hi, starts, kept, merged_pix, merged_w, total, n, budget)
             total += chunk.nnz

@@ -697,11 +697,14 @@ def template_merged(
     w: wp.array(dtype=float),
     dense: wp.array(dtype=float),
     touched: wp.array(dtype=wp.int32),
+    floor: float,
 ):
     """The merged weights of voxel ``voxels[tid]`` from its templates, every view, one entry per
     pixel: ``counts[tid]`` gets their number, and with ``fill = 1`` they go to ``pix``/``w`` from
     ``offsets[tid]``, sorted by pixel as the stored build sorts its own (the iterations' scattered
-    reads and writes then walk the image in order).
+    reads and writes then walk the image in order). Merged entries at or below ``floor`` are
+    dropped and the voxel's others scaled to keep its light (as
+    :func:`lfcore._kernels.weights.sort_merge` does).
 
     A CPU block's threads run one after another, so each block gathers its voxels' weights in its
     own dense image ``dense`` (all pixels, zero between voxels) and lists the pixels met in
@@ -714,14 +717,28 @@ def template_merged(
         got = apply_templates(3, grid, views[iv], plans[iv], tables, min_weight, voxels[tid], 1.0, dense, touched, n,
                               cap)
         n += wp.int64(int(got))
-    counts[tid] = n
     base = wp.int64(0)
     if fill == 1:
         base = offsets[tid]
         heap_sort(touched, int(n))
+    m = wp.int64(0)
+    total = float(0.0)
+    kept = float(0.0)
     for j in range(int(n)):
         q = touched[j]
-        if fill == 1:
-            pix[base + wp.int64(j)] = q
-            w[base + wp.int64(j)] = dense[q]
+        v = dense[q]
+        total += v
+        if v > floor:
+            kept += v
+            if fill == 1:
+                pix[base + m] = q
+                w[base + m] = v
+            m += wp.int64(1)
         dense[q] = 0.0
+    counts[tid] = m
+    if fill == 1 and kept > 0.0 and kept < total:
+        scale = total / kept
+        k = base
+        while k < base + m:
+            w[k] = w[k] * scale
+            k += wp.int64(1)

@@ -909,33 +909,56 @@ def compact(mask: wp.array(dtype=wp.int32), scan: wp.array(dtype=wp.int32), valu
 
 
 @wp.func
+def _kept_run(p: int, acc: float, floor: float, s: int, m: int, out_pix: wp.array(dtype=wp.int32),
+              out_w: wp.array(dtype=float)) -> int:
+    """Write the merged entry (p, acc) at ``s + m`` where acc passes ``floor``; the next m."""
+    if acc > floor:
+        out_pix[s + m] = p
+        out_w[s + m] = acc
+        return m + 1
+    return m
+
+
+@wp.func
 def _sum_runs(
     pix: wp.array(dtype=wp.int32),
     order: wp.array(dtype=wp.int32),
     w_raw: wp.array(dtype=float),
     s: int,
     e: int,
+    floor: float,
     out_pix: wp.array(dtype=wp.int32),
     out_w: wp.array(dtype=float),
 ):
     """Sum the weights of entries ``s .. e - 1`` (sorted by pixel) that share a pixel, writing one
-    entry per pixel from ``s``; returns how many. ``order`` maps sorted entries to ``w_raw``."""
+    entry per pixel from ``s``; returns how many. ``order`` maps sorted entries to ``w_raw``.
+
+    Merged entries at or below ``floor`` are dropped and the voxel's others scaled so that its
+    light is kept (:func:`lfcore.matrix_free.MatrixFreeWeights.expanded`' faint fringe); with
+    ``floor`` 0 none is (the raw entries are positive)."""
     m = int(0)
     prev = int(-1)
     acc = float(0.0)
+    total = float(0.0)
     for t in range(s, e):
         p = pix[t]
         if p != prev and prev >= 0:
-            out_pix[s + m] = prev
-            out_w[s + m] = acc
-            m += 1
+            total += acc
+            m = _kept_run(prev, acc, floor, s, m, out_pix, out_w)
             acc = float(0.0)
         prev = p
         acc += w_raw[order[t]]
     if prev >= 0:
-        out_pix[s + m] = prev
-        out_w[s + m] = acc
-        m += 1
+        total += acc
+        m = _kept_run(prev, acc, floor, s, m, out_pix, out_w)
+    if floor > 0.0:
+        kept = float(0.0)
+        for t in range(s, s + m):
+            kept += out_w[t]
+        if kept > 0.0 and kept < total:
+            scale = total / kept
+            for t in range(s, s + m):
+                out_w[t] = out_w[t] * scale
     return m
 
 
@@ -949,10 +972,12 @@ def merge_sorted(
     out_pix: wp.array(dtype=wp.int32),
     out_w: wp.array(dtype=float),
     counts: wp.array(dtype=wp.int32),
+    floor: float,
 ):
-    """Sum the entries of one voxel that share a pixel (its entries sorted by pixel)."""
+    """Sum the entries of one voxel that share a pixel (its entries sorted by pixel), dropping
+    merged ones at or below ``floor`` (see :func:`_sum_runs`)."""
     v = wp.tid()
-    counts[v] = _sum_runs(pix_sorted, order, w_raw, starts[v], ends[v], out_pix, out_w)
+    counts[v] = _sum_runs(pix_sorted, order, w_raw, starts[v], ends[v], floor, out_pix, out_w)
 
 
 @wp.func
@@ -1004,8 +1029,10 @@ def sort_merge(
     out_pix: wp.array(dtype=wp.int32),
     out_w: wp.array(dtype=float),
     counts: wp.array(dtype=wp.int32),
+    floor: float,
 ):
-    """Sort one voxel's raw entries by pixel and sum those sharing a pixel, in one thread.
+    """Sort one voxel's raw entries by pixel and sum those sharing a pixel, in one thread, dropping
+    merged ones at or below ``floor`` (see :func:`_sum_runs`).
 
     The per-thread equivalent of ``segmented_sort_pairs`` followed by :func:`merge_sorted`,
     with the same result: a stable sort (insertion sort of blocks of 16, then bottom-up merge
@@ -1049,7 +1076,7 @@ def sort_merge(
         for t in range(s, s + n):
             pix[t] = tmp_pix[t]
             order[t] = tmp_ord[t]
-    counts[v] = _sum_runs(pix, order, w_raw, s, s + n, out_pix, out_w)
+    counts[v] = _sum_runs(pix, order, w_raw, s, s + n, floor, out_pix, out_w)
 
 
 @wp.func

@@ -16,6 +16,7 @@ import pytest
 from lfcore import metrics
 from lfcore.matrix_free import (
     CUT_SPOT_BYTES,
+    IMAGE_FLOOR,
     RIGID_SPOT_BYTES,
     DrtTemplates,
     MatrixFreeUnsupported,
@@ -184,7 +185,7 @@ def test_the_templates_images_stored_apply_the_same_operator(scene, device):
     vox_np = np.sort(rng.choice(grid.n_voxels, grid.n_voxels // 3, replace=False)).astype(np.int32)
     vox = wp.array(vox_np, dtype=wp.int32, device=device)
     mf = MatrixFreeWeights(DrtTemplates(proj), vox)
-    ex = mf.expanded()
+    ex = mf.expanded(floor=0.0)  # no faint entries dropped: the templates' operator exactly
     assert ex.from_templates and applied_by(ex) == "matrix-free" and applied_by(proj.weights(vox[:5])) == "stored"
     assert ex.n_voxels == len(vox_np) and ex.nnz <= mf.entries_per_voxel() * len(vox_np) * 1.2
     _same_operator(proj, mf, ex, rng)
@@ -195,6 +196,43 @@ def test_the_templates_images_stored_apply_the_same_operator(scene, device):
     np.testing.assert_allclose(dense[:50], mf.images()[:50], rtol=1e-5, atol=1e-7)
     # merged (one entry per pixel) and sorted by pixel, as the stored build leaves its own
     assert all(np.all(np.diff(pix[offs[i]:offs[i + 1]]) > 0) for i in range(len(vox_np)))
+
+
+def _rows(w) -> list[tuple[np.ndarray, np.ndarray]]:
+    offs, pix, val = w.to_numpy()
+    return [(pix[offs[i]:offs[i + 1]], val[offs[i]:offs[i + 1]].astype(np.float64)) for i in range(len(offs) - 1)]
+
+
+def test_the_stored_images_drop_their_faint_entries_and_keep_each_voxels_light(scene, device):
+    """By default the images lose their merged entries at or below IMAGE_FLOOR; each voxel's
+    others are its exact image's, scaled so that its light is kept. The GPU's form of the merge
+    (raw entries sorted and merged, run here on this device) gives the CPU's entries."""
+    rig, grid, _, _ = scene
+    proj = Projector(rig.camera, grid, device=device)
+    rng = np.random.default_rng(4)
+    vox_np = np.sort(rng.choice(grid.n_voxels, grid.n_voxels // 3, replace=False)).astype(np.int32)
+    mf = MatrixFreeWeights(DrtTemplates(proj), proj.wp.array(vox_np, dtype=proj.wp.int32, device=device))
+    exact = mf.expanded(floor=0.0)
+    floor = 1e-4  # above IMAGE_FLOOR, so that this small box's voxels lose some entries
+    assert IMAGE_FLOOR < floor
+    pruned = mf.expanded(floor=floor)
+    assert 0.5 * exact.nnz < pruned.nnz < exact.nnz, (pruned.nnz, exact.nnz)
+    assert pruned.nnz <= mf.expanded().nnz <= exact.nnz
+    lost = 0
+    for (pe, we), (pp, wq) in zip(_rows(exact), _rows(pruned), strict=True):
+        keep = we > floor
+        np.testing.assert_array_equal(pp, pe[keep])
+        if keep.any():
+            np.testing.assert_allclose(wq.sum(), we.sum(), rtol=1e-5)  # the voxel's light kept
+            np.testing.assert_allclose(wq, we[keep] * (we.sum() / we[keep].sum()), rtol=1e-5)
+        lost += (~keep).sum()
+    assert lost == exact.nnz - pruned.nnz
+    # the raw entries sorted and merged per voxel (the GPU's expansion), here on this device
+    merged = proj.builder.merged(mf.voxels, mf._trace, floor=floor)
+    assert merged.nnz == pruned.nnz
+    for (pa, wa), (pb, wb) in zip(_rows(pruned), _rows(merged), strict=True):
+        np.testing.assert_array_equal(pb, pa)
+        np.testing.assert_allclose(wb, wa, rtol=1e-5, atol=1e-9)
 
 
 def test_the_templates_images_are_stored_only_where_they_fit(scene, monkeypatch):
