@@ -33,6 +33,7 @@ from lfcore._kernels.weights import (
     footprint,
     from_lattice,
     inside_cell,
+    keep_light,
     lattice_box,
     part_spot,
     pixel_overlap,
@@ -723,22 +724,16 @@ def template_merged(
         heap_sort(touched, int(n))
     m = wp.int64(0)
     total = float(0.0)
-    kept = float(0.0)
     for j in range(int(n)):
         q = touched[j]
         v = dense[q]
         total += v
         if v > floor:
-            kept += v
             if fill == 1:
                 pix[base + m] = q
                 w[base + m] = v
             m += wp.int64(1)
         dense[q] = 0.0
     counts[tid] = m
-    if fill == 1 and kept > 0.0 and kept < total:
-        scale = total / kept
-        k = base
-        while k < base + m:
-            w[k] = w[k] * scale
-            k += wp.int64(1)
+    if fill == 1 and floor > 0.0:
+        keep_light(w, base, m, total)

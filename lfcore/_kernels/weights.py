@@ -920,6 +920,23 @@ def _kept_run(p: int, acc: float, floor: float, s: int, m: int, out_pix: wp.arra
 
 
 @wp.func
+def keep_light(w: wp.array(dtype=float), s: wp.int64, m: wp.int64, total: float):
+    """Scale a voxel's kept merged entries ``w[s .. s + m - 1]`` so that they carry its whole
+    light ``total`` again (after the merge dropped its entries at or below a floor)."""
+    kept = float(0.0)
+    k = s
+    while k < s + m:
+        kept += w[k]
+        k += wp.int64(1)
+    if kept > 0.0 and kept < total:
+        scale = total / kept
+        k = s
+        while k < s + m:
+            w[k] = w[k] * scale
+            k += wp.int64(1)
+
+
+@wp.func
 def _sum_runs(
     pix: wp.array(dtype=wp.int32),
     order: wp.array(dtype=wp.int32),
@@ -952,13 +969,7 @@ def _sum_runs(
         total += acc
         m = _kept_run(prev, acc, floor, s, m, out_pix, out_w)
     if floor > 0.0:
-        kept = float(0.0)
-        for t in range(s, s + m):
-            kept += out_w[t]
-        if kept > 0.0 and kept < total:
-            scale = total / kept
-            for t in range(s, s + m):
-                out_w[t] = out_w[t] * scale
+        keep_light(out_w, wp.int64(s), wp.int64(m), total)
     return m
 
 
