@@ -544,7 +544,8 @@ class FrameReconstructor:
         if s.projector == "matrix-free":
             return self._matrix_free(voxels)
         if s.projector == "auto" and kind == "drt" and s.form == "simultaneous":
-            if self.templates_pay(voxels):
+            host = voxels.numpy() if self.cache is not None else None  # one copy for the cache's two looks
+            if self.templates_pay(voxels, host=host):
                 try:  # the images stored, or the traced weights (stored iterate 8-12x faster)
                     return self._matrix_free(voxels, storage="stored")
                 except MatrixFreeUnsupported:
@@ -552,7 +553,7 @@ class FrameReconstructor:
                 except MemoryBudgetError:  # the images do not fit beside the templates: their room to the weights
                     self._templates = None
             try:
-                return self._stored_weights(voxels)
+                return self._stored_weights(voxels, host=host)
             except MemoryBudgetError:
                 try:
                     return self._matrix_free(voxels)
@@ -567,10 +568,11 @@ class FrameReconstructor:
         held = self._templates.nbytes if getattr(weights, "from_templates", False) and self._templates else 0
         return int(weights.nbytes) + held
 
-    def templates_pay(self, voxels) -> bool:
+    def templates_pay(self, voxels, *, host: np.ndarray | None = None) -> bool:
         """Whether ``projector = "auto"`` takes the templates' images for ``voxels`` ((n,) int32
-        on the device): where building them (the templates once per run, :data:`TEMPLATE_TRACES`
-        voxels' tracing each, and the images, :data:`IMAGE_SHARE` of a tracing per voxel) costs
+        on the device; ``host``: the same on the host, where the caller has them): where building
+        them (the templates once per run, :data:`TEMPLATE_TRACES` voxels' tracing each, and the
+        images, :data:`IMAGE_SHARE` of a tracing per voxel) costs
         less than tracing the voxels the weight cache lacks. So a frame with many more active
         voxels than templates (the Mc crop: 385,000-472,000 against 22,757) takes the images, a
         small one (the tiny rig's 26,000 against 4,180) its traced weights. False where the
@@ -584,7 +586,8 @@ class FrameReconstructor:
         if self._n_templates == 0:
             return False
         n = int(voxels.shape[0])
-        traced = n if self.cache is None or self.cache.method != "drt" else self.cache.uncached(voxels)
+        traced = n if self.cache is None or self.cache.method != "drt" else \
+            self.cache.uncached(voxels if host is None else host)
         templates = 0.0 if self._templates is not None else TEMPLATE_TRACES * self._n_templates
         return traced > templates + IMAGE_SHARE * n
 
@@ -616,14 +619,14 @@ class FrameReconstructor:
                 raise
             return mf
 
-    def _stored_weights(self, voxels) -> Weights:
+    def _stored_weights(self, voxels, *, host: np.ndarray | None = None) -> Weights:
         s = self.settings
         kind = WEIGHTS[s.method]
         storage = "stored" if kind == "drt" or s.form == "sequential" else s.weight_storage
         cache = self.cache
         if cache is not None and cache.method == kind and s.method != "mart" and storage != "on-the-fly":
             try:
-                return cache.weights(voxels)
+                return cache.weights(voxels, host=host)
             except MemoryBudgetError:
                 if storage == "stored":
                     raise

@@ -100,7 +100,7 @@ class WeightCache:
 
     def _hits(self, voxels) -> tuple[np.ndarray, np.ndarray]:
         """``voxels`` on the host as (n,) int64, and which of them have stored weights."""
-        vox_h = (voxels.numpy() if hasattr(voxels, "numpy") else np.asarray(voxels)).astype(np.int64)
+        vox_h = np.asarray(voxels.numpy() if hasattr(voxels, "numpy") else voxels, dtype=np.int64)
         return vox_h, self._start[vox_h] >= 0
 
     @property
@@ -171,8 +171,9 @@ class WeightCache:
             stored += part.size
         return stored
 
-    def weights(self, voxels) -> Weights:
-        """The weights of ``voxels`` ((n,) int32 on the projector's device), as built directly.
+    def weights(self, voxels, *, host: np.ndarray | None = None) -> Weights:
+        """The weights of ``voxels`` ((n,) int32 on the projector's device), as built directly;
+        ``host``: the same indices on the host where the caller has them (saves their copy).
 
         Traces the voxels not yet stored and stores them, then copies every requested row out
         of the pool, in the order of ``voxels``. If the new rows do not fit next to the stored
@@ -182,7 +183,7 @@ class WeightCache:
         voxels with this one than with older frames.
         """
         wp, p = self.wp, self.projector
-        vox_h, hit = self._hits(voxels)
+        vox_h, hit = self._hits(voxels if host is None else host)
         if hit.all():
             return self._copy_out(voxels, vox_h)
         missing = vox_h[~hit]

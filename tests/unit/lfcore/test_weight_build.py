@@ -151,6 +151,8 @@ def test_cache_over_budget_keeps_the_newest_frame(small_dual_rig, device, monkey
     assert np.array_equal(got.voxels.numpy()[: stored.size], stored)
     assert cache.n_cached == late.shape[0] and cache.nbytes <= cache.budget_bytes
     _same(proj.weights(late, "drt", build="two-pass"), cache.weights(late))  # now stored, in request order
+    # the caller's host copy of the indices serves in place of their copy from the device
+    _same(proj.weights(late, "drt", build="two-pass"), cache.weights(late, host=every[every.size // 4:]))
     # a request larger than the whole budget is served as built and leaves the pool empty
     _same_rows(direct, cache.weights(vox))
     assert cache.n_cached == 0
