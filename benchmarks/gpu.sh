@@ -21,8 +21,10 @@
 #   bash benchmarks/gpu.sh batch   # a whole run of M: volumes written behind the reconstruction and
 #                                  # read ahead of the correlation, against one after the other (~6 min)
 #   bash benchmarks/gpu.sh matrixfree # the matrix-free projector: its CUDA tests, S and Mc by both
-#                                  # projectors, M by it at 400 iterations (goal <= 2 s) and L at 400
-#                                  # (goal <= 60 s; about 9 minutes)
+#                                  # projectors, M by it at 400 iterations (goal <= 2 s), live M by it
+#                                  # (goal 10 pairs/s), and the per-voxel rate of L's templates applied
+#                                  # in every iteration on 23 of its planes (goal: L at 400 its <= 60 s;
+#                                  # about 9 minutes)
 #   bash benchmarks/gpu.sh tomo    # Tomo-PIV: the pinhole projector's CUDA tests and the Tomo functional
 #                                  # tests, T4, T6, T8 by MLOS-SMART and the MART baseline, then
 #                                  # lfpiv study lf-vs-tomo --scale quick on the GPU (about 8 minutes)
@@ -85,12 +87,19 @@ elif [ "$stage" = live ]; then
     step pytest 240 python3 -m pytest tests -q -k "cuda or functional" -p no:cacheprovider \
         --continue-on-collection-errors --timeout 150 --junitxml "$out/pytest.xml"
 elif [ "$stage" = matrixfree ]; then
-    step pytest-mf-cuda 120 python3 -m pytest tests/unit/lfcore/test_matrix_free.py -q -k cuda -p no:cacheprovider \
-        --timeout 100
-    step recon-S-mf 60 python3 benchmarks/recon.py --case S --device cuda --projector both --no-mart
-    step recon-Mc-mf 90 python3 benchmarks/recon.py --case Mc --device cuda --projector both --no-mart
-    step recon-M-mf 120 python3 benchmarks/recon.py --case M --device cuda --projector matrix-free --no-mart
-    step recon-L-mf 180 python3 benchmarks/recon.py --case L --device cuda --projector matrix-free --no-mart
+    step pytest-mf-cuda 100 python3 -m pytest tests/unit/lfcore/test_matrix_free.py -q -k cuda -p no:cacheprovider \
+        --timeout 90
+    step recon-S-mf 45 python3 benchmarks/recon.py --case S --device cuda --projector both --no-mart
+    step recon-Mc-mf 80 python3 benchmarks/recon.py --case Mc --device cuda --projector both --no-mart \
+        --on-the-fly-iterations 5 --interleaved 4
+    step recon-M-mf 110 python3 benchmarks/recon.py --case M --device cuda --projector matrix-free --no-mart \
+        --on-the-fly-iterations 2
+    step live-M-mf 90 python3 benchmarks/live.py --case M --device cuda --seconds 15 --projector matrix-free \
+        --distinct 8 --warmup-limit 50
+    # L's images do not fit (about 1.3 TB), so its templates are applied in every iteration: a middle sample
+    # of 23 planes (6.4 M active voxels) gives the rate per voxel and iteration, to scale to L's 368 M
+    step recon-L-mf-mid 100 python3 benchmarks/recon.py --case L --device cuda --slabs 1 --planes 80:103 \
+        --iterations 3 --weight-storage on-the-fly
 elif [ "$stage" = slabs ]; then
     step pytest-slabs-cuda 120 python3 -m pytest tests/unit/lfcore/test_slabs.py tests/unit/lfcore/test_slab_correlate.py \
         -q -k cuda -p no:cacheprovider --timeout 100

@@ -38,6 +38,7 @@ sys.path.insert(0, str(ROOT))
 
 from acquisition.ring import PairRing  # noqa: E402
 from lfcore.device import resolve_device  # noqa: E402
+from lfcore.matrix_free import PROJECTORS  # noqa: E402
 from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.render import LightFieldRenderer  # noqa: E402
 from lfcore.rig import Rig  # noqa: E402
@@ -76,6 +77,8 @@ def main() -> int:
     ap.add_argument("--iterations", type=int, default=5)
     ap.add_argument("--method", choices=LIVE_METHODS, default="drt-mart",
                     help="the live reconstruction (default: drt-mart)")
+    ap.add_argument("--projector", choices=PROJECTORS, default="auto",
+                    help="what applies DRT-MART's operator (default: auto, as lfpiv monitor)")
     ap.add_argument("--pvr", type=xyz_triple, default=None, metavar="X,Y,Z",
                     help="pixel-voxel ratio of the live volume (default: the rig's, 2,2,10); a monitoring setting")
     ap.add_argument("--rate", type=float, default=10.0, help="pairs per second the feeder publishes (default: 10)")
@@ -101,8 +104,11 @@ def main() -> int:
           f"cycling {len(pairs)} distinct pairs; rendered in "
           f"{time.perf_counter() - t:.1f} s")
     ring = PairRing(rows_cols, slots=8)
-    pipe = LivePipeline(rig, settings=LiveSettings(iterations=args.iterations),
-                        recon=monitoring_recon(method=args.method), pvr=pvr, device=device)
+    try:
+        recon = monitoring_recon(method=args.method, projector=args.projector)
+    except ValueError as e:
+        ap.error(str(e))
+    pipe = LivePipeline(rig, settings=LiveSettings(iterations=args.iterations), recon=recon, pvr=pvr, device=device)
     t = time.perf_counter()
     pipe.build()
     g = pipe.grid.shape
@@ -171,7 +177,8 @@ def main() -> int:
           f"discarded {st.discarded}")
     print(f"  trigger-to-result latency: mean {lat.mean():.3f} s, worst {lat.max():.3f} s")
     print("  per pair (s): " + ", ".join(f"{k} {v:.4f}" for k, v in stages.items()))
-    print(f"  fixed cost {fixed:.3f} s per pair, {1e3 * per_it:.2f} ms per iteration per frame")
+    print(f"  fixed cost {fixed:.3f} s per pair, {1e3 * per_it:.2f} ms per iteration per frame; operator applied by "
+          f"{', '.join(sorted({r.projector for r in results}))} (--projector {args.projector})")
     budget = 0.1 - fixed
     if budget <= 0:
         print(f"  10 Hz: not reachable on {device} at any iteration count (fixed cost {fixed:.3f} s > 0.1 s)")

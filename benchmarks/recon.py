@@ -160,11 +160,16 @@ def matrix_free_figures(proj, img, its: int, e0, drt, fly_its: int | None = None
     from lfcore.matrix_free import fidelity
 
     fly_its = its if fly_its is None else fly_its  # the templates applied in every iteration: slower
-    mf = reconstruct(proj, img, ReconSettings(iterations=fly_its, projector="matrix-free", weight_storage="on-the-fly"))
-    q = metrics.q_recon(mf.volume, e0)
-    # the templates' images of the active voxels stored once, then the stored weights' iterations
+    # first (and printed at once, so that a time limit still finds it) the templates' images of the
+    # active voxels stored once, then the stored weights' iterations: what auto takes where they fit
     ex = reconstruct(proj, img, ReconSettings(iterations=its, projector="matrix-free", weight_storage="stored"))
     q_ex = metrics.q_recon(ex.volume, e0)
+    print(f"  DRT-MART matrix-free, the templates' images stored: weights_s {ex.weights_s:.2f} s (templates, "
+          f"elimination {ex.eliminate_s:.2f} s, images {ex.nnz} entries), memory {ex.weight_bytes / 2**20:.0f} MiB, "
+          f"{ex.ms_per_iteration:.2f} ms/iteration, total {ex.weights_s + ex.iterate_s:.2f} s, Q {q_ex:.3f}",
+          flush=True)
+    mf = reconstruct(proj, img, ReconSettings(iterations=fly_its, projector="matrix-free", weight_storage="on-the-fly"))
+    q = metrics.q_recon(mf.volume, e0)
     # the templates are those the reconstruction built (the projector's geometry alone)
     from lfcore.matrix_free import DrtTemplates
 
@@ -192,9 +197,6 @@ def matrix_free_figures(proj, img, its: int, e0, drt, fly_its: int | None = None
     print(f"    fidelity on {sample.size} active voxels: correlation min {c.min():.5f} median {np.median(c):.6f}, "
           f"total light off by at most {light.max():.2%} (median {np.median(light):.4%}); depth-blur bound "
           f"{templates.blur_error:.1%} of a footprint's lateral blur")
-    print(f"  DRT-MART matrix-free, the templates' images stored: weights_s {ex.weights_s:.2f} s (templates, "
-          f"elimination {ex.eliminate_s:.2f} s, images {ex.nnz} entries), memory {ex.weight_bytes / 2**20:.0f} MiB, "
-          f"{ex.ms_per_iteration:.2f} ms/iteration, total {ex.weights_s + ex.iterate_s:.2f} s, Q {q_ex:.3f}")
     if drt is not None:
         print(f"    images stored against ray-traced stored weights: {ex.ms_per_iteration / drt.ms_per_iteration:.2f}x "
               f"the time per iteration, weights_s {drt.weights_s:.2f} s -> {ex.weights_s:.2f} s, total "

@@ -64,6 +64,7 @@ in alternating rounds with 4% more entries before the floor).
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -173,10 +174,10 @@ def phase_bins(projector: Projector, *, phases_per_footprint: float = PHASES_PER
         If a camera does not look along a grid axis.
     """
     _light_field_alone(projector)
-    step = np.asarray(projector.grid.voxel_mm, dtype=np.float64)
+    step = np.asarray(projector.box.voxel_mm, dtype=np.float64)
     out = []
     for cam in projector.cameras:
-        _, z_cam = _camera_depths(cam, projector.grid)
+        _, z_cam = _camera_depths(cam, projector.box)
         so, si = cam.object_distance_mm, cam.image_distance_mm
         n_sub = max(1, round(cam.pixels_per_lenslet)) if projector.sub_apertures is None else projector.sub_apertures
         half = np.abs(cam.rotation.T) @ (0.5 * step)
@@ -249,7 +250,7 @@ class DrtTemplates:
         self.phases_per_footprint = float(phases_per_footprint)
         self.max_phases = int(max_phases)
         self.device = projector.device
-        grid = projector.grid
+        grid = projector.box  # the whole box's depth planes: a depth slab's projector shares them (on())
         nz, ny, nx = grid.shape
         dims = (nx, ny, nz)
         origin = np.asarray(grid.origin_mm, dtype=np.float64)
@@ -351,6 +352,22 @@ class DrtTemplates:
         self._none_i = wp.empty(1, dtype=wp.int32, device=self.device)
         wp.synchronize_device(self.device)
         self.build_s = time.perf_counter() - t0
+
+    def on(self, projector: Projector) -> DrtTemplates:
+        """These templates on another depth slab of their box (``projector``: from
+        :meth:`Projector.planes` of the same projector's box): one set serves every slab.
+
+        Raises
+        ------
+        ValueError
+            If ``projector`` has other cameras or another box.
+        """
+        mine = self.projector
+        if projector.box != mine.box or projector.cameras != mine.cameras or projector.views is not mine.views:
+            raise ValueError("the templates belong to another box or cameras; build them on this projector")
+        out = copy.copy(self)
+        out.projector = projector
+        return out
 
     def _common(self) -> list:
         p = self.projector

@@ -40,7 +40,7 @@ from lfcore.device import (
     resolve_device,
     warp,
 )
-from lfcore.projector import Projector
+from lfcore.projector import Projector, check_indexable, grid_struct
 from lfcore.rig import PinholeCamera, is_pinhole
 from lfcore.volume import VolumeGrid
 from lfcore.weight_build import ADVICE, BYTES_PER_WEIGHT, CHUNK_ENTRIES, WeightChunk, Weights
@@ -129,15 +129,13 @@ class PinholeProjector(Projector):
         self.cameras = cameras
         self.grid = grid
         self.device = resolve_device(device)
-        g = kw.Grid()
-        g.origin = wp.vec3(*grid.origin_mm)
-        g.step = wp.vec3(*grid.voxel_mm)
-        g.nz, g.ny, g.nx = grid.shape
-        self._grid = g
+        self.box = grid  # the whole box (see Projector.planes)
+        self.z0 = 0
+        self._grid = grid_struct(kw, grid)
         self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in cameras])
         self.n_pixels = int(self.pixel_offsets[-1])
-        if self.n_pixels >= 2**31 or grid.n_voxels >= 2**31:
-            raise MemoryBudgetError("more than 2**31 pixels or voxels; use a coarser --pvr")
+        if self.n_pixels >= 2**31:
+            raise MemoryBudgetError("more than 2**31 pixels; use fewer or smaller cameras")
         views, self.cap = [], 0
         self.sigma_px = []
         for k, cam in enumerate(cameras):
@@ -179,6 +177,7 @@ class PinholeProjector(Projector):
         warp.array
             (n,) int32 flat voxel indices, ascending (a new array).
         """
+        check_indexable(self.grid)
         wp, kp = self.wp, self._kp
         lit_dev = self._lit_on_device(lit)
         n = self.grid.n_voxels
@@ -296,7 +295,8 @@ class JointProjector(Projector):
         self.ph = PinholeProjector([cameras[k] for k in self._tomo], grid, device=self.device)
         self._kw = self.lf._kw
         self.cameras = cameras
-        self.grid = grid
+        self.grid = self.box = grid
+        self.z0 = 0
         self._grid = self.lf._grid
         self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in cameras])
         self.n_pixels = int(self.pixel_offsets[-1])
@@ -330,6 +330,14 @@ class JointProjector(Projector):
     def precompute_checks(self, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
         """No elimination table is kept for a joint projector (returns 0 bytes)."""
         return 0
+
+    def planes(self, z0: int, z1: int) -> JointProjector:
+        """A depth slab of this joint projector (see :meth:`Projector.planes`): each kind's
+        projector on the same planes."""
+        out = super().planes(z0, z1)
+        out.lf, out.ph = self.lf.planes(z0, z1), self.ph.planes(z0, z1)
+        out._grid = out.lf._grid
+        return out
 
     def weights(self, voxels, method: str = "los", min_weight: float = 1e-6, budget_bytes: int | None = None,
                 build: str = "auto", sort: str = "auto", storage: str = "stored") -> Weights:

@@ -15,6 +15,7 @@ images, the update's log ratios): one thread at a time may use it.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
 
@@ -36,8 +37,40 @@ from lfcore.weight_build import BUILDS, BYTES_PER_WEIGHT, STORAGE, WeightBuilder
 
 # BUILDS, BYTES_PER_WEIGHT, STORAGE, WeightChunk and Weights live in lfcore.weight_build; they are
 # importable from here too.
-__all__ = ["BUILDS", "BYTES_PER_WEIGHT", "LANES", "MemoryBudgetError", "Projector", "STORAGE", "WeightChunk",
-           "Weights"]
+__all__ = ["BUILDS", "BYTES_PER_WEIGHT", "INDEX_LIMIT", "LANES", "MemoryBudgetError", "Projector", "STORAGE",
+           "WeightChunk", "Weights", "check_indexable", "grid_struct", "max_planes"]
+
+#: Voxels are numbered by int32 flat indices, so one projector numbers fewer than this many: a larger
+#: box (the chapter's 5.5-G-voxel dual-camera one) is reconstructed in depth slabs, each numbering
+#: its own voxels (:meth:`Projector.planes`).
+INDEX_LIMIT = 2**31
+
+
+def max_planes(grid: VolumeGrid) -> int:
+    """The most planes of ``grid`` that one projector numbers (fewer than :data:`INDEX_LIMIT` voxels)."""
+    return (INDEX_LIMIT - 1) // (grid.shape[1] * grid.shape[2])
+
+
+def check_indexable(grid: VolumeGrid) -> None:
+    """Raise :class:`MemoryBudgetError` (one line, with the fix) if ``grid`` has too many voxels
+    for int32 voxel indices (:data:`INDEX_LIMIT`)."""
+    if grid.shape[0] > max_planes(grid):
+        raise MemoryBudgetError(f"a box of {grid.n_voxels:,} voxels is more than int32 voxel indices number in one "
+                                "piece; reconstruct it in depth slabs (--slabs auto) or use a coarser --pvr")
+
+
+def grid_struct(kw, box: VolumeGrid, *, z0: int = 0, z1: int | None = None):
+    """The kernels' :class:`lfcore._kernels.weights.Grid` of planes ``z0 .. z1 - 1`` of ``box``
+    (default: all of them): the origin is the box's, so that a slab's voxel centres are the
+    box's to the bit."""
+    wp = warp()
+    g = kw.Grid()
+    g.origin = wp.vec3(*box.origin_mm)
+    g.step = wp.vec3(*box.voxel_mm)
+    nz, g.ny, g.nx = box.shape
+    g.nz = (nz if z1 is None else int(z1)) - int(z0)
+    g.z0 = int(z0)
+    return g
 
 #: Checks per view of elimination's first pass over the grid (see :meth:`Projector.eliminate`).
 PREFILTER_CHECKS = 4
@@ -98,17 +131,15 @@ class Projector:
         self.sub_apertures = sub_apertures  # None: each camera's pixels per lenslet
         self.device = resolve_device(device)
         wp = self.wp
-        g = kw.Grid()
-        g.origin = wp.vec3(*grid.origin_mm)
-        g.step = wp.vec3(*grid.voxel_mm)
-        g.nz, g.ny, g.nx = grid.shape
-        self._grid = g
+        self.box = grid  # the whole box (grid is one depth slab of it on a projector from planes())
+        self.z0 = 0  # the box's plane of the grid's first
+        self._grid = grid_struct(kw, grid)
         self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in self.cameras])
         self.n_pixels = int(self.pixel_offsets[-1])
         self._parts = PrivateCopies()  # projection images of the CPU blocks (see forward)
         self._ratio = None  # the pixels' log ratios of smart_update
-        if self.n_pixels >= 2**31 or grid.n_voxels >= 2**31:
-            raise MemoryBudgetError("more than 2**31 pixels or voxels; use a coarser --pvr")
+        if self.n_pixels >= 2**31:
+            raise MemoryBudgetError("more than 2**31 pixels; use fewer or smaller cameras")
 
         views, sub_a, sub_w, check_order, overlap = [], [], [], [], []
         rng = np.random.default_rng(0)
@@ -191,6 +222,7 @@ class Projector:
         The scratch (two int32 masks of the grid, 8 bytes per voxel; the candidates of the first
         pass; host masks uploaded) is allocated on the first call and kept for the next ones.
         """
+        check_indexable(self.grid)
         wp, kw = self.wp, self._kw
         lit_dev = self._lit_on_device(lit)
         common = [self._grid, self.views, len(self.cameras), self.sub_a, self.check_order, lit_dev, float(min_seen),
@@ -246,6 +278,7 @@ class Projector:
         int
             Bytes of the table; 0 if there is none.
         """
+        check_indexable(self.grid)
         wp, kw = self.wp, self._kw
         per_check = 20 * self.grid.n_voxels * len(self.cameras)
         budget = available_bytes(self.device) // 4 if budget_bytes is None else budget_bytes
@@ -264,7 +297,36 @@ class Projector:
 
     def all_voxels(self) -> object:
         """Every voxel of the grid (no elimination), as (n,) int32 indices."""
+        check_indexable(self.grid)
         return device_range(self.grid.n_voxels, device=self.device)
+
+    def planes(self, z0: int, z1: int) -> Projector:
+        """This projector on planes ``z0 .. z1 - 1`` of its grid: a depth slab whose voxels are
+        numbered from its first plane (so a box of :data:`INDEX_LIMIT` voxels or more is numbered
+        slab by slab), with the same cameras, device tables and scratch buffers.
+
+        A slab's voxel has the box's voxel's centre to the bit, so its weights, its templates'
+        images and its elimination are the box's (:mod:`lfcore.slabs`). The elimination's
+        precomputed table (:meth:`precompute_checks`) is the box's numbering's and is not carried.
+
+        Raises
+        ------
+        ValueError
+            If the planes are not a non-empty range of the grid's.
+        MemoryBudgetError
+            If the slab itself has :data:`INDEX_LIMIT` voxels or more.
+        """
+        grid = self.grid.planes(z0, z1)
+        check_indexable(grid)
+        out = copy.copy(self)
+        out.grid = grid
+        out.z0 = self.z0 + int(z0)
+        out._grid = grid_struct(self._kw, self.box, z0=out.z0, z1=out.z0 + grid.shape[0])
+        out._checks, out._n_checks = self.wp.zeros(1, dtype=self.wp.int32, device=self.device), 0
+        if self.builder is not None:
+            out.builder = copy.copy(self.builder)
+            out.builder.grid = out._grid
+        return out
 
     def _scratch(self, name: str, n: int, dtype) -> object:
         """The first ``n`` elements of the scratch buffer ``name``, kept between calls (grown by

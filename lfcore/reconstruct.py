@@ -46,7 +46,7 @@ from lfcore.matrix_free import (
     applied_by,
     template_count,
 )
-from lfcore.projector import Projector
+from lfcore.projector import Projector, check_indexable
 from lfcore.weight_build import BYTES_PER_WEIGHT, STORAGE, Weights
 from lfcore.weight_cache import WeightCache
 
@@ -428,6 +428,15 @@ class FrameReconstructor:
     budget_bytes
         Device memory the weights and the iterations may take; None: what the device has free
         (counting the buffers this reconstructor holds already as free to it).
+    templates
+        The matrix-free templates built already for the projector's box (on another of its depth
+        slabs: :meth:`lfcore.matrix_free.DrtTemplates.on`), used instead of building them.
+
+    Raises
+    ------
+    MemoryBudgetError
+        If the projector's grid has too many voxels to number (:data:`lfcore.projector.INDEX_LIMIT`:
+        reconstruct it in depth slabs, :mod:`lfcore.slabs`).
 
     Notes
     -----
@@ -438,7 +447,8 @@ class FrameReconstructor:
     """
 
     def __init__(self, projector: Projector, settings: ReconSettings, *, cache: WeightCache | None = None,
-                 budget_bytes: int | None = None) -> None:
+                 budget_bytes: int | None = None, templates: DrtTemplates | None = None) -> None:
+        check_indexable(projector.grid)
         if cache is not None and cache.projector is not projector:
             raise ValueError("the weight cache belongs to another projector")
         self.projector = projector
@@ -450,7 +460,7 @@ class FrameReconstructor:
         self.ops = VolumeOps(projector.grid.shape, self.device)
         self._image = None  # (n_pixels,) float32: the measured signal of reconstruct()
         self._proj = None  # (n_pixels,) float32: the forward projection
-        self._templates = None  # the matrix-free projector's templates (lfcore.matrix_free), once built
+        self._templates = None if templates is None else templates.on(projector)  # the matrix-free ones, once built
         self._n_templates = None  # how many there would be (0: the cameras have none), once counted
         self._e = None  # the intensities, at least as long as the most active voxels so far
         self._volume = None  # (z, y, x) float32
@@ -561,6 +571,11 @@ class FrameReconstructor:
                     pass
                 raise
         return self._stored_weights(voxels)
+
+    @property
+    def templates(self) -> DrtTemplates | None:
+        """The matrix-free templates held for the next frames (None until built, or let go)."""
+        return self._templates
 
     def operator_bytes(self, weights) -> int:
         """Device bytes of the operator ``weights`` applies: the weights, and the templates they

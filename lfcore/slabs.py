@@ -7,10 +7,14 @@ needs 80 GB for those alone. Here the box is cut along z into slabs and only one
 (plus its smoothing halo) exist at a time, while the iterations still see the whole volume:
 
 1. Elimination, slab by slab. A voxel's test reads only its own sub-apertures' pixels, so
-   testing the voxels of each slab in turn keeps exactly the voxels one pass over the box keeps
-   (the same kernel on the same voxel indices of the whole grid, so the same voxel centres).
-2. The weights of each slab's survivors, on the projector of the WHOLE grid (a voxel's weights
-   depend on its centre and the cameras only), so they are the in-memory path's rows.
+   testing the voxels of each slab in turn keeps exactly the voxels one pass over the box keeps.
+   Each slab numbers its own voxels from its first plane (:meth:`Projector.planes`), so a box of
+   more than 2**31 voxels (the chapter's dual-camera one: 1939 x 1455 x 1939) is numbered in
+   int32 slab by slab, while each voxel's centre is the box's voxel's to the bit.
+2. The weights of each slab's survivors, on its slab's projector: a voxel's weights depend on its
+   centre and the cameras only, so they are the in-memory path's rows. The matrix-free templates
+   are built once, over the whole box's depth planes, and serve every slab
+   (:meth:`lfcore.matrix_free.DrtTemplates.on`).
 3. MART's ratio needs the projection of the whole volume. Each iteration therefore projects every
    slab into an image-sized buffer and sums them into one projection, then updates every slab
    from that same projection: SMART's update of a voxel reads only the projection and its own
@@ -38,11 +42,12 @@ import numpy as np
 from lfcore.device import MemoryBudgetError, Rows, available_bytes, launch_rows, out_of_memory_is_budget_error
 from lfcore.device_ops import VolumeOps, gaussian_taps
 from lfcore.matrix_free import applied_by
-from lfcore.projector import PREFILTER_CHECKS, Projector
+from lfcore.projector import Projector, max_planes
 from lfcore.reconstruct import FrameReconstructor, ReconResult, ReconSettings, _total, preprocess_images
 from lfcore.volume import VolumeGrid
 
-__all__ = ["BYTES_PER_SLAB_VOXEL", "Slab", "SlabReconstructor", "plan_slabs", "slab_halo", "slabs_for_budget"]
+__all__ = ["BYTES_PER_SLAB_VOXEL", "Slab", "SlabReconstructor", "deepest_slab", "plan_slabs", "slab_halo",
+           "slabs_for_budget"]
 
 #: Bytes per voxel of a slab (and its halo) while it is eliminated and written: its voxel
 #: indices, the elimination's mask and scan (int32 each), the dense buffer and its smoothing
@@ -86,9 +91,16 @@ def plan_slabs(nz: int, n_slabs: int) -> list[Slab]:
     return [Slab(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
+def deepest_slab(grid: VolumeGrid, *, halo: int) -> int:
+    """The most planes a slab of ``grid`` may have so that it and its ``halo`` planes on both sides
+    are numbered in int32 (fewer than :data:`lfcore.projector.INDEX_LIMIT` voxels)."""
+    return max_planes(grid) - 2 * halo
+
+
 def slabs_for_budget(grid: VolumeGrid, budget_bytes: int, *, halo: int, n_pixels: int = 0) -> int:
     """The fewest slabs whose buffers (:data:`BYTES_PER_SLAB_VOXEL` per voxel of a slab and its
-    ``halo`` planes on both sides, and :data:`BYTES_PER_PIXEL` per pixel) fit in ``budget_bytes``.
+    ``halo`` planes on both sides, and :data:`BYTES_PER_PIXEL` per pixel) fit in ``budget_bytes``,
+    each slab with its halo numbered in int32 (:func:`deepest_slab`).
 
     Raises
     ------
@@ -103,6 +115,10 @@ def slabs_for_budget(grid: VolumeGrid, budget_bytes: int, *, halo: int, n_pixels
         need = plane * (1 + 2 * halo) + BYTES_PER_PIXEL * n_pixels
         raise MemoryBudgetError(f"even a slab one plane deep needs {need / 2**20:.1f} MiB, more than the "
                                 f"{budget_bytes / 2**20:.1f} MiB there is; use a coarser --pvr")
+    planes = min(planes, deepest_slab(grid, halo=halo))
+    if planes < 1:
+        raise MemoryBudgetError(f"a plane of {ny * nx:,} voxels with its halo is more than int32 indices number; "
+                                "use a coarser --pvr")
     return min(nz, -(-nz // int(planes)))
 
 
@@ -126,7 +142,8 @@ class SlabReconstructor:
     Raises
     ------
     ValueError
-        For the sequential form, or slabs that do not cover the grid.
+        For the sequential form, slabs that do not cover the grid, or a slab that with its
+        smoothing halo has too many voxels to number in int32 (:func:`deepest_slab`).
     """
 
     def __init__(self, projector: Projector, settings: ReconSettings, *, slabs: Sequence[Slab],
@@ -139,14 +156,21 @@ class SlabReconstructor:
         if not slabs or slabs[0].z0 != 0 or slabs[-1].z1 != nz or any(
                 a.z1 != b.z0 for a, b in zip(slabs[:-1], slabs[1:], strict=True)) or any(s.nz < 1 for s in slabs):
             raise ValueError(f"the slabs must cover planes 0 to {nz} in order, got {[(s.z0, s.z1) for s in slabs]}")
+        self.halo = slab_halo(settings)
+        deepest = deepest_slab(projector.grid, halo=self.halo)
+        too_deep = [s for s in slabs if s.nz > deepest]
+        if too_deep:
+            raise ValueError(f"slabs of {too_deep[0].nz} planes (with {self.halo} of halo each side) have more voxels "
+                             f"than int32 indices number (at most {max(deepest, 0)} planes); use more slabs")
         self.projector = projector
         self.settings = settings
         self.slabs = slabs
         self.budget_bytes = budget_bytes
-        self.halo = slab_halo(settings)
         self.wp = projector.wp
         self.device = projector.device
-        self._frames = FrameReconstructor(projector, settings)  # its weights() (stored or matrix-free)
+        # each slab on a projector of its own planes (its voxels numbered from its first plane)
+        self._projectors = [projector.planes(s.z0, s.z1) for s in slabs]
+        self._templates = None  # the matrix-free templates, once built: one set for every slab
         self.peak_bytes = 0  # the most bytes accounted at once in the last frame
 
     # --- one frame ---------------------------------------------------------------------------
@@ -202,22 +226,24 @@ class SlabReconstructor:
         voxels, weights = [], []
         t_elim = 0.0
         operator_bytes = 0
-        for i, slab in enumerate(self.slabs):
+        for i, (slab, ps) in enumerate(zip(self.slabs, self._projectors, strict=True)):
             ta = time.perf_counter()
-            vox = self._eliminate(lit_host, slab)
+            frames = FrameReconstructor(ps, s, templates=self._templates)  # the slab's elimination and weights
+            vox = frames.eliminate(lit_host)
             wp.synchronize_device(dev)
             tb = time.perf_counter()
             t_elim += tb - ta
             self._peak(held + BYTES_PER_SLAB_VOXEL * slab.nz * plane)
             # the weights may take what the budget leaves beside those held already and this slab's
-            # intensities (FrameReconstructor's weight budget sets the box's dense volume aside: add it back)
+            # intensities (FrameReconstructor's weight budget sets the slab's dense volume aside: add it back)
             room = budget - held - 4 * int(vox.shape[0]) - BYTES_PER_SLAB_VOXEL * slab.nz * plane
             # and the matrix-free templates, held already, which it sets aside itself
             first = not any(applied_by(x) == "matrix-free" for x in weights)
-            shared = 0 if first or self._frames._templates is None else self._frames._templates.nbytes
-            self._frames.budget_bytes = (room + 12 * p.n_pixels + 4 * int(vox.shape[0]) + 8 * p.grid.n_voxels
-                                         + shared)
-            w = self._frames.weights(vox)
+            shared = 0 if first or self._templates is None else self._templates.nbytes
+            frames.budget_bytes = room + 12 * p.n_pixels + 4 * int(vox.shape[0]) + 8 * ps.grid.n_voxels + shared
+            w = frames.weights(vox)  # stored, or matrix-free
+            if frames.templates is not None:
+                self._templates = frames.templates
             own = self._own_bytes(w, first=first)
             operator_bytes += own
             held += own + 4 * w.n_voxels
@@ -239,9 +265,9 @@ class SlabReconstructor:
         def project() -> None:
             # the projection of the whole volume: the slabs' images summed pixel by pixel
             proj.zero_()
-            for w, e in zip(weights, es, strict=True):
+            for ps, w, e in zip(self._projectors, weights, es, strict=True):
                 if w.n_voxels:
-                    p.forward(w, e, part)
+                    ps.forward(w, e, part)
                     wp.launch(ks.accumulate, dim=p.n_pixels, inputs=[proj, part], device=dev)
 
         t1 = time.perf_counter()
@@ -265,9 +291,9 @@ class SlabReconstructor:
             for it in range(s.iterations):
                 ti = time.perf_counter()
                 project()
-                for w, e in zip(weights, es, strict=True):
+                for ps, w, e in zip(self._projectors, weights, es, strict=True):
                     if w.n_voxels:
-                        p.smart_update(w, image, proj, e, s.relaxation, floor)
+                        ps.smart_update(w, image, proj, e, s.relaxation, floor)
                 if progress is not None:
                     progress(1)
                 if it < 3 or it == s.iterations - 1:  # the first few and the last: not 400 lines
@@ -284,9 +310,9 @@ class SlabReconstructor:
             buf = wp.zeros((hi - lo, ny, nx), dtype=float, device=dev)
             flat = buf.reshape((hi - lo) * plane)
             for other, w, e in zip(self.slabs, weights, es, strict=True):
-                if other.z1 > lo and other.z0 < hi and w.n_voxels:
-                    launch_rows(ks.scatter_range, w.n_voxels, [Rows(w.voxels), Rows(e), lo * plane, hi * plane, flat],
-                                dev)
+                if other.z1 > lo and other.z0 < hi and w.n_voxels:  # its voxels numbered from its plane z0
+                    shift, n = wp.int64((other.z0 - lo) * plane), wp.int64((hi - lo) * plane)
+                    launch_rows(ks.scatter_range, w.n_voxels, [Rows(w.voxels), Rows(e), shift, n, flat], dev)
             if s.smooth > 0:
                 ops.smooth(buf, s.smooth)
             planes = buf.numpy()[slab.z0 - lo: slab.z1 - lo]
@@ -305,7 +331,7 @@ class SlabReconstructor:
     def _own_bytes(self, w, *, first: bool) -> int:
         """Bytes of a slab's operator ``w``, the matrix-free templates (one set for all slabs)
         counted with the first slab that uses them only."""
-        templates = self._frames._templates
+        templates = self._templates
         own = int(w.nbytes)
         if getattr(w, "matrix_free", False):  # its nbytes holds the templates' too
             own -= templates.nbytes
@@ -316,29 +342,6 @@ class SlabReconstructor:
     def _peak(self, nbytes: int) -> None:
         self.peak_bytes = max(self.peak_bytes, int(nbytes))
 
-    # --- a slab's voxels -----------------------------------------------------------------------
-    def _eliminate(self, lits: list[np.ndarray], slab: Slab) -> object:
-        """The slab's voxels to reconstruct ((n,) int32 flat indices of the whole grid, ascending):
-        the survivors of the projector's elimination, or all of them for the MART baseline."""
-        from lfcore._kernels import slabs as ks
-        from lfcore.pinhole_projector import JointProjector, PinholeProjector
-
-        p, s, wp = self.projector, self.settings, self.wp
-        plane = p.grid.shape[1] * p.grid.shape[2]
-        first, n = slab.z0 * plane, slab.nz * plane
-        if s.method == "mart":
-            out = wp.empty(n, dtype=wp.int32, device=self.device)
-            wp.launch(ks.voxel_range, dim=n, inputs=[first, out], device=self.device)
-            return out
-        if isinstance(p, JointProjector):
-            lf_lit, ph_lit = p._split(lits)
-            kept = np.intersect1d(_eliminate_range(p.lf, lf_lit, first, n, s).numpy(),
-                                  _eliminate_range(p.ph, ph_lit, first, n, s).numpy())
-            return wp.array(kept.astype(np.int32), dtype=wp.int32, device=self.device)
-        if isinstance(p, PinholeProjector) or type(p) is Projector:
-            return _eliminate_range(p, lits, first, n, s)
-        raise TypeError(f"depth slabs do not know the projector {type(p).__name__}")
-
 
 def _operator_kind(w) -> str:
     """What applies a slab's operator, in words, for the stage log."""
@@ -347,35 +350,3 @@ def _operator_kind(w) -> str:
     if getattr(w, "from_templates", False):
         return "matrix-free templates' images, stored"
     return "stored weights" + (f", {w.n_on_the_fly:,} voxels' made on the fly" if w.n_on_the_fly else "")
-
-
-def _eliminate_range(p: Projector, lits: list[np.ndarray], first: int, n: int, s: ReconSettings) -> object:
-    """The voxels ``first .. first + n - 1`` of the grid that the projector's elimination keeps
-    (the kernels of :meth:`Projector.eliminate` and :meth:`PinholeProjector.eliminate`, run on
-    that range of voxels only), as (k,) int32 flat indices, ascending."""
-    from lfcore._kernels import slabs as ks
-    from lfcore.device import RowOffset
-    from lfcore.pinhole_projector import PinholeProjector
-
-    wp = p.wp
-    lit = p._lit_on_device(lits)
-    mask = p._scratch("mask", n, wp.int32)
-    mask.zero_()
-    ids = p._scratch("slab_ids", n, wp.int32)
-    wp.launch(ks.voxel_range, dim=n, inputs=[first, ids], device=p.device)
-    if isinstance(p, PinholeProjector):
-        launch_rows(p._kp.mlos_eliminate, n, [p._grid, p.views, len(p.cameras), lit, RowOffset(first), Rows(mask)],
-                    p.device)
-        return p._compact(mask, ids)
-    kw = p._kw
-    common = [p._grid, p.views, len(p.cameras), p.sub_a, p.check_order, lit, float(s.min_seen), float(s.max_dark),
-              p._checks, p._n_checks]
-    # as Projector.eliminate: a few checks on every voxel of the range, then all of them on the candidates
-    launch_rows(kw.eliminate, n, [*common, ids, PREFILTER_CHECKS, RowOffset(0), mask], p.device)
-    candidates = p._compact(mask, ids, scratch="candidates")
-    k = int(candidates.shape[0])
-    mask = mask[:max(k, 1)]
-    mask.zero_()
-    launch_rows(kw.eliminate, k, [*common, candidates, 2**30, RowOffset(0), mask], p.device)
-    return p._compact(mask[:k], candidates)
-

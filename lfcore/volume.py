@@ -60,6 +60,20 @@ class VolumeGrid:
     def n_voxels(self) -> int:
         return int(np.prod(self.shape))
 
+    def planes(self, z0: int, z1: int) -> VolumeGrid:
+        """The grid of planes ``z0 .. z1 - 1`` (a depth slab): the same voxels, numbered from plane z0.
+
+        Raises
+        ------
+        ValueError
+            If the planes are not a non-empty range of this grid's.
+        """
+        if not 0 <= z0 < z1 <= self.shape[0]:
+            raise ValueError(f"planes {z0}:{z1} are not a range of the grid's 0:{self.shape[0]}")
+        origin = (self.origin_mm[0], self.origin_mm[1], self.origin_mm[2] + z0 * self.voxel_mm[2])
+        return VolumeGrid(shape=(int(z1 - z0), self.shape[1], self.shape[2]), voxel_mm=self.voxel_mm,
+                          origin_mm=origin)
+
     @property
     def nbytes(self) -> int:
         """Bytes of one float32 volume."""

@@ -153,7 +153,7 @@ def place(grid: Grid, view: View, plan: Plan, depth_first: wp.array(dtype=wp.int
     r = v - iz * plane
     iy = r // grid.nx
     ix = r - iy * grid.nx
-    d = iz
+    d = iz + grid.z0  # the box's plane (the templates are the box's)
     if plan.depth_axis == 0:
         d = ix
     elif plan.depth_axis == 1:

@@ -1,5 +1,5 @@
-"""Kernels of depth-slab reconstruction (:mod:`lfcore.slabs`): a slab's voxels, the slabs'
-projections summed, and a slab's intensities scattered into a dense buffer."""
+"""Kernels of depth-slab reconstruction (:mod:`lfcore.slabs`): the slabs' projections summed, and a
+slab's intensities scattered into a dense buffer."""
 
 from __future__ import annotations
 
@@ -12,13 +12,6 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel
-def voxel_range(first: int, out: wp.array(dtype=wp.int32)):
-    """out[i] = first + i: the flat indices of a run of consecutive voxels."""
-    i = wp.tid()
-    out[i] = first + i
-
-
-@wp.kernel
 def accumulate(total: wp.array(dtype=float), part: wp.array(dtype=float)):
     """total[i] += part[i] (one thread per pixel: no atomics)."""
     i = wp.tid()
@@ -26,10 +19,11 @@ def accumulate(total: wp.array(dtype=float), part: wp.array(dtype=float)):
 
 
 @wp.kernel
-def scatter_range(voxels: wp.array(dtype=wp.int32), e: wp.array(dtype=float), lo: int, hi: int,
+def scatter_range(voxels: wp.array(dtype=wp.int32), e: wp.array(dtype=float), shift: wp.int64, n: wp.int64,
                   out: wp.array(dtype=float)):
-    """out[v - lo] = e[j] for the voxels v = voxels[j] with lo <= v < hi (flat grid indices)."""
+    """out[v + shift] = e[j] for the voxels v = voxels[j] with 0 <= v + shift < n (a slab's flat
+    indices moved into a buffer's numbering; in 64 bits, as the box's may pass 2**31)."""
     j = wp.tid()
-    v = voxels[j]
-    if v >= lo and v < hi:
-        out[v - lo] = e[j]
+    k = wp.int64(voxels[j]) + shift
+    if k >= wp.int64(0) and k < n:
+        out[int(k)] = e[j]  # the buffer itself is numbered in int32

@@ -45,11 +45,16 @@ vec6 = wp.types.vector(length=6, dtype=wp.float32)
 
 @wp.struct
 class Grid:
-    origin: wp.vec3  # world centre of voxel [0, 0, 0], mm
+    """A box's voxels, or one depth slab of them (planes z0 .. z0 + nz - 1): the flat index v of a
+    voxel counts from the slab's first plane, so that a box of more than 2**31 voxels is numbered
+    in int32 slab by slab, while its centre is the whole box's voxel's, to the bit."""
+
+    origin: wp.vec3  # world centre of the BOX's voxel [0, 0, 0], mm
     step: wp.vec3  # voxel edges (dx, dy, dz), mm
     nx: int
     ny: int
-    nz: int
+    nz: int  # planes of this grid (the slab's)
+    z0: int  # the box's plane of this grid's first (0: the whole box)
 
 
 @wp.struct
@@ -84,7 +89,7 @@ def voxel_centre(g: Grid, v: int) -> wp.vec3:
     r = v - z * plane
     y = r // g.nx
     x = r - y * g.nx
-    return g.origin + wp.cw_mul(g.step, wp.vec3(float(x), float(y), float(z)))
+    return g.origin + wp.cw_mul(g.step, wp.vec3(float(x), float(y), float(z + g.z0)))
 
 
 @wp.struct

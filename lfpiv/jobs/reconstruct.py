@@ -14,7 +14,7 @@ from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
 from lfcore.matrix_free import PROJECTORS, MatrixFreeUnsupported
 from lfcore.pinhole_projector import PINHOLE_METHODS, projector_for, unsupported_method
 from lfcore.pinhole_projector import default_method as pinhole_default_method
-from lfcore.projector import Projector
+from lfcore.projector import Projector, max_planes
 from lfcore.reconstruct import MAX_SUB_APERTURES, WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
 from lfcore.rig import Rig, voxel_shape_warnings
 from lfcore.runstore import RunStore
@@ -98,6 +98,9 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, de
         hint = "" if slabs is not None else ", or --slabs auto to reconstruct it in depth slabs"
         raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
                          f"has free; use a coarser --pvr{hint}")
+    if grid.shape[0] > max_planes(grid):
+        raise UsageError(f"a box of {grid.n_voxels:,} voxels is more than int32 voxel indices number in one piece; "
+                         "use --slabs auto to reconstruct it in depth slabs, or a coarser --pvr")
     projector = projector_for(cams, grid, sub_apertures=settings.sub_apertures, device=device)
     # weights reused across frames (the baseline's cover the whole box and are built per frame;
     # a pinhole camera's, a handful per voxel, are built per frame in less than the iterations take)
@@ -111,16 +114,18 @@ def _slab_count(slabs: int | str | None, grid: VolumeGrid, settings: ReconSettin
                 device: str) -> int:
     """The depth slabs to reconstruct ``grid`` in: ``slabs`` as given (None: 1), or for ``"auto"`` 1
     where the box's ``need`` bytes fit in the ``free`` ones, else the fewest whose buffers fit in
-    :data:`SLAB_SHARE` of them."""
+    :data:`SLAB_SHARE` of them (and each with its halo numbered in int32: a box of
+    :data:`~lfcore.projector.INDEX_LIMIT` voxels or more is split whatever the memory)."""
     asked = slabs_asked(slabs, grid.shape[0])
     if asked is not None:
         return asked
-    if need <= free:
+    if need <= free and grid.shape[0] <= max_planes(grid):
         return 1
     if settings.form != "simultaneous":
-        raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
-                         "has free, and the sequential form cannot be split into depth slabs; use --form "
-                         "simultaneous or a coarser --pvr")
+        why = (f"needs {need / 2**30:.1f} GiB on {device}, more than it has free" if need > free else
+               "is more than int32 voxel indices number in one piece")
+        raise UsageError(f"a box of {grid.n_voxels:,} voxels {why}, and the sequential form cannot be split into "
+                         "depth slabs; use --form simultaneous or a coarser --pvr")
     try:
         return slabs_for_budget(grid, int(SLAB_SHARE * free), halo=slab_halo(settings))
     except MemoryBudgetError as exc:

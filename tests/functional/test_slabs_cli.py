@@ -57,6 +57,32 @@ def test_a_box_too_big_for_the_memory_proceeds_in_slabs_with_the_in_memory_volum
     assert rc == 0 and "already reconstructed with these settings" in out
 
 
+def test_a_box_past_the_index_limit_proceeds_in_slabs_whatever_the_memory(capsys, one_pair, tmp_path, monkeypatch):
+    """The chapter's dual-camera box (1939 x 1455 x 1939 voxels) has more voxels than int32 indices
+    number; here the limit is lowered to 12 of the tiny box's 29 planes. In memory it is refused in
+    one line; --slabs auto splits it into slabs that each number their own voxels, with the volume
+    the box gives below the limit."""
+    import lfcore.projector as projector_module
+
+    here, sliced = tmp_path / "memory.zarr", tmp_path / "slabs.zarr"
+    shutil.copytree(one_pair, here)
+    shutil.copytree(one_pair, sliced)
+    assert _run(capsys, "reconstruct", here, "--iterations", "10", "--quiet")[0] == 0
+    monkeypatch.setattr(projector_module, "INDEX_LIMIT", 12 * 68 * 82 + 1)
+    rc, out, err = _run(capsys, "reconstruct", sliced, "--iterations", "10", "--quiet")
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert "is more than int32 voxel indices number in one piece; use --slabs auto" in err
+    rc, out, err = _run(capsys, "reconstruct", sliced, "--iterations", "10", "--quiet", "--slabs", "2")
+    assert rc == 2 and err.count("\n") == 1 and "have more voxels than int32 indices number" in err, err
+    rc, out, err = _run(capsys, "reconstruct", sliced, "--iterations", "10", "--quiet", "--slabs", "auto")
+    assert rc == 0, err
+    # the memory is plenty: slabs of at most 12 planes less the halo of 2 + 2
+    assert "each volume was reconstructed in 4 depth slabs" in out, out
+    want, got = RunStore.open(here).volumes()[0], RunStore.open(sliced).volumes()[0]
+    assert want.max() > 0
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(want.max()))
+
+
 @pytest.mark.parametrize(("value", "expected"), [
     ("0", "--slabs: expected a whole number of slabs (1 or more) or auto, got '0'"),
     ("many", "got 'many'"),

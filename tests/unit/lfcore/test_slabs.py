@@ -124,3 +124,91 @@ def test_slabs_with_matrix_free_templates_and_weights_made_on_the_fly(tiny_rig, 
     assert abs(res.weight_bytes - want.weight_bytes) <= 0.01 * want.weight_bytes, (res.weight_bytes, want.weight_bytes)
     assert want.volume.max() > 0
     np.testing.assert_allclose(got, want.volume, rtol=1e-5, atol=1e-5 * float(want.volume.max()))
+
+
+def _slab_rows(weights, first: int) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Each voxel's (pixels, weights) row, keyed by its box index (``first`` added to a slab's)."""
+    offs, pix, w = weights.to_numpy()
+    vox = weights.voxels.numpy()
+    return {int(v) + first: (pix[a:b], w[a:b]) for v, a, b in zip(vox, offs[:-1], offs[1:], strict=True)}
+
+
+@pytest.mark.parametrize("kind", ["drt", "los", "templates", "pinhole"])
+def test_a_slabs_voxels_are_the_boxs_to_the_bit(tiny_rig, device, kind):
+    """Projector.planes numbers a slab's voxels from its first plane; each has the box voxel's centre
+    to the bit, so its weights (ray-traced, line of sight, the templates' images, a pinhole camera's)
+    and its elimination are the box's."""
+    from lfcore.matrix_free import DrtTemplates, MatrixFreeWeights
+    from lfcore.pinhole_projector import projector_for
+    from lfpiv.rigfile import load_rig
+    from tests.conftest import EXAMPLES
+
+    if kind == "pinhole":
+        rig = load_rig(EXAMPLES / "tomo_4_cameras.toml")
+        rig = rig.model_copy(update={"volume": rig.volume.model_copy(update={"size_mm": (0.8, 0.8, 0.8)})})
+    else:
+        d = tiny_rig.to_dict()
+        d["volume"].update(size_mm=[0.5, 0.4, 1.2])
+        d["camera"][0].update(mla_rotation_deg=2.5, mla_offset_um=[6.0, -9.0])
+        rig = type(tiny_rig).from_dict(d)
+    grid = VolumeGrid.from_rig(rig)
+    box = projector_for(rig.camera, grid, device=device)
+    wp = box.wp
+    z0, z1 = 4, 9
+    slab = box.planes(z0, z1)
+    plane = grid.shape[1] * grid.shape[2]
+    assert slab.grid.shape == (z1 - z0, *grid.shape[1:]) and slab.grid.n_voxels == (z1 - z0) * plane
+    assert slab.box is box.box and slab.z0 == z0 and box.planes(1, 10).planes(3, 8).z0 == z0  # slabs of slabs
+    local = np.arange(0, slab.grid.n_voxels, 7, dtype=np.int32)
+    vox_slab = wp.array(local, dtype=wp.int32, device=device)
+    vox_box = wp.array(local + z0 * plane, dtype=wp.int32, device=device)
+    if kind == "templates":
+        t_box = DrtTemplates(box)
+        a = MatrixFreeWeights(t_box, vox_box).expanded()
+        b = MatrixFreeWeights(t_box.on(slab), vox_slab).expanded()
+        with pytest.raises(ValueError, match="another box"):
+            t_box.on(Projector(rig.camera, grid.planes(0, 5), device=device))
+    else:
+        method = "los" if kind in ("los", "pinhole") else "drt"
+        a, b = box.weights(vox_box, method), slab.weights(vox_slab, method)
+    rows_a, rows_b = _slab_rows(a, 0), _slab_rows(b, z0 * plane)
+    assert rows_a.keys() == rows_b.keys() and a.nnz == b.nnz > 0
+    for v, (pix, w) in rows_a.items():
+        np.testing.assert_array_equal(rows_b[v][0], pix)
+        np.testing.assert_array_equal(rows_b[v][1], w)
+    # the slab's elimination keeps the box's voxels of its planes
+    rng = np.random.default_rng(4)
+    lit = [rng.random((c.sensor_px[1], c.sensor_px[0])) < 0.6 for c in rig.camera]
+    kept_box = box.eliminate(lit).numpy()
+    kept_box = kept_box[(kept_box >= z0 * plane) & (kept_box < z1 * plane)]
+    np.testing.assert_array_equal(slab.eliminate(lit).numpy() + z0 * plane, kept_box)
+    with pytest.raises(ValueError, match="not a range"):
+        box.planes(5, 5)
+
+
+def test_a_box_past_the_index_limit_is_reconstructed_in_slabs(tiny_rig, device, monkeypatch):
+    """A box of more voxels than int32 indices number (the chapter's 5.5-G-voxel dual-camera box;
+    here the limit lowered to 12 planes of the tiny box) has no in-memory reconstruction, while its
+    slabs, each numbering its own voxels, give the volume the box gives below the limit."""
+    import lfcore.projector as projector_module
+    from lfcore.reconstruct import FrameReconstructor
+    from lfcore.slabs import deepest_slab
+
+    grid = VolumeGrid.from_rig(tiny_rig)  # 82 x 68 x 29 voxels
+    images = _images(tiny_rig, device=device)
+    settings = ReconSettings(iterations=10, projector="matrix-free")
+    want = reconstruct(Projector(tiny_rig.camera, grid, device=device), images, settings)
+    plane = grid.shape[1] * grid.shape[2]
+    monkeypatch.setattr(projector_module, "INDEX_LIMIT", 12 * plane + 1)
+    proj = Projector(tiny_rig.camera, grid, device=device)  # the box's projector still serves its slabs
+    with pytest.raises(MemoryBudgetError, match="depth slabs"):
+        FrameReconstructor(proj, settings)
+    with pytest.raises(MemoryBudgetError, match="depth slabs"):
+        proj.eliminate([np.ones((c.sensor_px[1], c.sensor_px[0]), bool) for c in tiny_rig.camera])
+    assert deepest_slab(grid, halo=2) == 8
+    assert slabs_for_budget(grid, 10**12, halo=2) == 4  # whatever the memory: slabs of 8 planes at most
+    with pytest.raises(ValueError, match="int32"):  # 10 planes and a halo of 2 + 2 are 14 > 12
+        SlabReconstructor(proj, settings, slabs=plan_slabs(grid.shape[0], 3))
+    got, res = _by_slabs(proj, images, settings, plan_slabs(grid.shape[0], 4))
+    assert res.slabs == 4 and res.active_voxels == want.active_voxels and res.projector == "matrix-free"
+    np.testing.assert_allclose(got, want.volume, rtol=1e-5, atol=1e-5 * float(want.volume.max()))
