@@ -42,8 +42,13 @@ What this handles exactly and what it bounds:
   footprint's lateral blur by :attr:`DrtTemplates.blur_error` (3% on S, 6% on Mc; no change in
   the fidelity figures was measurable when it was taken at the voxel's own p).
 
-Cameras must look along a grid axis (a camera's depth then is one grid index); others need the
-stored weights (:class:`MatrixFreeUnsupported`).
+A camera looking along a grid axis has one template depth per grid plane (a voxel's depth is its
+plane's). A camera off the grid axes (a fitted pose a fraction of a degree off, or a tilted one)
+has :data:`DEPTH_SAMPLES_PER_VOXEL` evenly spaced template depths per voxel depth extent over the
+box, and a voxel takes the nearest to its own camera depth: off by at most a twelfth of its
+extent, which the fidelity figures bound (correlation >= 0.9993, light within 0.07% at tilts of
+0.4 to 20 degrees on the tiny rig's optics). Pinhole cameras have no lenslets and need the stored
+weights (:class:`MatrixFreeUnsupported`).
 
 Memory: :data:`RIGID_SPOT_BYTES` per rigid spot and :data:`CUT_SPOT_BYTES` per cut one (seven
 in eight on S, four in five on Mc) plus two offsets per template: set by the cameras, depth
@@ -110,7 +115,34 @@ def applied_by(weights: object) -> str:
 
 
 class MatrixFreeUnsupported(ValueError):
-    """The geometry has no matrix-free form (a camera not looking along a grid axis)."""
+    """The geometry has no matrix-free form (pinhole cameras, alone or beside light-field ones)."""
+
+
+#: Templates per voxel depth extent along the optical axis of a camera that does not look along a
+#: grid axis (a fitted pose, a tilted camera): a voxel takes the template of the sampled depth
+#: nearest its own, off by at most a twelfth of its depth extent. On the tiny rig's optics tilted
+#: 3 and 2 degrees and rolled 10 (a voxel's depth there moving by about half its extent across the
+#: box), hexagonal, the worst of 400 voxels' correlation with the ray-traced weights was 0.9989 at
+#: 4 samples, 0.9995 at 6 (as a grid-aligned camera's) and 0.9995 at 8; at tilts of 5 to 20
+#: degrees, 6 gave at least 0.9993 and light within 0.07% (tested). The templates take as many
+#: times the memory of a grid-aligned camera's.
+DEPTH_SAMPLES_PER_VOXEL = 6
+
+
+def _depth_samples(cam, grid) -> np.ndarray:
+    """Camera depths (mm) at which the templates of a camera off the grid axes are made: from the
+    nearest to the farthest voxel centre of the box, :data:`DEPTH_SAMPLES_PER_VOXEL` per voxel depth
+    extent along the optical axis, evenly spaced."""
+    rot = cam.rotation.T  # world -> camera
+    nz, ny, nx = grid.shape
+    origin = np.asarray(grid.origin_mm, dtype=np.float64)
+    step = np.asarray(grid.voxel_mm, dtype=np.float64)
+    corners = np.array([origin + step * np.array([i * (nx - 1), j * (ny - 1), k * (nz - 1)])
+                        for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    z = ((corners - np.asarray(cam.focus_mm)) @ rot.T)[:, 2]
+    dz = 2.0 * float((np.abs(rot) @ (0.5 * step))[2]) / DEPTH_SAMPLES_PER_VOXEL
+    n = int(np.ceil((z.max() - z.min()) / dz)) + 1
+    return z.min() + dz * np.arange(n)
 
 
 def _depth_axis(rot_world_to_cam: np.ndarray) -> tuple[int, int] | None:
@@ -135,18 +167,13 @@ def _light_field_alone(projector: Projector) -> None:
 
 def _camera_depths(cam, grid) -> tuple[int, np.ndarray]:
     """The grid axis along which camera ``cam`` looks and the camera depth (mm) of each grid plane
-    along it (the voxel centres' camera z).
-
-    Raises
-    ------
-    MatrixFreeUnsupported
-        If the camera does not look along a grid axis.
-    """
+    along it (the voxel centres' camera z); for a camera that looks along no grid axis (a fitted
+    pose, a tilt), -1 and the depths of :func:`_depth_samples`, which a voxel picks from by its own
+    camera depth."""
     rot = cam.rotation.T  # world -> camera
     found = _depth_axis(rot)
     if found is None:
-        raise MatrixFreeUnsupported(f"camera '{cam.name}' does not look along a grid axis; the matrix-free "
-                                    "projector needs that (use --projector stored)")
+        return -1, _depth_samples(cam, grid)
     axis = found[0]
     nz, ny, nx = grid.shape
     n_depth = (nx, ny, nz)[axis]
@@ -171,7 +198,7 @@ def phase_bins(projector: Projector, *, phases_per_footprint: float = PHASES_PER
     Raises
     ------
     MatrixFreeUnsupported
-        If a camera does not look along a grid axis.
+        If the cameras are not light-field ones alone.
     """
     _light_field_alone(projector)
     step = np.asarray(projector.box.voxel_mm, dtype=np.float64)
@@ -231,7 +258,7 @@ class DrtTemplates:
     Raises
     ------
     MatrixFreeUnsupported
-        If a camera does not look along a grid axis.
+        If the cameras are not light-field ones alone.
     """
 
     def __init__(self, projector: Projector, *, phases_per_footprint: float = PHASES_PER_FOOTPRINT,
@@ -252,7 +279,6 @@ class DrtTemplates:
         self.device = projector.device
         grid = projector.box  # the whole box's depth planes: a depth slab's projector shares them (on())
         nz, ny, nx = grid.shape
-        dims = (nx, ny, nz)
         origin = np.asarray(grid.origin_mm, dtype=np.float64)
         step = np.asarray(grid.voxel_mm, dtype=np.float64)
         plans, t_view, t_point, t_probe, depth_first, depth_phase = [], [], [], [], [], []
@@ -261,7 +287,7 @@ class DrtTemplates:
         for iv, cam in enumerate(projector.cameras):
             rot = cam.rotation.T  # world -> camera
             axis, z_cam = _camera_depths(cam, grid)
-            n_depth = dims[axis]
+            n_depth = len(z_cam)
             so, si = cam.object_distance_mm, cam.image_distance_mm
             pitch = cam.mla_pitch_mm
             off = np.asarray(cam.mla_offset_um, dtype=np.float64) * 1e-3
@@ -293,6 +319,8 @@ class DrtTemplates:
             pl = km.Plan()
             pl.depth_axis = axis
             pl.n_depth = n_depth
+            pl.z_first = float(z_cam[0])  # the sampled depths of a camera off the grid axes (axis -1)
+            pl.inv_dz = float(1.0 / (z_cam[1] - z_cam[0])) if n_depth > 1 else 0.0
             pl.depth_base = len(depth_phase) - n_depth
             pl.k_spot = cam.mla_focal_length_mm / si
             plans.append(pl)

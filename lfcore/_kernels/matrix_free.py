@@ -52,10 +52,12 @@ wp.set_module_options({"enable_backward": False})
 class Plan:
     """How one view finds a voxel's template."""
 
-    depth_axis: int  # grid axis (0 x, 1 y, 2 z) along which the camera's depth changes
+    depth_axis: int  # grid axis (0 x, 1 y, 2 z) along which the camera's depth changes; -1: none (sampled depths)
     n_depth: int
     depth_base: int  # this view's first entry of the per-depth tables (first template, phase bins)
     k_spot: float  # f_ml / si
+    z_first: float  # depth_axis -1: the camera depth (mm) of the first sampled depth
+    inv_dz: float  # and one over the samples' spacing (1/mm)
 
 
 @wp.func
@@ -158,6 +160,8 @@ def place(grid: Grid, view: View, plan: Plan, depth_first: wp.array(dtype=wp.int
         d = ix
     elif plan.depth_axis == 1:
         d = iy
+    elif plan.depth_axis < 0:  # a camera off the grid axes: the sampled depth nearest the voxel's own
+        d = wp.clamp(int(wp.floor((p[2] - plan.z_first) * plan.inv_dz + 0.5)), 0, plan.n_depth - 1)
     lat = cam.si / sop
     # footprint centre on the MLA (a = 0 part), in the lattice frame relative to the MLA's offset
     gx = -p[0] * lat - cam.off_x

@@ -352,7 +352,7 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
     ------
     UsageError
         Windows that do not fit the live volume, a projector the method or the cameras cannot
-        use (the matrix-free one: drt-mart on light-field cameras looking along a grid axis), or
+        use (the matrix-free one: drt-mart on light-field cameras alone), or
         no Qt.
     """
     from realtime.monitor import GuiUnavailable, run_monitor_window

@@ -3,7 +3,8 @@
 Per voxel, the image the templates make agrees with the stored weights' (correlation >= 0.999,
 total light within 0.1%, and within 2e-4 where the cut spots' bilinear shares keep it) on random
 voxels of small rigs: hexagonal and square lenslets, a
-rotated and offset (fitted) MLA, and two cameras at 90 degrees (one looking along the grid's x).
+rotated and offset (fitted) MLA, a fitted camera pose (a fraction of a degree off the grid's z), a
+tilted and an oblique camera, and two cameras at 90 degrees (one looking along the grid's x).
 Forward projections of random volumes agree within 1e-3, and so do the SMART updates; a
 reconstruction's Q_recon is within 0.005 of the stored path's at the same iterations.
 """
@@ -48,6 +49,11 @@ VARIANTS = {
     "square": {"mla_grid": "square"},
     "fitted": {"mla_rotation_deg": 2.5, "mla_offset_um": [6.0, -9.0]},
     "dual": {"cameras": [{"name": "cam1", "rotation_deg": [0.0, 90.0, 0.0]}], "size_mm": (0.3, 0.4, 0.5)},
+    # a fitted pose: the optical axis a fraction of a degree off the grid's z, the MLA rotated and offset
+    "fitted-pose": {"rotation_deg": [0.3, -0.2, 0.1], "mla_rotation_deg": 1.5, "mla_offset_um": [-4.0, 7.0]},
+    # tilted and rolled: a voxel's depth moves by about half its extent across the box
+    "tilted": {"rotation_deg": [3.0, 2.0, 10.0]},
+    "oblique": {"rotation_deg": [20.0, 0.0, 0.0]},
 }
 
 
@@ -58,6 +64,7 @@ def test_voxel_images_match_the_stored_weights(tiny_rig, device, variant):
     grid = VolumeGrid.from_rig(rig)
     proj = Projector(rig.camera, grid, device=device)
     templates = DrtTemplates(proj)
+    assert template_count(proj) == templates.n_templates
     vox = np.random.default_rng(7).choice(grid.n_voxels, 60, replace=False)
     f = fidelity(proj, vox, templates)
     assert f["correlation"].min() >= 0.999, f["correlation"].min()
@@ -313,7 +320,7 @@ def test_auto_takes_the_templates_images_where_they_cost_less_than_tracing(scene
     assert again.projector == "stored" and cached._templates is None
     # cameras with no templates (a pinhole camera's) never take them
     def no_templates(projector):
-        raise MatrixFreeUnsupported("cameras must look along a grid axis")
+        raise MatrixFreeUnsupported("pinhole cameras have no templates")
 
     monkeypatch.setattr(recon, "template_count", no_templates)
     assert not FrameReconstructor(proj, settings).templates_pay(vox)
@@ -332,10 +339,23 @@ def test_settings_and_geometry_that_have_no_matrix_free_form(tiny_rig):
         ReconSettings(form="sequential", relaxation=1.0, projector="matrix-free")
     with pytest.raises(ValueError, match="projector must be"):
         ReconSettings(projector="fast")
-    rig = _small(tiny_rig, rotation_deg=[0.0, 20.0, 0.0])
-    proj = Projector(rig.camera, VolumeGrid.from_rig(rig), device="cpu")
-    with pytest.raises(MatrixFreeUnsupported, match="grid axis"):
-        DrtTemplates(proj)
+
+
+def test_a_camera_off_the_grid_axes_takes_the_sampled_depth_nearest_its_voxels(tiny_rig):
+    """Off the grid axes, a depth plane of the grid is no depth of the camera: the templates are made
+    at DEPTH_SAMPLES_PER_VOXEL evenly spaced camera depths per voxel depth extent over the box, and
+    a voxel takes the nearest (a grid-aligned camera keeps one template depth per grid plane)."""
+    from lfcore.matrix_free import DEPTH_SAMPLES_PER_VOXEL
+
+    aligned = _small(tiny_rig)
+    grid = VolumeGrid.from_rig(aligned)
+    flat = DrtTemplates(Projector(aligned.camera, grid, device="cpu"))
+    assert len(flat.depth_phase) == grid.shape[0]
+    rig = _small(tiny_rig, rotation_deg=[0.3, -0.2, 0.1])
+    t = DrtTemplates(Projector(rig.camera, grid, device="cpu"))
+    # the box's depth range, a little deeper for the tilt, sampled DEPTH_SAMPLES_PER_VOXEL times finer
+    assert DEPTH_SAMPLES_PER_VOXEL * (grid.shape[0] - 1) < len(t.depth_phase) <= DEPTH_SAMPLES_PER_VOXEL * (
+        grid.shape[0] + 1) + 1
 
 
 def test_pinhole_and_mixed_rigs_have_no_matrix_free_form():
