@@ -25,6 +25,9 @@ Mc2 Mc's camera and a second one at 90 degrees about y around a 4.5 mm cube, rec
 M   examples/one_camera.toml: 2048 x 2048 pixels, 14 pixels per hexagonal lenslet, 400 iterations.
 L   the chapter's experiment: camera 0 of examples/two_cameras.toml (6600 x 4400 pixels),
     3300 x 2200 x 182 voxels, 400 iterations.
+D   the chapter's dual-camera box, examples/two_cameras.toml as it is: two 6600 x 4400 px cameras at
+    90 degrees, 1939 x 1455 x 1939 voxels (5.5e9, more than int32 indices number: depth slabs
+    only, ``--slabs``; ``--planes`` for a sample).
 T4  Tomo-PIV: examples/tomo_4_cameras.toml, the chapter's arc of 4 pinhole cameras of 160 x 160
     pixels, 133 x 133 x 53 voxels at PVR 1, 0.05 ppp (--ppp), MLOS-SMART 20 iterations; T6 and
     T8 the 6- and 8-camera arcs. Beside MLOS-SMART, the MART baseline on the same projector
@@ -106,6 +109,8 @@ def case_rig(case: str) -> tuple[Rig, int]:
             d["camera"].append(dict(d["camera"][0], name="cam1", rotation_deg=[0.0, 90.0, 0.0]))
             d["volume"].update(size_mm=[4.5, 4.5, 4.5], pvr=[3.0, 3.0, 3.0])
         return Rig.from_dict(d), 50
+    if case == "D":  # the chapter's dual-camera box as the example rig has it
+        return load_rig(ROOT / "examples" / "two_cameras.toml"), 400
     d = load_rig(ROOT / "examples" / "two_cameras.toml").to_dict()
     d["camera"] = d["camera"][:1]
     # 3300 x 2200 x 182 voxels of 11 x 11 x 55 um at PVR (2, 2, 10) and |M| = 1
@@ -138,7 +143,7 @@ def peak_bytes(device: str) -> int:
 def scene(case: str, device: str, ppm: float):
     """The case's rig, iterations, cameras, grid and true particles, and one rendered image per camera."""
     rig, its = case_rig(case)
-    cams = rig.camera if case in ("S2", "Mc2") else rig.camera[:1]
+    cams = rig.camera if case in ("S2", "Mc2", "D") else rig.camera[:1]
     pts = seed_particles(rig.volume, particle_count(rig, ppm), np.random.default_rng(1))
     render = rig.render.model_copy(update={"rays_per_particle": 5000})
     img = [LightFieldRenderer(c, render, rig.laser.wavelength_nm, device=device).frame(pts, render.particle_counts,
@@ -258,17 +263,18 @@ def run_slabs(case: str, device: str, ppm: float, iterations: int | None, n_slab
           f"{' x '.join(map(str, grid.shape[::-1]))} voxels (x, y, z), {len(pts)} particles ({ppm:g} PPM), "
           f"{its} iterations, device {device}", flush=True)
     log("rendered")
-    if planes is not None:  # the box's planes z0 .. z1 - 1 only, each voxel where it was
+    proj = Projector(cams, grid, device=device)
+    if planes is not None:  # the box's planes z0 .. z1 - 1 only, numbered as a slab of the box (its templates)
         z0, z1 = planes
         if not 0 <= z0 < z1 <= grid.shape[0]:
             raise SystemExit(f"--planes {z0}:{z1} is outside the box's planes 0:{grid.shape[0]}")
         o = grid.origin_mm
-        grid = VolumeGrid(shape=(z1 - z0, *grid.shape[1:]), voxel_mm=grid.voxel_mm,
-                          origin_mm=(o[0], o[1], o[2] + z0 * grid.voxel_mm[2]))
-        pts = pts[np.abs(pts[:, 2] - o[2] - 0.5 * (z0 + z1 - 1) * grid.voxel_mm[2]) <= 0.5 * (z1 - z0) *
+        proj = proj.planes(z0, z1)
+        grid = proj.grid
+        pts = pts[np.abs(pts[:, 2] - o[2] - (z0 + 0.5 * (z1 - z0 - 1)) * grid.voxel_mm[2]) <= 0.5 * (z1 - z0) *
                   grid.voxel_mm[2]]  # the truth of Q: the particles inside those planes
-        print(f"  planes {z0}-{z1 - 1} only: {' x '.join(map(str, grid.shape[::-1]))} voxels", flush=True)
-    proj = Projector(cams, grid, device=device)
+        print(f"  planes {z0}-{z1 - 1} only: {' x '.join(map(str, grid.shape[::-1]))} voxels, numbered from the "
+              f"box's voxel {z0 * grid.shape[1] * grid.shape[2]:,}", flush=True)
     log("projector built")
     nz = grid.shape[0]
     # Q needs the whole volume and its truth on the host: only where both fit in a quarter of memory
@@ -469,7 +475,7 @@ def peak_capacity(device: str) -> int:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--case", choices=("S", "S2", "Mc", "Mc2", "M", "L", *TOMO_CASES), action="append",
+    ap.add_argument("--case", choices=("S", "S2", "Mc", "Mc2", "M", "L", "D", *TOMO_CASES), action="append",
                     help="case(s) to run (default: S)")
     ap.add_argument("--device", default=None, help="cpu or cuda (default: a GPU if there is one)")
     ap.add_argument("--ppm", type=float, default=0.5)

@@ -462,6 +462,7 @@ class FrameReconstructor:
         self._proj = None  # (n_pixels,) float32: the forward projection
         self._templates = None if templates is None else templates.on(projector)  # the matrix-free ones, once built
         self._n_templates = None  # how many there would be (0: the cameras have none), once counted
+        self._images_fit = True  # False once auto found the templates' images too big for the memory
         self._e = None  # the intensities, at least as long as the most active voxels so far
         self._volume = None  # (z, y, x) float32
 
@@ -560,8 +561,9 @@ class FrameReconstructor:
                     return self._matrix_free(voxels, storage="stored")
                 except MatrixFreeUnsupported:
                     pass
-                except MemoryBudgetError:  # the images do not fit beside the templates: their room to the weights
-                    self._templates = None
+                except MemoryBudgetError:  # the images do not fit beside the templates: their room to the weights,
+                    self._templates = None  # and no more tries on the next frames (a run's are alike)
+                    self._images_fit = False
             try:
                 return self._stored_weights(voxels, host=host)
             except MemoryBudgetError:
@@ -578,9 +580,13 @@ class FrameReconstructor:
         return self._templates
 
     def operator_bytes(self, weights) -> int:
-        """Device bytes of the operator ``weights`` applies: the weights, and the templates they
-        were made from where they are the templates' images (kept for the next frames)."""
+        """Device bytes of the operator ``weights`` applies, with what is kept for the next frames:
+        the weights, the templates they were made from where they are the templates' images, and
+        the weight cache's pool where ray-traced weights come from it (a second copy of each row)."""
+        from_templates = getattr(weights, "from_templates", False) or getattr(weights, "matrix_free", False)
         held = self._templates.nbytes if getattr(weights, "from_templates", False) and self._templates else 0
+        if self.cache is not None and not from_templates:
+            held += self.cache.device_bytes
         return int(weights.nbytes) + held
 
     def templates_pay(self, voxels, *, host: np.ndarray | None = None) -> bool:
@@ -591,8 +597,10 @@ class FrameReconstructor:
         less than tracing the voxels the weight cache lacks. So a frame with many more active
         voxels than templates (the Mc crop: 385,000-472,000 against 22,757) takes the images, a
         small one (the tiny rig's 26,000 against 4,180) its traced weights. False where the
-        cameras have no templates.
+        cameras have no templates, and once an earlier frame's images did not fit the memory.
         """
+        if not self._images_fit:
+            return False
         if self._n_templates is None:
             try:
                 self._n_templates = template_count(self.projector)

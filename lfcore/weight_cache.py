@@ -108,6 +108,12 @@ class WeightCache:
         """Bytes of stored weights (the pool itself may be up to twice as large)."""
         return BYTES_PER_WEIGHT * self._used
 
+    @property
+    def device_bytes(self) -> int:
+        """Device bytes the cache holds: its pool (stored rows and room for more) and the
+        elimination's check table."""
+        return BYTES_PER_WEIGHT * self._capacity() + int(self.checks_bytes)
+
     def _capacity(self) -> int:
         return 0 if self._pix is None else int(self._pix.shape[0])
 

@@ -16,7 +16,7 @@ from lfcore.pinhole_projector import PINHOLE_METHODS, projector_for, unsupported
 from lfcore.pinhole_projector import default_method as pinhole_default_method
 from lfcore.projector import Projector, max_planes
 from lfcore.reconstruct import MAX_SUB_APERTURES, WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
-from lfcore.rig import Rig, voxel_shape_warnings
+from lfcore.rig import Rig, is_pinhole, voxel_shape_warnings
 from lfcore.runstore import RunStore
 from lfcore.slabs import SlabReconstructor, plan_slabs, slab_halo, slabs_for_budget
 from lfcore.volume import VolumeGrid
@@ -284,6 +284,10 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     if tomo is not None:
         raise UsageError(f"camera '{tomo}' is a pinhole camera: --method {settings.method} needs light-field "
                          "cameras; use --method mlos-smart (the default for pinhole cameras) or mart")
+    pinhole = [c.name for c in cams if is_pinhole(c)]
+    if settings.projector == "matrix-free" and pinhole:  # said before the store is touched
+        raise UsageError(f"--projector matrix-free: camera '{pinhole[0]}' is a pinhole camera, and the templates are "
+                         "for light-field cameras alone; use --projector auto or stored")
     try:
         grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(pvr), tuple(margin_mm))
     except ValueError as exc:

@@ -70,3 +70,14 @@ def test_a_tilted_camera_reconstructs_matrix_free_as_on_its_stored_weights(capsy
     assert np.corrcoef(a, b)[0, 1] >= 0.999 and abs(b.sum() / a.sum() - 1.0) <= 0.01
     rc, out, _ = _run(capsys, "info", str(run))
     assert rc == 0 and "projector matrix-free" in out
+
+
+def test_matrix_free_on_a_mixed_rig_is_refused_before_the_store_is_touched(capsys, tmp_path):
+    run = tmp_path / "run.zarr"
+    assert main(["synth", "--rig", str(EXAMPLES / "mixed_cameras.toml"), "--out", str(run), "--pairs", "1",
+                 "--ppm", "0.05", "--quiet"]) == 0
+    capsys.readouterr()
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--projector", "matrix-free", "--iterations", "2", "--quiet")
+    assert rc == 2 and out == "" and err.count("\n") == 1, err
+    assert "is a pinhole camera, and the templates are for light-field cameras alone; use --projector auto" in err
+    assert "volumes" not in RunStore.open(run).group and "volumes.pending" not in RunStore.open(run).group

@@ -308,11 +308,18 @@ def test_auto_takes_the_templates_images_where_they_cost_less_than_tracing(scene
     tight = FrameReconstructor(proj, settings, budget_bytes=12 * proj.n_pixels + 4 * n + 8 * grid.n_voxels + held
                                + (imaged.weight_bytes - held) // 2)
     assert tight.reconstruct([img]).projector == "stored" and tight._templates is None
+    # and the next frame does not build the templates again only to find their images too big
+    built = []
+    monkeypatch.setattr(recon, "DrtTemplates", lambda *a, **k: built.append(1))
+    assert tight.reconstruct([img]).projector == "stored" and not built
     # the same frame again with its weights cached: no voxel left to trace, so the cache serves
     cache = WeightCache(proj)
     cached = FrameReconstructor(proj, settings, cache=cache)
     monkeypatch.setattr(recon, "TEMPLATE_TRACES", 1e9)
-    assert cached.reconstruct([img]).projector == "stored" and cache.n_cached >= n
+    served = cached.reconstruct([img])
+    assert served.projector == "stored" and cache.n_cached >= n
+    # its memory counts the cache's pool, which keeps a second copy of every traced row
+    assert cache.device_bytes >= 8 * served.nnz and served.weight_bytes >= 8 * served.nnz + cache.device_bytes
     monkeypatch.setattr(recon, "TEMPLATE_TRACES", 0.0)
     vox = proj.wp.array(np.arange(grid.n_voxels, dtype=np.int32), device=device)
     assert cache.uncached(vox) == grid.n_voxels - cache.n_cached
