@@ -529,7 +529,11 @@ class MatrixFreeWeights:
         weights' size is known before they are written."""
         t, km, wp = self.templates, self.templates._km, self.templates.wp
         n, dev, n_pix = self.n_voxels, t.device, t.projector.n_pixels
-        blocks = max(1, min(cpu_threads(), n))
+        # each block's dense image and list of pixels met (8 bytes a pixel: 0.5 GB a block for two
+        # 29 MP cameras) take at most a quarter of the budget, and the voxels' counts 16 bytes each
+        blocks = max(1, min(cpu_threads(), n, budget // 4 // (8 * n_pix)))
+        scratch = 8 * n_pix * blocks + 16 * max(n, 1)
+        budget -= scratch
         dense = PerBlock(tuple(wp.zeros(n_pix, dtype=float, device=dev) for _ in range(blocks)))
         touched = PerBlock(tuple(wp.empty(n_pix, dtype=wp.int32, device=dev) for _ in range(blocks)))
         common = [*t._common(), float(self.min_weight)]
@@ -543,7 +547,8 @@ class MatrixFreeWeights:
         total = int(raw[-1])
         if BYTES_PER_WEIGHT * total > budget:
             raise MemoryBudgetError(f"the matrix-free templates' images of {n:,} voxels need "
-                                    f"{BYTES_PER_WEIGHT * total / 2**30:.2f} GiB but {budget / 2**30:.2f} GiB are free")
+                                    f"{BYTES_PER_WEIGHT * total / 2**30:.2f} GiB but {budget / 2**30:.2f} GiB are free "
+                                    f"beside the merge's {scratch / 2**20:.0f} MiB of scratch")
         chunks, lo = [], 0
         while lo < n:  # chunks of whole voxels with at most CHUNK_ENTRIES entries (a voxel with more alone)
             hi = int(np.searchsorted(raw, raw[lo] + CHUNK_ENTRIES["cpu"], side="right")) - 1

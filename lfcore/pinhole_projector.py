@@ -155,7 +155,6 @@ class PinholeProjector(Projector):
         self.max_checks = 0
         self._n_checks = 0
         self._parts = PrivateCopies()
-        self._ratio = None
         self._buffers: dict[str, object] = {}
         self._none = wp.empty(0, dtype=wp.int32, device=self.device)
 
@@ -304,7 +303,6 @@ class JointProjector(Projector):
         self.max_checks = 0
         self._n_checks = 0
         self._parts = PrivateCopies()
-        self._ratio = None
         self._buffers: dict[str, object] = {}
         self._none = wp.empty(0, dtype=wp.int32, device=self.device)
 

@@ -137,7 +137,6 @@ class Projector:
         self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in self.cameras])
         self.n_pixels = int(self.pixel_offsets[-1])
         self._parts = PrivateCopies()  # projection images of the CPU blocks (see forward)
-        self._ratio = None  # the pixels' log ratios of smart_update
         if self.n_pixels >= 2**31:
             raise MemoryBudgetError("more than 2**31 pixels; use fewer or smaller cameras")
 
@@ -421,24 +420,23 @@ class Projector:
         from lfcore._kernels import mart as km
 
         wp = self.wp
-        if self._ratio is None or self._ratio.shape[0] != self.n_pixels:
-            self._ratio = wp.empty(self.n_pixels, dtype=float, device=self.device)
-        wp.launch(km.log_ratio, dim=self.n_pixels, inputs=[image, proj, float(floor), self._ratio], device=self.device)
+        ratio = self._scratch("ratio", self.n_pixels, wp.float32)  # kept (and shared with the depth slabs)
+        wp.launch(km.log_ratio, dim=self.n_pixels, inputs=[image, proj, float(floor), ratio], device=self.device)
         mu = float(relaxation)
         if getattr(weights, "matrix_free", False):  # lfcore.matrix_free.MatrixFreeWeights
-            weights.smart_update(self._ratio, e, mu)
+            weights.smart_update(ratio, e, mu)
             return
         k = weights.n_stored
         if k < weights.n_voxels:
             self.builder.trace_los(weights.voxels[k:], 3, weights.min_weight, sums=weights.sums,
-                                   e=e[k:weights.n_voxels], ratio=self._ratio, relaxation=mu)
+                                   e=e[k:weights.n_voxels], ratio=ratio, relaxation=mu)
         for c in weights.chunks:
             if self.device == "cpu":
                 launch_rows(km.smart_update, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first),
-                                                   self._ratio, mu, e], self.device)
+                                                   ratio, mu, e], self.device)
             elif c.n:  # a warp per voxel, its lanes' sums added by a block reduction
                 wp.launch_tiled(km.smart_update_tiled, dim=[c.n], block_dim=LANES, device=self.device,
-                                inputs=[c.offsets, c.pix, c.w, c.first, self._ratio, mu, e])
+                                inputs=[c.offsets, c.pix, c.w, c.first, ratio, mu, e])
 
     def transpose(self, weights: Weights):
         """Pixel-major copy of the weights for the sequential form: (p_offsets, vox, w, rows)."""
