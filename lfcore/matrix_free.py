@@ -129,17 +129,22 @@ class MatrixFreeUnsupported(ValueError):
 DEPTH_SAMPLES_PER_VOXEL = 6
 
 
+def _corners(grid) -> np.ndarray:
+    """(8, 3) world (x, y, z) mm of the centres of the box's corner voxels."""
+    nz, ny, nx = grid.shape
+    origin = np.asarray(grid.origin_mm, dtype=np.float64)
+    step = np.asarray(grid.voxel_mm, dtype=np.float64)
+    return np.array([origin + step * np.array([i * (nx - 1), j * (ny - 1), k * (nz - 1)])
+                     for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
 def _depth_samples(cam, grid) -> np.ndarray:
     """Camera depths (mm) at which the templates of a camera off the grid axes are made: from the
     nearest to the farthest voxel centre of the box, :data:`DEPTH_SAMPLES_PER_VOXEL` per voxel depth
     extent along the optical axis, evenly spaced."""
     rot = cam.rotation.T  # world -> camera
-    nz, ny, nx = grid.shape
-    origin = np.asarray(grid.origin_mm, dtype=np.float64)
     step = np.asarray(grid.voxel_mm, dtype=np.float64)
-    corners = np.array([origin + step * np.array([i * (nx - 1), j * (ny - 1), k * (nz - 1)])
-                        for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-    z = ((corners - np.asarray(cam.focus_mm)) @ rot.T)[:, 2]
+    z = ((_corners(grid) - np.asarray(cam.focus_mm)) @ rot.T)[:, 2]
     dz = 2.0 * float((np.abs(rot) @ (0.5 * step))[2]) / DEPTH_SAMPLES_PER_VOXEL
     n = int(np.ceil((z.max() - z.min()) / dz)) + 1
     return z.min() + dz * np.arange(n)
@@ -278,8 +283,6 @@ class DrtTemplates:
         self.max_phases = int(max_phases)
         self.device = projector.device
         grid = projector.box  # the whole box's depth planes: a depth slab's projector shares them (on())
-        nz, ny, nx = grid.shape
-        origin = np.asarray(grid.origin_mm, dtype=np.float64)
         step = np.asarray(grid.voxel_mm, dtype=np.float64)
         plans, t_view, t_point, t_probe, depth_first, depth_phase = [], [], [], [], [], []
         blur = 0.0
@@ -325,9 +328,7 @@ class DrtTemplates:
             pl.k_spot = cam.mla_focal_length_mm / si
             plans.append(pl)
             # the depth blur's lateral term |A - p| dq against the voxel's own lateral blur
-            corners = np.array([[origin[0] + step[0] * i * (nx - 1), origin[1] + step[1] * j * (ny - 1),
-                                 origin[2] + step[2] * k * (nz - 1)] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-            p_cam = (corners - np.asarray(cam.focus_mm)) @ rot.T
+            p_cam = (_corners(grid) - np.asarray(cam.focus_mm)) @ rot.T
             half = np.abs(rot) @ (0.5 * step)
             sop = so - p_cam[:, 2]
             lateral = si / sop * half[0]
@@ -391,7 +392,7 @@ class DrtTemplates:
             If ``projector`` has other cameras or another box.
         """
         mine = self.projector
-        if projector.box != mine.box or projector.cameras != mine.cameras or projector.views is not mine.views:
+        if projector.box != mine.box or projector.views is not mine.views:  # the same cameras' device views
             raise ValueError("the templates belong to another box or cameras; build them on this projector")
         out = copy.copy(self)
         out.projector = projector

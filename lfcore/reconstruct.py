@@ -583,10 +583,11 @@ class FrameReconstructor:
         """Device bytes of the operator ``weights`` applies, with what is kept for the next frames:
         the weights, the templates they were made from where they are the templates' images, and
         the weight cache's pool where ray-traced weights come from it (a second copy of each row)."""
-        from_templates = getattr(weights, "from_templates", False) or getattr(weights, "matrix_free", False)
-        held = self._templates.nbytes if getattr(weights, "from_templates", False) and self._templates else 0
-        if self.cache is not None and not from_templates:
-            held += self.cache.device_bytes
+        held = 0
+        if getattr(weights, "from_templates", False):
+            held = self._templates.nbytes if self._templates else 0
+        elif self.cache is not None and not getattr(weights, "matrix_free", False):
+            held = self.cache.device_bytes
         return int(weights.nbytes) + held
 
     def templates_pay(self, voxels, *, host: np.ndarray | None = None) -> bool:
