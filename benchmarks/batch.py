@@ -71,7 +71,7 @@ def reconstruction(store: RunStore, settings: ReconSettings, device: str) -> Non
     reconstruct_run(store, settings, pairs=slice(0, 1), device=device, progress=False)
 
     t0 = time.perf_counter()
-    frames = _operator(rig.camera, grid, settings, device)
+    _, frames = _operator(rig.camera, grid, settings, device)
     t_build = time.perf_counter() - t0
     t_rec = t_write = 0.0
     for p in pairs:

@@ -77,7 +77,7 @@ from lfcore import metrics  # noqa: E402
 from lfcore.device import resolve_device, warp  # noqa: E402
 from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.pinhole_projector import PinholeProjector  # noqa: E402
-from lfcore.projector import BYTES_PER_WEIGHT, STORAGE, MemoryBudgetError, Projector  # noqa: E402
+from lfcore.projector import BYTES_PER_WEIGHT, STORAGE, LightFieldProjector, MemoryBudgetError  # noqa: E402
 from lfcore.reconstruct import ReconSettings, estimate_background, preprocess, reconstruct  # noqa: E402
 from lfcore.render import LightFieldRenderer, PinholeRenderer  # noqa: E402
 from lfcore.rig import Rig  # noqa: E402
@@ -229,7 +229,7 @@ def interleaved(proj, img, *, rounds: int, its: int) -> None:
     signals, lits, _, noise = preprocess_images(proj, img, traced.settings)
     image = wp.array(np.concatenate([s.ravel() for s in signals]), dtype=float, device=proj.device)
     voxels = traced.eliminate(lits)
-    ops = ((traced, traced.weights(voxels)), (images, images.weights(voxels)))
+    ops = ((traced, traced.operator(voxels)), (images, images.operator(voxels)))
     ms = np.zeros((rounds, 2))
     for r in range(rounds):
         for k in (0, 1) if r % 2 == 0 else (1, 0):  # each operator first in every other round
@@ -263,7 +263,7 @@ def run_slabs(case: str, device: str, ppm: float, iterations: int | None, n_slab
           f"{' x '.join(map(str, grid.shape[::-1]))} voxels (x, y, z), {len(pts)} particles ({ppm:g} PPM), "
           f"{its} iterations, device {device}", flush=True)
     log("rendered")
-    proj = Projector(cams, grid, device=device)
+    proj = LightFieldProjector(cams, grid, device=device)
     if planes is not None:  # the box's planes z0 .. z1 - 1 only, numbered as a slab of the box (its templates)
         z0, z1 = planes
         if not 0 <= z0 < z1 <= grid.shape[0]:
@@ -325,7 +325,7 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, 
           f"device {device}; "
           f"rendered in {time.perf_counter() - t:.1f} s")
     bw = copy_bandwidth(device)
-    proj = Projector(cams, grid, device=device)
+    proj = LightFieldProjector(cams, grid, device=device)
     e0 = metrics.truth_volume(grid, pts)
     print(f"  copy bandwidth {bw / 1e9:.1f} GB/s")
 
@@ -363,7 +363,7 @@ def run(case: str, device: str, ppm: float, iterations: int | None, mart: bool, 
     # the baseline's weights, counted on a sample of voxels first: they may not fit at all
     sample = np.random.default_rng(2).choice(grid.n_voxels, size=min(grid.n_voxels, 20000), replace=False)
     wp = warp()
-    est = proj.weights(wp.array(np.sort(sample).astype(np.int32), device=device), "los").nnz
+    est = proj.weights(wp.array(np.sort(sample).astype(np.int32), device=device), method="los").nnz
     need = BYTES_PER_WEIGHT * est * grid.n_voxels / len(sample)
     if need > 0.8 * (peak_capacity(device)):
         print(f"  MART baseline: skipped, its weights would need about {need / 2**30:.0f} GiB")
@@ -430,7 +430,7 @@ def profile_weights(case: str, device: str, ppm: float) -> None:
 
     wp = warp()
     _, _, cams, grid, _, img = scene(case, device, ppm)
-    proj = Projector(cams, grid, device=device)
+    proj = LightFieldProjector(cams, grid, device=device)
     st = ReconSettings()
     lit = []
     for im in img:  # the lit pixels, as reconstruct() finds them
@@ -451,16 +451,16 @@ def profile_weights(case: str, device: str, ppm: float) -> None:
     variants = [("two-pass", "library"), ("two-pass", "per-voxel"), ("single-pass", "per-voxel")]
     few = voxels[: min(1000, voxels.shape[0])]
     for build, sort in variants:  # compile every kernel first
-        proj.weights(few, "drt", build=build, sort=sort)
-    proj.weights(few, "los")
+        proj.weights(few, method="drt", build=build, sort=sort)
+    proj.weights(few, method="los")
     for method in ("drt", "los"):
         with kernel_clock(device) as spent:
-            w, t = timed(lambda m=method: proj.weights(voxels, m))
+            w, t = timed(lambda m=method: proj.weights(voxels, method=m))
         print(f"  kernels of the default {method} build ({t:.3f} s in all, {w.nnz} weights):")
         print_clock(spent, t, "host (copies, allocation, numpy)")
         del w
     for build, sort in variants:
-        w, t = timed(lambda b=build, s=sort: proj.weights(voxels, "drt", build=b, sort=s))
+        w, t = timed(lambda b=build, s=sort: proj.weights(voxels, method="drt", build=b, sort=s))
         print(f"  DRT {build:11s} {sort:9s}: {t:7.3f} s, {w.nnz} weights ({w.nnz / t / 1e6:.0f} M weights/s)")
         del w
 

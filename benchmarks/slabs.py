@@ -53,7 +53,7 @@ def child(mode: str, pvr: tuple[float, float, float], n_slabs: int, iterations: 
     import zarr
 
     from lfcore.particles import particle_count, seed_particles
-    from lfcore.projector import Projector
+    from lfcore.projector import LightFieldProjector
     from lfcore.reconstruct import FrameReconstructor, ReconSettings
     from lfcore.render import LightFieldRenderer
     from lfcore.slabs import SlabReconstructor, plan_slabs
@@ -66,7 +66,7 @@ def child(mode: str, pvr: tuple[float, float, float], n_slabs: int, iterations: 
     cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
     images = [LightFieldRenderer(c, cfg, rig.laser.wavelength_nm, device=device).frame(pts, 50_000.0, seed=1)
               for c in rig.camera]
-    proj = Projector(rig.camera, grid, device=device)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
     nz, ny, nx = grid.shape
     data = zarr.open_array(out, mode="w", shape=grid.shape, dtype=np.float32,
                            chunks=(min(nz, 16), min(ny, 256), min(nx, 256)), fill_value=0.0)

@@ -61,7 +61,7 @@ a CPU it is still slower per iteration than stored weights (S 78-156 ms against 
 as the shared machine's load goes; Mc 2.6-2.7 s against 0.33-0.37 s, 7.0-8.2x), 11-19% faster than with
 16-bit spot changes and the voxels in their own order (run back to back; 27x and 13x with three
 templates a voxel), and it is what is left where those do not fit. Where the memory allows,
-:meth:`MatrixFreeWeights.expanded` stores the templates' images of a frame's voxels once instead
+:meth:`TemplateOperator.expanded` stores the templates' images of a frame's voxels once instead
 (no ray tracing; merged per pixel, those at or below :data:`IMAGE_FLOOR` dropped with each voxel's
 light kept), and the iterations run at the stored weights' speed (S 0.96x in one run, Mc 1.03x
 in alternating rounds with 4% more entries before the floor).
@@ -76,11 +76,20 @@ import numpy as np
 
 from lfcore.device import PerBlock, PrivateCopies, Rows, available_bytes, cpu_threads, launch_rows, warp
 from lfcore.mla import HEX_ROW
-from lfcore.projector import Projector
+from lfcore.operator import (
+    PROJECTORS,
+    TEMPLATE_IMAGES,
+    TEMPLATES,
+    MatrixFreeUnsupported,
+    applied_by,
+    scatter_voxels,
+)
+from lfcore.projector import LightFieldProjector
 from lfcore.weight_build import BYTES_PER_WEIGHT, CHUNK_ENTRIES, MemoryBudgetError, WeightChunk, Weights
 
 __all__ = ["CUT_SPOT_BYTES", "IMAGE_FLOOR", "MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS",
-           "RIGID_SPOT_BYTES", "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "applied_by", "fidelity",
+           "RIGID_SPOT_BYTES", "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "TemplateOperator",
+           "applied_by", "fidelity",
            "phase_bins", "template_count"]
 
 #: Phase bins per lattice axis of a depth's templates, per lenslet pitch over a sub-aperture's
@@ -96,26 +105,12 @@ RIGID_SPOT_BYTES = 20
 #: and the most of its shares (float32), the geometry's change per bin along each lattice axis
 #: (float32) and its shares at the 8 probes around the centre (uint16 fractions of the most).
 CUT_SPOT_BYTES = 72
-#: The projectors reconstruction can run on.
-PROJECTORS = ("auto", "stored", "matrix-free")
-#: The templates' images stored (:meth:`MatrixFreeWeights.expanded`) drop their merged entries at
+#: The templates' images stored (:meth:`TemplateOperator.expanded`) drop their merged entries at
 #: or below this and scale each voxel's others to keep its light: the faint fringe that the cut
 #: spots' first-order geometry adds (on the Mc crop 4.5% of the images' entries and 0.014% of their
 #: light; per voxel at most 0.12%), so that they have no more entries than the ray-traced weights
 #: (210.1 M against 211.4 M there; 220.1 M unpruned), whose pass costs the same per entry.
 IMAGE_FLOOR = 1.5e-5
-
-
-def applied_by(weights: object) -> str:
-    """What applies the operator of ``weights``: ``"matrix-free"`` for :class:`MatrixFreeWeights`
-    and for the templates' images stored (:meth:`MatrixFreeWeights.expanded`), ``"stored"`` for
-    ray-traced stored weights (the name :attr:`lfcore.reconstruct.ReconResult.projector` reports)."""
-    matrix_free = getattr(weights, "matrix_free", False) or getattr(weights, "from_templates", False)
-    return "matrix-free" if matrix_free else "stored"
-
-
-class MatrixFreeUnsupported(ValueError):
-    """The geometry has no matrix-free form (pinhole cameras, alone or beside light-field ones)."""
 
 
 #: Templates per voxel depth extent along the optical axis of a camera that does not look along a
@@ -161,11 +156,10 @@ def _depth_axis(rot_world_to_cam: np.ndarray) -> tuple[int, int] | None:
     return axis, int(np.sign(row[axis]))
 
 
-def _light_field_alone(projector: Projector) -> None:
+def _light_field_alone(projector: LightFieldProjector) -> None:
     """Raise :class:`MatrixFreeUnsupported` unless ``projector`` has light-field cameras alone (the
-    pinhole and the joint, mixed-rig, projectors subclass Projector but have no lenslets to take
-    templates of)."""
-    if type(projector) is not Projector:
+    pinhole and the joint, mixed-rig, projectors have no lenslets to take templates of)."""
+    if getattr(projector, "kind", None) != "light-field":
         raise MatrixFreeUnsupported("the matrix-free projector is for light-field cameras alone; use --projector "
                                     "stored")
 
@@ -189,7 +183,7 @@ def _camera_depths(cam, grid) -> tuple[int, np.ndarray]:
     return axis, ((centres - np.asarray(cam.focus_mm)) @ rot.T)[:, 2]
 
 
-def phase_bins(projector: Projector, *, phases_per_footprint: float = PHASES_PER_FOOTPRINT,
+def phase_bins(projector: LightFieldProjector, *, phases_per_footprint: float = PHASES_PER_FOOTPRINT,
                max_phases: int = MAX_PHASES) -> list[np.ndarray]:
     """Phase bins per lattice axis of each depth plane, per camera: enough that a bin is a small
     part of a sub-aperture's footprint on the MLA (its width there: the sub-aperture's blur and
@@ -222,7 +216,7 @@ def phase_bins(projector: Projector, *, phases_per_footprint: float = PHASES_PER
     return out
 
 
-def template_count(projector: Projector, **bins) -> int:
+def template_count(projector: LightFieldProjector, **bins) -> int:
     """Templates the projector's :class:`DrtTemplates` would have (keywords as :func:`phase_bins`),
     without building them."""
     return int(sum(int((b * b).sum()) for b in phase_bins(projector, **bins)))
@@ -266,7 +260,7 @@ class DrtTemplates:
         If the cameras are not light-field ones alone.
     """
 
-    def __init__(self, projector: Projector, *, phases_per_footprint: float = PHASES_PER_FOOTPRINT,
+    def __init__(self, projector: LightFieldProjector, *, phases_per_footprint: float = PHASES_PER_FOOTPRINT,
                  max_phases: int = MAX_PHASES, budget_bytes: int | None = None) -> None:
         import time
 
@@ -382,9 +376,10 @@ class DrtTemplates:
         wp.synchronize_device(self.device)
         self.build_s = time.perf_counter() - t0
 
-    def on(self, projector: Projector) -> DrtTemplates:
+    def on(self, projector: LightFieldProjector) -> DrtTemplates:
         """These templates on another depth slab of their box (``projector``: from
-        :meth:`Projector.planes` of the same projector's box): one set serves every slab.
+        :meth:`LightFieldProjector.planes <lfcore.projector.LightFieldProjector.planes>` of the same
+        projector's box): one set serves every slab.
 
         Raises
         ------
@@ -403,11 +398,11 @@ class DrtTemplates:
         return [p._grid, p.views, self.plans, self.tables, len(p.cameras)]
 
 
-@dataclass
-class MatrixFreeWeights:
-    """The voxels of one frame on the matrix-free operator: what the reconstruction loop holds in
-    place of :class:`~lfcore.weight_build.Weights` (:meth:`Projector.forward` and
-    :meth:`Projector.smart_update` hand such weights to :meth:`forward` and :meth:`smart_update`).
+@dataclass(eq=False)
+class TemplateOperator:
+    """The voxels of one frame on the matrix-free templates, applied in every iteration: the
+    :class:`~lfcore.operator.Operator` of kind ``"templates"`` (:meth:`expanded` stores their
+    images instead, an operator of kind ``"template images"``).
 
     Attributes
     ----------
@@ -424,10 +419,14 @@ class MatrixFreeWeights:
     min_weight: float = 1e-6
     _order: object = field(default=None, init=False, repr=False, compare=False)
 
-    matrix_free = True  # the projector's dispatch mark
+    kind = TEMPLATES
     nnz = 0
     sums = None
     chunks = ()
+
+    @property
+    def device(self) -> str:
+        return self.templates.device
 
     @property
     def n_voxels(self) -> int:
@@ -464,9 +463,12 @@ class MatrixFreeWeights:
             self._order = wp.array(rows, dtype=wp.int32, device=t.device)
         return self._order
 
-    def forward(self, e, out) -> object:
-        """Project intensities ``e`` (n,) into ``out`` (n_pixels,) float32 (zeroed first)."""
+    def forward(self, e, out=None) -> object:
+        """Project intensities ``e`` (n,) into ``out`` (n_pixels,) float32 (zeroed first; None: a new
+        array), returned."""
         t, km = self.templates, self.templates._km
+        if out is None:
+            out = t.wp.zeros(t.projector.n_pixels, dtype=float, device=t.device)
         out.zero_()
         parts = PrivateCopies()
         per = parts.open(out)
@@ -476,11 +478,17 @@ class MatrixFreeWeights:
         parts.close(out)
         return out
 
-    def smart_update(self, ratio, e, relaxation: float) -> None:
-        """E_v <- E_v exp(mu sum_i w_iv ratio_i) in place, ``ratio`` the pixels' log ratios."""
+    def update(self, ratio, e, relaxation: float) -> None:
+        """E_v <- E_v exp(mu sum_i w_iv ratio_i) in place, ``ratio`` the pixels' log ratios
+        (:func:`lfcore.operator.log_ratio`)."""
         t, km = self.templates, self.templates._km
         launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.order()),
                                                      self.voxels, ratio, float(relaxation), e, t._none_i], t.device)
+
+    def scatter(self, e, out=None) -> object:
+        """The dense (z, y, x) float32 volume of the projector's grid with ``e`` at these voxels, zero
+        elsewhere, on the device (``out`` zeroed and written; None: a new array)."""
+        return scatter_voxels(self.voxels, e, self.templates.projector.grid.shape, device=self.device, out=out)
 
     def _trace(self, vox, offs, fill, limit, counts, pix, w) -> None:
         """The templates' raw entries of ``vox``, with the interface of the stored weights' tracer
@@ -507,7 +515,7 @@ class MatrixFreeWeights:
         Returns
         -------
         lfcore.weight_build.Weights
-            Stored weights, marked ``from_templates``.
+            Stored weights of kind ``"template images"``, bound to the templates' projector.
 
         Raises
         ------
@@ -521,8 +529,7 @@ class MatrixFreeWeights:
         else:  # a thread per voxel: raw entries, sorted and merged as the stored build's
             out = t.projector.builder.merged(self.voxels, self._trace, budget_bytes=budget, floor=float(floor))
         out.min_weight = float(self.min_weight)
-        out.from_templates = True
-        return out
+        return t.projector.bind(out, kind=TEMPLATE_IMAGES)
 
     def _merged_in_place(self, budget: int, floor: float) -> Weights:
         """The expansion on the CPU: each block merges its voxels' entries in a dense image of its
@@ -599,7 +606,7 @@ class MatrixFreeWeights:
         return out
 
 
-def fidelity(projector: Projector, voxels: np.ndarray, templates: DrtTemplates, *, min_weight: float = 1e-6
+def fidelity(projector: LightFieldProjector, voxels: np.ndarray, templates: DrtTemplates, *, min_weight: float = 1e-6
              ) -> dict[str, np.ndarray]:
     """Per voxel, the matrix-free image against the stored DRT weights (the reference).
 
@@ -624,11 +631,11 @@ def fidelity(projector: Projector, voxels: np.ndarray, templates: DrtTemplates, 
     for lo in range(0, len(voxels), per):
         part = voxels[lo:lo + per]
         vox = wp.array(part, dtype=wp.int32, device=projector.device)
-        stored = projector.weights(vox, "drt", min_weight=min_weight, storage="stored")
+        stored = projector.weights(vox, method="drt", min_weight=min_weight, storage="stored")
         offs, pix, w = stored.to_numpy()
         ref = np.zeros((len(part), projector.n_pixels), dtype=np.float64)
         np.add.at(ref, (np.repeat(np.arange(len(part)), np.diff(offs)), pix), w)
-        mf = MatrixFreeWeights(templates, vox, min_weight).images()
+        mf = TemplateOperator(templates, vox, min_weight).images()
         for i in range(len(part)):
             a, b = ref[i], mf[i].astype(np.float64)
             if a.sum() > 0 or b.sum() > 0:
@@ -637,3 +644,7 @@ def fidelity(projector: Projector, voxels: np.ndarray, templates: DrtTemplates, 
                 den = np.sqrt((da * da).sum() * (db * db).sum())
                 corr[lo + i] = (da * db).sum() / den if den > 0 else 0.0
     return {"correlation": corr, "light": light}
+
+
+#: The name of :class:`TemplateOperator` until the operator protocol (kept for scripts).
+MatrixFreeWeights = TemplateOperator

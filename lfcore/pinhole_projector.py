@@ -1,10 +1,9 @@
 """The projector of pinhole (Tomo-PIV) cameras: MLOS elimination and line-of-sight weights.
 
-:class:`PinholeProjector` binds pinhole cameras and a voxel grid on a device and offers what
-:class:`~lfcore.projector.Projector` offers the reconstruction algorithms (elimination, weights,
-forward projection, the SMART update, the transpose, the scatter into a volume), so
-:class:`~lfcore.reconstruct.FrameReconstructor` runs MLOS-SMART (Atkinson and Soria 2009) on it
-unchanged:
+:class:`PinholeProjector` binds pinhole cameras and a voxel grid on a device: a
+:class:`~lfcore.operator.Projector` like the light-field one (elimination, the operator of a
+frame's voxels), so :class:`~lfcore.reconstruct.FrameReconstructor` runs MLOS-SMART (Atkinson and
+Soria 2009) on it unchanged:
 
 - **weights** (line of sight): a voxel's light reaches each camera at the image of its centre,
   projected with the camera's model and its distortion (:func:`lfcore.pinhole.project`), and is
@@ -17,57 +16,41 @@ unchanged:
 - **MLOS elimination**: a voxel can hold a particle only if the pixel of its image is lit in
   every camera (the product of the lines of sight' intensities is not zero).
 
-Forward projection, the updates and the scatter are :class:`~lfcore.projector.Projector`'s own
-(inherited): they only read the weights. :class:`JointProjector` reconstructs a mixed rig (light-field
-and pinhole cameras) jointly, and :func:`projector_for` picks the projector of a camera set.
+Forward projection, the updates and the scatter are :class:`~lfcore.weight_build.Weights`' own
+(the operator of every kind of stored rows). :class:`JointProjector` reconstructs a mixed rig
+(light-field and pinhole cameras) jointly. Both are siblings of
+:class:`~lfcore.projector.LightFieldProjector` on the shared :class:`~lfcore.projector.BoundCameras`;
+:func:`lfcore.plan.projector_for` picks the projector of a camera set.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
 from lfcore.device import (
     MemoryBudgetError,
-    PrivateCopies,
     RowOffset,
     Rows,
     available_bytes,
     launch_rows,
     out_of_memory_is_budget_error,
-    resolve_device,
-    warp,
 )
-from lfcore.projector import Projector, check_indexable, grid_struct
+from lfcore.operator import JOINT, PINHOLE, check_indexable
+from lfcore.projector import BoundCameras, LightFieldProjector
 from lfcore.rig import PinholeCamera, is_pinhole
 from lfcore.volume import VolumeGrid
 from lfcore.weight_build import ADVICE, BYTES_PER_WEIGHT, CHUNK_ENTRIES, WeightChunk, Weights
 
-__all__ = ["DEFAULT_FOOTPRINT", "JointProjector", "PINHOLE_METHODS", "PinholeProjector", "default_method",
-           "footprint_sigma_px", "projector_for", "unsupported_method"]
+__all__ = ["DEFAULT_FOOTPRINT", "JointProjector", "PINHOLE_METHODS", "PinholeProjector", "footprint_sigma_px"]
 
 #: The methods of pinhole (Tomo-PIV) cameras alone: MLOS-SMART, and MART on every voxel of the box.
 #: DRT weights and MLOS-MART's elimination need microlenses.
 PINHOLE_METHODS = ("mlos-smart", "mart")
 
-
-def default_method(cameras: Sequence) -> str:
-    """The default reconstruction of ``cameras``: ``mlos-smart`` where they are all pinhole
-    cameras, ``drt-mart`` otherwise (a mixed rig's light-field cameras by DRT-MART's weights, its
-    pinhole cameras by their line of sight, jointly)."""
-    cameras = list(cameras)
-    return "mlos-smart" if cameras and all(is_pinhole(c) for c in cameras) else "drt-mart"
-
-
-def unsupported_method(cameras: Sequence, method: str) -> str | None:
-    """The name of a pinhole camera that rules ``method`` out (pinhole cameras alone take only
-    :data:`PINHOLE_METHODS`), or None where ``method`` can reconstruct ``cameras``."""
-    tomo = [c.name for c in cameras if is_pinhole(c)]
-    if tomo and len(tomo) == len(cameras) and method not in PINHOLE_METHODS:
-        return tomo[0]
-    return None
 
 #: Sigma of the footprint's Gaussian, in units of the voxel's projected width: 0.5 spreads a
 #: voxel of one pixel over about the 2 x 2 pixels a disc of its size would touch.
@@ -88,8 +71,9 @@ def footprint_sigma_px(camera: PinholeCamera, grid: VolumeGrid, footprint: float
     return max(float(footprint) * width_px, 0.05)
 
 
-class PinholeProjector(Projector):
-    """Pinhole cameras and a voxel grid bound on one device (MLOS-SMART's operator).
+class PinholeProjector(BoundCameras):
+    """Pinhole cameras and a voxel grid bound on one device (MLOS-SMART's
+    :class:`~lfcore.operator.Projector`).
 
     Parameters
     ----------
@@ -106,10 +90,11 @@ class PinholeProjector(Projector):
         Warp device; None for the first GPU, else the CPU.
     """
 
+    kind = "pinhole"
+
     def __init__(self, cameras: Sequence[PinholeCamera], grid: VolumeGrid, *, footprint: float = DEFAULT_FOOTPRINT,
                  grow: int = 0, device: str | None = None) -> None:
         from lfcore._kernels import pinhole_weights as kp
-        from lfcore._kernels import weights as kw
         from lfcore._kernels.pinhole import pinhole_params
 
         cameras = tuple(cameras)
@@ -123,19 +108,9 @@ class PinholeProjector(Projector):
             raise ValueError(f"footprint must be positive, got {footprint}")
         if grow < 0:
             raise ValueError(f"grow must be 0 or more pixels, got {grow}")
-        self.wp = wp = warp()
-        self._kw = kw
+        super().__init__(cameras, grid, device=device)
+        wp = self.wp
         self._kp = kp
-        self.cameras = cameras
-        self.grid = grid
-        self.device = resolve_device(device)
-        self.box = grid  # the whole box (see Projector.planes)
-        self.z0 = 0
-        self._grid = grid_struct(kw, grid)
-        self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in cameras])
-        self.n_pixels = int(self.pixel_offsets[-1])
-        if self.n_pixels >= 2**31:
-            raise MemoryBudgetError("more than 2**31 pixels; use fewer or smaller cameras")
         views, self.cap = [], 0
         self.sigma_px = []
         for k, cam in enumerate(cameras):
@@ -151,12 +126,7 @@ class PinholeProjector(Projector):
             self.sigma_px.append(sigma)
             views.append(v)
         self.views = wp.array(views, dtype=kp.PinholeView, device=self.device)
-        self.builder = None  # no light-field weight builder: every weight here is stored
         self.max_checks = 0
-        self._n_checks = 0
-        self._parts = PrivateCopies()
-        self._buffers: dict[str, object] = {}
-        self._none = wp.empty(0, dtype=wp.int32, device=self.device)
 
     # --- MLOS elimination ---------------------------------------------------------------
     def eliminate(self, lit, *, min_seen: float = 0.5, max_dark: float = 0.05) -> object:
@@ -186,14 +156,15 @@ class PinholeProjector(Projector):
                     self.device)
         return self._compact(mask)
 
-    def precompute_checks(self, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
+    def precompute_checks(self, n_checks: int | None = None, *, budget_bytes: int | None = None) -> int:
         """Nothing to precompute: MLOS looks up one pixel per camera (returns 0 bytes)."""
         return 0
 
     # --- weights ------------------------------------------------------------------------
-    def weights(self, voxels, method: str = "los", min_weight: float = 1e-6, budget_bytes: int | None = None,
+    def weights(self, voxels, *, method: str = "los", min_weight: float = 1e-6, budget_bytes: int | None = None,
                 build: str = "auto", sort: str = "auto", storage: str = "stored") -> Weights:
-        """Line-of-sight weights of ``voxels`` in every pinhole camera, stored.
+        """Line-of-sight weights of ``voxels`` in every pinhole camera, stored: the operator of
+        kind ``"pinhole weights"``.
 
         Parameters
         ----------
@@ -225,8 +196,14 @@ class PinholeProjector(Projector):
                              "use --method mlos-smart")
         n = int(voxels.shape[0])
         with out_of_memory_is_budget_error(self.device, f"the weights of {n:,} voxels", ADVICE):
-            return self._weights(voxels, float(min_weight),
-                                 available_bytes(self.device) if budget_bytes is None else int(budget_bytes))
+            w = self._weights(voxels, float(min_weight),
+                              available_bytes(self.device) if budget_bytes is None else int(budget_bytes))
+        return self.bind(w, kind=PINHOLE)
+
+    def operator(self, voxels, *, method: str = "los", min_weight: float = 1e-6, budget_bytes: int | None = None,
+                 storage: str = "stored") -> Weights:
+        """The :class:`~lfcore.operator.Operator` of ``voxels``: :meth:`weights`."""
+        return self.weights(voxels, method=method, min_weight=min_weight, budget_bytes=budget_bytes, storage=storage)
 
     def _weights(self, voxels, min_weight: float, budget: int) -> Weights:
         wp, kp = self.wp, self._kp
@@ -260,14 +237,14 @@ class PinholeProjector(Projector):
         return Weights(voxels=voxels, chunks=chunks, nnz=total, min_weight=min_weight)
 
 
-class JointProjector(Projector):
+class JointProjector(BoundCameras):
     """Light-field and pinhole cameras reconstructed jointly: a mixed rig on one voxel grid.
 
-    Each kind keeps its own projector (:class:`~lfcore.projector.Projector`, :class:`PinholeProjector`);
-    a voxel is kept where both eliminations keep it, and its weights are both kinds' rows joined
-    (their pixels renumbered into this projector's global numbering, in the given camera order),
-    each kind's weighted by its share of the cameras, so a voxel's weights still sum to one.
-    Projection, updates and the scatter are the light-field projector's own (inherited).
+    Each kind keeps its own projector (:class:`~lfcore.projector.LightFieldProjector`,
+    :class:`PinholeProjector`); a voxel is kept where both eliminations keep it, and its weights are
+    both kinds' rows joined (their pixels renumbered into this projector's global numbering, in the
+    given camera order), each kind's weighted by its share of the cameras, so a voxel's weights
+    still sum to one: the operator of kind ``"joint weights"``.
 
     Parameters
     ----------
@@ -276,10 +253,12 @@ class JointProjector(Projector):
     grid
         The voxel grid.
     sub_apertures
-        As :class:`~lfcore.projector.Projector` takes it (the light-field cameras' DRT weights).
+        As :class:`~lfcore.projector.LightFieldProjector` takes it (the light-field cameras' DRT weights).
     device
         Warp device; None for the first GPU, else the CPU.
     """
+
+    kind = "joint"
 
     def __init__(self, cameras: Sequence, grid: VolumeGrid, *, sub_apertures: int | None = None,
                  device: str | None = None) -> None:
@@ -287,24 +266,13 @@ class JointProjector(Projector):
         self._tomo = [k for k, c in enumerate(cameras) if is_pinhole(c)]
         self._lf = [k for k, c in enumerate(cameras) if not is_pinhole(c)]
         if not self._tomo or not self._lf:
-            raise ValueError("a joint projector needs light-field and pinhole cameras; use projector_for")
-        self.wp = wp = warp()
-        self.device = resolve_device(device)
-        self.lf = Projector([cameras[k] for k in self._lf], grid, sub_apertures=sub_apertures, device=self.device)
+            raise ValueError("a joint projector needs light-field and pinhole cameras; use lfcore.plan.projector_for")
+        super().__init__(cameras, grid, device=device)
+        self.lf = LightFieldProjector([cameras[k] for k in self._lf], grid, sub_apertures=sub_apertures,
+                                      device=self.device)
         self.ph = PinholeProjector([cameras[k] for k in self._tomo], grid, device=self.device)
-        self._kw = self.lf._kw
-        self.cameras = cameras
-        self.grid = self.box = grid
-        self.z0 = 0
         self._grid = self.lf._grid
-        self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in cameras])
-        self.n_pixels = int(self.pixel_offsets[-1])
-        self.builder = None
         self.max_checks = 0
-        self._n_checks = 0
-        self._parts = PrivateCopies()
-        self._buffers: dict[str, object] = {}
-        self._none = wp.empty(0, dtype=wp.int32, device=self.device)
 
     def _split(self, lit) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """Each kind's lit images, in its projector's order (a device mask is copied to the host)."""
@@ -318,34 +286,36 @@ class JointProjector(Projector):
         return [lit[k] for k in self._lf], [lit[k] for k in self._tomo]
 
     def eliminate(self, lit, *, min_seen: float = 0.5, max_dark: float = 0.05) -> object:
-        """Voxels that both kinds' eliminations keep (see :meth:`Projector.eliminate` and
+        """Voxels that both kinds' eliminations keep (see :meth:`LightFieldProjector.eliminate
+        <lfcore.projector.LightFieldProjector.eliminate>` and
         :meth:`PinholeProjector.eliminate`), as (n,) int32 flat indices, ascending."""
         lf_lit, ph_lit = self._split(lit)
         kept = np.intersect1d(self.lf.eliminate(lf_lit, min_seen=min_seen, max_dark=max_dark).numpy(),
                               self.ph.eliminate(ph_lit).numpy())
         return self.wp.array(kept.astype(np.int32), dtype=self.wp.int32, device=self.device)
 
-    def precompute_checks(self, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
+    def precompute_checks(self, n_checks: int | None = None, *, budget_bytes: int | None = None) -> int:
         """No elimination table is kept for a joint projector (returns 0 bytes)."""
         return 0
 
     def planes(self, z0: int, z1: int) -> JointProjector:
-        """A depth slab of this joint projector (see :meth:`Projector.planes`): each kind's
-        projector on the same planes."""
+        """A depth slab of this joint projector (see :meth:`BoundCameras.planes
+        <lfcore.projector.BoundCameras.planes>`): each kind's projector on the same planes."""
         out = super().planes(z0, z1)
         out.lf, out.ph = self.lf.planes(z0, z1), self.ph.planes(z0, z1)
         out._grid = out.lf._grid
         return out
 
-    def weights(self, voxels, method: str = "los", min_weight: float = 1e-6, budget_bytes: int | None = None,
+    def weights(self, voxels, *, method: str = "los", min_weight: float = 1e-6, budget_bytes: int | None = None,
                 build: str = "auto", sort: str = "auto", storage: str = "stored") -> Weights:
         """Both kinds' weights of ``voxels`` joined row by row (``method`` is the light-field
         cameras' kind, ``"drt"`` or ``"los"``; the pinhole cameras' are line of sight), stored."""
         wp = self.wp
         parts = []
-        for sub, idx, w in ((self.lf, self._lf, self.lf.weights(voxels, method, min_weight, budget_bytes, build, sort,
-                                                                 "stored")),
-                            (self.ph, self._tomo, self.ph.weights(voxels, "los", min_weight, budget_bytes))):
+        lf = self.lf.weights(voxels, method=method, min_weight=min_weight, budget_bytes=budget_bytes, build=build,
+                             sort=sort, storage="stored")
+        ph = self.ph.weights(voxels, method="los", min_weight=min_weight, budget_bytes=budget_bytes)
+        for sub, idx, w in ((self.lf, self._lf, lf), (self.ph, self._tomo, ph)):
             offs, pix, val = w.to_numpy()
             cam = np.searchsorted(sub.pixel_offsets, pix, side="right") - 1
             shift = self.pixel_offsets[idx] - sub.pixel_offsets[:-1]  # each camera's pixels renumbered
@@ -368,20 +338,22 @@ class JointProjector(Projector):
         chunk = WeightChunk(first=0, n=len(n1), offsets=wp.array(offs, dtype=wp.int64, device=dev),
                             pix=wp.array(pix if nnz else np.zeros(1, np.int32), dtype=wp.int32, device=dev),
                             w=wp.array(val if nnz else np.zeros(1, np.float32), dtype=float, device=dev), nnz=nnz)
-        return Weights(voxels=voxels, chunks=[chunk], nnz=nnz, min_weight=float(min_weight))
+        return self.bind(Weights(voxels=voxels, chunks=[chunk], nnz=nnz, min_weight=float(min_weight)), kind=JOINT)
+
+    def operator(self, voxels, *, method: str = "los", min_weight: float = 1e-6, budget_bytes: int | None = None,
+                 storage: str = "stored") -> Weights:
+        """The :class:`~lfcore.operator.Operator` of ``voxels``: :meth:`weights`."""
+        return self.weights(voxels, method=method, min_weight=min_weight, budget_bytes=budget_bytes, storage=storage)
 
 
-def projector_for(cameras: Sequence, grid: VolumeGrid, *, sub_apertures: int | None = None,
-                  device: str | None = None) -> Projector:
-    """The projector of ``cameras``' kind: :class:`PinholeProjector` for pinhole cameras, the
-    light-field :class:`~lfcore.projector.Projector` for light-field ones.
+_MOVED = {"projector_for": "lfcore.plan", "default_method": "lfcore.plan", "unsupported_method": "lfcore.plan"}
 
-    A mix of both kinds gets a :class:`JointProjector`.
-    """
-    cameras = tuple(cameras)
-    tomo = [c for c in cameras if is_pinhole(c)]
-    if not tomo:
-        return Projector(cameras, grid, sub_apertures=sub_apertures, device=device)
-    if len(tomo) < len(cameras):
-        return JointProjector(cameras, grid, sub_apertures=sub_apertures, device=device)
-    return PinholeProjector(cameras, grid, device=device)
+
+def __getattr__(name: str):
+    if name in _MOVED:  # the planner's since the operator protocol
+        import importlib
+
+        warnings.warn(f"lfcore.pinhole_projector.{name} is now {_MOVED[name]}.{name}; the old name still works for "
+                      "now", DeprecationWarning, stacklevel=2)
+        return getattr(importlib.import_module(_MOVED[name]), name)
+    raise AttributeError(f"module 'lfcore.pinhole_projector' has no attribute {name!r}")

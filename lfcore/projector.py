@@ -1,22 +1,23 @@
-"""The projector: light-field cameras bound to a voxel grid on a compute device.
+"""The light-field projector: light-field cameras bound to a voxel grid on a compute device.
 
-It owns the geometry on the device and exposes what reconstruction algorithms need: which
-voxels can hold a particle (zero-voxel elimination), the sparse voxel-to-pixel weights (dense
-ray tracing, or the conventional line-of-sight baseline; built by :mod:`lfcore.weight_build`),
-forward projection, the MART updates, the pixel-major transpose and the scatter into a dense
-volume. Algorithms (:mod:`lfcore.reconstruct`) only see this object.
+:class:`LightFieldProjector` owns the cameras' geometry on the device and makes what
+reconstruction needs of it (the :class:`~lfcore.operator.Projector` protocol): which voxels can
+hold a particle (zero-voxel elimination) and the operator of a frame's active voxels, their
+sparse voxel-to-pixel weights (dense ray tracing, or the conventional line-of-sight baseline;
+built by :mod:`lfcore.weight_build`, applied by :class:`~lfcore.weight_build.Weights`).
+Algorithms (:mod:`lfcore.reconstruct`) only see the operator.
 
-Pixels of all cameras are numbered globally: camera k's pixel (row, column) is
-``pixel_offsets[k] + row * columns + column``.
-
-A projector keeps scratch buffers between calls (elimination's masks, the projection's private
-images, the update's log ratios): one thread at a time may use it.
+:class:`BoundCameras` is what every projector (light-field, pinhole, joint) shares: the cameras'
+pixels numbered globally (camera k's pixel (row, column) is ``pixel_offsets[k] + row * columns +
+column``), the grid or a depth slab of it, and scratch buffers kept between calls (elimination's
+masks, the projection's private images): one thread at a time may use a projector.
 """
 
 from __future__ import annotations
 
 import copy
 import math
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -25,38 +26,31 @@ from lfcore.device import (
     MemoryBudgetError,
     PrivateCopies,
     RowOffset,
-    Rows,
     available_bytes,
     launch_rows,
     resolve_device,
     warp,
 )
+from lfcore.operator import INDEX_LIMIT, LINE_OF_SIGHT, TRACED, check_indexable, log_ratio, max_planes
 from lfcore.rig import Camera
 from lfcore.volume import VolumeGrid
-from lfcore.weight_build import BUILDS, BYTES_PER_WEIGHT, STORAGE, WeightBuilder, WeightChunk, Weights, device_range
+from lfcore.weight_build import (
+    BUILDS,
+    BYTES_PER_WEIGHT,
+    LANES,
+    STORAGE,
+    Binding,
+    WeightBuilder,
+    WeightChunk,
+    Weights,
+    device_range,
+)
 
-# BUILDS, BYTES_PER_WEIGHT, STORAGE, WeightChunk and Weights live in lfcore.weight_build; they are
-# importable from here too.
-__all__ = ["BUILDS", "BYTES_PER_WEIGHT", "INDEX_LIMIT", "LANES", "MemoryBudgetError", "Projector", "STORAGE",
-           "WeightChunk", "Weights", "check_indexable", "grid_struct", "max_planes"]
-
-#: Voxels are numbered by int32 flat indices, so one projector numbers fewer than this many: a larger
-#: box (the chapter's 5.5-G-voxel dual-camera one) is reconstructed in depth slabs, each numbering
-#: its own voxels (:meth:`Projector.planes`).
-INDEX_LIMIT = 2**31
-
-
-def max_planes(grid: VolumeGrid) -> int:
-    """The most planes of ``grid`` that one projector numbers (fewer than :data:`INDEX_LIMIT` voxels)."""
-    return (INDEX_LIMIT - 1) // (grid.shape[1] * grid.shape[2])
-
-
-def check_indexable(grid: VolumeGrid) -> None:
-    """Raise :class:`MemoryBudgetError` (one line, with the fix) if ``grid`` has too many voxels
-    for int32 voxel indices (:data:`INDEX_LIMIT`)."""
-    if grid.shape[0] > max_planes(grid):
-        raise MemoryBudgetError(f"a box of {grid.n_voxels:,} voxels is more than int32 voxel indices number in one "
-                                "piece; reconstruct it in depth slabs (--slabs auto) or use a coarser --pvr")
+# BUILDS, BYTES_PER_WEIGHT, STORAGE, WeightChunk and Weights live in lfcore.weight_build, INDEX_LIMIT,
+# check_indexable and max_planes in lfcore.operator; they are importable from here too.
+__all__ = ["BUILDS", "BYTES_PER_WEIGHT", "INDEX_LIMIT", "LANES", "BoundCameras", "LightFieldProjector",
+           "MemoryBudgetError", "STORAGE", "WeightChunk", "Weights", "check_indexable", "grid_struct",
+           "max_planes"]
 
 
 def grid_struct(kw, box: VolumeGrid, *, z0: int = 0, z1: int | None = None):
@@ -72,10 +66,8 @@ def grid_struct(kw, box: VolumeGrid, *, z0: int = 0, z1: int | None = None):
     g.z0 = int(z0)
     return g
 
-#: Checks per view of elimination's first pass over the grid (see :meth:`Projector.eliminate`).
+#: Checks per view of elimination's first pass over the grid (see :meth:`LightFieldProjector.eliminate`).
 PREFILTER_CHECKS = 4
-#: GPU threads that share one voxel's row of weights in the MART kernels (a warp).
-LANES = 32
 
 
 def _sub_apertures(cam: Camera, n_sub: int, samples: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -96,13 +88,169 @@ def _sub_apertures(cam: Camera, n_sub: int, samples: int = 8) -> tuple[np.ndarra
     return np.asarray(centres), shares_a
 
 
-class Projector:
-    """Cameras and a voxel grid bound on one device.
+class BoundCameras:
+    """Cameras bound to a voxel grid on one device: what every projector shares.
+
+    The cameras' pixels numbered globally (:attr:`pixel_offsets`), the grid (or a depth slab of
+    its box, :meth:`planes`), the kernels' view of it and scratch buffers kept between calls.
+    :class:`LightFieldProjector`, :class:`~lfcore.pinhole_projector.PinholeProjector` and
+    :class:`~lfcore.pinhole_projector.JointProjector` build on it, each its own kind of
+    :class:`~lfcore.operator.Projector`.
 
     Parameters
     ----------
     cameras
-        One or more cameras (a joint reconstruction uses every camera's pixels).
+        The cameras, in the order of their images.
+    grid
+        The voxel grid.
+    device
+        Warp device; None for the first GPU, else the CPU.
+    """
+
+    #: ``"light-field"``, ``"pinhole"`` or ``"joint"``: the kind of cameras bound.
+    kind = ""
+
+    def __init__(self, cameras: Sequence, grid: VolumeGrid, *, device: str | None = None) -> None:
+        from lfcore._kernels import weights as kw
+
+        self.wp = warp()
+        self._kw = kw
+        self.cameras = tuple(cameras)
+        self.grid = grid
+        self.device = resolve_device(device)
+        self.box = grid  # the whole box (grid is one depth slab of it on a projector from planes())
+        self.z0 = 0  # the box's plane of the grid's first
+        self._grid = grid_struct(kw, grid)
+        self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in self.cameras])
+        self.n_pixels = int(self.pixel_offsets[-1])
+        if self.n_pixels >= 2**31:
+            raise MemoryBudgetError("more than 2**31 pixels; use fewer or smaller cameras")
+        self._parts = PrivateCopies()  # projection images of the CPU blocks (see Weights.forward)
+        self._buffers: dict[str, object] = {}  # scratch kept between calls (see _scratch)
+        self._none = self.wp.empty(0, dtype=self.wp.int32, device=self.device)
+        self.builder: WeightBuilder | None = None  # the light-field weight builder, where there is one
+
+    def binding(self) -> Binding:
+        """What applying this projector's stored weights needs (:class:`~lfcore.weight_build.Binding`)."""
+        return Binding(device=self.device, n_pixels=self.n_pixels, shape=tuple(self.grid.shape), builder=self.builder,
+                       parts=self._parts)
+
+    def bind(self, weights: Weights, *, kind: str | None = None) -> Weights:
+        """``weights`` (built for this projector's grid) bound to it as an operator, marked ``kind``
+        (default: as they are); returned."""
+        weights.binding = self.binding()
+        if kind is not None:
+            weights.kind = kind
+        return weights
+
+    def all_voxels(self) -> object:
+        """Every voxel of the grid (no elimination), as (n,) int32 indices."""
+        check_indexable(self.grid)
+        return device_range(self.grid.n_voxels, device=self.device)
+
+    def planes(self, z0: int, z1: int):
+        """This projector on planes ``z0 .. z1 - 1`` of its grid: a depth slab whose voxels are
+        numbered from its first plane (so a box of :data:`INDEX_LIMIT` voxels or more is numbered
+        slab by slab), with the same cameras, device tables and scratch buffers.
+
+        A slab's voxel has the box's voxel's centre to the bit, so its weights, its templates'
+        images and its elimination are the box's (:mod:`lfcore.slabs`).
+
+        Raises
+        ------
+        ValueError
+            If the planes are not a non-empty range of the grid's.
+        MemoryBudgetError
+            If the slab itself has :data:`INDEX_LIMIT` voxels or more.
+        """
+        grid = self.grid.planes(z0, z1)
+        check_indexable(grid)
+        out = copy.copy(self)
+        out.grid = grid
+        out.z0 = self.z0 + int(z0)
+        out._grid = grid_struct(self._kw, self.box, z0=out.z0, z1=out.z0 + grid.shape[0])
+        return out
+
+    def _lit_on_device(self, lit) -> object:
+        """The lit mask as one (n_pixels,) uint8 device array: a device mask as it is (checked),
+        per-camera host masks concatenated and uploaded into a kept scratch buffer."""
+        wp = self.wp
+        if isinstance(lit, wp.array):
+            if lit.dtype != wp.uint8 or lit.shape != (self.n_pixels,) or str(lit.device) != self.device:
+                raise ValueError(f"a device lit mask must be ({self.n_pixels},) uint8 on {self.device}, got "
+                                 f"{lit.shape} {lit.dtype.__name__} on {lit.device}")
+            return lit
+        flat = np.concatenate([np.asarray(m, dtype=np.uint8).ravel() for m in lit])
+        if flat.size != self.n_pixels:
+            raise ValueError(f"lit masks hold {flat.size} pixels, the cameras {self.n_pixels}")
+        lit_dev = self._scratch("lit", self.n_pixels, wp.uint8)
+        wp.copy(lit_dev, wp.array(flat, dtype=wp.uint8, device="cpu", copy=False))
+        return lit_dev
+
+    def _scratch(self, name: str, n: int, dtype) -> object:
+        """The first ``n`` elements of the scratch buffer ``name``, kept between calls (grown by
+        half again when too short)."""
+        buf = self._buffers.get(name)
+        if buf is None or buf.shape[0] < n or buf.dtype != dtype:
+            size = n if buf is None else max(n, int(1.5 * buf.shape[0]))
+            buf = self._buffers[name] = self.wp.empty(max(size, 1), dtype=dtype, device=self.device)
+        return buf[:n]
+
+    def _compact(self, mask, values=None, *, scratch: str | None = None) -> object:
+        """The indices where ``mask`` is set (or those entries of ``values``), as (n,) int32.
+
+        ``scratch``: the :meth:`_scratch` buffer to write them to (overwritten by a later call);
+        None: a new array.
+        """
+        wp, kw = self.wp, self._kw
+        scan = self._scratch("scan", mask.shape[0], wp.int32)
+        wp.utils.array_scan(mask, scan, inclusive=True)
+        count = int(scan[mask.shape[0] - 1 :].numpy()[0]) if mask.shape[0] else 0
+        out = wp.empty(count, dtype=wp.int32, device=self.device) if scratch is None else self._scratch(scratch, count,
+                                                                                                          wp.int32)
+        if values is None:
+            values = self._none
+        if count:
+            wp.launch(kw.compact, dim=mask.shape[0], device=self.device, inputs=[mask, scan, values, out])
+        return out
+
+    # --- the operator's own methods, kept for scripts written against the projector ------------------
+    def forward(self, weights, e, out=None):
+        """Deprecated: ``weights.forward(e, out)`` (:meth:`lfcore.operator.Operator.forward`)."""
+        _moved("forward(weights, e, out)", "weights.forward(e, out)")
+        return weights.forward(e, out)
+
+    def smart_update(self, weights, image, proj, e, relaxation: float, floor: float) -> None:
+        """Deprecated: :func:`lfcore.operator.log_ratio` then ``weights.update(ratio, e, relaxation)``."""
+        _moved("smart_update(weights, image, proj, e, mu, floor)",
+               "weights.update(lfcore.operator.log_ratio(image, proj, floor, ratio), e, mu)")
+        ratio = log_ratio(image, proj, floor, self._scratch("ratio", self.n_pixels, self.wp.float32))
+        weights.update(ratio, e, relaxation)
+
+    def scatter(self, weights, e, out=None):
+        """Deprecated: ``weights.scatter(e, out)`` (:meth:`lfcore.operator.Operator.scatter`)."""
+        _moved("scatter(weights, e, out)", "weights.scatter(e, out)")
+        return weights.scatter(e, out)
+
+    def to_volume(self, weights, e) -> np.ndarray:
+        """Deprecated: ``weights.scatter(e).numpy()``."""
+        _moved("to_volume(weights, e)", "weights.scatter(e).numpy()")
+        return weights.scatter(e).numpy()
+
+
+def _moved(old: str, new: str) -> None:
+    warnings.warn(f"Projector.{old} is now {new}; the old form still works for now", DeprecationWarning,
+                  stacklevel=3)
+
+
+class LightFieldProjector(BoundCameras):
+    """Light-field cameras and a voxel grid bound on one device (DRT-MART's, MART's and MLOS-MART's
+    :class:`~lfcore.operator.Projector`).
+
+    Parameters
+    ----------
+    cameras
+        One or more light-field cameras (a joint reconstruction uses every camera's pixels).
     grid
         The voxel grid.
     sub_apertures
@@ -117,29 +265,18 @@ class Projector:
         The :class:`~lfcore.weight_build.WeightBuilder` of this geometry (:meth:`weights` uses it).
     """
 
+    kind = "light-field"
+
     def __init__(self, cameras: Sequence[Camera], grid: VolumeGrid, *, sub_apertures: int | None = None,
                  device: str | None = None) -> None:
-        from lfcore._kernels import weights as kw
         from lfcore._kernels.optics import camera_params
 
         if sub_apertures is not None and sub_apertures < 1:
             raise ValueError(f"sub_apertures must be at least 1, got {sub_apertures}")
-        self.wp = warp()
-        self._kw = kw
-        self.cameras = tuple(cameras)
-        self.grid = grid
+        super().__init__(cameras, grid, device=device)
+        kw = self._kw
         self.sub_apertures = sub_apertures  # None: each camera's pixels per lenslet
-        self.device = resolve_device(device)
         wp = self.wp
-        self.box = grid  # the whole box (grid is one depth slab of it on a projector from planes())
-        self.z0 = 0  # the box's plane of the grid's first
-        self._grid = grid_struct(kw, grid)
-        self.pixel_offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in self.cameras])
-        self.n_pixels = int(self.pixel_offsets[-1])
-        self._parts = PrivateCopies()  # projection images of the CPU blocks (see forward)
-        if self.n_pixels >= 2**31:
-            raise MemoryBudgetError("more than 2**31 pixels; use fewer or smaller cameras")
-
         views, sub_a, sub_w, check_order, overlap = [], [], [], [], []
         rng = np.random.default_rng(0)
         half_world = 0.5 * np.asarray(grid.voxel_mm)
@@ -193,8 +330,7 @@ class Projector:
         self.max_checks = max(len(c) for c in check_order)
         self._n_checks = 0
         self.builder = WeightBuilder(self._grid, self.views, self.sub_a, self.sub_w, self._overlap, device=self.device)
-        self._buffers: dict[str, object] = {}  # scratch kept between calls (see _scratch)
-        self._none = wp.empty(0, dtype=wp.int32, device=self.device)
+
 
     # --- zero-voxel elimination ---------------------------------------------------------
     def eliminate(self, lit: Sequence[np.ndarray], *, min_seen: float = 0.5, max_dark: float = 0.05) -> object:
@@ -239,23 +375,7 @@ class Projector:
         launch_rows(kw.eliminate, n, [*common, candidates, 2**30, RowOffset(0), mask], self.device)
         return self._compact(mask[:n], candidates)
 
-    def _lit_on_device(self, lit) -> object:
-        """The lit mask as one (n_pixels,) uint8 device array: a device mask as it is (checked),
-        per-camera host masks concatenated and uploaded into a kept scratch buffer."""
-        wp = self.wp
-        if isinstance(lit, wp.array):
-            if lit.dtype != wp.uint8 or lit.shape != (self.n_pixels,) or str(lit.device) != self.device:
-                raise ValueError(f"a device lit mask must be ({self.n_pixels},) uint8 on {self.device}, got "
-                                 f"{lit.shape} {lit.dtype.__name__} on {lit.device}")
-            return lit
-        flat = np.concatenate([np.asarray(m, dtype=np.uint8).ravel() for m in lit])
-        if flat.size != self.n_pixels:
-            raise ValueError(f"lit masks hold {flat.size} pixels, the cameras {self.n_pixels}")
-        lit_dev = self._scratch("lit", self.n_pixels, wp.uint8)
-        wp.copy(lit_dev, wp.array(flat, dtype=wp.uint8, device="cpu", copy=False))
-        return lit_dev
-
-    def precompute_checks(self, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
+    def precompute_checks(self, n_checks: int | None = None, *, budget_bytes: int | None = None) -> int:
         """Trace once the pixels of every voxel's first ``n_checks`` elimination checks.
 
         With the table, elimination looks those pixels up instead of tracing them (its result
@@ -294,83 +414,32 @@ class Projector:
         self._checks, self._n_checks = table, int(n_checks)
         return 4 * entries
 
-    def all_voxels(self) -> object:
-        """Every voxel of the grid (no elimination), as (n,) int32 indices."""
-        check_indexable(self.grid)
-        return device_range(self.grid.n_voxels, device=self.device)
-
-    def planes(self, z0: int, z1: int) -> Projector:
-        """This projector on planes ``z0 .. z1 - 1`` of its grid: a depth slab whose voxels are
-        numbered from its first plane (so a box of :data:`INDEX_LIMIT` voxels or more is numbered
-        slab by slab), with the same cameras, device tables and scratch buffers.
-
-        A slab's voxel has the box's voxel's centre to the bit, so its weights, its templates'
-        images and its elimination are the box's (:mod:`lfcore.slabs`). The elimination's
-        precomputed table (:meth:`precompute_checks`) is the box's numbering's and is not carried.
-
-        Raises
-        ------
-        ValueError
-            If the planes are not a non-empty range of the grid's.
-        MemoryBudgetError
-            If the slab itself has :data:`INDEX_LIMIT` voxels or more.
-        """
-        grid = self.grid.planes(z0, z1)
-        check_indexable(grid)
-        out = copy.copy(self)
-        out.grid = grid
-        out.z0 = self.z0 + int(z0)
-        out._grid = grid_struct(self._kw, self.box, z0=out.z0, z1=out.z0 + grid.shape[0])
+    def planes(self, z0: int, z1: int) -> LightFieldProjector:
+        """This projector on planes ``z0 .. z1 - 1`` of its grid (see :meth:`BoundCameras.planes`),
+        its weight builder on the slab. The elimination's precomputed table
+        (:meth:`precompute_checks`) is the box's numbering's and is not carried."""
+        out = super().planes(z0, z1)
         out._checks, out._n_checks = self.wp.zeros(1, dtype=self.wp.int32, device=self.device), 0
-        if self.builder is not None:
-            out.builder = copy.copy(self.builder)
-            out.builder.grid = out._grid
+        out.builder = copy.copy(self.builder)
+        out.builder.grid = out._grid
         return out
 
-    def _scratch(self, name: str, n: int, dtype) -> object:
-        """The first ``n`` elements of the scratch buffer ``name``, kept between calls (grown by
-        half again when too short)."""
-        buf = self._buffers.get(name)
-        if buf is None or buf.shape[0] < n or buf.dtype != dtype:
-            size = n if buf is None else max(n, int(1.5 * buf.shape[0]))
-            buf = self._buffers[name] = self.wp.empty(max(size, 1), dtype=dtype, device=self.device)
-        return buf[:n]
-
-    def _compact(self, mask, values=None, *, scratch: str | None = None) -> object:
-        """The indices where ``mask`` is set (or those entries of ``values``), as (n,) int32.
-
-        ``scratch``: the :meth:`_scratch` buffer to write them to (overwritten by a later call);
-        None: a new array.
-        """
-        wp, kw = self.wp, self._kw
-        scan = self._scratch("scan", mask.shape[0], wp.int32)
-        wp.utils.array_scan(mask, scan, inclusive=True)
-        count = int(scan[mask.shape[0] - 1 :].numpy()[0]) if mask.shape[0] else 0
-        out = wp.empty(count, dtype=wp.int32, device=self.device) if scratch is None else self._scratch(scratch, count,
-                                                                                                          wp.int32)
-        if values is None:
-            values = self._none
-        if count:
-            wp.launch(kw.compact, dim=mask.shape[0], device=self.device, inputs=[mask, scan, values, out])
-        return out
-
-    # --- weights ------------------------------------------------------------------------
-    def weights(self, voxels, method: str = "drt", min_weight: float = 1e-6,
-                budget_bytes: int | None = None, build: str = "auto", sort: str = "auto",
-                storage: str = "stored") -> Weights:
-        """Sparse weights of ``voxels`` (from :meth:`eliminate` or :meth:`all_voxels`).
-
-        Built by this projector's :attr:`builder`; weights made on the fly are applied by
-        :meth:`forward` and :meth:`smart_update` where they are used.
+    # --- the operator -------------------------------------------------------------------------
+    def weights(self, voxels, *, method: str = "drt", min_weight: float = 1e-6, budget_bytes: int | None = None,
+                build: str = "auto", sort: str = "auto", storage: str = "stored") -> Weights:
+        """The operator of ``voxels`` (from :meth:`eliminate` or :meth:`all_voxels`): their sparse
+        weights, built by this projector's :attr:`builder`, bound to it (weights made on the fly
+        are made where :meth:`Weights.forward <lfcore.weight_build.Weights.forward>` and
+        :meth:`~lfcore.weight_build.Weights.update` use them).
 
         Parameters
         ----------
         voxels
             (n,) int32 flat voxel indices on this projector's device.
         method, min_weight, budget_bytes, build, sort, storage
-            As :meth:`WeightBuilder.weights <lfcore.weight_build.WeightBuilder.weights>` takes them
-            (here they may also be given by position); ``method`` is ``"drt"`` (dense ray tracing)
-            or ``"los"`` (line of sight, the MART baseline's).
+            As :meth:`WeightBuilder.weights <lfcore.weight_build.WeightBuilder.weights>` takes them;
+            ``method`` is ``"drt"`` (dense ray tracing: ``"traced weights"``) or ``"los"`` (line of
+            sight, the MART baseline's: ``"line-of-sight weights"``).
 
         Returns
         -------
@@ -381,113 +450,32 @@ class Projector:
         MemoryBudgetError
             If the weights would not fit, with their size.
         """
-        return self.builder.weights(voxels, method=method, min_weight=min_weight, budget_bytes=budget_bytes,
-                                    build=build, sort=sort, storage=storage)
+        w = self.builder.weights(voxels, method=method, min_weight=min_weight, budget_bytes=budget_bytes,
+                                 build=build, sort=sort, storage=storage)
+        return self.bind(w, kind=TRACED if method == "drt" else LINE_OF_SIGHT)
 
-    # --- projections and updates --------------------------------------------------------
-    def forward(self, weights: Weights, e, out=None):
-        """Project voxel intensities ``e`` (n,) to all pixels; returns (n_pixels,) float32."""
-        from lfcore._kernels import mart as km
+    def operator(self, voxels, *, method: str, min_weight: float = 1e-6, budget_bytes: int | None = None,
+                 storage: str = "stored") -> Weights:
+        """The :class:`~lfcore.operator.Operator` of ``voxels``: :meth:`weights` (what
+        :class:`lfcore.operator.Projector` asks of every projector)."""
+        return self.weights(voxels, method=method, min_weight=min_weight, budget_bytes=budget_bytes, storage=storage)
 
-        wp = self.wp
-        out = wp.zeros(self.n_pixels, dtype=float, device=self.device) if out is None else out
-        if getattr(weights, "matrix_free", False):  # lfcore.matrix_free.MatrixFreeWeights
-            return weights.forward(e, out)
-        out.zero_()
-        # The projection accumulates into pixels with atomics, which are plain adds on the CPU:
-        # there each CPU block sums into a private image, and the images are added after.
-        parts = self._parts.open(out)
-        k = weights.n_stored
-        if k < weights.n_voxels:
-            self.builder.trace_los(weights.voxels[k:], 2, weights.min_weight, sums=weights.sums,
-                                   e=e[k:weights.n_voxels], proj=parts)
-        for c in weights.chunks:
-            if self.device == "cpu":  # a thread per voxel
-                launch_rows(km.project_rows, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), e, parts],
-                            self.device)
-            else:  # a warp's lanes per voxel
-                launch_rows(km.project, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), LANES, e,
-                                              parts], self.device, rest=(LANES,))
-        self._parts.close(out)
-        return out
-
-    def smart_update(self, weights: Weights, image, proj, e, relaxation: float, floor: float) -> None:
-        """One simultaneous multiplicative update of ``e`` in place (see the kernel).
-
-        ``image`` and ``proj`` are (n_pixels,) float32: the measured signal and the forward
-        projection of ``e``; ``floor`` (counts) is the least a pixel's measurement counts as.
-        """
-        from lfcore._kernels import mart as km
-
-        wp = self.wp
-        ratio = self._scratch("ratio", self.n_pixels, wp.float32)  # kept (and shared with the depth slabs)
-        wp.launch(km.log_ratio, dim=self.n_pixels, inputs=[image, proj, float(floor), ratio], device=self.device)
-        mu = float(relaxation)
-        if getattr(weights, "matrix_free", False):  # lfcore.matrix_free.MatrixFreeWeights
-            weights.smart_update(ratio, e, mu)
-            return
-        k = weights.n_stored
-        if k < weights.n_voxels:
-            self.builder.trace_los(weights.voxels[k:], 3, weights.min_weight, sums=weights.sums,
-                                   e=e[k:weights.n_voxels], ratio=ratio, relaxation=mu)
-        for c in weights.chunks:
-            if self.device == "cpu":
-                launch_rows(km.smart_update, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first),
-                                                   ratio, mu, e], self.device)
-            elif c.n:  # a warp per voxel, its lanes' sums added by a block reduction
-                wp.launch_tiled(km.smart_update_tiled, dim=[c.n], block_dim=LANES, device=self.device,
-                                inputs=[c.offsets, c.pix, c.w, c.first, ratio, mu, e])
-
+    # --- the sequential form's pixel-major copy, kept for scripts written against the projector ------
     def transpose(self, weights: Weights):
-        """Pixel-major copy of the weights for the sequential form: (p_offsets, vox, w, rows)."""
-        wp = self.wp
-        offsets, pix, w = weights.to_numpy()
-        vox = np.repeat(np.arange(weights.n_voxels, dtype=np.int32), np.diff(offsets))
-        order = np.argsort(pix, kind="stable")
-        p_offsets = np.zeros(self.n_pixels + 1, dtype=np.int64)
-        np.cumsum(np.bincount(pix, minlength=self.n_pixels), out=p_offsets[1:])
-        rows = np.flatnonzero(np.diff(p_offsets)).astype(np.int32)
-        dev = self.device
-        return (wp.array(p_offsets, device=dev), wp.array(vox[order], device=dev),
-                wp.array(w[order], device=dev), wp.array(rows, device=dev))
+        """Deprecated: ``weights.transpose()``."""
+        _moved("transpose(weights)", "weights.transpose()")
+        return weights.transpose()
 
     def mart_sweep(self, transposed, image, e, relaxation: float, floor: float) -> None:
-        """One sequential sweep of eq. 4.1 over every pixel with weights (single thread)."""
-        from lfcore._kernels import mart as km
+        """Deprecated: ``weights.sweep(transposed, image, e, relaxation, floor)``."""
+        _moved("mart_sweep(transposed, ...)", "weights.sweep(transposed, ...)")
+        Weights(voxels=self._none, chunks=[], nnz=0, binding=self.binding()).sweep(transposed, image, e, relaxation,
+                                                                                     floor)
 
-        p_offsets, vox, w, rows = transposed
-        self.wp.launch(km.mart_sequential, dim=1, device=self.device,
-                       inputs=[p_offsets, vox, w, rows, image, float(floor), float(relaxation), e])
 
-    def to_volume(self, weights: Weights, e) -> np.ndarray:
-        """Dense (z, y, x) float32 volume with ``e`` at the weighted voxels, zero elsewhere."""
-        return self.scatter(weights, e).numpy()
-
-    def scatter(self, weights: Weights, e, out=None):
-        """Like :meth:`to_volume`, but the (z, y, x) volume stays on the device.
-
-        Parameters
-        ----------
-        weights, e
-            The reconstructed voxels and their (n,) intensities.
-        out
-            (nz, ny, nx) float32 Warp array to write (zeroed first); None: a new one.
-
-        Returns
-        -------
-        warp.array
-            ``out`` (or the new array), (nz, ny, nx) float32 on the projector's device.
-        """
-        from lfcore._kernels import mart as km
-
-        wp = self.wp
-        if out is None:
-            out = wp.zeros(self.grid.shape, dtype=float, device=self.device)
-        else:
-            if tuple(out.shape) != tuple(self.grid.shape):
-                raise ValueError(f"the volume must be {self.grid.shape} (z, y, x), got {out.shape}")
-            out.zero_()
-        if weights.n_voxels:
-            flat = out.reshape(self.grid.n_voxels)
-            launch_rows(km.scatter_volume, weights.n_voxels, [Rows(weights.voxels), Rows(e), flat], self.device)
-        return out
+def __getattr__(name: str):
+    if name == "Projector":  # the light-field projector's name until the operator protocol
+        warnings.warn("lfcore.projector.Projector is now lfcore.projector.LightFieldProjector; the old name still "
+                      "works for now", DeprecationWarning, stacklevel=2)
+        return LightFieldProjector
+    raise AttributeError(f"module 'lfcore.projector' has no attribute {name!r}")

@@ -1,4 +1,8 @@
-"""3D particle reconstruction from light-field images: DRT-MART and the MART baseline.
+"""3D particle reconstruction: DRT-MART, the MART and MLOS-MART baselines, and MLOS-SMART.
+
+The algorithms iterate over a frame's :class:`~lfcore.operator.Operator` (forward projection,
+multiplicative update, scatter), given by an operator source that :mod:`lfcore.plan` chooses;
+they never see which kind of operator it is.
 
 DRT-MART (the chapter's dense ray-tracing MART):
 
@@ -31,32 +35,35 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from scipy import ndimage
 
-from lfcore.device import MemoryBudgetError, available_bytes, out_of_memory_is_budget_error, warp
+from lfcore.device import available_bytes, out_of_memory_is_budget_error, warp
 from lfcore.device_ops import VolumeOps
-from lfcore.matrix_free import (
+from lfcore.operator import (
     PROJECTORS,
-    DrtTemplates,
-    MatrixFreeUnsupported,
-    MatrixFreeWeights,
+    STORAGE,
+    Operator,
+    OperatorSource,
+    Projector,
     applied_by,
-    template_count,
+    check_indexable,
+    log_ratio,
 )
-from lfcore.projector import Projector, check_indexable
-from lfcore.weight_build import BYTES_PER_WEIGHT, STORAGE, Weights
-from lfcore.weight_cache import WeightCache
+
+if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to import
+    from lfcore.matrix_free import DrtTemplates
+    from lfcore.weight_cache import WeightCache
 
 __all__ = ["METHODS", "WEIGHTS", "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings",
            "estimate_background", "preprocess", "preprocess_images", "reconstruct"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
-#: The weights each method iterates on (:meth:`Projector.weights` and :class:`WeightCache` names).
-#: ``mlos-smart`` is Tomo-PIV's MLOS-SMART on pinhole cameras (:mod:`lfcore.pinhole_projector`);
-#: on light-field cameras it is MLOS-MART.
+#: The weights each method iterates on (the ``method`` of :meth:`lfcore.operator.Projector.operator`
+#: and :class:`~lfcore.weight_cache.WeightCache`). ``mlos-smart`` is Tomo-PIV's MLOS-SMART on pinhole
+#: cameras (:mod:`lfcore.pinhole_projector`); on light-field cameras it is MLOS-MART.
 WEIGHTS = {"drt-mart": "drt", "mart": "los", "mlos-mart": "los", "mlos-smart": "los"}
 #: Above this the simultaneous update overshoots: every voxel on an under-projected pixel grows at
 #: once (sequential MART takes the chapter's 2.5 because each pixel's step is small).
@@ -67,13 +74,6 @@ MAX_SMOOTH_VOXELS = 10.0
 #: lenslet (about 14), and each voxel traces the square of this many bundles.
 MAX_SUB_APERTURES = 64
 FORMS = ("simultaneous", "sequential")
-#: ``projector = "auto"``'s costs of the templates' images, in voxels' DRT tracings. A template
-#: (one voxel's rays, traced finely across its phase bin) costs about as much as this many voxels'
-#: tracing (4.7 measured on the Mc crop's optics, at most 7 on the tiny rig's, CPU) ...
-TEMPLATE_TRACES = 8.0
-#: ... and a voxel's image, merged from its templates' spots, this share of its own tracing
-#: (0.27 on the Mc crop, CPU).
-IMAGE_SHARE = 0.3
 
 
 @dataclass(frozen=True)
@@ -130,7 +130,7 @@ class ReconSettings:
         What applies DRT-MART's operator: ``"stored"`` ray-traced weights, the ``"matrix-free"``
         templates of :mod:`lfcore.matrix_free` (simultaneous form only; their images stored as
         ``weight_storage`` allows), or ``"auto"``: per frame, the templates' images where they
-        cost less to build than tracing the voxels (:meth:`FrameReconstructor.templates_pay`)
+        cost less to build than tracing the voxels (:meth:`lfcore.plan.AutoSource.templates_pay`)
         and fit in memory, else stored traced weights, and the templates applied in every
         iteration where neither fits (always the traced weights where the cameras have no
         templates).
@@ -214,8 +214,12 @@ class ReconResult:
     on_the_fly_voxels
         Voxels whose weights were made in each iteration instead of stored (0: all stored).
     projector
-        What applied the operator: ``"stored"`` weights or the ``"matrix-free"`` templates
-        (``weight_bytes`` is then the templates' memory and the voxels' indices).
+        What applied the operator in the words the run store records (:func:`lfcore.operator.applied_by`):
+        ``"matrix-free"`` for the templates and their images, ``"stored"`` for every other stored
+        weights (``weight_bytes`` is then the templates' memory and the voxels' indices).
+    operator
+        What the operator was, by name (:data:`lfcore.operator.ALL_KINDS`: ``"traced weights"``,
+        ``"template images"``, ...; the kinds of a reconstruction in slabs joined by ``", "``).
     slabs
         Depth slabs the volume was reconstructed in (1: in memory; see :mod:`lfcore.slabs`).
     peak_bytes
@@ -240,6 +244,7 @@ class ReconResult:
     projector: str = "stored"
     slabs: int = 1
     peak_bytes: int = 0
+    operator: str = ""
 
     @property
     def ms_per_iteration(self) -> float:
@@ -414,13 +419,15 @@ class FrameReconstructor:
 
     The stages of a frame are methods of their own, for a caller that has its images on the
     device already and times each stage (the live pipeline): :meth:`eliminate`,
-    :meth:`weights`, :meth:`iterate` (the one simultaneous MART loop, batch and live) and
-    :meth:`volume`; :meth:`reconstruct` runs them all on host images.
+    :meth:`operator`, :meth:`iterate` (the one simultaneous MART loop, batch and live) and
+    :meth:`volume`; :meth:`reconstruct` runs them all on host images. The iterations see only the
+    frame's :class:`~lfcore.operator.Operator`; where it comes from (a weight cache, the matrix-free
+    templates, a per-frame choice) is the operator source's business, chosen by :mod:`lfcore.plan`.
 
     Parameters
     ----------
     projector
-        Cameras and grid on a device.
+        Cameras and grid on a device (a :class:`~lfcore.operator.Projector`).
     settings
         Method, iterations, relaxation, form, thresholds (see :class:`ReconSettings`).
     cache
@@ -431,23 +438,32 @@ class FrameReconstructor:
     templates
         The matrix-free templates built already for the projector's box (on another of its depth
         slabs: :meth:`lfcore.matrix_free.DrtTemplates.on`), used instead of building them.
+    source
+        Where the frames' operators come from (:class:`~lfcore.operator.OperatorSource`); None:
+        the one :func:`lfcore.plan.operator_source` chooses for the settings, ``cache`` and
+        ``templates``.
 
     Raises
     ------
     MemoryBudgetError
-        If the projector's grid has too many voxels to number (:data:`lfcore.projector.INDEX_LIMIT`:
+        If the projector's grid has too many voxels to number (:data:`lfcore.operator.INDEX_LIMIT`:
         reconstruct it in depth slabs, :mod:`lfcore.slabs`).
 
     Notes
     -----
-    Buffers on the projector's device, each allocated on first use and kept: the image and its
-    projection ((n_pixels,) float32 each), the intensities (grown by half again when a frame
-    has more active voxels than any before), the (z, y, x) float32 volume and its smoothing
-    scratch. One thread at a time may use a reconstructor (and its projector).
+    Buffers on the projector's device, each allocated on first use and kept: the image, its
+    projection and the update's log ratios ((n_pixels,) float32 each), the intensities (grown by
+    half again when a frame has more active voxels than any before), the (z, y, x) float32 volume
+    and its smoothing scratch. One thread at a time may use a reconstructor (and its projector).
     """
 
+    #: Whether :meth:`reconstruct` hands the volume to a writer slab by slab (see
+    #: :class:`lfcore.slabs.SlabReconstructor`) rather than returning it.
+    in_slabs = False
+
     def __init__(self, projector: Projector, settings: ReconSettings, *, cache: WeightCache | None = None,
-                 budget_bytes: int | None = None, templates: DrtTemplates | None = None) -> None:
+                 budget_bytes: int | None = None, templates: DrtTemplates | None = None,
+                 source: OperatorSource | None = None) -> None:
         check_indexable(projector.grid)
         if cache is not None and cache.projector is not projector:
             raise ValueError("the weight cache belongs to another projector")
@@ -458,11 +474,14 @@ class FrameReconstructor:
         self.wp = projector.wp
         self.device = projector.device
         self.ops = VolumeOps(projector.grid.shape, self.device)
+        if source is None:
+            from lfcore.plan import operator_source  # the planner chooses (it imports this module)
+
+            source = operator_source(projector, settings, cache=cache, templates=templates)
+        self.source = source
         self._image = None  # (n_pixels,) float32: the measured signal of reconstruct()
         self._proj = None  # (n_pixels,) float32: the forward projection
-        self._templates = None if templates is None else templates.on(projector)  # the matrix-free ones, once built
-        self._n_templates = None  # how many there would be (0: the cameras have none), once counted
-        self._images_fit = True  # False once auto found the templates' images too big for the memory
+        self._ratio = None  # (n_pixels,) float32: the update's log ratios
         self._e = None  # the intensities, at least as long as the most active voxels so far
         self._volume = None  # (z, y, x) float32
 
@@ -500,24 +519,24 @@ class FrameReconstructor:
         t0 = time.perf_counter()
         voxels = self.eliminate(lits)  # returns once counted: synced
         t_elim = t0 if settings.method == "mart" else time.perf_counter()
-        weights = self.weights(voxels)
+        op = self.operator(voxels)
         if self._image is None:
             self._image = wp.empty(p.n_pixels, dtype=float, device=self.device)
         flat = np.concatenate([s.ravel() for s in signals])
         wp.copy(self._image, wp.array(flat, dtype=float, device="cpu", copy=False))
         t1 = time.perf_counter()
-        done = self.iterate(weights, self._image, noises, progress=progress)
-        vol = self.volume(weights, done.e)
+        done = self.iterate(op, self._image, noises, progress=progress)
+        vol = self.volume(op, done.e)
         volume = vol.numpy()  # a copy from a GPU, a view of the buffer on the CPU
         if self.device == "cpu":
             volume = volume.copy()
-        n = weights.n_voxels
+        n = op.n_voxels
         return ReconResult(volume=volume, active_voxels=n, active_fraction=n / p.grid.n_voxels,
-                           nnz=weights.nnz, weight_bytes=self.operator_bytes(weights),
+                           nnz=op.nnz, weight_bytes=self.operator_bytes(op),
                            weights_s=t1 - t0 + done.start_s,
                            iterate_s=done.iterate_s, iterations=settings.iterations, background=backgrounds,
-                           noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=weights.n_on_the_fly,
-                           projector=applied_by(weights))
+                           noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=op.n_on_the_fly,
+                           projector=applied_by(op), operator=op.kind)
 
     # --- the stages ------------------------------------------------------------------------------
     def eliminate(self, lit) -> object:
@@ -527,8 +546,8 @@ class FrameReconstructor:
         Parameters
         ----------
         lit
-            The lit pixels, as :meth:`Projector.eliminate` takes them: one boolean (rows,
-            columns) image per camera, or one (n_pixels,) uint8 Warp array on the device.
+            The lit pixels, as :meth:`lfcore.operator.Projector.eliminate` takes them: one boolean
+            (rows, columns) image per camera, or one (n_pixels,) uint8 Warp array on the device.
 
         Returns
         -------
@@ -540,124 +559,56 @@ class FrameReconstructor:
             return self.projector.all_voxels()
         return self.projector.eliminate(lit, min_seen=s.min_seen, max_dark=s.max_dark)
 
-    def weights(self, voxels) -> Weights:
-        """The weights of ``voxels`` ((n,) int32 on the device): from the cache where it has them
-        and they fit, else built within the memory budget (line-of-sight ones partly on the fly
-        where ``settings.weight_storage`` allows).
+    def operator(self, voxels) -> Operator:
+        """The operator of ``voxels`` ((n,) int32 on the device), from this reconstructor's operator
+        source within the memory budget (:meth:`_weight_budget`): from the cache where it has them
+        and they fit, else built (line-of-sight ones partly on the fly where
+        ``settings.weight_storage`` allows), or the templates (their images, or applied).
 
         Raises
         ------
         MemoryBudgetError
-            If the weights do not fit.
+            If the operator does not fit.
         """
-        s = self.settings
-        kind = WEIGHTS[s.method]
-        if s.projector == "matrix-free":
-            return self._matrix_free(voxels)
-        if s.projector == "auto" and kind == "drt" and s.form == "simultaneous":
-            host = voxels.numpy() if self.cache is not None else None  # one copy for the cache's two looks
-            if self.templates_pay(voxels, host=host):
-                try:  # the images stored, or the traced weights (stored iterate 8-12x faster)
-                    return self._matrix_free(voxels, storage="stored")
-                except MatrixFreeUnsupported:
-                    pass
-                except MemoryBudgetError:  # the images do not fit beside the templates: their room to the weights,
-                    self._templates = None  # and no more tries on the next frames (a run's are alike)
-                    self._images_fit = False
-            try:
-                return self._stored_weights(voxels, host=host)
-            except MemoryBudgetError:
-                try:
-                    return self._matrix_free(voxels)
-                except (MatrixFreeUnsupported, MemoryBudgetError):
-                    pass
-                raise
-        return self._stored_weights(voxels)
+        n = int(voxels.shape[0])
+        return self.source.operator(voxels, budget=lambda: self._weight_budget(n))
+
+    #: The name of :meth:`operator` until the operator protocol (the live path's and scripts').
+    weights = operator
+
+    def prepare(self) -> None:
+        """Build now what the first frame's operator would build in its own time (the matrix-free
+        templates, where the operator source uses them alone): the live path calls it as it starts.
+
+        Raises
+        ------
+        MemoryBudgetError, lfcore.operator.MatrixFreeUnsupported
+            No room for the templates, or cameras without them.
+        """
+        self.source.prepare(budget=lambda: self._weight_budget(0))
 
     @property
     def templates(self) -> DrtTemplates | None:
         """The matrix-free templates held for the next frames (None until built, or let go)."""
-        return self._templates
+        return self.source.templates
 
-    def operator_bytes(self, weights) -> int:
-        """Device bytes of the operator ``weights`` applies, with what is kept for the next frames:
-        the weights, the templates they were made from where they are the templates' images, and
-        the weight cache's pool where ray-traced weights come from it (a second copy of each row)."""
-        held = 0
-        if getattr(weights, "from_templates", False):
-            held = self._templates.nbytes if self._templates else 0
-        elif self.cache is not None and not getattr(weights, "matrix_free", False):
-            held = self.cache.device_bytes
-        return int(weights.nbytes) + held
+    @property
+    def _templates(self) -> DrtTemplates | None:  # the name the tests and older scripts read
+        return self.source.templates
 
     def templates_pay(self, voxels, *, host: np.ndarray | None = None) -> bool:
-        """Whether ``projector = "auto"`` takes the templates' images for ``voxels`` ((n,) int32
-        on the device; ``host``: the same on the host, where the caller has them): where building
-        them (the templates once per run, :data:`TEMPLATE_TRACES` voxels' tracing each, and the
-        images, :data:`IMAGE_SHARE` of a tracing per voxel) costs
-        less than tracing the voxels the weight cache lacks. So a frame with many more active
-        voxels than templates (the Mc crop: 385,000-472,000 against 22,757) takes the images, a
-        small one (the tiny rig's 26,000 against 4,180) its traced weights. False where the
-        cameras have no templates, and once an earlier frame's images did not fit the memory.
-        """
-        if not self._images_fit:
-            return False
-        if self._n_templates is None:
-            try:
-                self._n_templates = template_count(self.projector)
-            except MatrixFreeUnsupported:
-                self._n_templates = 0
-        if self._n_templates == 0:
-            return False
-        n = int(voxels.shape[0])
-        traced = n if self.cache is None or self.cache.method != "drt" else \
-            self.cache.uncached(voxels if host is None else host)
-        templates = 0.0 if self._templates is not None else TEMPLATE_TRACES * self._n_templates
-        return traced > templates + IMAGE_SHARE * n
+        """Whether ``projector = "auto"`` takes the templates' images for ``voxels`` (see
+        :meth:`lfcore.plan.AutoSource.templates_pay`); False for a source that never chooses them."""
+        pays = getattr(self.source, "templates_pay", None)
+        return bool(pays is not None and pays(voxels, host=host))
 
-    def _matrix_free(self, voxels, *, storage: str | None = None) -> MatrixFreeWeights | Weights:
-        """The matrix-free operator on ``voxels``, its templates built on first use and kept.
+    def operator_bytes(self, op: Operator) -> int:
+        """Device bytes of ``op`` with what is kept for the next frames beside it: the templates its
+        images were made from, or the weight cache's pool where ray-traced weights come from it (a
+        second copy of each row)."""
+        return int(op.nbytes) + int(self.source.held_bytes(op))
 
-        With ``storage`` (default: ``settings.weight_storage``) ``"auto"`` the templates'
-        images of the voxels are stored (:meth:`MatrixFreeWeights.expanded`: no ray tracing,
-        iterations at the stored weights' speed) where they fit beside the templates, and
-        applied from the templates in every iteration where they do not; ``"stored"``: stored
-        or a :class:`MemoryBudgetError`; ``"on-the-fly"``: always applied from the templates.
-        """
-        n = int(voxels.shape[0])
-        if self._templates is None:
-            self._templates = DrtTemplates(self.projector, budget_bytes=self._weight_budget(n))
-        mf = MatrixFreeWeights(self._templates, voxels)
-        storage = self.settings.weight_storage if storage is None else storage
-        if storage == "on-the-fly":
-            return mf
-        budget = self._weight_budget(n) - self._templates.nbytes
-        # the raw entries (before their merge) bound the stored images from above: where even
-        # those would not fit, go on without trying
-        if storage == "auto" and BYTES_PER_WEIGHT * mf.entries_per_voxel() * n > budget:
-            return mf
-        try:
-            return mf.expanded(budget_bytes=budget)
-        except MemoryBudgetError:
-            if storage == "stored":
-                raise
-            return mf
-
-    def _stored_weights(self, voxels, *, host: np.ndarray | None = None) -> Weights:
-        s = self.settings
-        kind = WEIGHTS[s.method]
-        storage = "stored" if kind == "drt" or s.form == "sequential" else s.weight_storage
-        cache = self.cache
-        if cache is not None and cache.method == kind and s.method != "mart" and storage != "on-the-fly":
-            try:
-                return cache.weights(voxels, host=host)
-            except MemoryBudgetError:
-                if storage == "stored":
-                    raise
-        budget = self._weight_budget(int(voxels.shape[0]))
-        return self.projector.weights(voxels, kind, budget_bytes=budget, storage=storage)
-
-    def iterate(self, weights: Weights, image, noise: Sequence[float], *, iterations: int | None = None,
+    def iterate(self, op: Operator, image, noise: Sequence[float], *, iterations: int | None = None,
                 relaxation: float | None = None, progress: Callable[[int], None] | None = None) -> Iterated:
         """MART on ``weights``: a uniform start, then the iterations of ``settings.form``.
 
@@ -669,8 +620,8 @@ class FrameReconstructor:
 
         Parameters
         ----------
-        weights
-            The voxels and their weights (:meth:`weights`).
+        op
+            The voxels and their operator (:meth:`operator`).
         image
             (n_pixels,) float32 Warp array on the device: the background-subtracted signal of
             every camera (zero on unlit pixels), in counts.
@@ -691,7 +642,7 @@ class FrameReconstructor:
         its = s.iterations if iterations is None else int(iterations)
         mu = s.relaxation if relaxation is None else float(relaxation)
         t0 = time.perf_counter()
-        n = weights.n_voxels
+        n = op.n_voxels
         if self._e is None or self._e.shape[0] < n:
             self._e = wp.empty(int(1.5 * n) + 1, dtype=float, device=self.device)
         if self._proj is None:
@@ -702,32 +653,34 @@ class FrameReconstructor:
             return Iterated(e, time.perf_counter() - t0, 0.0)
         # Start uniform, scaled so the projection carries the measured total signal.
         e.fill_(1.0)
-        p.forward(weights, e, proj)
+        op.forward(e, proj)
         total_proj = _total(proj)
         e.fill_(_total(image) / total_proj if total_proj > 0 else 0.0)
         wp.synchronize_device(self.device)
         t1 = time.perf_counter()
         floor = max(s.floor * s.threshold_sigma * float(np.mean(noise)), 1e-6)
-        transposed = p.transpose(weights) if s.form == "sequential" else None
+        transposed = op.transpose() if s.form == "sequential" else None  # stored weights (ReconSettings checks)
+        if transposed is None and self._ratio is None:
+            self._ratio = wp.empty(p.n_pixels, dtype=float, device=self.device)
         for _ in range(its):
             if transposed is not None:
-                p.mart_sweep(transposed, image, e, mu, floor)
+                op.sweep(transposed, image, e, mu, floor)
             else:
-                p.forward(weights, e, proj)
-                p.smart_update(weights, image, proj, e, mu, floor)
+                op.forward(e, proj)
+                op.update(log_ratio(image, proj, floor, self._ratio), e, mu)
             if progress is not None:
                 progress(1)
         wp.synchronize_device(self.device)
         return Iterated(e, t1 - t0, time.perf_counter() - t1)
 
-    def volume(self, weights: Weights, e, *, out=None) -> object:
+    def volume(self, op: Operator, e, *, out=None) -> object:
         """The dense (z, y, x) volume of intensities ``e`` of the weights' voxels, smoothed by
         ``settings.smooth`` voxels, on the device.
 
         Parameters
         ----------
-        weights, e
-            The voxels and their intensities (:meth:`iterate`).
+        op, e
+            The voxels' operator and their intensities (:meth:`iterate`).
         out
             (nz, ny, nx) float32 Warp array to write; None: this reconstructor's volume buffer
             (overwritten by its next frame).
@@ -741,7 +694,7 @@ class FrameReconstructor:
             if self._volume is None:
                 self._volume = self.ops.empty()
             out = self._volume
-        vol = self.projector.scatter(weights, e, out)
+        vol = op.scatter(e, out)
         if self.settings.smooth > 0:  # on the device: a host filter would dominate a large GPU volume
             self.ops.smooth(vol, self.settings.smooth)
         return vol
@@ -750,7 +703,7 @@ class FrameReconstructor:
     def _held_bytes(self, n_active: int) -> int:
         """Of what :meth:`_weight_budget` sets aside for the iterations, the bytes held already."""
         p = self.projector
-        held = sum(4 * p.n_pixels for b in (self._image, self._proj) if b is not None)
+        held = sum(4 * p.n_pixels for b in (self._image, self._proj, self._ratio) if b is not None)
         held += 0 if self._e is None else 4 * min(n_active, int(self._e.shape[0]))
         held += 0 if self._volume is None else 8 * p.grid.n_voxels  # with the smoothing's scratch
         return held

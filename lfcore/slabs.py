@@ -8,7 +8,7 @@ needs 80 GB for those alone. Here the box is cut along z into slabs and only one
 
 1. Elimination, slab by slab. A voxel's test reads only its own sub-apertures' pixels, so
    testing the voxels of each slab in turn keeps exactly the voxels one pass over the box keeps.
-   Each slab numbers its own voxels from its first plane (:meth:`Projector.planes`), so a box of
+   Each slab numbers its own voxels from its first plane (:meth:`lfcore.operator.Projector.planes`), so a box of
    more than 2**31 voxels (the chapter's dual-camera one: 1939 x 1455 x 1939) is numbered in
    int32 slab by slab, while each voxel's centre is the box's voxel's to the bit.
 2. The weights of each slab's survivors, on its slab's projector: a voxel's weights depend on its
@@ -17,9 +17,9 @@ needs 80 GB for those alone. Here the box is cut along z into slabs and only one
    (:meth:`lfcore.matrix_free.DrtTemplates.on`).
 3. MART's ratio needs the projection of the whole volume. Each iteration therefore projects every
    slab into an image-sized buffer and sums them into one projection, then updates every slab
-   from that same projection: SMART's update of a voxel reads only the projection and its own
-   weights, so this is the in-memory iteration, reordered only in the sum over voxels (float
-   round-off). The uniform start is scaled by the same summed projection.
+   from that same projection's log ratios (computed once): SMART's update of a voxel reads only
+   the projection and its own weights, so this is the in-memory iteration, reordered only in the
+   sum over voxels (float round-off). The uniform start is scaled by the same summed projection.
 4. The result, slab by slab: the slab's intensities and those of the ``halo`` planes on either
    side (from the neighbouring slabs) scattered into a dense buffer, smoothed (the halo is the
    Gaussian's radius, so each of the slab's voxels sees what it sees in the whole volume; zero
@@ -41,8 +41,7 @@ import numpy as np
 
 from lfcore.device import MemoryBudgetError, Rows, available_bytes, launch_rows, out_of_memory_is_budget_error
 from lfcore.device_ops import VolumeOps, gaussian_taps
-from lfcore.matrix_free import applied_by
-from lfcore.projector import Projector, max_planes
+from lfcore.operator import OPERATOR_KINDS, TEMPLATES, Operator, Projector, from_templates, log_ratio, max_planes
 from lfcore.reconstruct import FrameReconstructor, ReconResult, ReconSettings, _total, preprocess_images
 from lfcore.volume import VolumeGrid
 
@@ -129,9 +128,7 @@ class SlabReconstructor:
     Parameters
     ----------
     projector
-        Cameras and the WHOLE grid on a device (a light-field :class:`~lfcore.projector.Projector`,
-        a :class:`~lfcore.pinhole_projector.PinholeProjector` or a
-        :class:`~lfcore.pinhole_projector.JointProjector`).
+        Cameras and the WHOLE grid on a device (any :class:`~lfcore.operator.Projector`).
     settings
         As the in-memory path takes them; the simultaneous form only.
     slabs
@@ -145,6 +142,9 @@ class SlabReconstructor:
         For the sequential form, slabs that do not cover the grid, or a slab that with its
         smoothing halo has too many voxels to number in int32 (:func:`deepest_slab`).
     """
+
+    #: :meth:`reconstruct` hands the volume to a writer slab by slab.
+    in_slabs = True
 
     def __init__(self, projector: Projector, settings: ReconSettings, *, slabs: Sequence[Slab],
                  budget_bytes: int | None = None) -> None:
@@ -238,10 +238,10 @@ class SlabReconstructor:
             # intensities (FrameReconstructor's weight budget sets the slab's dense volume aside: add it back)
             room = budget - held - 4 * int(vox.shape[0]) - BYTES_PER_SLAB_VOXEL * slab.nz * plane
             # and the matrix-free templates, held already, which it sets aside itself
-            first = not any(applied_by(x) == "matrix-free" for x in weights)
+            first = not any(from_templates(x) for x in weights)
             shared = 0 if first or self._templates is None else self._templates.nbytes
             frames.budget_bytes = room + 12 * p.n_pixels + 4 * int(vox.shape[0]) + 8 * ps.grid.n_voxels + shared
-            w = frames.weights(vox)  # stored, or matrix-free
+            w = frames.operator(vox)  # stored, or the templates
             if frames.templates is not None:
                 self._templates = frames.templates
             own = self._own_bytes(w, first=first)
@@ -259,15 +259,16 @@ class SlabReconstructor:
         image = wp.array(np.concatenate([x.ravel() for x in signals]), dtype=float, device=dev)
         proj = wp.zeros(p.n_pixels, dtype=float, device=dev)
         part = wp.zeros(p.n_pixels, dtype=float, device=dev)
+        ratio = wp.empty(p.n_pixels, dtype=float, device=dev)
         es = [wp.empty(max(w.n_voxels, 1), dtype=float, device=dev) for w in weights]
         n_total = sum(w.n_voxels for w in weights)
 
         def project() -> None:
             # the projection of the whole volume: the slabs' images summed pixel by pixel
             proj.zero_()
-            for ps, w, e in zip(self._projectors, weights, es, strict=True):
+            for w, e in zip(weights, es, strict=True):
                 if w.n_voxels:
-                    ps.forward(w, e, part)
+                    w.forward(e, part)
                     wp.launch(ks.accumulate, dim=p.n_pixels, inputs=[proj, part], device=dev)
 
         t1 = time.perf_counter()
@@ -291,9 +292,10 @@ class SlabReconstructor:
             for it in range(s.iterations):
                 ti = time.perf_counter()
                 project()
-                for ps, w, e in zip(self._projectors, weights, es, strict=True):
+                log_ratio(image, proj, floor, ratio)  # every slab's update reads the whole volume's
+                for w, e in zip(weights, es, strict=True):
                     if w.n_voxels:
-                        ps.smart_update(w, image, proj, e, s.relaxation, floor)
+                        w.update(ratio, e, s.relaxation)
                 if progress is not None:
                     progress(1)
                 if it < 3 or it == s.iterations - 1:  # the first few and the last: not 400 lines
@@ -324,18 +326,18 @@ class SlabReconstructor:
                            weight_bytes=operator_bytes, weights_s=t1 - t0 + start_s,
                            iterate_s=iterate_s, iterations=s.iterations, background=backgrounds, noise=noises,
                            eliminate_s=t_elim, on_the_fly_voxels=sum(w.n_on_the_fly for w in weights),
-                           projector=("matrix-free" if any(applied_by(w) == "matrix-free" for w in weights)
-                                      else "stored"),
-                           slabs=len(self.slabs), peak_bytes=self.peak_bytes)
+                           projector="matrix-free" if any(from_templates(w) for w in weights) else "stored",
+                           slabs=len(self.slabs), peak_bytes=self.peak_bytes,
+                           operator=", ".join(sorted({w.kind for w in weights})))
 
-    def _own_bytes(self, w, *, first: bool) -> int:
+    def _own_bytes(self, w: Operator, *, first: bool) -> int:
         """Bytes of a slab's operator ``w``, the matrix-free templates (one set for all slabs)
         counted with the first slab that uses them only."""
         templates = self._templates
         own = int(w.nbytes)
-        if getattr(w, "matrix_free", False):  # its nbytes holds the templates' too
+        if w.kind == TEMPLATES:  # its nbytes holds the templates' too
             own -= templates.nbytes
-        if first and applied_by(w) == "matrix-free":
+        if first and from_templates(w):
             own += templates.nbytes
         return own
 
@@ -343,10 +345,6 @@ class SlabReconstructor:
         self.peak_bytes = max(self.peak_bytes, int(nbytes))
 
 
-def _operator_kind(w) -> str:
+def _operator_kind(w: Operator) -> str:
     """What applies a slab's operator, in words, for the stage log."""
-    if getattr(w, "matrix_free", False):
-        return "matrix-free templates, applied in every iteration"
-    if getattr(w, "from_templates", False):
-        return "matrix-free templates' images, stored"
-    return "stored weights" + (f", {w.n_on_the_fly:,} voxels' made on the fly" if w.n_on_the_fly else "")
+    return OPERATOR_KINDS[w.kind] + (f"; {w.n_on_the_fly:,} voxels' made on the fly" if w.n_on_the_fly else "")

@@ -1,8 +1,11 @@
-"""Building the sparse voxel-to-pixel weights of a projector's cameras and grid.
+"""The stored sparse voxel-to-pixel weights: building them, and applying them as an operator.
 
-The operator (:class:`~lfcore.projector.Projector`) binds cameras and a grid on a device; this
-module builds its weights, as tomography toolkits keep geometry, operator and algorithm apart.
-Two kinds, both voxel-major CSR in chunks of whole voxels (:class:`Weights`):
+A projector (:class:`~lfcore.projector.LightFieldProjector`) binds cameras and a grid on a
+device; this module builds its weights, as tomography toolkits keep geometry, operator and
+algorithm apart, and :class:`Weights` applies them: it is the :class:`~lfcore.operator.Operator`
+of every kind that stores its rows (ray-traced DRT weights, line-of-sight weights, the matrix-free
+templates' images, pinhole and joint weights; :attr:`Weights.kind` says which). Two kinds are
+built here, both voxel-major CSR in chunks of whole voxels:
 
 - dense ray tracing (DRT, DRT-MART): one raw entry per (sub-aperture, lenslet, pixel), the
   entries of a voxel that share a pixel then summed (a sort by pixel within each voxel), so
@@ -20,13 +23,15 @@ weights do not fit (:class:`~lfcore.device.MemoryBudgetError`).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from lfcore.device import (
     MemoryBudgetError,
     PerBlock,
+    PrivateCopies,
+    RowOffset,
     Rows,
     available_bytes,
     cpu_threads,
@@ -34,9 +39,10 @@ from lfcore.device import (
     out_of_memory_is_budget_error,
     warp,
 )
+from lfcore.operator import LINE_OF_SIGHT, STORAGE, TEMPLATE_IMAGES, TRACED, scatter_voxels
 
-__all__ = ["ADVICE", "BUILDS", "BYTES_PER_WEIGHT", "CHUNK_ENTRIES", "ON_THE_FLY_BYTES_PER_VOXEL", "STORAGE",
-           "WeightBuilder", "WeightChunk", "Weights", "device_range"]
+__all__ = ["ADVICE", "BUILDS", "BYTES_PER_WEIGHT", "CHUNK_ENTRIES", "LANES", "ON_THE_FLY_BYTES_PER_VOXEL", "STORAGE",
+           "Binding", "WeightBuilder", "WeightChunk", "Weights", "device_range"]
 
 #: Bytes per stored weight: an int32 pixel index and a float32 value.
 BYTES_PER_WEIGHT = 8
@@ -53,8 +59,8 @@ CAPACITY_SAMPLE = 256
 ADVICE = "use a coarser --pvr, a smaller volume, or fewer sub-apertures"
 #: Ways to build DRT weights (see :meth:`WeightBuilder.weights`).
 BUILDS = ("auto", "single-pass", "two-pass")
-#: Where weights live (see :meth:`WeightBuilder.weights`).
-STORAGE = ("auto", "stored", "on-the-fly")
+#: GPU threads that share one voxel's row of weights in the MART kernels (a warp).
+LANES = 32
 #: Bytes per voxel of weights made on the fly: its index and its weights' sum.
 ON_THE_FLY_BYTES_PER_VOXEL = 8
 
@@ -75,9 +81,36 @@ class WeightChunk:
     nnz: int
 
 
-@dataclass
+@dataclass(eq=False)
+class Binding:
+    """What applying stored weights needs of the projector that made them.
+
+    Attributes
+    ----------
+    device
+        The Warp device of the weights.
+    n_pixels
+        Pixels of all the projector's cameras (the length of a projection).
+    shape
+        (nz, ny, nx) of the projector's grid (a depth slab's own), for the scatter.
+    builder
+        The :class:`WeightBuilder` that makes line-of-sight weights again in every iteration
+        (None where every weight is stored).
+    parts
+        The projector's private images for the CPU blocks of a projection (kept between calls).
+    """
+
+    device: str
+    n_pixels: int
+    shape: tuple[int, int, int]
+    builder: WeightBuilder | None
+    parts: PrivateCopies
+
+
+@dataclass(eq=False)
 class Weights:
-    """Sparse voxel-to-pixel weights on the device, voxel-major, in chunks of whole voxels.
+    """Sparse voxel-to-pixel weights on the device, voxel-major, in chunks of whole voxels: the
+    :class:`~lfcore.operator.Operator` of every kind that stores its rows.
 
     Attributes
     ----------
@@ -94,9 +127,14 @@ class Weights:
         every weight is stored.
     min_weight
         The raw weights below this were dropped (made on the fly, they are dropped again).
-    from_templates
-        The entries are the matrix-free templates' images (:meth:`MatrixFreeWeights.expanded
-        <lfcore.matrix_free.MatrixFreeWeights.expanded>`), not ray traced.
+    kind
+        What the rows are (:data:`lfcore.operator.ALL_KINDS`): ``"traced weights"`` (ray-traced DRT),
+        ``"line-of-sight weights"``, ``"template images"`` (the matrix-free templates' images,
+        :meth:`TemplateOperator.expanded <lfcore.matrix_free.TemplateOperator.expanded>`),
+        ``"pinhole weights"`` or ``"joint weights"``.
+    binding
+        What applying them needs of their projector (:class:`Binding`; set by the projector that
+        made them, which :meth:`forward`, :meth:`update` and :meth:`scatter` need).
     """
 
     voxels: object
@@ -104,7 +142,8 @@ class Weights:
     nnz: int
     sums: object = None
     min_weight: float = 1e-6
-    from_templates: bool = False
+    kind: str = TRACED
+    binding: Binding | None = field(default=None, repr=False)
 
     @property
     def n_voxels(self) -> int:
@@ -126,9 +165,18 @@ class Weights:
         return self.sums is None
 
     @property
+    def from_templates(self) -> bool:
+        """True where the entries are the matrix-free templates' images, not ray traced."""
+        return self.kind == TEMPLATE_IMAGES
+
+    @property
     def nbytes(self) -> int:
         held = sum(c.nnz for c in self.chunks)
         return BYTES_PER_WEIGHT * held + 12 * self.n_stored + ON_THE_FLY_BYTES_PER_VOXEL * self.n_on_the_fly
+
+    @property
+    def device(self) -> str:
+        return self._bound().device
 
     def to_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(offsets (n + 1,), pix (nnz,), w (nnz,)) of all chunks joined, on the host."""
@@ -145,6 +193,91 @@ class Weights:
             base += c.nnz
         return (np.concatenate(offs), np.concatenate(pix) if pix else np.zeros(0, np.int32),
                 np.concatenate(w) if w else np.zeros(0, np.float32))
+
+    # --- the operator -------------------------------------------------------------------------------
+    def _bound(self) -> Binding:
+        if self.binding is None:
+            raise ValueError("these weights are not bound to a projector; make them with a projector's operator() "
+                             "or weights()")
+        return self.binding
+
+    def forward(self, e, out=None) -> object:
+        """Project voxel intensities ``e`` (n,) to all pixels; returns ``out`` (n_pixels,) float32
+        (zeroed first; None: a new array)."""
+        from lfcore._kernels import mart as km
+
+        b = self._bound()
+        wp = warp()
+        out = wp.zeros(b.n_pixels, dtype=float, device=b.device) if out is None else out
+        out.zero_()
+        # The projection accumulates into pixels with atomics, which are plain adds on the CPU:
+        # there each CPU block sums into a private image, and the images are added after.
+        parts = b.parts.open(out)
+        k = self.n_stored
+        if k < self.n_voxels:
+            b.builder.trace_los(self.voxels[k:], 2, self.min_weight, sums=self.sums, e=e[k:self.n_voxels], proj=parts)
+        for c in self.chunks:
+            if b.device == "cpu":  # a thread per voxel
+                launch_rows(km.project_rows, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), e, parts],
+                            b.device)
+            else:  # a warp's lanes per voxel
+                launch_rows(km.project, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first), LANES, e,
+                                              parts], b.device, rest=(LANES,))
+        b.parts.close(out)
+        return out
+
+    def update(self, ratio, e, relaxation: float) -> None:
+        """One simultaneous multiplicative (SMART) update of ``e`` in place:
+        ``E_v <- E_v exp(mu sum_i w_iv ratio_i)``, ``ratio`` the (n_pixels,) float32 log ratios of
+        :func:`lfcore.operator.log_ratio`."""
+        from lfcore._kernels import mart as km
+
+        b = self._bound()
+        wp = warp()
+        mu = float(relaxation)
+        k = self.n_stored
+        if k < self.n_voxels:
+            b.builder.trace_los(self.voxels[k:], 3, self.min_weight, sums=self.sums, e=e[k:self.n_voxels],
+                                ratio=ratio, relaxation=mu)
+        for c in self.chunks:
+            if b.device == "cpu":
+                launch_rows(km.smart_update, c.n, [Rows(c.offsets, extra=1), c.pix, c.w, RowOffset(c.first),
+                                                   ratio, mu, e], b.device)
+            elif c.n:  # a warp per voxel, its lanes' sums added by a block reduction
+                wp.launch_tiled(km.smart_update_tiled, dim=[c.n], block_dim=LANES, device=b.device,
+                                inputs=[c.offsets, c.pix, c.w, c.first, ratio, mu, e])
+
+    def scatter(self, e, out=None) -> object:
+        """The dense (z, y, x) float32 volume with ``e`` at these voxels, zero elsewhere, on the
+        device (``out`` zeroed and written; None: a new array)."""
+        b = self._bound()
+        return scatter_voxels(self.voxels, e, b.shape, device=b.device, out=out)
+
+    def to_volume(self, e) -> np.ndarray:
+        """Like :meth:`scatter`, as a host (z, y, x) float32 array."""
+        return self.scatter(e).numpy()
+
+    def transpose(self) -> tuple:
+        """Pixel-major copy of the weights for the sequential form: (p_offsets, vox, w, rows)."""
+        wp, b = warp(), self._bound()
+        offsets, pix, w = self.to_numpy()
+        vox = np.repeat(np.arange(self.n_voxels, dtype=np.int32), np.diff(offsets))
+        order = np.argsort(pix, kind="stable")
+        p_offsets = np.zeros(b.n_pixels + 1, dtype=np.int64)
+        np.cumsum(np.bincount(pix, minlength=b.n_pixels), out=p_offsets[1:])
+        rows = np.flatnonzero(np.diff(p_offsets)).astype(np.int32)
+        dev = b.device
+        return (wp.array(p_offsets, device=dev), wp.array(vox[order], device=dev),
+                wp.array(w[order], device=dev), wp.array(rows, device=dev))
+
+    def sweep(self, transposed, image, e, relaxation: float, floor: float) -> None:
+        """One sequential sweep of eq. 4.1 over every pixel with weights (a single thread);
+        ``transposed`` from :meth:`transpose`."""
+        from lfcore._kernels import mart as km
+
+        p_offsets, vox, w, rows = transposed
+        warp().launch(km.mart_sequential, dim=1, device=self._bound().device,
+                      inputs=[p_offsets, vox, w, rows, image, float(floor), float(relaxation), e])
 
 
 def device_range(n: int, *, device: str) -> object:
@@ -352,9 +485,9 @@ class WeightBuilder:
             total += chunk.nnz
             chunks.append(chunk)
         if stored_n < n:  # the rest made on the fly: keep their sums, free their counts
-            return Weights(voxels=voxels, chunks=chunks, nnz=int(raw[n]), sums=sums[stored_n:n],
+            return Weights(voxels=voxels, chunks=chunks, nnz=int(raw[n]), sums=sums[stored_n:n], kind=LINE_OF_SIGHT,
                            min_weight=float(min_weight))
-        return Weights(voxels=voxels, chunks=chunks, nnz=total)
+        return Weights(voxels=voxels, chunks=chunks, nnz=total, kind=TRACED if method == "drt" else LINE_OF_SIGHT)
 
     def trace_los(self, voxels, fill: int, min_weight: float, *, counts=None, sums, offsets=None, origin: int = 0,
                   pix=None, w=None, e=None, proj=None, ratio=None, relaxation: float = 0.0) -> None:

@@ -2,15 +2,16 @@
 
 A voxel's weights, dense ray-traced (DRT-MART) or line-of-sight (MLOS-MART), depend only on the
 cameras and the grid, never on the image; only zero-voxel elimination does. A
-:class:`WeightCache` binds a :class:`Projector` and keeps, on its device, the merged weights
-of every voxel it has been asked for. Each frame then costs the elimination, tracing only the
-voxels never seen before, and one copy of the active rows into a fresh
-:class:`~lfcore.projector.Weights` (a few milliseconds where the tracing took seconds on a
-CPU). The rows are the ones :meth:`Projector.weights` builds for the same
-voxels, bit for bit.
+:class:`WeightCache` binds a projector (:class:`~lfcore.operator.Projector`) and keeps, on its
+device, the merged weights of every voxel it has been asked for. Each frame then costs the
+elimination, tracing only the voxels never seen before, and one copy of the active rows into a
+fresh :class:`~lfcore.weight_build.Weights`, the frame's operator (a few milliseconds where the
+tracing took seconds on a CPU). The rows are the ones the projector's ``weights`` builds for the
+same voxels, bit for bit.
 
 It also has the projector store the pixels of each voxel's first elimination checks
-(:meth:`Projector.precompute_checks`), so that elimination mostly looks pixels up.
+(:meth:`LightFieldProjector.precompute_checks <lfcore.projector.LightFieldProjector.precompute_checks>`), so
+that elimination mostly looks pixels up.
 
 Memory: 8 bytes per stored weight (int32 pixel, float32 value) in a pool on the device, plus
 12 bytes per grid voxel on the host (row start and length). A voxel has a few hundred weights
@@ -21,7 +22,7 @@ to ``budget_bytes`` (and at most 2**31 - 1 weights, the longest Warp array). Whe
 rows do not fit, its stored rows are copied out, its new rows are used as built, and the pool
 is emptied and refilled with that frame's rows alone: the next frame (frame B of the pair, or
 the next pair) shares more voxels with it than with older frames. The elimination table adds
-``20 * Projector.max_checks`` bytes per voxel and camera, 1.6 kB at 10 pixels per lenslet
+``20 * max_checks`` bytes per voxel and camera, 1.6 kB at 10 pixels per lenslet
 (0.5 GiB for case S, built in about 3.5 s on a CPU core, when the cache is made), fewer
 checks if that would pass a quarter of the budget.
 """
@@ -33,7 +34,8 @@ from dataclasses import replace
 import numpy as np
 
 from lfcore.device import Rows, available_bytes, launch_rows
-from lfcore.projector import Projector
+from lfcore.operator import JOINT, LINE_OF_SIGHT, PINHOLE, TRACED
+from lfcore.operator import Projector as AnyProjector
 from lfcore.weight_build import BYTES_PER_WEIGHT, CHUNK_ENTRIES, WeightChunk, Weights
 
 __all__ = ["DEFAULT_BUDGET_FRACTION", "WeightCache"]
@@ -68,7 +70,7 @@ class WeightCache:
         many as fit in a quarter of the budget (on top of it); None: all; 0: none.
     """
 
-    def __init__(self, projector: Projector, budget_bytes: int | None = None, min_weight: float = 1e-6,
+    def __init__(self, projector: AnyProjector, *, budget_bytes: int | None = None, min_weight: float = 1e-6,
                  checks: int | None = None, method: str = "drt") -> None:
         if method not in ("drt", "los"):
             raise ValueError(f"unknown weight method '{method}'; use 'drt' or 'los'")
@@ -86,7 +88,14 @@ class WeightCache:
         self._pix = None
         self._w = None
         self._used = 0
-        self.checks_bytes = projector.precompute_checks(checks, self.budget_bytes // 4)
+        self.checks_bytes = projector.precompute_checks(checks, budget_bytes=self.budget_bytes // 4)
+
+    @property
+    def kind(self) -> str:
+        """The operator kind of the rows kept: a light-field projector's :data:`~lfcore.operator.TRACED`
+        or :data:`~lfcore.operator.LINE_OF_SIGHT` ones, a pinhole or joint projector's own."""
+        own = {"pinhole": PINHOLE, "joint": JOINT}.get(getattr(self.projector, "kind", ""))
+        return own or (TRACED if self.method == "drt" else LINE_OF_SIGHT)
 
     @property
     def n_cached(self) -> int:
@@ -170,8 +179,8 @@ class WeightCache:
         stored = 0
         for lo in range(0, todo.size, PREFILL_VOXELS):
             part = todo[lo : lo + PREFILL_VOXELS]
-            built = self.projector.weights(wp.array(part, dtype=wp.int32, device=self.device), self.method,
-                                           self.min_weight, budget_bytes=self.budget_bytes)
+            built = self.projector.weights(wp.array(part, dtype=wp.int32, device=self.device), method=self.method,
+                                           min_weight=self.min_weight, budget_bytes=self.budget_bytes)
             if not self._store(part, built):
                 break
             stored += part.size
@@ -193,16 +202,16 @@ class WeightCache:
         if hit.all():
             return self._copy_out(voxels, vox_h)
         missing = vox_h[~hit]
-        built = p.weights(wp.array(missing.astype(np.int32), dtype=wp.int32, device=self.device), self.method,
-                          self.min_weight)
+        built = p.weights(wp.array(missing.astype(np.int32), dtype=wp.int32, device=self.device), method=self.method,
+                          min_weight=self.min_weight)
         if self._store(missing, built):
             return self._copy_out(voxels, vox_h)
         hits = vox_h[hit]
         order = np.concatenate([hits, missing])
         stored = self._copy_out(None, hits)
-        out = Weights(voxels=wp.array(order.astype(np.int32), dtype=wp.int32, device=self.device),
-                      chunks=stored.chunks + [replace(c, first=c.first + hits.size) for c in built.chunks],
-                      nnz=stored.nnz + built.nnz)
+        out = p.bind(Weights(voxels=wp.array(order.astype(np.int32), dtype=wp.int32, device=self.device),
+                             chunks=stored.chunks + [replace(c, first=c.first + hits.size) for c in built.chunks],
+                             nnz=stored.nnz + built.nnz), kind=self.kind)
         self.clear()
         self._store(order, out)  # nothing if the request alone passes the budget
         return out
@@ -232,4 +241,4 @@ class WeightCache:
                                                        out_pix, out_w], self.device)
             chunks.append(WeightChunk(first=lo, n=hi - lo, offsets=d_offsets, pix=out_pix, w=out_w, nnz=nnz))
             lo = hi
-        return Weights(voxels=voxels, chunks=chunks, nnz=int(offsets[-1]))
+        return p.bind(Weights(voxels=voxels, chunks=chunks, nnz=int(offsets[-1])), kind=self.kind)

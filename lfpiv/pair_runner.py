@@ -21,6 +21,7 @@ import logging
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from lfcore.plan import SLAB_SHARE, PlanError, asked_slabs
 from lfcore.runstore import RunStore, RunStoreError
 from lfpiv import replacement
 from lfpiv.errors import UsageError
@@ -30,32 +31,20 @@ __all__ = ["SLAB_SHARE", "run_pairs", "select_pairs", "slabs_asked"]
 T = TypeVar("T")
 log = logging.getLogger(__name__)
 
-#: Of the memory free, the share ``--slabs auto`` gives one depth slab's buffers (reconstruct:
-#: the rest is left to the active voxels' weights and intensities, which every slab keeps;
-#: correlate: to the correlator's own buffers).
-SLAB_SHARE = 0.5
-
-
 def slabs_asked(slabs: int | str | None, nz: int) -> int | None:
     """The depth slabs ``--slabs`` asks for over a box ``nz`` voxels deep: 1 for None (not given),
-    None for ``"auto"`` (the job chooses from the memory free), else the number, checked.
+    None for ``"auto"`` (the job chooses from the memory free), else the number, checked
+    (:func:`lfcore.plan.asked_slabs`).
 
     Raises
     ------
     UsageError
         Not a whole number, or not from 1 to ``nz``.
     """
-    if slabs is None:
-        return 1
-    if slabs == "auto":
-        return None
     try:
-        n = int(slabs)
-    except (TypeError, ValueError):
-        raise UsageError(f"--slabs: expected a whole number of slabs or auto, got {slabs!r}") from None
-    if not 1 <= n <= nz:
-        raise UsageError(f"--slabs {n}: the box is {nz} voxels deep; give from 1 to {nz} slabs, or auto")
-    return n
+        return asked_slabs(slabs, nz)
+    except PlanError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable[[Any], bool],

@@ -49,13 +49,12 @@ import numpy as np
 from acquisition.ring import PairView
 from lfcore.correlate import CorrelationConfig, Correlator, VectorField
 from lfcore.device_ops import ImagePreprocessor
-from lfcore.matrix_free import applied_by
-from lfcore.pinhole_projector import default_method, projector_for, unsupported_method
-from lfcore.reconstruct import WEIGHTS, FrameReconstructor, ReconSettings, estimate_background
+from lfcore.operator import applied_by
+from lfcore.plan import build_reconstructor, default_method, plan_reconstruction, unsupported_method
+from lfcore.reconstruct import ReconSettings, estimate_background
 from lfcore.rig import NotLightFieldError, Rig
 from lfcore.vectors import centres_mm, displacement_to_velocity, vorticity
 from lfcore.volume import VolumeGrid
-from lfcore.weight_cache import WeightCache
 
 __all__ = ["AXES", "LIVE_METHODS", "LiveResult", "LiveSettings", "LiveStats", "LivePipeline", "PairSource",
            "VectorSlice", "default_windows", "monitoring_recon", "plausible_latency"]
@@ -317,18 +316,17 @@ class _Reconstructor:
                  device: str | None) -> None:
         self.cams = [rig.camera_named(n) for n in cameras]
         self.recon = recon
-        # light-field cameras, pinhole ones or a mix: the projector of their kind
-        self.projector = projector_for(self.cams, grid, sub_apertures=recon.sub_apertures, device=device)
-        p = self.projector
-        # each voxel's weights traced once, on the first frame that keeps it (see WeightCache)
-        self.cache = WeightCache(p, method=WEIGHTS[recon.method])
-        self.frames = FrameReconstructor(p, recon, cache=self.cache)
+        # the batch path's planner: the projector of the cameras' kind, its operator and whether a weight
+        # cache traces each voxel once, on the first frame that keeps it
+        self.plan = plan_reconstruction(self.cams, grid, recon, device=device)
+        self.frames = build_reconstructor(self.plan, self.cams, grid, recon)
+        self.projector = p = self.frames.projector
+        self.cache = self.frames.cache
         self.wp = p.wp
         self.device = p.device
-        if recon.projector == "matrix-free":
-            # the templates built now (kept by the reconstructor), not in the first pair's time; a
-            # geometry without them (MatrixFreeUnsupported) or no room for them fails the build
-            self.frames.weights(self.wp.zeros(0, dtype=self.wp.int32, device=self.device))
+        # the matrix-free templates built now (kept by the reconstructor), not in the first pair's time;
+        # a geometry without them (MatrixFreeUnsupported) or no room for them fails the build
+        self.frames.prepare()
         self.offsets = [int(o) for o in p.pixel_offsets]
         self.pre = ImagePreprocessor(self.cams, device=self.device)
         self.ops = self.frames.ops
@@ -798,7 +796,7 @@ class LivePipeline:
             t0 = time.perf_counter()
             voxels = rc.eliminate(f)  # ends on the host (the count of survivors), so t1 is exact
             t1 = time.perf_counter()
-            w = rc.frames.weights(voxels)  # from the cache where it has them
+            w = rc.frames.operator(voxels)  # from the cache where it has them
             t2 = time.perf_counter()
             e = rc.iterate(f, w, s.iterations, s.relaxation)
             t3 = time.perf_counter()

@@ -216,3 +216,14 @@ def filled_ring(pairs: int, slots: int = 8) -> PairRing:
             assert ring.put("cam0", p, f, fr[f], 2 * p + f, time.time_ns())
         ring.publish(p)
     return ring
+
+
+def smart_update(op, image, proj, e, relaxation: float, floor: float) -> None:
+    """One SMART update of ``e`` through the operator ``op`` from the measured ``image`` and its
+    projection ``proj`` ((n_pixels,) float32 each): the log ratios, then ``op.update``."""
+    from lfcore.device import warp
+    from lfcore.operator import log_ratio
+
+    wp = warp()
+    ratio = wp.empty(int(image.shape[0]), dtype=float, device=str(image.device))
+    op.update(log_ratio(image, proj, floor, ratio), e, relaxation)

@@ -116,17 +116,14 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.runs import open_run
 
     check_pvr(args.pvr)
-    # the options checked before the run is opened (the method's own checks again once it is known;
-    # the projector's too, since it applies to drt-mart only)
-    settings = recon_settings(method=args.method or "mlos-smart", iterations=args.iterations,
-                              relaxation=args.relaxation, form=args.form, sub_apertures=args.sub_apertures,
-                              background=args.background, threshold_sigma=args.threshold_sigma, smooth=args.smooth,
-                              weight_storage=args.weight_storage,
-                              projector=args.projector if args.method else "auto")
+    # the cameras' default method needs the run's rig (read only: a bad option leaves the store untouched)
+    method = args.method or default_method(open_run(args.run).rig, args.cameras)
+    settings = recon_settings(method=method, iterations=args.iterations, relaxation=args.relaxation, form=args.form,
+                              sub_apertures=args.sub_apertures, background=args.background,
+                              threshold_sigma=args.threshold_sigma, smooth=args.smooth,
+                              weight_storage=args.weight_storage, projector=args.projector)
+    args.method = method
     store = open_run(args.run, mode="r+")
-    if args.method is None:  # the default of the cameras' kind
-        args.method = default_method(store.rig, args.cameras)
-        settings = recon_settings(**{**settings.as_dict(), "method": args.method, "projector": args.projector})
     rig, calibration = None, None
     if args.calibration is not None:
         from lfpiv.jobs.calibrate import calibrated_rig

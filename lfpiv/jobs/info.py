@@ -6,6 +6,7 @@ from pathlib import Path
 
 from calibration.store import CalibrationStore, CalibrationStoreError
 from lfcore.mla import lenslet_count
+from lfcore.plan import Plan, PlanError
 from lfcore.rig import is_pinhole
 from lfcore.runstore import RunStore, RunStoreError
 from lfcore.volume import VolumeGrid
@@ -48,6 +49,20 @@ def _projector(asked: str, operator: dict | None) -> str:
     return (f"projector {asked}{f' ({ran})' if ran != asked else ''}, operator "
             f"{float(operator.get('bytes', 0)) / 2**20:.1f} MiB, {float(operator.get('ms_per_iteration', 0.0)):.1f} "
             "ms per iteration")
+
+
+def _plan(recorded: object, operator: object) -> str:
+    """``"auto on cpu, weight cache, in memory; ran traced weights"``: the plan the volumes were made
+    by (:class:`lfcore.plan.Plan`) and the operators that ran; ``""`` for volumes made before plans
+    were recorded (or a damaged record)."""
+    if not isinstance(recorded, dict):
+        return ""
+    try:
+        plan = Plan.from_dict(recorded)
+    except PlanError:
+        return ""
+    ran = operator.get("operators") if isinstance(operator, dict) else None
+    return plan.summary() + (f"; ran {', '.join(map(str, ran))}" if isinstance(ran, list) and ran else "")
 
 
 def describe(path: str | Path) -> list[str]:
@@ -124,6 +139,9 @@ def describe(path: str | Path) -> list[str]:
                                  f"{va['settings'].get('iterations')} iterations, "
                                  f"{' x '.join(str(n) for n in g.shape[::-1])} voxels, "
                                  f"{_projector(va['settings'].get('projector', 'auto'), va.get('operator'))}"))
+        plan = _plan(va.get("plan"), va.get("operator"))
+        if plan:
+            lines.append(("plan", plan))
     else:
         lines.append(("volumes", f"none (lfpiv reconstruct {store.path})"))
     if store.has_vectors:

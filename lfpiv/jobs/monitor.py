@@ -32,7 +32,7 @@ from acquisition.protocols import DeviceError
 from acquisition.session import SessionStats
 from lfcore.correlate import CorrelationConfig, CorrelationError
 from lfcore.device import MemoryBudgetError, resolve_device
-from lfcore.matrix_free import MatrixFreeUnsupported
+from lfcore.operator import MatrixFreeUnsupported
 from lfcore.reconstruct import ReconSettings
 from lfcore.rig import Rig
 from lfcore.runstore import RunStore

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -10,29 +11,38 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
-from lfcore.matrix_free import PROJECTORS, MatrixFreeUnsupported
-from lfcore.pinhole_projector import PINHOLE_METHODS, projector_for, unsupported_method
-from lfcore.pinhole_projector import default_method as pinhole_default_method
-from lfcore.projector import Projector, max_planes
-from lfcore.reconstruct import MAX_SUB_APERTURES, WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
+from lfcore.device import MemoryBudgetError
+from lfcore.operator import PROJECTORS, MatrixFreeUnsupported
+from lfcore.plan import (
+    BYTES_PER_BOX_VOXEL,
+    PINHOLE_METHODS,
+    Plan,
+    PlanError,
+    build_reconstructor,
+    plan_reconstruction,
+    unsupported_method,
+)
+from lfcore.plan import default_method as cameras_default_method
+from lfcore.reconstruct import MAX_SUB_APERTURES, FrameReconstructor, ReconResult, ReconSettings
 from lfcore.rig import Rig, is_pinhole, voxel_shape_warnings
 from lfcore.runstore import RunStore
-from lfcore.slabs import SlabReconstructor, plan_slabs, slab_halo, slabs_for_budget
+from lfcore.slabs import SlabReconstructor
 from lfcore.volume import VolumeGrid
-from lfcore.weight_cache import WeightCache
 from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
-from lfpiv.pair_runner import SLAB_SHARE, run_pairs, select_pairs, slabs_asked
+from lfpiv.pair_runner import run_pairs, select_pairs
 
-__all__ = ["MAX_SUB_APERTURES", "OPERATOR_ATTR", "PINHOLE_METHODS", "PROJECTORS", "ReconJob", "ReconResult",
-           "ReconSettings", "default_method", "operator_figures", "recon_settings", "reconstruct_pair_task",
-           "reconstruct_run", "voxel_shape_notes"]
+__all__ = ["BYTES_PER_BOX_VOXEL", "MAX_SUB_APERTURES", "OPERATOR_ATTR", "PINHOLE_METHODS", "PLAN_ATTR", "PROJECTORS",
+           "PairDone", "ReconJob", "ReconResult", "ReconSettings", "default_method", "operator_figures",
+           "recon_settings", "reconstruct_pair_task", "reconstruct_run", "voxel_shape_notes"]
 
-#: Bytes per voxel of the box the elimination pass and the dense result need at once.
-BYTES_PER_BOX_VOXEL = 16
+log = logging.getLogger(__name__)
+
 #: The attribute of ``volumes/`` that holds what the operator took (see :func:`operator_figures`).
 OPERATOR_ATTR = "operator"
+#: The attribute of ``volumes/`` that holds the plan the volumes were made by
+#: (:meth:`lfcore.plan.Plan.as_dict`: device, cameras, operator, cache, slabs and the reasons).
+PLAN_ATTR = "plan"
 
 
 def recon_settings(**options: Any) -> ReconSettings:
@@ -48,7 +58,7 @@ def default_method(rig: Rig, cameras: Sequence[str] | None = None) -> str:
     """The reconstruction of the cameras named (None: all of the rig's): ``mlos-smart`` where they
     are all pinhole cameras, ``drt-mart`` otherwise (a mixed rig's light-field cameras by DRT-MART's
     weights, its pinhole cameras by their line of sight, jointly)."""
-    return pinhole_default_method([c for c in rig.camera if cameras is None or c.name in cameras])
+    return cameras_default_method([c for c in rig.camera if cameras is None or c.name in cameras])
 
 
 def voxel_shape_notes(rig: Rig, cameras: Sequence[str] | None, pvr: Sequence[float] | None) -> list[str]:
@@ -79,69 +89,42 @@ class ReconJob:
     slabs: int | str | None = None
 
 
-def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None,
-              slabs: int | str | None = None) -> FrameReconstructor | SlabReconstructor:
-    """The reconstructor of a run's frames (its projector, weight cache and device buffers, built
-    once per stream), on a device with room for the box, or for one depth slab of it at a time
-    (``slabs``: a number of slabs, or ``"auto"``: as many as the memory needs, 1 if the box fits)."""
-    device = resolve_device(device)
-    need = BYTES_PER_BOX_VOXEL * grid.n_voxels
-    free = available_bytes(device)
-    n_slabs = _slab_count(slabs, grid, settings, need, free, device)
-    if n_slabs > 1:
-        projector = projector_for(cams, grid, sub_apertures=settings.sub_apertures, device=device)
-        try:
-            return SlabReconstructor(projector, settings, slabs=plan_slabs(grid.shape[0], n_slabs))
-        except ValueError as exc:
-            raise UsageError(f"--slabs: {exc}") from None
-    if need > free:
-        hint = "" if slabs is not None else ", or --slabs auto to reconstruct it in depth slabs"
-        raise UsageError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
-                         f"has free; use a coarser --pvr{hint}")
-    if grid.shape[0] > max_planes(grid):
-        raise UsageError(f"a box of {grid.n_voxels:,} voxels is more than int32 voxel indices number in one piece; "
-                         "use --slabs auto to reconstruct it in depth slabs, or a coarser --pvr")
-    projector = projector_for(cams, grid, sub_apertures=settings.sub_apertures, device=device)
-    # weights reused across frames (the baseline's cover the whole box and are built per frame;
-    # a pinhole camera's, a handful per voxel, are built per frame in less than the iterations take)
-    cache = None
-    if type(projector) is Projector and settings.method != "mart" and settings.weight_storage != "on-the-fly":
-        cache = WeightCache(projector, method=WEIGHTS[settings.method])
-    return FrameReconstructor(projector, settings, cache=cache)
-
-
-def _slab_count(slabs: int | str | None, grid: VolumeGrid, settings: ReconSettings, need: int, free: int,
-                device: str) -> int:
-    """The depth slabs to reconstruct ``grid`` in: ``slabs`` as given (None: 1), or for ``"auto"`` 1
-    where the box's ``need`` bytes fit in the ``free`` ones, else the fewest whose buffers fit in
-    :data:`SLAB_SHARE` of them (and each with its halo numbered in int32: a box of
-    :data:`~lfcore.projector.INDEX_LIMIT` voxels or more is split whatever the memory)."""
-    asked = slabs_asked(slabs, grid.shape[0])
-    if asked is not None:
-        return asked
-    if need <= free and grid.shape[0] <= max_planes(grid):
-        return 1
-    if settings.form != "simultaneous":
-        why = (f"needs {need / 2**30:.1f} GiB on {device}, more than it has free" if need > free else
-               "is more than int32 voxel indices number in one piece")
-        raise UsageError(f"a box of {grid.n_voxels:,} voxels {why}, and the sequential form cannot be split into "
-                         "depth slabs; use --form simultaneous or a coarser --pvr")
+def _plan(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None,
+          slabs: int | str | None = None) -> Plan:
+    """The planner's choice (:func:`lfcore.plan.plan_reconstruction`) for a run's frames on ``device``,
+    or its one-line refusal as a :class:`UsageError`; logged (``lfpiv reconstruct -v``)."""
     try:
-        return slabs_for_budget(grid, int(SLAB_SHARE * free), halo=slab_halo(settings))
-    except MemoryBudgetError as exc:
-        raise UsageError(f"--slabs auto: {exc}") from None
+        plan = plan_reconstruction(cams, grid, settings, device=device, slabs=slabs)
+    except PlanError as exc:
+        raise UsageError(str(exc)) from None
+    for line in plan.lines():
+        log.info(line)
+    return plan
+
+
+def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None,
+              slabs: int | str | None = None) -> tuple[Plan, FrameReconstructor | SlabReconstructor]:
+    """The plan of a run's frames and its reconstructor (its projector, weight cache and device
+    buffers, built once per stream), on a device with room for the box, or for one depth slab of it
+    at a time (``slabs``: a number of slabs, or ``"auto"``: as many as the memory needs, 1 if the box
+    fits)."""
+    plan = _plan(cams, grid, settings, device, slabs)
+    try:
+        return plan, build_reconstructor(plan, cams, grid, settings)
+    except PlanError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def _reconstruct_frame(frames: FrameReconstructor | SlabReconstructor, store: RunStore, names: Sequence[str],
                        pair: int, frame: int, progress: Any = None, data: Any = None,
                        log: Any = None) -> ReconResult:
-    """Reconstruct one frame of a pair from the run's images. A :class:`SlabReconstructor` writes
+    """Reconstruct one frame of a pair from the run's images. A reconstructor in slabs writes
     its volume into ``data`` (the volumes' zarr array; None: the store's) slab by slab and returns
-    it empty, telling ``log`` (if given) each stage as it ends; a :class:`FrameReconstructor`
-    returns it for the caller to write."""
+    it empty, telling ``log`` (if given) each stage as it ends; one in memory returns it for the
+    caller to write."""
     images = [store.read_frame(n, pair, frame) for n in names]  # a damaged or missing frame is an error
     try:
-        if isinstance(frames, SlabReconstructor):
+        if frames.in_slabs:
             out = store.writing("volumes")["data"] if data is None else data
 
             def write(z0: int, z1: int, planes: np.ndarray) -> None:
@@ -177,12 +160,24 @@ def operator_figures(results: Sequence[ReconResult], before: dict[str, Any] | No
             "ms_per_iteration": round(ms, 3), "frames": n}
 
 
-def _record(store: RunStore, written: list[tuple[int, int]], results: Sequence[ReconResult]) -> None:
+def operator_figures_of(results: Sequence[ReconResult], before: dict[str, Any] | None = None) -> list[str]:
+    """The operator kinds (:data:`lfcore.operator.ALL_KINDS`) over the frames of a set of volumes:
+    those of ``before`` (the ``operators`` entry of the attribute, or None) and of ``results``."""
+    old = (before or {}).get("operators") or []
+    return sorted(set(old) | {k for r in results for k in r.operator.split(", ") if k})
+
+
+def _record(store: RunStore, written: list[tuple[int, int]], results: Sequence[ReconResult],
+            plan: Plan | None) -> None:
     """Record the (pair, frame) volumes ``written`` and add the frames of ``results`` to the
-    operator figures of the volumes being written, in one write of their attributes (by the one
-    process that writes the store's bookkeeping)."""
-    store.record_volumes(written, attrs=lambda now: {OPERATOR_ATTR: operator_figures(results,
-                                                                                     now.get(OPERATOR_ATTR))})
+    operator figures of the volumes being written, with the ``plan`` they were made by, in one write
+    of their attributes (by the one process that writes the store's bookkeeping)."""
+    def attrs(now: Any) -> dict[str, Any]:
+        figures = operator_figures(results, now.get(OPERATOR_ATTR))
+        figures["operators"] = operator_figures_of(results, now.get(OPERATOR_ATTR))
+        return {OPERATOR_ATTR: figures, **({} if plan is None else {PLAN_ATTR: plan.as_dict()})}
+
+    store.record_volumes(written, attrs=attrs)
 
 
 def _summary(res: ReconResult) -> ReconResult:
@@ -191,12 +186,21 @@ def _summary(res: ReconResult) -> ReconResult:
     return replace(res, volume=np.zeros((0, 0, 0), np.float32))
 
 
-def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
+@dataclass(frozen=True)
+class PairDone:
+    """What a worker's task gives back of a pair: both frames' results (without their volumes, which
+    are in the store) and the plan the worker made them by."""
+
+    results: list[ReconResult]
+    plan: Plan
+
+
+def reconstruct_pair_task(job: ReconJob, pair: int) -> PairDone:
     """Worker task: reconstruct both frames of ``pair`` into the run store; the results come
     back without their volumes, which stay in the store."""
     from lfpiv.batch import open_run_on_worker, this_worker_device, worker_state
 
-    def build() -> tuple[RunStore, Any, FrameReconstructor]:
+    def build() -> tuple[RunStore, Any, tuple[Plan, FrameReconstructor | SlabReconstructor]]:
         store = open_run_on_worker(job.path, job.writer)
         if job.into != "volumes":
             store.resume("volumes")
@@ -207,7 +211,7 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
         return (store, store.writing("volumes")["data"],
                 _operator(cams, job.grid, job.settings, this_worker_device(job.device), job.slabs))
 
-    store, data, frames = worker_state(job.token, build)
+    store, data, (plan, frames) = worker_state(job.token, build)
     out = []
     # frame A is written while frame B is reconstructed; both are written when the task returns
     with WriteBehind() as writer:
@@ -216,7 +220,7 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> list[ReconResult]:
             if res.slabs == 1:  # a volume in slabs is in the store already
                 writer.submit(data.__setitem__, (pair, f), res.volume)
             out.append(_summary(res))
-    return out
+    return PairDone(out, plan)
 
 
 def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[float] | None = None,
@@ -293,7 +297,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     except ValueError as exc:
         raise UsageError(f"--pvr/--margin-mm: {exc}") from None
     # the cluster's workers hold the device; this process may have none (a login node)
-    frames = _operator(cams, grid, settings, device, slabs) if client is None else None
+    plan, frames = _operator(cams, grid, settings, device, slabs) if client is None else (None, None)
     # where the weights lived does not change a volume, so it does not make volumes/ a different set
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
@@ -306,9 +310,9 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
 
     results: list[ReconResult] = []
 
-    def written(p: int, res: list[ReconResult]) -> None:
-        _record(store, [(p, 0), (p, 1)], res)
-        results.extend(res)
+    def written(p: int, done: PairDone) -> None:
+        _record(store, [(p, 0), (p, 1)], done.results, done.plan)
+        results.extend(done.results)
 
     def remote(into: str) -> tuple[Any, ReconJob]:
         from lfpiv.batch import new_token
@@ -319,15 +323,16 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
 
     run_pairs(store, "volumes", chosen, matches=lambda g: _made_with(store, g, grid, meta), differences=differences,
               create=lambda: store.create_volumes(grid, method=settings.method, settings=meta), skip_done=skip_done,
-              here=lambda todo: _reconstruct_here(frames, store, names, todo, settings, results, progress),
+              here=lambda todo: _reconstruct_here(frames, plan, store, names, todo, settings, results, progress),
               remote=remote, client=client, on_done=written, desc="reconstructing", progress=progress,
-              postfix=_shown,
+              postfix=lambda p, done: _shown(p, done.results),
               kept=lambda: f"the {len(results)} volume(s) written before are kept" if results else "")
     return results
 
 
-def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, store: RunStore, names: Sequence[str],
-                      chosen: list[int], settings: ReconSettings, results: list[ReconResult], progress: bool) -> None:
+def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, plan: Plan, store: RunStore,
+                      names: Sequence[str], chosen: list[int], settings: ReconSettings, results: list[ReconResult],
+                      progress: bool) -> None:
     """Reconstruct both frames of the ``chosen`` pairs in this process, adding to ``results``;
     each volume is written (and recorded) while the next frame is reconstructed."""
     total = len(chosen) * 2 * max(settings.iterations, 1)
@@ -340,7 +345,7 @@ def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, store: Run
                 res = _reconstruct_frame(frames, store, names, p, f, bar.update,
                                          log=lambda line, p=p, f=f: bar.set_postfix_str(f"pair {p} {'AB'[f]}: {line}"))
                 # the volume, then its bookkeeping and operator figures, on the writer's thread
-                writer.submit(_write_frame, store, p, f, res)
+                writer.submit(_write_frame, store, p, f, res, plan)
                 results.append(_summary(res))
                 if settings.iterations == 0:
                     bar.update(1)
@@ -355,12 +360,12 @@ def _shown(pair: int, res: Sequence[ReconResult]) -> dict[str, str]:
             "mem": f"{last.weight_bytes / 2**20:.1f}MiB", "ms_it": f"{last.ms_per_iteration:.1f}"}
 
 
-def _write_frame(store: RunStore, pair: int, frame: int, res: ReconResult) -> None:
+def _write_frame(store: RunStore, pair: int, frame: int, res: ReconResult, plan: Plan) -> None:
     """Write a frame's volume (none of one written slab by slab) and record it with its operator
-    figures."""
+    figures and the plan it was made by."""
     if res.slabs == 1:
         store.write_volume(pair, frame, res.volume, record=False)
-    _record(store, [(pair, frame)], [res])
+    _record(store, [(pair, frame)], [res], plan)
 
 
 def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, Any]) -> bool:

@@ -20,14 +20,13 @@ import numpy as np
 from lfcore import metrics
 from lfcore.correlate import CorrelationConfig, Correlator, VectorField
 from lfcore.flows import Flow, flow_from_params
-from lfcore.pinhole_projector import projector_for
-from lfcore.projector import Projector
+from lfcore.operator import Projector
+from lfcore.plan import cache_serves, new_cache, projector_for
 from lfcore.reconstruct import WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
 from lfcore.render import renderer_for
 from lfcore.rig import Camera, Rig
 from lfcore.vectors import centres_mm, displacement_to_velocity
 from lfcore.volume import VolumeGrid
-from lfcore.weight_cache import WeightCache
 from lfcore.world import ParticleWorld
 from lfpiv.jobs.synth import render_pair
 
@@ -116,14 +115,15 @@ class Reconstructor:
     ----------
     cameras
         The cameras reconstructed jointly (all light-field, or all pinhole:
-        :func:`lfcore.pinhole_projector.projector_for`).
+        :func:`lfcore.plan.projector_for`).
     grid
         The voxel grid.
     device
         Warp device.
     cache
-        Keep each weight kind's weights across frames (:class:`lfcore.weight_cache.WeightCache`):
-        repeated reconstructions of the same frames then trace each voxel once. Leave it off
+        Keep each weight kind's weights across frames where the planner says a cache serves
+        (:func:`lfcore.plan.cache_serves`): repeated reconstructions of the same frames then trace
+        each voxel once. Leave it off
         where the time of a reconstruction is measured, so that it includes its weights.
     """
 
@@ -132,7 +132,7 @@ class Reconstructor:
         self.projector: Projector = projector_for(list(cameras), grid, device=device)
         self.grid = grid
         self.use_cache = cache
-        self._caches: dict[str, WeightCache] = {}
+        self._caches: dict[str, object] = {}  # per weight kind, the first reconstructor's cache
         self._frames: dict[ReconSettings, FrameReconstructor] = {}
 
     @property
@@ -143,10 +143,10 @@ class Reconstructor:
         if settings not in self._frames:
             cache = None
             kind = WEIGHTS[settings.method]
-            if self.use_cache and settings.method != "mart" and type(self.projector) is Projector:
+            if self.use_cache and cache_serves(self.projector.kind, settings)[0]:
                 if kind not in self._caches:
                     # no stored elimination table (checks=0): it costs seconds to build for each projector
-                    self._caches[kind] = WeightCache(self.projector, method=kind, checks=0)
+                    self._caches[kind] = new_cache(self.projector, method=kind, checks=0)
                 cache = self._caches[kind]
             self._frames[settings] = FrameReconstructor(self.projector, settings, cache=cache)
         return self._frames[settings]

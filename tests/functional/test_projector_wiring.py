@@ -137,7 +137,7 @@ def test_auto_takes_the_templates_images_where_they_pay(frames_only, matrix_free
                                                         monkeypatch) -> None:
     """With the templates made cheap to build (as they are against the Mc crop's 400,000 active
     voxels), ``--projector auto`` takes their images for every frame, and ``info`` says so."""
-    import lfcore.reconstruct as recon
+    import lfcore.plan as recon
 
     monkeypatch.setattr(recon, "TEMPLATE_TRACES", 0.0)
     path = _copy(frames_only, tmp_path)

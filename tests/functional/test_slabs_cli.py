@@ -26,7 +26,7 @@ def one_pair(tmp_path_factory):
 
 
 def _small_memory(monkeypatch):
-    import lfpiv.jobs.reconstruct as job
+    import lfcore.plan as job
 
     monkeypatch.setattr(job, "available_bytes", lambda device: SMALL_BUDGET)
 
@@ -62,7 +62,7 @@ def test_a_box_past_the_index_limit_proceeds_in_slabs_whatever_the_memory(capsys
     number; here the limit is lowered to 12 of the tiny box's 29 planes. In memory it is refused in
     one line; --slabs auto splits it into slabs that each number their own voxels, with the volume
     the box gives below the limit."""
-    import lfcore.projector as projector_module
+    import lfcore.operator as projector_module
 
     here, sliced = tmp_path / "memory.zarr", tmp_path / "slabs.zarr"
     shutil.copytree(one_pair, here)

@@ -98,7 +98,7 @@ def _threads(monkeypatch, n: int) -> None:
 
 def _frame_and_reconstruction(tiny_rig):
     from lfcore.particles import seed_particles
-    from lfcore.projector import Projector
+    from lfcore.projector import LightFieldProjector
     from lfcore.reconstruct import ReconSettings, reconstruct
     from lfcore.render import LightFieldRenderer
     from lfcore.volume import VolumeGrid
@@ -108,7 +108,7 @@ def _frame_and_reconstruction(tiny_rig):
     render = tiny_rig.render.model_copy(update={"rays_per_particle": 3000})
     frame = LightFieldRenderer(cam, render, tiny_rig.laser.wavelength_nm, device="cpu").frame(
         pts, render.particle_counts, 5)
-    proj = Projector([cam], VolumeGrid.from_rig(tiny_rig), device="cpu")
+    proj = LightFieldProjector([cam], VolumeGrid.from_rig(tiny_rig), device="cpu")
     drt = reconstruct(proj, [frame], ReconSettings(iterations=8))
     mart = reconstruct(proj, [frame], ReconSettings(method="mart", iterations=3))
     return frame, drt, mart

@@ -9,7 +9,7 @@ from scipy import ndimage
 from lfcore.correlate import CorrelationConfig, CorrelationError, Correlator
 from lfcore.device import warp
 from lfcore.device_ops import ImagePreprocessor, VolumeOps, gaussian_taps
-from lfcore.projector import Projector
+from lfcore.projector import LightFieldProjector
 from lfcore.reconstruct import preprocess
 from lfcore.volume import VolumeGrid
 from tests.blobs import blob_pair
@@ -69,17 +69,17 @@ def test_smoothing_projections_and_slices_equal_numpy(device) -> None:
 
 def test_scatter_keeps_the_volume_on_the_device(tiny_rig, device) -> None:
     grid = VolumeGrid.from_rig(tiny_rig)
-    p = Projector(tiny_rig.camera, grid, device=device)
+    p = LightFieldProjector(tiny_rig.camera, grid, device=device)
     w = p.weights(p.all_voxels()[:50])
     e = p.wp.array(np.arange(1, 51, dtype=np.float32), dtype=float, device=p.device)
     out = p.wp.full(grid.shape, 7.0, dtype=float, device=p.device)
-    vol = p.scatter(w, e, out)
+    vol = w.scatter(e, out)
     assert vol is out and vol.shape == grid.shape
-    host = p.to_volume(w, e)
+    host = w.to_volume(e)
     assert np.array_equal(vol.numpy(), host)
     assert np.array_equal(host.ravel()[:50], np.arange(1, 51)) and host.ravel()[50:].sum() == 0
     with pytest.raises(ValueError, match="must be"):
-        p.scatter(w, e, p.wp.zeros((2, 2, 2), dtype=float, device=p.device))
+        w.scatter(e, p.wp.zeros((2, 2, 2), dtype=float, device=p.device))
 
 
 def test_correlator_takes_device_volumes_in_place(device) -> None:

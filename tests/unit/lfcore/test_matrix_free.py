@@ -21,17 +21,18 @@ from lfcore.matrix_free import (
     RIGID_SPOT_BYTES,
     DrtTemplates,
     MatrixFreeUnsupported,
-    MatrixFreeWeights,
+    TemplateOperator,
     applied_by,
     fidelity,
     template_count,
 )
 from lfcore.particles import particle_count, seed_particles
-from lfcore.projector import MemoryBudgetError, Projector
+from lfcore.projector import LightFieldProjector, MemoryBudgetError
 from lfcore.reconstruct import FrameReconstructor, ReconSettings, reconstruct
 from lfcore.render import LightFieldRenderer
 from lfcore.rig import Rig
 from lfcore.volume import VolumeGrid
+from tests.helpers import smart_update
 
 
 def _small(rig: Rig, size_mm=(0.5, 0.4, 1.2), cameras: list | None = None, **camera_changes) -> Rig:
@@ -62,7 +63,7 @@ def test_voxel_images_match_the_stored_weights(tiny_rig, device, variant):
     opts = dict(VARIANTS[variant])
     rig = _small(tiny_rig, **opts)
     grid = VolumeGrid.from_rig(rig)
-    proj = Projector(rig.camera, grid, device=device)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
     templates = DrtTemplates(proj)
     assert template_count(proj) == templates.n_templates
     vox = np.random.default_rng(7).choice(grid.n_voxels, 60, replace=False)
@@ -77,7 +78,7 @@ def test_templates_keep_each_voxels_light(tiny_rig, device):
     the spots crossing the sensor's edges are what is left)."""
     rig = _small(tiny_rig, **VARIANTS["fitted"])
     grid = VolumeGrid.from_rig(rig)
-    proj = Projector(rig.camera, grid, device=device)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
     t = DrtTemplates(proj)
     assert t.n_rigid > 0 and t.n_cut > 0 and t.n_rigid + t.n_cut == t.n_spots
     assert t.tables.rigid.numpy().itemsize == RIGID_SPOT_BYTES and t.tables.cut.numpy().itemsize == CUT_SPOT_BYTES
@@ -100,23 +101,23 @@ def scene(tiny_rig):
 
 def test_forward_projection_and_update_match_the_stored_weights(scene, device):
     rig, grid, _, _ = scene
-    proj = Projector(rig.camera, grid, device=device)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
     wp = proj.wp
     rng = np.random.default_rng(1)
     vox_np = np.sort(rng.choice(grid.n_voxels, grid.n_voxels // 3, replace=False)).astype(np.int32)
     vox = wp.array(vox_np, dtype=wp.int32, device=device)
-    stored = proj.weights(vox, "drt")
-    mf = MatrixFreeWeights(DrtTemplates(proj), vox)
+    stored = proj.weights(vox, method="drt")
+    mf = TemplateOperator(DrtTemplates(proj), vox)
     e_np = rng.random(len(vox_np)).astype(np.float32)
-    a = proj.forward(stored, wp.array(e_np, device=device)).numpy()
-    b = proj.forward(mf, wp.array(e_np, device=device)).numpy()
+    a = stored.forward(wp.array(e_np, device=device)).numpy()
+    b = mf.forward(wp.array(e_np, device=device)).numpy()
     assert np.linalg.norm(b - a) <= 1e-3 * np.linalg.norm(a)
     # one SMART update from the same projection: the same steps (the weighted mean log ratios)
     image = wp.array((a * rng.uniform(0.5, 1.5, a.size)).astype(np.float32), device=device)
     proj_a = wp.array(a, device=device)
     ea, eb = wp.array(e_np, device=device), wp.array(e_np, device=device)
-    proj.smart_update(stored, image, proj_a, ea, 1.0, 1e-3)
-    proj.smart_update(mf, image, proj_a, eb, 1.0, 1e-3)
+    smart_update(stored, image, proj_a, ea, 1.0, 1e-3)
+    smart_update(mf, image, proj_a, eb, 1.0, 1e-3)
     step_a, step_b = np.log(ea.numpy() / e_np), np.log(eb.numpy() / e_np)
     assert np.linalg.norm(step_b - step_a) <= 1e-2 * np.linalg.norm(step_a)
 
@@ -126,14 +127,14 @@ def _same_operator(proj, reference, other, rng) -> None:
     does, up to float summation order."""
     wp, device = proj.wp, proj.device
     e_np = rng.random(reference.n_voxels).astype(np.float32)
-    a = proj.forward(reference, wp.array(e_np, device=device)).numpy()
-    b = proj.forward(other, wp.array(e_np, device=device)).numpy()
+    a = reference.forward(wp.array(e_np, device=device)).numpy()
+    b = other.forward(wp.array(e_np, device=device)).numpy()
     np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-6 * a.max())
     image = wp.array((a * rng.uniform(0.5, 1.5, a.size)).astype(np.float32), device=device)
     proj_a = wp.array(a, device=device)
     ea, eb = wp.array(e_np, device=device), wp.array(e_np, device=device)
-    proj.smart_update(reference, image, proj_a, ea, 1.0, 1e-3)
-    proj.smart_update(other, image, proj_a, eb, 1.0, 1e-3)
+    smart_update(reference, image, proj_a, ea, 1.0, 1e-3)
+    smart_update(other, image, proj_a, eb, 1.0, 1e-3)
     np.testing.assert_allclose(eb.numpy(), ea.numpy(), rtol=1e-5)
 
 
@@ -143,13 +144,13 @@ def test_launches_visit_the_voxels_of_one_template_together(scene, device):
     from lfcore._kernels import matrix_free as km
 
     rig, grid, _, _ = scene
-    proj = Projector(rig.camera, grid, device=device)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
     wp = proj.wp
     rng = np.random.default_rng(5)
     vox_np = np.sort(rng.choice(grid.n_voxels, grid.n_voxels // 4, replace=False)).astype(np.int32)
     vox = wp.array(vox_np, dtype=wp.int32, device=device)
     t = DrtTemplates(proj)
-    mf = MatrixFreeWeights(t, vox)
+    mf = TemplateOperator(t, vox)
     order = mf.order().numpy()
     assert np.array_equal(np.sort(order), np.arange(len(vox_np)))
     key = wp.empty(len(vox_np), dtype=wp.int32, device=device)
@@ -157,14 +158,14 @@ def test_launches_visit_the_voxels_of_one_template_together(scene, device):
               device=device)
     k = key.numpy()[order]
     assert np.all(np.diff(k) >= 0) and k.max() >= 0
-    own = MatrixFreeWeights(t, vox)
+    own = TemplateOperator(t, vox)
     own._order = wp.array(np.arange(len(vox_np), dtype=np.int32), dtype=wp.int32, device=device)
     _same_operator(proj, own, mf, rng)
 
 
 def test_reconstruction_quality_matches_the_stored_path(scene, device):
     rig, grid, pts, img = scene
-    proj = Projector(rig.camera, grid, device=device)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
     truth = metrics.truth_volume(grid, pts)
     base = ReconSettings(iterations=20)
     stored = reconstruct(proj, [img], base)
@@ -186,12 +187,12 @@ def test_the_templates_images_stored_apply_the_same_operator(scene, device):
     """The expansion (once per frame, no ray tracing) gives stored weights whose projection and
     update are the templates' own, and its images are the stored weights' to the fidelity goals."""
     rig, grid, _, _ = scene
-    proj = Projector(rig.camera, grid, device=device)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
     wp = proj.wp
     rng = np.random.default_rng(2)
     vox_np = np.sort(rng.choice(grid.n_voxels, grid.n_voxels // 3, replace=False)).astype(np.int32)
     vox = wp.array(vox_np, dtype=wp.int32, device=device)
-    mf = MatrixFreeWeights(DrtTemplates(proj), vox)
+    mf = TemplateOperator(DrtTemplates(proj), vox)
     ex = mf.expanded(floor=0.0)  # no faint entries dropped: the templates' operator exactly
     assert ex.from_templates and applied_by(ex) == "matrix-free" and applied_by(proj.weights(vox[:5])) == "stored"
     assert ex.n_voxels == len(vox_np) and ex.nnz <= mf.entries_per_voxel() * len(vox_np) * 1.2
@@ -215,10 +216,10 @@ def test_the_stored_images_drop_their_faint_entries_and_keep_each_voxels_light(s
     others are its exact image's, scaled so that its light is kept. The GPU's form of the merge
     (raw entries sorted and merged, run here on this device) gives the CPU's entries."""
     rig, grid, _, _ = scene
-    proj = Projector(rig.camera, grid, device=device)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
     rng = np.random.default_rng(4)
     vox_np = np.sort(rng.choice(grid.n_voxels, grid.n_voxels // 3, replace=False)).astype(np.int32)
-    mf = MatrixFreeWeights(DrtTemplates(proj), proj.wp.array(vox_np, dtype=proj.wp.int32, device=device))
+    mf = TemplateOperator(DrtTemplates(proj), proj.wp.array(vox_np, dtype=proj.wp.int32, device=device))
     exact = mf.expanded(floor=0.0)
     floor = 1e-4  # above IMAGE_FLOOR, so that this small box's voxels lose some entries
     assert IMAGE_FLOOR < floor
@@ -244,7 +245,7 @@ def test_the_stored_images_drop_their_faint_entries_and_keep_each_voxels_light(s
 
 def test_the_templates_images_are_stored_only_where_they_fit(scene, monkeypatch):
     rig, grid, _, img = scene
-    proj = Projector(rig.camera, grid, device="cpu")
+    proj = LightFieldProjector(rig.camera, grid, device="cpu")
     big = FrameReconstructor(proj, ReconSettings(iterations=3, projector="matrix-free"))
     fits = big.reconstruct([img])
     assert fits.nnz > 0 and fits.weight_bytes > big._templates.nbytes
@@ -264,7 +265,7 @@ def test_the_templates_images_are_stored_only_where_they_fit(scene, monkeypatch)
 
 def test_auto_takes_the_templates_where_stored_weights_do_not_fit(scene, device, monkeypatch):
     rig, grid, _, img = scene
-    proj = Projector(rig.camera, grid, device=device)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
     frames = FrameReconstructor(proj, ReconSettings(iterations=2))
     assert frames.reconstruct([img]).projector == "stored"
 
@@ -284,11 +285,11 @@ def test_auto_takes_the_templates_images_where_they_cost_less_than_tracing(scene
     than its templates to build; with templates made cheap (a frame of many more voxels than
     templates, as on the Mc crop) the templates' images; with the weight cache holding the
     frame's voxels nothing is left to trace, so its stored weights."""
-    import lfcore.reconstruct as recon
+    import lfcore.plan as recon
     from lfcore.weight_cache import WeightCache
 
     rig, grid, _, img = scene
-    proj = Projector(rig.camera, grid, device=device)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
     settings = ReconSettings(iterations=2)
     frames = FrameReconstructor(proj, settings)
     traced = frames.reconstruct([img])
@@ -335,7 +336,7 @@ def test_auto_takes_the_templates_images_where_they_cost_less_than_tracing(scene
 
 def test_the_template_count_is_the_builds(scene):
     rig, grid, _, _ = scene
-    proj = Projector(rig.camera, grid, device="cpu")
+    proj = LightFieldProjector(rig.camera, grid, device="cpu")
     assert template_count(proj) == DrtTemplates(proj).n_templates
 
 
@@ -356,10 +357,10 @@ def test_a_camera_off_the_grid_axes_takes_the_sampled_depth_nearest_its_voxels(t
 
     aligned = _small(tiny_rig)
     grid = VolumeGrid.from_rig(aligned)
-    flat = DrtTemplates(Projector(aligned.camera, grid, device="cpu"))
+    flat = DrtTemplates(LightFieldProjector(aligned.camera, grid, device="cpu"))
     assert len(flat.depth_phase) == grid.shape[0]
     rig = _small(tiny_rig, rotation_deg=[0.3, -0.2, 0.1])
-    t = DrtTemplates(Projector(rig.camera, grid, device="cpu"))
+    t = DrtTemplates(LightFieldProjector(rig.camera, grid, device="cpu"))
     # the box's depth range, a little deeper for the tilt, sampled DEPTH_SAMPLES_PER_VOXEL times finer
     assert DEPTH_SAMPLES_PER_VOXEL * (grid.shape[0] - 1) < len(t.depth_phase) <= DEPTH_SAMPLES_PER_VOXEL * (
         grid.shape[0] + 1) + 1
@@ -368,7 +369,7 @@ def test_a_camera_off_the_grid_axes_takes_the_sampled_depth_nearest_its_voxels(t
 def test_pinhole_and_mixed_rigs_have_no_matrix_free_form():
     from pathlib import Path
 
-    from lfcore.pinhole_projector import projector_for
+    from lfcore.plan import projector_for
     from lfpiv.rigfile import load_rig
 
     # a mixed rig's joint projector is a Projector too, but its pinhole cameras have no lenslets

@@ -65,7 +65,7 @@ def test_the_footprint_follows_the_voxels_projected_width(small):
                          VolumeGrid.from_rig(small), device="cpu")
     with pytest.raises(ValueError, match="dense ray tracing"):
         p = PinholeProjector(small.camera, VolumeGrid.from_rig(small), device="cpu")
-        p.weights(p.all_voxels(), "drt")
+        p.weights(p.all_voxels(), method="drt")
 
 
 def test_mlos_keeps_a_voxel_only_where_every_camera_is_lit(small, device):
@@ -101,20 +101,9 @@ def test_a_point_source_reconstructs_at_its_voxel(small, device):
     assert near > 0.9 * res.volume.sum()  # the light is where the particle is, not along its lines of sight
 
 
-def test_projector_for_picks_the_cameras_kind(small):
-    from lfcore.pinhole_projector import JointProjector, projector_for
-    from lfcore.projector import Projector
-
-    tiny = load_rig(EXAMPLES / "tiny.toml")
-    grid = VolumeGrid.from_rig(small)
-    assert isinstance(projector_for(small.camera, grid, device="cpu"), PinholeProjector)
-    lf = projector_for(tiny.camera, VolumeGrid.from_rig(tiny), device="cpu")
-    assert type(lf) is Projector
-    assert isinstance(projector_for([*small.camera, tiny.camera[0]], grid, device="cpu"), JointProjector)
-
-
 def test_a_mixed_rig_joins_both_kinds_weights_and_eliminations(device):
-    from lfcore.pinhole_projector import JointProjector, projector_for
+    from lfcore.pinhole_projector import JointProjector
+    from lfcore.plan import projector_for
 
     rig = load_rig(EXAMPLES / "mixed_cameras.toml")  # lf0, then the pinhole cameras tomo0 and tomo1
     rig = rig.model_copy(update={"volume": rig.volume.model_copy(update={"size_mm": (0.3, 0.3, 0.3)})})
@@ -122,8 +111,8 @@ def test_a_mixed_rig_joins_both_kinds_weights_and_eliminations(device):
     joint = projector_for(rig.camera, grid, device=device)
     assert isinstance(joint, JointProjector) and joint.n_pixels == 192 * 160 + 2 * 160 * 160
     voxels = joint.wp.array(np.arange(0, grid.n_voxels, 97, dtype=np.int32), dtype=joint.wp.int32, device=device)
-    offs, pix, w = joint.weights(voxels, "los").to_numpy()
-    lo, lp, lw = joint.lf.weights(voxels, "los").to_numpy()
+    offs, pix, w = joint.weights(voxels, method="los").to_numpy()
+    lo, lp, lw = joint.lf.weights(voxels, method="los").to_numpy()
     po, pp, pw = joint.ph.weights(voxels).to_numpy()
     for j in range(voxels.shape[0]):
         row = slice(offs[j], offs[j + 1])

@@ -14,12 +14,13 @@ import pytest
 
 from lfcore import metrics
 from lfcore.particles import particle_count, seed_particles
-from lfcore.projector import MemoryBudgetError, Projector
+from lfcore.projector import LightFieldProjector, MemoryBudgetError
 from lfcore.reconstruct import ReconSettings, estimate_background, reconstruct
 from lfcore.render import LightFieldRenderer
 from lfcore.rig import Rig
 from lfcore.volume import VolumeGrid
 from tests.conftest import tiny_variant
+from tests.helpers import smart_update
 
 
 def _render(rig, pts, seed=1, rays=20_000, device="cpu"):
@@ -35,8 +36,9 @@ def _voxel_index(grid, ix, iy, iz):
 def _voxel_images(proj, renderer, grid, ix, iy, iz, rng, method="drt"):
     """A voxel's projection through its weights, and the renderer's image of the voxel filled
     uniformly with points, both as fractions of its light."""
-    w = proj.weights(proj.wp.array([_voxel_index(grid, ix, iy, iz)], dtype=proj.wp.int32, device=proj.device), method)
-    f = proj.forward(w, proj.wp.array([1.0], dtype=float, device=proj.device)).numpy()
+    w = proj.weights(proj.wp.array([_voxel_index(grid, ix, iy, iz)], dtype=proj.wp.int32, device=proj.device),
+                     method=method)
+    f = w.forward(proj.wp.array([1.0], dtype=float, device=proj.device)).numpy()
     centre = np.asarray(grid.origin_mm) + np.array([ix, iy, iz]) * np.asarray(grid.voxel_mm)
     pts = centre + (rng.random((100, 3)) - 0.5) * np.asarray(grid.voxel_mm)
     return f, renderer.irradiance(pts, 1000.0, seed=2).ravel() / (100 * 1000.0)
@@ -47,7 +49,7 @@ def _seeded_scene(tiny_rig, device):
     grid = VolumeGrid.from_rig(tiny_rig)
     pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.3), np.random.default_rng(3))
     (img,) = _render(tiny_rig, pts, device=device)
-    return grid, pts, img, Projector(tiny_rig.camera, grid, device=device), metrics.truth_volume(grid, pts)
+    return grid, pts, img, LightFieldProjector(tiny_rig.camera, grid, device=device), metrics.truth_volume(grid, pts)
 
 
 def _dual_rig(tiny_rig) -> Rig:
@@ -64,7 +66,7 @@ def test_single_particle_comes_back_in_place(tiny_rig, device, grid_kind, point)
     rig = tiny_variant(tiny_rig, mla_grid=grid_kind)
     grid = VolumeGrid.from_rig(rig)
     (img,) = _render(rig, np.array([point]), device=device)
-    res = reconstruct(Projector(rig.camera, grid, device=device), [img], ReconSettings(iterations=30))
+    res = reconstruct(LightFieldProjector(rig.camera, grid, device=device), [img], ReconSettings(iterations=30))
     pos, peaks, idx = metrics.detect_particles(res.volume, grid, threshold=0.5)
     assert len(pos) == 1  # one particle, no ghost above half its intensity
     err = np.abs(pos[0] - point) / np.asarray(grid.voxel_mm)
@@ -77,7 +79,7 @@ def test_single_particle_comes_back_in_place(tiny_rig, device, grid_kind, point)
 def test_weights_spread_light_as_the_optics_do(tiny_rig, device):
     grid = VolumeGrid.from_rig(tiny_rig)
     cam = tiny_rig.camera[0]
-    proj = Projector([cam], grid, device=device)
+    proj = LightFieldProjector([cam], grid, device=device)
     cfg = tiny_rig.render.model_copy(update={"rays_per_particle": 20_000, "diffraction": False})
     r = LightFieldRenderer(cam, cfg, device=device)
     rng = np.random.default_rng(0)
@@ -96,10 +98,10 @@ def test_baseline_weights_reach_the_sensor_at_every_depth(tiny_rig, device):
     # passes through the same conjugate point (its search once left three layers without weights).
     grid = VolumeGrid.from_rig(tiny_rig)
     cam = tiny_rig.camera[0]
-    proj = Projector([cam], grid, device=device)
+    proj = LightFieldProjector([cam], grid, device=device)
     nz, ny, nx = grid.shape
     column = [_voxel_index(grid, ix, iy, iz) for iz in range(nz) for ix in (40, 41, 42) for iy in (33, 34, 35)]
-    w = proj.weights(proj.wp.array(column, dtype=proj.wp.int32, device=proj.device), "los")
+    w = proj.weights(proj.wp.array(column, dtype=proj.wp.int32, device=proj.device), method="los")
     offsets, _, values = w.to_numpy()
     assert np.all(np.diff(offsets) > 0)
     np.testing.assert_allclose(np.add.reduceat(values, offsets[:-1]), 1.0, atol=1e-4)
@@ -137,7 +139,7 @@ def test_drt_mart_beats_mart_at_equal_work(tiny_rig, device):
     grid, pts, img, proj, e0 = _seeded_scene(tiny_rig, device)
     drt = reconstruct(proj, [img], ReconSettings(method="drt-mart", iterations=20))
     # the baseline gets as many passes over its stored weights as DRT-MART streams
-    mart_its = max(1, round(20 * drt.nnz / proj.weights(proj.all_voxels(), "los").nnz))
+    mart_its = max(1, round(20 * drt.nnz / proj.weights(proj.all_voxels(), method="los").nnz))
     mart = reconstruct(proj, [img], ReconSettings(method="mart", iterations=mart_its))
     assert 0.0 < drt.eliminate_s < drt.weights_s and mart.eliminate_s == 0.0  # elimination timed apart
     out = {}
@@ -173,8 +175,8 @@ def test_two_cameras_at_90_degrees_beat_one(tiny_rig, device):
     imgs = _render(rig, pts, device=device)
     e0 = metrics.truth_volume(grid, pts)
     tol = 2 * np.asarray(grid.voxel_mm)
-    one = reconstruct(Projector(rig.camera[:1], grid, device=device), imgs[:1], ReconSettings(iterations=30))
-    two = reconstruct(Projector(rig.camera, grid, device=device), imgs, ReconSettings(iterations=30))
+    one = reconstruct(LightFieldProjector(rig.camera[:1], grid, device=device), imgs[:1], ReconSettings(iterations=30))
+    two = reconstruct(LightFieldProjector(rig.camera, grid, device=device), imgs, ReconSettings(iterations=30))
     q1, q2 = metrics.q_recon(one.volume, e0), metrics.q_recon(two.volume, e0)
     m1 = metrics.match_particles(metrics.detect_particles(one.volume, grid)[0], pts, tol)
     m2 = metrics.match_particles(metrics.detect_particles(two.volume, grid)[0], pts, tol)
@@ -189,7 +191,7 @@ def test_no_intensity_outside_the_seeded_region(tiny_rig, device):
     grid = VolumeGrid.from_rig(tiny_rig, margin_mm=(0.0, 0.0, 0.4))
     pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.2), np.random.default_rng(5))
     (img,) = _render(tiny_rig, pts, device=device)
-    res = reconstruct(Projector(tiny_rig.camera, grid, device=device), [img], ReconSettings(iterations=30))
+    res = reconstruct(LightFieldProjector(tiny_rig.camera, grid, device=device), [img], ReconSettings(iterations=30))
     v = tiny_rig.volume
     # a particle at the boundary keeps its depth elongation: allow it three depth voxels
     reach = np.asarray(v.size_mm) + [0.0, 0.0, 6 * grid.voxel_mm[2]]
@@ -202,7 +204,7 @@ def test_sequential_form_finds_the_particle_too(tiny_rig):
     grid = VolumeGrid.from_rig(tiny_rig)
     point = np.array([[0.05, -0.03, 0.31]])
     (img,) = _render(tiny_rig, point)
-    res = reconstruct(Projector(tiny_rig.camera, grid, device="cpu"), [img],
+    res = reconstruct(LightFieldProjector(tiny_rig.camera, grid, device="cpu"), [img],
                       ReconSettings(iterations=10, form="sequential", relaxation=2.5))
     pos, _, _ = metrics.detect_particles(res.volume, grid, threshold=0.5)
     assert len(pos) == 1 and np.all(np.abs(pos[0] - point[0])[:2] < np.asarray(grid.voxel_mm)[:2])
@@ -229,9 +231,9 @@ def test_background_estimate_of_narrow_integer_counts(seed):
 
 
 def test_weights_that_do_not_fit_are_refused(tiny_rig):
-    proj = Projector(tiny_rig.camera, VolumeGrid.from_rig(tiny_rig), device="cpu")
+    proj = LightFieldProjector(tiny_rig.camera, VolumeGrid.from_rig(tiny_rig), device="cpu")
     with pytest.raises(MemoryBudgetError, match=r"the weights need .* GiB .* use a coarser --pvr"):
-        proj.weights(proj.all_voxels(), "los", budget_bytes=1000)
+        proj.weights(proj.all_voxels(), method="los", budget_bytes=1000)
 
 
 def _scene_images(rig, ppm, device):
@@ -242,27 +244,27 @@ def _scene_images(rig, ppm, device):
 @pytest.mark.parametrize("dual", [False, True])
 def test_weights_made_on_the_fly_project_and_update_as_stored_ones(tiny_rig, device, dual):
     rig = _dual_rig(tiny_rig) if dual else tiny_rig
-    proj = Projector(rig.camera, VolumeGrid.from_rig(rig), device=device)
+    proj = LightFieldProjector(rig.camera, VolumeGrid.from_rig(rig), device=device)
     wp = proj.wp
     rng = np.random.default_rng(4)
     voxels = wp.array(np.sort(rng.choice(proj.grid.n_voxels, 4000, replace=False)).astype(np.int32), device=device)
-    stored = proj.weights(voxels, "los")
-    fly = proj.weights(voxels, "los", storage="on-the-fly")
-    split = proj.weights(voxels, "los", storage="auto", budget_bytes=stored.nbytes // 3)
+    stored = proj.weights(voxels, method="los")
+    fly = proj.weights(voxels, method="los", storage="on-the-fly")
+    split = proj.weights(voxels, method="los", storage="auto", budget_bytes=stored.nbytes // 3)
     assert stored.stored and not fly.stored and not split.stored
     assert fly.n_on_the_fly == 4000 and 0 < split.n_stored < 4000 and split.n_stored + split.n_on_the_fly == 4000
     assert fly.nnz == split.nnz == stored.nnz and fly.nbytes < stored.nbytes / 50
     e = rng.random(4000).astype(np.float32)
     e[rng.random(4000) < 0.3] = 0.0  # dead voxels are skipped
-    ref = proj.forward(stored, wp.array(e, dtype=float, device=device)).numpy().copy()
+    ref = stored.forward(wp.array(e, dtype=float, device=device)).numpy().copy()
     image = wp.array((ref * rng.uniform(0.5, 1.5, ref.size)).astype(np.float32), dtype=float, device=device)
     ref_e = wp.array(e, dtype=float, device=device)
-    proj.smart_update(stored, image, wp.array(ref, dtype=float, device=device), ref_e, 1.0, 0.01)
+    smart_update(stored, image, wp.array(ref, dtype=float, device=device), ref_e, 1.0, 0.01)
     for w in (fly, split):
-        got = proj.forward(w, wp.array(e, dtype=float, device=device)).numpy()
+        got = w.forward(wp.array(e, dtype=float, device=device)).numpy()
         np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-6 * ref.max())
         upd = wp.array(e, dtype=float, device=device)
-        proj.smart_update(w, image, wp.array(ref, dtype=float, device=device), upd, 1.0, 0.01)
+        smart_update(w, image, wp.array(ref, dtype=float, device=device), upd, 1.0, 0.01)
         np.testing.assert_allclose(upd.numpy(), ref_e.numpy(), rtol=1e-5)
     with pytest.raises(ValueError, match="made on the fly, not stored"):
         fly.to_numpy()
@@ -272,7 +274,7 @@ def test_weights_made_on_the_fly_project_and_update_as_stored_ones(tiny_rig, dev
 def test_weights_that_do_not_fit_are_made_on_the_fly(tiny_rig, device, method):
     grid = VolumeGrid.from_rig(tiny_rig)
     pts, images = _scene_images(tiny_rig, 0.3, device)
-    proj = Projector(tiny_rig.camera, grid, device=device)
+    proj = LightFieldProjector(tiny_rig.camera, grid, device=device)
     its = 10 if method == "mlos-mart" else 3
     stored = reconstruct(proj, images, ReconSettings(method=method, iterations=its, weight_storage="stored"))
     assert stored.on_the_fly_voxels == 0
@@ -314,7 +316,7 @@ def test_a_frame_reconstructor_keeps_its_buffers_and_gives_reconstruct_s_volumes
     from lfcore.reconstruct import FrameReconstructor
 
     grid = VolumeGrid.from_rig(tiny_rig)
-    proj = Projector(tiny_rig.camera, grid, device=device)
+    proj = LightFieldProjector(tiny_rig.camera, grid, device=device)
     settings = ReconSettings(iterations=5)
     scenes = [(7, 0.1), (8, 0.4), (7, 0.1)]  # the third repeats the first
     images = [_render(tiny_rig, seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm),
@@ -345,7 +347,7 @@ def test_frame_reconstructor_stages_on_device_images(tiny_rig, device):
     from lfcore.reconstruct import FrameReconstructor, preprocess
 
     grid = VolumeGrid.from_rig(tiny_rig)
-    proj = Projector(tiny_rig.camera, grid, device=device)
+    proj = LightFieldProjector(tiny_rig.camera, grid, device=device)
     pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.3), np.random.default_rng(9))
     (img,) = _render(tiny_rig, pts, device=device)
     level, sigma = estimate_background(img)
@@ -370,7 +372,7 @@ def test_a_frame_reconstructor_s_own_buffers_do_not_shrink_the_weights_budget(ti
 
     grid = VolumeGrid.from_rig(tiny_rig)
     _, images = _scene_images(tiny_rig, 0.3, device)
-    proj = Projector(tiny_rig.camera, grid, device=device)
+    proj = LightFieldProjector(tiny_rig.camera, grid, device=device)
     settings = ReconSettings(method="mlos-mart", iterations=2)
     stored = reconstruct(proj, images, dataclasses.replace(settings, weight_storage="stored"))
     total = stored.weight_bytes // 2 + 12 * proj.n_pixels + 12 * grid.n_voxels

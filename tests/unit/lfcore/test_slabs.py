@@ -12,7 +12,7 @@ import pytest
 
 from lfcore.device import MemoryBudgetError
 from lfcore.particles import particle_count, seed_particles
-from lfcore.projector import Projector
+from lfcore.projector import LightFieldProjector
 from lfcore.reconstruct import ReconSettings, reconstruct
 from lfcore.render import LightFieldRenderer
 from lfcore.slabs import SlabReconstructor, plan_slabs, slab_halo, slabs_for_budget
@@ -49,7 +49,7 @@ def _by_slabs(proj, images, settings, slabs):
 @pytest.mark.parametrize("method", ["drt-mart", "mlos-mart", "mart"])
 def test_three_slabs_give_the_in_memory_volume(tiny_rig, device, method):
     grid = VolumeGrid.from_rig(tiny_rig)  # 82 x 68 x 29 voxels
-    proj = Projector(tiny_rig.camera, grid, device=device)
+    proj = LightFieldProjector(tiny_rig.camera, grid, device=device)
     images = _images(tiny_rig, device=device)
     settings = ReconSettings(method=method, iterations=8 if method == "mart" else 20)
     want = reconstruct(proj, images, settings)
@@ -64,7 +64,7 @@ def test_three_slabs_give_the_in_memory_volume(tiny_rig, device, method):
 
 def test_slabs_thinner_than_the_smoothing_halo_and_no_smoothing(tiny_rig, device):
     grid = VolumeGrid.from_rig(tiny_rig)
-    proj = Projector(tiny_rig.camera, grid, device=device)
+    proj = LightFieldProjector(tiny_rig.camera, grid, device=device)
     images = _images(tiny_rig, device=device)
     for smooth in (1.0, 0.0):  # a halo of 3 planes over slabs of 1 to 2; none at all
         settings = ReconSettings(iterations=10, smooth=smooth)
@@ -76,7 +76,7 @@ def test_slabs_thinner_than_the_smoothing_halo_and_no_smoothing(tiny_rig, device
 @pytest.mark.parametrize(("rig_file", "method"), [("mixed_cameras.toml", "drt-mart"),
                                                  ("tomo_4_cameras.toml", "mlos-smart")])
 def test_pinhole_and_mixed_rigs_by_slabs(device, rig_file, method):
-    from lfcore.pinhole_projector import projector_for
+    from lfcore.plan import projector_for
     from lfpiv.rigfile import load_rig
     from tests.conftest import EXAMPLES
 
@@ -114,7 +114,7 @@ def test_planning():
                                      {"method": "mlos-mart", "weight_storage": "on-the-fly"}])
 def test_slabs_with_matrix_free_templates_and_weights_made_on_the_fly(tiny_rig, device, options):
     grid = VolumeGrid.from_rig(tiny_rig)
-    proj = Projector(tiny_rig.camera, grid, device=device)
+    proj = LightFieldProjector(tiny_rig.camera, grid, device=device)
     images = _images(tiny_rig, device=device)
     settings = ReconSettings(iterations=5, **options)
     want = reconstruct(proj, images, settings)
@@ -138,8 +138,8 @@ def test_a_slabs_voxels_are_the_boxs_to_the_bit(tiny_rig, device, kind):
     """Projector.planes numbers a slab's voxels from its first plane; each has the box voxel's centre
     to the bit, so its weights (ray-traced, line of sight, the templates' images, a pinhole camera's)
     and its elimination are the box's."""
-    from lfcore.matrix_free import DrtTemplates, MatrixFreeWeights
-    from lfcore.pinhole_projector import projector_for
+    from lfcore.matrix_free import DrtTemplates, TemplateOperator
+    from lfcore.plan import projector_for
     from lfpiv.rigfile import load_rig
     from tests.conftest import EXAMPLES
 
@@ -164,13 +164,13 @@ def test_a_slabs_voxels_are_the_boxs_to_the_bit(tiny_rig, device, kind):
     vox_box = wp.array(local + z0 * plane, dtype=wp.int32, device=device)
     if kind == "templates":
         t_box = DrtTemplates(box)
-        a = MatrixFreeWeights(t_box, vox_box).expanded()
-        b = MatrixFreeWeights(t_box.on(slab), vox_slab).expanded()
+        a = TemplateOperator(t_box, vox_box).expanded()
+        b = TemplateOperator(t_box.on(slab), vox_slab).expanded()
         with pytest.raises(ValueError, match="another box"):
-            t_box.on(Projector(rig.camera, grid.planes(0, 5), device=device))
+            t_box.on(LightFieldProjector(rig.camera, grid.planes(0, 5), device=device))
     else:
         method = "los" if kind in ("los", "pinhole") else "drt"
-        a, b = box.weights(vox_box, method), slab.weights(vox_slab, method)
+        a, b = box.weights(vox_box, method=method), slab.weights(vox_slab, method=method)
     rows_a, rows_b = _slab_rows(a, 0), _slab_rows(b, z0 * plane)
     assert rows_a.keys() == rows_b.keys() and a.nnz == b.nnz > 0
     for v, (pix, w) in rows_a.items():
@@ -190,17 +190,17 @@ def test_a_box_past_the_index_limit_is_reconstructed_in_slabs(tiny_rig, device, 
     """A box of more voxels than int32 indices number (the chapter's 5.5-G-voxel dual-camera box;
     here the limit lowered to 12 planes of the tiny box) has no in-memory reconstruction, while its
     slabs, each numbering its own voxels, give the volume the box gives below the limit."""
-    import lfcore.projector as projector_module
+    import lfcore.operator as projector_module
     from lfcore.reconstruct import FrameReconstructor
     from lfcore.slabs import deepest_slab
 
     grid = VolumeGrid.from_rig(tiny_rig)  # 82 x 68 x 29 voxels
     images = _images(tiny_rig, device=device)
     settings = ReconSettings(iterations=10, projector="matrix-free")
-    want = reconstruct(Projector(tiny_rig.camera, grid, device=device), images, settings)
+    want = reconstruct(LightFieldProjector(tiny_rig.camera, grid, device=device), images, settings)
     plane = grid.shape[1] * grid.shape[2]
     monkeypatch.setattr(projector_module, "INDEX_LIMIT", 12 * plane + 1)
-    proj = Projector(tiny_rig.camera, grid, device=device)  # the box's projector still serves its slabs
+    proj = LightFieldProjector(tiny_rig.camera, grid, device=device)  # the box's projector still serves its slabs
     with pytest.raises(MemoryBudgetError, match="depth slabs"):
         FrameReconstructor(proj, settings)
     with pytest.raises(MemoryBudgetError, match="depth slabs"):

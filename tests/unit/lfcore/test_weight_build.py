@@ -15,7 +15,7 @@ import pytest
 from lfcore import projector as projector_module
 from lfcore import weight_build as build_module
 from lfcore.particles import seed_particles
-from lfcore.projector import Projector
+from lfcore.projector import LightFieldProjector
 from lfcore.reconstruct import ReconSettings, estimate_background, preprocess, reconstruct
 from lfcore.render import LightFieldRenderer
 from lfcore.rig import Rig
@@ -60,43 +60,44 @@ def _lit(images, settings):
 
 def test_single_pass_build_matches_the_two_pass_build(small_dual_rig, device, monkeypatch):
     grid = VolumeGrid.from_rig(small_dual_rig)
-    proj = Projector(small_dual_rig.camera, grid, device=device)
+    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
     vox = proj.wp.array(np.arange(0, grid.n_voxels, 5, dtype=np.int32), device=device)
-    direct = proj.weights(vox, "drt", build="two-pass")
+    direct = proj.weights(vox, method="drt", build="two-pass")
     assert direct.nnz > 0
-    _same(direct, proj.weights(vox, "drt", build="single-pass"))
+    _same(direct, proj.weights(vox, method="drt", build="single-pass"))
     # both merges of the two-pass build, for DRT and the MART baseline's weights
-    _same(direct, proj.weights(vox, "drt", build="two-pass", sort="library"))
-    _same(direct, proj.weights(vox, "drt", build="two-pass", sort="per-voxel"))
-    los = proj.weights(vox, "los", sort="library")
+    _same(direct, proj.weights(vox, method="drt", build="two-pass", sort="library"))
+    _same(direct, proj.weights(vox, method="drt", build="two-pass", sort="per-voxel"))
+    los = proj.weights(vox, method="los", sort="library")
     assert los.nnz > 0
-    _same(los, proj.weights(vox, "los", sort="per-voxel"))
+    _same(los, proj.weights(vox, method="los", sort="per-voxel"))
     # a tiny capacity sample (voxels overflow their slots) and small chunks: still the same
     monkeypatch.setattr(build_module, "CAPACITY_SAMPLE", 1)
     monkeypatch.setattr(build_module, "SINGLE_PASS_ENTRIES", 5000)
-    fast = proj.weights(vox, "drt", build="single-pass")
+    fast = proj.weights(vox, method="drt", build="single-pass")
     assert len(fast.chunks) == 1  # the build's many small chunks joined: fewer launches an iteration
     _same(direct, fast)
     # joined up to the chunk size, and not at all where the copy would not fit the budget
     monkeypatch.setitem(build_module.CHUNK_ENTRIES, "cpu" if device == "cpu" else "cuda", direct.nnz // 3)
-    fast = proj.weights(vox, "drt", build="single-pass")
+    fast = proj.weights(vox, method="drt", build="single-pass")
     assert 3 <= len(fast.chunks) < 10 and max(c.nnz for c in fast.chunks) <= direct.nnz // 3
     _same(direct, fast)
-    tight = proj.weights(vox, "drt", build="single-pass", budget_bytes=build_module.BYTES_PER_WEIGHT * direct.nnz)
+    tight = proj.weights(vox, method="drt", build="single-pass",
+                         budget_bytes=build_module.BYTES_PER_WEIGHT * direct.nnz)
     assert len(tight.chunks) >= 10
     _same(direct, tight)
-    _same(direct, proj.weights(vox, "drt"))  # the device's default build
-    empty = proj.weights(proj.wp.zeros(0, dtype=proj.wp.int32, device=device), "drt", build="single-pass")
+    _same(direct, proj.weights(vox, method="drt"))  # the device's default build
+    empty = proj.weights(proj.wp.zeros(0, dtype=proj.wp.int32, device=device), method="drt", build="single-pass")
     assert empty.nnz == 0 and empty.n_voxels == 0
     with pytest.raises(ValueError, match="build"):
-        proj.weights(vox, "drt", build="fast")
+        proj.weights(vox, method="drt", build="fast")
     with pytest.raises(ValueError, match="unknown sort"):
-        proj.weights(vox, "drt", sort="quick")
+        proj.weights(vox, method="drt", sort="quick")
 
 
 def test_cache_gives_the_direct_operator_frame_after_frame(small_dual_rig, device):
     grid = VolumeGrid.from_rig(small_dual_rig)
-    proj = Projector(small_dual_rig.camera, grid, device=device)
+    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
     settings = ReconSettings()
     cache = WeightCache(proj)
     seen = 0
@@ -104,7 +105,7 @@ def test_cache_gives_the_direct_operator_frame_after_frame(small_dual_rig, devic
         lit = _lit(_images(small_dual_rig, grid, device, seed=seed), settings)
         voxels = proj.eliminate(lit, min_seen=settings.min_seen, max_dark=settings.max_dark)
         assert voxels.shape[0] > 0
-        direct = proj.weights(voxels, "drt", build="two-pass")
+        direct = proj.weights(voxels, method="drt", build="two-pass")
         cached = cache.weights(voxels)
         _same(direct, cached)
         assert cache.n_cached >= seen
@@ -114,7 +115,7 @@ def test_cache_gives_the_direct_operator_frame_after_frame(small_dual_rig, devic
     every = np.arange(0, grid.n_voxels, 3, dtype=np.int32)
     assert cache.prefill(every) + seen >= len(every)
     vox = proj.wp.array(every, device=device)
-    _same(proj.weights(vox, "drt", build="two-pass"), cache.weights(vox))
+    _same(proj.weights(vox, method="drt", build="two-pass"), cache.weights(vox))
 
 
 def _rows_by_voxel(weights) -> dict[int, tuple[np.ndarray, np.ndarray]]:
@@ -134,25 +135,25 @@ def _same_rows(a, b) -> None:
 
 def test_cache_over_budget_keeps_the_newest_frame(small_dual_rig, device, monkeypatch):
     grid = VolumeGrid.from_rig(small_dual_rig)
-    proj = Projector(small_dual_rig.camera, grid, device=device)
+    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
     every = np.arange(0, grid.n_voxels, 9, dtype=np.int32)
     vox = proj.wp.array(every, device=device)
-    direct = proj.weights(vox, "drt", build="two-pass")
+    direct = proj.weights(vox, method="drt", build="two-pass")
     cache = WeightCache(proj, budget_bytes=8 * direct.nnz * 9 // 10)
     first = proj.wp.array(every[: every.size // 2], device=device)
-    _same(proj.weights(first, "drt", build="two-pass"), cache.weights(first))  # fits: stored
+    _same(proj.weights(first, method="drt", build="two-pass"), cache.weights(first))  # fits: stored
     assert cache.n_cached == first.shape[0]
     # the second half does not fit next to the first: the request's stored rows are copied
     # out, its new rows follow as built, and the pool is refilled with the request alone
     late = proj.wp.array(every[every.size // 4:], device=device)
     got = cache.weights(late)
-    _same_rows(proj.weights(late, "drt", build="two-pass"), got)
+    _same_rows(proj.weights(late, method="drt", build="two-pass"), got)
     stored = every[every.size // 4: every.size // 2]  # the part of the request already stored comes first
     assert np.array_equal(got.voxels.numpy()[: stored.size], stored)
     assert cache.n_cached == late.shape[0] and cache.nbytes <= cache.budget_bytes
-    _same(proj.weights(late, "drt", build="two-pass"), cache.weights(late))  # now stored, in request order
+    _same(proj.weights(late, method="drt", build="two-pass"), cache.weights(late))  # now stored, in request order
     # the caller's host copy of the indices serves in place of their copy from the device
-    _same(proj.weights(late, "drt", build="two-pass"), cache.weights(late, host=every[every.size // 4:]))
+    _same(proj.weights(late, method="drt", build="two-pass"), cache.weights(late, host=every[every.size // 4:]))
     # a request larger than the whole budget is served as built and leaves the pool empty
     _same_rows(direct, cache.weights(vox))
     assert cache.n_cached == 0
@@ -169,7 +170,7 @@ def test_cache_over_budget_keeps_the_newest_frame(small_dual_rig, device, monkey
 @pytest.mark.parametrize(("method", "kind"), [("drt-mart", "drt"), ("mlos-mart", "los")])
 def test_reconstruct_with_a_cache_gives_the_same_volume(small_dual_rig, device, method, kind):
     grid = VolumeGrid.from_rig(small_dual_rig)
-    proj = Projector(small_dual_rig.camera, grid, device=device)
+    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
     images = _images(small_dual_rig, grid, device)
     settings = ReconSettings(method=method, iterations=10)
     plain = reconstruct(proj, images, settings)
@@ -182,12 +183,12 @@ def test_reconstruct_with_a_cache_gives_the_same_volume(small_dual_rig, device, 
         assert res.active_voxels == plain.active_voxels and res.nnz == plain.nnz
         np.testing.assert_allclose(res.volume, plain.volume, rtol=1e-4, atol=1e-6 * float(plain.volume.max()))
     with pytest.raises(ValueError, match="another projector"):
-        reconstruct(Projector(small_dual_rig.camera, grid, device=device), images, settings, cache=cache)
+        reconstruct(LightFieldProjector(small_dual_rig.camera, grid, device=device), images, settings, cache=cache)
 
 
 def test_elimination_with_stored_checks_keeps_the_same_voxels(small_dual_rig, device):
     grid = VolumeGrid.from_rig(small_dual_rig)
-    proj = Projector(small_dual_rig.camera, grid, device=device)
+    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
     settings = ReconSettings()
     lit = _lit(_images(small_dual_rig, grid, device, n=30), settings)
     for min_seen, max_dark in ((settings.min_seen, settings.max_dark), (0.5, 0.2)):
@@ -207,7 +208,7 @@ def test_elimination_with_stored_checks_keeps_the_same_voxels(small_dual_rig, de
 def test_elimination_in_two_passes_keeps_what_one_full_pass_keeps(small_dual_rig, device, monkeypatch, prefilter):
     """The grid pass with a few checks, then every check on its candidates, against every check at once."""
     grid = VolumeGrid.from_rig(small_dual_rig)
-    proj = Projector(small_dual_rig.camera, grid, device=device)
+    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
     settings = ReconSettings()
     lit = _lit(_images(small_dual_rig, grid, device, n=30), settings)
     wp = proj.wp
@@ -310,7 +311,7 @@ def test_cell_overlap_is_the_clipped_rectangle(device, edges, rotation_deg):
 
 
 def test_cache_rejects_an_unknown_method(small_dual_rig):
-    proj = Projector(small_dual_rig.camera[:1], VolumeGrid.from_rig(small_dual_rig), device="cpu")
+    proj = LightFieldProjector(small_dual_rig.camera[:1], VolumeGrid.from_rig(small_dual_rig), device="cpu")
     with pytest.raises(ValueError, match="unknown weight method 'mart'"):
         WeightCache(proj, method="mart", checks=0)
 
@@ -326,7 +327,7 @@ def test_elimination_off_the_sensor_edges_keeps_what_the_traced_table_keeps(tiny
     d["volume"].update(size_mm=[1.6, 1.4, 1.6], pvr=[4.0, 4.0, 20.0])
     rig = Rig.from_dict(d)
     grid = VolumeGrid.from_rig(rig)
-    proj = Projector(rig.camera, grid, device=device)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
     settings = ReconSettings()
     lit = _lit(_images(rig, grid, device, n=40), settings)
     for min_seen, max_dark in ((settings.min_seen, settings.max_dark), (0.9, 0.2), (0.2, 0.0)):
@@ -346,10 +347,10 @@ def test_elimination_reuses_its_scratch_and_returns_arrays_of_its_own(small_dual
     """Frames with many, few, then many lit pixels through one projector keep the voxels a fresh
     projector keeps, and a result is not overwritten by the next call."""
     grid = VolumeGrid.from_rig(small_dual_rig)
-    proj = Projector(small_dual_rig.camera, grid, device=device)
+    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
     settings = ReconSettings()
     lits = [_lit(_images(small_dual_rig, grid, device, n=n, seed=seed), settings) for n, seed in ((30, 3), (4, 4))]
-    fresh = [Projector(small_dual_rig.camera, grid, device=device).eliminate(lit, min_seen=settings.min_seen,
+    fresh = [LightFieldProjector(small_dual_rig.camera, grid, device=device).eliminate(lit, min_seen=settings.min_seen,
                                                                              max_dark=settings.max_dark).numpy()
              for lit in lits]
     assert 0 < fresh[1].size < fresh[0].size < grid.n_voxels

@@ -180,7 +180,7 @@ def test_live_volume_equals_the_batch_reconstruction(tiny_rig, method, pvr) -> N
     with either method's weights (kept in the live path's weight cache), at the rig's PVR or a
     coarser monitoring one."""
     from lfcore.particles import particle_count, seed_particles
-    from lfcore.projector import Projector
+    from lfcore.projector import LightFieldProjector
     from lfcore.reconstruct import reconstruct
     from lfcore.render import LightFieldRenderer
     from realtime.pipeline import monitoring_recon
@@ -201,7 +201,7 @@ def test_live_volume_equals_the_batch_reconstruction(tiny_rig, method, pvr) -> N
     pipe.subscribe(results.append)
     with pipe:
         assert pipe.wait_processed(1, 60.0)
-    proj = Projector(tiny_rig.camera, pipe.grid, sub_apertures=pipe.recon.sub_apertures, device="cpu")
+    proj = LightFieldProjector(tiny_rig.camera, pipe.grid, sub_apertures=pipe.recon.sub_apertures, device="cpu")
     ref = reconstruct(proj, [frames[0]], monitoring_recon(3, 1.0, method)).volume
     r = results[0]
     assert ref.max() > 0 and 0.0 < r.active_fraction < 0.5

@@ -39,7 +39,7 @@ def test_live_matrix_free_is_the_batch_volume_and_close_to_the_stored_weights(ti
     equals the batch matrix-free one exactly; against the stored weights' volume Q = 0.999995, the
     largest voxel difference 1.1% of the peak, and Q against the truth 0.534 (0.535 stored)."""
     from lfcore.metrics import q_recon, truth_volume
-    from lfcore.projector import Projector
+    from lfcore.projector import LightFieldProjector
     from lfcore.reconstruct import reconstruct
 
     shots, pts = frames
@@ -57,7 +57,7 @@ def test_live_matrix_free_is_the_batch_volume_and_close_to_the_stored_weights(ti
     r = results[0]
     assert r.projector == "matrix-free" and 0.0 < r.active_fraction < 0.5
 
-    proj = Projector(tiny_rig.camera, pipe.grid, sub_apertures=pipe.recon.sub_apertures, device=device)
+    proj = LightFieldProjector(tiny_rig.camera, pipe.grid, sub_apertures=pipe.recon.sub_apertures, device=device)
     mf = reconstruct(proj, [shots[0]], monitoring_recon(3, 1.0, "drt-mart", projector="matrix-free"))
     stored = reconstruct(proj, [shots[0]], monitoring_recon(3, 1.0, "drt-mart", projector="stored"))
     assert mf.projector == "matrix-free" and stored.projector == "stored"

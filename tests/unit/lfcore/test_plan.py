@@ -1,0 +1,171 @@
+"""The planner (lfcore.plan): which operator, whether a weight cache serves, how many depth slabs,
+and why; every operator it makes is the one protocol the algorithms iterate over."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lfcore import metrics
+from lfcore.operator import ALL_KINDS, JOINT, PINHOLE, TEMPLATE_IMAGES, TEMPLATES, TRACED, Operator
+from lfcore.particles import particle_count, seed_particles
+from lfcore.pinhole_projector import JointProjector, PinholeProjector
+from lfcore.plan import (
+    BYTES_PER_BOX_VOXEL,
+    AutoSource,
+    Plan,
+    PlanError,
+    TemplateSource,
+    WeightSource,
+    build_reconstructor,
+    operator_source,
+    plan_reconstruction,
+    projector_for,
+)
+from lfcore.projector import LightFieldProjector
+from lfcore.reconstruct import FrameReconstructor, ReconSettings
+from lfcore.render import LightFieldRenderer
+from lfcore.rig import Rig
+from lfcore.slabs import SlabReconstructor
+from lfcore.volume import VolumeGrid
+from lfpiv.rigfile import load_rig
+from tests.conftest import EXAMPLES
+
+ROOT = Path(__file__).resolve().parents[3]
+
+
+@pytest.fixture(scope="module")
+def small() -> Rig:
+    """The chapter's 4-camera arc on a 2 x 2 x 1.5 mm box, one camera distorted."""
+    rig = load_rig(EXAMPLES / "tomo_4_cameras.toml")
+    cams = list(rig.camera)
+    cams[2] = cams[2].model_copy(update={"k1": 0.8, "p1": 0.01, "principal_point_px": (3.0, -2.0)})
+    return rig.model_copy(update={"camera": cams,
+                                  "volume": rig.volume.model_copy(update={"size_mm": (2.0, 2.0, 1.5)})})
+
+
+def _crop(rig: Rig, size_mm=(0.5, 0.4, 1.2)) -> Rig:
+    return rig.model_copy(update={"volume": rig.volume.model_copy(update={"size_mm": size_mm})})
+
+
+def test_projector_for_picks_the_cameras_kind(small):
+    tiny = load_rig(EXAMPLES / "tiny.toml")
+    grid = VolumeGrid.from_rig(small)
+    assert isinstance(projector_for(small.camera, grid, device="cpu"), PinholeProjector)
+    lf = projector_for(tiny.camera, VolumeGrid.from_rig(tiny), device="cpu")
+    assert type(lf) is LightFieldProjector
+    assert isinstance(projector_for([*small.camera, tiny.camera[0]], grid, device="cpu"), JointProjector)
+
+
+def test_the_plan_of_each_camera_kind_says_its_operator_cache_and_why(tiny_rig, small):
+    mixed = load_rig(EXAMPLES / "mixed_cameras.toml")
+    lf = plan_reconstruction(tiny_rig.camera, VolumeGrid.from_rig(tiny_rig), ReconSettings(), device="cpu")
+    assert (lf.cameras, lf.operator, lf.cache, lf.slabs) == ("light-field", "auto", True, 1)
+    assert lf.summary() == "auto on cpu, weight cache, in memory"
+    assert any("--projector auto" in r for r in lf.reasons) and any("weight cache" in r for r in lf.reasons)
+    stored = plan_reconstruction(tiny_rig.camera, VolumeGrid.from_rig(tiny_rig), ReconSettings(projector="stored"),
+                                 device="cpu")
+    assert stored.operator == TRACED and stored.cache
+    ph = plan_reconstruction(small.camera, VolumeGrid.from_rig(small), ReconSettings(method="mlos-smart"),
+                             device="cpu")
+    assert (ph.cameras, ph.operator, ph.cache) == ("pinhole", PINHOLE, False)
+    assert any("pinhole cameras have a handful of weights per voxel" in r for r in ph.reasons)
+    joint = plan_reconstruction(mixed.camera, VolumeGrid.from_rig(_crop(mixed, (0.3, 0.3, 0.3))), ReconSettings(),
+                                device="cpu")
+    assert (joint.cameras, joint.operator, joint.cache) == ("joint", JOINT, True)
+    mart = plan_reconstruction(tiny_rig.camera, VolumeGrid.from_rig(tiny_rig), ReconSettings(method="mart"),
+                               device="cpu")
+    assert mart.operator == "line-of-sight weights" and not mart.cache
+    assert any("MART baseline" in r for r in mart.reasons)
+    fly = plan_reconstruction(tiny_rig.camera, VolumeGrid.from_rig(tiny_rig),
+                              ReconSettings(projector="matrix-free", weight_storage="on-the-fly"), device="cpu")
+    assert fly.operator == TEMPLATES and not fly.cache
+    # what the run store records, read back
+    assert Plan.from_dict(lf.as_dict()) == lf
+    with pytest.raises(PlanError, match="not a recorded plan"):
+        Plan.from_dict({"device": "cpu"})
+
+
+def test_the_plan_splits_what_does_not_fit_and_refuses_in_one_line(tiny_rig):
+    grid = VolumeGrid.from_rig(tiny_rig)  # 82 x 68 x 29 voxels
+    need = BYTES_PER_BOX_VOXEL * grid.n_voxels
+    settings = ReconSettings()
+    assert plan_reconstruction(tiny_rig.camera, grid, settings, device="cpu", slabs="auto", free_bytes=need).slabs == 1
+    split = plan_reconstruction(tiny_rig.camera, grid, settings, device="cpu", slabs="auto", free_bytes=2_400_000)
+    assert split.slabs == 5 and not split.cache  # 6 planes a slab, as `lfpiv reconstruct --slabs auto` says
+    assert any("5 depth slabs, since its buffers" in r for r in split.reasons)
+    assert plan_reconstruction(tiny_rig.camera, grid, settings, device="cpu", slabs=3).slabs == 3
+    with pytest.raises(PlanError, match=r"more than it has free; use a coarser --pvr, or --slabs auto") as not_given:
+        plan_reconstruction(tiny_rig.camera, grid, settings, device="cpu", free_bytes=need - 1)
+    assert "\n" not in str(not_given.value)
+    with pytest.raises(PlanError, match="the sequential form cannot be split"):
+        plan_reconstruction(tiny_rig.camera, grid, ReconSettings(form="sequential", relaxation=1.0), device="cpu",
+                            slabs="auto", free_bytes=need - 1)
+    with pytest.raises(PlanError, match="the box is 29 voxels deep; give from 1 to 29 slabs, or auto"):
+        plan_reconstruction(tiny_rig.camera, grid, settings, device="cpu", slabs=30)
+    # the plan made: slabs of their own projectors, or the in-memory reconstructor with its cache
+    built = build_reconstructor(split, tiny_rig.camera, grid, settings)
+    assert built.in_slabs and isinstance(built, SlabReconstructor) and len(built.slabs) == 5
+    frames = build_reconstructor(plan_reconstruction(tiny_rig.camera, grid, settings, device="cpu"),
+                                 tiny_rig.camera, grid, settings, checks=0)
+    assert not frames.in_slabs and frames.cache is not None and frames.cache.checks_bytes == 0
+
+
+def test_the_operator_sources_of_the_settings(tiny_rig, small):
+    grid = VolumeGrid.from_rig(_crop(tiny_rig))
+    lf = LightFieldProjector(tiny_rig.camera, grid, device="cpu")
+    assert isinstance(operator_source(lf, ReconSettings()), AutoSource)
+    assert isinstance(operator_source(lf, ReconSettings(projector="stored")), WeightSource)
+    assert isinstance(operator_source(lf, ReconSettings(projector="matrix-free")), TemplateSource)
+    assert isinstance(operator_source(lf, ReconSettings(method="mlos-mart")), WeightSource)
+    ph = PinholeProjector(small.camera, VolumeGrid.from_rig(small), device="cpu")
+    assert isinstance(operator_source(ph, ReconSettings(method="mlos-smart")), WeightSource)
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_rig):
+    rig = _crop(tiny_rig)
+    grid = VolumeGrid.from_rig(rig)
+    pts = seed_particles(rig.volume, particle_count(rig, 0.3), np.random.default_rng(3))
+    cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
+    img = LightFieldRenderer(rig.camera[0], cfg, rig.laser.wavelength_nm, device="cpu").frame(pts, 50_000.0, seed=1)
+    return rig, grid, pts, img
+
+
+@pytest.mark.parametrize(("settings", "kind"), [
+    (ReconSettings(iterations=10, projector="stored"), TRACED),
+    (ReconSettings(iterations=10, projector="matrix-free", weight_storage="stored"), TEMPLATE_IMAGES),
+    (ReconSettings(iterations=10, projector="matrix-free", weight_storage="on-the-fly"), TEMPLATES),
+    (ReconSettings(iterations=10, method="mlos-mart"), "line-of-sight weights"),
+])
+def test_every_operator_is_the_protocol_and_reconstructs_the_particles(scene, settings, kind):
+    """The algorithms see one protocol whichever operator the plan chooses: the same loop reconstructs
+    the known particles through each (Q against the truth), and each says what it is."""
+    rig, grid, pts, img = scene
+    frames = FrameReconstructor(LightFieldProjector(rig.camera, grid, device="cpu"), settings)
+    res = frames.reconstruct([img])
+    assert res.operator == kind and kind in ALL_KINDS
+    assert res.projector == ("matrix-free" if kind in (TEMPLATE_IMAGES, TEMPLATES) else "stored")
+    q = metrics.q_recon(res.volume, metrics.truth_volume(grid, pts))
+    assert q > 0.5, q
+    voxels = frames.eliminate([img > np.median(img)])
+    assert isinstance(frames.operator(voxels), Operator)
+
+
+def test_no_module_but_the_planner_tests_a_concrete_operator_type():
+    """The operator is chosen in one place: nothing else asks which concrete class it holds."""
+    concrete = r"(LightFieldProjector|PinholeProjector|JointProjector|Projector|Weights|TemplateOperator|" \
+               r"MatrixFreeWeights|WeightCache|DrtTemplates)"
+    pattern = re.compile(rf"(type\([^)]*\)\s+is\s+(not\s+)?{concrete}\b|isinstance\([^)]*\b{concrete}\b)")
+    found = []
+    for package in ("lfcore", "lfpiv", "realtime", "calibration", "acquisition", "sim"):
+        for path in (ROOT / package).rglob("*.py"):
+            if path.name == "plan.py" and path.parent.name == "lfcore":
+                continue
+            for n, line in enumerate(path.read_text().splitlines(), 1):
+                if pattern.search(line):
+                    found.append(f"{path.relative_to(ROOT)}:{n}: {line.strip()}")
+    assert found == []
