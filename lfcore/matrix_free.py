@@ -463,7 +463,7 @@ class TemplateOperator:
             self._order = wp.array(rows, dtype=wp.int32, device=t.device)
         return self._order
 
-    def forward(self, e, out=None) -> object:
+    def forward(self, e, *, out=None) -> object:
         """Project intensities ``e`` (n,) into ``out`` (n_pixels,) float32 (zeroed first; None: a new
         array), returned."""
         t, km = self.templates, self.templates._km
@@ -485,7 +485,7 @@ class TemplateOperator:
         launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.order()),
                                                      self.voxels, ratio, float(relaxation), e, t._none_i], t.device)
 
-    def scatter(self, e, out=None) -> object:
+    def scatter(self, e, *, out=None) -> object:
         """The dense (z, y, x) float32 volume of the projector's grid with ``e`` at these voxels, zero
         elsewhere, on the device (``out`` zeroed and written; None: a new array)."""
         return scatter_voxels(self.voxels, e, self.templates.projector.grid.shape, device=self.device, out=out)

@@ -132,7 +132,7 @@ class Operator(Protocol):
     @property
     def n_on_the_fly(self) -> int: ...
 
-    def forward(self, e, out=None) -> object:
+    def forward(self, e, *, out=None) -> object:
         """Project the voxels' intensities ``e`` (n,) to all pixels: ``out`` (n_pixels,) float32
         (zeroed first; None: a new array), returned."""
 
@@ -140,7 +140,7 @@ class Operator(Protocol):
         """The multiplicative update ``E_v <- E_v exp(mu sum_i w_iv ratio_i)`` of ``e`` in place,
         ``ratio`` the (n_pixels,) log ratios of :func:`log_ratio`."""
 
-    def scatter(self, e, out=None) -> object:
+    def scatter(self, e, *, out=None) -> object:
         """The dense (z, y, x) float32 volume of the grid with ``e`` at the voxels, zero elsewhere,
         on the device (``out`` zeroed and written; None: a new array)."""
 
@@ -183,7 +183,7 @@ class Projector(Protocol):
     def planes(self, z0: int, z1: int) -> Projector:
         """This projector on planes ``z0 .. z1 - 1`` of its grid, numbering its own voxels."""
 
-    def precompute_checks(self, n_checks: int | None = None, *, budget_bytes: int | None = None) -> int:
+    def precompute_checks(self, *, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
         """Store the pixels elimination looks up; returns their bytes (0: none kept)."""
 
     def operator(self, voxels, *, method: str, min_weight: float = 1e-6, budget_bytes: int | None = None,

@@ -61,7 +61,7 @@ REACH_SIGMAS = 2.5
 TRACE_VOXELS = 1 << 18
 
 
-def footprint_sigma_px(camera: PinholeCamera, grid: VolumeGrid, footprint: float = DEFAULT_FOOTPRINT) -> float:
+def footprint_sigma_px(camera: PinholeCamera, grid: VolumeGrid, *, footprint: float = DEFAULT_FOOTPRINT) -> float:
     """Sigma, in pixels, of the footprint of one of ``grid``'s voxels on ``camera``'s sensor.
 
     The voxel's projected width is its mean lateral edge (x and y, mm) over the camera's pixel
@@ -117,7 +117,7 @@ class PinholeProjector(BoundCameras):
             v = kp.PinholeView()
             v.cam = pinhole_params(cam)
             v.pix_offset = int(self.pixel_offsets[k])
-            sigma = footprint_sigma_px(cam, grid, footprint)
+            sigma = footprint_sigma_px(cam, grid, footprint=footprint)
             v.sigma_px = sigma
             v.reach_px = REACH_SIGMAS * sigma
             v.grow = int(grow)
@@ -156,7 +156,7 @@ class PinholeProjector(BoundCameras):
                     self.device)
         return self._compact(mask)
 
-    def precompute_checks(self, n_checks: int | None = None, *, budget_bytes: int | None = None) -> int:
+    def precompute_checks(self, *, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
         """Nothing to precompute: MLOS looks up one pixel per camera (returns 0 bytes)."""
         return 0
 
@@ -294,7 +294,7 @@ class JointProjector(BoundCameras):
                               self.ph.eliminate(ph_lit).numpy())
         return self.wp.array(kept.astype(np.int32), dtype=self.wp.int32, device=self.device)
 
-    def precompute_checks(self, n_checks: int | None = None, *, budget_bytes: int | None = None) -> int:
+    def precompute_checks(self, *, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
         """No elimination table is kept for a joint projector (returns 0 bytes)."""
         return 0
 

@@ -215,10 +215,10 @@ class BoundCameras:
         return out
 
     # --- the operator's own methods, kept for scripts written against the projector ------------------
-    def forward(self, weights, e, out=None):
-        """Deprecated: ``weights.forward(e, out)`` (:meth:`lfcore.operator.Operator.forward`)."""
-        _moved("forward(weights, e, out)", "weights.forward(e, out)")
-        return weights.forward(e, out)
+    def forward(self, weights, e, *, out=None):
+        """Deprecated: ``weights.forward(e, out=out)`` (:meth:`lfcore.operator.Operator.forward`)."""
+        _moved("forward(weights, e, out)", "weights.forward(e, out=out)")
+        return weights.forward(e, out=out)
 
     def smart_update(self, weights, image, proj, e, relaxation: float, floor: float) -> None:
         """Deprecated: :func:`lfcore.operator.log_ratio` then ``weights.update(ratio, e, relaxation)``."""
@@ -227,10 +227,10 @@ class BoundCameras:
         ratio = log_ratio(image, proj, floor, self._scratch("ratio", self.n_pixels, self.wp.float32))
         weights.update(ratio, e, relaxation)
 
-    def scatter(self, weights, e, out=None):
-        """Deprecated: ``weights.scatter(e, out)`` (:meth:`lfcore.operator.Operator.scatter`)."""
-        _moved("scatter(weights, e, out)", "weights.scatter(e, out)")
-        return weights.scatter(e, out)
+    def scatter(self, weights, e, *, out=None):
+        """Deprecated: ``weights.scatter(e, out=out)`` (:meth:`lfcore.operator.Operator.scatter`)."""
+        _moved("scatter(weights, e, out)", "weights.scatter(e, out=out)")
+        return weights.scatter(e, out=out)
 
     def to_volume(self, weights, e) -> np.ndarray:
         """Deprecated: ``weights.scatter(e).numpy()``."""
@@ -375,7 +375,7 @@ class LightFieldProjector(BoundCameras):
         launch_rows(kw.eliminate, n, [*common, candidates, 2**30, RowOffset(0), mask], self.device)
         return self._compact(mask[:n], candidates)
 
-    def precompute_checks(self, n_checks: int | None = None, *, budget_bytes: int | None = None) -> int:
+    def precompute_checks(self, *, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
         """Trace once the pixels of every voxel's first ``n_checks`` elimination checks.
 
         With the table, elimination looks those pixels up instead of tracing them (its result

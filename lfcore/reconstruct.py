@@ -653,7 +653,7 @@ class FrameReconstructor:
             return Iterated(e, time.perf_counter() - t0, 0.0)
         # Start uniform, scaled so the projection carries the measured total signal.
         e.fill_(1.0)
-        op.forward(e, proj)
+        op.forward(e, out=proj)
         total_proj = _total(proj)
         e.fill_(_total(image) / total_proj if total_proj > 0 else 0.0)
         wp.synchronize_device(self.device)
@@ -666,7 +666,7 @@ class FrameReconstructor:
             if transposed is not None:
                 op.sweep(transposed, image, e, mu, floor)
             else:
-                op.forward(e, proj)
+                op.forward(e, out=proj)
                 op.update(log_ratio(image, proj, floor, self._ratio), e, mu)
             if progress is not None:
                 progress(1)
@@ -694,7 +694,7 @@ class FrameReconstructor:
             if self._volume is None:
                 self._volume = self.ops.empty()
             out = self._volume
-        vol = op.scatter(e, out)
+        vol = op.scatter(e, out=out)
         if self.settings.smooth > 0:  # on the device: a host filter would dominate a large GPU volume
             self.ops.smooth(vol, self.settings.smooth)
         return vol

@@ -268,7 +268,7 @@ class SlabReconstructor:
             proj.zero_()
             for w, e in zip(weights, es, strict=True):
                 if w.n_voxels:
-                    w.forward(e, part)
+                    w.forward(e, out=part)
                     wp.launch(ks.accumulate, dim=p.n_pixels, inputs=[proj, part], device=dev)
 
         t1 = time.perf_counter()

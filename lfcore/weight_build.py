@@ -201,7 +201,7 @@ class Weights:
                              "or weights()")
         return self.binding
 
-    def forward(self, e, out=None) -> object:
+    def forward(self, e, *, out=None) -> object:
         """Project voxel intensities ``e`` (n,) to all pixels; returns ``out`` (n_pixels,) float32
         (zeroed first; None: a new array)."""
         from lfcore._kernels import mart as km
@@ -247,7 +247,7 @@ class Weights:
                 wp.launch_tiled(km.smart_update_tiled, dim=[c.n], block_dim=LANES, device=b.device,
                                 inputs=[c.offsets, c.pix, c.w, c.first, ratio, mu, e])
 
-    def scatter(self, e, out=None) -> object:
+    def scatter(self, e, *, out=None) -> object:
         """The dense (z, y, x) float32 volume with ``e`` at these voxels, zero elsewhere, on the
         device (``out`` zeroed and written; None: a new array)."""
         b = self._bound()

@@ -88,7 +88,7 @@ class WeightCache:
         self._pix = None
         self._w = None
         self._used = 0
-        self.checks_bytes = projector.precompute_checks(checks, budget_bytes=self.budget_bytes // 4)
+        self.checks_bytes = projector.precompute_checks(n_checks=checks, budget_bytes=self.budget_bytes // 4)
 
     @property
     def kind(self) -> str:
@@ -168,7 +168,7 @@ class WeightCache:
             self._used += c.nnz
         return True
 
-    def prefill(self, voxels: np.ndarray | None = None) -> int:
+    def prefill(self, *, voxels: np.ndarray | None = None) -> int:
         """Trace ahead of time ``voxels`` (flat indices; default: the whole grid) not yet stored.
 
         Stops at the budget. Returns the number of voxels stored.

@@ -188,3 +188,20 @@ def test_the_progress_line_shows_the_operator_memory_and_time_per_iteration(fram
     mem = [float(m) for m in re.findall(r"mem=(\d+\.\d)MiB", err)]
     assert mem and abs(max(mem) - op["bytes"] / 2**20) <= 0.1 and min(mem) > 0, err
     assert re.search(r"ms_it=\d+\.\d", err), err
+
+
+def test_reconstruct_v_says_the_plan_and_info_shows_it(frames_only, tmp_path, capsys) -> None:
+    """The planner's choice and its reasons: logged by ``-v``, recorded in ``volumes/`` and shown by
+    ``lfpiv info`` with the operators that ran."""
+    path = _copy(frames_only, tmp_path)
+    rc, out, err = _run(capsys, "-v", "reconstruct", path, *RECON)
+    assert rc == 0, err
+    assert "plan: auto on cpu, weight cache, in memory" in err, err
+    assert "--projector auto: per frame, the templates' images where building them costs less" in err
+    assert "weight cache: each voxel's rows are traced once" in err
+    attrs = RunStore.open(path).group["volumes"].attrs
+    assert attrs["plan"]["operator"] == "auto" and attrs["plan"]["cache"] is True and attrs["plan"]["slabs"] == 1
+    assert attrs["operator"]["operators"] == ["traced weights"]  # these few voxels cost less to trace
+    rc, out, err = _run(capsys, "info", path)
+    assert rc == 0, err
+    assert re.search(r"^plan\s+auto on cpu, weight cache, in memory; ran traced weights$", out, re.M), out

@@ -73,13 +73,13 @@ def test_scatter_keeps_the_volume_on_the_device(tiny_rig, device) -> None:
     w = p.weights(p.all_voxels()[:50])
     e = p.wp.array(np.arange(1, 51, dtype=np.float32), dtype=float, device=p.device)
     out = p.wp.full(grid.shape, 7.0, dtype=float, device=p.device)
-    vol = w.scatter(e, out)
+    vol = w.scatter(e, out=out)
     assert vol is out and vol.shape == grid.shape
     host = w.to_volume(e)
     assert np.array_equal(vol.numpy(), host)
     assert np.array_equal(host.ravel()[:50], np.arange(1, 51)) and host.ravel()[50:].sum() == 0
     with pytest.raises(ValueError, match="must be"):
-        w.scatter(e, p.wp.zeros((2, 2, 2), dtype=float, device=p.device))
+        w.scatter(e, out=p.wp.zeros((2, 2, 2), dtype=float, device=p.device))
 
 
 def test_correlator_takes_device_volumes_in_place(device) -> None:

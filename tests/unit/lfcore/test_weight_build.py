@@ -113,7 +113,7 @@ def test_cache_gives_the_direct_operator_frame_after_frame(small_dual_rig, devic
         assert cache.nbytes >= cached.nnz * 8
     # prefill stores the rest; rows of a mixed request are still the direct ones
     every = np.arange(0, grid.n_voxels, 3, dtype=np.int32)
-    assert cache.prefill(every) + seen >= len(every)
+    assert cache.prefill(voxels=every) + seen >= len(every)
     vox = proj.wp.array(every, device=device)
     _same(proj.weights(vox, method="drt", build="two-pass"), cache.weights(vox))
 
@@ -195,13 +195,13 @@ def test_elimination_with_stored_checks_keeps_the_same_voxels(small_dual_rig, de
         ref = proj.eliminate(lit, min_seen=min_seen, max_dark=max_dark).numpy()
         assert 0 < ref.size < grid.n_voxels
         for n_checks in (3, None, 0):
-            nbytes = proj.precompute_checks(n_checks)
+            nbytes = proj.precompute_checks(n_checks=n_checks)
             expect = 0 if n_checks == 0 else 20 * grid.n_voxels * 2 * (n_checks or proj.max_checks)
             assert nbytes == expect
             assert np.array_equal(proj.eliminate(lit, min_seen=min_seen, max_dark=max_dark).numpy(), ref)
     # a budget too small for every check stores fewer; one too small for any stores none
-    assert proj.precompute_checks(None, budget_bytes=20 * grid.n_voxels * 2 * 5) == 20 * grid.n_voxels * 2 * 5
-    assert proj.precompute_checks(None, budget_bytes=10) == 0
+    assert proj.precompute_checks(n_checks=None, budget_bytes=20 * grid.n_voxels * 2 * 5) == 20 * grid.n_voxels * 2 * 5
+    assert proj.precompute_checks(n_checks=None, budget_bytes=10) == 0
 
 
 @pytest.mark.parametrize("prefilter", [1, 4, 1000])
@@ -331,14 +331,14 @@ def test_elimination_off_the_sensor_edges_keeps_what_the_traced_table_keeps(tiny
     settings = ReconSettings()
     lit = _lit(_images(rig, grid, device, n=40), settings)
     for min_seen, max_dark in ((settings.min_seen, settings.max_dark), (0.9, 0.2), (0.2, 0.0)):
-        proj.precompute_checks(0)
+        proj.precompute_checks(n_checks=0)
         traced = proj.eliminate(lit, min_seen=min_seen, max_dark=max_dark).numpy()
-        proj.precompute_checks(None)
+        proj.precompute_checks(n_checks=None)
         assert np.array_equal(proj.eliminate(lit, min_seen=min_seen, max_dark=max_dark).numpy(), traced)
         assert 0 < traced.size < grid.n_voxels
     # the test means something only if some voxels are seen through few sub-apertures
     everything = np.ones((rig.camera[0].sensor_px[1], rig.camera[0].sensor_px[0]), bool)
-    proj.precompute_checks(0)
+    proj.precompute_checks(n_checks=0)
     strict = proj.eliminate([everything], min_seen=0.99, max_dark=0.0).numpy().size
     assert strict < proj.eliminate([everything], min_seen=0.01, max_dark=0.0).numpy().size
 
