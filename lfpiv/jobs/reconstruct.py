@@ -240,7 +240,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     an interruption).
 
     ``rig`` replaces the rig stored in the run (e.g. the run's rig with the fitted camera models
-    of a calibration, :func:`lfpiv.calibrate.calibrated_rig`); ``calibration`` says which
+    of a calibration, :func:`lfpiv.jobs.calibrate.calibrated_rig`); ``calibration`` says which
     calibration that is and is kept in the ``volumes/`` settings (None: the run's own rig).
 
     ``client``, a Dask client (:func:`lfpiv.batch.dask_client`), spreads the pairs over its
