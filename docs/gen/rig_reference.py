@@ -154,10 +154,13 @@ def _table(cls: type[BaseModel], tree: ast.Module, lines: list[str], *, skip: tu
         kind, rng = _describe(field.annotation, list(field.metadata))
         default = ("**required**" if field.default is PydanticUndefined else "not set" if field.default is None
                    else f"`{_toml(field.default)}`")
-        rows.append("| " + " | ".join(plain(c) for c in (
-            f"`{key}`", kind, _unit(key), default, rng, rst_to_markdown(meaning))) + " |")
+        instead = [k for k, row in _INPUT_ONLY.get(cls.__name__, {}).items() if f"`{key}`" in row[-1]]
+        if instead and field.default is PydanticUndefined:
+            default += f" (or `{instead[0]}`)"
+        meaning = plain(rst_to_markdown(meaning))
+        rows.append(f"| `{key}` | {kind} | {_unit(key)} | {default} | {plain(rng)} | {meaning} |")
     for key, (kind, unit, default, rng, meaning) in _INPUT_ONLY.get(cls.__name__, {}).items():
-        rows.append(f"| `{key}` | {kind} | {unit} | {default} | {rng} | {plain(meaning)} |")
+        rows.append(f"| `{key}` | {kind} | {unit} | {default} | {plain(rng)} | {plain(meaning)} |")
     return rows
 
 
