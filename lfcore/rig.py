@@ -5,7 +5,7 @@ validated here with :meth:`Rig.from_dict`. Every table rejects unknown keys, and
 impossible value is an error that names its key. The objects are immutable; derived optical
 quantities are exposed as properties so they can never drift from the inputs.
 
-Conventions (DESIGN.md): millimetres in the world, micrometres for sensor and lenslet pitches,
+Conventions (docs/reference/conventions.md): millimetres in the world, micrometres for sensor and lenslet pitches,
 seconds for time. A camera's pose is its rotation and the world point its focal plane is
 centred on; the rotation R = Rz(rz) Ry(ry) Rx(rx) maps camera-frame vectors to world vectors.
 In the camera frame the optical axis is +z, the main lens sits at ``z = so`` looking toward -z,
