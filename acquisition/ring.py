@@ -1,4 +1,4 @@
-"""The pair ring buffer shared by the recorder and the live pipeline (DESIGN.md, "Data flow").
+"""The pair ring buffer shared by the recorder and the live pipeline (docs/development.md, "Data flow").
 
 A fixed number of slots, each holding one double-frame pair of every camera, allocated once
 before the first trigger. The camera grabbers copy each frame straight into the slot of its

@@ -5,7 +5,7 @@ validated here with :meth:`Rig.from_dict`. Every table rejects unknown keys, and
 impossible value is an error that names its key. The objects are immutable; derived optical
 quantities are exposed as properties so they can never drift from the inputs.
 
-Conventions (DESIGN.md): millimetres in the world, micrometres for sensor and lenslet pitches,
+Conventions (docs/reference/conventions.md): millimetres in the world, micrometres for sensor and lenslet pitches,
 seconds for time. A camera's pose is its rotation and the world point its focal plane is
 centred on; the rotation R = Rz(rz) Ry(ry) Rx(rx) maps camera-frame vectors to world vectors.
 In the camera frame the optical axis is +z, the main lens sits at ``z = so`` looking toward -z,
@@ -246,20 +246,40 @@ class Camera(_Posed, _Strict):
 
     #: ``"lightfield"``, the default kind of a ``[[camera]]`` table (see :class:`PinholeCamera`)
     kind: Literal["lightfield"] = "lightfield"
+    #: 1-32 letters, digits, '_' or '-', starting with a letter: the camera's group in the run store and its CAM= in
+    #: options (not drops, truth, volumes or vectors, which the run store uses)
     name: str
     # up to 32768 a side: the largest scientific sensors are about 14,000 px wide
+    #: Sensor size in pixels, [columns, rows]
     sensor_px: tuple[Annotated[int, Field(ge=8, le=32768)], Annotated[int, Field(ge=8, le=32768)]]
+    #: Pixel pitch of the sensor, micrometres
     pixel_pitch_um: PositiveFloat
+    #: Lattice of the microlens array: "hex" (rows along sensor x, alternate rows shifted half a pitch) or "square"
     mla_grid: Literal["hex", "square"]
+    #: Lenslet pitch p_ml, micrometres; at least two pixels
     mla_pitch_um: PositiveFloat
+    #: Lenslet focal length f_ml, micrometres: the sensor sits this far behind the microlens array; matched optics have
+    #: f_ml / p_ml = N (1 - M)
     mla_focal_length_um: PositiveFloat
+    #: Main-lens focal length F, mm
     main_focal_length_mm: PositiveFloat
+    #: The main lens' own f-number N = F / D; the light converging on the lenslets has the image-side N (1 - M), which
+    #: should match f_ml / p_ml (more than 5% off is a warning naming the matching N)
     f_number: PositiveFloat
+    #: Lateral magnification M of the main lens, negative (a real, inverted image): -1 images 1:1
     magnification: Annotated[float, Field(lt=0, allow_inf_nan=False)]
+    #: Camera pose: rotations [rx, ry, rz] about the world axes in degrees, x first (R = Rz Ry Rx maps camera-frame
+    #: vectors to world vectors); [0, 0, 0] puts the camera on world +z looking toward -z
     rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    #: World point [x, y, z] in mm that the focal plane is centred on
     focus_mm: Vec3 = (0.0, 0.0, 0.0)
+    #: In-plane rotation of the microlens array on the sensor, degrees (`calibrate mla` measures it, `calibrate fit`
+    #: fits it)
     mla_rotation_deg: FiniteFloat = 0.0
+    #: In-plane shift [x, y] of the microlens array from the sensor centre, micrometres (measured as mla_rotation_deg)
     mla_offset_um: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+    #: GenICam serial number of the real camera (hardware = "real"; `lfpiv devices` lists them); required when the rig
+    #: has several cameras
     serial: str | None = None
     #: Bits per pixel of the real sensor: its full scale (2**bit_depth - 1) judges clipping of
     #: white images and the values of imported frames; apart from [render]'s synthetic images.
@@ -380,20 +400,37 @@ class PinholeCamera(_Posed, _Strict):
     of sight of a pixel.
     """
 
+    #: "pinhole": a conventional Tomo-PIV camera (required in its table; the default kind is "lightfield")
     kind: Literal["pinhole"]
+    #: 1-32 letters, digits, '_' or '-', starting with a letter: the camera's group in the run store and its CAM= in
+    #: options (not drops, truth, volumes or vectors, which the run store uses)
     name: str
+    #: Sensor size in pixels, [columns, rows]
     sensor_px: tuple[Annotated[int, Field(ge=8, le=32768)], Annotated[int, Field(ge=8, le=32768)]]
+    #: Pixel pitch of the sensor, micrometres
     pixel_pitch_um: PositiveFloat
+    #: Focal length F of the lens, mm
     focal_length_mm: PositiveFloat
+    #: Lateral magnification M, negative; or give object_distance_mm instead (lens to focal plane, mm, beyond F), from
+    #: which M = -F / (so - F)
     magnification: Annotated[float, Field(lt=0, allow_inf_nan=False)]
+    #: Camera pose: rotations [rx, ry, rz] about the world axes in degrees, x first (R = Rz Ry Rx maps camera-frame
+    #: vectors to world vectors); [0, 0, 0] puts the camera on world +z looking toward -z
     rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    #: World point [x, y, z] in mm that the focal plane is centred on
     focus_mm: Vec3 = (0.0, 0.0, 0.0)
     #: where the optical axis meets the sensor, from the sensor centre, (columns, rows) pixels
     principal_point_px: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+    #: OpenCV's first radial distortion coefficient (on normalised image coordinates)
     k1: FiniteFloat = 0.0
+    #: OpenCV's second radial distortion coefficient
     k2: FiniteFloat = 0.0
+    #: OpenCV's first tangential distortion coefficient
     p1: FiniteFloat = 0.0
+    #: OpenCV's second tangential distortion coefficient
     p2: FiniteFloat = 0.0
+    #: GenICam serial number of the real camera (hardware = "real"; `lfpiv devices` lists them); required when the rig
+    #: has several cameras
     serial: str | None = None
     #: Bits per pixel of the real sensor (full scale 2**bit_depth - 1); a simulated pinhole
     #: camera saturates there too (or at ``[render]``'s bit depth, whichever is lower).
@@ -532,8 +569,12 @@ def camera_from_dict(data: dict[str, Any]) -> AnyCamera:
 class VolumeConfig(_Strict):
     """The measurement volume, an axis-aligned box in world coordinates."""
 
+    #: World position [x, y, z] of the volume's centre, mm (the world origin by default)
     centre_mm: Vec3 = (0.0, 0.0, 0.0)
+    #: Edge lengths [x, y, z] of the measurement volume, mm
     size_mm: PositiveVec3
+    #: Pixel-voxel ratio per axis [x, y, z]: a voxel's edge is pvr times the first camera's pixel on its focal plane
+    #: (pixel pitch / |M|); a plenoptic camera resolves depth coarsely, hence 10 in z
     pvr: PositiveVec3 = (2.0, 2.0, 10.0)
 
     @property
@@ -546,13 +587,23 @@ class VolumeConfig(_Strict):
 class LaserConfig(_Strict):
     """The double-pulsed laser and the light sheet it forms."""
 
+    #: Laser wavelength, nm: the diffraction blur of rendered images
     wavelength_nm: PositiveFloat = 532.0
+    #: Pair rate of `acquire` and `monitor`: double pulses per second, at most max_rate_hz
     rate_hz: PositiveFloat = 10.0
+    #: The laser's highest pair rate; a higher rate_hz is refused
     max_rate_hz: PositiveFloat = 15.0
+    #: Width of each flashlamp trigger pulse, microseconds
     flashlamp_width_us: PositiveFloat = 10.0
+    #: Width of each Q-switch trigger pulse, microseconds
     qswitch_width_us: PositiveFloat = 10.0
+    #: Light-sheet profile across sheet_axis, centred on the volume: "uniform" (everything lit alike), "gaussian" or
+    #: "top-hat" (both need sheet_thickness_mm)
     sheet_profile: Literal["uniform", "gaussian", "top-hat"] = "uniform"
+    #: World axis across the light sheet (its thickness direction)
     sheet_axis: Literal["x", "y", "z"] = "z"
+    #: Sheet thickness, mm: a Gaussian's full width at 1/e^2 of the peak, a top-hat's full width; required for those
+    #: profiles
     sheet_thickness_mm: PositiveFloat | None = None
 
     @model_validator(mode="after")
@@ -577,10 +628,15 @@ class TimingConfig(_Strict):
     per pair).
     """
 
+    #: Time between the two laser pulses of a pair, microseconds (at least camera_interframe_us)
     dt_us: PositiveFloat = 2000.0
+    #: The laser's flashlamp-to-Q-switch delay, microseconds
     qswitch_delay_us: PositiveFloat = 180.0
+    #: Exposure of frame A, microseconds; it ends just after the first pulse
     camera_exposure_us: PositiveFloat = 20.0
+    #: The camera's dead time between frames A and B, microseconds: the shortest dt
     camera_interframe_us: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 1.0
+    #: The camera's highest frame rate, frames per second (a pair takes two frames)
     camera_max_fps: PositiveFloat = 60.0
 
 
@@ -598,10 +654,16 @@ class StageConfig(_Strict):
     reported in a warning and not used.
     """
 
+    #: Serial port of the stage (e.g. /dev/ttyUSB0 or COM3), which `calibrate volume` needs with hardware = "real";
+    #: the simulated lab uses its own
     port: str | None = None
+    #: Serial baud rate, bit/s (Zaber's ASCII protocol: 115200)
     baud: Annotated[int, Field(gt=0)] = 115200
+    #: The controller's address on the daisy chain, as Zaber Console shows it
     device: Annotated[int, Field(ge=1, le=99)] = 1
+    #: The axis of that controller that carries the target
     axis: Annotated[int, Field(ge=1, le=9)] = 1
+    #: Deprecated: the size of one microstep, micrometres, only for a product lfpiv does not know
     microstep_um: PositiveFloat = 0.1
 
 
@@ -616,8 +678,13 @@ class PulseGeneratorConfig(_Strict):
     output number, 1-based (A = 1). Both cameras share the camera output.
     """
 
+    #: Serial port of the pulse generator (e.g. /dev/ttyUSB0 or COM3), required with hardware = "real"; the
+    #: simulated lab uses its own
     port: str | None = None
+    #: Serial baud rate, bit/s
     baud: Annotated[int, Field(gt=0)] = 115200
+    #: Output of each role, 1-based (A = 1): flashlamp1, qswitch1, flashlamp2, qswitch2 and camera, each its own output;
+    #: every camera shares the camera output
     channels: dict[str, Annotated[int, Field(ge=1, le=8)]] = dict(DEFAULT_CHANNELS)
 
     @field_validator("channels")
@@ -645,20 +712,29 @@ class RenderConfig(_Strict):
     signal one particle at the laser-sheet peak deposits through the whole aperture.
     """
 
+    #: Rays traced per particle through the main lens and the lenslets (10,000 look smooth)
     rays_per_particle: Annotated[int, Field(ge=1, le=MAX_RAYS_PER_PARTICLE)] = 10000
     #: counts a particle deposits in all: beyond 1e9 (16-bit pixels saturate at 65535) a frame is
     #: white, and the integer accumulation of the renderer overflows
     particle_counts: Annotated[float, Field(gt=0, le=1e9, allow_inf_nan=False)] = 50000.0
+    #: Physical particle diameter, micrometres (0: a point source)
     particle_diameter_um: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
     #: Diameter (at 1/e^2 of the peak) of a particle's Gaussian image on a pinhole camera's
     #: sensor, pixels: Tomo-PIV's usual 2-3 px, what diffraction at the working f-number gives
     #: (light-field cameras trace their rays instead and ignore it)
     particle_image_px: Annotated[float, Field(gt=0, le=64, allow_inf_nan=False)] = 3.0
+    #: Blur the images by diffraction at the main lens' image-side f-number and at the lenslets' (sigma
+    #: 0.42 lambda N each)
     diffraction: bool = True
+    #: Mean background added to every pixel, counts
     background_counts: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 100.0
+    #: Photoelectrons per count, which sets the shot noise
     gain_e_per_count: PositiveFloat = 1.0
+    #: Add Poisson shot noise of the photoelectrons
     shot_noise: bool = True
+    #: Standard deviation of the Gaussian read noise, counts
     read_noise_counts: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 3.0
+    #: Bits per pixel of synthetic and simulated images: they saturate at 2**bit_depth - 1
     bit_depth: Annotated[int, Field(ge=8, le=16)] = 16
 
 
@@ -673,27 +749,42 @@ class TargetConfig(_Strict):
     level (its odd columns) behind the first (0: one level).
     """
 
+    #: Distance between neighbouring dot centres, mm (not set: the default board's)
     dot_pitch_mm: PositiveFloat | None = None
+    #: Diameter of a dot, mm (not set: the default board's)
     dot_diameter_mm: PositiveFloat | None = None
+    #: Diameter of the larger marker dot at the plate's origin, mm; 0: no marker
     marker_diameter_mm: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
+    #: The plate's rotation about world y, degrees (not set: the default board's)
     tilt_deg: FiniteFloat | None = None
+    #: Depth of a two-level plate's second level (its odd columns) behind the first, mm; 0: one level
     level_step_mm: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
 
 
 class Rig(_Strict):
     """A whole LF-PIV rig: the volume, one or more cameras, laser, timing and devices."""
 
+    #: "sim": the simulated lab (emulated pulse generator and stage on pseudo-terminals, simulated cameras); "real": the
+    #: devices this file names
     hardware: Literal["sim", "real"] = "sim"
     #: GenTL producer files (.cti) that give access to the real cameras; when empty, the
     #: standard GENICAM_GENTL64_PATH environment variable is searched.
     gentl_producers: tuple[str, ...] = ()
+    #: The measurement volume ([volume])
     volume: VolumeConfig
+    #: The cameras, one [[camera]] table each, light-field or pinhole (at least one)
     camera: Annotated[tuple[_CameraOfKind, ...], Field(min_length=1)]
+    #: The laser and its light sheet ([laser])
     laser: LaserConfig = LaserConfig()
+    #: The timing of a double-frame pair ([timing])
     timing: TimingConfig = TimingConfig()
+    #: The calibration stage ([stage])
     stage: StageConfig = StageConfig()
+    #: The pulse generator ([pulse_generator])
     pulse_generator: PulseGeneratorConfig = PulseGeneratorConfig()
+    #: How synthetic and simulated images are rendered ([render])
     render: RenderConfig = RenderConfig()
+    #: The calibration plate ([target])
     target: TargetConfig = TargetConfig()
 
     @model_validator(mode="after")

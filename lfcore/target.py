@@ -1,7 +1,7 @@
 """The calibration target: a board of dots on a square grid, moved by the stage along world z.
 
-The board defines the world frame of a calibration (DESIGN.md: "the board positions from the
-stage readback define it"): dot ``(i, j)`` of the board lies at
+The board defines the world frame of a calibration (the board positions from the stage
+readback define it): dot ``(i, j)`` of the board lies at
 
     P(i, j, s) = centre_mm + (s - stage_centre_mm) z + spacing_mm (i e1 + j e2)
 

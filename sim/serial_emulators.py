@@ -1174,6 +1174,8 @@ class StageEmulator(_PtyEmulator):
     chain
         The whole chain instead (addresses, products, axes), for several devices on one port.
 
+    Notes
+    -----
     Faults (besides the common ones): ``"stall"`` the next move never progresses and the axis
     stays BUSY until stopped; ``"limit"`` the next move stops half way on a limit sensor, flag
     ``WL``; ``"slip"`` the next move ends IDLE 50 um away from its target; ``"flags"`` the next

@@ -1,4 +1,4 @@
-"""The run store: one zarr v3 directory per run, recorded or synthetic (DESIGN.md, "Files").
+"""The run store: one zarr v3 directory per run, recorded or synthetic (docs/reference/run-store.md).
 
 This module is :mod:`lfcore`'s one exception to "never open a file": it owns the on-disk
 format so that every writer (synthesis, the recorder, reconstruction) produces the same layout.

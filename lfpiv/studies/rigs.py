@@ -17,7 +17,7 @@ what the crop sees, its depth kept, so the study keeps the rig's lenslets, magni
 of field at a size a laptop reconstructs in seconds.
 
 A second camera at separation angle ``a`` is the first turned by ``a`` about world y through the
-volume's centre (DESIGN.md's convention).
+volume's centre (docs/reference/conventions.md).
 """
 
 from __future__ import annotations
@@ -121,7 +121,7 @@ def dual_rig(user: dict[str, Any] | None, scale: str) -> Rig:
 
 
 def _euler_deg(r: np.ndarray) -> list[float]:
-    """rotation_deg [rx, ry, rz] of R = Rz Ry Rx (DESIGN.md)."""
+    """rotation_deg [rx, ry, rz] of R = Rz Ry Rx (docs/reference/conventions.md)."""
     s = float(np.clip(-r[2, 0], -1.0, 1.0))
     if abs(s) < 1.0 - 1e-12:
         rx, ry, rz = math.atan2(r[2, 1], r[2, 2]), math.asin(s), math.atan2(r[1, 0], r[0, 0])
