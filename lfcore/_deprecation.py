@@ -5,8 +5,10 @@
   positionally, in their old order.
 - :func:`deprecated_alias`: a function's old name (after a rename or a move) still calls it.
 
-It imports nothing of lfpiv's, so every package may use it (lfcore is pure). The command line's
-old option spellings have their own helper, :func:`lfpiv.commands.add_old_spelling`.
+It imports nothing of lfpiv's, so every package may use it (lfcore is pure; the commands, which
+may not import lfcore, reach it as :mod:`lfpiv._deprecation`). The command line's old option
+spellings have their own helper, :func:`lfpiv.commands.add_old_spelling`.
+
 """
 
 from __future__ import annotations
