@@ -102,7 +102,7 @@ def correlation(store: RunStore, cfg: CorrelationConfig, device: str) -> None:
     correlate_run(store, cfg, pairs[:1], device=device, progress=False)  # warm-up
 
     t0 = time.perf_counter()
-    correlator = Correlator(grid.shape, cfg, device=device)
+    correlator = Correlator(grid.shape, config=cfg, device=device)
     t_build = time.perf_counter() - t0
     t_read = t_corr = 0.0
     target = _Target.of(store)

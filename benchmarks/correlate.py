@@ -130,12 +130,12 @@ def cpu_case(args) -> None:
     step = tuple(int(round(w * (1 - overlap))) for w in window)
     rows = []
     single = CorrelationConfig(windows=(window,), overlap=overlap, deform_iterations=0)
-    c = Correlator(shape, single, device="cpu")
+    c = Correlator(shape, config=single, device="cpu")
     c(a, b)  # compile
     ours, t_ours = timed(lambda: c(a, b), repeat=3)
     rows.append(("ours, single pass (Warp CPU kernels + pocketfft)", ours.displacement.reshape(-1, 3), t_ours))
     multi = CorrelationConfig(windows=((64, 64, 32), window), overlap=overlap, deform_iterations=2)
-    cm = Correlator(shape, multi, device="cpu")
+    cm = Correlator(shape, config=multi, device="cpu")
     cm(a, b)
     ours_m, t_m = timed(lambda: cm(a, b), repeat=2)
     rows.append(("ours, multi-grid 64x64x32 -> 32x32x16 + 2 deformation passes", ours_m.displacement, t_m))
@@ -187,7 +187,7 @@ def gpu_case(args) -> None:
           f"{' -> '.join('x'.join(map(str, w)) for w in wins)} at 75% overlap + 2 deformation passes")
     for name in args.variant:
         cfg = variants[name]
-        c = Correlator(a.shape, cfg, device=device)
+        c = Correlator(a.shape, config=cfg, device=device)
         c(a, b)  # compile and warm up
         wp.synchronize_device(device)
         f, t = timed(lambda c=c: c(a, b), repeat=args.repeat)

@@ -58,14 +58,14 @@ def case_rig(case: str) -> Rig:
 
 def render_pair(rig: Rig, ppm: float, device: str, rays: int, seed: int = 1) -> dict[str, np.ndarray]:
     """One (2, rows, columns) uint16 pair per camera; frame B shifted 2 voxels along x."""
-    n = particle_count(rig, ppm)
+    n = particle_count(rig, ppm=ppm)
     pts = seed_particles(rig.volume, n, np.random.default_rng(seed))
     shift = np.array([2 * rig.volume.pvr[0] * rig.camera[0].object_pixel_mm, 0.0, 0.0])
     render = rig.render.model_copy(update={"rays_per_particle": rays})
     out = {}
     for cam in rig.camera:
-        r = LightFieldRenderer(cam, render, rig.laser.wavelength_nm, device=device)
-        frames = [r.frame(p, render.particle_counts, 2 * seed + k) for k, p in enumerate((pts, pts + shift))]
+        r = LightFieldRenderer(cam, render, wavelength_nm=rig.laser.wavelength_nm, device=device)
+        frames = [r.frame(p, render.particle_counts, seed=2 * seed + k) for k, p in enumerate((pts, pts + shift))]
         out[cam.name] = np.stack([np.clip(f, 0, 65535).astype(np.uint16) for f in frames])
     return out
 

@@ -144,10 +144,10 @@ def scene(case: str, device: str, ppm: float):
     """The case's rig, iterations, cameras, grid and true particles, and one rendered image per camera."""
     rig, its = case_rig(case)
     cams = rig.camera if case in ("S2", "Mc2", "D") else rig.camera[:1]
-    pts = seed_particles(rig.volume, particle_count(rig, ppm), np.random.default_rng(1))
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=ppm), np.random.default_rng(1))
     render = rig.render.model_copy(update={"rays_per_particle": 5000})
-    img = [LightFieldRenderer(c, render, rig.laser.wavelength_nm, device=device).frame(pts, render.particle_counts,
-                                                                                        1 + k)
+    img = [LightFieldRenderer(c, render, wavelength_nm=rig.laser.wavelength_nm, device=device).frame(
+               pts, render.particle_counts, seed=1 + k)
            for k, c in enumerate(cams)]
     return rig, its, cams, VolumeGrid.from_rig(rig), pts, img
 
@@ -389,10 +389,10 @@ def run_tomo(case: str, device: str, ppp: float, iterations: int | None, mart: b
     rig = load_rig(ROOT / "examples" / f"tomo_{TOMO_CASES[case]}_cameras.toml")
     its = iterations or 20
     cams = rig.camera
-    n = particle_count(rig, None, ppp=ppp)
+    n = particle_count(rig, ppp=ppp)
     pts = seed_particles(rig.volume, n, np.random.default_rng(1))
-    img = [PinholeRenderer(c, rig.render, rig.laser.wavelength_nm, device=device).frame(pts, rig.render.particle_counts,
-                                                                                        1 + k)
+    img = [PinholeRenderer(c, rig.render, wavelength_nm=rig.laser.wavelength_nm, device=device).frame(
+               pts, rig.render.particle_counts, seed=1 + k)
            for k, c in enumerate(cams)]
     grid = VolumeGrid.from_rig(rig)
     cam = cams[0]

@@ -67,7 +67,7 @@ def throughput(device: str, n_particles: int, rays: int) -> float:
     rig = load_rig(ROOT / "examples" / "one_camera.toml")
     # point particles, no diffraction: the same physics as the NumPy baseline
     cfg = rig.render.model_copy(update={"rays_per_particle": rays, "diffraction": False, "particle_diameter_um": 0.0})
-    r = LightFieldRenderer(rig.camera[0], cfg, rig.laser.wavelength_nm, device=device)
+    r = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device=device)
     pts = seed_particles(rig.volume, n_particles, np.random.default_rng(0))
     r.irradiance(pts[:2], 1.0, seed=0)  # compile and warm up
     t = time.perf_counter()
@@ -87,10 +87,10 @@ def frame(device: str, fraction: float, rays: int) -> tuple[float, int, int]:
     rig = load_rig(ROOT / "examples" / "two_cameras.toml")
     cam = rig.camera[0]
     cfg = rig.render.model_copy(update={"rays_per_particle": rays})
-    n = particle_count(rig, 0.5)
+    n = particle_count(rig, ppm=0.5)
     k = max(1, round(n * fraction))
     pts = seed_particles(rig.volume, k, np.random.default_rng(2))
-    r = LightFieldRenderer(cam, cfg, rig.laser.wavelength_nm, device=device)
+    r = LightFieldRenderer(cam, cfg, wavelength_nm=rig.laser.wavelength_nm, device=device)
     r.frame(pts[:1], 1.0, seed=0)
     t = time.perf_counter()
     r.frame(pts, cfg.particle_counts, seed=3)

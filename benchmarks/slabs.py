@@ -61,10 +61,11 @@ def child(mode: str, pvr: tuple[float, float, float], n_slabs: int, iterations: 
     from lfpiv.rigfile import load_rig
 
     rig = load_rig(ROOT / "examples" / "tiny.toml")
-    grid = VolumeGrid.from_rig(rig, pvr)
-    pts = seed_particles(rig.volume, particle_count(rig, 0.05), np.random.default_rng(5))
+    grid = VolumeGrid.from_rig(rig, pvr=pvr)
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.05), np.random.default_rng(5))
     cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
-    images = [LightFieldRenderer(c, cfg, rig.laser.wavelength_nm, device=device).frame(pts, 50_000.0, seed=1)
+    images = [LightFieldRenderer(c, cfg, wavelength_nm=rig.laser.wavelength_nm, device=device).frame(pts, 50_000.0,
+                                                                                                     seed=1)
               for c in rig.camera]
     proj = LightFieldProjector(rig.camera, grid, device=device)
     nz, ny, nx = grid.shape
@@ -133,7 +134,7 @@ def correlate_child(mode: str, n_slabs: int, out: str, device: str, batch_mib: i
     t0 = time.perf_counter()
     if mode == "memory":
         a, b = data[0], data[1]
-        corr = Correlator(shape, cfg, device=device)
+        corr = Correlator(shape, config=cfg, device=device)
         field = corr(a, b)
         accounted, slabs, deepest = correlator_bytes(corr) + a.nbytes + b.nbytes, 1, shape[0]
     else:

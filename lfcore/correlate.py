@@ -70,6 +70,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.fft
 
+from lfcore._deprecation import keyword_options
 from lfcore.device import RowOffset, Rows, launch_rows, resolve_device, warp
 from lfcore.vectors import MedianTest, median_filter, normalized_median_test, replace_outliers, smooth
 
@@ -471,8 +472,9 @@ class Correlator:
         If a window is larger than the volume, or the FFT backend does not fit the device.
     """
 
-    def __init__(self, shape: tuple[int, int, int], config: CorrelationConfig = CorrelationConfig(),
-                 device: str | None = None, *, layout: str = "auto",
+    @keyword_options("config", "device", since="0.1.0")
+    def __init__(self, shape: tuple[int, int, int], *, config: CorrelationConfig = CorrelationConfig(),
+                 device: str | None = None, layout: str = "auto",
                  grids: Sequence[WindowGrid] | None = None) -> None:
         from lfcore._kernels import correlate as kc
 
@@ -767,7 +769,7 @@ class Correlator:
                 raise CorrelationError("volumes must be finite")
         return dst
 
-    def __call__(self, volume_a: np.ndarray, volume_b: np.ndarray,
+    def __call__(self, volume_a: np.ndarray, volume_b: np.ndarray, *,
                  progress: Callable[[int], None] | None = None) -> VectorField:
         """Correlate one pair.
 
@@ -813,7 +815,8 @@ class Correlator:
             valid = self._valid.numpy()[:n] != 0
             disp[~valid] = np.nan
             disp = disp.reshape((*g.shape, 3))
-            outlier = normalized_median_test(disp, cfg.median_test, device=self.device)
+            outlier = normalized_median_test(disp, test=cfg.median_test, device=self.device)
+
             disp, replaced = replace_outliers(disp, outlier, device=self.device)
             pred_field = np.where(np.isnan(disp), 0.0, disp)  # nothing left to predict from: rest
             if cfg.smooth_predictor > 0 and i + 1 < len(cfg.passes) and cfg.passes[i + 1][1] == "deform":
@@ -834,7 +837,8 @@ class Correlator:
                            outlier=outlier, replaced=replaced, grid=g)
 
 
-def correlate(volume_a: np.ndarray, volume_b: np.ndarray, config: CorrelationConfig = CorrelationConfig(), *,
+@keyword_options("config", since="0.1.0")
+def correlate(volume_a: np.ndarray, volume_b: np.ndarray, *, config: CorrelationConfig = CorrelationConfig(),
               device: str | None = None) -> VectorField:
     """Multi-grid cross-correlation of one volume pair (see :class:`Correlator`).
 
@@ -852,4 +856,5 @@ def correlate(volume_a: np.ndarray, volume_b: np.ndarray, config: CorrelationCon
     VectorField
         Displacements (x, y, z) of B relative to A in voxels on the final window grid.
     """
-    return Correlator(np.shape(volume_a), config, device)(volume_a, volume_b)
+    return Correlator(np.shape(volume_a), config=config, device=device)(volume_a, volume_b)
+

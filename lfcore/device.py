@@ -126,10 +126,21 @@ def available_devices() -> list[str]:
     return [d.alias for d in warp().get_devices()]
 
 
-def resolve_device(device: str | None = None) -> str:
+def resolve_device(device: str | None) -> str:
     """Validate a device name and return Warp's alias for it.
 
+    Parameters
+    ----------
+    device
+        ``"cpu"``, ``"cuda"``, ``"cuda:N"``, or None or ``"auto"`` for the first GPU, else the CPU.
+
+    Returns
+    -------
+    str
+        Warp's alias (``"cpu"`` or ``"cuda:N"``).
+
     Raises
+
     ------
     ComputeDeviceError
         If the device does not exist, with the list of devices that do.

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from lfcore._deprecation import keyword_options
 from lfcore.device import RowOffset, launch_rows, resolve_device, warp
 from lfcore.rig import Camera
 
@@ -46,7 +47,7 @@ class ImagePreprocessor:
     image border count as dark), exactly as :func:`lfcore.reconstruct.preprocess`.
     """
 
-    def __init__(self, cameras: Sequence[Camera], device: str | None = None) -> None:
+    def __init__(self, cameras: Sequence[Camera], *, device: str | None = None) -> None:
         from lfcore._kernels import images as ki
 
         self._k = ki
@@ -58,7 +59,7 @@ class ImagePreprocessor:
         self.n_pixels = int(self.offsets[-1])
         self._grown = self.wp.empty(self.n_pixels, dtype=self.wp.uint8, device=self.device)
 
-    def __call__(self, raw, levels: Sequence[float], thresholds: Sequence[float], signal, lit, grow: int = 0,
+    def __call__(self, raw, levels: Sequence[float], thresholds: Sequence[float], signal, lit, *, grow: int = 0,
                  stream=None) -> None:
         """Preprocess one frame of every camera.
 
@@ -98,7 +99,8 @@ class VolumeOps:
         Warp device; None for the first GPU, else the CPU.
     """
 
-    def __init__(self, shape: tuple[int, int, int], device: str | None = None) -> None:
+    @keyword_options("device", since="0.1.0")
+    def __init__(self, shape: tuple[int, int, int], *, device: str | None = None) -> None:
         from lfcore._kernels import volumes as kv
 
         self._k = kv

@@ -36,6 +36,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.special import ellipe, ellipk
 
+from lfcore._deprecation import keyword_options
 from lfcore.rig import VolumeConfig
 
 __all__ = [
@@ -61,7 +62,8 @@ class Flow:
 
     name: ClassVar[str] = ""
 
-    def velocity(self, points_mm: np.ndarray, t_s: float = 0.0) -> np.ndarray:
+    @keyword_options("t_s", since="0.1.0")
+    def velocity(self, points_mm: np.ndarray, *, t_s: float = 0.0) -> np.ndarray:
         """Velocity at world points.
 
         Parameters
@@ -96,7 +98,8 @@ class Uniform(Flow):
     velocity_m_s: tuple[float, float, float]
     name: ClassVar[str] = "uniform"
 
-    def velocity(self, points_mm: np.ndarray, t_s: float = 0.0) -> np.ndarray:
+    @keyword_options("t_s", since="0.1.0")
+    def velocity(self, points_mm: np.ndarray, *, t_s: float = 0.0) -> np.ndarray:
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         return np.broadcast_to(np.asarray(self.velocity_m_s), pts.shape).copy()
 
@@ -129,7 +132,8 @@ class Oscillatory(Flow):
         return np.array({"1": (k1, 0.0, 0.0), "2": (kd, kd, 0.0),
                          "3": (kd, 0.0, kd), "4": (0.0, 0.0, k1)}[self.case[1]])
 
-    def velocity(self, points_mm: np.ndarray, t_s: float = 0.0) -> np.ndarray:
+    @keyword_options("t_s", since="0.1.0")
+    def velocity(self, points_mm: np.ndarray, *, t_s: float = 0.0) -> np.ndarray:
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         out = np.zeros_like(pts)
         phase = (pts - np.asarray(self.centre_mm)) @ self.wave_vector
@@ -218,7 +222,8 @@ class VortexRing(Flow):
             age = max(0.0, t_s - self.period_s * math.floor(t_s / self.period_s + 1e-9))
         return np.asarray(self.centre_mm) + 1e3 * self.translation_m_s * age * _unit(self.axis)
 
-    def velocity(self, points_mm: np.ndarray, t_s: float = 0.0) -> np.ndarray:
+    @keyword_options("t_s", since="0.1.0")
+    def velocity(self, points_mm: np.ndarray, *, t_s: float = 0.0) -> np.ndarray:
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         v = _ring_velocity(pts, self.centre_at(t_s), _unit(self.axis), self.radius_mm,
                            self.core_mm, self.circulation_mm2_s)
@@ -247,7 +252,8 @@ class RoundJet(Flow):
     n_rings: int = 8
     name: ClassVar[str] = "jet"
 
-    def velocity(self, points_mm: np.ndarray, t_s: float = 0.0) -> np.ndarray:
+    @keyword_options("t_s", since="0.1.0")
+    def velocity(self, points_mm: np.ndarray, *, t_s: float = 0.0) -> np.ndarray:
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         axis = _unit(self.axis)
         centre = np.asarray(self.centre_mm)
@@ -363,7 +369,7 @@ def peak_speed(flow: Flow, volume: VolumeConfig, *, t_s: float = 0.0, n: int = 2
     """Largest speed (m/s) of ``flow`` on an n^3 grid spanning ``volume`` at time ``t_s``."""
     axes = [c + s * np.linspace(-0.5, 0.5, n) for c, s in zip(volume.centre_mm, volume.size_mm, strict=True)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    return float(np.linalg.norm(flow.velocity(grid, t_s), axis=1).max())
+    return float(np.linalg.norm(flow.velocity(grid, t_s=t_s), axis=1).max())
 
 
 def advect(flow: Flow, points_mm: np.ndarray, t0_s: float, dt_s: float, *, rtol: float = 1e-9) -> np.ndarray:
@@ -394,7 +400,7 @@ def advect(flow: Flow, points_mm: np.ndarray, t0_s: float, dt_s: float, *, rtol:
         return pts.copy()
 
     def rhs(t: float, y: np.ndarray) -> np.ndarray:
-        return 1e3 * flow.velocity(y.reshape(-1, 3), t).ravel()
+        return 1e3 * flow.velocity(y.reshape(-1, 3), t_s=t).ravel()
 
     atol = rtol * max(1.0, float(np.abs(pts).max()))
     sol = solve_ivp(rhs, (t0_s, t0_s + dt_s), pts.ravel(), method="DOP853", rtol=rtol, atol=atol)

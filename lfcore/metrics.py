@@ -23,6 +23,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from lfcore._deprecation import keyword_options
 from lfcore.flows import Flow
 from lfcore.vectors import divergence
 from lfcore.volume import VolumeGrid
@@ -48,7 +49,8 @@ __all__ = [
 TRUTH_SIGMA_VOXELS = 0.75
 
 
-def truth_volume(grid: VolumeGrid, particles_mm: np.ndarray, brightness: np.ndarray | None = None, *,
+@keyword_options("brightness", since="0.1.0")
+def truth_volume(grid: VolumeGrid, particles_mm: np.ndarray, *, brightness: np.ndarray | None = None,
                  sigma_voxels: float = TRUTH_SIGMA_VOXELS) -> np.ndarray:
     """E0: the true particles as Gaussian blobs on the grid.
 
@@ -321,7 +323,7 @@ def evaluate_volume(volume: np.ndarray, grid: VolumeGrid, particles_mm: np.ndarr
     match_voxels
         A detection matches a true particle within this many voxels per axis.
     """
-    e0 = truth_volume(grid, particles_mm, brightness)
+    e0 = truth_volume(grid, particles_mm, brightness=brightness)
     pos, _, idx = detect_particles(volume, grid, threshold=threshold)
     match = match_particles(pos, particles_mm, match_voxels * np.asarray(grid.voxel_mm))
     diam = particle_diameters(volume, idx)
@@ -350,7 +352,7 @@ def grid_velocity(flow: Flow, x_mm: np.ndarray, y_mm: np.ndarray, z_mm: np.ndarr
     """
     zz, yy, xx = np.meshgrid(z_mm, y_mm, x_mm, indexing="ij")
     pts = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)
-    return flow.velocity(pts, t_s).reshape(*zz.shape, 3)
+    return flow.velocity(pts, t_s=t_s).reshape(*zz.shape, 3)
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lfcore._deprecation import keyword_options
 from lfcore.mla import lenslet_count
 from lfcore.rig import LaserConfig, Rig, VolumeConfig
 
@@ -26,7 +27,9 @@ DEFAULT_PPM = 0.5
 DEFAULT_PPP = 0.05
 
 
-def seeding_density(rig: Rig, ppm: float | None = None, ppp: float | None = None) -> tuple[float | None, float | None]:
+@keyword_options("ppm", "ppp", since="0.1.0")
+def seeding_density(rig: Rig, *, ppm: float | None = None,
+                    ppp: float | None = None) -> tuple[float | None, float | None]:
     """The seeding density of ``rig`` as (ppm, ppp), one of them None.
 
     ``ppm`` (particles per microlens) counts the lenslets of the first light-field camera,
@@ -64,11 +67,12 @@ def _check_density(value: float, name: str, most: float, unit: str, cameras: tup
         raise ValueError(none_of_them)
 
 
-def particle_count(rig: Rig, ppm: float | None = None, *, ppp: float | None = None) -> int:
+@keyword_options("ppm", since="0.1.0")
+def particle_count(rig: Rig, *, ppm: float | None = None, ppp: float | None = None) -> int:
     """Particles for a seeding density: ``ppm`` particles per microlens of the first light-field
     camera, or ``ppp`` particles per pixel of the first pinhole camera (see
     :func:`seeding_density`, which also says which applies when neither is given)."""
-    ppm, ppp = seeding_density(rig, ppm, ppp)
+    ppm, ppp = seeding_density(rig, ppm=ppm, ppp=ppp)
     if ppm is not None:
         return max(1, round(ppm * lenslet_count(rig.lightfield_cameras[0])))
     cols, rows = rig.pinhole_cameras[0].sensor_px

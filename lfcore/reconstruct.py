@@ -473,7 +473,7 @@ class FrameReconstructor:
         self.budget_bytes = budget_bytes
         self.wp = projector.wp
         self.device = projector.device
-        self.ops = VolumeOps(projector.grid.shape, self.device)
+        self.ops = VolumeOps(projector.grid.shape, device=self.device)
         if source is None:
             from lfcore.plan import operator_source  # the planner chooses (it imports this module)
 

@@ -26,6 +26,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from lfcore._deprecation import keyword_options
 from lfcore.chief_ray import diffraction_sigma_mm
 from lfcore.device import PrivateCopies, RowOffset, Rows, launch_rows, resolve_device, warp
 from lfcore.rig import AnyCamera, Camera, PinholeCamera, RenderConfig, is_pinhole, require_lightfield
@@ -73,7 +74,8 @@ class _Renderer:
         """(rows, columns) of the images."""
         return (self.camera.sensor_px[1], self.camera.sensor_px[0])
 
-    def irradiance(self, points_mm: np.ndarray, counts: float | np.ndarray, seed: int = 0,
+    @keyword_options("seed", "progress", since="0.1.0")
+    def irradiance(self, points_mm: np.ndarray, counts: float | np.ndarray, *, seed: int = 0,
                    progress: Callable[[int], None] | None = None) -> np.ndarray:
         """Noise-free signal of particles on the sensor.
 
@@ -98,7 +100,8 @@ class _Renderer:
                        inputs=[self._quanta, 1.0 / self._k.QUANTA_PER_COUNT, self._counts])
         return self._counts.numpy().copy()  # on the CPU, .numpy() is a view of the reused buffer
 
-    def frame(self, points_mm: np.ndarray, counts: float | np.ndarray, seed: int = 0,
+    @keyword_options("seed", "progress", since="0.1.0")
+    def frame(self, points_mm: np.ndarray, counts: float | np.ndarray, *, seed: int = 0,
               progress: Callable[[int], None] | None = None) -> np.ndarray:
         """A raw 16-bit image, as the camera would deliver it.
 
@@ -146,7 +149,8 @@ class LightFieldRenderer(_Renderer):
         Warp device (``"cpu"``, ``"cuda"``, ``"cuda:N"``) or None for the first GPU, else CPU.
     """
 
-    def __init__(self, camera: Camera, render: RenderConfig, wavelength_nm: float = 532.0,
+    @keyword_options("wavelength_nm", "device", since="0.1.0")
+    def __init__(self, camera: Camera, render: RenderConfig, *, wavelength_nm: float = 532.0,
                  device: str | None = None) -> None:
         from lfcore._kernels.optics import camera_params
 
@@ -211,7 +215,8 @@ class PinholeRenderer(_Renderer):
         Warp device (``"cpu"``, ``"cuda"``, ``"cuda:N"``) or None for the first GPU, else CPU.
     """
 
-    def __init__(self, camera: PinholeCamera, render: RenderConfig, wavelength_nm: float = 532.0,
+    @keyword_options("wavelength_nm", "device", since="0.1.0")
+    def __init__(self, camera: PinholeCamera, render: RenderConfig, *, wavelength_nm: float = 532.0,
                  device: str | None = None) -> None:
         from lfcore._kernels import pinhole as kp
 
@@ -263,4 +268,5 @@ def renderer_for(camera: AnyCamera, render: RenderConfig, *, wavelength_nm: floa
     """The renderer of ``camera``'s kind: :class:`LightFieldRenderer` or :class:`PinholeRenderer`
     (same parameters as either)."""
     cls = PinholeRenderer if is_pinhole(camera) else LightFieldRenderer
-    return cls(camera, render, wavelength_nm, device)
+    return cls(camera, render, wavelength_nm=wavelength_nm, device=device)
+

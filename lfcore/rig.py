@@ -835,7 +835,8 @@ class Rig(_Strict):
         raise KeyError(name)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any], source: str = "rig") -> Rig:
+    def from_dict(cls, data: dict[str, Any], *, source: str = "rig") -> Rig:
+
         """Validate a parsed rig file.
 
         Values are checked strictly, as the file's own types: a quoted number

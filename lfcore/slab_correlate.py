@@ -85,7 +85,7 @@ BYTES_PER_SLAB_VOXEL = 32
 _INF = 1 << 40
 
 
-def prefilter_planes(tolerance: float = PREFILTER_TOLERANCE) -> int:
+def prefilter_planes(*, tolerance: float = PREFILTER_TOLERANCE) -> int:
     """Planes between a cut edge and the first B-spline coefficient within ``tolerance`` (relative
     to the largest intensity) of the whole volume's (see the module docstring)."""
     if not 0 < tolerance < 1:
@@ -138,7 +138,7 @@ class _Plan:
         self.modes = [m for _, m in config.passes]
         self.rz = 0 if config.search_radius is None else int(config.search_radius[2])
         self.cubic = config.interpolation == "cubic"
-        self.prefilter = prefilter_planes(tolerance) if self.cubic else 0
+        self.prefilter = prefilter_planes(tolerance=tolerance) if self.cubic else 0
         n = len(self.modes)
         self.smooth_rows = [math.ceil(2.0 * config.smooth_predictor)
                             if config.smooth_predictor > 0 and i + 1 < n and self.modes[i + 1] == "deform" else 0
@@ -398,7 +398,7 @@ class SlabCorrelator:
         self.grid = self._plan.grids[-1]
         # settings the device cannot run are refused here, on the shallowest slab
         first = min(self.slabs, key=lambda s: s.depth)
-        probe = Correlator((first.depth, *self.shape[1:]), config, device, grids=first.grids)
+        probe = Correlator((first.depth, *self.shape[1:]), config=config, device=device, grids=first.grids)
         self.device, self.fft = probe.device, probe.fft
         del probe
         self.peak_bytes = 0  # the most bytes accounted at once in the last pair
@@ -409,7 +409,7 @@ class SlabCorrelator:
         return [self._plan.slab(z0, z1, k0, k1, self._assumed)
                 for z0, z1, k0, k1 in _final_rows(self._plan, self._edges)]
 
-    def __call__(self, read: Callable[[int, int], tuple[np.ndarray, np.ndarray]],
+    def __call__(self, read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], *,
                  progress: Callable[[int], None] | None = None) -> VectorField:
         """Correlate one pair slab by slab.
 
@@ -438,7 +438,8 @@ class SlabCorrelator:
             while True:
                 s = self.slabs[j]
                 vol_a, vol_b = read(s.lo, s.hi)
-                corr = Correlator((s.depth, *self.shape[1:]), self.config, self.device, grids=s.grids)
+                corr = Correlator((s.depth, *self.shape[1:]), config=self.config, device=self.device, grids=s.grids)
+
                 self.fft = corr.fft
                 self.peak_bytes = max(self.peak_bytes, correlator_bytes(corr) + vol_a.nbytes + vol_b.nbytes)
                 f = corr(vol_a, vol_b, progress=progress)

@@ -308,7 +308,7 @@ class SlabReconstructor:
         for slab in self.slabs:
             lo, hi = max(0, slab.z0 - self.halo), min(nz, slab.z1 + self.halo)
             self._peak(held + BYTES_PER_SLAB_VOXEL * (hi - lo) * plane)
-            ops = VolumeOps((hi - lo, ny, nx), dev)
+            ops = VolumeOps((hi - lo, ny, nx), device=dev)
             buf = wp.zeros((hi - lo, ny, nx), dtype=float, device=dev)
             flat = buf.reshape((hi - lo) * plane)
             for other, w, e in zip(self.slabs, weights, es, strict=True):

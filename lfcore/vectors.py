@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from lfcore._deprecation import keyword_options
+
 __all__ = [
     "FLAG_OUTLIER",
     "FLAG_REPLACED",
@@ -87,7 +89,8 @@ def _device_field(field: np.ndarray, device: str | None):
     return wp, d, wp.array(np.ascontiguousarray(field, dtype=np.float32), dtype=wp.vec3, device=d)
 
 
-def normalized_median_test(field: np.ndarray, test: MedianTest = MedianTest(), *,
+@keyword_options("test", since="0.1.0")
+def normalized_median_test(field: np.ndarray, *, test: MedianTest = MedianTest(),
                            device: str | None = "cpu") -> np.ndarray:
     """Outliers of a displacement field by the normalized median test over 26 neighbours.
 

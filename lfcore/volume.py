@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lfcore._deprecation import keyword_options
 from lfcore.rig import Rig
 
 __all__ = ["VolumeGrid"]
@@ -35,7 +36,8 @@ class VolumeGrid:
     origin_mm: tuple[float, float, float]
 
     @classmethod
-    def from_rig(cls, rig: Rig, pvr: tuple[float, float, float] | None = None,
+    @keyword_options("pvr", "margin_mm", since="0.1.0")
+    def from_rig(cls, rig: Rig, *, pvr: tuple[float, float, float] | None = None,
                  margin_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> VolumeGrid:
         """The grid of ``rig.volume``, with the rig's PVR unless ``pvr`` (x, y, z) is given.
 

@@ -72,8 +72,8 @@ class ParticleWorld:
         self._field = flow_for_displacement(self.flow, self.rig.volume, self.rig.camera[0].object_pixel_mm,
                                             self.dt_s, displacement_px=self.displacement_px, omega=self.omega,
                                             period_s=1.0 / self.rig.laser.rate_hz)  # phase-locked ring
-        self.ppm, self.ppp = seeding_density(self.rig, self.ppm, self.ppp)
-        self.n_particles = particle_count(self.rig, self.ppm, ppp=self.ppp)
+        self.ppm, self.ppp = seeding_density(self.rig, ppm=self.ppm, ppp=self.ppp)
+        self.n_particles = particle_count(self.rig, ppm=self.ppm, ppp=self.ppp)
 
     @property
     def flow_params(self) -> dict:

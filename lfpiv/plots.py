@@ -89,7 +89,8 @@ def plot_reconstruction(store: RunStore, evals, out: str | Path) -> Path:
     grid = store.volume_grid()
     vol = store.read_volume(e.pair, e.frame)
     truth = store.truth()
-    e0 = metrics.truth_volume(grid, truth["particles"][e.pair, e.frame], truth["brightness"][e.pair, e.frame])
+    e0 = metrics.truth_volume(grid, truth["particles"][e.pair, e.frame],
+                              brightness=truth["brightness"][e.pair, e.frame])
     z = grid.axis_mm("z")
     x = grid.axis_mm("x")
     rig = store.rig

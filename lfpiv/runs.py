@@ -24,4 +24,4 @@ def open_run(path: str | Path, *, mode: str = "r") -> RunStore:
 def check_new(path: str | Path, overwrite: bool = False) -> None:
     """Refuse, before any work, an output path that is taken (unless ``overwrite`` and it is an
     lfpiv run store); see :meth:`lfcore.runstore.RunStore.check_new`."""
-    RunStore.check_new(path, overwrite)
+    RunStore.check_new(path, overwrite=overwrite)

@@ -431,7 +431,7 @@ class LivePipeline:
         self.rig = rig
         self.cameras = list(cameras) if cameras else [c.name for c in rig.camera]
         cams = [rig.camera_named(n) for n in self.cameras]  # an unknown camera fails here
-        self.grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(float(v) for v in pvr))
+        self.grid = VolumeGrid.from_rig(rig, pvr=None if pvr is None else tuple(float(v) for v in pvr))
         self._settings = settings or LiveSettings()
         base = recon or monitoring_recon(method=default_method(cams))
         _check_live_method(base.method)
@@ -512,7 +512,7 @@ class LivePipeline:
         on the pipeline's thread if not done before)."""
         if self._recon is None:
             rc = _Reconstructor(self.rig, self.cameras, self.grid, self.recon, self.device_request)
-            self._correlator = Correlator(self.grid.shape, self.correlation, device=rc.device)
+            self._correlator = Correlator(self.grid.shape, config=self.correlation, device=rc.device)
             wp, n = rc.wp, rc.projector.n_pixels
             gpu = rc.device != "cpu"
             # Four host slots: one being filled, one ready, one prefetched, one being preprocessed.

@@ -13,6 +13,7 @@ from typing import Any
 
 import zarr
 
+from lfcore._deprecation import keyword_options
 from lfcore.rig import Rig
 from lfcore.runstore import _lock
 from lfcore.runstore._common import FORMAT, FORMAT_VERSION, RunStoreError, StoreGroup
@@ -49,7 +50,7 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
     HINT = "give the path of a run store (a .zarr directory)"
     Error = RunStoreError
 
-    def __init__(self, group: zarr.Group, path: Path, lease: WriterLease | None = None) -> None:
+    def __init__(self, group: zarr.Group, path: Path, *, lease: WriterLease | None = None) -> None:
         super().__init__(group if isinstance(group, StoreGroup) else StoreGroup(group._async_group), path)
         self._target = {"volumes": "volumes", "vectors": "vectors"}
         self._lease = lease
@@ -73,7 +74,7 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
         path = Path(path)
         if n_pairs < 1:
             raise RunStoreError(f"a run needs at least one pair, got {n_pairs}")
-        cls.check_new(path, overwrite)
+        cls.check_new(path, overwrite=overwrite)
         if path.exists():  # a run store to replace (check_new made sure): not while another process writes it
             lease = acquire(path)
             for child in path.iterdir():
@@ -107,10 +108,11 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
         except BaseException:
             lease.release()
             raise
-        return cls(root, path, lease)
+        return cls(root, path, lease=lease)
 
     @classmethod
-    def check_new(cls, path: str | Path, overwrite: bool = False) -> None:
+    @keyword_options("overwrite", since="0.1.0")
+    def check_new(cls, path: str | Path, *, overwrite: bool = False) -> None:
         """Raise :class:`RunStoreError` unless a new run may be created at ``path``.
 
         ``overwrite`` replaces only an lfpiv run store, never another file or folder. Call it
@@ -141,7 +143,8 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
                                 "it, then try again (reading it needs no lock: open it read-only)")
 
     @classmethod
-    def open(cls, path: str | Path, mode: str = "r", *, shared_with: str | None = None) -> RunStore:
+    @keyword_options("mode", since="0.1.0")
+    def open(cls, path: str | Path, *, mode: str = "r", shared_with: str | None = None) -> RunStore:
         """Open an existing run (``mode`` ``"r"`` or ``"r+"``).
 
         ``"r+"`` takes the run's writer lock (or shares it, see :mod:`lfcore.runstore._lock`)
@@ -176,7 +179,7 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
                 raise RunStoreError(f"{path} is incomplete: {missing} is missing (a store still being created, or a "
                                     "damaged one), so it cannot be read as a run; if it is not being created, copy "
                                     "what you need from it with zarr, or record it again")
-            store = cls(root, path, lease)
+            store = cls(root, path, lease=lease)
         except BaseException:
             if lease is not None:
                 lease.release()
@@ -217,7 +220,7 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
     @property
     def writer_token(self) -> str | None:
         """The token of the writer lock this handle writes under, for the processes it lets
-        write too (``RunStore.open(path, "r+", shared_with=token)``); None for a reader."""
+        write too (``RunStore.open(path, mode="r+", shared_with=token)``); None for a reader."""
         return self._lease.token if self._lease is not None else None
 
     @property

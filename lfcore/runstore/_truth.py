@@ -16,8 +16,9 @@ TRUTH_ARRAYS = {"particles": np.float64, "brightness": np.float32, "t0_s": np.fl
 class Truth(Part):
     """What a synthetic run was rendered from, so that every error can be measured against it."""
 
-    def write_truth(self, particles_mm: np.ndarray, brightness: np.ndarray, flow: dict[str, Any],
+    def write_truth(self, particles_mm: np.ndarray, brightness: np.ndarray, flow: dict[str, Any], *,
                     t0_s: np.ndarray | None = None, **attrs: Any) -> None:
+
         """Store the ground truth of a synthetic run.
 
         Parameters

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import re
-import warnings
+from typing import Any
 
 from lfpiv.commands import (
     add_device,
@@ -147,10 +147,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def evaluate_vectors(store, pairs: slice | None = None) -> list[tuple[str, str]]:
-    """Deprecated: :func:`lfpiv.jobs.evaluate.evaluate_vectors` (also ``lfpiv.evaluate``)."""
-    from lfpiv.jobs.evaluate import evaluate_vectors as moved
+def __getattr__(name: str) -> Any:
+    # Old names of this module, kept working (with a warning) and imported only when asked for,
+    # so that the command line does not load the jobs to start.
+    if name == "evaluate_vectors":  # moved to lfpiv.jobs.evaluate (also lfpiv.evaluate)
+        from lfpiv._deprecation import deprecated_alias
+        from lfpiv.jobs.evaluate import evaluate_vectors
 
-    warnings.warn("lfpiv.commands.correlate.evaluate_vectors moved to lfpiv.jobs.evaluate.evaluate_vectors",
-                  DeprecationWarning, stacklevel=2)
-    return moved(store, pairs)
+        alias = globals()[name] = deprecated_alias(evaluate_vectors, f"{__name__}.{name}", since="0.1.0")
+        return alias
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+

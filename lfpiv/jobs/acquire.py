@@ -128,7 +128,7 @@ def record(rig: Rig, out: str | Path, pairs: int, *, overwrite: bool = False,
         Ctrl-C; the laser was disarmed and the run marked aborted.
     """
     plan = check_plan(rig, pairs, pairing=pairing)
-    RunStore.check_new(out, overwrite)
+    RunStore.check_new(out, overwrite=overwrite)
     period = plan.period_s
 
     with open_rig(rig, sim_options=sim_options, software_pairing=pairing == "timestamps") as rg:
@@ -312,5 +312,5 @@ def _write_sim_truth(store: RunStore, lab: Any, pairs: int) -> None:
     world = lab.world
     t0 = lab.truth_times_s(store.n_pairs)  # the lab shows its pool of pairs over and over
     density = {"ppm": world.ppm} if world.ppp is None else {"ppm": None, "ppp": world.ppp}
-    store.write_truth(full, bright, world.flow_params, t0, **density, seed=world.seed, source="simulated lab",
+    store.write_truth(full, bright, world.flow_params, t0_s=t0, **density, seed=world.seed, source="simulated lab",
                       pairs_with_truth=pairs)

@@ -118,7 +118,7 @@ def _correlator(shape: tuple[int, int, int], cfg: CorrelationConfig, device: str
         n = _slab_count(slabs, shape, cfg, resolve_device(device))
         if n > 1:
             return SlabCorrelator(shape, cfg, n, device=device)
-        return Correlator(shape, cfg, device=device)
+        return Correlator(shape, config=cfg, device=device)
     except CorrelationError as exc:
         raise UsageError(str(exc)) from None
 

@@ -225,7 +225,7 @@ def _open_or_create(rig: Rig, out: Path, n_pairs: int, timing: dict[str, Any], p
             raise UsageError(f"{out} was imported from other files or with another layout; give the same --frames "
                              "and --layout to go on, or --overwrite to import again")
         return store, store.committed_pairs
-    RunStore.check_new(out, overwrite)
+    RunStore.check_new(out, overwrite=overwrite)
     store = RunStore.create(out, rig, n_pairs, timing=timing, software_version=__version__, overwrite=overwrite)
     store.group.attrs.update({"hardware": "import", "import": {"plan": plan, "sources": []}})
     return store, 0

@@ -366,7 +366,7 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
             say(f"simulated lab: rendering {sim_options['pool_pairs']} pair(s) of '{sim_options['world'].flow}' "
                 "per camera ...")
             sim_options = {"lab": stack.enter_context(SimLab(rig, **sim_options))}
-        grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(pvr))
+        grid = VolumeGrid.from_rig(rig, pvr=None if pvr is None else tuple(pvr))
         try:
             corr = CorrelationConfig(windows=default_windows(grid.shape, passes), overlap=0.5, deform_iterations=0)
         except CorrelationError as exc:

@@ -293,7 +293,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         raise UsageError(f"--projector matrix-free: camera '{pinhole[0]}' is a pinhole camera, and the templates are "
                          "for light-field cameras alone; use --projector auto or stored")
     try:
-        grid = VolumeGrid.from_rig(rig, None if pvr is None else tuple(pvr), tuple(margin_mm))
+        grid = VolumeGrid.from_rig(rig, pvr=None if pvr is None else tuple(pvr), margin_mm=tuple(margin_mm))
     except ValueError as exc:
         raise UsageError(f"--pvr/--margin-mm: {exc}") from None
     # the cluster's workers hold the device; this process may have none (a login node)

@@ -195,7 +195,7 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
     """
     if pairs < 1:
         raise UsageError(f"--pairs must be at least 1, got {pairs}")
-    RunStore.check_new(out, overwrite)
+    RunStore.check_new(out, overwrite=overwrite)
     dt_s = rig.timing.dt_us * 1e-6 if dt_s is None else dt_s
     if not (np.isfinite(dt_s) and dt_s > 0):
         raise UsageError(f"--dt-ms must be positive, got {dt_s * 1e3:g}")
@@ -215,7 +215,7 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         if displacement_px is not None and not (np.isfinite(displacement_px) and displacement_px > 0):
             raise UsageError(f"--displacement-px must be positive, got {displacement_px}")
         try:
-            ppm, ppp = seeding_density(rig, ppm, ppp)
+            ppm, ppp = seeding_density(rig, ppm=ppm, ppp=ppp)
         except ValueError as exc:
             raise UsageError(f"--{'ppp' if ppp is not None else 'ppm'}: {exc}") from None
         try:

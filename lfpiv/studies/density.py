@@ -61,7 +61,7 @@ class DensityStudy(Study):
         grid = VolumeGrid.from_rig(rig)
         scene = Scene(rig, flow="uniform", ppm=params["ppm"], seed=SEED, device=device)
         pair = scene.pair(0)
-        e0 = metrics.truth_volume(grid, pair.particles[0], pair.brightness[0])
+        e0 = metrics.truth_volume(grid, pair.particles[0], brightness=pair.brightness[0])
         rec = Reconstructor(rig.camera, grid, device=device)  # no cache: every time includes its weights
         (nd, nm), (ed, em) = params["protocol"], params["equal_time"]
         runs = {}

@@ -65,7 +65,7 @@ class DiametersStudy(Study):
             pair = scene.pair(k)
             for f in (0, 1):
                 if rec is None:
-                    vol = metrics.truth_volume(grid, pair.particles[f], pair.brightness[f])
+                    vol = metrics.truth_volume(grid, pair.particles[f], brightness=pair.brightness[f])
                 else:
                     res, s = rec(pair.frame(f), settings)
                     vol, seconds = res.volume, seconds + s

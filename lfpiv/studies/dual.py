@@ -76,12 +76,12 @@ class DualStudy(Study):
                 rec = Reconstructor(rig.camera, grid, device=device)
                 res, _ = rec(pair.frame(0), ReconSettings(iterations=params["iterations"]))
                 out[f"{ppm:g}"] = metrics.q_recon(res.volume, metrics.truth_volume(grid, pair.particles[0],
-                                                                                   pair.brightness[0]))
+                                                                                   brightness=pair.brightness[0]))
             return {"q": out}
         scene = Scene(rig, flow="uniform", ppm=params["ppm"], seed=SEED, device=device)
         pair = scene.pair(0)
         cams = rig.camera[: params["cameras"]]
-        e0 = metrics.truth_volume(grid, pair.particles[0], pair.brightness[0])
+        e0 = metrics.truth_volume(grid, pair.particles[0], brightness=pair.brightness[0])
         rec = Reconstructor(cams, grid, device=device, cache=True)
         qs = []
         for its in params["iterations"]:
@@ -236,7 +236,7 @@ def resolution_map(rig: Rig, points: int, rays: int, device: str | None = None) 
     """
     render = rig.render.model_copy(update={"rays_per_particle": int(rays)})
     cams = rig.camera[:2]
-    renderers = [LightFieldRenderer(c, render, rig.laser.wavelength_nm, device) for c in cams]
+    renderers = [LightFieldRenderer(c, render, wavelength_nm=rig.laser.wavelength_nm, device=device) for c in cams]
     axes = [c.optical_axis for c in cams]
     b = np.sum(axes, axis=0)
     b = b / np.linalg.norm(b) if np.linalg.norm(b) > 1e-9 else axes[0]  # facing cameras: the first's axis

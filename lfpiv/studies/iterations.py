@@ -62,7 +62,7 @@ class IterationsStudy(Study):
         grid = VolumeGrid.from_rig(rig)
         scene = Scene(rig, flow="uniform", ppm=params["ppm"], seed=SEED, device=device)
         pair = scene.pair(0)
-        e0 = metrics.truth_volume(grid, pair.particles[0], pair.brightness[0])
+        e0 = metrics.truth_volume(grid, pair.particles[0], brightness=pair.brightness[0])
         z = grid.axis_mm("z")
         focus = rig.camera[0].focus_mm[2]
         depth_lenslets = (z - focus) / rig.camera[0].depth_per_lenslet_mm

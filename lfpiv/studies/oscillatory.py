@@ -186,7 +186,7 @@ class OscillatoryStudy(Study):
                     same.append(vs.error.reshape(-1, 3))
             z_of.append(np.broadcast_to(v.z_mm[:, None, None], v.field.shape).ravel())
             if params["bound"]:
-                tv = [metrics.truth_volume(grid, pair.particles[f], pair.brightness[f]) for f in (0, 1)]
+                tv = [metrics.truth_volume(grid, pair.particles[f], brightness=pair.brightness[f]) for f in (0, 1)]
                 vb = correlate_pair(*tv, grid, config, flow=flow, t0_s=pair.t0_s, dt_s=scene.dt_s, device=device)
                 bound.append(vb.error.reshape(-1, 3))
         pvr_now = np.asarray(rig.volume.pvr)

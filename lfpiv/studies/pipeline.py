@@ -218,7 +218,7 @@ class _Correlators:
         if key not in self._made:
             if len(self._made) > 8:  # a long study: keep the memory of a few
                 self._made.clear()
-            self._made[key] = Correlator(shape, config, device=device)
+            self._made[key] = Correlator(shape, config=config, device=device)
         return self._made[key]
 
 

@@ -178,7 +178,7 @@ def describe(rig: Rig, pvr: tuple[float, float, float] | None = None) -> str:
     from lfcore.volume import VolumeGrid
 
     cam = rig.camera[0]
-    grid = VolumeGrid.from_rig(rig, pvr)
+    grid = VolumeGrid.from_rig(rig, pvr=pvr)
     nz, ny, nx = grid.shape
     depth = 0.5 * rig.volume.size_mm[2] / cam.depth_per_lenslet_mm
     angles = ""

@@ -98,6 +98,16 @@ def test_evaluate_without_vectors(tmp_path, tiny_rig):
     assert evaluate_vectors(s) == [("vectors", f"none yet (run 'lfpiv correlate {s.path}')")]
 
 
+def test_the_old_name_of_evaluate_vectors_still_works_and_says_where_it_went(tmp_path, tiny_rig):
+    from lfpiv.commands.correlate import evaluate_vectors as old
+
+    s, _, _ = _make_run(tmp_path / "r.zarr", tiny_rig, with_volumes=False)
+    with pytest.warns(DeprecationWarning, match=r"^lfpiv\.commands\.correlate\.evaluate_vectors is now "
+                                                r"lfpiv\.jobs\.evaluate\.evaluate_vectors \(deprecated since"):
+        assert old(s) == evaluate_vectors(s)
+
+
+
 def test_export_netcdf(correlated, tmp_path, capsys):
     """netCDF-4, CF-1.8, in SI: the time dimension VTK's CF reader needs, positions in metres."""
     import netCDF4

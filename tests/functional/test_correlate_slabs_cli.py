@@ -40,7 +40,7 @@ def reconstructed(tmp_path_factory):
 def deep(tmp_path_factory, tiny_rig):
     """A run whose volumes are blobs moved by a flow that changes along z, 232 planes deep."""
     path = tmp_path_factory.mktemp("corrdeep") / "run.zarr"
-    grid = VolumeGrid.from_rig(tiny_rig, DEEP_PVR)
+    grid = VolumeGrid.from_rig(tiny_rig, pvr=DEEP_PVR)
     s = RunStore.create(path, tiny_rig, 1, timing={"dt_s": 2e-3, "rate_hz": 10.0}, software_version="test")
     s.write_truth(np.zeros((1, 2, 1, 3)), np.zeros((1, 2, 1)), Uniform(velocity_m_s=(0.0, 0.0, 0.0)).params())
     s.create_volumes(grid, method="gaussian blobs", settings={})

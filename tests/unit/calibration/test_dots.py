@@ -172,7 +172,8 @@ def test_the_views_parallax_is_what_view_geometry_predicts_for_the_rendered_came
     xs = np.linspace(-3.0, 3.0, 5)
     pts = np.array([[x, y, z] for x in xs for y, z in ((-2.0, -2.0), (1.5, 2.0))])  # 1.4 mm apart at least
     rend = LightFieldRenderer(cam, rig.render.model_copy(update={"rays_per_particle": 400_000,
-                                                                 "particle_diameter_um": 0.0}), rig.laser.wavelength_nm)
+                                                                 "particle_diameter_um": 0.0}),
+                              wavelength_nm=rig.laser.wavelength_nm)
     sums, _ = lenslet_sums(rend.irradiance(pts, 1e6, seed=2), grid)
     nodes = grid.lattice_px()
     found, model, naive = [], [], []

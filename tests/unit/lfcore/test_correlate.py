@@ -53,7 +53,7 @@ def rms(e):
 @pytest.fixture(scope="module", params=["fft", "direct"])
 def cpu_correlator(request):
     """The FFT in every pass, or the FFT in the first and direct correlation around the predictor after."""
-    return Correlator(SHAPE, FAST if request.param == "fft" else DIRECT, device="cpu")
+    return Correlator(SHAPE, config=FAST if request.param == "fft" else DIRECT, device="cpu")
 
 
 def test_window_grid_is_centred_with_the_overlap_step():
@@ -83,7 +83,7 @@ def test_uniform_subvoxel_shift_is_recovered(cpu_correlator, shift):
 def test_trilinear_deformation_is_biased_but_close():
     shift = (0.3, -0.7, 0.45)
     a, b = blob_pair(SHAPE, uniform(shift), density=0.02, seed=1)
-    f = correlate(a, b, CorrelationConfig(windows=FAST.windows, interpolation="linear"), device="cpu")
+    f = correlate(a, b, config=CorrelationConfig(windows=FAST.windows, interpolation="linear"), device="cpu")
     assert np.all(rms(f.displacement - np.asarray(shift)) < 0.08)
 
 
@@ -115,7 +115,7 @@ def test_a_single_pass_matches_a_numpy_reference():
     """Without predictor, each window's peak is that of numpy's circular correlation, fitted alike."""
     a, b = blob_pair((16, 32, 32), uniform((0.4, -1.3, 0.7)), seed=4)
     cfg = CorrelationConfig(windows=((16, 16, 8),), overlap=0.5, deform_iterations=0)
-    f = correlate(a, b, cfg, device="cpu")
+    f = correlate(a, b, config=cfg, device="cpu")
     g = f.grid
     ref, height, ratio = [], [], []
     for x0, y0, z0 in g.starts():
@@ -151,8 +151,8 @@ def test_warp_fft_matches_scipy_fft(layout):
     a, b = blob_pair((16, 32, 48), uniform((0.4, -0.6, 0.3)), seed=5)
     for pad, window in ((False, (16, 16, 8)), (True, (16, 16, 8)), (False, (24, 16, 8))):
         cfg = dict(windows=(window,), overlap=0.5, deform_iterations=1, zero_pad=pad)
-        ref = Correlator(a.shape, CorrelationConfig(fft="scipy", **cfg), device="cpu", layout="rows")(a, b)
-        got = Correlator(a.shape, CorrelationConfig(fft="warp", **cfg), device="cpu", layout=layout)(a, b)
+        ref = Correlator(a.shape, config=CorrelationConfig(fft="scipy", **cfg), device="cpu", layout="rows")(a, b)
+        got = Correlator(a.shape, config=CorrelationConfig(fft="warp", **cfg), device="cpu", layout=layout)(a, b)
         assert np.isfinite(ref.displacement).mean() > 0.9
         assert np.allclose(got.displacement, ref.displacement, atol=1e-4, equal_nan=True)
         assert np.allclose(got.peak_height, ref.peak_height, atol=1e-4)
@@ -164,9 +164,9 @@ def test_zero_padding_recovers_a_large_shift():
     # deformation passes then remove)
     a, b = blob_pair((32, 32, 32), uniform((0.3, 0.2, 5.4)), seed=6, density=0.03)
     cfg = dict(windows=((16, 16, 8),), overlap=0.5, deform_iterations=2)
-    padded = correlate(a, b, CorrelationConfig(zero_pad=True, **cfg), device="cpu")
+    padded = correlate(a, b, config=CorrelationConfig(zero_pad=True, **cfg), device="cpu")
     assert np.median(padded.displacement[..., 2]) == pytest.approx(5.4, abs=0.1)
-    circular = correlate(a, b, CorrelationConfig(**cfg), device="cpu")
+    circular = correlate(a, b, config=CorrelationConfig(**cfg), device="cpu")
     assert abs(np.median(circular.displacement[..., 2]) - 5.4) > 2
 
 
@@ -189,7 +189,7 @@ def test_spurious_vectors_are_flagged_and_replaced(cpu_correlator):
 
 def test_blank_volumes_have_no_peak():
     z = np.zeros(SHAPE, dtype=np.float32)
-    f = correlate(z, z, FAST, device="cpu")
+    f = correlate(z, z, config=FAST, device="cpu")
     assert f.outlier.all() and not f.replaced.any() and np.isnan(f.displacement).all()
 
 
@@ -201,8 +201,8 @@ def test_identical_results_on_every_device(device, layout, search):
     a, b = blob_pair(SHAPE, fn, seed=8)
     cfg = CorrelationConfig(windows=((32, 32, 16), (16, 16, 8)), overlap=0.75,  # power-of-two FFTs everywhere
                             search_radius=search)
-    ref = Correlator(SHAPE, cfg, device="cpu")(a, b)
-    got = Correlator(SHAPE, cfg, device=device, layout=layout)(a, b)
+    ref = Correlator(SHAPE, config=cfg, device="cpu")(a, b)
+    got = Correlator(SHAPE, config=cfg, device=device, layout=layout)(a, b)
     assert np.allclose(got.displacement, ref.displacement, atol=2e-3)
     assert np.array_equal(got.outlier, ref.outlier)
     assert np.allclose(got.peak_ratio, ref.peak_ratio, rtol=1e-3)
@@ -227,13 +227,13 @@ def test_identical_results_on_every_device(device, layout, search):
 )
 def test_bad_settings(kwargs, message):
     with pytest.raises(CorrelationError, match=message.replace("(", r"\(")):
-        Correlator(SHAPE, CorrelationConfig(**{"windows": ((16, 16, 8),), **kwargs}), device="cpu")
+        Correlator(SHAPE, config=CorrelationConfig(**{"windows": ((16, 16, 8),), **kwargs}), device="cpu")
 
 
 def test_non_finite_volumes_are_refused(device):
     a = np.zeros(SHAPE, np.float32)
     a[3, 4, 5] = np.nan
-    c = Correlator(SHAPE, CorrelationConfig(windows=((16, 16, 8),)), device=device)
+    c = Correlator(SHAPE, config=CorrelationConfig(windows=((16, 16, 8),)), device=device)
     with pytest.raises(CorrelationError, match="must be finite"):
         c(a, np.zeros_like(a))
 
@@ -331,7 +331,7 @@ def test_direct_lag_sums_match_numpy(device, radius):
     a, b = (rng.random(shape).astype(np.float32) for _ in range(2))
     cfg = CorrelationConfig(windows=((24, 20, 12), (8, 8, 4)), overlap=0.5, search_radius=radius,
                             deform_iterations=0)
-    c = Correlator(shape, cfg, device=device)
+    c = Correlator(shape, config=cfg, device=device)
     g = c.grids[1]
     c._def_in[0].assign(a)
     c._def_in[1].assign(b)
@@ -356,8 +356,8 @@ def test_direct_search_beats_the_fft_on_a_uniform_shift():
     shift = (0.3, -0.7, 0.45)
     a, b = blob_pair((32, 64, 64), uniform(shift), density=0.02, seed=2)
     cfg = dict(windows=((32, 32, 16), (16, 16, 8)), overlap=0.75)
-    fft = correlate(a, b, CorrelationConfig(**cfg), device="cpu")
-    direct = correlate(a, b, CorrelationConfig(search_radius=3, **cfg), device="cpu")
+    fft = correlate(a, b, config=CorrelationConfig(**cfg), device="cpu")
+    direct = correlate(a, b, config=CorrelationConfig(search_radius=3, **cfg), device="cpu")
     e_fft, e_direct = (rms(f.displacement - np.asarray(shift)) for f in (fft, direct))
     assert np.all(e_direct < 0.012), e_direct
     assert np.sqrt(np.mean(e_direct**2)) < 0.6 * np.sqrt(np.mean(e_fft**2))

@@ -106,8 +106,8 @@ def _frame_and_reconstruction(tiny_rig):
     cam = tiny_rig.camera[0]
     pts = seed_particles(tiny_rig.volume, 40, np.random.default_rng(3))
     render = tiny_rig.render.model_copy(update={"rays_per_particle": 3000})
-    frame = LightFieldRenderer(cam, render, tiny_rig.laser.wavelength_nm, device="cpu").frame(
-        pts, render.particle_counts, 5)
+    frame = LightFieldRenderer(cam, render, wavelength_nm=tiny_rig.laser.wavelength_nm, device="cpu").frame(
+        pts, render.particle_counts, seed=5)
     proj = LightFieldProjector([cam], VolumeGrid.from_rig(tiny_rig), device="cpu")
     drt = reconstruct(proj, [frame], ReconSettings(iterations=8))
     mart = reconstruct(proj, [frame], ReconSettings(method="mart", iterations=3))
@@ -135,9 +135,9 @@ def test_correlation_does_not_depend_on_the_cpu_threads(monkeypatch):
     a, b = blob_pair((16, 32, 32), lambda p: np.broadcast_to([0.4, -1.1, 0.3], p.shape), seed=2)
     cfg = CorrelationConfig(windows=((16, 16, 8), (8, 8, 8)), overlap=0.5, deform_iterations=1)
     _threads(monkeypatch, 1)
-    one = correlate(a, b, cfg, device="cpu")
+    one = correlate(a, b, config=cfg, device="cpu")
     _threads(monkeypatch, 3)
-    three = correlate(a, b, cfg, device="cpu")
+    three = correlate(a, b, config=cfg, device="cpu")
     assert np.allclose(one.displacement, three.displacement, atol=1e-5, equal_nan=True)
     assert np.allclose(one.peak_ratio, three.peak_ratio, rtol=1e-5)
 

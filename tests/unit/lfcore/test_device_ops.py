@@ -86,7 +86,7 @@ def test_correlator_takes_device_volumes_in_place(device) -> None:
     wp = warp()
     a, b = blob_pair((32, 48, 48), lambda p: np.tile([0.6, -1.2, 0.4], (len(p), 1)), seed=5)
     cfg = CorrelationConfig(windows=((16, 16, 8),), overlap=0.5)
-    corr = Correlator(a.shape, cfg, device=device)
+    corr = Correlator(a.shape, config=cfg, device=device)
     host = corr(a, b)
     da = wp.array(a, dtype=float, device=corr.device)
     db = wp.array(b, dtype=float, device=corr.device)

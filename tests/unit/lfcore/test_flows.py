@@ -70,7 +70,7 @@ def test_wave_vectors_follow_table_4_1():
 
 
 def _divergence(flow, pts, t=0.0, h=1e-4):
-    return sum((flow.velocity(pts + h * np.eye(3)[i], t)[:, i] - flow.velocity(pts - h * np.eye(3)[i], t)[:, i])
+    return sum((flow.velocity(pts + h * np.eye(3)[i], t_s=t)[:, i] - flow.velocity(pts - h * np.eye(3)[i], t_s=t)[:, i])
                / (2 * h) for i in range(3))
 
 
@@ -78,7 +78,7 @@ def _divergence(flow, pts, t=0.0, h=1e-4):
 def test_flows_are_divergence_free(name):
     flow = standard_flow(name, VOLUME, omega=0.5)
     pts = np.asarray(VOLUME.centre_mm) + np.random.default_rng(4).uniform(-0.5, 0.5, (300, 3)) * VOLUME.size_mm
-    scale = np.linalg.norm(flow.velocity(pts, 0.05), axis=1).max() / (0.3 * min(VOLUME.size_mm[::2]))
+    scale = np.linalg.norm(flow.velocity(pts, t_s=0.05), axis=1).max() / (0.3 * min(VOLUME.size_mm[::2]))
     assert np.abs(_divergence(flow, pts, 0.05)).max() < 1e-5 * scale
 
 
@@ -102,7 +102,7 @@ def test_vortex_ring_centre_speed_and_translation():
     # it moves along +y at Saffman's speed, and the field moves with it
     u = ring.translation_m_s
     assert u == pytest.approx(1e-3 * gamma / (4 * math.pi * r) * (math.log(8 * r / a) - 0.558))
-    moved = ring.velocity(pts + [0.0, 1e3 * u * 0.3, 0.0], 0.3)
+    moved = ring.velocity(pts + [0.0, 1e3 * u * 0.3, 0.0], t_s=0.3)
     assert np.allclose(moved, v)
 
 
@@ -116,8 +116,8 @@ def test_a_phase_locked_ring_is_at_the_same_place_at_every_pair():
     pts = np.asarray(VOLUME.centre_mm) + np.random.default_rng(2).uniform(-0.3, 0.3, (50, 3)) * VOLUME.size_mm
     for k in (1, 3, 7, 123):  # pair k's first pulse (at k / rate, as the sim times it), and its middle
         for t in (0.0, 1e-3):
-            got = locked.velocity(pts, k / 10.0 + t)
-            assert np.allclose(got, single.velocity(pts, t), rtol=1e-6, atol=1e-12), (k, t)
+            got = locked.velocity(pts, t_s=k / 10.0 + t)
+            assert np.allclose(got, single.velocity(pts, t_s=t), rtol=1e-6, atol=1e-12), (k, t)
     travel = 1e3 * single.translation_m_s * 0.1  # mm between pairs
     assert np.allclose(single.centre_at(0.1) - single.centre_at(0.0), [0.0, travel, 0.0])
     # the period is kept in the truth's parameters, and only the ring has one

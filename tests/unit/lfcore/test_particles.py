@@ -11,13 +11,13 @@ from lfcore.rig import LaserConfig
 
 
 def test_seeding_density_and_box(tiny_rig):
-    n = particle_count(tiny_rig, 0.5)
+    n = particle_count(tiny_rig, ppm=0.5)
     assert n == round(0.5 * lenslet_count(tiny_rig.camera[0]))
     p = seed_particles(tiny_rig.volume, 5000, np.random.default_rng(0))
     half = 0.5 * np.asarray(tiny_rig.volume.size_mm)
     assert np.all(np.abs(p) <= half) and np.all(p.max(0) > 0.95 * half)
     with pytest.raises(ValueError, match="ppm must be a positive"):
-        particle_count(tiny_rig, 0.0)
+        particle_count(tiny_rig, ppm=0.0)
 
 
 def test_sheet_profiles(tiny_rig):

@@ -90,7 +90,7 @@ def test_light_field_code_refuses_a_pinhole_camera_naming_it(tomo4):
     assert not hasattr(cam, "pixels_per_lenslet")  # still an AttributeError for hasattr
     with pytest.raises(ValueError, match="only pinhole cameras, which have no microlenses; give the seeding in "
                                          "particles per pixel"):
-        particle_count(tomo4, 0.5)
+        particle_count(tomo4, ppm=0.5)
 
 
 def test_seeding_in_particles_per_pixel(tomo4):

@@ -129,9 +129,10 @@ def test_the_operator_sources_of_the_settings(tiny_rig, small):
 def scene(tiny_rig):
     rig = _crop(tiny_rig)
     grid = VolumeGrid.from_rig(rig)
-    pts = seed_particles(rig.volume, particle_count(rig, 0.3), np.random.default_rng(3))
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.3), np.random.default_rng(3))
     cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
-    img = LightFieldRenderer(rig.camera[0], cfg, rig.laser.wavelength_nm, device="cpu").frame(pts, 50_000.0, seed=1)
+    img = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(
+        pts, 50_000.0, seed=1)
     return rig, grid, pts, img
 
 

@@ -25,7 +25,8 @@ from tests.helpers import smart_update
 
 def _render(rig, pts, seed=1, rays=20_000, device="cpu"):
     cfg = rig.render.model_copy(update={"rays_per_particle": rays})
-    return [LightFieldRenderer(c, cfg, rig.laser.wavelength_nm, device=device).frame(pts, 50_000.0, seed=seed + i)
+    return [LightFieldRenderer(c, cfg, wavelength_nm=rig.laser.wavelength_nm, device=device).frame(
+                pts, 50_000.0, seed=seed + i)
             for i, c in enumerate(rig.camera)]
 
 
@@ -47,7 +48,7 @@ def _voxel_images(proj, renderer, grid, ix, iy, iz, rng, method="drt"):
 def _seeded_scene(tiny_rig, device):
     """The tiny rig at 0.3 PPM: grid, true particles, image, projector and truth volume."""
     grid = VolumeGrid.from_rig(tiny_rig)
-    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.3), np.random.default_rng(3))
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm=0.3), np.random.default_rng(3))
     (img,) = _render(tiny_rig, pts, device=device)
     return grid, pts, img, LightFieldProjector(tiny_rig.camera, grid, device=device), metrics.truth_volume(grid, pts)
 
@@ -171,7 +172,7 @@ def test_mlos_mart_is_the_baseline_on_the_surviving_voxels(tiny_rig, device):
 def test_two_cameras_at_90_degrees_beat_one(tiny_rig, device):
     rig = _dual_rig(tiny_rig)
     grid = VolumeGrid.from_rig(rig)
-    pts = seed_particles(rig.volume, particle_count(rig, 0.2), np.random.default_rng(4))
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.2), np.random.default_rng(4))
     imgs = _render(rig, pts, device=device)
     e0 = metrics.truth_volume(grid, pts)
     tol = 2 * np.asarray(grid.voxel_mm)
@@ -189,7 +190,7 @@ def test_two_cameras_at_90_degrees_beat_one(tiny_rig, device):
 
 def test_no_intensity_outside_the_seeded_region(tiny_rig, device):
     grid = VolumeGrid.from_rig(tiny_rig, margin_mm=(0.0, 0.0, 0.4))
-    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.2), np.random.default_rng(5))
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm=0.2), np.random.default_rng(5))
     (img,) = _render(tiny_rig, pts, device=device)
     res = reconstruct(LightFieldProjector(tiny_rig.camera, grid, device=device), [img], ReconSettings(iterations=30))
     v = tiny_rig.volume
@@ -211,7 +212,7 @@ def test_sequential_form_finds_the_particle_too(tiny_rig):
 
 
 def test_background_estimate(tiny_rig):
-    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.5), np.random.default_rng(6))
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm=0.5), np.random.default_rng(6))
     (img,) = _render(tiny_rig, pts)
     level, sigma = estimate_background(img)
     assert level == pytest.approx(100.0, abs=2.0)  # the rig's background_counts
@@ -237,7 +238,7 @@ def test_weights_that_do_not_fit_are_refused(tiny_rig):
 
 
 def _scene_images(rig, ppm, device):
-    pts = seed_particles(rig.volume, particle_count(rig, ppm), np.random.default_rng(5))
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=ppm), np.random.default_rng(5))
     return pts, _render(rig, pts, device=device)
 
 
@@ -319,7 +320,7 @@ def test_a_frame_reconstructor_keeps_its_buffers_and_gives_reconstruct_s_volumes
     proj = LightFieldProjector(tiny_rig.camera, grid, device=device)
     settings = ReconSettings(iterations=5)
     scenes = [(7, 0.1), (8, 0.4), (7, 0.1)]  # the third repeats the first
-    images = [_render(tiny_rig, seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm),
+    images = [_render(tiny_rig, seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm=ppm),
                                                np.random.default_rng(seed)), device=device)
               for seed, ppm in scenes]
     frames = FrameReconstructor(proj, settings)
@@ -348,7 +349,7 @@ def test_frame_reconstructor_stages_on_device_images(tiny_rig, device):
 
     grid = VolumeGrid.from_rig(tiny_rig)
     proj = LightFieldProjector(tiny_rig.camera, grid, device=device)
-    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.3), np.random.default_rng(9))
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm=0.3), np.random.default_rng(9))
     (img,) = _render(tiny_rig, pts, device=device)
     level, sigma = estimate_background(img)
     signal, lit = preprocess(img, level, sigma, 2.0)

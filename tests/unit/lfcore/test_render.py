@@ -21,7 +21,7 @@ GRIDS = ["hex", "square"]
 
 def _renderer(rig, device, **render):
     cfg = rig.render.model_copy(update={"diffraction": False, "rays_per_particle": 100_000, **render})
-    return LightFieldRenderer(rig.camera[0], cfg, rig.laser.wavelength_nm, device=device)
+    return LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device=device)
 
 
 def _cell_second_moment(cam) -> float:

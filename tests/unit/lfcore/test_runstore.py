@@ -100,13 +100,13 @@ def test_truth_times_kept_and_read_from_older_stores(tiny_rig, tmp_path):
     s = RunStore.create(tmp_path / "run.zarr", tiny_rig, 3, timing={"dt_s": 0.002, "rate_hz": 5.0},
                         software_version="x")
     flow = {"name": "uniform", "velocity_m_s": [1, 0, 0]}
-    s.write_truth(np.zeros((3, 2, 1, 3)), np.ones((3, 2, 1)), flow, [0.0, 0.2, 0.0])  # a pool of two pairs
+    s.write_truth(np.zeros((3, 2, 1, 3)), np.ones((3, 2, 1)), flow, t0_s=[0.0, 0.2, 0.0])  # a pool of two pairs
     assert RunStore.open(s.path).truth()["t0_s"].tolist() == [0.0, 0.2, 0.0]
     assert zarr.open_group(str(s.path), mode="r")["truth/t0_s"].attrs["units"] == "s"
     del s.group["truth/t0_s"]  # written before the times were kept
     assert np.allclose(RunStore.open(s.path).truth()["t0_s"], [0.0, 0.2, 0.4])
     with pytest.raises(ValueError, match="one time per pair"):
-        s.write_truth(np.zeros((3, 2, 1, 3)), np.ones((3, 2, 1)), flow, [0.0, 0.2])
+        s.write_truth(np.zeros((3, 2, 1, 3)), np.ones((3, 2, 1)), flow, t0_s=[0.0, 0.2])
 
 
 def test_guards(tiny_rig, tmp_path):

@@ -65,7 +65,7 @@ def assert_same_field(got, ref):
 def test_three_slabs_give_the_in_memory_vectors(pair, name, device):
     a, b = pair
     cfg = CONFIGS[name]
-    ref = Correlator(SHAPE, cfg, device=device)(a, b)
+    ref = Correlator(SHAPE, config=cfg, device=device)(a, b)
     truth = flow(np.stack(np.meshgrid(ref.x, ref.y, ref.z, indexing="ij"), -1).reshape(-1, 3))
     assert np.abs(ref.displacement.transpose(2, 1, 0, 3).reshape(-1, 3) - truth).max() < 0.3  # a real flow
     log = []
@@ -89,7 +89,7 @@ def test_an_outlier_cluster_beyond_the_assumed_reach_is_correlated_again(pair):
     _, other = blob_pair(SHAPE, flow, seed=9, density=0.03)
     b[44:64, :20, :20] = other[44:64, :20, :20]
     cfg = CONFIGS["fft"]
-    ref = Correlator(SHAPE, cfg, device="cpu")(a, b)
+    ref = Correlator(SHAPE, config=cfg, device="cpu")(a, b)
     assert ref.outlier.sum() > 5
     sc = SlabCorrelator(SHAPE, cfg, 3, device="cpu", reach=0, max_shift=0.5)
     got = sc(reader(a, b, []))
@@ -128,7 +128,7 @@ def test_the_prefilter_difference_at_a_cut_stays_within_its_bound(device):
     cfg = CorrelationConfig(windows=((8, 8, 8),), overlap=0.5, deform_iterations=1)
 
     def coef(v):
-        c = Correlator(v.shape, cfg, device=device)
+        c = Correlator(v.shape, config=cfg, device=device)
         c._prefilter(c._upload(v, c._vol_a), c._upload(v, c._vol_b))
         return c._coef_a.numpy()
 
@@ -140,18 +140,18 @@ def test_the_prefilter_difference_at_a_cut_stays_within_its_bound(device):
     bound = BSPLINE_ERROR_GAIN * BSPLINE_POLE**n * vol.max() + 1e-6  # and float32 round-off
     assert np.all(err <= bound), (err, bound)
     assert err[0] > 1e-3  # the cut does change the edge's coefficients
-    assert prefilter_planes(1e-6) == 14 and BSPLINE_ERROR_GAIN * BSPLINE_POLE**14 < 1e-6
+    assert prefilter_planes(tolerance=1e-6) == 14 and BSPLINE_ERROR_GAIN * BSPLINE_POLE**14 < 1e-6
 
 
 def test_window_grids_must_fit_the_passes_and_the_volume():
     cfg = CONFIGS["fft"]
     grids = pass_grids((40, 32, 32), cfg)
-    c = Correlator((40, 32, 32), cfg, device="cpu", grids=grids)
+    c = Correlator((40, 32, 32), config=cfg, device="cpu", grids=grids)
     assert c.grids == grids and correlator_bytes(c) > 0
     with pytest.raises(CorrelationError, match="4 passes need as many window grids, got 2"):
-        Correlator((40, 32, 32), cfg, device="cpu", grids=grids[:2])
+        Correlator((40, 32, 32), config=cfg, device="cpu", grids=grids[:2])
     off = WindowGrid(window=grids[0].window, step=grids[0].step, first=(0, 0, 30), counts=grids[0].counts)
     with pytest.raises(CorrelationError, match="does not lie inside the volume"):
-        Correlator((40, 32, 32), cfg, device="cpu", grids=[off, *grids[1:]])
+        Correlator((40, 32, 32), config=cfg, device="cpu", grids=[off, *grids[1:]])
     with pytest.raises(CorrelationError, match="a window grid of 16x16x8 voxels for a pass of 16x16x16"):
-        Correlator((40, 32, 32), cfg, device="cpu", grids=[grids[1], *grids[1:]])
+        Correlator((40, 32, 32), config=cfg, device="cpu", grids=[grids[1], *grids[1:]])

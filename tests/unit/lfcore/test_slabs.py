@@ -20,9 +20,10 @@ from lfcore.volume import VolumeGrid
 
 
 def _images(rig, ppm=0.3, device="cpu"):
-    pts = seed_particles(rig.volume, particle_count(rig, ppm), np.random.default_rng(5))
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=ppm), np.random.default_rng(5))
     cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
-    return [LightFieldRenderer(c, cfg, rig.laser.wavelength_nm, device=device).frame(pts, 50_000.0, seed=1 + i)
+    return [LightFieldRenderer(c, cfg, wavelength_nm=rig.laser.wavelength_nm, device=device).frame(
+                pts, 50_000.0, seed=1 + i)
             for i, c in enumerate(rig.camera)]
 
 

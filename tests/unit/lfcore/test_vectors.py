@@ -57,9 +57,9 @@ def test_planted_outliers_are_found_and_replaced():
 def test_median_test_settings():
     f = linear_field(noise=0.05)
     f[3, 4, 5, 0] += 0.6
-    assert normalized_median_test(f, MedianTest(epsilon=0.1, threshold=2.0))[3, 4, 5]
-    assert not normalized_median_test(f, MedianTest(epsilon=0.1, threshold=10.0))[3, 4, 5]
-    assert not normalized_median_test(f, MedianTest(epsilon=1.0, threshold=2.0))[3, 4, 5]
+    assert normalized_median_test(f, test=MedianTest(epsilon=0.1, threshold=2.0))[3, 4, 5]
+    assert not normalized_median_test(f, test=MedianTest(epsilon=0.1, threshold=10.0))[3, 4, 5]
+    assert not normalized_median_test(f, test=MedianTest(epsilon=1.0, threshold=2.0))[3, 4, 5]
     with pytest.raises(ValueError, match="threshold"):
         MedianTest(threshold=0)
     with pytest.raises(ValueError, match="epsilon"):

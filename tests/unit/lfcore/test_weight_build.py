@@ -46,7 +46,8 @@ def _same(a, b) -> None:
 def _images(rig, grid, device, n=12, seed=3):
     pts = seed_particles(rig.volume, n, np.random.default_rng(seed))
     cfg = rig.render.model_copy(update={"rays_per_particle": 4000})
-    return [LightFieldRenderer(c, cfg, rig.laser.wavelength_nm, device=device).frame(pts, 50_000.0, seed=1 + i)
+    return [LightFieldRenderer(c, cfg, wavelength_nm=rig.laser.wavelength_nm, device=device).frame(
+                pts, 50_000.0, seed=1 + i)
             for i, c in enumerate(rig.camera)]
 
 

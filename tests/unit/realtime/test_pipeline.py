@@ -185,9 +185,9 @@ def test_live_volume_equals_the_batch_reconstruction(tiny_rig, method, pvr) -> N
     from lfcore.render import LightFieldRenderer
     from realtime.pipeline import monitoring_recon
 
-    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.5), np.random.default_rng(6))
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm=0.5), np.random.default_rng(6))
     cfg = tiny_rig.render.model_copy(update={"rays_per_particle": 20_000})
-    renderer = LightFieldRenderer(tiny_rig.camera[0], cfg, tiny_rig.laser.wavelength_nm, device="cpu")
+    renderer = LightFieldRenderer(tiny_rig.camera[0], cfg, wavelength_nm=tiny_rig.laser.wavelength_nm, device="cpu")
     frames = np.stack([renderer.frame(pts + np.array([0.01 * f, 0.0, 0.0]), 50_000.0, seed=f) for f in (0, 1)])
     ring = PairRing({"cam0": SHAPE}, slots=2)
     for f in range(2):
@@ -196,7 +196,7 @@ def test_live_volume_equals_the_batch_reconstruction(tiny_rig, method, pvr) -> N
     results = []
     pipe = LivePipeline(tiny_rig, ring, settings=LiveSettings(iterations=3, slice_axis="z", slice_index=14),
                         recon=monitoring_recon(method=method), pvr=pvr, device="cpu")
-    assert pipe.grid == VolumeGrid.from_rig(tiny_rig, pvr)
+    assert pipe.grid == VolumeGrid.from_rig(tiny_rig, pvr=pvr)
     assert pipe.grid.shape == ((29, 68, 82) if pvr is None else (15, 34, 41))
     pipe.subscribe(results.append)
     with pipe:

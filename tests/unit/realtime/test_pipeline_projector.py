@@ -19,9 +19,9 @@ def frames(tiny_rig):
     from lfcore.particles import particle_count, seed_particles
     from lfcore.render import LightFieldRenderer
 
-    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, 0.5), np.random.default_rng(6))
+    pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm=0.5), np.random.default_rng(6))
     cfg = tiny_rig.render.model_copy(update={"rays_per_particle": 20_000})
-    renderer = LightFieldRenderer(tiny_rig.camera[0], cfg, tiny_rig.laser.wavelength_nm, device="cpu")
+    renderer = LightFieldRenderer(tiny_rig.camera[0], cfg, wavelength_nm=tiny_rig.laser.wavelength_nm, device="cpu")
     shots = np.stack([renderer.frame(pts + np.array([0.01 * f, 0.0, 0.0]), 50_000.0, seed=f) for f in (0, 1)])
     return shots, pts
 
