@@ -11,7 +11,6 @@ None of these is written into ``docs/``: they exist only in the build, so they c
 
 from __future__ import annotations
 
-import logging
 import sys
 from pathlib import Path
 
@@ -40,31 +39,6 @@ API_PAGES = (
     ("sim", "sim: the simulated lab", "sim"),
 )
 _SKIP = {"lfpiv.commands", "lfpiv.__main__"}
-
-#: Docstring warnings known and left for the file's owner to fix, by file and the names the
-#: numpy parser misread; each is logged as INFO instead of failing the strict build. Remove an
-#: entry once its docstring is fixed. lfpiv/jobs/calibrate.py: calibrate_mla's paragraph after
-#: its Parameters section ("Pinhole cameras have no microlenses: ... for them; ...") is read as
-#: more parameters; it needs a "Notes" heading (or to move above "Parameters").
-KNOWN_DOCSTRING_WARNINGS = {
-    "lfpiv/jobs/calibrate.py": ("Pinhole", "them"),
-}
-
-
-class _KnownWarnings(logging.Filter):
-    """Lowers the warnings of :data:`KNOWN_DOCSTRING_WARNINGS` to INFO."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        if record.levelno == logging.WARNING:
-            text = record.getMessage()
-            for path, names in KNOWN_DOCSTRING_WARNINGS.items():
-                if f"{path}:" in text and any(f"['{n}']" in text or f"'{n}' does not" in text for n in names):
-                    record.levelno, record.levelname = logging.INFO, "INFO"
-                    record.msg, record.args = f"known, see docs/gen/hooks.py: {text}", ()
-        return True
-
-
-logging.getLogger("mkdocs.plugins.griffe").addFilter(_KnownWarnings())
 
 
 def _modules(package: str) -> list[str]:

@@ -118,9 +118,6 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
     progress
         Called as ``progress(done, total)`` as the cameras' grids are found.
 
-    Pinhole cameras have no microlenses: they are skipped (no white image is taken or read for
-    them; :func:`pinhole_cameras_skipped` names them for the note).
-
     Raises
     ------
     UsageError
@@ -128,6 +125,11 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
         that cannot be read, naming the camera; a store that belongs to other cameras.
     DeviceError
         A device fault (the generator was disarmed).
+
+    Notes
+    -----
+    Pinhole cameras have no microlenses: they are skipped (no white image is taken or read for
+    them; :func:`pinhole_cameras_skipped` names them for the note).
     """
     if frames < 1:
         raise UsageError(f"--frames must be at least 1, got {frames}")
