@@ -18,7 +18,9 @@ Layout::
                               operator: {projector ("stored" | "matrix-free" | both, comma-
                               separated), bytes (the largest frame's operator: weights, or
                               templates and voxel indices), ms_per_iteration (mean over the
-                              frames), frames}; stores made before it have none
+                              frames), frames, and since the planner operators (names)};
+                              plan {device, cameras, operator, cache, slabs, reasons}
+                              (lfcore.plan.Plan); stores made before them have none
       volumes/x, y, z, time   coordinates: voxel centres (mm), time of each pair (s)
       vectors/                u, v, w, flags, peak_ratio (pairs, z, y, x); x_mm, y_mm, z_mm
       vectors/x, y, z, time   coordinates: window centres (mm, = x_mm ...), time of each pair (s)
