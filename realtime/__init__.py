@@ -1,5 +1,8 @@
 """Live: the pipeline that reconstructs and correlates the newest recorded pair, and the
-pyqtgraph monitor window that shows it (Qt is imported only when a window is made)."""
+pyqtgraph monitor window that shows it (Qt is imported only when a window is made).
+
+``realtime.window`` holds the window's Qt class; it imports Qt, so it is not in ``__all__``:
+:func:`realtime.monitor.MonitorWindow` imports it when a window is made."""
 
 __all__ = [
     "monitor",     # the monitor's Controls protocol, Qt's lazy import and the window's event loop

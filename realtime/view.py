@@ -17,10 +17,10 @@ from lfcore.vectors import centres_mm, displacement_to_velocity, vorticity
 from realtime.processing import ProcessedPair
 from realtime.settings import AXES, LiveSettings
 
-__all__ = ["Derived", "VectorSlice", "derive"]
+__all__ = ["IN_PLANE", "Derived", "VectorSlice", "derive"]
 
 #: Per slice axis (the normal), the plane's horizontal and vertical axes.
-_IN_PLANE = {"z": ("x", "y"), "y": ("x", "z"), "x": ("y", "z")}
+IN_PLANE = {"z": ("x", "y"), "y": ("x", "z"), "x": ("y", "z")}
 #: Component index of each axis in (x, y, z) vectors.
 _COMPONENT = {"x": 0, "y": 1, "z": 2}
 
@@ -124,7 +124,7 @@ def derive(pair: ProcessedPair, settings: LiveSettings) -> Derived:
     centres_vox = {"x": vf.x, "y": vf.y, "z": vf.z}[s.slice_axis]
     vi = int(np.argmin(np.abs(np.asarray(centres_vox) - idx)))
     coords = {"x": x_mm, "y": y_mm, "z": z_mm}
-    h, v = _IN_PLANE[s.slice_axis]
+    h, v = IN_PLANE[s.slice_axis]
     plane = np.take(vel, vi, axis=ax)  # (v, h, 3) in array order
     wplane = np.take(vort, vi, axis=ax)[..., _COMPONENT[s.slice_axis]]
     uv = np.stack([plane[..., _COMPONENT[h]], plane[..., _COMPONENT[v]]], axis=-1)
