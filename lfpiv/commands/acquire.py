@@ -50,8 +50,11 @@ def run(args: argparse.Namespace) -> int:
                   f"frames {st.frames_recorded}  drops {st.frames_dropped}  overruns {st.overruns}  "
                   f"{st.elapsed_s:6.1f} s", end="", file=sys.stderr, flush=True)
 
+    def say(text: str) -> None:  # the laser's state and what is kept, as the recording ends: never quiet
+        print(text, file=sys.stderr)
+
     res = record(rig, args.out, args.pairs, overwrite=args.overwrite, sim_options=sim_options, ring_slots=args.ring,
-                 progress=show, pairing=args.pairing)
+                 progress=show, pairing=args.pairing, say=say)
     show(res.stats)
     if not args.quiet:
         print(file=sys.stderr)

@@ -1,0 +1,253 @@
+"""Processing one pair on the device: preprocess, reconstruct frames A and B, correlate.
+
+For each pair, on the pipeline's thread:
+
+1. preprocess on the device: the raw 16-bit frames (half the bytes of float signal) become the
+   background-subtracted signal and the lit-pixel mask (:func:`lfcore.reconstruct.preprocess`'s
+   rule, :class:`~lfcore.device_ops.ImagePreprocessor`); the background level and noise of each
+   camera are estimated on the host on the first pair and refreshed every ``background_every``
+   pairs, not per frame;
+2. DRT-MART (or MLOS-MART: the same elimination, line-of-sight weights) of frames A and B with
+   monitoring settings (few iterations; the iterations and the relaxation can be changed while
+   it runs), by the batch path's :class:`~lfcore.reconstruct.FrameReconstructor` (one SMART
+   loop for both), planned by the batch path's planner (:mod:`lfcore.plan`): the projector
+   (geometry on the device), the pixel buffers and two volume buffers are built once and reused;
+   the elimination is per frame, as the active voxels follow the particles, and a weight cache
+   (where the plan has one) keeps the weights of every voxel already traced, so a frame traces
+   only voxels no earlier frame activated; the volumes are scattered and smoothed on the device;
+3. 3D multi-grid correlation (one or two passes, no deformation by default) with a
+   :class:`~lfcore.correlate.Correlator` whose device buffers are allocated once, reading the
+   volumes where they are.
+
+The result is a :class:`ProcessedPair`: volume A still on the device, the vector field, and the
+time each stage took. What the window shows of it is :func:`realtime.view.derive`'s.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from acquisition.ring import PairView
+from lfcore.correlate import CorrelationConfig, Correlator, VectorField
+from lfcore.device_ops import ImagePreprocessor, VolumeOps
+from lfcore.operator import applied_by
+from lfcore.plan import build_reconstructor, plan_reconstruction
+from lfcore.reconstruct import ReconSettings, estimate_background
+from lfcore.rig import Rig
+from lfcore.volume import VolumeGrid
+from realtime.settings import LiveSettings
+from realtime.staging import StagedPair, Staging
+
+__all__ = ["PairProcessor", "ProcessedPair"]
+
+
+@dataclass(frozen=True)
+class ProcessedPair:
+    """One pair reconstructed and correlated, as :func:`realtime.view.derive` takes it.
+
+    Attributes
+    ----------
+    view
+        The pair as the ring held it (index, time stamps).
+    raw
+        Per camera, frame A (rows, columns) uint16, a copy.
+    volume
+        Volume A, (z, y, x) float32 on the device: the processor's buffer, valid until the
+        next pair is processed.
+    ops
+        What cuts projections and planes of ``volume`` on the device and brings them to the
+        host (:class:`~lfcore.device_ops.VolumeOps`).
+    field
+        The vector field of A to B, in voxels.
+    grid
+        The live volume's grid.
+    dt_s
+        Time between frames A and B in s.
+    active_fraction
+        Share of voxels that survived elimination (mean of A and B).
+    projector
+        What applied the operator to both frames: ``"stored"`` weights or the ``"matrix-free"``
+        templates (``"matrix-free, stored"`` where ``auto`` used each for one frame).
+    timings
+        Seconds per stage: ``copy`` (out of the ring), ``preprocess``, ``eliminate``, ``weights``
+        (from the cache or built), ``iterate``, ``volume``, ``correlate``.
+    """
+
+    view: PairView
+    raw: dict[str, np.ndarray]
+    volume: object
+    ops: VolumeOps
+    field: VectorField
+    grid: VolumeGrid
+    dt_s: float
+    active_fraction: float
+    projector: str
+    timings: dict[str, float]
+
+
+class _Reconstructor:
+    """DRT-MART or MLOS-MART of one frame at a time with everything but the per-frame weights built once.
+
+    Everything per pair stays on the device: the raw frames arrive there as uint16, are
+    preprocessed there (:class:`~lfcore.device_ops.ImagePreprocessor`) into two signal and lit
+    buffers, and reconstructed by the batch path's
+    :class:`~lfcore.reconstruct.FrameReconstructor` (the same elimination, weights, SMART loop,
+    scatter and smoothing, with its buffers kept) into two preallocated volumes, which the
+    correlator reads where they are.
+    """
+
+    def __init__(self, rig: Rig, cameras: Sequence[str], grid: VolumeGrid, recon: ReconSettings,
+                 device: str | None) -> None:
+        self.cams = [rig.camera_named(n) for n in cameras]
+        self.recon = recon
+        # the batch path's planner: the projector of the cameras' kind, its operator and whether a weight
+        # cache traces each voxel once, on the first frame that keeps it
+        self.plan = plan_reconstruction(self.cams, grid, recon, device=device)
+        self.frames = build_reconstructor(self.plan, self.cams, grid, recon)
+        self.projector = p = self.frames.projector
+        self.cache = self.frames.cache
+        self.wp = p.wp
+        self.device = p.device
+        # the matrix-free templates built now (kept by the reconstructor), not in the first pair's time;
+        # a geometry without them (MatrixFreeUnsupported) or no room for them fails the build
+        self.frames.prepare()
+        self.offsets = [int(o) for o in p.pixel_offsets]
+        self.pre = ImagePreprocessor(self.cams, device=self.device)
+        self.ops = self.frames.ops
+        wp = self.wp
+        self.signal = [wp.zeros(p.n_pixels, dtype=float, device=self.device) for _ in range(2)]
+        self.lit = [wp.zeros(p.n_pixels, dtype=wp.uint8, device=self.device) for _ in range(2)]
+        self.volumes = [self.ops.empty() for _ in range(2)]
+        self.background: list[tuple[float, float] | None] = [None] * len(self.cams)
+
+    def camera_image(self, frames: np.ndarray, f: int, k: int) -> np.ndarray:
+        """Camera ``k``'s (rows, columns) view of frame ``f`` of flat (2, n_pixels) host frames."""
+        rows, cols = self.cams[k].sensor_px[1], self.cams[k].sensor_px[0]
+        return frames[f, self.offsets[k]:self.offsets[k + 1]].reshape(rows, cols)
+
+    def estimate_background(self, frames: np.ndarray) -> None:
+        """Each camera's background level and noise, from frame A of flat host frames."""
+        for k in range(len(self.cams)):
+            level, sigma = estimate_background(self.camera_image(frames, 0, k))
+            if self.recon.background is not None:
+                level = self.recon.background
+            self.background[k] = (level, sigma)
+
+    def preprocess(self, raw) -> None:
+        """Signal and lit mask of both frames of the (2, n_pixels) uint16 device array ``raw``."""
+        levels = [b[0] for b in self.background]  # type: ignore[index]
+        thresholds = [self.recon.threshold_sigma * b[1] for b in self.background]  # type: ignore[index]
+        for f in (0, 1):
+            self.pre(raw[f], levels, thresholds, self.signal[f], self.lit[f], grow=self.recon.lit_grow)
+
+    def eliminate(self, f: int):
+        """The voxels that survive zero-voxel elimination in frame ``f``, (n,) int32 on the device."""
+        return self.frames.eliminate(self.lit[f])
+
+    def iterate(self, f: int, weights, iterations: int, relaxation: float):
+        """Uniform start scaled to the measured signal, then ``iterations`` SMART updates."""
+        noise = [sigma for _, sigma in self.background]  # type: ignore[misc]
+        return self.frames.iterate(weights, self.signal[f], noise, iterations=iterations, relaxation=relaxation).e
+
+    def volume(self, f: int, weights, e):
+        """Frame ``f``'s (z, y, x) volume, smoothed, in its device buffer."""
+        return self.frames.volume(weights, e, out=self.volumes[f])
+
+
+
+class PairProcessor:
+    """The live reconstruction and correlation, built once, and the processing of one pair.
+
+    Parameters
+    ----------
+    rig
+        The rig (cameras, timing).
+    cameras
+        Cameras to reconstruct from.
+    grid
+        The live volume.
+    recon
+        The fixed reconstruction settings (simultaneous form).
+    correlation
+        The correlation.
+    device
+        Warp device; None for the first GPU, else the CPU.
+
+    Attributes
+    ----------
+    recon
+        The live reconstructor (projector, weight cache, frame reconstructor, preprocessor and
+        buffers).
+    correlator
+        The correlator, its device buffers allocated once.
+    """
+
+    def __init__(self, rig: Rig, cameras: Sequence[str], grid: VolumeGrid, recon: ReconSettings,
+                 correlation: CorrelationConfig, device: str | None) -> None:
+        self.cameras = list(cameras)
+        self.grid = grid
+        self.dt_s = rig.timing.dt_us * 1e-6
+        self.recon = _Reconstructor(rig, self.cameras, grid, recon, device)
+        self.correlator = Correlator(grid.shape, config=correlation, device=self.recon.device)
+
+    def process(self, staged: StagedPair, settings: LiveSettings, *, staging: Staging,
+                refresh_background: bool) -> ProcessedPair:
+        """Preprocess, reconstruct and correlate the staged pair (on the pipeline's thread).
+
+        The pair's host slot goes back to ``staging`` once its frames are on the device, and
+        the next pair's upload starts between frame A's and frame B's kernels.
+
+        Parameters
+        ----------
+        staged
+            The pair, its upload started (:meth:`Staging.next_pair`).
+        settings
+            The run-time settings taken for this pair (iterations, relaxation, background).
+        staging
+            Where the pair came from.
+        refresh_background
+            Estimate each camera's background level and noise again from this pair (it is
+            estimated on the first pair in any case).
+        """
+        rc = self.recon
+        s = settings
+        slot, view = staged.slot, staged.slot.view
+        assert view is not None
+        t: dict[str, float] = {"copy": slot.copy_s, "preprocess": 0.0, "eliminate": 0.0, "weights": 0.0,
+                               "iterate": 0.0, "volume": 0.0}
+        start = time.perf_counter()
+        staging.device_waits_for_upload(staged)  # kernels wait for the upload on the device, not the host
+        if rc.background[0] is None or refresh_background:
+            rc.estimate_background(slot.frames)
+        rc.preprocess(staged.raw)
+        staging.consumed(staged)
+        raw = {c: rc.camera_image(slot.frames, 0, k).copy() for k, c in enumerate(self.cameras)}
+        staging.release(staged)
+        t["preprocess"] = time.perf_counter() - start
+        vols, active, projectors = [], [], set()
+        for f in (0, 1):
+            t0 = time.perf_counter()
+            voxels = rc.eliminate(f)  # ends on the host (the count of survivors), so t1 is exact
+            t1 = time.perf_counter()
+            w = rc.frames.operator(voxels)  # from the cache where it has them
+            t2 = time.perf_counter()
+            e = rc.iterate(f, w, s.iterations, s.relaxation)
+            t3 = time.perf_counter()
+            vols.append(rc.volume(f, w, e))
+            t4 = time.perf_counter()
+            active.append(w.n_voxels / self.grid.n_voxels)
+            projectors.add(applied_by(w))
+            for k, a, b in (("eliminate", t0, t1), ("weights", t1, t2), ("iterate", t2, t3), ("volume", t3, t4)):
+                t[k] += b - a
+            del voxels, w, e  # frame A's weights go before frame B's are built (tens of GB for a large volume)
+            staging.prefetch()
+        t0 = time.perf_counter()
+        vf = self.correlator(vols[0], vols[1])
+        t["correlate"] = time.perf_counter() - t0
+        return ProcessedPair(view=view, raw=raw, volume=vols[0], ops=rc.ops, field=vf, grid=self.grid, dt_s=self.dt_s,
+                             active_fraction=float(np.mean(active)), projector=", ".join(sorted(projectors)),
+                             timings=t)
