@@ -13,13 +13,15 @@ __all__ = [
     "device_ops",   # image and volume operations on the device
     "errors",       # DeviceError, ComputeDeviceError
     "flows",        # the test flows and particle advection
-    "matrix_free",  # the matrix-free DRT operator: templates per depth and lenslet phase
+    "matrix_free",  # the matrix-free DRT templates per depth and lenslet phase, and their operator
     "metrics",      # Q_recon, particle matching, diameters, velocity and divergence errors
     "mla",          # the microlens lattice and the sensor's pixel coordinates
+    "operator",     # what reconstruction sees of a projection: the Operator and Projector protocols
     "particles",    # seeding and the laser sheet
     "pinhole",      # the pinhole (Tomo-PIV) camera model: projection, lines of sight, triangulation
     "pinhole_projector",  # pinhole cameras bound to a voxel grid: MLOS, line-of-sight weights (MLOS-SMART)
-    "projector",    # cameras bound to a voxel grid on a device: elimination, projection, MART updates
+    "plan",         # the planner: which operator, weight cache and depth slabs, and why
+    "projector",    # light-field cameras bound to a voxel grid on a device: elimination and their weights
     "reconstruct",  # DRT-MART, MART, MLOS-MART and MLOS-SMART
     "render",       # Monte-Carlo light-field particle images
     "rig",          # the rig description
@@ -28,7 +30,7 @@ __all__ = [
     "target",       # the calibration dot board
     "vectors",      # outliers, replacement, units, vorticity, divergence, Q-criterion
     "volume",       # the voxel grid
-    "weight_build",  # building the voxel-to-pixel weights (DRT and line of sight)
+    "weight_build",  # the voxel-to-pixel weights (DRT and line of sight): built, and applied as an operator
     "weight_cache",  # weights traced once per voxel across frames
     "white",        # the white image of a plenoptic camera
     "world",        # seeded particles moving with a known flow

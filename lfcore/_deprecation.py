@@ -4,6 +4,10 @@
 - :func:`keyword_options`: a function whose options became keyword-only still accepts them
   positionally, in their old order.
 - :func:`deprecated_alias`: a function's old name (after a rename or a move) still calls it.
+- :func:`moved_names`: a module's ``__getattr__`` for names (classes, functions) that were renamed
+  or moved to another module: the old name gives the object itself.
+- :func:`deprecated`: a function or method kept for old callers, whose work is now done another
+  way (the message says which).
 
 It imports nothing of lfpiv's, so every package may use it (lfcore is pure; the commands, which
 may not import lfcore, reach it as :mod:`lfpiv._deprecation`). The command line's old option
@@ -19,7 +23,7 @@ import warnings
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-__all__ = ["deprecated_alias", "keyword_options"]
+__all__ = ["deprecated", "deprecated_alias", "keyword_options", "moved_names"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -127,3 +131,64 @@ def deprecated_alias(new: F, old_name: str, *, since: str) -> F:
 
     alias.__doc__ = f"Deprecated: the old name of :func:`{new.__module__}.{new.__qualname__}`."
     return alias  # type: ignore[return-value]
+
+
+def moved_names(module: str, names: dict[str, Callable[[], Any]], *, since: str) -> Callable[[str], Any]:
+    """A module ``__getattr__`` that keeps old names working: each gives its object itself (a class
+    stays a class) and warns once, ``module.Old is now package.module.New (deprecated since lfpiv
+    0.1.0)``.
+
+    Parameters
+    ----------
+    module
+        The module's ``__name__``.
+    names
+        Old name -> a function returning the object now (called on first use, so that a name moved
+        to a module that imports this one needs no import at load time).
+    since
+        The lfpiv version that renamed or moved them (for the message).
+
+    Returns
+    -------
+    callable
+        ``__getattr__(name)``; any other name raises :class:`AttributeError` as a module would.
+    """
+    warned: set[str] = set()
+
+    def __getattr__(name: str) -> Any:
+        if name not in names:
+            raise AttributeError(f"module {module!r} has no attribute {name!r}")
+        obj = names[name]()
+        if name not in warned:
+            warned.add(name)
+            where = f"{getattr(obj, '__module__', module)}.{getattr(obj, '__qualname__', name)}"
+            warnings.warn(f"{module}.{name} is now {where} (deprecated since lfpiv {since})", DeprecationWarning,
+                          stacklevel=2)
+        return obj
+
+    return __getattr__
+
+
+def deprecated(instead: str, *, since: str) -> Callable[[F], F]:
+    """Keep a function or method for old callers, warning once that ``instead`` is the way now:
+    ``module.function() is deprecated since lfpiv 0.1.0: use weights.forward(e, out=out)``.
+
+    Parameters
+    ----------
+    instead
+        What to call instead, as a user would write it.
+    since
+        The lfpiv version that deprecated it (for the message).
+    """
+    def decorate(func: F) -> F:
+        warn = _warn_once(f"{func.__module__}.{func.__qualname__}() is deprecated since lfpiv {since}: use "
+                          f"{instead}")
+
+        @functools.wraps(func)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            warn()
+            return func(*args, **kwargs)
+
+        return wrapper  # type: ignore[return-value]
+
+    return decorate

@@ -74,6 +74,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lfcore._deprecation import moved_names
 from lfcore.device import PerBlock, PrivateCopies, Rows, available_bytes, cpu_threads, launch_rows, warp
 from lfcore.mla import HEX_ROW
 from lfcore.operator import (
@@ -88,7 +89,7 @@ from lfcore.projector import LightFieldProjector
 from lfcore.weight_build import BYTES_PER_WEIGHT, CHUNK_ENTRIES, MemoryBudgetError, WeightChunk, Weights
 
 __all__ = ["CUT_SPOT_BYTES", "IMAGE_FLOOR", "MAX_PHASES", "MIN_PHASES", "PHASES_PER_FOOTPRINT", "PROJECTORS",
-           "RIGID_SPOT_BYTES", "DrtTemplates", "MatrixFreeUnsupported", "MatrixFreeWeights", "TemplateOperator",
+           "RIGID_SPOT_BYTES", "DrtTemplates", "MatrixFreeUnsupported", "TemplateOperator",
            "applied_by", "fidelity",
            "phase_bins", "template_count"]
 
@@ -646,5 +647,5 @@ def fidelity(projector: LightFieldProjector, voxels: np.ndarray, templates: DrtT
     return {"correlation": corr, "light": light}
 
 
-#: The name of :class:`TemplateOperator` until the operator protocol (kept for scripts).
-MatrixFreeWeights = TemplateOperator
+# the name of TemplateOperator until the operator protocol
+__getattr__ = moved_names(__name__, {"MatrixFreeWeights": lambda: TemplateOperator}, since="0.1.0")

@@ -25,12 +25,13 @@ Forward projection, the updates and the scatter are :class:`~lfcore.weight_build
 
 from __future__ import annotations
 
+import importlib
 import math
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
+from lfcore._deprecation import moved_names
 from lfcore.device import (
     MemoryBudgetError,
     RowOffset,
@@ -346,14 +347,7 @@ class JointProjector(BoundCameras):
         return self.weights(voxels, method=method, min_weight=min_weight, budget_bytes=budget_bytes, storage=storage)
 
 
-_MOVED = {"projector_for": "lfcore.plan", "default_method": "lfcore.plan", "unsupported_method": "lfcore.plan"}
-
-
-def __getattr__(name: str):
-    if name in _MOVED:  # the planner's since the operator protocol
-        import importlib
-
-        warnings.warn(f"lfcore.pinhole_projector.{name} is now {_MOVED[name]}.{name}; the old name still works for "
-                      "now", DeprecationWarning, stacklevel=2)
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module 'lfcore.pinhole_projector' has no attribute {name!r}")
+# the planner's since the operator protocol (imported on first use: lfcore.plan imports this module)
+__getattr__ = moved_names(__name__, {name: (lambda name=name: getattr(importlib.import_module("lfcore.plan"), name))
+                                     for name in ("projector_for", "default_method", "unsupported_method")},
+                          since="0.1.0")

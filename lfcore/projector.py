@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import copy
 import math
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
+from lfcore._deprecation import deprecated, moved_names
 from lfcore.device import (
     MemoryBudgetError,
     PrivateCopies,
@@ -215,32 +215,27 @@ class BoundCameras:
         return out
 
     # --- the operator's own methods, kept for scripts written against the projector ------------------
+    @deprecated("weights.forward(e, out=out)", since="0.1.0")
     def forward(self, weights, e, *, out=None):
         """Deprecated: ``weights.forward(e, out=out)`` (:meth:`lfcore.operator.Operator.forward`)."""
-        _moved("forward(weights, e, out)", "weights.forward(e, out=out)")
         return weights.forward(e, out=out)
 
+    @deprecated("weights.update(lfcore.operator.log_ratio(image, proj, floor, ratio), e, relaxation)",
+                since="0.1.0")
     def smart_update(self, weights, image, proj, e, relaxation: float, floor: float) -> None:
         """Deprecated: :func:`lfcore.operator.log_ratio` then ``weights.update(ratio, e, relaxation)``."""
-        _moved("smart_update(weights, image, proj, e, mu, floor)",
-               "weights.update(lfcore.operator.log_ratio(image, proj, floor, ratio), e, mu)")
         ratio = log_ratio(image, proj, floor, self._scratch("ratio", self.n_pixels, self.wp.float32))
         weights.update(ratio, e, relaxation)
 
+    @deprecated("weights.scatter(e, out=out)", since="0.1.0")
     def scatter(self, weights, e, *, out=None):
         """Deprecated: ``weights.scatter(e, out=out)`` (:meth:`lfcore.operator.Operator.scatter`)."""
-        _moved("scatter(weights, e, out)", "weights.scatter(e, out=out)")
         return weights.scatter(e, out=out)
 
+    @deprecated("weights.scatter(e).numpy()", since="0.1.0")
     def to_volume(self, weights, e) -> np.ndarray:
         """Deprecated: ``weights.scatter(e).numpy()``."""
-        _moved("to_volume(weights, e)", "weights.scatter(e).numpy()")
         return weights.scatter(e).numpy()
-
-
-def _moved(old: str, new: str) -> None:
-    warnings.warn(f"Projector.{old} is now {new}; the old form still works for now", DeprecationWarning,
-                  stacklevel=3)
 
 
 class LightFieldProjector(BoundCameras):
@@ -461,21 +456,17 @@ class LightFieldProjector(BoundCameras):
         return self.weights(voxels, method=method, min_weight=min_weight, budget_bytes=budget_bytes, storage=storage)
 
     # --- the sequential form's pixel-major copy, kept for scripts written against the projector ------
+    @deprecated("weights.transpose()", since="0.1.0")
     def transpose(self, weights: Weights):
         """Deprecated: ``weights.transpose()``."""
-        _moved("transpose(weights)", "weights.transpose()")
         return weights.transpose()
 
+    @deprecated("weights.sweep(transposed, image, e, relaxation, floor)", since="0.1.0")
     def mart_sweep(self, transposed, image, e, relaxation: float, floor: float) -> None:
         """Deprecated: ``weights.sweep(transposed, image, e, relaxation, floor)``."""
-        _moved("mart_sweep(transposed, ...)", "weights.sweep(transposed, ...)")
         Weights(voxels=self._none, chunks=[], nnz=0, binding=self.binding()).sweep(transposed, image, e, relaxation,
                                                                                      floor)
 
 
-def __getattr__(name: str):
-    if name == "Projector":  # the light-field projector's name until the operator protocol
-        warnings.warn("lfcore.projector.Projector is now lfcore.projector.LightFieldProjector; the old name still "
-                      "works for now", DeprecationWarning, stacklevel=2)
-        return LightFieldProjector
-    raise AttributeError(f"module 'lfcore.projector' has no attribute {name!r}")
+# the light-field projector's name until the operator protocol
+__getattr__ = moved_names(__name__, {"Projector": lambda: LightFieldProjector}, since="0.1.0")

@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 from scipy import ndimage
 
+from lfcore._deprecation import deprecated
 from lfcore.device import available_bytes, out_of_memory_is_budget_error, warp
 from lfcore.device_ops import VolumeOps
 from lfcore.operator import (
@@ -573,8 +574,10 @@ class FrameReconstructor:
         n = int(voxels.shape[0])
         return self.source.operator(voxels, budget=lambda: self._weight_budget(n))
 
-    #: The name of :meth:`operator` until the operator protocol (the live path's and scripts').
-    weights = operator
+    @deprecated("FrameReconstructor.operator(voxels)", since="0.1.0")
+    def weights(self, voxels) -> Operator:
+        """Deprecated: :meth:`operator` (its name until the operator protocol)."""
+        return self.operator(voxels)
 
     def prepare(self) -> None:
         """Build now what the first frame's operator would build in its own time (the matrix-free

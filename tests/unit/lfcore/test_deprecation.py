@@ -6,7 +6,7 @@ import warnings
 
 import pytest
 
-from lfcore._deprecation import deprecated_alias, keyword_options
+from lfcore._deprecation import deprecated, deprecated_alias, keyword_options, moved_names
 
 
 def _options():
@@ -99,3 +99,47 @@ def test_an_alias_calls_the_new_function_and_warns_once():
     assert message.startswith("lfpiv.commands.correlate.evaluate_vectors is now ")
     assert message.endswith("evaluate (deprecated since lfpiv 0.1.0)")
     assert caught[0].filename == __file__
+
+
+def test_moved_names_give_the_object_itself_and_warn_once():
+    class New:
+        """A class renamed."""
+
+    getattr_ = moved_names("pkg.mod", {"Old": lambda: New}, since="0.1.0")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert getattr_("Old") is New and getattr_("Old") is New  # a class stays a class
+    assert len(caught) == 1 and caught[0].category is DeprecationWarning
+    message = str(caught[0].message)
+    assert message.startswith("pkg.mod.Old is now ") and message.endswith("New (deprecated since lfpiv 0.1.0)")
+    with pytest.raises(AttributeError, match="has no attribute 'Other'"):
+        getattr_("Other")
+
+
+def test_a_deprecated_method_still_works_and_says_what_to_use():
+    class Thing:
+        @deprecated("thing.new()", since="0.1.0")
+        def old(self, x):
+            return 2 * x
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert Thing().old(3) == 6 and Thing().old(4) == 8
+    assert len(caught) == 1 and caught[0].filename == __file__
+    assert str(caught[0].message).endswith("Thing.old() is deprecated since lfpiv 0.1.0: use thing.new()")
+
+
+def test_the_reconstruction_cores_old_names_still_work():
+    """Renamed with the operator protocol: each old name gives the new object, with a warning."""
+    import lfcore.matrix_free as matrix_free
+    import lfcore.pinhole_projector as pinhole_projector
+    import lfcore.plan as plan
+    import lfcore.projector as projector
+
+    with pytest.warns(DeprecationWarning, match="lfcore.projector.Projector is now lfcore.projector.LightFieldProj"):
+        assert projector.Projector is projector.LightFieldProjector
+    with pytest.warns(DeprecationWarning, match="is now lfcore.matrix_free.TemplateOperator"):
+        assert matrix_free.MatrixFreeWeights is matrix_free.TemplateOperator
+    for name in ("projector_for", "default_method", "unsupported_method"):
+        with pytest.warns(DeprecationWarning, match=f"lfcore.pinhole_projector.{name} is now lfcore.plan.{name}"):
+            assert getattr(pinhole_projector, name) is getattr(plan, name)

@@ -170,3 +170,17 @@ def test_no_module_but_the_planner_tests_a_concrete_operator_type():
                 if pattern.search(line):
                     found.append(f"{path.relative_to(ROOT)}:{n}: {line.strip()}")
     assert found == []
+
+
+def test_the_projectors_old_operator_methods_give_the_operators_results(scene):
+    """Scripts that called ``projector.forward(weights, e)`` and the like keep their results, warned."""
+    rig, grid, _, _ = scene
+    proj = LightFieldProjector(rig.camera, grid, device="cpu")
+    wp = proj.wp
+    w = proj.weights(proj.all_voxels()[:200], method="drt")
+    e = wp.array(np.linspace(0.5, 1.5, 200).astype(np.float32), dtype=float, device="cpu")
+    with pytest.warns(DeprecationWarning, match=r"forward\(\) is deprecated since lfpiv 0.1.0: use weights.forward"):
+        old = proj.forward(w, e).numpy()
+    np.testing.assert_array_equal(old, w.forward(e).numpy())
+    with pytest.warns(DeprecationWarning, match="use weights.scatter"):
+        np.testing.assert_array_equal(proj.to_volume(w, e), w.to_volume(e))

@@ -355,7 +355,7 @@ def test_frame_reconstructor_stages_on_device_images(tiny_rig, device):
     signal, lit = preprocess(img, level, sigma, 2.0)
     wp = proj.wp
     frames = FrameReconstructor(proj, ReconSettings(iterations=50, relaxation=1.5))
-    w = frames.weights(frames.eliminate(wp.array(lit.ravel().astype(np.uint8), device=device)))
+    w = frames.operator(frames.eliminate(wp.array(lit.ravel().astype(np.uint8), device=device)))
     done = frames.iterate(w, wp.array(signal.ravel(), dtype=float, device=device), [sigma], iterations=8,
                           relaxation=1.0)
     assert done.iterate_s > 0 and done.start_s > 0
