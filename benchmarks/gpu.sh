@@ -64,6 +64,7 @@ if [ "$stage" = tests ]; then
     step correlate 90 python3 benchmarks/correlate.py --case gpu --profile
     step recon-S 60 python3 benchmarks/recon.py --case S --case S2 --case T4 --device cuda
     step live-S 60 python3 benchmarks/live.py --case S --device cuda --seconds 10
+    step operator-overhead 40 python3 benchmarks/operator_overhead.py --device cuda
 elif [ "$stage" = tomo ]; then
     step pytest-tomo 200 python3 -m pytest tests/unit/lfcore/test_pinhole_projector.py tests/functional/test_tomo_cli.py \
         -q -p no:cacheprovider --timeout 150 --junitxml "$out/pytest-tomo.xml"

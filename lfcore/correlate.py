@@ -769,6 +769,7 @@ class Correlator:
                 raise CorrelationError("volumes must be finite")
         return dst
 
+    @keyword_options("progress", since="0.1.0")
     def __call__(self, volume_a: np.ndarray, volume_b: np.ndarray, *,
                  progress: Callable[[int], None] | None = None) -> VectorField:
         """Correlate one pair.

@@ -47,6 +47,7 @@ class ImagePreprocessor:
     image border count as dark), exactly as :func:`lfcore.reconstruct.preprocess`.
     """
 
+    @keyword_options("device", since="0.1.0")
     def __init__(self, cameras: Sequence[Camera], *, device: str | None = None) -> None:
         from lfcore._kernels import images as ki
 
@@ -59,6 +60,7 @@ class ImagePreprocessor:
         self.n_pixels = int(self.offsets[-1])
         self._grown = self.wp.empty(self.n_pixels, dtype=self.wp.uint8, device=self.device)
 
+    @keyword_options("grow", "stream", since="0.1.0")
     def __call__(self, raw, levels: Sequence[float], thresholds: Sequence[float], signal, lit, *, grow: int = 0,
                  stream=None) -> None:
         """Preprocess one frame of every camera.

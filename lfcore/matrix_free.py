@@ -74,7 +74,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lfcore._deprecation import moved_names
+from lfcore._deprecation import deprecated, keyword_options, moved_names
 from lfcore.device import PerBlock, PrivateCopies, Rows, available_bytes, cpu_threads, launch_rows, warp
 from lfcore.mla import HEX_ROW
 from lfcore.operator import (
@@ -464,6 +464,7 @@ class TemplateOperator:
             self._order = wp.array(rows, dtype=wp.int32, device=t.device)
         return self._order
 
+    @keyword_options("out", since="0.1.0")
     def forward(self, e, *, out=None) -> object:
         """Project intensities ``e`` (n,) into ``out`` (n_pixels,) float32 (zeroed first; None: a new
         array), returned."""
@@ -485,6 +486,11 @@ class TemplateOperator:
         t, km = self.templates, self.templates._km
         launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.order()),
                                                      self.voxels, ratio, float(relaxation), e, t._none_i], t.device)
+
+    @deprecated("op.update(ratio, e, relaxation)", since="0.1.0")
+    def smart_update(self, ratio, e, relaxation: float) -> None:
+        """Deprecated: :meth:`update` (its name until the operator protocol)."""
+        self.update(ratio, e, relaxation)
 
     def scatter(self, e, *, out=None) -> object:
         """The dense (z, y, x) float32 volume of the projector's grid with ``e`` at these voxels, zero

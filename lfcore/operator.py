@@ -27,7 +27,7 @@ projector's grid (a depth slab numbers its own from its first plane).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -110,6 +110,12 @@ class Operator(Protocol):
         Active voxels, stored weights (0 where none are stored) and device bytes held.
     n_on_the_fly
         Voxels whose weights are made again in every iteration instead of stored.
+
+    Notes
+    -----
+    The sequential form (eq. 4.1 pixel by pixel) needs stored rows besides: ``transpose()`` and
+    ``sweep(transposed, image, e, relaxation, floor)`` of :class:`lfcore.weight_build.Weights`
+    (:class:`lfcore.reconstruct.ReconSettings` allows it only with stored weights).
     """
 
     kind: str
@@ -203,14 +209,15 @@ class OperatorSource(Protocol):
 
     templates: object
 
-    def operator(self, voxels, *, budget_bytes: int, host: np.ndarray | None = None) -> Operator:
+    def operator(self, voxels, *, budget: Callable[[], int], host: np.ndarray | None = None) -> Operator:
         """The operator of a frame's ``voxels`` ((n,) int32 on the device; ``host`` the same on the
-        host where the caller has them), within ``budget_bytes``."""
+        host where the caller has them); ``budget()`` gives the bytes it may take, asked when they
+        are needed (the device's free memory changes as the operator is built)."""
 
     def held_bytes(self, op: Operator) -> int:
         """Device bytes kept for the next frames beside ``op`` (the templates, a cache's pool)."""
 
-    def prepare(self, *, budget_bytes: int) -> None:
+    def prepare(self, *, budget: Callable[[], int]) -> None:
         """Build what the first frame would otherwise build in its own time (the templates)."""
 
 

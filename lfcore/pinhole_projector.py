@@ -31,7 +31,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from lfcore._deprecation import moved_names
+from lfcore._deprecation import keyword_options, moved_names
 from lfcore.device import (
     MemoryBudgetError,
     RowOffset,
@@ -62,6 +62,7 @@ REACH_SIGMAS = 2.5
 TRACE_VOXELS = 1 << 18
 
 
+@keyword_options("footprint", since="0.1.0")
 def footprint_sigma_px(camera: PinholeCamera, grid: VolumeGrid, *, footprint: float = DEFAULT_FOOTPRINT) -> float:
     """Sigma, in pixels, of the footprint of one of ``grid``'s voxels on ``camera``'s sensor.
 
@@ -157,11 +158,13 @@ class PinholeProjector(BoundCameras):
                     self.device)
         return self._compact(mask)
 
+    @keyword_options("n_checks", "budget_bytes", since="0.1.0")
     def precompute_checks(self, *, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
         """Nothing to precompute: MLOS looks up one pixel per camera (returns 0 bytes)."""
         return 0
 
     # --- weights ------------------------------------------------------------------------
+    @keyword_options("method", "min_weight", "budget_bytes", "build", "sort", "storage", since="0.1.0")
     def weights(self, voxels, *, method: str = "los", min_weight: float = 1e-6, budget_bytes: int | None = None,
                 build: str = "auto", sort: str = "auto", storage: str = "stored") -> Weights:
         """Line-of-sight weights of ``voxels`` in every pinhole camera, stored: the operator of
@@ -295,6 +298,7 @@ class JointProjector(BoundCameras):
                               self.ph.eliminate(ph_lit).numpy())
         return self.wp.array(kept.astype(np.int32), dtype=self.wp.int32, device=self.device)
 
+    @keyword_options("n_checks", "budget_bytes", since="0.1.0")
     def precompute_checks(self, *, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
         """No elimination table is kept for a joint projector (returns 0 bytes)."""
         return 0
@@ -307,6 +311,7 @@ class JointProjector(BoundCameras):
         out._grid = out.lf._grid
         return out
 
+    @keyword_options("method", "min_weight", "budget_bytes", "build", "sort", "storage", since="0.1.0")
     def weights(self, voxels, *, method: str = "los", min_weight: float = 1e-6, budget_bytes: int | None = None,
                 build: str = "auto", sort: str = "auto", storage: str = "stored") -> Weights:
         """Both kinds' weights of ``voxels`` joined row by row (``method`` is the light-field

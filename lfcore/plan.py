@@ -390,6 +390,9 @@ def cache_serves(cameras: str, settings: ReconSettings) -> tuple[bool, str]:
     if cameras == "pinhole":
         return False, ("no weight cache: pinhole cameras have a handful of weights per voxel, built per frame in "
                        "less time than the iterations take")
+    if settings.projector == "matrix-free":
+        return True, ("weight cache: its elimination table only (the templates' operator traces no rows; elimination "
+                      "looks the checked pixels up)")
     return True, "weight cache: each voxel's rows are traced once, on the first frame that keeps it"
 
 
@@ -440,7 +443,7 @@ def asked_slabs(slabs: int | str | None, nz: int) -> int | None:
 
 
 def plan_reconstruction(cameras: Sequence, grid: VolumeGrid, settings: ReconSettings, *, device: str | None = None,
-                        slabs: int | str | None = None, free_bytes: int | None = None) -> Plan:
+                        slabs: int | str | None = None, free_bytes: int | None = None, can_split: bool = True) -> Plan:
     """How to reconstruct ``grid`` from ``cameras`` with ``settings`` on ``device``.
 
     Parameters
@@ -459,6 +462,9 @@ def plan_reconstruction(cameras: Sequence, grid: VolumeGrid, settings: ReconSett
         slab's voxels are numbered in int32).
     free_bytes
         The device's free memory; None: read now.
+    can_split
+        Whether the caller can reconstruct in depth slabs (False for the live path: in memory
+        only, and its refusals do not suggest ``--slabs``).
 
     Returns
     -------
@@ -502,12 +508,14 @@ def plan_reconstruction(cameras: Sequence, grid: VolumeGrid, settings: ReconSett
         reasons.append(f"--slabs auto: {n} depth slabs, since {why}")
     if n == 1:
         if need > free:
-            hint = "" if slabs is not None else ", or --slabs auto to reconstruct it in depth slabs"
+            hint = "" if slabs is not None or not can_split else ", or --slabs auto to reconstruct it in depth slabs"
             raise PlanError(f"a box of {grid.n_voxels:,} voxels needs {need / 2**30:.1f} GiB on {device}, more than it "
                             f"has free; use a coarser --pvr{hint}")
         if nz > max_planes(grid):
+            fix = "use --slabs auto to reconstruct it in depth slabs, or a coarser --pvr" if can_split else \
+                "use a coarser --pvr"
             raise PlanError(f"a box of {grid.n_voxels:,} voxels is more than int32 voxel indices number in one piece; "
-                            "use --slabs auto to reconstruct it in depth slabs, or a coarser --pvr")
+                            f"{fix}")
     cache, why_cache = cache_serves(kind, settings)
     if n > 1 and cache:
         cache, why_cache = False, "no weight cache: each frame's slabs hold their own weights"

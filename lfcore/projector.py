@@ -21,7 +21,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from lfcore._deprecation import deprecated, moved_names
+from lfcore._deprecation import deprecated, keyword_options, moved_names
 from lfcore.device import (
     MemoryBudgetError,
     PrivateCopies,
@@ -216,6 +216,7 @@ class BoundCameras:
 
     # --- the operator's own methods, kept for scripts written against the projector ------------------
     @deprecated("weights.forward(e, out=out)", since="0.1.0")
+    @keyword_options("out", since="0.1.0")
     def forward(self, weights, e, *, out=None):
         """Deprecated: ``weights.forward(e, out=out)`` (:meth:`lfcore.operator.Operator.forward`)."""
         return weights.forward(e, out=out)
@@ -228,6 +229,7 @@ class BoundCameras:
         weights.update(ratio, e, relaxation)
 
     @deprecated("weights.scatter(e, out=out)", since="0.1.0")
+    @keyword_options("out", since="0.1.0")
     def scatter(self, weights, e, *, out=None):
         """Deprecated: ``weights.scatter(e, out=out)`` (:meth:`lfcore.operator.Operator.scatter`)."""
         return weights.scatter(e, out=out)
@@ -236,6 +238,18 @@ class BoundCameras:
     def to_volume(self, weights, e) -> np.ndarray:
         """Deprecated: ``weights.scatter(e).numpy()``."""
         return weights.scatter(e).numpy()
+
+    # --- the sequential form's pixel-major copy, kept for scripts written against the projector ------
+    @deprecated("weights.transpose()", since="0.1.0")
+    def transpose(self, weights: Weights):
+        """Deprecated: ``weights.transpose()``."""
+        return weights.transpose()
+
+    @deprecated("weights.sweep(transposed, image, e, relaxation, floor)", since="0.1.0")
+    def mart_sweep(self, transposed, image, e, relaxation: float, floor: float) -> None:
+        """Deprecated: ``weights.sweep(transposed, image, e, relaxation, floor)``."""
+        Weights(voxels=self._none, chunks=[], nnz=0, binding=self.binding()).sweep(transposed, image, e, relaxation,
+                                                                                     floor)
 
 
 class LightFieldProjector(BoundCameras):
@@ -370,6 +384,7 @@ class LightFieldProjector(BoundCameras):
         launch_rows(kw.eliminate, n, [*common, candidates, 2**30, RowOffset(0), mask], self.device)
         return self._compact(mask[:n], candidates)
 
+    @keyword_options("n_checks", "budget_bytes", since="0.1.0")
     def precompute_checks(self, *, n_checks: int | None = None, budget_bytes: int | None = None) -> int:
         """Trace once the pixels of every voxel's first ``n_checks`` elimination checks.
 
@@ -420,6 +435,7 @@ class LightFieldProjector(BoundCameras):
         return out
 
     # --- the operator -------------------------------------------------------------------------
+    @keyword_options("method", "min_weight", "budget_bytes", "build", "sort", "storage", since="0.1.0")
     def weights(self, voxels, *, method: str = "drt", min_weight: float = 1e-6, budget_bytes: int | None = None,
                 build: str = "auto", sort: str = "auto", storage: str = "stored") -> Weights:
         """The operator of ``voxels`` (from :meth:`eliminate` or :meth:`all_voxels`): their sparse
@@ -454,19 +470,6 @@ class LightFieldProjector(BoundCameras):
         """The :class:`~lfcore.operator.Operator` of ``voxels``: :meth:`weights` (what
         :class:`lfcore.operator.Projector` asks of every projector)."""
         return self.weights(voxels, method=method, min_weight=min_weight, budget_bytes=budget_bytes, storage=storage)
-
-    # --- the sequential form's pixel-major copy, kept for scripts written against the projector ------
-    @deprecated("weights.transpose()", since="0.1.0")
-    def transpose(self, weights: Weights):
-        """Deprecated: ``weights.transpose()``."""
-        return weights.transpose()
-
-    @deprecated("weights.sweep(transposed, image, e, relaxation, floor)", since="0.1.0")
-    def mart_sweep(self, transposed, image, e, relaxation: float, floor: float) -> None:
-        """Deprecated: ``weights.sweep(transposed, image, e, relaxation, floor)``."""
-        Weights(voxels=self._none, chunks=[], nnz=0, binding=self.binding()).sweep(transposed, image, e, relaxation,
-                                                                                     floor)
-
 
 # the light-field projector's name until the operator protocol
 __getattr__ = moved_names(__name__, {"Projector": lambda: LightFieldProjector}, since="0.1.0")

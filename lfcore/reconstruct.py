@@ -32,6 +32,7 @@ is inherently serial, so it suits small problems on the CPU.
 
 from __future__ import annotations
 
+import importlib
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -40,7 +41,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 from scipy import ndimage
 
-from lfcore._deprecation import deprecated
+from lfcore._deprecation import deprecated, moved_names
 from lfcore.device import available_bytes, out_of_memory_is_budget_error, warp
 from lfcore.device_ops import VolumeOps
 from lfcore.operator import (
@@ -722,3 +723,8 @@ class FrameReconstructor:
         else:
             free = int(self.budget_bytes)
         return free - 12 * p.n_pixels - 4 * n_active - 8 * p.grid.n_voxels
+
+
+# the per-frame choice's costs, the planner's since the operator protocol (lfcore.plan; imported on first use)
+__getattr__ = moved_names(__name__, {name: (lambda name=name: getattr(importlib.import_module("lfcore.plan"), name))
+                                     for name in ("TEMPLATE_TRACES", "IMAGE_SHARE")}, since="0.1.0")

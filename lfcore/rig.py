@@ -41,6 +41,8 @@ from pydantic import (
     model_validator,
 )
 
+from lfcore._deprecation import keyword_options
+
 __all__ = [
     "MAX_RAYS_PER_PARTICLE",
     "AnyCamera",
@@ -835,6 +837,7 @@ class Rig(_Strict):
         raise KeyError(name)
 
     @classmethod
+    @keyword_options("source", since="0.1.0")
     def from_dict(cls, data: dict[str, Any], *, source: str = "rig") -> Rig:
 
         """Validate a parsed rig file.

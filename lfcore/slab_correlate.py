@@ -55,6 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from lfcore._deprecation import keyword_options
 from lfcore.correlate import (
     DEFAULT_BATCH_BYTES,
     CorrelationConfig,
@@ -85,6 +86,7 @@ BYTES_PER_SLAB_VOXEL = 32
 _INF = 1 << 40
 
 
+@keyword_options("tolerance", since="0.1.0")
 def prefilter_planes(*, tolerance: float = PREFILTER_TOLERANCE) -> int:
     """Planes between a cut edge and the first B-spline coefficient within ``tolerance`` (relative
     to the largest intensity) of the whole volume's (see the module docstring)."""
@@ -409,6 +411,7 @@ class SlabCorrelator:
         return [self._plan.slab(z0, z1, k0, k1, self._assumed)
                 for z0, z1, k0, k1 in _final_rows(self._plan, self._edges)]
 
+    @keyword_options("progress", since="0.1.0")
     def __call__(self, read: Callable[[int, int], tuple[np.ndarray, np.ndarray]], *,
                  progress: Callable[[int], None] | None = None) -> VectorField:
         """Correlate one pair slab by slab.

@@ -539,8 +539,8 @@ class WeightBuilder:
 
     def merged(self, voxels, trace: Callable, *, budget_bytes: int | None = None, floor: float = 0.0) -> Weights:
         """Stored weights of ``voxels`` from another maker of raw entries, merged and packed as the
-        DRT build's are (the matrix-free templates' entries: :meth:`MatrixFreeWeights.expanded
-        <lfcore.matrix_free.MatrixFreeWeights.expanded>`).
+        DRT build's are (the matrix-free templates' entries: :meth:`TemplateOperator.expanded
+        <lfcore.matrix_free.TemplateOperator.expanded>`).
 
         Parameters
         ----------

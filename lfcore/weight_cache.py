@@ -33,6 +33,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from lfcore._deprecation import keyword_options
 from lfcore.device import Rows, available_bytes, launch_rows
 from lfcore.operator import JOINT, LINE_OF_SIGHT, PINHOLE, TRACED
 from lfcore.operator import Projector as AnyProjector
@@ -70,6 +71,7 @@ class WeightCache:
         many as fit in a quarter of the budget (on top of it); None: all; 0: none.
     """
 
+    @keyword_options("budget_bytes", "min_weight", "checks", "method", since="0.1.0")
     def __init__(self, projector: AnyProjector, *, budget_bytes: int | None = None, min_weight: float = 1e-6,
                  checks: int | None = None, method: str = "drt") -> None:
         if method not in ("drt", "los"):
@@ -168,6 +170,7 @@ class WeightCache:
             self._used += c.nnz
         return True
 
+    @keyword_options("voxels", since="0.1.0")
     def prefill(self, *, voxels: np.ndarray | None = None) -> int:
         """Trace ahead of time ``voxels`` (flat indices; default: the whole grid) not yet stored.
 

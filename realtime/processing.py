@@ -106,7 +106,7 @@ class _Reconstructor:
         self.recon = recon
         # the batch path's planner: the projector of the cameras' kind, its operator and whether a weight
         # cache traces each voxel once, on the first frame that keeps it
-        self.plan = plan_reconstruction(self.cams, grid, recon, device=device)
+        self.plan = plan_reconstruction(self.cams, grid, recon, device=device, can_split=False)
         self.frames = build_reconstructor(self.plan, self.cams, grid, recon)
         self.projector = p = self.frames.projector
         self.cache = self.frames.cache

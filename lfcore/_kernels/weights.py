@@ -956,7 +956,7 @@ def _sum_runs(
     entry per pixel from ``s``; returns how many. ``order`` maps sorted entries to ``w_raw``.
 
     Merged entries at or below ``floor`` are dropped and the voxel's others scaled so that its
-    light is kept (:func:`lfcore.matrix_free.MatrixFreeWeights.expanded`' faint fringe); with
+    light is kept (:func:`lfcore.matrix_free.TemplateOperator.expanded`' faint fringe); with
     ``floor`` 0 none is (the raw entries are positive)."""
     m = int(0)
     prev = int(-1)

@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from lfcore._deprecation import keyword_options
 from lfcore.runstore._common import Part, RunStoreError, run_array
 from lfcore.runstore._coords import pair_times_s
 
@@ -16,6 +17,7 @@ TRUTH_ARRAYS = {"particles": np.float64, "brightness": np.float32, "t0_s": np.fl
 class Truth(Part):
     """What a synthetic run was rendered from, so that every error can be measured against it."""
 
+    @keyword_options("t0_s", since="0.1.0")
     def write_truth(self, particles_mm: np.ndarray, brightness: np.ndarray, flow: dict[str, Any], *,
                     t0_s: np.ndarray | None = None, **attrs: Any) -> None:
 

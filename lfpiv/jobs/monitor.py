@@ -33,6 +33,7 @@ from acquisition.session import SessionStats
 from lfcore.correlate import CorrelationConfig, CorrelationError
 from lfcore.device import MemoryBudgetError, resolve_device
 from lfcore.operator import MatrixFreeUnsupported
+from lfcore.plan import PlanError
 from lfcore.reconstruct import ReconSettings
 from lfcore.rig import Rig
 from lfcore.runstore import RunStore
@@ -376,7 +377,7 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
             f"on {device} ...")
         try:
             pipe.build()
-        except (MatrixFreeUnsupported, MemoryBudgetError) as exc:
+        except (MatrixFreeUnsupported, MemoryBudgetError, PlanError) as exc:
             raise UsageError(str(exc)) from None
         stack.callback(pipe.stop)
         rec = LiveRecorder(rig, pipe, pairs=pairs, out=out, overwrite=overwrite, sim_options=sim_options,

@@ -45,7 +45,7 @@ def _rotation() -> VectorField:
 
 
 def _pair(vol: np.ndarray) -> ProcessedPair:
-    ops = VolumeOps(GRID.shape, "cpu")
+    ops = VolumeOps(GRID.shape, device="cpu")
     dev = warp().array(vol, dtype=float, device="cpu")
     view = PairView(pair=3, frames={}, frame_id={}, timestamp_ns={}, slot=0, generation=0)
     return ProcessedPair(view=view, raw={}, volume=dev, ops=ops, field=_rotation(), grid=GRID, dt_s=DT_S,
