@@ -205,3 +205,18 @@ def test_reconstruct_v_says_the_plan_and_info_shows_it(frames_only, tmp_path, ca
     rc, out, err = _run(capsys, "info", path)
     assert rc == 0, err
     assert re.search(r"^plan\s+auto on cpu, weight cache, in memory; ran traced weights$", out, re.M), out
+
+
+def test_monitor_refuses_a_box_the_planner_refuses_in_one_line(tmp_path, capsys, monkeypatch) -> None:
+    """The live path is planned by the batch path's planner: a box whose buffers do not fit is one
+    line naming the fix the monitor has (a coarser --pvr, not the depth slabs it cannot use)."""
+    pytest.importorskip("pyqtgraph")
+    import lfcore.plan as plan
+
+    monkeypatch.setattr(plan, "available_bytes", lambda device: 1000)
+    rig = tmp_path / "fast1.toml"
+    rig.write_text(fast_rig_text(rate_hz=20.0, cameras=1))
+    rc, out, err = _run(capsys, "monitor", "--rig", rig, "--pairs", "2", "--device", "cpu", "--sim-pool", "1",
+                        "--quiet")
+    assert rc == 2 and err.count("\n") == 1, err
+    assert "more than it has free; use a coarser --pvr" in err and "--slabs" not in err, err

@@ -143,3 +143,27 @@ def test_the_reconstruction_cores_old_names_still_work():
     for name in ("projector_for", "default_method", "unsupported_method"):
         with pytest.warns(DeprecationWarning, match=f"lfcore.pinhole_projector.{name} is now lfcore.plan.{name}"):
             assert getattr(pinhole_projector, name) is getattr(plan, name)
+
+
+def test_the_reconstruction_cores_positional_options_still_work():
+    """Calls written before the options became keyword-only give the same results, warned."""
+    import numpy as np
+
+    from lfcore.projector import LightFieldProjector
+    from lfcore.volume import VolumeGrid
+    from lfcore.weight_cache import WeightCache
+    from lfpiv.rigfile import load_rig
+    from tests.conftest import EXAMPLES
+
+    rig = load_rig(EXAMPLES / "tiny.toml")
+    rig = rig.model_copy(update={"volume": rig.volume.model_copy(update={"size_mm": (0.3, 0.3, 0.6)})})
+    proj = LightFieldProjector(rig.camera, VolumeGrid.from_rig(rig), device="cpu")
+    vox = proj.all_voxels()[:50]
+    with pytest.warns(DeprecationWarning, match="pass method=, min_weight=, budget_bytes=, build=, sort=, storage="):
+        old = proj.weights(vox, "los")
+    new = proj.weights(vox, method="los")
+    for a, b in zip(old.to_numpy(), new.to_numpy(), strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.warns(DeprecationWarning, match="pass budget_bytes=, min_weight=, checks=, method="):
+        cache = WeightCache(proj, None, 1e-6, 0, "los")
+    assert cache.method == "los" and cache.checks_bytes == 0
