@@ -976,7 +976,8 @@ def _first_error(exc: ValidationError) -> str:
                     "remove it")
         known = list(model.model_fields) if model is not None else []
         close = difflib.get_close_matches(str(err["loc"][-1]), known, n=1, cutoff=0.6)
-        hint = f"did you mean {close[0]}?" if close else "check its spelling against examples/ and DESIGN.md"
+        hint = (f"did you mean {close[0]}?" if close else
+                "check its spelling against examples/ and the user guide's rig-file reference")
         return f"{where}: unknown key ({hint})"
     if kind == "missing":
         return f"{where}: required key is missing"

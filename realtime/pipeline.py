@@ -1,6 +1,6 @@
 """The live pipeline: the newest recorded pair to a volume, vectors and vorticity, near real time.
 
-It runs beside the recorder (DESIGN.md, "Data flow") and never slows it. :class:`LivePipeline`
+It runs beside the recorder (the data flow of ``docs/development.md``) and never slows it. :class:`LivePipeline`
 runs three rooms of one job each on a thread of its own, pair after pair:
 
 1. staging (:mod:`realtime.staging`): a feeder thread copies the newest complete pair out of the
@@ -62,23 +62,9 @@ class LiveResult:
         How many results were published before this one.
     raw
         Per camera, frame A (rows, columns) uint16, a copy.
-    mip
-        Maximum-intensity projections of volume A along each axis: ``"z"`` (ny, nx),
-        ``"y"`` (nz, nx), ``"x"`` (nz, ny).
-    slice_axis, slice_index, slice_image
-        The slice of volume A shown: (ny, nx) for z, (nz, nx) for y, (nz, ny) for x.
-    extent_mm
-        Per axis name, the (min, max) world coordinates of the voxel centres.
-    vectors
-        The vector plane nearest the slice.
-    velocity
-        (nz, ny, nx, 3) velocity (u, v, w) in m/s on the vector grid.
-    vorticity
-        (nz, ny, nx, 3) vorticity (x, y, z) in 1/s.
-    grid_mm
-        1-D world coordinates (x, y, z) of the vector grid.
-    outlier_fraction
-        Share of the vectors the median test flagged.
+    mip, slice_axis, slice_index, slice_image, extent_mm, vectors, velocity, vorticity, grid_mm, outlier_fraction
+        What the window shows of the pair, as :class:`realtime.view.Derived` has them (the view's
+        pure function, :func:`realtime.view.derive`, made them).
     active_fraction
         Share of voxels that survived elimination (mean of A and B).
     timings

@@ -283,8 +283,9 @@ def test_frame_writer_goes_through_zarr_for_other_layouts(tmp_path):
 
 
 def test_every_group_reads_with_xarray(tiny_rig, tmp_path):
-    """DESIGN.md: a user with plain zarr or xarray reads a run without lfpiv. xarray needs each
-    array's axes as zarr v3 dimension_names, with one size per name across a group."""
+    """The run-store layout (docs/reference/run-store.md): a user with plain zarr or xarray reads a
+    run without lfpiv. xarray needs each array's axes as zarr v3 dimension_names, with one size per
+    name across a group."""
     xr = pytest.importorskip("xarray")
     from lfcore.volume import VolumeGrid
 
