@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Every GPU check of the project in few calls of the device machine (see ../shared/GPU.md).
+# Every GPU check of the project in few calls of the device machine (see docs/guide/gpu.md).
 #
 #   bash benchmarks/gpu.sh tests   # the tests' CUDA variants and the functional tests (default
 #                                  # device: the GPU), then the quick benchmarks
