@@ -234,9 +234,10 @@ def from_templates(op: object) -> bool:
 
 
 def log_ratio(image, proj, floor: float, out) -> object:
-    """``out[i] = ln(max(image_i, floor) / max(proj_i, floor))`` over all pixels: the ratio the
-    multiplicative update (:meth:`Operator.update`) reads. ``image``, ``proj`` and ``out`` are
-    (n_pixels,) float32 on one device; ``floor`` in counts. Returns ``out``."""
+    """``out[i] = ln(max(image_i, floor) / proj_i)`` over all pixels, 0 where nothing projects
+    onto pixel i (``proj_i`` 0): the ratio the multiplicative update (:meth:`Operator.update`)
+    reads. ``image``, ``proj`` and ``out`` are (n_pixels,) float32 on one device; ``floor`` in
+    counts, the least a pixel's measurement counts as. Returns ``out``."""
     from lfcore._kernels import mart as km
 
     wp = warp()
