@@ -83,6 +83,7 @@ from lfcore.operator import (
     TEMPLATES,
     MatrixFreeUnsupported,
     applied_by,
+    gather,
     scatter_voxels,
 )
 from lfcore.projector import LightFieldProjector
@@ -486,6 +487,11 @@ class TemplateOperator:
         t, km = self.templates, self.templates._km
         launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.order()),
                                                      self.voxels, ratio, float(relaxation), e, t._none_i], t.device)
+
+    def restrict(self, rows) -> TemplateOperator:
+        """The templates' operator of some of these voxels: ``rows`` (k,) int32 row indices
+        (ascending, on the device); row t of the result is voxel ``voxels[rows[t]]``."""
+        return TemplateOperator(self.templates, gather(self.voxels, rows), self.min_weight)
 
     @deprecated("op.update(ratio, e, relaxation)", since="0.1.0")
     def smart_update(self, ratio, e, relaxation: float) -> None:

@@ -37,8 +37,8 @@ from lfcore.volume import VolumeGrid
 
 __all__ = ["ALL_KINDS", "INDEX_LIMIT", "JOINT", "LINE_OF_SIGHT", "MatrixFreeUnsupported", "OPERATOR_KINDS",
            "Operator", "OperatorSource", "PINHOLE", "PROJECTORS", "Projector", "STORAGE", "TEMPLATES",
-           "TEMPLATE_IMAGES", "TRACED", "applied_by", "check_indexable", "from_templates", "log_ratio", "max_planes",
-           "scatter_voxels"]
+           "TEMPLATE_IMAGES", "TRACED", "applied_by", "check_indexable", "from_templates", "gather", "log_ratio",
+           "max_planes", "scatter_voxels"]
 
 #: Voxels are numbered by int32 flat indices, so one projector numbers fewer than this many: a larger
 #: box (the chapter's 5.5-G-voxel dual-camera one) is reconstructed in depth slabs, each numbering
@@ -149,6 +149,10 @@ class Operator(Protocol):
     def scatter(self, e, *, out=None) -> object:
         """The dense (z, y, x) float32 volume of the grid with ``e`` at the voxels, zero elsewhere,
         on the device (``out`` zeroed and written; None: a new array)."""
+
+    def restrict(self, rows) -> Operator:
+        """The operator of some of its rows: ``rows`` (k,) int32 row indices (ascending, on the
+        device) into :attr:`voxels`; a new operator whose row t is this one's ``rows[t]``."""
 
 
 class Projector(Protocol):
@@ -265,4 +269,18 @@ def scatter_voxels(voxels, e, shape: Sequence[int], *, device: str, out=None) ->
     if n:
         flat = out.reshape(int(np.prod(shape)))
         launch_rows(km.scatter_volume, n, [Rows(voxels), Rows(e), flat], device)
+    return out
+
+
+def gather(src, rows) -> object:
+    """``src[rows]`` on the device: ``src`` (n,) float32 or int32, ``rows`` (k,) int32; a new (k,) array
+    of ``src``'s type (the intensities or voxel indices of the rows an operator keeps)."""
+    from lfcore._kernels import mart as km
+
+    wp = warp()
+    k = int(rows.shape[0])
+    device = str(src.device)
+    out = wp.empty(max(k, 1), dtype=src.dtype, device=device)[:k]
+    if k:
+        launch_rows(km.gather_index if src.dtype == wp.int32 else km.gather, k, [src, Rows(rows), Rows(out)], device)
     return out

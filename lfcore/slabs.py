@@ -42,7 +42,7 @@ import numpy as np
 from lfcore.device import MemoryBudgetError, Rows, available_bytes, launch_rows, out_of_memory_is_budget_error
 from lfcore.device_ops import VolumeOps, gaussian_taps
 from lfcore.operator import OPERATOR_KINDS, TEMPLATES, Operator, Projector, from_templates, log_ratio, max_planes
-from lfcore.reconstruct import FrameReconstructor, ReconResult, ReconSettings, _total, preprocess_images
+from lfcore.reconstruct import FrameReconstructor, ReconResult, ReconSettings, _total, preprocess_images, prune_dark
 from lfcore.volume import VolumeGrid
 
 __all__ = ["BYTES_PER_SLAB_VOXEL", "Slab", "SlabReconstructor", "deepest_slab", "plan_slabs", "slab_halo",
@@ -262,6 +262,7 @@ class SlabReconstructor:
         ratio = wp.empty(p.n_pixels, dtype=float, device=dev)
         es = [wp.empty(max(w.n_voxels, 1), dtype=float, device=dev) for w in weights]
         n_total = sum(w.n_voxels for w in weights)
+        nnz, fly = sum(w.nnz for w in weights), sum(w.n_on_the_fly for w in weights)  # before any pruning
 
         def project() -> None:
             # the projection of the whole volume: the slabs' images summed pixel by pixel
@@ -296,6 +297,9 @@ class SlabReconstructor:
                 for w, e in zip(weights, es, strict=True):
                     if w.n_voxels:
                         w.update(ratio, e, s.relaxation)
+                if s.prune > 0 and (it + 1) % s.prune_every == 0 and it + 1 < s.iterations:
+                    # the dark voxels leave every slab's operator, at one threshold for the whole volume
+                    weights, es = prune_dark(weights, es, s.prune)
                 if progress is not None:
                     progress(1)
                 if it < 3 or it == s.iterations - 1:  # the first few and the last: not 400 lines
@@ -322,10 +326,10 @@ class SlabReconstructor:
             del ops, buf, flat
         log(f"volume smoothed and written, slab by slab, in {time.perf_counter() - t3:.1f} s")
         return ReconResult(volume=np.zeros((0, 0, 0), np.float32), active_voxels=n_total,
-                           active_fraction=n_total / p.grid.n_voxels, nnz=sum(w.nnz for w in weights),
+                           active_fraction=n_total / p.grid.n_voxels, nnz=nnz,
                            weight_bytes=operator_bytes, weights_s=t1 - t0 + start_s,
                            iterate_s=iterate_s, iterations=s.iterations, background=backgrounds, noise=noises,
-                           eliminate_s=t_elim, on_the_fly_voxels=sum(w.n_on_the_fly for w in weights),
+                           eliminate_s=t_elim, on_the_fly_voxels=fly, final_voxels=sum(w.n_voxels for w in weights),
                            projector="matrix-free" if any(from_templates(w) for w in weights) else "stored",
                            slabs=len(self.slabs), peak_bytes=self.peak_bytes,
                            operator=", ".join(sorted({w.kind for w in weights})))

@@ -39,7 +39,7 @@ from lfcore.device import (
     out_of_memory_is_budget_error,
     warp,
 )
-from lfcore.operator import LINE_OF_SIGHT, STORAGE, TEMPLATE_IMAGES, TRACED, scatter_voxels
+from lfcore.operator import LINE_OF_SIGHT, STORAGE, TEMPLATE_IMAGES, TRACED, gather, scatter_voxels
 
 __all__ = ["ADVICE", "BUILDS", "BYTES_PER_WEIGHT", "CHUNK_ENTRIES", "LANES", "ON_THE_FLY_BYTES_PER_VOXEL", "STORAGE",
            "Binding", "WeightBuilder", "WeightChunk", "Weights", "device_range"]
@@ -256,6 +256,45 @@ class Weights:
     def to_volume(self, e) -> np.ndarray:
         """Like :meth:`scatter`, as a host (z, y, x) float32 array."""
         return self.scatter(e).numpy()
+
+    def restrict(self, rows) -> Weights:
+        """The weights of some of these voxels: ``rows`` (k,) int32 row indices (ascending, on the
+        device); row t of the result is row ``rows[t]`` of these, copied (new arrays, so these may be
+        let go). Rows made on the fly stay so (their sums are kept); ``nnz`` then counts the stored
+        entries only."""
+        from lfcore._kernels import weights as kw
+
+        b = self._bound()
+        wp = warp()
+        dev = b.device
+        rows_h = np.asarray(rows.numpy(), dtype=np.int64)
+        k = self.n_stored
+        stored = rows_h[rows_h < k]
+        chunks, first, total = [], 0, 0
+        for c in self.chunks:
+            sel = stored[(stored >= c.first) & (stored < c.first + c.n)] - c.first
+            if sel.size == 0:
+                continue
+            offs = c.offsets.numpy()
+            new = np.zeros(sel.size + 1, dtype=np.int64)
+            np.cumsum(offs[sel + 1] - offs[sel], out=new[1:])
+            nnz = int(new[-1])
+            offsets = wp.array(new, dtype=wp.int64, device=dev)
+            pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=dev)
+            w = wp.empty(max(nnz, 1), dtype=float, device=dev)
+            if nnz:
+                starts = wp.array(offs[sel], dtype=wp.int64, device=dev)
+                launch_rows(kw.copy_rows, int(sel.size), [Rows(starts), Rows(offsets, extra=1), c.pix, c.w, pix, w],
+                            dev)
+            chunks.append(WeightChunk(first=first, n=int(sel.size), offsets=offsets, pix=pix, w=w, nnz=nnz))
+            first += int(sel.size)
+            total += nnz
+        sums = None
+        if self.sums is not None and rows_h.size > stored.size:  # the rows made on the fly: their sums
+            sums = gather(self.sums, wp.array((rows_h[stored.size:] - k).astype(np.int32), dtype=wp.int32,
+                                              device=dev))
+        return Weights(voxels=gather(self.voxels, rows), chunks=chunks, nnz=total, sums=sums,
+                       min_weight=self.min_weight, kind=self.kind, binding=self.binding)
 
     def transpose(self) -> tuple:
         """Pixel-major copy of the weights for the sequential form: (p_offsets, vox, w, rows)."""

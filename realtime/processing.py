@@ -149,9 +149,11 @@ class _Reconstructor:
         return self.frames.eliminate(self.lit[f])
 
     def iterate(self, f: int, weights, iterations: int, relaxation: float):
-        """Uniform start scaled to the measured signal, then ``iterations`` SMART updates."""
+        """Uniform start scaled to the measured signal, then ``iterations`` SMART updates (the
+        dark voxels leaving the operator as the batch path's do): the
+        :class:`~lfcore.reconstruct.Iterated` intensities and the operator they are of."""
         noise = [sigma for _, sigma in self.background]  # type: ignore[misc]
-        return self.frames.iterate(weights, self.signal[f], noise, iterations=iterations, relaxation=relaxation).e
+        return self.frames.iterate(weights, self.signal[f], noise, iterations=iterations, relaxation=relaxation)
 
     def volume(self, f: int, weights, e):
         """Frame ``f``'s (z, y, x) volume, smoothed, in its device buffer."""
@@ -235,15 +237,15 @@ class PairProcessor:
             t1 = time.perf_counter()
             w = rc.frames.operator(voxels)  # from the cache where it has them
             t2 = time.perf_counter()
-            e = rc.iterate(f, w, s.iterations, s.relaxation)
+            done = rc.iterate(f, w, s.iterations, s.relaxation)
             t3 = time.perf_counter()
-            vols.append(rc.volume(f, w, e))
+            vols.append(rc.volume(f, done.op, done.e))
             t4 = time.perf_counter()
             active.append(w.n_voxels / self.grid.n_voxels)
             projectors.add(applied_by(w))
             for k, a, b in (("eliminate", t0, t1), ("weights", t1, t2), ("iterate", t2, t3), ("volume", t3, t4)):
                 t[k] += b - a
-            del voxels, w, e  # frame A's weights go before frame B's are built (tens of GB for a large volume)
+            del voxels, w, done  # frame A's weights go before frame B's are built (tens of GB for a large volume)
             staging.prefetch()
         t0 = time.perf_counter()
         vf = self.correlator(vols[0], vols[1])

@@ -243,3 +243,17 @@ def mart_sequential(
 def scatter_volume(voxels: wp.array(dtype=wp.int32), e: wp.array(dtype=float), volume: wp.array(dtype=float)):
     j = wp.tid()
     volume[voxels[j]] = e[j]
+
+
+@wp.kernel
+def gather(src: wp.array(dtype=float), rows: wp.array(dtype=wp.int32), dst: wp.array(dtype=float)):
+    """dst[t] = src[rows[t]]: the intensities of the rows an operator keeps (see ``restrict``)."""
+    t = wp.tid()
+    dst[t] = src[rows[t]]
+
+
+@wp.kernel
+def gather_index(src: wp.array(dtype=wp.int32), rows: wp.array(dtype=wp.int32), dst: wp.array(dtype=wp.int32)):
+    """dst[t] = src[rows[t]]: the voxel indices of the rows an operator keeps."""
+    t = wp.tid()
+    dst[t] = src[rows[t]]

@@ -15,6 +15,7 @@ from lfpiv.commands import (
     old_spelling_notes,
     pairs_option,
     positive_float,
+    positive_int,
     sub_apertures,
     warn,
     workers_phrase,
@@ -81,6 +82,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="background level to subtract (default: estimated per image)")
     r.add_argument("--threshold-sigma", type=positive_float, default=2.0,
                    help="a pixel is lit above background + this many noise sigmas (default: 2)")
+    r.add_argument("--prune", type=non_negative_float, default=0.01, metavar="FRACTION",
+                   help="every --prune-every iterations the voxels dimmer than this fraction of the brightest leave "
+                   "the reconstruction (MART keeps a dark voxel dark; the later iterations then touch only what may "
+                   "hold a particle; default: 0.01; 0: every voxel to the last iteration, the chapter's protocol)")
+    r.add_argument("--prune-every", type=positive_int, default=10, metavar="N",
+                   help="iterations between the prunings, and before the first (default: 10)")
     r.add_argument("--smooth", type=non_negative_float, default=0.6, metavar="VOXELS",
                    help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
     r.add_argument("--sub-apertures", type=sub_apertures, default=None,
@@ -121,7 +128,8 @@ def run(args: argparse.Namespace) -> int:
     settings = recon_settings(method=method, iterations=args.iterations, relaxation=args.relaxation, form=args.form,
                               sub_apertures=args.sub_apertures, background=args.background,
                               threshold_sigma=args.threshold_sigma, smooth=args.smooth,
-                              weight_storage=args.weight_storage, projector=args.projector)
+                              weight_storage=args.weight_storage, projector=args.projector, prune=args.prune,
+                              prune_every=args.prune_every)
     args.method = method
     store = open_run(args.run, mode="r+")
     rig, calibration = None, None
@@ -141,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     grid = store.volume_grid()
     act = sum(r.active_fraction for r in results) / len(results)
+    left = sum(r.final_voxels / max(r.active_voxels, 1) for r in results) / len(results)
     ms = sum(r.ms_per_iteration for r in results) / len(results)
     wb = max(r.weight_bytes for r in results)
     ws = sum(r.weights_s for r in results) / len(results)
@@ -151,7 +160,8 @@ def run(args: argparse.Namespace) -> int:
                 f"stored weights or matrix-free templates, at most {wb / 2**20:.1f} MiB")
     print(f"reconstructed {len(results)} volume(s) of {' x '.join(map(str, grid.shape[::-1]))} voxels (x, y, z) "
           f"with {args.method}{' and the models of ' + args.calibration if calibration else ''} into "
-          f"{store.path}/volumes{workers_phrase(args)}; per volume: {act:.2%} of voxels active, "
+          f"{store.path}/volumes{workers_phrase(args)}; per volume: {act:.2%} of voxels active"
+          f"{f' ({left:.0%} of them left after pruning)' if left < 1 else ''}, "
           f"{operator} built in {ws:.2f} s, {ms:.1f} ms per iteration")
     split = max(r.slabs for r in results)
     if split > 1:

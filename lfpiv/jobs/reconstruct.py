@@ -377,5 +377,6 @@ def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, An
 
 def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
     """Volumes' recorded settings, with those of settings added since at the value they had
-    (volumes made before ``projector`` was recorded were made by ``auto``'s stored weights)."""
-    return {"projector": "auto", **settings}
+    (volumes made before ``projector`` was recorded were made by ``auto``'s stored weights, those
+    before ``prune`` with every voxel to the last iteration)."""
+    return {"projector": "auto", "prune": 0.0, "prune_every": 10, **settings}

@@ -67,7 +67,7 @@ class DensityStudy(Study):
         runs = {}
         for method, its in dict.fromkeys([("drt-mart", nd), ("mart", nm), ("drt-mart", ed), ("mart", em),
                                           ("mlos-mart", nd)]):
-            res, seconds = rec(pair.frame(0), ReconSettings(method=method, iterations=its))
+            res, seconds = rec(pair.frame(0), ReconSettings.chapter(method=method, iterations=its))
             ev = metrics.evaluate_volume(res.volume, grid, pair.particles[0], pair.brightness[0],
                                          centre_mm=rig.volume.centre_mm, size_mm=rig.volume.size_mm)
             runs[f"{method}_{its}"] = {"q": metrics.q_recon(res.volume, e0), "seconds": seconds,
@@ -88,7 +88,7 @@ class DensityStudy(Study):
         for k in range((params["frames"] + 1) // 2):
             pair = scene.pair(k)
             for f in (0, 1)[: params["frames"] - 2 * k]:
-                res, _ = rec(pair.frame(f), ReconSettings(iterations=params["iterations"]))
+                res, _ = rec(pair.frame(f), ReconSettings.chapter(iterations=params["iterations"]))
                 total += res.volume
                 ev = metrics.evaluate_volume(res.volume, grid, pair.particles[f], pair.brightness[f],
                                              centre_mm=rig.volume.centre_mm, size_mm=rig.volume.size_mm)

@@ -58,7 +58,8 @@ class DiametersStudy(Study):
         grid = VolumeGrid.from_rig(rig)
         scene = Scene(rig, flow="uniform", ppm=params["ppm"], seed=SEED, device=device)
         rec = None if params["method"] == "truth" else Reconstructor(rig.camera, grid, device=device)
-        settings = ReconSettings(method=params["method"] if rec else "drt-mart", iterations=params["iterations"])
+        settings = ReconSettings.chapter(method=params["method"] if rec else "drt-mart",
+                                         iterations=params["iterations"])
         diam, depth, seconds = [], [], 0.0
         focus = rig.camera[0].focus_mm[2]
         for k in range(params["pairs"]):

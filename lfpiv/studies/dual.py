@@ -74,7 +74,7 @@ class DualStudy(Study):
             for ppm in params["ppm"]:
                 pair = Scene(rig, flow="uniform", ppm=ppm, seed=SEED, device=device).pair(0)
                 rec = Reconstructor(rig.camera, grid, device=device)
-                res, _ = rec(pair.frame(0), ReconSettings(iterations=params["iterations"]))
+                res, _ = rec(pair.frame(0), ReconSettings.chapter(iterations=params["iterations"]))
                 out[f"{ppm:g}"] = metrics.q_recon(res.volume, metrics.truth_volume(grid, pair.particles[0],
                                                                                    brightness=pair.brightness[0]))
             return {"q": out}
@@ -85,7 +85,7 @@ class DualStudy(Study):
         rec = Reconstructor(cams, grid, device=device, cache=True)
         qs = []
         for its in params["iterations"]:
-            res, _ = rec(pair.frame(0)[: params["cameras"]], ReconSettings(iterations=its))
+            res, _ = rec(pair.frame(0)[: params["cameras"]], ReconSettings.chapter(iterations=its))
             qs.append(metrics.q_recon(res.volume, e0))
         return {"q": qs, "iterations": params["iterations"], "particles": int(scene.world.n_particles)}
 

@@ -72,7 +72,7 @@ class IterationsStudy(Study):
         rec = Reconstructor(rig.camera, grid, device=device, cache=True)
         qs, secs, profiles, active = [], [], {}, 0.0
         for its in params["iterations"]:
-            res, seconds = rec(pair.frame(0), ReconSettings(method=params["method"], iterations=its,
+            res, seconds = rec(pair.frame(0), ReconSettings.chapter(method=params["method"], iterations=its,
                                                             relaxation=params["relaxation"]))
             qs.append(metrics.q_recon(res.volume, e0))
             secs.append(res.iterate_s)

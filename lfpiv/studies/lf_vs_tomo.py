@@ -142,7 +142,7 @@ def run_pair(rig: Rig, *, method: str, iterations: int, ppm: float | None = None
     pair = scene.pair(0)
     grid = VolumeGrid.from_rig(rig)
     rec = Reconstructor(rig.camera, grid, device=device)
-    settings = ReconSettings(method=method, iterations=iterations)
+    settings = ReconSettings.chapter(method=method, iterations=iterations)
     vols, seconds = [], 0.0
     for f in (0, 1):
         res, s = rec(pair.frame(f), settings)

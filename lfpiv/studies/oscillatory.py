@@ -171,7 +171,7 @@ class OscillatoryStudy(Study):
             if params["still"]:  # frame B shows frame A's particles again, with noise of its own
                 pair = _still(scene, pair)
             for its in params["iterations"]:
-                settings = ReconSettings(method=params["method"], iterations=its)
+                settings = ReconSettings.chapter(method=params["method"], iterations=its)
                 vols = []
                 for f in (0, 1):
                     res, s = rec(pair.frame(f), settings)

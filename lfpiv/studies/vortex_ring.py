@@ -79,7 +79,7 @@ class VortexRingStudy(Study):
         scene = Scene(rig, flow="vortex-ring", ppm=params["ppm"], seed=SEED, device=device)
         cams = rig.camera[: params["cameras"]]
         rec = Reconstructor(cams, grid, device=device, cache=True)
-        settings = ReconSettings(iterations=params["iterations"])
+        settings = ReconSettings.chapter(iterations=params["iterations"])
         vel = {p: [] for p in POST}
         truth = []
         outliers = 0.0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 import signal
 import subprocess
@@ -330,3 +331,21 @@ def test_three_ctrl_cs_while_reconstructing_exit_130_without_a_traceback(capsys,
     assert err.strip().splitlines()[-1] == "lfpiv: interrupted; what was recorded so far is kept"
     n = len(RunStore.open(run).reconstructed_pairs())
     assert 2 <= n < 12 and RunStore.check(run) == []
+
+
+def test_prune_from_the_command(capsys, synthetic_run, tmp_path):
+    """--prune: the dark voxels leave after --prune-every iterations, which the summary says and the
+    settings record; --prune 0 is the chapter's protocol; a fraction of 1 or more is one line."""
+    run = tmp_path / "run.zarr"
+    shutil.copytree(synthetic_run, run)
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "30", "--pair-range", "0:1", "--quiet")
+    assert rc == 0, err
+    left = re.search(r"of voxels active \((\d+)% of them left after pruning\)", out)
+    assert left and 0 < int(left.group(1)) < 100, out
+    settings = RunStore.open(run).group["volumes"].attrs["settings"]
+    assert settings["prune"] == 0.01 and settings["prune_every"] == 10
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "30", "--pair-range", "0:1", "--prune", "0",
+                        "--quiet")
+    assert rc == 0 and "left after pruning" not in out and "replaced" in err, err  # other settings: replaced
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--prune", "1.5", "--quiet")
+    assert rc == 2 and out == "" and err.count("\n") == 1 and "prune must be from 0" in err, err

@@ -184,3 +184,60 @@ def test_the_projectors_old_operator_methods_give_the_operators_results(scene):
     np.testing.assert_array_equal(old, w.forward(e).numpy())
     with pytest.warns(DeprecationWarning, match="use weights.scatter"):
         np.testing.assert_array_equal(proj.to_volume(w, e), w.to_volume(e))
+
+
+@pytest.mark.parametrize("kind", ["stored", "templates", "on-the-fly"])
+def test_an_operator_restricted_to_some_rows_is_those_rows(scene, device, kind):
+    """``restrict``: the operator of some of its voxels projects and updates as the whole one does with
+    the other voxels dark (the rows are copied whole; rows made on the fly stay so)."""
+    from lfcore.matrix_free import DrtTemplates, TemplateOperator
+    from tests.helpers import smart_update
+
+    rig, grid, _, _ = scene
+    proj = LightFieldProjector(rig.camera, grid, device=device)
+    wp = proj.wp
+    rng = np.random.default_rng(2)
+    vox = wp.array(np.sort(rng.choice(grid.n_voxels, 3000, replace=False)).astype(np.int32), device=device)
+    if kind == "stored":
+        op = proj.weights(vox, method="drt")
+    elif kind == "templates":
+        op = TemplateOperator(DrtTemplates(proj), vox)
+    else:  # a third of the line-of-sight rows stored, the rest made on the fly
+        full = proj.weights(vox, method="los")
+        op = proj.weights(vox, method="los", storage="auto", budget_bytes=full.nbytes // 3)
+        assert 0 < op.n_stored < op.n_voxels
+    keep = np.sort(rng.choice(3000, 700, replace=False)).astype(np.int32)
+    sub = op.restrict(wp.array(keep, dtype=wp.int32, device=device))
+    assert sub.kind == op.kind and sub.n_voxels == 700
+    np.testing.assert_array_equal(sub.voxels.numpy(), vox.numpy()[keep])
+    e_full = np.zeros(3000, np.float32)
+    e_full[keep] = rng.random(700).astype(np.float32) + 0.1
+    a = op.forward(wp.array(e_full, device=device)).numpy()
+    b = sub.forward(wp.array(e_full[keep], device=device)).numpy()
+    np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6 * a.max())
+    image = wp.array((a * rng.uniform(0.5, 1.5, a.size)).astype(np.float32), device=device)
+    ea, eb = wp.array(e_full, device=device), wp.array(e_full[keep], device=device)
+    smart_update(op, image, wp.array(a, device=device), ea, 1.0, 1e-3)
+    smart_update(sub, image, wp.array(a, device=device), eb, 1.0, 1e-3)
+    np.testing.assert_allclose(eb.numpy(), ea.numpy()[keep], rtol=1e-5)
+    np.testing.assert_allclose(sub.scatter(eb).numpy(), op.scatter(ea).numpy(), rtol=1e-5)  # the others stay 0
+
+
+def test_dark_voxels_leave_the_operator_at_the_same_quality(scene, device):
+    """Pruning (ReconSettings.prune): the voxels MART leaves dark stop being iterated; the known
+    particles are reconstructed as well as with every voxel to the end, by far fewer voxels."""
+    rig, grid, pts, img = scene
+    proj = LightFieldProjector(rig.camera, grid, device=device)
+    truth = metrics.truth_volume(grid, pts)
+    every = FrameReconstructor(proj, ReconSettings.chapter(iterations=60, projector="stored")).reconstruct([img])
+    pruned = FrameReconstructor(proj, ReconSettings(iterations=60, projector="stored")).reconstruct([img])
+    assert every.final_voxels == every.active_voxels == pruned.active_voxels
+    assert pruned.final_voxels < 0.5 * pruned.active_voxels
+    q_every, q_pruned = metrics.q_recon(every.volume, truth), metrics.q_recon(pruned.volume, truth)
+    assert q_every > 0.5 and q_pruned >= q_every - 0.01, (q_every, q_pruned)
+    # the voxels left are the bright ones: what pruning took held under 1% of the light
+    assert pruned.volume.sum() == pytest.approx(every.volume.sum(), rel=0.02)
+    with pytest.raises(ValueError, match="prune must be from 0"):
+        ReconSettings(prune=1.5)
+    with pytest.raises(ValueError, match="prune_every must be 1 or more"):
+        ReconSettings(prune_every=0)
