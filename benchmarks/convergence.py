@@ -9,7 +9,8 @@ Run from the repository root::
     python benchmarks/convergence.py --case Mc2 --counts 50,100,200 --device cuda
 
 The cases are ``benchmarks/recon.py``'s (the same scene: rig, seeding and rendering). The
-elimination and the ray-traced stored weights are made once and timed; every reconstruction
+elimination and the operator (ray-traced stored weights; ``--projector auto`` or ``matrix-free``:
+the templates' images where they pay or fit) are made once and timed; every reconstruction
 starts from them (uniform start), so a row's total is the elimination and weights plus its own
 iterations. Each row: the iteration count, Q against the true particles, the voxels left at the
 end, ms per iteration and the total, and for the pruned rows the speed-up over the unpruned
@@ -52,6 +53,9 @@ def main() -> None:
     ap.add_argument("--prune", type=float, default=PRUNE, help=f"the pruned rows' fraction (default {PRUNE})")
     ap.add_argument("--prune-every", type=int, default=10)
     ap.add_argument("--no-reference", action="store_true", help="skip the unpruned rows (the slow ones)")
+    ap.add_argument("--projector", choices=("stored", "auto", "matrix-free"), default="stored",
+                    help="what applies the operator (default: ray-traced stored weights; auto: the templates' images "
+                    "where they cost less, as lfpiv reconstruct chooses)")
     args = ap.parse_args()
     device = resolve_device(args.device)
     counts = [int(c) for c in args.counts.split(",")]
@@ -59,8 +63,8 @@ def main() -> None:
     _, _, cams, grid, pts, img = _recon_bench().scene(args.case, device, args.ppm)
     truth = metrics.truth_volume(grid, pts)
     proj = projector_for(cams, grid, device=device)
-    settings = {"every voxel": ReconSettings.chapter(projector="stored"),
-                "pruned": ReconSettings(projector="stored", prune=args.prune, prune_every=args.prune_every)}
+    settings = {"every voxel": ReconSettings.chapter(projector=args.projector),
+                "pruned": ReconSettings(projector=args.projector, prune=args.prune, prune_every=args.prune_every)}
     if args.no_reference:
         del settings["every voxel"]
     frames = {k: FrameReconstructor(proj, s) for k, s in settings.items()}
