@@ -70,9 +70,9 @@ METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 WEIGHTS = {"drt-mart": "drt", "mart": "los", "mlos-mart": "los", "mlos-smart": "los"}
 #: ``ReconSettings.prune``'s default: voxels dimmer than this fraction of the brightest leave the operator.
 #: Measured against the truth (``benchmarks/convergence.py``): on the Mc crop (471,702 active voxels,
-#: 784 particles) Q is the unpruned one at every count from 10 to 400 iterations (0.783 at 400) while
-#: 14,703 voxels are left at the end and the iterations take 8.7x less time; on the tiny rig Q is
-#: 0.003 higher at 100 iterations (the ghosts leave), in 5x less time.
+#: 784 particles) Q is the unpruned one at every count from 50 to 400 iterations (0.783 at 400) while
+#: 14,851 voxels are left at the end and the iterations take 10.6x less time; on the tiny rig Q is
+#: 0.003 higher at 100 iterations (the ghosts leave), in 2.3x less time (``benchmarks/RESULTS.md``).
 PRUNE = 0.01
 #: The percentile of the intensities that stands for the brightest voxels (their maximum is one voxel's).
 PRUNE_PERCENTILE = 99.9
