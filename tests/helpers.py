@@ -227,3 +227,31 @@ def smart_update(op, image, proj, e, relaxation: float, floor: float) -> None:
     wp = warp()
     ratio = wp.empty(int(image.shape[0]), dtype=float, device=str(image.device))
     op.update(log_ratio(image, proj, floor, ratio), e, relaxation)
+
+
+def tomo_arc_small():
+    """The chapter's 4-camera arc of pinhole cameras on a 2 x 2 x 1.5 mm box (27 x 27 x 20 voxels at
+    PVR 1), one camera with radial and tangential distortion and an off-centre principal point."""
+    from lfpiv.rigfile import load_rig
+    from tests.conftest import EXAMPLES
+
+    rig = load_rig(EXAMPLES / "tomo_4_cameras.toml")
+    cams = list(rig.camera)
+    cams[2] = cams[2].model_copy(update={"k1": 0.8, "p1": 0.01, "principal_point_px": (3.0, -2.0)})
+    return rig.model_copy(update={"camera": cams,
+                                  "volume": rig.volume.model_copy(update={"size_mm": (2.0, 2.0, 1.5)})})
+
+
+def lightfield_scene(rig):
+    """``rig``'s box seeded at 0.3 PPM and its first camera's image of it, rendered on the CPU:
+    (rig, grid, particles (n, 3) mm, image (rows, columns))."""
+    from lfcore.particles import particle_count, seed_particles
+    from lfcore.render import LightFieldRenderer
+    from lfcore.volume import VolumeGrid
+
+    grid = VolumeGrid.from_rig(rig)
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.3), np.random.default_rng(3))
+    cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
+    img = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(
+        pts, 50_000.0, seed=1)
+    return rig, grid, pts, img

@@ -160,7 +160,7 @@ def operator_figures(results: Sequence[ReconResult], before: dict[str, Any] | No
             "ms_per_iteration": round(ms, 3), "frames": n}
 
 
-def operator_figures_of(results: Sequence[ReconResult], before: dict[str, Any] | None = None) -> list[str]:
+def operators_ran(results: Sequence[ReconResult], before: dict[str, Any] | None = None) -> list[str]:
     """The operator kinds (:data:`lfcore.operator.ALL_KINDS`) over the frames of a set of volumes:
     those of ``before`` (the ``operators`` entry of the attribute, or None) and of ``results``."""
     old = (before or {}).get("operators") or []
@@ -174,7 +174,7 @@ def _record(store: RunStore, written: list[tuple[int, int]], results: Sequence[R
     of their attributes (by the one process that writes the store's bookkeeping)."""
     def attrs(now: Any) -> dict[str, Any]:
         figures = operator_figures(results, now.get(OPERATOR_ATTR))
-        figures["operators"] = operator_figures_of(results, now.get(OPERATOR_ATTR))
+        figures["operators"] = operators_ran(results, now.get(OPERATOR_ATTR))
         return {OPERATOR_ATTR: figures, **({} if plan is None else {PLAN_ATTR: plan.as_dict()})}
 
     store.record_volumes(written, attrs=attrs)

@@ -26,13 +26,11 @@ from lfcore.matrix_free import (
     fidelity,
     template_count,
 )
-from lfcore.particles import particle_count, seed_particles
 from lfcore.projector import LightFieldProjector, MemoryBudgetError
 from lfcore.reconstruct import FrameReconstructor, ReconSettings, reconstruct
-from lfcore.render import LightFieldRenderer
 from lfcore.rig import Rig
 from lfcore.volume import VolumeGrid
-from tests.helpers import smart_update
+from tests.helpers import lightfield_scene, smart_update
 
 
 def _small(rig: Rig, size_mm=(0.5, 0.4, 1.2), cameras: list | None = None, **camera_changes) -> Rig:
@@ -91,13 +89,7 @@ def test_templates_keep_each_voxels_light(tiny_rig, device):
 @pytest.fixture(scope="module")
 def scene(tiny_rig):
     """A small tiny-rig box, its particles and image (rendered on the CPU)."""
-    rig = _small(tiny_rig)
-    grid = VolumeGrid.from_rig(rig)
-    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.3), np.random.default_rng(3))
-    cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
-    img = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(
-        pts, 50_000.0, seed=1)
-    return rig, grid, pts, img
+    return lightfield_scene(_small(tiny_rig))
 
 
 def test_forward_projection_and_update_match_the_stored_weights(scene, device):

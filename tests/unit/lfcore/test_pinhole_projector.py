@@ -13,17 +13,14 @@ from lfcore.rig import Rig
 from lfcore.volume import VolumeGrid
 from lfpiv.rigfile import load_rig
 from tests.conftest import EXAMPLES
+from tests.helpers import tomo_arc_small
 
 
 @pytest.fixture(scope="module")
 def small() -> Rig:
     """The chapter's 4-camera arc on a 2 x 2 x 1.5 mm box (27 x 27 x 20 voxels at PVR 1), one
     camera with radial and tangential distortion and an off-centre principal point."""
-    rig = load_rig(EXAMPLES / "tomo_4_cameras.toml")
-    cams = list(rig.camera)
-    cams[2] = cams[2].model_copy(update={"k1": 0.8, "p1": 0.01, "principal_point_px": (3.0, -2.0)})
-    return rig.model_copy(update={"camera": cams,
-                                  "volume": rig.volume.model_copy(update={"size_mm": (2.0, 2.0, 1.5)})})
+    return tomo_arc_small()
 
 
 def _centres(grid: VolumeGrid, voxels: np.ndarray) -> np.ndarray:

@@ -11,7 +11,6 @@ import pytest
 
 from lfcore import metrics
 from lfcore.operator import ALL_KINDS, JOINT, PINHOLE, TEMPLATE_IMAGES, TEMPLATES, TRACED, Operator
-from lfcore.particles import particle_count, seed_particles
 from lfcore.pinhole_projector import JointProjector, PinholeProjector
 from lfcore.plan import (
     BYTES_PER_BOX_VOXEL,
@@ -27,12 +26,12 @@ from lfcore.plan import (
 )
 from lfcore.projector import LightFieldProjector
 from lfcore.reconstruct import FrameReconstructor, ReconSettings
-from lfcore.render import LightFieldRenderer
 from lfcore.rig import Rig
 from lfcore.slabs import SlabReconstructor
 from lfcore.volume import VolumeGrid
 from lfpiv.rigfile import load_rig
 from tests.conftest import EXAMPLES
+from tests.helpers import lightfield_scene, tomo_arc_small
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -40,11 +39,7 @@ ROOT = Path(__file__).resolve().parents[3]
 @pytest.fixture(scope="module")
 def small() -> Rig:
     """The chapter's 4-camera arc on a 2 x 2 x 1.5 mm box, one camera distorted."""
-    rig = load_rig(EXAMPLES / "tomo_4_cameras.toml")
-    cams = list(rig.camera)
-    cams[2] = cams[2].model_copy(update={"k1": 0.8, "p1": 0.01, "principal_point_px": (3.0, -2.0)})
-    return rig.model_copy(update={"camera": cams,
-                                  "volume": rig.volume.model_copy(update={"size_mm": (2.0, 2.0, 1.5)})})
+    return tomo_arc_small()
 
 
 def _crop(rig: Rig, size_mm=(0.5, 0.4, 1.2)) -> Rig:
@@ -127,13 +122,7 @@ def test_the_operator_sources_of_the_settings(tiny_rig, small):
 
 @pytest.fixture(scope="module")
 def scene(tiny_rig):
-    rig = _crop(tiny_rig)
-    grid = VolumeGrid.from_rig(rig)
-    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.3), np.random.default_rng(3))
-    cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
-    img = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(
-        pts, 50_000.0, seed=1)
-    return rig, grid, pts, img
+    return lightfield_scene(_crop(tiny_rig))
 
 
 @pytest.mark.parametrize(("settings", "kind"), [
