@@ -58,10 +58,12 @@ from lfcore.operator import (
 
 if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to import
     from lfcore.matrix_free import DrtTemplates
+    from lfcore.warm import Predictor, WarmStart
     from lfcore.weight_cache import WeightCache
 
 __all__ = ["METHODS", "PRUNE", "PRUNE_PERCENTILE", "WEIGHTS", "FrameReconstructor", "Iterated", "ReconResult",
-           "ReconSettings", "estimate_background", "preprocess", "preprocess_images", "prune_dark", "reconstruct"]
+           "ReconSettings", "WARM_SHARE", "estimate_background", "preprocess", "preprocess_images", "prune_dark",
+           "reconstruct", "warm_count"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: The weights each method iterates on (the ``method`` of :meth:`lfcore.operator.Projector.operator`
@@ -85,6 +87,18 @@ MAX_SMOOTH_VOXELS = 10.0
 #: lenslet (about 14), and each voxel traces the square of this many bundles.
 MAX_SUB_APERTURES = 64
 FORMS = ("simultaneous", "sequential")
+#: A warm-started frame's share of a cold one's iterations (``ReconSettings.warm_iterations``'s
+#: default): benchmarks/warm.py measured frame B started from A by the last pair's field reaching
+#: the cold frame's Q in this share.
+WARM_SHARE = 0.2
+
+
+def warm_count(iterations: int, warm_iterations: int | None) -> int:
+    """Iterations of a warm-started frame whose cold count is ``iterations``: ``warm_iterations``,
+    or :data:`WARM_SHARE` of ``iterations`` (at least one)."""
+    if warm_iterations is not None:
+        return int(warm_iterations)
+    return max(1, round(WARM_SHARE * iterations))
 
 
 @dataclass(frozen=True)
@@ -154,6 +168,12 @@ class ReconSettings:
         only (the sequential one iterates them all).
     prune_every
         Iterations between the prunings (and before the first).
+    warm_start
+        Along a series, start frame B of each pair from frame A's intensities carried by the
+        predicted displacement (the last pair's measured field) instead of uniform, and iterate it
+        ``warm_iterations`` times (:mod:`lfcore.warm`). The simultaneous form only.
+    warm_iterations
+        Iterations of a warm-started frame; None: :data:`WARM_SHARE` of ``iterations``.
     """
 
     method: str = "drt-mart"
@@ -172,6 +192,8 @@ class ReconSettings:
     projector: str = "auto"
     prune: float = PRUNE
     prune_every: int = 10
+    warm_start: bool = False
+    warm_iterations: int | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -213,6 +235,16 @@ class ReconSettings:
                              f"intensity), got {self.prune}")
         if self.prune_every < 1:
             raise ValueError(f"prune_every must be 1 or more iterations, got {self.prune_every}")
+        if self.warm_start and self.form == "sequential":
+            raise ValueError("a warm start runs the simultaneous form; use form 'simultaneous'")
+        if self.warm_iterations is not None and self.warm_iterations < 1:
+            raise ValueError(f"warm_iterations must be 1 or more, got {self.warm_iterations}")
+
+    @property
+    def warm_count(self) -> int:
+        """Iterations of a warm-started frame: ``warm_iterations``, or :data:`WARM_SHARE` of
+        ``iterations`` (at least one)."""
+        return warm_count(self.iterations, self.warm_iterations)
 
     @classmethod
     def chapter(cls, **changes) -> ReconSettings:
@@ -256,6 +288,9 @@ class ReconResult:
     final_voxels
         Voxels left in the operator after the last pruning (``active_voxels`` without pruning;
         :attr:`ReconSettings.prune`).
+    warm
+        Whether the frame started from the last one's intensities carried by a predictor
+        (:mod:`lfcore.warm`; ``iterations`` is then the warm count) rather than uniform.
     slabs
         Depth slabs the volume was reconstructed in (1: in memory; see :mod:`lfcore.slabs`).
     peak_bytes
@@ -282,6 +317,7 @@ class ReconResult:
     peak_bytes: int = 0
     operator: str = ""
     final_voxels: int = -1
+    warm: bool = False
 
     def __post_init__(self) -> None:
         if self.final_voxels < 0:
@@ -490,6 +526,12 @@ def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[
     return out_ops, out_es
 
 
+def _mart_kernels():
+    from lfcore._kernels import mart as km
+
+    return km
+
+
 def _total(a) -> float:
     """Sum of a float32 Warp array: NumPy's (pairwise) where it is host memory, a device reduction
     elsewhere (no copy to the host)."""
@@ -570,8 +612,8 @@ class FrameReconstructor:
         self._volume = None  # (z, y, x) float32
 
     # --- one frame from host images --------------------------------------------------------------
-    def reconstruct(self, images: Sequence[np.ndarray], *, progress: Callable[[int], None] | None = None
-                    ) -> ReconResult:
+    def reconstruct(self, images: Sequence[np.ndarray], *, progress: Callable[[int], None] | None = None,
+                    warm: WarmStart | None = None, predictor: Predictor | None = None) -> ReconResult:
         """Reconstruct one volume from one raw image per camera.
 
         Parameters
@@ -580,6 +622,12 @@ class FrameReconstructor:
             One raw (rows, columns) image per camera, in the projector's camera order, in counts.
         progress
             Called with 1 after each iteration.
+        warm
+            Where the series' intensities are kept: this frame's are kept there for the next one,
+            and with a ``predictor`` this frame starts from the kept ones carried along it and runs
+            ``settings.warm_iterations`` (:mod:`lfcore.warm`).
+        predictor
+            The displacement from the kept frame to this one; None: a uniform start.
 
         Returns
         -------
@@ -595,10 +643,11 @@ class FrameReconstructor:
         signals, lits, backgrounds, noises = preprocess_images(p, images, settings)
         what = f"{settings.method} of a {p.grid.n_voxels:,}-voxel box"
         with out_of_memory_is_budget_error(p.device, what, "use a coarser --pvr or a smaller volume"):
-            return self._reconstruct(signals, lits, backgrounds, noises, progress)
+            return self._reconstruct(signals, lits, backgrounds, noises, progress, warm, predictor)
 
     def _reconstruct(self, signals: list[np.ndarray], lits: list[np.ndarray], backgrounds: list[float],
-                     noises: list[float], progress: Callable[[int], None] | None) -> ReconResult:
+                     noises: list[float], progress: Callable[[int], None] | None, warm: WarmStart | None = None,
+                     predictor: Predictor | None = None) -> ReconResult:
         wp, p, settings = self.wp, self.projector, self.settings
         t0 = time.perf_counter()
         voxels = self.eliminate(lits)  # returns once counted: synced
@@ -609,7 +658,13 @@ class FrameReconstructor:
         flat = np.concatenate([s.ravel() for s in signals])
         wp.copy(self._image, wp.array(flat, dtype=float, device="cpu", copy=False))
         t1 = time.perf_counter()
-        done = self.iterate(op, self._image, noises, progress=progress)
+        warmed = warm is not None and predictor is not None and warm.held and settings.form == "simultaneous"
+        its = settings.warm_count if warmed else settings.iterations
+        start = warm.start(op, predictor) if warmed else None
+        done = self.iterate(op, self._image, noises, progress=progress, iterations=its, start=start)
+        del start
+        if warm is not None:
+            warm.keep(done.op, done.e)
         vol = self.volume(done.op, done.e)
         volume = vol.numpy()  # a copy from a GPU, a view of the buffer on the CPU
         if self.device == "cpu":
@@ -618,9 +673,9 @@ class FrameReconstructor:
         return ReconResult(volume=volume, active_voxels=n, active_fraction=n / p.grid.n_voxels,
                            nnz=op.nnz, weight_bytes=self.operator_bytes(op),
                            weights_s=t1 - t0 + done.start_s,
-                           iterate_s=done.iterate_s, iterations=settings.iterations, background=backgrounds,
+                           iterate_s=done.iterate_s, iterations=its, background=backgrounds,
                            noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=op.n_on_the_fly,
-                           projector=applied_by(op), operator=op.kind, final_voxels=done.op.n_voxels)
+                           projector=applied_by(op), operator=op.kind, final_voxels=done.op.n_voxels, warm=warmed)
 
     # --- the stages ------------------------------------------------------------------------------
     def eliminate(self, lit) -> object:
@@ -695,10 +750,12 @@ class FrameReconstructor:
         return int(op.nbytes) + int(self.source.held_bytes(op))
 
     def iterate(self, op: Operator, image, noise: Sequence[float], *, iterations: int | None = None,
-                relaxation: float | None = None, progress: Callable[[int], None] | None = None) -> Iterated:
-        """MART on ``weights``: a uniform start, then the iterations of ``settings.form``.
+                relaxation: float | None = None, progress: Callable[[int], None] | None = None,
+                start=None) -> Iterated:
+        """MART on ``weights``: a uniform start (or ``start``), then the iterations of ``settings.form``.
 
-        The start is uniform, scaled so that its projection carries the measured total signal.
+        The start is uniform (or ``start``), scaled so that its projection carries the measured total
+        signal.
         The simultaneous form (SMART) then alternates a forward projection and the update of
         every voxel; the sequential form sweeps eq. 4.1 pixel by pixel. In the update a pixel's
         measurement counts as at least the floor, ``settings.floor`` times the lit threshold
@@ -718,6 +775,9 @@ class FrameReconstructor:
             them while it runs).
         progress
             Called with 1 after each iteration.
+        start
+            (n,) float32 Warp array on the device: the voxels' relative start intensities (a warm
+            start, :meth:`lfcore.warm.WarmStart.start`), all positive; None: uniform.
 
         Returns
         -------
@@ -737,11 +797,20 @@ class FrameReconstructor:
         if n == 0:  # nothing to reconstruct
             e.fill_(0.0)
             return Iterated(e, time.perf_counter() - t0, 0.0, op)
-        # Start uniform, scaled so the projection carries the measured total signal.
-        e.fill_(1.0)
+        # Start uniform (or warm), scaled so the projection carries the measured total signal.
+        if start is None:
+            e.fill_(1.0)
+        else:
+            if int(start.shape[0]) != n:
+                raise ValueError(f"the start has {start.shape[0]} intensities for {n} voxels")
+            wp.copy(e, start)
         op.forward(e, out=proj)
         total_proj = _total(proj)
-        e.fill_(_total(image) / total_proj if total_proj > 0 else 0.0)
+        scale = _total(image) / total_proj if total_proj > 0 else 0.0
+        if start is None:
+            e.fill_(scale)
+        else:
+            wp.launch(_mart_kernels().scale_shift, dim=n, inputs=[e, scale, 0.0], device=self.device)
         wp.synchronize_device(self.device)
         t1 = time.perf_counter()
         floor = max(s.floor * s.threshold_sigma * float(np.mean(noise)), 1e-6)

@@ -84,6 +84,9 @@ class LiveResult:
     projector
         What applied the operator to both frames: ``"stored"`` weights or the ``"matrix-free"``
         templates (``"matrix-free, stored"`` where ``auto`` used each for one frame).
+    warm
+        Whether frame B started from frame A carried along the last pair's field
+        (:func:`realtime.settings.monitoring_recon`'s ``warm_start``).
     """
 
     pair: int
@@ -107,6 +110,7 @@ class LiveResult:
     skipped: int
     discarded: int
     projector: str = "stored"
+    warm: bool = False
 
 
 @dataclass(frozen=True)
@@ -404,7 +408,8 @@ class LivePipeline:
                           vectors=shown.vectors, velocity=shown.velocity, vorticity=shown.vorticity,
                           grid_mm=shown.grid_mm, outlier_fraction=shown.outlier_fraction,
                           active_fraction=pair.active_fraction, timings=timings, trigger_ns=stamp, latency_s=latency,
-                          settings=s, skipped=skipped, discarded=discarded, projector=pair.projector)
+                          settings=s, skipped=skipped, discarded=discarded, projector=pair.projector,
+                          warm=pair.warm)
 
     def _publish(self, result: LiveResult) -> None:
         with self._lock:

@@ -36,9 +36,10 @@ from lfcore.correlate import CorrelationConfig, Correlator, VectorField
 from lfcore.device_ops import ImagePreprocessor, VolumeOps
 from lfcore.operator import applied_by
 from lfcore.plan import build_reconstructor, plan_reconstruction
-from lfcore.reconstruct import ReconSettings, estimate_background
+from lfcore.reconstruct import ReconSettings, estimate_background, warm_count
 from lfcore.rig import Rig
 from lfcore.volume import VolumeGrid
+from lfcore.warm import Predictor, WarmStart
 from realtime.settings import LiveSettings
 from realtime.staging import StagedPair, Staging
 
@@ -72,6 +73,8 @@ class ProcessedPair:
     projector
         What applied the operator to both frames: ``"stored"`` weights or the ``"matrix-free"``
         templates (``"matrix-free, stored"`` where ``auto`` used each for one frame).
+    warm
+        Whether frame B started from frame A carried along the last pair's field (a warm start).
     timings
         Seconds per stage: ``copy`` (out of the ring), ``preprocess``, ``eliminate``, ``weights``
         (from the cache or built), ``iterate``, ``volume``, ``correlate``.
@@ -87,6 +90,7 @@ class ProcessedPair:
     active_fraction: float
     projector: str
     timings: dict[str, float]
+    warm: bool = False
 
 
 class _Reconstructor:
@@ -123,6 +127,10 @@ class _Reconstructor:
         self.lit = [wp.zeros(p.n_pixels, dtype=wp.uint8, device=self.device) for _ in range(2)]
         self.volumes = [self.ops.empty() for _ in range(2)]
         self.background: list[tuple[float, float] | None] = [None] * len(self.cams)
+        # warm starts: frame A kept, frame B started from it along the last pair's field
+        self.warm = WarmStart(grid.shape, device=self.device) if recon.warm_start else None
+        self.predictor: Predictor | None = None
+        self.warmed = False  # whether the last frame B started warm
 
     def camera_image(self, frames: np.ndarray, f: int, k: int) -> np.ndarray:
         """Camera ``k``'s (rows, columns) view of frame ``f`` of flat (2, n_pixels) host frames."""
@@ -151,9 +159,23 @@ class _Reconstructor:
     def iterate(self, f: int, weights, iterations: int, relaxation: float):
         """Uniform start scaled to the measured signal, then ``iterations`` SMART updates (the
         dark voxels leaving the operator as the batch path's do): the
-        :class:`~lfcore.reconstruct.Iterated` intensities and the operator they are of."""
+        :class:`~lfcore.reconstruct.Iterated` intensities and the operator they are of.
+
+        With warm starts, frame A's intensities are kept and frame B, once a pair's field has been
+        measured, starts from them carried along it, with :data:`~lfcore.reconstruct.WARM_SHARE` of
+        ``iterations`` (the batch path's rule, :meth:`lfcore.reconstruct.FrameReconstructor.reconstruct`)."""
         noise = [sigma for _, sigma in self.background]  # type: ignore[misc]
-        return self.frames.iterate(weights, self.signal[f], noise, iterations=iterations, relaxation=relaxation)
+        start = None
+        self.warmed = False
+        if self.warm is not None and f == 1 and self.predictor is not None and self.warm.held and iterations > 0:
+            start = self.warm.start(weights, self.predictor)
+            iterations = warm_count(iterations, self.recon.warm_iterations)
+            self.warmed = True
+        done = self.frames.iterate(weights, self.signal[f], noise, iterations=iterations, relaxation=relaxation,
+                                   start=start)
+        if self.warm is not None and f == 0:
+            self.warm.keep(done.op, done.e)
+        return done
 
     def volume(self, f: int, weights, e):
         """Frame ``f``'s (z, y, x) volume, smoothed, in its device buffer."""
@@ -249,7 +271,9 @@ class PairProcessor:
             staging.prefetch()
         t0 = time.perf_counter()
         vf = self.correlator(vols[0], vols[1])
+        if rc.warm is not None:  # the next pair's predictor
+            rc.predictor = Predictor.from_field(vf)
         t["correlate"] = time.perf_counter() - t0
         return ProcessedPair(view=view, raw=raw, volume=vols[0], ops=rc.ops, field=vf, grid=self.grid, dt_s=self.dt_s,
                              active_fraction=float(np.mean(active)), projector=", ".join(sorted(projectors)),
-                             timings=t)
+                             timings=t, warm=rc.warmed)

@@ -25,12 +25,13 @@ LIVE_METHODS = ("drt-mart", "mlos-mart", "mlos-smart")
 
 
 def monitoring_recon(iterations: int = 5, relaxation: float = 1.0, method: str = "drt-mart", *,
-                     projector: str = "auto") -> ReconSettings:
+                     projector: str = "auto", warm_start: bool = False) -> ReconSettings:
     """Settings for monitoring: few simultaneous iterations, the default thresholds.
 
     ``method`` is one of :data:`LIVE_METHODS`; ``projector`` one of
     :data:`lfcore.operator.PROJECTORS` (what applies DRT-MART's operator, as in
-    :class:`~lfcore.reconstruct.ReconSettings`).
+    :class:`~lfcore.reconstruct.ReconSettings`); ``warm_start``: frame B of each pair starts from
+    frame A carried along the last pair's field (:mod:`lfcore.warm`).
 
     Raises
     ------
@@ -39,7 +40,7 @@ def monitoring_recon(iterations: int = 5, relaxation: float = 1.0, method: str =
     """
     check_live_method(method)
     return ReconSettings(method=method, iterations=iterations, relaxation=relaxation, form="simultaneous",
-                         projector=projector)
+                         projector=projector, warm_start=warm_start)
 
 
 def check_live_method(method: str) -> None:

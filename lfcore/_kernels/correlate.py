@@ -891,3 +891,23 @@ def local_peak(sums: wp.array2d(dtype=wp.vec3f), first: int, nl: wp.vec3i, n_vox
     if fx[2] > 0.0 and fy[2] > 0.0 and fz[2] > 0.0 and sc > 0.0 and best > 0.0:
         ok = 1
     valid[g] = ok
+
+
+@wp.kernel
+def advect_volume(
+    vol: wp.array3d(dtype=wp.float32),
+    pred: wp.array3d(dtype=wp.vec3),
+    pred_origin: wp.vec3,
+    pred_step: wp.vec3,
+    z0: int,
+    out: wp.array3d(dtype=wp.float32),
+):
+    """``vol`` carried along the predictor d: out(x) = vol(x - d(x)), trilinear, zero outside.
+
+    What was at x - d(x) in one frame is at x in the next (d evaluated at the arrival point,
+    which a smooth predictor allows). The launch covers planes z0 + z of ``out``.
+    """
+    z, y, x = wp.tid()
+    z += z0
+    p = wp.vec3(float(x), float(y), float(z))
+    out[z, y, x] = sample(vol, p - predictor_at(pred, pred_origin, pred_step, p))

@@ -257,3 +257,10 @@ def gather_index(src: wp.array(dtype=wp.int32), rows: wp.array(dtype=wp.int32), 
     """dst[t] = src[rows[t]]: the voxel indices of the rows an operator keeps."""
     t = wp.tid()
     dst[t] = src[rows[t]]
+
+
+@wp.kernel
+def scale_shift(e: wp.array(dtype=float), a: float, b: float):
+    """e = a e + b, in place."""
+    i = wp.tid()
+    e[i] = a * e[i] + b

@@ -51,6 +51,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_projector(m)
     m.add_argument("--iterations", type=iterations, default=5,
                    help="MART iterations per frame (default: 5; changeable in the window)")
+    m.add_argument("--warm-start", action="store_true",
+                   help="start frame B of each pair from frame A carried along the last pair's field, with a fifth "
+                   "of the iterations (the first pair's B starts uniform)")
     m.add_argument("--relaxation", type=positive_float, default=1.0,
                    help="MART relaxation, at most 2 (default: 1; changeable in the window)")
     m.add_argument("--pvr", type=xyz_triple, default=None, metavar="X,Y,Z",
@@ -100,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
                       passes=args.passes, pvr=args.pvr,
                       device=args.device, out=args.out, overwrite=args.overwrite,
                       sim_options=sim_lab_options(rig, args), ring_slots=args.ring,
-                      title=f"lfpiv monitor: {args.rig}", screenshot=args.screenshot, after=args.after, say=say)
+                      title=f"lfpiv monitor: {args.rig}", screenshot=args.screenshot, after=args.after, say=say,
+                      warm_start=args.warm_start)
     for r in end.recordings:
         where = str(r.path) if r.path is not None else "not recorded (no --out)"
         print(f"recording: {where}: {r.committed_pairs} pair(s) x {len(rig.camera)} camera(s), {r.frames_recorded} "

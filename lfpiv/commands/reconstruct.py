@@ -88,6 +88,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "hold a particle; default: 0.01; 0: every voxel to the last iteration, the chapter's protocol)")
     r.add_argument("--prune-every", type=positive_int, default=10, metavar="N",
                    help="iterations between the prunings, and before the first (default: 10)")
+    r.add_argument("--warm-start", action="store_true",
+                   help="start frame B of each pair from frame A carried along the displacement the last pair "
+                   "measured, instead of from a uniform volume, and iterate it --warm-iterations times (the first "
+                   "pair's B starts uniform; pairs are taken in order)")
+    r.add_argument("--warm-iterations", type=positive_int, default=None, metavar="N",
+                   help="iterations of a warm-started frame (default: a fifth of --iterations)")
     r.add_argument("--smooth", type=non_negative_float, default=0.6, metavar="VOXELS",
                    help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
     r.add_argument("--sub-apertures", type=sub_apertures, default=None,
@@ -129,7 +135,8 @@ def run(args: argparse.Namespace) -> int:
                               sub_apertures=args.sub_apertures, background=args.background,
                               threshold_sigma=args.threshold_sigma, smooth=args.smooth,
                               weight_storage=args.weight_storage, projector=args.projector, prune=args.prune,
-                              prune_every=args.prune_every)
+                              prune_every=args.prune_every, warm_start=args.warm_start,
+                              warm_iterations=args.warm_iterations)
     args.method = method
     store = open_run(args.run, mode="r+")
     rig, calibration = None, None
@@ -163,6 +170,13 @@ def run(args: argparse.Namespace) -> int:
           f"{store.path}/volumes{workers_phrase(args)}; per volume: {act:.2%} of voxels active"
           f"{f' ({left:.0%} of them left after pruning)' if left < 1 else ''}, "
           f"{operator} built in {ws:.2f} s, {ms:.1f} ms per iteration")
+    warm = [r for r in results if r.warm]
+    if warm:
+        print(f"{len(warm)} frame(s) B started from their frame A carried along the last pair's displacement: "
+              f"{warm[0].iterations} iterations each instead of {args.iterations}")
+    elif args.warm_start:
+        print("no frame was warm-started: the first pair a reconstructor makes starts uniform (its B has no "
+              "predictor yet); reconstruct two pairs or more in one run")
     split = max(r.slabs for r in results)
     if split > 1:
         peak = max(r.peak_bytes for r in results)

@@ -251,12 +251,12 @@ def live_settings(*, iterations: int, relaxation: float, slice_axis: str) -> Liv
         raise UsageError(f"--iterations/--relaxation: {exc}") from None
 
 
-def live_recon(method: str, projector: str = "auto") -> ReconSettings:
+def live_recon(method: str, projector: str = "auto", *, warm_start: bool = False) -> ReconSettings:
     """The live path's fixed reconstruction settings (:func:`realtime.pipeline.monitoring_recon`)
     for ``method`` and ``projector``, or the one-line :class:`UsageError` ``lfpiv reconstruct``
     gives for the same pair (e.g. the matrix-free projector with a method other than drt-mart)."""
     try:
-        return monitoring_recon(method=method, projector=projector)
+        return monitoring_recon(method=method, projector=projector, warm_start=warm_start)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
 
@@ -312,7 +312,8 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
                 passes: int = 2, pvr: Sequence[float] | None = None, device: str | None = None,
                 out: str | Path | None = None, overwrite: bool = False, sim_options: dict[str, Any] | None = None,
                 ring_slots: int = 32, title: str = "lfpiv monitor", screenshot: str | Path | None = None,
-                after: int = 3, say: Callable[[str], None] = lambda text: None) -> MonitorOutcome:
+                after: int = 3, say: Callable[[str], None] = lambda text: None,
+                warm_start: bool = False) -> MonitorOutcome:
     """Arm the rig, record every pair (to ``out``, or to a scratch store) and show the newest live.
 
     Parameters
@@ -348,6 +349,8 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
         The window's title; a PNG to save after ``after`` pairs were shown (works offscreen).
     say
         Called with progress messages.
+    warm_start
+        Start frame B of each pair from frame A carried along the last pair's field (:mod:`lfcore.warm`).
 
     Raises
     ------
@@ -358,7 +361,7 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
     """
     from realtime.monitor import GuiUnavailable, run_monitor_window
 
-    recon = live_recon(method, projector)  # before the simulated lab renders anything
+    recon = live_recon(method, projector, warm_start=warm_start)  # before the simulated lab renders anything
     device = resolve_device(device)
     with ExitStack() as stack:
         if sim_options is not None:

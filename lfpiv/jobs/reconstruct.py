@@ -28,6 +28,7 @@ from lfcore.rig import Rig, is_pinhole, voxel_shape_warnings
 from lfcore.runstore import RunStore
 from lfcore.slabs import SlabReconstructor
 from lfcore.volume import VolumeGrid
+from lfcore.warm import Predictor, WarmStart, predictor_field
 from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
 from lfpiv.pair_runner import run_pairs, select_pairs
@@ -110,18 +111,47 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, de
     fits)."""
     plan = _plan(cams, grid, settings, device, slabs)
     try:
-        return plan, build_reconstructor(plan, cams, grid, settings)
+        frames = build_reconstructor(plan, cams, grid, settings)
     except PlanError as exc:
         raise UsageError(str(exc)) from None
+    if settings.warm_start and frames.in_slabs:
+        raise UsageError(f"--warm-start carries whole volumes from frame to frame, and this box is reconstructed in "
+                         f"{plan.slabs} depth slabs; drop --warm-start (or --slabs)")
+    return plan, frames
+
+
+@dataclass
+class Series:
+    """Warm starts along the pairs one reconstructor makes, in order (:mod:`lfcore.warm`): each
+    frame A is kept, each frame B starts from it carried along the predictor the last pair measured
+    (the first pair's B starts uniform)."""
+
+    warm: WarmStart
+    predictor: Predictor | None = None
+
+    @classmethod
+    def of(cls, frames: FrameReconstructor | SlabReconstructor, settings: ReconSettings) -> Series | None:
+        """The series state of ``frames``, or None where ``settings`` start every frame uniform."""
+        if not settings.warm_start or frames.in_slabs:
+            return None
+        return cls(WarmStart(frames.projector.grid.shape, device=frames.device))
+
+    def frame(self, frame: int) -> dict[str, Any]:
+        """What :meth:`FrameReconstructor.reconstruct` takes for ``frame`` (0 A, 1 B) of a pair."""
+        return {"warm": self.warm, "predictor": self.predictor if frame == 1 else None}
+
+    def measured(self, results: Sequence[ReconResult], device: str) -> None:
+        """The pair's predictor for the next pair, from its two volumes."""
+        self.predictor = predictor_field(results[0].volume, results[1].volume, device=device)
 
 
 def _reconstruct_frame(frames: FrameReconstructor | SlabReconstructor, store: RunStore, names: Sequence[str],
                        pair: int, frame: int, progress: Any = None, data: Any = None,
-                       log: Any = None) -> ReconResult:
+                       log: Any = None, series: Series | None = None) -> ReconResult:
     """Reconstruct one frame of a pair from the run's images. A reconstructor in slabs writes
     its volume into ``data`` (the volumes' zarr array; None: the store's) slab by slab and returns
     it empty, telling ``log`` (if given) each stage as it ends; one in memory returns it for the
-    caller to write."""
+    caller to write. ``series`` warm-starts it along the pairs (frame A kept, B started from it)."""
     images = [store.read_frame(n, pair, frame) for n in names]  # a damaged or missing frame is an error
     try:
         if frames.in_slabs:
@@ -131,7 +161,7 @@ def _reconstruct_frame(frames: FrameReconstructor | SlabReconstructor, store: Ru
                 out[pair, frame, z0:z1] = planes
 
             return frames.reconstruct(images, write=write, progress=progress, log=log)
-        return frames.reconstruct(images, progress=progress)
+        return frames.reconstruct(images, progress=progress, **({} if series is None else series.frame(frame)))
     except (MemoryBudgetError, MatrixFreeUnsupported) as exc:
         raise UsageError(f"pair {pair} frame {'AB'[frame]}: {exc}") from None
 
@@ -200,7 +230,7 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> PairDone:
     back without their volumes, which stay in the store."""
     from lfpiv.batch import open_run_on_worker, this_worker_device, worker_state
 
-    def build() -> tuple[RunStore, Any, tuple[Plan, FrameReconstructor | SlabReconstructor]]:
+    def build() -> tuple[RunStore, Any, tuple[Plan, FrameReconstructor | SlabReconstructor], Series | None]:
         store = open_run_on_worker(job.path, job.writer)
         if job.into != "volumes":
             store.resume("volumes")
@@ -208,18 +238,22 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> PairDone:
         # the volumes array opened once: its group's attributes are rewritten by the coordinator
         # as pairs finish, and re-reading them for every write could meet a half-replaced file
         # on a network file system
-        return (store, store.writing("volumes")["data"],
-                _operator(cams, job.grid, job.settings, this_worker_device(job.device), job.slabs))
+        plan, frames = _operator(cams, job.grid, job.settings, this_worker_device(job.device), job.slabs)
+        # a worker's pairs come in order: each warm-starts from the last one it made
+        return store, store.writing("volumes")["data"], (plan, frames), Series.of(frames, job.settings)
 
-    store, data, (plan, frames) = worker_state(job.token, build)
-    out = []
+    store, data, (plan, frames), series = worker_state(job.token, build)
+    out, made = [], []
     # frame A is written while frame B is reconstructed; both are written when the task returns
     with WriteBehind() as writer:
         for f in (0, 1):
-            res = _reconstruct_frame(frames, store, job.cameras, pair, f, data=data)
+            res = _reconstruct_frame(frames, store, job.cameras, pair, f, data=data, series=series)
             if res.slabs == 1:  # a volume in slabs is in the store already
                 writer.submit(data.__setitem__, (pair, f), res.volume)
+            made.append(res)
             out.append(_summary(res))
+    if series is not None:
+        series.measured(made, frames.device)
     return PairDone(out, plan)
 
 
@@ -335,21 +369,30 @@ def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, plan: Plan
                       progress: bool) -> None:
     """Reconstruct both frames of the ``chosen`` pairs in this process, adding to ``results``;
     each volume is written (and recorded) while the next frame is reconstructed."""
-    total = len(chosen) * 2 * max(settings.iterations, 1)
+    series = Series.of(frames, settings)
+    its = max(settings.iterations, 1)
+    # with warm starts, every frame B after the first pair's takes the warm count
+    total = len(chosen) * 2 * its if series is None else len(chosen) * its + its + (len(chosen) - 1) * max(
+        settings.warm_count, 1)
     with (WriteBehind() as writer,
           tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar):
         for p in chosen:
+            made = []
             for f in (0, 1):
                 # a slab-by-slab frame can spend long stages (each slab's elimination) without an
                 # iteration: the progress line says which ended last
                 res = _reconstruct_frame(frames, store, names, p, f, bar.update,
-                                         log=lambda line, p=p, f=f: bar.set_postfix_str(f"pair {p} {'AB'[f]}: {line}"))
+                                         log=lambda line, p=p, f=f: bar.set_postfix_str(f"pair {p} {'AB'[f]}: {line}"),
+                                         series=series)
                 # the volume, then its bookkeeping and operator figures, on the writer's thread
                 writer.submit(_write_frame, store, p, f, res, plan)
                 results.append(_summary(res))
-                if settings.iterations == 0:
+                made.append(res)
+                if res.iterations == 0:
                     bar.update(1)
                 bar.set_postfix(_shown(p, [res]))
+            if series is not None:
+                series.measured(made, frames.device)
 
 
 def _shown(pair: int, res: Sequence[ReconResult]) -> dict[str, str]:
@@ -378,5 +421,7 @@ def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, An
 def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
     """Volumes' recorded settings, with those of settings added since at the value they had
     (volumes made before ``projector`` was recorded were made by ``auto``'s stored weights, those
-    before ``prune`` with every voxel to the last iteration)."""
-    return {"projector": "auto", "prune": 0.0, "prune_every": 10, **settings}
+    before ``prune`` with every voxel to the last iteration, those before ``warm_start`` from a uniform
+    start)."""
+    return {"projector": "auto", "prune": 0.0, "prune_every": 10, "warm_start": False, "warm_iterations": None,
+            **settings}

@@ -1,0 +1,219 @@
+"""Warm starts along a series: a frame's MART starts from the last frame's intensities carried along
+the predicted displacement, instead of from a uniform volume.
+
+Frame B of a pair shows frame A's particles moved by the flow over ``dt``; where the displacement is
+predicted (the last pair's measured field, in batch and live), A's reconstructed intensities carried
+along it are already most of B's answer, and MART needs a fraction of its iterations to correct what
+the predictor missed (motion-tracking-enhanced MART, Novara, Batenburg and Scarano 2010; Lynch and
+Scarano 2015 for time series). On the small light-field rig, B started from A carried by the true
+displacement reaches Q 0.80 in 5 iterations where the uniform start needs 50 for 0.76.
+
+MART's update is multiplicative: a voxel that starts at zero stays at zero. So the start is the
+carried intensities blurred by ``blur`` voxels (the predictor's error: a carried particle must
+overlap where it really is), plus ``blend`` times their mean on every active voxel (what the
+predictor missed, or what entered the box, can still grow); the reconstructor then scales it so its
+projection carries the measured signal, as it does the uniform start. A predictor half a displacement
+off still starts B better than uniform at equal iterations (benchmarks/warm.py).
+
+Arrays are (z, y, x) volumes on the device; displacements are (x, y, z) in voxels, like the vector
+fields of :mod:`lfcore.correlate`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lfcore.correlate import MIN_WINDOW, CorrelationConfig, correlate
+from lfcore.device import RowOffset, launch_rows, resolve_device, warp
+from lfcore.device_ops import VolumeOps
+from lfcore.operator import Operator, gather
+
+__all__ = ["PREDICTOR_WINDOW", "WARM_BLEND", "WARM_BLUR", "Predictor", "WarmStart", "predictor_config",
+           "predictor_field"]
+
+#: Gaussian sigma, voxels, of the carried intensities: the predictor's error it forgives.
+WARM_BLUR = 0.5
+#: Share of the carried intensities' mean added on every active voxel, so that what the predictor
+#: missed can grow (MART cannot grow a zero).
+WARM_BLEND = 0.1
+
+
+@dataclass(frozen=True)
+class Predictor:
+    """A displacement field from one frame to the next, on a regular grid of points.
+
+    Attributes
+    ----------
+    displacement
+        (nz, ny, nx, 3) float32 displacements (x, y, z), in voxels, at the grid's points.
+    origin
+        Voxel coordinates (x, y, z) of point [0, 0, 0].
+    step
+        Spacing (x, y, z) of the points, in voxels (positive).
+    """
+
+    displacement: np.ndarray
+    origin: tuple[float, float, float]
+    step: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        d = np.asarray(self.displacement, dtype=np.float32)
+        if d.ndim != 4 or d.shape[3] != 3 or 0 in d.shape:
+            raise ValueError(f"a predictor's displacement is (nz, ny, nx, 3), got {d.shape}")
+        if not np.all(np.isfinite(d)):
+            raise ValueError("a predictor's displacements must be finite (replace the missing vectors first)")
+        if len(self.step) != 3 or not all(s > 0 for s in self.step):
+            raise ValueError(f"a predictor's step is three positive spacings (x, y, z), got {self.step}")
+        object.__setattr__(self, "displacement", np.ascontiguousarray(d))
+        object.__setattr__(self, "origin", tuple(float(o) for o in self.origin))
+        object.__setattr__(self, "step", tuple(float(s) for s in self.step))
+
+    @classmethod
+    def uniform(cls, shift: tuple[float, float, float]) -> Predictor:
+        """The same displacement (x, y, z voxels) everywhere."""
+        return cls(np.asarray(shift, dtype=np.float32).reshape(1, 1, 1, 3), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+
+    @classmethod
+    def from_field(cls, field) -> Predictor:
+        """The predictor of a correlation's :class:`~lfcore.correlate.VectorField`: its displacements
+        at its window centres, those it could not measure (NaN) set to the median of the others
+        (zero where none was measured)."""
+        d = np.array(field.displacement, dtype=np.float32)
+        bad = ~np.all(np.isfinite(d), axis=-1)
+        if bad.all():
+            d[:] = 0.0
+        elif bad.any():
+            d[bad] = np.median(d[~bad], axis=0)
+        g = field.grid
+        return cls(d, tuple(float(v) for v in g.origin), tuple(float(v) for v in g.step))
+
+    def mean(self) -> np.ndarray:
+        """The mean displacement (x, y, z), voxels."""
+        return self.displacement.reshape(-1, 3).mean(axis=0)
+
+#: Largest window side, voxels, of the predictor's correlation (:func:`predictor_config`).
+PREDICTOR_WINDOW = 48
+
+
+def predictor_config(shape: tuple[int, int, int]) -> CorrelationConfig:
+    """The correlation that measures a pair's predictor for the next pair: two FFT passes, the first
+    with windows of about a third of the box per axis and the second half as large (multiples of
+    4, from twice :data:`lfcore.correlate.MIN_WINDOW` to :data:`PREDICTOR_WINDOW` voxels), at 50% overlap,
+    outliers replaced: coarse and cheap, a warm start forgives a voxel of error (:data:`WARM_BLUR`).
+
+    Parameters
+    ----------
+    shape
+        (nz, ny, nx) of the volumes.
+    """
+    def side(n: int, share: float) -> int:
+        return int(min(PREDICTOR_WINDOW, max(2 * MIN_WINDOW, int(n * share) // 4 * 4)))
+
+    nz, ny, nx = (int(n) for n in shape)
+    first = (side(nx, 1 / 3), side(ny, 1 / 3), side(nz, 1 / 3))
+    second = tuple(max(2 * MIN_WINDOW, w // 2 // 4 * 4) for w in first)
+    windows = (first,) if second == first else (first, second)
+    return CorrelationConfig(windows=windows, overlap=0.5, deform_iterations=0)
+
+
+def predictor_field(volume_a, volume_b, *, device: str | None = None) -> Predictor:
+    """A pair's displacement field as the next pair's predictor: the correlation of
+    :func:`predictor_config` of its two volumes ((nz, ny, nx) float32, host or device)."""
+    config = predictor_config(tuple(int(n) for n in volume_a.shape))
+    return Predictor.from_field(correlate(volume_a, volume_b, config=config, device=device))
+
+
+class WarmStart:
+    """A frame's intensities kept on the device, and the next frame's start made from them.
+
+    Parameters
+    ----------
+    shape
+        (nz, ny, nx) of the volume.
+    device
+        Warp device; None for the first GPU, else the CPU.
+    blur
+        Gaussian sigma, voxels, applied to the carried intensities (:data:`WARM_BLUR`).
+    blend
+        Share of their mean added on every active voxel (:data:`WARM_BLEND`).
+
+    Notes
+    -----
+    Holds two (z, y, x) float32 volumes on the device (the kept intensities and the carried ones)
+    and the smoothing's scratch. One thread at a time.
+    """
+
+    def __init__(self, shape: tuple[int, int, int], *, device: str | None = None, blur: float = WARM_BLUR,
+                 blend: float = WARM_BLEND) -> None:
+        if not 0 <= blur <= 10:
+            raise ValueError(f"the warm start's blur must be from 0 to 10 voxels, got {blur}")
+        if not 0 < blend <= 10:
+            raise ValueError(f"the warm start's blend must be above 0 (MART cannot grow a zero) and at most 10, "
+                             f"got {blend}")
+        from lfcore._kernels import correlate as kc
+        from lfcore._kernels import mart as km
+
+        self._kc, self._km = kc, km
+        self.wp = warp()
+        self.device = resolve_device(device)
+        self.shape = tuple(int(n) for n in shape)
+        self.blur = float(blur)
+        self.blend = float(blend)
+        self.ops = VolumeOps(self.shape, device=self.device)
+        self._kept = None  # (z, y, x): the last kept frame's intensities
+        self._carried = None  # (z, y, x): them carried along a predictor
+        self.held = False
+
+    def keep(self, op: Operator, e) -> None:
+        """Keep the intensities ``e`` ((n,) float32 on the device) of ``op``'s voxels as the next start's
+        source (unsmoothed: the reconstruction's own smoothing is for the correlation)."""
+        if self._kept is None:
+            self._kept = self.ops.empty()
+        op.scatter(e, out=self._kept)
+        self.held = True
+
+    def forget(self) -> None:
+        """Start the next frame uniform (a new series, or a frame that is not the last one's successor)."""
+        self.held = False
+
+    def start(self, op: Operator, predictor: Predictor):
+        """The start of ``op``'s voxels: the kept intensities carried along ``predictor``, blurred, with
+        :attr:`blend` of their mean added; unscaled (the reconstructor scales it to the signal).
+
+        Returns
+        -------
+        warp.array
+            (n,) float32 on the device, n = ``op.n_voxels``.
+
+        Raises
+        ------
+        RuntimeError
+            If no frame was kept (:meth:`keep`).
+        """
+        if not self.held:
+            raise RuntimeError("no frame kept to start from; keep() one first")
+        wp = self.wp
+        if self._carried is None:
+            self._carried = self.ops.empty()
+        pred = wp.array(predictor.displacement, dtype=wp.vec3, device=self.device)
+        launch_rows(self._kc.advect_volume, self.shape[0],
+                    [self._kept, pred, wp.vec3(*predictor.origin), wp.vec3(*predictor.step), RowOffset(0),
+                     self._carried], self.device, rest=self.shape[1:])
+        self.ops.smooth(self._carried, self.blur)
+        n = op.n_voxels
+        flat = self._carried.reshape(int(np.prod(self.shape)))
+        e = gather(flat, op.voxels)
+        if n:
+            mean = _sum(e) / n
+            # every active voxel gets a share of the mean: a uniform start where nothing was carried
+            wp.launch(self._km.scale_shift, dim=n, inputs=[e, 1.0, self.blend * mean if mean > 0 else 1.0],
+                      device=self.device)
+        return e
+
+
+def _sum(a) -> float:
+    if a.device.is_cpu:
+        return float(a.numpy().astype(np.float64).sum())
+    return float(warp().utils.array_sum(a))

@@ -1,0 +1,177 @@
+"""Warm starts along a series (lfcore.warm): the predictor, the carried volume, and frames started
+from the last one reaching the uniform start's quality in a fraction of its iterations."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from lfcore import metrics
+from lfcore.correlate import WindowGrid
+from lfcore.device import warp
+from lfcore.plan import projector_for
+from lfcore.reconstruct import FrameReconstructor, ReconSettings, warm_count
+from lfcore.render import LightFieldRenderer
+from lfcore.rig import Rig
+from lfcore.volume import VolumeGrid
+from lfcore.warm import Predictor, WarmStart, predictor_config, predictor_field
+
+
+def _crop(rig: Rig, size_mm=(0.5, 0.4, 1.2)) -> Rig:
+    return rig.model_copy(update={"volume": rig.volume.model_copy(update={"size_mm": size_mm})})
+
+
+class _Dense:
+    """An operator stand-in over every voxel of a box (what WarmStart uses of one: voxels, scatter)."""
+
+    def __init__(self, shape, device):
+        wp = warp()
+        self.shape = shape
+        self.n_voxels = int(np.prod(shape))
+        self.voxels = wp.array(np.arange(self.n_voxels, dtype=np.int32), dtype=wp.int32, device=device)
+        self.device = device
+
+    def scatter(self, e, *, out=None):
+        from lfcore.operator import scatter_voxels
+
+        return scatter_voxels(self.voxels, e, self.shape, device=self.device, out=out)
+
+
+def _blob(shape, at_xyz, sigma=1.0):
+    z, y, x = np.indices(shape, dtype=np.float64)
+    return np.exp(-((x - at_xyz[0]) ** 2 + (y - at_xyz[1]) ** 2 + (z - at_xyz[2]) ** 2) / (2 * sigma**2))
+
+
+def _centroid(vol):
+    z, y, x = np.indices(vol.shape, dtype=np.float64)
+    w = vol / vol.sum()
+    return np.array([(x * w).sum(), (y * w).sum(), (z * w).sum()])
+
+
+def test_a_predictor_is_checked_and_fills_what_a_field_missed():
+    with pytest.raises(ValueError, match="nz, ny, nx, 3"):
+        Predictor(np.zeros((2, 2, 3)), (0, 0, 0), (1, 1, 1))
+    with pytest.raises(ValueError, match="finite"):
+        Predictor(np.full((1, 1, 1, 3), np.nan), (0, 0, 0), (1, 1, 1))
+    with pytest.raises(ValueError, match="positive"):
+        Predictor(np.zeros((1, 1, 1, 3)), (0, 0, 0), (1, 0, 1))
+    d = np.zeros((2, 2, 2, 3), np.float32)
+    d[..., 0] = [[[1, 2], [3, 4]], [[5, 6], [7, np.nan]]]
+    d[1, 1, 1] = np.nan
+    field = SimpleNamespace(displacement=d, grid=WindowGrid(window=(8, 8, 8), step=(4, 4, 4), first=(0, 0, 0),
+                                                            counts=(2, 2, 2)))
+    p = Predictor.from_field(field)
+    assert p.displacement[1, 1, 1, 0] == pytest.approx(4.0)  # the median of 1..7
+    assert p.step == (4.0, 4.0, 4.0)
+    assert Predictor.from_field(SimpleNamespace(displacement=np.full((1, 1, 1, 3), np.nan), grid=field.grid)
+                                ).mean() == pytest.approx([0, 0, 0])
+
+
+@pytest.mark.parametrize("shift", [(2.0, -1.0, 1.0), (0.5, 1.5, -0.25)])
+def test_the_kept_frame_is_carried_along_the_predictor(device, shift):
+    shape = (16, 20, 24)
+    vol = _blob(shape, (10.0, 9.0, 7.0)).astype(np.float32)
+    op = _Dense(shape, device)
+    ws = WarmStart(shape, device=device, blur=0.0, blend=1e-6)
+    with pytest.raises(RuntimeError, match="keep"):
+        ws.start(op, Predictor.uniform(shift))
+    ws.keep(op, warp().array(vol.ravel(), dtype=float, device=device))
+    moved = ws.start(op, Predictor.uniform(shift)).numpy().reshape(shape)
+    np.testing.assert_allclose(_centroid(moved), np.array([10.0, 9.0, 7.0]) + shift, atol=0.05)
+    if all(float(s).is_integer() for s in shift):  # an integer shift is exact
+        np.testing.assert_allclose(moved[2:-2, 2:-2, 2:-2], np.roll(vol, (1, -1, 2), axis=(0, 1, 2))[2:-2, 2:-2, 2:-2],
+                                   atol=1e-5)
+
+
+def test_the_start_can_grow_everywhere(device):
+    """MART multiplies: every active voxel starts above zero, by blend of the carried mean."""
+    shape = (8, 8, 8)
+    op = _Dense(shape, device)
+    ws = WarmStart(shape, device=device, blur=0.5, blend=0.1)
+    vol = np.zeros(shape, np.float32)
+    vol[4, 4, 4] = 100.0
+    ws.keep(op, warp().array(vol.ravel(), dtype=float, device=device))
+    e = ws.start(op, Predictor.uniform((0.0, 0.0, 0.0))).numpy()
+    assert e.min() == pytest.approx(0.1 * 100.0 / e.size, rel=1e-3)
+    assert e.argmax() == np.ravel_multi_index((4, 4, 4), shape)
+    with pytest.raises(ValueError, match="grow a zero"):
+        WarmStart(shape, device=device, blend=0.0)
+
+
+def test_the_warm_count():
+    assert warm_count(50, None) == 10 and warm_count(400, None) == 80 and warm_count(2, None) == 1
+    assert warm_count(50, 7) == 7
+    assert ReconSettings(iterations=100).warm_count == 20
+    with pytest.raises(ValueError, match="warm_iterations"):
+        ReconSettings(warm_iterations=0)
+    with pytest.raises(ValueError, match="simultaneous"):
+        ReconSettings(warm_start=True, form="sequential", relaxation=2.5)
+
+
+def test_the_predictor_correlation_fits_the_box():
+    for shape in ((29, 68, 82), (131, 245, 245), (8, 8, 8)):
+        cfg = predictor_config(shape)
+        for w in cfg.windows:
+            assert all(8 <= s <= 48 and s % 4 == 0 for s in w)
+            assert all(s <= max(8, n) for s, n in zip(w, shape[::-1], strict=True))
+
+
+@pytest.fixture(scope="module")
+def moving(tiny_rig):
+    """The cropped tiny rig's box seen in two frames: particles moved by a known uniform shift."""
+    rig = _crop(tiny_rig)
+    grid = VolumeGrid.from_rig(rig)
+    from lfcore.particles import particle_count, seed_particles
+
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.3), np.random.default_rng(3))
+    shift = np.array([2.0, 1.5, 1.0])  # voxels (x, y, z)
+    moved = pts + shift * np.asarray(grid.voxel_mm)
+    cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
+    r = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu")
+    images = [r.frame(pts, 50_000.0, seed=1), r.frame(pts, 50_000.0, seed=2), r.frame(moved, 50_000.0, seed=3)]
+    return rig, grid, [pts, pts, moved], images, shift
+
+
+def _q(frames, image, truth, warm=None, predictor=None):
+    res = frames.reconstruct([image], warm=warm, predictor=predictor)
+    return metrics.q_recon(res.volume, truth), res
+
+
+def test_a_still_scene_warm_started_converges_in_a_few_iterations(moving):
+    rig, grid, pts, images, _ = moving
+    proj = projector_for(rig.camera[:1], grid, device="cpu")
+    truth = metrics.truth_volume(grid, pts[1])
+    cold = FrameReconstructor(proj, ReconSettings(iterations=50, projector="stored"))
+    q_cold, _ = _q(cold, images[1], truth)
+    warm_frames = FrameReconstructor(proj, ReconSettings(iterations=50, warm_iterations=5, projector="stored"))
+    ws = WarmStart(grid.shape, device="cpu")
+    q_a, res_a = _q(warm_frames, images[0], truth, warm=ws)  # kept, started uniform
+    assert not res_a.warm and res_a.iterations == 50
+    q_w, res = _q(warm_frames, images[1], truth, warm=ws, predictor=Predictor.uniform((0.0, 0.0, 0.0)))
+    assert res.warm and res.iterations == 5
+    assert q_w >= q_cold - 0.01, (q_w, q_cold)
+    # five iterations from the uniform start are far from it
+    q_5, _ = _q(FrameReconstructor(proj, ReconSettings(iterations=5, projector="stored")), images[1], truth)
+    assert q_5 < q_cold - 0.03
+
+
+def test_a_moved_scene_reaches_the_cold_quality_in_a_fifth_of_the_iterations(moving):
+    rig, grid, pts, images, shift = moving
+    proj = projector_for(rig.camera[:1], grid, device="cpu")
+    truth_b = metrics.truth_volume(grid, pts[2])
+    settings = ReconSettings(iterations=50, projector="stored", warm_start=True)
+    frames = FrameReconstructor(proj, settings)
+    q_cold, res_b = _q(frames, images[2], truth_b)
+    ws = WarmStart(grid.shape, device="cpu")
+    _, res_a = _q(frames, images[0], metrics.truth_volume(grid, pts[0]), warm=ws)
+    q_w, res = _q(frames, images[2], truth_b, warm=ws, predictor=Predictor.uniform(shift))
+    assert res.iterations == 10
+    assert q_w >= q_cold - 0.01, (q_w, q_cold)
+    # and the pair's own coarse correlation measures the shift the next pair is predicted by: laterally
+    # to a few tenths of a voxel; in depth, where a light-field particle is several voxels long, by its
+    # sign (0.45 of 1 voxel here), which the start's blur forgives
+    p = predictor_field(res_a.volume, res_b.volume, device="cpu").mean()
+    np.testing.assert_allclose(p[:2], shift[:2], atol=0.3)
+    assert 0.2 < p[2] < 1.5
