@@ -51,6 +51,17 @@ def _projector(asked: str, operator: dict | None) -> str:
             "ms per iteration")
 
 
+def _warm(settings: dict) -> str:
+    """``" (frames B warm-started: 10)"``: what ``--warm-start`` did, or ``""``."""
+    if not settings.get("warm_start"):
+        return ""
+    from lfcore.reconstruct import warm_count
+
+    its, warm = settings.get("iterations"), settings.get("warm_iterations")
+    n = warm_count(its, warm) if isinstance(its, int) and (warm is None or isinstance(warm, int)) else "?"
+    return f" (frames B warm-started: {n})"
+
+
 def _plan(recorded: object, operator: object) -> str:
     """``"auto on cpu, weight cache, in memory; ran traced weights"``: the plan the volumes were made
     by (:class:`lfcore.plan.Plan`) and the operators that ran; ``""`` for volumes made before plans
@@ -136,7 +147,7 @@ def describe(path: str | Path) -> list[str]:
         va = store.group["volumes"].attrs
         g = store.volume_grid()
         lines.append(("volumes", f"{_count(store.reconstructed_pairs())} reconstructed by {va['method']}, "
-                                 f"{va['settings'].get('iterations')} iterations, "
+                                 f"{va['settings'].get('iterations')} iterations{_warm(va['settings'])}, "
                                  f"{' x '.join(str(n) for n in g.shape[::-1])} voxels, "
                                  f"{_projector(va['settings'].get('projector', 'auto'), va.get('operator'))}"))
         plan = _plan(va.get("plan"), va.get("operator"))

@@ -369,6 +369,8 @@ def test_warm_start_from_the_command(capsys, tmp_path):
     s, c = RunStore.open(run), RunStore.open(cold)
     settings = s.group["volumes"].attrs["settings"]
     assert settings["warm_start"] is True and settings["warm_iterations"] is None
+    rc, out, err = _run(capsys, "info", str(run))
+    assert rc == 0 and "50 iterations (frames B warm-started: 10)" in out, out + err
     grid, truth = s.volume_grid(), s.truth()
     q = {name: [metrics.q_recon(st.read_volume(p, 1), metrics.truth_volume(grid, truth["particles"][p, 1]))
                 for p in (1, 2)] for name, st in (("warm", s), ("cold", c))}
