@@ -190,6 +190,10 @@ class Views:
         """The central view (offset (0, 0)), (N2, N1)."""
         return self.view(0, 0)
 
+    def picture(self, image: np.ndarray, *, upsample: int = 1) -> np.ndarray:
+        """A view, or a plane refocused from these views, as an upright picture (:func:`view_display`)."""
+        return view_display(image, self.lattice, self.n2, inside=self.inside, upsample=upsample)
+
 
 def sample_views(image: np.ndarray, lattice: Lattice, *, radius_px: float | None = None,
                  white: np.ndarray | None = None, min_white: float = 0.05) -> Views:
@@ -426,44 +430,59 @@ def refocus_stack(views: Views, camera: Camera, depths_mm: np.ndarray, *, upsamp
     return np.stack([refocus(views, camera, float(z), upsample=upsample) for z in np.atleast_1d(depths_mm)])
 
 
-def view_display(image: np.ndarray, lattice: Lattice, n2: np.ndarray) -> np.ndarray:
+def view_display(image: np.ndarray, lattice: Lattice, n2: np.ndarray, *, inside: np.ndarray | None = None,
+                 upsample: int = 1) -> np.ndarray:
     """A view (or refocused image) on the lattice's nodes as a picture on a rectangular grid.
 
     A hexagonal lattice's index grid is sheared (each row is half a pitch along from the last);
     each row is moved back by whole columns so the picture is upright (rows then alternate by
-    half a sample, as any hexagonal image shown on square pixels). Square lattices are returned
-    as they are.
+    half a sample, as any hexagonal image shown on square pixels), and turned so that columns
+    and rows run as the raw image's do. Square lattices are only turned.
 
     Parameters
     ----------
     image
-        (N2, N1) samples on the nodes of index rows ``n2``.
+        (N2 upsample, N1 upsample) samples on the nodes of index rows ``n2`` (``upsample`` per
+        lattice step, as :func:`refocus` gives them).
     lattice
         The lattice.
     n2
         (N2,) the rows' lattice indices.
+    inside
+        (N2, N1) bool, the nodes inside the image (:attr:`Views.inside`): the columns the shear
+        leaves without any are trimmed. None: nothing is trimmed.
+    upsample
+        Samples per lattice step of ``image``.
 
     Returns
     -------
     numpy.ndarray
-        (N2, N1') float32 picture.
+        (rows, columns) float32 picture.
     """
     img = np.asarray(image, dtype=np.float32)
+    up = int(upsample)
     b = lattice.basis_px
-    # whole columns each row is shifted by: the a2 component along a1, in pitches
+    # the a2 component along a1, in pitches: how far along each row starts from the last
     step = float(b[1] @ b[0]) / float(b[0] @ b[0])
+    mask = None if inside is None else np.kron(np.asarray(inside, dtype=bool), np.ones((up, up), dtype=bool))
     if abs(step) < 1e-6:
-        return _upright(img, b)
-    shift = np.floor(np.asarray(n2) * step).astype(int)
+        return _upright(img if mask is None else _trim(img, mask), b)
+    rows = float(np.asarray(n2)[0]) + np.arange(img.shape[0]) / up
+    shift = np.floor(rows * step * up + 1e-9).astype(int)
     shift -= shift.min()
     width = img.shape[1] + int(shift.max())
     out = np.zeros((img.shape[0], width), dtype=np.float32)
+    keep = np.zeros(out.shape, dtype=bool)
     for r, s in enumerate(shift):
         out[r, s:s + img.shape[1]] = img[r]
-    # trim the columns that only the shear filled
-    lit = np.flatnonzero(out.any(axis=0))
-    out = out[:, lit[0]:lit[-1] + 1] if len(lit) else out
-    return _upright(out, b)
+        if mask is not None:
+            keep[r, s:s + img.shape[1]] = mask[r]
+    return _upright(out if mask is None else _trim(out, keep), b)
+
+
+def _trim(img: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    cols = np.flatnonzero(keep.any(axis=0))
+    return img[:, cols[0]:cols[-1] + 1] if len(cols) else img
 
 
 def _upright(img: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -483,7 +502,7 @@ def view_mosaic(views: Views) -> np.ndarray:
     numpy.ndarray
         (tiles * h, tiles * w) float32, 0 between and where there is no view.
     """
-    tiles = [view_display(v, views.lattice, views.n2) for v in views.images]
+    tiles = [view_display(v, views.lattice, views.n2, inside=views.inside) for v in views.images]
     h, w = tiles[0].shape
     m = int(np.abs(views.offsets_px).max(initial=0))
     n = 2 * m + 1

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from lfcore.rig import Camera, Rig, camera_from_dict, is_pinhole
-from lfcore.views import Lattice, Views, nominal_lattice, refocus_stack, sample_views, view_display, view_mosaic
+from lfcore.views import Lattice, Views, nominal_lattice, refocus_stack, sample_views, view_mosaic
 from lfpiv.errors import UsageError
 
 __all__ = ["ViewsResult", "frame_of_image", "frame_of_run", "lattice_of", "make_views", "views", "write_views"]
@@ -69,33 +69,12 @@ class ViewsResult:
     @property
     def centre_view(self) -> np.ndarray:
         """The central view as a picture."""
-        return view_display(self.views.centre, self.views.lattice, self.views.n2)
+        return self.views.picture(self.views.centre)
 
     def plane_images(self) -> list[np.ndarray]:
         """The refocused planes as pictures (hexagonal rows straightened)."""
-        up = self.planes.shape[1] // max(self.views.inside.shape[0], 1)
-        n2 = np.arange(self.planes.shape[1]) / max(up, 1) + self.views.n2[0]
-        return [view_display(p, self.views.lattice, n2) if up == 1 else _plane_display(p, self.views.lattice, up)
-                for p in self.planes]
-
-
-def _plane_display(plane: np.ndarray, lattice: Lattice, up: int) -> np.ndarray:
-    """An upsampled refocused plane as a picture: shear its rows back by their position along a1."""
-    b = lattice.basis_px
-    step = float(b[1] @ b[0]) / float(b[0] @ b[0])
-    rows = np.arange(plane.shape[0]) / up
-    shift = np.floor(rows * step * up).astype(int)
-    shift -= shift.min()
-    out = np.zeros((plane.shape[0], plane.shape[1] + int(shift.max())), dtype=np.float32)
-    for r, s in enumerate(shift):
-        out[r, s:s + plane.shape[1]] = plane[r]
-    lit = np.flatnonzero(out.any(axis=0))
-    out = out[:, lit[0]:lit[-1] + 1] if len(lit) else out
-    if b[0, 0] < 0:
-        out = out[:, ::-1]
-    if b[1, 1] < 0:
-        out = out[::-1]
-    return np.ascontiguousarray(out)
+        up = max(self.planes.shape[1] // max(self.views.inside.shape[0], 1), 1)
+        return [self.views.picture(p, upsample=up) for p in self.planes]
 
 
 def _lightfield(rig: Rig, camera: str | None, where: str) -> Camera:
@@ -264,8 +243,7 @@ def write_views(result: ViewsResult, out: PathLike, *, fmt: str = "png", every_v
 
     files = [put("mosaic", result.mosaic), put("centre", result.centre_view)]
     if every_view:
-        lat, n2 = result.views.lattice, result.views.n2
-        files += [put(f"view_u{du:+d}_v{dv:+d}", view_display(img, lat, n2))
+        files += [put(f"view_u{du:+d}_v{dv:+d}", result.views.picture(img))
                   for img, (du, dv) in zip(result.views.images, result.views.offsets_px, strict=True)]
     for z, img in zip(result.depths_mm, result.plane_images(), strict=True):
         files.append(put(f"refocus_z{z:+.3f}mm", img))
