@@ -35,7 +35,8 @@ from lfcore.mla import HEX_ROW
 from lfcore.rig import Camera, require_lightfield
 from lfcore.white import micro_image_scale
 
-__all__ = ["Lattice", "Views", "depth_point", "nominal_lattice", "refocus", "refocus_stack", "sample_views",
+__all__ = ["Lattice", "Views", "depth_point", "focus_measure", "nominal_lattice", "refocus", "refocus_stack",
+           "sample_views",
            "view_display", "view_mosaic", "view_offsets", "view_pupil_mm", "view_shifts_px"]
 
 
@@ -428,6 +429,31 @@ def refocus(views: Views, camera: Camera, depth_mm: float, *, upsample: int = 1)
 def refocus_stack(views: Views, camera: Camera, depths_mm: np.ndarray, *, upsample: int = 1) -> np.ndarray:
     """:func:`refocus` at every depth: (n_depths, N2 upsample, N1 upsample) float32."""
     return np.stack([refocus(views, camera, float(z), upsample=upsample) for z in np.atleast_1d(depths_mm)])
+
+
+def focus_measure(planes: np.ndarray) -> np.ndarray:
+    """How sharp each refocused plane is: the variance of its samples over the nodes every plane reaches.
+
+    A plane through particles gathers each particle's light from all views into one spot, which
+    raises the variance; planes before and behind spread it. The nodes near the edges that some
+    planes leave empty (0, :func:`refocus`) are left out of every plane, so the edges do not
+    decide.
+
+    Parameters
+    ----------
+    planes
+        (n_depths, rows, columns) refocused planes (:func:`refocus_stack`).
+
+    Returns
+    -------
+    numpy.ndarray
+        (n_depths,) float64 variances; the sharpest plane has the largest.
+    """
+    p = np.asarray(planes, dtype=np.float64)
+    common = np.all(p != 0, axis=0)
+    if not common.any():
+        return np.zeros(len(p))
+    return p[:, common].var(axis=1)
 
 
 def view_display(image: np.ndarray, lattice: Lattice, n2: np.ndarray, *, inside: np.ndarray | None = None,

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lfcore.camera_checks import background_noise
 from lfcore.rig import Camera, Rig, camera_from_dict, is_pinhole
 from lfcore.views import Lattice, Views, nominal_lattice, refocus_stack, sample_views, view_mosaic
 from lfpiv.errors import UsageError
@@ -168,11 +169,14 @@ def lattice_of(camera: Camera, calibration: PathLike | None) -> tuple[Lattice, C
     return lattice, optics, store.white(camera.name), source
 
 
-def _corrected(image: np.ndarray) -> np.ndarray:
-    """The raw frame as the views sample it. The per-pixel dark and white correction (issue 49,
-    part 1: the calibration store's dark and white frames) plugs in here; until then the frame
-    is used as recorded."""
-    return np.asarray(image, dtype=np.float32)
+def _corrected(image: np.ndarray, white: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The raw frame (and white image) as the views sample them: the frame's background (from its
+    darkest pixels, :func:`lfcore.camera_checks.background_noise`) subtracted from both, the
+    camera's black level being the same. The per-pixel dark and white correction (issue 49, part
+    1: the calibration store's dark and white frames) plugs in here in its place."""
+    img = np.asarray(image, dtype=np.float32)
+    b = np.float32(background_noise(img)[0])
+    return img - b, None if white is None else np.asarray(white, dtype=np.float32) - b
 
 
 def make_views(image: np.ndarray, camera: Camera, *, lattice: Lattice, depths_mm: Sequence[float] = (),
@@ -188,13 +192,14 @@ def make_views(image: np.ndarray, camera: Camera, *, lattice: Lattice, depths_mm
     if upsample < 1:
         raise UsageError(f"--upsample must be a whole number of at least 1, got {upsample}")
     try:
-        v = sample_views(_corrected(image), lattice, radius_px=radius_px, white=white)
+        img, w = _corrected(image, white)
+        v = sample_views(img, lattice, radius_px=radius_px, white=w)
         depths = np.asarray(list(depths_mm), dtype=np.float64)
         planes = (refocus_stack(v, camera, depths, upsample=upsample) if len(depths)
                   else np.zeros((0, *v.inside.shape), dtype=np.float32))
     except ValueError as exc:
         raise UsageError(f"camera '{camera.name}': {exc}") from None
-    notes = []
+    notes = ["the frame's background (from its darkest pixels) is subtracted; no dark frame is used"]
     if white is not None:
         notes.append("views divided by the white image's views (display normalisation of the micro-images' "
                       "vignetting; the raw frame is not flat-field corrected)")
@@ -254,7 +259,7 @@ def write_views(result: ViewsResult, out: PathLike, *, fmt: str = "png", every_v
     return files
 
 
-def views(*, run: PathLike | None = None, pair: int = 0, frame: str = "A", image: PathLike | None = None,
+def views(*, run: PathLike | None = None, pair: int = 0, frame: str = "A", image: PathLike | np.ndarray | None = None,
           calibration: PathLike | None = None, rig: Rig | PathLike | None = None, camera: str | None = None,
           depths_mm: Sequence[float] | None = None, upsample: int = 1, out: PathLike | None = None,
           fmt: str = "png", every_view: bool = True) -> ViewsResult:
@@ -265,8 +270,8 @@ def views(*, run: PathLike | None = None, pair: int = 0, frame: str = "A", image
     run, pair, frame
         A run store and which of its frames (pair index, "A" or "B").
     image
-        A raw image file instead (PNG, TIFF, BMP; 8 or 16 bit), of a camera of the calibration
-        store's rig (or of ``rig``).
+        A raw image file instead (PNG, TIFF, BMP; 8 or 16 bit), or a (rows, columns) array, of a
+        camera of the calibration store's rig (or of ``rig``).
     calibration
         Calibration store with the camera's fitted microlens grid (and white image, fitted model).
     rig
@@ -312,7 +317,13 @@ def views(*, run: PathLike | None = None, pair: int = 0, frame: str = "A", image
             rig_ = rig if isinstance(rig, Rig) else load_rig(rig)
             where = "the rig"
         cam = _lightfield(rig_, camera, where)
-        img = frame_of_image(image, cam)
+        if isinstance(image, np.ndarray):
+            img = image
+            if img.shape != (cam.sensor_px[1], cam.sensor_px[0]):
+                raise UsageError(f"the image is {img.shape[-1]} x {img.shape[0]} px but camera '{cam.name}' has "
+                                 f"{cam.sensor_px[0]} x {cam.sensor_px[1]}")
+        else:
+            img = frame_of_image(image, cam)
     lattice, optics, white, source = lattice_of(cam, calibration)
     if depths_mm is None:
         lo, hi = rig_.volume.bounds_mm
