@@ -197,7 +197,7 @@ class Views:
 
 
 def sample_views(image: np.ndarray, lattice: Lattice, *, radius_px: float | None = None,
-                 white: np.ndarray | None = None, min_white: float = 0.05) -> Views:
+                 white: np.ndarray | None = None, min_white: float = 0.2) -> Views:
     """Every perspective view of a raw image: the pixels at one offset from every micro-image centre.
 
     View (du, dv) at node n is the raw image at ``centre(n) + (du, dv)`` (bilinear: the centres

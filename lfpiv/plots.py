@@ -260,7 +260,9 @@ def plot_views(result, out: str | Path) -> Path:
             (result.centre_view, "central view (u, v = 0, 0)")]
     pics += [(img, f"refocused at z = {z:+.3f} mm") for z, img in zip(result.depths_mm, planes, strict=True)]
     for ax, (img, title) in zip(axes.flat, pics, strict=False):
-        lo, hi = _stretch(img) if img.size else (0.0, 1.0)
+        # views divided by a white image have a few bright samples where the white is dim
+        lo, hi = (float(np.percentile(img, 1.0)), float(np.percentile(img, 99.5))) if img.size else (0.0, 1.0)
+        hi = max(hi, lo + 1e-6)
         ax.imshow(img, cmap="gray", vmin=lo, vmax=hi, interpolation="nearest")
         ax.set_title(title, fontsize=9)
         ax.set_xticks([])

@@ -207,8 +207,8 @@ def make_views(image: np.ndarray, camera: Camera, *, lattice: Lattice, depths_mm
 
 
 def _scaled(img: np.ndarray, bits: int) -> np.ndarray:
-    """A picture stretched from its 0.5th to its 99.8th percentile to the full range of ``bits``."""
-    lo, hi = np.percentile(img, [0.5, 99.8]) if img.size else (0.0, 1.0)
+    """A picture stretched from its 0.5th to its 99.5th percentile to the full range of ``bits``."""
+    lo, hi = np.percentile(img, [0.5, 99.5]) if img.size else (0.0, 1.0)
     out = np.clip((img - lo) / max(hi - lo, 1e-12), 0.0, 1.0) * (2**bits - 1)
     return np.rint(out).astype(np.uint8 if bits == 8 else np.uint16)
 
