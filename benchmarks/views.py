@@ -72,7 +72,8 @@ def main() -> None:
         rows.append((f"{name}: views", t_views, t_base))
         rows.append((f"{name}: one refocused plane from the views", t_plane, t_base_plane))
         rows.append((f"{name}: one refocused plane, 2 samples per lenslet", t_plane_up, None))
-        rows.append((f"{name}: raw frame to one refocused plane (views + plane)", t_views + t_plane, t_base + t_base_plane))
+        rows.append((f"{name}: raw frame to one refocused plane (views + plane)", t_views + t_plane,
+                     t_base + t_base_plane))
         if cols_px == 2048:
             t_check = best_of(lambda: check_image(img, cam, full_scale=65535, volume=rig.volume), 1)  # noqa: B023
             rows.append((f"{name}: every check before recording (lfcore.camera_checks.check_image)", t_check, None))
