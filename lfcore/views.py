@@ -316,8 +316,9 @@ def view_shifts_px(camera: Camera, offsets_px: np.ndarray, depth_mm: float) -> n
     For the point where the camera's axis crosses the rig's plane z = ``depth_mm``, the raw-image
     position in each view (:func:`lfcore.chief_ray.project` through the view's pupil point,
     :func:`view_pupil_mm`) minus its position in the central view. The shift depends on the
-    point's depth only (si A (1 / d - 1 / so), times k on the sensor), not on where it lies
-    across the field.
+    point's depth along the camera's axis only (si A (1 / d - 1 / so), times k on the sensor),
+    not on where it lies across the field: the plane refocused is the one through that point
+    square to the camera's axis (the rig's plane itself for a camera looking along z).
 
     Parameters
     ----------
