@@ -1,9 +1,9 @@
 """lfpiv: instrument software for light-field particle image velocimetry.
 
 ``import lfpiv`` gives the notebook-sized API of :mod:`lfpiv.api`: :func:`load_rig`,
-:func:`open_run`, :func:`import_files`, :func:`reconstruct`, :func:`correlate`, :func:`evaluate`
-and :func:`export`, the jobs the ``lfpiv`` commands run. They are imported on first use, so
-``import lfpiv`` stays cheap.
+:func:`open_run`, :func:`import_files`, :func:`reconstruct`, :func:`correlate`, :func:`evaluate`,
+:func:`export`, :func:`views` and :func:`check_camera`, the jobs the ``lfpiv`` commands run. They
+are imported on first use, so ``import lfpiv`` stays cheap.
 """
 
 from __future__ import annotations
@@ -16,9 +16,11 @@ try:
 except PackageNotFoundError:  # running from a source tree that was never installed
     __version__ = "0+unknown"
 
-__all__ = ["__version__", "correlate", "evaluate", "export", "import_files", "load_rig", "open_run", "reconstruct"]
+__all__ = ["__version__", "check_camera", "correlate", "evaluate", "export", "import_files", "load_rig", "open_run",
+           "reconstruct", "views"]
 
-_API = {"correlate", "evaluate", "export", "import_files", "load_rig", "open_run", "reconstruct", "Evaluation"}
+_API = {"check_camera", "correlate", "evaluate", "export", "import_files", "load_rig", "open_run", "reconstruct",
+        "views", "Evaluation"}
 
 
 def __getattr__(name: str) -> Any:

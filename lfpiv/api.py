@@ -10,6 +10,8 @@ The same jobs the ``lfpiv`` commands run, with keyword options::
     lfpiv.correlate(run)
     print(lfpiv.evaluate(run).vectors.divergence_mean)
     lfpiv.export(run, "netcdf", "field")
+    looks = lfpiv.views(run, depths_mm=[-2, 0, 2])        # perspective views, refocused planes
+    checks, notes = lfpiv.check_camera(rig)                # seeding, saturation, fill per camera
 
 A run is given as a path or as the store :func:`open_run` returns. Errors are the commands':
 :class:`lfpiv.errors.UsageError` for bad input (one line naming the problem and the fix),
@@ -29,7 +31,8 @@ from lfcore.runstore import RunStore
 from lfpiv.errors import UsageError
 from lfpiv.rigfile import load_rig
 
-__all__ = ["Evaluation", "correlate", "evaluate", "export", "import_files", "load_rig", "open_run", "reconstruct"]
+__all__ = ["Evaluation", "check_camera", "correlate", "evaluate", "export", "import_files", "load_rig", "open_run",
+           "reconstruct", "views"]
 
 PairsLike = slice | int | str | None
 
@@ -220,3 +223,58 @@ def export(run: str | os.PathLike[str] | RunStore, fmt: str, out: str | os.PathL
     from lfpiv.jobs.export import export_run
 
     return export_run(open_run(run), fmt, out, overwrite=overwrite)
+
+
+def views(run: str | os.PathLike[str] | RunStore | None = None, *, pair: int = 0, frame: str = "A",
+          image: str | os.PathLike[str] | Any = None, calibration: str | os.PathLike[str] | None = None,
+          rig: Rig | str | os.PathLike[str] | None = None, camera: str | None = None,
+          depths_mm: Sequence[float] | None = None, upsample: int = 1, out: str | os.PathLike[str] | None = None,
+          fmt: str = "png", every_view: bool = True) -> Any:
+    """The perspective views and refocused planes of a raw light-field frame (``lfpiv views``).
+
+    The frame is a run's (``run``, ``pair``, ``frame`` "A" or "B", ``camera``) or ``image``: a raw
+    image file, or a (rows, columns) array, of a camera of the ``calibration`` store's rig (its
+    fitted microlens grid is used) or of ``rig`` (its nominal one). ``depths_mm`` are z in the
+    rig's frame (default: 5 planes through the volume). With ``out`` the pictures and the figure
+    are written there. Returns a :class:`lfpiv.jobs.views.ViewsResult` (``.views.images`` the views,
+    ``.planes`` the refocused planes, ``.mosaic``, ``.centre_view``).
+    """
+    from lfpiv.jobs.views import views as job
+
+    if isinstance(run, RunStore):
+        run = run.path
+    return job(run=run, pair=pair, frame=frame, image=image, calibration=calibration,
+               rig=None if rig is None else _rig(rig), camera=camera, depths_mm=depths_mm, upsample=upsample,
+               out=out, fmt=fmt, every_view=every_view)
+
+
+def check_camera(rig: Rig | str | os.PathLike[str], *, frames: Mapping[str, Any] | None = None,
+                 run: str | os.PathLike[str] | RunStore | None = None, pair: int = 0,
+                 images: Mapping[str, str | os.PathLike[str]] | None = None,
+                 calibration: str | os.PathLike[str] | None = None, cameras: Sequence[str] | None = None,
+                 plot: str | os.PathLike[str] | None = None, sim_options: Mapping[str, Any] | None = None
+                 ) -> tuple[list[Any], list[str]]:
+    """The checks before recording (``lfpiv check-camera``): per camera, the seeding density
+    (PPM or PPP), the saturated share, the micro-image fill, the histogram and a refocused plane,
+    with :meth:`lfcore.camera_checks.CameraCheck.verdicts` against the chapter's ranges.
+
+    The frames are ``frames`` (camera name -> array), a ``run``'s pair, image files, or (none of
+    them) one pair grabbed from the rig now, the laser firing once (the simulated lab with
+    ``hardware = "sim"``; ``sim_options`` as :func:`lfpiv.rigging.sim_lab_options` gives them).
+    Returns (the checks, notes).
+    """
+    from lfpiv.jobs.check_camera import check_cameras, check_frames
+
+    the_rig = _rig(rig)
+    if frames is not None:
+        checks, notes = check_frames(the_rig, frames, calibration=calibration)
+        if plot is not None:
+            from lfpiv.plots import plot_camera_checks
+
+            plot_camera_checks(checks, plot)
+        return checks, notes
+    if isinstance(run, RunStore):
+        run = run.path
+    return check_cameras(the_rig, run=run, pair=pair, images=images, calibration=calibration,
+                         sim_options=None if sim_options is None else dict(sim_options),
+                         cameras=None if cameras is None else list(cameras), out=plot)

@@ -17,7 +17,8 @@ from lfcore.rig import is_pinhole  # noqa: E402
 from lfcore.runstore import RunStore  # noqa: E402
 from lfpiv.errors import UsageError  # noqa: E402
 
-__all__ = ["plot_grids", "plot_raw_images", "plot_reconstruction", "plot_rms", "plot_vectors"]
+__all__ = ["plot_camera_checks", "plot_grids", "plot_raw_images", "plot_reconstruction", "plot_rms", "plot_vectors",
+           "plot_views"]
 
 
 def _stretch(img: np.ndarray) -> tuple[float, float]:
@@ -235,6 +236,89 @@ def plot_rms(store: CalibrationStore, out: str | Path) -> Path:
     ax.set_title("dot reprojection error per plane")
     fig.tight_layout()
     out = Path(out)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
+
+
+def plot_views(result, out: str | Path) -> Path:
+    """Save a PNG of a frame's perspective views (:class:`lfpiv.jobs.views.ViewsResult`): the mosaic
+    of every view (tiled as the micro-image holds them), the central view and each refocused plane.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
+    out = Path(out)
+    planes = result.plane_images()
+    n = 2 + len(planes)
+    cols = min(n, 4)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 4.2 * rows), squeeze=False)
+    pics = [(result.mosaic, f"{len(result.views.offsets_px)} perspective views (by offset u, v)"),
+            (result.centre_view, "central view (u, v = 0, 0)")]
+    pics += [(img, f"refocused at z = {z:+.3f} mm") for z, img in zip(result.depths_mm, planes, strict=True)]
+    for ax, (img, title) in zip(axes.flat, pics, strict=False):
+        # views divided by a white image have a few bright samples where the white is dim
+        lo, hi = (float(np.percentile(img, 1.0)), float(np.percentile(img, 99.5))) if img.size else (0.0, 1.0)
+        hi = max(hi, lo + 1e-6)
+        ax.imshow(img, cmap="gray", vmin=lo, vmax=hi, interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    fig.suptitle(f"camera {result.camera}: lattice from {result.lattice_source}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
+def plot_camera_checks(checks, out: str | Path) -> Path:
+    """Save a PNG of the checks before recording (:class:`lfcore.camera_checks.CameraCheck`, one
+    row per camera): the histogram with full scale marked, the seeding against the chapter's
+    range, and the refocused plane (or raw image) the camera shows.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
+    from lfcore.camera_checks import MAX_PPM, MIN_PPM, PPP_RANGE, RECOMMENDED_PPM
+
+    out = Path(out)
+    fig, axes = plt.subplots(len(checks), 3, figsize=(14, 4.0 * len(checks)), squeeze=False)
+    for row, c in zip(axes, checks, strict=True):
+        centres = 0.5 * (c.bin_edges[:-1] + c.bin_edges[1:])
+        row[0].bar(centres, np.maximum(c.histogram, 1), width=np.diff(c.bin_edges), color="tab:blue", log=True)
+        row[0].axvline(c.full_scale, color="tab:red", ls="--", label="full scale (recommended: nothing here)")
+        row[0].set_title(f"{c.camera}: histogram, {100 * c.saturated_fraction:.3f}% saturated", fontsize=9)
+        row[0].set_xlabel("counts")
+        row[0].legend(fontsize=8)
+        if c.ppm is not None:
+            value, lo, hi, best, unit = c.ppm, MIN_PPM, MAX_PPM, RECOMMENDED_PPM, "PPM"
+        else:
+            value, lo, hi, best, unit = c.ppp, PPP_RANGE[0], PPP_RANGE[1], None, "PPP"
+        top = max(2.0 * hi, 1.2 * min(value, 10 * hi))
+        row[1].axhspan(lo, hi, color="tab:green", alpha=0.2, label=f"fine ({lo}-{hi} {unit})")
+        if best is not None:
+            row[1].axhline(best, color="tab:green", label=f"recommended {best} {unit}")
+        row[1].bar([0], [min(value, top)], color="tab:blue", width=0.5)
+        row[1].set_xlim(-1, 1)
+        row[1].set_ylim(0, top)
+        row[1].set_xticks([])
+        row[1].set_ylabel(unit)
+        fill = f", fill {c.fill:.2f}" if c.fill is not None else ""
+        row[1].set_title(f"seeding {value:.3g} {unit}{fill}", fontsize=9)
+        row[1].legend(fontsize=8)
+        lo_, hi_ = _stretch(c.preview)
+        row[2].imshow(c.preview, cmap="gray", vmin=lo_, vmax=hi_, interpolation="nearest")
+        row[2].set_title(c.preview_label, fontsize=9)
+        row[2].set_xticks([])
+        row[2].set_yticks([])
+    fig.tight_layout()
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out

@@ -13,11 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lfcore.camera_checks import CameraCheck, check_image
+from lfcore.rig import Rig, is_pinhole
 from lfcore.vectors import centres_mm, displacement_to_velocity, vorticity
+from lfcore.views import Lattice
 from realtime.processing import ProcessedPair
 from realtime.settings import AXES, LiveSettings
 
-__all__ = ["IN_PLANE", "Derived", "VectorSlice", "derive"]
+__all__ = ["IN_PLANE", "Derived", "VectorSlice", "camera_checks", "derive"]
 
 #: Per slice axis (the normal), the plane's horizontal and vertical axes.
 IN_PLANE = {"z": ("x", "y"), "y": ("x", "z"), "x": ("y", "z")}
@@ -134,3 +137,34 @@ def derive(pair: ProcessedPair, settings: LiveSettings) -> Derived:
     return Derived(mip=mip, slice_axis=s.slice_axis, slice_index=idx, slice_image=sl, extent_mm=extent, vectors=vs,
                    velocity=vel, vorticity=vort, grid_mm=(x_mm, y_mm, z_mm),
                    outlier_fraction=float(np.mean(vf.outlier)))
+
+
+def camera_checks(rig: Rig, raw: dict[str, np.ndarray], *, lattices: dict[str, Lattice] | None = None
+                  ) -> dict[str, CameraCheck]:
+    """The checks before recording (:mod:`lfcore.camera_checks`) of each camera's raw frame.
+
+    Parameters
+    ----------
+    rig
+        The rig (cameras, volume, bit depths).
+    raw
+        Camera name -> (rows, columns) raw frame A.
+    lattices
+        Camera name -> micro-image lattice (the calibration's); missing: the camera's nominal one.
+
+    Returns
+    -------
+    dict
+        Camera name -> its :class:`~lfcore.camera_checks.CameraCheck`, for the cameras of ``raw``
+        the rig has.
+    """
+    out = {}
+    names = {c.name for c in rig.camera}
+    for name, img in raw.items():
+        if name not in names:
+            continue
+        cam = rig.camera_named(name)
+        bits = cam.bit_depth if rig.hardware != "sim" else min(cam.bit_depth, rig.render.bit_depth)
+        lat = None if is_pinhole(cam) else (lattices or {}).get(name)
+        out[name] = check_image(np.asarray(img), cam, full_scale=float(2**bits - 1), volume=rig.volume, lattice=lat)
+    return out

@@ -4,7 +4,11 @@ Panels: each camera's raw light-field image (frame A); maximum-intensity project
 A along z and y and the chosen slice; the in-plane vectors of the vector plane nearest the slice
 drawn over its out-of-plane vorticity. A status line gives pairs per second processed and
 recorded, frames recorded and dropped, ring overruns, pairs skipped by the live path, the
-trigger-to-display latency and, on CUDA, the GPU memory in use. Controls: start/stop the live
+trigger-to-display latency and, on CUDA, the GPU memory in use. Beside them, the checks before
+recording for each camera (:func:`realtime.view.camera_checks`): its seeding density, saturated
+share and micro-image fill against the chapter's ranges, its histogram with full scale marked
+and the plane through the middle of the volume refocused from its raw frame, computed every
+:data:`CHECK_EVERY_S` seconds on a thread of their own. Controls: start/stop the live
 view, arm/disarm (through :class:`realtime.monitor.Controls`), record on/off, the slice axis and
 index, the DRT-MART iterations and relaxation.
 
@@ -24,6 +28,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -31,11 +36,14 @@ import numpy as np
 
 from realtime.monitor import Controls, require_qt
 from realtime.pipeline import AXES, LivePipeline, LiveResult, plausible_latency
-from realtime.view import IN_PLANE
+from realtime.view import IN_PLANE, camera_checks
 
 pg, QtCore, _, QtWidgets = require_qt()
 
-__all__ = ["MonitorWindow"]
+__all__ = ["CHECK_EVERY_S", "MonitorWindow"]
+
+#: Seconds between two runs of the camera checks on the newest raw frames.
+CHECK_EVERY_S = 2.0
 
 
 def _levels(img: np.ndarray, lo_pct: float = 1.0, hi_pct: float = 99.9) -> tuple[float, float]:
@@ -66,6 +74,7 @@ class _Bridge(QtCore.QObject):
     """Carries "a result is pending" from the pipeline's thread to the GUI thread (a queued signal)."""
 
     ready = QtCore.Signal()
+    checks_ready = QtCore.Signal()
 
 
 class MonitorWindow(QtWidgets.QMainWindow):
@@ -104,13 +113,16 @@ class MonitorWindow(QtWidgets.QMainWindow):
         self._pending_lock = threading.Lock()
         self._shown_times: list[float] = []
         self.setWindowTitle(title)
-        self.resize(1400, 950)
+        self.resize(1800, 950)
         pg.setConfigOptions(antialias=False, imageAxisOrder="row-major")
 
         central = QtWidgets.QWidget()
         layout = QtWidgets.QVBoxLayout(central)
         self.view = pg.GraphicsLayoutWidget()
-        layout.addWidget(self.view, stretch=1)
+        top = QtWidgets.QHBoxLayout()
+        top.addWidget(self.view, stretch=3)
+        top.addWidget(self._checks_column(pipeline.cameras), stretch=1)
+        layout.addLayout(top, stretch=1)
         self.status = QtWidgets.QLabel("waiting for the first pair ...")
         self.status.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
         layout.addWidget(self.status)
@@ -135,6 +147,12 @@ class MonitorWindow(QtWidgets.QMainWindow):
 
         self._bridge = _Bridge()
         self._bridge.ready.connect(self._draw_pending, QtCore.Qt.ConnectionType.QueuedConnection)
+        self._bridge.checks_ready.connect(self._draw_checks, QtCore.Qt.ConnectionType.QueuedConnection)
+        self._checker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lfpiv-checks")
+        self._checks_busy = False
+        self._checks_due = 0.0
+        self._checks_pending: dict[str, Any] | None = None
+        self.last_checks: dict[str, Any] = {}
         self._unsubscribe = pipeline.subscribe(self._on_result)
         self._timer = QtCore.QTimer(self)
         self._timer.timeout.connect(self.refresh_status)
@@ -154,6 +172,96 @@ class MonitorWindow(QtWidgets.QMainWindow):
         p.addItem(img)
         self.plots[name], self.images[name] = p, img
         return p
+
+    def _checks_column(self, cameras: list[str]):
+        """The checks before recording: per camera a line of verdicts, its histogram and a refocused plane."""
+        box = QtWidgets.QWidget()
+        col = QtWidgets.QVBoxLayout(box)
+        col.setContentsMargins(0, 0, 0, 0)
+        self.check_labels: dict[str, Any] = {}
+        self.check_plots: dict[str, Any] = {}
+        self.check_items: dict[str, Any] = {}
+        self.checks_view = pg.GraphicsLayoutWidget()
+        for k, cam in enumerate(cameras):
+            label = QtWidgets.QLabel(f"{cam}: checks before recording (waiting for a frame)")
+            label.setWordWrap(True)
+            label.setTextFormat(QtCore.Qt.TextFormat.RichText)
+            col.addWidget(label)
+            self.check_labels[cam] = label
+            h = self.checks_view.addPlot(row=2 * k, col=0, title=f"{cam}: histogram")
+            h.setLabel("bottom", "counts")
+            h.setLogMode(y=True)
+            bars = pg.PlotDataItem(stepMode="center", fillLevel=0, brush=(80, 140, 220, 160), pen="w")
+            full = pg.InfiniteLine(angle=90, pen=pg.mkPen("r", style=QtCore.Qt.PenStyle.DashLine))
+            h.addItem(bars)
+            h.addItem(full)
+            p = self.checks_view.addPlot(row=2 * k + 1, col=0, title=f"{cam}: refocused plane")
+            p.invertY(True)
+            p.setAspectLocked(True)
+            img = pg.ImageItem(axisOrder="row-major")
+            img.setColorMap(pg.colormap.get("CET-L1"))
+            p.addItem(img)
+            self.check_plots[f"hist:{cam}"], self.check_plots[f"plane:{cam}"] = h, p
+            self.check_items[f"hist:{cam}"], self.check_items[f"full:{cam}"] = bars, full
+            self.check_items[f"plane:{cam}"] = img
+        col.addWidget(self.checks_view, stretch=1)
+        return box
+
+    def run_checks(self, raw: dict[str, np.ndarray], *, wait: bool = False) -> None:
+        """Check ``raw`` (camera -> frame A) on the checks' thread and draw the result when it comes
+        (``wait``: here and now, for scripts and tests)."""
+        if wait:
+            self.show_checks(camera_checks(self.pipeline.rig, raw))
+            return
+        if self._checks_busy:
+            return
+        self._checks_busy = True
+        frames = {k: np.array(v, copy=True) for k, v in raw.items()}
+
+        def work() -> None:
+            try:
+                result = camera_checks(self.pipeline.rig, frames)
+            except Exception as exc:  # noqa: BLE001 - a frame the checks cannot read must not stop the monitor
+                result = {"error": str(exc)}
+            with self._pending_lock:
+                self._checks_pending = result
+            try:
+                self._bridge.checks_ready.emit()
+            except RuntimeError:  # the window closed meanwhile
+                pass
+
+        self._checker.submit(work)
+
+    def _draw_checks(self) -> None:
+        with self._pending_lock:
+            checks, self._checks_pending = self._checks_pending, None
+        self._checks_busy = False
+        if checks is None:
+            return
+        if "error" in checks:
+            for label in self.check_labels.values():
+                label.setText(f"checks failed: {checks['error']}")
+            return
+        self.show_checks(checks)
+
+    def show_checks(self, checks: dict[str, Any]) -> None:
+        """Draw the checks of each camera (:class:`lfcore.camera_checks.CameraCheck`; GUI thread)."""
+        for cam, c in checks.items():
+            label = self.check_labels.get(cam)
+            if label is None:
+                continue
+            lines = [f'<span style="color:{"#3c3" if ok else "#e33"}">{"ok" if ok else "FIX"}</span> {text}'
+                     for text, ok in c.verdicts()]
+            label.setText(f"<b>{cam}</b>: " + "<br>".join(lines))
+            self.check_items[f"hist:{cam}"].setData(c.bin_edges, np.maximum(c.histogram, 1).astype(float))
+            self.check_items[f"full:{cam}"].setValue(c.full_scale)
+            self.check_items[f"plane:{cam}"].setImage(c.preview, autoLevels=False, levels=_levels(c.preview))
+            self.check_plots[f"plane:{cam}"].setTitle(f"{cam}: {c.preview_label}")
+        self.last_checks = dict(checks)
+
+    def check_rects(self) -> dict[str, tuple[int, int, int, int]]:
+        """Where each checks panel's data area lies in a :meth:`screenshot`: (x, y, width, height) px."""
+        return self._rects(self.checks_view, self.check_plots)
 
     # --- controls -------------------------------------------------------------------------
     def _controls_row(self):
@@ -261,6 +369,10 @@ class MonitorWindow(QtWidgets.QMainWindow):
         self.plots["slice"].setLabel("bottom", f"{h} (mm)")
         self.plots["slice"].setLabel("left", f"{v} (mm)")
         self._draw_vectors(r)
+        now_s = time.monotonic()
+        if r.raw and now_s >= self._checks_due:
+            self._checks_due = now_s + CHECK_EVERY_S
+            self.run_checks(r.raw)
         self.last_result = r
         self.displayed += 1
         now = time.monotonic()
@@ -346,13 +458,16 @@ class MonitorWindow(QtWidgets.QMainWindow):
     # --- screenshots and closing ----------------------------------------------------------
     def panel_rects(self) -> dict[str, tuple[int, int, int, int]]:
         """Where each panel's data area lies in a :meth:`screenshot`: (x, y, width, height) px."""
+        return self._rects(self.view, self.plots)
+
+    def _rects(self, view, plots: dict[str, Any]) -> dict[str, tuple[int, int, int, int]]:
         out = {}
-        for name, p in self.plots.items():
+        for name, p in plots.items():
             vb = p.getViewBox()
             scene_rect = vb.sceneBoundingRect()
-            poly = self.view.mapFromScene(scene_rect)
+            poly = view.mapFromScene(scene_rect)
             r = poly.boundingRect()
-            top_left = self.view.mapTo(self, r.topLeft())
+            top_left = view.mapTo(self, r.topLeft())
             out[name] = (top_left.x(), top_left.y(), r.width(), r.height())
         return out
 
@@ -367,6 +482,7 @@ class MonitorWindow(QtWidgets.QMainWindow):
     def closeEvent(self, event) -> None:  # noqa: N802 - Qt's name
         self._timer.stop()
         self._unsubscribe()
+        self._checker.shutdown(wait=False, cancel_futures=True)
         if self.controls is not None and self.controls.armed:
             self.controls.disarm()
         super().closeEvent(event)

@@ -19,17 +19,20 @@ from typing import Any
 from lfpiv.errors import UsageError
 
 #: Subcommands in the order ``lfpiv --help`` lists them; each is the module of its name (with a
-#: trailing underscore where the name is a Python keyword: ``import`` is :mod:`lfpiv.commands.import_`).
-COMMANDS = ("demo", "devices", "acquire", "monitor", "calibrate", "import", "synth", "info", "check", "reconstruct",
-            "correlate", "evaluate", "export",
+#: trailing underscore where the name is a Python keyword: ``import`` is :mod:`lfpiv.commands.import_`, and
+#: underscores for hyphens).
+COMMANDS = ("demo", "devices", "check-camera", "acquire", "monitor", "calibrate", "import", "synth", "info", "check",
+            "views", "reconstruct", "correlate", "evaluate", "export",
             "study")
 
 
 def module_of(command: str) -> str:
-    """The module name of a command (:data:`COMMANDS`)."""
+    """The module name of a command (:data:`COMMANDS`): hyphens become underscores
+    (``check-camera`` is :mod:`lfpiv.commands.check_camera`)."""
     import keyword
 
-    return f"{command}_" if keyword.iskeyword(command) else command
+    name = command.replace("-", "_")
+    return f"{name}_" if keyword.iskeyword(name) else name
 
 
 def whole_number(text: str, least: int = 0, most: int | None = None) -> int:

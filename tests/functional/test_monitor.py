@@ -244,3 +244,39 @@ def test_monitor_on_pinhole_cameras_runs_mlos_smart(main, tmp_path: Path, capsys
                "--sim-pool", "1"])
     _, stderr = capsys.readouterr()
     assert rc == 2 and stderr.count("\n") == 1 and "is a pinhole camera" in stderr
+
+
+def test_monitor_checks_panel_shows_each_cameras_checks(rig_file: Path, tmp_path: Path) -> None:
+    # The checks before recording, beside the live panels: verdicts, histogram and refocused plane.
+    import pyqtgraph as pg
+
+    from lfcore.particles import particle_count, seed_particles
+    from lfcore.render import LightFieldRenderer
+    from realtime.monitor import MonitorWindow
+
+    rig = load_rig(rig_file)
+    cfg = rig.render.model_copy(update={"rays_per_particle": 2000})
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.5), np.random.default_rng(1))
+    raw = {c.name: LightFieldRenderer(c, cfg, wavelength_nm=532.0, device="cpu").frame(pts, 50_000.0, seed=k)
+           for k, c in enumerate(rig.camera)}
+    raw["cam1"] = np.full_like(raw["cam1"], 2**rig.render.bit_depth - 1)  # a camera blinded by the laser
+    pg.mkQApp()
+    win = MonitorWindow(LivePipeline(rig, device="cpu"))
+    try:
+        win.show()
+        win.run_checks(raw, wait=True)
+        text0, text1 = win.check_labels["cam0"].text(), win.check_labels["cam1"].text()
+        assert "PPM (recommended 0.5" in text0 and "FIX" not in text0
+        assert "FIX</span> saturated 100.000%" in text1
+        assert win.last_checks["cam0"].ppm == pytest.approx(0.5, rel=0.3)
+        shot = win.screenshot(tmp_path / "checks.png")
+        img = _png(shot)
+        rects = win.check_rects()
+        assert set(rects) == {"hist:cam0", "plane:cam0", "hist:cam1", "plane:cam1"}
+        x, y, w, h = rects["plane:cam0"]
+        assert w > 50 and h > 50
+        region = img[y + 2:y + h - 2, x + 2:x + w - 2].reshape(-1, 3)
+        assert len(np.unique(region, axis=0)) >= 3
+        assert set(win.panel_rects()) == {"raw:cam0", "raw:cam1", "mip:z", "mip:y", "slice", "vectors"}
+    finally:
+        win.close()
