@@ -35,7 +35,7 @@ from __future__ import annotations
 import importlib
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -55,6 +55,7 @@ from lfcore.operator import (
     gather,
     log_ratio,
 )
+from lfcore.warm import WARM_BLEND, with_floor
 
 if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to import
     from lfcore.matrix_free import DrtTemplates
@@ -174,6 +175,13 @@ class ReconSettings:
         ``warm_iterations`` times (:mod:`lfcore.warm`). The simultaneous form only.
     warm_iterations
         Iterations of a warm-started frame; None: :data:`WARM_SHARE` of ``iterations``.
+    los_iterations
+        DRT-MART's first iterations on the line-of-sight weights of the MART baseline (cheap to
+        build) instead of its own; then the voxels still brighter than ``prune`` (or
+        :data:`PRUNE`) of the brightest get DRT weights, and the remaining ``iterations -
+        los_iterations`` start from their intensities. The DRT weights, the costliest part of a
+        frame, are then built for the share of the active voxels that may hold a particle (a third
+        on the Mc case). 0: DRT weights from the start. DRT-MART's simultaneous form, in memory.
     """
 
     method: str = "drt-mart"
@@ -194,6 +202,7 @@ class ReconSettings:
     prune_every: int = 10
     warm_start: bool = False
     warm_iterations: int | None = None
+    los_iterations: int = 0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -237,6 +246,13 @@ class ReconSettings:
             raise ValueError(f"prune_every must be 1 or more iterations, got {self.prune_every}")
         if self.warm_start and self.form == "sequential":
             raise ValueError("a warm start runs the simultaneous form; use form 'simultaneous'")
+        if self.los_iterations < 0:
+            raise ValueError(f"los_iterations must be 0 or more, got {self.los_iterations}")
+        if self.los_iterations and (self.method != "drt-mart" or self.form != "simultaneous"):
+            raise ValueError("line-of-sight first iterations (los_iterations) are for drt-mart's simultaneous form")
+        if self.los_iterations and self.los_iterations >= self.iterations:
+            raise ValueError(f"los_iterations ({self.los_iterations}) must be fewer than the iterations "
+                             f"({self.iterations}): DRT's weights take over after them")
         if self.warm_iterations is not None and self.warm_iterations < 1:
             raise ValueError(f"warm_iterations must be 1 or more, got {self.warm_iterations}")
 
@@ -610,6 +626,7 @@ class FrameReconstructor:
         self._ratio = None  # (n_pixels,) float32: the update's log ratios
         self._e = None  # the intensities, at least as long as the most active voxels so far
         self._volume = None  # (z, y, x) float32
+        self._los_source = None  # line-of-sight weights for settings.los_iterations (made on first use)
 
     # --- one frame from host images --------------------------------------------------------------
     def reconstruct(self, images: Sequence[np.ndarray], *, progress: Callable[[int], None] | None = None,
@@ -652,15 +669,32 @@ class FrameReconstructor:
         t0 = time.perf_counter()
         voxels = self.eliminate(lits)  # returns once counted: synced
         t_elim = t0 if settings.method == "mart" else time.perf_counter()
-        op = self.operator(voxels)
+        warmed = warm is not None and predictor is not None and warm.held and settings.form == "simultaneous"
+        los_first = bool(settings.los_iterations) and not warmed and int(voxels.shape[0]) > 0
+        op = self.los_operator(voxels) if los_first else self.operator(voxels)
+        active, kind = op.n_voxels, op.kind
+        nbytes = int(op.nbytes) if los_first else self.operator_bytes(op)
         if self._image is None:
             self._image = wp.empty(p.n_pixels, dtype=float, device=self.device)
         flat = np.concatenate([s.ravel() for s in signals])
         wp.copy(self._image, wp.array(flat, dtype=float, device="cpu", copy=False))
-        t1 = time.perf_counter()
-        warmed = warm is not None and predictor is not None and warm.held and settings.form == "simultaneous"
+        weights_s = time.perf_counter() - t0
         its = settings.warm_count if warmed else settings.iterations
         start = warm.start(op, predictor) if warmed else None
+        iterate_s = 0.0
+        if los_first:
+            # the cheap weights first; DRT's then for the voxels still bright (a third of them on Mc)
+            first = self.iterate(op, self._image, noises, progress=progress, iterations=settings.los_iterations)
+            weights_s += first.start_s
+            iterate_s += first.iterate_s
+            t = time.perf_counter()
+            (bright,), (e,) = prune_dark([first.op], [first.e], settings.prune or PRUNE)
+            start = with_floor(e, WARM_BLEND)  # a dark voxel may still grow under the sharper weights
+            del first, op, e
+            op = self.operator(bright.voxels)
+            del bright
+            weights_s += time.perf_counter() - t
+            its -= settings.los_iterations
         done = self.iterate(op, self._image, noises, progress=progress, iterations=its, start=start)
         del start
         if warm is not None:
@@ -669,13 +703,13 @@ class FrameReconstructor:
         volume = vol.numpy()  # a copy from a GPU, a view of the buffer on the CPU
         if self.device == "cpu":
             volume = volume.copy()
-        n = op.n_voxels
-        return ReconResult(volume=volume, active_voxels=n, active_fraction=n / p.grid.n_voxels,
-                           nnz=op.nnz, weight_bytes=self.operator_bytes(op),
-                           weights_s=t1 - t0 + done.start_s,
-                           iterate_s=done.iterate_s, iterations=its, background=backgrounds,
+        return ReconResult(volume=volume, active_voxels=active, active_fraction=active / p.grid.n_voxels,
+                           nnz=op.nnz, weight_bytes=max(nbytes, self.operator_bytes(op)),
+                           weights_s=weights_s + done.start_s, iterate_s=iterate_s + done.iterate_s,
+                           iterations=its + (settings.los_iterations if los_first else 0), background=backgrounds,
                            noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=op.n_on_the_fly,
-                           projector=applied_by(op), operator=op.kind, final_voxels=done.op.n_voxels, warm=warmed)
+                           projector=applied_by(op), operator=f"{kind}, then {op.kind}" if los_first else kind,
+                           final_voxels=done.op.n_voxels, warm=warmed)
 
     # --- the stages ------------------------------------------------------------------------------
     def eliminate(self, lit) -> object:
@@ -697,6 +731,17 @@ class FrameReconstructor:
         if s.method == "mart":
             return self.projector.all_voxels()
         return self.projector.eliminate(lit, min_seen=s.min_seen, max_dark=s.max_dark)
+
+    def los_operator(self, voxels) -> Operator:
+        """The line-of-sight weights of ``voxels`` ((n,) int32 on the device; MLOS-MART's) for DRT-MART's
+        first ``settings.los_iterations``, within the memory budget."""
+        if self._los_source is None:
+            from lfcore.plan import operator_source
+
+            los = replace(self.settings, method="mlos-mart", projector="stored", los_iterations=0, warm_start=False)
+            self._los_source = operator_source(self.projector, los)
+        n = int(voxels.shape[0])
+        return self._los_source.operator(voxels, budget=lambda: self._weight_budget(n))
 
     def operator(self, voxels) -> Operator:
         """The operator of ``voxels`` ((n,) int32 on the device), from this reconstructor's operator

@@ -31,7 +31,7 @@ from lfcore.device_ops import VolumeOps
 from lfcore.operator import Operator, gather
 
 __all__ = ["PREDICTOR_WINDOW", "WARM_BLEND", "WARM_BLUR", "Predictor", "WarmStart", "predictor_config",
-           "predictor_field"]
+           "predictor_field", "with_floor"]
 
 #: Gaussian sigma, voxels, of the carried intensities: the predictor's error it forgives.
 WARM_BLUR = 0.5
@@ -153,9 +153,8 @@ class WarmStart:
             raise ValueError(f"the warm start's blend must be above 0 (MART cannot grow a zero) and at most 10, "
                              f"got {blend}")
         from lfcore._kernels import correlate as kc
-        from lfcore._kernels import mart as km
 
-        self._kc, self._km = kc, km
+        self._kc = kc
         self.wp = warp()
         self.device = resolve_device(device)
         self.shape = tuple(int(n) for n in shape)
@@ -202,15 +201,38 @@ class WarmStart:
                     [self._kept, pred, wp.vec3(*predictor.origin), wp.vec3(*predictor.step), RowOffset(0),
                      self._carried], self.device, rest=self.shape[1:])
         self.ops.smooth(self._carried, self.blur)
-        n = op.n_voxels
         flat = self._carried.reshape(int(np.prod(self.shape)))
-        e = gather(flat, op.voxels)
-        if n:
-            mean = _sum(e) / n
-            # every active voxel gets a share of the mean: a uniform start where nothing was carried
-            wp.launch(self._km.scale_shift, dim=n, inputs=[e, 1.0, self.blend * mean if mean > 0 else 1.0],
-                      device=self.device)
-        return e
+        # every active voxel gets a share of the mean: a uniform start where nothing was carried
+        return with_floor(gather(flat, op.voxels), self.blend, copy=False)
+
+
+def with_floor(e, share: float, *, copy: bool = True):
+    """``e`` plus ``share`` of its mean on every element (1 everywhere where it is all zero): a start
+    MART can grow everywhere from (its update multiplies, so a zero stays zero).
+
+    Parameters
+    ----------
+    e
+        (n,) float32 Warp array of intensities, non-negative.
+    share
+        Of the mean, added to each.
+    copy
+        Return a new array (else ``e`` changed in place).
+
+    Returns
+    -------
+    warp.array
+        (n,) float32 on ``e``'s device.
+    """
+    from lfcore._kernels import mart as km
+
+    wp = warp()
+    out = wp.clone(e) if copy else e
+    n = int(out.shape[0])
+    if n:
+        mean = _sum(out) / n
+        wp.launch(km.scale_shift, dim=n, inputs=[out, 1.0, share * mean if mean > 0 else 1.0], device=str(out.device))
+    return out
 
 
 def _sum(a) -> float:

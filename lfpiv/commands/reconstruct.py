@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from lfpiv.commands import (
+    MAX_ITERATIONS,
     add_device,
     add_pair_range,
     add_workers,
@@ -18,9 +19,15 @@ from lfpiv.commands import (
     positive_int,
     sub_apertures,
     warn,
+    whole_number,
     workers_phrase,
     xyz_triple,
 )
+
+
+def los_iterations(text: str) -> int:
+    """``--los-iterations``: a whole number from 0 to :data:`lfpiv.commands.MAX_ITERATIONS`."""
+    return whole_number(text, 0, MAX_ITERATIONS)
 
 
 def slabs_option(text: str) -> int | str:
@@ -94,6 +101,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "pair's B starts uniform; pairs are taken in order)")
     r.add_argument("--warm-iterations", type=positive_int, default=None, metavar="N",
                    help="iterations of a warm-started frame (default: a fifth of --iterations)")
+    r.add_argument("--los-iterations", type=los_iterations, default=0, metavar="N",
+                   help="drt-mart: the first N iterations on the MART baseline's line-of-sight weights (cheap to "
+                   "build), then DRT weights only for the voxels still bright (those --prune keeps), the rest of "
+                   "--iterations on them (default: 0, DRT weights from the start)")
     r.add_argument("--smooth", type=non_negative_float, default=0.6, metavar="VOXELS",
                    help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
     r.add_argument("--sub-apertures", type=sub_apertures, default=None,
@@ -136,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
                               threshold_sigma=args.threshold_sigma, smooth=args.smooth,
                               weight_storage=args.weight_storage, projector=args.projector, prune=args.prune,
                               prune_every=args.prune_every, warm_start=args.warm_start,
-                              warm_iterations=args.warm_iterations)
+                              warm_iterations=args.warm_iterations, los_iterations=args.los_iterations)
     args.method = method
     store = open_run(args.run, mode="r+")
     rig, calibration = None, None

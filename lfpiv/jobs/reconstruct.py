@@ -422,6 +422,6 @@ def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
     """Volumes' recorded settings, with those of settings added since at the value they had
     (volumes made before ``projector`` was recorded were made by ``auto``'s stored weights, those
     before ``prune`` with every voxel to the last iteration, those before ``warm_start`` from a uniform
-    start)."""
+    start, those before ``los_iterations`` on DRT weights from the first iteration)."""
     return {"projector": "auto", "prune": 0.0, "prune_every": 10, "warm_start": False, "warm_iterations": None,
-            **settings}
+            "los_iterations": 0, **settings}

@@ -385,3 +385,17 @@ def test_warm_start_from_the_command(capsys, tmp_path):
     rc, out, err = _run(capsys, "reconstruct", str(cold), "--warm-start", "--form", "sequential", "--relaxation",
                         "2.5", "--quiet")
     assert rc == 2 and err.count("\n") == 1 and "simultaneous" in err, err
+
+
+def test_line_of_sight_first_from_the_command(capsys, synthetic_run, tmp_path):
+    """--los-iterations: the first iterations on line-of-sight weights, recorded with the volumes; as
+    many as --iterations is one line."""
+    run = tmp_path / "run.zarr"
+    shutil.copytree(synthetic_run, run)
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "30", "--los-iterations", "10",
+                        "--pair-range", "0:1", "--quiet")
+    assert rc == 0, err
+    assert RunStore.open(run).group["volumes"].attrs["settings"]["los_iterations"] == 10
+    assert RunStore.open(run).read_volume(0, 1).max() > 0
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "30", "--los-iterations", "30", "--quiet")
+    assert rc == 2 and out == "" and err.count("\n") == 1 and "fewer than the iterations" in err, err
