@@ -31,6 +31,9 @@
 #   bash benchmarks/gpu.sh slabs   # depth slabs: their CUDA tests (reconstruction and correlation), the
 #                                  # slab path against the in-memory one on the GPU at two sizes, and a
 #                                  # 256 x 256 x 512 pair correlated in 8 slabs (about 6 minutes)
+#   bash benchmarks/gpu.sh less    # less work for the same answer (issue 47): the warm-start and line-of-sight-
+#                                  # first tests' CUDA variants, Mc pruned, line-of-sight first and warm-started
+#                                  # against the truth (about 10 minutes)
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
 #                                  # iterations), then the weight-build profile (what fits in 6 min)
 #
@@ -144,6 +147,13 @@ elif [ "$stage" = fly ]; then
 elif [ "$stage" = batch ]; then
     step batch-S 60 python3 benchmarks/batch.py --case S --pairs 3 --device cuda
     step batch-M 300 python3 benchmarks/batch.py --case M --pairs 3 --device cuda
+elif [ "$stage" = less ]; then
+    step pytest-warm 150 python3 -m pytest tests/unit/lfcore/test_warm.py tests/unit/lfcore/test_los_first.py -q \
+        -p no:cacheprovider --timeout 120
+    step convergence-Mc 150 python3 benchmarks/convergence.py --case Mc --counts 100,200,400 --no-reference \
+        --projector auto --device cuda
+    step los-first-Mc 150 python3 benchmarks/los_first.py --case Mc --iterations 200,400 --los 30 --device cuda
+    step warm-Mc 150 python3 benchmarks/warm.py --case Mc --pairs 3 --iterations 400 --counts 40,80 --device cuda
 elif [ "$stage" = profile ]; then
     step pytest-correlate 150 python3 -m pytest tests/unit/lfcore/test_correlate.py tests/functional/test_correlate_cli.py -q \
         -p no:cacheprovider --timeout 100
