@@ -60,8 +60,9 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
     from lfcore.matrix_free import DrtTemplates
     from lfcore.weight_cache import WeightCache
 
-__all__ = ["METHODS", "PRUNE", "PRUNE_PERCENTILE", "WEIGHTS", "FrameReconstructor", "Iterated", "ReconResult",
-           "ReconSettings", "estimate_background", "preprocess", "preprocess_images", "prune_dark", "reconstruct"]
+__all__ = ["MASKED", "METHODS", "PRUNE", "PRUNE_PERCENTILE", "WEIGHTS", "FrameReconstructor", "Iterated",
+           "ReconResult", "ReconSettings", "estimate_background", "preprocess", "preprocess_images", "prune_dark",
+           "reconstruct"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: The weights each method iterates on (the ``method`` of :meth:`lfcore.operator.Projector.operator`
@@ -292,6 +293,11 @@ class ReconResult:
         return 1e3 * self.iterate_s / max(self.iterations, 1)
 
 
+#: The signal of a pixel the flat field masks (:func:`preprocess`): negative, which no measured
+#: signal is, so the update and the uniform start skip it.
+MASKED = -1.0
+
+
 def estimate_background(image: np.ndarray) -> tuple[float, float]:
     """Background level and noise sigma of a raw image, in counts.
 
@@ -302,6 +308,9 @@ def estimate_background(image: np.ndarray) -> tuple[float, float]:
     """
     image = np.asarray(image)
     v = image.astype(np.float64).ravel()
+    v = v[np.isfinite(v)]  # a flat-field-corrected image is NaN where its pixels are masked
+    if v.size == 0:
+        return 0.0, 1e-6
     if v.size > 2_000_000:
         v = v[:: v.size // 2_000_000]
     lo, hi = np.percentile(v, [0.1, 90.0])
@@ -336,18 +345,27 @@ def preprocess(image: np.ndarray, background: float, sigma: float, threshold_sig
     voxel changes by far less than a pixel), so no margin is needed for ideal optics; ``grow``
     widens the lit mask by that many pixels to tolerate calibration error in real rigs.
 
+    A NaN pixel (masked by the flat field, :func:`lfcore.flatfield.correct`: unlit between
+    micro-images, under dust, dead) measured nothing: its signal is :data:`MASKED`, which the
+    update reads as no ratio at all (:func:`lfcore.operator.log_ratio`), and it counts as lit, so
+    that it neither removes voxels in the elimination nor pulls them dark.
+
     Returns
     -------
     signal
-        (rows, columns) float32, zero on unlit pixels.
+        (rows, columns) float32, zero on unlit pixels, :data:`MASKED` on masked ones.
     lit
-        (rows, columns) bool: signal above ``threshold_sigma`` sigmas (grown by ``grow``).
+        (rows, columns) bool: signal above ``threshold_sigma`` sigmas (grown by ``grow``), or masked.
     """
     s = np.asarray(image, dtype=np.float32) - np.float32(background)
+    masked = np.isnan(s)
     lit = s > threshold_sigma * sigma
     signal = np.where(lit, s, np.float32(0.0)).astype(np.float32)
     if grow > 0:
         lit = ndimage.binary_dilation(lit, structure=np.ones((3, 3), bool), iterations=grow)
+    if masked.any():
+        signal[masked] = MASKED
+        lit |= masked
     return signal, lit
 
 
@@ -496,6 +514,19 @@ def _total(a) -> float:
     if a.device.is_cpu:
         return float(a.numpy().sum())
     return float(warp().utils.array_sum(a))
+
+
+def _total_measured(a) -> float:
+    """Sum of a measured signal (a float32 Warp array), its masked pixels (:data:`MASKED`) left out."""
+    if a.device.is_cpu:
+        v = a.numpy()
+        return float(v.sum() if not (v < 0).any() else np.maximum(v, 0.0).sum())
+    from lfcore._kernels import mart as km
+
+    wp = warp()
+    out = wp.zeros(1, dtype=wp.float64, device=a.device)
+    wp.launch(km.positive_sum, dim=int(a.shape[0]), inputs=[a, out], device=a.device)
+    return float(out.numpy()[0])
 
 
 class FrameReconstructor:
@@ -741,7 +772,7 @@ class FrameReconstructor:
         e.fill_(1.0)
         op.forward(e, out=proj)
         total_proj = _total(proj)
-        e.fill_(_total(image) / total_proj if total_proj > 0 else 0.0)
+        e.fill_(_total_measured(image) / total_proj if total_proj > 0 else 0.0)
         wp.synchronize_device(self.device)
         t1 = time.perf_counter()
         floor = max(s.floor * s.threshold_sigma * float(np.mean(noise)), 1e-6)
