@@ -61,7 +61,7 @@ from lfcore.runstore import FRAME_CODEC
 from lfcore.target import DotBoard
 from lfcore.zarrstore import RigStore, described_array
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationStore", "CalibrationStoreError"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationStore", "CalibrationStoreError", "UnfinishedCalibrationError"]
 
 FORMAT = "lfpiv-calibration"
 FORMAT_VERSION = 1
@@ -70,6 +70,10 @@ _CODEC = FRAME_CODEC  # white and plane images are raw camera frames too
 
 class CalibrationStoreError(ValueError):
     """A calibration store that cannot be created or read; one line saying what to do."""
+
+
+class UnfinishedCalibrationError(CalibrationStoreError):
+    """A calibration store whose first calibration was interrupted before it was written."""
 
 
 class CalibrationStore(RigStore):
@@ -133,8 +137,9 @@ class CalibrationStore(RigStore):
         store._recover()
         unfinished = root.attrs.get("unfinished")
         if unfinished and not resume:
-            raise CalibrationStoreError(f"{path} is an unfinished calibration ('lfpiv {unfinished}' was interrupted "
-                                        f"before it wrote one); run it again with --out {path}, or delete {path}")
+            raise UnfinishedCalibrationError(f"{path} is an unfinished calibration ('lfpiv {unfinished}' was "
+                                             f"interrupted before it wrote one); run it again with --out {path}, or "
+                                             f"delete {path}")
         return store
 
     @classmethod

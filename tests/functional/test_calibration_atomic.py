@@ -1,0 +1,121 @@
+"""Calibration stores are written atomically (issue 50): an interrupted update leaves the old
+content or the new, an interrupted first calibration is refused as such; and the flat field end
+to end (issue 49): synth with a camera response -> calibrate mla --dark-frames -> reconstruct."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration.store import CalibrationStore, CalibrationStoreError, _settle
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY = ROOT / "examples" / "tiny.toml"
+RESPONSE = "lens_falloff = 0.4\nmicro_vignetting = 0.3\ndust_spots = 2\ndark_fpn_counts = 4.0\n"
+
+
+def lfpiv(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-m", "lfpiv", *args], cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=600)
+
+
+def start(*args: str, cwd: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, "-m", "lfpiv", *args], cwd=cwd, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def response_rig(tmp_path: Path) -> Path:
+    rig = tmp_path / "resp.toml"
+    rig.write_text(TINY.read_text().replace("particle_counts = 50000.0", "particle_counts = 50000.0\n" + RESPONSE))
+    return rig
+
+
+MLA = ("--sim-vignetting", "0", "--sim-dead", "0", "--quiet")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_interrupted_update_keeps_old_or_new(tmp_path, sig):
+    rig = response_rig(tmp_path)
+    assert lfpiv("calibrate", "mla", "--rig", str(rig), "--out", "cal.zarr", "--dark-frames", "1", *MLA,
+                 cwd=tmp_path).returncode == 0
+    before = CalibrationStore.open(tmp_path / "cal.zarr")
+    white0 = before.white("cam0")
+    for delay in (0.5, 1.5, 3.0):
+        proc = start("calibrate", "mla", "--rig", str(rig), "--out", "cal.zarr", "--dark-frames", "1", *MLA,
+                     cwd=tmp_path)
+        time.sleep(delay)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=120)
+        assert "Traceback" not in err and "never retrieved" not in err
+        store = CalibrationStore.open(tmp_path / "cal.zarr")
+        white, grid, dark = store.white("cam0"), store.grid("cam0"), store.dark("cam0")
+        assert white is not None and grid is not None and dark is not None
+        assert white.shape == white0.shape and white.max() > 1000  # never zeroed, never gone
+
+
+def test_interrupted_first_calibration_is_refused(tmp_path):
+    rig = response_rig(tmp_path)
+    store = CalibrationStore.create(tmp_path / "cal.zarr", __import__("lfpiv.rigfile", fromlist=["x"]).load_rig(rig),
+                                    unfinished="calibrate mla")
+    del store
+    res = lfpiv("calibrate", "report", "cal.zarr", cwd=tmp_path)
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1 and "unfinished" in res.stderr
+    info = lfpiv("info", "cal.zarr", cwd=tmp_path)
+    assert info.returncode == 2 and len(info.stderr.strip().splitlines()) == 1 and "unfinished" in info.stderr
+    with pytest.raises(CalibrationStoreError, match="unfinished"):
+        CalibrationStore.open(tmp_path / "cal.zarr")
+    # run again: finished, and readable
+    assert lfpiv("calibrate", "mla", "--rig", str(rig), "--out", "cal.zarr", *MLA, cwd=tmp_path).returncode == 0
+    assert CalibrationStore.open(tmp_path / "cal.zarr").white("cam0").max() > 1000
+
+
+def test_update_settles_after_a_kill(tmp_path):
+    """A committed update killed between its renames is finished on open; an uncommitted one is dropped."""
+    from lfpiv.rigfile import load_rig
+
+    rig = load_rig(TINY)
+    store = CalibrationStore.create(tmp_path / "cal.zarr", rig)
+    store.write_white("cam0", np.full((160, 192), 500))
+    cam = tmp_path / "cal.zarr" / "cam0"
+    # uncommitted: staged, no commit attribute
+    g = store.group["cam0"].create_group("update.staged")
+    CalibrationStore._image(g, "white", np.full((160, 192), 900), "new", 1)
+    _settle(cam)
+    assert CalibrationStore.open(tmp_path / "cal.zarr").white("cam0").max() == 500
+    # committed, killed after moving the old white aside
+    g = store.group["cam0"].create_group("update.staged")
+    CalibrationStore._image(g, "white", np.full((160, 192), 900), "new", 1)
+    g.attrs["commit"] = {"replace": ["white"], "remove": []}
+    (cam / "update.old").mkdir()
+    os.replace(cam / "white", cam / "update.old" / "white")
+    assert CalibrationStore.open(tmp_path / "cal.zarr").white("cam0").max() == 900
+    assert not (cam / "update.staged").exists() and not (cam / "update.old").exists()
+
+
+def test_flat_field_end_to_end(tmp_path):
+    rig = response_rig(tmp_path)
+    assert lfpiv("synth", "--rig", str(rig), "--out", "run.zarr", "--pairs", "1", "--ppm", "0.3", "--quiet",
+                 cwd=tmp_path).returncode == 0
+    assert lfpiv("calibrate", "mla", "--rig", str(rig), "--out", "cal.zarr", "--dark-frames", "2", *MLA,
+                 cwd=tmp_path).returncode == 0
+    res = lfpiv("reconstruct", "run.zarr", "--flat-field", "cal.zarr", "--iterations", "5", "--quiet", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    import zarr
+
+    settings = zarr.open_group(str(tmp_path / "run.zarr" / "volumes"), mode="r").attrs["settings"]
+    assert settings["flat_field"]["cameras"]["cam0"]["dark"] is True
+    # a calibration of another rig: one line, exit 2
+    other = tmp_path / "other.toml"
+    other.write_text(rig.read_text().replace("sensor_px = [192, 160]", "sensor_px = [200, 160]"))
+    assert lfpiv("calibrate", "mla", "--rig", str(other), "--out", "other.zarr", *MLA, cwd=tmp_path).returncode == 0
+    bad = lfpiv("reconstruct", "run.zarr", "--flat-field", "other.zarr", "--quiet", cwd=tmp_path)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "another camera" in bad.stderr
