@@ -108,3 +108,28 @@ def test_response_off_by_default_and_on_when_asked():
     on = sensor_response(cam, rig.render.model_copy(update={"lens_falloff": 0.4}))
     # the corners get 60% (cos^4 profile through the corner pixel centres: within a pixel of it)
     assert on.gain[0, 0] == pytest.approx(0.6, abs=0.01) and on.gain.max() == pytest.approx(1.0, abs=1e-3)
+
+
+def test_live_preprocessor_corrects_as_the_batch_path():
+    """The device preprocessor with a flat field gives what preprocess(correct(raw)) gives."""
+    from lfcore.device import warp
+    from lfcore.device_ops import ImagePreprocessor
+
+    rig = tiny()
+    cam = rig.camera[0]
+    rng = np.random.default_rng(2)
+    shape = (cam.sensor_px[1], cam.sensor_px[0])
+    white = rng.uniform(500, 1000, shape)
+    white[3, 4] = 100.0  # dead
+    dark = np.full(shape, 100.0) + rng.normal(0, 2, shape)
+    flat = flat_field(dark, white)
+    raw = (rng.uniform(90, 400, shape)).astype(np.uint16)
+    sig, lit = preprocess(correct(raw, flat), 5.0, 10.0, 3.0)
+    wp = warp()
+    pre = ImagePreprocessor([cam], device="cpu", flats=[flat])
+    signal = wp.zeros(raw.size, dtype=float, device="cpu")
+    lit_d = wp.zeros(raw.size, dtype=wp.uint8, device="cpu")
+    pre(wp.array(raw.ravel(), dtype=wp.uint16, device="cpu"), [5.0], [30.0], signal, lit_d)
+    np.testing.assert_allclose(signal.numpy().reshape(shape), sig, rtol=1e-5, atol=1e-3)
+    assert np.array_equal(lit_d.numpy().reshape(shape).astype(bool), lit)
+    assert sig[3, 4] == MASKED
