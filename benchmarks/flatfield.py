@@ -66,11 +66,14 @@ def main() -> None:
     ap.add_argument("--falloff", type=float, default=0.4, help="main-lens fall-off at the corners (default 0.4)")
     ap.add_argument("--micro", type=float, default=0.3, help="micro-image vignetting at the rims (default 0.3)")
     ap.add_argument("--dust", type=int, default=5, help="dust shadows (default 5)")
+    ap.add_argument("--dust-radius", type=float, default=8.0, help="dust shadow radius, pixels (default 8)")
+    ap.add_argument("--dust-opacity", type=float, default=0.7, help="light a dust shadow takes (default 0.7)")
     ap.add_argument("--fpn", type=float, default=5.0, help="dark fixed-pattern noise, counts (default 5)")
     ap.add_argument("--keep", default=None, help="folder to keep the runs in (default: a temporary one)")
     args = ap.parse_args()
     text = Path(args.rig).read_text()
     response = (f"lens_falloff = {args.falloff}\nmicro_vignetting = {args.micro}\ndust_spots = {args.dust}\n"
+                f"dust_radius_px = {args.dust_radius}\ndust_opacity = {args.dust_opacity}\n"
                 f"dark_fpn_counts = {args.fpn}\n")
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.keep or tmp)
@@ -95,7 +98,8 @@ def main() -> None:
     q0, v0 = rows["clean"]
     print(f"rig {Path(args.rig).name}, {args.pairs} pair(s) at {args.ppm} PPM, {args.iterations} iterations; response: "
           f"fall-off {args.falloff:.0%} at the corners, micro-image vignetting {args.micro:.0%}, {args.dust} dust "
-          f"shadows, dark fixed pattern {args.fpn:g} counts; calibrate mla {cal:.1f} s")
+          f"shadows ({args.dust_radius:g} px, {args.dust_opacity:.0%} opaque),"
+          f" dark fixed pattern {args.fpn:g} counts; calibrate mla {cal:.1f} s")
     print("| images | Q | Q vs clean | vector error (of peak) | vector error vs clean | s |")
     print("| --- | --- | --- | --- | --- | --- |")
     labels = {"clean": "clean rig", "response": "response, uncorrected", "corrected": "response, flat-field corrected"}
