@@ -119,3 +119,37 @@ def test_flat_field_end_to_end(tmp_path):
     assert lfpiv("calibrate", "mla", "--rig", str(other), "--out", "other.zarr", *MLA, cwd=tmp_path).returncode == 0
     bad = lfpiv("reconstruct", "run.zarr", "--flat-field", "other.zarr", "--quiet", cwd=tmp_path)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "another camera" in bad.stderr
+
+
+def test_white_and_dark_files_of_any_depth_and_bad_ones(tmp_path):
+    """8- and 16-bit PNG and TIFF white and dark images are taken alike; a dark image brighter than
+    the white, or either of another size: one line, exit 2, nothing written."""
+    import tifffile
+    from PIL import Image
+
+    from lfcore.white import WhiteImageConfig, white_image
+    from lfpiv.rigfile import load_rig
+
+    rig16 = response_rig(tmp_path)
+    rig8 = tmp_path / "r8.toml"
+    rig8.write_text(rig16.read_text().replace('name = "cam0"', 'name = "cam0"\nbit_depth = 8'))
+    rig = load_rig(rig16)
+    white = white_image(rig.camera[0], render=rig.render, config=WhiteImageConfig(level_counts=20000.0))
+    dark = np.full_like(white, 100)
+    Image.fromarray((white / white.max() * 240).astype(np.uint8)).save(tmp_path / "white8.png")
+    Image.fromarray((dark / white.max() * 240 + 2).astype(np.uint8)).save(tmp_path / "dark8.png")
+    tifffile.imwrite(tmp_path / "white16.tif", white)
+    tifffile.imwrite(tmp_path / "dark16.tif", dark)
+    Image.fromarray(np.full((150, 192), 200, np.uint8)).save(tmp_path / "small.png")
+    Image.fromarray(np.full(white.shape, 230, np.uint8)).save(tmp_path / "bright.png")
+    for r, w, d in ((rig8, "white8.png", "dark8.png"), (rig16, "white16.tif", "dark16.tif")):
+        res = lfpiv("calibrate", "mla", "--rig", str(r), "--white", w, "--dark", d, "--out", f"{w}.zarr", "--quiet",
+                    cwd=tmp_path)
+        assert res.returncode == 0, res.stderr
+        assert CalibrationStore.open(tmp_path / f"{w}.zarr").dark("cam0") is not None
+    for w, d, what in (("white8.png", "bright.png", "brighter than the white"), ("small.png", "dark8.png", "192 x 150"),
+                       ("white8.png", "small.png", "192 x 150")):
+        res = lfpiv("calibrate", "mla", "--rig", str(rig8), "--white", w, "--dark", d, "--out", "bad.zarr", "--quiet",
+                    cwd=tmp_path)
+        assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1 and what in res.stderr, res.stderr
+        assert not (tmp_path / "bad.zarr").exists()
