@@ -153,3 +153,16 @@ def test_white_and_dark_files_of_any_depth_and_bad_ones(tmp_path):
                     cwd=tmp_path)
         assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1 and what in res.stderr, res.stderr
         assert not (tmp_path / "bad.zarr").exists()
+
+
+def test_monitor_corrects_live_frames(tmp_path):
+    """lfpiv monitor --flat-field: the live path corrects every frame on the device and runs to its end."""
+    pytest.importorskip("pyqtgraph")
+    rig = response_rig(tmp_path)
+    assert lfpiv("calibrate", "mla", "--rig", str(rig), "--out", "cal.zarr", "--dark-frames", "1", *MLA,
+                 cwd=tmp_path).returncode == 0
+    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    res = lfpiv("monitor", "--rig", str(rig), "--pairs", "2", "--after", "1", "--screenshot", "shot.png",
+                "--flat-field", "cal.zarr", "--quiet", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "2 pair(s) processed" in res.stdout and (tmp_path / "shot.png").stat().st_size > 0
