@@ -846,6 +846,11 @@ def flat_fields(run_rig: Rig, calibration: str | Path, cameras: Sequence[str] | 
                              f"({theirs.sensor_px[0]} x {theirs.sensor_px[1]} px, the run's {cam.sensor_px[0]} x "
                              f"{cam.sensor_px[1]}); give the "
                              "calibration of this rig")
+        if (theirs.mla_grid != cam.mla_grid or abs(theirs.mla_pitch_um / cam.mla_pitch_um - 1) > 0.01
+                or abs(theirs.pixel_pitch_um / cam.pixel_pitch_um - 1) > 0.01):
+            raise UsageError(f"camera '{name}': {store.path} is a calibration of other optics ({theirs.mla_grid} "
+                             f"lenslets of {theirs.mla_pitch_um:g} um, the run's {cam.mla_grid} of "
+                             f"{cam.mla_pitch_um:g} um); give the calibration of this rig")
         white = store.white(name)
         if white is None:
             raise UsageError(f"camera '{name}': no white image in {store.path}; run 'lfpiv calibrate mla' first")
