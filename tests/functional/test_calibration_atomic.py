@@ -4,6 +4,7 @@ to end (issue 49): synth with a camera response -> calibrate mla --dark-frames -
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -166,3 +167,33 @@ def test_monitor_corrects_live_frames(tmp_path):
                 "--flat-field", "cal.zarr", "--quiet", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert "2 pair(s) processed" in res.stdout and (tmp_path / "shot.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signal_in_the_middle_of_a_write_waits_for_it(tmp_path, sig):
+    """A real signal arriving while a white image is being written takes effect once the update is in
+    place: the new white whole, nothing staged left; SIGINT then raises KeyboardInterrupt as before."""
+    from lfpiv.rigfile import load_rig
+
+    store = CalibrationStore.create(tmp_path / "cal.zarr", load_rig(TINY))
+    store.write_white("cam0", np.full((160, 192), 500))
+    real = CalibrationStore._image
+    got: list[int] = []
+
+    def image_then_signal(g, name, image, what, frames):  # the signal lands between the arrays' writes
+        out = real(g, name, image, what, frames)
+        os.kill(os.getpid(), sig)
+        time.sleep(0.05)
+        return out
+
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: got.append(signum))
+    try:
+        CalibrationStore._image = staticmethod(image_then_signal)
+        with pytest.raises(KeyboardInterrupt) if sig == signal.SIGINT else contextlib.nullcontext():
+            store.write_white("cam0", np.full((160, 192), 900))
+    finally:
+        CalibrationStore._image = staticmethod(real)
+        signal.signal(signal.SIGTERM, previous)
+    assert CalibrationStore.open(tmp_path / "cal.zarr").white("cam0").max() == 900
+    assert not (tmp_path / "cal.zarr" / "cam0" / "update.staged").exists()
+    assert got == ([signal.SIGTERM] if sig == signal.SIGTERM else [])
