@@ -5,6 +5,8 @@ Layout::
     calib.zarr/               attrs: format "lfpiv-calibration", format_version, rig (as
                               loaded), created, software_version
       <camera>/white          uint16 (rows, columns): the averaged white image
+      <camera>/dark           uint16 (rows, columns): the averaged dark image (lens capped, no
+                              light), when one was taken or given
       <camera>/mla/centres_px float64 (n, 2): detected micro-image centres (column, row);
                               attrs: pitch_px, rotation_deg, offset_px, grid, rms_px, ...
       <camera>/mla/indices    int64 (n, 2): lattice indices of each centre
@@ -27,11 +29,26 @@ Root attrs ``target`` hold the dot board (:class:`lfcore.target.DotBoard`) of th
 Every array carries ``units``, ``axes`` and ``description`` attributes, like the run store
 (:mod:`lfcore.runstore`), so a user with plain zarr can read a calibration without lfpiv. A plane
 is done when its ``stage_mm`` is finite: an interrupted volumetric run resumes from the others.
+
+Every other write is atomic: the white and dark images and the grid of a camera (or its fitted
+model) are written into ``<camera>/update.staged/``, whose ``commit`` attribute, written last, is
+the point of no return; the new items are then renamed into place (the old ones through
+``<camera>/update.old/``, deleted after). An interrupt before the commit leaves the old content
+(the staged group is deleted when the store is next opened), one after it the new (the renames
+are finished when the store is next opened). A store that ``calibrate mla`` creates carries the
+root attribute ``unfinished`` until its first calibration is written; readers refuse it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
+import json
+import os
+import shutil
+import signal
+import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +61,7 @@ from lfcore.runstore import FRAME_CODEC
 from lfcore.target import DotBoard
 from lfcore.zarrstore import RigStore, described_array
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationStore", "CalibrationStoreError"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "CalibrationStore", "CalibrationStoreError", "UnfinishedCalibrationError"]
 
 FORMAT = "lfpiv-calibration"
 FORMAT_VERSION = 1
@@ -53,6 +70,10 @@ _CODEC = FRAME_CODEC  # white and plane images are raw camera frames too
 
 class CalibrationStoreError(ValueError):
     """A calibration store that cannot be created or read; one line saying what to do."""
+
+
+class UnfinishedCalibrationError(CalibrationStoreError):
+    """A calibration store whose first calibration was interrupted before it was written."""
 
 
 class CalibrationStore(RigStore):
@@ -70,9 +91,12 @@ class CalibrationStore(RigStore):
 
     # --- creation and opening -----------------------------------------------------------
     @classmethod
-    def create(cls, path: str | Path, rig: Rig, *, software_version: str = "", overwrite: bool = False
-               ) -> CalibrationStore:
+    def create(cls, path: str | Path, rig: Rig, *, software_version: str = "", overwrite: bool = False,
+               unfinished: str | None = None) -> CalibrationStore:
         """Create an empty store for ``rig``.
+
+        ``unfinished`` (the command that creates it) marks the store as not yet calibrated until
+        :meth:`finish`: readers refuse it, so an interrupted first calibration is never taken for one.
 
         Raises
         ------
@@ -89,32 +113,45 @@ class CalibrationStore(RigStore):
             "rig": rig.to_dict(),
             "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
             "software_version": software_version,
+            **({"unfinished": unfinished} if unfinished else {}),
         })
         for cam in rig.camera:
             root.create_group(cam.name).attrs.update({"sensor_px": list(cam.sensor_px)})
         return cls(root, path)
 
     @classmethod
-    def open(cls, path: str | Path, mode: str = "r") -> CalibrationStore:
-        """Open an existing store (``mode`` ``"r"`` or ``"r+"``).
+    def open(cls, path: str | Path, mode: str = "r", *, resume: bool = False) -> CalibrationStore:
+        """Open an existing store (``mode`` ``"r"`` or ``"r+"``); ``resume``: an unfinished one too.
+
+        An update interrupted after its commit is completed, one interrupted before it is
+        discarded (see the module's notes).
 
         Raises
         ------
         CalibrationStoreError
-            If ``path`` does not exist or is not a calibration store.
+            If ``path`` does not exist, is not a calibration store, or is unfinished.
         """
         path = Path(path)
         root = cls._open_root(path, mode)
-        return cls(root, path)
+        store = cls(root, path)
+        store._recover()
+        unfinished = root.attrs.get("unfinished")
+        if unfinished and not resume:
+            raise UnfinishedCalibrationError(f"{path} is an unfinished calibration ('lfpiv {unfinished}' was "
+                                             f"interrupted before it wrote one); run it again with --out {path}, or "
+                                             f"delete {path}")
+        return store
 
     @classmethod
-    def open_or_create(cls, path: str | Path, rig: Rig, *, software_version: str = "") -> CalibrationStore:
+    def open_or_create(cls, path: str | Path, rig: Rig, *, software_version: str = "",
+                       unfinished: str | None = None) -> CalibrationStore:
         """Open the store at ``path`` for writing if it exists (it must be for the same cameras),
-        else create it."""
+        else create it (marked ``unfinished`` when given, see :meth:`create`); an unfinished store
+        is opened to be finished."""
         path = Path(path)
         if not path.exists():
-            return cls.create(path, rig, software_version=software_version)
-        store = cls.open(path, mode="r+")
+            return cls.create(path, rig, software_version=software_version, unfinished=unfinished)
+        store = cls.open(path, mode="r+", resume=True)
         theirs = {c["name"]: tuple(c["sensor_px"]) for c in store.group.attrs["rig"]["camera"]}
         ours = {c.name: tuple(c.sensor_px) for c in rig.camera}
         if theirs != ours:
@@ -134,23 +171,89 @@ class CalibrationStore(RigStore):
             raise CalibrationStoreError(f"{self.path} has no camera '{camera}' (it has {self.cameras})")
         return self.group[camera]
 
-    # --- white image and microlens grid ---------------------------------------------------
-    def write_white(self, camera: str, image: np.ndarray, *, frames_averaged: int = 1) -> None:
-        """Store the (rows, columns) white image of ``camera``, rounded to uint16."""
+    # --- atomic updates -----------------------------------------------------------------
+    def _update(self, camera: str, build: Callable[[zarr.Group], list[str]], *, remove: tuple[str, ...] = ()) -> None:
+        """Replace items of ``camera`` atomically: ``build`` writes the new ones into a staged group
+        and returns their names; they, and ``remove``, replace the old ones only once all are written.
+        SIGINT, SIGTERM and SIGHUP wait until it is done (then act as they would have)."""
         g = self._camera(camera)
+        here = Path(self.path) / camera
+        with _signals_held():
+            _settle(here)
+            staged = g.create_group(_STAGED, overwrite=True)
+            names = build(staged)
+            # the commit point: one file written atomically (zarr writes beside and renames)
+            staged.attrs["commit"] = {"replace": list(names), "remove": [n for n in remove if n not in names]}
+            _settle(here)
+
+    def _recover(self) -> None:
+        """Finish or discard the updates an interrupt left (best effort on a read-only store)."""
+        for name in self.cameras:
+            with contextlib.suppress(OSError):
+                _settle(Path(self.path) / name)
+
+    def finish(self) -> None:
+        """Clear the ``unfinished`` mark of a store's first calibration (it holds one now)."""
+        if "unfinished" in self.group.attrs:
+            del self.group.attrs["unfinished"]
+
+    # --- white image and microlens grid ---------------------------------------------------
+    @staticmethod
+    def _image(g: zarr.Group, name: str, image: np.ndarray, what: str, frames_averaged: int) -> str:
         img = np.clip(np.rint(np.asarray(image, dtype=np.float64)), 0, 65535).astype(np.uint16)
-        a = described_array(g, "white", "counts", ["row", "column"], "white (uniformly lit) image, mean of frames",
-                            shape=img.shape, chunks=img.shape, dtype=np.uint16, compressors=_CODEC, overwrite=True)
+        a = described_array(g, name, "counts", ["row", "column"], what, shape=img.shape, chunks=img.shape,
+                            dtype=np.uint16, compressors=_CODEC, overwrite=True)
         a[...] = img
         a.attrs["frames_averaged"] = int(frames_averaged)
+        return name
+
+    def write_white(self, camera: str, image: np.ndarray, *, frames_averaged: int = 1) -> None:
+        """Store the (rows, columns) white image of ``camera``, rounded to uint16 (atomically)."""
+        self._update(camera, lambda st: [self._image(st, "white", image, "white (uniformly lit) image, mean of "
+                                                     "frames", frames_averaged)])
 
     def white(self, camera: str) -> np.ndarray | None:
         """The white image of ``camera`` (rows, columns) uint16, or None if not taken."""
         g = self._camera(camera)
         return g["white"][...] if "white" in g else None
 
+    def write_dark(self, camera: str, image: np.ndarray, *, frames_averaged: int = 1) -> None:
+        """Store the (rows, columns) dark image of ``camera``, rounded to uint16 (atomically)."""
+        self._update(camera, lambda st: [self._image(st, "dark", image, "dark image (no light: lens capped, laser "
+                                                     "off), mean of frames", frames_averaged)])
+
+    def dark(self, camera: str) -> np.ndarray | None:
+        """The dark image of ``camera`` (rows, columns) uint16, or None if not taken."""
+        g = self._camera(camera)
+        return g["dark"][...] if "dark" in g else None
+
+    def write_mla(self, camera: str, *, white: np.ndarray, grid: MlaGrid, mla: dict[str, Any] | None = None,
+                  white_frames: int = 1, dark: np.ndarray | None = None, dark_frames: int = 1) -> bool:
+        """Store ``camera``'s white image, its dark image (where given) and its microlens grid in one
+        atomic update: an interrupt leaves all three as they were or all new.
+
+        A fitted model of ``camera`` is removed: its dots were found through the earlier grid.
+
+        Returns
+        -------
+        bool
+            Whether a fitted model was removed.
+        """
+        stale = "model" in self._camera(camera)
+
+        def build(st: zarr.Group) -> list[str]:
+            names = [self._image(st, "white", white, "white (uniformly lit) image, mean of frames", white_frames)]
+            if dark is not None:
+                names.append(self._image(st, "dark", dark, "dark image (no light: lens capped, laser off), mean of "
+                                         "frames", dark_frames))
+            self._grid_group(st.create_group("mla"), grid, mla)
+            return [*names, "mla"]
+
+        self._update(camera, build, remove=("model",))
+        return stale
+
     def write_grid(self, camera: str, grid: MlaGrid, *, mla: dict[str, Any] | None = None) -> bool:
-        """Store the detected microlens grid of ``camera`` (replacing any earlier one).
+        """Store the detected microlens grid of ``camera`` (replacing any earlier one, atomically).
 
         ``mla`` is :meth:`MlaGrid.to_mla` of the nominal camera, kept as attributes. A fitted
         model of ``camera`` is removed: its dots were found through the earlier grid.
@@ -160,11 +263,13 @@ class CalibrationStore(RigStore):
         bool
             Whether a fitted model was removed.
         """
-        g = self._camera(camera)
-        stale = "model" in g
-        if stale:
-            del g["model"]
-        m = g.require_group("mla")
+        stale = "model" in self._camera(camera)
+        self._update(camera, lambda st: (self._grid_group(st.create_group("mla"), grid, mla), ["mla"])[1],
+                     remove=("model",))
+        return stale
+
+    @staticmethod
+    def _grid_group(m: zarr.Group, grid: MlaGrid, mla: dict[str, Any] | None) -> None:
         n = grid.n_lenslets
         arrays = (
             ("centres_px", grid.centres_px, np.float64, "px", ["lenslet", "column_row"],
@@ -189,7 +294,6 @@ class CalibrationStore(RigStore):
                            "minus the centre (column, row)",
             "mla": dict(mla or {}),
         })
-        return stale
 
     def grid(self, camera: str) -> MlaGrid | None:
         """The stored microlens grid of ``camera``, or None."""
@@ -282,12 +386,15 @@ class CalibrationStore(RigStore):
             Whether a self-calibration was removed.
         """
         stale = "selfcal" in self._camera(camera)
-        if stale:
-            del self._camera(camera)["selfcal"]
-        g = self._camera(camera).require_group("model")
-        g.attrs.update({"camera": model, **stats,
-                        "description": "fitted camera model (rig-file [[camera]] table) and its reprojection "
-                                       "RMS (px) over all planes and per plane (NaN: no dots)"})
+
+        def build(st: zarr.Group) -> list[str]:
+            st.create_group("model").attrs.update({
+                "camera": model, **stats, "description": "fitted camera model (rig-file [[camera]] table) and its "
+                                                         "reprojection RMS (px) over all planes and per plane (NaN: "
+                                                         "no dots)"})
+            return ["model"]
+
+        self._update(camera, build, remove=("selfcal",))
         return stale
 
     def model(self, camera: str) -> dict[str, Any] | None:
@@ -316,9 +423,12 @@ class CalibrationStore(RigStore):
         if "model" not in g:
             raise CalibrationStoreError(f"camera '{camera}' has no fitted model in {self.path} to self-calibrate; "
                                         "run 'lfpiv calibrate fit' first")
-        if "selfcal" in g:
-            del g["selfcal"]
-        sc = g.create_group("selfcal")
+        self._update(camera, lambda st: (self._selfcal_group(st.create_group("selfcal"), model, stats, maps_px,
+                                                             matches), ["selfcal"])[1])
+
+    @staticmethod
+    def _selfcal_group(sc: zarr.Group, model: dict[str, Any], stats: dict[str, Any], maps_px: np.ndarray,
+                       matches: np.ndarray) -> None:
         sc.attrs.update({"camera": model, **stats,
                          "description": "volume self-calibration (Wieneke 2008): the model corrected by the "
                                         "disparity maps of a recording's particles; pass 0 before, the last after"})
@@ -370,6 +480,11 @@ class CalibrationStore(RigStore):
                 lines.append(f"  {name}: white image {white.shape[1]} x {white.shape[0]} px, "
                              f"mean of {g['white'].attrs.get('frames_averaged', 1)} frame(s), "
                              f"levels {np.percentile(white, 1):.0f}..{np.percentile(white, 99.5):.0f} counts")
+                dark = self.dark(name)
+                lines.append(f"  {name}: " + (f"dark image, mean of {g['dark'].attrs.get('frames_averaged', 1)} "
+                                              f"frame(s), levels {np.percentile(dark, 1):.0f}.."
+                                              f"{np.percentile(dark, 99.5):.0f} counts" if dark is not None else
+                                              "no dark image (the flat field takes the white image's own floor)"))
             grid = self.grid(name)
             if grid is not None:
                 mla = dict(g["mla"].attrs.get("mla", {}))
@@ -433,3 +548,59 @@ def _first_change(stored: Rig, rig: Rig) -> str | None:
     if stored.stage.microstep_um != rig.stage.microstep_um:
         return f"stage microstep_um {stored.stage.microstep_um} in the store, {rig.stage.microstep_um} now"
     return None
+
+
+#: Where an update of a camera's items is staged, and where the items it replaces wait to be deleted.
+_STAGED = "update.staged"
+_OLD = "update.old"
+
+
+def _settle(camera_dir: Path) -> None:
+    """Complete a committed update of one camera's folder, or discard an uncommitted one."""
+    staged, old = camera_dir / _STAGED, camera_dir / _OLD
+    if not staged.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        return
+    try:
+        commit = json.loads((staged / "zarr.json").read_text()).get("attributes", {}).get("commit")
+    except (OSError, ValueError):
+        commit = None
+    if not commit:  # interrupted before its commit: the old items are whole
+        shutil.rmtree(staged, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)
+        return
+    old.mkdir(exist_ok=True)
+    replace, remove = list(commit.get("replace", [])), list(commit.get("remove", []))
+    for name in replace + remove:
+        cur = camera_dir / name
+        if cur.exists() and (name in remove or (staged / name).exists()):  # not yet swapped
+            shutil.rmtree(old / name, ignore_errors=True)
+            os.replace(cur, old / name)
+    for name in replace:
+        if (staged / name).exists():
+            os.replace(staged / name, camera_dir / name)
+    shutil.rmtree(staged, ignore_errors=True)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT, SIGTERM and SIGHUP wait until the block ends, then are handled as they would have
+    been (in the main thread; elsewhere nothing changes)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    sigs = [s for s in (signal.SIGINT, getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)) if s]
+    got: list[int] = []
+    before = {s: signal.getsignal(s) for s in sigs}
+    for s in sigs:
+        if before[s] not in (signal.SIG_IGN, None):
+            signal.signal(s, lambda signum, frame: got.append(signum))
+    try:
+        yield
+    finally:
+        for s in sigs:
+            if before[s] is not None:
+                signal.signal(s, before[s])
+        for s in dict.fromkeys(got):
+            signal.raise_signal(s)

@@ -15,6 +15,7 @@ import numpy as np
 
 from lfcore._deprecation import keyword_options
 from lfcore.device import RowOffset, launch_rows, resolve_device, warp
+from lfcore.flatfield import FlatField
 from lfcore.rig import Camera
 
 __all__ = ["ImagePreprocessor", "VolumeOps", "gaussian_taps"]
@@ -44,11 +45,15 @@ class ImagePreprocessor:
     ``n_pixels`` long. Outputs, into caller-provided arrays of the same length: the float32
     signal (raw minus the background level where that exceeds the threshold, zero elsewhere)
     and the uint8 lit mask, grown by ``grow`` pixels with a 3 x 3 square (pixels past the
-    image border count as dark), exactly as :func:`lfcore.reconstruct.preprocess`.
+    image border count as dark), exactly as :func:`lfcore.reconstruct.preprocess`. With ``flats``
+    (per camera a :class:`lfcore.flatfield.FlatField` or None) every frame is corrected first, as
+    :func:`lfcore.flatfield.correct` does, its masked pixels given the signal
+    :data:`lfcore.reconstruct.MASKED` and counted as lit.
     """
 
-    @keyword_options("device", since="0.1.0")
-    def __init__(self, cameras: Sequence[Camera], *, device: str | None = None) -> None:
+    @keyword_options("device", "flats", since="0.1.0")
+    def __init__(self, cameras: Sequence[Camera], *, device: str | None = None,
+                 flats: Sequence[FlatField | None] | None = None) -> None:
         from lfcore._kernels import images as ki
 
         self._k = ki
@@ -59,6 +64,22 @@ class ImagePreprocessor:
         self.offsets = [0, *np.cumsum(sizes).tolist()]
         self.n_pixels = int(self.offsets[-1])
         self._grown = self.wp.empty(self.n_pixels, dtype=self.wp.uint8, device=self.device)
+        # per-pixel dark and 1 / gain of the cameras with a flat field (0: masked), on the device
+        self._flat = None
+        if flats is not None and any(f is not None for f in flats):
+            dark = np.zeros(self.n_pixels, np.float32)
+            inv = np.ones(self.n_pixels, np.float32)
+            for i, f in enumerate(flats):
+                if f is None:
+                    continue
+                if f.shape != self.shapes[i]:
+                    raise ValueError(f"the flat field of camera '{cameras[i].name}' is {f.shape[0]} x {f.shape[1]} "
+                                     f"px but its frames {self.shapes[i][0]} x {self.shapes[i][1]}")
+                sl = slice(self.offsets[i], self.offsets[i + 1])
+                dark[sl] = f.dark.ravel()
+                inv[sl] = np.where(f.mask, 0.0, 1.0 / f.gain).ravel()
+            self._flat = (self.wp.array(dark, dtype=float, device=self.device),
+                          self.wp.array(inv, dtype=float, device=self.device))
 
     @keyword_options("grow", "stream", since="0.1.0")
     def __call__(self, raw, levels: Sequence[float], thresholds: Sequence[float], signal, lit, *, grow: int = 0,
@@ -80,6 +101,11 @@ class ImagePreprocessor:
         """
         wp, k, d = self.wp, self._k, self.device
         for i, (rows, cols) in enumerate(self.shapes):
+            if self._flat is not None:  # every frame flat-field corrected (cameras without one: dark 0, gain 1)
+                launch_rows(k.subtract_threshold_flat, rows * cols,
+                            [raw, RowOffset(self.offsets[i]), *self._flat, float(levels[i]), float(thresholds[i]),
+                             signal, lit], d, stream=stream)
+                continue
             launch_rows(k.subtract_threshold, rows * cols,
                         [raw, RowOffset(self.offsets[i]), float(levels[i]), float(thresholds[i]), signal, lit], d,
                         stream=stream)

@@ -62,9 +62,9 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
     from lfcore.warm import Predictor, WarmStart
     from lfcore.weight_cache import WeightCache
 
-__all__ = ["METHODS", "PRUNE", "PRUNE_PERCENTILE", "WEIGHTS", "FrameReconstructor", "Iterated", "ReconResult",
-           "ReconSettings", "WARM_SHARE", "estimate_background", "preprocess", "preprocess_images", "prune_dark",
-           "reconstruct", "warm_count"]
+__all__ = ["MASKED", "METHODS", "PRUNE", "PRUNE_PERCENTILE", "WEIGHTS", "FrameReconstructor", "Iterated",
+           "ReconResult", "ReconSettings", "WARM_SHARE", "estimate_background", "preprocess", "preprocess_images",
+           "prune_dark", "reconstruct", "warm_count"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: The weights each method iterates on (the ``method`` of :meth:`lfcore.operator.Projector.operator`
@@ -344,6 +344,11 @@ class ReconResult:
         return 1e3 * self.iterate_s / max(self.iterations, 1)
 
 
+#: The signal of a pixel the flat field masks (:func:`preprocess`): negative, which no measured
+#: signal is, so the update and the uniform start skip it.
+MASKED = -1.0
+
+
 def estimate_background(image: np.ndarray) -> tuple[float, float]:
     """Background level and noise sigma of a raw image, in counts.
 
@@ -354,6 +359,9 @@ def estimate_background(image: np.ndarray) -> tuple[float, float]:
     """
     image = np.asarray(image)
     v = image.astype(np.float64).ravel()
+    v = v[np.isfinite(v)]  # a flat-field-corrected image is NaN where its pixels are masked
+    if v.size == 0:
+        return 0.0, 1e-6
     if v.size > 2_000_000:
         v = v[:: v.size // 2_000_000]
     lo, hi = np.percentile(v, [0.1, 90.0])
@@ -388,18 +396,27 @@ def preprocess(image: np.ndarray, background: float, sigma: float, threshold_sig
     voxel changes by far less than a pixel), so no margin is needed for ideal optics; ``grow``
     widens the lit mask by that many pixels to tolerate calibration error in real rigs.
 
+    A NaN pixel (masked by the flat field, :func:`lfcore.flatfield.correct`: unlit between
+    micro-images, under dust, dead) measured nothing: its signal is :data:`MASKED`, which the
+    update reads as no ratio at all (:func:`lfcore.operator.log_ratio`), and it counts as lit, so
+    that it neither removes voxels in the elimination nor pulls them dark.
+
     Returns
     -------
     signal
-        (rows, columns) float32, zero on unlit pixels.
+        (rows, columns) float32, zero on unlit pixels, :data:`MASKED` on masked ones.
     lit
-        (rows, columns) bool: signal above ``threshold_sigma`` sigmas (grown by ``grow``).
+        (rows, columns) bool: signal above ``threshold_sigma`` sigmas (grown by ``grow``), or masked.
     """
     s = np.asarray(image, dtype=np.float32) - np.float32(background)
+    masked = np.isnan(s)
     lit = s > threshold_sigma * sigma
     signal = np.where(lit, s, np.float32(0.0)).astype(np.float32)
     if grow > 0:
         lit = ndimage.binary_dilation(lit, structure=np.ones((3, 3), bool), iterations=grow)
+    if masked.any():
+        signal[masked] = MASKED
+        lit |= masked
     return signal, lit
 
 
@@ -554,6 +571,19 @@ def _total(a) -> float:
     if a.device.is_cpu:
         return float(a.numpy().sum())
     return float(warp().utils.array_sum(a))
+
+
+def _total_measured(a) -> float:
+    """Sum of a measured signal (a float32 Warp array), its masked pixels (:data:`MASKED`) left out."""
+    if a.device.is_cpu:
+        v = a.numpy()
+        return float(v.sum() if not (v < 0).any() else np.maximum(v, 0.0).sum())
+    from lfcore._kernels import mart as km
+
+    wp = warp()
+    out = wp.zeros(1, dtype=wp.float64, device=a.device)
+    wp.launch(km.positive_sum, dim=int(a.shape[0]), inputs=[a, out], device=a.device)
+    return float(out.numpy()[0])
 
 
 class FrameReconstructor:
@@ -851,7 +881,7 @@ class FrameReconstructor:
             wp.copy(e, start)
         op.forward(e, out=proj)
         total_proj = _total(proj)
-        scale = _total(image) / total_proj if total_proj > 0 else 0.0
+        scale = _total_measured(image) / total_proj if total_proj > 0 else 0.0
         if start is None:
             e.fill_(scale)
         else:

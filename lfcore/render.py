@@ -7,7 +7,10 @@ the particle's signal (counts) in equal shares and are integrated over the pixel
 A small Gaussian stands in for diffraction: the main lens' spot on the MLA and the lenslet's
 spot on the sensor, each with sigma = 0.42 lambda N for its f-number N. Exposure then adds a
 background, photon shot noise (Poisson in electrons), Gaussian read noise, and rounds and
-saturates to the sensor's bit depth, returning uint16.
+saturates to the sensor's bit depth, returning uint16. A light-field camera's response, where
+``[render]`` turns it on (main-lens fall-off, micro-image vignetting, dust shadows, a dark offset
+with fixed-pattern noise: :func:`lfcore.flatfield.sensor_response`), scales the light per pixel
+and replaces the uniform background; all off, the images are as before.
 
 A pinhole camera (:class:`PinholeRenderer`) sees each particle as a Gaussian spot of
 ``render.particle_image_px`` diameter (1/e^2 of the peak; sigma a quarter of it) centred where the
@@ -110,11 +113,31 @@ class _Renderer:
         """
         self._trace(points_mm, counts, seed, progress)
         r = self.render
+        if self._response() is not None:  # the camera's response: per-pixel gain and dark offset
+            gain, dark = self._response()
+            launch_rows(self._k.expose_response, self.shape[0],
+                        [self._quanta, 1.0 / self._k.QUANTA_PER_COUNT, gain, dark, r.gain_e_per_count,
+                         int(r.shot_noise), r.read_noise_counts, self.full_scale, derive_seed(seed, 0x5E25),
+                         RowOffset(0), self._frame], self.device, rest=self.shape[1:])
+            return self._frame.numpy().copy()
         launch_rows(self._k.expose, self.shape[0],
                     [self._quanta, 1.0 / self._k.QUANTA_PER_COUNT, r.background_counts, r.gain_e_per_count,
                      int(r.shot_noise), r.read_noise_counts, self.full_scale, derive_seed(seed, 0x5E25),
                      RowOffset(0), self._frame], self.device, rest=self.shape[1:])
         return self._frame.numpy().copy()
+
+    def _response(self) -> tuple[object, object] | None:
+        """The camera's response (:func:`lfcore.flatfield.sensor_response`) as device arrays (gain,
+        dark), made on first use; None where ``[render]`` has none or the camera is a pinhole one."""
+        if not self.render.has_response or is_pinhole(self.camera):
+            return None
+        if getattr(self, "_response_maps", None) is None:
+            from lfcore.flatfield import sensor_response
+
+            resp = sensor_response(self.camera, self.render)
+            self._response_maps = (self.wp.array(resp.gain, dtype=float, device=self.device),
+                                   self.wp.array(resp.dark, dtype=float, device=self.device))
+        return self._response_maps
 
     @property
     def full_scale(self) -> float:

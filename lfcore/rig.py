@@ -738,6 +738,29 @@ class RenderConfig(_Strict):
     read_noise_counts: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 3.0
     #: Bits per pixel of synthetic and simulated images: they saturate at 2**bit_depth - 1
     bit_depth: Annotated[int, Field(ge=8, le=16)] = 16
+    #: A light-field camera's response (all off by default: today's images). Main-lens fall-off:
+    #: the fraction of light lost at the sensor corner, following a cos^4 profile about the sensor
+    #: centre (0.4: the corners get 60%)
+    lens_falloff: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.0
+    #: Micro-image vignetting: the fraction of light lost at the rim of every micro-image, falling
+    #: off with the square of the distance from its centre (each lenslet's own cos^4)
+    micro_vignetting: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.0
+    #: Dust shadows on the microlens array, at places drawn with ``response_seed``
+    dust_spots: Annotated[int, Field(ge=0, le=1000)] = 0
+    #: Light a dust shadow takes at its centre (1: black)
+    dust_opacity: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 0.7
+    #: Radius of a dust shadow (at 1/e of its depth), pixels
+    dust_radius_px: Annotated[float, Field(gt=0, le=4096, allow_inf_nan=False)] = 8.0
+    #: Fixed-pattern noise of the dark offset: the standard deviation, counts, of a per-pixel offset
+    #: added to ``background_counts`` that is the same in every frame (what a dark frame measures)
+    dark_fpn_counts: Annotated[float, Field(ge=0, le=10000, allow_inf_nan=False)] = 0.0
+    #: Seed of the dust places and the fixed pattern (each camera draws its own from it)
+    response_seed: Annotated[int, Field(ge=0)] = 0
+
+    @property
+    def has_response(self) -> bool:
+        """Whether any of the camera-response keys is on (else images are today's)."""
+        return bool(self.lens_falloff or self.micro_vignetting or self.dust_spots or self.dark_fpn_counts)
 
 
 class TargetConfig(_Strict):

@@ -42,7 +42,15 @@ import numpy as np
 from lfcore.device import MemoryBudgetError, Rows, available_bytes, launch_rows, out_of_memory_is_budget_error
 from lfcore.device_ops import VolumeOps, gaussian_taps
 from lfcore.operator import OPERATOR_KINDS, TEMPLATES, Operator, Projector, from_templates, log_ratio, max_planes
-from lfcore.reconstruct import FrameReconstructor, ReconResult, ReconSettings, _total, preprocess_images, prune_dark
+from lfcore.reconstruct import (
+    FrameReconstructor,
+    ReconResult,
+    ReconSettings,
+    _total,
+    _total_measured,
+    preprocess_images,
+    prune_dark,
+)
 from lfcore.volume import VolumeGrid
 
 __all__ = ["BYTES_PER_SLAB_VOXEL", "Slab", "SlabReconstructor", "deepest_slab", "plan_slabs", "slab_halo",
@@ -282,7 +290,7 @@ class SlabReconstructor:
                 e.fill_(1.0)
             project()
             total_proj = _total(proj)
-            scale = _total(image) / total_proj if total_proj > 0 else 0.0
+            scale = _total_measured(image) / total_proj if total_proj > 0 else 0.0
             for e in es:
                 e.fill_(scale)
             wp.synchronize_device(dev)

@@ -187,7 +187,8 @@ def white_image(camera: Camera, *, render: RenderConfig | None = None,
     """A raw white image as the camera delivers it.
 
     The noise-free :func:`white_irradiance` (with the lenslet's diffraction blur,
-    sigma = 0.42 lambda N_ml, when ``render.diffraction``), plus ``render``'s background, shot
+    sigma = 0.42 lambda N_ml, when ``render.diffraction``) through ``render``'s camera response
+    where it has one (:func:`lfcore.flatfield.sensor_response`), plus its background, shot
     noise (Poisson in electrons) and read noise, rounded and saturated at the bit depth.
 
     Parameters
@@ -210,7 +211,14 @@ def white_image(camera: Camera, *, render: RenderConfig | None = None,
     render = RenderConfig() if render is None else render
     lam = wavelength_nm if render.diffraction else 0.0  # no diffraction: no blur
     sigma = diffraction_sigma_mm(lam, camera.lenslet_f_number) / camera.pixel_mm
-    mean = white_irradiance(camera, config=config, blur_sigma_px=sigma) + render.background_counts
+    mean = white_irradiance(camera, config=config, blur_sigma_px=sigma)
+    if render.has_response:  # the camera's response, as its particle images have it
+        from lfcore.flatfield import sensor_response
+
+        resp = sensor_response(camera, render)
+        mean = mean * resp.gain + resp.dark
+    else:
+        mean = mean + render.background_counts
     rng = np.random.default_rng([config.seed, 0x3417E])
     v = rng.poisson(mean * render.gain_e_per_count) / render.gain_e_per_count if render.shot_noise else mean
     if render.read_noise_counts > 0:

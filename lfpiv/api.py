@@ -85,7 +85,7 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
                 cameras: Sequence[str] | None = None, calibration: str | os.PathLike[str] | None = None,
                 device: str | None = None, workers: int | None = None, scheduler: str | None = None,
                 skip_done: bool = False, progress: bool = True, slabs: int | str | None = None,
-                **options: Any) -> list[Any]:
+                flat_field: str | os.PathLike[str] | None = None, **options: Any) -> list[Any]:
     """Reconstruct both frames of the selected pairs into the run's ``volumes/`` (``lfpiv reconstruct``).
 
     Parameters
@@ -111,6 +111,9 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
     slabs
         As the command's ``--slabs``: a number of depth slabs, ``"auto"`` (in slabs only where the
         box does not fit the memory) or None (in memory).
+    flat_field
+        As the command's ``--flat-field``: a calibration store whose dark and white images correct
+        every raw frame (None: the raw frames).
     **options
         Further :class:`lfcore.reconstruct.ReconSettings` fields (``background``,
         ``threshold_sigma``, ``smooth``, ``sub_apertures``, ``weight_storage``, ...).
@@ -121,17 +124,19 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
         One per frame reconstructed (the volumes are in the store).
     """
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.calibrate import calibrated_rig
+    from lfpiv.jobs.calibrate import calibrated_rig, flat_fields
     from lfpiv.jobs.reconstruct import default_method, recon_settings, reconstruct_run
 
     store = open_run(run, mode="r+")
     method = method or default_method(store.rig, cameras)
     settings = recon_settings(method=method, iterations=iterations, relaxation=relaxation, form=form, **options)
     rig, cal = calibrated_rig(store.rig, calibration, cameras) if calibration is not None else (None, None)
+    flats, flat_info = (flat_fields(store.rig, flat_field, cameras)[:2] if flat_field is not None
+                        else (None, None))
     with dask_client(workers, scheduler) as client:
         return reconstruct_run(store, settings, pvr=pvr, margin_mm=margin_mm, pairs=_pairs(pairs), cameras=cameras,
                                device=device, progress=progress, rig=rig, calibration=cal, skip_done=skip_done,
-                               client=client, option="pairs", slabs=slabs)
+                               client=client, option="pairs", slabs=slabs, flats=flats, flat_field=flat_info)
 
 
 def correlate(run: str | os.PathLike[str] | RunStore, *,

@@ -23,12 +23,13 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from lfcore.correlate import CorrelationConfig
+from lfcore.flatfield import FlatField
 from lfcore.plan import default_method, unsupported_method
 from lfcore.reconstruct import ReconSettings
 from lfcore.rig import NotLightFieldError, Rig
@@ -179,13 +180,18 @@ class LivePipeline:
         Warp device; None for the first GPU, else the CPU.
     poll_s
         How often to look for a new pair while waiting.
+    flats
+        Per camera name, the flat field its raw frames are corrected by
+        (:class:`lfcore.flatfield.FlatField`, from a calibration's dark and white images); None:
+        the raw frames, one background level per camera.
     """
 
     def __init__(self, rig: Rig, source: PairSource | None = None, *, settings: LiveSettings | None = None,
                  recon: ReconSettings | None = None, correlation: CorrelationConfig | None = None,
                  cameras: Sequence[str] | None = None, pvr: Sequence[float] | None = None, device: str | None = None,
-                 poll_s: float = 0.005) -> None:
+                 poll_s: float = 0.005, flats: Mapping[str, FlatField] | None = None) -> None:
         self.rig = rig
+        self.flats = flats
         self.cameras = list(cameras) if cameras else [c.name for c in rig.camera]
         cams = [rig.camera_named(n) for n in self.cameras]  # an unknown camera fails here
         self.grid = VolumeGrid.from_rig(rig, pvr=None if pvr is None else tuple(float(v) for v in pvr))
@@ -260,7 +266,7 @@ class LivePipeline:
         on the pipeline's thread if not done before)."""
         if self._processor is None:
             processor = PairProcessor(self.rig, self.cameras, self.grid, self.recon, self.correlation,
-                                      self.device_request)
+                                      self.device_request, flats=self.flats)
             self._staging.build(processor.recon)
             self._processor = processor
 

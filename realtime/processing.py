@@ -26,7 +26,7 @@ time each stage took. What the window shows of it is :func:`realtime.view.derive
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +34,7 @@ import numpy as np
 from acquisition.ring import PairView
 from lfcore.correlate import CorrelationConfig, Correlator, VectorField
 from lfcore.device_ops import ImagePreprocessor, VolumeOps
+from lfcore.flatfield import FlatField, correct
 from lfcore.operator import applied_by
 from lfcore.plan import build_reconstructor, plan_reconstruction
 from lfcore.reconstruct import ReconSettings, estimate_background, warm_count
@@ -105,8 +106,9 @@ class _Reconstructor:
     """
 
     def __init__(self, rig: Rig, cameras: Sequence[str], grid: VolumeGrid, recon: ReconSettings,
-                 device: str | None) -> None:
+                 device: str | None, flats: Mapping[str, FlatField] | None = None) -> None:
         self.cams = [rig.camera_named(n) for n in cameras]
+        self.flats = [None if flats is None else flats.get(n) for n in cameras]
         self.recon = recon
         # the batch path's planner: the projector of the cameras' kind, its operator and whether a weight
         # cache traces each voxel once, on the first frame that keeps it
@@ -120,7 +122,7 @@ class _Reconstructor:
         # a geometry without them (MatrixFreeUnsupported) or no room for them fails the build
         self.frames.prepare()
         self.offsets = [int(o) for o in p.pixel_offsets]
-        self.pre = ImagePreprocessor(self.cams, device=self.device)
+        self.pre = ImagePreprocessor(self.cams, device=self.device, flats=self.flats)
         self.ops = self.frames.ops
         wp = self.wp
         self.signal = [wp.zeros(p.n_pixels, dtype=float, device=self.device) for _ in range(2)]
@@ -140,7 +142,10 @@ class _Reconstructor:
     def estimate_background(self, frames: np.ndarray) -> None:
         """Each camera's background level and noise, from frame A of flat host frames."""
         for k in range(len(self.cams)):
-            level, sigma = estimate_background(self.camera_image(frames, 0, k))
+            img = self.camera_image(frames, 0, k)
+            flat = self.flats[k]
+            # the level and noise of the frames as the device corrects them
+            level, sigma = estimate_background(img if flat is None else correct(img, flat))
             if self.recon.background is not None:
                 level = self.recon.background
             self.background[k] = (level, sigma)
@@ -200,6 +205,9 @@ class PairProcessor:
         The correlation.
     device
         Warp device; None for the first GPU, else the CPU.
+    flats
+        Per camera name, the flat field its raw frames are corrected by on the device
+        (:class:`lfcore.flatfield.FlatField`; None or a camera left out: uncorrected).
 
     Attributes
     ----------
@@ -211,11 +219,12 @@ class PairProcessor:
     """
 
     def __init__(self, rig: Rig, cameras: Sequence[str], grid: VolumeGrid, recon: ReconSettings,
-                 correlation: CorrelationConfig, device: str | None) -> None:
+                 correlation: CorrelationConfig, device: str | None,
+                 flats: Mapping[str, FlatField] | None = None) -> None:
         self.cameras = list(cameras)
         self.grid = grid
         self.dt_s = rig.timing.dt_us * 1e-6
-        self.recon = _Reconstructor(rig, self.cameras, grid, recon, device)
+        self.recon = _Reconstructor(rig, self.cameras, grid, recon, device, flats)
         self.correlator = Correlator(grid.shape, config=correlation, device=self.recon.device)
 
     def process(self, staged: StagedPair, settings: LiveSettings, *, staging: Staging,

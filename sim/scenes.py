@@ -19,7 +19,7 @@ from lfcore.rig import Rig, is_pinhole
 from lfcore.target import DotBoard
 from lfcore.white import WhiteImageConfig, white_image
 
-__all__ = ["dot_target_scene", "white_scene"]
+__all__ = ["dark_scene", "dot_target_scene", "white_scene"]
 
 
 def white_scene(rig: Rig, config: WhiteImageConfig | None = None) -> tuple[Callable[[int], np.ndarray], object]:
@@ -51,6 +51,24 @@ def white_scene(rig: Rig, config: WhiteImageConfig | None = None) -> tuple[Calla
         return white_image(cam, render=rig.render, config=cfg, wavelength_nm=rig.laser.wavelength_nm)
 
     return scene, ("white", config)
+
+
+def dark_scene(rig: Rig, seed: int = 0) -> tuple[Callable[[int], np.ndarray], object]:
+    """Darkness (lens capped, laser off): what every camera of ``rig`` records is its dark offset,
+    fixed pattern and noise (the ``[render]`` response, :func:`lfcore.flatfield.sensor_response`).
+
+    Returns
+    -------
+    scene, key
+        As :func:`white_scene`.
+    """
+
+    def scene(ci: int) -> np.ndarray:
+        cam = rig.camera[ci]
+        blank = renderer_for(cam, rig.render, wavelength_nm=rig.laser.wavelength_nm)
+        return blank.frame(np.zeros((0, 3)), 0.0, seed=derive_seed(seed, 0xDA2C, ci))
+
+    return scene, ("dark", seed)
 
 
 #: The turn between consecutive points of a sunflower spiral, radians (pi (3 - sqrt 5)).

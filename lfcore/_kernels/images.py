@@ -37,6 +37,34 @@ def subtract_threshold(
 
 
 @wp.kernel
+def subtract_threshold_flat(
+    raw: wp.array(dtype=wp.uint16),
+    offset: int,
+    dark: wp.array(dtype=float),
+    inv_gain: wp.array(dtype=float),
+    level: float,
+    threshold: float,
+    signal: wp.array(dtype=float),
+    lit: wp.array(dtype=wp.uint8),
+):
+    """:func:`subtract_threshold` of the flat-field-corrected frame (raw - dark) / gain; a masked
+    pixel (``inv_gain`` 0) gets the signal -1 (lfcore.reconstruct.MASKED) and counts as lit."""
+    i = offset + wp.tid()
+    g = inv_gain[i]
+    if g == 0.0:
+        signal[i] = -1.0
+        lit[i] = wp.uint8(1)
+        return
+    s = (float(raw[i]) - dark[i]) * g - level
+    if s > threshold:
+        signal[i] = s
+        lit[i] = wp.uint8(1)
+    else:
+        signal[i] = 0.0
+        lit[i] = wp.uint8(0)
+
+
+@wp.kernel
 def dilate3x3(
     src: wp.array(dtype=wp.uint8),
     offset: int,

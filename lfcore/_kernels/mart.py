@@ -20,7 +20,7 @@ TINY = wp.constant(1.0e-30)
 
 @wp.kernel
 def log_ratio(image: wp.array(dtype=float), proj: wp.array(dtype=float), floor: float, ratio: wp.array(dtype=float)):
-    """ratio[i] = ln(max(I_i, floor) / proj_i), 0 where nothing projects onto pixel i.
+    """ratio[i] = ln(max(I_i, floor) / proj_i), 0 where nothing projects onto pixel i or it is masked.
 
     The log of the measured-to-projected ratio is a property of the pixel, so it is taken once
     per pixel per iteration instead of once per weight.
@@ -28,9 +28,18 @@ def log_ratio(image: wp.array(dtype=float), proj: wp.array(dtype=float), floor: 
     i = wp.tid()
     p = proj[i]
     r = float(0.0)
-    if p > 0.0:
+    # a masked pixel (negative signal, lfcore.reconstruct.MASKED) measured nothing: no ratio
+    if p > 0.0 and image[i] >= 0.0:
         r = wp.log(wp.max(image[i], floor) / p)
     ratio[i] = r
+
+
+@wp.kernel
+def positive_sum(a: wp.array(dtype=float), out: wp.array(dtype=wp.float64)):
+    """out[0] += the positive entries of ``a`` (a measured signal without its masked pixels)."""
+    v = a[wp.tid()]
+    if v > 0.0:
+        wp.atomic_add(out, 0, wp.float64(v))
 
 
 @wp.kernel
@@ -229,7 +238,7 @@ def mart_sequential(
         while t < t1:
             p += w[t] * e[vox[t]]
             t += wp.int64(1)
-        if p > 0.0:
+        if p > 0.0 and image[i] >= 0.0:  # a masked pixel (negative) measured nothing
             ratio = wp.max(image[i], floor) / p
             t = t0
             step = wp.clamp(wp.log(ratio), -MAX_LOG_STEP, MAX_LOG_STEP)

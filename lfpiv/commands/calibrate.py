@@ -42,6 +42,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--white", action="append", default=[], metavar="CAM=FILE",
                    help="a white image file of camera CAM (TIFF, PNG, BMP, DaVis; repeat to average several; FILE "
                    "alone for a one-camera rig): no device is opened")
+    m.add_argument("--dark", action="append", default=[], metavar="CAM=FILE",
+                   help="a dark image file of camera CAM (lens capped, laser off; 8- or 16-bit PNG or TIFF, ...; "
+                   "repeat to average several; FILE alone for a one-camera rig), kept beside its white image for "
+                   "the flat field (lfpiv reconstruct --flat-field)")
+    m.add_argument("--dark-frames", type=lambda t: whole_number(t, 0), default=0, metavar="N",
+                   help="also take N dark frames per camera live after the white ones (the simulated lab shows "
+                   "darkness; on hardware cap the lenses when asked); default: 0")
     m.add_argument("--frames", type=positive_int, default=4, help="white frames averaged per camera (default: 4)")
     m.add_argument("--exposure-us", type=positive_float, default=None, metavar="US",
                    help="exposure per frame (default: the rig's timing.camera_exposure_us)")
@@ -142,13 +149,24 @@ def run_mla(args: argparse.Namespace) -> int:
     large = mpx > 8  # say what a long silence is: about 3 s per megapixel on a 2-core CPU
     names = [c.name for c in rig.camera]
     whites = by_camera(args.white, "--white", names, many=True) if args.white else None
+    darks = by_camera(args.dark, "--dark", names, many=True) if args.dark else None
+    if args.dark_frames and whites is not None:
+        raise UsageError("--dark-frames takes dark frames with the rig's cameras, --white reads files; give dark "
+                         "image files with --dark instead")
+
+    def dark_ready() -> None:
+        print("lfpiv: cap every camera's lens (no light at all), then press Enter to take the dark frames",
+              file=sys.stderr)
+        sys.stdin.readline()
+
     if rig.hardware == "sim" and large and whites is None:
         print("lfpiv: simulated lab: rendering each camera's white image ...", file=sys.stderr)
     for name in pinhole_cameras_skipped(rig):
         print(f"lfpiv: note: camera '{name}' is a pinhole camera (no microlenses): skipped", file=sys.stderr)
     with progress_bar(len(rig.lightfield_cameras), "finding grids", "camera", args.quiet) as bar:
         results = calibrate_mla(rig, args.out, frames=args.frames, exposure_us=args.exposure_us, white=white,
-                                whites=whites, progress=bar,
+                                whites=whites, darks=darks, dark_frames=args.dark_frames, dark_ready=dark_ready,
+                                progress=bar,
                                 status=(lambda line: bar.write(f"lfpiv: {line}")) if large else None)
     for res in results:
         g = res.grid
@@ -157,6 +175,9 @@ def run_mla(args: argparse.Namespace) -> int:
               f"offset ({g.offset_px[0]:+.3f}, {g.offset_px[1]:+.3f}) px, RMS {g.rms_px:.4f} px, "
               f"{int(g.inliers.sum())} of {g.n_lenslets} lenslets; MLA pitch {res.mla['mla_pitch_um']:.3f} um, "
               f"offset ({ox:+.2f}, {oy:+.2f}) um")
+    for res in results:
+        if res.dark_frames:
+            print(f"{res.camera}: dark image, mean of {res.dark_frames} frame(s), stored beside the white image")
     for res in results:
         if res.hot_pixels:
             print(f"lfpiv: note: {res.camera}: {res.hot_pixels} hot pixel(s) of the white image replaced by their "

@@ -18,6 +18,7 @@ from lfpiv.commands import (
     positive_int,
     ring_slots,
     sim_lab_options,
+    warn,
     warn_optics,
     xyz_triple,
 )
@@ -60,6 +61,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pixel-voxel ratio per axis of the live volume (default: the rig's volume.pvr); a "
                    "coarser one, e.g. twice the rig's, watches the flow on 8x fewer voxels, several times faster. "
                    "The recording keeps the raw frames whatever it is")
+    m.add_argument("--flat-field", default=None, metavar="CALIB",
+                   help="calibration store with white (and dark) images (lfpiv calibrate mla): the live path "
+                   "corrects every raw frame per pixel by them and leaves the pixels they show unlit or dead out "
+                   "(default: the raw frames; the recording keeps the raw frames either way)")
     m.add_argument("--slice", choices=("x", "y", "z"), default="z", help="axis normal to the slice (default: z)")
     m.add_argument("--passes", type=int, choices=(1, 2), default=2, help="correlation passes (default: 2)")
     m.add_argument("--ring", type=ring_slots, default=32, metavar="PAIRS",
@@ -98,13 +103,19 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"lfpiv monitor: {text}", file=sys.stderr)
 
+    flats = None
+    if args.flat_field is not None:
+        from lfpiv.jobs.calibrate import flat_fields
+
+        flats, _, notes = flat_fields(rig, args.flat_field)
+        warn(notes)
     method = args.method or default_method(rig)
     end = run_monitor(rig, pairs=args.pairs, settings=settings, method=method, projector=args.projector,
                       passes=args.passes, pvr=args.pvr,
                       device=args.device, out=args.out, overwrite=args.overwrite,
                       sim_options=sim_lab_options(rig, args), ring_slots=args.ring,
                       title=f"lfpiv monitor: {args.rig}", screenshot=args.screenshot, after=args.after, say=say,
-                      warm_start=args.warm_start)
+                      warm_start=args.warm_start, flats=flats)
     for r in end.recordings:
         where = str(r.path) if r.path is not None else "not recorded (no --out)"
         print(f"recording: {where}: {r.committed_pairs} pair(s) x {len(rig.camera)} camera(s), {r.frames_recorded} "

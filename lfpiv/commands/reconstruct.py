@@ -112,6 +112,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--calibration", default=None, metavar="CALIB",
                    help="calibration store (lfpiv calibrate fit): reconstruct with its fitted camera models "
                    "instead of the rig stored in the run")
+    r.add_argument("--flat-field", default=None, metavar="CALIB",
+                   help="calibration store with white (and dark) images (lfpiv calibrate mla): correct every raw "
+                   "frame per pixel by them (dark subtracted, the lens' and micro-images' vignetting and dust "
+                   "divided out) and leave the pixels they show unlit or dead out of the reconstruction (default: "
+                   "the raw frames, one background level per camera)")
     r.add_argument("--weight-storage", choices=("auto", "stored", "on-the-fly"), default="auto",
                    help="line-of-sight weights (mart, mlos-mart) and the matrix-free templates' images "
                    "(--projector matrix-free): auto (default) stores them if they fit in the device's memory and "
@@ -155,12 +160,19 @@ def run(args: argparse.Namespace) -> int:
         from lfpiv.jobs.calibrate import calibrated_rig
 
         rig, calibration = calibrated_rig(store.rig, args.calibration, args.cameras)
+    flats, flat_info = None, None
+    if args.flat_field is not None:
+        from lfpiv.jobs.calibrate import flat_fields
+
+        flats, flat_info, notes = flat_fields(store.rig, args.flat_field, args.cameras)
+        warn(notes)
     warn(voxel_shape_notes(rig or store.rig, args.cameras, args.pvr))
     with dask_client(args.workers, args.scheduler) as client:
         results = reconstruct_run(store, settings, pvr=args.pvr, margin_mm=args.margin_mm, pairs=args.pairs,
                                   cameras=args.cameras, device=args.device, progress=not args.quiet, rig=rig,
                                   calibration=calibration, skip_done=args.skip_done, client=client,
-                                  option=pairs_option(args), slabs=args.slabs)
+                                  option=pairs_option(args), slabs=args.slabs, flats=flats,
+                                  flat_field=flat_info)
     old_spelling_notes(args)
     if not results:
         print(f"every selected pair of {store.path} is already reconstructed with these settings; nothing to do")

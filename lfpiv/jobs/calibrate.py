@@ -28,6 +28,7 @@ from calibration.planes import fit_from_planes
 from calibration.runner import PlaneRun, camera_only_plan, capture_frames, plane_targets, run_planes
 from calibration.selfcal import SelfCalError, SelfCalResult, self_calibrate
 from calibration.store import CalibrationStore, CalibrationStoreError
+from lfcore.flatfield import FlatField
 from lfcore.rig import Camera, Rig, camera_from_dict, is_pinhole, rotation_angle_deg
 from lfcore.runstore import RunStore
 from lfcore.soloff import SoloffMap
@@ -39,7 +40,7 @@ from lfpiv.rigging import make_stage, open_rig
 
 __all__ = ["MlaResult", "SelfCalSummary", "board_for", "calibrate_fit", "calibrate_mla", "calibrate_selfcal",
            "calibrate_volume",
-           "calibrate_volume_from_files", "calibrated_rig", "default_board", "open_calibration",
+           "calibrate_volume_from_files", "calibrated_rig", "default_board", "flat_fields", "open_calibration",
            "pinhole_cameras_skipped", "read_positions", "rotation_angle_deg", "white_config"]
 
 
@@ -54,6 +55,8 @@ class MlaResult:
     removed_model: bool = False
     #: hot pixels of the white image, replaced before the grid was found
     hot_pixels: int = 0
+    #: dark frames averaged into the stored dark image (0: none stored with this calibration)
+    dark_frames: int = 0
 
 
 def white_config(*, level_counts: float, vignetting: float, dead_lenslets: int) -> WhiteImageConfig:
@@ -85,6 +88,8 @@ def open_calibration(path: str | Path, *, mode: str = "r") -> CalibrationStore:
 def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: float | None = None,
                   sim_options: dict[str, Any] | None = None, white: WhiteImageConfig | None = None,
                   whites: Mapping[str, Sequence[str | Path]] | None = None,
+                  darks: Mapping[str, Sequence[str | Path]] | None = None, dark_frames: int = 0,
+                  dark_ready: Callable[[], None] | None = None,
                   status: Callable[[str], None] | None = None,
                   progress: Callable[[int, int], None] | None = None) -> list[MlaResult]:
     """White images of every camera -> its microlens grid; both stored.
@@ -112,6 +117,15 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
     whites
         Camera name -> white image files (TIFF, PNG, BMP, DaVis; every page of each is averaged);
         no device is opened. Every camera of the rig needs at least one.
+    darks
+        Camera name -> dark image files (no light: lens capped, laser off), averaged like the
+        white ones and stored beside them: the flat field (:mod:`lfcore.flatfield`) subtracts
+        them. Cameras not named get none.
+    dark_frames
+        Dark frames taken live per camera after the white ones (not with ``whites``): the
+        simulated lab shows darkness; on hardware ``dark_ready`` is called first (cap the lenses).
+    dark_ready
+        Called before live dark frames are taken on hardware.
     status
         Called with a one-line message before each camera's grid detection (a minute on a
         29 MP sensor with two cores).
@@ -144,13 +158,22 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
     if not lightfield:
         _open_store(out, rig)  # the store the volumetric calibration adds its planes to
         return []
-    images = _white_files(rig, whites) if whites is not None else _white_frames(rig, frames, exposure_us,
-                                                                                 sim_options, white)
+    dark_images = _image_files(rig, darks, "--dark", required=False) if darks else {}
+    if whites is not None:
+        images = _white_files(rig, whites)
+    else:
+        images, live_darks = _white_frames(rig, frames, exposure_us, sim_options, white, dark_frames=dark_frames,
+                                           dark_ready=dark_ready)
+        dark_images = {**live_darks, **dark_images}
     results = []
     found: dict[str, WhiteImage] = {}
+    dark_means: dict[str, tuple[np.ndarray, int]] = {}
     for k, cam in enumerate(lightfield):
+        full = _full_scale(rig, cam)
+        if cam.name in dark_images:
+            dark_means[cam.name] = _checked_dark(cam, dark_images[cam.name], images[cam.name], full)
         try:
-            w = white_from_frames(images[cam.name], full_scale=_full_scale(rig, cam))
+            w = white_from_frames(images[cam.name], full_scale=full)
             if status is not None:
                 status(f"{cam.name}: detecting every micro-image centre in {w.image.size / 1e6:.0f} MP ...")
             grid = detect_grid(w.image)
@@ -160,14 +183,42 @@ def calibrate_mla(rig: Rig, out: str | Path, *, frames: int = 4, exposure_us: fl
         results.append(MlaResult(cam.name, grid, grid.to_mla(cam), hot_pixels=w.hot_pixels))
         if progress is not None:
             progress(k + 1, len(lightfield))
-    store = _open_store(out, rig)  # written only when every camera's grid was found
+    # written only when every camera's grid was found; a new store is marked unfinished until then
+    store = _open_store(out, rig, unfinished="calibrate mla")
     written = []
     for res in results:
         w = found[res.camera]
-        store.write_white(res.camera, w.image, frames_averaged=w.frames)
-        removed = store.write_grid(res.camera, res.grid, mla=res.mla)
-        written.append(dataclasses.replace(res, removed_model=removed))
+        dark, n_dark = dark_means.get(res.camera, (None, 0))
+        # white, dark and grid in one atomic update: an interrupt leaves the old three or the new
+        removed = store.write_mla(res.camera, white=w.image, white_frames=w.frames, grid=res.grid, mla=res.mla,
+                                  dark=dark, dark_frames=n_dark)
+        written.append(dataclasses.replace(res, removed_model=removed, dark_frames=n_dark))
+    store.finish()
     return written
+
+
+def _checked_dark(cam: Camera, darks: np.ndarray, whites: np.ndarray, full_scale: int) -> tuple[np.ndarray, int]:
+    """The mean of a camera's dark frames, checked against its white frames: same size, darker."""
+    stack = np.asarray(darks)
+    stack = stack[None] if stack.ndim == 2 else stack
+    white = np.asarray(whites)
+    white = white[None] if white.ndim == 2 else white
+    if stack.shape[1:] != white.shape[1:]:
+        raise UsageError(f"camera '{cam.name}': the dark image is {stack.shape[2]} x {stack.shape[1]} px but the "
+                         f"white image {white.shape[2]} x {white.shape[1]}; give a dark image of this camera")
+    mean = stack.astype(np.float64).mean(axis=0)
+    wmean = white.astype(np.float64).mean(axis=0)
+    lit = np.percentile(wmean, 99.0)
+    # a real dark image is below the white one wherever a micro-image is lit, and near it only in
+    # the gaps between them (a fifth of a square lattice's pixels at most)
+    if np.median(mean) >= lit or np.percentile(mean, 99.0) >= lit or np.mean(mean > wmean) > 0.25:
+        raise UsageError(f"camera '{cam.name}': the dark image (median {np.median(mean):.0f} counts) is brighter "
+                         f"than the white image on {np.mean(mean > wmean):.0%} of its pixels (the white: "
+                         f"{lit:.0f} counts at its 99th percentile); give a dark image taken with the lens capped")
+    if np.mean(stack >= full_scale) > 0.001:
+        raise UsageError(f"camera '{cam.name}': the dark image is saturated; give a dark image taken with the lens "
+                         "capped")
+    return mean, len(stack)
 
 
 def pinhole_cameras_skipped(rig: Rig) -> list[str]:
@@ -183,8 +234,10 @@ def _full_scale(rig: Rig, cam: Camera) -> int:
 
 
 def _white_frames(rig: Rig, frames: int, exposure_us: float | None, sim_options: dict[str, Any] | None,
-                  white: WhiteImageConfig | None) -> dict[str, np.ndarray]:
-    """``frames`` white frames of every camera, taken with the rig (laser off)."""
+                  white: WhiteImageConfig | None, *, dark_frames: int = 0,
+                  dark_ready: Callable[[], None] | None = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """``frames`` white frames of every camera, taken with the rig (laser off), and ``dark_frames``
+    dark ones (no light) after them."""
     exposure = rig.timing.camera_exposure_us if exposure_us is None else exposure_us
     _check_timing(rig, frames)
     opts = {"pool_pairs": 1, "rays_per_particle": 16, **(sim_options or {})}
@@ -200,26 +253,49 @@ def _white_frames(rig: Rig, frames: int, exposure_us: float | None, sim_options:
                 raise UsageError(f"camera '{cam.name}' delivers {cam.sensor_px[0]} x {cam.sensor_px[1]} pixels but "
                                  f"the rig file says sensor_px = {list(want)}; correct the rig file")
         images = capture_frames(rig, lightfield, rg.pulse_generator, frames, exposure)
+        darks: dict[str, np.ndarray] = {}
+        if dark_frames > 0:
+            if rg.lab is not None:
+                from sim.scenes import dark_scene
+
+                rg.lab.show(*dark_scene(rg.lab.rig))  # the lens capped: the sensor's own offset
+            elif dark_ready is not None:
+                dark_ready()
+            darks = capture_frames(rig, lightfield, rg.pulse_generator, dark_frames, exposure)
         if rg.lab is not None:
             rg.lab.show(None)
-    return images
+    return images, darks
 
 
 def _white_files(rig: Rig, whites: Mapping[str, Sequence[str | Path]]) -> dict[str, np.ndarray]:
     """Every frame of the white image files of every camera, checked against its sensor and bit depth."""
+    return _image_files(rig, whites, "--white", required=True)
+
+
+def _image_files(rig: Rig, files: Mapping[str, Sequence[str | Path]], option: str, *, required: bool
+                 ) -> dict[str, np.ndarray]:
+    """Every frame of the image files (8- or 16-bit PNG, TIFF, ...) given per camera with ``option``,
+    checked against the camera's sensor and bit depth; ``required``: every light-field camera needs one."""
     from lfpiv.formats import FormatError
     from lfpiv.formats.images import FrameSource, inspect_image, read_frame
 
     names = [c.name for c in rig.camera]
-    unknown = sorted(set(whites) - set(names))
+    unknown = sorted(set(files) - set(names))
     if unknown:
-        raise UsageError(f"--white: camera '{unknown[0]}' is not in the rig (it has {', '.join(names)})")
-    missing = [c.name for c in rig.lightfield_cameras if not whites.get(c.name)]
-    if missing:
-        raise UsageError(f"--white: no white image for camera '{missing[0]}'; give --white {missing[0]}=FILE for "
+        raise UsageError(f"{option}: camera '{unknown[0]}' is not in the rig (it has {', '.join(names)})")
+    tomo = sorted(set(files) & {c.name for c in rig.pinhole_cameras})
+    if tomo and not required:
+        raise UsageError(f"{option}: camera '{tomo[0]}' is a pinhole camera, which calibrate mla skips; give images "
+                         "of the light-field cameras only")
+    missing = [c.name for c in rig.lightfield_cameras if not files.get(c.name)]
+    if missing and required:
+        raise UsageError(f"{option}: no white image for camera '{missing[0]}'; give {option} {missing[0]}=FILE for "
                          "every camera of the rig")
     out = {}
+    whites = files
     for cam in rig.lightfield_cameras:
+        if not files.get(cam.name):
+            continue
         stack = []
         try:
             for f in whites[cam.name]:
@@ -240,10 +316,11 @@ def _check_timing(rig: Rig, triggers: int) -> None:
         raise UsageError(str(exc)) from None
 
 
-def _open_store(out: str | Path, rig: Rig) -> CalibrationStore:
-    """The store at ``out`` for ``rig``'s cameras, created if it does not exist."""
+def _open_store(out: str | Path, rig: Rig, *, unfinished: str | None = None) -> CalibrationStore:
+    """The store at ``out`` for ``rig``'s cameras, created if it does not exist (marked
+    ``unfinished`` until its first calibration is written, when given)."""
     try:
-        return CalibrationStore.open_or_create(out, rig, software_version=__version__)
+        return CalibrationStore.open_or_create(out, rig, software_version=__version__, unfinished=unfinished)
     except CalibrationStoreError as exc:
         raise UsageError(str(exc)) from None
 
@@ -711,3 +788,96 @@ def calibrate_selfcal(run: str | Path, calibration: str | Path, *, pairs: slice 
         calib.write_selfcal(name, res.cameras[k].model_dump(mode="json", exclude_none=True), stats,
                             res.maps_px[:, k], res.counts)
     return SelfCalSummary(res, tuple(tomo), started, res.frames, tuple(chosen), left_out)
+
+
+def flat_fields(run_rig: Rig, calibration: str | Path, cameras: Sequence[str] | None = None
+                ) -> tuple[dict[str, FlatField], dict[str, Any], list[str]]:
+    """The flat fields of a run's light-field cameras from a calibration store's dark and white images.
+
+    Each camera's gain is its white image's light (less its dark image) over the white light a
+    perfect camera of its optics records (:func:`lfcore.white.white_irradiance` of its fitted model
+    where the store has one, else of the run's camera with the store's measured lattice), so what
+    is left is the response alone (:func:`lfcore.flatfield.flat_field`).
+
+    Parameters
+    ----------
+    run_rig
+        The run's rig (the cameras the frames are of).
+    calibration
+        Calibration store with white images (``lfpiv calibrate mla``; dark images where taken).
+    cameras
+        The cameras reconstructed (default: all of the run's); pinhole cameras are left out.
+
+    Returns
+    -------
+    flats : dict
+        Camera name -> :class:`lfcore.flatfield.FlatField`.
+    info : dict
+        JSON-compatible: the store's path and, per camera, the share of its pixels masked and
+        whether a dark image was used (for the ``volumes/`` settings).
+    notes : list of str
+        One line per camera without a dark image (its white image's own floor taken instead).
+
+    Raises
+    ------
+    UsageError
+        A store that cannot be opened, of other cameras or sensors (another rig), a camera without a
+        white image, or images that make no flat field.
+    """
+    from lfcore.chief_ray import diffraction_sigma_mm
+    from lfcore.flatfield import flat_field
+    from lfcore.white import white_irradiance
+
+    store = open_calibration(calibration)
+    names = list(cameras) if cameras else [c.name for c in run_rig.camera]
+    flats: dict[str, FlatField] = {}
+    info: dict[str, Any] = {"store": str(Path(store.path).resolve()), "cameras": {}}
+    notes = []
+    for name in names:
+        cam = run_rig.camera_named(name)
+        if is_pinhole(cam):
+            continue
+        if name not in store.cameras:
+            raise UsageError(f"{store.path} holds no camera '{name}' (it has {', '.join(store.cameras)}); give the "
+                             "calibration of this rig")
+        theirs = store.rig.camera_named(name)
+        if tuple(theirs.sensor_px) != tuple(cam.sensor_px) or is_pinhole(theirs):
+            raise UsageError(f"camera '{name}': {store.path} is a calibration of another camera "
+                             f"({theirs.sensor_px[0]} x {theirs.sensor_px[1]} px, the run's {cam.sensor_px[0]} x "
+                             f"{cam.sensor_px[1]}); give the "
+                             "calibration of this rig")
+        if (theirs.mla_grid != cam.mla_grid or abs(theirs.mla_pitch_um / cam.mla_pitch_um - 1) > 0.01
+                or abs(theirs.pixel_pitch_um / cam.pixel_pitch_um - 1) > 0.01):
+            raise UsageError(f"camera '{name}': {store.path} is a calibration of other optics ({theirs.mla_grid} "
+                             f"lenslets of {theirs.mla_pitch_um:g} um, the run's {cam.mla_grid} of "
+                             f"{cam.mla_pitch_um:g} um); give the calibration of this rig")
+        white = store.white(name)
+        if white is None:
+            raise UsageError(f"camera '{name}': no white image in {store.path}; run 'lfpiv calibrate mla' first")
+        dark = store.dark(name)
+        if dark is None:
+            notes.append(f"camera '{name}': no dark image in {store.path}: the white image's floor "
+                         f"({np.percentile(white, 1.0):.0f} counts) is taken as every pixel's dark level")
+        model = store.model(name)
+        optics = camera_from_dict(model["camera"]) if model else cam.model_copy(
+            update=_measured_lattice(store, name))
+        sigma = diffraction_sigma_mm(run_rig.laser.wavelength_nm if run_rig.render.diffraction else 0.0,
+                                     optics.lenslet_f_number) / optics.pixel_mm
+        try:
+            flat = flat_field(float(np.percentile(white, 1.0)) if dark is None else dark, white,
+                              reference=white_irradiance(optics, blur_sigma_px=sigma))
+        except ValueError as exc:
+            raise UsageError(f"camera '{name}': {exc}") from None
+        flats[name] = flat
+        info["cameras"][name] = {"masked_fraction": round(flat.masked_fraction, 6), "dark": dark is not None}
+    return flats, info, notes
+
+
+def _measured_lattice(store: CalibrationStore, name: str) -> dict[str, Any]:
+    """The lattice ``calibrate mla`` measured (pitch, rotation, offset), as camera keys; {} if none."""
+    grid = store.grid(name)
+    if grid is None:
+        return {}
+    mla = dict(store.group[name]["mla"].attrs.get("mla", {}))
+    return {k: (tuple(v) if isinstance(v, list) else v) for k, v in mla.items()
+            if k in ("mla_pitch_um", "mla_rotation_deg", "mla_offset_um")}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from calibration.store import CalibrationStore, CalibrationStoreError
+from calibration.store import CalibrationStore, CalibrationStoreError, UnfinishedCalibrationError
 from lfcore.mla import lenslet_count
 from lfcore.plan import Plan, PlanError
 from lfcore.rig import is_pinhole
@@ -90,6 +90,8 @@ def describe(path: str | Path) -> list[str]:
     except RunStoreError as not_a_run:
         try:
             calibration = CalibrationStore.open(path)
+        except UnfinishedCalibrationError:
+            raise  # a calibration store, but not one yet: say so
         except CalibrationStoreError:
             raise not_a_run from None
         return list(calibration.summary())

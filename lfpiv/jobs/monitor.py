@@ -313,7 +313,7 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
                 out: str | Path | None = None, overwrite: bool = False, sim_options: dict[str, Any] | None = None,
                 ring_slots: int = 32, title: str = "lfpiv monitor", screenshot: str | Path | None = None,
                 after: int = 3, say: Callable[[str], None] = lambda text: None,
-                warm_start: bool = False) -> MonitorOutcome:
+                warm_start: bool = False, flats: dict[str, Any] | None = None) -> MonitorOutcome:
     """Arm the rig, record every pair (to ``out``, or to a scratch store) and show the newest live.
 
     Parameters
@@ -351,6 +351,9 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
         Called with progress messages.
     warm_start
         Start frame B of each pair from frame A carried along the last pair's field (:mod:`lfcore.warm`).
+    flats
+        Per camera, the flat field (:func:`lfpiv.jobs.calibrate.flat_fields`) the live path
+        corrects every raw frame by; None: the raw frames.
 
     Raises
     ------
@@ -375,7 +378,7 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
             corr = CorrelationConfig(windows=default_windows(grid.shape, passes), overlap=0.5, deform_iterations=0)
         except CorrelationError as exc:
             raise UsageError(str(exc)) from None
-        pipe = LivePipeline(rig, settings=settings, recon=recon, correlation=corr, pvr=pvr, device=device)
+        pipe = LivePipeline(rig, settings=settings, recon=recon, correlation=corr, pvr=pvr, device=device, flats=flats)
         say(f"building the reconstruction ({'x'.join(map(str, pipe.grid.shape[::-1]))} voxels) and correlation "
             f"on {device} ...")
         try:

@@ -12,6 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lfcore.device import MemoryBudgetError
+from lfcore.flatfield import FlatField, correct
 from lfcore.operator import PROJECTORS, MatrixFreeUnsupported
 from lfcore.plan import (
     BYTES_PER_BOX_VOXEL,
@@ -88,6 +89,8 @@ class ReconJob:
     into: str = "volumes"
     #: depth slabs: None or 1 in memory, a number of slabs, or ``"auto"`` (see :func:`reconstruct_run`)
     slabs: int | str | None = None
+    #: per camera, the flat field its raw frames are corrected by (:func:`lfcore.flatfield.correct`)
+    flats: dict[str, FlatField] | None = None
 
 
 def _plan(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None,
@@ -147,12 +150,17 @@ class Series:
 
 def _reconstruct_frame(frames: FrameReconstructor | SlabReconstructor, store: RunStore, names: Sequence[str],
                        pair: int, frame: int, progress: Any = None, data: Any = None,
-                       log: Any = None, series: Series | None = None) -> ReconResult:
+                       log: Any = None, series: Series | None = None,
+                       flats: dict[str, FlatField] | None = None) -> ReconResult:
     """Reconstruct one frame of a pair from the run's images. A reconstructor in slabs writes
     its volume into ``data`` (the volumes' zarr array; None: the store's) slab by slab and returns
     it empty, telling ``log`` (if given) each stage as it ends; one in memory returns it for the
-    caller to write. ``series`` warm-starts it along the pairs (frame A kept, B started from it)."""
+    caller to write. ``series`` warm-starts it along the pairs (frame A kept, B started from it).
+    ``flats``: per camera, the flat field its frame is corrected by (its masked pixels leave the
+    operator)."""
     images = [store.read_frame(n, pair, frame) for n in names]  # a damaged or missing frame is an error
+    if flats:
+        images = [correct(img, flats[n]) if n in flats else img for img, n in zip(images, names, strict=True)]
     try:
         if frames.in_slabs:
             out = store.writing("volumes")["data"] if data is None else data
@@ -247,7 +255,8 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> PairDone:
     # frame A is written while frame B is reconstructed; both are written when the task returns
     with WriteBehind() as writer:
         for f in (0, 1):
-            res = _reconstruct_frame(frames, store, job.cameras, pair, f, data=data, series=series)
+            res = _reconstruct_frame(frames, store, job.cameras, pair, f, data=data, series=series,
+                                     flats=job.flats)
             if res.slabs == 1:  # a volume in slabs is in the store already
                 writer.submit(data.__setitem__, (pair, f), res.volume)
             made.append(res)
@@ -262,7 +271,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                     cameras: Sequence[str] | None = None, device: str | None = None,
                     progress: bool = True, rig: Rig | None = None,
                     calibration: dict[str, Any] | None = None, skip_done: bool = False,
-                    client: Any = None, option: str = "--pair-range", slabs: int | str | None = None
+                    client: Any = None, option: str = "--pair-range", slabs: int | str | None = None,
+                    flats: dict[str, FlatField] | None = None, flat_field: dict[str, Any] | None = None
                     ) -> list[ReconResult]:
     """Reconstruct both frames of the selected pairs and store them in ``volumes/``.
 
@@ -280,6 +290,11 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     ``client``, a Dask client (:func:`lfpiv.batch.dask_client`), spreads the pairs over its
     workers, which resolve ``device`` each for itself. ``option`` names the pair range in
     messages.
+
+    ``flats`` (per camera, :func:`lfpiv.jobs.calibrate.flat_fields`) corrects every raw frame by
+    the calibration's dark and white images before it is reconstructed, its masked pixels left out
+    of the operator; ``flat_field`` says which calibration that is and is kept in the ``volumes/``
+    settings. None: the raw frames as they are (one background level per camera).
 
     ``slabs`` reconstructs each volume in depth slabs (:mod:`lfcore.slabs`; the same volume, with
     no buffer of the whole box): a number of slabs, or ``"auto"``, in memory where the box fits and
@@ -335,7 +350,10 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     # where the weights lived does not change a volume, so it does not make volumes/ a different set
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
-            "cameras": names, "calibration": calibration}
+            "cameras": names, "calibration": calibration, "flat_field": flat_field if flats else None}
+    if not flats and any(not is_pinhole(c) for c in cams):
+        log.info("the raw frames are not flat-field corrected (no dark or white images given: one background "
+                 "level per camera, the lenses' and micro-images' vignetting and any dust left in)")
 
     def differences(g: Any) -> list[str]:
         old = _recorded(g.attrs.get("settings", {}))
@@ -353,11 +371,12 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
 
         return reconstruct_pair_task, ReconJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names),
                                                grid=grid, settings=settings, device=device, token=new_token(),
-                                               writer=store.writer_token, into=into, slabs=slabs)
+                                               writer=store.writer_token, into=into, slabs=slabs, flats=flats)
 
     run_pairs(store, "volumes", chosen, matches=lambda g: _made_with(store, g, grid, meta), differences=differences,
               create=lambda: store.create_volumes(grid, method=settings.method, settings=meta), skip_done=skip_done,
-              here=lambda todo: _reconstruct_here(frames, plan, store, names, todo, settings, results, progress),
+              here=lambda todo: _reconstruct_here(frames, plan, store, names, todo, settings, results, progress,
+                                                  flats),
               remote=remote, client=client, on_done=written, desc="reconstructing", progress=progress,
               postfix=lambda p, done: _shown(p, done.results),
               kept=lambda: f"the {len(results)} volume(s) written before are kept" if results else "")
@@ -366,7 +385,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
 
 def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, plan: Plan, store: RunStore,
                       names: Sequence[str], chosen: list[int], settings: ReconSettings, results: list[ReconResult],
-                      progress: bool) -> None:
+                      progress: bool, flats: dict[str, FlatField] | None = None) -> None:
     """Reconstruct both frames of the ``chosen`` pairs in this process, adding to ``results``;
     each volume is written (and recorded) while the next frame is reconstructed."""
     series = Series.of(frames, settings)
@@ -383,7 +402,7 @@ def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, plan: Plan
                 # iteration: the progress line says which ended last
                 res = _reconstruct_frame(frames, store, names, p, f, bar.update,
                                          log=lambda line, p=p, f=f: bar.set_postfix_str(f"pair {p} {'AB'[f]}: {line}"),
-                                         series=series)
+                                         series=series, flats=flats)
                 # the volume, then its bookkeeping and operator figures, on the writer's thread
                 writer.submit(_write_frame, store, p, f, res, plan)
                 results.append(_summary(res))
@@ -422,6 +441,7 @@ def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
     """Volumes' recorded settings, with those of settings added since at the value they had
     (volumes made before ``projector`` was recorded were made by ``auto``'s stored weights, those
     before ``prune`` with every voxel to the last iteration, those before ``warm_start`` from a uniform
-    start, those before ``los_iterations`` on DRT weights from the first iteration)."""
+    start, those before ``los_iterations`` on DRT weights from the first iteration, those before
+    ``flat_field`` from uncorrected frames)."""
     return {"projector": "auto", "prune": 0.0, "prune_every": 10, "warm_start": False, "warm_iterations": None,
-            "los_iterations": 0, **settings}
+            "los_iterations": 0, "flat_field": None, **settings}

@@ -62,7 +62,8 @@ class DensityStudy(Study):
         scene = Scene(rig, flow="uniform", ppm=params["ppm"], seed=SEED, device=device)
         pair = scene.pair(0)
         e0 = metrics.truth_volume(grid, pair.particles[0], brightness=pair.brightness[0])
-        rec = Reconstructor(rig.camera, grid, device=device)  # no cache: every time includes its weights
+        # no cache: every time includes its weights
+        rec = Reconstructor(rig.camera, grid, render=rig.render, device=device)
         (nd, nm), (ed, em) = params["protocol"], params["equal_time"]
         runs = {}
         for method, its in dict.fromkeys([("drt-mart", nd), ("mart", nm), ("drt-mart", ed), ("mart", em),
@@ -82,7 +83,7 @@ class DensityStudy(Study):
         depth = rig.volume.size_mm[2]
         grid = VolumeGrid.from_rig(rig, margin_mm=(0.0, 0.0, params["margin"] * depth))
         scene = Scene(rig, flow="uniform", ppm=params["ppm"], seed=SEED + 1, device=device)
-        rec = Reconstructor(rig.camera, grid, device=device, cache=True)
+        rec = Reconstructor(rig.camera, grid, render=rig.render, device=device, cache=True)
         total = np.zeros(grid.shape)
         outside, ghosts = [], []
         for k in range((params["frames"] + 1) // 2):

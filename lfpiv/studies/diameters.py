@@ -57,7 +57,7 @@ class DiametersStudy(Study):
         rig = rigs.single_rig(setup.rig, setup.scale)
         grid = VolumeGrid.from_rig(rig)
         scene = Scene(rig, flow="uniform", ppm=params["ppm"], seed=SEED, device=device)
-        rec = None if params["method"] == "truth" else Reconstructor(rig.camera, grid, device=device)
+        rec = None if params["method"] == "truth" else Reconstructor(rig.camera, grid, render=rig.render, device=device)
         settings = ReconSettings.chapter(method=params["method"] if rec else "drt-mart",
                                          iterations=params["iterations"])
         diam, depth, seconds = [], [], 0.0

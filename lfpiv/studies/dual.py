@@ -73,7 +73,7 @@ class DualStudy(Study):
             out = {}
             for ppm in params["ppm"]:
                 pair = Scene(rig, flow="uniform", ppm=ppm, seed=SEED, device=device).pair(0)
-                rec = Reconstructor(rig.camera, grid, device=device)
+                rec = Reconstructor(rig.camera, grid, render=rig.render, device=device)
                 res, _ = rec(pair.frame(0), ReconSettings.chapter(iterations=params["iterations"]))
                 out[f"{ppm:g}"] = metrics.q_recon(res.volume, metrics.truth_volume(grid, pair.particles[0],
                                                                                    brightness=pair.brightness[0]))
@@ -82,7 +82,7 @@ class DualStudy(Study):
         pair = scene.pair(0)
         cams = rig.camera[: params["cameras"]]
         e0 = metrics.truth_volume(grid, pair.particles[0], brightness=pair.brightness[0])
-        rec = Reconstructor(cams, grid, device=device, cache=True)
+        rec = Reconstructor(cams, grid, render=rig.render, device=device, cache=True)
         qs = []
         for its in params["iterations"]:
             res, _ = rec(pair.frame(0)[: params["cameras"]], ReconSettings.chapter(iterations=its))

@@ -69,7 +69,7 @@ class IterationsStudy(Study):
         out: dict[str, Any] = {"z_mm": z, "depth_lenslets": depth_lenslets, "particles": int(scene.world.n_particles)}
         if params["method"] == "truth":
             return {**out, "q": [metrics.q_recon(e0, e0)], "iterations": [0], "profiles": {"0": e0.max(axis=(1, 2))}}
-        rec = Reconstructor(rig.camera, grid, device=device, cache=True)
+        rec = Reconstructor(rig.camera, grid, render=rig.render, device=device, cache=True)
         qs, secs, profiles, active = [], [], {}, 0.0
         for its in params["iterations"]:
             res, seconds = rec(pair.frame(0), ReconSettings.chapter(method=params["method"], iterations=its,

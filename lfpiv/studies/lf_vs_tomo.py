@@ -141,7 +141,7 @@ def run_pair(rig: Rig, *, method: str, iterations: int, ppm: float | None = None
                   displacement_px=SHIFT_MM / cam.object_pixel_mm, seed=SEED, rays_per_particle=rays, device=device)
     pair = scene.pair(0)
     grid = VolumeGrid.from_rig(rig)
-    rec = Reconstructor(rig.camera, grid, device=device)
+    rec = Reconstructor(rig.camera, grid, render=rig.render, device=device)
     settings = ReconSettings.chapter(method=method, iterations=iterations)
     vols, seconds = [], 0.0
     for f in (0, 1):

@@ -160,7 +160,7 @@ class OscillatoryStudy(Study):
         config = CorrelationConfig(windows=windows, overlap=p["overlap"])
         scene = Scene(rig, flow=params["flow"], ppm=0.5, displacement_px=disp_px, omega=omega, seed=SEED, device=device)
         flow = Uniform((0.0, 0.0, 0.0)) if params["still"] else scene.flow
-        rec = Reconstructor(rig.camera, grid, device=device, cache=True)
+        rec = Reconstructor(rig.camera, grid, render=rig.render, device=device, cache=True)
         errors: dict[str, list[np.ndarray]] = {str(n): [] for n in params["iterations"]}
         bound: list[np.ndarray] = []
         same: list[np.ndarray] = []

@@ -19,18 +19,19 @@ import numpy as np
 
 from lfcore import metrics
 from lfcore.correlate import CorrelationConfig, Correlator, VectorField
+from lfcore.flatfield import FlatField, correct, flat_field
 from lfcore.flows import Flow, flow_from_params
 from lfcore.operator import Projector
 from lfcore.plan import cache_serves, new_cache, projector_for
 from lfcore.reconstruct import WEIGHTS, FrameReconstructor, ReconResult, ReconSettings
 from lfcore.render import renderer_for
-from lfcore.rig import Camera, Rig
+from lfcore.rig import Camera, RenderConfig, Rig, is_pinhole
 from lfcore.vectors import centres_mm, displacement_to_velocity
 from lfcore.volume import VolumeGrid
 from lfcore.world import ParticleWorld
 from lfpiv.jobs.synth import render_pair
 
-__all__ = ["Pair", "Reconstructor", "Scene", "Vectors", "correlate_pair", "true_displacement"]
+__all__ = ["Pair", "Reconstructor", "Scene", "Vectors", "correlate_pair", "simulated_flats", "true_displacement"]
 
 
 @dataclass(frozen=True)
@@ -125,10 +126,16 @@ class Reconstructor:
         (:func:`lfcore.plan.cache_serves`): repeated reconstructions of the same frames then trace
         each voxel once. Leave it off
         where the time of a reconstruction is measured, so that it includes its weights.
+    render
+        The rendering the frames were made with: where it gives the light-field cameras a response
+        (``lens_falloff``, ...), every frame is flat-field corrected, as ``lfpiv reconstruct
+        --flat-field`` does, by a white and a dark image rendered through the same response
+        (:func:`simulated_flats`). None: the frames as they are.
     """
 
     def __init__(self, cameras: Sequence[Camera], grid: VolumeGrid, *, device: str | None = None,
-                 cache: bool = False) -> None:
+                 cache: bool = False, render: RenderConfig | None = None) -> None:
+        self.flats = simulated_flats(cameras, render) if render is not None and render.has_response else None
         self.projector: Projector = projector_for(list(cameras), grid, device=device)
         self.grid = grid
         self.use_cache = cache
@@ -164,8 +171,31 @@ class Reconstructor:
         """
         frames = self._frames_of(settings)
         t = time.perf_counter()
+        if self.flats is not None:
+            images = [img if f is None else correct(img, f) for img, f in zip(images, self.flats, strict=True)]
         res = frames.reconstruct(list(images))
         return res, time.perf_counter() - t
+
+
+def simulated_flats(cameras: Sequence[Camera], render: RenderConfig, *, wavelength_nm: float = 532.0
+                    ) -> list[FlatField | None]:
+    """Per camera, the flat field a calibration of ``render``'s response would measure: a white
+    image and a dark frame rendered through it (:func:`lfcore.white.white_image`, an empty frame),
+    over the white light of the perfect camera (:func:`lfcore.flatfield.flat_field`); None for a
+    pinhole camera, which has no response."""
+    from lfcore.chief_ray import diffraction_sigma_mm
+    from lfcore.white import WhiteImageConfig, white_image, white_irradiance
+
+    out: list[FlatField | None] = []
+    for k, cam in enumerate(cameras):
+        if is_pinhole(cam):
+            out.append(None)
+            continue
+        white = white_image(cam, render=render, config=WhiteImageConfig(seed=k), wavelength_nm=wavelength_nm)
+        dark = renderer_for(cam, render, wavelength_nm=wavelength_nm).frame(np.zeros((0, 3)), 0.0, seed=k)
+        sigma = diffraction_sigma_mm(wavelength_nm if render.diffraction else 0.0, cam.lenslet_f_number) / cam.pixel_mm
+        out.append(flat_field(dark, white, reference=white_irradiance(cam, blur_sigma_px=sigma)))
+    return out
 
 
 @dataclass(frozen=True)

@@ -78,7 +78,7 @@ class VortexRingStudy(Study):
         grid = VolumeGrid.from_rig(rig)
         scene = Scene(rig, flow="vortex-ring", ppm=params["ppm"], seed=SEED, device=device)
         cams = rig.camera[: params["cameras"]]
-        rec = Reconstructor(cams, grid, device=device, cache=True)
+        rec = Reconstructor(cams, grid, render=rig.render, device=device, cache=True)
         settings = ReconSettings.chapter(iterations=params["iterations"])
         vel = {p: [] for p in POST}
         truth = []
