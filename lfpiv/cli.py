@@ -20,7 +20,7 @@ from collections.abc import Iterator, Sequence
 
 from lfpiv import __version__
 from lfpiv.commands import COMMANDS, module_of
-from lfpiv.errors import UsageError
+from lfpiv.errors import UsageError, os_error_line
 
 EXIT_USAGE = 2
 EXIT_DEVICE = 3
@@ -200,9 +200,7 @@ def _main(argv: Sequence[str] | None) -> int:
         return 0
     except OSError as exc:
         # a path that cannot be written or read (read-only, missing folder, no space, ...)
-        where = f" {exc.filename}" if exc.filename else ""
-        print(f"lfpiv: error: cannot use{where}: {exc.strerror or exc}; choose another path or fix its "
-              "permissions and free space", file=sys.stderr)
+        print(f"lfpiv: error: {os_error_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
 
 
