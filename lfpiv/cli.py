@@ -282,7 +282,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout, sys.stderr = out, err
 
 
+def _written(args: argparse.Namespace | None) -> str | None:
+    """What a command writes, for an I/O error that names no file: its --out, else its store."""
+    for name in ("out", "run", "store"):
+        value = getattr(args, name, None)
+        if isinstance(value, str | os.PathLike):
+            return str(value)
+    return None
+
+
 def _main(argv: Sequence[str] | None) -> int:
+    args: argparse.Namespace | None = None
     try:
         from acquisition.pulse_generator import signals_call
         from calibration.store import CalibrationStoreError
@@ -332,8 +342,9 @@ def _main(argv: Sequence[str] | None) -> int:
               file=sys.stderr)
         return EXIT_USAGE
     except OSError as exc:
-        # a path that cannot be written or read (read-only, missing folder, no space, ...)
-        print(f"lfpiv: error: {os_error_line(exc)}", file=sys.stderr)
+        # a path that cannot be written or read (read-only, missing folder, no space, ...); an
+        # error naming no file (zarr's writes on a full disk) names what the command writes
+        print(f"lfpiv: error: {os_error_line(exc, path=_written(args))}", file=sys.stderr)
         return EXIT_USAGE
 
 
