@@ -89,6 +89,15 @@ class _LogFile(logging.FileHandler):
         if self.failed is None:
             self.failed = exc if isinstance(exc, OSError) else OSError(0, f"{type(exc).__name__}: {exc}")
 
+    def finish_line(self) -> OSError | None:
+        """Flush what was written; the first failure so far, or None."""
+        if self.failed is None:
+            try:
+                self.flush()
+            except OSError as exc:
+                self.failed = exc
+        return self.failed
+
     def finish(self) -> OSError | None:
         """Flush and close the file; the first failure of the command's writes, or of these, or None."""
         try:
@@ -119,15 +128,16 @@ def _inside_store(path: str) -> str | None:
     return found
 
 
-def _start_logging(verbose: int, log_file: str | None) -> _LogFile | None:
+def _start_logging(verbose: int, log_file: str | None, *, command: str = "") -> _LogFile | None:
     """Our packages' loggers on stderr (warnings; -v steps; -vv details) and, with ``log_file``,
-    every detail in that file; returns the file's handler.
+    every detail in that file, which starts with a line naming the ``command``; returns the
+    file's handler.
 
     Raises
     ------
     UsageError
         ``log_file`` lies inside a zarr store (appending to its files would make it unreadable),
-        or cannot be opened.
+        or cannot be opened or written (a full disk).
     """
     level = {0: logging.WARNING, 1: logging.INFO}.get(verbose, logging.DEBUG)
     handlers: list[logging.Handler] = []
@@ -149,6 +159,14 @@ def _start_logging(verbose: int, log_file: str | None) -> _LogFile | None:
                              "path") from None
         fh.setLevel(logging.DEBUG)
         fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        # the first line, written now: a log that cannot be written (a full disk) is said before
+        # the command changes anything
+        fh.emit(logging.LogRecord("lfpiv", logging.INFO, __file__, 0, "lfpiv %s: %s", (__version__, command), None))
+        if fh.finish_line() is not None:
+            with contextlib.suppress(OSError):  # its buffer flushed once more, failing again
+                fh.close()
+            raise UsageError(f"--log-file {log_file} cannot be written ({fh.failed.strerror or fh.failed}); give "
+                             "a path on a disk with room, or leave it out")
         handlers.append(fh)
     for name in _LOGGERS:
         lg = logging.getLogger(name)
@@ -308,7 +326,8 @@ def _main(argv: Sequence[str] | None) -> int:
     warnings.filterwarnings("ignore", category=UserWarning, module="zarr")
     try:
         args = _build_parser().parse_args(_negative_lists(sys.argv[1:] if argv is None else list(argv)))
-        log = _start_logging(args.verbose or 0, args.log_file)
+        log = _start_logging(args.verbose or 0, args.log_file,
+                             command=" ".join(sys.argv[1:] if argv is None else map(str, argv)))
         # installed before any thread starts: a kill or a closed terminal disarms a laser armed
         # from any thread (the monitor arms from its recording thread, where no handler can be
         # set), then ends the command as Ctrl-C does (acquire and monitor refine this)

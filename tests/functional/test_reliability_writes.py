@@ -99,14 +99,30 @@ def test_a_log_file_inside_a_store_is_refused_and_the_store_is_untouched(made, t
 
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (a device that is always full)")
-def test_a_log_file_on_a_full_disk_is_one_line_and_a_failure(made, tmp_path):
+def test_a_log_file_on_a_full_disk_is_refused_before_anything_changes(made, tmp_path):
     """A full disk under --log-file printed logging's 24-line traceback and exited 0."""
     run = _copy(made, tmp_path)
+    before = _files(run)
     r = subprocess.run([*LFPIV, "--log-file", "/dev/full", "reconstruct", str(run), "--iterations", "1",
                         "--pair-range", "0", "--quiet"], capture_output=True, text=True, env=ENV, timeout=600)
     assert r.returncode == 2 and one_error(r.stderr) and "Traceback" not in r.stderr, r.stderr
-    assert "--log-file /dev/full could not be written (No space left on device)" in r.stderr, r.stderr
-    assert "--- Logging error ---" not in r.stderr
+    assert "--log-file /dev/full cannot be written (No space left on device)" in r.stderr, r.stderr
+    assert _files(run) == before
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (a device that is always full)")
+def test_a_log_file_that_fills_up_during_the_command_is_one_line_and_a_failure(made, tmp_path, capsys, monkeypatch):
+    """The disk fills after the log's first line: the command ends, then says so in one line."""
+    from lfpiv import cli
+
+    monkeypatch.setattr(cli._LogFile, "finish_line", lambda self: None)  # as if the first line fit
+    run = _copy(made, tmp_path)
+    rc, _, err = _run(capsys, "--log-file", "/dev/full", "reconstruct", str(run), "--iterations", "1",
+                      "--pair-range", "0", "--quiet")
+    assert rc == 2 and one_error(err) and "--- Logging error ---" not in err, err
+    assert "--log-file /dev/full could not be written (No space left on device); the command itself ended " \
+           "without error" in err
+    assert RunStore.open(run).reconstructed_pairs() == [0]
 
 
 # --- streams ---------------------------------------------------------------------------------------
