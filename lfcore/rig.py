@@ -294,7 +294,7 @@ class Camera(_Posed, _Strict):
     #: The main lens' own f-number N = F / D; the light converging on the lenslets has the image-side N (1 - M), which
     #: should match f_ml / p_ml (more than 5% off is a warning naming the matching N)
     f_number: _within(0.0, 1000.0, above=True)
-    #: Lateral magnification M of the main lens, negative (a real, inverted image): -1 images 1:1
+    #: Lateral magnification M of the main lens, negative (a real, inverted image): -1 images 1:1; |M| at least 1e-6
     magnification: Magnification
     #: Camera pose: rotations [rx, ry, rz] about the world axes in degrees, x first (R = Rz Ry Rx maps camera-frame
     #: vectors to world vectors); [0, 0, 0] puts the camera on world +z looking toward -z
@@ -439,8 +439,8 @@ class PinholeCamera(_Posed, _Strict):
     pixel_pitch_um: _within(0.0, 1000.0, above=True)
     #: Focal length F of the lens, mm
     focal_length_mm: LengthMm
-    #: Lateral magnification M, negative; or give object_distance_mm instead (lens to focal plane, mm, beyond F), from
-    #: which M = -F / (so - F)
+    #: Lateral magnification M, negative, |M| at least 1e-6; or give object_distance_mm instead (lens to focal plane,
+    #: mm, beyond F), from which M = -F / (so - F)
     magnification: Magnification
     #: Camera pose: rotations [rx, ry, rz] about the world axes in degrees, x first (R = Rz Ry Rx maps camera-frame
     #: vectors to world vectors); [0, 0, 0] puts the camera on world +z looking toward -z
@@ -657,8 +657,7 @@ class TimingConfig(_Strict):
     per pair).
     """
 
-    #: Time between the two laser pulses of a pair, microseconds (at least camera_interframe_us; 0.001, a
-    #: nanosecond, to 1e8, 100 s)
+    #: Time between the two laser pulses of a pair, microseconds (at least camera_interframe_us)
     dt_us: _within(1e-3, 1e8) = 2000.0
     #: The laser's flashlamp-to-Q-switch delay, microseconds
     qswitch_delay_us: TimeUs = 180.0
