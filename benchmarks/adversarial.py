@@ -1109,6 +1109,9 @@ def cases_writes_streams(ctx: Ctx) -> list[Case]:
     add("defaults-synth-dt-ms-denormal", "defaults", simple(["synth", "--rig", "TINY", "--out", "D/s.zarr", "--pairs",
                                                              "1", "--rays", "50", "--dt-ms", "1e-320", "--quiet"],
                                                             "error"), "synth")
+    add("defaults-import-dt-us-denormal", "defaults", simple(
+        ["import", "--rig", "TINY", "--out", "D/i.zarr", "--frames", "D/t/*.tif", "--dt-us", "5e-324", "--quiet"],
+        "error", prepare=lambda ctx, d: _frames_as_tiffs(ctx.made, d / "t")), "import")
     return out
 
 
