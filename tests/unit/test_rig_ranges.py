@@ -64,3 +64,15 @@ def test_a_rig_dt_is_never_reported_as_the_dt_ms_option(tiny_rig, tmp_path):
     assert "timing.dt_us" in _refused(tiny_rig, "timing", "dt_us", 5e-324)
     with pytest.raises(UsageError, match=r"--dt-ms must be from 1e-06 \(a nanosecond\) to 1e\+05 \(100 s\), got "):
         synthesize(tiny_rig, tmp_path / "s.zarr", pairs=1, dt_s=1e-323)
+
+
+def test_an_imported_dt_is_checked_against_the_same_range_naming_where_it_came_from():
+    """import took --dt-us 5e-324 (positive) and named --dt-us for a time the files carried."""
+    from lfpiv.errors import UsageError
+    from lfpiv.jobs.import_ import _timing
+
+    with pytest.raises(UsageError, match=r"^--dt-us 4.94066e-324 is not a time between frames A and B"):
+        _timing(5e-324, None, {"dt_s": None, "rate_hz": None})
+    with pytest.raises(UsageError, match=r"^the files' time between frames A and B \(1e-300 s\) .*; give --dt-us$"):
+        _timing(None, None, {"dt_s": 1e-300, "rate_hz": None})
+    assert _timing(2000.0, 10.0, {"dt_s": None, "rate_hz": None})["dt_s"] == pytest.approx(2e-3)
