@@ -531,5 +531,7 @@ class RecordingSession:
                     batch += list(enumerate(fut.result(), start=first))
                 self._commit(batch)
         except Exception as exc:  # noqa: BLE001 - a failing disk ends the recording cleanly
-            self._fail(RuntimeError(f"writing the run store failed: {type(exc).__name__}: {exc}; "
-                                    "check free space and permissions"))
+            # the real cause and where (zarr's writes on a full disk name no file)
+            why = (f"{exc.strerror}: {exc.filename or self.store.path}" if isinstance(exc, OSError) and exc.strerror
+                   else f"{type(exc).__name__}: {exc}")
+            self._fail(RuntimeError(f"writing the run store failed ({why}); check free space and permissions"))

@@ -29,6 +29,11 @@ writer
 disk
     a full disk (a small tmpfs, mounted when this runs as root; the group is left out otherwise)
     under ``synth``, ``reconstruct``, ``correlate``, ``export`` and ``acquire``.
+writes, streams, defaults, rig-range (issue 50, :func:`cases_writes_streams`)
+    plots, screenshots, study outputs and imports on a full disk (the earlier file whole, the path
+    named); ``--log-file`` inside a store or on a full disk (``/dev/full``); a broken pipe and
+    closed stdout, stderr or all three; a stale ``vectors.replaced/``; a run with a recorded drop;
+    rig values finite but meaningless (each naming its key); defaults that must not refuse.
 
 Each case is classified as
 
@@ -888,6 +893,225 @@ def cases(ctx: Ctx) -> list[Case]:
     # a full disk
     for command in ("synth", "reconstruct", "correlate", "export", "acquire"):
         add(f"disk-full-{command}", "disk", disk_case(command), command)
+    out += cases_writes_streams(ctx)
+    return out
+
+
+# --- issue 50: writes, logs, streams, rig ranges and defaults -----------------------------------
+
+def _tmpfs(mnt: Path, kib: int) -> bool:
+    mnt.mkdir(exist_ok=True)
+    return subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={kib}k", "tmpfs", str(mnt)],
+                          capture_output=True).returncode == 0
+
+
+def _fill(mnt: Path, keep: int) -> None:
+    st = os.statvfs(mnt)
+    (mnt / "filler").write_bytes(b"\0" * max(0, st.f_bavail * st.f_frsize - keep))
+
+
+def full_disk_file_case(command: str) -> Callable[[Ctx, Path], Outcome]:
+    """A plot, a screenshot, a study's outputs or an import on a full disk (a tmpfs): one line
+    naming the path, and an earlier file under the final name whole (never a stub or 0 bytes)."""
+    def run(ctx: Ctx, d: Path) -> Outcome:
+        mnt = d / "disk"
+        if not _tmpfs(mnt, 600):
+            return Outcome("accepted", None, 0.0, "left out: cannot mount a tmpfs")
+        try:
+            old = b"\x89PNG earlier good picture" * 40
+            target = mnt / "q.png"
+            target.write_bytes(old)
+            args = {"plot": ["evaluate", ctx.made, "--plot", target],
+                    "screenshot": ["monitor", "--rig", TINY, "--pairs", "2", "--screenshot", target, "--device", "cpu",
+                                   "--iterations", "1", "--sim-rays", "200", "--quiet"],
+                    "study": ["study", "iterations", "--scale", "tiny", "--out", mnt / "st"],
+                    "import": ["import", "--rig", TINY, "--out", mnt / "i.zarr", "--frames", d / "t" / "*.tif",
+                               "--dt-us", "2000", "--quiet"]}[command]
+            if command == "import":
+                _frames_as_tiffs(ctx.made, d / "t")
+            _fill(mnt, 2000)
+            rc, out, err, secs = lfpiv(args, d, ctx.timeout_s)
+            o = classify(rc, out, err, secs, "error")
+            if o.cls in ("hang", "traceback"):
+                return o
+            if target.read_bytes() != old:
+                size = target.stat().st_size
+                return Outcome("data lost", rc, secs, f"the earlier {target.name} became {size} bytes: {o.detail}")
+            if o.cls == "clean error" and str(mnt) not in err:
+                return Outcome("messy error", rc, secs, "the message does not name the path: " + o.detail)
+            return o
+        finally:
+            subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+    return run
+
+
+def _frames_as_tiffs(run: Path, folder: Path) -> None:
+    import tifffile
+
+    folder.mkdir(exist_ok=True)
+    s = RunStore.open(run)
+    for p in range(s.committed_pairs):
+        for f in range(2):
+            tifffile.imwrite(folder / f"{p:03d}{f}.tif", s.read_frame(s.cameras[0], p, f))
+
+
+def log_into_store_case(rel: str) -> Callable[[Ctx, Path], Outcome]:
+    """--log-file at a store's own file or inside it: refused, and the store byte for byte as it was."""
+    def run(ctx: Ctx, d: Path) -> Outcome:
+        run_ = d / "run.zarr"
+        shutil.copytree(ctx.made, run_)
+        before = {p: p.read_bytes() for p in run_.rglob("*") if p.is_file()}
+        rc, out, err, secs = lfpiv(["--log-file", run_ / rel, "info", run_], d, ctx.timeout_s)
+        o = classify(rc, out, err, secs, "error")
+        if o.cls in ("hang", "traceback"):
+            return o
+        after = {p: p.read_bytes() for p in run_.rglob("*") if p.is_file()}
+        if after != before:
+            return Outcome("data lost", rc, secs, f"the store's files changed: {o.detail}")
+        return o
+    return run
+
+
+def stream_case(how: str) -> Callable[[Ctx, Path], Outcome]:
+    """A broken pipe on stdout (``check DAMAGED | head -c 1``: exit 1, as without the pipe), or
+    stdout / stderr / all three closed (``reconstruct`` does its work and exits 0)."""
+    def run(ctx: Ctx, d: Path) -> Outcome:
+        run_ = d / "run.zarr"
+        t = time.monotonic()
+        if how == "broken-pipe":
+            shutil.copytree(ctx.made, run_)
+            chunk_damage("cam0/frames", "random")(run_)
+            proc = subprocess.Popen([sys.executable, "-m", "lfpiv", "check", run_], cwd=d, env=ENV,
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+            proc.stdout.read(1)
+            proc.stdout.close()
+            try:
+                err = proc.stderr.read().decode(errors="replace")
+                rc = proc.wait(timeout=ctx.timeout_s)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                return Outcome("hang", None, time.monotonic() - t, "")
+            secs = time.monotonic() - t
+            if crashed(rc, err) or "Exception ignored" in err:
+                return Outcome("traceback", rc, secs, (err.strip().splitlines() or [""])[-1][:300])
+            if rc != 1:
+                return Outcome("wrong result", rc, secs, f"exit {rc} for a damaged run (1 without the pipe)")
+            return Outcome("clean error", rc, secs, "exit 1 kept")
+        shutil.copytree(ctx.made, run_, ignore=shutil.ignore_patterns("volumes", "vectors"))
+        fds = {"closed-stdout": (1,), "closed-stderr": (2,), "closed-all": (0, 1, 2)}[how]
+
+        def close() -> None:
+            os.setsid()
+            for fd in fds:
+                os.close(fd)
+
+        try:
+            r = subprocess.run([sys.executable, "-m", "lfpiv", "reconstruct", run_, "--iterations", "1",
+                                "--pair-range", "0"], cwd=d, env=ENV, stdin=subprocess.DEVNULL,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=close,
+                               timeout=ctx.timeout_s)
+        except subprocess.TimeoutExpired:
+            return Outcome("hang", None, time.monotonic() - t, "")
+        secs = time.monotonic() - t
+        if r.returncode != 0:
+            return Outcome("wrong result", r.returncode, secs, f"exit {r.returncode} with {how}")
+        if RunStore.open(run_).reconstructed_pairs() != [0] or RunStore.check(run_):
+            return Outcome("wrong result", r.returncode, secs, "the volume of pair 0 is not whole")
+        return Outcome("accepted", 0, secs, f"reconstructed with {how}")
+    return run
+
+
+def stale_replaced_case() -> Callable[[Ctx, Path], Outcome]:
+    """A ``vectors.replaced/`` an earlier replacement left: the next correlate with other settings
+    settles it and puts its vectors in place."""
+    def run(ctx: Ctx, d: Path) -> Outcome:
+        run_ = d / "run.zarr"
+        shutil.copytree(ctx.made, run_)
+        shutil.copytree(run_ / "vectors", run_ / "vectors.replaced")
+        rc, out, err, secs = lfpiv(["correlate", run_, "--windows", "16x16x8", "--quiet"], d, ctx.timeout_s)
+        o = classify(rc, out, err, secs, "accept")
+        if o.cls == "accepted" and (run_ / "vectors.replaced").exists():
+            return Outcome("wrong result", rc, secs, "vectors.replaced/ is still there")
+        return o
+    return run
+
+
+def drop_case() -> Callable[[Ctx, Path], Outcome]:
+    """A run with a recorded drop: a plain reconstruct refused, naming --pair-range as the way on."""
+    def run(ctx: Ctx, d: Path) -> Outcome:
+        run_ = d / "run.zarr"
+        shutil.copytree(ctx.made, run_, ignore=shutil.ignore_patterns("volumes", "vectors"))
+        s = RunStore.open(run_, mode="r+")
+        s.add_drops([dict(camera="cam0", pair=1, frame=0, frame_id=-1, timestamp_ns=-1, reason="frame timeout")])
+        del s
+        _chunk(run_, "cam0/frames", 1).unlink()
+        rc, out, err, secs = lfpiv(["reconstruct", run_, "--iterations", "1", "--quiet"], d, ctx.timeout_s)
+        o = classify(rc, out, err, secs, "error")
+        if o.cls == "clean error" and "--pair-range" not in err:
+            return Outcome("messy error", rc, secs, "the way on (--pair-range) is not named: " + o.detail)
+        return o
+    return run
+
+
+def rig_key_case(old: str, new: str, key: str) -> Callable[[Ctx, Path], Outcome]:
+    """A rig value finite but meaningless: refused in one line naming its key."""
+    def run(ctx: Ctx, d: Path) -> Outcome:
+        assert old in ctx.tiny_text, old
+        rig = d / "rig.toml"
+        rig.write_text(ctx.tiny_text.replace(old, new, 1))
+        rc, out, err, secs = lfpiv(["synth", "--rig", rig, "--out", d / "r.zarr", "--pairs", "1", "--ppm", "0.2",
+                                    "--rays", "100", "--quiet"], d, ctx.timeout_s)
+        o = classify(rc, out, err, secs, "error")
+        if o.cls == "clean error" and key not in err:
+            return Outcome("messy error", rc, secs, f"the message does not name {key}: " + o.detail)
+        return o
+    return run
+
+
+def cases_writes_streams(ctx: Ctx) -> list[Case]:
+    """Issue 50's families: atomic writes of plots, screenshots, study outputs and imports on a
+    full disk; --log-file into a store or on a full disk; broken pipes and closed streams; stale
+    replacements; drops; rig values finite but meaningless; defaults that must not refuse."""
+    out: list[Case] = []
+
+    def add(name: str, group: str, fn: Callable[[Ctx, Path], Outcome], command: str = "") -> None:
+        out.append(Case(name, group, fn, command))
+
+    for command in ("plot", "screenshot", "study", "import"):
+        add(f"writes-full-disk-{command}", "writes", full_disk_file_case(command),
+            {"plot": "evaluate", "screenshot": "monitor"}.get(command, command))
+    for rel in ("zarr.json", "cam0/frames/zarr.json", "run.log", "vectors/u/x.log"):
+        add(f"writes-log-into-store-{rel.replace('/', '-')}", "writes", log_into_store_case(rel), "info")
+    if Path("/dev/full").exists():
+        add("writes-log-file-full-disk", "writes", simple(["--log-file", "/dev/full", "reconstruct", "RUN",
+                                                            "--iterations", "1", "--quiet"], "error"), "reconstruct")
+    for how in ("broken-pipe", "closed-stdout", "closed-stderr", "closed-all"):
+        add(f"streams-{how}", "streams", stream_case(how), "check" if how == "broken-pipe" else "reconstruct")
+    add("writes-stale-vectors-replaced", "writes", stale_replaced_case(), "correlate")
+    add("defaults-drop-names-pair-range", "defaults", drop_case(), "reconstruct")
+    for name, old, new, key in (
+            ("dt-1e-300", "dt_us = 2000.0", "dt_us = 1e-300", "timing.dt_us"),
+            ("dt-denormal", "dt_us = 2000.0", "dt_us = 5e-324", "timing.dt_us"),
+            ("pvr-1e308", "pvr = [2.0, 2.0, 10.0]", "pvr = [1e308, 2.0, 10.0]", "volume.pvr"),
+            ("pvr-one-voxel", "pvr = [2.0, 2.0, 10.0]", "pvr = [500.0, 2.0, 10.0]", "volume.pvr"),
+            ("rotation-1e300", "rotation_deg = [0.0, 0.0, 0.0]", "rotation_deg = [1e300, 0.0, 0.0]",
+             "camera[0].rotation_deg"),
+            ("magnification-tiny", "magnification = -1.0", "magnification = -1e-300", "camera[0].magnification"),
+            ("size-1e300", "size_mm = [0.9, 0.75, 1.6]", "size_mm = [1e300, 0.75, 1.6]", "volume.size_mm"),
+            ("centre-1e300", "centre_mm = [0.0, 0.0, 0.0]", "centre_mm = [0.0, 1e300, 0.0]", "volume.centre_mm"),
+            ("rate-1e300", "rate_hz = 10.0", "rate_hz = 1e300", "laser.rate_hz")):
+        add(f"rig-range-{name}", "rig-range", rig_key_case(old, new, key), "synth")
+    mon = ["monitor", "--rig", "TINY", "--pairs", "2", "--device", "cpu", "--iterations", "1", "--sim-rays", "200",
+           "--quiet"]
+    add("defaults-monitor-pairs-2-screenshot", "defaults", simple([*mon, "--screenshot", "D/m.png"], "accept"),
+        "monitor")
+    add("defaults-monitor-offscreen-ends", "defaults", simple(mon, "accept"), "monitor")
+    add("defaults-synth-dt-ms-denormal", "defaults", simple(["synth", "--rig", "TINY", "--out", "D/s.zarr", "--pairs",
+                                                             "1", "--rays", "50", "--dt-ms", "1e-320", "--quiet"],
+                                                            "error"), "synth")
+    add("defaults-import-dt-us-denormal", "defaults", simple(
+        ["import", "--rig", "TINY", "--out", "D/i.zarr", "--frames", "D/t/*.tif", "--dt-us", "5e-324", "--quiet"],
+        "error", prepare=lambda ctx, d: _frames_as_tiffs(ctx.made, d / "t")), "import")
     return out
 
 
@@ -920,7 +1144,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--work", type=Path, help="work folder (default: a new temporary one, removed at the end)")
     p.add_argument("--csv", type=Path, help="CSV of every case (default: adversarial.csv in the work folder)")
-    p.add_argument("--only", help="comma-separated groups: rig, path, option, store, kill, interrupt, writer, disk")
+    p.add_argument("--only", help="comma-separated groups: rig, path, option, store, kill, interrupt, writer, disk, "
+                   "writes, streams, defaults, rig-range")
     p.add_argument("--match", help="only the cases whose name contains this")
     p.add_argument("--jobs", type=int, default=2, help="cases at a time (default: 2)")
     p.add_argument("--timeout", type=float, default=90.0, help="seconds a case may take before it is a hang")

@@ -2,7 +2,8 @@
 correlation, vector post-processing, metrics, flows and the run format.
 
 Arrays and frozen configurations in, arrays out: nothing here opens a file, port or camera (the
-run store's format, :mod:`lfcore.runstore`, is the one exception). Warp kernels live in
+run store's format, :mod:`lfcore.runstore`, is the one exception, with :mod:`lfcore.files`, how
+every file lfpiv writes is replaced whole). Warp kernels live in
 :mod:`lfcore._kernels` behind the plain functions of these modules, which users import:
 """
 
@@ -12,6 +13,7 @@ __all__ = [
     "device",       # Warp devices and CPU threading
     "device_ops",   # image and volume operations on the device
     "errors",       # DeviceError, ComputeDeviceError
+    "files",        # replacing a file whole: written beside, flushed, renamed
     "flows",        # the test flows and particle advection
     "matrix_free",  # the matrix-free DRT templates per depth and lenslet phase, and their operator
     "metrics",      # Q_recon, particle matching, diameters, velocity and divergence errors

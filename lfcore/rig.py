@@ -30,6 +30,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Discriminator,
@@ -66,10 +67,35 @@ __all__ = [
     "voxel_shape_warnings",
 ]
 
-PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
-Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
-PositiveVec3 = tuple[PositiveFloat, PositiveFloat, PositiveFloat]
+def _within(lo: float, hi: float, *, above: bool = False) -> Any:
+    """A finite float in the physical range [lo, hi] of a rig value (``(lo, hi]`` with ``above``):
+    a value finite but far outside it (a dt of 1e-300 us, a PVR of 1e308) is a slip, and would
+    make a meaningless run rather than an error."""
+    bound = {"gt": lo} if above else {"ge": lo}
+    return Annotated[float, Field(le=hi, allow_inf_nan=False, **bound)]
+
+
+#: An angle in degrees: a turn either way at most
+Angle = _within(-360.0, 360.0)
+#: A world position, mm: within a million km of the origin (a focus or centre beyond is a slip of
+#: units; a merely far one the rig's own checks name)
+Position = _within(-1e12, 1e12)
+AngleVec3 = tuple[Angle, Angle, Angle]
+PositionVec3 = tuple[Position, Position, Position]
+def _visible(m: float) -> float:
+    if m > -1e-6:
+        raise ValueError(f"a magnification of {m:g} images a pixel onto more than a metre; |M| must be at least 1e-6")
+    return m
+
+
+#: A lateral magnification: negative (a real, inverted image), |M| from 1e-6 to 1000
+Magnification = Annotated[float, Field(lt=0, ge=-1000.0, allow_inf_nan=False), AfterValidator(_visible)]
+#: A length in mm, up to 100 m
+LengthMm = _within(0.0, 1e5, above=True)
+#: A time in microseconds, up to 100 s
+TimeUs = _within(0.0, 1e8, above=True)
+#: A rate in Hz, up to 1 MHz
+RateHz = _within(0.0, 1e6, above=True)
 
 #: Names a camera may not take because the run store uses them for its own groups.
 RESERVED_NAMES = frozenset({"drops", "truth", "volumes", "vectors"})
@@ -255,31 +281,31 @@ class Camera(_Posed, _Strict):
     #: Sensor size in pixels, [columns, rows]
     sensor_px: tuple[Annotated[int, Field(ge=8, le=32768)], Annotated[int, Field(ge=8, le=32768)]]
     #: Pixel pitch of the sensor, micrometres
-    pixel_pitch_um: PositiveFloat
+    pixel_pitch_um: _within(0.0, 1000.0, above=True)
     #: Lattice of the microlens array: "hex" (rows along sensor x, alternate rows shifted half a pitch) or "square"
     mla_grid: Literal["hex", "square"]
     #: Lenslet pitch p_ml, micrometres; at least two pixels
-    mla_pitch_um: PositiveFloat
+    mla_pitch_um: _within(0.0, 1e5, above=True)
     #: Lenslet focal length f_ml, micrometres: the sensor sits this far behind the microlens array; matched optics have
     #: f_ml / p_ml = N (1 - M)
-    mla_focal_length_um: PositiveFloat
+    mla_focal_length_um: _within(0.0, 1e6, above=True)
     #: Main-lens focal length F, mm
-    main_focal_length_mm: PositiveFloat
+    main_focal_length_mm: LengthMm
     #: The main lens' own f-number N = F / D; the light converging on the lenslets has the image-side N (1 - M), which
     #: should match f_ml / p_ml (more than 5% off is a warning naming the matching N)
-    f_number: PositiveFloat
-    #: Lateral magnification M of the main lens, negative (a real, inverted image): -1 images 1:1
-    magnification: Annotated[float, Field(lt=0, allow_inf_nan=False)]
+    f_number: _within(0.0, 1000.0, above=True)
+    #: Lateral magnification M of the main lens, negative (a real, inverted image): -1 images 1:1; |M| at least 1e-6
+    magnification: Magnification
     #: Camera pose: rotations [rx, ry, rz] about the world axes in degrees, x first (R = Rz Ry Rx maps camera-frame
     #: vectors to world vectors); [0, 0, 0] puts the camera on world +z looking toward -z
-    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    rotation_deg: AngleVec3 = (0.0, 0.0, 0.0)
     #: World point [x, y, z] in mm that the focal plane is centred on
-    focus_mm: Vec3 = (0.0, 0.0, 0.0)
+    focus_mm: PositionVec3 = (0.0, 0.0, 0.0)
     #: In-plane rotation of the microlens array on the sensor, degrees (`calibrate mla` measures it, `calibrate fit`
     #: fits it)
-    mla_rotation_deg: FiniteFloat = 0.0
+    mla_rotation_deg: Angle = 0.0
     #: In-plane shift [x, y] of the microlens array from the sensor centre, micrometres (measured as mla_rotation_deg)
-    mla_offset_um: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+    mla_offset_um: tuple[_within(-1e5, 1e5), _within(-1e5, 1e5)] = (0.0, 0.0)
     #: GenICam serial number of the real camera (hardware = "real"; `lfpiv devices` lists them); required when the rig
     #: has several cameras
     serial: str | None = None
@@ -410,27 +436,27 @@ class PinholeCamera(_Posed, _Strict):
     #: Sensor size in pixels, [columns, rows]
     sensor_px: tuple[Annotated[int, Field(ge=8, le=32768)], Annotated[int, Field(ge=8, le=32768)]]
     #: Pixel pitch of the sensor, micrometres
-    pixel_pitch_um: PositiveFloat
+    pixel_pitch_um: _within(0.0, 1000.0, above=True)
     #: Focal length F of the lens, mm
-    focal_length_mm: PositiveFloat
-    #: Lateral magnification M, negative; or give object_distance_mm instead (lens to focal plane, mm, beyond F), from
-    #: which M = -F / (so - F)
-    magnification: Annotated[float, Field(lt=0, allow_inf_nan=False)]
+    focal_length_mm: LengthMm
+    #: Lateral magnification M, negative, |M| at least 1e-6; or give object_distance_mm instead (lens to focal plane,
+    #: mm, beyond F), from which M = -F / (so - F)
+    magnification: Magnification
     #: Camera pose: rotations [rx, ry, rz] about the world axes in degrees, x first (R = Rz Ry Rx maps camera-frame
     #: vectors to world vectors); [0, 0, 0] puts the camera on world +z looking toward -z
-    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    rotation_deg: AngleVec3 = (0.0, 0.0, 0.0)
     #: World point [x, y, z] in mm that the focal plane is centred on
-    focus_mm: Vec3 = (0.0, 0.0, 0.0)
+    focus_mm: PositionVec3 = (0.0, 0.0, 0.0)
     #: where the optical axis meets the sensor, from the sensor centre, (columns, rows) pixels
-    principal_point_px: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
+    principal_point_px: tuple[_within(-32768.0, 32768.0), _within(-32768.0, 32768.0)] = (0.0, 0.0)
     #: OpenCV's first radial distortion coefficient (on normalised image coordinates)
-    k1: FiniteFloat = 0.0
+    k1: _within(-1000.0, 1000.0) = 0.0
     #: OpenCV's second radial distortion coefficient
-    k2: FiniteFloat = 0.0
+    k2: _within(-1000.0, 1000.0) = 0.0
     #: OpenCV's first tangential distortion coefficient
-    p1: FiniteFloat = 0.0
+    p1: _within(-1000.0, 1000.0) = 0.0
     #: OpenCV's second tangential distortion coefficient
-    p2: FiniteFloat = 0.0
+    p2: _within(-1000.0, 1000.0) = 0.0
     #: GenICam serial number of the real camera (hardware = "real"; `lfpiv devices` lists them); required when the rig
     #: has several cameras
     serial: str | None = None
@@ -572,12 +598,13 @@ class VolumeConfig(_Strict):
     """The measurement volume, an axis-aligned box in world coordinates."""
 
     #: World position [x, y, z] of the volume's centre, mm (the world origin by default)
-    centre_mm: Vec3 = (0.0, 0.0, 0.0)
+    centre_mm: PositionVec3 = (0.0, 0.0, 0.0)
     #: Edge lengths [x, y, z] of the measurement volume, mm
-    size_mm: PositiveVec3
+    size_mm: tuple[LengthMm, LengthMm, LengthMm]
     #: Pixel-voxel ratio per axis [x, y, z]: a voxel's edge is pvr times the first camera's pixel on its focal plane
     #: (pixel pitch / |M|); a plenoptic camera resolves depth coarsely, hence 10 in z
-    pvr: PositiveVec3 = (2.0, 2.0, 10.0)
+    pvr: tuple[_within(0.0, 1000.0, above=True), _within(0.0, 1000.0, above=True),
+                _within(0.0, 1000.0, above=True)] = (2.0, 2.0, 10.0)
 
     @property
     def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
@@ -590,15 +617,15 @@ class LaserConfig(_Strict):
     """The double-pulsed laser and the light sheet it forms."""
 
     #: Laser wavelength, nm: the diffraction blur of rendered images
-    wavelength_nm: PositiveFloat = 532.0
+    wavelength_nm: _within(100.0, 20000.0) = 532.0
     #: Pair rate of `acquire` and `monitor`: double pulses per second, at most max_rate_hz
-    rate_hz: PositiveFloat = 10.0
+    rate_hz: RateHz = 10.0
     #: The laser's highest pair rate; a higher rate_hz is refused
-    max_rate_hz: PositiveFloat = 15.0
+    max_rate_hz: RateHz = 15.0
     #: Width of each flashlamp trigger pulse, microseconds
-    flashlamp_width_us: PositiveFloat = 10.0
+    flashlamp_width_us: TimeUs = 10.0
     #: Width of each Q-switch trigger pulse, microseconds
-    qswitch_width_us: PositiveFloat = 10.0
+    qswitch_width_us: TimeUs = 10.0
     #: Light-sheet profile across sheet_axis, centred on the volume: "uniform" (everything lit alike), "gaussian" or
     #: "top-hat" (both need sheet_thickness_mm)
     sheet_profile: Literal["uniform", "gaussian", "top-hat"] = "uniform"
@@ -606,7 +633,7 @@ class LaserConfig(_Strict):
     sheet_axis: Literal["x", "y", "z"] = "z"
     #: Sheet thickness, mm: a Gaussian's full width at 1/e^2 of the peak, a top-hat's full width; required for those
     #: profiles
-    sheet_thickness_mm: PositiveFloat | None = None
+    sheet_thickness_mm: LengthMm | None = None
 
     @model_validator(mode="after")
     def _thickness_given(self) -> LaserConfig:
@@ -631,15 +658,15 @@ class TimingConfig(_Strict):
     """
 
     #: Time between the two laser pulses of a pair, microseconds (at least camera_interframe_us)
-    dt_us: PositiveFloat = 2000.0
+    dt_us: _within(1e-3, 1e8) = 2000.0
     #: The laser's flashlamp-to-Q-switch delay, microseconds
-    qswitch_delay_us: PositiveFloat = 180.0
+    qswitch_delay_us: TimeUs = 180.0
     #: Exposure of frame A, microseconds; it ends just after the first pulse
-    camera_exposure_us: PositiveFloat = 20.0
+    camera_exposure_us: TimeUs = 20.0
     #: The camera's dead time between frames A and B, microseconds: the shortest dt
-    camera_interframe_us: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 1.0
+    camera_interframe_us: _within(0.0, 1e8) = 1.0
     #: The camera's highest frame rate, frames per second (a pair takes two frames)
-    camera_max_fps: PositiveFloat = 60.0
+    camera_max_fps: RateHz = 60.0
 
 
 class StageConfig(_Strict):
@@ -666,7 +693,7 @@ class StageConfig(_Strict):
     #: The axis of that controller that carries the target
     axis: Annotated[int, Field(ge=1, le=9)] = 1
     #: Deprecated: the size of one microstep, micrometres, only for a product lfpiv does not know
-    microstep_um: PositiveFloat = 0.1
+    microstep_um: _within(0.0, 1e6, above=True) = 0.1
 
 
 #: Which output of the pulse generator drives what, unless the rig file says otherwise.
@@ -720,7 +747,7 @@ class RenderConfig(_Strict):
     #: white, and the integer accumulation of the renderer overflows
     particle_counts: Annotated[float, Field(gt=0, le=1e9, allow_inf_nan=False)] = 50000.0
     #: Physical particle diameter, micrometres (0: a point source)
-    particle_diameter_um: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+    particle_diameter_um: _within(0.0, 1e5) = 0.0
     #: Diameter (at 1/e^2 of the peak) of a particle's Gaussian image on a pinhole camera's
     #: sensor, pixels: Tomo-PIV's usual 2-3 px, what diffraction at the working f-number gives
     #: (light-field cameras trace their rays instead and ignore it)
@@ -729,13 +756,13 @@ class RenderConfig(_Strict):
     #: 0.42 lambda N each)
     diffraction: bool = True
     #: Mean background added to every pixel, counts
-    background_counts: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 100.0
+    background_counts: _within(0.0, 1e6) = 100.0
     #: Photoelectrons per count, which sets the shot noise
-    gain_e_per_count: PositiveFloat = 1.0
+    gain_e_per_count: _within(1e-6, 1e6) = 1.0
     #: Add Poisson shot noise of the photoelectrons
     shot_noise: bool = True
     #: Standard deviation of the Gaussian read noise, counts
-    read_noise_counts: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 3.0
+    read_noise_counts: _within(0.0, 1e6) = 3.0
     #: Bits per pixel of synthetic and simulated images: they saturate at 2**bit_depth - 1
     bit_depth: Annotated[int, Field(ge=8, le=16)] = 16
     #: A light-field camera's response (all off by default: today's images). Main-lens fall-off:
@@ -775,15 +802,15 @@ class TargetConfig(_Strict):
     """
 
     #: Distance between neighbouring dot centres, mm (not set: the default board's)
-    dot_pitch_mm: PositiveFloat | None = None
+    dot_pitch_mm: LengthMm | None = None
     #: Diameter of a dot, mm (not set: the default board's)
-    dot_diameter_mm: PositiveFloat | None = None
+    dot_diameter_mm: LengthMm | None = None
     #: Diameter of the larger marker dot at the plate's origin, mm; 0: no marker
-    marker_diameter_mm: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = None
+    marker_diameter_mm: _within(0.0, 1e5) | None = None
     #: The plate's rotation about world y, degrees (not set: the default board's)
-    tilt_deg: FiniteFloat | None = None
+    tilt_deg: Angle | None = None
     #: Depth of a two-level plate's second level (its odd columns) behind the first, mm; 0: one level
-    level_step_mm: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+    level_step_mm: _within(0.0, 1e5) = 0.0
 
 
 class Rig(_Strict):
@@ -818,6 +845,15 @@ class Rig(_Strict):
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ValueError(f"camera names must be unique; '{dup[0]}' appears twice")
+        # a voxel (pvr times the first camera's pixel on its focal plane, as VolumeGrid.from_rig)
+        # as wide as the volume reconstructs a box of one voxel: at least two along every axis
+        voxel = np.asarray(self.volume.pvr, dtype=np.float64) * self.camera[0].object_pixel_mm
+        for axis, size, v, pvr in zip("xyz", self.volume.size_mm, voxel, self.volume.pvr, strict=True):
+            if np.rint(size / v) < 2:
+                raise ValueError(
+                    f"volume.pvr: {pvr:g} along {axis} makes voxels of {v:.4g} mm, which the volume "
+                    f"({size:g} mm along {axis}) holds fewer than two of; lower volume.pvr or enlarge volume.size_mm"
+                )
         corners = np.array(np.meshgrid(*[[-0.5, 0.5]] * 3, indexing="ij")).reshape(3, -1).T
         corners = np.asarray(self.volume.centre_mm) + corners * np.asarray(self.volume.size_mm)
         for cam in self.camera:
@@ -1010,6 +1046,8 @@ def _first_error(exc: ValidationError) -> str:
     msg = msg.removeprefix("Value error, ")
     msg = msg[0].lower() + msg[1:] if msg else msg
     got = err.get("input")
+    if isinstance(got, int) and not isinstance(got, bool) and abs(got) >= 10**16:
+        got = float(got)  # 1e308 written in the file, read as a whole number: shown as written
     shown = "" if isinstance(got, dict) or kind.startswith("value_error") else f" (got {got!r})"
     if isinstance(got, str) and kind in ("float_type", "float_parsing", "int_type", "int_parsing", "bool_type"):
         shown += "; write numbers and true/false without quotes"

@@ -17,10 +17,12 @@ import re
 import sys
 import warnings
 from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any
 
 from lfpiv import __version__
 from lfpiv.commands import COMMANDS, module_of
-from lfpiv.errors import UsageError
+from lfpiv.errors import UsageError, os_error_line
 
 EXIT_USAGE = 2
 EXIT_DEVICE = 3
@@ -71,23 +73,100 @@ def _build_parser() -> argparse.ArgumentParser:
 _LOGGERS = ("lfpiv", "lfcore", "acquisition", "calibration", "realtime", "sim")
 
 
-def _start_logging(verbose: int, log_file: str | None) -> None:
+class _LogFile(logging.FileHandler):
+    """The ``--log-file`` handler: its first failure (a full disk, a file system gone) is kept,
+    for one line when the command ends, instead of logging's traceback on stderr, and it stops
+    writing there."""
+
+    failed: OSError | None = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.failed is None:
+            super().emit(record)
+
+    def handleError(self, record: logging.LogRecord) -> None:  # noqa: N802 - logging's name
+        exc = sys.exc_info()[1]
+        if self.failed is None:
+            self.failed = exc if isinstance(exc, OSError) else OSError(0, f"{type(exc).__name__}: {exc}")
+
+    def finish_line(self) -> OSError | None:
+        """Flush what was written; the first failure so far, or None."""
+        if self.failed is None:
+            try:
+                self.flush()
+            except OSError as exc:
+                self.failed = exc
+        return self.failed
+
+    def finish(self) -> OSError | None:
+        """Flush and close the file; the first failure of the command's writes, or of these, or None."""
+        try:
+            self.flush()
+            self.close()
+        except OSError as exc:
+            if self.failed is None:
+                self.failed = exc
+        return self.failed
+
+
+class _Stderr(logging.StreamHandler):
+    """The stderr handler: a closed or broken stderr drops the messages, silently (there is no one
+    left to tell), and never changes what the command does."""
+
+    def handleError(self, record: logging.LogRecord) -> None:  # noqa: N802 - logging's name
+        pass
+
+
+def _inside_store(path: str) -> str | None:
+    """The zarr store (the outermost folder holding ``zarr.json``: a run or calibration store) that
+    ``path`` lies inside, or is; None when it lies in none."""
+    p = Path(os.path.abspath(path))
+    found = str(p.parent) if p.name == "zarr.json" else None
+    for folder in (p, *p.parents):  # the outermost: the store, not a group of it
+        if (folder / "zarr.json").is_file():
+            found = str(folder)
+    return found
+
+
+def _start_logging(verbose: int, log_file: str | None, *, command: str = "") -> _LogFile | None:
     """Our packages' loggers on stderr (warnings; -v steps; -vv details) and, with ``log_file``,
-    every detail in that file."""
+    every detail in that file, which starts with a line naming the ``command``; returns the
+    file's handler.
+
+    Raises
+    ------
+    UsageError
+        ``log_file`` lies inside a zarr store (appending to its files would make it unreadable),
+        or cannot be opened or written (a full disk).
+    """
     level = {0: logging.WARNING, 1: logging.INFO}.get(verbose, logging.DEBUG)
     handlers: list[logging.Handler] = []
-    err = logging.StreamHandler(sys.stderr)
+    err = _Stderr(sys.stderr)
     err.setLevel(level)
     err.setFormatter(logging.Formatter("lfpiv: %(levelname)s: %(message)s" if verbose else "lfpiv: %(message)s"))
     handlers.append(err)
+    fh = None
     if log_file is not None:
+        store = _inside_store(log_file)
+        if store is not None:
+            raise UsageError(f"--log-file {log_file} is inside the store {store}, whose files are its data and "
+                             f"metadata (writing a log there would damage it); give a path outside it, e.g. "
+                             f"{Path(store).parent / (Path(store).stem + '.log')}")
         try:
-            fh = logging.FileHandler(log_file, encoding="utf-8")
+            fh = _LogFile(log_file, encoding="utf-8")
         except OSError as exc:
             raise UsageError(f"--log-file {log_file} cannot be written ({exc.strerror or exc}); give a writable "
                              "path") from None
         fh.setLevel(logging.DEBUG)
         fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        # the first line, written now: a log that cannot be written (a full disk) is said before
+        # the command changes anything
+        fh.emit(logging.LogRecord("lfpiv", logging.INFO, __file__, 0, "lfpiv %s: %s", (__version__, command), None))
+        if fh.finish_line() is not None:
+            with contextlib.suppress(OSError):  # its buffer flushed once more, failing again
+                fh.close()
+            raise UsageError(f"--log-file {log_file} cannot be written ({fh.failed.strerror or fh.failed}); give "
+                             "a path on a disk with room, or leave it out")
         handlers.append(fh)
     for name in _LOGGERS:
         lg = logging.getLogger(name)
@@ -100,6 +179,60 @@ def _start_logging(verbose: int, log_file: str | None) -> None:
             h._lfpiv = True  # type: ignore[attr-defined]
             lg.addHandler(h)
         lg.propagate = False
+    return fh
+
+
+class _Guarded:
+    """stdout or stderr, whose reader may go away (``lfpiv check RUN | head -c 1``) or be closed:
+    what cannot be written is dropped, the stream's file descriptor then points to /dev/null (so
+    native code and the interpreter's last flush write nowhere, without an error), and the command
+    goes on to its own end and exit code."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+        self.lost = False
+
+    def _lose(self) -> None:
+        self.lost = True
+        with contextlib.suppress(Exception):
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, self._stream.fileno())
+            os.close(null)
+
+    def write(self, text: str) -> int:
+        if not self.lost:
+            try:
+                return self._stream.write(text)
+            except (OSError, ValueError):  # EPIPE, EBADF, or a stream closed under us
+                self._lose()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.lost:
+            try:
+                self._stream.flush()
+            except (OSError, ValueError):
+                self._lose()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+def _standard_streams() -> None:
+    """File descriptors 0, 1 and 2 open (on /dev/null where the caller closed them, ``2>&-``):
+    otherwise the next file opened, a store's chunk, would get the number, and whatever native
+    code writes to stderr would go into it. ``sys.stdin``, ``sys.stdout`` and ``sys.stderr`` are
+    never None (Python's, for a stream closed at its start)."""
+    for fd, name, mode in ((0, "stdin", "r"), (1, "stdout", "w"), (2, "stderr", "w")):
+        try:
+            os.fstat(fd)
+        except OSError:
+            null = os.open(os.devnull, os.O_RDWR)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(fd, mode, encoding="utf-8", errors="replace", closefd=False))  # noqa: SIM115
 
 
 def _negative_lists(argv: list[str]) -> list[str]:
@@ -150,12 +283,34 @@ def _one_ctrl_c(grace_s: float = 5.0) -> Iterator[None]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the ``lfpiv`` command; returns the exit code."""
-    with _one_ctrl_c():
-        return _main(argv)
+    """Run the ``lfpiv`` command; returns the exit code.
+
+    A reader of stdout that goes away (a pipe closed), or a closed stdout or stderr, changes
+    neither what the command does nor its exit code: what cannot be written is dropped.
+    """
+    _standard_streams()
+    out, err = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _Guarded(out), _Guarded(err)
+    try:
+        with _one_ctrl_c():
+            return _main(argv)
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        sys.stdout, sys.stderr = out, err
+
+
+def _written(args: argparse.Namespace | None) -> str | None:
+    """What a command writes, for an I/O error that names no file: its --out, else its store."""
+    for name in ("out", "run", "store"):
+        value = getattr(args, name, None)
+        if isinstance(value, str | os.PathLike):
+            return str(value)
+    return None
 
 
 def _main(argv: Sequence[str] | None) -> int:
+    args: argparse.Namespace | None = None
     try:
         from acquisition.pulse_generator import signals_call
         from calibration.store import CalibrationStoreError
@@ -171,12 +326,24 @@ def _main(argv: Sequence[str] | None) -> int:
     warnings.filterwarnings("ignore", category=UserWarning, module="zarr")
     try:
         args = _build_parser().parse_args(_negative_lists(sys.argv[1:] if argv is None else list(argv)))
-        _start_logging(args.verbose or 0, args.log_file)
+        log = _start_logging(args.verbose or 0, args.log_file,
+                             command=" ".join(sys.argv[1:] if argv is None else map(str, argv)))
         # installed before any thread starts: a kill or a closed terminal disarms a laser armed
         # from any thread (the monitor arms from its recording thread, where no handler can be
         # set), then ends the command as Ctrl-C does (acquire and monitor refine this)
-        with signals_call(_interrupted):
-            return args.func(args)
+        try:
+            with signals_call(_interrupted):
+                code = args.func(args)
+        finally:
+            failed = log.finish() if log is not None else None
+        if failed is not None:
+            why = (f"the --log-file {args.log_file} could not be written ({failed.strerror or failed}); the command "
+                   f"itself ended {'without error' if code == 0 else f'with exit code {code}'}; give --log-file a "
+                   "path on a disk with room, or leave it out")
+            if code == 0:
+                raise UsageError(why)
+            print(f"lfpiv: warning: {why}", file=sys.stderr)
+        return code
     except (UsageError, RigError, RunStoreError, CalibrationStoreError, ComputeDeviceError, MemoryBudgetError,
             FormatError, NotLightFieldError) as exc:
         print(f"lfpiv: error: {exc}", file=sys.stderr)
@@ -193,16 +360,10 @@ def _main(argv: Sequence[str] | None) -> int:
               "coarser --pvr, a smaller volume or sensor, a lower density) or run it on a machine with more memory",
               file=sys.stderr)
         return EXIT_USAGE
-    except BrokenPipeError:
-        # the reader went away (``lfpiv info run.zarr | head``): nothing left to say
-        with contextlib.suppress(OSError):
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 0
     except OSError as exc:
-        # a path that cannot be written or read (read-only, missing folder, no space, ...)
-        where = f" {exc.filename}" if exc.filename else ""
-        print(f"lfpiv: error: cannot use{where}: {exc.strerror or exc}; choose another path or fix its "
-              "permissions and free space", file=sys.stderr)
+        # a path that cannot be written or read (read-only, missing folder, no space, ...); an
+        # error naming no file (zarr's writes on a full disk) names what the command writes
+        print(f"lfpiv: error: {os_error_line(exc, path=_written(args))}", file=sys.stderr)
         return EXIT_USAGE
 
 

@@ -24,7 +24,7 @@ from typing import Any, TypeVar
 from lfcore.plan import SLAB_SHARE, PlanError, asked_slabs
 from lfcore.runstore import RunStore, RunStoreError
 from lfpiv import replacement
-from lfpiv.errors import UsageError
+from lfpiv.errors import UsageError, naming
 
 __all__ = ["SLAB_SHARE", "run_pairs", "select_pairs", "slabs_asked"]
 
@@ -93,7 +93,8 @@ def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable
     UsageError
         A pair's error, with how an unfinished replacement, or what was done before, is left.
     """
-    replacement.begin(store, name, pairs, matches=matches, differences=differences, create=create)
+    with naming(f"{store.path}/{name}"):
+        replacement.begin(store, name, pairs, matches=matches, differences=differences, create=create)
     if skip_done:
         done = set(store.writing(name).attrs[RunStore.DONE[name]])
         pairs = [p for p in pairs if p not in done]
@@ -121,7 +122,8 @@ def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable
                 raise OSError(exc.errno, exc.strerror or str(exc),
                               f"{store.path}/{store.writing(name).basename}") from None
             raise
-    replacement.end(store, name)
+    with naming(f"{store.path}/{store.writing(name).basename}"):
+        replacement.end(store, name)
     return pairs
 
 

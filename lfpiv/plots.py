@@ -13,12 +13,32 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
 from calibration.store import CalibrationStore  # noqa: E402
+from lfcore.files import replacing  # noqa: E402
 from lfcore.rig import is_pinhole  # noqa: E402
 from lfcore.runstore import RunStore  # noqa: E402
 from lfpiv.errors import UsageError  # noqa: E402
 
 __all__ = ["plot_camera_checks", "plot_grids", "plot_raw_images", "plot_reconstruction", "plot_rms", "plot_vectors",
-           "plot_views"]
+           "plot_views", "save_figure"]
+
+
+def save_figure(fig, out: str | Path, *, dpi: float = 100) -> Path:
+    """Write ``fig`` to ``out`` (its format from ``out``'s suffix, PNG without one) whole or not at
+    all (:func:`lfcore.files.replacing`: an interrupt or a full disk leaves the earlier file), and
+    free the figure.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
+    out = Path(out)
+    try:
+        with replacing(out) as tmp:
+            fig.savefig(tmp, dpi=dpi, format=out.suffix.lstrip(".").lower() or "png")
+    finally:
+        plt.close(fig)
+    return out
 
 
 def _stretch(img: np.ndarray) -> tuple[float, float]:
@@ -69,8 +89,7 @@ def plot_raw_images(store: RunStore, out: str | Path, pair: int = 0, zoom_lensle
     fig.suptitle(f"{store.path.name}: raw images of pair {pair} ({flow}{extra}, "
                  f"dt = {store.timing['dt_s'] * 1e3:g} ms)")
     fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out, dpi=110)
     return out
 
 
@@ -112,8 +131,7 @@ def plot_reconstruction(store: RunStore, evals, out: str | Path) -> Path:
         a.set_xlabel("x (mm)")
         a.set_ylabel("z (mm)")
     fig.tight_layout()
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
+    save_figure(fig, out, dpi=100)
     return out
 
 
@@ -152,8 +170,7 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
         fig.colorbar(im, ax=ax, label="w_z (1/s)", shrink=0.85)
     fig.suptitle(f"{store.path.name}: pair {pair}, {len(x)} x {len(y)} x {len(z)} vectors")
     fig.tight_layout()
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
+    save_figure(fig, out, dpi=100)
     return out
 
 
@@ -203,8 +220,7 @@ def plot_grids(store: CalibrationStore, out: str | Path, lenslets: int = 8) -> P
         ax.set_aspect("equal")
         ax.set_title(f"{name}: residuals (arrow of one pitch = {scale:.3f} px), RMS {grid.rms_px:.4f} px")
     fig.tight_layout()
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
+    save_figure(fig, out, dpi=90)
     return out
 
 
@@ -236,8 +252,7 @@ def plot_rms(store: CalibrationStore, out: str | Path) -> Path:
     ax.set_title("dot reprojection error per plane")
     fig.tight_layout()
     out = Path(out)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
+    save_figure(fig, out, dpi=90)
     return out
 
 
@@ -271,8 +286,7 @@ def plot_views(result, out: str | Path) -> Path:
         ax.axis("off")
     fig.suptitle(f"camera {result.camera}: lattice from {result.lattice_source}", fontsize=9)
     fig.tight_layout()
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
+    save_figure(fig, out, dpi=100)
     return out
 
 
@@ -319,6 +333,5 @@ def plot_camera_checks(checks, out: str | Path) -> Path:
         row[2].set_xticks([])
         row[2].set_yticks([])
     fig.tight_layout()
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
+    save_figure(fig, out, dpi=90)
     return out

@@ -49,6 +49,7 @@ def begin(store: RunStore, name: str, pairs: list[int], *, matches: Callable[[An
     current = store.group[name] if name in store.group else None
     pending = store.pending(name)
     if matches(pending):
+        store.check_replaceable(name)  # before anything is computed for a replacement that could not be put in place
         store.resume(name)
         left = store.unfinished(name)
         _note(f"going on with the interrupted replacement of {name}/ made with these settings "
@@ -61,6 +62,7 @@ def begin(store: RunStore, name: str, pairs: list[int], *, matches: Callable[[An
                   f"{len(_pairs(pending, name))} pair(s)")
         done = _pairs(current, name)
         if done:
+            store.check_replaceable(name)
             changed = differences(current) or ["grid"]
             _note(f"the {name} of {len(done)} pair(s) made with other settings ({', '.join(changed[:4])}"
                   f"{' ...' if len(changed) > 4 else ''} differ) are replaced once the new ones are complete"
@@ -96,6 +98,9 @@ def end(store: RunStore, name: str) -> None:
               "ones until the same settings have done them (with --skip-done)")
     elif replaced:
         _note(f"{name}/ now holds the new {name} ({len(_pairs(store.group[name], name))} pair(s))")
+    if replaced and store.replaced_left(name):
+        _note(f"the old {name} could not all be deleted: what stays is in {store.path}/{name}.replaced/; delete it "
+              f"(chmod -R u+w first if it is read-only) before the next replacement of {name}/", "warning")
 
 
 def kept_aside(store: RunStore, name: str) -> str:

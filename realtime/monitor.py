@@ -202,7 +202,8 @@ def run_monitor_window(pipeline: LivePipeline, controls: Controls, *, title: str
     SIGHUP disarm the laser at once (:func:`acquisition.pulse_generator.signals_call`) and close
     the window as its close button does. With ``screenshot`` (offscreen too) the window is
     saved after ``after`` pairs were shown, or once the recording ended and the live path
-    caught up, and the loop ends when the recording has. Whatever ends the loop, the recording
+    caught up, and the loop ends when the recording has; offscreen without ``screenshot`` the
+    loop ends once the recording has and the live path caught up. Whatever ends the loop, the recording
     is disarmed and waited for, and the pipeline stopped.
 
     Raises
@@ -225,6 +226,7 @@ def run_monitor_window(pipeline: LivePipeline, controls: Controls, *, title: str
         interrupted.append("signal")
 
     app = pg.mkQApp("lfpiv monitor")
+    offscreen = app.platformName() in ("offscreen", "minimal")
     win = MonitorWindow(pipeline, controls, title=title)
     win.show()
     pipeline.start()
@@ -241,12 +243,17 @@ def run_monitor_window(pipeline: LivePipeline, controls: Controls, *, title: str
                     return
                 # Offscreen mode: the screenshot after `after` pairs were shown (or once the
                 # recording ended and the live path has caught up), then quit when the
-                # recording has ended.
-                if screenshot is None:
+                # recording has ended. Offscreen without a screenshot (no one can close the
+                # window) ends once the recording has and the live path caught up.
+                if screenshot is None and not offscreen:
                     return
                 st = pipeline.stats()
                 caught_up = (not controls.armed and st.state in ("waiting", "stopped")
                              and st.last_pair >= controls.status()["committed_pairs"] - 1)
+                if screenshot is None:
+                    if caught_up and not win.drawing_pending:
+                        app.quit()
+                    return
                 if shot["path"] is None and (win.displayed >= after or (caught_up and not win.drawing_pending)):
                     win.refresh_status()
                     try:

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from lfcore.files import replace_file
 from realtime.monitor import Controls, require_qt
 from realtime.pipeline import AXES, LivePipeline, LiveResult, plausible_latency
 from realtime.view import IN_PLANE, camera_checks
@@ -472,12 +473,22 @@ class MonitorWindow(QtWidgets.QMainWindow):
         return out
 
     def screenshot(self, path: str | Path) -> Path:
-        """Save the window as a PNG (works offscreen)."""
+        """Save the window as a PNG (works offscreen), whole or not at all
+        (:func:`lfcore.files.replace_file`: an earlier file stays until the new one is complete).
+
+        Raises
+        ------
+        OSError
+            The file cannot be written (naming ``path`` and the cause: a full disk, a
+            read-only folder, ...).
+        """
         path = Path(path)
         QtWidgets.QApplication.processEvents()
-        if not self.grab().save(str(path)):
-            raise OSError(f"could not write the screenshot {path}")
-        return path
+        buf = QtCore.QBuffer()
+        buf.open(QtCore.QIODevice.OpenModeFlag.WriteOnly)
+        if not self.grab().save(buf, "PNG"):
+            raise OSError(f"the window could not be encoded as PNG for {path}")
+        return replace_file(path, bytes(buf.data()))
 
     def closeEvent(self, event) -> None:  # noqa: N802 - Qt's name
         self._timer.stop()

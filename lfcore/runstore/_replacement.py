@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
 from pathlib import Path
 
 import zarr
@@ -91,13 +92,59 @@ class Replacement(Part):
             return False
         root = Path(self.path)
         old = root / f"{name}.replaced"
-        shutil.rmtree(old, ignore_errors=True)
+        self._clear_replaced(name)
         if (root / name).exists():
             os.replace(root / name, old)
         os.replace(root / key, root / name)
         self._target[name] = name
-        shutil.rmtree(old, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)  # what stays (read-only folders) the next replacement names
         return True
+
+    def _clear_replaced(self, name: str) -> None:
+        """Delete ``<name>.replaced/``, the old set an earlier replacement put aside and could not
+        delete (read-only folders, a kill); a one-line error naming what stays if it cannot be."""
+        old = Path(self.path) / f"{name}.replaced"
+        if not os.path.lexists(old):
+            return
+        why: list[str] = []
+        if old.is_dir() and not old.is_symlink():
+            def note(_func: object, path: str, info: tuple) -> None:
+                why.append(f"{getattr(info[1], 'strerror', None) or info[1]}: {path}")
+
+            kw = {"onexc": lambda f, p, e: note(f, p, (type(e), e, None))} if sys.version_info >= (3, 12) else \
+                {"onerror": note}
+            shutil.rmtree(old, **kw)
+        else:
+            try:
+                old.unlink()
+            except OSError as exc:
+                why.append(f"{exc.strerror or exc}: {old}")
+        if os.path.lexists(old):
+            raise RunStoreError(f"{old}, the old {name} an earlier replacement put aside, cannot be deleted "
+                                f"({why[0] if why else 'it came back'}); delete it (chmod -R u+w first if it is "
+                                "read-only), then run the command again")
+
+    def check_replaceable(self, name: str) -> None:
+        """Before a replacement of ``name`` (``volumes`` or ``vectors``) is computed: settle the old
+        set an earlier one left (``<name>.replaced/``) and check that the current ``name/`` can be
+        moved aside and deleted once the new set is complete, so that nothing is computed for a
+        replacement that cannot be put in place.
+
+        Raises
+        ------
+        RunStoreError
+            ``<name>.replaced/`` cannot be deleted, or ``name/`` or a folder in it is read-only
+            (one line, naming it and the fix).
+        """
+        self._clear_replaced(name)
+        cur = Path(self.path) / name
+        if not cur.is_dir():
+            return
+        for folder, _dirs, _files in os.walk(cur):
+            if not os.access(folder, os.W_OK | os.X_OK):
+                raise RunStoreError(f"{cur} cannot be replaced: {folder} is read-only, so the old {name} could not "
+                                    f"be deleted once the new ones are made; make it writable (chmod -R u+w {cur}), "
+                                    f"or delete {cur} if the old {name} may go")
 
     def replaced_left(self, name: str) -> bool:
         """Whether ``<name>.replaced/`` is left by a replacement killed in :meth:`finish`."""

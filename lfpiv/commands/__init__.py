@@ -275,9 +275,13 @@ def xyz_triple(text: str) -> tuple[float, float, float]:
 
 
 def check_pvr(pvr: tuple[float, float, float] | None) -> None:
-    """A one-line usage error unless ``pvr`` is None or three positive finite numbers."""
+    """A one-line usage error unless ``pvr`` is None or three positive finite numbers, at most
+    1000 (the range of the rig's volume.pvr)."""
     if pvr is not None and not all(0 < v < float("inf") for v in pvr):
         raise UsageError(f"--pvr must be three positive numbers, got {','.join(f'{v:g}' for v in pvr)}")
+    if pvr is not None and max(pvr) > 1000:
+        raise UsageError(f"--pvr must be at most 1000 per axis (as the rig's volume.pvr), got "
+                         f"{','.join(f'{v:g}' for v in pvr)}")
 
 
 @contextmanager

@@ -43,8 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--screenshot", type=png_path, default=None, metavar="PNG",
                    help="save the window as PNG after --after pairs were shown, then end when the recording "
                    "does (works without a display)")
-    m.add_argument("--after", type=positive_int, default=3, metavar="N",
-                   help="pairs shown before the screenshot (default: 3)")
+    m.add_argument("--after", type=positive_int, default=None, metavar="N",
+                   help="pairs shown before the screenshot (default: 3, or --pairs when fewer)")
     m.add_argument("--method", choices=("drt-mart", "mlos-mart", "mlos-smart"), default=None,
                    help="reconstruction: drt-mart (dense ray-traced weights) or mlos-mart (the same elimination, "
                    "line-of-sight weights; faster on a GPU) for light-field cameras, mlos-smart for pinhole "
@@ -85,7 +85,9 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(args.rig)
     warn_optics(rig)
     check_plan(rig, args.pairs)
-    if args.screenshot is not None and args.after > args.pairs:
+    if args.after is None:  # the default never refuses what was asked: a short run's screenshot after its last pair
+        args.after = min(3, args.pairs)
+    elif args.screenshot is not None and args.after > args.pairs:
         raise UsageError(f"--after {args.after} is more pairs than --pairs {args.pairs} shows; the screenshot "
                          f"comes after at most {args.pairs}")
     if args.screenshot is not None:

@@ -166,8 +166,10 @@ def _timing(dt_us: float | None, rate_hz: float | None, found: dict[str, float |
     dt_s = dt_us * 1e-6 if dt_us is not None else found["dt_s"]
     if dt_s is None:
         raise UsageError("the time between frames A and B is not known: give --dt-us (the files carry no times)")
-    if not (np.isfinite(dt_s) and dt_s > 0):
-        raise UsageError(f"--dt-us must be positive, got {dt_us}")
+    if not (np.isfinite(dt_s) and 1e-9 <= dt_s <= 100.0):  # the rig's timing.dt_us range: 1 ns to 100 s
+        given = f"--dt-us {dt_us:g}" if dt_us is not None else f"the files' time between frames A and B ({dt_s:g} s)"
+        raise UsageError(f"{given} is not a time between frames A and B: it must be from 0.001 us (a nanosecond) "
+                         "to 1e8 us (100 s)" + ("" if dt_us is not None else "; give --dt-us"))
     rate = rate_hz if rate_hz is not None else found["rate_hz"]
     if rate is not None and not (np.isfinite(rate) and rate > 0):
         raise UsageError(f"--rate-hz must be positive, got {rate_hz}")

@@ -38,7 +38,7 @@ from lfcore.reconstruct import ReconSettings
 from lfcore.rig import Rig
 from lfcore.runstore import RunStore
 from lfcore.volume import VolumeGrid
-from lfpiv.errors import UsageError
+from lfpiv.errors import UsageError, os_error_line
 from lfpiv.jobs.acquire import record
 from realtime.pipeline import LIVE_METHODS, LivePipeline, LiveSettings, LiveStats, default_windows, monitoring_recon
 
@@ -303,7 +303,9 @@ class MonitorOutcome:
         if failed:
             raise DeviceError(failed[-1].message)
         if self.screenshot_error is not None:
-            raise UsageError(f"{self.screenshot_error}; give a writable --screenshot path")
+            err = self.screenshot_error
+            line = os_error_line(err) if err.errno else str(err)  # the cause and the path
+            raise UsageError(f"the screenshot was not written ({line}); what was recorded is kept")
         if self.interrupted:
             raise KeyboardInterrupt
 

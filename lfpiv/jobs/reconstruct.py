@@ -266,6 +266,38 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> PairDone:
     return PairDone(out, plan)
 
 
+def _ranges(pairs: list[int]) -> list[str]:
+    """Consecutive pairs as ``START:STOP`` ranges (``--pair-range``'s form; one pair as its number)."""
+    out: list[str] = []
+    for p in pairs:
+        if out and out[-1][1] == p:
+            out[-1][1] = p + 1
+        else:
+            out.append([p, p + 1])
+    return [f"{a}" if b == a + 1 else f"{a}:{b}" for a, b in out]
+
+
+def _refuse_lost(store: RunStore, chosen: list[int], cameras: list[str], option: str) -> None:
+    """A one-line :class:`UsageError` before anything is computed when a chosen pair lost a
+    frame of one of ``cameras`` while recording (``drops/``), naming the ranges of whole pairs
+    that ``option`` can reconstruct instead."""
+    asked = set(chosen)
+    lost = [d for d in store.drops() if d["camera"] in cameras and int(d["pair"]) in asked]
+    if not lost:
+        return
+    bad = sorted({int(d["pair"]) for d in lost})
+    whole = _ranges([p for p in chosen if p not in set(bad)])
+    shown = ", ".join(map(str, bad[:6])) + (f" and {len(bad) - 6} more" if len(bad) > 6 else "")
+    if not whole:
+        way = "no pair asked is whole; choose other pairs, or record the run again"
+    else:
+        more = " ..." if len(whole) > 3 else ""
+        add = " (the same settings add to the same volumes)" if len(whole) > 1 else ""
+        way = "reconstruct the whole pairs with " + ", then ".join(f"{option} {r}" for r in whole[:3]) + more + add
+    raise UsageError(f"{store.path}: pair(s) {shown} lost a frame while recording ({lost[0]['camera']} pair "
+                     f"{lost[0]['pair']}: {lost[0]['reason']}) and cannot be reconstructed; {way}")
+
+
 def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[float] | None = None,
                     margin_mm: Sequence[float] = (0.0, 0.0, 0.0), pairs: slice | None = None,
                     cameras: Sequence[str] | None = None, device: str | None = None,
@@ -330,6 +362,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     unknown = [n for n in names if n not in store.cameras]
     if unknown:
         raise UsageError(f"--cameras: no camera '{unknown[0]}' in this run (it has {', '.join(store.cameras)})")
+    _refuse_lost(store, chosen, names, option)
     cams = [rig.camera_named(n) for n in names]
     # pinhole cameras alone: MLOS-SMART or MART; beside light-field ones, every method (the
     # light-field cameras take its weights, the pinhole ones their line of sight)

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from lfcore.files import replace_file
 from lfcore.rig import is_pinhole
 from lfpiv.batch import dask_client
 from lfpiv.errors import UsageError
@@ -101,5 +102,5 @@ def run_studies(names: Sequence[str], setup: Setup, out: str | Path, *, skip_don
                                       client=client, progress=progress))
     if len(outcomes) > 1:
         index = out / "README.md"
-        index.write_text(render_index(outcomes, setup), encoding="utf-8")
+        replace_file(index, render_index(outcomes, setup))
     return outcomes

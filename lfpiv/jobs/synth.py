@@ -196,9 +196,11 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
     if pairs < 1:
         raise UsageError(f"--pairs must be at least 1, got {pairs}")
     RunStore.check_new(out, overwrite=overwrite)
-    dt_s = rig.timing.dt_us * 1e-6 if dt_s is None else dt_s
-    if not (np.isfinite(dt_s) and dt_s > 0):
-        raise UsageError(f"--dt-ms must be positive, got {dt_s * 1e3:g}")
+    if dt_s is None:  # the rig's, which its own check bounds (timing.dt_us)
+        dt_s = rig.timing.dt_us * 1e-6
+    elif not (np.isfinite(dt_s) and 1e-9 <= dt_s <= 100.0):
+        # the range the rig's timing.dt_us takes: a nanosecond to 100 s
+        raise UsageError(f"--dt-ms must be from 1e-06 (a nanosecond) to 1e+05 (100 s), got {dt_s * 1e3:g}")
     render = rig.render
     if rays_per_particle is not None:
         if rays_per_particle < 1:

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from lfcore.camera_checks import background_noise
+from lfcore.files import replacing
 from lfcore.rig import Camera, Rig, camera_from_dict, is_pinhole
 from lfcore.views import Lattice, Views, nominal_lattice, refocus_stack, sample_views, view_mosaic
 from lfpiv.errors import UsageError
@@ -238,12 +239,13 @@ def write_views(result: ViewsResult, out: PathLike, *, fmt: str = "png", every_v
         raise UsageError(f"--out {folder} cannot be made ({exc.strerror or exc}); give a writable folder") from None
 
     def put(name: str, img: np.ndarray) -> Path:
-        if fmt == "png":
-            path = folder / f"{name}.png"
-            iio.imwrite(path, _scaled(img, 16))
-        else:
-            path = folder / f"{name}.tif"
-            tifffile.imwrite(path, np.asarray(img, dtype=np.float32))
+        # each file whole or not at all: an interrupt or a full disk leaves the earlier one
+        path = folder / f"{name}.{'png' if fmt == 'png' else 'tif'}"
+        with replacing(path) as tmp:
+            if fmt == "png":
+                iio.imwrite(tmp, _scaled(img, 16), extension=".png")
+            else:
+                tifffile.imwrite(tmp, np.asarray(img, dtype=np.float32))
         return path
 
     files = [put("mosaic", result.mosaic), put("centre", result.centre_view)]

@@ -27,11 +27,12 @@ def panels(rows: int, cols: int, *, width: float = 4.6, height: float = 3.6, tit
 
 
 def save(fig, path: Path) -> None:
-    """Lay out, write the PNG and free the figure."""
+    """Lay out, write the PNG (whole or not at all) and free the figure."""
+    from lfpiv.plots import save_figure
+
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def pdf(values: Sequence[float], edges: np.ndarray) -> np.ndarray:

@@ -24,14 +24,13 @@ import datetime
 import hashlib
 import json
 import math
-import os
-import tempfile
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
+from lfcore.files import replace_file
 from lfpiv import __version__
 from lfpiv.errors import UsageError
 
@@ -181,17 +180,10 @@ class StudyOutcome:
 
 
 def _atomic_write(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same folder: a reader (or a
-    killed run) never sees half a file."""
+    """Write ``text`` to ``path`` whole or not at all (:func:`lfcore.files.replace_file`): a reader
+    (or a killed run) never sees half a file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    replace_file(path, text)
 
 
 def _jsonable(value: Any) -> Any:
