@@ -109,19 +109,25 @@ def predictor_config(shape: tuple[int, int, int]) -> CorrelationConfig:
         (nz, ny, nx) of the volumes.
     """
     def side(n: int, share: float) -> int:
-        return int(min(PREDICTOR_WINDOW, max(2 * MIN_WINDOW, int(n * share) // 4 * 4)))
+        # never longer than the volume along the axis (a box thinner than a window has it whole)
+        return int(min(PREDICTOR_WINDOW, n, max(2 * MIN_WINDOW, int(n * share) // 4 * 4)))
 
     nz, ny, nx = (int(n) for n in shape)
     first = (side(nx, 1 / 3), side(ny, 1 / 3), side(nz, 1 / 3))
-    second = tuple(max(2 * MIN_WINDOW, w // 2 // 4 * 4) for w in first)
+    second = tuple(min(w, max(2 * MIN_WINDOW, w // 2 // 4 * 4)) for w in first)
     windows = (first,) if second == first else (first, second)
     return CorrelationConfig(windows=windows, overlap=0.5, deform_iterations=0)
 
 
-def predictor_field(volume_a, volume_b, *, device: str | None = None) -> Predictor:
+def predictor_field(volume_a, volume_b, *, device: str | None = None) -> Predictor | None:
     """A pair's displacement field as the next pair's predictor: the correlation of
-    :func:`predictor_config` of its two volumes ((nz, ny, nx) float32, host or device)."""
-    config = predictor_config(tuple(int(n) for n in volume_a.shape))
+    :func:`predictor_config` of its two volumes ((nz, ny, nx) float32, host or device); None where
+    the box is too thin to correlate (fewer than :data:`lfcore.correlate.MIN_WINDOW` voxels along an
+    axis): the next frame then starts uniform."""
+    shape = tuple(int(n) for n in volume_a.shape)
+    if min(shape) < MIN_WINDOW:
+        return None
+    config = predictor_config(shape)
     return Predictor.from_field(correlate(volume_a, volume_b, config=config, device=device))
 
 
