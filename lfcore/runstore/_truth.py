@@ -9,6 +9,7 @@ import numpy as np
 from lfcore._deprecation import keyword_options
 from lfcore.runstore._common import Part, RunStoreError, run_array
 from lfcore.runstore._coords import pair_times_s
+from lfcore.runstore._schema import validated
 
 #: The arrays of ``truth/``, with their data types (``t0_s`` is missing from older stores).
 TRUTH_ARRAYS = {"particles": np.float64, "brightness": np.float32, "t0_s": np.float64}
@@ -73,6 +74,7 @@ class Truth(Part):
         if missing:
             raise RunStoreError(f"{self.path}: truth/ has no {missing[0]} (the run was interrupted while its "
                                 "truth was written); render it again with --overwrite")
+        attrs = validated(self.path, "truth", g.attrs)
         t0 = g["t0_s"][...] if "t0_s" in g else self._pair_times_s()
         return {"particles": g["particles"][...], "brightness": g["brightness"][...], "t0_s": t0,
-                "attrs": dict(g.attrs)}
+                "attrs": dict(attrs)}
