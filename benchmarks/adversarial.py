@@ -959,7 +959,7 @@ def cases_store_import(ctx: Ctx) -> list[Case]:
         ("vectors-windows-text", meta_damage("windows", "32x32x16", "vectors"), (E, R, E, E, E)),
         ("vectors-overlap-two", meta_damage("overlap", [2.0, 2.0, 2.0], "vectors"), (E, R, E, E, E)),
         ("truth-flow-text", meta_damage("flow", "vortex-ring", "truth"), (E, R, X, E, X)),
-        ("committed-true", meta_damage("committed_pairs", True), (E, R, E, X, X)),
+        ("committed-true", meta_damage("committed_pairs", True), (E, R, X, X, X)),  # correlate reads no commits
     ]
     commands = (["info", "RUN"], ["check", "RUN"], ["correlate", "RUN", "--windows", "16x16x8", "--quiet"],
                 ["evaluate", "RUN"], ["export", "RUN", "--format", "vtk", "--out", "D/x"])

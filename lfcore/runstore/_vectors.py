@@ -141,7 +141,7 @@ class Vectors(Part):
         """The pairs of ``vectors/`` whose vectors are written ([] if the run has no vectors)."""
         return list(self.vector_attrs()["correlated_pairs"]) if self.has_vectors else []
 
-    def vector_attrs(self, group: zarr.Group | None = None) -> dict[str, Any]:
+    def vector_attrs(self, *, group: zarr.Group | None = None) -> dict[str, Any]:
         """The attributes of ``vectors/`` (or of ``group``, its pending replacement), checked
         (:class:`~lfcore.runstore._schema.VectorsAttrs`: ``dt_s``, windows, overlap, settings and
         the pairs correlated), a copy.

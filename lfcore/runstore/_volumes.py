@@ -112,7 +112,7 @@ class Volumes(Part):
         # one attribute of volumes/, checked (a reader of the vectors need not trust the whole grid)
         return validated(self.path, "volumes", self.group["volumes"].attrs, key)
 
-    def volume_attrs(self, group: zarr.Group | None = None) -> dict[str, Any]:
+    def volume_attrs(self, *, group: zarr.Group | None = None) -> dict[str, Any]:
         """The attributes of ``volumes/`` (or of ``group``, its pending replacement), checked
         (:class:`~lfcore.runstore._schema.VolumesAttrs`: the grid, the method, its settings and the
         pairs reconstructed), a copy.
@@ -147,7 +147,7 @@ class Volumes(Part):
         """The voxel grid of a volumes group (``volumes/`` or its pending replacement)."""
         if group is None or "data" not in group:
             raise RunStoreError(self._NO_VOLUMES.format(path=self.path))
-        a = self.volume_attrs(group)
+        a = self.volume_attrs(group=group)
         shape = tuple(int(n) for n in group["data"].shape[2:])
         grid = VolumeGrid(shape=shape, voxel_mm=tuple(a["voxel_mm"]), origin_mm=tuple(a["origin_mm"]))
         problem = grid_problem(group, grid)

@@ -106,7 +106,7 @@ def _same_vectors(store: RunStore, g: Any, volumes_id: str | None, windows: list
     its attributes were written) holds none."""
     if "correlated_pairs" not in g.attrs:
         return False
-    old = store.vector_attrs(g)
+    old = store.vector_attrs(group=g)
     return (old.get("volumes_id") == volumes_id and old["windows"] == windows and old["overlap"] == overlap
             and float(old["dt_s"]) == dt_s
             and all(np.array_equal(g[n][...], c) for n, c in zip(("x_mm", "y_mm", "z_mm"), coords, strict=True))
@@ -320,7 +320,7 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
 
     def differences(g: Any) -> list[str]:
         try:
-            old = store.vector_attrs(g)
+            old = store.vector_attrs(group=g)
         except RunStoreError:  # for a note: an unfinished replacement's attributes, damaged or never written
             return ["attributes"]
         changed = ["volumes since replaced"] if old.get("volumes_id") != store.volumes_id else []

@@ -153,7 +153,7 @@ def describe(path: str | Path) -> list[str]:
         pending = store.pending(name)
         if pending is not None:
             try:
-                a = store.volume_attrs(pending) if name == "volumes" else store.vector_attrs(pending)
+                a = store.volume_attrs(group=pending) if name == "volumes" else store.vector_attrs(group=pending)
             except RunStoreError as exc:  # an unfinished replacement, damaged: said, and the rest shown
                 lines.append((f"{name}.pending", f"an unfinished replacement, damaged: {exc}"))
                 continue

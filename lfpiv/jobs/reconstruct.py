@@ -305,7 +305,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
 
     def differences(g: Any) -> list[str]:
         try:
-            old = _recorded(store.volume_attrs(g)["settings"]) if "data" in g else {}
+            old = _recorded(store.volume_attrs(group=g)["settings"]) if "data" in g else {}
         except RunStoreError:  # for a note: the attributes of an unfinished replacement, damaged
             return ["attributes"]
         changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k)]
@@ -375,7 +375,7 @@ def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, An
     """True when ``group`` (volumes or their pending replacement, None if absent) holds volumes
     on ``grid`` made with the settings ``meta``."""
     return (group is not None and "data" in group and store.grid_of(group) == grid
-            and _recorded(store.volume_attrs(group)["settings"]) == meta)
+            and _recorded(store.volume_attrs(group=group)["settings"]) == meta)
 
 
 def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
