@@ -125,7 +125,6 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
     pathlib.Path
         The file written.
     """
-    from lfcore.flows import flow_from_params
     from lfcore.metrics import grid_velocity
     from lfcore.vectors import vorticity
 
@@ -136,7 +135,7 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
     truth = store.truth()
     if truth is not None and truth["attrs"].get("flow", {}).get("name") not in (None, "static-points"):
         t_mid = float(truth["t0_s"][pair]) + 0.5 * store.dt_s
-        fields.append(("truth", grid_velocity(flow_from_params(truth["attrs"]["flow"]), x, y, z, t_mid)))
+        fields.append(("truth", grid_velocity(store.truth_flow(), x, y, z, t_mid)))
     k = len(z) // 2
     fig, axes = plt.subplots(1, len(fields), figsize=(6.2 * len(fields), 5.4), squeeze=False)
     wz_max = max(float(np.abs(vorticity(f, x, y, z)[k, ..., 2]).max()) for _, f in fields) or 1.0

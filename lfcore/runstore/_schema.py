@@ -19,10 +19,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 from functools import cache
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
+from lfcore.flows import FLOW_NAMES
 from lfcore.runstore._common import STATES, RunStoreError
 
 __all__ = ["GROUPS", "RootAttrs", "TimingAttrs", "TruthAttrs", "VectorsAttrs", "VolumesAttrs", "describe",
@@ -89,6 +90,17 @@ class RootAttrs(_Attrs):
     import_: ImportAttrs | None = Field(None, alias="import", description="a table (plan and sources)")
 
 
+class OperatorAttrs(_Attrs):
+    """``volumes/`` attribute ``operator``: what applied the reconstruction operator."""
+
+    projector: str | None = Field(None, description="text (stored, matrix-free, or both)")
+    bytes: Count | None = Field(None, description="a number of bytes (a whole number from 0)")
+    ms_per_iteration: Annotated[float, Field(ge=0, allow_inf_nan=False)] | None = Field(
+        None, description="a time in ms (a finite number from 0)")
+    frames: Count | None = Field(None, description="a number of frames (a whole number from 0)")
+    operators: list[str] | None = Field(None, description="a list of the operators' names")
+
+
 class _Derived(_Attrs):
     """What ``volumes/`` and ``vectors/`` (and their pending replacements) share."""
 
@@ -104,7 +116,8 @@ class VolumesAttrs(_Derived):
     voxel_mm: _three(PositiveNumber) = Field(description="three positive, finite voxel edges (x, y, z) in mm")
     method: str = Field(description="the text of a reconstruction method")
     reconstructed_pairs: Pairs = Field(description="a list of pair numbers (whole numbers from 0)")
-    operator: dict[str, Any] | None = Field(None, description="a table (what applied the operator)")
+    operator: OperatorAttrs | None = Field(None, description="a table (what applied the operator: projector, bytes, "
+                                                              "ms_per_iteration, frames, operators)")
     plan: dict[str, Any] | None = Field(None, description="a table (the planner's choice)")
     frames_written: list[Annotated[list[Count], Field(min_length=2, max_length=2)]] = Field(
         [], alias="_frames_written", description="a list of [pair, frame] numbers")
@@ -121,16 +134,32 @@ class VectorsAttrs(_Derived):
     correlated_pairs: Pairs = Field(description="a list of pair numbers (whole numbers from 0)")
 
 
-class FlowAttrs(_Attrs):
-    """The truth's ``flow``: its name and parameters (:meth:`lfcore.flows.Flow.params`)."""
+#: A flow parameter: a number, a vector of numbers, or null (``period_s`` of a steady ring).
+FlowParam = Annotated[float, Field(allow_inf_nan=False)] | list[Annotated[float, Field(allow_inf_nan=False)]] | None
 
-    name: str = Field(description="the text of a flow's name")
+
+class FlowAttrs(_Attrs):
+    """The truth's ``flow``: its name and parameters (:meth:`lfcore.flows.Flow.params`); the
+    flow is made from them as well (:func:`lfcore.flows.flow_from_params`) when the truth is read."""
+
+    __pydantic_extra__: dict[str, FlowParam]  # every parameter a number, or a vector of them
+    EXTRA: ClassVar[str] = "a number, a vector of numbers, or null (a flow parameter)"
+
+    name: Literal[(*FLOW_NAMES, "static-points")] = Field(  # type: ignore[valid-type]
+        description=f"one of the flows lfpiv knows ({', '.join(FLOW_NAMES)}, static-points)")
+    case: str | None = Field(None, description="the text of an oscillatory case (A1 ... B4)")
 
 
 class TruthAttrs(_Attrs):
     """The attributes of ``truth/``."""
 
-    flow: FlowAttrs = Field(description="a table (the flow's name and parameters)")
+    flow: FlowAttrs = Field(description="a table (the flow's name and parameters, each a number or a vector)")
+    ppm: PositiveNumber | None = Field(None, description="a positive seeding density (particles per microlens), "
+                                                          "or null")
+    ppp: PositiveNumber | None = Field(None, description="a positive seeding density (particles per pixel), or null")
+    seed: int | None = Field(None, description="a whole number (the random seed), or null")
+    render: dict[str, Any] | None = Field(None, description="a table (the render settings)")
+    device: str | None = Field(None, description="text (the device that rendered the frames)")
 
 
 #: Each group's model and how a message names the group's attributes and their file.
@@ -191,6 +220,11 @@ def _line(path: str | Path, group: str, error: Mapping[str, Any], attrs: Any) ->
             break
         found = _field(current, key)
         if found is None:
+            extra = getattr(current, "EXTRA", None)  # what the attributes the model does not name must be
+            if extra is not None and key in value:
+                names.append(key)
+                expected, value, current, items = extra, value.get(key), None, None
+                used += 1
             break
         _, info = found
         names.append(key)

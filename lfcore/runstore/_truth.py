@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 
 from lfcore._deprecation import keyword_options
+from lfcore.flows import Flow, flow_from_params
 from lfcore.runstore._common import Part, RunStoreError, run_array
 from lfcore.runstore._coords import pair_times_s
 from lfcore.runstore._schema import validated
@@ -59,6 +60,27 @@ class Truth(Part):
     def _pair_times_s(self) -> np.ndarray:
         t = pair_times_s(self.n_pairs, self.timing)
         return np.zeros(self.n_pairs) if t is None else t
+
+    def truth_flow(self) -> Flow | None:
+        """The flow the truth was rendered from (:func:`lfcore.flows.flow_from_params` of its
+        ``flow`` attribute), or None for a recorded run or points given by the user.
+
+        Raises
+        ------
+        RunStoreError
+            If the attribute makes no flow lfpiv knows (an unknown name, parameters that do not
+            fit it), one line.
+        """
+        if "truth" not in self.group:
+            return None
+        flow = validated(self.path, "truth", self.group["truth"].attrs)["flow"]  # the attributes alone, no arrays
+        if flow.get("name") == "static-points":
+            return None
+        try:
+            return flow_from_params(flow)
+        except ValueError as exc:
+            raise RunStoreError(f"{self.path}: truth/ attribute flow is {flow!r}, not a flow lfpiv knows ({exc}) "
+                                "(truth/zarr.json was edited or damaged); restore it from a copy of the run") from None
 
     def truth(self) -> dict[str, Any] | None:
         """``{"particles", "brightness", "t0_s", "attrs"}`` of a synthetic run, or None if recorded.
