@@ -138,6 +138,7 @@ def image_files(pattern: str | os.PathLike[str]) -> list[Path]:
         if not entries:
             raise FormatError(f"no file matches {str(pattern)!r}; check the pattern (quote it, so that the shell "
                               "passes it on unexpanded)")
+    entries = natural_sort(entries)
     unusable = [(f, why) for f in entries if (why := _not_a_file(f)) is not None]
     if unusable:
         more = (f" (and {len(unusable) - 1} more entr{'y' if len(unusable) == 2 else 'ies'} that cannot be read: "
@@ -147,7 +148,7 @@ def image_files(pattern: str | os.PathLike[str]) -> list[Path]:
         # skipping it would shift frames A and B of every later pair: it is named, never passed over
         raise FormatError(f"{f} {why}{more}; every file the pattern matches is a frame, so fix or remove it, or "
                           "narrow the pattern to the recording's files")
-    found = natural_sort(entries)
+    found = entries
     odd = odd_names(found)
     if odd:
         common = re.sub(r"\d+", "*", next(f for f in found if f not in odd).name)
@@ -697,7 +698,18 @@ def pair_frames(files: Sequence[str | os.PathLike[str]], *, layout: str,
                           if layout == "separate" else f"the {layout} layout takes one list of files, not frames B")
     if not files:
         raise FormatError("no image files given; check the file pattern")
-    infos = {Path(p): inspect_image(p) for p in [*files, *(files_b or [])]}
+    infos: dict[Path, ImageInfo] = {}
+    bad: list[tuple[Path, FormatError]] = []
+    for p in [*files, *(files_b or [])]:
+        try:
+            infos[Path(p)] = inspect_image(p)
+        except FormatError as exc:  # every file that cannot be used is named, not only the first
+            bad.append((Path(p), exc))
+    if bad:
+        more = "" if len(bad) == 1 else (f" (and {len(bad) - 1} more file(s) that cannot be used: "
+                                         + ", ".join(str(p) for p, _ in bad[1:4]) + (" ..." if len(bad) > 4 else "")
+                                         + ")")
+        raise FormatError(f"{bad[0][1]}{more}")
     seq = [infos[Path(p)] for p in files]
     if layout == "interleaved":
         frames = _frames_in_order(seq)

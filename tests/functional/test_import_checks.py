@@ -171,3 +171,17 @@ def test_a_file_that_changes_during_the_import_is_refused(tmp_path, capsys, monk
     if (tmp_path / "run.zarr").exists():  # the pairs before it are kept, marked aborted (none: nothing left)
         run = RunStore.open(tmp_path / "run.zarr")
         assert run.state == "aborted" and run.committed_pairs <= 2
+
+
+def test_every_file_that_cannot_be_used_is_named(tmp_path, capsys):
+    d = _folder(tmp_path, _frames(6))
+    (d / "img_0002.tif").write_bytes(b"II*\x00" + bytes(300))  # a TIFF header, no image
+    (d / "img_0004.tif").write_bytes(b"")
+    _refused(capsys, tmp_path, d / "*.tif", "img_0002.tif", "and 1 more file(s) that cannot be used",
+             str(d / "img_0004.tif"))
+    (d / "img_0002.tif").unlink()
+    (d / "img_0004.tif").unlink()
+    os.symlink(d / "gone.tif", d / "img_0002.tif")
+    os.symlink(d / "gone.tif", d / "img_0004.tif")
+    _refused(capsys, tmp_path, d / "*.tif", "img_0002.tif is a dangling symbolic link", "and 1 more entry",
+             str(d / "img_0004.tif"))
