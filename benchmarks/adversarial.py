@@ -34,6 +34,14 @@ writes, streams, defaults, rig-range (issue 50, :func:`cases_writes_streams`)
     named); ``--log-file`` inside a store or on a full disk (``/dev/full``); a broken pipe and
     closed stdout, stderr or all three; a stale ``vectors.replaced/``; a run with a recorded drop;
     rig values finite but meaningless (each naming its key); defaults that must not refuse.
+schema
+    edited or damaged store attributes (text for numbers, a zero, negative or moved voxel grid,
+    ``timing`` not a table, lists as text) fed to ``info``, ``check``, ``correlate``, ``evaluate``
+    and ``export`` (issue 50).
+import
+    import sets with entries that are not what they seem: dangling and looping links, pipes,
+    a ``background.tif`` that sorts first, signed images with negative counts, LZW and corrupt
+    compressed TIFFs, TIFFs appended page by page, 1-bit images (issue 50).
 
 Each case is classified as
 
@@ -894,6 +902,7 @@ def cases(ctx: Ctx) -> list[Case]:
     for command in ("synth", "reconstruct", "correlate", "export", "acquire"):
         add(f"disk-full-{command}", "disk", disk_case(command), command)
     out += cases_writes_streams(ctx)
+    out += cases_store_import(ctx)
     return out
 
 
@@ -1112,6 +1121,156 @@ def cases_writes_streams(ctx: Ctx) -> list[Case]:
     add("defaults-import-dt-us-denormal", "defaults", simple(
         ["import", "--rig", "TINY", "--out", "D/i.zarr", "--frames", "D/t/*.tif", "--dt-us", "5e-324", "--quiet"],
         "error", prepare=lambda ctx, d: _frames_as_tiffs(ctx.made, d / "t")), "import")
+
+
+# --- issue 50: store attributes trusted on read, files that are not what they seem -------------
+
+def _import_frames(n: int, seed: int = 0):
+    import numpy as np
+
+    return np.random.default_rng(seed).integers(100, 4000, (n, 160, 192)).astype(np.uint16)
+
+
+def import_case(make: Callable[[Path], tuple[str, object]], expect: str) -> Callable[[Ctx, Path], Outcome]:
+    """``lfpiv import`` of the files ``make(d)`` writes (it returns the pattern, and the frames the
+    run must hold for an accepted case): refused in one line with nothing written, or imported
+    with every frame in place."""
+    def run(ctx: Ctx, d: Path) -> Outcome:
+        import numpy as np
+
+        pattern, want = make(d)
+        out = d / "i.zarr"
+        rc, o, err, secs = lfpiv(["import", "--rig", TINY, "--out", out, "--frames", pattern, "--dt-us", "1000",
+                                  "--quiet"], d, ctx.timeout_s)
+        res = classify(rc, o, err, secs, expect)
+        if res.cls == "clean error" and out.exists():
+            return Outcome("wrong result", rc, secs, "refused, but a store was left: " + res.detail)
+        if res.cls == "accepted" and want is not None:
+            held = RunStore.open(out).frames("cam0")[...].reshape(-1, 160, 192)
+            if not np.array_equal(held, want):
+                return Outcome("wrong result", rc, secs, "imported frames differ from the files: " + res.detail)
+        return res
+    return run
+
+
+def cases_store_import(ctx: Ctx) -> list[Case]:
+    """Issue 50's families: edited or damaged store attributes fed to every reader (group
+    ``schema``), and import sets with entries that are not what they seem (group ``import``)."""
+    import numpy as np
+    import tifffile
+
+    out: list[Case] = []
+    E, R, X = "error", "report", "either"
+    timing = {"dt_s": 0.002, "rate_hz": 10.0}
+    attrs = [  # name, damage, what info, check, correlate, evaluate and export must do
+        ("timing-dt-text", meta_damage("timing", {**timing, "dt_s": "0.002"}), (E, R, E, X, E)),
+        ("timing-dt-negative", meta_damage("timing", {**timing, "dt_s": -0.002}), (E, R, E, X, E)),
+        ("timing-dt-zero", meta_damage("timing", {**timing, "dt_s": 0}), (E, R, E, X, E)),
+        ("timing-rate-text", meta_damage("timing", {**timing, "rate_hz": "ten"}), (E, R, E, X, E)),
+        ("timing-a-list", meta_damage("timing", [1, 2]), (E, R, E, X, E)),
+        ("timing-text", meta_damage("timing", "fast"), (E, R, E, X, E)),
+        ("origin-two-values", meta_damage("origin_mm", [0.0, 0.0], "volumes"), (E, R, E, E, X)),
+        ("origin-text", meta_damage("origin_mm", "0,0,0", "volumes"), (E, R, E, E, X)),
+        ("origin-moved", meta_damage("origin_mm", [1.0, 0.0, 0.0], "volumes"), (E, R, E, E, X)),
+        ("voxel-text", meta_damage("voxel_mm", "0.011", "volumes"), (E, R, E, E, X)),
+        ("voxel-sign-flip", meta_damage("voxel_mm", [-0.011, 0.011, 0.055], "volumes"), (E, R, E, E, X)),
+        ("voxel-zero", meta_damage("voxel_mm", [0.0, 0.011, 0.055], "volumes"), (E, R, E, E, X)),
+        ("voxel-doubled", meta_damage("voxel_mm", [0.022, 0.011, 0.055], "volumes"), (E, R, E, E, X)),
+        ("reconstructed-text", meta_damage("reconstructed_pairs", "0,1", "volumes"), (E, R, E, E, X)),
+        ("correlated-text", meta_damage("correlated_pairs", "0,1", "vectors"), (E, R, E, E, E)),
+        ("vectors-dt-negative", meta_damage("dt_s", -0.002, "vectors"), (E, R, E, E, E)),
+        ("vectors-windows-text", meta_damage("windows", "32x32x16", "vectors"), (E, R, E, E, E)),
+        ("vectors-overlap-two", meta_damage("overlap", [2.0, 2.0, 2.0], "vectors"), (E, R, E, E, E)),
+        ("truth-flow-text", meta_damage("flow", "vortex-ring", "truth"), (E, R, X, E, X)),
+        ("committed-true", meta_damage("committed_pairs", True), (E, R, X, X, X)),  # correlate reads no commits
+    ]
+    commands = (["info", "RUN"], ["check", "RUN"], ["correlate", "RUN", "--windows", "16x16x8", "--quiet"],
+                ["evaluate", "RUN"], ["export", "RUN", "--format", "vtk", "--out", "D/x"])
+    for name, dmg, expects in attrs:
+        for args, exp in zip(commands, expects, strict=True):
+            out.append(Case(f"schema-{name}-{args[0]}", "schema", damaged_case(dmg, args, exp), args[0]))
+
+    def tiffs(d: Path, frames, **kw: object) -> Path:
+        (d / "rec").mkdir(exist_ok=True)
+        for i, f in enumerate(frames):
+            tifffile.imwrite(d / "rec" / f"img_{i:04d}.tif", f, **kw)
+        return d / "rec"
+
+    def replaced(how: str) -> Callable[[Path], tuple[str, object]]:
+        def make(d: Path) -> tuple[str, object]:
+            rec = tiffs(d, _import_frames(6))
+            entry = rec / "img_0002.tif"
+            entry.unlink()
+            if how == "dangling":
+                os.symlink(rec / "gone.tif", entry)
+            elif how == "loop":
+                os.symlink(entry, entry)
+            elif how == "pipe":
+                os.mkfifo(entry)
+            else:
+                entry.mkdir()
+            return str(rec / "*.tif"), None
+        return make
+
+    def background(d: Path) -> tuple[str, object]:
+        rec = tiffs(d, _import_frames(4))
+        tifffile.imwrite(rec / "background.tif", _import_frames(1, 9)[0])
+        return str(rec / "*.tif"), None
+
+    def signed(compression: str | None, offset: int) -> Callable[[Path], tuple[str, object]]:
+        def make(d: Path) -> tuple[str, object]:
+            frames = _import_frames(4)
+            return str(tiffs(d, frames.astype(np.int16) - offset, compression=compression) / "*.tif"), frames
+        return make
+
+    def lzw(d: Path) -> tuple[str, object]:
+        from PIL import Image
+
+        frames = _import_frames(4)
+        (d / "rec").mkdir()
+        for i, f in enumerate(frames):
+            Image.fromarray(f).save(d / "rec" / f"img_{i:04d}.tif", compression="tiff_lzw")
+        return str(d / "rec" / "*.tif"), frames
+
+    def corrupt_last(d: Path) -> tuple[str, object]:
+        rec = tiffs(d, _import_frames(6), compression="zlib")
+        last = rec / "img_0005.tif"
+        with tifffile.TiffFile(last) as tf:
+            offset, count = tf.pages[0].dataoffsets[0], tf.pages[0].databytecounts[0]
+        raw = bytearray(last.read_bytes())
+        raw[offset + 2:offset + count] = os.urandom(count - 2)
+        last.write_bytes(bytes(raw))
+        return str(rec / "*.tif"), None
+
+    def appended(sizes: bool) -> Callable[[Path], tuple[str, object]]:
+        def make(d: Path) -> tuple[str, object]:
+            frames = _import_frames(4)
+            for f in frames:
+                tifffile.imwrite(d / "stack.tif", f, append=True)
+            if sizes:
+                tifffile.imwrite(d / "stack.tif", frames[0, :80], append=True)
+            return str(d / "stack.tif"), None if sizes else frames
+        return make
+
+    def bilevel(d: Path) -> tuple[str, object]:
+        return str(tiffs(d, _import_frames(4) > 2000) / "*.tif"), None
+
+    def a_and_b(d: Path) -> tuple[str, object]:
+        frames = _import_frames(4)
+        (d / "rec").mkdir()
+        for i, f in enumerate(frames):
+            tifffile.imwrite(d / "rec" / f"B{i // 2 + 1:05d}_{'AB'[i % 2]}.tif", f)
+        return str(d / "rec" / "*.tif"), frames
+
+    imports = [("dangling-link", replaced("dangling"), E), ("looping-link", replaced("loop"), E),
+               ("named-pipe", replaced("pipe"), E), ("folder-named-tif", replaced("folder"), E),
+               ("background-sorts-first", background, E), ("signed-negative", signed(None, 200), E),
+               ("signed-negative-zlib", signed("zlib", 200), E), ("signed-counts", signed(None, 0), "accept"),
+               ("lzw-pillow", lzw, "accept"), ("zlib-last-page-corrupt", corrupt_last, E),
+               ("appended-pages", appended(False), "accept"), ("appended-pages-two-sizes", appended(True), E),
+               ("bilevel", bilevel, E), ("names-a-and-b", a_and_b, "accept")]
+    for name, make, exp in imports:
+        out.append(Case(f"import-{name}", "import", import_case(make, exp), "import"))
     return out
 
 
@@ -1145,7 +1304,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, help="work folder (default: a new temporary one, removed at the end)")
     p.add_argument("--csv", type=Path, help="CSV of every case (default: adversarial.csv in the work folder)")
     p.add_argument("--only", help="comma-separated groups: rig, path, option, store, kill, interrupt, writer, disk, "
-                   "writes, streams, defaults, rig-range")
+                   "writes, streams, defaults, rig-range, schema, import")
     p.add_argument("--match", help="only the cases whose name contains this")
     p.add_argument("--jobs", type=int, default=2, help="cases at a time (default: 2)")
     p.add_argument("--timeout", type=float, default=90.0, help="seconds a case may take before it is a hang")

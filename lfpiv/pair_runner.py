@@ -96,7 +96,7 @@ def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable
     with naming(f"{store.path}/{name}"):
         replacement.begin(store, name, pairs, matches=matches, differences=differences, create=create)
     if skip_done:
-        done = set(store.writing(name).attrs[RunStore.DONE[name]])
+        done = set(store.done_pairs(name, store.writing(name)))
         pairs = [p for p in pairs if p not in done]
     log.info("%s: %s of %d pair(s) into %s/%s", store.path, desc, len(pairs), store.path,
              store.writing(name).basename)

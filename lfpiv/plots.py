@@ -87,7 +87,7 @@ def plot_raw_images(store: RunStore, out: str | Path, pair: int = 0, zoom_lensle
     n_part = truth["particles"].shape[2] if truth else None
     extra = f", {n_part} particles per frame" if n_part else ""
     fig.suptitle(f"{store.path.name}: raw images of pair {pair} ({flow}{extra}, "
-                 f"dt = {store.timing['dt_s'] * 1e3:g} ms)")
+                 f"dt = {store.dt_s * 1e3:g} ms)")
     fig.tight_layout()
     save_figure(fig, out, dpi=110)
     return out
@@ -144,7 +144,6 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
     pathlib.Path
         The file written.
     """
-    from lfcore.flows import flow_from_params
     from lfcore.metrics import grid_velocity
     from lfcore.vectors import vorticity
 
@@ -154,8 +153,8 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
     fields = [("measured", np.stack([vec[c][pair] for c in "uvw"], axis=-1))]
     truth = store.truth()
     if truth is not None and truth["attrs"].get("flow", {}).get("name") not in (None, "static-points"):
-        t_mid = float(truth["t0_s"][pair]) + 0.5 * float(store.timing["dt_s"])
-        fields.append(("truth", grid_velocity(flow_from_params(truth["attrs"]["flow"]), x, y, z, t_mid)))
+        t_mid = float(truth["t0_s"][pair]) + 0.5 * store.dt_s
+        fields.append(("truth", grid_velocity(store.truth_flow(), x, y, z, t_mid)))
     k = len(z) // 2
     fig, axes = plt.subplots(1, len(fields), figsize=(6.2 * len(fields), 5.4), squeeze=False)
     wz_max = max(float(np.abs(vorticity(f, x, y, z)[k, ..., 2]).max()) for _, f in fields) or 1.0

@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from lfcore.runstore import RunStore
+from lfcore.runstore import RunStore, RunStoreError
 
 __all__ = ["begin", "end", "kept_aside", "noting_interrupt"]
 
@@ -28,8 +28,15 @@ def _note(text: str, level: str = "note") -> None:
     print(f"lfpiv: {level}: {text}", file=sys.stderr)
 
 
-def _pairs(group: Any, name: str) -> list[int]:
-    return list(group.attrs.get(RunStore.DONE[name], [])) if group is not None else []
+def _pairs(store: RunStore, group: Any, name: str, *, strict: bool = False) -> list[int]:
+    """The pairs ``group`` lists as done, checked; for a note (not ``strict``), [] where the list
+    is damaged (the command's own checks say so)."""
+    try:
+        return store.done_pairs(name, group)
+    except RunStoreError:
+        if strict:
+            raise
+        return []
 
 
 def _some(pairs: list[int]) -> str:
@@ -53,14 +60,14 @@ def begin(store: RunStore, name: str, pairs: list[int], *, matches: Callable[[An
         store.resume(name)
         left = store.unfinished(name)
         _note(f"going on with the interrupted replacement of {name}/ made with these settings "
-              f"({len(_pairs(pending, name))} pair(s) done{f', {len(left)} more asked' if left else ''}); {name}/ "
-              "keeps the old ones until it is complete")
+              f"({len(_pairs(store, pending, name))} pair(s) done{f', {len(left)} more asked' if left else ''}); "
+              f"{name}/ keeps the old ones until it is complete")
     elif not matches(current):
         if pending is not None:
             _note(f"an interrupted replacement of {name}/ made with other settings "
                   f"({', '.join(differences(pending)[:4]) or 'grid'} differ) is dropped, with its "
-                  f"{len(_pairs(pending, name))} pair(s)")
-        done = _pairs(current, name)
+                  f"{len(_pairs(store, pending, name))} pair(s)")
+        done = _pairs(store, current, name, strict=True)
         if done:
             store.check_replaceable(name)
             changed = differences(current) or ["grid"]
@@ -97,7 +104,7 @@ def end(store: RunStore, name: str) -> None:
         _note(f"the replacement of {name}/ still lacks {_some(left)} asked of it before; {name}/ keeps the old "
               "ones until the same settings have done them (with --skip-done)")
     elif replaced:
-        _note(f"{name}/ now holds the new {name} ({len(_pairs(store.group[name], name))} pair(s))")
+        _note(f"{name}/ now holds the new {name} ({len(_pairs(store, store.group[name], name))} pair(s))")
     if replaced and store.replaced_left(name):
         _note(f"the old {name} could not all be deleted: what stays is in {store.path}/{name}.replaced/; delete it "
               f"(chmod -R u+w first if it is read-only) before the next replacement of {name}/", "warning")
@@ -109,7 +116,7 @@ def kept_aside(store: RunStore, name: str) -> str:
     g = store.writing(name)
     if g.basename == name:
         return ""
-    return (f"; the {len(_pairs(g, name))} pair(s) of new {name} are kept aside and the {name} made before with "
+    return (f"; the {len(_pairs(store, g, name))} pair(s) of new {name} are kept aside and the {name} made before with "
             f"other settings are unchanged; the same command with --skip-done goes on with the new ones")
 
 

@@ -46,8 +46,10 @@ problem of a run (:mod:`lfcore.runstore._integrity`). Stores made before both st
 The store is split by what it holds: ``_frames`` (frames, ids, time stamps, state and commits,
 and :class:`FrameWriter`), ``_drops``, ``_truth``, ``_volumes``, ``_vectors`` (with ``_coords``,
 their coordinate arrays), ``_replacement`` (the ``*.pending`` machinery), ``_integrity``
-(checked reads and verification, with ``_chunks``) and ``_lock``, put together as
-:class:`RunStore` in ``_store``.
+(checked reads and verification, with ``_chunks``), ``_lock`` and ``_schema`` (the attributes
+as validated models: every reader checks what it reads, and a bad value is one line naming the
+store, the attribute, what it holds and what it should), put together as :class:`RunStore` in
+``_store``.
 """
 
 from lfcore.runstore._common import FORMAT, FORMAT_VERSION, STATES, RunStoreError

@@ -68,4 +68,5 @@ class Part:
     state: str
     committed_pairs: int
     timing: dict[str, Any]
+    dt_s: float
     volumes_id: str | None

@@ -15,6 +15,7 @@ from zarr.storage import LocalStore
 
 from lfcore.rig import Rig
 from lfcore.runstore._common import STATES, Part, RunStoreError, run_array
+from lfcore.runstore._schema import validated
 
 #: Raw frames are compressed with LZ4 after bit shuffling (Blosc). Camera counts of 12 bits or
 #: fewer leave the top bits of every uint16 zero, which bit shuffling turns into long zero runs:
@@ -159,8 +160,30 @@ class Frames(Part):
 
     @property
     def timing(self) -> dict[str, Any]:
-        """The run's timing (``dt_s``, ``rate_hz``, ...), a copy."""
-        return dict(self.group.attrs["timing"])
+        """The run's timing (``dt_s``, ``rate_hz``, ...), a copy.
+
+        Raises
+        ------
+        RunStoreError
+            If it is not what the layout gives it (:class:`~lfcore.runstore._schema.TimingAttrs`:
+            a table, ``dt_s`` a positive time, ``rate_hz`` a positive rate or null), one line.
+        """
+        return dict(validated(self.path, "", self.group.attrs, "timing"))
+
+    @property
+    def dt_s(self) -> float:
+        """Time between frames A and B of a pair, s (the root attribute ``timing.dt_s``).
+
+        Raises
+        ------
+        RunStoreError
+            If the run's timing holds none, or not a positive time.
+        """
+        dt = self.timing.get("dt_s")
+        if dt is None:
+            raise RunStoreError(f"{self.path}: the run's timing holds no dt_s (the time between frames A and B), so "
+                                "velocities cannot be computed; record or import the run with its dt")
+        return float(dt)
 
     def frames(self, camera: str) -> zarr.Array:
         """The (pairs, 2, rows, columns) uint16 frames array of one camera.

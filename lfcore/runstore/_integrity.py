@@ -36,9 +36,11 @@ from lfcore.runstore._common import STATES, Part, RunStoreError
 from lfcore.runstore._coords import COORDINATE_ARRAYS
 from lfcore.runstore._drops import DROP_FIELDS
 from lfcore.runstore._frames import CAMERA_ARRAYS
+from lfcore.runstore._schema import problems
 from lfcore.runstore._truth import TRUTH_ARRAYS
 from lfcore.runstore._vectors import GRID_ARRAYS, VECTOR_FIELDS
-from lfcore.runstore._volumes import VOLUME_DTYPE
+from lfcore.runstore._volumes import VOLUME_DTYPE, grid_problem
+from lfcore.volume import VolumeGrid
 from lfcore.zarrstore import damaged_metadata
 
 _FRAME = "AB"
@@ -151,7 +153,7 @@ class Integrity(Part):
             raise RunStoreError(self._line(f"volumes/data has pairs 0-{n - 1}, frames 0 (A) and 1 (B): pair {pair} "
                                            f"frame {frame} is none of them"))
         where = f"pair {pair} frame {_FRAME[frame]}"
-        written = {tuple(x) for x in self.group["volumes"].attrs.get("_frames_written", [])}
+        written = {tuple(x) for x in self._volume_attr("_frames_written")}  # type: ignore[attr-defined]
         if pair not in self.reconstructed_pairs() and (pair, frame) not in written:
             raise RunStoreError(self._line(f"volumes/ has no volume of {where}: it is not reconstructed; run 'lfpiv "
                                            f"reconstruct {self.path} --pairs {pair}:{pair + 1}'"))
@@ -221,6 +223,12 @@ class Integrity(Part):
     def _verify_root(self, out: list[str]) -> int:
         # the number of pairs to walk: committed_pairs as recorded, if it is one
         a = self.group.attrs
+        # every root attribute as the layout gives it (state and committed_pairs: their own lines below)
+        out.extend(problems(self.path, "", a, skip=("state", "committed_pairs")))
+        try:
+            _ = self.rig  # type: ignore[attr-defined] - validated like a rig file
+        except RunStoreError as exc:
+            out.append(str(exc))
         c = a.get("committed_pairs")
         if a.get("state") not in STATES:
             out.append(self._line(f"state is {a.get('state')!r}, not one of {STATES} (the root zarr.json was edited "
@@ -333,6 +341,7 @@ class Integrity(Part):
             a = self._layout(f"truth/{name}", dtype, out)
             if a is not None and self._holds_the_pairs(a, out):
                 self._verify_whole(a, out, required=checksummed(a))
+        out.extend(problems(self.path, "truth", g.attrs))
 
     def _verify_derived(self, name: str, out: list[str]) -> None:
         """``volumes/`` or ``vectors/``: their arrays, the pairs they list as done, and every
@@ -357,11 +366,17 @@ class Integrity(Part):
                 return
         arrays = {n: self._layout(f"{name}/{n}", t, out) for n, t in fields.items()}
         done_key = self.DONE[name]  # type: ignore[attr-defined]
+        wrong = problems(self.path, name, g.attrs)
+        out.extend(wrong)
         done = g.attrs.get(done_key, [])
-        if not isinstance(done, list) or not all(isinstance(p, int) and not isinstance(p, bool) for p in done):
-            out.append(self._line(f"{name}/ attribute {done_key} is {done!r}, not a list of pairs (its zarr.json was "
-                                  f"edited or damaged); {RESTORE}"))
+        if any(f" attribute {done_key} " in line for line in wrong):
             done = []
+        elif name == "volumes" and not wrong and arrays["data"] is not None:
+            grid = VolumeGrid(shape=tuple(int(n) for n in arrays["data"].shape[2:]),
+                              voxel_mm=tuple(g.attrs["voxel_mm"]), origin_mm=tuple(g.attrs["origin_mm"]))
+            mismatch = grid_problem(g, grid)
+            if mismatch is not None:
+                out.append(self._line(f"{mismatch}; {RESTORE}"))
         for n, a in arrays.items():
             if a is None or not self._holds_the_pairs(a, out):
                 continue

@@ -11,6 +11,7 @@ from pathlib import Path
 import zarr
 
 from lfcore.runstore._common import Part, RunStoreError
+from lfcore.runstore._schema import validated
 
 
 class Replacement(Part):
@@ -69,7 +70,8 @@ class Replacement(Part):
         a replacement resumed for a few pairs does not drop the old set's others unasked."""
         g = self.writing(name)
         if g.basename != name:
-            g.attrs["planned_pairs"] = sorted(set(g.attrs.get("planned_pairs", [])) | {int(p) for p in pairs})
+            planned = validated(self.path, g.basename, g.attrs, "planned_pairs")
+            g.attrs["planned_pairs"] = sorted(set(planned) | {int(p) for p in pairs})
 
     def unfinished(self, name: str) -> list[int]:
         """The planned pairs (:meth:`plan`) that the pending replacement of ``name`` being
@@ -77,7 +79,21 @@ class Replacement(Part):
         g = self.writing(name)
         if g.basename == name:
             return []
-        return sorted(set(g.attrs.get("planned_pairs", [])) - set(g.attrs.get(self.DONE[name], [])))
+        return sorted(set(validated(self.path, g.basename, g.attrs, "planned_pairs")) - set(self.done_pairs(name, g)))
+
+    def done_pairs(self, name: str, group: zarr.Group | None) -> list[int]:
+        """The pairs ``group`` (``name``, ``volumes`` or ``vectors``, or its pending replacement;
+        None: none) lists as done, checked (:mod:`lfcore.runstore._schema`); [] for a group that
+        lists none yet (made, no pair written).
+
+        Raises
+        ------
+        RunStoreError
+            If the list is not a list of pair numbers, one line naming it.
+        """
+        if group is None or self.DONE[name] not in group.attrs:
+            return []
+        return list(validated(self.path, group.basename, group.attrs, self.DONE[name]))
 
     def finish(self, name: str) -> bool:
         """Put the pending replacement of ``name`` being written in place of ``name`` once it

@@ -22,6 +22,7 @@ from lfcore.runstore._frames import CAMERA_ARRAYS, Frames, create_frames
 from lfcore.runstore._integrity import Integrity
 from lfcore.runstore._lock import LOCK_NAME, WriterLease, acquire, current_writer, join
 from lfcore.runstore._replacement import Replacement
+from lfcore.runstore._schema import validated
 from lfcore.runstore._truth import Truth
 from lfcore.runstore._vectors import Vectors
 from lfcore.runstore._volumes import Volumes
@@ -74,6 +75,7 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
         path = Path(path)
         if n_pairs < 1:
             raise RunStoreError(f"a run needs at least one pair, got {n_pairs}")
+        validated(path, "", {"timing": timing}, "timing")  # never written as what no reader accepts
         cls.check_new(path, overwrite=overwrite)
         if path.exists():  # a run store to replace (check_new made sure): not while another process writes it
             lease = acquire(path)
@@ -215,6 +217,17 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
                 raise RunStoreError(f"{damaged_metadata(f'{root.store_path.store.root}/{n}', exc)}, so the run "
                                     "cannot be opened; restore that file from a copy") from None
         return None
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        """A copy of the root attributes, checked (:class:`~lfcore.runstore._schema.RootAttrs`).
+
+        Raises
+        ------
+        RunStoreError
+            The first root attribute that is not what the layout gives it, one line naming it.
+        """
+        return dict(validated(self.path, "", self.group.attrs))
 
     # --- the writer lock ----------------------------------------------------------------
     @property

@@ -7,8 +7,10 @@ from typing import Any
 import numpy as np
 
 from lfcore._deprecation import keyword_options
+from lfcore.flows import Flow, flow_from_params
 from lfcore.runstore._common import Part, RunStoreError, run_array
 from lfcore.runstore._coords import pair_times_s
+from lfcore.runstore._schema import validated
 
 #: The arrays of ``truth/``, with their data types (``t0_s`` is missing from older stores).
 TRUTH_ARRAYS = {"particles": np.float64, "brightness": np.float32, "t0_s": np.float64}
@@ -59,6 +61,27 @@ class Truth(Part):
         t = pair_times_s(self.n_pairs, self.timing)
         return np.zeros(self.n_pairs) if t is None else t
 
+    def truth_flow(self) -> Flow | None:
+        """The flow the truth was rendered from (:func:`lfcore.flows.flow_from_params` of its
+        ``flow`` attribute), or None for a recorded run or points given by the user.
+
+        Raises
+        ------
+        RunStoreError
+            If the attribute makes no flow lfpiv knows (an unknown name, parameters that do not
+            fit it), one line.
+        """
+        if "truth" not in self.group:
+            return None
+        flow = validated(self.path, "truth", self.group["truth"].attrs)["flow"]  # the attributes alone, no arrays
+        if flow.get("name") == "static-points":
+            return None
+        try:
+            return flow_from_params(flow)
+        except ValueError as exc:
+            raise RunStoreError(f"{self.path}: truth/ attribute flow is {flow!r}, not a flow lfpiv knows ({exc}) "
+                                "(truth/zarr.json was edited or damaged); restore it from a copy of the run") from None
+
     def truth(self) -> dict[str, Any] | None:
         """``{"particles", "brightness", "t0_s", "attrs"}`` of a synthetic run, or None if recorded.
 
@@ -73,6 +96,7 @@ class Truth(Part):
         if missing:
             raise RunStoreError(f"{self.path}: truth/ has no {missing[0]} (the run was interrupted while its "
                                 "truth was written); render it again with --overwrite")
+        attrs = validated(self.path, "truth", g.attrs)
         t0 = g["t0_s"][...] if "t0_s" in g else self._pair_times_s()
         return {"particles": g["particles"][...], "brightness": g["brightness"][...], "t0_s": t0,
-                "attrs": dict(g.attrs)}
+                "attrs": dict(attrs)}

@@ -9,6 +9,7 @@ import zarr
 
 from lfcore.runstore._common import Part, RunStoreError, run_array
 from lfcore.runstore._coords import COORDINATES, add_coordinates
+from lfcore.runstore._schema import validated
 
 #: The (pairs, z, y, x) arrays of ``vectors/``, with their data types.
 VECTOR_FIELDS = {"u": np.float32, "v": np.float32, "w": np.float32, "flags": np.uint8, "peak_ratio": np.float32}
@@ -121,7 +122,7 @@ class Vectors(Part):
     def record_vectors(self, pairs: list[int]) -> None:
         """Add pairs whose vectors are already written to ``correlated_pairs``."""
         g = self.writing("vectors")
-        done = sorted(set(g.attrs.get("correlated_pairs", [])) | {int(p) for p in pairs})
+        done = sorted(set(self.done_pairs("vectors", g)) | {int(p) for p in pairs})
         g.attrs.update({"correlated_pairs": done})
 
     @property
@@ -133,11 +134,26 @@ class Vectors(Part):
         """True when ``vectors/`` was correlated from volumes since replaced (or removed)."""
         if not self.has_vectors:
             return False
-        made_from = self.group["vectors"].attrs.get("volumes_id")
+        made_from = self.vector_attrs().get("volumes_id")
         return made_from is not None and made_from != self.volumes_id
 
     def correlated_pairs(self) -> list[int]:
-        return list(self.group["vectors"].attrs["correlated_pairs"]) if self.has_vectors else []
+        """The pairs of ``vectors/`` whose vectors are written ([] if the run has no vectors)."""
+        return list(self.vector_attrs()["correlated_pairs"]) if self.has_vectors else []
+
+    def vector_attrs(self, *, group: zarr.Group | None = None) -> dict[str, Any]:
+        """The attributes of ``vectors/`` (or of ``group``, its pending replacement), checked
+        (:class:`~lfcore.runstore._schema.VectorsAttrs`: ``dt_s``, windows, overlap, settings and
+        the pairs correlated), a copy.
+
+        Raises
+        ------
+        RunStoreError
+            The run has no vectors, or one of them is not what the layout gives it (one line
+            naming it).
+        """
+        g = self._vectors_group() if group is None else group
+        return dict(validated(self.path, g.basename, g.attrs))
 
     def _vectors_group(self) -> zarr.Group:
         """The ``vectors/`` group.
@@ -161,6 +177,7 @@ class Vectors(Part):
             If the run has no vectors.
         """
         g = self._vectors_group()
+        self.vector_attrs()  # damaged attributes are said before any array is read
         out: dict[str, Any] = {}
         for n in (*VECTOR_FIELDS, *GRID_ARRAYS):
             try:
@@ -170,5 +187,5 @@ class Vectors(Part):
                     self.read_vectors(pair)  # type: ignore[attr-defined] - raises naming the pair and chunk
                 raise RunStoreError(f"{self.path}: vectors/{n} cannot be read ({type(exc).__name__}: {exc}); "
                                     f"'lfpiv check {self.path}' lists what is damaged") from None
-        out["attrs"] = dict(g.attrs)
+        out["attrs"] = self.vector_attrs()
         return out

@@ -12,6 +12,7 @@ import zarr
 from lfcore.runstore._chunks import RESTORE
 from lfcore.runstore._common import Part, RunStoreError, run_array
 from lfcore.runstore._coords import COORDINATES, add_coordinates
+from lfcore.runstore._schema import validated
 from lfcore.volume import VolumeGrid
 
 #: The data type of ``volumes/data``.
@@ -73,7 +74,8 @@ class Volumes(Part):
         """
         g = self.writing("volumes")
         key = "_frames_written"
-        done = {tuple(x) for x in g.attrs.get(key, [])} | {(int(p), int(f)) for p, f in written}
+        before = validated(self.path, g.basename, g.attrs, key)
+        done = {tuple(x) for x in before} | {(int(p), int(f)) for p, f in written}
         pairs = sorted({p for p, _ in done if (p, 0) in done and (p, 1) in done})
         more = {} if attrs is None else attrs(g.attrs)
         g.attrs.update({**more, key: sorted(done), "reconstructed_pairs": pairs})
@@ -104,7 +106,28 @@ class Volumes(Part):
     def volumes_id(self) -> str | None:
         """The name of the current ``volumes/`` (new each time it is made), None if there is none
         (or it was made before lfpiv recorded one)."""
-        return self.group["volumes"].attrs.get("volumes_id") if self.has_volumes else None
+        return self._volume_attr("volumes_id") if self.has_volumes else None
+
+    def _volume_attr(self, key: str) -> Any:
+        # one attribute of volumes/, checked (a reader of the vectors need not trust the whole grid)
+        return validated(self.path, "volumes", self.group["volumes"].attrs, key)
+
+    def volume_attrs(self, *, group: zarr.Group | None = None) -> dict[str, Any]:
+        """The attributes of ``volumes/`` (or of ``group``, its pending replacement), checked
+        (:class:`~lfcore.runstore._schema.VolumesAttrs`: the grid, the method, its settings and the
+        pairs reconstructed), a copy.
+
+        Raises
+        ------
+        RunStoreError
+            The run has no volumes, or one of them is not what the layout gives it (one line
+            naming it).
+        """
+        if group is None:
+            if "volumes" not in self.group:
+                raise RunStoreError(self._NO_VOLUMES.format(path=self.path))
+            group = self.group["volumes"]
+        return dict(validated(self.path, group.basename, group.attrs))
 
     # what a run without volumes says (formatted with path)
     _NO_VOLUMES = "{path} has no reconstructed volumes; run 'lfpiv reconstruct {path}' first"
@@ -124,10 +147,43 @@ class Volumes(Part):
         """The voxel grid of a volumes group (``volumes/`` or its pending replacement)."""
         if group is None or "data" not in group:
             raise RunStoreError(self._NO_VOLUMES.format(path=self.path))
-        a = group.attrs
+        a = self.volume_attrs(group=group)
         shape = tuple(int(n) for n in group["data"].shape[2:])
-        return VolumeGrid(shape=shape, voxel_mm=tuple(a["voxel_mm"]), origin_mm=tuple(a["origin_mm"]))
+        grid = VolumeGrid(shape=shape, voxel_mm=tuple(a["voxel_mm"]), origin_mm=tuple(a["origin_mm"]))
+        problem = grid_problem(group, grid)
+        if problem is not None:
+            raise RunStoreError(f"{self.path}: {problem}; restore it from a copy of the run, or remove "
+                                f"{self.path}/{group.basename} to reconstruct again")
+        return grid
 
     def reconstructed_pairs(self) -> list[int]:
         """The pairs of ``volumes/`` whose two volumes are written."""
-        return list(self.group["volumes"].attrs["reconstructed_pairs"]) if self.has_volumes else []
+        return list(self._volume_attr("reconstructed_pairs")) if self.has_volumes else []
+
+
+def grid_problem(group: zarr.Group, grid: VolumeGrid) -> str | None:
+    """How the voxel grid of a volumes group's attributes (``origin_mm``, ``voxel_mm``) disagrees
+    with its coordinate arrays ``x``, ``y``, ``z`` (written with them: an edited attribute), or
+    None where they agree or the group has none (made before them)."""
+    for k, axis in enumerate("xyz"):
+        if axis not in group:
+            return None
+        try:
+            stored = np.asarray(group[axis][...], dtype=np.float64)
+        except Exception:  # noqa: BLE001 - a damaged coordinate chunk: RunStore.verify names it
+            return None
+        want = grid.axis_mm(axis)
+        where = f"{group.basename}/ attribute"
+        if stored.shape != want.shape:
+            return (f"{group.basename}/{axis} holds {stored.size} voxel centres, but {group.basename}/data "
+                    f"{want.size} voxels along {axis} (a zarr.json was edited or damaged)")
+        # the attributes and the coordinates come from the same floats: only an edit moves them apart
+        if np.allclose(stored, want, rtol=1e-9, atol=1e-9 * abs(grid.voxel_mm[k])):
+            continue
+        step = float(np.diff(stored).mean()) if stored.size > 1 else grid.voxel_mm[k]
+        if not np.isclose(step, grid.voxel_mm[k], rtol=1e-9):
+            return (f"{where} voxel_mm is {list(grid.voxel_mm)}, but the voxel centres of {group.basename}/{axis} "
+                    f"are {step:.6g} mm apart (its zarr.json was edited or damaged)")
+        return (f"{where} origin_mm is {list(grid.origin_mm)}, but the first voxel centre of "
+                f"{group.basename}/{axis} is at {stored[0]:.6g} mm (its zarr.json was edited or damaged)")
+    return None

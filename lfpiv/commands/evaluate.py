@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         rows = summary_rows(evals)
         cols = list(rows[0])
         width = {c: max(len(c), *(len(r[c]) for r in rows)) for c in cols}
-        print(f"reconstruction ({store.group['volumes'].attrs['method']}), matching within "
+        print(f"reconstruction ({store.volume_attrs()['method']}), matching within "
               f"{args.match_voxels:g} voxels per axis:")
         print("  ".join(c.ljust(width[c]) for c in cols))
         for r in rows:

@@ -16,7 +16,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "store of the same layout as a recorded run, ready for reconstruct, correlate, evaluate and "
                        "export. Each camera's files are a glob pattern (quote it), a folder or a DaVis set, in "
                        "natural order (img2 before img10). Every file is checked (size against the camera's "
-                       "sensor_px, values against its bit_depth) before anything is written; each source's path, "
+                       "sensor_px, values against its bit_depth, compressed pages decoded) before anything is "
+                       "written, and every entry that cannot be a frame (a dangling link, a file whose name breaks "
+                       "the others') is named, never skipped; each source's path, "
                        "size and checksum go into the run's attributes; the files are only read.")
     s.add_argument("--rig", required=True, metavar="RIG", help="rig file (TOML) the files were recorded with")
     s.add_argument("--out", required=True, metavar="RUN", help="run store to create (a .zarr directory)")

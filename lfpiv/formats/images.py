@@ -28,12 +28,14 @@ writes anything; TIFF files are checked from their headers.
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import hashlib
 import io
 import logging
 import os
 import re
+import stat
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -56,6 +58,7 @@ __all__ = [
     "image_files",
     "inspect_image",
     "natural_sort",
+    "odd_names",
     "pair_frames",
     "read_frame",
     "read_image",
@@ -122,18 +125,94 @@ def image_files(pattern: str | os.PathLike[str]) -> list[Path]:
                               "with the folder of the same name")
         p = folder
     if p.is_dir():
-        found = [f for f in p.iterdir() if f.is_file() and f.suffix.lower() in SUFFIXES]
-        if not found:
+        entries = [f for f in p.iterdir() if f.suffix.lower() in SUFFIXES]
+        if not entries:
             vectors = any(f.suffix.lower() in (".vc7", ".vec") for f in p.iterdir())
             raise FormatError(f"{p} holds no image files ({_KNOWN})"
                               + ("; it holds DaVis vector fields: import the recorded images instead" if vectors
                                  else "; give the folder of the recording or a pattern such as 'rec/*.tif'"))
-        return natural_sort(found)
-    found = [Path(f) for f in glob.glob(str(pattern), recursive=True) if Path(f).is_file()]
-    if not found:
-        raise FormatError(f"no file matches {str(pattern)!r}; check the pattern (quote it, so that the shell "
-                          "passes it on unexpanded)")
-    return natural_sort(found)
+    else:
+        entries = [Path(f) for f in glob.glob(str(pattern), recursive=True)]
+        # a folder a pattern such as 'rec/*' matches is passed over; an entry named as an image is not
+        entries = [f for f in entries if f.suffix.lower() in SUFFIXES or not f.is_dir()]
+        if not entries:
+            raise FormatError(f"no file matches {str(pattern)!r}; check the pattern (quote it, so that the shell "
+                              "passes it on unexpanded)")
+    entries = natural_sort(entries)
+    unusable = [(f, why) for f in entries if (why := _not_a_file(f)) is not None]
+    if unusable:
+        more = (f" (and {len(unusable) - 1} more entr{'y' if len(unusable) == 2 else 'ies'} that cannot be read: "
+                + ", ".join(str(f) for f, _ in unusable[1:4]) + (" ..." if len(unusable) > 4 else "") + ")"
+                if len(unusable) > 1 else "")
+        f, why = unusable[0]
+        # skipping it would shift frames A and B of every later pair: it is named, never passed over
+        raise FormatError(f"{f} {why}{more}; every file the pattern matches is a frame, so fix or remove it, or "
+                          "narrow the pattern to the recording's files")
+    found = entries
+    odd = odd_names(found)
+    if odd:
+        common = re.sub(r"\d+", "*", next(f for f in found if f not in odd).name)
+        them = "it" if len(odd) == 1 else "them"
+        who = (f"{odd[0]}: its name does" if len(odd) == 1 else
+               f"{len(odd)} files ({', '.join(f.name for f in odd[:3])}{' ...' if len(odd) > 3 else ''}) do")
+        raise FormatError(f"{who} not follow the names of the other {len(found) - len(odd)} files ({common}), and "
+                          f"taken as frames {them} would shift frames A and B of the pairs after {them}; move {them} "
+                          f"out of the recording, or narrow the pattern (e.g. '{odd[0].parent / common}')")
+    return found
+
+
+def _not_a_file(path: Path) -> str | None:
+    """Why a directory entry cannot be read as an image file (a dangling or looping symbolic
+    link, a folder, a pipe, an entry that cannot be examined), or None for a regular file."""
+    try:
+        st = path.stat()
+    except OSError as exc:
+        if path.is_symlink():
+            target = os.readlink(path)
+            if exc.errno == errno.ELOOP:
+                return f"is a symbolic link that loops (to {target})"
+            return f"is a dangling symbolic link (to {target}, which does not exist)"
+        return f"cannot be examined ({one_line(exc.strerror or exc)})"
+    if stat.S_ISREG(st.st_mode):
+        return None
+    kind = "a folder" if stat.S_ISDIR(st.st_mode) else "a named pipe" if stat.S_ISFIFO(st.st_mode) else \
+        "a device or socket"
+    return f"is {kind}, not an image file"
+
+
+def _name_pattern(name: str) -> str:
+    """A file name with every run of digits as ``#`` (``img_0042.tif``: ``img_#.tif``)."""
+    return re.sub(r"\d+", "#", name.casefold())
+
+
+def odd_names(files: Sequence[Path]) -> list[Path]:
+    """The files whose names break the pattern of the others (``background.tif`` among
+    ``img_0001.tif`` ...), which taken as frames would shift frames A and B of every later pair.
+
+    A file is odd when no other file's name has its pattern (digits aside) while the names of
+    most files repeat a pattern: ``B00001_A.tif``, ``B00001_B.tif`` ... are two patterns, both
+    kept. Sets of three files or fewer are not judged.
+
+    Parameters
+    ----------
+    files
+        The files of one camera's pattern, in order.
+
+    Returns
+    -------
+    list of pathlib.Path
+        The odd files, in order; [] if none.
+    """
+    if len(files) <= 3:
+        return []
+    patterns = [_name_pattern(f.name) for f in files]
+    counts: dict[str, int] = {}
+    for pat in patterns:
+        counts[pat] = counts.get(pat, 0) + 1
+    repeated = sum(n for n in counts.values() if n > 1)
+    if repeated * 2 <= len(files):  # no pattern the names follow
+        return []
+    return [f for f, pat in zip(files, patterns, strict=True) if counts[pat] == 1]
 
 
 # --- one file ---------------------------------------------------------------------------
@@ -216,6 +295,44 @@ def _damaged(path: Path, why: object) -> FormatError:
                        "again from the recording")
 
 
+def _tiff_frames(tf: Any, path: Path) -> list[tuple[int, int]]:
+    """(series, page in it) of every frame of an open TIFF, in order: the pages of its one series,
+    or of several series of one image size and type (a file appended page by page, which tifffile
+    reads as one series per page).
+
+    Raises
+    ------
+    FormatError
+        Series of different sizes or types, or colour or multi-channel images.
+    """
+    series = tf.series
+    shapes = {(tuple(s.shape[-2:]), np.dtype(s.dtype).name) for s in series}
+    if len(series) > 1 and (len(shapes) > 1 or any(len(s.shape) > 3 for s in series)):
+        sizes = ", ".join("x".join(map(str, s.shape)) + f" {np.dtype(s.dtype).name}" for s in series[:3])
+        raise FormatError(f"{path} holds images of different sizes or types ({sizes}); export the frames of one "
+                          "camera as pages of one size")
+    for s in series:
+        page = s.pages[0] if len(s.pages) else tf.pages[0]
+        if page.samplesperpixel > 1 or len(s.shape) > 3:
+            raise FormatError(f"{path} holds {'colour' if page.samplesperpixel > 1 else 'multi-channel'} "
+                              f"images (shape {s.shape}); export the camera's greyscale frames")
+        if page.bitspersample == 1:
+            raise FormatError(f"{path} holds 1-bit (bilevel, black and white) images, not camera counts; export the "
+                              "camera's 8- or 16-bit greyscale frames")
+    if len(series) == 1:
+        s = series[0]
+        n = s.shape[0] if len(s.shape) == 3 else 1
+        return [(0, k) for k in range(n)]
+    return [(i, k) for i, s in enumerate(series) for k in range(s.shape[0] if len(s.shape) == 3 else 1)]
+
+
+def _tiff_read(tf: Any, at: list[tuple[int, int]], keys: Sequence[int]) -> np.ndarray:
+    """Frames ``keys`` (indices into ``at``, :func:`_tiff_frames`) of an open TIFF, decoded."""
+    if len({i for i, _ in at}) == 1:  # one series: tifffile reads the pages asked at once
+        return tf.asarray(key=list(keys), series=0) if len(at) > 1 else tf.asarray(series=0)
+    return np.stack([tf.asarray(series=at[k][0], key=at[k][1]) for k in keys])
+
+
 def _tiff_info(path: Path) -> ImageInfo:
     import tifffile
 
@@ -224,26 +341,29 @@ def _tiff_info(path: Path) -> ImageInfo:
         with _tiff_errors() as errors, tifffile.TiffFile(path) as tf:
             if not len(tf.pages):
                 raise _damaged(path, errors[0] if errors else "no image in the file")
-            series = tf.series
-            if len(series) != 1:
-                shapes = ", ".join("x".join(map(str, s.shape)) for s in series[:3])
-                raise FormatError(f"{path} holds images of different sizes ({shapes}); export the frames of one "
-                                  "camera as pages of one size")
-            s = series[0]
+            at = _tiff_frames(tf, path)
+            s = tf.series[0]
             page = tf.pages[0]
-            if page.samplesperpixel > 1 or len(s.shape) > 3:
-                raise FormatError(f"{path} holds {'colour' if page.samplesperpixel > 1 else 'multi-channel'} "
-                                  f"images (shape {s.shape}); export the camera's greyscale frames")
-            shape = s.shape if len(s.shape) == 3 else (1, *s.shape)
             ends = [o + c for p in tf.pages for o, c in zip(p.dataoffsets, p.databytecounts, strict=False)]
-            if s.dataoffset is not None:  # contiguous data (ImageJ stacks may hold one page header only)
-                ends.append(s.dataoffset + s.nbytes)
+            for ser in tf.series:
+                if ser.dataoffset is not None:  # contiguous data (ImageJ stacks may hold one page header only)
+                    ends.append(ser.dataoffset + ser.nbytes)
             if ends and max(ends) > size:
                 raise _damaged(path, f"its image data end at byte {max(ends)}, the file at {size}")
             if errors:
                 raise _damaged(path, errors[0])
-            return ImageInfo(path, "tiff", int(shape[0]), int(shape[1]), int(shape[2]), np.dtype(s.dtype).name,
-                             int(page.bitspersample))
+            dtype = np.dtype(s.dtype)
+            _uint16_dtype(dtype.name, path)
+            if dtype.kind == "i" or any(p.compression != 1 for p in tf.pages):
+                # compressed or signed pages are decoded now, each, so that a page that does not decode, or holds
+                # negative counts, is found before an import writes anything (uncompressed unsigned pages were
+                # checked above: their bytes are all in the file)
+                for k in range(len(at)):
+                    _as_uint16(np.asarray(_tiff_read(tf, at, [k])), path)
+                if errors:
+                    raise _damaged(path, errors[0])
+            rows, columns = (int(n) for n in s.shape[-2:])
+            return ImageInfo(path, "tiff", len(at), rows, columns, dtype.name, int(page.bitspersample))
     except FormatError:
         raise
     except MemoryError:
@@ -317,7 +437,10 @@ def _uint16_dtype(dtype: str, path: Path) -> None:
     if d.kind == "f" or d.kind == "c":
         raise FormatError(f"{path} holds floating-point pixels ({d.name}), not camera counts; import the raw "
                           "recording, not processed images")
-    if d.kind not in "uib":
+    if d.kind == "b":
+        raise FormatError(f"{path} holds 1-bit (bilevel, black and white) images, not camera counts; export the "
+                          "camera's 8- or 16-bit greyscale frames")
+    if d.kind not in "ui":
         raise FormatError(f"{path} holds pixels of type {d.name}; export 8- or 16-bit greyscale images")
 
 
@@ -328,7 +451,11 @@ def _as_uint16(data: np.ndarray, path: Path) -> np.ndarray:
         return data
     if data.dtype.itemsize > 1 or data.dtype.kind == "i":
         lo, hi = (int(data.min()), int(data.max())) if data.size else (0, 0)
-        if lo < 0 or hi > 65535:
+        if lo < 0:  # refused, not offset: an offset would change every count the reconstruction sees
+            raise FormatError(f"{path} holds signed {data.dtype.name} values down to {lo}, and camera counts are never "
+                              "negative (a background-subtracted image?); import the raw recording, or add an offset "
+                              f"of at least {-lo} and save the frames as unsigned 16-bit")
+        if hi > 65535:
             raise FormatError(f"{path} holds {data.dtype.name} values from {lo} to {hi}, outside 0..65535 of 16-bit "
                               "camera counts; export the raw 16-bit frames")
     return data.astype(np.uint16)
@@ -345,17 +472,18 @@ def _read(path: Path, frames: Sequence[int] | None = None, raw: bytes | None = N
 
         try:
             with _tiff_errors() as errors, tifffile.TiffFile(path if raw is None else io.BytesIO(raw)) as tf:
-                n = len(tf.series[0].pages) if tf.series else 0
+                at = _tiff_frames(tf, path) if tf.series else []
+                n = len(at)
                 keys = list(range(n)) if frames is None else list(frames)
                 if any(k >= n for k in keys):
                     raise FormatError(f"{path} holds {n} page(s), not page {max(keys)}; was it changed since it was "
                                       "inspected?")
-                pages = tf.series[0].pages
-                views = None if raw is None else [_raw_view(raw, pages[k], tf.byteorder) for k in keys]
+                views = None if raw is None else [_raw_view(raw, tf.series[at[k][0]].pages[at[k][1]], tf.byteorder)
+                                                  for k in keys]
                 if views is not None and all(v is not None for v in views):
                     data = np.stack(views)  # uncompressed pages of a file read already: no decoding
                 else:
-                    data = tf.asarray(key=keys, series=0) if n > 1 else tf.asarray(series=0)
+                    data = _tiff_read(tf, at, keys)
                 if errors:
                     raise _damaged(path, errors[0])
         except FormatError:
@@ -385,8 +513,8 @@ def _raw_view(raw: bytes, page: Any, byteorder: str) -> np.ndarray | None:
     other page: tifffile decodes those)."""
     try:
         if (page is None or page.compression != 1 or page.predictor != 1 or page.fillorder != 1
-                or page.bitspersample != 16 or page.samplesperpixel != 1 or not page.is_contiguous
-                or len(page.shape) != 2):
+                or page.sampleformat != 1 or page.bitspersample != 16 or page.samplesperpixel != 1
+                or not page.is_contiguous or len(page.shape) != 2):
             return None
         offset, count = page.dataoffsets[0], int(np.prod(page.shape)) * 2
     except (AttributeError, IndexError, TypeError):
@@ -570,7 +698,18 @@ def pair_frames(files: Sequence[str | os.PathLike[str]], *, layout: str,
                           if layout == "separate" else f"the {layout} layout takes one list of files, not frames B")
     if not files:
         raise FormatError("no image files given; check the file pattern")
-    infos = {Path(p): inspect_image(p) for p in [*files, *(files_b or [])]}
+    infos: dict[Path, ImageInfo] = {}
+    bad: list[tuple[Path, FormatError]] = []
+    for p in [*files, *(files_b or [])]:
+        try:
+            infos[Path(p)] = inspect_image(p)
+        except FormatError as exc:  # every file that cannot be used is named, not only the first
+            bad.append((Path(p), exc))
+    if bad:
+        more = "" if len(bad) == 1 else (f" (and {len(bad) - 1} more file(s) that cannot be used: "
+                                         + ", ".join(str(p) for p, _ in bad[1:4]) + (" ..." if len(bad) > 4 else "")
+                                         + ")")
+        raise FormatError(f"{bad[0][1]}{more}")
     seq = [infos[Path(p)] for p in files]
     if layout == "interleaved":
         frames = _frames_in_order(seq)

@@ -98,11 +98,15 @@ def _settings(cfg: CorrelationConfig, device: str, fft: str) -> dict[str, Any]:
             "first_overlap": None if cfg.first_overlap is None else list(cfg.first_overlap)}
 
 
-def _same_vectors(g: Any, volumes_id: str | None, windows: list[list[int]], overlap: list[float], dt_s: float,
-                  coords: tuple[np.ndarray, np.ndarray, np.ndarray], settings: dict[str, Any]) -> bool:
+def _same_vectors(store: RunStore, g: Any, volumes_id: str | None, windows: list[list[int]], overlap: list[float],
+                  dt_s: float, coords: tuple[np.ndarray, np.ndarray, np.ndarray], settings: dict[str, Any]) -> bool:
     """Whether the stored ``vectors/`` group ``g`` holds vectors of these settings, on this grid,
-    from the current volumes (vectors of volumes since replaced are not kept)."""
-    old = dict(g.attrs)
+    from the current volumes (vectors of volumes since replaced are not kept). Its attributes are
+    checked (a damaged one is a one-line error): a group created but never begun (killed before
+    its attributes were written) holds none."""
+    if "correlated_pairs" not in g.attrs:
+        return False
+    old = store.vector_attrs(group=g)
     return (old.get("volumes_id") == volumes_id and old["windows"] == windows and old["overlap"] == overlap
             and float(old["dt_s"]) == dt_s
             and all(np.array_equal(g[n][...], c) for n, c in zip(("x_mm", "y_mm", "z_mm"), coords, strict=True))
@@ -158,7 +162,7 @@ class _Target:
 
     @classmethod
     def of(cls, store: RunStore) -> _Target:
-        return cls(store, store.volume_grid(), float(store.timing["dt_s"]), store.vector_arrays())
+        return cls(store, store.volume_grid(), store.dt_s, store.vector_arrays())
 
 
 def _read_planes(store: RunStore, pair: int) -> Any:
@@ -304,18 +308,21 @@ def correlate_run(store: RunStore, cfg: CorrelationConfig, pairs: list[int], *, 
     except CorrelationError as exc:
         raise UsageError(str(exc)) from None
     x_mm, y_mm, z_mm = centres_mm(g.centres(), grid.origin_mm, grid.voxel_mm)
-    dt_s = float(store.timing["dt_s"])
+    dt_s = store.dt_s
     # on a cluster the workers resolve the device; recorded from the first pair they finish
     place = (correlator.device, correlator.fft) if correlator is not None else (device or "auto", cfg.fft)
     settings = _settings(cfg, *place)
     windows, overlap = [list(w) for w in cfg.windows], list(cfg.overlap)
 
     def same(g: Any) -> bool:
-        return g is not None and _same_vectors(g, store.volumes_id, windows, overlap, dt_s, (x_mm, y_mm, z_mm),
+        return g is not None and _same_vectors(store, g, store.volumes_id, windows, overlap, dt_s, (x_mm, y_mm, z_mm),
                                                settings)
 
     def differences(g: Any) -> list[str]:
-        old = dict(g.attrs)
+        try:
+            old = store.vector_attrs(group=g)
+        except RunStoreError:  # for a note: an unfinished replacement's attributes, damaged or never written
+            return ["attributes"]
         changed = ["volumes since replaced"] if old.get("volumes_id") != store.volumes_id else []
         changed += [k for k, v in (("windows", windows), ("overlap", overlap)) if old.get(k) != v]
         s = old.get("settings", {})

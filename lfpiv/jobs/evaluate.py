@@ -13,7 +13,6 @@ from typing import Any
 import numpy as np
 
 from lfcore import metrics
-from lfcore.flows import flow_from_params
 from lfcore.runstore import RunStore, RunStoreError
 from lfcore.vectors import FLAG_OUTLIER, FLAG_REPLACED
 from lfpiv.errors import UsageError
@@ -155,8 +154,8 @@ def evaluate_vector_fields(store: RunStore, pairs: slice | None = None, *,
     dt = float(a["dt_s"])
     truth = store.truth()
     errors = vox = None
-    if truth is not None:
-        flow = flow_from_params(truth["attrs"]["flow"])
+    flow = store.truth_flow()  # None: recorded, or points given by the user
+    if truth is not None and flow is not None:
         ref = np.stack([metrics.grid_velocity(flow, x, y, z, truth["t0_s"][p] + 0.5 * dt) for p in pairs])
         errors = metrics.velocity_errors(vel, ref)
         if store.has_volumes and not store.vectors_outdated:  # the same errors in voxels of their volumes

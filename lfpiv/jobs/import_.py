@@ -7,8 +7,14 @@ a run store of the same layout as a recorded run (state ``complete``), ready for
 
 What keeps the lab's data safe:
 
-- every file is inspected (and every frame's size checked against the camera's ``sensor_px``)
-  before the store is created, so a set that cannot be imported leaves nothing behind;
+- every file is inspected (and every frame's size checked against the camera's ``sensor_px``,
+  compressed and signed TIFF pages decoded) before the store is created, so a set that cannot be
+  imported leaves nothing behind; every entry the pattern matches that cannot be a frame (a
+  dangling or looping link, a pipe, a file whose name breaks the others') is named, never
+  skipped, which would shift frames A and B of every later pair; signed images with negative
+  counts and 1-bit images are refused (:mod:`lfpiv.formats.images`);
+- a source file that changes after it was inspected (still being copied or written) is refused
+  when it is read;
 - every byte of every source is read once, for its pixels and its checksum alike (CRC32C, or
   SHA-256), and each source's path, size and checksum go into the run's ``import`` attribute; values beyond the
   camera's ``bit_depth`` are refused with the file named; sources are only ever read;
@@ -25,11 +31,12 @@ codecs and file I/O release the interpreter lock).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -291,6 +298,7 @@ def import_files(rig: Rig, out: str | os.PathLike[str], *, frames: Mapping[str, 
     if checksum not in CHECKSUMS:
         raise UsageError(f"--checksum must be one of {', '.join(CHECKSUMS)}, got '{checksum}'")
     cams, found = _sources_of(rig, frames, frames_b, davis, layout)
+    stamps = _stamps(cams)  # as the files were checked: one that changes from now on is refused
     timing = _timing(dt_us, rate_hz, found)
     n_pairs = _pairs_in_run(cams)
     plan = {**_plan(cams, layout), "checksum": checksum}
@@ -303,7 +311,7 @@ def import_files(rig: Rig, out: str | os.PathLike[str], *, frames: Mapping[str, 
     started = time.perf_counter()
     try:
         read = _copy(store, cams, done, n_pairs, progress=progress, threads=threads or max(2, cpu_threads()),
-                     checksum=checksum)
+                     checksum=checksum, stamps_at_start=stamps)
     except BaseException as exc:
         if done == 0 and store.committed_pairs == 0:
             # nothing imported yet: the store this call made is removed, not left half-written
@@ -326,8 +334,47 @@ def import_files(rig: Rig, out: str | os.PathLike[str], *, frames: Mapping[str, 
 FRAMES_READ_WHOLE = 2
 
 
+def _stamp(path: Path) -> tuple[int, int]:
+    """(size, time of last change in ns) of a source file, to tell whether it changed."""
+    st = os.stat(path)
+    return st.st_size, st.st_mtime_ns
+
+
+def _stamps(cams: list[_Camera]) -> dict[Path, tuple[int, int]]:
+    """:func:`_stamp` of every source file of every camera, taken when the files were checked."""
+    out = {}
+    for c in cams:
+        for src in [s for p in c.pairs for s in (p.a, p.b)] + list(c.unpaired):
+            if src.path not in out:
+                try:
+                    out[src.path] = _stamp(src.path)
+                except OSError as exc:
+                    raise UsageError(f"{src.path} cannot be examined ({exc.strerror or exc}); check the file") from None
+    return out
+
+
+@contextlib.contextmanager
+def _unchanged(path: Path, stamps: dict[Path, tuple[int, int]]) -> Iterator[None]:
+    """Inside, ``path`` is read; a :class:`FormatError` if it is not as it was when the files were
+    checked (``stamps``), before or after: a file still being written, or replaced, is never
+    imported half old and half new."""
+    def check() -> None:
+        try:
+            now = _stamp(path)
+        except OSError as exc:
+            raise FormatError(f"{path} cannot be examined any more ({exc.strerror or exc}): was it moved or deleted "
+                              "during the import? import again once the recording is in place") from None
+        if now != stamps.get(path, now):
+            raise FormatError(f"{path} changed during the import ({stamps[path][0]} bytes when the files were "
+                              f"checked, {now[0]} now, or written since); import again once nothing writes to the "
+                              "recording")
+    check()
+    yield
+    check()
+
+
 def _copy(store: RunStore, cams: list[_Camera], first: int, n_pairs: int, *, progress: bool, threads: int,
-          checksum: str) -> int:
+          checksum: str, stamps_at_start: dict[Path, tuple[int, int]] | None = None) -> int:
     """Read pairs ``first .. n_pairs - 1`` of every camera and write them; returns bytes read.
 
     One task per source file of up to :data:`FRAMES_READ_WHOLE` frames (read once, for pixels and
@@ -337,6 +384,7 @@ def _copy(store: RunStore, cams: list[_Camera], first: int, n_pairs: int, *, pro
     """
     from lfpiv.formats.images import read_frame, source_file
 
+    stamps_at_start = _stamps(cams) if stamps_at_start is None else stamps_at_start
     writers = {c.name: FrameWriter(store.frames(c.name)) for c in cams}
     rate, dt = store.timing.get("rate_hz"), float(store.timing["dt_s"])
     made = dict(store.attrs["import"])
@@ -361,16 +409,20 @@ def _copy(store: RunStore, cams: list[_Camera], first: int, n_pairs: int, *, pro
 
     def whole(path: Path, frames: list) -> tuple[dict[str, Any] | None, list]:
         cam = frames[0][0]
-        images, prov = read_sources(path, [s for *_, s in frames], sensor_px=cam.sensor_px, bit_depth=cam.bit_depth,
-                                    checksum=checksum)
+        with _unchanged(path, stamps_at_start):
+            images, prov = read_sources(path, [s for *_, s in frames], sensor_px=cam.sensor_px,
+                                        bit_depth=cam.bit_depth, checksum=checksum)
         return prov.to_dict(), write(frames, images)
 
     def one_frame(frame: tuple[_Camera, int, int, FrameSource]) -> tuple[None, list]:
         c = frame[0]
-        return None, write([frame], [read_frame(frame[3], sensor_px=c.sensor_px, bit_depth=c.bit_depth)])
+        with _unchanged(frame[3].path, stamps_at_start):
+            image = read_frame(frame[3], sensor_px=c.sensor_px, bit_depth=c.bit_depth)
+        return None, write([frame], [image])
 
     def digest_of(path: Path) -> tuple[dict[str, Any], list]:
-        return source_file(path, checksum=checksum).to_dict(), []
+        with _unchanged(path, stamps_at_start):
+            return source_file(path, checksum=checksum).to_dict(), []
 
     tasks: list[tuple[Any, ...]] = []
     for path in sorted(by_file, key=lambda q: min(p for _, p, _, _ in by_file[q])):

@@ -104,7 +104,7 @@ def describe(path: str | Path) -> list[str]:
         ("run", str(store.path)),
         ("state", f"{store.state} ({store.committed_pairs} of {store.n_pairs} pairs committed)"),
         ("created", f"{a.get('created')} by lfpiv {a.get('software_version')}"),
-        ("timing", f"dt {t['dt_s'] * 1e3:g} ms, "
+        ("timing", (f"dt {t['dt_s'] * 1e3:g} ms, " if t.get("dt_s") else "dt unknown, ")
                    + (f"pairs at {t['rate_hz']:g} Hz" if t.get("rate_hz") else "pair rate unknown")),
         ("volume", f"{' x '.join(f'{s:g}' for s in v.size_mm)} mm centred at "
                    f"({', '.join(f'{c:g}' for c in v.centre_mm)}); {' x '.join(str(n) for n in grid.shape[::-1])} "
@@ -146,7 +146,7 @@ def describe(path: str | Path) -> list[str]:
         lines.append(("writer", f"being written by pid {w.get('pid')} on {w.get('host')} ({w.get('command')!r}, since "
                                 f"{w.get('since')})"))
     if store.has_volumes:
-        va = store.group["volumes"].attrs
+        va = store.volume_attrs()
         g = store.volume_grid()
         lines.append(("volumes", f"{_count(store.reconstructed_pairs())} reconstructed by {va['method']}, "
                                  f"{va['settings'].get('iterations')} iterations{_warm(va['settings'])}, "
@@ -158,14 +158,18 @@ def describe(path: str | Path) -> list[str]:
     else:
         lines.append(("volumes", f"none (lfpiv reconstruct {store.path})"))
     if store.has_vectors:
-        windows = store.group["vectors"].attrs["windows"]
+        windows = store.vector_attrs()["windows"]
         lines.append(("vectors", f"{_count(store.correlated_pairs())} correlated, windows "
                                  f"{_windows(windows)}"
                                  + ("; from volumes since replaced" if store.vectors_outdated else "")))
     for name, command in (("volumes", "reconstruct"), ("vectors", "correlate")):
         pending = store.pending(name)
         if pending is not None:
-            a = pending.attrs
+            try:
+                a = store.volume_attrs(group=pending) if name == "volumes" else store.vector_attrs(group=pending)
+            except RunStoreError as exc:  # an unfinished replacement, damaged: said, and the rest shown
+                lines.append((f"{name}.pending", f"an unfinished replacement, damaged: {exc}"))
+                continue
             made = (f"{a.get('method')}, {a.get('settings', {}).get('iterations')} iterations" if name == "volumes"
                     else f"windows {_windows(a.get('windows', []))}")
             stale = name == "vectors" and a.get("volumes_id") != store.volumes_id

@@ -26,7 +26,7 @@ from lfcore.plan import (
 from lfcore.plan import default_method as cameras_default_method
 from lfcore.reconstruct import MAX_SUB_APERTURES, FrameReconstructor, ReconResult, ReconSettings
 from lfcore.rig import Rig, is_pinhole, voxel_shape_warnings
-from lfcore.runstore import RunStore
+from lfcore.runstore import RunStore, RunStoreError
 from lfcore.slabs import SlabReconstructor
 from lfcore.volume import VolumeGrid
 from lfcore.warm import Predictor, WarmStart, predictor_field
@@ -389,7 +389,10 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                  "level per camera, the lenses' and micro-images' vignetting and any dust left in)")
 
     def differences(g: Any) -> list[str]:
-        old = _recorded(g.attrs.get("settings", {}))
+        try:
+            old = _recorded(store.volume_attrs(group=g)["settings"]) if "data" in g else {}
+        except RunStoreError:  # for a note: the attributes of an unfinished replacement, damaged
+            return ["attributes"]
         changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k)]
         return (["voxel grid"] if "data" in g and store.grid_of(g) != grid else []) + changed
 
@@ -467,7 +470,7 @@ def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, An
     """True when ``group`` (volumes or their pending replacement, None if absent) holds volumes
     on ``grid`` made with the settings ``meta``."""
     return (group is not None and "data" in group and store.grid_of(group) == grid
-            and _recorded(group.attrs["settings"]) == meta)
+            and _recorded(store.volume_attrs(group=group)["settings"]) == meta)
 
 
 def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
