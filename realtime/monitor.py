@@ -280,6 +280,11 @@ def run_monitor_window(pipeline: LivePipeline, controls: Controls, *, title: str
             pipeline.stop()
             numbers = win.status_numbers()
             stop_s = time.monotonic() - t0
+            # the window's widgets destroyed by Qt now, while the application exists: left to the
+            # interpreter's exit, pyqtgraph's items of the checks panel were freed after it (a segfault)
+            win.deleteLater()
+            QtCore.QCoreApplication.sendPostedEvents(None, QtCore.QEvent.Type.DeferredDelete)
+            app.processEvents()
     finally:
         signal.signal(signal.SIGINT, previous_int)
     return WindowOutcome(numbers=numbers, screenshot=shot["path"] if shot["error"] is None else None,

@@ -151,6 +151,7 @@ class MonitorWindow(QtWidgets.QMainWindow):
         self._bridge.checks_ready.connect(self._draw_checks, QtCore.Qt.ConnectionType.QueuedConnection)
         self._checker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lfpiv-checks")
         self._checks_busy = False
+        self._closing = False
         self._checks_due = 0.0
         self._checks_pending: dict[str, Any] | None = None
         self.last_checks: dict[str, Any] = {}
@@ -226,6 +227,8 @@ class MonitorWindow(QtWidgets.QMainWindow):
                 result = {"error": str(exc)}
             with self._pending_lock:
                 self._checks_pending = result
+            if self._closing:
+                return
             try:
                 self._bridge.checks_ready.emit()
             except RuntimeError:  # the window closed meanwhile
@@ -493,7 +496,10 @@ class MonitorWindow(QtWidgets.QMainWindow):
     def closeEvent(self, event) -> None:  # noqa: N802 - Qt's name
         self._timer.stop()
         self._unsubscribe()
-        self._checker.shutdown(wait=False, cancel_futures=True)
+        # a check still running ends before the window's objects go: its signal into a deleted bridge,
+        # or its thread alive at the interpreter's exit, crashed the process (segfault)
+        self._closing = True
+        self._checker.shutdown(wait=True, cancel_futures=True)
         if self.controls is not None and self.controls.armed:
             self.controls.disarm()
         super().closeEvent(event)
