@@ -300,7 +300,7 @@ class ParticleReconstructor:
         ``iterations`` are replaced by ``settings``'; None: the defaults.
     """
 
-    def __init__(self, projector: Projector, settings: IprSettings | None = None, *,
+    def __init__(self, projector: Projector, *, settings: IprSettings | None = None,
                  recon: ReconSettings | None = None) -> None:
         from dataclasses import replace
 

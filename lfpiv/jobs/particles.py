@@ -90,7 +90,7 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     grid = VolumeGrid.from_rig(rig)
     proj = projector_for(cams, grid, device=device)
     try:
-        ipr = ParticleReconstructor(proj, settings)
+        ipr = ParticleReconstructor(proj, settings=settings)
     except MemoryBudgetError as exc:
         raise UsageError(str(exc)) from None
     meta = {**settings.as_dict(), "method": ipr.method, "cameras": names}

@@ -1,0 +1,48 @@
+"""`lfpiv particles` and the particle lines of `lfpiv evaluate`, end to end on a tiny synthetic run."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from lfcore.runstore import RunStore
+from tests.conftest import EXAMPLES
+from tests.conftest import run_cli as _run
+
+
+def test_synth_particles_evaluate(tmp_path, capsys):
+    run = tmp_path / "run.zarr"
+    rc, _, err = _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "1", "--ppm", "0.3")
+    assert rc == 0, err
+    rc, out, err = _run(capsys, "particles", run, "--quiet")
+    assert rc == 0, err
+    assert "wrote" in out and "/particles: 1 pair(s)" in out
+    s = RunStore.open(run)
+    truth = s.truth()["particles"]
+    for f in (0, 1):
+        found = s.read_particles(0, f)
+        assert found.shape[1] == 5 and np.all(np.isfinite(found))
+        assert 0.8 * len(truth[0, f]) <= len(found) <= 1.2 * len(truth[0, f])
+    assert s.particle_attrs()["method"] == "drt-mart"
+    rc, out, err = _run(capsys, "evaluate", run)
+    assert rc == 0, err
+    m = re.search(r"^all\s+(\d+)\s+(\d+)\s+([\d.]+)\s+(\d+) \(([\d.]+)%\)\s+([\d.]+), ([\d.]+), ([\d.]+)", out, re.M)
+    assert m, out
+    recall, ghosts = float(m.group(3)), float(m.group(5))
+    rms = [float(m.group(k)) for k in (6, 7, 8)]
+    # measured 0.81 recall, 15% ghosts, 0.14, 0.11, 0.23 voxel on this run (tiny rig, 0.3 PPM, one camera)
+    assert recall > 0.7 and ghosts < 25.0
+    assert max(rms[:2]) < 0.25 and rms[2] < 0.4
+    # done already with these settings: nothing to do, nothing rewritten
+    rc, out, _ = _run(capsys, "particles", run, "--quiet", "--skip-done")
+    assert rc == 0 and "nothing to do" in out
+
+
+def test_bad_threshold_is_one_line_exit_2(tmp_path, capsys):
+    run = tmp_path / "run.zarr"
+    _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "1", "--ppm", "0.1")
+    rc, out, err = _run(capsys, "particles", run, "--threshold", "1")
+    assert rc == 2
+    assert "threshold" in err and "Traceback" not in err
+    assert not RunStore.open(run).has_particles
