@@ -12,7 +12,7 @@ renderer with noise. Each frame is reconstructed twice:
 
 ipr
     :class:`lfcore.ipr.ParticleReconstructor` with its defaults (its candidates come from a
-    30-iteration DRT-MART).
+    50-iteration DRT-MART).
 drt-mart
     DRT-MART with the default 50 iterations and the peaks of its volume
     (:func:`lfcore.metrics.detect_particles`, threshold 0.1), the route ``lfpiv evaluate`` measures.

@@ -90,7 +90,7 @@ class IprSettings:
     """
 
     method: str | None = None
-    candidate_iterations: int = 30
+    candidate_iterations: int = 50
     candidate_threshold: float = 0.05
     shakes: int = 12
     max_step_voxels: float = 0.5

@@ -38,8 +38,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--method", choices=("drt-mart", "mlos-mart", "mlos-smart"), default=None,
                    help="the reconstruction whose weights model the particles and give the candidates (default: "
                    "drt-mart for light-field cameras, mlos-smart for pinhole ones)")
-    c.add_argument("--candidate-iterations", type=iterations, default=30, metavar="N",
-                   help="iterations of the quick reconstruction whose peaks are the candidates (default: 30)")
+    c.add_argument("--candidate-iterations", type=iterations, default=50, metavar="N",
+                   help="iterations of the quick reconstruction whose peaks are the candidates (default: 50)")
     c.add_argument("--threshold", type=fraction, default=0.05,
                    help="candidates are peaks above this fraction of the brightest voxel (default: 0.05)")
     c.add_argument("--shakes", type=shakes, default=12, metavar="N",
