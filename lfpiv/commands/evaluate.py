@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     if not (store.has_volumes or store.has_vectors or store.has_particles):
         what = "" if truth else " is a recorded run with no truth and"
         raise UsageError(f"{store.path}{what} has neither volumes nor vectors yet; "
-                         f"run 'lfpiv reconstruct {store.path}' first")
+                         f"run 'lfpiv reconstruct {store.path}' first (or 'lfpiv particles {store.path}')")
     if not truth:
         # a recorded or imported run: what needs no truth (outliers, divergence) is still measured
         print("reconstruction: a recorded run with no truth: Q, recall and position errors need a synthetic run")

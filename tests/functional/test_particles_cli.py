@@ -34,6 +34,8 @@ def test_synth_particles_evaluate(tmp_path, capsys):
     # measured 0.82 recall, 14% ghosts, 0.14, 0.12, 0.22 voxel on this run (tiny rig, 0.3 PPM, one camera)
     assert recall > 0.7 and ghosts < 25.0
     assert max(rms[:2]) < 0.25 and rms[2] < 0.4
+    rc, out, _ = _run(capsys, "info", run)
+    assert rc == 0 and re.search(r"^particles\s+1 pair\(s\) \(0\) reconstructed \(drt-mart IPR", out, re.M), out
     # done already with these settings: nothing to do, nothing rewritten
     rc, out, _ = _run(capsys, "particles", run, "--quiet", "--skip-done")
     assert rc == 0 and "nothing to do" in out
