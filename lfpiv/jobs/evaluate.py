@@ -249,12 +249,17 @@ def evaluate_vector_fields(store: RunStore, pairs: slice | None = None, *,
         errors = metrics.velocity_errors(vel, ref)
         if store.has_volumes and not store.vectors_outdated:  # the same errors in voxels of their volumes
             vox = errors.rms_m_s * dt * 1e3 / np.asarray(store.volume_grid().voxel_mm)
+        elif store.has_particles and a.get("settings", {}).get("source") == "particle tracks":  # lfpiv track's
+            vox = errors.rms_m_s * dt * 1e3 / np.asarray(store.particle_attrs()["voxel_mm"])
     div = metrics.divergence_error(vel, x, y, z)
+    with warnings.catch_warnings():  # bins of tracks without a vector are NaN, and may be all of them
+        warnings.simplefilter("ignore", RuntimeWarning)
+        div_mean, div_median = float(np.nanmean(div)), float(np.nanmedian(div))
     return VectorEvaluation(pairs=pairs, counts=(len(x), len(y), len(z)), windows=[list(w) for w in a["windows"]],
                             errors=errors, rms_voxels=vox,
                             outliers=float(np.count_nonzero(flags & FLAG_OUTLIER) / flags.size),
                             replaced=float(np.count_nonzero(flags & FLAG_REPLACED) / flags.size),
-                            divergence_mean=float(np.nanmean(div)), divergence_median=float(np.nanmedian(div)))
+                            divergence_mean=div_mean, divergence_median=div_median)
 
 
 def evaluate_vectors(store: RunStore, pairs: slice | None = None, *, option: str = "--pair-range"
