@@ -48,8 +48,8 @@ problem of a run (:mod:`lfcore.runstore._integrity`). Stores made before both st
 
 The store is split by what it holds: ``_frames`` (frames, ids, time stamps, state and commits,
 and :class:`FrameWriter`), ``_drops``, ``_truth``, ``_volumes``, ``_vectors`` (with ``_coords``,
-their coordinate arrays), ``_particles`` (ragged by frame), ``_replacement`` (the ``*.pending`` machinery), ``_integrity``
-(checked reads and verification, with ``_chunks``) and ``_lock``, put together as
+their coordinate arrays), ``_particles`` (ragged by frame), ``_replacement`` (the ``*.pending``
+machinery), ``_integrity`` (checked reads and verification, with ``_chunks``) and ``_lock``, put together as
 :class:`RunStore` in ``_store``.
 """
 
