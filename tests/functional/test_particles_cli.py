@@ -73,3 +73,19 @@ def test_track_a_uniform_flow_into_vectors(tmp_path, capsys):
     assert float(m.group(1)) < 0.2 and float(m.group(2)) < 0.2 and float(m.group(3)) < 0.4
     rc, out, _ = _run(capsys, "track", run, "--quiet", "--skip-done")
     assert rc == 0 and "nothing to do" in out
+
+
+def test_the_python_api(tmp_path, capsys):
+    import lfpiv
+
+    run = tmp_path / "api.zarr"
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "1", "--ppm", "0.2",
+                "--flow", "uniform", "--displacement-px", "4", "--quiet")[0] == 0
+    done = lfpiv.particles(run, rounds=1, progress=False)
+    assert done.pairs == [0] and len(done.counts) == 2
+    tracked = lfpiv.track(run, bin_voxels=(32, 32, 8), progress=False)
+    assert tracked.pairs == [0] and tracked.tracks > 0
+    ev = lfpiv.evaluate(run)
+    assert len(ev.particles) == 2 and all(e.match.recall > 0.6 for e in ev.particles)
+    assert ev.vectors is not None and ev.vectors.rms_voxels is not None
+    assert lfpiv.open_run(run).particle_attrs()["settings"]["rounds"] == 1
