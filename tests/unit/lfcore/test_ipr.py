@@ -100,3 +100,21 @@ def test_run_store_keeps_particles_ragged_by_frame(tmp_path, tiny_rig):
     s.close()
     r = RunStore.open(tmp_path / "r.zarr")
     assert np.array_equal(r.read_particles(0, 1), frames[0][1])
+
+
+def test_pinhole_cameras_have_their_particles_reconstructed():
+    from lfcore import metrics
+    from lfcore.particles import seed_particles
+    from lfcore.render import renderer_for
+    from tests.helpers import tomo_arc_small
+
+    rig = tomo_arc_small()  # 4 pinhole cameras on an arc, one with distortion
+    grid = VolumeGrid.from_rig(rig)
+    pts = seed_particles(rig.volume, 60, np.random.default_rng(5))
+    imgs = [renderer_for(c, rig.render, device="cpu").frame(pts, 5000.0, seed=i) for i, c in enumerate(rig.camera)]
+    res = ipr.ParticleReconstructor(projector_for(rig.camera, grid, device="cpu")).reconstruct(imgs)
+    m = metrics.match_particles(res.positions_mm, pts, np.asarray(grid.voxel_mm))
+    # measured: recall 1.0, 3.2% ghosts, RMS 0.10, 0.13, 0.14 voxel (line-of-sight weights against
+    # Gaussian particle images)
+    assert m.recall >= 0.95 and m.ghost_fraction <= 0.1
+    assert np.all(m.rms_error_mm / np.asarray(grid.voxel_mm) < 0.25)
