@@ -135,4 +135,10 @@ class Particles(Part):
         if start < 0 or stop < start or stop > g["table"].shape[0]:
             raise RunStoreError(f"{self.path}: particles/index of pair {pair} is damaged ({start}, {stop}); "
                                 f"run 'lfpiv particles {self.path}' again")
-        return np.asarray(g["table"][start:stop], dtype=np.float64).reshape(-1, 5)
+        try:
+            rows = g["table"][start:stop]
+        except Exception as exc:  # noqa: BLE001 - a damaged chunk (checksum, codec, size): name it
+            raise RunStoreError(f"{self.path}: particles/table rows {start} to {stop - 1} (pair {pair}) cannot be "
+                                f"read ({type(exc).__name__}: {exc}); 'lfpiv check {self.path}' lists what is "
+                                "damaged") from None
+        return np.asarray(rows, dtype=np.float64).reshape(-1, 5)

@@ -118,3 +118,21 @@ def test_pinhole_cameras_have_their_particles_reconstructed():
     # Gaussian particle images)
     assert m.recall >= 0.95 and m.ghost_fraction <= 0.1
     assert np.all(m.rms_error_mm / np.asarray(grid.voxel_mm) < 0.25)
+
+
+def test_damaged_particles_are_named_not_read_as_data(tmp_path, tiny_rig):
+    from tests.helpers import chunk_file, damage_chunk
+
+    grid = VolumeGrid.from_rig(tiny_rig)
+    path = tmp_path / "r.zarr"
+    s = RunStore.create(path, tiny_rig, 1, timing={"dt_s": 1e-3, "rate_hz": 10.0}, software_version="test")
+    s.create_particles(grid, method="drt-mart", settings={})
+    s.write_particles(0, [np.ones((3, 5)), np.zeros((2, 5))])
+    s.close()
+    assert not [line for line in RunStore.open(path).verify() if "particles" in line]
+    damage_chunk(chunk_file(path, "particles/table", 0), "random")
+    r = RunStore.open(path)
+    with pytest.raises(RunStoreError, match="particles/table rows 0 to 2 .*lfpiv check"):
+        r.read_particles(0, 0)
+    problems = [line for line in r.verify() if "particles/table" in line]
+    assert len(problems) == 1 and "rows 0 to 4" in problems[0]
