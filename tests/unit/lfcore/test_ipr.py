@@ -136,3 +136,10 @@ def test_damaged_particles_are_named_not_read_as_data(tmp_path, tiny_rig):
         r.read_particles(0, 0)
     problems = [line for line in r.verify() if "particles/table" in line]
     assert len(problems) == 1 and "rows 0 to 4" in problems[0]
+
+
+def test_an_image_without_particles_gives_none(setup):
+    rig, grid, proj = setup
+    img = np.full((rig.camera[0].sensor_px[1], rig.camera[0].sensor_px[0]), 100, np.uint16)
+    res = ipr.ParticleReconstructor(proj).reconstruct([img])
+    assert res.n == 0 and res.table().shape == (0, 5)
