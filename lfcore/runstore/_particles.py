@@ -27,6 +27,8 @@ from lfcore.volume import VolumeGrid
 PARTICLE_COLUMNS = ("x_mm", "y_mm", "z_mm", "intensity", "residual")
 #: Rows of ``particles/table`` per chunk.
 TABLE_CHUNK = 65536
+#: The columns of ``vectors/tracks`` (written by ``lfpiv track``).
+TRACK_COLUMNS = ("x_a_mm", "y_a_mm", "z_a_mm", "x_b_mm", "y_b_mm", "z_b_mm", "outlier")
 
 
 class Particles(Part):
@@ -97,6 +99,56 @@ class Particles(Part):
         g = self._particles_writing()
         done = sorted(set(g.attrs.get("particle_pairs", [])) | {int(p) for p in pairs})
         g.attrs.update({"particle_pairs": done})
+
+    # --- the tracks of lfpiv track, kept with the vectors they are binned into --------------------
+    def create_tracks(self) -> None:
+        """Add the track arrays to the ``vectors/`` being written (made by :meth:`create_vectors`):
+        ``tracks`` float64 (m, 7): frame A's position, frame B's (x, y, z mm each) and 1 where the
+        outlier test rejected the track, 0 where it is kept; ``track_index`` int64 (pairs, 2): each
+        pair's start and stop row, -1 where not tracked. They follow ``vectors/`` wherever it goes
+        (its pending replacement, or replaced by ``correlate``)."""
+        g = self.writing("vectors")
+        run_array(g, "tracks", "mm, mm, mm, mm, mm, mm, 1", ["track", "field"],
+                  "frame A's x, y, z and frame B's x, y, z (mm) of each particle track, and 1 where rejected as an "
+                  "outlier", shape=(0, 7), chunks=(TABLE_CHUNK, 7), dtype=np.float64, fill_value=np.nan)
+        run_array(g, "track_index", "row", ["pair", "bound"], "start and stop row in tracks of each pair; -1 where "
+                  "not tracked", shape=(self.n_pairs, 2), chunks=(self.n_pairs, 2), dtype=np.int64, fill_value=-1)
+
+    def write_tracks(self, pair: int, tracks: np.ndarray) -> None:
+        """Append one pair's (m, 7) tracks (see :meth:`create_tracks`) to the ``vectors/`` being written;
+        the pair counts as done once its vectors are recorded (:meth:`write_vectors`)."""
+        g = self.writing("vectors")
+        rows = np.asarray(tracks, dtype=np.float64).reshape(-1, 7)
+        table, index = g["tracks"], g["track_index"]
+        start = int(table.shape[0])
+        table.resize((start + len(rows), 7))
+        if len(rows):
+            table[start:] = rows
+        bounds = index[...]
+        bounds[pair] = (start, start + len(rows))
+        index[...] = bounds
+
+    def read_tracks(self, pair: int) -> np.ndarray:
+        """The (m, 7) tracks of pair ``pair`` (:meth:`create_tracks`).
+
+        Raises
+        ------
+        RunStoreError
+            If the run's vectors hold no tracks of that pair (none tracked, or vectors from ``correlate``).
+        """
+        g = self.group["vectors"] if "vectors" in self.group else None
+        if g is None or "tracks" not in g or pair not in g.attrs.get("correlated_pairs", []):
+            raise RunStoreError(f"{self.path} holds no particle tracks of pair {pair}; run 'lfpiv track {self.path}'")
+        start, stop = (int(v) for v in g["track_index"][pair])
+        if start < 0 or stop < start or stop > g["tracks"].shape[0]:
+            raise RunStoreError(f"{self.path}: vectors/track_index of pair {pair} is damaged ({start}, {stop}); run "
+                                f"'lfpiv track {self.path}' again")
+        try:
+            rows = g["tracks"][start:stop]
+        except Exception as exc:  # noqa: BLE001 - a damaged chunk: name it
+            raise RunStoreError(f"{self.path}: vectors/tracks of pair {pair} cannot be read ({type(exc).__name__}: "
+                                f"{exc}); 'lfpiv check {self.path}' lists what is damaged") from None
+        return np.asarray(rows, dtype=np.float64).reshape(-1, 7)
 
     @property
     def has_particles(self) -> bool:

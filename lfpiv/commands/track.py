@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from lfpiv.commands import add_pair_range, old_spelling_notes, pairs_option, positive_int, xyz_triple
+from lfpiv.errors import UsageError
 
 
 def bins(text: str) -> tuple[int, int, int]:
@@ -37,6 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the field's bins in voxels (default: 16x16x8)")
     c.add_argument("--min-tracks", type=positive_int, default=2, metavar="N",
                    help="fewest tracks a bin needs for a vector (default: 2)")
+    c.add_argument("--csv", default=None, metavar="FILE",
+                   help="also write every tracked pair's tracks to FILE: pair, frame A's x, y, z and frame B's (mm), "
+                   "u, v, w (m/s), outlier")
     c.add_argument("--skip-done", action="store_true",
                    help="leave out the pairs tracked already with these settings")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -44,21 +48,30 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lfpiv.jobs.track import track_run, track_settings
+    from lfpiv.jobs.track import track_run, track_settings, tracks_csv
     from lfpiv.runs import open_run
 
     settings = track_settings(search_voxels=args.search_voxels, refine_voxels=args.refine_voxels,
                               passes=args.passes, bin_voxels=args.bin, min_tracks=args.min_tracks)
     store = open_run(args.run, mode="r+")
+    if args.csv:
+        from pathlib import Path
+
+        csv = Path(args.csv)
+        if csv.exists():
+            raise UsageError(f"--csv {csv}: it exists; give a new file (outputs are never replaced silently)")
+        if not csv.resolve().parent.is_dir():
+            raise UsageError(f"--csv {csv}: no folder {csv.parent}; give a file in an existing folder")
     done = track_run(store, settings, args.pairs, progress=not args.quiet, skip_done=args.skip_done,
                      option=pairs_option(args))
-    if not done.pairs:
+    if done.pairs:
+        nx, ny, nz = done.shape
+        print(f"wrote {store.path}/vectors: {len(done.pairs)} pair(s) of {nx} x {ny} x {nz} bins (x, y, z) from "
+              f"{done.tracks} tracks ({100.0 * done.outliers / max(done.tracks, 1):.1f}% outliers left out); "
+              f"{100.0 * done.vectors / max(done.bins, 1):.0f}% of the bins hold a vector")
+    else:
         print(f"every selected pair of {store.path} is tracked already with these settings; nothing to do")
-        old_spelling_notes(args)
-        return 0
-    nx, ny, nz = done.shape
-    print(f"wrote {store.path}/vectors: {len(done.pairs)} pair(s) of {nx} x {ny} x {nz} bins (x, y, z) from "
-          f"{done.tracks} tracks ({100.0 * done.outliers / max(done.tracks, 1):.1f}% outliers left out); "
-          f"{100.0 * done.vectors / max(done.bins, 1):.0f}% of the bins hold a vector")
+    if args.csv:
+        print(f"wrote {args.csv}: {tracks_csv(store, args.csv)} tracks of every tracked pair")
     old_spelling_notes(args)
     return 0

@@ -15,7 +15,7 @@ from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError
 from lfpiv.pair_runner import run_pairs, select_pairs
 
-__all__ = ["TrackSettings", "TracksDone", "track_run", "track_settings"]
+__all__ = ["TrackSettings", "TracksDone", "track_run", "track_settings", "tracks_csv"]
 
 
 def track_settings(**options: Any) -> TrackSettings:
@@ -36,6 +36,29 @@ class TracksDone:
     vectors: int = 0
     bins: int = 0
     shape: tuple[int, int, int] = (0, 0, 0)
+
+
+def _create(store: RunStore, x_mm: np.ndarray, y_mm: np.ndarray, z_mm: np.ndarray, dt_s: float,
+            windows: list[list[int]], meta: dict[str, Any]) -> None:
+    store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=windows, overlap=[0.0] * 3, settings=meta)
+    store.create_tracks()
+
+
+def tracks_csv(store: RunStore, path: str, pairs: list[int] | None = None) -> int:
+    """Write the stored tracks of ``pairs`` (None: every tracked pair) to a CSV file: pair, frame A's
+    x, y, z and frame B's (mm), u, v, w (m/s) and outlier (1 rejected, 0 kept); returns the rows."""
+    dt_s = float(store.timing["dt_s"])
+    chosen = store.correlated_pairs() if pairs is None else pairs
+    rows = []
+    for p in chosen:
+        t = store.read_tracks(p)
+        vel = (t[:, 3:6] - t[:, 0:3]) * 1e-3 / dt_s
+        rows.append(np.column_stack([np.full(len(t), p), t[:, :6], vel, t[:, 6]]))
+    table = np.concatenate(rows) if rows else np.zeros((0, 11))
+    header = "pair,x_a_mm,y_a_mm,z_a_mm,x_b_mm,y_b_mm,z_b_mm,u_m_s,v_m_s,w_m_s,outlier"
+    np.savetxt(path, table, delimiter=",", header=header, comments="",
+               fmt=["%d", *["%.6f"] * 6, *["%.6g"] * 3, "%d"])
+    return len(table)
 
 
 def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = None, *, progress: bool = True,
@@ -83,11 +106,13 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
     def here(todo: list[int]) -> None:
         with tqdm(total=len(todo), unit="pair", disable=not progress, desc="tracking", leave=False) as bar:
             for p in todo:
-                res = track_pair(store.read_particles(p, 0)[:, :3], store.read_particles(p, 1)[:, :3], grid,
-                                 settings=settings)
+                a_all, b_all = store.read_particles(p, 0)[:, :3], store.read_particles(p, 1)[:, :3]
+                res = track_pair(a_all, b_all, grid, settings=settings)
                 vel = res.field_mm * 1e-3 / dt_s  # mm over dt to m/s
                 flags = np.zeros(vel.shape[:3], np.uint8)
-                store.write_vectors(p, vel, flags, np.full(vel.shape[:3], np.nan, np.float32))
+                store.write_tracks(p, np.column_stack([a_all[res.a_index], b_all[res.b_index],
+                                                       res.outlier.astype(np.float64)]))
+                store.write_vectors(p, vel, flags, np.full(vel.shape[:3], np.nan, np.float32))  # records the pair
                 out.pairs.append(p)
                 out.tracks += len(res.a_index)
                 out.outliers += int(res.outlier.sum())
@@ -96,8 +121,7 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
                 bar.update(1)
 
     run_pairs(store, "vectors", chosen, matches=matches, differences=differences,
-              create=lambda: store.create_vectors(x_mm, y_mm, z_mm, dt_s=dt_s, windows=windows, overlap=[0.0] * 3,
-                                                  settings=meta),
+              create=lambda: _create(store, x_mm, y_mm, z_mm, dt_s, windows, meta),
               skip_done=skip_done, here=here, remote=None, client=None, on_done=lambda p, r: None, desc="tracking",
               progress=progress)
     return out

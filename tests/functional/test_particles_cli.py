@@ -71,8 +71,18 @@ def test_track_a_uniform_flow_into_vectors(tmp_path, capsys):
     assert m, out
     # measured 0.098, 0.060, 0.217 voxel: the particles' own position errors, over the bins with tracks
     assert float(m.group(1)) < 0.2 and float(m.group(2)) < 0.2 and float(m.group(3)) < 0.4
-    rc, out, _ = _run(capsys, "track", run, "--quiet", "--skip-done")
-    assert rc == 0 and "nothing to do" in out
+    tracks = s.read_tracks(0)
+    assert tracks.shape[1] == 7 and len(tracks) > 0.6 * len(s.read_particles(0, 0))
+    kept = tracks[tracks[:, 6] == 0]
+    true_mm = s.truth()["particles"][0, 1, 0] - s.truth()["particles"][0, 0, 0]  # a uniform flow: every particle's
+    assert np.all(np.abs(np.median(kept[:, 3:6] - kept[:, :3], axis=0) - true_mm) < 0.3 * np.asarray(
+        s.particle_attrs()["voxel_mm"]))
+    rc, out, _ = _run(capsys, "track", run, "--quiet", "--skip-done", "--csv", tmp_path / "tracks.csv")
+    assert rc == 0 and "nothing to do" in out and f"tracks.csv: {len(tracks)} tracks" in out
+    table = np.loadtxt(tmp_path / "tracks.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert table.shape == (len(tracks), 11) and np.allclose(table[:, 1:7], tracks[:, :6], atol=1e-6)
+    rc, _, err = _run(capsys, "track", run, "--quiet", "--csv", tmp_path / "tracks.csv")
+    assert rc == 2 and "exists" in err
 
 
 def test_the_python_api(tmp_path, capsys):
