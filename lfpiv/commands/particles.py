@@ -7,6 +7,7 @@ import argparse
 from lfpiv.commands import (
     add_device,
     add_pair_range,
+    add_workers,
     camera_names,
     fraction,
     iterations,
@@ -16,6 +17,7 @@ from lfpiv.commands import (
     positive_float,
     positive_int,
     whole_number,
+    workers_phrase,
 )
 
 
@@ -50,14 +52,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="merge particles closer than D voxels (default: 1)")
     c.add_argument("--rounds", type=positive_int, default=3, metavar="N",
                    help="passes of candidates, fit and prune, the later ones on the residual images (default: 3)")
-    c.add_argument("--skip-done", action="store_true",
-                   help="leave out the pairs whose particles are stored already with these settings")
     add_device(c)
+    add_workers(c, "reconstruct the particles of")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from lfpiv.batch import dask_client
     from lfpiv.jobs.particles import ipr_settings, particles_run
     from lfpiv.runs import open_run
 
@@ -65,8 +67,10 @@ def run(args: argparse.Namespace) -> int:
                             candidate_threshold=args.threshold, shakes=args.shakes, min_intensity=args.min_intensity,
                             merge_voxels=args.merge_voxels, rounds=args.rounds)
     store = open_run(args.run, mode="r+")
-    done = particles_run(store, settings, args.pairs, cameras=args.cameras, device=args.device,
-                         progress=not args.quiet, skip_done=args.skip_done, option=pairs_option(args))
+    with dask_client(args.workers, args.scheduler) as client:
+        done = particles_run(store, settings, args.pairs, cameras=args.cameras, device=args.device,
+                             progress=not args.quiet, skip_done=args.skip_done, option=pairs_option(args),
+                             client=client)
     if not done.pairs:
         print(f"every selected pair of {store.path} has its particles with these settings already; nothing to do")
         old_spelling_notes(args)
@@ -75,6 +79,6 @@ def run(args: argparse.Namespace) -> int:
     secs = sum(done.seconds)
     print(f"wrote {store.path}/particles: {len(done.pairs)} pair(s), {n} particles in {len(done.counts)} frame(s) "
           f"({n / len(done.counts):.0f} a frame, from {sum(done.candidates)} candidates); {secs:.1f} s on "
-          f"{done.device} ({secs / len(done.counts):.2f} s a frame)")
+          f"{done.device} ({secs / len(done.counts):.2f} s a frame){workers_phrase(args)}")
     old_spelling_notes(args)
     return 0

@@ -5,19 +5,23 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 from tqdm import tqdm
 
 from lfcore.device import MemoryBudgetError
 from lfcore.ipr import IprSettings, ParticleReconstructor, ParticleResult
 from lfcore.plan import projector_for, unsupported_method
+from lfcore.rig import Rig
 from lfcore.runstore import RunStore
 from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError
 from lfpiv.pair_runner import run_pairs, select_pairs
 
-__all__ = ["IprSettings", "ParticlesDone", "ipr_settings", "particles_run"]
+__all__ = ["IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "ipr_settings", "particles_pair_task",
+           "particles_run"]
 
 
 def ipr_settings(**options: Any) -> IprSettings:
@@ -53,23 +57,73 @@ class ParticlesDone:
     device: str = "cpu"
 
 
+@dataclass(frozen=True)
+class ParticlesJob:
+    """What a Dask worker needs to reconstruct a run's particles (:mod:`lfpiv.batch`): picklable, small."""
+
+    path: str
+    rig: Rig
+    cameras: tuple[str, ...]
+    grid: VolumeGrid
+    settings: IprSettings
+    device: str | None
+    token: str
+
+
+@dataclass(frozen=True)
+class PairParticles:
+    """A worker's result: both frames' (n, 5) particle rows and their figures (the coordinator writes them)."""
+
+    tables: list[np.ndarray]
+    candidates: list[int]
+    seconds: list[float]
+
+
+def _frame(ipr: ParticleReconstructor, store: RunStore, names: Sequence[str], pair: int, frame: int
+           ) -> tuple[ParticleResult, float]:
+    import time
+
+    images = [store.read_frame(n, pair, frame) for n in names]  # a damaged frame is an error
+    t0 = time.perf_counter()
+    try:
+        res = ipr.reconstruct(images)
+    except MemoryBudgetError as exc:
+        raise UsageError(str(exc)) from None
+    return res, time.perf_counter() - t0
+
+
+def particles_pair_task(job: ParticlesJob, pair: int) -> PairParticles:
+    """Worker task: the particles of both frames of ``pair``, returned to the coordinator, which
+    appends them to ``particles/`` (the table is one array that one process writes)."""
+    from lfpiv.batch import this_worker_device, worker_state
+
+    def build() -> tuple[RunStore, ParticleReconstructor]:
+        cams = [job.rig.camera_named(n) for n in job.cameras]
+        proj = projector_for(cams, job.grid, device=this_worker_device(job.device))
+        return RunStore.open(job.path), ParticleReconstructor(proj, settings=job.settings)  # it reads frames only
+
+    store, ipr = worker_state(job.token, build)
+    made = [_frame(ipr, store, job.cameras, pair, f) for f in (0, 1)]
+    return PairParticles(tables=[r.table() for r, _ in made], candidates=[r.candidates for r, _ in made],
+                         seconds=[t for _, t in made])
+
+
 def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = None, *,
                   cameras: Sequence[str] | None = None, device: str | None = None, progress: bool = True,
-                  skip_done: bool = False, option: str = "--pair-range") -> ParticlesDone:
+                  skip_done: bool = False, option: str = "--pair-range", client: Any = None) -> ParticlesDone:
     """Reconstruct the particles of both frames of ``pairs`` (None: every recorded pair) into
     ``particles/``.
 
     Particles of the same grid, cameras and settings already stored are kept and added to; other
     settings make a new set beside them, which replaces them once complete (as ``reconstruct``
-    does with ``volumes/``).
+    does with ``volumes/``). With a Dask ``client`` (:func:`lfpiv.batch.dask_client`) the pairs are
+    done on its workers, and this process appends each pair's particles to the store as it comes back.
 
     Raises
     ------
     UsageError
         No recorded pairs, a pair never recorded, an unknown camera, or a box too big for memory.
     """
-    import time
-
     rig = store.rig
     if store.committed_pairs == 0:
         raise UsageError(f"{store.path} has no recorded pairs (committed_pairs = 0); nothing to reconstruct")
@@ -109,13 +163,8 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
             for p in todo:
                 frames: list[ParticleResult] = []
                 for f in (0, 1):
-                    images = [store.read_frame(n, p, f) for n in names]  # a damaged frame is an error
-                    t0 = time.perf_counter()
-                    try:
-                        res = ipr.reconstruct(images)
-                    except MemoryBudgetError as exc:
-                        raise UsageError(str(exc)) from None
-                    done.seconds.append(time.perf_counter() - t0)
+                    res, seconds = _frame(ipr, store, names, p, f)
+                    done.seconds.append(seconds)
                     done.counts.append(res.n)
                     done.candidates.append(res.candidates)
                     frames.append(res)
@@ -124,8 +173,22 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
                 store.write_particles(p, [r.table() for r in frames])
                 done.pairs.append(p)
 
+    def remote(into: str) -> tuple[Any, ParticlesJob]:
+        from lfpiv.batch import new_token
+
+        return particles_pair_task, ParticlesJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names),
+                                                 grid=grid, settings=settings, device=device, token=new_token())
+
+    def written(p: int, r: PairParticles) -> None:
+        store.write_particles(p, r.tables)
+        done.pairs.append(p)
+        done.counts.extend(len(t) for t in r.tables)
+        done.candidates.extend(r.candidates)
+        done.seconds.extend(r.seconds)
+
     run_pairs(store, "particles", chosen, matches=matches, differences=differences,
               create=lambda: store.create_particles(grid, method=ipr.method, settings=meta), skip_done=skip_done,
-              here=here, remote=None, client=None, on_done=lambda p, r: None, desc="particles", progress=progress,
+              here=here, remote=remote, client=client, on_done=written, desc="particles", progress=progress,
+              postfix=lambda p, r: {"pair": p, "particles": "/".join(str(len(t)) for t in r.tables)},
               kept=lambda: f"the particles of {len(done.pairs)} pair(s) written before are kept" if done.pairs else "")
     return done

@@ -114,3 +114,26 @@ def test_a_mixed_rig_has_its_particles_reconstructed(tmp_path, capsys):
     # two pinhole cameras, jointly)
     assert float(m.group(3)) > 0.8 and float(m.group(5)) < 20.0
     assert max(float(m.group(k)) for k in (6, 7, 8)) < 0.4
+
+
+def test_local_workers_give_the_particles_of_one_process(tmp_path, capsys):
+    import shutil
+
+    run, other = tmp_path / "w.zarr", tmp_path / "w2.zarr"
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "2", "--ppm", "0.2",
+                "--quiet")[0] == 0
+    shutil.copytree(run, other)
+    assert _run(capsys, "particles", run, "--quiet", "--rounds", "1")[0] == 0
+    # pair 0 here, then pair 1 on a worker: --skip-done goes on where the first command stopped
+    assert _run(capsys, "particles", other, "--quiet", "--rounds", "1", "--pair-range", "0")[0] == 0
+    rc, out, err = _run(capsys, "particles", other, "--quiet", "--rounds", "1", "--skip-done", "--workers", "1")
+    assert rc == 0, err
+    assert "wrote" in out and "1 pair(s)" in out and "by 1 local worker(s)" in out
+    a, b = RunStore.open(run), RunStore.open(other)
+    assert b.particle_pairs() == [0, 1]
+    voxel = np.asarray(a.particle_attrs()["voxel_mm"])
+    for p in (0, 1):
+        for f in (0, 1):
+            here, there = a.read_particles(p, f), b.read_particles(p, f)
+            assert there.shape == here.shape
+            assert np.all(np.abs(there[:, :3] - here[:, :3]) < 0.01 * voxel)
