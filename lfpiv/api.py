@@ -186,7 +186,8 @@ def correlate(run: str | os.PathLike[str] | RunStore, *,
 
 
 def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, cameras: Sequence[str] | None = None,
-              device: str | None = None, skip_done: bool = False, progress: bool = True, **options: Any) -> Any:
+              device: str | None = None, workers: int | None = None, scheduler: str | None = None,
+              skip_done: bool = False, progress: bool = True, **options: Any) -> Any:
     """Reconstruct every frame's particles of the selected pairs into the run's ``particles/`` by
     iterative particle reconstruction (``lfpiv particles``).
 
@@ -198,8 +199,8 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
         None (every recorded pair), a pair index, ``"START:STOP"`` or a slice.
     cameras
         Camera names to use (None: all).
-    device, skip_done, progress
-        As the command's ``--device``, ``--skip-done`` and its progress bar.
+    device, workers, scheduler, skip_done, progress
+        As the command's ``--device``, ``--workers``, ``--scheduler``, ``--skip-done`` and its progress bar.
     **options
         :class:`lfcore.ipr.IprSettings` fields (``method``, ``candidate_iterations``, ``shakes``,
         ``min_intensity``, ``merge_voxels``, ``rounds``, ...).
@@ -209,11 +210,14 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
     lfpiv.jobs.particles.ParticlesDone
         The pairs done, particles and candidates per frame, seconds per frame.
     """
+    from lfpiv.batch import dask_client
     from lfpiv.jobs.particles import ipr_settings, particles_run
 
     store = open_run(run, mode="r+")
-    return particles_run(store, ipr_settings(**options), _pairs(pairs), cameras=cameras, device=device,
-                         progress=progress, skip_done=skip_done, option="pairs")
+    settings = ipr_settings(**options)
+    with dask_client(workers, scheduler) as client:
+        return particles_run(store, settings, _pairs(pairs), cameras=cameras, device=device, progress=progress,
+                             skip_done=skip_done, option="pairs", client=client)
 
 
 def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, skip_done: bool = False,
