@@ -50,6 +50,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="prune particles fainter than F times the median (default: 0.5)")
     c.add_argument("--merge-voxels", type=positive_float, default=1.0, metavar="D",
                    help="merge particles closer than D voxels (default: 1)")
+    c.add_argument("--split", type=non_negative_float, default=1.4, metavar="F",
+                   help="split particles brighter than F times the median in two and fit again: two overlapping "
+                   "particles seen as one peak (0: never; default: 1.4)")
     c.add_argument("--rounds", type=positive_int, default=3, metavar="N",
                    help="passes of candidates, fit and prune, the later ones on the residual images (default: 3)")
     add_device(c)
@@ -65,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
     settings = ipr_settings(method=args.method, candidate_iterations=args.candidate_iterations,
                             candidate_threshold=args.threshold, shakes=args.shakes, min_intensity=args.min_intensity,
-                            merge_voxels=args.merge_voxels, rounds=args.rounds)
+                            merge_voxels=args.merge_voxels, rounds=args.rounds,
+                            split_intensity=args.split)
     store = open_run(args.run, mode="r+")
     with dask_client(args.workers, args.scheduler) as client:
         done = particles_run(store, settings, args.pairs, cameras=args.cameras, device=args.device,
