@@ -2,8 +2,8 @@
 
 ``import lfpiv`` gives the notebook-sized API of :mod:`lfpiv.api`: :func:`load_rig`,
 :func:`open_run`, :func:`import_files`, :func:`reconstruct`, :func:`correlate`, :func:`evaluate`,
-:func:`export`, :func:`views` and :func:`check_camera`, the jobs the ``lfpiv`` commands run. They
-are imported on first use, so ``import lfpiv`` stays cheap.
+:func:`export`, :func:`views`, :func:`check_camera`, :func:`particles` and :func:`track`, the jobs
+the ``lfpiv`` commands run. They are imported on first use, so ``import lfpiv`` stays cheap.
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ except PackageNotFoundError:  # running from a source tree that was never instal
     __version__ = "0+unknown"
 
 __all__ = ["__version__", "check_camera", "correlate", "evaluate", "export", "import_files", "load_rig", "open_run",
-           "reconstruct", "views"]
+           "particles", "reconstruct", "track", "views"]
 
-_API = {"check_camera", "correlate", "evaluate", "export", "import_files", "load_rig", "open_run", "reconstruct",
-        "views", "Evaluation"}
+_API = {"check_camera", "correlate", "evaluate", "export", "import_files", "load_rig", "open_run", "particles",
+        "reconstruct", "track", "views", "Evaluation"}
 
 
 def __getattr__(name: str) -> Any:

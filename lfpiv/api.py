@@ -9,6 +9,8 @@ The same jobs the ``lfpiv`` commands run, with keyword options::
     lfpiv.reconstruct(run, iterations=50)
     lfpiv.correlate(run)
     print(lfpiv.evaluate(run).vectors.divergence_mean)
+    lfpiv.particles(run)                                   # every frame's particles (IPR)
+    lfpiv.track(run)                                       # paired A to B, binned into vectors/
     lfpiv.export(run, "netcdf", "field")
     looks = lfpiv.views(run, depths_mm=[-2, 0, 2])        # perspective views, refocused planes
     checks, notes = lfpiv.check_camera(rig)                # seeding, saturation, fill per camera
@@ -32,7 +34,7 @@ from lfpiv.errors import UsageError
 from lfpiv.rigfile import load_rig
 
 __all__ = ["Evaluation", "check_camera", "correlate", "evaluate", "export", "import_files", "load_rig", "open_run",
-           "reconstruct", "views"]
+           "particles", "reconstruct", "track", "views"]
 
 PairsLike = slice | int | str | None
 
@@ -188,6 +190,54 @@ def correlate(run: str | os.PathLike[str] | RunStore, *,
                              slabs=slabs)
 
 
+def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, cameras: Sequence[str] | None = None,
+              device: str | None = None, workers: int | None = None, scheduler: str | None = None,
+              skip_done: bool = False, progress: bool = True, **options: Any) -> Any:
+    """Reconstruct every frame's particles of the selected pairs into the run's ``particles/`` by
+    iterative particle reconstruction (``lfpiv particles``).
+
+    Parameters
+    ----------
+    run
+        The run (a path or a store).
+    pairs
+        None (every recorded pair), a pair index, ``"START:STOP"`` or a slice.
+    cameras
+        Camera names to use (None: all).
+    device, workers, scheduler, skip_done, progress
+        As the command's ``--device``, ``--workers``, ``--scheduler``, ``--skip-done`` and its progress bar.
+    **options
+        :class:`lfcore.ipr.IprSettings` fields (``method``, ``candidate_iterations``, ``shakes``,
+        ``min_intensity``, ``merge_voxels``, ``rounds``, ...).
+
+    Returns
+    -------
+    lfpiv.jobs.particles.ParticlesDone
+        The pairs done, particles and candidates per frame, seconds per frame.
+    """
+    from lfpiv.batch import dask_client
+    from lfpiv.jobs.particles import ipr_settings, particles_run
+
+    store = open_run(run, mode="r+")
+    settings = ipr_settings(**options)
+    with dask_client(workers, scheduler) as client:
+        return particles_run(store, settings, _pairs(pairs), cameras=cameras, device=device, progress=progress,
+                             skip_done=skip_done, option="pairs", client=client)
+
+
+def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, skip_done: bool = False,
+          progress: bool = True, **options: Any) -> Any:
+    """Pair each selected pair's particles from frame A to frame B and bin the tracks into the run's
+    ``vectors/`` (``lfpiv track``); ``options`` are :class:`lfcore.track.TrackSettings` fields
+    (``search_voxels``, ``refine_voxels``, ``passes``, ``bin_voxels``, ``min_tracks``, ...).
+    Returns the :class:`lfpiv.jobs.track.TracksDone` figures."""
+    from lfpiv.jobs.track import track_run, track_settings
+
+    store = open_run(run, mode="r+")
+    return track_run(store, track_settings(**options), _pairs(pairs), progress=progress, skip_done=skip_done,
+                     option="pairs")
+
+
 @dataclass(frozen=True)
 class Evaluation:
     """What :func:`evaluate` found.
@@ -200,25 +250,33 @@ class Evaluation:
     vectors
         The vectors' figures (:class:`lfpiv.jobs.evaluate.VectorEvaluation`: velocity error
         against the truth where there is one, outliers, divergence error); None without vectors.
+    particles
+        Per frame with particles, recall, ghosts and position error per axis against the truth
+        (:class:`lfpiv.jobs.evaluate.ParticleEvaluation`, matching within ``particle_match_voxels``);
+        None without particles or without truth.
     """
 
     volumes: list[Any] | None
     vectors: Any
+    particles: list[Any] | None = None
 
 
 def evaluate(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, threshold: float = 0.1,
-             match_voxels: float = 2.0) -> Evaluation:
-    """The run's volumes and vectors against its truth (``lfpiv evaluate``); a recorded or imported
-    run has no truth, and only the vectors' outliers and divergence error are measured."""
-    from lfpiv.jobs.evaluate import evaluate_run, evaluate_vector_fields
+             match_voxels: float = 2.0, particle_match_voxels: float = 1.0) -> Evaluation:
+    """The run's volumes, particles and vectors against its truth (``lfpiv evaluate``); a recorded or
+    imported run has no truth, and only the vectors' outliers and divergence error are measured."""
+    from lfpiv.jobs.evaluate import evaluate_particles, evaluate_run, evaluate_vector_fields
 
     store = open_run(run)
     sel = _pairs(pairs)
     vols = None
     if store.has_volumes and store.truth() is not None:
         vols = evaluate_run(store, sel, threshold, match_voxels, option="pairs")
+    parts = None
+    if store.has_particles and store.truth() is not None:
+        parts = evaluate_particles(store, sel, particle_match_voxels, option="pairs")
     vec = evaluate_vector_fields(store, sel, option="pairs")
-    return Evaluation(volumes=vols, vectors=None if isinstance(vec, str) else vec)
+    return Evaluation(volumes=vols, vectors=None if isinstance(vec, str) else vec, particles=parts)
 
 
 def export(run: str | os.PathLike[str] | RunStore, fmt: str, out: str | os.PathLike[str], *,

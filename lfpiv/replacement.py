@@ -21,7 +21,7 @@ from lfcore.runstore import RunStore, RunStoreError
 __all__ = ["begin", "end", "kept_aside", "noting_interrupt"]
 
 #: The command that makes each kind of derived data.
-_COMMAND = {"volumes": "reconstruct", "vectors": "correlate"}
+_COMMAND = {"volumes": "reconstruct", "vectors": "correlate", "particles": "particles"}
 
 
 def _note(text: str, level: str = "note") -> None:

@@ -24,6 +24,9 @@ Layout::
       volumes/x, y, z, time   coordinates: voxel centres (mm), time of each pair (s)
       vectors/                u, v, w, flags, peak_ratio (pairs, z, y, x); x_mm, y_mm, z_mm
       vectors/x, y, z, time   coordinates: window centres (mm, = x_mm ...), time of each pair (s)
+      particles/              table float64 (n, 5): x, y, z mm, intensity, residual of every frame's
+                              particles; index int64 (pairs, 2, 2): each frame's start and stop row;
+                              attrs: origin_mm, voxel_mm, method, settings, fields, particle_pairs
       volumes.pending/,       a replacement of volumes/ or vectors/ (other settings) being made,
       vectors.pending/        same layout; it becomes volumes/ or vectors/ only once complete, so
                               an interrupted replacement leaves the old ones whole; readers
@@ -45,11 +48,10 @@ problem of a run (:mod:`lfcore.runstore._integrity`). Stores made before both st
 
 The store is split by what it holds: ``_frames`` (frames, ids, time stamps, state and commits,
 and :class:`FrameWriter`), ``_drops``, ``_truth``, ``_volumes``, ``_vectors`` (with ``_coords``,
-their coordinate arrays), ``_replacement`` (the ``*.pending`` machinery), ``_integrity``
-(checked reads and verification, with ``_chunks``), ``_lock`` and ``_schema`` (the attributes
-as validated models: every reader checks what it reads, and a bad value is one line naming the
-store, the attribute, what it holds and what it should), put together as :class:`RunStore` in
-``_store``.
+their coordinate arrays), ``_particles`` (ragged by frame), ``_replacement`` (the ``*.pending``
+machinery), ``_integrity`` (checked reads and verification, with ``_chunks``), ``_lock`` and ``_schema`` (the
+attributes as validated models: every reader checks what it reads, and a bad value is one line naming the
+store, the attribute, what it holds and what it should), put together as :class:`RunStore` in ``_store``.
 """
 
 from lfcore.runstore._common import FORMAT, FORMAT_VERSION, STATES, RunStoreError

@@ -218,7 +218,32 @@ class Integrity(Part):
         self._verify_truth(out)
         self._verify_derived("volumes", out)
         self._verify_derived("vectors", out)
+        self._verify_particles(out)
         return out
+
+    def _verify_particles(self, out: list[str]) -> None:
+        """``particles/``: its table and index, every chunk, and each recorded pair's rows within the table."""
+        if "particles" not in self.group:
+            return
+        table = self._layout("particles/table", np.float64, out)
+        index = self._layout("particles/index", np.int64, out)
+        if table is not None:
+            step = int(table.chunks[0])
+            for c in chunk_coords(table, ()):
+                first = c[0] * step
+                where = f"rows {first} to {min(table.shape[0], first + step) - 1}"
+                self._verify_chunks(table, [c], where, required=checksummed(table), out=out)
+        if index is None or table is None:
+            return
+        if not self._verify_chunks(index, list(chunk_coords(index, ())), "(all)", required=checksummed(index),
+                                   out=out):
+            return
+        bounds = index[...]
+        for p in self.group["particles"].attrs.get("particle_pairs", []):
+            if not (isinstance(p, int) and 0 <= p < bounds.shape[0]) or np.any(bounds[p] < 0) or np.any(
+                    bounds[p, :, 1] < bounds[p, :, 0]) or np.any(bounds[p] > table.shape[0]):
+                out.append(self._line(f"particles/ lists pair {p} in particle_pairs, but particles/index does not "
+                                      f"hold its rows (its zarr.json was edited or damaged); {RESTORE}"))
 
     def _verify_root(self, out: list[str]) -> int:
         # the number of pairs to walk: committed_pairs as recorded, if it is one

@@ -26,7 +26,7 @@ class Replacement(Part):
     PENDING = ".pending"
 
     #: The attribute of ``volumes/`` and ``vectors/`` that lists the pairs written so far.
-    DONE = {"volumes": "reconstructed_pairs", "vectors": "correlated_pairs"}
+    DONE = {"volumes": "reconstructed_pairs", "vectors": "correlated_pairs", "particles": "particle_pairs"}
 
     def _begin(self, name: str, *, staged: bool) -> zarr.Group:
         """A new, empty group where ``name`` (``volumes`` or ``vectors``) is made from now on:

@@ -21,6 +21,7 @@ from lfcore.runstore._drops import DROP_FIELDS, Drops, create_drops
 from lfcore.runstore._frames import CAMERA_ARRAYS, Frames, create_frames
 from lfcore.runstore._integrity import Integrity
 from lfcore.runstore._lock import LOCK_NAME, WriterLease, acquire, current_writer, join
+from lfcore.runstore._particles import Particles
 from lfcore.runstore._replacement import Replacement
 from lfcore.runstore._schema import validated
 from lfcore.runstore._truth import Truth
@@ -29,13 +30,14 @@ from lfcore.runstore._volumes import Volumes
 from lfcore.zarrstore import RigStore, damaged_metadata
 
 
-class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, RigStore):
+class RunStore(Frames, Drops, Truth, Volumes, Vectors, Particles, Replacement, Integrity, RigStore):
     """Read and write access to one run.
 
     Use :meth:`create` for a new run and :meth:`open` for an existing one. Each kind of data
     has its part: :class:`~lfcore.runstore._frames.Frames` (frames, ids, time stamps, state and
     commits), :class:`~lfcore.runstore._drops.Drops`, :class:`~lfcore.runstore._truth.Truth`,
     :class:`~lfcore.runstore._volumes.Volumes`, :class:`~lfcore.runstore._vectors.Vectors`,
+    :class:`~lfcore.runstore._particles.Particles`,
     :class:`~lfcore.runstore._replacement.Replacement` (``*.pending`` replacements) and
     :class:`~lfcore.runstore._integrity.Integrity` (checked reads and :meth:`verify`).
 
@@ -53,7 +55,7 @@ class RunStore(Frames, Drops, Truth, Volumes, Vectors, Replacement, Integrity, R
 
     def __init__(self, group: zarr.Group, path: Path, *, lease: WriterLease | None = None) -> None:
         super().__init__(group if isinstance(group, StoreGroup) else StoreGroup(group._async_group), path)
-        self._target = {"volumes": "volumes", "vectors": "vectors"}
+        self._target = {"volumes": "volumes", "vectors": "vectors", "particles": "particles"}
         self._lease = lease
         # the lock goes with the handle: closed, collected, or at the interpreter's exit
         self._release = weakref.finalize(self, lease.release) if lease is not None else None

@@ -22,7 +22,7 @@ from lfpiv.errors import UsageError
 #: trailing underscore where the name is a Python keyword: ``import`` is :mod:`lfpiv.commands.import_`, and
 #: underscores for hyphens).
 COMMANDS = ("demo", "devices", "check-camera", "acquire", "monitor", "calibrate", "import", "synth", "info", "check",
-            "views", "reconstruct", "correlate", "evaluate", "export",
+            "views", "reconstruct", "particles", "track", "correlate", "evaluate", "export",
             "study")
 
 

@@ -18,7 +18,8 @@ from lfcore.vectors import FLAG_OUTLIER, FLAG_REPLACED
 from lfpiv.errors import UsageError
 from lfpiv.pair_runner import select_pairs
 
-__all__ = ["FrameEvaluation", "VectorEvaluation", "evaluate_run", "evaluate_vector_fields", "evaluate_vectors",
+__all__ = ["FrameEvaluation", "ParticleEvaluation", "VectorEvaluation", "evaluate_particles", "evaluate_run",
+           "particle_rows", "evaluate_vector_fields", "evaluate_vectors",
            "summary_rows"]
 
 
@@ -71,6 +72,93 @@ def evaluate_run(store: RunStore, pairs: slice | None = None, threshold: float =
                                         match_voxels=match_voxels)
             out.append(FrameEvaluation(**vars(e), pair=p, frame=f))
     return out
+
+
+@dataclass(frozen=True)
+class ParticleEvaluation:
+    """One frame's reconstructed particles (``particles/``) against the truth.
+
+    Attributes
+    ----------
+    pair, frame
+        Pair and frame (0: A, 1: B).
+    match
+        The particles matched one-to-one to the true ones (:func:`lfcore.metrics.match_particles`):
+        recall, ghosts (particles found with no true one within the tolerance) and the errors.
+    rms_voxels
+        RMS position error per axis (x, y, z) in voxels of the grid the particles were fitted on.
+    voxel_mm
+        That grid's voxel size (x, y, z), mm.
+    """
+
+    pair: int
+    frame: int
+    match: metrics.MatchResult
+    rms_voxels: np.ndarray
+    voxel_mm: np.ndarray
+
+
+def evaluate_particles(store: RunStore, pairs: slice | None = None, match_voxels: float = 1.0, *,
+                       option: str = "--pair-range") -> list[ParticleEvaluation]:
+    """Recall, ghosts and position error per axis of every frame's particles against the truth.
+
+    Parameters
+    ----------
+    store
+        A synthetic run with ``particles/``.
+    pairs
+        The ``--pair-range`` (None: every pair with particles); ``option`` names it in messages.
+    match_voxels
+        A particle matches a true one within this many voxels per axis.
+
+    Raises
+    ------
+    UsageError
+        A recorded run (no truth), a run without particles, or none of the pairs selected.
+    """
+    truth = store.truth()
+    if truth is None:
+        raise UsageError(f"{store.path} is a recorded run with no truth; evaluate needs a synthetic run")
+    try:
+        attrs = store.particle_attrs()
+    except RunStoreError as exc:
+        raise UsageError(str(exc)) from None
+    done = store.particle_pairs()
+    chosen = [p for p in select_pairs(pairs, store.n_pairs, option=option) if p in done]
+    if not chosen:
+        raise UsageError(f"none of the selected pairs has particles (with particles: {done or 'none'}); "
+                         f"run 'lfpiv particles {store.path}' first")
+    voxel = np.asarray(attrs["voxel_mm"], dtype=np.float64)
+    out = []
+    for p in chosen:
+        for f in (0, 1):
+            found = store.read_particles(p, f)
+            m = metrics.match_particles(found[:, :3], truth["particles"][p, f], match_voxels * voxel)
+            out.append(ParticleEvaluation(pair=p, frame=f, match=m, rms_voxels=m.rms_error_mm / voxel,
+                                          voxel_mm=voxel))
+    return out
+
+
+def particle_rows(evals: list[ParticleEvaluation]) -> list[dict[str, str]]:
+    """Printable rows of :func:`evaluate_particles`, one per frame plus the total."""
+    rows = []
+    for e in evals:
+        m = e.match
+        rows.append({"pair": str(e.pair), "frame": "AB"[e.frame], "particles": str(m.n_detected),
+                     "true": str(m.n_true), "recall": f"{m.recall:.3f}",
+                     "ghosts": f"{m.ghosts} ({100 * m.ghost_fraction:.1f}%)",
+                     "rms x,y,z vox": ", ".join(f"{v:.3f}" for v in e.rms_voxels)})
+    if len(evals) > 1:
+        err = np.concatenate([e.match.error_mm for e in evals])
+        rms = np.sqrt(np.mean(err**2, axis=0)) / evals[0].voxel_mm if len(err) else np.full(3, np.nan)
+        n_true = sum(e.match.n_true for e in evals)
+        n_det = sum(e.match.n_detected for e in evals)
+        ghosts = sum(e.match.ghosts for e in evals)
+        rows.append({"pair": "all", "frame": "", "particles": str(n_det), "true": str(n_true),
+                     "recall": f"{sum(e.match.n_matched for e in evals) / max(n_true, 1):.3f}",
+                     "ghosts": f"{ghosts} ({100 * ghosts / max(n_det, 1):.1f}%)",
+                     "rms x,y,z vox": ", ".join(f"{v:.3f}" for v in rms)})
+    return rows
 
 
 def summary_rows(evals: list[FrameEvaluation]) -> list[dict[str, Any]]:
@@ -160,12 +248,17 @@ def evaluate_vector_fields(store: RunStore, pairs: slice | None = None, *,
         errors = metrics.velocity_errors(vel, ref)
         if store.has_volumes and not store.vectors_outdated:  # the same errors in voxels of their volumes
             vox = errors.rms_m_s * dt * 1e3 / np.asarray(store.volume_grid().voxel_mm)
+        elif store.has_particles and a.get("settings", {}).get("source") == "particle tracks":  # lfpiv track's
+            vox = errors.rms_m_s * dt * 1e3 / np.asarray(store.particle_attrs()["voxel_mm"])
     div = metrics.divergence_error(vel, x, y, z)
+    with warnings.catch_warnings():  # bins of tracks without a vector are NaN, and may be all of them
+        warnings.simplefilter("ignore", RuntimeWarning)
+        div_mean, div_median = float(np.nanmean(div)), float(np.nanmedian(div))
     return VectorEvaluation(pairs=pairs, counts=(len(x), len(y), len(z)), windows=[list(w) for w in a["windows"]],
                             errors=errors, rms_voxels=vox,
                             outliers=float(np.count_nonzero(flags & FLAG_OUTLIER) / flags.size),
                             replaced=float(np.count_nonzero(flags & FLAG_REPLACED) / flags.size),
-                            divergence_mean=float(np.nanmean(div)), divergence_median=float(np.nanmedian(div)))
+                            divergence_mean=div_mean, divergence_median=div_median)
 
 
 def evaluate_vectors(store: RunStore, pairs: slice | None = None, *, option: str = "--pair-range"

@@ -162,7 +162,12 @@ def describe(path: str | Path) -> list[str]:
         lines.append(("vectors", f"{_count(store.correlated_pairs())} correlated, windows "
                                  f"{_windows(windows)}"
                                  + ("; from volumes since replaced" if store.vectors_outdated else "")))
-    for name, command in (("volumes", "reconstruct"), ("vectors", "correlate")):
+    if store.has_particles:
+        pa = store.group["particles"].attrs
+        n_rows = store.group["particles"]["table"].shape[0]
+        lines.append(("particles", f"{_count(store.particle_pairs())} reconstructed ({pa.get('method')} IPR, "
+                                   f"{pa.get('settings', {}).get('rounds')} round(s)), {n_rows:,} particle rows"))
+    for name, command in (("volumes", "reconstruct"), ("vectors", "correlate"), ("particles", "particles")):
         pending = store.pending(name)
         if pending is not None:
             try:
@@ -171,7 +176,8 @@ def describe(path: str | Path) -> list[str]:
                 lines.append((f"{name}.pending", f"an unfinished replacement, damaged: {exc}"))
                 continue
             made = (f"{a.get('method')}, {a.get('settings', {}).get('iterations')} iterations" if name == "volumes"
-                    else f"windows {_windows(a.get('windows', []))}")
+                    else f"windows {_windows(a.get('windows', []))}" if name == "vectors"
+                    else f"{a.get('method')} IPR")
             stale = name == "vectors" and a.get("volumes_id") != store.volumes_id
             lines.append((f"{name}.pending", f"a replacement ({made}) interrupted after "
                                              f"{_count(a.get(RunStore.DONE[name], []))}; "

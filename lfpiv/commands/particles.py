@@ -1,0 +1,88 @@
+"""``lfpiv particles``: iterative particle reconstruction of a run's frames into ``particles/``."""
+
+from __future__ import annotations
+
+import argparse
+
+from lfpiv.commands import (
+    add_device,
+    add_pair_range,
+    add_workers,
+    camera_names,
+    fraction,
+    iterations,
+    non_negative_float,
+    old_spelling_notes,
+    pairs_option,
+    positive_float,
+    positive_int,
+    whole_number,
+    workers_phrase,
+)
+
+
+def shakes(text: str) -> int:
+    """argparse type of ``--shakes``: a whole number, 0 or more."""
+    return whole_number(text, 0)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    c = sub.add_parser("particles", help="reconstruct every frame's particles (positions, intensities) by IPR",
+                       description="Iterative particle reconstruction (the reconstruction of Shake-the-Box) on the "
+                       "rig's own forward model: candidates from the peaks of a quick reconstruction, each "
+                       "particle's position and intensity fitted to the images, the faint, the merged and those "
+                       "outside the box pruned, and the residual searched again. Writes particles/: x, y, z (mm), "
+                       "intensity and a fit residual of every particle of every frame.")
+    c.add_argument("run", metavar="RUN", help="run store with recorded frames")
+    add_pair_range(c, "every recorded pair")
+    c.add_argument("--cameras", type=camera_names, default=None, metavar="NAMES",
+                   help="comma-separated cameras to use (default: all)")
+    c.add_argument("--method", choices=("drt-mart", "mlos-mart", "mlos-smart"), default=None,
+                   help="the reconstruction whose weights model the particles and give the candidates (default: "
+                   "drt-mart for light-field cameras, mlos-smart for pinhole ones)")
+    c.add_argument("--candidate-iterations", type=iterations, default=50, metavar="N",
+                   help="iterations of the quick reconstruction whose peaks are the candidates (default: 50)")
+    c.add_argument("--threshold", type=fraction, default=0.05,
+                   help="candidates are peaks above this fraction of the brightest voxel (default: 0.05)")
+    c.add_argument("--shakes", type=shakes, default=12, metavar="N",
+                   help="fit iterations of every particle's position and intensity (default: 12)")
+    c.add_argument("--min-intensity", type=non_negative_float, default=0.5, metavar="F",
+                   help="prune particles fainter than F times the median (default: 0.5)")
+    c.add_argument("--merge-voxels", type=positive_float, default=1.0, metavar="D",
+                   help="merge particles closer than D voxels (default: 1)")
+    c.add_argument("--split", type=non_negative_float, default=1.4, metavar="F",
+                   help="split particles brighter than F times the median in two and fit again: two overlapping "
+                   "particles seen as one peak (0: never; default: 1.4)")
+    c.add_argument("--rounds", type=positive_int, default=3, metavar="N",
+                   help="passes of candidates, fit and prune, the later ones on the residual images (default: 3)")
+    add_device(c)
+    add_workers(c, "reconstruct the particles of")
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from lfpiv.batch import dask_client
+    from lfpiv.jobs.particles import ipr_settings, particles_run
+    from lfpiv.runs import open_run
+
+    settings = ipr_settings(method=args.method, candidate_iterations=args.candidate_iterations,
+                            candidate_threshold=args.threshold, shakes=args.shakes, min_intensity=args.min_intensity,
+                            merge_voxels=args.merge_voxels, rounds=args.rounds,
+                            split_intensity=args.split)
+    store = open_run(args.run, mode="r+")
+    with dask_client(args.workers, args.scheduler) as client:
+        done = particles_run(store, settings, args.pairs, cameras=args.cameras, device=args.device,
+                             progress=not args.quiet, skip_done=args.skip_done, option=pairs_option(args),
+                             client=client)
+    if not done.pairs:
+        print(f"every selected pair of {store.path} has its particles with these settings already; nothing to do")
+        old_spelling_notes(args)
+        return 0
+    n = sum(done.counts)
+    secs = sum(done.seconds)
+    print(f"wrote {store.path}/particles: {len(done.pairs)} pair(s), {n} particles in {len(done.counts)} frame(s) "
+          f"({n / len(done.counts):.0f} a frame, from {sum(done.candidates)} candidates); {secs:.1f} s on "
+          f"{done.device} ({secs / len(done.counts):.2f} s a frame){workers_phrase(args)}")
+    old_spelling_notes(args)
+    return 0

@@ -1,0 +1,77 @@
+"""``lfpiv track``: a run's particles paired from frame A to frame B, binned into ``vectors/``."""
+
+from __future__ import annotations
+
+import argparse
+
+from lfpiv.commands import add_pair_range, old_spelling_notes, pairs_option, positive_int, xyz_triple
+from lfpiv.errors import UsageError
+
+
+def bins(text: str) -> tuple[int, int, int]:
+    """argparse type of ``--bin``: XxYxZ voxels, e.g. 16x16x8."""
+    parts = text.lower().split("x")
+    try:
+        v = tuple(int(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a bin size; write XxYxZ in voxels, e.g. 16x16x8") from None
+    if len(v) != 3 or min(v) < 1:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a bin size; write XxYxZ in voxels, e.g. 16x16x8")
+    return v  # type: ignore[return-value]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    c = sub.add_parser("track", help="pair each pair's particles from frame A to B and bin them into vectors/",
+                       description="Pair the particles of frame A (lfpiv particles) with frame B's, one-to-one and "
+                       "nearest first around a predictor (none in the first pass, the median of the tracks in each "
+                       "bin after it), reject outliers by the normalized median test over the nearest tracks, and "
+                       "write the mean displacement of each bin's tracks to vectors/, the layout correlate writes, "
+                       "so evaluate and export read it unchanged.")
+    c.add_argument("run", metavar="RUN", help="run store with particles/")
+    add_pair_range(c, "every pair with particles")
+    c.add_argument("--search-voxels", type=xyz_triple, default=(4.0, 4.0, 2.0), metavar="X,Y,Z",
+                   help="the first pass's search radius: the largest displacement expected (default: 4,4,2)")
+    c.add_argument("--refine-voxels", type=xyz_triple, default=(1.0, 1.0, 1.0), metavar="X,Y,Z",
+                   help="the later passes' search radius around the predictor (default: 1,1,1)")
+    c.add_argument("--passes", type=positive_int, default=2, help="pairing passes (default: 2)")
+    c.add_argument("--bin", type=bins, default=(16, 16, 8), metavar="XxYxZ",
+                   help="the field's bins in voxels (default: 16x16x8)")
+    c.add_argument("--min-tracks", type=positive_int, default=2, metavar="N",
+                   help="fewest tracks a bin needs for a vector (default: 2)")
+    c.add_argument("--csv", default=None, metavar="FILE",
+                   help="also write every tracked pair's tracks to FILE: pair, frame A's x, y, z and frame B's (mm), "
+                   "u, v, w (m/s), outlier")
+    c.add_argument("--skip-done", action="store_true",
+                   help="leave out the pairs tracked already with these settings")
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from lfpiv.jobs.track import track_run, track_settings, tracks_csv
+    from lfpiv.runs import open_run
+
+    settings = track_settings(search_voxels=args.search_voxels, refine_voxels=args.refine_voxels,
+                              passes=args.passes, bin_voxels=args.bin, min_tracks=args.min_tracks)
+    store = open_run(args.run, mode="r+")
+    if args.csv:
+        from pathlib import Path
+
+        csv = Path(args.csv)
+        if csv.exists():
+            raise UsageError(f"--csv {csv}: it exists; give a new file (outputs are never replaced silently)")
+        if not csv.resolve().parent.is_dir():
+            raise UsageError(f"--csv {csv}: no folder {csv.parent}; give a file in an existing folder")
+    done = track_run(store, settings, args.pairs, progress=not args.quiet, skip_done=args.skip_done,
+                     option=pairs_option(args))
+    if done.pairs:
+        nx, ny, nz = done.shape
+        print(f"wrote {store.path}/vectors: {len(done.pairs)} pair(s) of {nx} x {ny} x {nz} bins (x, y, z) from "
+              f"{done.tracks} tracks ({100.0 * done.outliers / max(done.tracks, 1):.1f}% outliers left out); "
+              f"{100.0 * done.vectors / max(done.bins, 1):.0f}% of the bins hold a vector")
+    else:
+        print(f"every selected pair of {store.path} is tracked already with these settings; nothing to do")
+    if args.csv:
+        print(f"wrote {args.csv}: {tracks_csv(store, args.csv)} tracks of every tracked pair")
+    old_spelling_notes(args)
+    return 0

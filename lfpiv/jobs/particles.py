@@ -1,0 +1,194 @@
+"""Reconstructing a run store's pairs into ``particles/`` (``lfpiv particles``): iterative particle
+reconstruction (:mod:`lfcore.ipr`), pair by pair, resumable with ``--skip-done``."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from lfcore.device import MemoryBudgetError
+from lfcore.ipr import IprSettings, ParticleReconstructor, ParticleResult
+from lfcore.plan import projector_for, unsupported_method
+from lfcore.rig import Rig
+from lfcore.runstore import RunStore
+from lfcore.volume import VolumeGrid
+from lfpiv.errors import UsageError
+from lfpiv.pair_runner import run_pairs, select_pairs
+
+__all__ = ["IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "ipr_settings", "particles_pair_task",
+           "particles_run"]
+
+
+def ipr_settings(**options: Any) -> IprSettings:
+    """:class:`lfcore.ipr.IprSettings` of the given options, or a one-line :class:`UsageError`."""
+    try:
+        return IprSettings(**options)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+@dataclass
+class ParticlesDone:
+    """What :func:`particles_run` did.
+
+    Attributes
+    ----------
+    pairs
+        The pairs reconstructed now (without those skipped).
+    counts
+        Particles per frame reconstructed, in order (A, B of each pair).
+    candidates
+        Candidates per frame.
+    seconds
+        Wall time of each frame.
+    device
+        The Warp device.
+    """
+
+    pairs: list[int] = field(default_factory=list)
+    counts: list[int] = field(default_factory=list)
+    candidates: list[int] = field(default_factory=list)
+    seconds: list[float] = field(default_factory=list)
+    device: str = "cpu"
+
+
+@dataclass(frozen=True)
+class ParticlesJob:
+    """What a Dask worker needs to reconstruct a run's particles (:mod:`lfpiv.batch`): picklable, small."""
+
+    path: str
+    rig: Rig
+    cameras: tuple[str, ...]
+    grid: VolumeGrid
+    settings: IprSettings
+    device: str | None
+    token: str
+
+
+@dataclass(frozen=True)
+class PairParticles:
+    """A worker's result: both frames' (n, 5) particle rows and their figures (the coordinator writes them)."""
+
+    tables: list[np.ndarray]
+    candidates: list[int]
+    seconds: list[float]
+
+
+def _frame(ipr: ParticleReconstructor, store: RunStore, names: Sequence[str], pair: int, frame: int
+           ) -> tuple[ParticleResult, float]:
+    import time
+
+    images = [store.read_frame(n, pair, frame) for n in names]  # a damaged frame is an error
+    t0 = time.perf_counter()
+    try:
+        res = ipr.reconstruct(images)
+    except MemoryBudgetError as exc:
+        raise UsageError(str(exc)) from None
+    return res, time.perf_counter() - t0
+
+
+def particles_pair_task(job: ParticlesJob, pair: int) -> PairParticles:
+    """Worker task: the particles of both frames of ``pair``, returned to the coordinator, which
+    appends them to ``particles/`` (the table is one array that one process writes)."""
+    from lfpiv.batch import this_worker_device, worker_state
+
+    def build() -> tuple[RunStore, ParticleReconstructor]:
+        cams = [job.rig.camera_named(n) for n in job.cameras]
+        proj = projector_for(cams, job.grid, device=this_worker_device(job.device))
+        return RunStore.open(job.path), ParticleReconstructor(proj, settings=job.settings)  # it reads frames only
+
+    store, ipr = worker_state(job.token, build)
+    made = [_frame(ipr, store, job.cameras, pair, f) for f in (0, 1)]
+    return PairParticles(tables=[r.table() for r, _ in made], candidates=[r.candidates for r, _ in made],
+                         seconds=[t for _, t in made])
+
+
+def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = None, *,
+                  cameras: Sequence[str] | None = None, device: str | None = None, progress: bool = True,
+                  skip_done: bool = False, option: str = "--pair-range", client: Any = None) -> ParticlesDone:
+    """Reconstruct the particles of both frames of ``pairs`` (None: every recorded pair) into
+    ``particles/``.
+
+    Particles of the same grid, cameras and settings already stored are kept and added to; other
+    settings make a new set beside them, which replaces them once complete (as ``reconstruct``
+    does with ``volumes/``). With a Dask ``client`` (:func:`lfpiv.batch.dask_client`) the pairs are
+    done on its workers, and this process appends each pair's particles to the store as it comes back.
+
+    Raises
+    ------
+    UsageError
+        No recorded pairs, a pair never recorded, an unknown camera, or a box too big for memory.
+    """
+    rig = store.rig
+    if store.committed_pairs == 0:
+        raise UsageError(f"{store.path} has no recorded pairs (committed_pairs = 0); nothing to reconstruct")
+    chosen = (select_pairs(pairs, store.n_pairs, option=option) if pairs is not None
+              else list(range(store.committed_pairs)))
+    late = [p for p in chosen if p >= store.committed_pairs]
+    if late:
+        raise UsageError(f"pair {late[0]} was never recorded (the run has {store.committed_pairs} committed "
+                         f"pair(s)); choose {option} within 0:{store.committed_pairs}")
+    names = list(cameras) if cameras else [c.name for c in rig.camera]
+    unknown = [n for n in names if n not in store.cameras]
+    if unknown:
+        raise UsageError(f"--cameras: no camera '{unknown[0]}' in this run (it has {', '.join(store.cameras)})")
+    cams = [rig.camera_named(n) for n in names]
+    if settings.method is not None and unsupported_method(cams, settings.method) is not None:
+        raise UsageError(f"camera '{unsupported_method(cams, settings.method)}' is a pinhole camera: --method "
+                         f"{settings.method} needs light-field cameras; use --method mlos-smart")
+    grid = VolumeGrid.from_rig(rig)
+    proj = projector_for(cams, grid, device=device)
+    try:
+        ipr = ParticleReconstructor(proj, settings=settings)
+    except MemoryBudgetError as exc:
+        raise UsageError(str(exc)) from None
+    meta = {**settings.as_dict(), "method": ipr.method, "cameras": names}
+    done = ParticlesDone(device=proj.device)
+
+    def matches(g: Any) -> bool:
+        return (g is not None and g.attrs.get("settings") == meta and list(g.attrs.get("origin_mm", [])) ==
+                list(grid.origin_mm) and list(g.attrs.get("voxel_mm", [])) == list(grid.voxel_mm))
+
+    def differences(g: Any) -> list[str]:
+        old = dict(g.attrs.get("settings", {})) if g is not None else {}
+        return [k for k in meta if old.get(k) != meta[k]]
+
+    def here(todo: list[int]) -> None:
+        with tqdm(total=2 * len(todo), unit="frame", disable=not progress, desc="particles", leave=False) as bar:
+            for p in todo:
+                frames: list[ParticleResult] = []
+                for f in (0, 1):
+                    res, seconds = _frame(ipr, store, names, p, f)
+                    done.seconds.append(seconds)
+                    done.counts.append(res.n)
+                    done.candidates.append(res.candidates)
+                    frames.append(res)
+                    bar.update(1)
+                    bar.set_postfix_str(f"pair {p} {'AB'[f]}: {res.n} particles")
+                store.write_particles(p, [r.table() for r in frames])
+                done.pairs.append(p)
+
+    def remote(into: str) -> tuple[Any, ParticlesJob]:
+        from lfpiv.batch import new_token
+
+        return particles_pair_task, ParticlesJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names),
+                                                 grid=grid, settings=settings, device=device, token=new_token())
+
+    def written(p: int, r: PairParticles) -> None:
+        store.write_particles(p, r.tables)
+        done.pairs.append(p)
+        done.counts.extend(len(t) for t in r.tables)
+        done.candidates.extend(r.candidates)
+        done.seconds.extend(r.seconds)
+
+    run_pairs(store, "particles", chosen, matches=matches, differences=differences,
+              create=lambda: store.create_particles(grid, method=ipr.method, settings=meta), skip_done=skip_done,
+              here=here, remote=remote, client=client, on_done=written, desc="particles", progress=progress,
+              postfix=lambda p, r: {"pair": p, "particles": "/".join(str(len(t)) for t in r.tables)},
+              kept=lambda: f"the particles of {len(done.pairs)} pair(s) written before are kept" if done.pairs else "")
+    return done
