@@ -26,8 +26,8 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 from lfcore.flows import FLOW_NAMES
 from lfcore.runstore._common import STATES, RunStoreError
 
-__all__ = ["GROUPS", "RootAttrs", "TimingAttrs", "TruthAttrs", "VectorsAttrs", "VolumesAttrs", "describe",
-           "problems", "validated"]
+__all__ = ["GROUPS", "ParticlesAttrs", "RootAttrs", "TimingAttrs", "TruthAttrs", "VectorsAttrs", "VolumesAttrs",
+           "describe", "problems", "validated"]
 
 # --- the types the attributes are made of --------------------------------------------------
 PositiveS = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -134,6 +134,15 @@ class VectorsAttrs(_Derived):
     correlated_pairs: Pairs = Field(description="a list of pair numbers (whole numbers from 0)")
 
 
+class ParticlesAttrs(_Derived):
+    """The attributes of ``particles/`` (and ``particles.pending/``)."""
+
+    origin_mm: _three(Finite) = Field(description="three finite world coordinates (x, y, z) in mm")
+    voxel_mm: _three(PositiveNumber) = Field(description="three positive, finite voxel edges (x, y, z) in mm")
+    method: str = Field(description="the text of a reconstruction method")
+    particle_pairs: Pairs = Field(description="a list of pair numbers (whole numbers from 0)")
+
+
 #: A flow parameter: a number, a vector of numbers, or null (``period_s`` of a steady ring).
 FlowParam = Annotated[float, Field(allow_inf_nan=False)] | list[Annotated[float, Field(allow_inf_nan=False)]] | None
 
@@ -170,6 +179,8 @@ GROUPS: dict[str, tuple[type[_Attrs], str, str]] = {
     "vectors": (VectorsAttrs, "vectors/ attribute ", "vectors/zarr.json"),
     "vectors.pending": (VectorsAttrs, "vectors.pending/ attribute ", "vectors.pending/zarr.json"),
     "truth": (TruthAttrs, "truth/ attribute ", "truth/zarr.json"),
+    "particles": (ParticlesAttrs, "particles/ attribute ", "particles/zarr.json"),
+    "particles.pending": (ParticlesAttrs, "particles.pending/ attribute ", "particles.pending/zarr.json"),
 }
 
 #: What to do about a damaged attribute of each group, after "restore it from a copy of the run".
@@ -177,6 +188,8 @@ _OR = {"volumes": ", or remove {path}/volumes to reconstruct again",
        "vectors": ", or remove {path}/vectors to correlate again",
        "volumes.pending": ", or remove {path}/volumes.pending (an unfinished replacement)",
        "vectors.pending": ", or remove {path}/vectors.pending (an unfinished replacement)",
+       "particles": ", or remove {path}/particles to find them again",
+       "particles.pending": ", or remove {path}/particles.pending (an unfinished replacement)",
        "truth": ""}
 
 

@@ -137,3 +137,25 @@ def test_local_workers_give_the_particles_of_one_process(tmp_path, capsys):
             here, there = a.read_particles(p, f), b.read_particles(p, f)
             assert there.shape == here.shape
             assert np.all(np.abs(there[:, :3] - here[:, :3]) < 0.01 * voxel)
+
+
+def test_particles_attributes_are_validated_on_read(tmp_path, capsys):
+    """particles/ has a schema like volumes/: an edited particle_pairs is one line naming it."""
+    import json
+
+    import pytest
+
+    from lfcore.runstore import RunStoreError
+    from lfcore.runstore._schema import problems
+
+    run = tmp_path / "run.zarr"
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "1", "--ppm", "0.2")[0] == 0
+    assert _run(capsys, "particles", run, "--quiet")[0] == 0
+    s = RunStore.open(run)
+    assert problems(run, "particles", s.group["particles"].attrs) == []
+    meta = run / "particles" / "zarr.json"
+    doc = json.loads(meta.read_text())
+    doc["attributes"]["particle_pairs"] = "0"
+    meta.write_text(json.dumps(doc))
+    with pytest.raises(RunStoreError, match="particles/ attribute particle_pairs"):
+        RunStore.open(run).done_pairs("particles", RunStore.open(run).group["particles"])
