@@ -280,9 +280,9 @@ def run_monitor_window(pipeline: LivePipeline, controls: Controls, *, title: str
             pipeline.stop()
             numbers = win.status_numbers()
             stop_s = time.monotonic() - t0
-            # the window's widgets destroyed by Qt now, while the application exists: left to the
-            # interpreter's exit, pyqtgraph's items of the checks panel were freed after it (a segfault)
-            win.deleteLater()
+            # the checks panel destroyed by Qt now, while the application exists: left to the
+            # interpreter's exit, its pyqtgraph items were freed after it (a segfault at every exit)
+            win.release_checks()
             QtCore.QCoreApplication.sendPostedEvents(None, QtCore.QEvent.Type.DeferredDelete)
             app.processEvents()
     finally:

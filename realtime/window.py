@@ -122,7 +122,8 @@ class MonitorWindow(QtWidgets.QMainWindow):
         self.view = pg.GraphicsLayoutWidget()
         top = QtWidgets.QHBoxLayout()
         top.addWidget(self.view, stretch=3)
-        top.addWidget(self._checks_column(pipeline.cameras), stretch=1)
+        self._checks_box = self._checks_column(pipeline.cameras)
+        top.addWidget(self._checks_box, stretch=1)
         layout.addLayout(top, stretch=1)
         self.status = QtWidgets.QLabel("waiting for the first pair ...")
         self.status.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
@@ -215,7 +216,7 @@ class MonitorWindow(QtWidgets.QMainWindow):
         if wait:
             self.show_checks(camera_checks(self.pipeline.rig, raw))
             return
-        if self._checks_busy:
+        if self._checks_busy or self._closing:  # one check at a time; none once the window closed
             return
         self._checks_busy = True
         frames = {k: np.array(v, copy=True) for k, v in raw.items()}
@@ -240,7 +241,7 @@ class MonitorWindow(QtWidgets.QMainWindow):
         with self._pending_lock:
             checks, self._checks_pending = self._checks_pending, None
         self._checks_busy = False
-        if checks is None:
+        if checks is None or self._checks_box is None:  # nothing, or the panel is gone (the window closed)
             return
         if "error" in checks:
             for label in self.check_labels.values():
@@ -262,6 +263,16 @@ class MonitorWindow(QtWidgets.QMainWindow):
             self.check_items[f"plane:{cam}"].setImage(c.preview, autoLevels=False, levels=_levels(c.preview))
             self.check_plots[f"plane:{cam}"].setTitle(f"{cam}: {c.preview_label}")
         self.last_checks = dict(checks)
+
+    def release_checks(self) -> None:
+        """Stop the checks' thread and have Qt delete the checks panel (once the window is done with:
+        its pyqtgraph items must go while the application exists)."""
+        self._closing = True
+        self._checker.shutdown(wait=True, cancel_futures=True)
+        if self._checks_box is not None:
+            self._checks_box.setParent(None)
+            self._checks_box.deleteLater()
+            self._checks_box = None
 
     def check_rects(self) -> dict[str, tuple[int, int, int, int]]:
         """Where each checks panel's data area lies in a :meth:`screenshot`: (x, y, width, height) px."""
