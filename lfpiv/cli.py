@@ -173,7 +173,8 @@ def _start_logging(verbose: int, log_file: str | None, *, command: str = "") -> 
         for h in list(lg.handlers):  # a second main() in one process (the demo, tests) starts afresh
             if getattr(h, "_lfpiv", False):
                 lg.removeHandler(h)
-                h.close()
+                with contextlib.suppress(OSError):  # a log file the last command could not write (said then)
+                    h.close()
         lg.setLevel(logging.DEBUG if log_file is not None else level)
         for h in handlers:
             h._lfpiv = True  # type: ignore[attr-defined]
