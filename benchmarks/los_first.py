@@ -16,7 +16,6 @@ the start) or each of ``--los``.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import time
 from pathlib import Path
@@ -24,17 +23,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.convergence import _recon_bench  # noqa: E402  (benchmarks/recon.py's scenes)
 from lfcore import metrics  # noqa: E402
 from lfcore.device import resolve_device  # noqa: E402
 from lfcore.plan import projector_for  # noqa: E402
 from lfcore.reconstruct import FrameReconstructor, ReconSettings  # noqa: E402
-
-
-def _recon_bench():
-    spec = importlib.util.spec_from_file_location("recon_bench", ROOT / "benchmarks" / "recon.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def main() -> None:

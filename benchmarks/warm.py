@@ -19,7 +19,6 @@ error of a correlation of (A, B) against the true flow, cold and warm at the def
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import time
 from pathlib import Path
@@ -29,6 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.convergence import _recon_bench  # noqa: E402  (benchmarks/recon.py's scenes)
 from lfcore import metrics  # noqa: E402
 from lfcore.correlate import CorrelationConfig, correlate  # noqa: E402
 from lfcore.device import resolve_device, warp  # noqa: E402
@@ -37,13 +37,6 @@ from lfcore.reconstruct import WARM_SHARE, FrameReconstructor, ReconSettings, pr
 from lfcore.render import LightFieldRenderer  # noqa: E402
 from lfcore.warm import WARM_BLEND, WARM_BLUR, WarmStart, predictor_field  # noqa: E402
 from lfcore.world import ParticleWorld  # noqa: E402
-
-
-def _recon_bench():
-    spec = importlib.util.spec_from_file_location("recon_bench", ROOT / "benchmarks" / "recon.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def main() -> None:
