@@ -26,7 +26,7 @@ from lfcore.runstore import RunStore, RunStoreError
 from lfpiv import replacement
 from lfpiv.errors import UsageError, naming
 
-__all__ = ["SLAB_SHARE", "run_pairs", "select_pairs", "slabs_asked"]
+__all__ = ["SLAB_SHARE", "particle_pairs", "recorded_pairs", "run_pairs", "select_pairs", "slabs_asked"]
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -125,6 +125,54 @@ def run_pairs(store: RunStore, name: str, pairs: list[int], *, matches: Callable
     with naming(f"{store.path}/{store.writing(name).basename}"):
         replacement.end(store, name)
     return pairs
+
+
+def recorded_pairs(store: RunStore, pairs: slice | None, cameras: Any, *, rig: Any = None,
+                   option: str = "--pair-range") -> tuple[list[int], list[str]]:
+    """The recorded pairs ``pairs`` selects (every committed pair where None: a run cut short has fewer
+    than it planned) and the cameras (``cameras``, or all of ``rig``'s: the run's rig where None), for a
+    command that processes a run's frames (``reconstruct``, ``particles``).
+
+    Raises
+    ------
+    UsageError
+        No committed pairs, a selected pair never recorded, or a camera the run does not have.
+    """
+    if store.committed_pairs == 0:
+        raise UsageError(f"{store.path} has no recorded pairs (committed_pairs = 0); nothing to reconstruct")
+    chosen = (select_pairs(pairs, store.n_pairs, option=option) if pairs is not None
+              else list(range(store.committed_pairs)))
+    late = [p for p in chosen if p >= store.committed_pairs]
+    if late:
+        raise UsageError(f"pair {late[0]} was never recorded (the run has {store.committed_pairs} committed "
+                         f"pair(s)); choose {option} within 0:{store.committed_pairs}")
+    names = list(cameras) if cameras else [c.name for c in (store.rig if rig is None else rig).camera]
+    unknown = [n for n in names if n not in store.cameras]
+    if unknown:
+        raise UsageError(f"--cameras: no camera '{unknown[0]}' in this run (it has {', '.join(store.cameras)})")
+    return chosen, names
+
+
+def particle_pairs(store: RunStore, pairs: slice | None, *, option: str = "--pair-range"
+                   ) -> tuple[dict[str, Any], list[int]]:
+    """The ``particles/`` attributes and the pairs with particles that ``pairs`` selects (``evaluate``,
+    ``track``).
+
+    Raises
+    ------
+    UsageError
+        A run without particles (or with damaged attributes), or none of the selected pairs with them.
+    """
+    try:
+        attrs = store.particle_attrs()
+    except RunStoreError as exc:
+        raise UsageError(str(exc)) from None
+    done = store.particle_pairs()
+    chosen = [p for p in select_pairs(pairs, store.n_pairs, option=option) if p in done]
+    if not chosen:
+        raise UsageError(f"none of the selected pairs has particles (with particles: {done or 'none'}); "
+                         f"run 'lfpiv particles {store.path}' first")
+    return attrs, chosen
 
 
 def select_pairs(pairs: slice | None, n_pairs: int, *, option: str = "--pair-range") -> list[int]:

@@ -16,7 +16,7 @@ from lfcore import metrics
 from lfcore.runstore import RunStore, RunStoreError
 from lfcore.vectors import FLAG_OUTLIER, FLAG_REPLACED
 from lfpiv.errors import UsageError
-from lfpiv.pair_runner import select_pairs
+from lfpiv.pair_runner import particle_pairs, select_pairs
 
 __all__ = ["FrameEvaluation", "ParticleEvaluation", "VectorEvaluation", "evaluate_particles", "evaluate_run",
            "particle_rows", "evaluate_vector_fields", "evaluate_vectors",
@@ -119,15 +119,7 @@ def evaluate_particles(store: RunStore, pairs: slice | None = None, match_voxels
     truth = store.truth()
     if truth is None:
         raise UsageError(f"{store.path} is a recorded run with no truth; evaluate needs a synthetic run")
-    try:
-        attrs = store.particle_attrs()
-    except RunStoreError as exc:
-        raise UsageError(str(exc)) from None
-    done = store.particle_pairs()
-    chosen = [p for p in select_pairs(pairs, store.n_pairs, option=option) if p in done]
-    if not chosen:
-        raise UsageError(f"none of the selected pairs has particles (with particles: {done or 'none'}); "
-                         f"run 'lfpiv particles {store.path}' first")
+    attrs, chosen = particle_pairs(store, pairs, option=option)
     voxel = np.asarray(attrs["voxel_mm"], dtype=np.float64)
     out = []
     for p in chosen:

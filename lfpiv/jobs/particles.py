@@ -18,7 +18,7 @@ from lfcore.rig import Rig
 from lfcore.runstore import RunStore
 from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError
-from lfpiv.pair_runner import run_pairs, select_pairs
+from lfpiv.pair_runner import recorded_pairs, run_pairs
 
 __all__ = ["IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "ipr_settings", "particles_pair_task",
            "particles_run"]
@@ -125,18 +125,7 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
         No recorded pairs, a pair never recorded, an unknown camera, or a box too big for memory.
     """
     rig = store.rig
-    if store.committed_pairs == 0:
-        raise UsageError(f"{store.path} has no recorded pairs (committed_pairs = 0); nothing to reconstruct")
-    chosen = (select_pairs(pairs, store.n_pairs, option=option) if pairs is not None
-              else list(range(store.committed_pairs)))
-    late = [p for p in chosen if p >= store.committed_pairs]
-    if late:
-        raise UsageError(f"pair {late[0]} was never recorded (the run has {store.committed_pairs} committed "
-                         f"pair(s)); choose {option} within 0:{store.committed_pairs}")
-    names = list(cameras) if cameras else [c.name for c in rig.camera]
-    unknown = [n for n in names if n not in store.cameras]
-    if unknown:
-        raise UsageError(f"--cameras: no camera '{unknown[0]}' in this run (it has {', '.join(store.cameras)})")
+    chosen, names = recorded_pairs(store, pairs, cameras, option=option)
     cams = [rig.camera_named(n) for n in names]
     if settings.method is not None and unsupported_method(cams, settings.method) is not None:
         raise UsageError(f"camera '{unsupported_method(cams, settings.method)}' is a pinhole camera: --method "

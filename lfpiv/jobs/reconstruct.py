@@ -32,7 +32,7 @@ from lfcore.volume import VolumeGrid
 from lfcore.warm import Predictor, WarmStart, predictor_field
 from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
-from lfpiv.pair_runner import run_pairs, select_pairs
+from lfpiv.pair_runner import recorded_pairs, run_pairs
 
 __all__ = ["BYTES_PER_BOX_VOXEL", "MAX_SUB_APERTURES", "OPERATOR_ATTR", "PINHOLE_METHODS", "PLAN_ATTR", "PROJECTORS",
            "PairDone", "ReconJob", "ReconResult", "ReconSettings", "default_method", "operator_figures",
@@ -349,19 +349,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         box too big for the device's memory.
     """
     rig = store.rig if rig is None else rig
-    if store.committed_pairs == 0:
-        raise UsageError(f"{store.path} has no recorded pairs (committed_pairs = 0); nothing to reconstruct")
     # by default every recorded pair: a run cut short (Ctrl-C, a fault) has fewer than it planned
-    chosen = (select_pairs(pairs, store.n_pairs, option=option) if pairs is not None
-              else list(range(store.committed_pairs)))
-    late = [p for p in chosen if p >= store.committed_pairs]
-    if late:
-        raise UsageError(f"pair {late[0]} was never recorded (the run has {store.committed_pairs} committed "
-                         f"pair(s)); choose {option} within 0:{store.committed_pairs}")
-    names = list(cameras) if cameras else [c.name for c in rig.camera]
-    unknown = [n for n in names if n not in store.cameras]
-    if unknown:
-        raise UsageError(f"--cameras: no camera '{unknown[0]}' in this run (it has {', '.join(store.cameras)})")
+    chosen, names = recorded_pairs(store, pairs, cameras, rig=rig, option=option)
     _refuse_lost(store, chosen, names, option)
     cams = [rig.camera_named(n) for n in names]
     # pinhole cameras alone: MLOS-SMART or MART; beside light-field ones, every method (the

@@ -9,11 +9,11 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from lfcore.runstore import RunStore, RunStoreError
+from lfcore.runstore import RunStore
 from lfcore.track import TrackSettings, track_pair
 from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError
-from lfpiv.pair_runner import run_pairs, select_pairs
+from lfpiv.pair_runner import particle_pairs, run_pairs
 
 __all__ = ["TrackSettings", "TracksDone", "track_run", "track_settings", "tracks_csv"]
 
@@ -74,15 +74,7 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
     UsageError
         A run without particles, or none of the selected pairs with particles.
     """
-    try:
-        attrs = store.particle_attrs()
-    except RunStoreError as exc:
-        raise UsageError(str(exc)) from None
-    done_pairs = store.particle_pairs()
-    chosen = [p for p in select_pairs(pairs, store.n_pairs, option=option) if p in done_pairs]
-    if not chosen:
-        raise UsageError(f"none of the selected pairs has particles (with particles: {done_pairs or 'none'}); "
-                         f"run 'lfpiv particles {store.path}' first")
+    attrs, chosen = particle_pairs(store, pairs, option=option)
     grid = VolumeGrid.from_rig(store.rig)
     if (not np.allclose(grid.origin_mm, attrs["origin_mm"]) or not np.allclose(grid.voxel_mm, attrs["voxel_mm"])):
         raise UsageError(f"{store.path}: particles/ was made on another grid than the run's rig gives; run "
