@@ -18,8 +18,8 @@ from lfcore.rig import is_pinhole  # noqa: E402
 from lfcore.runstore import RunStore  # noqa: E402
 from lfpiv.errors import UsageError  # noqa: E402
 
-__all__ = ["plot_camera_checks", "plot_grids", "plot_raw_images", "plot_reconstruction", "plot_rms", "plot_vectors",
-           "plot_views", "save_figure"]
+__all__ = ["plot_camera_checks", "plot_grids", "plot_raw_images", "plot_reconstruction", "plot_rms", "plot_routes",
+           "plot_vectors", "plot_views", "save_figure"]
 
 
 def save_figure(fig, out: str | Path, *, dpi: float = 100) -> Path:
@@ -169,6 +169,63 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
         fig.colorbar(im, ax=ax, label="w_z (1/s)", shrink=0.85)
     fig.suptitle(f"{store.path.name}: pair {pair}, {len(x)} x {len(y)} x {len(z)} vectors")
     fig.tight_layout()
+    save_figure(fig, out, dpi=100)
+    return out
+
+
+def plot_routes(routes: list[tuple[str, RunStore]], out: str | Path, pair: int = 0) -> Path:
+    """Save a PNG of several runs' vectors of one pair side by side: per run the in-plane vectors
+    (u, v) of its z plane nearest the volume's centre over the in-plane speed (blank where it
+    measured none), and first the truth flow on the first run's grid when it has one; one colour
+    scale for all. The demo's two routes (volumes and correlation, particles and tracking) on
+    one recording.
+
+    Parameters
+    ----------
+    routes
+        (label, run store) per panel, each with ``vectors/`` holding ``pair``.
+    out
+        The PNG.
+    pair
+        The pair shown.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
+    from lfcore.metrics import grid_velocity
+
+    out = Path(out)
+    panels = []
+    for label, store in routes:
+        vec = store.vectors()
+        panels.append((label, vec["x_mm"], vec["y_mm"], vec["z_mm"],
+                       np.stack([vec[c][pair] for c in "uvw"], axis=-1).astype(np.float64)))
+    first = routes[0][1]
+    truth = first.truth()
+    if truth is not None and truth["attrs"].get("flow", {}).get("name") not in (None, "static-points"):
+        _, x, y, z, _ = panels[0]
+        t_mid = float(truth["t0_s"][pair]) + 0.5 * first.dt_s
+        panels.insert(0, ("truth", x, y, z, grid_velocity(first.truth_flow(), x, y, z, t_mid)))
+    centre_z = float(first.rig.volume.centre_mm[2])
+    planes = []
+    for label, x, y, z, f in panels:
+        k = int(np.argmin(np.abs(np.asarray(z) - centre_z)))
+        planes.append((label, x, y, z[k], f[k]))
+    top = max(float(np.nanmax(np.hypot(p[..., 0], p[..., 1]), initial=0.0)) for *_, p in planes) or 1.0
+    fig, axes = plt.subplots(1, len(planes), figsize=(5.2 * len(planes), 4.8), squeeze=False)
+    for ax, (label, x, y, zk, p) in zip(axes[0], planes, strict=True):
+        speed = np.hypot(p[..., 0], p[..., 1])
+        dx, dy = (x[1] - x[0] if len(x) > 1 else 1.0), (y[1] - y[0] if len(y) > 1 else 1.0)
+        im = ax.imshow(speed, origin="lower", cmap="viridis", vmin=0.0, vmax=top, aspect="equal",
+                       extent=(x[0] - dx / 2, x[-1] + dx / 2, y[0] - dy / 2, y[-1] + dy / 2))
+        ax.quiver(x, y, p[..., 0], p[..., 1], color="w", angles="xy", scale=top * max(len(x), 4) / 1.5)
+        ax.set_title(f"{label}: (u, v) at z = {zk:.3g} mm", fontsize=10)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+    fig.colorbar(im, ax=list(axes[0]), label="in-plane speed (m/s)", shrink=0.85)
+    fig.suptitle(f"pair {pair}: the same recording by each route")
     save_figure(fig, out, dpi=100)
     return out
 
