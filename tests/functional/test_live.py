@@ -68,7 +68,9 @@ def test_live_particle_route_tracks_the_simulated_flow(tmp_path: Path) -> None:
     pipe.subscribe(results.append)
     pipe.build()
     with pipe, SimLab(rig, world=world, pool_pairs=1, rays_per_particle=1000, reply_latency_s=0.0005) as lab:
-        res = record(rig, tmp_path / "run.zarr", 2, sim_options={"lab": lab}, on_session=lambda s: pipe.attach(s.ring))
+        # one pair: the pipeline stops once it is processed (a particle pair takes tens of seconds on a loaded CPU,
+        # longer than the 30 s stop() waits for the pair in hand)
+        res = record(rig, tmp_path / "run.zarr", 1, sim_options={"lab": lab}, on_session=lambda s: pipe.attach(s.ring))
         triggered = lab.pulse_generator.ticks_fired
         assert pipe.wait_processed(1, 300.0)
     st = pipe.stats()
