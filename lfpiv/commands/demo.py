@@ -118,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     if n > 0:
         # The particle route on a copy of the same recording (its vectors/ beside the voxel route's), with
         # monitoring settings (20 candidate iterations, 2 rounds: as good as the defaults on this rig, in
-        # half the time), bins the size of the last correlation window and a search as wide in every axis.
+        # about 60% of the time), bins the size of the last correlation window and a search as wide in every axis.
         prun = str(out / "particles.zarr")
         copy_recording(run_, prun)
         last = windows.split(",")[-1]
