@@ -309,6 +309,10 @@ class MonitorWindow(QtWidgets.QMainWindow):
         self.relax_spin.setSingleStep(0.1)
         self.relax_spin.setValue(s.relaxation)
         self.relax_spin.valueChanged.connect(lambda v: self._update(relaxation=float(v)))
+        if self.pipeline.route == "particles":  # the voxel route's MART settings: nothing to change here
+            for spin in (self.iter_spin, self.relax_spin):
+                spin.setEnabled(False)
+                spin.setToolTip("the voxel route's (lfpiv monitor --route voxels)")
         self._axis_changed(s.slice_axis, keep_index=s.slice_index)
         self.slice_spin.valueChanged.connect(lambda v: self._update(slice_index=int(v)))
         for w in (self.live_button, self.arm_button, self.record_box, QtWidgets.QLabel("slice axis"),
