@@ -1,6 +1,6 @@
 """Live: the pipeline that reconstructs and correlates the newest recorded pair (or tracks its
-particles: the particle route), and the
-pyqtgraph monitor window that shows it (Qt is imported only when a window is made).
+particles: the particle route), and the pyqtgraph monitor window that shows it (Qt is imported
+only when a window is made).
 
 ``realtime.window`` holds the window's Qt class; it imports Qt, so it is not in ``__all__``:
 :func:`realtime.monitor.MonitorWindow` imports it when a window is made."""
