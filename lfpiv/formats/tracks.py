@@ -123,8 +123,8 @@ def write_tracks_vtp(path: str | os.PathLike[str], rows: np.ndarray, *, time_s: 
     return path
 
 
-def write_tracks_vtp_series(out_dir: str | os.PathLike[str], rows: np.ndarray, *, rate_hz: float | None
-                            ) -> list[Path]:
+def write_tracks_vtp_series(out_dir: str | os.PathLike[str], rows: np.ndarray, *, rate_hz: float | None,
+                            pairs: list[int] | None = None) -> list[Path]:
     """One ``tracks_pairNNNN.vtp`` per pair of ``rows`` and ``tracks.pvd`` listing them by time.
 
     A series exported into ``out_dir`` before is replaced whole: the files of pairs this one lacks
@@ -138,6 +138,9 @@ def write_tracks_vtp_series(out_dir: str | os.PathLike[str], rows: np.ndarray, *
         (m, 11) track rows of every pair (see the module docstring).
     rate_hz
         Pairs per second, for each pair's time (pair / rate); None: the pair index.
+    pairs
+        The pairs to write, a file each (a pair without tracks: a file without lines); None: those
+        in ``rows``.
 
     Returns
     -------
@@ -146,7 +149,7 @@ def write_tracks_vtp_series(out_dir: str | os.PathLike[str], rows: np.ndarray, *
     """
     out = Path(out_dir)
     t = _table(rows)
-    pairs = sorted({int(p) for p in t[:, 0]})
+    pairs = sorted({int(p) for p in t[:, 0]} if pairs is None else {int(p) for p in pairs})
     times = [p / rate_hz if rate_hz else float(p) for p in pairs]
     files = [write_tracks_vtp(out / vtp_name(p), t[t[:, 0] == p], time_s=s) for p, s in zip(pairs, times, strict=True)]
     keep = {f.name for f in files}

@@ -91,7 +91,7 @@ def _write_tracks(store: RunStore, fmt: str, out: Path, pairs: list[int]) -> lis
     try:
         if fmt == "tracks-csv":
             return [write_tracks_csv(out / "tracks.csv", table)]
-        return write_tracks_vtp_series(out, table, rate_hz=store.timing.get("rate_hz"))
+        return write_tracks_vtp_series(out, table, rate_hz=store.timing.get("rate_hz"), pairs=pairs)
     except OSError as exc:
         if exc.filename is None:
             raise OSError(exc.errno, exc.strerror or str(exc), str(out)) from None
