@@ -53,9 +53,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the field's bins in voxels (default: 16x16x8)")
     c.add_argument("--min-tracks", type=positive_int, default=2, metavar="N",
                    help="fewest tracks a bin needs for a vector (default: 2)")
-    c.add_argument("--field", choices=("bins", "smooth"), default="bins",
-                   help="how the field is made from the tracks: bins, the mean of each bin's tracks; smooth, their "
-                   "Gaussian-weighted average around each bin's centre (default: bins)")
+    c.add_argument("--field", choices=("smooth", "bins"), default="smooth",
+                   help="how the field is made from the tracks: smooth, their Gaussian-weighted average around each "
+                   "bin's centre; bins, the mean of each bin's tracks (default: smooth)")
     c.add_argument("--smooth-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="the smooth field's Gaussian sigma in voxels (default: half a bin)")
     c.add_argument("--csv", default=None, metavar="FILE",

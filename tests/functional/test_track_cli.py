@@ -167,3 +167,17 @@ def test_a_frame_too_crowded_to_pair_is_refused(tmp_path, capsys):
     rc, out, err = _run(capsys, "track", run)
     assert rc == 2 and "too many to pair" in err and "--search-voxels" in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1 and not RunStore.open(run).has_vectors
+
+
+def test_a_run_without_particles_and_cameras_without_the_model_asked_for(tmp_path, capsys):
+    run = tmp_path / "t.zarr"
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tomo_4_cameras.toml", "--out", run, "--pairs", "1", "--ppp",
+                "0.01", "--quiet")[0] == 0
+    # nothing to track yet: one line, exit 2, nothing written
+    rc, _, err = _run(capsys, "track", run)
+    assert rc == 2 and "lfpiv particles" in err and len(err.strip().splitlines()) == 1
+    assert not RunStore.open(run).has_vectors
+    # pinhole cameras have no DRT model of a particle: one line naming the camera and the fix
+    rc, _, err = _run(capsys, "particles", run, "--method", "drt-mart")
+    assert rc == 2 and "pinhole camera" in err and "--method mlos-smart" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1 and not RunStore.open(run).has_particles
