@@ -95,6 +95,17 @@ def test_workers_track_as_this_process_does(particles_run, tmp_path, capsys):
         assert np.array_equal(a.read_vectors(p)["u"], b.read_vectors(p)["u"], equal_nan=True)
     rc, out, _ = _run(capsys, "track", there, "--quiet", "--workers", "1", "--skip-done")
     assert rc == 0 and "nothing to do" in out
+    # the volumes predictor's correlation on a worker: the tracks of this process's
+    for run in (here, there):
+        assert _run(capsys, "reconstruct", run, "--iterations", "5", "--quiet")[0] == 0
+    assert _run(capsys, "track", here, "--quiet", "--predictor", "volumes", "--bin", "32x32x8")[0] == 0
+    rc, out, err = _run(capsys, "track", there, "--quiet", "--predictor", "volumes", "--bin", "32x32x8",
+                        "--workers", "1")
+    assert rc == 0, err
+    a, b = RunStore.open(here), RunStore.open(there)
+    assert b.vectors()["attrs"]["settings"]["predictor"] == "volumes"
+    for p in (0, 1):
+        assert np.array_equal(a.read_tracks(p), b.read_tracks(p))
 
 
 def test_tracks_and_their_vectors_exported_for_paraview(particles_run, tmp_path, capsys):
