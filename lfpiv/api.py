@@ -226,16 +226,17 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
 
 
 def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, skip_done: bool = False,
-          progress: bool = True, **options: Any) -> Any:
+          progress: bool = True, predictor: str = "none", device: str | None = None, **options: Any) -> Any:
     """Pair each selected pair's particles from frame A to frame B and bin the tracks into the run's
-    ``vectors/`` (``lfpiv track``); ``options`` are :class:`lfcore.track.TrackSettings` fields
-    (``search_voxels``, ``refine_voxels``, ``passes``, ``bin_voxels``, ``min_tracks``, ...).
-    Returns the :class:`lfpiv.jobs.track.TracksDone` figures."""
+    ``vectors/`` (``lfpiv track``); ``predictor`` is the first pass's (``"none"``, ``"volumes"`` or
+    ``"previous"``: :mod:`lfpiv.jobs.track`), ``options`` are :class:`lfcore.track.TrackSettings`
+    fields (``search_voxels``, ``refine_voxels``, ``passes``, ``bin_voxels``, ``min_tracks``,
+    ``field``, ``smooth_voxels``, ...). Returns the :class:`lfpiv.jobs.track.TracksDone` figures."""
     from lfpiv.jobs.track import track_run, track_settings
 
     store = open_run(run, mode="r+")
-    return track_run(store, track_settings(**options), _pairs(pairs), progress=progress, skip_done=skip_done,
-                     option="pairs")
+    return track_run(store, track_settings(**options), _pairs(pairs), predictor=predictor, progress=progress,
+                     skip_done=skip_done, option="pairs", device=device)
 
 
 @dataclass(frozen=True)
