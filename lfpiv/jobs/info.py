@@ -63,12 +63,10 @@ def _warm(settings: dict) -> str:
 
 
 def _iterations(settings: dict) -> str:
-    """``"50 iterations"``, or ``"at most 400 iterations (stopping rule)"``, and the protocol where one was named."""
+    """``"50 iterations"``, or ``"at most 400 iterations (stopping rule)"``."""
     its, tol = settings.get("iterations"), settings.get("stop_tolerance") or 0
-    said = f"at most {its} iterations (stopping rule)" if isinstance(tol, (int, float)) and tol > 0 else \
+    return f"at most {its} iterations (stopping rule)" if isinstance(tol, (int, float)) and tol > 0 else \
         f"{its} iterations"
-    protocol = settings.get("protocol")
-    return f"{said}, protocol {protocol}" if protocol else said
 
 
 def _convergence(figures: object, settings: dict) -> str:
@@ -179,8 +177,9 @@ def describe(path: str | Path) -> list[str]:
         if plan:
             lines.append(("plan", plan))
         went = _convergence(va.get("convergence"), va["settings"])
-        if went:
-            lines.append(("iterations", went))
+        protocol = va["settings"].get("protocol")
+        if went or protocol:
+            lines.append(("iterations", (f"protocol {protocol}: " if protocol else "") + (went or "not recorded")))
     else:
         lines.append(("volumes", f"none (lfpiv reconstruct {store.path})"))
     if store.has_vectors:
