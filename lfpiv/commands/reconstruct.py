@@ -234,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
         took = (f"at most {settings.warm_count} iterations each instead of {settings.iterations}" if settings.stopping
                 else f"{warm[0].iterations} iterations each instead of {settings.iterations}")
         print(f"{len(warm)} frame(s) B started from their frame A carried along the last pair's displacement: {took}")
-    elif args.warm_start and len(results) > 1 and max(r.slabs for r in results) == 1:
+    elif args.warm_start:
         print("no frame was warm-started: the first pair a reconstructor makes starts uniform (its B has no "
               "predictor yet); reconstruct two pairs or more in one run")
     split = max(r.slabs for r in results)

@@ -179,7 +179,7 @@ def describe(path: str | Path) -> list[str]:
         went = _convergence(va.get("convergence"), va["settings"])
         protocol = va["settings"].get("protocol")
         if went or protocol:
-            lines.append(("iterations", (f"protocol {protocol}: " if protocol else "") + (went or "not recorded")))
+            lines.append(("frames", (f"protocol {protocol}: " if protocol else "") + (went or "not recorded")))
     else:
         lines.append(("volumes", f"none (lfpiv reconstruct {store.path})"))
     if store.has_vectors:

@@ -506,7 +506,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
             old = _recorded(store.volume_attrs(group=g)["settings"]) if "data" in g else {}
         except RunStoreError:  # for a note: the attributes of an unfinished replacement, damaged
             return ["attributes"]
-        changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k)]
+        changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k) and k not in NAMES_ONLY]
         return (["voxel grid"] if "data" in g and store.grid_of(g) != grid else []) + changed
 
     results: list[ReconResult] = []
@@ -586,7 +586,17 @@ def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, An
     """True when ``group`` (volumes or their pending replacement, None if absent) holds volumes
     on ``grid`` made with the settings ``meta``."""
     return (group is not None and "data" in group and store.grid_of(group) == grid
-            and _recorded(store.volume_attrs(group=group)["settings"]) == meta)
+            and _matching(_recorded(store.volume_attrs(group=group)["settings"])) == _matching(meta))
+
+
+#: Recorded settings that name the others rather than change the volumes: volumes made by the same
+#: settings under another protocol's name (or none, before protocols were recorded) are added to.
+NAMES_ONLY = ("protocol",)
+
+
+def _matching(settings: dict[str, Any]) -> dict[str, Any]:
+    """The recorded settings that make volumes a different set (all but :data:`NAMES_ONLY`)."""
+    return {k: v for k, v in settings.items() if k not in NAMES_ONLY}
 
 
 def _recorded(settings: dict[str, Any]) -> dict[str, Any]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import signal
@@ -426,6 +427,14 @@ def test_protocols_and_the_stopping_rule_from_the_command(capsys, synthetic_run,
     assert rc == 0 and "25 iterations a frame (fixed count; stopped: fixed count 2)" in out, out + err
     went = RunStore.open(run).group["volumes"].attrs["convergence"]
     assert went["iterations"] == [25, 25, 50] and went["stopped"] == {"fixed count": 2}
+    # volumes recorded before the protocols were (no protocol in their settings) match the same settings
+    f = run / "volumes" / "zarr.json"
+    meta = json.loads(f.read_text())
+    del meta["attributes"]["settings"]["protocol"]
+    f.write_text(json.dumps(meta))
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--protocol", "fast", "--iterations", "25",
+                        "--pair-range", "0:1", "--skip-done", "--quiet")
+    assert rc == 0 and "nothing to do" in out, out + err
     for argv, expected in ((["--iterations", "20", "--max-iterations", "40"], "give one"),
                            (["--iterations", "20", "--stop-tolerance", "0.01"], "drop --stop-tolerance"),
                            (["--protocol", "slow"], "invalid choice: 'slow'")):
