@@ -331,7 +331,7 @@ class _PointModel:
                  particle_image_px: float = 3.0, step: float = 0.05) -> None:
         from lfcore._kernels import weights as kw
         from lfcore.chief_ray import diffraction_sigma_mm
-        from lfcore.projector import LightFieldProjector
+        from lfcore.plan import projector_for
         from lfcore.rig import is_pinhole
 
         grid = projector.grid
@@ -354,7 +354,7 @@ class _PointModel:
                 # object-side, the blur on the MLA over the magnification
                 blur = np.sqrt(3.0) * diffraction_sigma_mm(wavelength_nm, cam.image_side_f_number) / abs(
                     cam.magnification)
-                self._cams.append((cam, LightFieldProjector([cam], grid, sub_apertures=n_sub, device=projector.device),
+                self._cams.append((cam, projector_for([cam], grid, sub_apertures=n_sub, device=projector.device),
                                    max(float(blur), floor)))
         self.wp = warp_module = kw.wp
         self._dummy_i = warp_module.zeros(1, dtype=warp_module.int32, device=self.device)
