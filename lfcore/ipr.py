@@ -30,7 +30,7 @@ instead of a voxel centre, through twice as many sub-apertures, with the main le
 blur on the MLA that the renderer applies), a pinhole camera's Gaussian spot of
 :attr:`IprSettings.particle_image_px` where the point projects, distortion included. Against a
 rendered point on the tiny rig its error is 0.03 of the image's RMS off focus and 0.06 near it,
-where the voxels' blend below was 0.21 and 0.56. The Jacobian is by central differences of 0.05
+where the voxels' blend below was 0.21 and 0.56. The Jacobian is by forward differences of 0.05
 voxel. A light-field camera's image of a particle changes slowly with depth, so after each round's
 fit every particle is also tried a few whole voxels away (:attr:`IprSettings.relocate_depth`) and
 moved where it explains more of the images.
@@ -324,7 +324,7 @@ class _PointModel:
     lambda N of its image-side f-number N, at ``wavelength_nm``; as the renderer blurs a ray's
     lenslet): near focus, where a particle's footprint is a few microns across, the blur decides
     which lenslets share its light (the model's error against a rendered point falls from 0.31 to
-    0.06 relative RMS there). The Jacobian is by central differences of ``step`` voxels.
+    0.06 relative RMS there). The Jacobian is by forward differences of ``step`` voxels.
     """
 
     def __init__(self, projector: Projector, *, sub_apertures: int | None = None, wavelength_nm: float = 532.0,
@@ -356,9 +356,8 @@ class _PointModel:
                     cam.magnification)
                 self._cams.append((cam, projector_for([cam], grid, sub_apertures=n_sub, device=projector.device),
                                    max(float(blur), floor)))
-        self.wp = warp_module = kw.wp
-        self._dummy_i = warp_module.zeros(1, dtype=warp_module.int32, device=self.device)
-        self._dummy_f = warp_module.zeros(1, dtype=float, device=self.device)
+        self.wp = kw.wp
+        self._capacity: dict[int, int] = {}  # entries per point a light-field camera's tracing needed
 
     def _light_field(self, lf, half: float, pts_mm: np.ndarray) -> sparse.csc_matrix:
         """(camera pixels, n): DRT weights of world points ``pts_mm`` (n, 3) in one light-field camera."""
@@ -369,18 +368,21 @@ class _PointModel:
         pts = wp.array(pts_mm.astype(np.float32), dtype=wp.vec3, device=self.device)
         common = [lf.views, 1, lf.sub_a, lf.sub_w, Rows(pts), half]
         counts = wp.zeros(n, dtype=wp.int64, device=self.device)
-        zeros = wp.zeros(n, dtype=wp.int64, device=self.device)
-        launch_rows(kw.drt_points, n, [*common, Rows(zeros), wp.int64(0), 1e-6, 0, wp.int64(0), Rows(counts),
-                                       self._dummy_i, self._dummy_f], self.device)
-        cnt = counts.numpy().astype(np.int64)
+        # one pass into slots of the capacity the last call needed (a pass again where it was short)
+        while True:
+            cap = self._capacity.get(id(lf), 1024)
+            pix = wp.empty(n * cap, dtype=wp.int32, device=self.device)
+            w = wp.empty(n * cap, dtype=float, device=self.device)
+            slots = wp.array(np.arange(n, dtype=np.int64) * cap, dtype=wp.int64, device=self.device)
+            launch_rows(kw.drt_points, n, [*common, Rows(slots), wp.int64(0), 1e-6, 1, wp.int64(cap), Rows(counts),
+                                           pix, w], self.device)
+            cnt = counts.numpy().astype(np.int64)
+            if cnt.max() <= cap:
+                break
+            self._capacity[id(lf)] = int(1.25 * cnt.max()) + 16
+        keep = (np.arange(cap)[None, :] < cnt[:, None]).ravel()
         offs = np.concatenate([[0], np.cumsum(cnt)])
-        total = int(offs[-1])
-        pix = wp.zeros(max(total, 1), dtype=wp.int32, device=self.device)
-        w = wp.zeros(max(total, 1), dtype=float, device=self.device)
-        launch_rows(kw.drt_points, n, [*common, Rows(wp.array(offs[:-1], dtype=wp.int64, device=self.device)),
-                                       wp.int64(0), 1e-6, 1, wp.int64(max(int(cnt.max()), 1)), Rows(counts), pix, w],
-                    self.device)
-        m = sparse.csc_matrix((w.numpy()[:total].astype(np.float64), pix.numpy()[:total].astype(np.int64), offs),
+        m = sparse.csc_matrix((w.numpy()[keep].astype(np.float64), pix.numpy()[keep].astype(np.int64), offs),
                               shape=(lf.n_pixels, n))
         m.sum_duplicates()
         return m
@@ -428,11 +430,12 @@ class _PointModel:
         """(pixels, 4n): per particle its image per unit intensity, then its image's derivatives along
         z, y and x (columns 4p .. 4p + 3)."""
         n = len(u)
-        blocks = [self.unit_images(u)]
+        here = self.unit_images(u)
+        blocks = [here]
         for a in range(3):
             d = np.zeros(3)
             d[a] = self.step
-            diff = (self.unit_images(u + d) - self.unit_images(u - d)) / (2.0 * self.step)
+            diff = (self.unit_images(u + d) - here) / self.step  # forward differences
             blocks.append(diff @ sparse.diags(intensity))
         j = sparse.hstack(blocks).tocsc()
         order = np.arange(4 * n).reshape(4, n).T.ravel()  # (unit, dz, dy, dx) per particle
