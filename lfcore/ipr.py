@@ -131,7 +131,7 @@ class IprSettings:
         diameter, pixels (as the rig's ``[render] particle_image_px`` draws synthetic ones).
     relocate_depth
         After each round's fit, every particle is tried at whole-voxel moves up to this many voxels
-        either side in depth and one voxel either side laterally, the others held, and moved where
+        either side along each camera's depth and one voxel either side laterally, the others held, and moved where
         its image explains more of the residual, then fitted again (the point model only; 0:
         never). The fit only finds the nearest minimum; on one frame of the tiny rig at 0.5 PPM
         these moves lower the images' residual by a third.
@@ -500,6 +500,31 @@ def _relocate(model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, offset
     return best_u, best_i
 
 
+def _relocations(projector: Projector, depth: int) -> np.ndarray:
+    """The moves :func:`_relocate` tries, (k, 3) voxels (z, y, x): for each camera, up to ``depth``
+    steps either side along its viewing direction (a step one voxel along the grid axis nearest
+    it), each with the moves of one voxel either side along the two other grid axes (a light-field
+    camera's ambiguities near focus: depth, and where in a lenslet)."""
+    if depth <= 0:
+        return np.zeros((0, 3))
+    voxel = np.asarray(projector.grid.voxel_mm, dtype=np.float64)
+    moves = set()
+    for cam in projector.cameras:
+        axis = (np.asarray(cam.rotation, dtype=np.float64)[:, 2] / voxel)[::-1]  # (z, y, x) voxels
+        main = int(np.argmax(np.abs(axis)))
+        axis = axis / axis[main]
+        others = [a for a in range(3) if a != main]
+        for k in range(-depth, depth + 1):
+            for s in (-1, 0, 1):
+                for t in (-1, 0, 1):
+                    m = k * axis
+                    m[others[0]] += s
+                    m[others[1]] += t
+                    moves.add(tuple(np.round(m, 6)))
+    moves.discard((0.0, 0.0, 0.0))
+    return np.array(sorted(moves), dtype=np.float64).reshape(-1, 3)
+
+
 def _split(u: np.ndarray, intensity: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
     """Particles brighter than ``factor`` times the median as two of half the intensity,
     :data:`SPLIT_VOXELS` either side along x."""
@@ -564,11 +589,7 @@ class ParticleReconstructor:
         self.frames = FrameReconstructor(projector, self.recon_settings)
         #: True where particles are modelled as points (:attr:`IprSettings.model`)
         self.point_model = self.settings.model == "point"
-        # the moves _relocate tries: whole voxels in depth up to relocate_depth either side, and
-        # one voxel either side laterally (the light-field camera's ambiguities near focus)
-        d = self.settings.relocate_depth
-        self._offsets = np.array([[dz, dy, dx] for dz in range(-d, d + 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1)
-                                  if (dz, dy, dx) != (0, 0, 0)], dtype=np.float64).reshape(-1, 3)
+        self._offsets = _relocations(projector, self.settings.relocate_depth)
 
     def _candidates(self, images: Sequence[np.ndarray]) -> np.ndarray:
         """Peaks of a quick reconstruction of ``images``: (n, 3) voxel index coordinates (z, y, x)."""
