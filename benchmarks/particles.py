@@ -73,6 +73,8 @@ def main() -> None:
     ap.add_argument("--focus-gap", type=float, default=3.0)
     ap.add_argument("--model", choices=MODELS, default=IprSettings().model, help="IPR's particle model")
     ap.add_argument("--relocate", type=int, default=IprSettings().relocate_depth, help="IPR's relocate_depth")
+    ap.add_argument("--max-std", type=float, default=IprSettings().max_position_std,
+                    help="IPR's max_position_std (voxels; 0: keep all)")
     ap.add_argument("--no-mart", action="store_true", help="IPR only (no DRT-MART peaks beside it)")
     args = ap.parse_args()
     if args.case:
@@ -86,12 +88,12 @@ def main() -> None:
     tol = args.match_voxels * np.asarray(grid.voxel_mm)
     renderers = [renderer_for(c, rig.render, wavelength_nm=rig.laser.wavelength_nm, device="cpu") for c in rig.camera]
     ipr = ParticleReconstructor(proj, settings=IprSettings(
-        model=args.model, relocate_depth=args.relocate, wavelength_nm=rig.laser.wavelength_nm,
+        model=args.model, relocate_depth=args.relocate, max_position_std=args.max_std, wavelength_nm=rig.laser.wavelength_nm,
         particle_image_px=rig.render.particle_image_px))
     densities = [float(p) for p in args.sweep.split(",")] if args.sweep else [args.ppm]
     print(f"{name}: {len(rig.camera)} camera(s), grid {grid.shape} (z, y, x) voxels of {grid.voxel_mm} mm; "
           f"{args.frames} frame(s) per density; matching within {args.match_voxels} voxel per axis; IPR model "
-          f"{args.model}, relocate {args.relocate}")
+          f"{args.model}, relocate {args.relocate}, max std {args.max_std}")
     # the first camera focuses on its focus point; its depth axis is world z when it looks along z
     focus_z = (rig.camera[0].focus_mm[2] - grid.origin_mm[2]) / grid.voxel_mm[2]
     routes = ("ipr",) if args.no_mart else ("ipr", "drt-mart")

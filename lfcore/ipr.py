@@ -135,6 +135,13 @@ class IprSettings:
         its image explains more of the residual, then fitted again (the point model only; 0:
         never). The fit only finds the nearest minimum; on one frame of the tiny rig at 0.5 PPM
         these moves lower the images' residual by a third.
+    max_position_std
+        At the end, particles whose fitted position is less sure than this on any axis (its
+        standard deviation from its own image's Jacobian and the residual's noise, voxels) are
+        left out; 0: none. Near a light-field camera's focal plane a particle's image hardly
+        changes as it moves, and most particles found there are a voxel or more off: on one frame
+        of the tiny rig at 0.5 PPM, 79% of the ghosts and 6% of the particles found right lie
+        within 3 voxels of it (``benchmarks/RESULTS.md`` has the trade of recall for ghosts).
     wavelength_nm
         The laser's wavelength, for the point model's diffraction blur in light-field cameras
         (0: none). :class:`ParticleReconstructor` takes it from the rig where it is given one.
@@ -154,6 +161,7 @@ class IprSettings:
     particle_image_px: float = 3.0
     wavelength_nm: float = 532.0
     relocate_depth: int = 4
+    max_position_std: float = 0.0
 
     def __post_init__(self) -> None:
         if self.candidate_iterations < 1 or self.shakes < 0 or self.rounds < 1:
@@ -169,6 +177,9 @@ class IprSettings:
         if not 0.0 <= self.wavelength_nm < 1e5:
             raise ValueError(f"wavelength_nm is the laser's wavelength in nm (0: no diffraction blur), got "
                              f"{self.wavelength_nm}")
+        if self.max_position_std < 0:
+            raise ValueError(f"max_position_std is a standard deviation in voxels, 0 (keep all) or more, got "
+                             f"{self.max_position_std}")
         if self.relocate_depth < 0:
             raise ValueError(f"relocate_depth is a number of voxels, 0 (no moves) or more, got {self.relocate_depth}")
         if self.point_sub_apertures < 0:
@@ -525,6 +536,27 @@ def _relocations(projector: Projector, depth: int) -> np.ndarray:
     return np.array(sorted(moves), dtype=np.float64).reshape(-1, 3)
 
 
+def _position_std(model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray) -> np.ndarray:
+    """(n, 3) each particle's position uncertainty (z, y, x), voxels: the standard deviation of its
+    fitted position from its own image's Jacobian (the others held) and the residual's variance over
+    the pixels the particles light. Large where the images hardly change as the particle moves:
+    a light-field camera's particle near its focal plane, whose light falls in one lenslet."""
+    j = model.jacobian(u, intensity)
+    r = b - model.image(u, intensity)
+    lit = np.asarray(abs(j).sum(axis=1)).ravel() > 0
+    var = float(np.mean(r[lit] ** 2)) if lit.any() else 0.0
+    g = (j.T @ j).tocsr()
+    n = len(u)
+    idx = 4 * np.arange(n)[:, None, None] + np.zeros((1, 4, 4), dtype=np.int64)
+    rows = idx + np.arange(4)[None, :, None]
+    cols = idx + np.arange(4)[None, None, :]
+    blocks = np.asarray(g[rows.ravel(), cols.ravel()]).reshape(n, 4, 4)
+    blocks = blocks + 1e-12 * np.trace(blocks, axis1=1, axis2=2)[:, None, None] * np.eye(4)[None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cov = np.linalg.pinv(blocks) * var
+    return np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)[:, 1:]))
+
+
 def _split(u: np.ndarray, intensity: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
     """Particles brighter than ``factor`` times the median as two of half the intensity,
     :data:`SPLIT_VOXELS` either side along x."""
@@ -683,6 +715,9 @@ class ParticleReconstructor:
                 offs = np.concatenate([[0], np.cumsum([img.size for img in images])])
                 residual_images = [(left[offs[k]:offs[k + 1]].reshape(img.shape) + backgrounds[k]).astype(np.float32)
                                    for k, img in enumerate(images)]
+        if s.max_position_std > 0 and model is not None and len(u):
+            sure = _position_std(model, b, u, intensity).max(axis=1) <= s.max_position_std
+            u, intensity = u[sure], intensity[sure]
         res, rms = self._residuals(model, b, u, intensity)
         return ParticleResult(positions_mm=to_mm(p.grid, u), intensity=intensity, residual=res, candidates=n_cand,
                               rounds=rounds, rms_residual=rms, seconds=seconds)

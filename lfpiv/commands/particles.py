@@ -63,6 +63,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--relocate", type=shakes, default=4, metavar="N",
                    help="after each round's fit, try every particle up to N voxels either side in depth and one "
                    "laterally, and move it where it explains more of the images (point model; 0: never; default: 4)")
+    c.add_argument("--max-std", type=non_negative_float, default=0.0, metavar="V",
+                   help="at the end, leave out particles whose position is less sure than V voxels on any axis "
+                   "(its standard deviation from the fit): fewer ghosts near a light-field camera's focal plane, "
+                   "fewer particles found (0: keep all; default: 0)")
     add_device(c)
     add_workers(c, "reconstruct the particles of")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -77,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     options = dict(method=args.method, candidate_iterations=args.candidate_iterations,
                    candidate_threshold=args.threshold, shakes=args.shakes, min_intensity=args.min_intensity,
                    merge_voxels=args.merge_voxels, rounds=args.rounds, split_intensity=args.split, model=args.model,
-                   relocate_depth=args.relocate)
+                   relocate_depth=args.relocate, max_position_std=args.max_std)
     ipr_settings(**options)  # bad options are refused before the run is opened
     store = open_run(args.run, mode="r+")
     # the point model's diffraction blur and pinhole particle images are the rig's
