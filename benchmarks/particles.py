@@ -88,8 +88,8 @@ def main() -> None:
     tol = args.match_voxels * np.asarray(grid.voxel_mm)
     renderers = [renderer_for(c, rig.render, wavelength_nm=rig.laser.wavelength_nm, device="cpu") for c in rig.camera]
     ipr = ParticleReconstructor(proj, settings=IprSettings(
-        model=args.model, relocate_depth=args.relocate, max_position_std=args.max_std, wavelength_nm=rig.laser.wavelength_nm,
-        particle_image_px=rig.render.particle_image_px))
+        model=args.model, relocate_depth=args.relocate, max_position_std=args.max_std,
+        wavelength_nm=rig.laser.wavelength_nm, particle_image_px=rig.render.particle_image_px))
     densities = [float(p) for p in args.sweep.split(",")] if args.sweep else [args.ppm]
     print(f"{name}: {len(rig.camera)} camera(s), grid {grid.shape} (z, y, x) voxels of {grid.voxel_mm} mm; "
           f"{args.frames} frame(s) per density; matching within {args.match_voxels} voxel per axis; IPR model "
