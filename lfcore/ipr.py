@@ -20,6 +20,8 @@ cross-correlation. This module does it on the rig's own forward model:
 5. **Residual rounds**: the images' residual (recorded minus the particles' model) is
    reconstructed again and its peaks, where no particle is near, join the list; fit and prune
    again (:attr:`IprSettings.rounds` in all).
+6. Optionally, the particles whose fitted position is unsure (:attr:`IprSettings.max_position_std`)
+   are left out.
 
 The forward model of a particle
 -------------------------------
