@@ -76,6 +76,7 @@ def main() -> None:
     ap.add_argument("--max-std", type=float, default=IprSettings().max_position_std,
                     help="IPR's max_position_std (voxels; 0: keep all)")
     ap.add_argument("--no-mart", action="store_true", help="IPR only (no DRT-MART peaks beside it)")
+    ap.add_argument("--device", default="cpu", help="where the reconstructions and the point model run (cpu, cuda)")
     args = ap.parse_args()
     if args.case:
         rig, _ = recon_bench().case_rig(args.case)
@@ -84,9 +85,10 @@ def main() -> None:
         rig = load_rig(args.rig)
         name = f"rig {Path(args.rig).name}"
     grid = VolumeGrid.from_rig(rig)
-    proj = projector_for(rig.camera, grid, device="cpu")
+    proj = projector_for(rig.camera, grid, device=args.device)
     tol = args.match_voxels * np.asarray(grid.voxel_mm)
-    renderers = [renderer_for(c, rig.render, wavelength_nm=rig.laser.wavelength_nm, device="cpu") for c in rig.camera]
+    renderers = [renderer_for(c, rig.render, wavelength_nm=rig.laser.wavelength_nm, device=args.device)
+                 for c in rig.camera]
     ipr = ParticleReconstructor(proj, settings=IprSettings(
         model=args.model, relocate_depth=args.relocate, max_position_std=args.max_std,
         wavelength_nm=rig.laser.wavelength_nm, particle_image_px=rig.render.particle_image_px))

@@ -292,3 +292,15 @@ def test_particles_of_unsure_position_can_be_left_out(setup):
         assert np.min(np.max(np.abs(sure.positions_mm - t) / grid.voxel_mm, axis=1)) < 0.05
     with pytest.raises(ValueError, match="max_position_std"):
         ipr.IprSettings(max_position_std=-1.0)
+
+
+def test_the_point_model_is_the_same_on_every_device(setup, device):
+    rig, grid, proj = setup
+    # drt_points (the point model's Warp kernel) on each device Warp finds against the CPU's images
+    u = np.array([[7.3, 20.25, 24.65], [14.4, 30.3, 40.5], [12.5, 30.5, 40.5]])
+    reference = ipr._PointModel(proj, wavelength_nm=rig.laser.wavelength_nm).unit_images(u).toarray()
+    here = projector_for(rig.camera, grid, device=device)
+    got = ipr._PointModel(here, wavelength_nm=rig.laser.wavelength_nm).unit_images(u).toarray()
+    assert got.shape == reference.shape
+    assert np.abs(got - reference).max() <= 1e-4 * np.abs(reference).max()
+    assert got.sum(axis=0) == pytest.approx(reference.sum(axis=0), rel=1e-5)
