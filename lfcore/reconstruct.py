@@ -55,6 +55,7 @@ from lfcore.operator import (
     gather,
     log_ratio,
 )
+from lfcore.subsets import MAX_SUBSETS, SubsetOperator, ordered_pass, pixel_subsets, split, split_bytes
 from lfcore.warm import WARM_BLEND, with_floor
 
 if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to import
@@ -182,6 +183,12 @@ class ReconSettings:
         los_iterations`` start from their intensities. The DRT weights, the costliest part of a
         frame, are then built for the share of the active voxels that may hold a particle (a third
         on the Mc case). 0: DRT weights from the start. DRT-MART's simultaneous form, in memory.
+    subsets
+        Ordered subsets (OS-SMART, :mod:`lfcore.subsets`): each iteration updates the voxels from
+        one of this many interleaved subsets of the pixels at a time, for about the work of one
+        update from all of them. 1: the plain simultaneous form. Stored weights held whole, in
+        memory (templates applied on the fly, weights partly made on the fly and depth slabs keep
+        the plain form). The simultaneous form only.
     """
 
     method: str = "drt-mart"
@@ -203,6 +210,7 @@ class ReconSettings:
     warm_start: bool = False
     warm_iterations: int | None = None
     los_iterations: int = 0
+    subsets: int = 1
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -253,6 +261,10 @@ class ReconSettings:
         if self.los_iterations and self.los_iterations >= self.iterations:
             raise ValueError(f"los_iterations ({self.los_iterations}) must be fewer than the iterations "
                              f"({self.iterations}): DRT's weights take over after them")
+        if not 1 <= self.subsets <= MAX_SUBSETS:
+            raise ValueError(f"subsets must be from 1 (none) to {MAX_SUBSETS}, got {self.subsets}")
+        if self.subsets > 1 and self.form != "simultaneous":
+            raise ValueError("ordered subsets (subsets) are for the simultaneous form; use form 'simultaneous'")
         if self.warm_iterations is not None and self.warm_iterations < 1:
             raise ValueError(f"warm_iterations must be 1 or more, got {self.warm_iterations}")
 
@@ -657,6 +669,7 @@ class FrameReconstructor:
         self._e = None  # the intensities, at least as long as the most active voxels so far
         self._volume = None  # (z, y, x) float32
         self._los_source = None  # line-of-sight weights for settings.los_iterations (made on first use)
+        self._subset_of = None  # (n_pixels,) int32: each pixel's subset, for settings.subsets (made on first use)
 
     # --- one frame from host images --------------------------------------------------------------
     def reconstruct(self, images: Sequence[np.ndarray], *, progress: Callable[[int], None] | None = None,
@@ -725,7 +738,11 @@ class FrameReconstructor:
             del bright
             weights_s += time.perf_counter() - t
             its -= settings.los_iterations
-        done = self.iterate(op, self._image, noises, progress=progress, iterations=its, start=start)
+        nnz, n_fly, applied, last_kind = op.nnz, op.n_on_the_fly, applied_by(op), op.kind
+        op_bytes = self.operator_bytes(op)
+        ops = [op]
+        del op  # iterate may split it into ordered subsets (settings.subsets): the unsplit rows may then go
+        done = self.iterate(ops.pop(), self._image, noises, progress=progress, iterations=its, start=start)
         del start
         if warm is not None:
             warm.keep(done.op, done.e)
@@ -734,11 +751,11 @@ class FrameReconstructor:
         if self.device == "cpu":
             volume = volume.copy()
         return ReconResult(volume=volume, active_voxels=active, active_fraction=active / p.grid.n_voxels,
-                           nnz=op.nnz, weight_bytes=max(nbytes, self.operator_bytes(op)),
+                           nnz=nnz, weight_bytes=max(nbytes, op_bytes),
                            weights_s=weights_s + done.start_s, iterate_s=iterate_s + done.iterate_s,
                            iterations=its + (settings.los_iterations if los_first else 0), background=backgrounds,
-                           noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=op.n_on_the_fly,
-                           projector=applied_by(op), operator=f"{kind}, then {op.kind}" if los_first else kind,
+                           noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=n_fly,
+                           projector=applied, operator=f"{kind}, then {last_kind}" if los_first else kind,
                            final_voxels=done.op.n_voxels, warm=warmed)
 
     # --- the stages ------------------------------------------------------------------------------
@@ -886,6 +903,8 @@ class FrameReconstructor:
             e.fill_(scale)
         else:
             wp.launch(_mart_kernels().scale_shift, dim=n, inputs=[e, scale, 0.0], device=self.device)
+        if s.subsets > 1 and s.form == "simultaneous":  # OS-SMART: the rows split by pixel subset, once
+            op = self._ordered_subsets(op)
         wp.synchronize_device(self.device)
         t1 = time.perf_counter()
         floor = max(s.floor * s.threshold_sigma * float(np.mean(noise)), 1e-6)
@@ -896,6 +915,8 @@ class FrameReconstructor:
         for it in range(1, its + 1):
             if transposed is not None:
                 op.sweep(transposed, image, e, mu, floor)
+            elif isinstance(op, SubsetOperator):  # one pass through the subsets
+                ordered_pass(op, image, e, proj, self._ratio, floor, mu)
             else:
                 op.forward(e, out=proj)
                 op.update(log_ratio(image, proj, floor, self._ratio), e, mu)
@@ -905,6 +926,18 @@ class FrameReconstructor:
                 progress(1)
         wp.synchronize_device(self.device)
         return Iterated(e, t1 - t0, time.perf_counter() - t1, op)
+
+    def _ordered_subsets(self, op: Operator) -> Operator:
+        """``op`` split by ``settings.subsets`` pixel subsets (:func:`lfcore.subsets.split`), or
+        ``op`` itself where it is not stored weights held whole, or where the split rows do not fit
+        beside it in the memory budget (the plain form then runs)."""
+        if split_bytes(op, self.settings.subsets) + int(op.nbytes) > self._weight_budget(op.n_voxels):
+            return op
+        if self._subset_of is None:
+            p = self.projector
+            host = pixel_subsets(p.pixel_offsets, p.cameras, self.settings.subsets)
+            self._subset_of = self.wp.array(host, dtype=self.wp.int32, device=self.device)
+        return split(op, self._subset_of, self.settings.subsets) or op
 
     def volume(self, op: Operator, e, *, out=None) -> object:
         """The dense (z, y, x) volume of intensities ``e`` of the weights' voxels, smoothed by

@@ -30,6 +30,13 @@ def los_iterations(text: str) -> int:
     return whole_number(text, 0, MAX_ITERATIONS)
 
 
+def subsets_option(text: str) -> int:
+    """``--subsets``: a whole number from 1 to :data:`lfcore.subsets.MAX_SUBSETS`."""
+    from lfpiv.jobs.reconstruct import MAX_SUBSETS
+
+    return whole_number(text, 1, MAX_SUBSETS)
+
+
 def slabs_option(text: str) -> int | str:
     """``--slabs``: a whole number of depth slabs (1 or more) or ``auto``."""
     if text.strip().lower() == "auto":
@@ -105,6 +112,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="drt-mart: the first N iterations on the MART baseline's line-of-sight weights (cheap to "
                    "build), then DRT weights only for the voxels still bright (those --prune keeps), the rest of "
                    "--iterations on them (default: 0, DRT weights from the start)")
+    r.add_argument("--subsets", type=subsets_option, default=1, metavar="N",
+                   help="ordered subsets (OS-SMART): each iteration updates the voxels from N interleaved subsets "
+                   "of the pixels in turn, for about the work of one update from all of them, so it goes about as "
+                   "far as N plain iterations (use N times fewer --iterations); stored weights held whole, in "
+                   "memory, the others run the plain form (default: 1, the plain simultaneous form)")
     r.add_argument("--smooth", type=non_negative_float, default=0.6, metavar="VOXELS",
                    help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
     r.add_argument("--sub-apertures", type=sub_apertures, default=None,
@@ -152,7 +164,8 @@ def run(args: argparse.Namespace) -> int:
                               threshold_sigma=args.threshold_sigma, smooth=args.smooth,
                               weight_storage=args.weight_storage, projector=args.projector, prune=args.prune,
                               prune_every=args.prune_every, warm_start=args.warm_start,
-                              warm_iterations=args.warm_iterations, los_iterations=args.los_iterations)
+                              warm_iterations=args.warm_iterations, los_iterations=args.los_iterations,
+                              subsets=args.subsets)
     args.method = method
     store = open_run(args.run, mode="r+")
     rig, calibration = None, None
