@@ -55,7 +55,16 @@ from lfcore.operator import (
     gather,
     log_ratio,
 )
-from lfcore.subsets import MAX_SUBSETS, SubsetOperator, ordered_pass, pixel_subsets, split, split_bytes
+from lfcore.subsets import (
+    MAX_SUBSETS,
+    SUBSET_HALVING,
+    SubsetOperator,
+    groups_in_pass,
+    ordered_pass,
+    pixel_subsets,
+    split,
+    split_bytes,
+)
 from lfcore.warm import WARM_BLEND, with_floor
 
 if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to import
@@ -189,6 +198,11 @@ class ReconSettings:
         update from all of them. 1: the plain simultaneous form. Stored weights held whole, in
         memory (templates applied on the fly, weights partly made on the fly and depth slabs keep
         the plain form). The simultaneous form only.
+    subset_halving
+        Passes after which the subsets are joined in pairs, halving them, down to one (the plain
+        form): many subsets go far in the first passes, and fewer of them then settle on one volume
+        instead of cycling between the subsets' (:func:`lfcore.subsets.groups_in_pass`). 0: the same
+        ``subsets`` in every pass.
     """
 
     method: str = "drt-mart"
@@ -211,6 +225,7 @@ class ReconSettings:
     warm_iterations: int | None = None
     los_iterations: int = 0
     subsets: int = 1
+    subset_halving: int = SUBSET_HALVING
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -263,6 +278,8 @@ class ReconSettings:
                              f"({self.iterations}): DRT's weights take over after them")
         if not 1 <= self.subsets <= MAX_SUBSETS:
             raise ValueError(f"subsets must be from 1 (none) to {MAX_SUBSETS}, got {self.subsets}")
+        if self.subset_halving < 0:
+            raise ValueError(f"subset_halving must be 0 (never) or more passes, got {self.subset_halving}")
         if self.subsets > 1 and self.form != "simultaneous":
             raise ValueError("ordered subsets (subsets) are for the simultaneous form; use form 'simultaneous'")
         if self.warm_iterations is not None and self.warm_iterations < 1:
@@ -916,7 +933,8 @@ class FrameReconstructor:
             if transposed is not None:
                 op.sweep(transposed, image, e, mu, floor)
             elif isinstance(op, SubsetOperator):  # one pass through the subsets
-                ordered_pass(op, image, e, proj, self._ratio, floor, mu)
+                ordered_pass(op, image, e, proj, self._ratio, floor, mu,
+                             groups=groups_in_pass(op.n_subsets, s.subset_halving, it))
             else:
                 op.forward(e, out=proj)
                 op.update(log_ratio(image, proj, floor, self._ratio), e, mu)

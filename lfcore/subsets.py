@@ -31,10 +31,13 @@ import numpy as np
 from lfcore.device import RowOffset, Rows, launch_rows, warp
 from lfcore.operator import gather, log_ratio, scatter_voxels
 
-__all__ = ["MAX_SCALE", "MAX_SUBSETS", "SubsetOperator", "ordered_pass", "pixel_subsets", "split", "split_bytes"]
+__all__ = ["MAX_SCALE", "MAX_SUBSETS", "SUBSET_HALVING", "SubsetOperator", "groups_in_pass", "ordered_pass",
+           "pixel_subsets", "split", "split_bytes"]
 
 #: Most subsets (``ReconSettings.subsets``): beyond a few dozen a subset holds too few of a voxel's pixels.
 MAX_SUBSETS = 64
+#: ``ReconSettings.subset_halving``'s default: passes between the halvings of the subsets.
+SUBSET_HALVING = 10
 #: GPU threads that share one voxel's row in a subset's update (a warp, as lfcore.weight_build.LANES).
 LANES = 32
 #: A subset's per-voxel scale is at most this many times the number of subsets: a voxel that a subset
@@ -87,6 +90,7 @@ class SubsetOperator:
     parts: list
     scales: list
     kind: str = field(init=False)
+    _groups: dict = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.kind = self.parts[0].kind
@@ -132,16 +136,50 @@ class SubsetOperator:
         for part in self.parts:
             part.update(ratio, e, relaxation)
 
-    def subset_forward(self, k: int, e, *, out) -> object:
-        """Subset ``k``'s projection of ``e`` into ``out`` (n_pixels,) (zeroed first; other pixels 0)."""
-        return self.parts[k].forward(e, out=out)
+    def groups(self, n_groups: int) -> list[tuple[list[int], object]]:
+        """The subsets joined into ``n_groups`` (subset k in group ``k mod n_groups``; all of them
+        apart at ``n_subsets`` or more), each with its per-voxel scale (the whole weight over the
+        group's: ``1 / sum_k 1 / c_k``): a coarser split without splitting again."""
+        g = max(1, min(int(n_groups), self.n_subsets))
+        if g not in self._groups:
+            members = [[k for k in range(self.n_subsets) if k % g == j] for j in range(g)]
+            if g == self.n_subsets:
+                self._groups[g] = [(m, self.scales[m[0]]) for m in members]
+            else:
+                wp, out = warp(), []
+                for m in members:
+                    share = sum(_inverse(self.scales[k].numpy()) for k in m)  # the group's share of each voxel's weight
+                    with np.errstate(divide="ignore"):
+                        scale = np.where(share > 0, np.minimum(1.0 / share, MAX_SCALE * g), 0.0).astype(np.float32)
+                    out.append((m, wp.array(scale, dtype=float, device=self.device)))
+                self._groups[g] = out
+        return self._groups[g]
 
-    def subset_update(self, k: int, ratio, e, relaxation: float) -> None:
-        """Subset ``k``'s scaled update of ``e`` in place: ``E_j <- E_j exp(mu c_j sum_{i in k} w_ij ratio_i)``."""
+    def subset_forward(self, k: int | list[int], e, *, out) -> object:
+        """Subset ``k``'s (or a group's: a list of subsets) projection of ``e`` into ``out``
+        (n_pixels,) (zeroed first; other pixels 0)."""
+        members = [k] if isinstance(k, int) else list(k)
+        if len(members) == 1:
+            return self.parts[members[0]].forward(e, out=out)
+        joined = dataclasses.replace(self.parts[members[0]], chunks=[c for m in members for c in self.parts[m].chunks],
+                                     nnz=sum(self.parts[m].nnz for m in members))
+        return joined.forward(e, out=out)
+
+    def subset_update(self, k: int | list[int], ratio, e, relaxation: float, *, scale=None) -> None:
+        """Subset ``k``'s (or a group's) scaled update of ``e`` in place:
+        ``E_j <- E_j exp(mu c_j sum_{i in k} w_ij ratio_i)``, ``c_j`` the subset's scale (a group's
+        ``scale`` from :meth:`groups`)."""
+        members = [k] if isinstance(k, int) else list(k)
+        if scale is None:
+            scale = self.scales[members[0]]
+        for m in members:  # exp(mu c (a + b)) = exp(mu c a) exp(mu c b)
+            self._update(self.parts[m], scale, ratio, e, relaxation)
+
+    def _update(self, part, scale, ratio, e, relaxation: float) -> None:
         from lfcore._kernels import subsets as ks
 
         wp = warp()
-        part, scale, dev = self.parts[k], self.scales[k], self.device
+        dev = self.device
         mu = float(relaxation)
         for c in part.chunks:
             if dev == "cpu":
@@ -237,7 +275,22 @@ def split(op, subset_of, n_subsets: int) -> SubsetOperator | None:
                                                  for k in range(s)])
 
 
-def ordered_pass(op: SubsetOperator, image, e, proj, ratio, floor: float, relaxation: float) -> None:
+def _inverse(c: np.ndarray) -> np.ndarray:
+    """1 / c where c > 0, else 0 (a voxel's share of its weight in a subset, from the subset's scale)."""
+    with np.errstate(divide="ignore"):
+        return np.where(c > 0, 1.0 / c, 0.0)
+
+
+def groups_in_pass(n_subsets: int, halve_every: int, it: int) -> int:
+    """The subsets (groups of the split ones) of pass ``it`` (1, 2, ...): ``n_subsets`` halved every
+    ``halve_every`` passes, down to 1 (0: never halved)."""
+    if halve_every <= 0:
+        return n_subsets
+    return max(1, n_subsets >> ((it - 1) // halve_every))
+
+
+def ordered_pass(op: SubsetOperator, image, e, proj, ratio, floor: float, relaxation: float, *,
+                 groups: int | None = None) -> None:
     """One pass of OS-SMART: for each subset in turn, its forward projection of ``e``, the log
     ratios of the measured ``image`` to it (:func:`lfcore.operator.log_ratio`; 0 on the other
     subsets' pixels, where it projects nothing) and its scaled update of ``e`` in place.
@@ -254,7 +307,10 @@ def ordered_pass(op: SubsetOperator, image, e, proj, ratio, floor: float, relaxa
         The least a pixel's measurement counts as, in counts.
     relaxation
         mu of each subset's update.
+    groups
+        Join the subsets into this many (:meth:`SubsetOperator.groups`; 1: the plain simultaneous
+        update); None: every subset apart.
     """
-    for k in range(op.n_subsets):
-        op.subset_forward(k, e, out=proj)
-        op.subset_update(k, log_ratio(image, proj, floor, ratio), e, relaxation)
+    for members, scale in op.groups(op.n_subsets if groups is None else groups):
+        op.subset_forward(members, e, out=proj)
+        op.subset_update(members, log_ratio(image, proj, floor, ratio), e, relaxation, scale=scale)

@@ -37,6 +37,11 @@ def subsets_option(text: str) -> int:
     return whole_number(text, 1, MAX_SUBSETS)
 
 
+def subset_halving_option(text: str) -> int:
+    """``--subset-halving``: a whole number of passes from 0 (never) to :data:`lfpiv.commands.MAX_ITERATIONS`."""
+    return whole_number(text, 0, MAX_ITERATIONS)
+
+
 def slabs_option(text: str) -> int | str:
     """``--slabs``: a whole number of depth slabs (1 or more) or ``auto``."""
     if text.strip().lower() == "auto":
@@ -67,6 +72,8 @@ def add_projector(parser: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from lfpiv.jobs.reconstruct import SUBSET_HALVING
+
     r = sub.add_parser(
         "reconstruct", help="reconstruct 3D particle volumes from a run's light-field images",
         description="Reconstruct both frames of every selected pair into volumes/ of the run store, "
@@ -117,6 +124,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "of the pixels in turn, for about the work of one update from all of them, so it goes about as "
                    "far as N plain iterations (use N times fewer --iterations); stored weights held whole, in "
                    "memory, the others run the plain form (default: 1, the plain simultaneous form)")
+    r.add_argument("--subset-halving", type=subset_halving_option, default=SUBSET_HALVING, metavar="PASSES",
+                   help=f"with --subsets: every this many passes the subsets are joined in pairs, down to one (the "
+                   f"plain form), so that the last passes settle on one volume (default: {SUBSET_HALVING}; 0: the "
+                   "same subsets in every pass)")
     r.add_argument("--smooth", type=non_negative_float, default=0.6, metavar="VOXELS",
                    help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
     r.add_argument("--sub-apertures", type=sub_apertures, default=None,
@@ -165,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
                               weight_storage=args.weight_storage, projector=args.projector, prune=args.prune,
                               prune_every=args.prune_every, warm_start=args.warm_start,
                               warm_iterations=args.warm_iterations, los_iterations=args.los_iterations,
-                              subsets=args.subsets)
+                              subsets=args.subsets, subset_halving=args.subset_halving)
     args.method = method
     store = open_run(args.run, mode="r+")
     rig, calibration = None, None

@@ -28,7 +28,7 @@ from lfcore.reconstruct import MAX_SUB_APERTURES, FrameReconstructor, ReconResul
 from lfcore.rig import Rig, is_pinhole, voxel_shape_warnings
 from lfcore.runstore import RunStore, RunStoreError
 from lfcore.slabs import SlabReconstructor
-from lfcore.subsets import MAX_SUBSETS
+from lfcore.subsets import MAX_SUBSETS, SUBSET_HALVING
 from lfcore.volume import VolumeGrid
 from lfcore.warm import Predictor, WarmStart, predictor_field
 from lfpiv.errors import UsageError
@@ -36,8 +36,8 @@ from lfpiv.overlap import WriteBehind
 from lfpiv.pair_runner import recorded_pairs, run_pairs
 
 __all__ = ["BYTES_PER_BOX_VOXEL", "MAX_SUB_APERTURES", "MAX_SUBSETS", "OPERATOR_ATTR", "PINHOLE_METHODS", "PLAN_ATTR",
-           "PROJECTORS", "PairDone", "ReconJob", "ReconResult", "ReconSettings", "default_method", "operator_figures",
-           "recon_settings", "reconstruct_pair_task", "reconstruct_run", "voxel_shape_notes"]
+           "PROJECTORS", "SUBSET_HALVING", "PairDone", "ReconJob", "ReconResult", "ReconSettings", "default_method",
+           "operator_figures", "recon_settings", "reconstruct_pair_task", "reconstruct_run", "voxel_shape_notes"]
 
 log = logging.getLogger(__name__)
 
@@ -474,4 +474,5 @@ def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
     start, those before ``los_iterations`` on DRT weights from the first iteration, those before
     ``flat_field`` from uncorrected frames, those before ``subsets`` by the plain simultaneous form)."""
     return {"projector": "auto", "prune": 0.0, "prune_every": 10, "warm_start": False, "warm_iterations": None,
-            "los_iterations": 0, "flat_field": None, "subsets": 1, **settings}
+            "los_iterations": 0, "flat_field": None, "subsets": 1,
+            "subset_halving": SUBSET_HALVING, **settings}

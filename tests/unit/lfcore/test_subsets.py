@@ -50,6 +50,8 @@ def test_the_settings_are_checked():
         ReconSettings(subsets=MAX_SUBSETS + 1)
     with pytest.raises(ValueError, match="simultaneous form"):
         ReconSettings(subsets=4, form="sequential", relaxation=2.5)
+    with pytest.raises(ValueError, match="subset_halving must be 0"):
+        ReconSettings(subsets=4, subset_halving=-1)
     assert ReconSettings().subsets == 1 and ReconSettings().as_dict()["subsets"] == 1
 
 
@@ -64,7 +66,7 @@ def test_the_subsets_share_every_camera_pixels_evenly(n):
     offsets = np.cumsum([0] + [c.sensor_px[0] * c.sensor_px[1] for c in cams])
     sub = pixel_subsets(offsets, cams, n)
     assert sub.shape == (offsets[-1],) and sub.dtype == np.int32
-    for k, c in enumerate(cams):
+    for k in range(len(cams)):
         part = sub[offsets[k]:offsets[k + 1]]
         assert np.bincount(part, minlength=n).tolist() == [part.size // n] * n
     if n == 2:  # a checkerboard: no two neighbours share a subset
@@ -175,3 +177,34 @@ def test_the_templates_applied_on_the_fly_keep_the_plain_form(scene):
     _, plain = _q(scene, iterations=10, projector="matrix-free", weight_storage="on-the-fly")
     _, os4 = _q(scene, iterations=10, projector="matrix-free", weight_storage="on-the-fly", subsets=4)
     np.testing.assert_array_equal(os4.volume, plain.volume)
+
+
+def test_the_subsets_halve_down_to_the_plain_form(frame):
+    from lfcore.operator import log_ratio
+    from lfcore.subsets import groups_in_pass, ordered_pass
+
+    assert [groups_in_pass(9, 5, it) for it in (1, 5, 6, 10, 11, 16, 21, 100)] == [9, 9, 4, 4, 2, 1, 1, 1]
+    assert [groups_in_pass(4, 0, it) for it in (1, 100)] == [4, 4]
+    proj, op = frame
+    wp = warp()
+    ops = split(op, wp.array(pixel_subsets(proj.pixel_offsets, proj.cameras, 4), dtype=wp.int32, device="cpu"), 4)
+    # two groups: subsets 0 and 2, 1 and 3, each voxel's scale its whole weight over the group's
+    (m0, s0), (m1, s1) = ops.groups(2)
+    assert m0 == [0, 2] and m1 == [1, 3]
+    inv = [np.where(c > 0, 1 / np.maximum(c, 1e-30), 0) for c in (ops.scales[k].numpy() for k in range(4))]
+    share = inv[0] + inv[2]
+    np.testing.assert_allclose(s0.numpy(), np.where(share > 0, np.minimum(1 / np.maximum(share, 1e-30), 2 * MAX_SCALE),
+                                                    0), rtol=1e-5)
+    # one group is the plain simultaneous update (its scale 1 where no subset's scale was bounded)
+    rng = np.random.default_rng(2)
+    start = rng.random(op.n_voxels).astype(np.float32) + 0.5
+    image = wp.array((rng.random(proj.n_pixels) * 2).astype(np.float32), device="cpu")
+    e_plain, e_os = wp.array(start, device="cpu"), wp.array(start, device="cpu")
+    p = wp.zeros(proj.n_pixels, dtype=float, device="cpu")
+    r = wp.zeros(proj.n_pixels, dtype=float, device="cpu")
+    op.update(log_ratio(image, op.forward(e_plain, out=p), FLOOR, r), e_plain, MU)
+    ordered_pass(ops, image, e_os, p, r, FLOOR, MU, groups=1)
+    bounded = np.zeros(op.n_voxels, bool)
+    for k in range(4):
+        bounded |= ops.scales[k].numpy() >= MAX_SCALE * 4
+    np.testing.assert_allclose(e_os.numpy()[~bounded], e_plain.numpy()[~bounded], rtol=1e-4)
