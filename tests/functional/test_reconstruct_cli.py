@@ -406,10 +406,11 @@ def test_ordered_subsets_from_the_command(capsys, synthetic_run, tmp_path):
     a bad count or the sequential form is one line."""
     run = tmp_path / "run.zarr"
     shutil.copytree(synthetic_run, run)
-    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "10", "--subsets", "4", "--pair-range",
-                        "0:1", "--quiet")
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "10", "--subsets", "4", "--subset-halving",
+                        "5", "--pair-range", "0:1", "--quiet")
     assert rc == 0, err
-    assert RunStore.open(run).group["volumes"].attrs["settings"]["subsets"] == 4
+    recorded = RunStore.open(run).group["volumes"].attrs["settings"]
+    assert recorded["subsets"] == 4 and recorded["subset_halving"] == 5
     assert RunStore.open(run).read_volume(0, 1).max() > 0
     rc, out, err = _run(capsys, "reconstruct", str(run), "--subsets", "0", "--quiet")
     assert rc == 2 and out == "" and err.count("\n") == 1 and "--subsets" in err, err
@@ -422,3 +423,5 @@ def test_ordered_subsets_from_the_command(capsys, synthetic_run, tmp_path):
     from lfpiv.jobs.reconstruct import _recorded
 
     assert _recorded({"method": "drt-mart"})["subsets"] == 1
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--subsets", "4", "--subset-halving", "-1", "--quiet")
+    assert rc == 2 and out == "" and err.count("\n") == 1 and "--subset-halving" in err, err
