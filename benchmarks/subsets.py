@@ -47,7 +47,8 @@ def main() -> None:
     ap.add_argument("--counts", default="5,10,20,50", help="the subsets' passes, comma-separated")
     ap.add_argument("--halving", default=str(SUBSET_HALVING),
                     help=f"passes between the subsets' halvings, comma-separated (0: never; default {SUBSET_HALVING})")
-    ap.add_argument("--plain", default="5,10,20,50,100", help="the plain form's iterations, comma-separated")
+    ap.add_argument("--plain", default="5,10,20,50,100",
+                    help="the plain form's iterations, comma-separated (none: skip)")
     ap.add_argument("--relaxation", type=float, default=1.0)
     ap.add_argument("--reference", default="", help="the chapter's protocol's counts, comma-separated (none: skip)")
     args = ap.parse_args()
@@ -58,7 +59,7 @@ def main() -> None:
     truth = metrics.truth_volume(grid, pts)
     proj = projector_for(cams, grid, device=device)
     rows = [("plain", ReconSettings(projector="stored", relaxation=args.relaxation),
-             [int(c) for c in args.plain.split(",")])]
+             [int(c) for c in args.plain.split(",")])] if args.plain else []
     rows += [(f"{s} subsets, halved every {h}" if int(h) else f"{s} subsets",
               ReconSettings(projector="stored", subsets=int(s), subset_halving=int(h), relaxation=args.relaxation),
               counts)
@@ -66,7 +67,7 @@ def main() -> None:
     if args.reference:
         rows.append(("chapter (reference)", ReconSettings.chapter(projector="stored"),
                      [int(c) for c in args.reference.split(",")]))
-    first = FrameReconstructor(proj, rows[0][1])
+    first = FrameReconstructor(proj, ReconSettings(projector="stored"))
     signals, lits, _, noise = preprocess_images(proj, img, first.settings)
     image = wp.array(np.concatenate([s.ravel() for s in signals]), dtype=float, device=device)
     t0 = time.perf_counter()

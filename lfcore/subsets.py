@@ -36,8 +36,11 @@ __all__ = ["MAX_SCALE", "MAX_SUBSETS", "SUBSET_HALVING", "SubsetOperator", "grou
 
 #: Most subsets (``ReconSettings.subsets``): beyond a few dozen a subset holds too few of a voxel's pixels.
 MAX_SUBSETS = 64
-#: ``ReconSettings.subset_halving``'s default: passes between the halvings of the subsets.
-SUBSET_HALVING = 10
+#: ``ReconSettings.subset_halving``'s default: passes between the halvings of the subsets; 0, never.
+#: Measured (``benchmarks/subsets.py``, ``benchmarks/RESULTS.md``): halving every 10 passes kept the
+#: tiny rig's Q from falling past its best (0.783 against 0.769 at 100 passes of 4 subsets) but cost
+#: the Mc crop, which converges slowly, its best (0.765 against 0.783 at 100 passes of 4 subsets).
+SUBSET_HALVING = 0
 #: GPU threads that share one voxel's row in a subset's update (a warp, as lfcore.weight_build.LANES).
 LANES = 32
 #: A subset's per-voxel scale is at most this many times the number of subsets: a voxel that a subset
