@@ -34,6 +34,9 @@
 #   bash benchmarks/gpu.sh less    # less work for the same answer (issue 47): the warm-start and line-of-sight-
 #                                  # first tests' CUDA variants, Mc pruned, line-of-sight first and warm-started
 #                                  # against the truth (about 10 minutes)
+#   bash benchmarks/gpu.sh particles # particles, not voxels (issue 48): the particle tests' CUDA variants,
+#                                  # IPR against DRT-MART's peaks on the tiny rig and on Mc (the issue's
+#                                  # 512 x 512 rig), then the tracks against the truth (about 9 minutes)
 #   bash benchmarks/gpu.sh short   # the correlation's CUDA tests and benchmark, M by MLOS-MART (50
 #                                  # iterations), then the weight-build profile (what fits in 6 min)
 #
@@ -154,6 +157,12 @@ elif [ "$stage" = less ]; then
         --projector auto --device cuda
     step los-first-Mc 150 python3 benchmarks/los_first.py --case Mc --iterations 200,400 --los 30 --device cuda
     step warm-Mc 150 python3 benchmarks/warm.py --case Mc --pairs 3 --iterations 400 --counts 40,80 --device cuda
+elif [ "$stage" = particles ]; then
+    step pytest-particles 150 python3 -m pytest tests/unit/lfcore/test_ipr.py tests/unit/realtime/test_particle_route.py \
+        -q -k cuda -p no:cacheprovider --timeout 120
+    step particles-tiny 90 python3 benchmarks/particles.py --frames 3 --device cuda
+    step particles-Mc 240 python3 benchmarks/particles.py --case Mc --frames 1 --device cuda
+    step track-tiny 60 python3 benchmarks/track.py --case uniform --pairs 3
 elif [ "$stage" = profile ]; then
     step pytest-correlate 150 python3 -m pytest tests/unit/lfcore/test_correlate.py tests/functional/test_correlate_cli.py -q \
         -p no:cacheprovider --timeout 100

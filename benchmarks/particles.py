@@ -5,10 +5,14 @@ Run from the repository root::
 
     python benchmarks/particles.py                       # tiny rig, 0.5 PPM, 3 frames
     python benchmarks/particles.py --ppm 0.3 --frames 5
+    python benchmarks/particles.py --sweep 0.1,0.25,0.5,1,2 --frames 1   # where the goals stop being met
+    python benchmarks/particles.py --case S2 --frames 1                  # two cameras at 90 degrees
+    python benchmarks/particles.py --model voxels                        # the first particle model
 
-Case: Table 4.1's A1-like random seeding at ``--ppm`` on the one-camera tiny rig
-(``examples/tiny.toml``, 192 x 160 px, 29 x 68 x 82 voxels), frames rendered by the Monte-Carlo
-renderer with noise. Each frame is reconstructed twice:
+Case: Table 4.1's A1-like random seeding at ``--ppm`` (or each density of ``--sweep``) on the
+one-camera tiny rig (``examples/tiny.toml``, 192 x 160 px, 29 x 68 x 82 voxels) or ``--case``, a
+case of ``benchmarks/recon.py`` (S2: two cameras at 90 degrees), frames rendered with noise by the
+Monte-Carlo renderer (each camera its own image). Each frame is reconstructed twice:
 
 ipr
     :class:`lfcore.ipr.ParticleReconstructor` with its defaults (its candidates come from a
@@ -29,6 +33,7 @@ laterally and 0.3 in depth. Also reported: the same figures for the particles at
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import time
 from pathlib import Path
@@ -39,61 +44,94 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from lfcore import metrics  # noqa: E402
-from lfcore.ipr import ParticleReconstructor  # noqa: E402
+from lfcore.ipr import MODELS, IprSettings, ParticleReconstructor  # noqa: E402
 from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.plan import projector_for  # noqa: E402
 from lfcore.reconstruct import ReconSettings, reconstruct  # noqa: E402
-from lfcore.render import LightFieldRenderer  # noqa: E402
+from lfcore.render import renderer_for  # noqa: E402
 from lfcore.volume import VolumeGrid  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
+
+
+def recon_bench():
+    """benchmarks/recon.py as a module (its cases' rigs: ``case_rig``)."""
+    spec = importlib.util.spec_from_file_location("recon_bench", ROOT / "benchmarks" / "recon.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rig", default=str(ROOT / "examples" / "tiny.toml"))
+    ap.add_argument("--case", default=None, help="a case of benchmarks/recon.py instead of --rig (S, S2, Mc, ...)")
     ap.add_argument("--ppm", type=float, default=0.5)
+    ap.add_argument("--sweep", default=None, metavar="PPMS",
+                    help="comma-separated densities (PPM) instead of --ppm: one line of figures per density")
     ap.add_argument("--frames", type=int, default=3)
     ap.add_argument("--match-voxels", type=float, default=1.0)
     ap.add_argument("--focus-gap", type=float, default=3.0)
+    ap.add_argument("--model", choices=MODELS, default=IprSettings().model, help="IPR's particle model")
+    ap.add_argument("--relocate", type=int, default=IprSettings().relocate_depth, help="IPR's relocate_depth")
+    ap.add_argument("--max-std", type=float, default=IprSettings().max_position_std,
+                    help="IPR's max_position_std (voxels; 0: keep all)")
+    ap.add_argument("--no-mart", action="store_true", help="IPR only (no DRT-MART peaks beside it)")
+    ap.add_argument("--device", default="cpu", help="where the reconstructions and the point model run (cpu, cuda)")
     args = ap.parse_args()
-    rig = load_rig(args.rig)
+    if args.case:
+        rig, _ = recon_bench().case_rig(args.case)
+        name = f"case {args.case}"
+    else:
+        rig = load_rig(args.rig)
+        name = f"rig {Path(args.rig).name}"
     grid = VolumeGrid.from_rig(rig)
-    proj = projector_for(rig.camera, grid, device="cpu")
+    proj = projector_for(rig.camera, grid, device=args.device)
     tol = args.match_voxels * np.asarray(grid.voxel_mm)
-    renderer = LightFieldRenderer(rig.camera[0], rig.render, wavelength_nm=rig.laser.wavelength_nm, device="cpu")
-    ipr = ParticleReconstructor(proj)
-    n = particle_count(rig, ppm=args.ppm)
-    print(f"rig {Path(args.rig).name}: grid {grid.shape} (z, y, x) voxels of {grid.voxel_mm} mm; {n} particles "
-          f"({args.ppm} PPM); {args.frames} frame(s); matching within {args.match_voxels} voxel per axis")
-    rows = {"ipr": [], "drt-mart": []}
-    focus_z = (0.0 - grid.origin_mm[2]) / grid.voxel_mm[2]  # the cameras focus on z = 0
-    for f in range(args.frames):
-        pts = seed_particles(rig.volume, n, np.random.default_rng(100 + f))
-        img = renderer.frame(pts, rig.render.particle_counts, seed=7 + f)
-        t0 = time.perf_counter()
-        res = ipr.reconstruct([img])
-        t_ipr = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        vol = reconstruct(proj, [img], ReconSettings()).volume
-        found_mart, _, _ = metrics.detect_particles(vol, grid, threshold=0.1)
-        t_mart = time.perf_counter() - t0
-        depth = np.abs(metrics_z(pts, grid) - focus_z)
-        for name, found, t in (("ipr", res.positions_mm, t_ipr), ("drt-mart", found_mart, t_mart)):
-            every = metrics.match_particles(found, pts, tol)
-            far = depth >= args.focus_gap
-            found_far = found[np.abs(metrics_z(found, grid) - focus_z) >= args.focus_gap]
-            away = metrics.match_particles(found_far, pts[far], tol)
-            rows[name].append((every, away, t))
-    for name, rs in rows.items():
-        for label, k in (("all", 0), (f">= {args.focus_gap:g} voxels from focus", 1)):
-            err = np.concatenate([r[k].error_mm for r in rs])
-            rms = np.sqrt(np.mean(err**2, axis=0)) / np.asarray(grid.voxel_mm)
-            matched = sum(r[k].n_matched for r in rs)
-            n_true = sum(r[k].n_true for r in rs)
-            n_det = sum(r[k].n_detected for r in rs)
-            print(f"{name:9s} {label:28s} recall {matched / n_true:.3f}  ghosts {(n_det - matched) / n_det:.3f} "
-                  f"({n_det - matched}/{n_det})  rms x,y,z {rms[0]:.3f}, {rms[1]:.3f}, {rms[2]:.3f} voxel")
-        print(f"{name:9s} time per frame {np.mean([r[2] for r in rs]):.2f} s")
+    renderers = [renderer_for(c, rig.render, wavelength_nm=rig.laser.wavelength_nm, device=args.device)
+                 for c in rig.camera]
+    ipr = ParticleReconstructor(proj, settings=IprSettings(
+        model=args.model, relocate_depth=args.relocate, max_position_std=args.max_std,
+        wavelength_nm=rig.laser.wavelength_nm, particle_image_px=rig.render.particle_image_px))
+    densities = [float(p) for p in args.sweep.split(",")] if args.sweep else [args.ppm]
+    print(f"{name}: {len(rig.camera)} camera(s), grid {grid.shape} (z, y, x) voxels of {grid.voxel_mm} mm; "
+          f"{args.frames} frame(s) per density; matching within {args.match_voxels} voxel per axis; IPR model "
+          f"{args.model}, relocate {args.relocate}, max std {args.max_std}")
+    # the first camera focuses on its focus point; its depth axis is world z when it looks along z
+    focus_z = (rig.camera[0].focus_mm[2] - grid.origin_mm[2]) / grid.voxel_mm[2]
+    routes = ("ipr",) if args.no_mart else ("ipr", "drt-mart")
+    for ppm in densities:
+        n = particle_count(rig, ppm=ppm)
+        rows = {r: [] for r in routes}
+        for f in range(args.frames):
+            pts = seed_particles(rig.volume, n, np.random.default_rng(100 + f))
+            imgs = [r.frame(pts, rig.render.particle_counts, seed=7 + f + 1000 * k) for k, r in enumerate(renderers)]
+            t0 = time.perf_counter()
+            res = ipr.reconstruct(imgs)
+            found = {"ipr": (res.positions_mm, time.perf_counter() - t0)}
+            if "drt-mart" in routes:
+                t0 = time.perf_counter()
+                vol = reconstruct(proj, imgs, ReconSettings()).volume
+                found_mart, _, _ = metrics.detect_particles(vol, grid, threshold=0.1)
+                found["drt-mart"] = (found_mart, time.perf_counter() - t0)
+            depth = np.abs(metrics_z(pts, grid) - focus_z)
+            for route, (pos, t) in found.items():
+                every = metrics.match_particles(pos, pts, tol)
+                far = depth >= args.focus_gap
+                found_far = pos[np.abs(metrics_z(pos, grid) - focus_z) >= args.focus_gap]
+                away = metrics.match_particles(found_far, pts[far], tol)
+                rows[route].append((every, away, t))
+        print(f"-- {ppm} PPM: {n} particles")
+        for route, rs in rows.items():
+            for label, k in (("all", 0), (f">= {args.focus_gap:g} voxels from focus", 1)):
+                err = np.concatenate([r[k].error_mm for r in rs])
+                rms = np.sqrt(np.mean(err**2, axis=0)) / np.asarray(grid.voxel_mm)
+                matched = sum(r[k].n_matched for r in rs)
+                n_true = sum(r[k].n_true for r in rs)
+                n_det = max(sum(r[k].n_detected for r in rs), 1)
+                print(f"{route:9s} {label:28s} recall {matched / max(n_true, 1):.3f}  ghosts "
+                      f"{(n_det - matched) / n_det:.3f} ({n_det - matched}/{n_det})  rms x,y,z {rms[0]:.3f}, "
+                      f"{rms[1]:.3f}, {rms[2]:.3f} voxel")
+            print(f"{route:9s} time per frame {np.mean([r[2] for r in rs]):.2f} s")
 
 
 def metrics_z(points_mm: np.ndarray, grid: VolumeGrid) -> np.ndarray:

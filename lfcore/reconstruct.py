@@ -72,9 +72,10 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
     from lfcore.warm import Predictor, WarmStart
     from lfcore.weight_cache import WeightCache
 
-__all__ = ["MASKED", "METHODS", "PRUNE", "PRUNE_PERCENTILE", "WEIGHTS", "FrameReconstructor", "Iterated",
-           "ReconResult", "ReconSettings", "WARM_SHARE", "estimate_background", "preprocess", "preprocess_images",
-           "prune_dark", "reconstruct", "warm_count"]
+__all__ = ["CAPPED", "CONVERGED", "FIXED", "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE", "PRUNE_PERCENTILE",
+           "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WEIGHTS", "FrameReconstructor", "Iterated", "ReconResult",
+           "ReconSettings", "StoppingRule", "WARM_SHARE", "estimate_background", "preprocess", "preprocess_images",
+           "protocol_settings", "prune_dark", "reconstruct", "relative_residual", "warm_count"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: The weights each method iterates on (the ``method`` of :meth:`lfcore.operator.Projector.operator`
@@ -102,6 +103,20 @@ FORMS = ("simultaneous", "sequential")
 #: default): benchmarks/warm.py measured frame B started from A by the last pair's field reaching
 #: the cold frame's Q in this share.
 WARM_SHARE = 0.2
+
+
+#: Why a frame's iterations ended (:attr:`ReconResult.stopped`): all it was asked for (no stopping
+#: rule), the stopping rule, the most the rule allows, or nothing to iterate.
+FIXED, CONVERGED, CAPPED, NO_VOXELS = "fixed count", "converged", "max iterations", "no active voxels"
+STOP_REASONS = (FIXED, CONVERGED, CAPPED, NO_VOXELS)
+#: The stopping rule's defaults (the ``fast`` protocol's ``stop_tolerance`` and ``stop_voxels``): a frame
+#: has converged when, over ``stop_every`` iterations, its projections' relative residual fell by less
+#: than 0.3% of itself and fewer than 2% of its voxels left the operator. Measured against the truth
+#: (``benchmarks/stopping.py``): the residual alone flattens at the same rate on the tiny rig (whose Q
+#: peaks at about 100 iterations) and on the Mc crop (whose Q rises to 400, as ghosts fade below the
+#: pruning's threshold), so the voxels leaving tell the two apart.
+STOP_TOLERANCE = 0.003
+STOP_VOXELS = 0.02
 
 
 def warm_count(iterations: int, warm_iterations: int | None) -> int:
@@ -203,6 +218,17 @@ class ReconSettings:
         form): many subsets go far in the first passes, and fewer of them then settle on one volume
         instead of cycling between the subsets' (:func:`lfcore.subsets.groups_in_pass`). 0: the same
         ``subsets`` in every pass.
+    stop_tolerance
+        The stopping rule (:class:`StoppingRule`): every ``stop_every`` iterations the projections'
+        relative residual (:func:`relative_residual`) is measured, and the frame stops once it fell
+        by less than this fraction of itself over the last ``stop_every`` iterations while fewer than
+        ``stop_voxels`` of the voxels left the operator (the pruning); ``iterations`` (or the warm
+        count) is then the most it runs. 0 (default): exactly ``iterations``, a fixed count.
+    stop_voxels
+        The stopping rule's share of the voxels that may leave the operator in ``stop_every``
+        iterations of a converged frame (the later iterations' gain is ghosts fading out).
+    stop_every
+        Iterations between the stopping rule's measurements.
     """
 
     method: str = "drt-mart"
@@ -226,6 +252,9 @@ class ReconSettings:
     los_iterations: int = 0
     subsets: int = 1
     subset_halving: int = SUBSET_HALVING
+    stop_tolerance: float = 0.0
+    stop_voxels: float = STOP_VOXELS
+    stop_every: int = 10
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -282,6 +311,14 @@ class ReconSettings:
             raise ValueError(f"subset_halving must be 0 (never) or more passes, got {self.subset_halving}")
         if self.subsets > 1 and self.form != "simultaneous":
             raise ValueError("ordered subsets (subsets) are for the simultaneous form; use form 'simultaneous'")
+        if not 0.0 <= self.stop_tolerance < 1.0:
+            raise ValueError(f"stop_tolerance must be from 0 (a fixed count) to below 1 (a fraction of the residual), "
+                             f"got {self.stop_tolerance}")
+        if not 0.0 <= self.stop_voxels < 1.0:
+            raise ValueError(f"stop_voxels must be from 0 to below 1 (a fraction of the voxels), got "
+                             f"{self.stop_voxels}")
+        if self.stop_every < 1:
+            raise ValueError(f"stop_every must be 1 or more iterations, got {self.stop_every}")
         if self.warm_iterations is not None and self.warm_iterations < 1:
             raise ValueError(f"warm_iterations must be 1 or more, got {self.warm_iterations}")
 
@@ -291,14 +328,70 @@ class ReconSettings:
         ``iterations`` (at least one)."""
         return warm_count(self.iterations, self.warm_iterations)
 
+    @property
+    def stopping(self) -> bool:
+        """Whether the stopping rule ends the frames (``stop_tolerance`` > 0) rather than a fixed count."""
+        return self.stop_tolerance > 0
+
     @classmethod
     def chapter(cls, **changes) -> ReconSettings:
-        """The chapter's protocol, as its studies ran it: every active voxel iterated to the end (no
-        pruning), with ``changes`` (method, iterations, ...) applied."""
-        return cls(**{"prune": 0.0, **changes})
+        """The chapter's protocol (:data:`PROTOCOLS` ``"chapter"``), as its studies run it: a uniform
+        start, every active voxel iterated to the end (no pruning), a fixed count, with ``changes``
+        (method, iterations, ...) applied."""
+        return protocol_settings("chapter", **changes)
+
+    @classmethod
+    def protocol(cls, name: str, **changes) -> ReconSettings:
+        """The settings of the named protocol (:data:`PROTOCOLS`) with ``changes`` applied
+        (:func:`protocol_settings`)."""
+        return protocol_settings(name, **changes)
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+#: Named protocols (``lfpiv reconstruct --protocol``): the settings each changes from
+#: :class:`ReconSettings`' defaults.
+#:
+#: ``chapter``: the chapter's protocol, as ``lfpiv study`` runs it: a uniform start, 400 iterations of
+#: every active voxel (no pruning), a fixed count, relaxation 1 in the simultaneous form (the chapter's
+#: 2.5 is its sequential form's: ``form="sequential", relaxation=2.5``).
+#: ``fixed``: 50 iterations with the dark voxels leaving the operator (``lfpiv reconstruct``'s default
+#: before the stopping rule).
+#: ``fast``: the stopping rule (at most 400 iterations), line-of-sight weights for the first 20
+#: iterations of DRT-MART, the pruning, and frame B of each pair warm-started from frame A along a
+#: series (where the volumes are reconstructed in memory).
+PROTOCOLS: dict[str, dict] = {
+    "chapter": {"iterations": 400, "prune": 0.0, "relaxation": 1.0},
+    "fixed": {"iterations": 50},
+    "fast": {"iterations": 400, "stop_tolerance": STOP_TOLERANCE, "los_iterations": 20, "warm_start": True},
+}
+
+
+def protocol_settings(name: str, **changes) -> ReconSettings:
+    """The :class:`ReconSettings` of the named protocol (:data:`PROTOCOLS`), with ``changes`` applied.
+
+    A method other than DRT-MART's simultaneous form drops the line-of-sight first iterations (they
+    are DRT-MART's), and the sequential form the warm start; ``iterations`` given with a protocol that
+    stops by the rule is the rule's most.
+
+    Raises
+    ------
+    ValueError
+        An unknown name, or changes :class:`ReconSettings` refuses.
+    """
+    if name not in PROTOCOLS:
+        raise ValueError(f"protocol must be one of {', '.join(PROTOCOLS)}, got '{name}'")
+    merged = {**PROTOCOLS[name], **changes}
+    if merged.get("method", "drt-mart") != "drt-mart" or merged.get("form", "simultaneous") != "simultaneous":
+        if "los_iterations" not in changes:
+            merged["los_iterations"] = 0
+        if "warm_start" not in changes and merged.get("form", "simultaneous") != "simultaneous":
+            merged["warm_start"] = False
+    los = merged.get("los_iterations", 0)
+    if los and "los_iterations" not in changes and los >= merged.get("iterations", 50):
+        merged["los_iterations"] = 0  # too few iterations for DRT's weights to take over after them
+    return ReconSettings(**merged)
 
 
 @dataclass
@@ -336,6 +429,11 @@ class ReconResult:
     warm
         Whether the frame started from the last one's intensities carried by a predictor
         (:mod:`lfcore.warm`; ``iterations`` is then the warm count) rather than uniform.
+    stopped
+        Why the iterations ended (:data:`STOP_REASONS`): ``"fixed count"`` (no stopping rule),
+        ``"converged"`` (the stopping rule, :attr:`ReconSettings.stop_tolerance`), ``"max iterations"``
+        (the rule's most, ``iterations``, reached first) or ``"no active voxels"``; ``iterations`` is
+        how many ran (the line-of-sight first ones included).
     slabs
         Depth slabs the volume was reconstructed in (1: in memory; see :mod:`lfcore.slabs`).
     peak_bytes
@@ -363,6 +461,7 @@ class ReconResult:
     operator: str = ""
     final_voxels: int = -1
     warm: bool = False
+    stopped: str = FIXED
 
     def __post_init__(self) -> None:
         if self.final_voxels < 0:
@@ -541,12 +640,86 @@ class Iterated(NamedTuple):
     op
         The operator the intensities are of: the one iterated, or what its last pruning left
         (:attr:`ReconSettings.prune`); the volume is :meth:`FrameReconstructor.volume` of it.
+    iterations
+        Iterations that ran (-1: not said).
+    stopped
+        Why they ended (:data:`STOP_REASONS`).
     """
 
     e: object
     start_s: float
     iterate_s: float
     op: Operator | None = None
+    iterations: int = -1
+    stopped: str = FIXED
+
+
+def relative_residual(image, proj) -> float:
+    """The projections' relative residual ||b - Wx|| / ||b|| over the measured pixels (the masked
+    ones, :data:`MASKED`, left out; an unlit pixel's measurement is 0, so light projected onto it,
+    a ghost's, counts).
+
+    Parameters
+    ----------
+    image, proj
+        (n_pixels,) float32 Warp arrays on one device: the measured signal b (background
+        subtracted, zero on unlit pixels) and the forward projection Wx of the intensities, in counts.
+
+    Returns
+    -------
+    float
+        0 for a perfect fit; 1 for an empty volume; 0 where nothing was measured.
+    """
+    if image.device.is_cpu:
+        b, p = image.numpy(), proj.numpy()
+        ok = b >= 0
+        both = np.array([np.sum(np.square(b - p, dtype=np.float64), where=ok), np.sum(np.square(b, dtype=np.float64),
+                                                                                           where=ok)])
+    else:
+        from lfcore._kernels import mart as km
+
+        wp = warp()
+        out = wp.zeros(2, dtype=wp.float64, device=image.device)
+        wp.launch(km.residual_sums, dim=int(image.shape[0]), inputs=[image, proj, out], device=image.device)
+        both = out.numpy()
+    return float(np.sqrt(both[0] / both[1])) if both[1] > 0 else 0.0
+
+
+class StoppingRule:
+    """When a frame's iterations stop (:attr:`ReconSettings.stop_tolerance`): every ``every`` iterations
+    the projections' relative residual and the voxels left in the operator are measured, and the frame
+    has converged once the residual fell by less than ``tolerance`` of itself since the last
+    measurement while fewer than ``voxels`` of the voxels left. With ``tolerance`` 0 it never stops a
+    frame (a fixed count).
+
+    Why both: MART's residual flattens long before its volume has settled where ghosts still fade
+    below the pruning's threshold (the Mc crop's Q rises from 0.750 to 0.783 between 100 and 400
+    iterations while the residual falls by 1.5%), and ghosts leaving are seen as voxels leaving.
+    """
+
+    def __init__(self, tolerance: float, *, voxels: float = STOP_VOXELS, every: int = 10) -> None:
+        self.tolerance, self.voxels, self.every = float(tolerance), float(voxels), int(every)
+        self.last: tuple[float, int] | None = None
+        #: the (iterations done, relative residual, voxels) of every measurement, for benchmarks
+        self.history: list[tuple[int, float, int]] = []
+
+    @property
+    def on(self) -> bool:
+        return self.tolerance > 0
+
+    def due(self, done: int) -> bool:
+        """Whether to measure after ``done`` iterations (a projection of the intensities they left is at hand)."""
+        return self.on and done % self.every == 0
+
+    def converged(self, done: int, residual: float, n_voxels: int) -> bool:
+        """Record a measurement after ``done`` iterations; True when the frame has converged."""
+        self.history.append((done, residual, n_voxels))
+        last, self.last = self.last, (residual, n_voxels)
+        if last is None or last[0] <= 0 or done == 0:
+            return False
+        fell = (last[0] - residual) / last[0]
+        left = (last[1] - n_voxels) / max(last[1], 1)
+        return fell < self.tolerance and left < self.voxels
 
 
 def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[list[Operator], list]:
@@ -744,7 +917,8 @@ class FrameReconstructor:
         iterate_s = 0.0
         if los_first:
             # the cheap weights first; DRT's then for the voxels still bright (a third of them on Mc)
-            first = self.iterate(op, self._image, noises, progress=progress, iterations=settings.los_iterations)
+            first = self.iterate(op, self._image, noises, progress=progress, iterations=settings.los_iterations,
+                                 stop_tolerance=0.0)
             weights_s += first.start_s
             iterate_s += first.iterate_s
             t = time.perf_counter()
@@ -770,7 +944,8 @@ class FrameReconstructor:
         return ReconResult(volume=volume, active_voxels=active, active_fraction=active / p.grid.n_voxels,
                            nnz=nnz, weight_bytes=max(nbytes, op_bytes),
                            weights_s=weights_s + done.start_s, iterate_s=iterate_s + done.iterate_s,
-                           iterations=its + (settings.los_iterations if los_first else 0), background=backgrounds,
+                           iterations=done.iterations + (settings.los_iterations if los_first else 0),
+                           stopped=done.stopped, background=backgrounds,
                            noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=n_fly,
                            projector=applied, operator=f"{kind}, then {last_kind}" if los_first else kind,
                            final_voxels=done.op.n_voxels, warm=warmed)
@@ -860,7 +1035,7 @@ class FrameReconstructor:
 
     def iterate(self, op: Operator, image, noise: Sequence[float], *, iterations: int | None = None,
                 relaxation: float | None = None, progress: Callable[[int], None] | None = None,
-                start=None) -> Iterated:
+                start=None, stop_tolerance: float | None = None) -> Iterated:
         """MART on ``weights``: a uniform start (or ``start``), then the iterations of ``settings.form``.
 
         The start is uniform (or ``start``), scaled so that its projection carries the measured total
@@ -881,17 +1056,21 @@ class FrameReconstructor:
             Each camera's noise sigma, in counts.
         iterations, relaxation
             Override ``settings.iterations`` and ``settings.relaxation`` (the live path changes
-            them while it runs).
+            them while it runs). With the stopping rule, ``iterations`` is the most that run.
         progress
-            Called with 1 after each iteration.
+            Called with 1 after each iteration (and with the iterations left out when the stopping
+            rule ends the frame early).
         start
             (n,) float32 Warp array on the device: the voxels' relative start intensities (a warm
             start, :meth:`lfcore.warm.WarmStart.start`), all positive; None: uniform.
+        stop_tolerance
+            Overrides ``settings.stop_tolerance`` (:class:`StoppingRule`; 0: exactly ``iterations``).
 
         Returns
         -------
         Iterated
-            The intensities (in this reconstructor's buffer) and the seconds taken.
+            The intensities (in this reconstructor's buffer), the seconds taken, the iterations
+            that ran and why they stopped.
         """
         wp, p, s = self.wp, self.projector, self.settings
         its = s.iterations if iterations is None else int(iterations)
@@ -905,7 +1084,7 @@ class FrameReconstructor:
         e, proj = self._e[: max(n, 1)], self._proj
         if n == 0:  # nothing to reconstruct
             e.fill_(0.0)
-            return Iterated(e, time.perf_counter() - t0, 0.0, op)
+            return Iterated(e, time.perf_counter() - t0, 0.0, op, 0, NO_VOXELS)
         # Start uniform (or warm), scaled so the projection carries the measured total signal.
         if start is None:
             e.fill_(1.0)
@@ -929,21 +1108,31 @@ class FrameReconstructor:
         if transposed is None and self._ratio is None:
             self._ratio = wp.empty(p.n_pixels, dtype=float, device=self.device)
         prune = s.prune if transposed is None else 0.0
+        tolerance = s.stop_tolerance if stop_tolerance is None else float(stop_tolerance)
+        rule = StoppingRule(tolerance, voxels=s.stop_voxels, every=s.stop_every)
+        ran, stopped = its, (CAPPED if rule.on else FIXED)
         for it in range(1, its + 1):
+            measure = rule.due(it - 1)  # the stopping rule: on the projection of what it - 1 iterations left
+            if (transposed is None and not isinstance(op, SubsetOperator)) or measure:
+                op.forward(e, out=proj)  # the simultaneous update's projection serves the rule as well
+            if measure and rule.converged(it - 1, relative_residual(image, proj), op.n_voxels):
+                ran, stopped = it - 1, CONVERGED
+                break
             if transposed is not None:
                 op.sweep(transposed, image, e, mu, floor)
             elif isinstance(op, SubsetOperator):  # one pass through the subsets
                 ordered_pass(op, image, e, proj, self._ratio, floor, mu,
                              groups=groups_in_pass(op.n_subsets, s.subset_halving, it))
             else:
-                op.forward(e, out=proj)
                 op.update(log_ratio(image, proj, floor, self._ratio), e, mu)
             if prune > 0 and it % s.prune_every == 0 and it < its:  # the dark voxels leave
                 (op,), (e,) = prune_dark([op], [e], prune)
             if progress is not None:
                 progress(1)
+        if progress is not None and ran < its:
+            progress(its - ran)  # the iterations the rule left out, for a bar sized for the most
         wp.synchronize_device(self.device)
-        return Iterated(e, t1 - t0, time.perf_counter() - t1, op)
+        return Iterated(e, t1 - t0, time.perf_counter() - t1, op, ran, stopped)
 
     def _ordered_subsets(self, op: Operator) -> Operator:
         """``op`` split by ``settings.subsets`` pixel subsets (:func:`lfcore.subsets.split`), or

@@ -43,13 +43,19 @@ from lfcore.device import MemoryBudgetError, Rows, available_bytes, launch_rows,
 from lfcore.device_ops import VolumeOps, gaussian_taps
 from lfcore.operator import OPERATOR_KINDS, TEMPLATES, Operator, Projector, from_templates, log_ratio, max_planes
 from lfcore.reconstruct import (
+    CAPPED,
+    CONVERGED,
+    FIXED,
+    NO_VOXELS,
     FrameReconstructor,
     ReconResult,
     ReconSettings,
+    StoppingRule,
     _total,
     _total_measured,
     preprocess_images,
     prune_dark,
+    relative_residual,
 )
 from lfcore.volume import VolumeGrid
 
@@ -282,6 +288,8 @@ class SlabReconstructor:
 
         t1 = time.perf_counter()
         start_s = iterate_s = 0.0
+        rule = StoppingRule(s.stop_tolerance, voxels=s.stop_voxels, every=s.stop_every)
+        ran, stopped = (0, NO_VOXELS) if n_total == 0 else (s.iterations, CAPPED if rule.on else FIXED)
         if n_total == 0:
             for e in es:
                 e.fill_(0.0)
@@ -301,6 +309,12 @@ class SlabReconstructor:
             for it in range(s.iterations):
                 ti = time.perf_counter()
                 project()
+                left = sum(w.n_voxels for w in weights)
+                if rule.due(it) and rule.converged(it, relative_residual(image, proj), left):
+                    ran, stopped = it, CONVERGED  # the stopping rule (ReconSettings.stop_tolerance)
+                    if progress is not None:
+                        progress(s.iterations - it)
+                    break
                 log_ratio(image, proj, floor, ratio)  # every slab's update reads the whole volume's
                 for w, e in zip(weights, es, strict=True):
                     if w.n_voxels:
@@ -336,7 +350,8 @@ class SlabReconstructor:
         return ReconResult(volume=np.zeros((0, 0, 0), np.float32), active_voxels=n_total,
                            active_fraction=n_total / p.grid.n_voxels, nnz=nnz,
                            weight_bytes=operator_bytes, weights_s=t1 - t0 + start_s,
-                           iterate_s=iterate_s, iterations=s.iterations, background=backgrounds, noise=noises,
+                           iterate_s=iterate_s, iterations=ran, stopped=stopped, background=backgrounds,
+                           noise=noises,
                            eliminate_s=t_elim, on_the_fly_voxels=fly, final_voxels=sum(w.n_voxels for w in weights),
                            projector="matrix-free" if any(from_templates(w) for w in weights) else "stored",
                            slabs=len(self.slabs), peak_bytes=self.peak_bytes,

@@ -3,17 +3,23 @@
 The particles of both frames (:mod:`lfcore.ipr`) are paired one-to-one, nearest first, each A
 particle looking for a B particle within a search ellipsoid around where a predictor puts it:
 
-1. **Pass 1**: predictor zero, the search as wide as the largest displacement expected
-   (:attr:`TrackSettings.search_voxels`).
+1. **Pass 1**: the predictor given (a coarse correlation of the pair's volumes, or the previous
+   pair's field: a :class:`lfcore.warm.Predictor`, interpolated trilinearly at each A particle),
+   or zero without one; the search as wide as the predictor's largest error expected (without a
+   predictor: the largest displacement, :attr:`TrackSettings.search_voxels`).
 2. **Outliers**: a track whose displacement differs from the median of its nearest tracks by more
    than :attr:`TrackSettings.outlier_threshold` times their median deviation (the normalized median
    test of PIV, Westerweel and Scarano 2005, over the tracks' neighbours instead of a grid's) is
    rejected.
 3. **Pass 2 on**: the predictor is the median of the pass before's tracks in each bin of the grid,
    and the search shrinks to :attr:`TrackSettings.refine_voxels` around it.
-4. **Binning**: the field on a grid of bins :attr:`TrackSettings.bin_voxels` wide is the mean
-   displacement of the tracks whose midpoint lies in each bin (NaN with fewer than
-   :attr:`TrackSettings.min_tracks`).
+4. **The field** on a grid of bins :attr:`TrackSettings.bin_voxels` wide, at the bins' centres
+   (:attr:`TrackSettings.field`): ``"bins"``, the mean displacement of the tracks whose midpoint
+   lies in each bin (NaN with fewer than :attr:`TrackSettings.min_tracks`); or ``"smooth"``, a
+   Gaussian-weighted average of the tracks around each centre (adaptive Gaussian windowing, Agui
+   and Jimenez 1987) of width :attr:`TrackSettings.smooth_voxels` (NaN with fewer than
+   :attr:`TrackSettings.min_tracks` tracks within 1.5 widths): a point value of the flow rather than
+   a bin's mean, with each track's weight falling off smoothly instead of at the bin's walls.
 
 Positions are world mm (x, y, z); the grid's voxels set the scale of the searches and bins.
 """
@@ -27,8 +33,16 @@ from scipy.spatial import cKDTree
 from scipy.stats import binned_statistic_dd
 
 from lfcore.volume import VolumeGrid
+from lfcore.warm import Predictor
 
-__all__ = ["TrackResult", "TrackSettings", "bin_tracks", "pair_nearest", "reject_outliers", "track_pair"]
+__all__ = ["FIELDS", "MAX_CROWDING", "TrackResult", "TrackSettings", "bin_tracks", "field_predictor", "pair_nearest",
+           "predict_at", "reject_outliers", "search_crowding", "smooth_tracks", "track_pair"]
+
+#: How the field is made from the tracks (:attr:`TrackSettings.field`).
+FIELDS = ("bins", "smooth")
+#: Most frame-B particles a first-pass search may hold on average (:func:`search_crowding`) for the
+#: nearest one to be the right one often enough to pair meaningfully; beyond it a frame is refused.
+MAX_CROWDING = 8.0
 
 
 @dataclass(frozen=True)
@@ -53,6 +67,13 @@ class TrackSettings:
         The normalized median test's threshold.
     epsilon_voxels
         The test's noise floor, voxels.
+    field
+        How the field is made from the tracks: ``"smooth"`` (a Gaussian-weighted average around each
+        bin's centre; the default: on a uniform flow over the tiny rig at 0.5 PPM, 0.07, 0.09, 0.17
+        voxel RMS where the bins' means give 0.11, 0.15, 0.32, benchmarks/track.py) or ``"bins"``
+        (each bin's mean); see the module docstring.
+    smooth_voxels
+        The Gaussian's sigma (x, y, z), voxels, of ``field="smooth"``; None: half a bin.
     """
 
     search_voxels: tuple[float, float, float] = (4.0, 4.0, 2.0)
@@ -63,10 +84,16 @@ class TrackSettings:
     neighbours: int = 8
     outlier_threshold: float = 3.0
     epsilon_voxels: float = 0.2
+    field: str = "smooth"
+    smooth_voxels: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
-        for name in ("search_voxels", "refine_voxels", "bin_voxels"):
+        if self.field not in FIELDS:
+            raise ValueError(f"the field is made by one of {', '.join(FIELDS)}, got '{self.field}'")
+        for name in ("search_voxels", "refine_voxels", "bin_voxels", "smooth_voxels"):
             v = getattr(self, name)
+            if v is None:
+                continue
             if len(v) != 3 or min(v) <= 0:
                 raise ValueError(f"{name} needs three positive values (x, y, z), got {v}")
         if self.passes < 1 or self.min_tracks < 1 or self.neighbours < 2 or self.outlier_threshold <= 0:
@@ -76,6 +103,13 @@ class TrackSettings:
     def as_dict(self) -> dict:
         """The settings as JSON-compatible values."""
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @property
+    def sigma_voxels(self) -> tuple[float, float, float]:
+        """The smooth field's Gaussian sigma (x, y, z), voxels: :attr:`smooth_voxels`, or half a bin."""
+        if self.smooth_voxels is not None:
+            return tuple(float(v) for v in self.smooth_voxels)  # type: ignore[return-value]
+        return tuple(0.5 * float(b) for b in self.bin_voxels)  # type: ignore[return-value]
 
 
 @dataclass
@@ -95,7 +129,7 @@ class TrackResult:
     field_mm
         (z, y, x, 3) mean displacement (x, y, z) of each bin's tracks, mm; NaN where too few.
     counts
-        (z, y, x) tracks in each bin.
+        (z, y, x) tracks in each bin (``field="smooth"``: within 1.5 sigma of each centre).
     """
 
     a_index: np.ndarray
@@ -107,6 +141,14 @@ class TrackResult:
     z_mm: np.ndarray
     field_mm: np.ndarray
     counts: np.ndarray
+
+
+def search_crowding(n_particles: int, grid: VolumeGrid, search_voxels: tuple[float, float, float]) -> float:
+    """The mean number of a frame's ``n_particles`` particles (spread over ``grid``'s box) inside one
+    search ellipsoid of semi-axes ``search_voxels`` (x, y, z voxels): how many candidates the first
+    pass chooses the nearest of. About 1 or less pairs reliably; many more pairs mostly by chance."""
+    box = float(np.prod(np.asarray(grid.shape, dtype=np.float64)))
+    return float(n_particles) * 4.0 / 3.0 * np.pi * float(np.prod(np.asarray(search_voxels, dtype=np.float64))) / box
 
 
 def pair_nearest(a_mm: np.ndarray, b_mm: np.ndarray, predicted_mm: np.ndarray, radius_mm: np.ndarray
@@ -204,6 +246,98 @@ def bin_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, grid: Volum
     return centres, field, counts
 
 
+def smooth_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: list[np.ndarray], *,
+                  sigma_mm: np.ndarray, min_tracks: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """The tracks' Gaussian-weighted average at the points of a grid (adaptive Gaussian windowing).
+
+    At each point, sum(w d) / sum(w) over the tracks within 3 sigma, w = exp(-r^2 / 2) with r the
+    distance in units of ``sigma_mm`` per axis (an ellipsoidal Gaussian).
+
+    Parameters
+    ----------
+    position_mm, displacement_mm
+        (m, 3) each track's position (its midpoint) and displacement (x, y, z), mm.
+    centres
+        [x_mm, y_mm, z_mm]: the grid's points along each axis.
+    sigma_mm
+        (3,) the Gaussian's sigma (x, y, z), mm.
+    min_tracks
+        Fewest tracks within 1.5 sigma a point needs for a value.
+
+    Returns
+    -------
+    field
+        (z, y, x, 3) the weighted mean displacement, mm; NaN where too few tracks.
+    counts
+        (z, y, x) tracks within 1.5 sigma of each point.
+    """
+    sigma = np.asarray(sigma_mm, dtype=np.float64).reshape(3)
+    pos = np.asarray(position_mm, dtype=np.float64).reshape(-1, 3) / sigma
+    d = np.asarray(displacement_mm, dtype=np.float64).reshape(-1, 3)
+    zz, yy, xx = np.meshgrid(centres[2], centres[1], centres[0], indexing="ij")
+    shape = xx.shape
+    nodes = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()]) / sigma
+    field = np.full((len(nodes), 3), np.nan)
+    counts = np.zeros(len(nodes), np.int64)
+    if len(pos):
+        tree = cKDTree(pos)
+        for i, near in enumerate(tree.query_ball_point(nodes, r=3.0)):
+            if not near:
+                continue
+            r2 = np.sum((pos[near] - nodes[i]) ** 2, axis=1)
+            counts[i] = int(np.count_nonzero(r2 <= 1.5 ** 2))
+            if counts[i] >= min_tracks:
+                w = np.exp(-0.5 * r2)
+                field[i] = w @ d[near] / w.sum()
+    return field.reshape(*shape, 3), counts.reshape(shape)
+
+
+def predict_at(predictor: Predictor, grid: VolumeGrid, at_mm: np.ndarray) -> np.ndarray:
+    """A predictor's displacement at world points, mm: trilinear between its points, the nearest
+    point's beyond them.
+
+    Parameters
+    ----------
+    predictor
+        Displacements (x, y, z) in voxels of ``grid`` at points given in its voxel coordinates.
+    grid
+        The voxel grid the predictor's coordinates and displacements refer to.
+    at_mm
+        (n, 3) world points (x, y, z), mm.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n, 3) displacements (x, y, z), mm.
+    """
+    from scipy.ndimage import map_coordinates
+
+    voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
+    at = np.asarray(at_mm, dtype=np.float64).reshape(-1, 3)
+    vox = (at - np.asarray(grid.origin_mm)) / voxel  # voxel coordinates (x, y, z)
+    idx = (vox - np.asarray(predictor.origin)) / np.asarray(predictor.step)  # the predictor's index (x, y, z)
+    coords = idx[:, ::-1].T  # (z, y, x) rows for map_coordinates
+    d = predictor.displacement.astype(np.float64)
+    out = np.column_stack([map_coordinates(d[..., c], coords, order=1, mode="nearest") for c in range(3)])
+    return out * voxel
+
+
+def field_predictor(result: TrackResult, grid: VolumeGrid) -> Predictor | None:
+    """A pair's tracked field as a :class:`~lfcore.warm.Predictor` (e.g. for the next pair of a
+    time-resolved run): its bins' values in voxels, the empty bins set to the median of the others;
+    None where every bin is empty."""
+    voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
+    d = result.field_mm / voxel
+    bad = ~np.all(np.isfinite(d), axis=-1)
+    if bad.all():
+        return None
+    d[bad] = np.median(d[~bad], axis=0)
+    centres = [result.x_mm, result.y_mm, result.z_mm]
+    origin = [(c[0] - o) / v for c, o, v in zip(centres, grid.origin_mm, voxel, strict=True)]
+    step = [(c[1] - c[0]) / v if len(c) > 1 else 1.0 for c, v in zip(centres, voxel, strict=True)]
+    return Predictor(d.astype(np.float32), tuple(origin), tuple(step))  # type: ignore[arg-type]
+
+
 def _predict(field: np.ndarray, centres: list[np.ndarray], at_mm: np.ndarray) -> np.ndarray:
     """The binned field at points: the value of the bin each lies in, the median of all bins where it
     is empty (zero where every bin is)."""
@@ -216,8 +350,8 @@ def _predict(field: np.ndarray, centres: list[np.ndarray], at_mm: np.ndarray) ->
     return np.where(np.isfinite(v), v, fallback)
 
 
-def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings: TrackSettings | None = None
-               ) -> TrackResult:
+def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings: TrackSettings | None = None,
+               predictor: Predictor | None = None) -> TrackResult:
     """Track a pair's particles (see the module docstring).
 
     Parameters
@@ -227,7 +361,11 @@ def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings
     grid
         The voxel grid: the scale of the searches and the bins.
     settings
-        Searches, passes, bins and the outlier test.
+        Searches, passes, bins, the outlier test and the field.
+    predictor
+        The first pass's predicted displacement, in voxels of ``grid`` (e.g.
+        :func:`lfcore.warm.predictor_field` of the pair's volumes, or :func:`field_predictor` of the
+        previous pair); None: zero.
 
     Returns
     -------
@@ -237,7 +375,7 @@ def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings
     a = np.asarray(a_mm, dtype=np.float64).reshape(-1, 3)
     b = np.asarray(b_mm, dtype=np.float64).reshape(-1, 3)
     voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
-    predicted = np.zeros_like(a)
+    predicted = np.zeros_like(a) if predictor is None or not len(a) else predict_at(predictor, grid, a)
     radius = np.asarray(s.search_voxels) * voxel
     for done in range(s.passes):
         ia, ib = pair_nearest(a, b, predicted, radius)
@@ -245,10 +383,13 @@ def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings
         mid = a[ia] + 0.5 * disp
         out = reject_outliers(mid, disp, neighbours=s.neighbours, threshold=s.outlier_threshold,
                               epsilon_mm=s.epsilon_voxels * voxel)
+        last = done + 1 == s.passes
         centres, field, counts = bin_tracks(mid[~out], disp[~out], grid, bin_voxels=s.bin_voxels,
-                                            statistic="median" if done + 1 < s.passes else "mean",
-                                            min_tracks=s.min_tracks)
-        if done + 1 < s.passes:
+                                            statistic="mean" if last else "median", min_tracks=s.min_tracks)
+        if last and s.field == "smooth":
+            field, counts = smooth_tracks(mid[~out], disp[~out], centres, sigma_mm=np.asarray(s.sigma_voxels) * voxel,
+                                          min_tracks=s.min_tracks)
+        if not last:
             predicted = _predict(field, centres, a)
             radius = np.asarray(s.refine_voxels) * voxel
     return TrackResult(a_index=ia, b_index=ib, displacement_mm=disp, outlier=out, x_mm=centres[0], y_mm=centres[1],

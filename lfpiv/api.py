@@ -81,13 +81,14 @@ def import_files(rig: Rig | str | os.PathLike[str], out: str | os.PathLike[str],
                rate_hz=rate_hz, overwrite=overwrite, skip_done=skip_done, progress=progress, checksum=checksum)
 
 
-def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = None, iterations: int = 50,
+def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = None, iterations: int | None = None,
                 relaxation: float = 1.0, form: str = "simultaneous", pvr: Sequence[float] | None = None,
                 margin_mm: Sequence[float] = (0.0, 0.0, 0.0), pairs: PairsLike = None,
                 cameras: Sequence[str] | None = None, calibration: str | os.PathLike[str] | None = None,
                 device: str | None = None, workers: int | None = None, scheduler: str | None = None,
                 skip_done: bool = False, progress: bool = True, slabs: int | str | None = None,
-                flat_field: str | os.PathLike[str] | None = None, **options: Any) -> list[Any]:
+                flat_field: str | os.PathLike[str] | None = None, protocol: str | None = None,
+                **options: Any) -> list[Any]:
     """Reconstruct both frames of the selected pairs into the run's ``volumes/`` (``lfpiv reconstruct``).
 
     Parameters
@@ -96,7 +97,8 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
         The run (a path or a store).
     method, iterations, relaxation, form
         DRT-MART, MART, MLOS-MART or MLOS-SMART (None: DRT-MART for light-field cameras,
-        MLOS-SMART for pinhole ones); MART sweeps; relaxation; simultaneous or sequential.
+        MLOS-SMART for pinhole ones); MART sweeps, a fixed count (None: 50, or the protocol's);
+        relaxation; simultaneous or sequential.
     pvr, margin_mm
         Pixel-voxel ratio (x, y, z) of the voxel grid (None: the rig's) and the margin around
         the rig's volume, mm.
@@ -116,6 +118,10 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
     flat_field
         As the command's ``--flat-field``: a calibration store whose dark and white images correct
         every raw frame (None: the raw frames).
+    protocol
+        As the command's ``--protocol``: a named protocol (:data:`lfcore.reconstruct.PROTOCOLS`:
+        ``"fast"``, ``"fixed"``, ``"chapter"``) that the other options change; None: the settings
+        as given (:class:`lfcore.reconstruct.ReconSettings`' defaults, 50 iterations).
     **options
         Further :class:`lfcore.reconstruct.ReconSettings` fields (``background``,
         ``threshold_sigma``, ``smooth``, ``sub_apertures``, ``weight_storage``, ...).
@@ -127,18 +133,24 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
     """
     from lfpiv.batch import dask_client
     from lfpiv.jobs.calibrate import calibrated_rig, flat_fields
-    from lfpiv.jobs.reconstruct import default_method, recon_settings, reconstruct_run
+    from lfpiv.jobs.reconstruct import default_method, protocol_run_settings, recon_settings, reconstruct_run
 
     store = open_run(run, mode="r+")
     method = method or default_method(store.rig, cameras)
-    settings = recon_settings(method=method, iterations=iterations, relaxation=relaxation, form=form, **options)
+    if protocol is None:
+        settings = recon_settings(method=method, iterations=50 if iterations is None else iterations,
+                                  relaxation=relaxation, form=form, **options)
+    else:
+        settings = protocol_run_settings(protocol, iterations=iterations, method=method, relaxation=relaxation,
+                                         form=form, **options)
     rig, cal = calibrated_rig(store.rig, calibration, cameras) if calibration is not None else (None, None)
     flats, flat_info = (flat_fields(store.rig, flat_field, cameras)[:2] if flat_field is not None
                         else (None, None))
     with dask_client(workers, scheduler) as client:
         return reconstruct_run(store, settings, pvr=pvr, margin_mm=margin_mm, pairs=_pairs(pairs), cameras=cameras,
                                device=device, progress=progress, rig=rig, calibration=cal, skip_done=skip_done,
-                               client=client, option="pairs", slabs=slabs, flats=flats, flat_field=flat_info)
+                               client=client, option="pairs", slabs=slabs, flats=flats, flat_field=flat_info,
+                               protocol=protocol)
 
 
 def correlate(run: str | os.PathLike[str] | RunStore, *,
@@ -226,16 +238,17 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
 
 
 def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, skip_done: bool = False,
-          progress: bool = True, **options: Any) -> Any:
+          progress: bool = True, predictor: str = "none", device: str | None = None, **options: Any) -> Any:
     """Pair each selected pair's particles from frame A to frame B and bin the tracks into the run's
-    ``vectors/`` (``lfpiv track``); ``options`` are :class:`lfcore.track.TrackSettings` fields
-    (``search_voxels``, ``refine_voxels``, ``passes``, ``bin_voxels``, ``min_tracks``, ...).
-    Returns the :class:`lfpiv.jobs.track.TracksDone` figures."""
+    ``vectors/`` (``lfpiv track``); ``predictor`` is the first pass's (``"none"``, ``"volumes"`` or
+    ``"previous"``: :mod:`lfpiv.jobs.track`), ``options`` are :class:`lfcore.track.TrackSettings`
+    fields (``search_voxels``, ``refine_voxels``, ``passes``, ``bin_voxels``, ``min_tracks``,
+    ``field``, ``smooth_voxels``, ...). Returns the :class:`lfpiv.jobs.track.TracksDone` figures."""
     from lfpiv.jobs.track import track_run, track_settings
 
     store = open_run(run, mode="r+")
-    return track_run(store, track_settings(**options), _pairs(pairs), progress=progress, skip_done=skip_done,
-                     option="pairs")
+    return track_run(store, track_settings(**options), _pairs(pairs), predictor=predictor, progress=progress,
+                     skip_done=skip_done, option="pairs", device=device)
 
 
 @dataclass(frozen=True)

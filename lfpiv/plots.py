@@ -18,8 +18,8 @@ from lfcore.rig import is_pinhole  # noqa: E402
 from lfcore.runstore import RunStore  # noqa: E402
 from lfpiv.errors import UsageError  # noqa: E402
 
-__all__ = ["plot_camera_checks", "plot_grids", "plot_raw_images", "plot_reconstruction", "plot_rms", "plot_vectors",
-           "plot_views", "save_figure"]
+__all__ = ["plot_camera_checks", "plot_grids", "plot_raw_images", "plot_reconstruction", "plot_rms", "plot_routes",
+           "plot_vectors", "plot_views", "save_figure"]
 
 
 def save_figure(fig, out: str | Path, *, dpi: float = 100) -> Path:
@@ -169,6 +169,75 @@ def plot_vectors(store: RunStore, out: str | Path, pair: int = 0) -> Path:
         fig.colorbar(im, ax=ax, label="w_z (1/s)", shrink=0.85)
     fig.suptitle(f"{store.path.name}: pair {pair}, {len(x)} x {len(y)} x {len(z)} vectors")
     fig.tight_layout()
+    save_figure(fig, out, dpi=100)
+    return out
+
+
+def plot_routes(routes: list[tuple[str, RunStore]], out: str | Path, pair: int = 0) -> Path:
+    """Save a PNG of several runs' vectors of one pair, one row per run: the truth flow on the
+    run's own grid (when the run has one) beside what the run measured, each the in-plane vectors
+    (u, v) of the z plane nearest the volume's centre over the in-plane speed (blank where it
+    measured none), on one colour scale and the volume's extent. The demo's two routes (volumes
+    and correlation, particles and tracking) on one recording.
+
+    Parameters
+    ----------
+    routes
+        (label, run store) per row, each with ``vectors/`` holding ``pair``.
+    out
+        The PNG.
+    pair
+        The pair shown.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
+    from lfcore.metrics import grid_velocity
+
+    out = Path(out)
+    rows = []
+    for label, store in routes:
+        vec = store.vectors()
+        x, y, z = vec["x_mm"], vec["y_mm"], vec["z_mm"]
+        k = int(np.argmin(np.abs(np.asarray(z) - float(store.rig.volume.centre_mm[2]))))
+        panels = [(label, np.stack([vec[c][pair] for c in "uvw"], axis=-1).astype(np.float64)[k])]
+        truth = store.truth()
+        if truth is not None and truth["attrs"].get("flow", {}).get("name") not in (None, "static-points"):
+            t_mid = float(truth["t0_s"][pair]) + 0.5 * store.dt_s
+            panels.insert(0, ("truth on its grid", grid_velocity(store.truth_flow(), x, y, z[k:k + 1], t_mid)[0]))
+        rows.append((x, y, z[k], panels))
+    top = max(float(np.nanmax(np.hypot(p[..., 0], p[..., 1]), initial=0.0))
+              for *_, panels in rows for _, p in panels) or 1.0
+    cols = max(len(r[3]) for r in rows)
+    vol = routes[0][1].rig.volume
+    lo = np.asarray(vol.centre_mm) - 0.5 * np.asarray(vol.size_mm)
+    hi = lo + np.asarray(vol.size_mm)
+    fig, axes = plt.subplots(len(rows), cols, figsize=(4.6 * cols, 4.2 * len(rows)), squeeze=False,
+                             constrained_layout=True)
+    im = None
+    for r, (x, y, zk, panels) in enumerate(rows):
+        dx, dy = (x[1] - x[0] if len(x) > 1 else 1.0), (y[1] - y[0] if len(y) > 1 else 1.0)
+        for c in range(cols):
+            ax = axes[r][c]
+            if c >= len(panels):
+                ax.axis("off")
+                continue
+            label, p = panels[c]
+            im = ax.imshow(np.hypot(p[..., 0], p[..., 1]), origin="lower", cmap="viridis", vmin=0.0, vmax=top,
+                           extent=(x[0] - dx / 2, x[-1] + dx / 2, y[0] - dy / 2, y[-1] + dy / 2), aspect="equal")
+            # arrows in mm: the peak speed a grid step long
+            ax.quiver(x, y, p[..., 0], p[..., 1], color="w", angles="xy", scale_units="xy", scale=top / min(dx, dy))
+            ax.set_xlim(lo[0], hi[0])
+            ax.set_ylim(lo[1], hi[1])
+            ax.set_title(f"{routes[r][0] if c == len(panels) - 1 else label}\n(u, v) at z = {zk:.3g} mm",
+                         fontsize=10)
+            ax.set_xlabel("x (mm)")
+            ax.set_ylabel("y (mm)")
+    if im is not None:
+        fig.colorbar(im, ax=axes.ravel().tolist(), label="in-plane speed (m/s)", shrink=0.8)
+    fig.suptitle(f"pair {pair}: the same recording by each route, beside the truth on its grid")
     save_figure(fig, out, dpi=100)
     return out
 

@@ -1,4 +1,4 @@
-"""The live pipeline: the newest recorded pair to a volume, vectors and vorticity, near real time.
+"""The live pipeline: the newest recorded pair to a volume (or particles), vectors and vorticity, near real time.
 
 It runs beside the recorder (the data flow of ``docs/development.md``) and never slows it. :class:`LivePipeline`
 runs three rooms of one job each on a thread of its own, pair after pair:
@@ -7,8 +7,11 @@ runs three rooms of one job each on a thread of its own, pair after pair:
    session's :class:`~acquisition.ring.PairRing` into a host slot, checks the ring's seqlock,
    skips and counts the pairs in between, and starts the pair's upload to the device (on a GPU,
    on a stream of its own, overlapping the current pair's kernels);
-2. processing (:mod:`realtime.processing`): preprocess, reconstruct frames A and B and correlate
-   them on the device by the batch path's functions, buffers built once;
+2. processing (:mod:`realtime.processing`), by one of two routes
+   (:data:`~realtime.settings.LIVE_ROUTES`): ``voxels``, preprocess, reconstruct frames A and B
+   and correlate them on the device by the batch path's functions, buffers built once; or
+   ``particles``, each frame's particles by iterative particle reconstruction and their tracks
+   binned on a grid, by the functions of ``lfpiv particles`` and ``lfpiv track``;
 3. the view (:mod:`realtime.view`): velocity in m/s, vorticity, maximum-intensity projections
    and one slice of volume A, the vector plane nearest that slice; a pure function of the
    processed pair and the settings.
@@ -30,17 +33,31 @@ import numpy as np
 
 from lfcore.correlate import CorrelationConfig
 from lfcore.flatfield import FlatField
+from lfcore.ipr import IprSettings
 from lfcore.plan import default_method, unsupported_method
 from lfcore.reconstruct import ReconSettings
 from lfcore.rig import NotLightFieldError, Rig
+from lfcore.track import TrackSettings
 from lfcore.volume import VolumeGrid
-from realtime.processing import PairProcessor, ProcessedPair, _Reconstructor
-from realtime.settings import AXES, LIVE_METHODS, LiveSettings, check_live_method, default_windows, monitoring_recon
+from realtime.processing import PairProcessor, ParticleProcessor, ProcessedPair, _Reconstructor
+from realtime.settings import (
+    AXES,
+    LIVE_METHODS,
+    LIVE_ROUTES,
+    LiveSettings,
+    check_live_method,
+    check_live_route,
+    default_windows,
+    monitoring_ipr,
+    monitoring_recon,
+    monitoring_tracking,
+)
 from realtime.staging import PairSource, StagedPair, Staging
 from realtime.view import Derived, VectorSlice, derive
 
-__all__ = ["AXES", "LIVE_METHODS", "LiveResult", "LiveSettings", "LiveStats", "LivePipeline", "PairSource",
-           "VectorSlice", "default_windows", "monitoring_recon", "plausible_latency"]
+__all__ = ["AXES", "LIVE_METHODS", "LIVE_ROUTES", "LiveResult", "LiveSettings", "LiveStats", "LivePipeline",
+           "PairSource", "VectorSlice", "default_windows", "monitoring_ipr", "monitoring_recon", "monitoring_tracking",
+           "plausible_latency"]
 
 #: Latencies beyond this are taken as a camera clock that is not the host's (reported as NaN).
 _PLAUSIBLE_LATENCY_S = 3600.0
@@ -65,12 +82,15 @@ class LiveResult:
         Per camera, frame A (rows, columns) uint16, a copy.
     mip, slice_axis, slice_index, slice_image, extent_mm, vectors, velocity, vorticity, grid_mm, outlier_fraction
         What the window shows of the pair, as :class:`realtime.view.Derived` has them (the view's
-        pure function, :func:`realtime.view.derive`, made them).
+        pure function, :func:`realtime.view.derive`, made them). On the particle route the
+        "volume" is frame A's particles drawn into the live grid, and the vectors are the
+        tracks' field in bins (NaN and counted as outliers where a bin had too few tracks).
     active_fraction
-        Share of voxels that survived elimination (mean of A and B).
+        Share of voxels that survived elimination (mean of A and B); NaN on the particle route.
     timings
         Seconds per stage: ``copy``, ``preprocess``, ``eliminate``, ``weights`` (from the cache or
-        built), ``iterate``, ``volume``, ``correlate``, ``derive``, ``total``.
+        built), ``iterate``, ``volume``, ``correlate``, ``derive``, ``total``; on the particle
+        route ``copy``, ``preprocess``, ``particles``, ``track``, ``volume``, ``derive``, ``total``.
     trigger_ns
         Frame A's time stamp (``time.time_ns`` scale for the simulated lab and for cameras
         without their own clock).
@@ -88,6 +108,12 @@ class LiveResult:
     warm
         Whether frame B started from frame A carried along the last pair's field
         (:func:`realtime.settings.monitoring_recon`'s ``warm_start``).
+    route
+        ``"voxels"`` or ``"particles"`` (:data:`realtime.settings.LIVE_ROUTES`).
+    particles
+        The particle route's particles found in frames A and B; None on the voxel route.
+    tracks
+        The particle route's tracks kept (outliers rejected); None on the voxel route.
     """
 
     pair: int
@@ -112,6 +138,9 @@ class LiveResult:
     discarded: int
     projector: str = "stored"
     warm: bool = False
+    route: str = "voxels"
+    particles: tuple[int, int] | None = None
+    tracks: int | None = None
 
 
 @dataclass(frozen=True)
@@ -136,7 +165,12 @@ class LiveStats:
         The last error of a stage (the pipeline keeps going), or None.
     projector
         What applied the operator to the last result (:attr:`LiveResult.projector`); ``""``
-        before the first.
+        before the first and on the particle route.
+    route
+        The pipeline's route (:data:`realtime.settings.LIVE_ROUTES`).
+    particles, tracks
+        The particle route's last result's particles (A, B) and tracks kept; None before the
+        first and on the voxel route.
     """
 
     state: str
@@ -148,10 +182,14 @@ class LiveStats:
     latency_s: float
     error: str | None
     projector: str = ""
+    route: str = "voxels"
+    particles: tuple[int, int] | None = None
+    tracks: int | None = None
 
 
 class LivePipeline:
-    """Reconstruct and correlate the newest pair of a recording, in a thread of its own.
+    """Reconstruct and correlate the newest pair of a recording (or track its particles), in a
+    thread of its own.
 
     Parameters
     ----------
@@ -184,12 +222,27 @@ class LivePipeline:
         Per camera name, the flat field its raw frames are corrected by
         (:class:`lfcore.flatfield.FlatField`, from a calibration's dark and white images); None:
         the raw frames, one background level per camera.
+    route
+        ``"voxels"`` (default): volumes and correlation; ``"particles"``: iterative particle
+        reconstruction of both frames and tracks (:data:`realtime.settings.LIVE_ROUTES`). The
+        particle route takes ``ipr`` and ``tracking``; ``recon``'s method still picks the
+        volume route's weights where ``ipr`` has no method of its own, and ``correlation`` and the
+        run-time iterations and relaxation are not used.
+    ipr
+        The particle route's reconstruction; default: :func:`realtime.settings.monitoring_ipr`
+        with ``recon``'s method.
+    tracking
+        The particle route's tracking; default: :func:`realtime.settings.monitoring_tracking` of
+        the live volume.
     """
 
     def __init__(self, rig: Rig, source: PairSource | None = None, *, settings: LiveSettings | None = None,
                  recon: ReconSettings | None = None, correlation: CorrelationConfig | None = None,
                  cameras: Sequence[str] | None = None, pvr: Sequence[float] | None = None, device: str | None = None,
-                 poll_s: float = 0.005, flats: Mapping[str, FlatField] | None = None) -> None:
+                 poll_s: float = 0.005, flats: Mapping[str, FlatField] | None = None, route: str = "voxels",
+                 ipr: IprSettings | None = None, tracking: TrackSettings | None = None) -> None:
+        check_live_route(route)
+        self.route = route
         self.rig = rig
         self.flats = flats
         self.cameras = list(cameras) if cameras else [c.name for c in rig.camera]
@@ -205,6 +258,8 @@ class LivePipeline:
         self.recon = replace(base, form="simultaneous")
         self.correlation = correlation or CorrelationConfig(windows=default_windows(self.grid.shape), overlap=0.5,
                                                             deform_iterations=0)
+        self.ipr = ipr or monitoring_ipr(method=self.recon.method)
+        self.tracking = tracking or monitoring_tracking(self.grid.shape)
         self.device_request = device
         self.dt_s = rig.timing.dt_us * 1e-6
         self.poll_s = float(poll_s)
@@ -220,7 +275,9 @@ class LivePipeline:
         self._latency = float("nan")
         self._projector = ""
         self._error: str | None = None
-        self._processor: PairProcessor | None = None
+        self._processor: PairProcessor | ParticleProcessor | None = None
+        self._particles: tuple[int, int] | None = None
+        self._tracks: int | None = None
         # the source, the pairs taken, skipped and discarded: the staging's, under this lock
         self._staging = Staging(self.cameras, lock=self._lock, stop=self._stop, paused=self._paused,
                                 poll_s=self.poll_s)
@@ -262,23 +319,29 @@ class LivePipeline:
 
     # --- life cycle ---------------------------------------------------------------------------
     def build(self) -> None:
-        """Build the projector and the correlator and their buffers (once; :meth:`start` does it
-        on the pipeline's thread if not done before)."""
+        """Build the projector and the correlator (or the particle reconstructor) and their
+        buffers (once; :meth:`start` does it on the pipeline's thread if not done before)."""
         if self._processor is None:
-            processor = PairProcessor(self.rig, self.cameras, self.grid, self.recon, self.correlation,
-                                      self.device_request, flats=self.flats)
-            self._staging.build(processor.recon)
+            processor: PairProcessor | ParticleProcessor
+            if self.route == "particles":
+                processor = ParticleProcessor(self.rig, self.cameras, self.grid, self.ipr, self.tracking,
+                                              self.device_request, flats=self.flats)
+            else:
+                processor = PairProcessor(self.rig, self.cameras, self.grid, self.recon, self.correlation,
+                                          self.device_request, flats=self.flats)
+            self._staging.build(processor.layout)
             self._processor = processor
 
     @property
     def _recon(self) -> _Reconstructor | None:
-        """The live reconstructor, once built."""
-        return None if self._processor is None else self._processor.recon
+        """The live reconstructor of the voxel route, once built."""
+        p = self._processor
+        return p.recon if isinstance(p, PairProcessor) else None
 
     @property
     def device(self) -> str | None:
         """The Warp device in use, once built."""
-        return None if self._processor is None else self._processor.recon.device
+        return None if self._processor is None else self._processor.device
 
     def start(self) -> None:
         """Start the pipeline's thread (once)."""
@@ -329,7 +392,8 @@ class LivePipeline:
             rate = (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
             st = self._staging
             return LiveStats(self._state, self._processed, st.skipped, st.discarded, st.last_taken, rate,
-                             self._latency, self._error, self._projector)
+                             self._latency, self._error, self._projector, route=self.route,
+                             particles=self._particles, tracks=self._tracks)
 
     def wait_processed(self, n: int, timeout_s: float) -> bool:
         """Block until ``n`` pairs were processed or ``timeout_s`` passed (for scripts and tests)."""
@@ -415,13 +479,14 @@ class LivePipeline:
                           grid_mm=shown.grid_mm, outlier_fraction=shown.outlier_fraction,
                           active_fraction=pair.active_fraction, timings=timings, trigger_ns=stamp, latency_s=latency,
                           settings=s, skipped=skipped, discarded=discarded, projector=pair.projector,
-                          warm=pair.warm)
+                          warm=pair.warm, route=pair.route, particles=pair.particles, tracks=pair.tracks)
 
     def _publish(self, result: LiveResult) -> None:
         with self._lock:
             self._processed += 1
             self._latency = result.latency_s
             self._projector = result.projector
+            self._particles, self._tracks = result.particles, result.tracks
             self._done_times = [*self._done_times[-9:], time.monotonic()]
             subs = list(self._subscribers)
         for cb in subs:

@@ -1,6 +1,7 @@
-"""Processing one pair on the device: preprocess, reconstruct frames A and B, correlate.
+"""Processing one pair: preprocess, reconstruct frames A and B, correlate (or particles and tracks).
 
-For each pair, on the pipeline's thread:
+:class:`PairProcessor` is the voxel route (:data:`realtime.settings.LIVE_ROUTES`); for each pair,
+on the pipeline's thread:
 
 1. preprocess on the device: the raw 16-bit frames (half the bytes of float signal) become the
    background-subtracted signal and the lit-pixel mask (:func:`lfcore.reconstruct.preprocess`'s
@@ -19,8 +20,21 @@ For each pair, on the pipeline's thread:
    :class:`~lfcore.correlate.Correlator` whose device buffers are allocated once, reading the
    volumes where they are.
 
-The result is a :class:`ProcessedPair`: volume A still on the device, the vector field, and the
-time each stage took. What the window shows of it is :func:`realtime.view.derive`'s.
+:class:`ParticleProcessor` is the particle route, by the batch path's core functions too (those of
+``lfpiv particles`` and ``lfpiv track``):
+
+1. each camera's raw frames on the host (corrected by the flat field where one is given);
+2. frames A's and B's particles by iterative particle reconstruction
+   (:class:`lfcore.ipr.ParticleReconstructor`, its projector built once; monitoring settings,
+   :func:`realtime.settings.monitoring_ipr`);
+3. A's particles paired with B's into tracks and their field binned on a grid
+   (:func:`lfcore.track.track_pair`), handed on as a :class:`~lfcore.correlate.VectorField` (the
+   bins as windows) so that the view and the window draw it as they draw a correlation's;
+4. frame A's particles drawn into a volume on the host (each particle's intensity spread over its
+   8 nearest voxels), which the window's projections and slice show.
+
+The result is a :class:`ProcessedPair`: volume A (on the device for the voxel route), the vector
+field, and the time each stage took. What the window shows of it is :func:`realtime.view.derive`'s.
 """
 
 from __future__ import annotations
@@ -32,19 +46,22 @@ from dataclasses import dataclass
 import numpy as np
 
 from acquisition.ring import PairView
-from lfcore.correlate import CorrelationConfig, Correlator, VectorField
+from lfcore.correlate import CorrelationConfig, Correlator, VectorField, WindowGrid
 from lfcore.device_ops import ImagePreprocessor, VolumeOps
 from lfcore.flatfield import FlatField, correct
+from lfcore.ipr import IprSettings, ParticleReconstructor, to_index
 from lfcore.operator import applied_by
-from lfcore.plan import build_reconstructor, plan_reconstruction
+from lfcore.plan import build_reconstructor, plan_reconstruction, projector_for
 from lfcore.reconstruct import ReconSettings, estimate_background, warm_count
 from lfcore.rig import Rig
+from lfcore.track import TrackResult, TrackSettings, track_pair
 from lfcore.volume import VolumeGrid
 from lfcore.warm import Predictor, WarmStart
 from realtime.settings import LiveSettings
 from realtime.staging import StagedPair, Staging
 
-__all__ = ["PairProcessor", "ProcessedPair"]
+__all__ = ["HostVolumeOps", "PairProcessor", "ParticleProcessor", "ProcessedPair", "particle_volume",
+           "tracks_as_field"]
 
 
 @dataclass(frozen=True)
@@ -78,7 +95,14 @@ class ProcessedPair:
         Whether frame B started from frame A carried along the last pair's field (a warm start).
     timings
         Seconds per stage: ``copy`` (out of the ring), ``preprocess``, ``eliminate``, ``weights``
-        (from the cache or built), ``iterate``, ``volume``, ``correlate``.
+        (from the cache or built), ``iterate``, ``volume``, ``correlate``; the particle route's:
+        ``copy``, ``preprocess``, ``particles`` (both frames), ``track``, ``volume``.
+    route
+        ``"voxels"`` or ``"particles"`` (:data:`realtime.settings.LIVE_ROUTES`).
+    particles
+        The particle route's particles in frames A and B; None on the voxel route.
+    tracks
+        The particle route's tracks kept (not rejected as outliers); None on the voxel route.
     """
 
     view: PairView
@@ -92,6 +116,9 @@ class ProcessedPair:
     projector: str
     timings: dict[str, float]
     warm: bool = False
+    route: str = "voxels"
+    particles: tuple[int, int] | None = None
+    tracks: int | None = None
 
 
 class _Reconstructor:
@@ -227,6 +254,18 @@ class PairProcessor:
         self.recon = _Reconstructor(rig, self.cameras, grid, recon, device, flats)
         self.correlator = Correlator(grid.shape, config=correlation, device=self.recon.device)
 
+    route = "voxels"
+
+    @property
+    def layout(self) -> _Reconstructor:
+        """What the staging uploads the frames for (:meth:`realtime.staging.Staging.build`)."""
+        return self.recon
+
+    @property
+    def device(self) -> str:
+        """The Warp device the pair is processed on."""
+        return self.recon.device
+
     def process(self, staged: StagedPair, settings: LiveSettings, *, staging: Staging,
                 refresh_background: bool) -> ProcessedPair:
         """Preprocess, reconstruct and correlate the staged pair (on the pipeline's thread).
@@ -286,3 +325,183 @@ class PairProcessor:
         return ProcessedPair(view=view, raw=raw, volume=vols[0], ops=rc.ops, field=vf, grid=self.grid, dt_s=self.dt_s,
                              active_fraction=float(np.mean(active)), projector=", ".join(sorted(projectors)),
                              timings=t, warm=rc.warmed)
+
+
+class HostVolumeOps:
+    """:class:`~lfcore.device_ops.VolumeOps`' projections and planes of a volume on the host
+    (the particle route's drawing of its particles)."""
+
+    def projection(self, vol: np.ndarray, axis: int) -> np.ndarray:
+        """Maximum-intensity projection along array ``axis`` (0 z, 1 y, 2 x)."""
+        return np.asarray(vol).max(axis=axis)
+
+    def plane(self, vol: np.ndarray, axis: int, index: int) -> np.ndarray:
+        """The plane ``index`` normal to array ``axis``."""
+        if not 0 <= index < vol.shape[axis]:
+            raise IndexError(f"slice {index} is outside the volume's {vol.shape[axis]} planes along axis {axis}")
+        return np.take(vol, index, axis=axis)
+
+
+def particle_volume(grid: VolumeGrid, positions_mm: np.ndarray, intensity: np.ndarray) -> np.ndarray:
+    """Particles drawn into a (z, y, x) float32 volume of ``grid``: each one's intensity spread
+    over its 8 nearest voxel centres by trilinear weights (what a voxel reconstruction of a point
+    would hold at best).
+
+    Parameters
+    ----------
+    grid
+        The volume.
+    positions_mm
+        (n, 3) world positions (x, y, z), mm.
+    intensity
+        (n,) intensities.
+    """
+    vol = np.zeros(grid.shape, np.float32)
+    u = to_index(grid, positions_mm)
+    if len(u) == 0:
+        return vol
+    base = np.floor(u).astype(np.int64)
+    f = u - base
+    shape = np.asarray(grid.shape)
+    for corner in np.ndindex(2, 2, 2):
+        c = np.asarray(corner)
+        idx = base + c
+        w = np.prod(np.where(c == 1, f, 1.0 - f), axis=1) * np.asarray(intensity, np.float64)
+        inside = np.all((idx >= 0) & (idx < shape), axis=1)
+        np.add.at(vol, tuple(idx[inside].T), w[inside].astype(np.float32))
+    return vol
+
+
+def tracks_as_field(tracks: TrackResult, grid: VolumeGrid, bins: tuple[int, int, int]) -> VectorField:
+    """A pair's tracks' binned field as a :class:`~lfcore.correlate.VectorField` in voxels (the
+    bins as the windows of one pass, side by side), as the live view takes a correlation's.
+
+    Parameters
+    ----------
+    tracks
+        :func:`lfcore.track.track_pair`'s result: bin centres in mm and the (z, y, x, 3) mean
+        displacement (x, y, z) in mm, NaN in bins with too few tracks.
+    grid
+        The voxel grid the tracks were binned on.
+    bins
+        (x, y, z) bin size, voxels.
+
+    Returns
+    -------
+    VectorField
+        Displacement in voxels; ``outlier`` True where a bin had too few tracks (NaN), peak ratio
+        and height NaN (no correlation peak).
+    """
+    voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
+    origin = np.asarray(grid.origin_mm, dtype=np.float64)
+    x, y, z = ((np.asarray(c, dtype=np.float64) - origin[a]) / voxel[a]
+               for a, c in enumerate((tracks.x_mm, tracks.y_mm, tracks.z_mm)))
+    disp = tracks.field_mm / voxel  # (z, y, x, 3) mm to voxels per component
+    empty = ~np.all(np.isfinite(disp), axis=-1)
+    nan = np.full(disp.shape[:3], np.nan)
+    b = tuple(int(v) for v in bins)
+    windows = WindowGrid(window=b, step=b, first=(0, 0, 0), counts=(len(x), len(y), len(z)))  # type: ignore[arg-type]
+    return VectorField(x=x, y=y, z=z, displacement=disp, peak_ratio=nan, peak_height=nan.copy(), outlier=empty,
+                       replaced=np.zeros_like(empty), grid=windows)
+
+
+class _HostLayout:
+    """Where each camera's pixels lie in the flat (2, n_pixels) host frames of the staging, for a
+    route that reads its frames on the host (:meth:`realtime.staging.Staging.build`'s layout)."""
+
+    def __init__(self, cams: Sequence, projector) -> None:
+        self.cams = list(cams)
+        self.projector = projector
+        self.wp = projector.wp
+        self.device = "cpu"  # the frames stay on the host: no upload stream
+        self.offsets = [int(o) for o in projector.pixel_offsets]
+
+    def camera_image(self, frames: np.ndarray, f: int, k: int) -> np.ndarray:
+        """Camera ``k``'s (rows, columns) view of frame ``f`` of flat (2, n_pixels) host frames."""
+        rows, cols = self.cams[k].sensor_px[1], self.cams[k].sensor_px[0]
+        return frames[f, self.offsets[k]:self.offsets[k + 1]].reshape(rows, cols)
+
+
+class ParticleProcessor:
+    """The live particle route, built once, and the processing of one pair (see the module docstring).
+
+    Parameters
+    ----------
+    rig
+        The rig (cameras, timing).
+    cameras
+        Cameras to reconstruct from.
+    grid
+        The live volume: the particles' box and the tracks' bins.
+    ipr
+        How the particles are reconstructed (:func:`realtime.settings.monitoring_ipr`).
+    tracking
+        How they are tracked (:func:`realtime.settings.monitoring_tracking`).
+    device
+        Warp device of the quick reconstruction that gives the candidates; None for the first GPU,
+        else the CPU. The fit runs on the host.
+    flats
+        Per camera name, the flat field its raw frames are corrected by (None or a camera left
+        out: uncorrected).
+
+    Attributes
+    ----------
+    particles
+        The particle reconstructor (its projector built once).
+    layout
+        Where each camera's pixels lie in the staging's host frames.
+    """
+
+    route = "particles"
+
+    def __init__(self, rig: Rig, cameras: Sequence[str], grid: VolumeGrid, ipr: IprSettings,
+                 tracking: TrackSettings, device: str | None, flats: Mapping[str, FlatField] | None = None) -> None:
+        self.cameras = list(cameras)
+        self.grid = grid
+        self.dt_s = rig.timing.dt_us * 1e-6
+        self.tracking = tracking
+        cams = [rig.camera_named(n) for n in self.cameras]
+        self.flats = [None if flats is None else flats.get(n) for n in self.cameras]
+        projector = projector_for(cams, grid, device=device)
+        self.particles = ParticleReconstructor(projector, settings=ipr)
+        self.layout = _HostLayout(cams, projector)
+        self.device = projector.device
+        self.ops = HostVolumeOps()
+
+    def process(self, staged: StagedPair, settings: LiveSettings, *, staging: Staging,
+                refresh_background: bool) -> ProcessedPair:
+        """Both frames' particles, their tracks and field, and frame A's particles drawn into a
+        volume (on the pipeline's thread). ``settings`` and ``refresh_background`` are the voxel
+        route's: the particle reconstruction estimates each frame's background itself."""
+        slot, view = staged.slot, staged.slot.view
+        assert view is not None
+        lay = self.layout
+        t: dict[str, float] = {"copy": slot.copy_s}
+        start = time.perf_counter()
+        frames = []
+        for f in (0, 1):
+            images = []
+            for k in range(len(self.cameras)):
+                img = lay.camera_image(slot.frames, f, k)
+                flat = self.flats[k]
+                images.append(img.copy() if flat is None else correct(img, flat))  # as lfpiv particles reads them
+            frames.append(images)
+        raw = {c: lay.camera_image(slot.frames, 0, k).copy() for k, c in enumerate(self.cameras)}
+        staging.consumed(staged)
+        staging.release(staged)  # the host slot is free: the frames were copied out of it
+        t["preprocess"] = time.perf_counter() - start
+        t0 = time.perf_counter()
+        found = []
+        for images in frames:
+            found.append(self.particles.reconstruct(images))
+            staging.prefetch()
+        t1 = time.perf_counter()
+        tracks = track_pair(found[0].positions_mm, found[1].positions_mm, self.grid, settings=self.tracking)
+        vf = tracks_as_field(tracks, self.grid, self.tracking.bin_voxels)
+        t2 = time.perf_counter()
+        volume = particle_volume(self.grid, found[0].positions_mm, found[0].intensity)
+        t.update(particles=t1 - t0, track=t2 - t1, volume=time.perf_counter() - t2)
+        kept = int(np.count_nonzero(~tracks.outlier))
+        return ProcessedPair(view=view, raw=raw, volume=volume, ops=self.ops, field=vf,  # type: ignore[arg-type]
+                             grid=self.grid, dt_s=self.dt_s, active_fraction=float("nan"), projector="", timings=t,
+                             route=self.route, particles=(found[0].n, found[1].n), tracks=kept)

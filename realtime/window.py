@@ -4,7 +4,10 @@ Panels: each camera's raw light-field image (frame A); maximum-intensity project
 A along z and y and the chosen slice; the in-plane vectors of the vector plane nearest the slice
 drawn over its out-of-plane vorticity. A status line gives pairs per second processed and
 recorded, frames recorded and dropped, ring overruns, pairs skipped by the live path, the
-trigger-to-display latency and, on CUDA, the GPU memory in use. Beside them, the checks before
+trigger-to-display latency and, on CUDA, the GPU memory in use. On the particle route
+(:data:`realtime.settings.LIVE_ROUTES`) "volume A" is frame A's particles drawn into the live
+grid, the vectors are the tracks' field in bins, and the status line adds the particles of
+frames A and B and the tracks kept. Beside them, the checks before
 recording for each camera (:func:`realtime.view.camera_checks`): its seeding density, saturated
 share and micro-image fill against the chapter's ranges, its histogram with full scale marked
 and the plane through the middle of the volume refocused from its raw frame, computed every
@@ -137,9 +140,10 @@ class MonitorWindow(QtWidgets.QMainWindow):
         self.images: dict[str, Any] = {}
         for k, cam in enumerate(pipeline.cameras):
             self._panel(f"raw:{cam}", f"{cam}: raw frame A", 0, k, grey, "column (px)", "row (px)", True)
-        self._panel("mip:z", "volume A: maximum over z", 1, 0, hot, "x (mm)", "y (mm)", False)
-        self._panel("mip:y", "volume A: maximum over y", 1, 1, hot, "x (mm)", "z (mm)", False)
-        self._panel("slice", "volume A: slice", 2, 0, hot, "x (mm)", "y (mm)", False)
+        self._what = "particles A" if pipeline.route == "particles" else "volume A"
+        self._panel("mip:z", f"{self._what}: maximum over z", 1, 0, hot, "x (mm)", "y (mm)", False)
+        self._panel("mip:y", f"{self._what}: maximum over y", 1, 1, hot, "x (mm)", "z (mm)", False)
+        self._panel("slice", f"{self._what}: slice", 2, 0, hot, "x (mm)", "y (mm)", False)
         vp = self._panel("vectors", "vectors over vorticity", 2, 1, pg.colormap.get("CET-D1"), "x (mm)", "y (mm)",
                          False)
         self.arrows = pg.PlotDataItem(pen=pg.mkPen("w", width=1.5), connect="pairs")
@@ -305,6 +309,10 @@ class MonitorWindow(QtWidgets.QMainWindow):
         self.relax_spin.setSingleStep(0.1)
         self.relax_spin.setValue(s.relaxation)
         self.relax_spin.valueChanged.connect(lambda v: self._update(relaxation=float(v)))
+        if self.pipeline.route == "particles":  # the voxel route's MART settings: nothing to change here
+            for spin in (self.iter_spin, self.relax_spin):
+                spin.setEnabled(False)
+                spin.setToolTip("the voxel route's (lfpiv monitor --route voxels)")
         self._axis_changed(s.slice_axis, keep_index=s.slice_index)
         self.slice_spin.valueChanged.connect(lambda v: self._update(slice_index=int(v)))
         for w in (self.live_button, self.arm_button, self.record_box, QtWidgets.QLabel("slice axis"),
@@ -380,7 +388,7 @@ class MonitorWindow(QtWidgets.QMainWindow):
             h, v = IN_PLANE[normal]
             self._set_world_image(self.images[name], data, ex[h], ex[v], _levels(data, 0.0, 99.95))
         h, v = IN_PLANE[r.slice_axis]
-        self.plots["slice"].setTitle(f"volume A: slice {r.slice_axis} = {r.slice_index}")
+        self.plots["slice"].setTitle(f"{self._what}: slice {r.slice_axis} = {r.slice_index}")
         self.plots["slice"].setLabel("bottom", f"{h} (mm)")
         self.plots["slice"].setLabel("left", f"{v} (mm)")
         self._draw_vectors(r)
@@ -462,7 +470,10 @@ class MonitorWindow(QtWidgets.QMainWindow):
                      f"({rate}), skipped {st.skipped}, discarded {st.discarded}, latency "
                      + (f"{lat:.2f} s" if math.isfinite(lat) else "n/a")
                      # what applied the last pair's operator (stored weights or matrix-free)
-                     + (f", projector {st.projector}" if st.projector else ""))
+                     + (f", projector {st.projector}" if st.projector else "")
+                     # the particle route: what its last pair found and tracked
+                     + (f", particles A/B {st.particles[0]}/{st.particles[1]}, tracks {st.tracks}"
+                        if st.particles is not None else ""))
         text = "  |  ".join(parts) + _gpu_memory(self.pipeline.device)
         if st.error:
             text += f"  |  error: {st.error}"

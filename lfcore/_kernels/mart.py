@@ -273,3 +273,14 @@ def scale_shift(e: wp.array(dtype=float), a: float, b: float):
     """e = a e + b, in place."""
     i = wp.tid()
     e[i] = a * e[i] + b
+
+
+@wp.kernel
+def residual_sums(image: wp.array(dtype=float), proj: wp.array(dtype=float), out: wp.array(dtype=wp.float64)):
+    """out[0] += (I_i - proj_i)^2 and out[1] += I_i^2 over the measured pixels (a masked one's signal is negative)."""
+    i = wp.tid()
+    b = image[i]
+    if b >= 0.0:
+        d = b - proj[i]
+        wp.atomic_add(out, 0, wp.float64(d * d))
+        wp.atomic_add(out, 1, wp.float64(b * b))

@@ -101,6 +101,17 @@ class OperatorAttrs(_Attrs):
     operators: list[str] | None = Field(None, description="a list of the operators' names")
 
 
+class ConvergenceAttrs(_Attrs):
+    """``volumes/`` attribute ``convergence``: how the frames' iterations went."""
+
+    frames: Count | None = Field(None, description="a number of frames (a whole number from 0)")
+    iterations: Annotated[list[Count], Field(min_length=3, max_length=3)] | None = Field(
+        None, description="the least, most and total iterations of the frames (three whole numbers from 0)")
+    voxels: Annotated[list[Count], Field(min_length=3, max_length=3)] | None = Field(
+        None, description="the least, most and total voxels left at the end (three whole numbers from 0)")
+    stopped: dict[str, Count] | None = Field(None, description="a table of the frames per reason they stopped")
+
+
 class _Derived(_Attrs):
     """What ``volumes/`` and ``vectors/`` (and their pending replacements) share."""
 
@@ -119,6 +130,8 @@ class VolumesAttrs(_Derived):
     operator: OperatorAttrs | None = Field(None, description="a table (what applied the operator: projector, bytes, "
                                                               "ms_per_iteration, frames, operators)")
     plan: dict[str, Any] | None = Field(None, description="a table (the planner's choice)")
+    convergence: ConvergenceAttrs | None = Field(None, description="a table (the frames' iterations, voxels left "
+                                                                   "and why they stopped)")
     frames_written: list[Annotated[list[Count], Field(min_length=2, max_length=2)]] = Field(
         [], alias="_frames_written", description="a list of [pair, frame] numbers")
 

@@ -50,6 +50,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "line-of-sight weights; faster on a GPU) for light-field cameras, mlos-smart for pinhole "
                    "(Tomo-PIV) ones (default: drt-mart, or mlos-smart where every camera is a pinhole camera)")
     add_projector(m)
+    m.add_argument("--route", choices=("voxels", "particles"), default="voxels",
+                   help="how the live path goes from a pair's images to its vectors: voxels (the volumes reconstructed "
+                   "by --method and cross-correlated, as 'lfpiv reconstruct' and 'lfpiv correlate') or particles "
+                   "(each frame's particles by iterative particle reconstruction and A's paired with B's into "
+                   "tracks binned on a grid, as 'lfpiv particles' and 'lfpiv track'; --iterations, --relaxation, "
+                   "--projector, --warm-start and --passes are the voxel route's) (default: voxels); the "
+                   "recording is the same either way")
     m.add_argument("--iterations", type=iterations, default=5,
                    help="MART iterations per frame (default: 5; changeable in the window)")
     m.add_argument("--warm-start", action="store_true",
@@ -117,16 +124,23 @@ def run(args: argparse.Namespace) -> int:
                       device=args.device, out=args.out, overwrite=args.overwrite,
                       sim_options=sim_lab_options(rig, args), ring_slots=args.ring,
                       title=f"lfpiv monitor: {args.rig}", screenshot=args.screenshot, after=args.after, say=say,
-                      warm_start=args.warm_start, flats=flats)
+                      warm_start=args.warm_start, flats=flats, route=args.route)
     for r in end.recordings:
         where = str(r.path) if r.path is not None else "not recorded (no --out)"
         print(f"recording: {where}: {r.committed_pairs} pair(s) x {len(rig.camera)} camera(s), {r.frames_recorded} "
               f"frames recorded, {r.frames_dropped} dropped, {r.overruns} overruns, state {r.state}")
     numbers = end.numbers
     lat = numbers["latency_s"]
+    st = end.stats
+    if args.route == "particles":
+        found = (f", last pair {st.particles[0]}/{st.particles[1]} particles (A/B) and {st.tracks} tracks"
+                 if st.particles is not None else "")
+        route = f"particles (IPR with {method}'s weights) and tracks{found}"
+    else:
+        route = f"{method}, {args.iterations} iteration(s)"
     print(f"live: {int(numbers['processed'])} pair(s) processed, {int(numbers['skipped'])} skipped, "
           f"{int(numbers['discarded'])} discarded, {int(numbers['displayed'])} shown; last trigger-to-display "
-          f"latency {f'{lat:.2f} s' if math.isfinite(lat) else 'n/a'}; {method}, {args.iterations} iteration(s) "
+          f"latency {f'{lat:.2f} s' if math.isfinite(lat) else 'n/a'}; {route} "
           f"on {end.device}, {'x'.join(map(str, end.voxels))} voxels at PVR "
           f"{','.join(f'{v:g}' for v in args.pvr or rig.volume.pvr)}"
           + (f", projector {end.projector}" if end.projector else ""))

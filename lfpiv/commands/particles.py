@@ -55,6 +55,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "particles seen as one peak (0: never; default: 1.4)")
     c.add_argument("--rounds", type=positive_int, default=3, metavar="N",
                    help="passes of candidates, fit and prune, the later ones on the residual images (default: 3)")
+    c.add_argument("--model", choices=("point", "voxels"), default="point",
+                   help="a particle's image: point, that of a point at its own position (a light-field camera's "
+                   "DRT weights traced from it with the main lens' diffraction blur at the rig's laser wavelength, "
+                   "a pinhole camera's Gaussian spot of the rig's [render] particle_image_px); voxels, the blend of "
+                   "its 8 neighbouring voxels' weights (default: point)")
+    c.add_argument("--relocate", type=shakes, default=4, metavar="N",
+                   help="after each round's fit, try every particle up to N voxels either side in depth and one "
+                   "laterally, and move it where it explains more of the images (point model; 0: never; default: 4)")
+    c.add_argument("--max-std", type=non_negative_float, default=0.0, metavar="V",
+                   help="at the end, leave out particles whose position is less sure than V voxels on any axis "
+                   "(its standard deviation from the fit): fewer ghosts near a light-field camera's focal plane, "
+                   "fewer particles found (0: keep all; default: 0)")
     add_device(c)
     add_workers(c, "reconstruct the particles of")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -66,11 +78,15 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.jobs.particles import ipr_settings, particles_run
     from lfpiv.runs import open_run
 
-    settings = ipr_settings(method=args.method, candidate_iterations=args.candidate_iterations,
-                            candidate_threshold=args.threshold, shakes=args.shakes, min_intensity=args.min_intensity,
-                            merge_voxels=args.merge_voxels, rounds=args.rounds,
-                            split_intensity=args.split)
+    options = dict(method=args.method, candidate_iterations=args.candidate_iterations,
+                   candidate_threshold=args.threshold, shakes=args.shakes, min_intensity=args.min_intensity,
+                   merge_voxels=args.merge_voxels, rounds=args.rounds, split_intensity=args.split, model=args.model,
+                   relocate_depth=args.relocate, max_position_std=args.max_std)
+    ipr_settings(**options)  # bad options are refused before the run is opened
     store = open_run(args.run, mode="r+")
+    # the point model's diffraction blur and pinhole particle images are the rig's
+    settings = ipr_settings(**options, wavelength_nm=store.rig.laser.wavelength_nm,
+                            particle_image_px=store.rig.render.particle_image_px)
     with dask_client(args.workers, args.scheduler) as client:
         done = particles_run(store, settings, args.pairs, cameras=args.cameras, device=args.device,
                              progress=not args.quiet, skip_done=args.skip_done, option=pairs_option(args),

@@ -42,6 +42,14 @@ def subset_halving_option(text: str) -> int:
     return whole_number(text, 0, MAX_ITERATIONS)
 
 
+def stop_tolerance(text: str) -> float:
+    """``--stop-tolerance``: a fraction from 0 (a fixed count) to below 1."""
+    v = non_negative_float(text)
+    if v >= 1:
+        raise argparse.ArgumentTypeError(f"expected a fraction of the residual from 0 to below 1, got '{text}'")
+    return v
+
+
 def slabs_option(text: str) -> int | str:
     """``--slabs``: a whole number of depth slabs (1 or more) or ``auto``."""
     if text.strip().lower() == "auto":
@@ -53,6 +61,15 @@ def slabs_option(text: str) -> int | str:
     if n < 1:
         raise argparse.ArgumentTypeError(f"expected a whole number of slabs (1 or more) or auto, got '{text}'")
     return n
+
+
+def protocol_help(default: str) -> str:
+    """``--protocol``'s help, ``default`` the protocol without the option."""
+    return (f"a named set of settings (default: {default}), which the other options change: fast stops each frame "
+            "when its projections have converged (at most 400 iterations), iterates DRT-MART's first 20 on "
+            "line-of-sight weights, prunes the dark voxels and warm-starts frame B along a series; fixed runs 50 "
+            "iterations with pruning; chapter is the chapter's protocol (400 iterations of every active voxel from a "
+            "uniform start, as lfpiv study runs it)")
 
 
 #: ``--projector``'s help, the same for every command that reconstructs (reconstruct, monitor).
@@ -72,7 +89,7 @@ def add_projector(parser: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from lfpiv.jobs.reconstruct import SUBSET_HALVING
+    from lfpiv.jobs.reconstruct import DEFAULT_PROTOCOL, PROTOCOLS, STOP_TOLERANCE, STOP_VOXELS, SUBSET_HALVING
 
     r = sub.add_parser(
         "reconstruct", help="reconstruct 3D particle volumes from a run's light-field images",
@@ -86,8 +103,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("run", metavar="RUN", help="run store (a .zarr directory)")
     r.add_argument("--method", choices=("drt-mart", "mart", "mlos-mart", "mlos-smart"), default=None,
                    help="default: drt-mart for light-field cameras, mlos-smart for pinhole ones")
-    r.add_argument("--iterations", type=iterations, default=50, help="MART iterations (default: 50)")
-    r.add_argument("--relaxation", type=positive_float, default=1.0,
+    r.add_argument("--protocol", choices=tuple(PROTOCOLS), default=DEFAULT_PROTOCOL,
+                   help=protocol_help(DEFAULT_PROTOCOL))
+    r.add_argument("--iterations", type=iterations, default=None,
+                   help="a fixed count of MART iterations, every frame (default: the protocol's: 50 for fixed, 400 "
+                   "for chapter; fast stops each frame by the rule)")
+    r.add_argument("--max-iterations", type=iterations, default=None, metavar="N",
+                   help="with the stopping rule, the most iterations a frame runs (default: 400); turns the rule on "
+                   "where the protocol has none")
+    r.add_argument("--stop-tolerance", type=stop_tolerance, default=None, metavar="FRACTION",
+                   help="the stopping rule: every 10 iterations, stop once the projections' relative residual fell "
+                   f"by less than this fraction of itself and fewer than {STOP_VOXELS:g} of the voxels left (default: "
+                   f"the protocol's: {STOP_TOLERANCE:g} for fast; 0: a fixed count)")
+    r.add_argument("--relaxation", type=positive_float, default=None,
                    help="relaxation mu (default: 1; at most 2 for the simultaneous form; the chapter's "
                    "sequential MART used 2.5)")
     r.add_argument("--form", choices=("simultaneous", "sequential"), default="simultaneous",
@@ -103,29 +131,32 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="background level to subtract (default: estimated per image)")
     r.add_argument("--threshold-sigma", type=positive_float, default=2.0,
                    help="a pixel is lit above background + this many noise sigmas (default: 2)")
-    r.add_argument("--prune", type=non_negative_float, default=0.01, metavar="FRACTION",
+    r.add_argument("--prune", type=non_negative_float, default=None, metavar="FRACTION",
                    help="every --prune-every iterations the voxels dimmer than this fraction of the brightest leave "
                    "the reconstruction (MART keeps a dark voxel dark; the later iterations then touch only what may "
-                   "hold a particle; default: 0.01; 0: every voxel to the last iteration, the chapter's protocol)")
+                   "hold a particle; default: 0.01, 0 for the chapter's protocol; 0: every voxel to the last "
+                   "iteration)")
     r.add_argument("--prune-every", type=positive_int, default=10, metavar="N",
                    help="iterations between the prunings, and before the first (default: 10)")
-    r.add_argument("--warm-start", action="store_true",
+    r.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=None,
                    help="start frame B of each pair from frame A carried along the displacement the last pair "
                    "measured, instead of from a uniform volume, and iterate it --warm-iterations times (the first "
-                   "pair's B starts uniform; pairs are taken in order)")
+                   "pair's B starts uniform; pairs are taken in order; default: the fast protocol's, where the "
+                   "volumes are reconstructed in memory)")
     r.add_argument("--warm-iterations", type=positive_int, default=None, metavar="N",
                    help="iterations of a warm-started frame (default: a fifth of --iterations)")
-    r.add_argument("--los-iterations", type=los_iterations, default=0, metavar="N",
+    r.add_argument("--los-iterations", type=los_iterations, default=None, metavar="N",
                    help="drt-mart: the first N iterations on the MART baseline's line-of-sight weights (cheap to "
                    "build), then DRT weights only for the voxels still bright (those --prune keeps), the rest of "
-                   "--iterations on them (default: 0, DRT weights from the start)")
-    r.add_argument("--subsets", type=subsets_option, default=1, metavar="N",
+                   "--iterations on them (default: 20 for the fast protocol, 0 otherwise: DRT weights from the "
+                   "start)")
+    r.add_argument("--subsets", type=subsets_option, default=None, metavar="N",
                    help="ordered subsets (OS-SMART): each iteration updates the voxels from N interleaved subsets "
                    "of the pixels in turn, for about the work of one update from all of them, so its first passes go "
                    "about as far as N plain iterations each (4 subsets took 4x fewer --iterations on the rigs "
                    "measured); stored weights held whole, in "
                    "memory, the others run the plain form (default: 1, the plain simultaneous form)")
-    r.add_argument("--subset-halving", type=subset_halving_option, default=SUBSET_HALVING, metavar="PASSES",
+    r.add_argument("--subset-halving", type=subset_halving_option, default=None, metavar="PASSES",
                    help="with --subsets: every this many passes the subsets are joined in pairs, down to one (the "
                    "plain form), so that the last passes settle on one volume (default: "
                    f"{SUBSET_HALVING or '0, the same subsets in every pass'})")
@@ -162,7 +193,8 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.jobs.reconstruct import (
         BYTES_PER_BOX_VOXEL,
         default_method,
-        recon_settings,
+        iterations_summary,
+        protocol_run_settings,
         reconstruct_run,
         voxel_shape_notes,
     )
@@ -171,13 +203,14 @@ def run(args: argparse.Namespace) -> int:
     check_pvr(args.pvr)
     # the cameras' default method needs the run's rig (read only: a bad option leaves the store untouched)
     method = args.method or default_method(open_run(args.run).rig, args.cameras)
-    settings = recon_settings(method=method, iterations=args.iterations, relaxation=args.relaxation, form=args.form,
-                              sub_apertures=args.sub_apertures, background=args.background,
-                              threshold_sigma=args.threshold_sigma, smooth=args.smooth,
-                              weight_storage=args.weight_storage, projector=args.projector, prune=args.prune,
-                              prune_every=args.prune_every, warm_start=args.warm_start,
-                              warm_iterations=args.warm_iterations, los_iterations=args.los_iterations,
-                              subsets=args.subsets, subset_halving=args.subset_halving)
+    settings = protocol_run_settings(args.protocol, iterations=args.iterations, max_iterations=args.max_iterations,
+                                     stop_tolerance=args.stop_tolerance, method=method, relaxation=args.relaxation,
+                                     form=args.form, sub_apertures=args.sub_apertures, background=args.background,
+                                     threshold_sigma=args.threshold_sigma, smooth=args.smooth,
+                                     weight_storage=args.weight_storage, projector=args.projector, prune=args.prune,
+                                     prune_every=args.prune_every, warm_start=args.warm_start,
+                                     warm_iterations=args.warm_iterations, los_iterations=args.los_iterations,
+                                     subsets=args.subsets, subset_halving=args.subset_halving)
     args.method = method
     store = open_run(args.run, mode="r+")
     rig, calibration = None, None
@@ -197,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
                                   cameras=args.cameras, device=args.device, progress=not args.quiet, rig=rig,
                                   calibration=calibration, skip_done=args.skip_done, client=client,
                                   option=pairs_option(args), slabs=args.slabs, flats=flats,
-                                  flat_field=flat_info)
+                                  flat_field=flat_info, protocol=args.protocol)
     old_spelling_notes(args)
     if not results:
         print(f"every selected pair of {store.path} is already reconstructed with these settings; nothing to do")
@@ -218,10 +251,12 @@ def run(args: argparse.Namespace) -> int:
           f"{store.path}/volumes{workers_phrase(args)}; per volume: {act:.2%} of voxels active"
           f"{f' ({left:.0%} of them left after pruning)' if left < 1 else ''}, "
           f"{operator} built in {ws:.2f} s, {ms:.1f} ms per iteration")
+    print(f"protocol {args.protocol}: {iterations_summary(results, settings)}")
     warm = [r for r in results if r.warm]
     if warm:
-        print(f"{len(warm)} frame(s) B started from their frame A carried along the last pair's displacement: "
-              f"{warm[0].iterations} iterations each instead of {args.iterations}")
+        took = (f"at most {settings.warm_count} iterations each instead of {settings.iterations}" if settings.stopping
+                else f"{warm[0].iterations} iterations each instead of {settings.iterations}")
+        print(f"{len(warm)} frame(s) B started from their frame A carried along the last pair's displacement: {took}")
     elif args.warm_start:
         print("no frame was warm-started: the first pair a reconstructor makes starts uniform (its B has no "
               "predictor yet); reconstruct two pairs or more in one run")

@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import argparse
 
-from lfpiv.commands import add_pair_range, old_spelling_notes, pairs_option, positive_int, xyz_triple
+from lfpiv.commands import (
+    add_device,
+    add_pair_range,
+    add_workers,
+    old_spelling_notes,
+    pairs_option,
+    positive_int,
+    workers_phrase,
+    xyz_triple,
+)
 from lfpiv.errors import UsageError
 
 
@@ -23,14 +32,20 @@ def bins(text: str) -> tuple[int, int, int]:
 def register(sub: argparse._SubParsersAction) -> None:
     c = sub.add_parser("track", help="pair each pair's particles from frame A to B and bin them into vectors/",
                        description="Pair the particles of frame A (lfpiv particles) with frame B's, one-to-one and "
-                       "nearest first around a predictor (none in the first pass, the median of the tracks in each "
-                       "bin after it), reject outliers by the normalized median test over the nearest tracks, and "
-                       "write the mean displacement of each bin's tracks to vectors/, the layout correlate writes, "
-                       "so evaluate and export read it unchanged.")
+                       "nearest first around a predictor (in the first pass --predictor's, the median of the tracks "
+                       "in each bin after it), reject outliers by the normalized median test over the nearest "
+                       "tracks, and write a field made from the tracks (each bin's mean, or a smooth field) to "
+                       "vectors/, the layout correlate writes, so evaluate and export read it unchanged; the tracks "
+                       "are kept with it ('lfpiv export --format tracks-vtk' or tracks-csv writes them).")
     c.add_argument("run", metavar="RUN", help="run store with particles/")
     add_pair_range(c, "every pair with particles")
+    c.add_argument("--predictor", choices=("none", "volumes", "previous"), default="none",
+                   help="the first pass's predicted displacement: none (zero); volumes, a coarse correlation of the "
+                   "pair's volumes where 'lfpiv reconstruct' wrote them (a quick reconstruction will do); previous, "
+                   "the field of the pair tracked just before (time-resolved runs) (default: none)")
     c.add_argument("--search-voxels", type=xyz_triple, default=(4.0, 4.0, 2.0), metavar="X,Y,Z",
-                   help="the first pass's search radius: the largest displacement expected (default: 4,4,2)")
+                   help="the first pass's search radius around the predictor: the largest displacement expected, or "
+                   "with a predictor its largest error (default: 4,4,2)")
     c.add_argument("--refine-voxels", type=xyz_triple, default=(1.0, 1.0, 1.0), metavar="X,Y,Z",
                    help="the later passes' search radius around the predictor (default: 1,1,1)")
     c.add_argument("--passes", type=positive_int, default=2, help="pairing passes (default: 2)")
@@ -38,21 +53,28 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the field's bins in voxels (default: 16x16x8)")
     c.add_argument("--min-tracks", type=positive_int, default=2, metavar="N",
                    help="fewest tracks a bin needs for a vector (default: 2)")
+    c.add_argument("--field", choices=("smooth", "bins"), default="smooth",
+                   help="how the field is made from the tracks: smooth, their Gaussian-weighted average around each "
+                   "bin's centre; bins, the mean of each bin's tracks (default: smooth)")
+    c.add_argument("--smooth-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
+                   help="the smooth field's Gaussian sigma in voxels (default: half a bin)")
     c.add_argument("--csv", default=None, metavar="FILE",
                    help="also write every tracked pair's tracks to FILE: pair, frame A's x, y, z and frame B's (mm), "
                    "u, v, w (m/s), outlier")
-    c.add_argument("--skip-done", action="store_true",
-                   help="leave out the pairs tracked already with these settings")
+    add_device(c)
+    add_workers(c, "track the")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from lfpiv.batch import dask_client
     from lfpiv.jobs.track import track_run, track_settings, tracks_csv
     from lfpiv.runs import open_run
 
     settings = track_settings(search_voxels=args.search_voxels, refine_voxels=args.refine_voxels,
-                              passes=args.passes, bin_voxels=args.bin, min_tracks=args.min_tracks)
+                              passes=args.passes, bin_voxels=args.bin, min_tracks=args.min_tracks, field=args.field,
+                              smooth_voxels=args.smooth_voxels)
     store = open_run(args.run, mode="r+")
     if args.csv:
         from pathlib import Path
@@ -62,13 +84,18 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--csv {csv}: it exists; give a new file (outputs are never replaced silently)")
         if not csv.resolve().parent.is_dir():
             raise UsageError(f"--csv {csv}: no folder {csv.parent}; give a file in an existing folder")
-    done = track_run(store, settings, args.pairs, progress=not args.quiet, skip_done=args.skip_done,
-                     option=pairs_option(args))
+    if args.predictor == "previous" and (args.workers or args.scheduler):  # before any worker starts
+        raise UsageError("--predictor previous tracks the pairs in order, each from the one before: leave out "
+                         "--workers and --scheduler, or choose --predictor volumes")
+    with dask_client(args.workers, args.scheduler) as client:
+        done = track_run(store, settings, args.pairs, predictor=args.predictor, progress=not args.quiet,
+                         skip_done=args.skip_done, option=pairs_option(args), client=client, device=args.device)
     if done.pairs:
         nx, ny, nz = done.shape
         print(f"wrote {store.path}/vectors: {len(done.pairs)} pair(s) of {nx} x {ny} x {nz} bins (x, y, z) from "
               f"{done.tracks} tracks ({100.0 * done.outliers / max(done.tracks, 1):.1f}% outliers left out); "
-              f"{100.0 * done.vectors / max(done.bins, 1):.0f}% of the bins hold a vector")
+              f"{100.0 * done.vectors / max(done.bins, 1):.0f}% of the bins hold a vector; {args.field} field, "
+              f"predictor {args.predictor}; {done.seconds:.1f} s{workers_phrase(args)}")
     else:
         print(f"every selected pair of {store.path} is tracked already with these settings; nothing to do")
     if args.csv:

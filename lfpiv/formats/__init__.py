@@ -11,6 +11,7 @@ units (metres, m/s, 1/s):
 :mod:`lfpiv.formats.tecplot`           Tecplot ASCII (ordered zones, POINT packing)
 :mod:`lfpiv.formats.davis`             DaVis vector sets (``.set`` of ``.vc7``): DaVis
 :mod:`lfpiv.formats.matlab`            MATLAB ``.mat`` (v5) in ``meshgrid`` order
+:mod:`lfpiv.formats.tracks`            particle tracks: VTK PolyData lines, CSV
 =====================================  ==================================================
 
 The functions take arrays, paths and small dataclasses; none opens a run store. Every module

@@ -14,7 +14,12 @@ tecplot     ``vectors.dat`` (ASCII, one ordered zone     Tecplot, ParaView's Tec
             per pair)
 davis       ``vectors.set`` + ``vectors/B00001.vc7`` ... DaVis, lvpyio
 mat         ``vectors.mat`` (meshgrid order)             MATLAB, ``scipy.io.loadmat``
+tracks-vtk  ``tracks.pvd`` + ``tracks_pairNNNN.vtp``     ParaView, VTK (particle tracks as lines)
+tracks-csv  ``tracks.csv``                               spreadsheets, pandas, MATLAB
 ==========  ===========================================  ==============================================
+
+The ``tracks-*`` formats write the particle tracks ``lfpiv track`` kept with its vectors
+(:mod:`lfpiv.formats.tracks`); the others, the vector fields.
 
 Pairs that were not correlated are left out. Files of an earlier export are replaced only with
 ``overwrite``, each whole or not at all, and never through a symbolic link.
@@ -32,11 +37,14 @@ from lfpiv.errors import UsageError
 from lfpiv.formats import FormatError
 from lfpiv.formats.fields import Fields, fields_of
 
-__all__ = ["FORMATS", "Fields", "export_run", "fields_of"]
+__all__ = ["FORMATS", "TRACK_FORMATS", "Fields", "export_run", "fields_of"]
 
 #: Export formats (``lfpiv export --format``) and the names they write in the folder.
 FORMATS = {"netcdf": ("vectors.nc",), "vtk": ("vectors.pvd",), "tecplot": ("vectors.dat",),
-           "davis": ("vectors.set", "vectors"), "mat": ("vectors.mat",)}
+           "davis": ("vectors.set", "vectors"), "mat": ("vectors.mat",), "tracks-vtk": ("tracks.pvd",),
+           "tracks-csv": ("tracks.csv",)}
+#: The formats of the particle tracks rather than the vector fields.
+TRACK_FORMATS = ("tracks-vtk", "tracks-csv")
 
 
 def _targets(fmt: str, out: Path, pairs: list[int]) -> list[Path]:
@@ -46,6 +54,10 @@ def _targets(fmt: str, out: Path, pairs: list[int]) -> list[Path]:
     names = list(FORMATS[fmt])
     if fmt == "vtk":
         names += [vti_name(p) for p in pairs] + [f.name for f in out.glob("vectors_pair[0-9][0-9][0-9][0-9].vti")]
+    if fmt == "tracks-vtk":
+        from lfpiv.formats.tracks import vtp_name
+
+        names += [vtp_name(p) for p in pairs] + [f.name for f in out.glob("tracks_pair[0-9][0-9][0-9][0-9].vtp")]
     return sorted({out / n for n in names})
 
 
@@ -69,6 +81,21 @@ def _write(fmt: str, out: Path, fields: Fields, source: str) -> list[Path]:
     from lfpiv.formats.matlab import write_mat
 
     return [write_mat(out / "vectors.mat", fields)]
+
+
+def _write_tracks(store: RunStore, fmt: str, out: Path, pairs: list[int]) -> list[Path]:
+    from lfpiv.formats.tracks import write_tracks_csv, write_tracks_vtp_series
+    from lfpiv.jobs.track import tracks_table
+
+    table = tracks_table(store, pairs)  # a damaged table is an error (RunStoreError), named
+    try:
+        if fmt == "tracks-csv":
+            return [write_tracks_csv(out / "tracks.csv", table)]
+        return write_tracks_vtp_series(out, table, rate_hz=store.timing.get("rate_hz"), pairs=pairs)
+    except OSError as exc:
+        if exc.filename is None:
+            raise OSError(exc.errno, exc.strerror or str(exc), str(out)) from None
+        raise
 
 
 def export_run(store: RunStore, fmt: str, out: str | Path, *, overwrite: bool = False) -> list[Path]:
@@ -104,6 +131,9 @@ def export_run(store: RunStore, fmt: str, out: str | Path, *, overwrite: bool = 
     pairs = store.correlated_pairs()
     if not pairs:
         raise RunStoreError(f"{store.path} has vectors/ but no correlated pair; run 'lfpiv correlate {store.path}'")
+    if fmt in TRACK_FORMATS and vectors["attrs"].get("settings", {}).get("source") != "particle tracks":
+        raise UsageError(f"--format {fmt}: the vectors of {store.path} come from correlation and hold no particle "
+                         f"tracks; run 'lfpiv particles {store.path}' and 'lfpiv track {store.path}' first")
     out = Path(out)
     if out.is_symlink() and not out.exists():
         raise UsageError(f"--out {out} is a symbolic link to nothing ({os.readlink(out)}); give a directory")
@@ -120,6 +150,8 @@ def export_run(store: RunStore, fmt: str, out: str | Path, *, overwrite: bool = 
                          f"{f' and {len(earlier) - 1} more file(s)' if len(earlier) > 1 else ''} of an earlier "
                          "export; pass --overwrite to replace them, or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
+    if fmt in TRACK_FORMATS:
+        return _write_tracks(store, fmt, out, pairs)
     try:
         # every pair read from its chunks, checked: a damaged or missing one is an error, not zeros
         held = [store.read_vectors(p) for p in pairs]

@@ -62,6 +62,27 @@ def _warm(settings: dict) -> str:
     return f" (frames B warm-started: {n})"
 
 
+def _iterations(settings: dict) -> str:
+    """``"50 iterations"``, or ``"at most 400 iterations (stopping rule)"``."""
+    its, tol = settings.get("iterations"), settings.get("stop_tolerance") or 0
+    return f"at most {its} iterations (stopping rule)" if isinstance(tol, (int, float)) and tol > 0 else \
+        f"{its} iterations"
+
+
+def _convergence(figures: object, settings: dict) -> str:
+    """What the frames' iterations took (:func:`lfpiv.jobs.reconstruct.convergence_figures`), or ``""``
+    for volumes made before it was recorded (or a damaged record)."""
+    if not isinstance(figures, dict) or not figures.get("frames"):
+        return ""
+    from lfpiv.jobs.reconstruct import describe_convergence
+
+    tol, its = settings.get("stop_tolerance") or 0.0, settings.get("iterations")
+    try:
+        return describe_convergence(figures, float(tol), int(its) if isinstance(its, int) else 0)
+    except (TypeError, ValueError, IndexError):
+        return ""
+
+
 def _plan(recorded: object, operator: object) -> str:
     """``"auto on cpu, weight cache, in memory; ran traced weights"``: the plan the volumes were made
     by (:class:`lfcore.plan.Plan`) and the operators that ran; ``""`` for volumes made before plans
@@ -149,12 +170,16 @@ def describe(path: str | Path) -> list[str]:
         va = store.volume_attrs()
         g = store.volume_grid()
         lines.append(("volumes", f"{_count(store.reconstructed_pairs())} reconstructed by {va['method']}, "
-                                 f"{va['settings'].get('iterations')} iterations{_warm(va['settings'])}, "
+                                 f"{_iterations(va['settings'])}{_warm(va['settings'])}, "
                                  f"{' x '.join(str(n) for n in g.shape[::-1])} voxels, "
                                  f"{_projector(va['settings'].get('projector', 'auto'), va.get('operator'))}"))
         plan = _plan(va.get("plan"), va.get("operator"))
         if plan:
             lines.append(("plan", plan))
+        went = _convergence(va.get("convergence"), va["settings"])
+        protocol = va["settings"].get("protocol")
+        if went or protocol:
+            lines.append(("frames", (f"protocol {protocol}: " if protocol else "") + (went or "not recorded")))
     else:
         lines.append(("volumes", f"none (lfpiv reconstruct {store.path})"))
     if store.has_vectors:

@@ -1,6 +1,7 @@
 """The live monitor (``lfpiv monitor``): record in the background and watch the newest pair.
 
-:func:`run_monitor` builds the live pipeline (:mod:`realtime.pipeline`) and the recorder, and
+:func:`run_monitor` builds the live pipeline (:mod:`realtime.pipeline`) on one of its routes
+(:data:`LIVE_ROUTES`: volumes and correlation, or particles and tracks) and the recorder, and
 hands both to the monitor window's event loop (:func:`realtime.monitor.run_monitor_window`).
 
 :class:`LiveRecorder` implements the monitor's :class:`realtime.monitor.Controls`: each
@@ -40,9 +41,17 @@ from lfcore.runstore import RunStore
 from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError, os_error_line
 from lfpiv.jobs.acquire import record
-from realtime.pipeline import LIVE_METHODS, LivePipeline, LiveSettings, LiveStats, default_windows, monitoring_recon
+from realtime.pipeline import (
+    LIVE_METHODS,
+    LIVE_ROUTES,
+    LivePipeline,
+    LiveSettings,
+    LiveStats,
+    default_windows,
+    monitoring_recon,
+)
 
-__all__ = ["LIVE_METHODS", "LiveRecorder", "MonitorOutcome", "Recording", "check_display",
+__all__ = ["LIVE_METHODS", "LIVE_ROUTES", "LiveRecorder", "MonitorOutcome", "Recording", "check_display",
            "live_recon", "live_settings", "require_gui", "run_monitor"]
 
 
@@ -315,7 +324,7 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
                 out: str | Path | None = None, overwrite: bool = False, sim_options: dict[str, Any] | None = None,
                 ring_slots: int = 32, title: str = "lfpiv monitor", screenshot: str | Path | None = None,
                 after: int = 3, say: Callable[[str], None] = lambda text: None,
-                warm_start: bool = False, flats: dict[str, Any] | None = None) -> MonitorOutcome:
+                warm_start: bool = False, flats: dict[str, Any] | None = None, route: str = "voxels") -> MonitorOutcome:
     """Arm the rig, record every pair (to ``out``, or to a scratch store) and show the newest live.
 
     Parameters
@@ -356,6 +365,12 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
     flats
         Per camera, the flat field (:func:`lfpiv.jobs.calibrate.flat_fields`) the live path
         corrects every raw frame by; None: the raw frames.
+    route
+        ``"voxels"``: ``method`` and correlation; ``"particles"``: each frame's particles by
+        iterative particle reconstruction (``method``'s weights model them) and their tracks
+        binned on a grid, with the monitoring settings of
+        :func:`realtime.settings.monitoring_ipr` and :func:`realtime.settings.monitoring_tracking`
+        (:data:`LIVE_ROUTES`). What is recorded is the same either way.
 
     Raises
     ------
@@ -380,9 +395,11 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
             corr = CorrelationConfig(windows=default_windows(grid.shape, passes), overlap=0.5, deform_iterations=0)
         except CorrelationError as exc:
             raise UsageError(str(exc)) from None
-        pipe = LivePipeline(rig, settings=settings, recon=recon, correlation=corr, pvr=pvr, device=device, flats=flats)
-        say(f"building the reconstruction ({'x'.join(map(str, pipe.grid.shape[::-1]))} voxels) and correlation "
-            f"on {device} ...")
+        pipe = LivePipeline(rig, settings=settings, recon=recon, correlation=corr, pvr=pvr, device=device, flats=flats,
+                            route=route)
+        what = "the particle reconstruction" if route == "particles" else "the reconstruction"
+        then = "tracking" if route == "particles" else "correlation"
+        say(f"building {what} ({'x'.join(map(str, pipe.grid.shape[::-1]))} voxels) and {then} on {device} ...")
         try:
             pipe.build()
         except (MatrixFreeUnsupported, MemoryBudgetError, PlanError) as exc:

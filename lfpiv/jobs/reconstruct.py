@@ -24,7 +24,18 @@ from lfcore.plan import (
     unsupported_method,
 )
 from lfcore.plan import default_method as cameras_default_method
-from lfcore.reconstruct import MAX_SUB_APERTURES, FrameReconstructor, ReconResult, ReconSettings
+from lfcore.reconstruct import (
+    FIXED,
+    MAX_SUB_APERTURES,
+    PROTOCOLS,
+    STOP_REASONS,
+    STOP_TOLERANCE,
+    STOP_VOXELS,
+    FrameReconstructor,
+    ReconResult,
+    ReconSettings,
+    protocol_settings,
+)
 from lfcore.rig import Rig, is_pinhole, voxel_shape_warnings
 from lfcore.runstore import RunStore, RunStoreError
 from lfcore.slabs import SlabReconstructor
@@ -35,9 +46,12 @@ from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
 from lfpiv.pair_runner import recorded_pairs, run_pairs
 
-__all__ = ["BYTES_PER_BOX_VOXEL", "MAX_SUB_APERTURES", "MAX_SUBSETS", "OPERATOR_ATTR", "PINHOLE_METHODS", "PLAN_ATTR",
-           "PROJECTORS", "SUBSET_HALVING", "PairDone", "ReconJob", "ReconResult", "ReconSettings", "default_method",
-           "operator_figures", "recon_settings", "reconstruct_pair_task", "reconstruct_run", "voxel_shape_notes"]
+__all__ = ["BYTES_PER_BOX_VOXEL", "CONVERGENCE_ATTR", "DEFAULT_PROTOCOL", "MAX_SUB_APERTURES", "MAX_SUBSETS",
+           "OPERATOR_ATTR", "PINHOLE_METHODS", "PLAN_ATTR", "PROJECTORS", "PROTOCOLS", "STOP_TOLERANCE",
+           "STOP_VOXELS", "SUBSET_HALVING", "PairDone", "ReconJob", "ReconResult", "ReconSettings",
+           "convergence_figures", "default_method", "describe_convergence", "iterations_summary",
+           "operator_figures", "protocol_run_settings", "recon_settings", "reconstruct_pair_task",
+           "reconstruct_run", "voxel_shape_notes"]
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +60,10 @@ OPERATOR_ATTR = "operator"
 #: The attribute of ``volumes/`` that holds the plan the volumes were made by
 #: (:meth:`lfcore.plan.Plan.as_dict`: device, cameras, operator, cache, slabs and the reasons).
 PLAN_ATTR = "plan"
+#: The attribute of ``volumes/`` that holds how the frames' iterations went (see :func:`convergence_figures`).
+CONVERGENCE_ATTR = "convergence"
+#: The protocol (:data:`lfcore.reconstruct.PROTOCOLS`) of ``lfpiv reconstruct`` without ``--protocol``.
+DEFAULT_PROTOCOL = "fixed"
 
 
 def recon_settings(**options: Any) -> ReconSettings:
@@ -53,6 +71,38 @@ def recon_settings(**options: Any) -> ReconSettings:
     relaxation, form, ...), or a one-line :class:`UsageError` naming what is wrong."""
     try:
         return ReconSettings(**options)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def protocol_run_settings(protocol: str, *, iterations: int | None = None, max_iterations: int | None = None,
+                          stop_tolerance: float | None = None, **options: Any) -> ReconSettings:
+    """The settings of a named protocol (:func:`lfcore.reconstruct.protocol_settings`) changed by the
+    options given (those None are the protocol's), or a one-line :class:`UsageError`.
+
+    ``iterations`` is a fixed count (the stopping rule off); ``max_iterations`` the stopping rule's
+    most (the rule on, at ``stop_tolerance`` or the protocol's or :data:`STOP_TOLERANCE`);
+    ``stop_tolerance`` alone the rule's tolerance (0: the protocol's iterations, a fixed count).
+    """
+    if iterations is not None and max_iterations is not None:
+        raise UsageError("--iterations is a fixed count and --max-iterations the stopping rule's most; give one")
+    if iterations is not None and stop_tolerance:
+        raise UsageError("--iterations is a fixed count, without the stopping rule; drop --stop-tolerance, or give "
+                         "--max-iterations instead")
+    changes = {k: v for k, v in options.items() if v is not None}
+    base = PROTOCOLS.get(protocol, {})
+    if iterations is not None:
+        changes.update(iterations=iterations, stop_tolerance=0.0)
+    elif max_iterations is not None:
+        tol = stop_tolerance if stop_tolerance is not None else base.get("stop_tolerance") or STOP_TOLERANCE
+        if not tol:
+            raise UsageError("--max-iterations is the stopping rule's most, and --stop-tolerance 0 turns the rule off; "
+                             "give --iterations for a fixed count")
+        changes.update(iterations=max_iterations, stop_tolerance=tol)
+    elif stop_tolerance is not None:
+        changes["stop_tolerance"] = stop_tolerance
+    try:
+        return protocol_settings(protocol, **changes)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
 
@@ -92,6 +142,8 @@ class ReconJob:
     slabs: int | str | None = None
     #: per camera, the flat field its raw frames are corrected by (:func:`lfcore.flatfield.correct`)
     flats: dict[str, FlatField] | None = None
+    #: whether the settings' warm start is the protocol's (left out in depth slabs) rather than the user's
+    warm_optional: bool = False
 
 
 def _plan(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None,
@@ -108,17 +160,19 @@ def _plan(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device
 
 
 def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None,
-              slabs: int | str | None = None) -> tuple[Plan, FrameReconstructor | SlabReconstructor]:
+              slabs: int | str | None = None, warm_optional: bool = False
+              ) -> tuple[Plan, FrameReconstructor | SlabReconstructor]:
     """The plan of a run's frames and its reconstructor (its projector, weight cache and device
     buffers, built once per stream), on a device with room for the box, or for one depth slab of it
     at a time (``slabs``: a number of slabs, or ``"auto"``: as many as the memory needs, 1 if the box
-    fits)."""
+    fits). ``warm_optional``: a warm start the protocol asked for (not the user) is left out in depth
+    slabs rather than refused."""
     plan = _plan(cams, grid, settings, device, slabs)
     try:
         frames = build_reconstructor(plan, cams, grid, settings)
     except PlanError as exc:
         raise UsageError(str(exc)) from None
-    if settings.warm_start and frames.in_slabs:
+    if settings.warm_start and frames.in_slabs and not warm_optional:
         raise UsageError(f"--warm-start carries whole volumes from frame to frame, and this box is reconstructed in "
                          f"{plan.slabs} depth slabs; drop --warm-start (or --slabs)")
     if settings.subsets > 1 and frames.in_slabs:
@@ -203,6 +257,62 @@ def operator_figures(results: Sequence[ReconResult], before: dict[str, Any] | No
             "ms_per_iteration": round(ms, 3), "frames": n}
 
 
+def convergence_figures(results: Sequence[ReconResult], before: dict[str, Any] | None = None) -> dict[str, Any]:
+    """How the frames' iterations went over a set of volumes: the ``volumes/`` attribute
+    :data:`CONVERGENCE_ATTR`, the figures of ``before`` (the attribute as it was, or None) with those
+    of ``results`` added.
+
+    Returns
+    -------
+    dict
+        ``frames``: how many frames the figures are of; ``iterations`` and ``voxels``: the least,
+        most and total over the frames of the iterations that ran and of the voxels left in the
+        operator at the end (after the pruning); ``stopped``: per reason
+        (:data:`lfcore.reconstruct.STOP_REASONS`), the frames that stopped for it.
+    """
+    before = before or {}
+
+    def spread(key: str, values: list[int]) -> list[int]:
+        old = before.get(key)
+        lo, hi, total = (int(old[0]), int(old[1]), int(old[2])) if isinstance(old, list) and len(old) == 3 else (
+            None, None, 0)
+        return [min([v for v in (lo, *values) if v is not None], default=0),
+                max([v for v in (hi, *values) if v is not None], default=0), total + sum(values)]
+
+    stopped = {str(k): int(v) for k, v in (before.get("stopped") or {}).items()}
+    for r in results:
+        stopped[r.stopped] = stopped.get(r.stopped, 0) + 1
+    return {"frames": int(before.get("frames", 0)) + len(results),
+            "iterations": spread("iterations", [int(r.iterations) for r in results]),
+            "voxels": spread("voxels", [int(r.final_voxels) for r in results]),
+            "stopped": {k: stopped[k] for k in sorted(stopped, key=lambda k: (k not in STOP_REASONS, k))}}
+
+
+def iterations_summary(results: Sequence[ReconResult], settings: ReconSettings) -> str:
+    """The summary line's words on the frames' iterations: ``"150-200 iterations a frame (mean 172; at
+    most 400 by the stopping rule: converged 4), 2,085-4,457 voxels left of 26,256 active"``."""
+    return describe_convergence(convergence_figures(results), settings.stop_tolerance, settings.iterations,
+                                active=max((r.active_voxels for r in results), default=0))
+
+
+def describe_convergence(figures: dict[str, Any], stop_tolerance: float, most: int, *, active: int = 0) -> str:
+    """Words for :func:`convergence_figures`' ``figures`` of frames made with ``stop_tolerance`` and at most
+    ``most`` iterations (``lfpiv info`` and the summary line)."""
+    n = int(figures.get("frames", 0))
+    its, vox = figures.get("iterations") or [0, 0, 0], figures.get("voxels") or [0, 0, 0]
+    if not n:
+        return "no frame"
+    span = f"{its[0]}" if its[0] == its[1] else f"{its[0]}-{its[1]}"
+    mean = f"mean {its[2] / n:.0f}; " if its[0] != its[1] else ""
+    stopped = figures.get("stopped") or {}
+    why = ", ".join(f"{k} {v}" for k, v in stopped.items())
+    rule = (f"at most {most} by the stopping rule (tolerance {stop_tolerance:g})" if stop_tolerance > 0 else
+            FIXED)
+    left = f"{vox[0]:,}" if vox[0] == vox[1] else f"{vox[0]:,}-{vox[1]:,}"
+    of = f" of {active:,} active" if active else ""
+    return f"{span} iterations a frame ({mean}{rule}; stopped: {why}), {left} voxels left a frame{of}"
+
+
 def operators_ran(results: Sequence[ReconResult], before: dict[str, Any] | None = None) -> list[str]:
     """The operator kinds (:data:`lfcore.operator.ALL_KINDS`) over the frames of a set of volumes:
     those of ``before`` (the ``operators`` entry of the attribute, or None) and of ``results``."""
@@ -218,7 +328,8 @@ def _record(store: RunStore, written: list[tuple[int, int]], results: Sequence[R
     def attrs(now: Any) -> dict[str, Any]:
         figures = operator_figures(results, now.get(OPERATOR_ATTR))
         figures["operators"] = operators_ran(results, now.get(OPERATOR_ATTR))
-        return {OPERATOR_ATTR: figures, **({} if plan is None else {PLAN_ATTR: plan.as_dict()})}
+        return {OPERATOR_ATTR: figures, CONVERGENCE_ATTR: convergence_figures(results, now.get(CONVERGENCE_ATTR)),
+                **({} if plan is None else {PLAN_ATTR: plan.as_dict()})}
 
     store.record_volumes(written, attrs=attrs)
 
@@ -251,7 +362,8 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> PairDone:
         # the volumes array opened once: its group's attributes are rewritten by the coordinator
         # as pairs finish, and re-reading them for every write could meet a half-replaced file
         # on a network file system
-        plan, frames = _operator(cams, job.grid, job.settings, this_worker_device(job.device), job.slabs)
+        plan, frames = _operator(cams, job.grid, job.settings, this_worker_device(job.device), job.slabs,
+                                 job.warm_optional)
         # a worker's pairs come in order: each warm-starts from the last one it made
         return store, store.writing("volumes")["data"], (plan, frames), Series.of(frames, job.settings)
 
@@ -309,8 +421,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                     progress: bool = True, rig: Rig | None = None,
                     calibration: dict[str, Any] | None = None, skip_done: bool = False,
                     client: Any = None, option: str = "--pair-range", slabs: int | str | None = None,
-                    flats: dict[str, FlatField] | None = None, flat_field: dict[str, Any] | None = None
-                    ) -> list[ReconResult]:
+                    flats: dict[str, FlatField] | None = None, flat_field: dict[str, Any] | None = None,
+                    protocol: str | None = None, warm_optional: bool | None = None) -> list[ReconResult]:
     """Reconstruct both frames of the selected pairs and store them in ``volumes/``.
 
     Existing volumes with the same grid, cameras, settings and calibration are kept and added
@@ -332,6 +444,12 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     the calibration's dark and white images before it is reconstructed, its masked pixels left out
     of the operator; ``flat_field`` says which calibration that is and is kept in the ``volumes/``
     settings. None: the raw frames as they are (one background level per camera).
+
+    ``protocol`` names the protocol the settings are of (:data:`lfcore.reconstruct.PROTOCOLS`), kept
+    in the ``volumes/`` settings (None: settings given as they are). ``warm_optional``: the settings'
+    warm start is the protocol's, left out where the volumes are reconstructed in depth slabs
+    (None: where ``protocol`` warm-starts and ``--warm-start`` was not asked for, so never without a
+    protocol).
 
     ``slabs`` reconstructs each volume in depth slabs (:mod:`lfcore.slabs`; the same volume, with
     no buffer of the whole box): a number of slabs, or ``"auto"``, in memory where the box fits and
@@ -373,11 +491,17 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     except ValueError as exc:
         raise UsageError(f"--pvr/--margin-mm: {exc}") from None
     # the cluster's workers hold the device; this process may have none (a login node)
-    plan, frames = _operator(cams, grid, settings, device, slabs) if client is None else (None, None)
+    if warm_optional is None:
+        warm_optional = bool(protocol and PROTOCOLS.get(protocol, {}).get("warm_start"))
+    plan, frames = (_operator(cams, grid, settings, device, slabs, warm_optional) if client is None
+                    else (None, None))
+    if frames is not None and frames.in_slabs and settings.warm_start:
+        settings = replace(settings, warm_start=False)  # the protocol's, left out: whole volumes only
     # where the weights lived does not change a volume, so it does not make volumes/ a different set
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
-            "cameras": names, "calibration": calibration, "flat_field": flat_field if flats else None}
+            "cameras": names, "calibration": calibration, "flat_field": flat_field if flats else None,
+            "protocol": protocol}
     if not flats and any(not is_pinhole(c) for c in cams):
         log.info("the raw frames are not flat-field corrected (no dark or white images given: one background "
                  "level per camera, the lenses' and micro-images' vignetting and any dust left in)")
@@ -387,7 +511,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
             old = _recorded(store.volume_attrs(group=g)["settings"]) if "data" in g else {}
         except RunStoreError:  # for a note: the attributes of an unfinished replacement, damaged
             return ["attributes"]
-        changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k)]
+        changed = [k for k in sorted(set(old) | set(meta)) if old.get(k) != meta.get(k) and k not in NAMES_ONLY]
         return (["voxel grid"] if "data" in g and store.grid_of(g) != grid else []) + changed
 
     results: list[ReconResult] = []
@@ -401,7 +525,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
 
         return reconstruct_pair_task, ReconJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names),
                                                grid=grid, settings=settings, device=device, token=new_token(),
-                                               writer=store.writer_token, into=into, slabs=slabs, flats=flats)
+                                               writer=store.writer_token, into=into, slabs=slabs, flats=flats,
+                                               warm_optional=warm_optional)
 
     run_pairs(store, "volumes", chosen, matches=lambda g: _made_with(store, g, grid, meta), differences=differences,
               create=lambda: store.create_volumes(grid, method=settings.method, settings=meta), skip_done=skip_done,
@@ -446,10 +571,12 @@ def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, plan: Plan
 
 def _shown(pair: int, res: Sequence[ReconResult]) -> dict[str, str]:
     """What the progress bar shows of the last frame of ``res`` (pair ``pair``): its active
-    voxels, projector, operator memory and milliseconds per iteration."""
+    voxels, projector, operator memory, milliseconds per iteration, the iterations it ran, the
+    voxels left at the end and why it stopped."""
     last = res[-1]
     return {"pair": str(pair), "active": f"{last.active_fraction:.2%}", "projector": last.projector,
-            "mem": f"{last.weight_bytes / 2**20:.1f}MiB", "ms_it": f"{last.ms_per_iteration:.1f}"}
+            "mem": f"{last.weight_bytes / 2**20:.1f}MiB", "ms_it": f"{last.ms_per_iteration:.1f}",
+            "its": str(last.iterations), "left": f"{last.final_voxels:,}", "stop": last.stopped}
 
 
 def _write_frame(store: RunStore, pair: int, frame: int, res: ReconResult, plan: Plan) -> None:
@@ -464,7 +591,17 @@ def _made_with(store: RunStore, group: Any, grid: VolumeGrid, meta: dict[str, An
     """True when ``group`` (volumes or their pending replacement, None if absent) holds volumes
     on ``grid`` made with the settings ``meta``."""
     return (group is not None and "data" in group and store.grid_of(group) == grid
-            and _recorded(store.volume_attrs(group=group)["settings"]) == meta)
+            and _matching(_recorded(store.volume_attrs(group=group)["settings"])) == _matching(meta))
+
+
+#: Recorded settings that name the others rather than change the volumes: volumes made by the same
+#: settings under another protocol's name (or none, before protocols were recorded) are added to.
+NAMES_ONLY = ("protocol",)
+
+
+def _matching(settings: dict[str, Any]) -> dict[str, Any]:
+    """The recorded settings that make volumes a different set (all but :data:`NAMES_ONLY`)."""
+    return {k: v for k, v in settings.items() if k not in NAMES_ONLY}
 
 
 def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
@@ -472,7 +609,9 @@ def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
     (volumes made before ``projector`` was recorded were made by ``auto``'s stored weights, those
     before ``prune`` with every voxel to the last iteration, those before ``warm_start`` from a uniform
     start, those before ``los_iterations`` on DRT weights from the first iteration, those before
-    ``flat_field`` from uncorrected frames, those before ``subsets`` by the plain simultaneous form)."""
+    ``flat_field`` from uncorrected frames, those before ``subsets`` by the plain simultaneous form,
+    those before ``stop_tolerance`` with a fixed count, and those before ``protocol`` by settings given
+    one by one)."""
     return {"projector": "auto", "prune": 0.0, "prune_every": 10, "warm_start": False, "warm_iterations": None,
-            "los_iterations": 0, "flat_field": None, "subsets": 1,
-            "subset_halving": SUBSET_HALVING, **settings}
+            "los_iterations": 0, "flat_field": None, "subsets": 1, "subset_halving": SUBSET_HALVING,
+            "stop_tolerance": 0.0, "stop_voxels": STOP_VOXELS, "stop_every": 10, "protocol": None, **settings}

@@ -1,34 +1,56 @@
 """Tracking a run's particles into ``vectors/`` (``lfpiv track``): each pair's frame A particles
-paired with frame B's (:mod:`lfcore.track`), binned on a grid in the layout ``correlate`` writes."""
+paired with frame B's (:mod:`lfcore.track`) around a predictor, and a field made from the tracks on
+a grid in the layout ``correlate`` writes.
+
+Predictors (``--predictor``) of the first pairing pass:
+
+none
+    Zero: the first pass searches as far as the largest displacement expected.
+volumes
+    A coarse correlation (:func:`lfcore.warm.predictor_field`) of the pair's two volumes where
+    ``lfpiv reconstruct`` wrote them (a quick reconstruction will do: ``--iterations 5``).
+previous
+    The field of the pair tracked just before it in this command (a time-resolved series, where
+    the flow changes little from pair to pair); the first pair, and a pair whose previous pair is
+    not tracked in the same command, have none.
+"""
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from lfcore.runstore import RunStore
-from lfcore.track import TrackSettings, track_pair
+from lfcore.runstore import RunStore, RunStoreError
+from lfcore.track import MAX_CROWDING, TrackResult, TrackSettings, field_predictor, search_crowding, track_pair
 from lfcore.volume import VolumeGrid
+from lfcore.warm import Predictor
 from lfpiv.errors import UsageError
 from lfpiv.pair_runner import particle_pairs, run_pairs
 
-__all__ = ["TrackSettings", "TracksDone", "track_run", "track_settings", "tracks_csv"]
+__all__ = ["PREDICTORS", "PairTracks", "TrackJob", "TrackSettings", "TracksDone", "track_pair_task", "track_run",
+           "track_settings", "tracks_csv"]
+
+#: The first pass's predictors (``lfpiv track --predictor``; see the module docstring).
+PREDICTORS = ("none", "volumes", "previous")
 
 
 def track_settings(**options: Any) -> TrackSettings:
     """:class:`lfcore.track.TrackSettings` of the given options, or a one-line :class:`UsageError`."""
     try:
         return TrackSettings(**options)
-    except ValueError as exc:
+    except (TypeError, ValueError) as exc:
         raise UsageError(str(exc)) from None
 
 
 @dataclass
 class TracksDone:
-    """What :func:`track_run` did: the pairs tracked now, their tracks, outliers and vectors."""
+    """What :func:`track_run` did: the pairs tracked now, their tracks, outliers and vectors, the
+    predictor and the wall time."""
 
     pairs: list[int] = field(default_factory=list)
     tracks: int = 0
@@ -36,6 +58,99 @@ class TracksDone:
     vectors: int = 0
     bins: int = 0
     shape: tuple[int, int, int] = (0, 0, 0)
+    predictor: str = "none"
+    seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class TrackJob:
+    """What a Dask worker needs to track a run's pairs (:mod:`lfpiv.batch`): picklable, small."""
+
+    path: str
+    grid: VolumeGrid
+    settings: TrackSettings
+    predictor: str
+    device: str | None
+
+
+@dataclass(frozen=True)
+class PairTracks:
+    """A pair's tracks and field: (m, 7) track rows (A's x, y, z, B's x, y, z in mm, outlier) and the
+    (z, y, x, 3) field in mm, with its figures (the coordinator writes them)."""
+
+    rows: np.ndarray
+    field_mm: np.ndarray
+    outliers: int
+    seconds: float
+
+
+def _on_grid(pred: Predictor, source: VolumeGrid, grid: VolumeGrid) -> Predictor:
+    """A predictor in voxels of ``source`` (the volumes' grid) as one in voxels of ``grid`` (the particles')."""
+    sv, gv = np.asarray(source.voxel_mm), np.asarray(grid.voxel_mm)
+    origin = (np.asarray(source.origin_mm) + np.asarray(pred.origin) * sv - np.asarray(grid.origin_mm)) / gv
+    return Predictor(pred.displacement * (sv / gv).astype(np.float32), tuple(origin),  # type: ignore[arg-type]
+                     tuple(np.asarray(pred.step) * sv / gv))  # type: ignore[arg-type]
+
+
+def _volumes_predictor(store: RunStore, pair: int, grid: VolumeGrid, device: str | None) -> Predictor | None:
+    from lfcore.warm import predictor_field
+
+    pred = predictor_field(store.read_volume(pair, 0), store.read_volume(pair, 1), device=device)
+    return None if pred is None else _on_grid(pred, store.volume_grid(), grid)
+
+
+def _track(store: RunStore, pair: int, grid: VolumeGrid, settings: TrackSettings, predictor: Predictor | None
+           ) -> tuple[PairTracks, TrackResult]:
+    a_all, b_all = store.read_particles(pair, 0)[:, :3], store.read_particles(pair, 1)[:, :3]
+    t0 = time.perf_counter()
+    res = track_pair(a_all, b_all, grid, settings=settings, predictor=predictor)
+    rows = np.column_stack([a_all[res.a_index], b_all[res.b_index], res.outlier.astype(np.float64)])
+    return PairTracks(rows=rows, field_mm=res.field_mm, outliers=int(res.outlier.sum()),
+                      seconds=time.perf_counter() - t0), res
+
+
+def track_pair_task(job: TrackJob, pair: int) -> PairTracks:
+    """Worker task: the tracks and field of ``pair``, returned to the coordinator, which writes them
+    (the tracks are one table that one process appends to)."""
+    from lfpiv.batch import this_worker_device
+
+    store = RunStore.open(job.path)  # it reads particles (and volumes) only
+    pred = (_volumes_predictor(store, pair, job.grid, this_worker_device(job.device))
+            if job.predictor == "volumes" else None)
+    return _track(store, pair, job.grid, job.settings, pred)[0]
+
+
+def _check_volumes(store: RunStore, chosen: list[int]) -> None:
+    """A one-line error, before anything is written, where ``--predictor volumes`` lacks volumes."""
+    fix = (f"run 'lfpiv reconstruct {store.path}' first (a quick one will do: --iterations 5), or track with "
+           "--predictor none or previous")
+    try:
+        if not store.has_volumes:
+            raise UsageError(f"--predictor volumes: {store.path} has no reconstructed volumes; {fix}")
+        store.volume_grid()
+    except RunStoreError as exc:
+        raise UsageError(f"--predictor volumes: {exc}") from None
+    have = set(store.reconstructed_pairs())
+    missing = [p for p in chosen if p not in have]
+    if missing:
+        raise UsageError(f"--predictor volumes: pair {missing[0]} has no reconstructed volumes ({len(missing)} of the "
+                         f"{len(chosen)} selected pair(s) lack them); {fix}")
+
+
+def _check_density(store: RunStore, chosen: list[int], grid: VolumeGrid, settings: TrackSettings) -> None:
+    """A one-line error, before anything is written, where a frame holds too many particles to pair
+    one to one within the first pass's search (:func:`lfcore.track.search_crowding`)."""
+    for p in chosen:
+        for f in (0, 1):
+            n = len(store.read_particles(p, f))
+            crowd = search_crowding(n, grid, settings.search_voxels)
+            if crowd > MAX_CROWDING:
+                raise UsageError(
+                    f"pair {p} frame {'AB'[f]} holds {n} particles, about {crowd:.0f} in every first-pass search "
+                    f"({','.join(f'{v:g}' for v in settings.search_voxels)} voxels): too many to pair one to one "
+                    f"(at most {MAX_CROWDING:g}); give a smaller --search-voxels (with --predictor volumes or previous "
+                    f"for the displacement), or reconstruct fewer particles (lfpiv particles --threshold, "
+                    f"--min-intensity)")
 
 
 def _create(store: RunStore, x_mm: np.ndarray, y_mm: np.ndarray, z_mm: np.ndarray, dt_s: float,
@@ -44,9 +159,9 @@ def _create(store: RunStore, x_mm: np.ndarray, y_mm: np.ndarray, z_mm: np.ndarra
     store.create_tracks()
 
 
-def tracks_csv(store: RunStore, path: str, pairs: list[int] | None = None) -> int:
-    """Write the stored tracks of ``pairs`` (None: every tracked pair) to a CSV file: pair, frame A's
-    x, y, z and frame B's (mm), u, v, w (m/s) and outlier (1 rejected, 0 kept); returns the rows."""
+def tracks_table(store: RunStore, pairs: list[int] | None = None) -> np.ndarray:
+    """The stored tracks of ``pairs`` (None: every tracked pair) as (m, 11) rows: pair, frame A's
+    x, y, z and frame B's (mm), u, v, w (m/s) and outlier (1 rejected, 0 kept)."""
     dt_s = float(store.timing["dt_s"])
     chosen = store.correlated_pairs() if pairs is None else pairs
     rows = []
@@ -54,38 +169,74 @@ def tracks_csv(store: RunStore, path: str, pairs: list[int] | None = None) -> in
         t = store.read_tracks(p)
         vel = (t[:, 3:6] - t[:, 0:3]) * 1e-3 / dt_s
         rows.append(np.column_stack([np.full(len(t), p), t[:, :6], vel, t[:, 6]]))
-    table = np.concatenate(rows) if rows else np.zeros((0, 11))
-    header = "pair,x_a_mm,y_a_mm,z_a_mm,x_b_mm,y_b_mm,z_b_mm,u_m_s,v_m_s,w_m_s,outlier"
-    np.savetxt(path, table, delimiter=",", header=header, comments="",
-               fmt=["%d", *["%.6f"] * 6, *["%.6g"] * 3, "%d"])
+    return np.concatenate(rows) if rows else np.zeros((0, 11))
+
+
+def tracks_csv(store: RunStore, path: str | Path, pairs: list[int] | None = None) -> int:
+    """Write the stored tracks of ``pairs`` (None: every tracked pair) to a CSV file: pair, frame A's
+    x, y, z and frame B's (mm), u, v, w (m/s) and outlier (1 rejected, 0 kept); returns the rows."""
+    from lfpiv.formats.tracks import write_tracks_csv
+
+    table = tracks_table(store, pairs)
+    write_tracks_csv(path, table)
     return len(table)
 
 
-def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = None, *, progress: bool = True,
-              skip_done: bool = False, option: str = "--pair-range") -> TracksDone:
+def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = None, *, predictor: str = "none",
+              progress: bool = True, skip_done: bool = False, option: str = "--pair-range", client: Any = None,
+              device: str | None = None) -> TracksDone:
     """Track the particles of ``pairs`` (None: every pair with particles) into ``vectors/``.
 
-    The field is the mean displacement of the tracks in each bin over the pair's time, in m/s,
-    on the grid of the bins' centres; bins with too few tracks are NaN. Vectors of other settings
-    (or of ``correlate``) are replaced once the new ones are complete.
+    The field (``settings.field``: each bin's mean, or a smooth field at the bins' centres) is in
+    m/s over the pair's time, on the grid of the bins' centres; bins with too few tracks are NaN.
+    Vectors of other settings (or of ``correlate``) are replaced once the new ones are complete.
+
+    Parameters
+    ----------
+    store
+        The run, open for writing, with ``particles/``.
+    settings
+        Searches, passes, bins, the outlier test and the field.
+    pairs
+        The pairs (None: every pair with particles).
+    predictor
+        The first pass's predictor, one of :data:`PREDICTORS` (see the module docstring).
+    progress, skip_done, option
+        A progress bar; leave out the pairs done with these settings; the pair range's name in messages.
+    client
+        A Dask client (:func:`lfpiv.batch.dask_client`): the pairs are tracked on its workers and
+        written here as they come back; None: in this process.
+    device
+        The Warp device of the volumes predictor's correlation.
 
     Raises
     ------
     UsageError
-        A run without particles, or none of the selected pairs with particles.
+        A run without particles, none of the selected pairs with particles, ``--predictor volumes``
+        on a run (or pair) without volumes, ``--predictor previous`` on workers, or frames too
+        crowded to pair; each before anything is written.
     """
+    if predictor not in PREDICTORS:
+        raise UsageError(f"--predictor must be one of {', '.join(PREDICTORS)}, got '{predictor}'")
     attrs, chosen = particle_pairs(store, pairs, option=option)
     grid = VolumeGrid.from_rig(store.rig)
     if (not np.allclose(grid.origin_mm, attrs["origin_mm"]) or not np.allclose(grid.voxel_mm, attrs["voxel_mm"])):
         raise UsageError(f"{store.path}: particles/ was made on another grid than the run's rig gives; run "
                          f"'lfpiv particles {store.path}' again")
+    if predictor == "previous" and client is not None:
+        raise UsageError("--predictor previous tracks the pairs in order, each from the one before: leave out "
+                         "--workers and --scheduler, or choose --predictor volumes")
+    if predictor == "volumes":
+        _check_volumes(store, chosen)
+    _check_density(store, chosen, grid, settings)
     dt_s = float(store.timing["dt_s"])
     # the bins' grid, from a pair's result on no particles
     empty = track_pair(np.zeros((0, 3)), np.zeros((0, 3)), grid, settings=settings)
     x_mm, y_mm, z_mm = empty.x_mm, empty.y_mm, empty.z_mm
     windows = [[int(v) for v in settings.bin_voxels]]
-    meta = {"source": "particle tracks", **settings.as_dict(), "particles": attrs.get("settings", {})}
-    out = TracksDone(shape=(len(x_mm), len(y_mm), len(z_mm)))
+    meta = {"source": "particle tracks", **settings.as_dict(), "predictor": predictor,
+            "particles": attrs.get("settings", {})}
+    out = TracksDone(shape=(len(x_mm), len(y_mm), len(z_mm)), predictor=predictor)
 
     def matches(g: Any) -> bool:
         return (g is not None and g.attrs.get("settings") == meta and g.attrs.get("windows") == windows
@@ -95,25 +246,41 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
         old = dict(g.attrs.get("settings", {})) if g is not None else {}
         return [k for k in meta if old.get(k) != meta[k]] or ["source"]
 
+    def written(p: int, r: PairTracks) -> None:
+        store.write_tracks(p, r.rows)
+        vel = r.field_mm * 1e-3 / dt_s  # mm over dt to m/s
+        flags = np.zeros(vel.shape[:3], np.uint8)
+        store.write_vectors(p, vel, flags, np.full(vel.shape[:3], np.nan, np.float32))  # records the pair
+        out.pairs.append(p)
+        out.tracks += len(r.rows)
+        out.outliers += r.outliers
+        out.vectors += int(np.isfinite(r.field_mm[..., 0]).sum())
+        out.bins += int(np.prod(r.field_mm.shape[:3]))
+        out.seconds += r.seconds
+
     def here(todo: list[int]) -> None:
+        last: tuple[int, TrackResult] | None = None
         with tqdm(total=len(todo), unit="pair", disable=not progress, desc="tracking", leave=False) as bar:
             for p in todo:
-                a_all, b_all = store.read_particles(p, 0)[:, :3], store.read_particles(p, 1)[:, :3]
-                res = track_pair(a_all, b_all, grid, settings=settings)
-                vel = res.field_mm * 1e-3 / dt_s  # mm over dt to m/s
-                flags = np.zeros(vel.shape[:3], np.uint8)
-                store.write_tracks(p, np.column_stack([a_all[res.a_index], b_all[res.b_index],
-                                                       res.outlier.astype(np.float64)]))
-                store.write_vectors(p, vel, flags, np.full(vel.shape[:3], np.nan, np.float32))  # records the pair
-                out.pairs.append(p)
-                out.tracks += len(res.a_index)
-                out.outliers += int(res.outlier.sum())
-                out.vectors += int(np.isfinite(res.field_mm[..., 0]).sum())
-                out.bins += res.counts.size
+                t0 = time.perf_counter()
+                pred = None
+                if predictor == "volumes":
+                    pred = _volumes_predictor(store, p, grid, device)
+                elif predictor == "previous" and last is not None and last[0] == p - 1:
+                    pred = field_predictor(last[1], grid)
+                made, res = _track(store, p, grid, settings, pred)
+                last = (p, res)
+                written(p, PairTracks(rows=made.rows, field_mm=made.field_mm, outliers=made.outliers,
+                                      seconds=time.perf_counter() - t0))
                 bar.update(1)
+
+    def remote(into: str) -> tuple[Any, TrackJob]:
+        return track_pair_task, TrackJob(path=str(Path(store.path).resolve()), grid=grid, settings=settings,
+                                         predictor=predictor, device=device)
 
     run_pairs(store, "vectors", chosen, matches=matches, differences=differences,
               create=lambda: _create(store, x_mm, y_mm, z_mm, dt_s, windows, meta),
-              skip_done=skip_done, here=here, remote=None, client=None, on_done=lambda p, r: None, desc="tracking",
-              progress=progress)
+              skip_done=skip_done, here=here, remote=remote, client=client, on_done=written, desc="tracking",
+              progress=progress, postfix=lambda p, r: {"pair": p, "tracks": len(r.rows)},
+              kept=lambda: f"the vectors of {len(out.pairs)} pair(s) written before are kept" if out.pairs else "")
     return out

@@ -107,6 +107,18 @@ def test_demo_runs_the_whole_instrument_on_the_simulated_lab(capsys, tmp_path):
     assert (out / "field" / "vectors.nc").stat().st_size > 1000
     assert (out / "calib.zarr").is_dir()
     assert "$ lfpiv acquire" in err and "Q" in stdout and "done in" in stdout
+    # the particle route on a copy of the same recording, and both routes side by side
+    assert "$ lfpiv particles" in err and "$ lfpiv track" in err
+    particles = RunStore.open(out / "particles.zarr")
+    assert particles.has_particles and particles.has_vectors and not particles.has_volumes
+    assert particles.committed_pairs == run.committed_pairs and particles.truth() is not None
+    table = stdout[stdout.index("The two routes on the same recording"):]
+    rows = {line.split("  ")[0]: line for line in table.splitlines()[2:4]}
+    assert set(rows) == {"DRT-MART + correlation", "particles (IPR) + tracking"}, table
+    for line in rows.values():
+        assert re.search(r"  1  +\d+\.\d  +\d+\.\d  +\d+\.\d%  +[\d.]+, [\d.]+, [\d.]+  +\d+/\d+$", line), line
+    png = out / "routes.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
 
 
 def test_demo_never_replaces_a_users_run(capsys, tmp_path):

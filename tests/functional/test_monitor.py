@@ -280,3 +280,31 @@ def test_monitor_checks_panel_shows_each_cameras_checks(rig_file: Path, tmp_path
         assert set(win.panel_rects()) == {"raw:cam0", "raw:cam1", "mip:z", "mip:y", "slice", "vectors"}
     finally:
         win.close()
+
+
+def test_monitor_on_the_particle_route_shows_particles_and_tracks(main, rig_file: Path, tmp_path: Path,
+                                                                   capsys) -> None:
+    out, shot = tmp_path / "run.zarr", tmp_path / "shot.png"
+    pairs = 6
+    rc = main(["monitor", "--rig", str(rig_file), "--route", "particles", "--pairs", str(pairs), "--out", str(out),
+               "--screenshot", str(shot), "--after", "1", "--device", "cpu", "--sim-rays", "300", "--sim-pool", "2",
+               "--pvr", "4,4,20", "--quiet"])
+    stdout, stderr = capsys.readouterr()
+    assert rc == 0, stderr
+    # the recording is the voxel route's: complete, every triggered frame recorded or dropped
+    store = RunStore.open(out)
+    assert store.state == "complete" and store.committed_pairs == pairs
+    recorded = sum(int(np.count_nonzero(store.frame_ids(c) >= 0)) for c in store.cameras)
+    assert recorded + len(store.drops()) == pairs * 2 * 2
+    m = re.search(r"particles \(IPR with drt-mart's weights\) and tracks, last pair (\d+)/(\d+) particles \(A/B\) "
+                  r"and (\d+) tracks on cpu, 41x34x15 voxels at PVR 4,4,20", stdout)
+    assert m, stdout
+    assert int(m.group(1)) > 0 and int(m.group(3)) > 0
+    assert "projector" not in stdout.split("live:")[1]
+    assert f"screenshot: {shot}" in stdout and _png(shot).max() > 0
+
+
+def test_monitor_with_an_unknown_route_is_one_line(main, rig_file: Path, capsys) -> None:
+    assert main(["monitor", "--rig", str(rig_file), "--route", "volume"]) == 2
+    err = capsys.readouterr().err
+    assert "argument --route: invalid choice: 'volume'" in err and "'particles'" in err and len(err.splitlines()) == 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import signal
@@ -425,3 +426,43 @@ def test_ordered_subsets_from_the_command(capsys, synthetic_run, tmp_path):
     assert _recorded({"method": "drt-mart"})["subsets"] == 1
     rc, out, err = _run(capsys, "reconstruct", str(run), "--subsets", "4", "--subset-halving", "-1", "--quiet")
     assert rc == 2 and out == "" and err.count("\n") == 1 and "--subset-halving" in err, err
+
+
+def test_protocols_and_the_stopping_rule_from_the_command(capsys, synthetic_run, tmp_path):
+    """--protocol fast stops each frame by the rule (at most --max-iterations), and the summary line,
+    the settings, the volumes' convergence record and lfpiv info say which protocol ran, how many
+    iterations and voxels the frames took and why they stopped; --iterations keeps its meaning (a fixed
+    count, exactly that many); contradicting options are one line."""
+    run = tmp_path / "run.zarr"
+    shutil.copytree(synthetic_run, run)
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--protocol", "fast", "--max-iterations", "60",
+                        "--pair-range", "0:1", "--quiet")
+    assert rc == 0, err
+    assert re.search(r"protocol fast: [\d-]+ iterations a frame \(.*at most 60 by the stopping rule", out), out
+    attrs = RunStore.open(run).group["volumes"].attrs
+    assert attrs["settings"]["protocol"] == "fast" and attrs["settings"]["stop_tolerance"] > 0
+    assert attrs["settings"]["iterations"] == 60 and attrs["settings"]["los_iterations"] == 20
+    went = attrs["convergence"]
+    assert went["frames"] == 2 and sum(went["stopped"].values()) == 2
+    assert set(went["stopped"]) <= {"converged", "max iterations"} and 20 < went["iterations"][1] <= 60
+    rc, out, err = _run(capsys, "info", str(run))
+    assert rc == 0 and "at most 60 iterations (stopping rule)" in out and "protocol fast: " in out, out + err
+    # --iterations is a fixed count, whatever the protocol
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--protocol", "fast", "--iterations", "25",
+                        "--pair-range", "0:1", "--quiet")
+    assert rc == 0 and "25 iterations a frame (fixed count; stopped: fixed count 2)" in out, out + err
+    went = RunStore.open(run).group["volumes"].attrs["convergence"]
+    assert went["iterations"] == [25, 25, 50] and went["stopped"] == {"fixed count": 2}
+    # volumes recorded before the protocols were (no protocol in their settings) match the same settings
+    f = run / "volumes" / "zarr.json"
+    meta = json.loads(f.read_text())
+    del meta["attributes"]["settings"]["protocol"]
+    f.write_text(json.dumps(meta))
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--protocol", "fast", "--iterations", "25",
+                        "--pair-range", "0:1", "--skip-done", "--quiet")
+    assert rc == 0 and "nothing to do" in out, out + err
+    for argv, expected in ((["--iterations", "20", "--max-iterations", "40"], "give one"),
+                           (["--iterations", "20", "--stop-tolerance", "0.01"], "drop --stop-tolerance"),
+                           (["--protocol", "slow"], "invalid choice: 'slow'")):
+        rc, out, err = _run(capsys, "reconstruct", str(run), *argv, "--quiet")
+        assert rc == 2 and out == "" and err.count("\n") == 1 and expected in err, err

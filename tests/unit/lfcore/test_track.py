@@ -77,3 +77,88 @@ def test_bins_cover_the_grid_and_count_tracks():
 def test_settings_refuse_nonsense():
     with pytest.raises(ValueError, match="three positive"):
         TrackSettings(bin_voxels=(16, 16))
+
+
+def _rotate(p, omega):
+    """Points turned by ``omega`` rad about the z axis through the origin."""
+    return np.column_stack([p[:, 0] * np.cos(omega) - p[:, 1] * np.sin(omega),
+                            p[:, 0] * np.sin(omega) + p[:, 1] * np.cos(omega), p[:, 2]])
+
+
+def test_a_known_rotation_gives_its_field_by_bins_and_smooth():
+    from lfcore.track import smooth_tracks
+
+    a = _points(1500, 4)
+    omega = 0.006  # up to 2.2 voxels at the corners
+    b = _rotate(a, omega)
+    for field in ("bins", "smooth"):
+        res = track_pair(a, b, GRID, settings=TrackSettings(bin_voxels=(16, 16, 5), field=field))
+        zz, yy, xx = np.meshgrid(res.z_mm, res.y_mm, res.x_mm, indexing="ij")
+        centres = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+        true = (_rotate(centres, omega) - centres).reshape(res.field_mm.shape)
+        good = np.isfinite(res.field_mm[..., 0])
+        assert good.mean() > 0.9
+        # a rotation is linear in position: the bins' means and the Gaussian's average of tracks spread
+        # at random about each centre differ from its value there by the sampling's imbalance only
+        err = np.abs(res.field_mm[good] - true[good]) / np.asarray(GRID.voxel_mm)
+        assert np.sqrt(np.mean(err[:, :2] ** 2)) < 0.15, field
+        assert np.all(err[:, 2] < 1e-9)
+    # the smooth field of exact tracks of a uniform flow is that flow wherever it has a value
+    pos = _points(200, 5)
+    f, counts = smooth_tracks(pos, np.tile([0.01, -0.02, 0.03], (200, 1)), [res.x_mm, res.y_mm, res.z_mm],
+                              sigma_mm=np.array([0.08, 0.08, 0.1]), min_tracks=2)
+    assert np.allclose(f[counts >= 2], [0.01, -0.02, 0.03]) and np.isnan(f[counts < 2]).all()
+
+
+def test_a_predictor_pairs_a_displacement_beyond_the_search():
+    from lfcore.warm import Predictor
+
+    a = _points(300, 6)
+    shift_vox = np.array([7.0, -6.0, 0.0])
+    b = a + shift_vox * np.asarray(GRID.voxel_mm)
+    s = TrackSettings(search_voxels=(2.0, 2.0, 1.0))
+    blind = track_pair(a, b, GRID, settings=s)
+    assert len(blind.a_index) < 0.2 * len(a)  # 9 voxels away: out of reach without a predictor
+    # a predictor a voxel off still brings every particle within the search
+    res = track_pair(a, b, GRID, settings=s, predictor=Predictor.uniform((6.2, -5.3, 0.0)))
+    kept = ~res.outlier
+    assert kept.sum() >= 0.95 * len(a)
+    assert np.allclose(res.displacement_mm[kept], shift_vox * np.asarray(GRID.voxel_mm), atol=1e-9)
+
+
+def test_a_field_as_predictor_gives_it_back_between_its_points():
+    from lfcore.track import field_predictor, predict_at
+
+    a = _points(1500, 7)
+    b = _rotate(a, 0.006)
+    res = track_pair(a, b, GRID, settings=TrackSettings(bin_voxels=(16, 16, 5)))
+    pred = field_predictor(res, GRID)
+    assert pred is not None and np.allclose(pred.step, (16.0, 16.0, 5.0))
+    zz, yy, xx = np.meshgrid(res.z_mm, res.y_mm, res.x_mm, indexing="ij")
+    centres = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+    good = np.isfinite(res.field_mm.reshape(-1, 3)[:, 0])
+    # at its own points the predictor is the field
+    assert np.allclose(predict_at(pred, GRID, centres[good]), res.field_mm.reshape(-1, 3)[good], atol=1e-7)
+    # between them, trilinear: within the rotation's own error of the truth (linear in position)
+    mid = 0.5 * (centres[:-1] + centres[1:])[good[:-1] & good[1:]]
+    err = (predict_at(pred, GRID, mid) - (_rotate(mid, 0.006) - mid)) / np.asarray(GRID.voxel_mm)
+    assert np.sqrt(np.mean(err[:, :2] ** 2)) < 0.2
+
+
+def test_crowding_counts_the_particles_in_a_search():
+    from lfcore.track import MAX_CROWDING, search_crowding
+
+    voxels = float(np.prod(GRID.shape))
+    # one particle per search ellipsoid's volume
+    n = voxels / (4.0 / 3.0 * np.pi * 4 * 4 * 2)
+    assert search_crowding(round(n), GRID, (4.0, 4.0, 2.0)) == pytest.approx(1.0, rel=1e-3)
+    assert search_crowding(0, GRID, (4.0, 4.0, 2.0)) == 0.0
+    assert MAX_CROWDING > 1
+
+
+def test_settings_refuse_an_unknown_field():
+    with pytest.raises(ValueError, match="bins, smooth"):
+        TrackSettings(field="splines")
+    with pytest.raises(ValueError, match="three positive"):
+        TrackSettings(smooth_voxels=(1.0, 0.0, 1.0))
+    assert TrackSettings().sigma_voxels == (8.0, 8.0, 4.0)

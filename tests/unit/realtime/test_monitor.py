@@ -84,3 +84,26 @@ def test_window_draws_results_and_controls_act(tiny_rig, tmp_path) -> None:
     ctl.armed = True
     win.close()  # closing an armed monitor disarms
     assert ctl.calls[-1] == "disarm"
+
+
+def test_window_on_the_particle_route_draws_particles_and_says_what_it_found(tiny_rig) -> None:
+    pg, _, _, _ = require_qt()
+    app = pg.mkQApp()
+    pipe = LivePipeline(tiny_rig, _ring(1), device="cpu", route="particles")
+    win = MonitorWindow(pipe, FakeControls())
+    win.show()
+    # the MART settings are the voxel route's: shown, not changeable
+    assert not win.iter_spin.isEnabled() and not win.relax_spin.isEnabled()
+    with pipe:
+        end = time.monotonic() + 120
+        while win.displayed < 1 and time.monotonic() < end:
+            app.processEvents()
+            time.sleep(0.01)
+    assert win.displayed == 1
+    r = win.last_result
+    assert r.route == "particles" and r.particles is not None and r.tracks is not None
+    assert win.plots["slice"].titleLabel.text.startswith("particles A: slice z")
+    win.refresh_status()
+    text = win.status.text()
+    assert f"particles A/B {r.particles[0]}/{r.particles[1]}, tracks {r.tracks}" in text and "projector" not in text
+    win.close()
