@@ -55,6 +55,16 @@ from lfcore.operator import (
     gather,
     log_ratio,
 )
+from lfcore.subsets import (
+    MAX_SUBSETS,
+    SUBSET_HALVING,
+    SubsetOperator,
+    groups_in_pass,
+    ordered_pass,
+    pixel_subsets,
+    split,
+    split_bytes,
+)
 from lfcore.warm import WARM_BLEND, with_floor
 
 if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to import
@@ -197,6 +207,17 @@ class ReconSettings:
         los_iterations`` start from their intensities. The DRT weights, the costliest part of a
         frame, are then built for the share of the active voxels that may hold a particle (a third
         on the Mc case). 0: DRT weights from the start. DRT-MART's simultaneous form, in memory.
+    subsets
+        Ordered subsets (OS-SMART, :mod:`lfcore.subsets`): each iteration updates the voxels from
+        one of this many interleaved subsets of the pixels at a time, for about the work of one
+        update from all of them. 1: the plain simultaneous form. Stored weights held whole, in
+        memory (templates applied on the fly, weights partly made on the fly and depth slabs keep
+        the plain form). The simultaneous form only.
+    subset_halving
+        Passes after which the subsets are joined in pairs, halving them, down to one (the plain
+        form): many subsets go far in the first passes, and fewer of them then settle on one volume
+        instead of cycling between the subsets' (:func:`lfcore.subsets.groups_in_pass`). 0: the same
+        ``subsets`` in every pass.
     stop_tolerance
         The stopping rule (:class:`StoppingRule`): every ``stop_every`` iterations the projections'
         relative residual (:func:`relative_residual`) is measured, and the frame stops once it fell
@@ -229,6 +250,8 @@ class ReconSettings:
     warm_start: bool = False
     warm_iterations: int | None = None
     los_iterations: int = 0
+    subsets: int = 1
+    subset_halving: int = SUBSET_HALVING
     stop_tolerance: float = 0.0
     stop_voxels: float = STOP_VOXELS
     stop_every: int = 10
@@ -282,6 +305,12 @@ class ReconSettings:
         if self.los_iterations and self.los_iterations >= self.iterations:
             raise ValueError(f"los_iterations ({self.los_iterations}) must be fewer than the iterations "
                              f"({self.iterations}): DRT's weights take over after them")
+        if not 1 <= self.subsets <= MAX_SUBSETS:
+            raise ValueError(f"subsets must be from 1 (none) to {MAX_SUBSETS}, got {self.subsets}")
+        if self.subset_halving < 0:
+            raise ValueError(f"subset_halving must be 0 (never) or more passes, got {self.subset_halving}")
+        if self.subsets > 1 and self.form != "simultaneous":
+            raise ValueError("ordered subsets (subsets) are for the simultaneous form; use form 'simultaneous'")
         if not 0.0 <= self.stop_tolerance < 1.0:
             raise ValueError(f"stop_tolerance must be from 0 (a fixed count) to below 1 (a fraction of the residual), "
                              f"got {self.stop_tolerance}")
@@ -830,6 +859,7 @@ class FrameReconstructor:
         self._e = None  # the intensities, at least as long as the most active voxels so far
         self._volume = None  # (z, y, x) float32
         self._los_source = None  # line-of-sight weights for settings.los_iterations (made on first use)
+        self._subset_of = None  # (n_pixels,) int32: each pixel's subset, for settings.subsets (made on first use)
 
     # --- one frame from host images --------------------------------------------------------------
     def reconstruct(self, images: Sequence[np.ndarray], *, progress: Callable[[int], None] | None = None,
@@ -899,7 +929,11 @@ class FrameReconstructor:
             del bright
             weights_s += time.perf_counter() - t
             its -= settings.los_iterations
-        done = self.iterate(op, self._image, noises, progress=progress, iterations=its, start=start)
+        nnz, n_fly, applied, last_kind = op.nnz, op.n_on_the_fly, applied_by(op), op.kind
+        op_bytes = self.operator_bytes(op)
+        ops = [op]
+        del op  # iterate may split it into ordered subsets (settings.subsets): the unsplit rows may then go
+        done = self.iterate(ops.pop(), self._image, noises, progress=progress, iterations=its, start=start)
         del start
         if warm is not None:
             warm.keep(done.op, done.e)
@@ -908,12 +942,12 @@ class FrameReconstructor:
         if self.device == "cpu":
             volume = volume.copy()
         return ReconResult(volume=volume, active_voxels=active, active_fraction=active / p.grid.n_voxels,
-                           nnz=op.nnz, weight_bytes=max(nbytes, self.operator_bytes(op)),
+                           nnz=nnz, weight_bytes=max(nbytes, op_bytes),
                            weights_s=weights_s + done.start_s, iterate_s=iterate_s + done.iterate_s,
                            iterations=done.iterations + (settings.los_iterations if los_first else 0),
                            stopped=done.stopped, background=backgrounds,
-                           noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=op.n_on_the_fly,
-                           projector=applied_by(op), operator=f"{kind}, then {op.kind}" if los_first else kind,
+                           noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=n_fly,
+                           projector=applied, operator=f"{kind}, then {last_kind}" if los_first else kind,
                            final_voxels=done.op.n_voxels, warm=warmed)
 
     # --- the stages ------------------------------------------------------------------------------
@@ -1065,6 +1099,8 @@ class FrameReconstructor:
             e.fill_(scale)
         else:
             wp.launch(_mart_kernels().scale_shift, dim=n, inputs=[e, scale, 0.0], device=self.device)
+        if s.subsets > 1 and s.form == "simultaneous":  # OS-SMART: the rows split by pixel subset, once
+            op = self._ordered_subsets(op)
         wp.synchronize_device(self.device)
         t1 = time.perf_counter()
         floor = max(s.floor * s.threshold_sigma * float(np.mean(noise)), 1e-6)
@@ -1077,13 +1113,16 @@ class FrameReconstructor:
         ran, stopped = its, (CAPPED if rule.on else FIXED)
         for it in range(1, its + 1):
             measure = rule.due(it - 1)  # the stopping rule: on the projection of what it - 1 iterations left
-            if transposed is None or measure:
+            if (transposed is None and not isinstance(op, SubsetOperator)) or measure:
                 op.forward(e, out=proj)  # the simultaneous update's projection serves the rule as well
             if measure and rule.converged(it - 1, relative_residual(image, proj), op.n_voxels):
                 ran, stopped = it - 1, CONVERGED
                 break
             if transposed is not None:
                 op.sweep(transposed, image, e, mu, floor)
+            elif isinstance(op, SubsetOperator):  # one pass through the subsets
+                ordered_pass(op, image, e, proj, self._ratio, floor, mu,
+                             groups=groups_in_pass(op.n_subsets, s.subset_halving, it))
             else:
                 op.update(log_ratio(image, proj, floor, self._ratio), e, mu)
             if prune > 0 and it % s.prune_every == 0 and it < its:  # the dark voxels leave
@@ -1094,6 +1133,18 @@ class FrameReconstructor:
             progress(its - ran)  # the iterations the rule left out, for a bar sized for the most
         wp.synchronize_device(self.device)
         return Iterated(e, t1 - t0, time.perf_counter() - t1, op, ran, stopped)
+
+    def _ordered_subsets(self, op: Operator) -> Operator:
+        """``op`` split by ``settings.subsets`` pixel subsets (:func:`lfcore.subsets.split`), or
+        ``op`` itself where it is not stored weights held whole, or where the split rows do not fit
+        beside it in the memory budget (the plain form then runs)."""
+        if split_bytes(op, self.settings.subsets) + int(op.nbytes) > self._weight_budget(op.n_voxels):
+            return op
+        if self._subset_of is None:
+            p = self.projector
+            host = pixel_subsets(p.pixel_offsets, p.cameras, self.settings.subsets)
+            self._subset_of = self.wp.array(host, dtype=self.wp.int32, device=self.device)
+        return split(op, self._subset_of, self.settings.subsets) or op
 
     def volume(self, op: Operator, e, *, out=None) -> object:
         """The dense (z, y, x) volume of intensities ``e`` of the weights' voxels, smoothed by

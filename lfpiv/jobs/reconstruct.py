@@ -39,18 +39,19 @@ from lfcore.reconstruct import (
 from lfcore.rig import Rig, is_pinhole, voxel_shape_warnings
 from lfcore.runstore import RunStore, RunStoreError
 from lfcore.slabs import SlabReconstructor
+from lfcore.subsets import MAX_SUBSETS, SUBSET_HALVING
 from lfcore.volume import VolumeGrid
 from lfcore.warm import Predictor, WarmStart, predictor_field
 from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
 from lfpiv.pair_runner import recorded_pairs, run_pairs
 
-__all__ = ["BYTES_PER_BOX_VOXEL", "CONVERGENCE_ATTR", "DEFAULT_PROTOCOL", "MAX_SUB_APERTURES", "OPERATOR_ATTR",
-           "PINHOLE_METHODS", "PLAN_ATTR", "PROJECTORS", "PROTOCOLS", "STOP_TOLERANCE", "STOP_VOXELS", "PairDone",
-           "ReconJob", "ReconResult", "ReconSettings", "convergence_figures", "default_method", "describe_convergence",
-           "iterations_summary",
-           "operator_figures", "protocol_run_settings", "recon_settings", "reconstruct_pair_task", "reconstruct_run",
-           "voxel_shape_notes"]
+__all__ = ["BYTES_PER_BOX_VOXEL", "CONVERGENCE_ATTR", "DEFAULT_PROTOCOL", "MAX_SUB_APERTURES", "MAX_SUBSETS",
+           "OPERATOR_ATTR", "PINHOLE_METHODS", "PLAN_ATTR", "PROJECTORS", "PROTOCOLS", "STOP_TOLERANCE",
+           "STOP_VOXELS", "SUBSET_HALVING", "PairDone", "ReconJob", "ReconResult", "ReconSettings",
+           "convergence_figures", "default_method", "describe_convergence", "iterations_summary",
+           "operator_figures", "protocol_run_settings", "recon_settings", "reconstruct_pair_task",
+           "reconstruct_run", "voxel_shape_notes"]
 
 log = logging.getLogger(__name__)
 
@@ -174,6 +175,10 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, de
     if settings.warm_start and frames.in_slabs and not warm_optional:
         raise UsageError(f"--warm-start carries whole volumes from frame to frame, and this box is reconstructed in "
                          f"{plan.slabs} depth slabs; drop --warm-start (or --slabs)")
+    if settings.subsets > 1 and frames.in_slabs:
+        raise UsageError(f"--subsets {settings.subsets} splits the weights of the whole box, and this box is "
+                         f"reconstructed in {plan.slabs} depth slabs, which run the plain form; drop --subsets (or "
+                         "--slabs)")
     return plan, frames
 
 
@@ -604,8 +609,9 @@ def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
     (volumes made before ``projector`` was recorded were made by ``auto``'s stored weights, those
     before ``prune`` with every voxel to the last iteration, those before ``warm_start`` from a uniform
     start, those before ``los_iterations`` on DRT weights from the first iteration, those before
-    ``flat_field`` from uncorrected frames, those before ``stop_tolerance`` with a fixed count, and
-    those before ``protocol`` by settings given one by one)."""
+    ``flat_field`` from uncorrected frames, those before ``subsets`` by the plain simultaneous form,
+    those before ``stop_tolerance`` with a fixed count, and those before ``protocol`` by settings given
+    one by one)."""
     return {"projector": "auto", "prune": 0.0, "prune_every": 10, "warm_start": False, "warm_iterations": None,
-            "los_iterations": 0, "flat_field": None, "stop_tolerance": 0.0, "stop_voxels": STOP_VOXELS,
-            "stop_every": 10, "protocol": None, **settings}
+            "los_iterations": 0, "flat_field": None, "subsets": 1, "subset_halving": SUBSET_HALVING,
+            "stop_tolerance": 0.0, "stop_voxels": STOP_VOXELS, "stop_every": 10, "protocol": None, **settings}

@@ -402,6 +402,32 @@ def test_line_of_sight_first_from_the_command(capsys, synthetic_run, tmp_path):
     assert rc == 2 and out == "" and err.count("\n") == 1 and "fewer than the iterations" in err, err
 
 
+def test_ordered_subsets_from_the_command(capsys, synthetic_run, tmp_path):
+    """--subsets: OS-SMART, recorded with the volumes; volumes made before it are taken as the plain form's;
+    a bad count or the sequential form is one line."""
+    run = tmp_path / "run.zarr"
+    shutil.copytree(synthetic_run, run)
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "10", "--subsets", "4", "--subset-halving",
+                        "5", "--pair-range", "0:1", "--quiet")
+    assert rc == 0, err
+    recorded = RunStore.open(run).group["volumes"].attrs["settings"]
+    assert recorded["subsets"] == 4 and recorded["subset_halving"] == 5
+    assert RunStore.open(run).read_volume(0, 1).max() > 0
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--subsets", "0", "--quiet")
+    assert rc == 2 and out == "" and err.count("\n") == 1 and "--subsets" in err, err
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--subsets", "4", "--form", "sequential", "--relaxation",
+                        "2.5", "--quiet")
+    assert rc == 2 and out == "" and err.count("\n") == 1 and "simultaneous" in err, err
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--subsets", "4", "--slabs", "2", "--quiet")
+    assert rc == 2 and out == "" and err.count("\n") == 1 and "--subsets" in err and "slabs" in err, err
+    # the store's recorded settings without the key (volumes made before it) read as one subset
+    from lfpiv.jobs.reconstruct import _recorded
+
+    assert _recorded({"method": "drt-mart"})["subsets"] == 1
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--subsets", "4", "--subset-halving", "-1", "--quiet")
+    assert rc == 2 and out == "" and err.count("\n") == 1 and "--subset-halving" in err, err
+
+
 def test_protocols_and_the_stopping_rule_from_the_command(capsys, synthetic_run, tmp_path):
     """--protocol fast stops each frame by the rule (at most --max-iterations), and the summary line,
     the settings, the volumes' convergence record and lfpiv info say which protocol ran, how many
