@@ -146,7 +146,8 @@ class IprSettings:
         within 3 voxels of it (``benchmarks/RESULTS.md`` has the trade of recall for ghosts).
     wavelength_nm
         The laser's wavelength, for the point model's diffraction blur in light-field cameras
-        (0: none). :class:`ParticleReconstructor` takes it from the rig where it is given one.
+        (0: none). ``lfpiv particles`` and ``lfpiv.particles`` take it, and ``particle_image_px``,
+        from the run's rig.
     """
 
     method: str | None = None
@@ -725,9 +726,9 @@ class ParticleReconstructor:
                               rounds=rounds, rms_residual=rms, seconds=seconds)
 
     def _model(self, u: np.ndarray, previous: _Model | _PointModel | None) -> _Model | _PointModel:
-        """The particles' forward model: the point model (one for all rounds) where
-        :attr:`IprSettings.model` asks for it and every camera is a light-field one, else the blend
-        of the voxels' operator rows around ``u``."""
+        """The particles' forward model: the point model (one for all rounds: light-field cameras'
+        traced points, pinhole cameras' Gaussian spots) where :attr:`IprSettings.model` asks for it,
+        else the blend of the voxels' operator rows around ``u``."""
         if self.point_model:
             if previous is None:
                 s = self.settings

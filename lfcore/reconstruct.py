@@ -33,6 +33,7 @@ is inherently serial, so it suits small problems on the CPU.
 from __future__ import annotations
 
 import importlib
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -75,7 +76,7 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
 __all__ = ["CAPPED", "CONVERGED", "FIXED", "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE", "PRUNE_PERCENTILE",
            "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WEIGHTS", "FrameReconstructor", "Iterated", "ReconResult",
            "ReconSettings", "StoppingRule", "WARM_SHARE", "estimate_background", "preprocess", "preprocess_images",
-           "protocol_settings", "prune_dark", "reconstruct", "relative_residual", "warm_count"]
+           "protocol_settings", "prune_dark", "reconstruct", "relative_residual", "stop_interval", "warm_count"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: The weights each method iterates on (the ``method`` of :meth:`lfcore.operator.Projector.operator`
@@ -722,6 +723,14 @@ class StoppingRule:
         return fell < self.tolerance and left < self.voxels
 
 
+def stop_interval(settings: ReconSettings, *, prune: bool) -> int:
+    """Iterations between the stopping rule's measurements: ``settings.stop_every``, or with pruning
+    on the least common multiple of it and ``settings.prune_every``, so that every measurement
+    window holds a pruning and the voxels leaving are seen (a window without one would pass the
+    rule's voxel test whatever the ghosts do)."""
+    return math.lcm(settings.stop_every, settings.prune_every) if prune else settings.stop_every
+
+
 def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[list[Operator], list]:
     """The operators and intensities without their dark voxels: those dimmer than ``fraction`` of
     the brightest of all (the :data:`PRUNE_PERCENTILE` percentile of every operator's intensities
@@ -1109,7 +1118,7 @@ class FrameReconstructor:
             self._ratio = wp.empty(p.n_pixels, dtype=float, device=self.device)
         prune = s.prune if transposed is None else 0.0
         tolerance = s.stop_tolerance if stop_tolerance is None else float(stop_tolerance)
-        rule = StoppingRule(tolerance, voxels=s.stop_voxels, every=s.stop_every)
+        rule = StoppingRule(tolerance, voxels=s.stop_voxels, every=stop_interval(s, prune=prune > 0))
         ran, stopped = its, (CAPPED if rule.on else FIXED)
         for it in range(1, its + 1):
             measure = rule.due(it - 1)  # the stopping rule: on the projection of what it - 1 iterations left

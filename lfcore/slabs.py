@@ -56,6 +56,7 @@ from lfcore.reconstruct import (
     preprocess_images,
     prune_dark,
     relative_residual,
+    stop_interval,
 )
 from lfcore.volume import VolumeGrid
 
@@ -288,7 +289,7 @@ class SlabReconstructor:
 
         t1 = time.perf_counter()
         start_s = iterate_s = 0.0
-        rule = StoppingRule(s.stop_tolerance, voxels=s.stop_voxels, every=s.stop_every)
+        rule = StoppingRule(s.stop_tolerance, voxels=s.stop_voxels, every=stop_interval(s, prune=s.prune > 0))
         ran, stopped = (0, NO_VOXELS) if n_total == 0 else (s.iterations, CAPPED if rule.on else FIXED)
         if n_total == 0:
             for e in es:

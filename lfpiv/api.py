@@ -231,6 +231,9 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
     from lfpiv.jobs.particles import ipr_settings, particles_run
 
     store = open_run(run, mode="r+")
+    # as the command: the point model's diffraction blur and spot size are the rig's unless given
+    options = {"wavelength_nm": store.rig.laser.wavelength_nm,
+               "particle_image_px": store.rig.render.particle_image_px, **options}
     settings = ipr_settings(**options)
     with dask_client(workers, scheduler) as client:
         return particles_run(store, settings, _pairs(pairs), cameras=cameras, device=device, progress=progress,

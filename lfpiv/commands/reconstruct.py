@@ -109,8 +109,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="a fixed count of MART iterations, every frame (default: the protocol's: 50 for fixed, 400 "
                    "for chapter; fast stops each frame by the rule)")
     r.add_argument("--max-iterations", type=iterations, default=None, metavar="N",
-                   help="with the stopping rule, the most iterations a frame runs (default: 400); turns the rule on "
-                   "where the protocol has none")
+                   help="with the stopping rule, the most iterations a frame runs (default: the protocol's iterations: "
+                   "400 for fast and chapter, 50 for fixed); turns the rule on where the protocol has none")
     r.add_argument("--stop-tolerance", type=stop_tolerance, default=None, metavar="FRACTION",
                    help="the stopping rule: every 10 iterations, stop once the projections' relative residual fell "
                    f"by less than this fraction of itself and fewer than {STOP_VOXELS:g} of the voxels left (default: "
@@ -230,7 +230,8 @@ def run(args: argparse.Namespace) -> int:
                                   cameras=args.cameras, device=args.device, progress=not args.quiet, rig=rig,
                                   calibration=calibration, skip_done=args.skip_done, client=client,
                                   option=pairs_option(args), slabs=args.slabs, flats=flats,
-                                  flat_field=flat_info, protocol=args.protocol)
+                                  flat_field=flat_info, protocol=args.protocol,
+                                  warm_optional=args.warm_start is None)
     old_spelling_notes(args)
     if not results:
         print(f"every selected pair of {store.path} is already reconstructed with these settings; nothing to do")

@@ -23,6 +23,7 @@ from lfcore.reconstruct import (
     StoppingRule,
     protocol_settings,
     relative_residual,
+    stop_interval,
 )
 from lfcore.render import LightFieldRenderer
 from lfcore.rig import Rig
@@ -123,3 +124,13 @@ def test_the_rule_after_line_of_sight_iterations_counts_them(sparse):
     res = FrameReconstructor(proj, protocol_settings("fast", projector="stored")).reconstruct([img])
     assert res.operator == "line-of-sight weights, then traced weights"
     assert res.stopped in (CONVERGED, CAPPED) and 20 < res.iterations <= 400
+
+
+def test_every_measurement_window_holds_a_pruning():
+    """The rule's voxel test sees voxels leave only at the prunings: with them every 30 iterations it
+    measures every 30 (the least common multiple), not every 10, where two windows in three would hold
+    none and pass the voxel test whatever the ghosts do."""
+    assert stop_interval(ReconSettings(), prune=True) == 10
+    assert stop_interval(ReconSettings(prune_every=30), prune=True) == 30
+    assert stop_interval(ReconSettings(prune_every=4), prune=True) == 20
+    assert stop_interval(ReconSettings(prune_every=30), prune=False) == 10
