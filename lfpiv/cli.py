@@ -270,8 +270,19 @@ def _one_ctrl_c(grace_s: float = 5.0) -> Iterator[None]:
         return
     first: list[float] = []
 
-    def on_sigint(signum: int, frame: object) -> None:
+    def in_finalizer(frame: Any) -> bool:
+        # Python drops an exception raised in a __del__ ("Exception ignored"): the stop would be lost
+        while frame is not None:
+            if frame.f_code.co_name == "__del__":
+                return True
+            frame = frame.f_back
+        return False
+
+    def on_sigint(signum: int, frame: Any) -> None:
         if first and time.monotonic() - first[0] < grace_s:
+            return
+        if in_finalizer(frame):  # taken again a moment later, outside the finalizer
+            threading.Timer(0.02, signal.raise_signal, (signal.SIGINT,)).start()
             return
         first[:] = [time.monotonic()]
         raise KeyboardInterrupt
