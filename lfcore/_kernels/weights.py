@@ -583,38 +583,30 @@ def part_spot(view: View, c: wp.vec2, ov: Overlap, ax: float, ay: float, fp: Foo
                    fp.hx * ov.wx / (2.0 * fp.fx), fp.hy * ov.wy / (2.0 * fp.fy))
 
 
-@wp.kernel
-def drt_weights(
-    grid: Grid,
+@wp.func
+def trace_point(
     views: wp.array(dtype=View),
     n_views: int,
     sub_a: wp.array(dtype=wp.vec2),
     sub_w: wp.array(dtype=float),
-    voxels: wp.array(dtype=wp.int32),
-    offsets: wp.array(dtype=wp.int64),
-    origin: wp.int64,
+    pw: wp.vec3,
+    half: float,
+    base: wp.int64,
     min_weight: float,
     fill: int,
     limit: wp.int64,
-    counts: wp.array(dtype=wp.int64),
     pix: wp.array(dtype=wp.int32),
     w: wp.array(dtype=float),
 ):
-    """Dense ray-traced weights of voxel ``voxels[tid]`` (see the module docstring).
-
-    With ``fill = 1`` the first ``limit`` entries go to ``pix``/``w`` from
-    ``offsets[tid] - origin``. ``counts[tid]`` gets the voxel's number of entries in both modes,
-    so that a single pass into slots of a guessed capacity ``limit`` also tells which voxels
-    did not fit.
-    """
-    tid = wp.tid()
-    pw = voxel_centre(grid, voxels[tid])
+    """The dense ray-traced weights of world point ``pw`` (mm) in every view: the entries counted,
+    and with ``fill = 1`` the first ``limit`` of them written to ``pix``/``w`` from ``base``. The
+    point is a cube of the views' voxel half-extent, or with ``half > 0`` of that half-extent (mm)
+    on every axis (see :func:`drt_weights` and :func:`drt_points`)."""
     n = wp.int64(0)
-    base = wp.int64(0)
-    if fill == 1:
-        base = offsets[tid] - origin
     for iv in range(n_views):
         view = views[iv]
+        if half > 0.0:  # a particle's extent instead of the views' voxel extent
+            view.half = wp.vec3(half, half, half)
         cam = view.cam
         p = view_point(view, pw)
         sop = cam.so - p[2]
@@ -691,7 +683,39 @@ def drt_weights(
                                     pix[base + n] = view.pix_offset + r * cam.ncols + cc
                                     w[base + n] = wt
                                 n += wp.int64(1)
-    counts[tid] = n
+    return n
+
+
+@wp.kernel
+def drt_weights(
+    grid: Grid,
+    views: wp.array(dtype=View),
+    n_views: int,
+    sub_a: wp.array(dtype=wp.vec2),
+    sub_w: wp.array(dtype=float),
+    voxels: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int64),
+    origin: wp.int64,
+    min_weight: float,
+    fill: int,
+    limit: wp.int64,
+    counts: wp.array(dtype=wp.int64),
+    pix: wp.array(dtype=wp.int32),
+    w: wp.array(dtype=float),
+):
+    """Dense ray-traced weights of voxel ``voxels[tid]`` (see the module docstring).
+
+    With ``fill = 1`` the first ``limit`` entries go to ``pix``/``w`` from
+    ``offsets[tid] - origin``. ``counts[tid]`` gets the voxel's number of entries in both modes,
+    so that a single pass into slots of a guessed capacity ``limit`` also tells which voxels
+    did not fit.
+    """
+    tid = wp.tid()
+    pw = voxel_centre(grid, voxels[tid])
+    base = wp.int64(0)
+    if fill == 1:
+        base = offsets[tid] - origin
+    counts[tid] = trace_point(views, n_views, sub_a, sub_w, pw, 0.0, base, min_weight, fill, limit, pix, w)
 
 
 @wp.kernel
@@ -719,90 +743,10 @@ def drt_points(
     """
     tid = wp.tid()
     pw = points[tid]
-    n = wp.int64(0)
     base = wp.int64(0)
     if fill == 1:
         base = offsets[tid] - origin
-    for iv in range(n_views):
-        view = views[iv]
-        view.half = wp.vec3(half, half, half)
-        cam = view.cam
-        p = view_point(view, pw)
-        sop = cam.so - p[2]
-        if sop * cam.inv_f <= 1.0:
-            continue
-        inv = 1.0 / sop
-        a = 1.0 - cam.si * (cam.inv_f - inv)
-        gx = -p[0] * cam.si * inv
-        gy = -p[1] * cam.si * inv
-        dq = cam.si * inv * inv * view.half[2]
-        lat = cam.si * inv
-        for k in range(view.sub_first, view.sub_first + view.sub_count):
-            ax = sub_a[k][0]
-            ay = sub_a[k][1]
-            wk = sub_w[k]
-            fp = footprint(view, p, a, gx, gy, lat, dq, ax, ay)
-            qx = fp.qx
-            qy = fp.qy
-            fx = fp.fx
-            fy = fp.fy
-            x0 = qx - fx
-            x1 = qx + fx
-            y0 = qy - fy
-            y1 = qy + fy
-            inv_area = 1.0 / (4.0 * fx * fy)
-            # Most footprints near focus lie inside one lenslet: no clipping needed then.
-            home = lenslet_centre(cam, qx, qy)
-            inside = inside_cell(view, qx, qy, home, fx, fy)
-            box = lattice_box(cam, x0, x1, y0, y1, view.cell_r)
-            h = row_step(cam)
-            j0 = int(wp.ceil(box[2] / h))
-            j1 = int(wp.floor(box[3] / h))
-            if inside == 1:
-                j0 = int(0)
-                j1 = int(0)
-            for j in range(j0, j1 + 1):
-                shift = row_shift(cam, j)
-                i0 = int(wp.ceil((box[0] - shift) / cam.pitch))
-                i1 = int(wp.floor((box[1] - shift) / cam.pitch))
-                if inside == 1:
-                    i0 = int(0)
-                    i1 = int(0)
-                for i in range(i0, i1 + 1):
-                    c = home
-                    ov = Overlap()
-                    if inside == 1:
-                        ov.area = 4.0 * fx * fy
-                        ov.cx = qx
-                        ov.cy = qy
-                        ov.wx = 2.0 * fx
-                        ov.wy = 2.0 * fy
-                    else:
-                        c = from_lattice(cam, float(i) * cam.pitch + shift, float(j) * h)
-                        ov = cell_overlap(view, c[0], c[1], x0, x1, y0, y1)
-                    if ov.area <= 0.0:
-                        continue
-                    w1 = ov.area * inv_area
-                    spot = part_spot(view, c, ov, ax, ay, fp)
-                    colc = spot[0]
-                    rowc = spot[1]
-                    hx = spot[2]
-                    hy = spot[3]
-                    c0 = wp.max(0, int(wp.floor(colc - hx)))
-                    c1 = wp.min(cam.ncols - 1, int(wp.floor(colc + hx)))
-                    r0 = wp.max(0, int(wp.floor(rowc - hy)))
-                    r1 = wp.min(cam.nrows - 1, int(wp.floor(rowc + hy)))
-                    for r in range(r0, r1 + 1):
-                        oy = pixel_overlap(rowc - hy, rowc + hy, r) / (2.0 * hy)
-                        for cc in range(c0, c1 + 1):
-                            ox = pixel_overlap(colc - hx, colc + hx, cc) / (2.0 * hx)
-                            wt = wk * w1 * ox * oy
-                            if wt > min_weight:
-                                if fill == 1 and n < limit:
-                                    pix[base + n] = view.pix_offset + r * cam.ncols + cc
-                                    w[base + n] = wt
-                                n += wp.int64(1)
-    counts[tid] = n
+    counts[tid] = trace_point(views, n_views, sub_a, sub_w, pw, half, base, min_weight, fill, limit, pix, w)
 
 
 #: Samples of a camera's sphere-cylinder overlap between full and no overlap (see overlap_table).
