@@ -76,6 +76,8 @@ def main() -> None:
     ap.add_argument("--focus-gap", default="3", metavar="VOXELS",
                     help="comma-separated gaps from the focal planes: one line of figures per gap")
     ap.add_argument("--model", choices=MODELS, default=IprSettings().model, help="IPR's particle model")
+    ap.add_argument("--split", type=float, default=IprSettings().split_intensity, help="IPR's split_intensity")
+    ap.add_argument("--rounds", type=int, default=IprSettings().rounds, help="IPR's rounds")
     ap.add_argument("--shakes", type=int, default=IprSettings().shakes, help="IPR's fit iterations (shakes)")
     ap.add_argument("--relocate", type=int, default=IprSettings().relocate_depth, help="IPR's relocate_depth")
     ap.add_argument("--max-std", type=float, default=IprSettings().max_position_std,
@@ -96,7 +98,8 @@ def main() -> None:
     renderers = [renderer_for(c, render, wavelength_nm=rig.laser.wavelength_nm, device=args.device)
                  for c in rig.camera]
     ipr = ParticleReconstructor(proj, settings=IprSettings(
-        model=args.model, shakes=args.shakes, relocate_depth=args.relocate, max_position_std=args.max_std,
+        model=args.model, shakes=args.shakes, split_intensity=args.split, rounds=args.rounds,
+        relocate_depth=args.relocate, max_position_std=args.max_std,
         wavelength_nm=rig.laser.wavelength_nm, particle_image_px=rig.render.particle_image_px))
     densities = [float(p) for p in args.sweep.split(",")] if args.sweep else [args.ppm]
     gaps = [float(g) for g in args.focus_gap.split(",")]
