@@ -8,6 +8,12 @@ Run from the repository root::
     python benchmarks/particles.py --sweep 0.1,0.25,0.5,1,2 --frames 1   # where the goals stop being met
     python benchmarks/particles.py --case S2 --frames 1                  # two cameras at 90 degrees
     python benchmarks/particles.py --model voxels                        # the first particle model
+    python benchmarks/particles.py --case S2 --frames 1 --focus-gap 3,10 --rays 40000 --max-std 0.05
+
+``--rays`` renders with more rays a particle than the rig's (less Monte-Carlo sampling noise in the
+frames); ``--shakes``, ``--split``, ``--rounds``, ``--relocate``, ``--max-std`` and ``--model`` set
+IPR's settings of those names. ``benchmarks/particles_budget.py`` is the error budget behind these
+figures (fits started at the true positions, candidates, ghosts).
 
 Case: Table 4.1's A1-like random seeding at ``--ppm`` (or each density of ``--sweep``) on the
 one-camera tiny rig (``examples/tiny.toml``, 192 x 160 px, 29 x 68 x 82 voxels) or ``--case``, a
