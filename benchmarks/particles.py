@@ -8,6 +8,12 @@ Run from the repository root::
     python benchmarks/particles.py --sweep 0.1,0.25,0.5,1,2 --frames 1   # where the goals stop being met
     python benchmarks/particles.py --case S2 --frames 1                  # two cameras at 90 degrees
     python benchmarks/particles.py --model voxels                        # the first particle model
+    python benchmarks/particles.py --case S2 --frames 1 --focus-gap 3,10 --rays 40000 --max-std 0.05
+
+``--rays`` renders with more rays a particle than the rig's (less Monte-Carlo sampling noise in the
+frames); ``--shakes``, ``--split``, ``--rounds``, ``--relocate``, ``--max-std`` and ``--model`` set
+IPR's settings of those names. ``benchmarks/particles_budget.py`` is the error budget behind these
+figures (fits started at the true positions, candidates, ghosts).
 
 Case: Table 4.1's A1-like random seeding at ``--ppm`` (or each density of ``--sweep``) on the
 one-camera tiny rig (``examples/tiny.toml``, 192 x 160 px, 29 x 68 x 82 voxels) or ``--case``, a
@@ -26,8 +32,9 @@ Both are matched one-to-one to the truth within ``--match-voxels`` voxels per ax
 tolerance, as a share of those found), RMS position error per axis in voxels, and the wall time per
 frame (same process, same machine). The issue's goals: recall >= 90%, ghosts <= 5%, RMS <= 0.1 voxel
 laterally and 0.3 in depth. Also reported: the same figures for the particles at least
-``--focus-gap`` voxels from the focal plane, where a light-field camera sees a particle's position
-(on the focal plane a particle's light falls in one lenslet).
+``--focus-gap`` voxels from every camera's focal plane (voxels along that camera's depth), where a
+light-field camera sees a particle's position (on the focal plane a particle's light falls in one
+lenslet).
 """
 
 from __future__ import annotations
@@ -69,9 +76,15 @@ def main() -> None:
     ap.add_argument("--sweep", default=None, metavar="PPMS",
                     help="comma-separated densities (PPM) instead of --ppm: one line of figures per density")
     ap.add_argument("--frames", type=int, default=3)
+    ap.add_argument("--rays", type=int, default=0,
+                    help="rays a particle of the rendered frames (0: the rig's [render] rays_per_particle)")
     ap.add_argument("--match-voxels", type=float, default=1.0)
-    ap.add_argument("--focus-gap", type=float, default=3.0)
+    ap.add_argument("--focus-gap", default="3", metavar="VOXELS",
+                    help="comma-separated gaps from the focal planes: one line of figures per gap")
     ap.add_argument("--model", choices=MODELS, default=IprSettings().model, help="IPR's particle model")
+    ap.add_argument("--split", type=float, default=IprSettings().split_intensity, help="IPR's split_intensity")
+    ap.add_argument("--rounds", type=int, default=IprSettings().rounds, help="IPR's rounds")
+    ap.add_argument("--shakes", type=int, default=IprSettings().shakes, help="IPR's fit iterations (shakes)")
     ap.add_argument("--relocate", type=int, default=IprSettings().relocate_depth, help="IPR's relocate_depth")
     ap.add_argument("--max-std", type=float, default=IprSettings().max_position_std,
                     help="IPR's max_position_std (voxels; 0: keep all)")
@@ -87,17 +100,18 @@ def main() -> None:
     grid = VolumeGrid.from_rig(rig)
     proj = projector_for(rig.camera, grid, device=args.device)
     tol = args.match_voxels * np.asarray(grid.voxel_mm)
-    renderers = [renderer_for(c, rig.render, wavelength_nm=rig.laser.wavelength_nm, device=args.device)
+    render = rig.render.model_copy(update={"rays_per_particle": args.rays}) if args.rays else rig.render
+    renderers = [renderer_for(c, render, wavelength_nm=rig.laser.wavelength_nm, device=args.device)
                  for c in rig.camera]
     ipr = ParticleReconstructor(proj, settings=IprSettings(
-        model=args.model, relocate_depth=args.relocate, max_position_std=args.max_std,
+        model=args.model, shakes=args.shakes, split_intensity=args.split, rounds=args.rounds,
+        relocate_depth=args.relocate, max_position_std=args.max_std,
         wavelength_nm=rig.laser.wavelength_nm, particle_image_px=rig.render.particle_image_px))
     densities = [float(p) for p in args.sweep.split(",")] if args.sweep else [args.ppm]
+    gaps = [float(g) for g in args.focus_gap.split(",")]
     print(f"{name}: {len(rig.camera)} camera(s), grid {grid.shape} (z, y, x) voxels of {grid.voxel_mm} mm; "
           f"{args.frames} frame(s) per density; matching within {args.match_voxels} voxel per axis; IPR model "
-          f"{args.model}, relocate {args.relocate}, max std {args.max_std}")
-    # the first camera focuses on its focus point; its depth axis is world z when it looks along z
-    focus_z = (rig.camera[0].focus_mm[2] - grid.origin_mm[2]) / grid.voxel_mm[2]
+          f"{args.model}, relocate {args.relocate}, max std {args.max_std}; {render.rays_per_particle} rays a particle")
     routes = ("ipr",) if args.no_mart else ("ipr", "drt-mart")
     for ppm in densities:
         n = particle_count(rig, ppm=ppm)
@@ -113,16 +127,15 @@ def main() -> None:
                 vol = reconstruct(proj, imgs, ReconSettings()).volume
                 found_mart, _, _ = metrics.detect_particles(vol, grid, threshold=0.1)
                 found["drt-mart"] = (found_mart, time.perf_counter() - t0)
-            depth = np.abs(metrics_z(pts, grid) - focus_z)
+            depth = focus_distance(rig, grid, pts)
             for route, (pos, t) in found.items():
                 every = metrics.match_particles(pos, pts, tol)
-                far = depth >= args.focus_gap
-                found_far = pos[np.abs(metrics_z(pos, grid) - focus_z) >= args.focus_gap]
-                away = metrics.match_particles(found_far, pts[far], tol)
-                rows[route].append((every, away, t))
+                depth_found = focus_distance(rig, grid, pos)
+                away = [metrics.match_particles(pos[depth_found >= g], pts[depth >= g], tol) for g in gaps]
+                rows[route].append((every, *away, t))
         print(f"-- {ppm} PPM: {n} particles")
         for route, rs in rows.items():
-            for label, k in (("all", 0), (f">= {args.focus_gap:g} voxels from focus", 1)):
+            for label, k in (("all", 0), *((f">= {g:g} voxels from focus", 1 + i) for i, g in enumerate(gaps))):
                 err = np.concatenate([r[k].error_mm for r in rs])
                 rms = np.sqrt(np.mean(err**2, axis=0)) / np.asarray(grid.voxel_mm)
                 matched = sum(r[k].n_matched for r in rs)
@@ -131,12 +144,21 @@ def main() -> None:
                 print(f"{route:9s} {label:28s} recall {matched / max(n_true, 1):.3f}  ghosts "
                       f"{(n_det - matched) / n_det:.3f} ({n_det - matched}/{n_det})  rms x,y,z {rms[0]:.3f}, "
                       f"{rms[1]:.3f}, {rms[2]:.3f} voxel")
-            print(f"{route:9s} time per frame {np.mean([r[2] for r in rs]):.2f} s")
+            print(f"{route:9s} time per frame {np.mean([r[-1] for r in rs]):.2f} s")
 
 
-def metrics_z(points_mm: np.ndarray, grid: VolumeGrid) -> np.ndarray:
-    """The depth index of world points."""
-    return (np.asarray(points_mm)[:, 2] - grid.origin_mm[2]) / grid.voxel_mm[2]
+def focus_distance(rig, grid: VolumeGrid, points_mm: np.ndarray) -> np.ndarray:
+    """(n,) each world point's distance from the nearest camera's focal plane, in voxels along that
+    camera's depth (the grid axis nearest its viewing direction). For one camera looking along z: the
+    distance in z voxels from its focus point's plane."""
+    voxel = np.asarray(grid.voxel_mm)
+    out = np.full(len(points_mm), np.inf)
+    for cam in rig.camera:
+        axis = np.asarray(cam.rotation, dtype=np.float64)[:, 2]  # viewing direction, world (x, y, z)
+        depth_voxel = float(voxel[int(np.argmax(np.abs(axis)))])
+        d = np.abs((np.asarray(points_mm, dtype=np.float64).reshape(-1, 3) - np.asarray(cam.focus_mm)) @ axis)
+        out = np.minimum(out, d / depth_voxel)
+    return out
 
 
 if __name__ == "__main__":

@@ -218,6 +218,9 @@ class ParticleResult:
         Rounds run.
     rms_residual
         RMS of the images' residual over the pixels the particles' model lights, counts.
+    unsure
+        Particles left out because their fitted position was less sure than
+        :attr:`IprSettings.max_position_std` (0 where it is 0).
     seconds
         Wall time per stage: ``candidates``, ``operator``, ``fit``.
     """
@@ -229,6 +232,7 @@ class ParticleResult:
     rounds: int = 0
     rms_residual: float = float("nan")
     seconds: dict = field(default_factory=dict)
+    unsure: int = 0
 
     @property
     def n(self) -> int:
@@ -718,12 +722,13 @@ class ParticleReconstructor:
                 offs = np.concatenate([[0], np.cumsum([img.size for img in images])])
                 residual_images = [(left[offs[k]:offs[k + 1]].reshape(img.shape) + backgrounds[k]).astype(np.float32)
                                    for k, img in enumerate(images)]
+        unsure = 0
         if s.max_position_std > 0 and model is not None and len(u):
             sure = _position_std(model, b, u, intensity).max(axis=1) <= s.max_position_std
-            u, intensity = u[sure], intensity[sure]
+            u, intensity, unsure = u[sure], intensity[sure], int(np.count_nonzero(~sure))
         res, rms = self._residuals(model, b, u, intensity)
         return ParticleResult(positions_mm=to_mm(p.grid, u), intensity=intensity, residual=res, candidates=n_cand,
-                              rounds=rounds, rms_residual=rms, seconds=seconds)
+                              rounds=rounds, rms_residual=rms, seconds=seconds, unsure=unsure)
 
     def _model(self, u: np.ndarray, previous: _Model | _PointModel | None) -> _Model | _PointModel:
         """The particles' forward model: the point model (one for all rounds: light-field cameras'

@@ -100,5 +100,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {store.path}/particles: {len(done.pairs)} pair(s), {n} particles in {len(done.counts)} frame(s) "
           f"({n / len(done.counts):.0f} a frame, from {sum(done.candidates)} candidates); {secs:.1f} s on "
           f"{done.device} ({secs / len(done.counts):.2f} s a frame){workers_phrase(args)}")
+    if args.max_std > 0:
+        print(f"left out as unsure (--max-std {args.max_std:g} voxel): {sum(done.unsure)} particles "
+              f"({sum(done.unsure) / max(n + sum(done.unsure), 1):.1%} of those fitted)")
     old_spelling_notes(args)
     return 0

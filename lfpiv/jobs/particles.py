@@ -46,6 +46,8 @@ class ParticlesDone:
         Candidates per frame.
     seconds
         Wall time of each frame.
+    unsure
+        Particles per frame left out as unsure (:attr:`lfcore.ipr.IprSettings.max_position_std`).
     device
         The Warp device.
     """
@@ -54,6 +56,7 @@ class ParticlesDone:
     counts: list[int] = field(default_factory=list)
     candidates: list[int] = field(default_factory=list)
     seconds: list[float] = field(default_factory=list)
+    unsure: list[int] = field(default_factory=list)
     device: str = "cpu"
 
 
@@ -77,6 +80,7 @@ class PairParticles:
     tables: list[np.ndarray]
     candidates: list[int]
     seconds: list[float]
+    unsure: list[int] = field(default_factory=lambda: [0, 0])
 
 
 def _frame(ipr: ParticleReconstructor, store: RunStore, names: Sequence[str], pair: int, frame: int
@@ -105,7 +109,7 @@ def particles_pair_task(job: ParticlesJob, pair: int) -> PairParticles:
     store, ipr = worker_state(job.token, build)
     made = [_frame(ipr, store, job.cameras, pair, f) for f in (0, 1)]
     return PairParticles(tables=[r.table() for r, _ in made], candidates=[r.candidates for r, _ in made],
-                         seconds=[t for _, t in made])
+                         seconds=[t for _, t in made], unsure=[r.unsure for r, _ in made])
 
 
 def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = None, *,
@@ -156,6 +160,7 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
                     done.seconds.append(seconds)
                     done.counts.append(res.n)
                     done.candidates.append(res.candidates)
+                    done.unsure.append(res.unsure)
                     frames.append(res)
                     bar.update(1)
                     bar.set_postfix_str(f"pair {p} {'AB'[f]}: {res.n} particles")
@@ -174,6 +179,7 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
         done.counts.extend(len(t) for t in r.tables)
         done.candidates.extend(r.candidates)
         done.seconds.extend(r.seconds)
+        done.unsure.extend(r.unsure)
 
     run_pairs(store, "particles", chosen, matches=matches, differences=differences,
               create=lambda: store.create_particles(grid, method=ipr.method, settings=meta), skip_done=skip_done,

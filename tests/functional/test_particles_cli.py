@@ -159,3 +159,26 @@ def test_particles_attributes_are_validated_on_read(tmp_path, capsys):
     meta.write_text(json.dumps(doc))
     with pytest.raises(RunStoreError, match="particles/ attribute particle_pairs"):
         RunStore.open(run).done_pairs("particles", RunStore.open(run).group["particles"])
+
+
+def test_particles_of_unsure_position_are_reported_as_left_out(tmp_path, capsys):
+    run, other = tmp_path / "u.zarr", tmp_path / "u2.zarr"
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "1", "--ppm", "0.3",
+                "--quiet")[0] == 0
+    import shutil
+
+    shutil.copytree(run, other)
+    rc, out, err = _run(capsys, "particles", run, "--quiet", "--rounds", "1")
+    assert rc == 0, err
+    assert "left out as unsure" not in out
+    rc, out, err = _run(capsys, "particles", other, "--quiet", "--rounds", "1", "--max-std", "0.1")
+    assert rc == 0, err
+    m = re.search(r"^left out as unsure \(--max-std 0\.1 voxel\): (\d+) particles \(([\d.]+)% of those fitted\)$",
+                  out, re.M)
+    assert m, out
+    every, sure = RunStore.open(run), RunStore.open(other)
+    n_every = sum(len(every.read_particles(0, f)) for f in (0, 1))
+    n_sure = sum(len(sure.read_particles(0, f)) for f in (0, 1))
+    # the same fit either way: what --max-std leaves out is what it reports
+    assert int(m.group(1)) == n_every - n_sure > 0
+    assert sure.particle_attrs()["settings"]["max_position_std"] == 0.1
