@@ -48,6 +48,7 @@ from realtime.settings import (
     check_live_method,
     check_live_route,
     default_windows,
+    describe_plan,
     monitoring_ipr,
     monitoring_recon,
     monitoring_tracking,
@@ -171,6 +172,9 @@ class LiveStats:
     particles, tracks
         The particle route's last result's particles (A, B) and tracks kept; None before the
         first and on the voxel route.
+    plan
+        The voxel route's plan (:func:`realtime.settings.describe_plan`: the named protocol, the
+        method, how frame B starts); ``""`` on the particle route.
     """
 
     state: str
@@ -185,6 +189,7 @@ class LiveStats:
     route: str = "voxels"
     particles: tuple[int, int] | None = None
     tracks: int | None = None
+    plan: str = ""
 
 
 class LivePipeline:
@@ -234,13 +239,23 @@ class LivePipeline:
     tracking
         The particle route's tracking; default: :func:`realtime.settings.monitoring_tracking` of
         the live volume.
+    protocol
+        The named plan ``recon`` was made from (:data:`realtime.settings.LIVE_PROTOCOLS`), for the
+        status line (:attr:`plan`); None: settings of one's own.
+
+    Attributes
+    ----------
+    plan
+        What the voxel route runs, one line (:func:`realtime.settings.describe_plan`); ``""`` on
+        the particle route.
     """
 
     def __init__(self, rig: Rig, source: PairSource | None = None, *, settings: LiveSettings | None = None,
                  recon: ReconSettings | None = None, correlation: CorrelationConfig | None = None,
                  cameras: Sequence[str] | None = None, pvr: Sequence[float] | None = None, device: str | None = None,
                  poll_s: float = 0.005, flats: Mapping[str, FlatField] | None = None, route: str = "voxels",
-                 ipr: IprSettings | None = None, tracking: TrackSettings | None = None) -> None:
+                 ipr: IprSettings | None = None, tracking: TrackSettings | None = None,
+                 protocol: str | None = None) -> None:
         check_live_route(route)
         self.route = route
         self.rig = rig
@@ -256,6 +271,7 @@ class LivePipeline:
             raise NotLightFieldError(f"camera '{tomo}' is a pinhole camera: the live {base.method} needs light-field "
                                      "cameras; use mlos-smart (the default for pinhole cameras)")
         self.recon = replace(base, form="simultaneous")
+        self.plan = describe_plan(protocol, self.recon) if route == "voxels" else ""
         self.correlation = correlation or CorrelationConfig(windows=default_windows(self.grid.shape), overlap=0.5,
                                                             deform_iterations=0)
         self.ipr = ipr or monitoring_ipr(method=self.recon.method)
@@ -393,7 +409,7 @@ class LivePipeline:
             st = self._staging
             return LiveStats(self._state, self._processed, st.skipped, st.discarded, st.last_taken, rate,
                              self._latency, self._error, self._projector, route=self.route,
-                             particles=self._particles, tracks=self._tracks)
+                             particles=self._particles, tracks=self._tracks, plan=self.plan)
 
     def wait_processed(self, n: int, timeout_s: float) -> bool:
         """Block until ``n`` pairs were processed or ``timeout_s`` passed (for scripts and tests)."""

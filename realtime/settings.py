@@ -18,8 +18,9 @@ from lfcore.ipr import IprSettings
 from lfcore.reconstruct import ReconSettings
 from lfcore.track import TrackSettings
 
-__all__ = ["AXES", "LIVE_METHODS", "LIVE_ROUTES", "LiveSettings", "check_live_method", "check_live_route",
-           "default_windows", "monitoring_ipr", "monitoring_recon", "monitoring_tracking"]
+__all__ = ["AXES", "DEFAULT_LIVE_PROTOCOL", "LIVE_METHODS", "LIVE_PROTOCOLS", "LIVE_ROUTES", "LiveSettings",
+           "check_live_method", "check_live_route", "default_windows", "describe_plan", "live_protocol",
+           "monitoring_ipr", "monitoring_recon", "monitoring_tracking"]
 
 #: Slice axes: the axis normal to the slice.
 AXES = ("x", "y", "z")
@@ -35,6 +36,74 @@ LIVE_METHODS = ("drt-mart", "mlos-mart", "mlos-smart")
 #: into tracks binned on a grid (:func:`lfcore.track.track_pair`), as ``lfpiv particles`` and
 #: ``lfpiv track`` do.
 LIVE_ROUTES = ("voxels", "particles")
+
+
+#: Named monitoring plans (``lfpiv monitor --protocol``): the method of light-field cameras and
+#: whether frame B of each pair starts warm (:func:`monitoring_recon`'s ``warm_start``); the
+#: options a user gives change them (:func:`live_protocol`).
+#:
+#: ``fast``: MLOS-MART (DRT-MART's elimination, the line-of-sight weights: 4-10x cheaper to build
+#: than the traced ones, and the weight cache's rows smaller) and frame B started from frame A
+#: carried along the last pair's field with a fifth of the iterations. On the demo's rig (two 256 x
+#: 256 light-field cameras, 73 x 73 x 73 voxels) it made a pair 3-4x faster than ``drt`` on a 2-core
+#: CPU, its field as close to the truth or closer (``benchmarks/RESULTS.md``, the live pipeline).
+#: ``drt``: DRT-MART's traced weights, every frame from the uniform start (the monitor's plan until
+#: 2026-12).
+LIVE_PROTOCOLS: dict[str, dict] = {
+    "fast": {"method": "mlos-mart", "warm_start": True},
+    "drt": {"method": "drt-mart", "warm_start": False},
+}
+
+#: The plan ``lfpiv monitor`` runs without ``--protocol``.
+DEFAULT_LIVE_PROTOCOL = "fast"
+
+
+def live_protocol(name: str, *, cameras_method: str, method: str | None = None, projector: str = "auto",
+                  warm_start: bool | None = None) -> tuple[str, bool]:
+    """The method and warm start of the named monitoring plan (:data:`LIVE_PROTOCOLS`), with the
+    user's choices applied.
+
+    Parameters
+    ----------
+    name
+        A key of :data:`LIVE_PROTOCOLS`.
+    cameras_method
+        The cameras' default reconstruction (:func:`lfcore.plan.default_method`): ``"drt-mart"`` for
+        light-field cameras (and mixed rigs), ``"mlos-smart"`` for pinhole ones, which every plan keeps.
+    method
+        The method the user asked for; None: the plan's.
+    projector
+        The projector asked for: one other than ``"auto"`` applies DRT-MART's operator, so without
+        ``method`` it keeps light-field cameras on DRT-MART.
+    warm_start
+        The warm start asked for; None: the plan's.
+
+    Returns
+    -------
+    tuple of (str, bool)
+        The method and whether frame B starts warm.
+
+    Raises
+    ------
+    ValueError
+        An unknown plan.
+    """
+    if name not in LIVE_PROTOCOLS:
+        raise ValueError(f"the live protocol is one of {', '.join(LIVE_PROTOCOLS)}, not '{name}'")
+    plan = LIVE_PROTOCOLS[name]
+    if method is None:
+        if cameras_method != "drt-mart" or projector != "auto":
+            method = cameras_method  # pinhole cameras' own method; or DRT's operator, which --projector picks
+        else:
+            method = plan["method"]
+    return method, plan["warm_start"] if warm_start is None else bool(warm_start)
+
+
+def describe_plan(protocol: str | None, recon: ReconSettings) -> str:
+    """One line for the status line and the monitor's summary: the named plan (None: settings of
+    one's own), the method and how frame B starts, e.g. ``"fast (mlos-mart, frame B warm)"``."""
+    start = "frame B warm" if recon.warm_start else "uniform starts"
+    return f"{protocol or 'custom'} ({recon.method}, {start})"
 
 
 def monitoring_recon(iterations: int = 5, relaxation: float = 1.0, method: str = "drt-mart", *,

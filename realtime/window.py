@@ -466,7 +466,9 @@ class MonitorWindow(QtWidgets.QMainWindow):
         lat = n["latency_s"]
         # a rate needs two processed pairs: before that it is unknown, not zero
         rate = f"{st.rate_hz:.1f} pairs/s" if st.rate_hz > 0 else "rate n/a"
-        parts.append(f"live ({st.state}): pair {st.last_pair}, processed {st.processed} "
+        # which plan runs (lfpiv monitor --protocol): the method and how frame B starts
+        plan = f", plan {st.plan}" if st.plan else ""
+        parts.append(f"live ({st.state}{plan}): pair {st.last_pair}, processed {st.processed} "
                      f"({rate}), skipped {st.skipped}, discarded {st.discarded}, latency "
                      + (f"{lat:.2f} s" if math.isfinite(lat) else "n/a")
                      # what applied the last pair's operator (stored weights or matrix-free)

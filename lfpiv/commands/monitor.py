@@ -45,10 +45,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "does (works without a display)")
     m.add_argument("--after", type=positive_int, default=None, metavar="N",
                    help="pairs shown before the screenshot (default: 3, or --pairs when fewer)")
+    m.add_argument("--protocol", choices=("fast", "drt"), default=None,
+                   help="the live plan, which --method, --projector and --warm-start change: fast (default) "
+                   "reconstructs light-field cameras by mlos-mart and starts frame B of each pair warm from frame A; "
+                   "drt by drt-mart from uniform starts (the plan before 2026-12); pinhole cameras by mlos-smart in "
+                   "either; the voxel route's. The status line names the plan")
     m.add_argument("--method", choices=("drt-mart", "mlos-mart", "mlos-smart"), default=None,
                    help="reconstruction: drt-mart (dense ray-traced weights) or mlos-mart (the same elimination, "
-                   "line-of-sight weights; faster on a GPU) for light-field cameras, mlos-smart for pinhole "
-                   "(Tomo-PIV) ones (default: drt-mart, or mlos-smart where every camera is a pinhole camera)")
+                   "line-of-sight weights; several times faster to build) for light-field cameras, mlos-smart for "
+                   "pinhole (Tomo-PIV) ones (default: the protocol's: mlos-mart for fast, drt-mart for drt, and "
+                   "drt-mart where --projector is stored or matrix-free; mlos-smart where every camera is a pinhole "
+                   "camera)")
     add_projector(m)
     m.add_argument("--route", choices=("voxels", "particles"), default="voxels",
                    help="how the live path goes from a pair's images to its vectors: voxels (the volumes reconstructed "
@@ -59,9 +66,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "recording is the same either way")
     m.add_argument("--iterations", type=iterations, default=5,
                    help="MART iterations per frame (default: 5; changeable in the window)")
-    m.add_argument("--warm-start", action="store_true",
+    m.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=None,
                    help="start frame B of each pair from frame A carried along the last pair's field, with a fifth "
-                   "of the iterations (the first pair's B starts uniform)")
+                   "of the iterations (the first pair's B starts uniform); --no-warm-start starts every frame "
+                   "uniform (default: the protocol's: on for fast, off for drt)")
     m.add_argument("--relaxation", type=positive_float, default=1.0,
                    help="MART relaxation, at most 2 (default: 1; changeable in the window)")
     m.add_argument("--pvr", type=xyz_triple, default=None, metavar="X,Y,Z",
@@ -84,7 +92,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lfpiv.jobs.acquire import check_plan
-    from lfpiv.jobs.monitor import check_display, live_settings, require_gui, run_monitor
+    from lfpiv.jobs.monitor import (
+        DEFAULT_LIVE_PROTOCOL,
+        check_display,
+        live_plan,
+        live_settings,
+        require_gui,
+        run_monitor,
+    )
     from lfpiv.jobs.reconstruct import default_method
     from lfpiv.rigfile import load_rig
     from lfpiv.runs import check_new
@@ -92,6 +107,15 @@ def run(args: argparse.Namespace) -> int:
     rig = load_rig(args.rig)
     warn_optics(rig)
     check_plan(rig, args.pairs)
+    if args.route == "particles":
+        if args.protocol is not None:
+            raise UsageError(f"--protocol {args.protocol} is the voxel route's plan; leave it out with --route "
+                             "particles")
+        method, warm = args.method or default_method(rig), bool(args.warm_start)
+    else:
+        args.protocol = args.protocol or DEFAULT_LIVE_PROTOCOL
+        method, warm = live_plan(rig, args.protocol, method=args.method, projector=args.projector,
+                                 warm_start=args.warm_start)
     if args.after is None:  # the default never refuses what was asked: a short run's screenshot after its last pair
         args.after = min(3, args.pairs)
     elif args.screenshot is not None and args.after > args.pairs:
@@ -118,19 +142,19 @@ def run(args: argparse.Namespace) -> int:
 
         flats, _, notes = flat_fields(rig, args.flat_field)
         warn(notes)
-    method = args.method or default_method(rig)
     end = run_monitor(rig, pairs=args.pairs, settings=settings, method=method, projector=args.projector,
                       passes=args.passes, pvr=args.pvr,
                       device=args.device, out=args.out, overwrite=args.overwrite,
                       sim_options=sim_lab_options(rig, args), ring_slots=args.ring,
                       title=f"lfpiv monitor: {args.rig}", screenshot=args.screenshot, after=args.after, say=say,
-                      warm_start=args.warm_start, flats=flats, route=args.route)
+                      warm_start=warm, flats=flats, route=args.route, protocol=args.protocol)
     for r in end.recordings:
         where = str(r.path) if r.path is not None else "not recorded (no --out)"
         print(f"recording: {where}: {r.committed_pairs} pair(s) x {len(rig.camera)} camera(s), {r.frames_recorded} "
               f"frames recorded, {r.frames_dropped} dropped, {r.overruns} overruns, state {r.state}")
     numbers = end.numbers
     lat = numbers["latency_s"]
+    rate = float(numbers.get("processed_hz", 0.0))
     st = end.stats
     if args.route == "particles":
         found = (f", last pair {st.particles[0]}/{st.particles[1]} particles (A/B) and {st.tracks} tracks"
@@ -140,10 +164,13 @@ def run(args: argparse.Namespace) -> int:
         route = f"{method}, {args.iterations} iteration(s)"
     print(f"live: {int(numbers['processed'])} pair(s) processed, {int(numbers['skipped'])} skipped, "
           f"{int(numbers['discarded'])} discarded, {int(numbers['displayed'])} shown; last trigger-to-display "
-          f"latency {f'{lat:.2f} s' if math.isfinite(lat) else 'n/a'}; {route} "
+          f"latency {f'{lat:.2f} s' if math.isfinite(lat) else 'n/a'}"
+          # the rate between the last pairs processed (the status line's): it needs two of them
+          + (f", {rate:.2f} pairs/s processed" if rate > 0 else "") + f"; {route} "
           f"on {end.device}, {'x'.join(map(str, end.voxels))} voxels at PVR "
           f"{','.join(f'{v:g}' for v in args.pvr or rig.volume.pvr)}"
-          + (f", projector {end.projector}" if end.projector else ""))
+          + (f", projector {end.projector}" if end.projector else "")
+          + (f"; plan {end.plan}" if end.plan else ""))
     if end.stats.error:
         print(f"lfpiv monitor: warning: the live path reported: {end.stats.error}", file=sys.stderr)
     if end.screenshot is not None:

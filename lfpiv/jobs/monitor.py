@@ -50,9 +50,10 @@ from realtime.pipeline import (
     default_windows,
     monitoring_recon,
 )
+from realtime.settings import DEFAULT_LIVE_PROTOCOL, LIVE_PROTOCOLS, live_protocol
 
-__all__ = ["LIVE_METHODS", "LIVE_ROUTES", "LiveRecorder", "MonitorOutcome", "Recording", "check_display",
-           "live_recon", "live_settings", "require_gui", "run_monitor"]
+__all__ = ["DEFAULT_LIVE_PROTOCOL", "LIVE_METHODS", "LIVE_PROTOCOLS", "LIVE_ROUTES", "LiveRecorder", "MonitorOutcome",
+           "Recording", "check_display", "live_plan", "live_recon", "live_settings", "require_gui", "run_monitor"]
 
 
 @dataclass(frozen=True)
@@ -270,6 +271,21 @@ def live_recon(method: str, projector: str = "auto", *, warm_start: bool = False
         raise UsageError(str(exc)) from None
 
 
+def live_plan(rig: Rig, protocol: str = DEFAULT_LIVE_PROTOCOL, *, method: str | None = None,
+              projector: str = "auto", warm_start: bool | None = None) -> tuple[str, bool]:
+    """The live method and warm start of the named monitoring plan
+    (:func:`realtime.settings.live_protocol`) on ``rig``'s cameras, the user's ``method``,
+    ``projector`` and ``warm_start`` (None: the plan's) applied; an unknown plan is a one-line
+    :class:`UsageError`."""
+    from lfpiv.jobs.reconstruct import default_method
+
+    try:
+        return live_protocol(protocol, cameras_method=default_method(rig), method=method, projector=projector,
+                             warm_start=warm_start)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
 @dataclass(frozen=True)
 class MonitorOutcome:
     """How ``lfpiv monitor`` ended.
@@ -289,6 +305,9 @@ class MonitorOutcome:
     projector
         What applied the operator to the last pair shown (``"stored"`` weights or the
         ``"matrix-free"`` templates; ``""`` if none was).
+    plan
+        The voxel route's plan, one line (:attr:`realtime.pipeline.LivePipeline.plan`); ``""`` on
+        the particle route.
     screenshot, screenshot_error
         The screenshot written, or why it could not be.
     interrupted
@@ -304,6 +323,7 @@ class MonitorOutcome:
     screenshot: Path | None
     screenshot_error: OSError | None
     interrupted: bool
+    plan: str = ""
 
     def raise_for_end(self) -> None:
         """Raise what ended the session badly: a device fault of a recording (the laser was
@@ -324,7 +344,8 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
                 out: str | Path | None = None, overwrite: bool = False, sim_options: dict[str, Any] | None = None,
                 ring_slots: int = 32, title: str = "lfpiv monitor", screenshot: str | Path | None = None,
                 after: int = 3, say: Callable[[str], None] = lambda text: None,
-                warm_start: bool = False, flats: dict[str, Any] | None = None, route: str = "voxels") -> MonitorOutcome:
+                warm_start: bool = False, flats: dict[str, Any] | None = None, route: str = "voxels",
+                protocol: str | None = None) -> MonitorOutcome:
     """Arm the rig, record every pair (to ``out``, or to a scratch store) and show the newest live.
 
     Parameters
@@ -371,6 +392,9 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
         binned on a grid, with the monitoring settings of
         :func:`realtime.settings.monitoring_ipr` and :func:`realtime.settings.monitoring_tracking`
         (:data:`LIVE_ROUTES`). What is recorded is the same either way.
+    protocol
+        The named plan ``method`` and ``warm_start`` came from (:func:`live_plan`), which the status
+        line names; None: settings of one's own.
 
     Raises
     ------
@@ -396,7 +420,7 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
         except CorrelationError as exc:
             raise UsageError(str(exc)) from None
         pipe = LivePipeline(rig, settings=settings, recon=recon, correlation=corr, pvr=pvr, device=device, flats=flats,
-                            route=route)
+                            route=route, protocol=protocol)
         what = "the particle reconstruction" if route == "particles" else "the reconstruction"
         then = "tracking" if route == "particles" else "correlation"
         say(f"building {what} ({'x'.join(map(str, pipe.grid.shape[::-1]))} voxels) and {then} on {device} ...")
@@ -421,4 +445,4 @@ def run_monitor(rig: Rig, *, pairs: int, settings: LiveSettings, method: str = "
     stats = pipe.stats()
     return MonitorOutcome(recordings=list(rec.recordings), numbers=shown.numbers, stats=stats, device=device,
                           voxels=tuple(pipe.grid.shape[::-1]), projector=stats.projector, screenshot=shown.screenshot,
-                          screenshot_error=shown.screenshot_error, interrupted=shown.interrupted)
+                          screenshot_error=shown.screenshot_error, interrupted=shown.interrupted, plan=pipe.plan)

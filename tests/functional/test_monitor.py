@@ -308,3 +308,41 @@ def test_monitor_with_an_unknown_route_is_one_line(main, rig_file: Path, capsys)
     assert main(["monitor", "--rig", str(rig_file), "--route", "volume"]) == 2
     err = capsys.readouterr().err
     assert "argument --route: invalid choice: 'volume'" in err and "'particles'" in err and len(err.splitlines()) == 1
+
+
+_LIVE_LINE = "{method}, 2 iteration(s) on cpu, 41x34x15 voxels at PVR 4,4,20, projector stored; plan {plan}"
+
+
+@pytest.mark.parametrize(("options", "line"), [
+    ([], _LIVE_LINE.format(method="mlos-mart", plan="fast (mlos-mart, frame B warm)")),
+    (["--protocol", "drt"], _LIVE_LINE.format(method="drt-mart", plan="drt (drt-mart, uniform starts)")),
+    (["--protocol", "drt", "--method", "mlos-mart", "--warm-start"],
+     _LIVE_LINE.format(method="mlos-mart", plan="drt (mlos-mart, frame B warm)")),
+])
+def test_monitor_says_which_plan_ran(main, rig_file: Path, tmp_path: Path, capsys, options: list[str],
+                                     line: str) -> None:
+    """``--protocol`` (default fast) and the options that change it, as the monitor's last line names them."""
+    rc = main(["monitor", "--rig", str(rig_file), "--pairs", "3", "--screenshot", str(tmp_path / "m.png"), "--after",
+               "1", "--device", "cpu", "--iterations", "2", "--sim-rays", "300", "--sim-pool", "2", "--pvr", "4,4,20",
+               "--projector", "auto", "--quiet", *options])
+    stdout, stderr = capsys.readouterr()
+    assert rc == 0, stderr
+    assert line in stdout, stdout
+
+
+def test_monitor_protocol_on_the_particle_route_is_one_line(main, rig_file: Path, capsys) -> None:
+    """The plan is the voxel route's: asked for with the particle route, one line before anything is armed."""
+    assert main(["monitor", "--rig", str(rig_file), "--route", "particles", "--protocol", "drt", "--screenshot",
+                 "x.png"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "--protocol drt is the voxel route's plan; leave it out with --route " \
+        "particles" in err, err
+
+
+def test_monitor_protocol_choices_are_the_live_plans() -> None:
+    from lfpiv.cli import _build_parser
+    from realtime.settings import LIVE_PROTOCOLS
+
+    sub = next(a for a in _build_parser()._actions if a.dest == "command")
+    option = next(a for a in sub.choices["monitor"]._actions if a.dest == "protocol")
+    assert tuple(option.choices) == tuple(LIVE_PROTOCOLS)
