@@ -66,7 +66,10 @@ def timed_frame(proj, settings, img):
             def wrapped(*a, _inner=inner, _stage=stage, **k):
                 w, c = time.perf_counter(), time.process_time()
                 try:
-                    return _inner(*a, **k)
+                    out = _inner(*a, **k)
+                    if _stage == "DRT operator":
+                        clock["DRT voxels"] = out.n_voxels
+                    return out
                 finally:
                     clock[_stage][0] += time.perf_counter() - w
                     clock[_stage][1] += time.process_time() - c
@@ -75,7 +78,9 @@ def timed_frame(proj, settings, img):
     res = frames.reconstruct(img)
     total = [time.perf_counter() - w, time.process_time() - c]
     # the stages nest (coarse_eliminate calls eliminate on another reconstructor, not this one's)
+    drt = clock.pop("DRT voxels", 0)
     clock["other"] = [total[i] - sum(v[i] for v in clock.values()) for i in (0, 1)]
+    res.drt_voxels = drt  # the voxels DRT's operator was made for
     return res, clock, total
 
 
@@ -100,7 +105,7 @@ def main() -> None:
     FrameReconstructor(proj, protocol_settings("fast", iterations=4, los_iterations=2, stop_tolerance=0.0,
                                                coarse=3, coarse_iterations=2)).reconstruct(img)
     rows = [parse_row(r) for r in (args.rows.split("|") if "|" in args.rows else args.rows.split(","))]
-    print("| row | iterations | stopped | Q | voxels active / left | elimination s wall (CPU) | "
+    print("| row | iterations | stopped | Q | voxels active / DRT / left | elimination s wall (CPU) | "
           "line-of-sight weights s | DRT operator s | iterations s | other s | total s wall (CPU) | "
           "CPU / reference's | operator |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -115,7 +120,8 @@ def main() -> None:
         ref_cpu = total[1]
         q = f"{metrics.q_recon(res.volume, truth):.3f}" + ("" if n == 400 else f" (at {n})")
         label = "chapter (reference)" + ("" if n == 400 else f", {n} iterations timed, x{scale:g}")
-        print(f"| {label} | 400 | fixed count | {q} | {res.active_voxels:,} / {res.final_voxels:,} | "
+        print(f"| {label} | 400 | fixed count | {q} | {res.active_voxels:,} / {res.drt_voxels:,} / "
+              f"{res.final_voxels:,} | "
               + " | ".join(f"{clock[s][0]:.1f} ({clock[s][1]:.1f})" for s in (*STAGES, "other"))
               + f" | {total[0]:.1f} ({total[1]:.1f}) | 1 | {res.operator} |", flush=True)
     for label, settings in rows:
@@ -123,7 +129,7 @@ def main() -> None:
         q = metrics.q_recon(res.volume, truth)
         ratio = f"1/{ref_cpu / total[1]:.1f}" if ref_cpu else ""
         print(f"| {label} | {res.iterations} | {res.stopped} | {q:.3f} | {res.active_voxels:,} / "
-              f"{res.final_voxels:,} | " + " | ".join(f"{clock[s][0]:.1f} ({clock[s][1]:.1f})"
+              f"{res.drt_voxels:,} / {res.final_voxels:,} | " + " | ".join(f"{clock[s][0]:.1f} ({clock[s][1]:.1f})"
                                                       for s in (*STAGES, "other"))
               + f" | {total[0]:.1f} ({total[1]:.1f}) | {ratio} | {res.operator} |", flush=True)
 
