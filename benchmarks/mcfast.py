@@ -50,7 +50,7 @@ def parse_row(text: str):
         name, changes = "fast", {"coarse": 1, "subsets": 1}
     for item in filter(None, rest.split(",")):
         key, _, value = item.partition("=")
-        changes[key.strip()] = float(value) if "." in value else int(value)
+        changes[key.strip()] = (float(value) if "." in value else int(value)) if value[:1].isdigit() else value
     return text, protocol_settings(name, **changes)
 
 
