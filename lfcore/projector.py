@@ -342,7 +342,11 @@ class LightFieldProjector(BoundCameras):
 
 
     # --- zero-voxel elimination ---------------------------------------------------------
-    def eliminate(self, lit: Sequence[np.ndarray], *, min_seen: float = 0.5, max_dark: float = 0.05) -> object:
+    #: Whether :meth:`eliminate` takes ``within`` (coarse-to-fine elimination, :mod:`lfcore.coarse`).
+    eliminates_within = True
+
+    def eliminate(self, lit: Sequence[np.ndarray], *, min_seen: float = 0.5, max_dark: float = 0.05,
+                  within=None) -> object:
         """Voxels that can hold a particle: their sub-apertures land on lit pixels.
 
         Parameters
@@ -355,6 +359,10 @@ class LightFieldProjector(BoundCameras):
             Fraction of a voxel's checked sub-apertures that must land on a camera's sensor.
         max_dark
             Fraction of its checked sub-apertures a voxel may find dark and still be kept.
+        within
+            (m,) int32 Warp array on the device: flat voxel indices, ascending, the only candidates
+            (a coarse pass's, :mod:`lfcore.coarse`); None: every voxel of the grid. The same test,
+            so the result is those of a whole-grid pass that are in ``within``.
 
         Returns
         -------
@@ -373,11 +381,12 @@ class LightFieldProjector(BoundCameras):
                   float(max_dark), self._checks, self._n_checks]
         # First the whole grid with a few checks per view, then every check on the candidates
         # left: the same voxels as one full pass, but a warp no longer waits for its one kept voxel.
-        n = self.grid.n_voxels
+        n = self.grid.n_voxels if within is None else int(within.shape[0])
         mask = self._scratch("mask", n, wp.int32)
         mask.zero_()
-        launch_rows(kw.eliminate, n, [*common, self._none, PREFILTER_CHECKS, RowOffset(0), mask], self.device)
-        candidates = self._compact(mask, scratch="candidates")
+        given = self._none if within is None else within
+        launch_rows(kw.eliminate, n, [*common, given, PREFILTER_CHECKS, RowOffset(0), mask], self.device)
+        candidates = self._compact(mask, None if within is None else within, scratch="candidates")
         n = int(candidates.shape[0])
         mask = mask[:max(n, 1)]  # the grid pass is compacted: its mask is free again
         mask.zero_()

@@ -42,7 +42,9 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 from scipy import ndimage
 
+from lfcore import coarse as coarse_grids
 from lfcore._deprecation import deprecated, moved_names
+from lfcore.coarse import MAX_COARSE
 from lfcore.device import available_bytes, out_of_memory_is_budget_error, warp
 from lfcore.device_ops import VolumeOps
 from lfcore.operator import (
@@ -118,6 +120,10 @@ STOP_REASONS = (FIXED, CONVERGED, CAPPED, NO_VOXELS)
 #: pruning's threshold), so the voxels leaving tell the two apart.
 STOP_TOLERANCE = 0.003
 STOP_VOXELS = 0.02
+#: Line-of-sight iterations on the coarse grid of coarse-to-fine elimination (``ReconSettings.coarse``):
+#: on the Mc crop 20 iterations left bright 23% of the coarse voxels elimination kept, holding 98.8%
+#: of the true particles (``benchmarks/mcfast.py``).
+COARSE_ITERATIONS = 20
 
 
 def warm_count(iterations: int, warm_iterations: int | None) -> int:
@@ -230,6 +236,19 @@ class ReconSettings:
         iterations of a converged frame (the later iterations' gain is ghosts fading out).
     stop_every
         Iterations between the stopping rule's measurements.
+    coarse
+        Coarse-to-fine elimination (:mod:`lfcore.coarse`): first ``coarse_iterations`` line-of-sight
+        iterations (MLOS-MART's weights, the pruning) on a grid this many times coarser along every
+        axis; then only the fine voxels inside the coarse voxels still brighter than ``prune`` (or
+        :data:`PRUNE`) of the brightest are tested by the fine grid's elimination, and they start
+        from their coarse voxel's intensity. The fine elimination, weights and iterations then touch
+        a fraction of the voxels a whole-grid elimination keeps (on the Mc crop at 3: about half,
+        the true particles' 98.8%). 1: the whole fine grid is tested (the plain elimination).
+        DRT-MART's simultaneous form, on light-field cameras, in boxes of at least
+        :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels (others eliminate the whole grid); not with a
+        warm start (the warm frame's own voxels are eliminated as before).
+    coarse_iterations
+        The line-of-sight iterations on the coarse grid (``coarse`` above 1).
     """
 
     method: str = "drt-mart"
@@ -256,6 +275,8 @@ class ReconSettings:
     stop_tolerance: float = 0.0
     stop_voxels: float = STOP_VOXELS
     stop_every: int = 10
+    coarse: int = 1
+    coarse_iterations: int = COARSE_ITERATIONS
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -322,6 +343,13 @@ class ReconSettings:
             raise ValueError(f"stop_every must be 1 or more iterations, got {self.stop_every}")
         if self.warm_iterations is not None and self.warm_iterations < 1:
             raise ValueError(f"warm_iterations must be 1 or more, got {self.warm_iterations}")
+        if not 1 <= self.coarse <= MAX_COARSE:
+            raise ValueError(f"coarse must be from 1 (none) to {MAX_COARSE} fine voxels per coarse one, got "
+                             f"{self.coarse}")
+        if self.coarse > 1 and (self.method != "drt-mart" or self.form != "simultaneous"):
+            raise ValueError("coarse-to-fine elimination (coarse) is for drt-mart's simultaneous form")
+        if self.coarse_iterations < 1:
+            raise ValueError(f"coarse_iterations must be 1 or more, got {self.coarse_iterations}")
 
     @property
     def warm_count(self) -> int:
@@ -361,20 +389,24 @@ class ReconSettings:
 #: before the stopping rule).
 #: ``fast``: the stopping rule (at most 400 iterations), line-of-sight weights for the first 20
 #: iterations of DRT-MART, the pruning, and frame B of each pair warm-started from frame A along a
-#: series (where the volumes are reconstructed in memory).
+#: series (where the volumes are reconstructed in memory); 4 ordered subsets, the rule measuring per
+#: pass (an iteration is then a pass through them), and coarse-to-fine elimination on a grid 3 times
+#: coarser in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels (``benchmarks/mcfast.py``:
+#: on the Mc crop Q 0.786 for a fifteenth to a twentieth of the chapter protocol's CPU time).
 PROTOCOLS: dict[str, dict] = {
     "chapter": {"iterations": 400, "prune": 0.0, "relaxation": 1.0},
     "fixed": {"iterations": 50},
-    "fast": {"iterations": 400, "stop_tolerance": STOP_TOLERANCE, "los_iterations": 20, "warm_start": True},
+    "fast": {"iterations": 400, "stop_tolerance": STOP_TOLERANCE, "los_iterations": 20, "warm_start": True,
+             "coarse": 3, "subsets": 4},
 }
 
 
 def protocol_settings(name: str, **changes) -> ReconSettings:
     """The :class:`ReconSettings` of the named protocol (:data:`PROTOCOLS`), with ``changes`` applied.
 
-    A method other than DRT-MART's simultaneous form drops the line-of-sight first iterations (they
-    are DRT-MART's), and the sequential form the warm start; ``iterations`` given with a protocol that
-    stops by the rule is the rule's most.
+    A method other than DRT-MART's simultaneous form drops the line-of-sight first iterations and the
+    coarse-to-fine elimination (they are DRT-MART's), and the sequential form the warm start and the
+    ordered subsets; ``iterations`` given with a protocol that stops by the rule is the rule's most.
 
     Raises
     ------
@@ -387,8 +419,12 @@ def protocol_settings(name: str, **changes) -> ReconSettings:
     if merged.get("method", "drt-mart") != "drt-mart" or merged.get("form", "simultaneous") != "simultaneous":
         if "los_iterations" not in changes:
             merged["los_iterations"] = 0
-        if "warm_start" not in changes and merged.get("form", "simultaneous") != "simultaneous":
-            merged["warm_start"] = False
+        if "coarse" not in changes:
+            merged["coarse"] = 1
+        if merged.get("form", "simultaneous") != "simultaneous":
+            for key, off in (("warm_start", False), ("subsets", 1)):
+                if key not in changes:
+                    merged[key] = off
     los = merged.get("los_iterations", 0)
     if los and "los_iterations" not in changes and los >= merged.get("iterations", 50):
         merged["los_iterations"] = 0  # too few iterations for DRT's weights to take over after them
@@ -723,12 +759,27 @@ class StoppingRule:
         return fell < self.tolerance and left < self.voxels
 
 
-def stop_interval(settings: ReconSettings, *, prune: bool) -> int:
+def stop_interval(settings: ReconSettings, *, prune: bool, subsets: int = 1) -> int:
     """Iterations between the stopping rule's measurements: ``settings.stop_every``, or with pruning
     on the least common multiple of it and ``settings.prune_every``, so that every measurement
     window holds a pruning and the voxels leaving are seen (a window without one would pass the
-    rule's voxel test whatever the ghosts do)."""
+    rule's voxel test whatever the ghosts do).
+
+    With ``subsets`` ordered subsets (a pass through them goes about as far as that many plain
+    iterations) both intervals count passes and are divided by ``subsets`` (rounded up,
+    :func:`pass_prune_every`): the rule then measures over about as many plain iterations' worth as
+    it does without subsets, instead of letting the subsets run ``subsets`` times further past their
+    best between two measurements."""
+    if subsets > 1:
+        every = -(-settings.stop_every // subsets)
+        return math.lcm(every, pass_prune_every(settings, subsets)) if prune else every
     return math.lcm(settings.stop_every, settings.prune_every) if prune else settings.stop_every
+
+
+def pass_prune_every(settings: ReconSettings, subsets: int) -> int:
+    """Passes between the prunings of a frame the stopping rule ends: ``settings.prune_every``
+    divided by the ordered subsets (rounded up; :func:`stop_interval`)."""
+    return -(-settings.prune_every // max(1, subsets))
 
 
 def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[list[Operator], list]:
@@ -869,6 +920,7 @@ class FrameReconstructor:
         self._volume = None  # (z, y, x) float32
         self._los_source = None  # line-of-sight weights for settings.los_iterations (made on first use)
         self._subset_of = None  # (n_pixels,) int32: each pixel's subset, for settings.subsets (made on first use)
+        self._coarse = None  # the coarse grid's reconstructor, for settings.coarse (made on first use)
 
     # --- one frame from host images --------------------------------------------------------------
     def reconstruct(self, images: Sequence[np.ndarray], *, progress: Callable[[int], None] | None = None,
@@ -909,25 +961,30 @@ class FrameReconstructor:
                      predictor: Predictor | None = None) -> ReconResult:
         wp, p, settings = self.wp, self.projector, self.settings
         t0 = time.perf_counter()
-        voxels = self.eliminate(lits)  # returns once counted: synced
-        t_elim = t0 if settings.method == "mart" else time.perf_counter()
         warmed = warm is not None and predictor is not None and warm.held and settings.form == "simultaneous"
-        los_first = bool(settings.los_iterations) and not warmed and int(voxels.shape[0]) > 0
-        op = self.los_operator(voxels) if los_first else self.operator(voxels)
-        active, kind = op.n_voxels, op.kind
-        nbytes = int(op.nbytes) if los_first else self.operator_bytes(op)
         if self._image is None:
             self._image = wp.empty(p.n_pixels, dtype=float, device=self.device)
         flat = np.concatenate([s.ravel() for s in signals])
         wp.copy(self._image, wp.array(flat, dtype=float, device="cpu", copy=False))
+        coarse = None
+        if self.coarse_applies() and not warmed:
+            voxels, coarse = self.coarse_eliminate(lits, self._image, noises)
+        else:
+            voxels = self.eliminate(lits)  # returns once counted: synced
+        t_elim = t0 if settings.method == "mart" else time.perf_counter()
+        los_first = bool(settings.los_iterations) and not warmed and int(voxels.shape[0]) > 0
+        op = self.los_operator(voxels) if los_first else self.operator(voxels)
+        active, kind = op.n_voxels, op.kind
+        nbytes = int(op.nbytes) if los_first else self.operator_bytes(op)
         weights_s = time.perf_counter() - t0
         its = settings.warm_count if warmed else settings.iterations
-        start = warm.start(op, predictor) if warmed else None
+        start = warm.start(op, predictor) if warmed else coarse
+        del coarse
         iterate_s = 0.0
         if los_first:
             # the cheap weights first; DRT's then for the voxels still bright (a third of them on Mc)
             first = self.iterate(op, self._image, noises, progress=progress, iterations=settings.los_iterations,
-                                 stop_tolerance=0.0)
+                                 stop_tolerance=0.0, start=start)
             weights_s += first.start_s
             iterate_s += first.iterate_s
             t = time.perf_counter()
@@ -980,13 +1037,74 @@ class FrameReconstructor:
             return self.projector.all_voxels()
         return self.projector.eliminate(lit, min_seen=s.min_seen, max_dark=s.max_dark)
 
+    def coarse_applies(self) -> bool:
+        """Whether this reconstructor's frames run coarse-to-fine elimination (:attr:`ReconSettings.coarse`):
+        DRT-MART's simultaneous form on light-field cameras alone (a projector whose elimination takes
+        ``within``), in a box of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels."""
+        s = self.settings
+        return (s.coarse > 1 and s.method == "drt-mart" and s.form == "simultaneous"
+                and getattr(self.projector, "eliminates_within", False)
+                and self.projector.grid.n_voxels >= coarse_grids.COARSE_MIN_VOXELS)
+
+    def coarse_eliminate(self, lit, image, noise: Sequence[float]) -> tuple[object, object]:
+        """Coarse-to-fine elimination (:mod:`lfcore.coarse`): the fine voxels to reconstruct and their start.
+
+        Parameters
+        ----------
+        lit
+            As :meth:`eliminate` takes it.
+        image
+            (n_pixels,) float32 Warp array on the device: the measured signal (:meth:`iterate`).
+        noise
+            Each camera's noise sigma, in counts.
+
+        Returns
+        -------
+        voxels
+            (n,) int32 Warp array of flat fine voxel indices, ascending: those the fine elimination keeps
+            of the ones inside the coarse voxels still bright after ``settings.coarse_iterations``.
+        start
+            (n,) float32 Warp array: each voxel's coarse voxel's intensity, plus a share of their mean
+            (:func:`lfcore.warm.with_floor`) so that a voxel its coarse one left dim may still grow;
+            None where no coarse voxel is left.
+        """
+        wp, p, s = self.wp, self.projector, self.settings
+        f = s.coarse
+        if self._coarse is None:
+            from lfcore.plan import projector_for
+
+            cgrid = coarse_grids.coarse_grid(p.grid, f)
+            cproj = projector_for(p.cameras, cgrid, sub_apertures=s.sub_apertures, device=self.device)
+            cset = replace(s, method="mlos-mart", projector="stored", iterations=s.coarse_iterations, los_iterations=0,
+                           subsets=1, stop_tolerance=0.0, warm_start=False, coarse=1, prune=s.prune or PRUNE)
+            self._coarse = FrameReconstructor(cproj, cset, budget_bytes=self.budget_bytes)
+        c = self._coarse
+        cvox = c.eliminate(lit)
+        if int(cvox.shape[0]) == 0:
+            return cvox, None
+        done = c.iterate(c.operator(cvox), image, noise)
+        (bright,), (e,) = prune_dark([done.op], [done.e], c.settings.prune)
+        kept = bright.voxels.numpy()
+        values = e.numpy()[: bright.n_voxels]
+        del done, bright, e
+        order = np.argsort(kept, kind="stable")
+        kept, values = kept[order], values[order]
+        within = wp.array(coarse_grids.children(kept, p.grid, f), dtype=wp.int32, device=self.device)
+        voxels = p.eliminate(lit, min_seen=s.min_seen, max_dark=s.max_dark, within=within)
+        if int(voxels.shape[0]) == 0:
+            return voxels, None
+        of = np.searchsorted(kept, coarse_grids.parents(voxels.numpy(), p.grid, f))
+        start = wp.array(values[of].astype(np.float32), dtype=float, device=self.device)
+        return voxels, with_floor(start, WARM_BLEND, copy=False)
+
     def los_operator(self, voxels) -> Operator:
         """The line-of-sight weights of ``voxels`` ((n,) int32 on the device; MLOS-MART's) for DRT-MART's
         first ``settings.los_iterations``, within the memory budget."""
         if self._los_source is None:
             from lfcore.plan import operator_source
 
-            los = replace(self.settings, method="mlos-mart", projector="stored", los_iterations=0, warm_start=False)
+            los = replace(self.settings, method="mlos-mart", projector="stored", los_iterations=0, warm_start=False,
+                          coarse=1)
             self._los_source = operator_source(self.projector, los)
         n = int(voxels.shape[0])
         return self._los_source.operator(voxels, budget=lambda: self._weight_budget(n))
@@ -1118,7 +1236,11 @@ class FrameReconstructor:
             self._ratio = wp.empty(p.n_pixels, dtype=float, device=self.device)
         prune = s.prune if transposed is None else 0.0
         tolerance = s.stop_tolerance if stop_tolerance is None else float(stop_tolerance)
-        rule = StoppingRule(tolerance, voxels=s.stop_voxels, every=stop_interval(s, prune=prune > 0))
+        # with the rule on, ordered subsets prune and measure per pass as often as the plain form per iteration
+        per_pass = op.n_subsets if tolerance > 0 and isinstance(op, SubsetOperator) else 1
+        prune_every = pass_prune_every(s, per_pass) if per_pass > 1 else s.prune_every
+        rule = StoppingRule(tolerance, voxels=s.stop_voxels, every=stop_interval(s, prune=prune > 0,
+                                                                                  subsets=per_pass))
         ran, stopped = its, (CAPPED if rule.on else FIXED)
         for it in range(1, its + 1):
             measure = rule.due(it - 1)  # the stopping rule: on the projection of what it - 1 iterations left
@@ -1134,7 +1256,7 @@ class FrameReconstructor:
                              groups=groups_in_pass(op.n_subsets, s.subset_halving, it))
             else:
                 op.update(log_ratio(image, proj, floor, self._ratio), e, mu)
-            if prune > 0 and it % s.prune_every == 0 and it < its:  # the dark voxels leave
+            if prune > 0 and it % prune_every == 0 and it < its:  # the dark voxels leave
                 (op,), (e,) = prune_dark([op], [e], prune)
             if progress is not None:
                 progress(1)

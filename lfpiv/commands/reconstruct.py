@@ -37,6 +37,13 @@ def subsets_option(text: str) -> int:
     return whole_number(text, 1, MAX_SUBSETS)
 
 
+def coarse_option(text: str) -> int:
+    """``--coarse``: a whole number from 1 (none) to :data:`lfcore.coarse.MAX_COARSE`."""
+    from lfpiv.jobs.reconstruct import MAX_COARSE
+
+    return whole_number(text, 1, MAX_COARSE)
+
+
 def subset_halving_option(text: str) -> int:
     """``--subset-halving``: a whole number of passes from 0 (never) to :data:`lfpiv.commands.MAX_ITERATIONS`."""
     return whole_number(text, 0, MAX_ITERATIONS)
@@ -155,11 +162,20 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "of the pixels in turn, for about the work of one update from all of them, so its first passes go "
                    "about as far as N plain iterations each (4 subsets took 4x fewer --iterations on the rigs "
                    "measured); stored weights held whole, in "
-                   "memory, the others run the plain form (default: 1, the plain simultaneous form)")
+                   "memory, the others run the plain form; with the stopping rule it measures and prunes per pass, "
+                   "divided by N (default: 4 for the fast protocol, 1 otherwise: the plain simultaneous form)")
     r.add_argument("--subset-halving", type=subset_halving_option, default=None, metavar="PASSES",
                    help="with --subsets: every this many passes the subsets are joined in pairs, down to one (the "
                    "plain form), so that the last passes settle on one volume (default: "
                    f"{SUBSET_HALVING or '0, the same subsets in every pass'})")
+    r.add_argument("--coarse", type=coarse_option, default=None, metavar="N",
+                   help="drt-mart on light-field cameras: coarse-to-fine elimination, first a few line-of-sight "
+                   "iterations on a grid N times coarser along every axis, then only the voxels inside the coarse "
+                   "ones still bright (those --prune keeps) are eliminated, weighted and iterated, from their coarse "
+                   "voxel's intensity; boxes of at least a million voxels (default: 3 for the fast protocol, 1 "
+                   "otherwise: the whole grid eliminated)")
+    r.add_argument("--coarse-iterations", type=positive_int, default=None, metavar="N",
+                   help="with --coarse: the line-of-sight iterations on the coarse grid (default: 20)")
     r.add_argument("--smooth", type=non_negative_float, default=0.6, metavar="VOXELS",
                    help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
     r.add_argument("--sub-apertures", type=sub_apertures, default=None,
@@ -210,7 +226,8 @@ def run(args: argparse.Namespace) -> int:
                                      weight_storage=args.weight_storage, projector=args.projector, prune=args.prune,
                                      prune_every=args.prune_every, warm_start=args.warm_start,
                                      warm_iterations=args.warm_iterations, los_iterations=args.los_iterations,
-                                     subsets=args.subsets, subset_halving=args.subset_halving)
+                                     subsets=args.subsets, subset_halving=args.subset_halving, coarse=args.coarse,
+                                     coarse_iterations=args.coarse_iterations)
     args.method = method
     store = open_run(args.run, mode="r+")
     rig, calibration = None, None
@@ -231,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
                                   calibration=calibration, skip_done=args.skip_done, client=client,
                                   option=pairs_option(args), slabs=args.slabs, flats=flats,
                                   flat_field=flat_info, protocol=args.protocol,
-                                  warm_optional=args.warm_start is None)
+                                  warm_optional=args.warm_start is None, subsets_optional=args.subsets is None)
     old_spelling_notes(args)
     if not results:
         print(f"every selected pair of {store.path} is already reconstructed with these settings; nothing to do")

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from lfcore.coarse import MAX_COARSE
 from lfcore.device import MemoryBudgetError
 from lfcore.flatfield import FlatField, correct
 from lfcore.operator import PROJECTORS, MatrixFreeUnsupported
@@ -25,6 +26,7 @@ from lfcore.plan import (
 )
 from lfcore.plan import default_method as cameras_default_method
 from lfcore.reconstruct import (
+    COARSE_ITERATIONS,
     FIXED,
     MAX_SUB_APERTURES,
     PROTOCOLS,
@@ -48,7 +50,7 @@ from lfpiv.pair_runner import recorded_pairs, run_pairs
 
 __all__ = ["BYTES_PER_BOX_VOXEL", "CONVERGENCE_ATTR", "DEFAULT_PROTOCOL", "MAX_SUB_APERTURES", "MAX_SUBSETS",
            "OPERATOR_ATTR", "PINHOLE_METHODS", "PLAN_ATTR", "PROJECTORS", "PROTOCOLS", "STOP_TOLERANCE",
-           "STOP_VOXELS", "SUBSET_HALVING", "PairDone", "ReconJob", "ReconResult", "ReconSettings",
+           "STOP_VOXELS", "SUBSET_HALVING", "MAX_COARSE", "PairDone", "ReconJob", "ReconResult", "ReconSettings",
            "convergence_figures", "default_method", "describe_convergence", "iterations_summary",
            "operator_figures", "protocol_run_settings", "recon_settings", "reconstruct_pair_task",
            "reconstruct_run", "voxel_shape_notes"]
@@ -144,6 +146,8 @@ class ReconJob:
     flats: dict[str, FlatField] | None = None
     #: whether the settings' warm start is the protocol's (left out in depth slabs) rather than the user's
     warm_optional: bool = False
+    #: whether the settings' ordered subsets are the protocol's (left out in depth slabs) rather than the user's
+    subsets_optional: bool = False
 
 
 def _plan(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None,
@@ -160,13 +164,14 @@ def _plan(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device
 
 
 def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None,
-              slabs: int | str | None = None, warm_optional: bool = False
+              slabs: int | str | None = None, warm_optional: bool = False, subsets_optional: bool = False
               ) -> tuple[Plan, FrameReconstructor | SlabReconstructor]:
     """The plan of a run's frames and its reconstructor (its projector, weight cache and device
     buffers, built once per stream), on a device with room for the box, or for one depth slab of it
     at a time (``slabs``: a number of slabs, or ``"auto"``: as many as the memory needs, 1 if the box
     fits). ``warm_optional``: a warm start the protocol asked for (not the user) is left out in depth
-    slabs rather than refused."""
+    slabs rather than refused; ``subsets_optional`` the same for ordered subsets (slabs run the plain
+    form)."""
     plan = _plan(cams, grid, settings, device, slabs)
     try:
         frames = build_reconstructor(plan, cams, grid, settings)
@@ -175,7 +180,7 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, de
     if settings.warm_start and frames.in_slabs and not warm_optional:
         raise UsageError(f"--warm-start carries whole volumes from frame to frame, and this box is reconstructed in "
                          f"{plan.slabs} depth slabs; drop --warm-start (or --slabs)")
-    if settings.subsets > 1 and frames.in_slabs:
+    if settings.subsets > 1 and frames.in_slabs and not subsets_optional:
         raise UsageError(f"--subsets {settings.subsets} splits the weights of the whole box, and this box is "
                          f"reconstructed in {plan.slabs} depth slabs, which run the plain form; drop --subsets (or "
                          "--slabs)")
@@ -363,7 +368,7 @@ def reconstruct_pair_task(job: ReconJob, pair: int) -> PairDone:
         # as pairs finish, and re-reading them for every write could meet a half-replaced file
         # on a network file system
         plan, frames = _operator(cams, job.grid, job.settings, this_worker_device(job.device), job.slabs,
-                                 job.warm_optional)
+                                 job.warm_optional, job.subsets_optional)
         # a worker's pairs come in order: each warm-starts from the last one it made
         return store, store.writing("volumes")["data"], (plan, frames), Series.of(frames, job.settings)
 
@@ -422,7 +427,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                     calibration: dict[str, Any] | None = None, skip_done: bool = False,
                     client: Any = None, option: str = "--pair-range", slabs: int | str | None = None,
                     flats: dict[str, FlatField] | None = None, flat_field: dict[str, Any] | None = None,
-                    protocol: str | None = None, warm_optional: bool | None = None) -> list[ReconResult]:
+                    protocol: str | None = None, warm_optional: bool | None = None,
+                    subsets_optional: bool | None = None) -> list[ReconResult]:
     """Reconstruct both frames of the selected pairs and store them in ``volumes/``.
 
     Existing volumes with the same grid, cameras, settings and calibration are kept and added
@@ -449,7 +455,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     in the ``volumes/`` settings (None: settings given as they are). ``warm_optional``: the settings'
     warm start is the protocol's, left out where the volumes are reconstructed in depth slabs
     (None: where ``protocol`` warm-starts and ``--warm-start`` was not asked for, so never without a
-    protocol).
+    protocol). ``subsets_optional``: the same for the settings' ordered subsets (the plain form runs in
+    depth slabs; None: where ``protocol`` has subsets).
 
     ``slabs`` reconstructs each volume in depth slabs (:mod:`lfcore.slabs`; the same volume, with
     no buffer of the whole box): a number of slabs, or ``"auto"``, in memory where the box fits and
@@ -493,10 +500,14 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     # the cluster's workers hold the device; this process may have none (a login node)
     if warm_optional is None:
         warm_optional = bool(protocol and PROTOCOLS.get(protocol, {}).get("warm_start"))
-    plan, frames = (_operator(cams, grid, settings, device, slabs, warm_optional) if client is None
-                    else (None, None))
+    if subsets_optional is None:
+        subsets_optional = bool(protocol and PROTOCOLS.get(protocol, {}).get("subsets", 1) > 1)
+    plan, frames = (_operator(cams, grid, settings, device, slabs, warm_optional, subsets_optional)
+                    if client is None else (None, None))
     if frames is not None and frames.in_slabs and settings.warm_start:
         settings = replace(settings, warm_start=False)  # the protocol's, left out: whole volumes only
+    if frames is not None and frames.in_slabs and settings.subsets > 1:
+        settings = replace(settings, subsets=1)  # the protocol's, left out: slabs run the plain form
     # where the weights lived does not change a volume, so it does not make volumes/ a different set
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
@@ -526,7 +537,7 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         return reconstruct_pair_task, ReconJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names),
                                                grid=grid, settings=settings, device=device, token=new_token(),
                                                writer=store.writer_token, into=into, slabs=slabs, flats=flats,
-                                               warm_optional=warm_optional)
+                                               warm_optional=warm_optional, subsets_optional=subsets_optional)
 
     run_pairs(store, "volumes", chosen, matches=lambda g: _made_with(store, g, grid, meta), differences=differences,
               create=lambda: store.create_volumes(grid, method=settings.method, settings=meta), skip_done=skip_done,
@@ -610,8 +621,9 @@ def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
     before ``prune`` with every voxel to the last iteration, those before ``warm_start`` from a uniform
     start, those before ``los_iterations`` on DRT weights from the first iteration, those before
     ``flat_field`` from uncorrected frames, those before ``subsets`` by the plain simultaneous form,
-    those before ``stop_tolerance`` with a fixed count, and those before ``protocol`` by settings given
-    one by one)."""
+    those before ``stop_tolerance`` with a fixed count, those before ``coarse`` with the whole grid
+    eliminated, and those before ``protocol`` by settings given one by one)."""
     return {"projector": "auto", "prune": 0.0, "prune_every": 10, "warm_start": False, "warm_iterations": None,
             "los_iterations": 0, "flat_field": None, "subsets": 1, "subset_halving": SUBSET_HALVING,
-            "stop_tolerance": 0.0, "stop_voxels": STOP_VOXELS, "stop_every": 10, "protocol": None, **settings}
+            "stop_tolerance": 0.0, "stop_voxels": STOP_VOXELS, "stop_every": 10, "coarse": 1,
+            "coarse_iterations": COARSE_ITERATIONS, "protocol": None, **settings}

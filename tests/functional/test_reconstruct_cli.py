@@ -352,6 +352,26 @@ def test_prune_from_the_command(capsys, synthetic_run, tmp_path):
     assert rc == 2 and out == "" and err.count("\n") == 1 and "prune must be from 0" in err, err
 
 
+def test_coarse_from_the_command(capsys, synthetic_run, tmp_path):
+    """--coarse and --coarse-iterations are recorded with the settings (the tiny rig's box is under the
+    size rule, so it is eliminated whole); the fast protocol's subsets are left out in depth slabs
+    rather than refused; a factor past the most is one line."""
+    run = tmp_path / "run.zarr"
+    shutil.copytree(synthetic_run, run)
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "10", "--coarse", "2",
+                        "--coarse-iterations", "5", "--pair-range", "0:1", "--quiet")
+    assert rc == 0, err
+    settings = RunStore.open(run).group["volumes"].attrs["settings"]
+    assert settings["coarse"] == 2 and settings["coarse_iterations"] == 5
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--protocol", "fast", "--max-iterations", "30", "--slabs",
+                        "2", "--pair-range", "0:1", "--quiet")
+    assert rc == 0, err
+    settings = RunStore.open(run).group["volumes"].attrs["settings"]
+    assert settings["subsets"] == 1 and settings["coarse"] == 3 and not settings["warm_start"]
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--coarse", "9", "--quiet")
+    assert rc == 2 and out == "" and err.count("\n") == 1 and "--coarse" in err, err
+
+
 def test_warm_start_from_the_command(capsys, tmp_path):
     """--warm-start: each frame B after the first pair's starts from its frame A carried along the last
     pair's field, in a fifth of the iterations, to the uniform start's quality (against the truth); the

@@ -1,0 +1,138 @@
+"""Issue 47's Mc goal: a whole frame's stages (elimination, operators, iterations), wall and CPU seconds,
+Q against the truth and the voxels left, for chosen settings against the chapter's protocol, in one run.
+
+Run from the repository root::
+
+    python benchmarks/mcfast.py --case Mc                         # the named protocols and the reference
+    python benchmarks/mcfast.py --case S --rows fixed,fast,fast-plain
+    python benchmarks/mcfast.py --case Mc --rows "fast;coarse=3,los_iterations=10,subsets=4,iterations=100"
+
+Each row reconstructs the case's frame (``benchmarks/recon.py``'s scene) from its image with
+:meth:`lfcore.reconstruct.FrameReconstructor.reconstruct`, as ``lfpiv reconstruct`` does, each stage
+timed by the wall clock and by the process's CPU seconds (``time.process_time``: robust to the other
+processes on a shared machine; a CPU launch runs on every core, so CPU seconds may exceed wall ones).
+A row is a protocol name (:data:`lfcore.reconstruct.PROTOCOLS`), ``fast-plain`` (``fast`` without
+its coarse-to-fine elimination and subsets: the protocol before them), or ``name;key=value,...``
+(the protocol with those settings changed).
+
+The reference is the chapter's protocol (``ReconSettings.chapter``: uniform start, elimination,
+ray-traced DRT weights, 400 iterations of every active voxel, no pruning). Without pruning every
+iteration costs the same, so ``--reference-iterations 40`` (the default) times 40 and scales the
+iterations by 10 (its Q is then not measured: ``--reference-iterations 400`` runs it whole).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.convergence import _recon_bench  # noqa: E402  (benchmarks/recon.py's scenes)
+from lfcore import metrics  # noqa: E402
+from lfcore.device import resolve_device  # noqa: E402
+from lfcore.plan import projector_for  # noqa: E402
+from lfcore.reconstruct import FrameReconstructor, protocol_settings  # noqa: E402
+
+#: The stages and the FrameReconstructor methods whose time is theirs.
+STAGES = {"elimination": ("eliminate", "coarse_eliminate"), "line-of-sight weights": ("los_operator",),
+          "DRT operator": ("operator",), "iterations": ("iterate",)}
+
+
+def parse_row(text: str):
+    """(label, settings) of a row: ``name`` or ``name;key=value,...``."""
+    name, _, rest = text.partition(";")
+    changes = {}
+    if name == "fast-plain":
+        name, changes = "fast", {"coarse": 1, "subsets": 1}
+    for item in filter(None, rest.split(",")):
+        key, _, value = item.partition("=")
+        changes[key.strip()] = (float(value) if "." in value else int(value)) if value[:1].isdigit() else value
+    return text, protocol_settings(name, **changes)
+
+
+def timed_frame(proj, settings, img):
+    """One frame: its result and per stage [wall s, CPU s] (the iterations' start counted as operators'
+    time, as :class:`~lfcore.reconstruct.ReconResult` counts it)."""
+    frames = FrameReconstructor(proj, settings)
+    clock = {stage: [0.0, 0.0] for stage in STAGES}
+    for stage, methods in STAGES.items():
+        for name in methods:
+            inner = getattr(frames, name)
+
+            def wrapped(*a, _inner=inner, _stage=stage, **k):
+                w, c = time.perf_counter(), time.process_time()
+                try:
+                    out = _inner(*a, **k)
+                    if _stage == "DRT operator":
+                        clock["DRT voxels"] = out.n_voxels
+                    return out
+                finally:
+                    clock[_stage][0] += time.perf_counter() - w
+                    clock[_stage][1] += time.process_time() - c
+            setattr(frames, name, wrapped)
+    w, c = time.perf_counter(), time.process_time()
+    res = frames.reconstruct(img)
+    total = [time.perf_counter() - w, time.process_time() - c]
+    # the stages nest (coarse_eliminate calls eliminate on another reconstructor, not this one's)
+    drt = clock.pop("DRT voxels", 0)
+    clock["other"] = [total[i] - sum(v[i] for v in clock.values()) for i in (0, 1)]
+    res.drt_voxels = drt  # the voxels DRT's operator was made for
+    return res, clock, total
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--case", default="Mc")
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--ppm", type=float, default=0.5)
+    ap.add_argument("--rows", default="fixed,fast-plain,fast",
+                    help="rows, separated by '|' or ',' between protocol names (see the module docstring)")
+    ap.add_argument("--reference-iterations", type=int, default=40,
+                    help="iterations of the chapter's protocol to time (scaled to its 400); 0: no reference")
+    args = ap.parse_args()
+    device = resolve_device(args.device)
+    _, _, cams, grid, pts, img = _recon_bench().scene(args.case, device, args.ppm)
+    truth = metrics.truth_volume(grid, pts)
+    proj = projector_for(cams, grid, device=device)
+    print(f"case {args.case}: grid {grid.shape} (z, y, x), {len(pts)} particles ({args.ppm:g} PPM), device {device}")
+    # the kernels compiled (and the first-call costs paid) before anything is timed
+    for method in ("drt-mart", "mlos-mart"):
+        FrameReconstructor(proj, protocol_settings("fixed", method=method, iterations=2)).reconstruct(img)
+    FrameReconstructor(proj, protocol_settings("fast", iterations=4, los_iterations=2, stop_tolerance=0.0,
+                                               coarse=3, coarse_iterations=2)).reconstruct(img)
+    rows = [parse_row(r) for r in (args.rows.split("|") if "|" in args.rows else args.rows.split(","))]
+    print("| row | iterations | stopped | Q | voxels active / DRT / left | elimination s wall (CPU) | "
+          "line-of-sight weights s | DRT operator s | iterations s | other s | total s wall (CPU) | "
+          "CPU / reference's | operator |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    ref_cpu = None
+    if args.reference_iterations:
+        n = args.reference_iterations
+        res, clock, total = timed_frame(proj, protocol_settings("chapter", iterations=n, projector="stored"), img)
+        scale = 400 / n
+        for i in (0, 1):
+            total[i] += (scale - 1) * clock["iterations"][i]
+            clock["iterations"][i] *= scale
+        ref_cpu = total[1]
+        q = f"{metrics.q_recon(res.volume, truth):.3f}" + ("" if n == 400 else f" (at {n})")
+        label = "chapter (reference)" + ("" if n == 400 else f", {n} iterations timed, x{scale:g}")
+        print(f"| {label} | 400 | fixed count | {q} | {res.active_voxels:,} / {res.drt_voxels:,} / "
+              f"{res.final_voxels:,} | "
+              + " | ".join(f"{clock[s][0]:.1f} ({clock[s][1]:.1f})" for s in (*STAGES, "other"))
+              + f" | {total[0]:.1f} ({total[1]:.1f}) | 1 | {res.operator} |", flush=True)
+    for label, settings in rows:
+        res, clock, total = timed_frame(proj, settings, img)
+        q = metrics.q_recon(res.volume, truth)
+        ratio = f"1/{ref_cpu / total[1]:.1f}" if ref_cpu else ""
+        print(f"| {label} | {res.iterations} | {res.stopped} | {q:.3f} | {res.active_voxels:,} / "
+              f"{res.drt_voxels:,} / {res.final_voxels:,} | " + " | ".join(f"{clock[s][0]:.1f} ({clock[s][1]:.1f})"
+                                                      for s in (*STAGES, "other"))
+              + f" | {total[0]:.1f} ({total[1]:.1f}) | {ratio} | {res.operator} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
