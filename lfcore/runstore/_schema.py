@@ -110,6 +110,8 @@ class ConvergenceAttrs(_Attrs):
     voxels: Annotated[list[Count], Field(min_length=3, max_length=3)] | None = Field(
         None, description="the least, most and total voxels left at the end (three whole numbers from 0)")
     stopped: dict[str, Count] | None = Field(None, description="a table of the frames per reason they stopped")
+    per_frame: dict[str, list[Any]] | None = Field(
+        None, description='a table of "pair,frame" to [iterations, voxels left, the reason it stopped]')
 
 
 class _Derived(_Attrs):

@@ -262,10 +262,15 @@ def operator_figures(results: Sequence[ReconResult], before: dict[str, Any] | No
             "ms_per_iteration": round(ms, 3), "frames": n}
 
 
-def convergence_figures(results: Sequence[ReconResult], before: dict[str, Any] | None = None) -> dict[str, Any]:
+def convergence_figures(results: Sequence[ReconResult], before: dict[str, Any] | None = None, *,
+                        frames: Sequence[tuple[int, int]] | None = None) -> dict[str, Any]:
     """How the frames' iterations went over a set of volumes: the ``volumes/`` attribute
     :data:`CONVERGENCE_ATTR`, the figures of ``before`` (the attribute as it was, or None) with those
     of ``results`` added.
+
+    ``frames`` names the (pair, frame) of each of ``results``: the figures then keep a row per frame
+    (``per_frame``), so a frame made again replaces its row instead of counting twice. Without it, or
+    on a ``before`` of an older lfpiv that kept no rows, the figures are added as they come.
 
     Returns
     -------
@@ -273,9 +278,17 @@ def convergence_figures(results: Sequence[ReconResult], before: dict[str, Any] |
         ``frames``: how many frames the figures are of; ``iterations`` and ``voxels``: the least,
         most and total over the frames of the iterations that ran and of the voxels left in the
         operator at the end (after the pruning); ``stopped``: per reason
-        (:data:`lfcore.reconstruct.STOP_REASONS`), the frames that stopped for it.
+        (:data:`lfcore.reconstruct.STOP_REASONS`), the frames that stopped for it; ``per_frame``
+        (with ``frames``): ``"pair,frame"`` to [iterations, voxels left, reason].
     """
     before = before or {}
+    rows = before.get("per_frame")
+    if frames is not None and len(frames) == len(results) and (isinstance(rows, dict) or not before.get("frames")):
+        table = {str(k): list(v) for k, v in (rows or {}).items()}
+        for (p, f), r in zip(frames, results, strict=True):
+            table[f"{int(p)},{int(f)}"] = [int(r.iterations), int(r.final_voxels), str(r.stopped)]
+        return {**_convergence_of(list(table.values())), "per_frame": dict(sorted(
+            table.items(), key=lambda kv: tuple(int(x) for x in kv[0].split(","))))}
 
     def spread(key: str, values: list[int]) -> list[int]:
         old = before.get(key)
@@ -290,7 +303,21 @@ def convergence_figures(results: Sequence[ReconResult], before: dict[str, Any] |
     return {"frames": int(before.get("frames", 0)) + len(results),
             "iterations": spread("iterations", [int(r.iterations) for r in results]),
             "voxels": spread("voxels", [int(r.final_voxels) for r in results]),
-            "stopped": {k: stopped[k] for k in sorted(stopped, key=lambda k: (k not in STOP_REASONS, k))}}
+            "stopped": _reasons_in_order(stopped)}
+
+
+def _reasons_in_order(stopped: dict[str, int]) -> dict[str, int]:
+    return {k: stopped[k] for k in sorted(stopped, key=lambda k: (k not in STOP_REASONS, k))}
+
+
+def _convergence_of(rows: list[list]) -> dict[str, Any]:
+    """:func:`convergence_figures`' totals of per-frame rows [iterations, voxels left, reason]."""
+    its, vox = [int(r[0]) for r in rows], [int(r[1]) for r in rows]
+    stopped: dict[str, int] = {}
+    for r in rows:
+        stopped[str(r[2])] = stopped.get(str(r[2]), 0) + 1
+    return {"frames": len(rows), "iterations": [min(its, default=0), max(its, default=0), sum(its)],
+            "voxels": [min(vox, default=0), max(vox, default=0), sum(vox)], "stopped": _reasons_in_order(stopped)}
 
 
 def iterations_summary(results: Sequence[ReconResult], settings: ReconSettings) -> str:
@@ -333,7 +360,8 @@ def _record(store: RunStore, written: list[tuple[int, int]], results: Sequence[R
     def attrs(now: Any) -> dict[str, Any]:
         figures = operator_figures(results, now.get(OPERATOR_ATTR))
         figures["operators"] = operators_ran(results, now.get(OPERATOR_ATTR))
-        return {OPERATOR_ATTR: figures, CONVERGENCE_ATTR: convergence_figures(results, now.get(CONVERGENCE_ATTR)),
+        went = convergence_figures(results, now.get(CONVERGENCE_ATTR), frames=written)
+        return {OPERATOR_ATTR: figures, CONVERGENCE_ATTR: went,
                 **({} if plan is None else {PLAN_ATTR: plan.as_dict()})}
 
     store.record_volumes(written, attrs=attrs)

@@ -488,6 +488,35 @@ def test_protocols_and_the_stopping_rule_from_the_command(capsys, synthetic_run,
         assert rc == 2 and out == "" and err.count("\n") == 1 and expected in err, err
 
 
+def test_a_pair_made_again_replaces_its_frames_in_the_convergence_record(capsys, synthetic_run, tmp_path):
+    """The volumes' convergence record keeps a row per frame: a pair reconstructed again into the same
+    volumes replaces its rows instead of counting its frames twice; a record of an older lfpiv (totals
+    without rows) is added to as before."""
+    from lfpiv.jobs.reconstruct import convergence_figures
+
+    run = tmp_path / "run.zarr"
+    shutil.copytree(synthetic_run, run)
+    for _ in range(2):
+        rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "12", "--pair-range", "0:1", "--quiet")
+        assert rc == 0, err
+    went = RunStore.open(run).group["volumes"].attrs["convergence"]
+    assert went["frames"] == 2 and went["iterations"] == [12, 12, 24] and went["stopped"] == {"fixed count": 2}
+    assert sorted(went["per_frame"]) == ["0,0", "0,1"] and went["per_frame"]["0,1"][0] == 12
+    rc, out, err = _run(capsys, "info", str(run))
+    assert rc == 0 and "12 iterations a frame" in out, out + err
+
+    class Done:  # what convergence_figures reads of a ReconResult
+        iterations, final_voxels, stopped = 30, 100, "converged"
+
+    old = {"frames": 2, "iterations": [12, 12, 24], "voxels": [5, 9, 14], "stopped": {"fixed count": 2}}
+    added = convergence_figures([Done()], old, frames=[(1, 0)])
+    assert added["frames"] == 3 and added["iterations"] == [12, 30, 54] and "per_frame" not in added
+    again = convergence_figures([Done()], {k: v for k, v in went.items()}, frames=[(0, 1)])
+    assert again["frames"] == 2 and again["iterations"] == [12, 30, 42]
+    assert again["voxels"][2] == went["per_frame"]["0,0"][1] + 100
+    assert again["stopped"] == {"converged": 1, "fixed count": 1}
+
+
 def test_a_warm_start_asked_for_in_slabs_is_refused_even_with_the_fast_protocol(capsys, synthetic_run, tmp_path):
     """The fast protocol's own warm start is left out in depth slabs; one the user typed is refused in one line."""
     run = tmp_path / "run.zarr"
