@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from lfcore._kernels.mart import multiplied
+from lfcore._kernels.mart import multiplied, row_sum, row_sum4
 from lfcore.device import warp as _init
 
 _init()
@@ -77,18 +77,7 @@ def smart_update_scaled(
     ej = e[j]
     if ej == 0.0:
         return
-    t = offsets[t0]
-    end = offsets[t0 + 1]
-    s0 = float(0.0)
-    s1 = float(0.0)
-    while t + wp.int64(2) <= end:
-        s0 += w[t] * ratio[pix[t]]
-        s1 += w[t + wp.int64(1)] * ratio[pix[t + wp.int64(1)]]
-        t += wp.int64(2)
-    while t < end:
-        s0 += w[t] * ratio[pix[t]]
-        t += wp.int64(1)
-    e[j] = multiplied(ej, scale[j] * (s0 + s1), relaxation)
+    e[j] = multiplied(ej, scale[j] * row_sum4(offsets, pix, w, ratio, t0), relaxation)
 
 
 @wp.kernel
@@ -108,13 +97,7 @@ def smart_update_scaled_tiled(
     ej = e[j]
     if ej == 0.0:
         return
-    lanes = wp.block_dim()
-    s = float(0.0)
-    t = offsets[t0] + wp.int64(lane)
-    end = offsets[t0 + 1]
-    while t < end:
-        s += w[t] * ratio[pix[t]]
-        t += wp.int64(lanes)
+    s = row_sum(offsets, pix, w, ratio, t0, lane, wp.block_dim())
     total = wp.tile_sum(wp.tile(s))
     if lane == 0:
         e[j] = multiplied(ej, scale[j] * total[0], relaxation)
