@@ -71,7 +71,13 @@ def recon_bench():
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rig", default=str(ROOT / "examples" / "tiny.toml"))
-    ap.add_argument("--case", default=None, help="a case of benchmarks/recon.py instead of --rig (S, S2, Mc, ...)")
+    ap.add_argument("--case", default=None,
+                    help="a case of benchmarks/recon.py instead of --rig (S, S2, Mc, ...), or S2off (S2 focused "
+                         "beyond the box)")
+    ap.add_argument("--focus-shift", type=float, default=None, metavar="MM",
+                    help="move every camera's focus point this far along its optical axis (positive: toward the "
+                         "camera; negative: away from it, the box then lies before the focal plane); S2off's "
+                         "default: -0.6 mm")
     ap.add_argument("--ppm", type=float, default=0.5)
     ap.add_argument("--sweep", default=None, metavar="PPMS",
                     help="comma-separated densities (PPM) instead of --ppm: one line of figures per density")
@@ -92,11 +98,15 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="where the reconstructions and the point model run (cpu, cuda)")
     args = ap.parse_args()
     if args.case:
-        rig, _ = recon_bench().case_rig(args.case)
+        rig, _ = recon_bench().case_rig("S2" if args.case == "S2off" else args.case)
         name = f"case {args.case}"
     else:
         rig = load_rig(args.rig)
         name = f"rig {Path(args.rig).name}"
+    shift = -0.6 if args.case == "S2off" and args.focus_shift is None else (args.focus_shift or 0.0)
+    if shift:
+        rig = shift_focus(rig, shift)
+        name += f", each camera's focus moved {shift:g} mm along its optical axis (+: toward it)"
     grid = VolumeGrid.from_rig(rig)
     proj = projector_for(rig.camera, grid, device=args.device)
     tol = args.match_voxels * np.asarray(grid.voxel_mm)
@@ -145,6 +155,17 @@ def main() -> None:
                       f"{(n_det - matched) / n_det:.3f} ({n_det - matched}/{n_det})  rms x,y,z {rms[0]:.3f}, "
                       f"{rms[1]:.3f}, {rms[2]:.3f} voxel")
             print(f"{route:9s} time per frame {np.mean([r[-1] for r in rs]):.2f} s")
+
+
+def shift_focus(rig, shift_mm: float):
+    """The rig with every camera's focus point moved ``shift_mm`` along its optical axis (positive:
+    toward the camera), the box and the cameras' magnification unchanged: the camera refocused, its
+    focal plane (and the blind depths beside it) moved out of the box when the shift exceeds the box's
+    half-depth along that axis."""
+    d = rig.to_dict()
+    for cam, c in zip(rig.camera, d["camera"], strict=True):
+        c["focus_mm"] = [float(v) for v in np.asarray(cam.focus_mm) + shift_mm * cam.optical_axis]
+    return type(rig).from_dict(d)
 
 
 def focus_distance(rig, grid: VolumeGrid, points_mm: np.ndarray) -> np.ndarray:
