@@ -21,7 +21,39 @@ from lfpiv.errors import UsageError
 from lfpiv.pair_runner import recorded_pairs, run_pairs
 
 __all__ = ["IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "ipr_settings", "particles_pair_task",
-           "particles_run"]
+           "particles_run", "same_settings"]
+
+
+#: Settings added to :class:`lfcore.ipr.IprSettings` after ``particles/`` was first written, at the
+#: value that reproduces what the code did before each existed: no splitting (before
+#: ``split_intensity``), the trilinear blend of voxels' rows (before ``model``), no whole-voxel moves
+#: (before ``relocate_depth``), every particle kept (before ``max_position_std``).
+OLD_DEFAULTS: dict[str, Any] = {"split_intensity": 0.0, "model": "voxels", "relocate_depth": 0,
+                                "max_position_std": 0.0}
+
+#: Settings of the point model only: the ``"voxels"`` model's particles do not depend on them
+#: (groups written before they existed hold none of them).
+POINT_ONLY = ("point_sub_apertures", "particle_image_px", "wavelength_nm", "relocate_depth")
+
+
+def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
+    """A ``particles/`` group's recorded settings with those added since at :data:`OLD_DEFAULTS`."""
+    return {**OLD_DEFAULTS, **settings}
+
+
+def _matching(settings: dict[str, Any]) -> dict[str, Any]:
+    """The settings that make a different set of particles (the point model's own ones only for it)."""
+    if settings.get("model") == "voxels":
+        return {k: v for k, v in settings.items() if k not in POINT_ONLY}
+    return dict(settings)
+
+
+def same_settings(recorded: dict[str, Any], meta: dict[str, Any]) -> bool:
+    """True when particles recorded with the settings ``recorded`` (a ``particles/`` group's
+    ``settings`` attribute, perhaps written before some of today's settings existed) are those
+    ``meta`` (today's :meth:`lfcore.ipr.IprSettings.as_dict` with ``method`` and ``cameras``) makes:
+    what ``--skip-done`` keeps and adds to."""
+    return _matching(_recorded(recorded)) == _matching(meta)
 
 
 def ipr_settings(**options: Any) -> IprSettings:
@@ -144,12 +176,14 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     done = ParticlesDone(device=proj.device)
 
     def matches(g: Any) -> bool:
-        return (g is not None and g.attrs.get("settings") == meta and list(g.attrs.get("origin_mm", [])) ==
-                list(grid.origin_mm) and list(g.attrs.get("voxel_mm", [])) == list(grid.voxel_mm))
+        return (g is not None and same_settings(dict(g.attrs.get("settings", {})), meta)
+                and list(g.attrs.get("origin_mm", [])) == list(grid.origin_mm)
+                and list(g.attrs.get("voxel_mm", [])) == list(grid.voxel_mm))
 
     def differences(g: Any) -> list[str]:
-        old = dict(g.attrs.get("settings", {})) if g is not None else {}
-        return [k for k in meta if old.get(k) != meta[k]]
+        old = _matching(_recorded(dict(g.attrs.get("settings", {})))) if g is not None else {}
+        now = _matching(meta)
+        return [k for k in now if old.get(k) != now[k]]
 
     def here(todo: list[int]) -> None:
         with tqdm(total=2 * len(todo), unit="frame", disable=not progress, desc="particles", leave=False) as bar:

@@ -13,7 +13,7 @@ from lfpiv.rigfile import load_rig
 from tests.conftest import EXAMPLES, tiny_variant
 
 
-@pytest.mark.parametrize("name", ["tiny", "one_camera", "two_cameras"])
+@pytest.mark.parametrize("name", ["tiny", "one_camera", "two_cameras", "two_cameras_off_focus"])
 def test_examples_load_with_matched_optics(name):
     rig = load_rig(EXAMPLES / f"{name}.toml")
     assert rig.optics_warnings() == []
@@ -28,6 +28,19 @@ def test_two_camera_example_is_29mp_at_90_degrees():
     assert (a.pixel_pitch_um, a.mla_pitch_um, a.mla_focal_length_um, a.mla_grid) == (5.5, 77.0, 308.0, "hex")
     cos = float(a.optical_axis @ b.optical_axis)
     assert math.degrees(math.acos(cos)) == pytest.approx(90.0)
+
+
+def test_off_focus_example_keeps_both_focal_planes_out_of_the_box():
+    # particles near a light-field camera's focal plane are not located: the example focuses beyond the box
+    rig = load_rig(EXAMPLES / "two_cameras_off_focus.toml")
+    grid = VolumeGrid.from_rig(rig)
+    corners = np.array(np.meshgrid(*[[-0.5, 0.5]] * 3, indexing="ij")).reshape(3, -1).T
+    corners = np.asarray(rig.volume.centre_mm) + corners * np.asarray(rig.volume.size_mm)
+    a, b = rig.camera
+    assert math.degrees(math.acos(abs(float(a.optical_axis @ b.optical_axis)))) == pytest.approx(90.0)
+    for cam in rig.camera:
+        depth = cam.world_to_camera(corners)[:, 2]  # + toward the camera from its focal plane
+        assert depth.min() >= 10 * max(grid.voxel_mm)  # the whole box in front of the focal plane, 10 voxels clear
 
 
 def test_derived_distances_follow_thin_lens(tiny_rig):

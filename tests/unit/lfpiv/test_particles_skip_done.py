@@ -1,0 +1,44 @@
+"""``lfpiv particles --skip-done`` on ``particles/`` groups written before today's IPR settings existed:
+a missing setting reads as the value that reproduced the old code's particles."""
+
+from __future__ import annotations
+
+from lfcore.ipr import IprSettings
+from lfpiv.jobs.particles import same_settings
+
+#: The first ``particles/`` groups' settings (lfcore.ipr at the first particles commit): no
+#: ``split_intensity``, ``model``, ``point_sub_apertures``, ``particle_image_px``, ``wavelength_nm``,
+#: ``relocate_depth`` nor ``max_position_std``.
+FIRST = {"method": "drt-mart", "candidate_iterations": 50, "candidate_threshold": 0.05, "shakes": 12,
+         "max_step_voxels": 0.5, "min_intensity": 0.5, "merge_voxels": 1.0, "rounds": 3, "cameras": ["cam0"]}
+
+
+def meta(**settings) -> dict:
+    """What ``particles_run`` records for these settings (method and cameras as the first group's)."""
+    return {**IprSettings(**settings).as_dict(), "method": "drt-mart", "cameras": ["cam0"]}
+
+
+def test_an_old_group_matches_the_settings_that_reproduce_it() -> None:
+    old = meta(model="voxels", split_intensity=0.0, relocate_depth=0)
+    assert same_settings(FIRST, old)
+    # the point model's own settings do not change the voxels model's particles
+    assert same_settings(FIRST, meta(model="voxels", split_intensity=0.0, wavelength_nm=633.0, point_sub_apertures=40,
+                                     particle_image_px=2.0, relocate_depth=3))
+    # a group written after split_intensity, before the point model
+    assert same_settings({**FIRST, "split_intensity": 1.4}, meta(model="voxels", split_intensity=1.4))
+    # a group written after the point model, before max_position_std
+    point = {k: v for k, v in meta().items() if k != "max_position_std"}
+    assert same_settings(point, meta())
+
+
+def test_an_old_group_does_not_match_other_settings() -> None:
+    assert not same_settings(FIRST, meta())  # today's defaults: the point model, splitting, moves
+    assert not same_settings(FIRST, meta(model="voxels"))  # splitting (1.4) the old code did not do
+    assert not same_settings(FIRST, meta(model="voxels", split_intensity=0.0, max_position_std=0.1))
+    assert not same_settings(FIRST, meta(model="voxels", split_intensity=0.0, shakes=6))
+    point = {k: v for k, v in meta().items() if k != "max_position_std"}
+    assert not same_settings(point, meta(max_position_std=0.05))
+    assert not same_settings(point, meta(relocate_depth=2))
+    # today's groups compare every setting as before
+    assert same_settings(meta(), meta())
+    assert not same_settings(meta(), meta(wavelength_nm=633.0))
