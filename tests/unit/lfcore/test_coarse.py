@@ -61,24 +61,26 @@ def test_a_coarse_voxel_is_a_block_of_fine_ones_with_their_centre():
         coarse.coarse_grid(grid, 1)
 
 
-def test_elimination_within_candidates_is_the_whole_grids_restricted_to_them(scene):
-    proj, grid, _, img = scene
+def test_elimination_within_candidates_is_the_whole_grids_restricted_to_them(scene, device):
+    cpu, grid, _, img = scene
+    proj = projector_for(cpu.cameras, grid, device=device)
     wp = warp()
     _, lits, _, _ = preprocess_images(proj, [img], ReconSettings())
     whole = proj.eliminate(lits, max_dark=0.01).numpy()
     candidates = np.sort(np.random.default_rng(0).choice(grid.n_voxels, grid.n_voxels // 3, replace=False))
     within = proj.eliminate(lits, max_dark=0.01,
-                            within=wp.array(candidates.astype(np.int32), dtype=wp.int32, device="cpu")).numpy()
+                            within=wp.array(candidates.astype(np.int32), dtype=wp.int32, device=device)).numpy()
     assert whole.size > 100
     assert np.array_equal(within, np.intersect1d(whole, candidates))
 
 
-def test_the_composed_mode_keeps_the_particles_and_reaches_the_plain_modes_q(scene, monkeypatch):
+def test_the_composed_mode_keeps_the_particles_and_reaches_the_plain_modes_q(scene, monkeypatch, device):
     """Coarse-to-fine elimination, line-of-sight passes first and 4 ordered subsets with the rule (the
     fast protocol) on a box the size rule would leave whole: nine in ten of the true particles' voxels
     stay active (94% measured), fewer voxels are reconstructed, and Q is the plain fixed count's
     within 0.03 (0.715 against 0.726 measured)."""
-    proj, grid, pts, img = scene
+    cpu, grid, pts, img = scene
+    proj = projector_for(cpu.cameras, grid, device=device)
     truth = metrics.truth_volume(grid, pts)
     monkeypatch.setattr(coarse, "COARSE_MIN_VOXELS", 0)
     plain = FrameReconstructor(proj, ReconSettings(iterations=100, projector="stored")).reconstruct([img])
@@ -90,7 +92,7 @@ def test_the_composed_mode_keeps_the_particles_and_reaches_the_plain_modes_q(sce
     _, lits, _, noises = preprocess_images(proj, [img], fast)
     signal = preprocess_images(proj, [img], fast)[0][0]
     wp = warp()
-    image = wp.array(signal.ravel(), dtype=float, device="cpu")
+    image = wp.array(signal.ravel(), dtype=float, device=device)
     voxels, start = frames.coarse_eliminate(lits, image, noises)
     kept = voxels.numpy()
     assert start is not None and int(start.shape[0]) == kept.size and np.all(start.numpy() > 0)
