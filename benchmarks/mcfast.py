@@ -13,7 +13,8 @@ timed by the wall clock and by the process's CPU seconds (``time.process_time``:
 processes on a shared machine; a CPU launch runs on every core, so CPU seconds may exceed wall ones).
 A row is a protocol name (:data:`lfcore.reconstruct.PROTOCOLS`), ``fast-plain`` (``fast`` without
 its coarse-to-fine elimination and subsets: the protocol before them), or ``name;key=value,...``
-(the protocol with those settings changed).
+(the protocol with those settings changed), each resolved for the case's cameras as ``lfpiv
+reconstruct`` resolves it (``fast`` on two cameras has no ordered subsets unless a row gives them).
 
 The reference is the chapter's protocol (``ReconSettings.chapter``: uniform start, elimination,
 ray-traced DRT weights, 400 iterations of every active voxel, no pruning). Without pruning every
@@ -42,8 +43,9 @@ STAGES = {"elimination": ("eliminate", "coarse_eliminate"), "line-of-sight weigh
           "DRT operator": ("operator",), "iterations": ("iterate",)}
 
 
-def parse_row(text: str):
-    """(label, settings) of a row: ``name`` or ``name;key=value,...``."""
+def parse_row(text: str, n_cameras: int = 1):
+    """(label, settings) of a row: ``name`` or ``name;key=value,...``, resolved for ``n_cameras`` cameras
+    as ``lfpiv reconstruct`` resolves it (``fast`` on several cameras has no subsets unless given)."""
     name, _, rest = text.partition(";")
     changes = {}
     if name == "fast-plain":
@@ -51,7 +53,7 @@ def parse_row(text: str):
     for item in filter(None, rest.split(",")):
         key, _, value = item.partition("=")
         changes[key.strip()] = (float(value) if "." in value else int(value)) if value[:1].isdigit() else value
-    return text, protocol_settings(name, **changes)
+    return text, protocol_settings(name, n_cameras=n_cameras, **changes)
 
 
 def timed_frame(proj, settings, img):
@@ -104,7 +106,7 @@ def main() -> None:
         FrameReconstructor(proj, protocol_settings("fixed", method=method, iterations=2)).reconstruct(img)
     FrameReconstructor(proj, protocol_settings("fast", iterations=4, los_iterations=2, stop_tolerance=0.0,
                                                coarse=3, coarse_iterations=2)).reconstruct(img)
-    rows = [parse_row(r) for r in (args.rows.split("|") if "|" in args.rows else args.rows.split(","))]
+    rows = [parse_row(r, len(cams)) for r in (args.rows.split("|") if "|" in args.rows else args.rows.split(","))]
     print("| row | iterations | stopped | Q | voxels active / DRT / left | elimination s wall (CPU) | "
           "line-of-sight weights s | DRT operator s | iterations s | other s | total s wall (CPU) | "
           "CPU / reference's | operator |")

@@ -67,7 +67,8 @@ def main() -> None:
         FrameReconstructor(proj, protocol_settings("fixed", method=method, iterations=2)).reconstruct(img)
     times = {}
     for name, n_sub in [(p, int(k)) for p in args.protocols.split(",") for k in args.subsets.split(",")]:
-        res, q, total = timed(proj, protocol_settings(name, **({"subsets": n_sub} if n_sub else {})), img, truth)
+        settings = protocol_settings(name, n_cameras=len(cams), **({"subsets": n_sub} if n_sub else {}))
+        res, q, total = timed(proj, settings, img, truth)
         if n_sub > 1:
             name = f"{name}, {n_sub} subsets"
         times[name] = total

@@ -75,10 +75,11 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
     from lfcore.warm import Predictor, WarmStart
     from lfcore.weight_cache import WeightCache
 
-__all__ = ["CAPPED", "CONVERGED", "FIXED", "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE", "PRUNE_PERCENTILE",
-           "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WEIGHTS", "FrameReconstructor", "Iterated", "ReconResult",
-           "ReconSettings", "StoppingRule", "WARM_SHARE", "estimate_background", "preprocess", "preprocess_images",
-           "protocol_settings", "prune_dark", "reconstruct", "relative_residual", "stop_interval", "warm_count"]
+__all__ = ["CAPPED", "CONVERGED", "FIXED", "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE",
+           "PRUNE_PERCENTILE", "SEVERAL_CAMERAS", "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WEIGHTS",
+           "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings", "StoppingRule", "WARM_SHARE",
+           "estimate_background", "preprocess", "preprocess_images", "protocol_settings", "prune_dark",
+           "reconstruct", "relative_residual", "stop_interval", "warm_count"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: The weights each method iterates on (the ``method`` of :meth:`lfcore.operator.Projector.operator`
@@ -401,12 +402,29 @@ PROTOCOLS: dict[str, dict] = {
 }
 
 
-def protocol_settings(name: str, **changes) -> ReconSettings:
+#: What a named protocol changes on a rig of several cameras (:func:`protocol_settings` with
+#: ``n_cameras`` above 1), where those settings are not given: ``fast`` drops its ordered subsets and
+#: its coarse-to-fine elimination and stops by the rule within 75 iterations. Where depth is resolved
+#: by the other camera, a subset that holds a voxel's few pixels in one camera and none in the other
+#: updates it along that camera's line of sight alone, scaled up to stand for a full iteration, and
+#: its ghosts grow unchecked; the coarse grid's line-of-sight iterations lose particles the fine grid
+#: keeps; and Q peaks within 50-75 iterations, after which the ghosts at the crossings of the two
+#: cameras' lines of sight grow while the rule, measured on one camera, runs on. Measured against the
+#: truth (``benchmarks/mcfast.py --case S2``, ``--case Mc2``, the demo rig; ``benchmarks/RESULTS.md``):
+#: Q 0.758 against ``fixed``'s 0.756 on S2 (0.742 with the one-camera settings), 0.811 against 0.805 on
+#: the demo rig (0.755), 0.846 against 0.845 on Mc2 (0.808). One camera resolves depth from its own
+#: micro-images, which every subset samples, and keeps the one-camera settings.
+SEVERAL_CAMERAS: dict[str, dict] = {"fast": {"subsets": 1, "coarse": 1, "iterations": 75}}
+
+
+def protocol_settings(name: str, *, n_cameras: int = 1, **changes) -> ReconSettings:
     """The :class:`ReconSettings` of the named protocol (:data:`PROTOCOLS`), with ``changes`` applied.
 
     A method other than DRT-MART's simultaneous form drops the line-of-sight first iterations and the
     coarse-to-fine elimination (they are DRT-MART's), and the sequential form the warm start and the
     ordered subsets; ``iterations`` given with a protocol that stops by the rule is the rule's most.
+    ``n_cameras``, the cameras reconstructed jointly: above 1 the protocol's settings for rigs of
+    several cameras (:data:`SEVERAL_CAMERAS`) apply where ``changes`` does not give them.
 
     Raises
     ------
@@ -415,7 +433,8 @@ def protocol_settings(name: str, **changes) -> ReconSettings:
     """
     if name not in PROTOCOLS:
         raise ValueError(f"protocol must be one of {', '.join(PROTOCOLS)}, got '{name}'")
-    merged = {**PROTOCOLS[name], **changes}
+    several = SEVERAL_CAMERAS.get(name, {}) if n_cameras > 1 else {}
+    merged = {**PROTOCOLS[name], **several, **changes}
     if merged.get("method", "drt-mart") != "drt-mart" or merged.get("form", "simultaneous") != "simultaneous":
         if "los_iterations" not in changes:
             merged["los_iterations"] = 0

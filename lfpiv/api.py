@@ -133,7 +133,13 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
     """
     from lfpiv.batch import dask_client
     from lfpiv.jobs.calibrate import calibrated_rig, flat_fields
-    from lfpiv.jobs.reconstruct import default_method, protocol_run_settings, recon_settings, reconstruct_run
+    from lfpiv.jobs.reconstruct import (
+        camera_count,
+        default_method,
+        protocol_run_settings,
+        recon_settings,
+        reconstruct_run,
+    )
 
     store = open_run(run, mode="r+")
     method = method or default_method(store.rig, cameras)
@@ -142,7 +148,7 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
                                   relaxation=relaxation, form=form, **options)
     else:
         settings = protocol_run_settings(protocol, iterations=iterations, method=method, relaxation=relaxation,
-                                         form=form, **options)
+                                         form=form, n_cameras=camera_count(store.rig, cameras), **options)
     rig, cal = calibrated_rig(store.rig, calibration, cameras) if calibration is not None else (None, None)
     flats, flat_info = (flat_fields(store.rig, flat_field, cameras)[:2] if flat_field is not None
                         else (None, None))

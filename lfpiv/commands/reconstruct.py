@@ -74,7 +74,8 @@ def protocol_help(default: str) -> str:
     """``--protocol``'s help, ``default`` the protocol without the option."""
     return (f"a named set of settings (default: {default}), which the other options change: fast stops each frame "
             "when its projections have converged (at most 400 iterations), iterates DRT-MART's first 20 on "
-            "line-of-sight weights, prunes the dark voxels and warm-starts frame B along a series; fixed runs 50 "
+            "line-of-sight weights, prunes the dark voxels and warm-starts frame B along a series (on several "
+            "cameras at most 75 iterations, without ordered subsets or the coarse grid); fixed runs 50 "
             "iterations with pruning; chapter is the chapter's protocol (400 iterations of every active voxel from a "
             "uniform start, as lfpiv study runs it)")
 
@@ -117,7 +118,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "for chapter; fast stops each frame by the rule)")
     r.add_argument("--max-iterations", type=iterations, default=None, metavar="N",
                    help="with the stopping rule, the most iterations a frame runs (default: the protocol's iterations: "
-                   "400 for fast and chapter, 50 for fixed); turns the rule on where the protocol has none")
+                   "400 for fast and chapter, 75 for fast on several cameras, 50 for fixed); turns the rule on where "
+                   "the protocol has none")
     r.add_argument("--stop-tolerance", type=stop_tolerance, default=None, metavar="FRACTION",
                    help="the stopping rule: every 10 iterations, stop once the projections' relative residual fell "
                    f"by less than this fraction of itself and fewer than {STOP_VOXELS:g} of the voxels left (default: "
@@ -208,6 +210,7 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.batch import dask_client
     from lfpiv.jobs.reconstruct import (
         BYTES_PER_BOX_VOXEL,
+        camera_count,
         default_method,
         iterations_summary,
         protocol_run_settings,
@@ -218,8 +221,10 @@ def run(args: argparse.Namespace) -> int:
 
     check_pvr(args.pvr)
     # the cameras' default method needs the run's rig (read only: a bad option leaves the store untouched)
-    method = args.method or default_method(open_run(args.run).rig, args.cameras)
+    run_rig = open_run(args.run).rig
+    method = args.method or default_method(run_rig, args.cameras)
     settings = protocol_run_settings(args.protocol, iterations=args.iterations, max_iterations=args.max_iterations,
+                                     n_cameras=camera_count(run_rig, args.cameras),
                                      stop_tolerance=args.stop_tolerance, method=method, relaxation=args.relaxation,
                                      form=args.form, sub_apertures=args.sub_apertures, background=args.background,
                                      threshold_sigma=args.threshold_sigma, smooth=args.smooth,

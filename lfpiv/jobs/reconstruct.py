@@ -51,7 +51,7 @@ from lfpiv.pair_runner import recorded_pairs, run_pairs
 __all__ = ["BYTES_PER_BOX_VOXEL", "CONVERGENCE_ATTR", "DEFAULT_PROTOCOL", "MAX_SUB_APERTURES", "MAX_SUBSETS",
            "OPERATOR_ATTR", "PINHOLE_METHODS", "PLAN_ATTR", "PROJECTORS", "PROTOCOLS", "STOP_TOLERANCE",
            "STOP_VOXELS", "SUBSET_HALVING", "MAX_COARSE", "PairDone", "ReconJob", "ReconResult", "ReconSettings",
-           "convergence_figures", "default_method", "describe_convergence", "iterations_summary",
+           "camera_count", "convergence_figures", "default_method", "describe_convergence", "iterations_summary",
            "operator_figures", "protocol_run_settings", "recon_settings", "reconstruct_pair_task",
            "reconstruct_run", "voxel_shape_notes"]
 
@@ -78,9 +78,13 @@ def recon_settings(**options: Any) -> ReconSettings:
 
 
 def protocol_run_settings(protocol: str, *, iterations: int | None = None, max_iterations: int | None = None,
-                          stop_tolerance: float | None = None, **options: Any) -> ReconSettings:
+                          stop_tolerance: float | None = None, n_cameras: int = 1, **options: Any) -> ReconSettings:
     """The settings of a named protocol (:func:`lfcore.reconstruct.protocol_settings`) changed by the
     options given (those None are the protocol's), or a one-line :class:`UsageError`.
+
+    ``n_cameras`` is the number of cameras reconstructed jointly: on several the protocol's settings
+    for rigs of several cameras apply (:data:`lfcore.reconstruct.SEVERAL_CAMERAS`: ``fast`` without
+    its ordered subsets) where the options do not give them.
 
     ``iterations`` is a fixed count (the stopping rule off); ``max_iterations`` the stopping rule's
     most (the rule on, at ``stop_tolerance`` or the protocol's or :data:`STOP_TOLERANCE`);
@@ -104,9 +108,14 @@ def protocol_run_settings(protocol: str, *, iterations: int | None = None, max_i
     elif stop_tolerance is not None:
         changes["stop_tolerance"] = stop_tolerance
     try:
-        return protocol_settings(protocol, **changes)
+        return protocol_settings(protocol, n_cameras=n_cameras, **changes)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+
+
+def camera_count(rig: Rig, cameras: Sequence[str] | None = None) -> int:
+    """How many of the rig's cameras are reconstructed jointly: those named (None: all of the rig's)."""
+    return sum(1 for c in rig.camera if cameras is None or c.name in cameras)
 
 
 def default_method(rig: Rig, cameras: Sequence[str] | None = None) -> str:
