@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from lfcore.coarse import COARSE_MIN_VOXELS
 from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
 from lfcore.matrix_free import DrtTemplates, TemplateOperator, template_count
 from lfcore.operator import (
@@ -48,8 +49,8 @@ from lfcore.weight_cache import WeightCache
 
 __all__ = ["BYTES_PER_BOX_VOXEL", "IMAGE_SHARE", "PINHOLE_METHODS", "SLAB_SHARE", "TEMPLATE_TRACES", "AutoSource",
            "Plan", "PlanError", "TemplateSource", "WeightSource", "asked_slabs", "build_reconstructor",
-           "cache_serves", "camera_kind", "default_method", "new_cache", "operator_source", "plan_reconstruction",
-           "projector_for", "unsupported_method"]
+           "cache_serves", "camera_kind", "default_method", "frame_stages", "new_cache", "operator_source",
+           "plan_reconstruction", "projector_for", "unsupported_method"]
 
 #: Bytes per voxel of the box that the elimination pass and the dense result need at once in memory.
 BYTES_PER_BOX_VOXEL = 16
@@ -335,6 +336,10 @@ class Plan:
         Depth slabs each volume is reconstructed in (1: in memory).
     reasons
         One sentence per choice: why.
+    stages
+        What each frame runs, in order, one phrase each (:func:`frame_stages`): the coarse grid, the
+        line-of-sight iterations first, the ordered subsets, the stopping rule or the fixed count. Empty
+        in plans recorded before it was.
     """
 
     device: str
@@ -343,20 +348,27 @@ class Plan:
     cache: bool
     slabs: int
     reasons: tuple[str, ...] = field(default=())
+    stages: tuple[str, ...] = field(default=())
 
     def summary(self) -> str:
         """``"traced weights on cpu, weight cache, in memory"``: the plan in one line."""
         where = "in memory" if self.slabs == 1 else f"in {self.slabs} depth slabs"
         return f"{self.operator} on {self.device}, {'weight cache' if self.cache else 'no weight cache'}, {where}"
 
+    def describe_stages(self) -> str:
+        """``"coarse-to-fine elimination on a 3x coarser grid, ...; at most 400 iterations by the stopping
+        rule"``: what each frame ran, in one line (``""`` for a plan recorded without its stages)."""
+        return "; ".join(self.stages)
+
     def lines(self) -> list[str]:
-        """The plan and its reasons, one line each (what ``lfpiv reconstruct -v`` logs)."""
-        return [f"plan: {self.summary()}", *(f"  {r}" for r in self.reasons)]
+        """The plan, its stages and its reasons, one line each (what ``lfpiv reconstruct -v`` logs)."""
+        stages = [f"stages: {self.describe_stages()}"] if self.stages else []
+        return [f"plan: {self.summary()}", *stages, *(f"  {r}" for r in self.reasons)]
 
     def as_dict(self) -> dict[str, Any]:
         """The plan as the run store records it (``volumes/`` attribute ``plan``)."""
         return {"device": self.device, "cameras": self.cameras, "operator": self.operator, "cache": self.cache,
-                "slabs": self.slabs, "reasons": list(self.reasons)}
+                "slabs": self.slabs, "reasons": list(self.reasons), "stages": list(self.stages)}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Plan:
@@ -369,7 +381,8 @@ class Plan:
         """
         try:
             return cls(device=str(d["device"]), cameras=str(d["cameras"]), operator=str(d["operator"]),
-                       cache=bool(d["cache"]), slabs=int(d["slabs"]), reasons=tuple(str(r) for r in d["reasons"]))
+                       cache=bool(d["cache"]), slabs=int(d["slabs"]), reasons=tuple(str(r) for r in d["reasons"]),
+                       stages=tuple(str(r) for r in d.get("stages", ())))
         except (KeyError, TypeError, ValueError):
             raise PlanError(f"not a recorded plan: {d!r}") from None
 
@@ -520,7 +533,40 @@ def plan_reconstruction(cameras: Sequence, grid: VolumeGrid, settings: ReconSett
     if n > 1 and cache:
         cache, why_cache = False, "no weight cache: each frame's slabs hold their own weights"
     reasons.append(why_cache)
-    return Plan(device=device, cameras=kind, operator=operator, cache=cache, slabs=n, reasons=tuple(reasons))
+    return Plan(device=device, cameras=kind, operator=operator, cache=cache, slabs=n, reasons=tuple(reasons),
+                stages=frame_stages(kind, grid, settings, slabs=n))
+
+
+def frame_stages(cameras: str, grid: VolumeGrid, settings: ReconSettings, *, slabs: int = 1) -> tuple[str, ...]:
+    """What each frame of ``grid`` runs with ``settings`` on cameras of kind ``cameras``
+    (:func:`camera_kind`) in ``slabs`` depth slabs, in order, one phrase each (:attr:`Plan.stages`).
+
+    The coarse-to-fine elimination runs where :meth:`lfcore.reconstruct.FrameReconstructor.coarse_applies`
+    says (DRT-MART's simultaneous form, light-field cameras alone, a box of at least
+    :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels); depth slabs run the plain form (none of the
+    coarse grid, the line-of-sight iterations first or the ordered subsets).
+    """
+    s = settings
+    drt = s.method == "drt-mart" and s.form == "simultaneous"
+    out: list[str] = []
+    if slabs == 1 and drt and s.coarse > 1:
+        if cameras == "light-field" and grid.n_voxels >= COARSE_MIN_VOXELS:
+            out.append(f"coarse-to-fine elimination on a {s.coarse}x coarser grid ({s.coarse_iterations} line-of-sight "
+                       "iterations)")
+        else:
+            why = "cameras other than light-field ones" if cameras != "light-field" else \
+                f"a box of fewer than {COARSE_MIN_VOXELS:,} voxels"
+            out.append(f"elimination on the whole grid (no coarse grid for {why})")
+    if slabs == 1 and s.los_iterations:
+        out.append(f"{s.los_iterations} iterations on line-of-sight weights, then DRT weights for the voxels still "
+                   "bright")
+    if slabs == 1 and s.subsets > 1:
+        out.append(f"{s.subsets} ordered subsets a pass")
+    if s.warm_start and slabs == 1:
+        out.append("frames B warm-started from frame A (without the coarse grid or the line-of-sight iterations)")
+    out.append(f"at most {s.iterations} iterations by the stopping rule" if s.stopping else
+               f"{s.iterations} iterations")
+    return tuple(out)
 
 
 def new_cache(projector: Projector, *, method: str, checks: int | None = None) -> WeightCache:

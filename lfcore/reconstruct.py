@@ -397,8 +397,7 @@ class ReconSettings:
 PROTOCOLS: dict[str, dict] = {
     "chapter": {"iterations": 400, "prune": 0.0, "relaxation": 1.0},
     "fixed": {"iterations": 50},
-    "fast": {"iterations": 400, "stop_tolerance": STOP_TOLERANCE, "los_iterations": 20, "warm_start": True,
-             "coarse": 3, "subsets": 4},
+    "fast": {"iterations": 400, "stop_tolerance": STOP_TOLERANCE, "los_iterations": 20, "coarse": 3, "subsets": 4},
 }
 
 

@@ -74,8 +74,9 @@ def protocol_help(default: str) -> str:
     """``--protocol``'s help, ``default`` the protocol without the option."""
     return (f"a named set of settings (default: {default}), which the other options change: fast stops each frame "
             "when its projections have converged (at most 400 iterations), iterates DRT-MART's first 20 on "
-            "line-of-sight weights, prunes the dark voxels and warm-starts frame B along a series (on several "
-            "cameras at most 75 iterations, without ordered subsets or the coarse grid); fixed runs 50 "
+            "line-of-sight weights, in 4 ordered subsets, eliminates on a coarser grid first in boxes of a million "
+            "voxels or more and prunes the dark voxels (on several cameras at most 75 iterations, without ordered "
+            "subsets or the coarse grid); fixed runs 50 "
             "iterations with pruning; chapter is the chapter's protocol (400 iterations of every active voxel from a "
             "uniform start, as lfpiv study runs it)")
 
@@ -150,8 +151,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=None,
                    help="start frame B of each pair from frame A carried along the displacement the last pair "
                    "measured, instead of from a uniform volume, and iterate it --warm-iterations times (the first "
-                   "pair's B starts uniform; pairs are taken in order; default: the fast protocol's, where the "
-                   "volumes are reconstructed in memory)")
+                   "pair's B starts uniform; pairs are taken in order, each worker's own with --workers; default: no "
+                   "warm start, so that the volumes do not depend on how the run is processed)")
     r.add_argument("--warm-iterations", type=positive_int, default=None, metavar="N",
                    help="iterations of a warm-started frame (default: a fifth of --iterations)")
     r.add_argument("--los-iterations", type=los_iterations, default=None, metavar="N",
@@ -215,6 +216,7 @@ def run(args: argparse.Namespace) -> int:
         iterations_summary,
         protocol_run_settings,
         reconstruct_run,
+        recorded_stages,
         voxel_shape_notes,
     )
     from lfpiv.runs import open_run
@@ -275,6 +277,9 @@ def run(args: argparse.Namespace) -> int:
           f"{f' ({left:.0%} of them left after pruning)' if left < 1 else ''}, "
           f"{operator} built in {ws:.2f} s, {ms:.1f} ms per iteration")
     print(f"protocol {args.protocol}: {iterations_summary(results, settings)}")
+    stages = recorded_stages(store)
+    if stages:
+        print(f"each frame ran: {stages}")
     warm = [r for r in results if r.warm]
     if warm:
         took = (f"at most {settings.warm_count} iterations each instead of {settings.iterations}" if settings.stopping

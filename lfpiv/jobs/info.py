@@ -180,6 +180,11 @@ def describe(path: str | Path) -> list[str]:
         protocol = va["settings"].get("protocol")
         if went or protocol:
             lines.append(("frames", (f"protocol {protocol}: " if protocol else "") + (went or "not recorded")))
+        from lfpiv.jobs.reconstruct import stages_of
+
+        stages = stages_of(va.get("plan"))
+        if stages:
+            lines.append(("stages", stages))
     else:
         lines.append(("volumes", f"none (lfpiv reconstruct {store.path})"))
     if store.has_vectors:

@@ -65,7 +65,7 @@ PLAN_ATTR = "plan"
 #: The attribute of ``volumes/`` that holds how the frames' iterations went (see :func:`convergence_figures`).
 CONVERGENCE_ATTR = "convergence"
 #: The protocol (:data:`lfcore.reconstruct.PROTOCOLS`) of ``lfpiv reconstruct`` without ``--protocol``.
-DEFAULT_PROTOCOL = "fixed"
+DEFAULT_PROTOCOL = "fast"
 
 
 def recon_settings(**options: Any) -> ReconSettings:
@@ -327,6 +327,22 @@ def _convergence_of(rows: list[list]) -> dict[str, Any]:
         stopped[str(r[2])] = stopped.get(str(r[2]), 0) + 1
     return {"frames": len(rows), "iterations": [min(its, default=0), max(its, default=0), sum(its)],
             "voxels": [min(vox, default=0), max(vox, default=0), sum(vox)], "stopped": _reasons_in_order(stopped)}
+
+
+def recorded_stages(store: RunStore) -> str:
+    """What each frame of the run's volumes ran (:func:`stages_of` the plan ``volumes/`` records)."""
+    return stages_of(store.volume_attrs().get(PLAN_ATTR)) if store.has_volumes else ""
+
+
+def stages_of(recorded: object) -> str:
+    """What each frame ran, in one line (:meth:`lfcore.plan.Plan.describe_stages` of a recorded plan),
+    or ``""`` for a plan recorded without its stages (or a damaged record)."""
+    if not isinstance(recorded, dict):
+        return ""
+    try:
+        return Plan.from_dict(recorded).describe_stages()
+    except PlanError:
+        return ""
 
 
 def iterations_summary(results: Sequence[ReconResult], settings: ReconSettings) -> str:

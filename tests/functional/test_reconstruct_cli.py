@@ -72,7 +72,8 @@ def test_mlos_mart_from_the_command(capsys, synthetic_run, tmp_path):
 
 
 def test_weights_made_on_the_fly_from_the_command(capsys, synthetic_run):
-    argv = ["reconstruct", str(synthetic_run), "--method", "mlos-mart", "--iterations", "5", "--pairs", "1", "--quiet"]
+    argv = ["reconstruct", str(synthetic_run), "--protocol", "fixed", "--method", "mlos-mart", "--iterations", "5",
+            "--pairs", "1", "--quiet"]  # fixed: fast's subsets split stored weights only
     rc, out, err = _run(capsys, *argv, "--weight-storage", "stored")
     assert rc == 0, err
     assert "made again in each iteration" not in out
@@ -180,14 +181,15 @@ def test_replacing_volumes_says_so_and_marks_their_vectors_outdated(capsys, tmp_
     run = tmp_path / "run.zarr"
     assert main(["synth", "--rig", TINY, "--out", str(run), "--pairs", "2", "--ppm", "0.2", "--flow", "uniform",
                  "--quiet"]) == 0
-    assert _run(capsys, "reconstruct", str(run), "--iterations", "2", "--quiet")[0] == 0
+    fixed = ("--protocol", "fixed")  # the volumes' line in lfpiv info as a fixed count, no warm start, gives it
+    assert _run(capsys, "reconstruct", str(run), *fixed, "--iterations", "2", "--quiet")[0] == 0
     rc, _, err = _run(capsys, "correlate", str(run), "--windows", "32x32x16,16x16x8", "--quiet")
     assert rc == 0 and not RunStore.open(run).vectors_outdated, err
     import lfpiv.replacement as replacement
 
     usage = shutil.disk_usage
     monkeypatch.setattr(replacement.shutil, "disk_usage", lambda path: usage(path)._replace(free=1000))
-    rc, _, err = _run(capsys, "reconstruct", str(run), "--iterations", "3", "--pairs", "0", "--quiet")
+    rc, _, err = _run(capsys, "reconstruct", str(run), *fixed, "--iterations", "3", "--pairs", "0", "--quiet")
     assert rc == 0
     assert "note: the volumes of 2 pair(s) made with other settings (iterations differ) are replaced" in err
     assert "warning: the new volumes are made beside the old ones, which take 0.00 GiB, and only 0.00 GiB" in err
@@ -339,14 +341,15 @@ def test_prune_from_the_command(capsys, synthetic_run, tmp_path):
     settings record; --prune 0 is the chapter's protocol; a fraction of 1 or more is one line."""
     run = tmp_path / "run.zarr"
     shutil.copytree(synthetic_run, run)
-    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "30", "--pair-range", "0:1", "--quiet")
+    fixed = ("--protocol", "fixed")  # the pruning alone, without fast's subsets and line-of-sight first
+    rc, out, err = _run(capsys, "reconstruct", str(run), *fixed, "--iterations", "30", "--pair-range", "0:1", "--quiet")
     assert rc == 0, err
     left = re.search(r"of voxels active \((\d+)% of them left after pruning\)", out)
     assert left and 0 < int(left.group(1)) < 100, out
     settings = RunStore.open(run).group["volumes"].attrs["settings"]
     assert settings["prune"] == 0.01 and settings["prune_every"] == 10
-    rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "30", "--pair-range", "0:1", "--prune", "0",
-                        "--quiet")
+    rc, out, err = _run(capsys, "reconstruct", str(run), *fixed, "--iterations", "30", "--pair-range", "0:1",
+                        "--prune", "0", "--quiet")
     assert rc == 0 and "left after pruning" not in out and "replaced" in err, err  # other settings: replaced
     rc, out, err = _run(capsys, "reconstruct", str(run), "--prune", "1.5", "--quiet")
     assert rc == 2 and out == "" and err.count("\n") == 1 and "prune must be from 0" in err, err
@@ -382,11 +385,12 @@ def test_warm_start_from_the_command(capsys, tmp_path):
     assert main(["synth", "--rig", TINY, "--out", str(run), "--pairs", "3", "--ppm", "0.4", "--quiet"]) == 0
     cold = tmp_path / "cold.zarr"
     shutil.copytree(run, cold)
-    rc, out, err = _run(capsys, "reconstruct", str(run), "--warm-start", "--quiet")
+    fixed = ("--protocol", "fixed")  # 50 iterations, and no warm start unless asked for
+    rc, out, err = _run(capsys, "reconstruct", str(run), *fixed, "--warm-start", "--quiet")
     assert rc == 0, err
     assert "2 frame(s) B started from their frame A carried along the last pair's displacement: 10 iterations " \
            "each instead of 50" in out, out
-    assert _run(capsys, "reconstruct", str(cold), "--quiet")[0] == 0
+    assert _run(capsys, "reconstruct", str(cold), *fixed, "--quiet")[0] == 0
     s, c = RunStore.open(run), RunStore.open(cold)
     settings = s.group["volumes"].attrs["settings"]
     assert settings["warm_start"] is True and settings["warm_iterations"] is None
@@ -399,12 +403,12 @@ def test_warm_start_from_the_command(capsys, tmp_path):
     # the first pair is the same either way (its B had no predictor yet)
     np.testing.assert_allclose(s.read_volume(0, 1), c.read_volume(0, 1), rtol=1e-5, atol=1e-6)
     # volumes of a plain run are taken as made without warm starts: nothing to do again
-    rc, out, err = _run(capsys, "reconstruct", str(cold), "--skip-done", "--quiet")
+    rc, out, err = _run(capsys, "reconstruct", str(cold), *fixed, "--skip-done", "--quiet")
     assert rc == 0 and "nothing to do" in out, out + err
-    rc, out, err = _run(capsys, "reconstruct", str(cold), "--warm-start", "--slabs", "2", "--quiet")
+    rc, out, err = _run(capsys, "reconstruct", str(cold), *fixed, "--warm-start", "--slabs", "2", "--quiet")
     assert rc == 2 and err.count("\n") == 1 and "--warm-start" in err and "slabs" in err, err
-    rc, out, err = _run(capsys, "reconstruct", str(cold), "--warm-start", "--form", "sequential", "--relaxation",
-                        "2.5", "--quiet")
+    rc, out, err = _run(capsys, "reconstruct", str(cold), *fixed, "--warm-start", "--form", "sequential",
+                        "--relaxation", "2.5", "--quiet")
     assert rc == 2 and err.count("\n") == 1 and "simultaneous" in err, err
 
 
@@ -459,6 +463,11 @@ def test_protocols_and_the_stopping_rule_from_the_command(capsys, synthetic_run,
                         "--pair-range", "0:1", "--quiet")
     assert rc == 0, err
     assert re.search(r"protocol fast: [\d-]+ iterations a frame \(.*at most 60 by the stopping rule", out), out
+    # what each frame ran: the tiny box is too small for the coarse grid, and says so
+    stages = ("each frame ran: elimination on the whole grid (no coarse grid for a box of fewer than 1,000,000 "
+              "voxels); 20 iterations on line-of-sight weights, then DRT weights for the voxels still bright; 4 "
+              "ordered subsets a pass; at most 60 iterations by the stopping rule")
+    assert stages in out, out
     attrs = RunStore.open(run).group["volumes"].attrs
     assert attrs["settings"]["protocol"] == "fast" and attrs["settings"]["stop_tolerance"] > 0
     assert attrs["settings"]["iterations"] == 60 and attrs["settings"]["los_iterations"] == 20
@@ -467,6 +476,7 @@ def test_protocols_and_the_stopping_rule_from_the_command(capsys, synthetic_run,
     assert set(went["stopped"]) <= {"converged", "max iterations"} and 20 < went["iterations"][1] <= 60
     rc, out, err = _run(capsys, "info", str(run))
     assert rc == 0 and "at most 60 iterations (stopping rule)" in out and "protocol fast: " in out, out + err
+    assert re.search(r"^stages +" + re.escape(stages.removeprefix("each frame ran: ")) + "$", out, re.M), out
     # --iterations is a fixed count, whatever the protocol
     rc, out, err = _run(capsys, "reconstruct", str(run), "--protocol", "fast", "--iterations", "25",
                         "--pair-range", "0:1", "--quiet")
@@ -527,3 +537,25 @@ def test_a_warm_start_asked_for_in_slabs_is_refused_even_with_the_fast_protocol(
     assert rc == 2 and out == "" and err.count("\n") == 1 and "--warm-start" in err and "slabs" in err, err
     after = sorted((run / "volumes").rglob("*")) if (run / "volumes").exists() else []
     assert after == before  # nothing written
+
+
+def test_the_default_is_fast_and_its_volumes_do_not_depend_on_how_the_run_is_processed(capsys, synthetic_run,
+                                                                                       tmp_path):
+    """lfpiv reconstruct without options runs the fast protocol (the stopping rule, converged frames); pairs
+    made one range at a time and resumed with --skip-done give the volumes of one run in order (every frame
+    starts uniform: no warm start follows the pairs a process happened to make)."""
+    whole, parts = tmp_path / "whole.zarr", tmp_path / "parts.zarr"
+    shutil.copytree(synthetic_run, whole)
+    shutil.copytree(synthetic_run, parts)
+    rc, out, err = _run(capsys, "reconstruct", str(whole), "--quiet")
+    assert rc == 0 and re.search(r"protocol fast: [\d-]+ iterations a frame \(.*stopping rule", out), out + err
+    settings = RunStore.open(whole).group["volumes"].attrs["settings"]
+    assert settings["protocol"] == "fast" and settings["stop_tolerance"] > 0 and settings["warm_start"] is False
+    assert _run(capsys, "reconstruct", str(parts), "--pair-range", "1:2", "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "reconstruct", str(parts), "--skip-done", "--quiet")
+    assert rc == 0 and "reconstructed 2 volume(s)" in out, out + err  # pair 0 only
+    a, b = RunStore.open(whole), RunStore.open(parts)
+    for pair in (0, 1):
+        for frame in (0, 1):
+            want = a.read_volume(pair, frame)
+            np.testing.assert_allclose(b.read_volume(pair, frame), want, rtol=1e-5, atol=1e-6 * float(want.max()))

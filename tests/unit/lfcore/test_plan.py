@@ -20,12 +20,13 @@ from lfcore.plan import (
     TemplateSource,
     WeightSource,
     build_reconstructor,
+    frame_stages,
     operator_source,
     plan_reconstruction,
     projector_for,
 )
 from lfcore.projector import LightFieldProjector
-from lfcore.reconstruct import FrameReconstructor, ReconSettings
+from lfcore.reconstruct import FrameReconstructor, ReconSettings, protocol_settings
 from lfcore.rig import Rig
 from lfcore.slabs import SlabReconstructor
 from lfcore.volume import VolumeGrid
@@ -82,6 +83,32 @@ def test_the_plan_of_each_camera_kind_says_its_operator_cache_and_why(tiny_rig, 
     assert Plan.from_dict(lf.as_dict()) == lf
     with pytest.raises(PlanError, match="not a recorded plan"):
         Plan.from_dict({"device": "cpu"})
+
+
+def test_the_plan_says_what_each_frame_runs(tiny_rig, small):
+    """Plan.stages: the coarse grid where it applies (or why not), the line-of-sight iterations first, the
+    ordered subsets and the stopping rule; depth slabs run the plain form; older records read as none."""
+    grid = VolumeGrid.from_rig(tiny_rig)  # 82 x 68 x 29 voxels: under COARSE_MIN_VOXELS
+    fast = plan_reconstruction(tiny_rig.camera, grid, protocol_settings("fast"), device="cpu")
+    assert fast.stages == ("elimination on the whole grid (no coarse grid for a box of fewer than 1,000,000 voxels)",
+                           "20 iterations on line-of-sight weights, then DRT weights for the voxels still bright",
+                           "4 ordered subsets a pass", "at most 400 iterations by the stopping rule")
+    assert fast.describe_stages() == "; ".join(fast.stages) and "stages: " in fast.lines()[1]
+    big = VolumeGrid(shape=(120, 100, 100), voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm)  # 1.2 M voxels
+    assert frame_stages("light-field", big, protocol_settings("fast"))[0] == \
+        "coarse-to-fine elimination on a 3x coarser grid (20 line-of-sight iterations)"
+    assert "cameras other than light-field ones" in frame_stages("joint", big, protocol_settings("fast"))[0]
+    assert frame_stages("light-field", big, protocol_settings("fast"), slabs=2) == (
+        "at most 400 iterations by the stopping rule",)  # slabs run the plain form
+    assert frame_stages("light-field", grid, ReconSettings()) == ("50 iterations",)
+    warm = frame_stages("light-field", grid, protocol_settings("fixed", warm_start=True))
+    assert warm[0].startswith("frames B warm-started from frame A")
+    ph = plan_reconstruction(small.camera, VolumeGrid.from_rig(small), protocol_settings("fast", method="mlos-smart"),
+                             device="cpu")
+    assert ph.stages == ("4 ordered subsets a pass", "at most 400 iterations by the stopping rule")
+    assert Plan.from_dict(fast.as_dict()) == fast
+    old = {k: v for k, v in fast.as_dict().items() if k != "stages"}  # recorded before December 2026
+    assert Plan.from_dict(old).stages == () and Plan.from_dict(old).describe_stages() == ""
 
 
 def test_the_plan_splits_what_does_not_fit_and_refuses_in_one_line(tiny_rig):
