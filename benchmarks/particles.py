@@ -10,6 +10,7 @@ Run from the repository root::
     python benchmarks/particles.py --model voxels                        # the first particle model
     python benchmarks/particles.py --case S2 --frames 1 --focus-gap 3,10 --rays 40000 --max-std 0.05
     python benchmarks/particles.py --case S2off --no-mart                # S2 focused beyond the box
+    python benchmarks/particles.py --focus-shift -1.0                    # one camera focused beyond the box
 
 ``--rays`` renders with more rays a particle than the rig's (less Monte-Carlo sampling noise in the
 frames); ``--shakes``, ``--split``, ``--rounds``, ``--relocate``, ``--max-std`` and ``--model`` set
@@ -22,7 +23,9 @@ case of ``benchmarks/recon.py`` (S2: two cameras at 90 degrees), frames rendered
 Monte-Carlo renderer (each camera its own image). ``S2off`` is S2 with each camera's focus point moved
 0.6 mm along its optical axis away from the camera (``--focus-shift -0.6``; positive moves it toward
 the camera), so that both focal planes lie 0.2 mm (18 voxels) beyond the box, as in
-``examples/two_cameras_off_focus.toml``; ``--focus-shift`` moves any rig's focus points so. Each
+``examples/two_cameras_off_focus.toml``; ``--focus-shift`` moves any rig's focus points so, one camera
+included (the tiny rig at ``--focus-shift -1.0`` is ``examples/one_camera_off_focus.toml``: its focal
+plane 0.2 mm beyond the 1.6 mm deep box). Each
 frame is reconstructed twice:
 
 ipr
