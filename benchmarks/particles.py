@@ -10,6 +10,7 @@ Run from the repository root::
     python benchmarks/particles.py --model voxels                        # the first particle model
     python benchmarks/particles.py --case S2 --frames 1 --focus-gap 3,10 --rays 40000 --max-std 0.05
     python benchmarks/particles.py --case S2off --no-mart                # S2 focused beyond the box
+    python benchmarks/particles.py --case Soff                           # one camera focused beyond the box
 
 ``--rays`` renders with more rays a particle than the rig's (less Monte-Carlo sampling noise in the
 frames); ``--shakes``, ``--split``, ``--rounds``, ``--relocate``, ``--max-std`` and ``--model`` set
@@ -22,7 +23,10 @@ case of ``benchmarks/recon.py`` (S2: two cameras at 90 degrees), frames rendered
 Monte-Carlo renderer (each camera its own image). ``S2off`` is S2 with each camera's focus point moved
 0.6 mm along its optical axis away from the camera (``--focus-shift -0.6``; positive moves it toward
 the camera), so that both focal planes lie 0.2 mm (18 voxels) beyond the box, as in
-``examples/two_cameras_off_focus.toml``; ``--focus-shift`` moves any rig's focus points so. Each
+``examples/two_cameras_off_focus.toml``; ``--focus-shift`` moves any rig's focus points so, one camera
+included. ``Soff`` is the one-camera tiny rig (case S) focused so, ``--focus-shift -1.0`` by default, as in
+``examples/one_camera_off_focus.toml``: its focal plane 0.2 mm (3.6 of its 55 um depth voxels) beyond
+the 1.6 mm deep box. Each
 frame is reconstructed twice:
 
 ipr
@@ -65,6 +69,10 @@ from lfcore.render import renderer_for  # noqa: E402
 from lfcore.volume import VolumeGrid  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
 
+#: Cases focused beyond the box: each camera's focus shift (mm, along its optical axis; negative: away
+#: from the camera) that puts its focal plane 0.2 mm beyond the box's far face.
+OFF_FOCUS = {"S2off": -0.6, "Soff": -1.0}
+
 
 def recon_bench():
     """benchmarks/recon.py as a module (its cases' rigs: ``case_rig``)."""
@@ -78,12 +86,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rig", default=str(ROOT / "examples" / "tiny.toml"))
     ap.add_argument("--case", default=None,
-                    help="a case of benchmarks/recon.py instead of --rig (S, S2, Mc, ...), or S2off (S2 focused "
-                         "beyond the box)")
+                    help="a case of benchmarks/recon.py instead of --rig (S, S2, Mc, ...), or S2off / Soff (S2 / S "
+                         "focused beyond the box)")
     ap.add_argument("--focus-shift", type=float, default=None, metavar="MM",
                     help="move every camera's focus point this far along its optical axis (positive: toward the "
                          "camera; negative: away from it, the box then lies before the focal plane); S2off's "
-                         "default: -0.6 mm")
+                         "default: -0.6 mm, Soff's -1.0 mm")
     ap.add_argument("--ppm", type=float, default=0.5)
     ap.add_argument("--sweep", default=None, metavar="PPMS",
                     help="comma-separated densities (PPM) instead of --ppm: one line of figures per density")
@@ -104,12 +112,12 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="where the reconstructions and the point model run (cpu, cuda)")
     args = ap.parse_args()
     if args.case:
-        rig, _ = recon_bench().case_rig("S2" if args.case == "S2off" else args.case)
+        rig, _ = recon_bench().case_rig(args.case.removesuffix("off") if args.case in OFF_FOCUS else args.case)
         name = f"case {args.case}"
     else:
         rig = load_rig(args.rig)
         name = f"rig {Path(args.rig).name}"
-    shift = -0.6 if args.case == "S2off" and args.focus_shift is None else (args.focus_shift or 0.0)
+    shift = OFF_FOCUS[args.case] if args.case in OFF_FOCUS and args.focus_shift is None else (args.focus_shift or 0.0)
     if shift:
         rig = shift_focus(rig, shift)
         name += f", each camera's focus moved {shift:g} mm along its optical axis (+: toward it)"

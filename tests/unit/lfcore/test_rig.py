@@ -13,7 +13,8 @@ from lfpiv.rigfile import load_rig
 from tests.conftest import EXAMPLES, tiny_variant
 
 
-@pytest.mark.parametrize("name", ["tiny", "one_camera", "two_cameras", "two_cameras_off_focus"])
+@pytest.mark.parametrize("name", ["tiny", "one_camera", "two_cameras", "two_cameras_off_focus",
+                                  "one_camera_off_focus"])
 def test_examples_load_with_matched_optics(name):
     rig = load_rig(EXAMPLES / f"{name}.toml")
     assert rig.optics_warnings() == []
@@ -41,6 +42,21 @@ def test_off_focus_example_keeps_both_focal_planes_out_of_the_box():
     for cam in rig.camera:
         depth = cam.world_to_camera(corners)[:, 2]  # + toward the camera from its focal plane
         assert depth.min() >= 10 * max(grid.voxel_mm)  # the whole box in front of the focal plane, 10 voxels clear
+
+
+def test_one_camera_off_focus_example_is_the_tiny_rig_focused_beyond_its_box():
+    # one light-field camera cannot place the particles within ~3 of its 55 um depth voxels of its focal
+    # plane, nor ~174 um in front of it: the example moves the focal plane 0.2 mm beyond the box
+    rig = load_rig(EXAMPLES / "one_camera_off_focus.toml")
+    tiny = load_rig(EXAMPLES / "tiny.toml")
+    (cam,), (cam0,) = rig.camera, tiny.camera
+    assert rig.volume == tiny.volume
+    assert cam.model_copy(update={"focus_mm": cam0.focus_mm}) == cam0  # only the focus differs
+    corners = np.array(np.meshgrid(*[[-0.5, 0.5]] * 3, indexing="ij")).reshape(3, -1).T
+    corners = np.asarray(rig.volume.centre_mm) + corners * np.asarray(rig.volume.size_mm)
+    depth = cam.world_to_camera(corners)[:, 2]  # + toward the camera from its focal plane
+    assert depth.min() == pytest.approx(0.2)  # the whole box in front of the focal plane, 0.2 mm clear
+    assert depth.min() > max(3 * VolumeGrid.from_rig(rig).voxel_mm[2], 0.174)
 
 
 def test_derived_distances_follow_thin_lens(tiny_rig):
