@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from lfcore import coarse as coarse_grids
 from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
 from lfcore.matrix_free import DrtTemplates, TemplateOperator, template_count
 from lfcore.operator import (
@@ -500,7 +501,11 @@ def plan_reconstruction(cameras: Sequence, grid: VolumeGrid, settings: ReconSett
             raise PlanError(f"a box of {grid.n_voxels:,} voxels {why}, and the sequential form cannot be split into "
                             "depth slabs; use --form simultaneous or a coarser --pvr")
         try:
-            n = slabs_for_budget(grid, int(SLAB_SHARE * free), halo=slab_halo(settings))
+            # the coarse grid of coarse-to-fine elimination is eliminated in memory before the slabs
+            # (where it runs: lfcore.reconstruct.coarse_applies, on light-field cameras' projector)
+            coarse = settings.coarse if (kind == "light-field" and settings.coarse > 1 and settings.method == "drt-mart"
+                                         and grid.n_voxels >= coarse_grids.COARSE_MIN_VOXELS) else 1
+            n = slabs_for_budget(grid, int(SLAB_SHARE * free), halo=slab_halo(settings), coarse=coarse)
         except MemoryBudgetError as exc:
             raise PlanError(f"--slabs auto: {exc}") from None
         why = (f"its buffers ({need / 2**20:.1f} MiB) do not fit in the {free / 2**20:.1f} MiB free" if need > free
