@@ -132,3 +132,19 @@ def test_a_slabs_coarse_children_and_parents_are_the_boxs():
                                       coarse_grids.parents(mine.astype(np.int64) + z0 * plane, grid, 3))
         parts.append(mine.astype(np.int64) + z0 * plane)
     np.testing.assert_array_equal(np.concatenate(parts), whole)
+
+
+def test_the_slab_budget_holds_the_coarse_grid():
+    """--slabs auto's slabs fit the budget, and so must the coarse grid's elimination buffers (20 bytes a
+    coarse voxel), which exist before the slabs' own: a deep box whose thin slabs fit but whose coarse grid
+    does not is refused in one line that names the fix."""
+    from lfcore.device import MemoryBudgetError
+    from lfcore.slabs import BYTES_PER_SLAB_VOXEL, slabs_for_budget
+
+    grid = VolumeGrid(shape=(400, 100, 100), voxel_mm=(0.1, 0.1, 0.1), origin_mm=(0.0, 0.0, 0.0))
+    budget = 5_000_000  # slabs of a few planes fit; the coarse grid at 2 (500,000 voxels: 10 MB) does not
+    n = slabs_for_budget(grid, budget, halo=2)
+    assert n == slabs_for_budget(grid, budget, halo=2, coarse=3)  # at 3: 20 * 34 * 34 * 134 bytes = 3.1 MB fit
+    assert BYTES_PER_SLAB_VOXEL * (-(-400 // 2)) * 50 * 50 > budget
+    with pytest.raises(MemoryBudgetError, match="the coarse grid of --coarse 2 .* use --coarse 1 or a coarser --pvr"):
+        slabs_for_budget(grid, budget, halo=2, coarse=2)
