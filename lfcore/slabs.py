@@ -298,7 +298,7 @@ class SlabReconstructor:
             wp.synchronize_device(dev)
             tb = time.perf_counter()
             t_elim += tb - ta
-            self._peak(held + BYTES_PER_SLAB_VOXEL * slab.nz * plane_voxels(p))
+            self._peak(held + BYTES_PER_SLAB_VOXEL * slab.nz * _plane_voxels(p))
             first = not any(from_templates(x) for x in ops)
             self._budget(frames, slab, ps, int(vox.shape[0]), held, budget, first=first)
             w = frames.los_operator(vox) if los_first else frames.operator(vox)  # stored, or the templates
@@ -425,7 +425,7 @@ class SlabReconstructor:
         its intensities."""
         # FrameReconstructor's weight budget sets aside the pixel buffers, the intensities and the slab's
         # dense volume (add them back), and the matrix-free templates, held already, which it sets aside itself
-        room = budget - held - 4 * n - BYTES_PER_SLAB_VOXEL * slab.nz * plane_voxels(ps)
+        room = budget - held - 4 * n - BYTES_PER_SLAB_VOXEL * slab.nz * _plane_voxels(ps)
         shared = 0 if first or self._templates is None else self._templates.nbytes
         frames.budget_bytes = room + 12 * self.projector.n_pixels + 4 * n + 8 * ps.grid.n_voxels + shared
 
@@ -438,10 +438,10 @@ class SlabReconstructor:
         if self._subset_of is None:
             host = pixel_subsets(p.pixel_offsets, p.cameras, s.subsets)
             self._subset_of = wp.array(host, dtype=wp.int32, device=self.device)
-        parts, held = list(joint.parts), self._held
+        parts, held = joint.parts, self._held
         if any(w.n_voxels and split_bytes(w, s.subsets) + held > budget for w in parts):
             return joint
-        out = []
+        out = []  # each slab's unsplit rows let go (joint's too: the loop holds only the split ones) as it is split
         for i, w in enumerate(parts):
             if not w.n_voxels:
                 out.append(w)
@@ -476,7 +476,7 @@ def _operator_kind(w: Operator) -> str:
     return OPERATOR_KINDS[w.kind] + (f"; {w.n_on_the_fly:,} voxels' made on the fly" if w.n_on_the_fly else "")
 
 
-def plane_voxels(p: Projector) -> int:
+def _plane_voxels(p: Projector) -> int:
     """Voxels of one plane of ``p``'s grid."""
     return int(p.grid.shape[1]) * int(p.grid.shape[2])
 
@@ -503,11 +503,15 @@ class SlabOperators:
         self.parts = list(parts)
         self.scratch = scratch
         self.offsets = np.concatenate([[0], np.cumsum([w.n_voxels for w in self.parts])]).astype(np.int64)
-        lit = [w for w in self.parts if w.n_voxels]
+        lit = self._lit
         #: whether every slab with voxels runs the same ordered subsets
         self.ordered_subsets = bool(lit) and all(isinstance(w, SubsetOperator) for w in lit) and len(
             {w.n_subsets for w in lit}) == 1
-        self._lit = lit
+
+    @property
+    def _lit(self) -> list:
+        """The slabs' operators that hold voxels."""
+        return [w for w in self.parts if w is not None and w.n_voxels]
 
     @property
     def n_voxels(self) -> int:
