@@ -6,6 +6,7 @@ Run from the repository root::
     python benchmarks/slabs.py                       # tiny rig at PVR (0.5, 0.5, 2): 12.9 M voxels
     python benchmarks/slabs.py --pvr 1,1,2 --slabs 3
     python benchmarks/slabs.py --device cuda --pvr 0.25,0.25,2 --slabs 8   # on a GPU (benchmarks/gpu.sh slabs)
+    python benchmarks/slabs.py --plans               # slabs with fast's plan against slabs with the plain one
     python benchmarks/slabs.py --correlate           # a 128 x 128 x 384 blob pair in 8 slabs
     python benchmarks/slabs.py --correlate --shape 512,256,256 --slabs 8
 
@@ -23,6 +24,13 @@ process's peak resident memory, its rise over the memory held once the projector
 memory the slab path accounts for its weights and buffers, and the seconds; then the largest
 difference between the two volumes relative to the volume's maximum. On a GPU the resident memory
 is the host's, the accounted figure the device's.
+
+With ``--plans`` the frame is reconstructed in slabs by the plain plan (``--protocol fixed``: elimination,
+one operator, ``--iterations`` with the pruning) and by the ``fast`` protocol's (coarse-to-fine elimination,
+20 line-of-sight first iterations, 4 ordered subsets, the stopping rule at most 400; no warm start), and
+in memory by ``fast``'s: per run the CPU seconds (:func:`time.process_time`), the wall seconds, the
+iterations, the active voxels, Q against the truth and the peak memory; then the largest difference
+between ``fast``'s volumes in slabs and in memory.
 """
 
 from __future__ import annotations
@@ -49,31 +57,49 @@ def _rss_bytes(field: str = "VmRSS") -> int:
     return 0
 
 
-def child(mode: str, pvr: tuple[float, float, float], n_slabs: int, iterations: int, out: str, device: str) -> None:
-    import zarr
-
+def _frame(pvr: tuple[float, float, float], device: str, ppm: float = 0.05):
+    """The tiny rig, its grid at ``pvr``, the particles and one frame of its camera (``ppm``)."""
     from lfcore.particles import particle_count, seed_particles
-    from lfcore.projector import LightFieldProjector
-    from lfcore.reconstruct import FrameReconstructor, ReconSettings
     from lfcore.render import LightFieldRenderer
-    from lfcore.slabs import SlabReconstructor, plan_slabs
     from lfcore.volume import VolumeGrid
     from lfpiv.rigfile import load_rig
 
     rig = load_rig(ROOT / "examples" / "tiny.toml")
     grid = VolumeGrid.from_rig(rig, pvr=pvr)
-    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.05), np.random.default_rng(5))
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=ppm), np.random.default_rng(5))
     cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
     images = [LightFieldRenderer(c, cfg, wavelength_nm=rig.laser.wavelength_nm, device=device).frame(pts, 50_000.0,
                                                                                                      seed=1)
               for c in rig.camera]
+    return rig, grid, pts, images
+
+
+def _settings(plan: str, iterations: int):
+    from lfcore.reconstruct import ReconSettings, protocol_settings
+
+    if plan == "fast":  # the protocol's whole plan but the warm start (a series' only; slabs leave it out)
+        return protocol_settings("fast", warm_start=False)
+    if plan == "fixed":
+        return protocol_settings("fixed", iterations=iterations)
+    return ReconSettings(iterations=iterations)
+
+
+def child(mode: str, pvr: tuple[float, float, float], n_slabs: int, iterations: int, out: str, device: str,
+          plan: str = "plain", ppm: float = 0.05) -> None:
+    import zarr
+
+    from lfcore.projector import LightFieldProjector
+    from lfcore.reconstruct import FrameReconstructor
+    from lfcore.slabs import SlabReconstructor, plan_slabs
+
+    rig, grid, pts, images = _frame(pvr, device, ppm)
     proj = LightFieldProjector(rig.camera, grid, device=device)
     nz, ny, nx = grid.shape
     data = zarr.open_array(out, mode="w", shape=grid.shape, dtype=np.float32,
                            chunks=(min(nz, 16), min(ny, 256), min(nx, 256)), fill_value=0.0)
-    settings = ReconSettings(iterations=iterations)
+    settings = _settings(plan, iterations)
     base = _rss_bytes()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if mode == "memory":
         res = FrameReconstructor(proj, settings).reconstruct(images)
         data[...] = res.volume
@@ -84,11 +110,13 @@ def child(mode: str, pvr: tuple[float, float, float], n_slabs: int, iterations: 
 
         res = SlabReconstructor(proj, settings, slabs=plan_slabs(nz, n_slabs)).reconstruct(images, write=write)
         peak_accounted = res.peak_bytes
-    seconds = time.perf_counter() - t0
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     print(json.dumps({"mode": mode, "voxels": grid.n_voxels, "shape": list(grid.shape), "active": res.active_voxels,
                       "weight_bytes": res.weight_bytes, "peak_rss": peak, "base_rss": base,
-                      "peak_accounted": peak_accounted, "seconds": seconds, "slabs": res.slabs}))
+                      "peak_accounted": peak_accounted, "seconds": seconds, "slabs": res.slabs, "cpu": cpu,
+                      "iterations": res.iterations, "stopped": res.stopped, "final": res.final_voxels,
+                      "operator": res.operator}))
 
 
 #: The correlation of ``--correlate``: two passes and two deformation passes (cubic B-spline).
@@ -178,6 +206,39 @@ def correlate_main(args: argparse.Namespace) -> None:
           f"{'identical' if same else 'DIFFERENT'}")
 
 
+def plans_main(args: argparse.Namespace, pvr: tuple[float, float, float]) -> None:
+    """Slabs by the plain plan and by fast's, and fast's in memory: CPU seconds and Q against the truth."""
+    import zarr
+
+    from lfcore import metrics
+
+    runs = (("slabs", "fixed"), ("slabs", "fast"), ("memory", "fast"))
+    rows = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for mode, plan in runs:
+            out = str(Path(tmp) / f"{mode}-{plan}.zarr")
+            run = subprocess.run([sys.executable, __file__, "--child", mode, "--plan", plan, "--pvr", args.pvr,
+                                  "--slabs", str(args.slabs), "--iterations", str(args.iterations), "--out", out,
+                                  "--device", args.device, "--ppm", str(args.ppm)],
+                                 check=True, capture_output=True, text=True, cwd=ROOT)
+            rows[mode, plan] = json.loads(run.stdout.strip().splitlines()[-1])
+            rows[mode, plan]["volume"] = zarr.open_array(out, mode="r")[...]
+    _, grid, pts, _ = _frame(pvr, "cpu", args.ppm)
+    truth = metrics.truth_volume(grid, pts)
+    m = rows["slabs", "fixed"]
+    print(f"{args.device}, tiny rig at PVR {pvr}: {m['voxels']:,} voxels {tuple(m['shape'][::-1])} (x, y, z), "
+          f"{len(pts):,} particles ({args.ppm:g} PPM), {args.slabs} slabs")
+    for (mode, plan), r in rows.items():
+        q = metrics.q_recon(r["volume"], truth)
+        print(f"  {mode:6s} {plan:5s}: CPU {r['cpu']:.1f} s, wall {r['seconds']:.1f} s; {r['iterations']} iterations "
+              f"({r['stopped']}); {r['active']:,} active, {r['final']:,} left; Q {q:.3f}; peak RSS "
+              f"{r['peak_rss'] / 2**20:.0f} MiB ({(r['peak_rss'] - r['base_rss']) / 2**20:.0f} over), accounted "
+              f"{r['peak_accounted'] / 2**20:.1f} MiB; {r['operator']}")
+    a, b = rows["memory", "fast"]["volume"], rows["slabs", "fast"]["volume"]
+    worst = np.abs(a - b).max() / max(float(a.max()), 1e-30)
+    print(f"  fast in slabs against in memory: largest difference {worst:.2e} of the volume's maximum")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pvr", default="0.5,0.5,2")
@@ -185,6 +246,9 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=20)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--correlate", action="store_true", help="correlation in slabs instead of reconstruction")
+    ap.add_argument("--plans", action="store_true", help="slabs by fast's plan against slabs by the plain one")
+    ap.add_argument("--plan", default="plain", help=argparse.SUPPRESS)
+    ap.add_argument("--ppm", type=float, default=0.05, help="the frame's seeding, particles per microlens")
     ap.add_argument("--shape", default="128,128,384", help="--correlate: the pair's x,y,z voxels")
     ap.add_argument("--batch-mib", type=int, default=16, help="--correlate: the correlator's batch buffers")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -198,7 +262,10 @@ def main() -> None:
         return
     pvr = tuple(float(v) for v in args.pvr.split(","))
     if args.child:
-        child(args.child, pvr, args.slabs, args.iterations, args.out, args.device)
+        child(args.child, pvr, args.slabs, args.iterations, args.out, args.device, args.plan, args.ppm)
+        return
+    if args.plans:
+        plans_main(args, pvr)
         return
     import zarr
 
@@ -208,7 +275,7 @@ def main() -> None:
             out = str(Path(tmp) / f"{mode}.zarr")
             run = subprocess.run([sys.executable, __file__, "--child", mode, "--pvr", args.pvr, "--slabs",
                                   str(args.slabs), "--iterations", str(args.iterations), "--out", out,
-                                  "--device", args.device],
+                                  "--device", args.device, "--ppm", str(args.ppm)],
                                  check=True, capture_output=True, text=True, cwd=ROOT)
             rows[mode] = json.loads(run.stdout.strip().splitlines()[-1])
             rows[mode]["volume"] = zarr.open_array(out, mode="r")[...]

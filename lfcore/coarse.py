@@ -58,7 +58,7 @@ def coarse_grid(grid: VolumeGrid, factor: int) -> VolumeGrid:
                       origin_mm=tuple(float(v) for v in origin))
 
 
-def children(coarse: np.ndarray, grid: VolumeGrid, factor: int) -> np.ndarray:
+def children(coarse: np.ndarray, grid: VolumeGrid, factor: int, *, z0: int = 0, z1: int | None = None) -> np.ndarray:
     """The fine voxels inside coarse voxels.
 
     Parameters
@@ -69,35 +69,47 @@ def children(coarse: np.ndarray, grid: VolumeGrid, factor: int) -> np.ndarray:
         The fine grid.
     factor
         As :func:`coarse_grid`.
+    z0, z1
+        Only the fine voxels of planes ``z0 .. z1 - 1`` (a depth slab, :mod:`lfcore.slabs`), numbered
+        from plane ``z0`` (the slab's own numbering); None: to the last plane.
 
     Returns
     -------
     numpy.ndarray
-        (n,) int32 flat indices of ``grid``, ascending, each once (at most ``factor**3`` per coarse
-        voxel; fewer where a coarse voxel reaches past the box).
+        (n,) int32 flat indices of ``grid`` (or of its planes ``z0 .. z1 - 1``), ascending, each once
+        (at most ``factor**3`` per coarse voxel; fewer where a coarse voxel reaches past the box or the
+        planes).
     """
     f = int(factor)
+    z0 = int(z0)
+    z1 = grid.shape[0] if z1 is None else int(z1)
     cshape = tuple(-(-n // f) for n in grid.shape)
     cz, cy, cx = np.unravel_index(np.asarray(coarse, dtype=np.int64), cshape)
+    if z0 > 0 or z1 < grid.shape[0]:  # the coarse voxels that reach into the planes
+        near = (cz * f < z1) & (cz * f + f > z0)
+        cz, cy, cx = cz[near], cy[near], cx[near]
     o = np.arange(f)
     fz = cz[:, None, None, None] * f + o[None, :, None, None]
     fy = cy[:, None, None, None] * f + o[None, None, :, None]
     fx = cx[:, None, None, None] * f + o[None, None, None, :]
     fz, fy, fx = np.broadcast_arrays(fz, fy, fx)
-    inside = (fz < grid.shape[0]) & (fy < grid.shape[1]) & (fx < grid.shape[2])
-    flat = np.ravel_multi_index((fz[inside], fy[inside], fx[inside]), grid.shape)
+    inside = (fz >= z0) & (fz < z1) & (fy < grid.shape[1]) & (fx < grid.shape[2])
+    flat = np.ravel_multi_index((fz[inside] - z0, fy[inside], fx[inside]), (z1 - z0, *grid.shape[1:]))
     return np.unique(flat).astype(np.int32)
 
 
-def parents(fine: np.ndarray, grid: VolumeGrid, factor: int) -> np.ndarray:
+def parents(fine: np.ndarray, grid: VolumeGrid, factor: int, *, z0: int = 0) -> np.ndarray:
     """The coarse voxel of each fine voxel.
 
     Parameters
     ----------
     fine
-        (n,) flat indices of ``grid``.
+        (n,) flat indices of ``grid``, or of its planes from ``z0`` on numbered from that plane (a
+        depth slab's own numbering, :mod:`lfcore.slabs`).
     grid, factor
         As :func:`coarse_grid`.
+    z0
+        The plane ``fine`` is numbered from.
 
     Returns
     -------
@@ -106,5 +118,5 @@ def parents(fine: np.ndarray, grid: VolumeGrid, factor: int) -> np.ndarray:
     """
     f = int(factor)
     cshape = tuple(-(-n // f) for n in grid.shape)
-    z, y, x = np.unravel_index(np.asarray(fine, dtype=np.int64), grid.shape)
-    return np.ravel_multi_index((z // f, y // f, x // f), cshape)
+    z, y, x = np.unravel_index(np.asarray(fine, dtype=np.int64), (grid.shape[0] - int(z0), *grid.shape[1:]))
+    return np.ravel_multi_index(((z + int(z0)) // f, y // f, x // f), cshape)

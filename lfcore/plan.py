@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from lfcore.coarse import COARSE_MIN_VOXELS
+from lfcore import coarse as coarse_grids
 from lfcore.device import MemoryBudgetError, available_bytes, resolve_device
 from lfcore.matrix_free import DrtTemplates, TemplateOperator, template_count
 from lfcore.operator import (
@@ -49,8 +49,8 @@ from lfcore.weight_cache import WeightCache
 
 __all__ = ["BYTES_PER_BOX_VOXEL", "IMAGE_SHARE", "PINHOLE_METHODS", "SLAB_SHARE", "TEMPLATE_TRACES", "AutoSource",
            "Plan", "PlanError", "TemplateSource", "WeightSource", "asked_slabs", "build_reconstructor",
-           "cache_serves", "camera_kind", "default_method", "frame_stages", "new_cache", "operator_source",
-           "plan_reconstruction", "projector_for", "unsupported_method"]
+           "cache_serves", "camera_kind", "coarse_runs", "default_method", "frame_stages", "new_cache",
+           "operator_source", "plan_reconstruction", "projector_for", "unsupported_method"]
 
 #: Bytes per voxel of the box that the elimination pass and the dense result need at once in memory.
 BYTES_PER_BOX_VOXEL = 16
@@ -513,7 +513,10 @@ def plan_reconstruction(cameras: Sequence, grid: VolumeGrid, settings: ReconSett
             raise PlanError(f"a box of {grid.n_voxels:,} voxels {why}, and the sequential form cannot be split into "
                             "depth slabs; use --form simultaneous or a coarser --pvr")
         try:
-            n = slabs_for_budget(grid, int(SLAB_SHARE * free), halo=slab_halo(settings))
+            # the coarse grid of coarse-to-fine elimination is eliminated in memory before the slabs
+            # (where it runs: lfcore.reconstruct.coarse_applies, on light-field cameras' projector)
+            coarse = settings.coarse if coarse_runs(kind, grid, settings) else 1
+            n = slabs_for_budget(grid, int(SLAB_SHARE * free), halo=slab_halo(settings), coarse=coarse)
         except MemoryBudgetError as exc:
             raise PlanError(f"--slabs auto: {exc}") from None
         why = (f"its buffers ({need / 2**20:.1f} MiB) do not fit in the {free / 2**20:.1f} MiB free" if need > free
@@ -537,30 +540,37 @@ def plan_reconstruction(cameras: Sequence, grid: VolumeGrid, settings: ReconSett
                 stages=frame_stages(kind, grid, settings, slabs=n))
 
 
+def coarse_runs(cameras: str, grid: VolumeGrid, settings: ReconSettings) -> bool:
+    """Whether frames of ``grid`` on cameras of kind ``cameras`` (:func:`camera_kind`) run coarse-to-fine
+    elimination: as :func:`lfcore.reconstruct.coarse_applies` decides on their projector (DRT-MART's
+    simultaneous form, light-field cameras alone, a box of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS`
+    voxels)."""
+    s = settings
+    return (s.coarse > 1 and s.method == "drt-mart" and s.form == "simultaneous" and cameras == "light-field"
+            and grid.n_voxels >= coarse_grids.COARSE_MIN_VOXELS)
+
+
 def frame_stages(cameras: str, grid: VolumeGrid, settings: ReconSettings, *, slabs: int = 1) -> tuple[str, ...]:
     """What each frame of ``grid`` runs with ``settings`` on cameras of kind ``cameras``
-    (:func:`camera_kind`) in ``slabs`` depth slabs, in order, one phrase each (:attr:`Plan.stages`).
-
-    The coarse-to-fine elimination runs where :meth:`lfcore.reconstruct.FrameReconstructor.coarse_applies`
-    says (DRT-MART's simultaneous form, light-field cameras alone, a box of at least
-    :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels); depth slabs run the plain form (none of the
-    coarse grid, the line-of-sight iterations first or the ordered subsets).
+    (:func:`camera_kind`) in ``slabs`` depth slabs, in order, one phrase each (:attr:`Plan.stages`):
+    the coarse-to-fine elimination where it runs (:func:`coarse_runs`; or why not, where asked for),
+    the line-of-sight iterations first, the ordered subsets, the warm start (never in depth slabs, which
+    run the rest of the plan as in memory) and the stopping rule or the fixed count.
     """
     s = settings
-    drt = s.method == "drt-mart" and s.form == "simultaneous"
     out: list[str] = []
-    if slabs == 1 and drt and s.coarse > 1:
-        if cameras == "light-field" and grid.n_voxels >= COARSE_MIN_VOXELS:
+    if s.coarse > 1 and s.method == "drt-mart" and s.form == "simultaneous":
+        if coarse_runs(cameras, grid, s):
             out.append(f"coarse-to-fine elimination on a {s.coarse}x coarser grid ({s.coarse_iterations} line-of-sight "
                        "iterations)")
         else:
             why = "cameras other than light-field ones" if cameras != "light-field" else \
-                f"a box of fewer than {COARSE_MIN_VOXELS:,} voxels"
+                f"a box of fewer than {coarse_grids.COARSE_MIN_VOXELS:,} voxels"
             out.append(f"elimination on the whole grid (no coarse grid for {why})")
-    if slabs == 1 and s.los_iterations:
+    if s.los_iterations:
         out.append(f"{s.los_iterations} iterations on line-of-sight weights, then DRT weights for the voxels still "
                    "bright")
-    if slabs == 1 and s.subsets > 1:
+    if s.subsets > 1:
         out.append(f"{s.subsets} ordered subsets a pass")
     if s.warm_start and slabs == 1:
         out.append("frames B warm-started from frame A (without the coarse grid or the line-of-sight iterations)")

@@ -72,14 +72,16 @@ from lfcore.warm import WARM_BLEND, with_floor
 
 if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to import
     from lfcore.matrix_free import DrtTemplates
+    from lfcore.volume import VolumeGrid
     from lfcore.warm import Predictor, WarmStart
     from lfcore.weight_cache import WeightCache
 
 __all__ = ["CAPPED", "CONVERGED", "FIXED", "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE",
            "PRUNE_PERCENTILE", "SEVERAL_CAMERAS", "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WEIGHTS",
-           "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings", "StoppingRule", "WARM_SHARE",
-           "estimate_background", "preprocess", "preprocess_images", "protocol_settings", "prune_dark",
-           "reconstruct", "relative_residual", "stop_interval", "warm_count"]
+           "CoarseBright", "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings", "StoppingRule",
+           "WARM_SHARE", "coarse_applies", "coarse_bright", "coarse_reconstructor", "estimate_background",
+           "is_split", "preprocess", "preprocess_images", "protocol_settings", "prune_dark", "reconstruct",
+           "relative_residual", "smart_iterations", "stop_interval", "warm_count"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: The weights each method iterates on (the ``method`` of :meth:`lfcore.operator.Projector.operator`
@@ -214,13 +216,14 @@ class ReconSettings:
         :data:`PRUNE`) of the brightest get DRT weights, and the remaining ``iterations -
         los_iterations`` start from their intensities. The DRT weights, the costliest part of a
         frame, are then built for the share of the active voxels that may hold a particle (a third
-        on the Mc case). 0: DRT weights from the start. DRT-MART's simultaneous form, in memory.
+        on the Mc case). 0: DRT weights from the start. DRT-MART's simultaneous form, in memory or in
+        depth slabs (:mod:`lfcore.slabs`, each slab's line-of-sight weights freed before its DRT weights).
     subsets
         Ordered subsets (OS-SMART, :mod:`lfcore.subsets`): each iteration updates the voxels from
         one of this many interleaved subsets of the pixels at a time, for about the work of one
         update from all of them. 1: the plain simultaneous form. Stored weights held whole, in
-        memory (templates applied on the fly, weights partly made on the fly and depth slabs keep
-        the plain form). The simultaneous form only.
+        memory or every depth slab's alike (:mod:`lfcore.slabs`; templates applied on the fly and
+        weights partly made on the fly keep the plain form). The simultaneous form only.
     subset_halving
         Passes after which the subsets are joined in pairs, halving them, down to one (the plain
         form): many subsets go far in the first passes, and fewer of them then settle on one volume
@@ -246,8 +249,9 @@ class ReconSettings:
         a fraction of the voxels a whole-grid elimination keeps (on the Mc crop at 3: about half,
         the true particles' 98.8%). 1: the whole fine grid is tested (the plain elimination).
         DRT-MART's simultaneous form, on light-field cameras, in boxes of at least
-        :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels (others eliminate the whole grid); not with a
-        warm start (the warm frame's own voxels are eliminated as before).
+        :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels (others eliminate the whole grid), in memory or
+        in depth slabs (:mod:`lfcore.slabs`: the coarse grid in memory, each slab's fine voxels from
+        it); not with a warm start (the warm frame's own voxels are eliminated as before).
     coarse_iterations
         The line-of-sight iterations on the coarse grid (``coarse`` above 1).
     """
@@ -388,9 +392,10 @@ class ReconSettings:
 #: 2.5 is its sequential form's: ``form="sequential", relaxation=2.5``).
 #: ``fixed``: 50 iterations with the dark voxels leaving the operator (``lfpiv reconstruct``'s default
 #: before the stopping rule).
-#: ``fast``: the stopping rule (at most 400 iterations), line-of-sight weights for the first 20
-#: iterations of DRT-MART, the pruning, and frame B of each pair warm-started from frame A along a
-#: series (where the volumes are reconstructed in memory); 4 ordered subsets, the rule measuring per
+#: ``fast`` (``lfpiv reconstruct``'s default): the stopping rule (at most 400 iterations), line-of-sight
+#: weights for the first 20 iterations of DRT-MART, the pruning, every frame from a uniform start (so a
+#: volume does not depend on which pairs a process made before it; ``warm_start`` adds the series' warm
+#: start); 4 ordered subsets, the rule measuring per
 #: pass (an iteration is then a pass through them), and coarse-to-fine elimination on a grid 3 times
 #: coarser in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels (``benchmarks/mcfast.py``:
 #: on the Mc crop Q 0.786 for a fifteenth to a twentieth of the chapter protocol's CPU time).
@@ -839,6 +844,206 @@ def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[
     return out_ops, out_es
 
 
+def coarse_applies(projector: Projector, settings: ReconSettings) -> bool:
+    """Whether frames of ``projector`` (the whole box's) run coarse-to-fine elimination
+    (:attr:`ReconSettings.coarse`): DRT-MART's simultaneous form on light-field cameras alone (a
+    projector whose elimination takes ``within``), in a box of at least
+    :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels."""
+    s = settings
+    return (s.coarse > 1 and s.method == "drt-mart" and s.form == "simultaneous"
+            and getattr(projector, "eliminates_within", False)
+            and projector.grid.n_voxels >= coarse_grids.COARSE_MIN_VOXELS)
+
+
+def coarse_reconstructor(projector: Projector, settings: ReconSettings, *,
+                         budget_bytes: int | None = None) -> FrameReconstructor:
+    """The reconstructor of coarse-to-fine elimination's coarse grid (:mod:`lfcore.coarse`): the cameras
+    of ``projector`` on the grid ``settings.coarse`` times coarser than its (the whole box's), running
+    ``settings.coarse_iterations`` of MLOS-MART's line-of-sight iterations with the pruning."""
+    from lfcore.plan import projector_for  # the planner's (it imports this module)
+
+    s = settings
+    cgrid = coarse_grids.coarse_grid(projector.grid, s.coarse)
+    cproj = projector_for(projector.cameras, cgrid, sub_apertures=s.sub_apertures, device=projector.device)
+    cset = replace(s, method="mlos-mart", projector="stored", iterations=s.coarse_iterations, los_iterations=0,
+                   subsets=1, stop_tolerance=0.0, warm_start=False, coarse=1, prune=s.prune or PRUNE)
+    return FrameReconstructor(cproj, cset, budget_bytes=budget_bytes)
+
+
+class CoarseBright(NamedTuple):
+    """The coarse voxels still bright after the coarse grid's iterations (:func:`coarse_bright`).
+
+    Attributes
+    ----------
+    voxels
+        (m,) int64 flat indices of the coarse grid, ascending.
+    values
+        (m,) float32: their intensities.
+    factor
+        Fine voxels per coarse voxel along each axis.
+    active
+        Coarse voxels the coarse elimination kept.
+    nbytes
+        Device bytes of the coarse grid's operator (freed since).
+    """
+
+    voxels: np.ndarray
+    values: np.ndarray
+    factor: int
+    active: int = 0
+    nbytes: int = 0
+
+    def inherited(self, fine: np.ndarray, grid: VolumeGrid, *, z0: int = 0) -> np.ndarray:
+        """(n,) float32: the intensity of each fine voxel's coarse voxel (``fine``: flat indices of
+        ``grid``'s planes from ``z0`` on, numbered from that plane; each inside a bright coarse voxel)."""
+        of = np.searchsorted(self.voxels, coarse_grids.parents(fine, grid, self.factor, z0=z0))
+        return self.values[of].astype(np.float32)
+
+
+def coarse_bright(coarse: FrameReconstructor, lit, image, noise: Sequence[float], *, factor: int) -> CoarseBright:
+    """Coarse-to-fine elimination's first stage (:mod:`lfcore.coarse`): the coarse grid's elimination and
+    line-of-sight iterations (``coarse``, :func:`coarse_reconstructor`) on the whole box's ``lit``
+    pixels and measured ``image``, and the coarse voxels then brighter than its ``settings.prune`` of
+    the brightest (:func:`prune_dark`). The in-memory path (:meth:`FrameReconstructor.coarse_eliminate`)
+    and the depth slabs (:class:`lfcore.slabs.SlabReconstructor`) both run it.
+
+    Parameters
+    ----------
+    coarse
+        The coarse grid's reconstructor.
+    lit
+        As :meth:`FrameReconstructor.eliminate` takes it (the whole box's cameras' pixels).
+    image
+        (n_pixels,) float32 Warp array on the device: the measured signal, in counts.
+    noise
+        Each camera's noise sigma, in counts.
+    factor
+        Fine voxels per coarse voxel along each axis (:attr:`ReconSettings.coarse`).
+
+    Returns
+    -------
+    CoarseBright
+        Empty where the coarse elimination kept nothing.
+    """
+    cvox = coarse.eliminate(lit)
+    active = int(cvox.shape[0])
+    if active == 0:
+        return CoarseBright(np.zeros(0, np.int64), np.zeros(0, np.float32), int(factor))
+    op = coarse.operator(cvox)
+    nbytes = int(op.nbytes)
+    done = coarse.iterate(op, image, noise)
+    del op
+    (bright,), (e,) = prune_dark([done.op], [done.e], coarse.settings.prune)
+    kept = bright.voxels.numpy().astype(np.int64)
+    values = e.numpy()[: bright.n_voxels].copy()
+    del done, bright, e
+    order = np.argsort(kept, kind="stable")
+    return CoarseBright(kept[order], values[order], int(factor), active, nbytes)
+
+
+def is_split(op) -> bool:
+    """Whether ``op`` runs ordered subsets (:class:`lfcore.subsets.SubsetOperator`, or operators of
+    depth slabs each split, :class:`lfcore.slabs.SlabOperators`): its iterations are passes through them."""
+    return isinstance(op, SubsetOperator) or bool(getattr(op, "ordered_subsets", False))
+
+
+def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float], settings: ReconSettings, *,
+                     iterations: int | None = None, relaxation: float | None = None,
+                     progress: Callable[[int], None] | None = None, start=None, stop_tolerance: float | None = None,
+                     split: Callable[[Operator], Operator] | None = None, t0: float | None = None,
+                     started: Callable[[float], None] | None = None) -> Iterated:
+    """MART's start and iterations on ``op`` in the buffers given: the one loop of
+    :meth:`FrameReconstructor.iterate` (in memory) and :class:`lfcore.slabs.SlabReconstructor` (the
+    operators of a volume's depth slabs as one, :class:`lfcore.slabs.SlabOperators`).
+
+    Parameters
+    ----------
+    op
+        The voxels and their operator.
+    e
+        (max(n, 1),) float32 Warp array on ``op``'s device: the intensities' buffer (overwritten).
+    image, proj, ratio
+        (n_pixels,) float32 Warp arrays: the measured signal in counts (:meth:`FrameReconstructor.iterate`),
+        the projection's and the log ratios' scratch (``ratio`` None for the sequential form).
+    noise, settings, iterations, relaxation, progress, start, stop_tolerance
+        As :meth:`FrameReconstructor.iterate` takes them.
+    split
+        Called with the scaled-start operator where ``settings.subsets`` asks for ordered subsets (the
+        simultaneous form): the operator to iterate (split, or ``op`` where it is not).
+    t0
+        :func:`time.perf_counter` when the caller began (the start's seconds count from it).
+    started
+        Called with the start's seconds once the start is scaled (and the operator split), before the
+        first iteration (the depth slabs' stage log).
+
+    Returns
+    -------
+    Iterated
+    """
+    wp, s = warp(), settings
+    device = op.device
+    its = s.iterations if iterations is None else int(iterations)
+    mu = s.relaxation if relaxation is None else float(relaxation)
+    t0 = time.perf_counter() if t0 is None else t0
+    n = op.n_voxels
+    if n == 0:  # nothing to reconstruct
+        e.fill_(0.0)
+        return Iterated(e, time.perf_counter() - t0, 0.0, op, 0, NO_VOXELS)
+    # Start uniform (or warm), scaled so the projection carries the measured total signal.
+    if start is None:
+        e.fill_(1.0)
+    else:
+        if int(start.shape[0]) != n:
+            raise ValueError(f"the start has {start.shape[0]} intensities for {n} voxels")
+        wp.copy(e, start)
+    op.forward(e, out=proj)
+    total_proj = _total(proj)
+    scale = _total_measured(image) / total_proj if total_proj > 0 else 0.0
+    if start is None:
+        e.fill_(scale)
+    else:
+        wp.launch(_mart_kernels().scale_shift, dim=n, inputs=[e, scale, 0.0], device=device)
+    if split is not None and s.subsets > 1 and s.form == "simultaneous":  # OS-SMART: the rows split by subset, once
+        op = split(op)
+    wp.synchronize_device(device)
+    t1 = time.perf_counter()
+    if started is not None:
+        started(t1 - t0)
+    floor = max(s.floor * s.threshold_sigma * float(np.mean(noise)), 1e-6)
+    transposed = op.transpose() if s.form == "sequential" else None  # stored weights (ReconSettings checks)
+    prune = s.prune if transposed is None else 0.0
+    tolerance = s.stop_tolerance if stop_tolerance is None else float(stop_tolerance)
+    ordered = is_split(op)
+    # with the rule on, ordered subsets prune and measure per pass as often as the plain form per iteration
+    per_pass = op.n_subsets if tolerance > 0 and ordered else 1
+    prune_every = pass_prune_every(s, per_pass) if per_pass > 1 else s.prune_every
+    rule = StoppingRule(tolerance, voxels=s.stop_voxels, every=stop_interval(s, prune=prune > 0,
+                                                                              subsets=per_pass))
+    ran, stopped = its, (CAPPED if rule.on else FIXED)
+    for it in range(1, its + 1):
+        measure = rule.due(it - 1)  # the stopping rule: on the projection of what it - 1 iterations left
+        if (transposed is None and not ordered) or measure:
+            op.forward(e, out=proj)  # the simultaneous update's projection serves the rule as well
+        if measure and rule.converged(it - 1, relative_residual(image, proj), op.n_voxels):
+            ran, stopped = it - 1, CONVERGED
+            break
+        if transposed is not None:
+            op.sweep(transposed, image, e, mu, floor)
+        elif ordered:  # one pass through the subsets
+            ordered_pass(op, image, e, proj, ratio, floor, mu,
+                         groups=groups_in_pass(op.n_subsets, s.subset_halving, it))
+        else:
+            op.update(log_ratio(image, proj, floor, ratio), e, mu)
+        if prune > 0 and it % prune_every == 0 and it < its:  # the dark voxels leave
+            (op,), (e,) = prune_dark([op], [e], prune)
+        if progress is not None:
+            progress(1)
+    if progress is not None and ran < its:
+        progress(its - ran)  # the iterations the rule left out, for a bar sized for the most
+    wp.synchronize_device(device)
+    return Iterated(e, t1 - t0, time.perf_counter() - t1, op, ran, stopped)
+
+
 def _mart_kernels():
     from lfcore._kernels import mart as km
 
@@ -1059,10 +1264,7 @@ class FrameReconstructor:
         """Whether this reconstructor's frames run coarse-to-fine elimination (:attr:`ReconSettings.coarse`):
         DRT-MART's simultaneous form on light-field cameras alone (a projector whose elimination takes
         ``within``), in a box of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels."""
-        s = self.settings
-        return (s.coarse > 1 and s.method == "drt-mart" and s.form == "simultaneous"
-                and getattr(self.projector, "eliminates_within", False)
-                and self.projector.grid.n_voxels >= coarse_grids.COARSE_MIN_VOXELS)
+        return coarse_applies(self.projector, self.settings)
 
     def coarse_eliminate(self, lit, image, noise: Sequence[float]) -> tuple[object, object]:
         """Coarse-to-fine elimination (:mod:`lfcore.coarse`): the fine voxels to reconstruct and their start.
@@ -1089,30 +1291,15 @@ class FrameReconstructor:
         wp, p, s = self.wp, self.projector, self.settings
         f = s.coarse
         if self._coarse is None:
-            from lfcore.plan import projector_for
-
-            cgrid = coarse_grids.coarse_grid(p.grid, f)
-            cproj = projector_for(p.cameras, cgrid, sub_apertures=s.sub_apertures, device=self.device)
-            cset = replace(s, method="mlos-mart", projector="stored", iterations=s.coarse_iterations, los_iterations=0,
-                           subsets=1, stop_tolerance=0.0, warm_start=False, coarse=1, prune=s.prune or PRUNE)
-            self._coarse = FrameReconstructor(cproj, cset, budget_bytes=self.budget_bytes)
-        c = self._coarse
-        cvox = c.eliminate(lit)
-        if int(cvox.shape[0]) == 0:
-            return cvox, None
-        done = c.iterate(c.operator(cvox), image, noise)
-        (bright,), (e,) = prune_dark([done.op], [done.e], c.settings.prune)
-        kept = bright.voxels.numpy()
-        values = e.numpy()[: bright.n_voxels]
-        del done, bright, e
-        order = np.argsort(kept, kind="stable")
-        kept, values = kept[order], values[order]
-        within = wp.array(coarse_grids.children(kept, p.grid, f), dtype=wp.int32, device=self.device)
+            self._coarse = coarse_reconstructor(p, s, budget_bytes=self.budget_bytes)
+        bright = coarse_bright(self._coarse, lit, image, noise, factor=f)
+        if bright.voxels.size == 0:
+            return wp.zeros(0, dtype=wp.int32, device=self.device), None
+        within = wp.array(coarse_grids.children(bright.voxels, p.grid, f), dtype=wp.int32, device=self.device)
         voxels = p.eliminate(lit, min_seen=s.min_seen, max_dark=s.max_dark, within=within)
         if int(voxels.shape[0]) == 0:
             return voxels, None
-        of = np.searchsorted(kept, coarse_grids.parents(voxels.numpy(), p.grid, f))
-        start = wp.array(values[of].astype(np.float32), dtype=float, device=self.device)
+        start = wp.array(bright.inherited(voxels.numpy(), p.grid), dtype=float, device=self.device)
         return voxels, with_floor(start, WARM_BLEND, copy=False)
 
     def los_operator(self, voxels) -> Operator:
@@ -1218,70 +1405,17 @@ class FrameReconstructor:
             that ran and why they stopped.
         """
         wp, p, s = self.wp, self.projector, self.settings
-        its = s.iterations if iterations is None else int(iterations)
-        mu = s.relaxation if relaxation is None else float(relaxation)
         t0 = time.perf_counter()
         n = op.n_voxels
         if self._e is None or self._e.shape[0] < n:
             self._e = wp.empty(int(1.5 * n) + 1, dtype=float, device=self.device)
         if self._proj is None:
             self._proj = wp.zeros(p.n_pixels, dtype=float, device=self.device)
-        e, proj = self._e[: max(n, 1)], self._proj
-        if n == 0:  # nothing to reconstruct
-            e.fill_(0.0)
-            return Iterated(e, time.perf_counter() - t0, 0.0, op, 0, NO_VOXELS)
-        # Start uniform (or warm), scaled so the projection carries the measured total signal.
-        if start is None:
-            e.fill_(1.0)
-        else:
-            if int(start.shape[0]) != n:
-                raise ValueError(f"the start has {start.shape[0]} intensities for {n} voxels")
-            wp.copy(e, start)
-        op.forward(e, out=proj)
-        total_proj = _total(proj)
-        scale = _total_measured(image) / total_proj if total_proj > 0 else 0.0
-        if start is None:
-            e.fill_(scale)
-        else:
-            wp.launch(_mart_kernels().scale_shift, dim=n, inputs=[e, scale, 0.0], device=self.device)
-        if s.subsets > 1 and s.form == "simultaneous":  # OS-SMART: the rows split by pixel subset, once
-            op = self._ordered_subsets(op)
-        wp.synchronize_device(self.device)
-        t1 = time.perf_counter()
-        floor = max(s.floor * s.threshold_sigma * float(np.mean(noise)), 1e-6)
-        transposed = op.transpose() if s.form == "sequential" else None  # stored weights (ReconSettings checks)
-        if transposed is None and self._ratio is None:
+        if s.form == "simultaneous" and self._ratio is None:
             self._ratio = wp.empty(p.n_pixels, dtype=float, device=self.device)
-        prune = s.prune if transposed is None else 0.0
-        tolerance = s.stop_tolerance if stop_tolerance is None else float(stop_tolerance)
-        # with the rule on, ordered subsets prune and measure per pass as often as the plain form per iteration
-        per_pass = op.n_subsets if tolerance > 0 and isinstance(op, SubsetOperator) else 1
-        prune_every = pass_prune_every(s, per_pass) if per_pass > 1 else s.prune_every
-        rule = StoppingRule(tolerance, voxels=s.stop_voxels, every=stop_interval(s, prune=prune > 0,
-                                                                                  subsets=per_pass))
-        ran, stopped = its, (CAPPED if rule.on else FIXED)
-        for it in range(1, its + 1):
-            measure = rule.due(it - 1)  # the stopping rule: on the projection of what it - 1 iterations left
-            if (transposed is None and not isinstance(op, SubsetOperator)) or measure:
-                op.forward(e, out=proj)  # the simultaneous update's projection serves the rule as well
-            if measure and rule.converged(it - 1, relative_residual(image, proj), op.n_voxels):
-                ran, stopped = it - 1, CONVERGED
-                break
-            if transposed is not None:
-                op.sweep(transposed, image, e, mu, floor)
-            elif isinstance(op, SubsetOperator):  # one pass through the subsets
-                ordered_pass(op, image, e, proj, self._ratio, floor, mu,
-                             groups=groups_in_pass(op.n_subsets, s.subset_halving, it))
-            else:
-                op.update(log_ratio(image, proj, floor, self._ratio), e, mu)
-            if prune > 0 and it % prune_every == 0 and it < its:  # the dark voxels leave
-                (op,), (e,) = prune_dark([op], [e], prune)
-            if progress is not None:
-                progress(1)
-        if progress is not None and ran < its:
-            progress(its - ran)  # the iterations the rule left out, for a bar sized for the most
-        wp.synchronize_device(self.device)
-        return Iterated(e, t1 - t0, time.perf_counter() - t1, op, ran, stopped)
+        return smart_iterations(op, self._e[: max(n, 1)], image, self._proj, self._ratio, noise, s,
+                                iterations=iterations, relaxation=relaxation, progress=progress, start=start,
+                                stop_tolerance=stop_tolerance, split=self._ordered_subsets, t0=t0)
 
     def _ordered_subsets(self, op: Operator) -> Operator:
         """``op`` split by ``settings.subsets`` pixel subsets (:func:`lfcore.subsets.split`), or

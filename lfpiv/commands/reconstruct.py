@@ -164,8 +164,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="ordered subsets (OS-SMART): each iteration updates the voxels from N interleaved subsets "
                    "of the pixels in turn, for about the work of one update from all of them, so its first passes go "
                    "about as far as N plain iterations each (4 subsets took 4x fewer --iterations on the rigs "
-                   "measured); stored weights held whole, in "
-                   "memory, the others run the plain form; with the stopping rule it measures and prunes per pass, "
+                   "measured); stored weights held whole (in memory or in depth slabs), the others run the "
+                   "plain form; with the stopping rule it measures and prunes per pass, "
                    "divided by N (default: 4 for the fast protocol, 1 otherwise: the plain simultaneous form)")
     r.add_argument("--subset-halving", type=subset_halving_option, default=None, metavar="PASSES",
                    help="with --subsets: every this many passes the subsets are joined in pairs, down to one (the "

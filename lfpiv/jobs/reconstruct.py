@@ -155,7 +155,8 @@ class ReconJob:
     flats: dict[str, FlatField] | None = None
     #: whether the settings' warm start is the protocol's (left out in depth slabs) rather than the user's
     warm_optional: bool = False
-    #: whether the settings' ordered subsets are the protocol's (left out in depth slabs) rather than the user's
+    #: accepted and unused: depth slabs run the ordered subsets (it said whether they were the protocol's,
+    #: left out in depth slabs)
     subsets_optional: bool = False
 
 
@@ -179,8 +180,8 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, de
     buffers, built once per stream), on a device with room for the box, or for one depth slab of it
     at a time (``slabs``: a number of slabs, or ``"auto"``: as many as the memory needs, 1 if the box
     fits). ``warm_optional``: a warm start the protocol asked for (not the user) is left out in depth
-    slabs rather than refused; ``subsets_optional`` the same for ordered subsets (slabs run the plain
-    form)."""
+    slabs rather than refused. ``subsets_optional`` is accepted and unused: depth slabs run the ordered
+    subsets (:mod:`lfcore.slabs`)."""
     plan = _plan(cams, grid, settings, device, slabs)
     try:
         frames = build_reconstructor(plan, cams, grid, settings)
@@ -189,10 +190,6 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, de
     if settings.warm_start and frames.in_slabs and not warm_optional:
         raise UsageError(f"--warm-start carries whole volumes from frame to frame, and this box is reconstructed in "
                          f"{plan.slabs} depth slabs; drop --warm-start (or --slabs)")
-    if settings.subsets > 1 and frames.in_slabs and not subsets_optional:
-        raise UsageError(f"--subsets {settings.subsets} splits the weights of the whole box, and this box is "
-                         f"reconstructed in {plan.slabs} depth slabs, which run the plain form; drop --subsets (or "
-                         "--slabs)")
     return plan, frames
 
 
@@ -508,8 +505,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     in the ``volumes/`` settings (None: settings given as they are). ``warm_optional``: the settings'
     warm start is the protocol's, left out where the volumes are reconstructed in depth slabs
     (None: where ``protocol`` warm-starts and ``--warm-start`` was not asked for, so never without a
-    protocol). ``subsets_optional``: the same for the settings' ordered subsets (the plain form runs in
-    depth slabs; None: where ``protocol`` has subsets).
+    protocol). ``subsets_optional`` is accepted and unused (depth slabs run the settings' ordered subsets,
+    its coarse grid and line-of-sight first iterations as the volumes in memory do).
 
     ``slabs`` reconstructs each volume in depth slabs (:mod:`lfcore.slabs`; the same volume, with
     no buffer of the whole box): a number of slabs, or ``"auto"``, in memory where the box fits and
@@ -559,8 +556,6 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                     if client is None else (None, None))
     if frames is not None and frames.in_slabs and settings.warm_start:
         settings = replace(settings, warm_start=False)  # the protocol's, left out: whole volumes only
-    if frames is not None and frames.in_slabs and settings.subsets > 1:
-        settings = replace(settings, subsets=1)  # the protocol's, left out: slabs run the plain form
     # where the weights lived does not change a volume, so it does not make volumes/ a different set
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),

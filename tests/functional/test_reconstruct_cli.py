@@ -357,8 +357,8 @@ def test_prune_from_the_command(capsys, synthetic_run, tmp_path):
 
 def test_coarse_from_the_command(capsys, synthetic_run, tmp_path):
     """--coarse and --coarse-iterations are recorded with the settings (the tiny rig's box is under the
-    size rule, so it is eliminated whole); the fast protocol's subsets are left out in depth slabs
-    rather than refused; a factor past the most is one line."""
+    size rule, so it is eliminated whole); depth slabs run the fast protocol's subsets and coarse grid as
+    in memory; a factor past the most is one line."""
     run = tmp_path / "run.zarr"
     shutil.copytree(synthetic_run, run)
     rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "10", "--coarse", "2",
@@ -370,7 +370,7 @@ def test_coarse_from_the_command(capsys, synthetic_run, tmp_path):
                         "2", "--pair-range", "0:1", "--quiet")
     assert rc == 0, err
     settings = RunStore.open(run).group["volumes"].attrs["settings"]
-    assert settings["subsets"] == 1 and settings["coarse"] == 3 and not settings["warm_start"]
+    assert settings["subsets"] == 4 and settings["coarse"] == 3 and not settings["warm_start"]
     rc, out, err = _run(capsys, "reconstruct", str(run), "--coarse", "9", "--quiet")
     assert rc == 2 and out == "" and err.count("\n") == 1 and "--coarse" in err, err
 
@@ -427,8 +427,8 @@ def test_line_of_sight_first_from_the_command(capsys, synthetic_run, tmp_path):
 
 
 def test_ordered_subsets_from_the_command(capsys, synthetic_run, tmp_path):
-    """--subsets: OS-SMART, recorded with the volumes; volumes made before it are taken as the plain form's;
-    a bad count or the sequential form is one line."""
+    """--subsets: OS-SMART, recorded with the volumes, in memory and in depth slabs; volumes made before it
+    are taken as the plain form's; a bad count or the sequential form is one line."""
     run = tmp_path / "run.zarr"
     shutil.copytree(synthetic_run, run)
     rc, out, err = _run(capsys, "reconstruct", str(run), "--iterations", "10", "--subsets", "4", "--subset-halving",
@@ -442,8 +442,10 @@ def test_ordered_subsets_from_the_command(capsys, synthetic_run, tmp_path):
     rc, out, err = _run(capsys, "reconstruct", str(run), "--subsets", "4", "--form", "sequential", "--relaxation",
                         "2.5", "--quiet")
     assert rc == 2 and out == "" and err.count("\n") == 1 and "simultaneous" in err, err
-    rc, out, err = _run(capsys, "reconstruct", str(run), "--subsets", "4", "--slabs", "2", "--quiet")
-    assert rc == 2 and out == "" and err.count("\n") == 1 and "--subsets" in err and "slabs" in err, err
+    # depth slabs run the subsets as in memory (tests/functional/test_slabs_cli.py compares the volumes)
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--subsets", "4", "--slabs", "2", "--pair-range", "0:1",
+                        "--quiet")
+    assert rc == 0 and RunStore.open(run).group["volumes"].attrs["settings"]["subsets"] == 4, err
     # the store's recorded settings without the key (volumes made before it) read as one subset
     from lfpiv.jobs.reconstruct import _recorded
 

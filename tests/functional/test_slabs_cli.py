@@ -125,3 +125,32 @@ def test_the_python_api_takes_slabs(one_pair, tmp_path):
         lfpiv.reconstruct(run, iterations=2, progress=False, slabs="some")
     (a, b) = lfpiv.reconstruct(run, iterations=2, progress=False, slabs=2)
     assert a.slabs == b.slabs == 2 and RunStore.open(run).reconstructed_pairs() == [0]
+
+
+def test_the_fast_protocol_in_slabs_gives_its_in_memory_volume(capsys, one_pair, tmp_path, monkeypatch):
+    """`--protocol fast --slabs 2` runs the protocol's whole plan (coarse-to-fine elimination, here on the
+    tiny box with the size rule lowered; DRT-MART's first 20 iterations on line-of-sight weights; 4
+    ordered subsets; the stopping rule): the in-memory `--protocol fast` volumes to float round-off, and
+    the settings recorded say so. The warm start alone is left out (the first pair's frame B starts
+    uniform in memory too)."""
+    import lfcore.coarse as coarse_grids
+
+    monkeypatch.setattr(coarse_grids, "COARSE_MIN_VOXELS", 100_000)  # the tiny box: 161,704 voxels
+    here, sliced = tmp_path / "memory.zarr", tmp_path / "slabs.zarr"
+    shutil.copytree(one_pair, here)
+    shutil.copytree(one_pair, sliced)
+    rc, out, err = _run(capsys, "reconstruct", here, "--protocol", "fast", "--quiet")
+    assert rc == 0 and "depth slabs" not in out, err
+    rc, out, err = _run(capsys, "reconstruct", sliced, "--protocol", "fast", "--slabs", "2", "--quiet")
+    assert rc == 0 and "in 2 depth slabs" in out, err
+    settings = RunStore.open(sliced).group["volumes"].attrs["settings"]
+    assert (settings["subsets"], settings["los_iterations"], settings["coarse"]) == (4, 20, 3)
+    assert settings["warm_start"] is False and settings["stop_tolerance"] > 0
+    want, got = RunStore.open(here).volumes()[0], RunStore.open(sliced).volumes()[0]
+    assert want.max() > 0
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * float(want.max()))
+    # --subsets given in slabs runs them too, as in memory
+    rc, out, err = _run(capsys, "reconstruct", sliced, "--iterations", "10", "--subsets", "4", "--slabs", "2",
+                        "--quiet")
+    assert rc == 0 and "in 2 depth slabs" in out, err
+    assert RunStore.open(sliced).group["volumes"].attrs["settings"]["subsets"] == 4

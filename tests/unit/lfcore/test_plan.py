@@ -98,8 +98,10 @@ def test_the_plan_says_what_each_frame_runs(tiny_rig, small):
     assert frame_stages("light-field", big, protocol_settings("fast"))[0] == \
         "coarse-to-fine elimination on a 3x coarser grid (20 line-of-sight iterations)"
     assert "cameras other than light-field ones" in frame_stages("joint", big, protocol_settings("fast"))[0]
-    assert frame_stages("light-field", big, protocol_settings("fast"), slabs=2) == (
-        "at most 400 iterations by the stopping rule",)  # slabs run the plain form
+    assert frame_stages("light-field", big, protocol_settings("fast"), slabs=2) == frame_stages(
+        "light-field", big, protocol_settings("fast"))  # depth slabs run the in-memory plan
+    assert "warm-started" not in " ".join(frame_stages("light-field", big, protocol_settings("fast", warm_start=True),
+                                                       slabs=2))  # but not the warm start
     assert frame_stages("light-field", grid, ReconSettings()) == ("50 iterations",)
     warm = frame_stages("light-field", grid, protocol_settings("fixed", warm_start=True))
     assert warm[0].startswith("frames B warm-started from frame A")
