@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from lfpiv.commands import (
     MAX_ITERATIONS,
@@ -112,8 +113,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("run", metavar="RUN", help="run store (a .zarr directory)")
     r.add_argument("--method", choices=("drt-mart", "mart", "mlos-mart", "mlos-smart"), default=None,
                    help="default: drt-mart for light-field cameras, mlos-smart for pinhole ones")
-    r.add_argument("--protocol", choices=tuple(PROTOCOLS), default=DEFAULT_PROTOCOL,
-                   help=protocol_help(DEFAULT_PROTOCOL))
+    r.add_argument("--protocol", choices=tuple(PROTOCOLS), default=None,
+                   help=protocol_help(DEFAULT_PROTOCOL) + "; with --skip-done, the protocol the run's volumes "
+                   "were made by")
     r.add_argument("--iterations", type=iterations, default=None,
                    help="a fixed count of MART iterations, every frame (default: the protocol's: 50 for fixed, 400 "
                    "for chapter; fast stops each frame by the rule)")
@@ -211,12 +213,14 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.batch import dask_client
     from lfpiv.jobs.reconstruct import (
         BYTES_PER_BOX_VOXEL,
+        DEFAULT_PROTOCOL,
         camera_count,
         default_method,
         iterations_summary,
         protocol_run_settings,
         reconstruct_run,
         recorded_stages,
+        resumed_protocol,
         voxel_shape_notes,
     )
     from lfpiv.runs import open_run
@@ -225,6 +229,13 @@ def run(args: argparse.Namespace) -> int:
     # the cameras' default method needs the run's rig (read only: a bad option leaves the store untouched)
     run_rig = open_run(args.run).rig
     method = args.method or default_method(run_rig, args.cameras)
+    if args.protocol is None:
+        # a run is finished as it was begun: --skip-done goes on with its volumes' protocol
+        resumed = resumed_protocol(args.run) if args.skip_done else None
+        if resumed is not None and resumed != DEFAULT_PROTOCOL:
+            print(f"lfpiv: note: going on with --protocol {resumed}, which the volumes of {args.run} were made with "
+                  f"(give --protocol {DEFAULT_PROTOCOL} to make them again by the default)", file=sys.stderr)
+        args.protocol = resumed or DEFAULT_PROTOCOL
     settings = protocol_run_settings(args.protocol, iterations=args.iterations, max_iterations=args.max_iterations,
                                      n_cameras=camera_count(run_rig, args.cameras),
                                      stop_tolerance=args.stop_tolerance, method=method, relaxation=args.relaxation,

@@ -326,6 +326,23 @@ def _convergence_of(rows: list[list]) -> dict[str, Any]:
             "voxels": [min(vox, default=0), max(vox, default=0), sum(vox)], "stopped": _reasons_in_order(stopped)}
 
 
+def resumed_protocol(path: str | Path) -> str | None:
+    """The protocol the run's volumes were made by, for ``--skip-done`` without ``--protocol`` (a run
+    is finished as it was begun, not remade by a newer default): the recorded name, ``"fixed"`` for
+    volumes recorded before protocols were (``lfpiv reconstruct``'s default then); None where the run
+    has no volumes, cannot be read (its opening says why, later), or its volumes were made from
+    settings given one by one."""
+    try:
+        store = RunStore.open(path)
+        if not store.has_volumes:
+            return None
+        recorded = store.volume_attrs()["settings"]
+    except (RunStoreError, KeyError, TypeError):
+        return None
+    name = recorded.get("protocol", "fixed") if isinstance(recorded, dict) else None
+    return name if name in PROTOCOLS else None
+
+
 def recorded_stages(store: RunStore) -> str:
     """What each frame of the run's volumes ran (:func:`stages_of` the plan ``volumes/`` records)."""
     return stages_of(store.volume_attrs().get(PLAN_ATTR)) if store.has_volumes else ""

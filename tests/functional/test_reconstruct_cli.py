@@ -561,3 +561,28 @@ def test_the_default_is_fast_and_its_volumes_do_not_depend_on_how_the_run_is_pro
         for frame in (0, 1):
             want = a.read_volume(pair, frame)
             np.testing.assert_allclose(b.read_volume(pair, frame), want, rtol=1e-5, atol=1e-6 * float(want.max()))
+
+
+def test_skip_done_finishes_a_run_by_the_protocol_it_was_begun_with(capsys, synthetic_run, tmp_path):
+    """--skip-done without --protocol goes on with the protocol the volumes record (a run begun under the
+    previous default, fixed, is finished by it, with a note), rather than remaking them by the default;
+    --protocol given remakes them; volumes recorded before protocols were count as fixed."""
+    run = tmp_path / "run.zarr"
+    shutil.copytree(synthetic_run, run)
+    assert _run(capsys, "reconstruct", str(run), "--protocol", "fixed", "--iterations", "50", "--pair-range", "0:1",
+                "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--skip-done", "--quiet")
+    assert rc == 0 and "reconstructed 2 volume(s)" in out and "protocol fixed: 50 iterations a frame" in out, out
+    assert err.count("\n") == 1 and "note: going on with --protocol fixed, which the volumes of" in err, err
+    assert "replaced" not in err and RunStore.open(run).reconstructed_pairs() == [0, 1]
+    # volumes recorded without a protocol (before protocols were): the default of then, fixed
+    f = run / "volumes" / "zarr.json"
+    meta = json.loads(f.read_text())
+    del meta["attributes"]["settings"]["protocol"]
+    f.write_text(json.dumps(meta))
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--skip-done", "--quiet")
+    assert rc == 0 and "nothing to do" in out and "going on with --protocol fixed" in err, out + err
+    # the protocol given wins: the volumes are made again by it
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--protocol", "fast", "--skip-done", "--pair-range", "0:1",
+                        "--quiet")
+    assert rc == 0 and "protocol fast: " in out and "going on" not in err and "replaced" in err, out + err
