@@ -857,7 +857,10 @@ def los_weights(
     ``fill`` says what to do with them: 0 count them into ``counts`` and their sum into
     ``sums``; 1 write them, divided by ``sums[tid]``, to ``pix``/``w`` from ``offsets[tid]``;
     2 project the voxel, ``proj[pixel] += w e[tid]``; 3 update it, ``e[tid] <- e[tid]
-    exp(relaxation sum w log_ratio[pixel])`` (:func:`lfcore._kernels.mart.multiplied`). Modes 2 and
+    exp(relaxation sum w log_ratio[pixel])`` (:func:`lfcore._kernels.mart.multiplied`); 4 count
+    them and their sum as mode 0 does and write them, not yet divided, to the slot ``offsets[tid]``
+    .. ``offsets[tid + 1]`` (less ``origin``) as far as it holds them (:func:`pack_line_of_sight`
+    then divides and packs them: mode 0 and mode 1 in one trace). Modes 2 and
     3 are the MART iteration on weights computed where they are used, never stored: exactly
     what :mod:`lfcore._kernels.mart` does with the weights of mode 1, in a fraction of the memory.
 
@@ -870,7 +873,7 @@ def los_weights(
     """
     tid = wp.tid()
     ej = float(0.0)
-    if fill >= 2:
+    if fill == 2 or fill == 3:
         ej = e[tid]
         if ej == 0.0:
             return  # a dead voxel projects nothing and stays dead
@@ -878,10 +881,13 @@ def los_weights(
     n = wp.int64(0)
     base = wp.int64(0)
     norm = float(1.0)
-    if fill >= 1:
+    if fill >= 1 and fill <= 3:
         norm = 1.0 / wp.max(sums[tid], 1.0e-30)
-    if fill == 1:
+    end = wp.int64(0)
+    if fill == 1 or fill == 4:
         base = offsets[tid] - origin
+    if fill == 4:
+        end = offsets[tid + 1] - origin
     total = float(0.0)
     log_sum = float(0.0)
     for iv in range(n_views):
@@ -975,8 +981,11 @@ def los_weights(
                                 wp.atomic_add(proj, q, wt * norm * ej)
                             elif fill == 3:
                                 log_sum += wt * norm * log_ratio[q]
+                            elif fill == 4 and base + n < end:
+                                pix[base + n] = q
+                                w[base + n] = wt
                             n += wp.int64(1)
-    if fill == 0:
+    if fill == 0 or fill == 4:
         counts[tid] = n
         sums[tid] = total
     elif fill == 3:
@@ -1217,6 +1226,31 @@ def gather_merged(
     """Pack each voxel's merged entries (at ``starts``) contiguously (at ``new_starts``)."""
     v = wp.tid()
     _copy_run(src_pix, src_w, wp.int64(starts[v]), dst_pix, dst_w, new_starts[v], wp.int64(counts[v]))
+
+
+@wp.kernel
+def pack_line_of_sight(
+    slots: wp.array(dtype=wp.int64),
+    counts: wp.array(dtype=wp.int64),
+    sums: wp.array(dtype=float),
+    src_pix: wp.array(dtype=wp.int32),
+    src_w: wp.array(dtype=float),
+    offsets: wp.array(dtype=wp.int64),
+    dst_pix: wp.array(dtype=wp.int32),
+    dst_w: wp.array(dtype=float),
+):
+    """Pack voxel v's line-of-sight entries from its slot (at ``slots[v]``, :func:`los_weights` mode 4)
+    to ``offsets[v]``, each divided by the voxel's sum as mode 1 divides it (the same float arithmetic:
+    the same weights to the bit)."""
+    v = wp.tid()
+    norm = 1.0 / wp.max(sums[v], 1.0e-30)
+    s = slots[v]
+    d = offsets[v]
+    k = wp.int64(0)
+    while k < counts[v]:
+        dst_pix[d + k] = src_pix[s + k]
+        dst_w[d + k] = src_w[s + k] * norm
+        k += wp.int64(1)
 
 
 @wp.kernel

@@ -454,3 +454,45 @@ def test_edge_spans_computed_once_give_the_per_cell_clipping_to_the_bit(device, 
     wp.launch(plain, dim=n, inputs=[view, wp.array(rects, dtype=wp.vec4, device=device),
                                     wp.array(cells, dtype=wp.vec2, device=device), direct], device=device)
     assert np.array_equal(direct.numpy(), ref)
+
+
+def test_line_of_sight_single_pass_gives_the_two_pass_weights_to_the_bit(small_dual_rig, device, monkeypatch):
+    """The MART baseline's weights traced once into slots (counted, summed, then divided and packed) are
+    the two-pass build's (counted first, then written divided) to the bit: with slots that hold every
+    voxel, with a tiny capacity sample (voxels overflow and their chunk is written again) and small
+    chunks; a budget that may not hold them all leaves the choice to the two-pass build."""
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
+    vox = proj.wp.array(np.arange(0, grid.n_voxels, 3, dtype=np.int32), device=device)
+    two = proj.weights(vox, method="los", build="two-pass")
+    assert two.nnz > 0
+
+    def bitwise(a, b):
+        assert np.array_equal(a.voxels.numpy(), b.voxels.numpy()) and a.nnz == b.nnz
+        assert all(np.array_equal(x, y) for x, y in zip(a.to_numpy(), b.to_numpy(), strict=True))
+
+    modes = []
+    trace = proj.builder.trace_los
+    monkeypatch.setattr(proj.builder, "trace_los", lambda *a, **k: modes.append(a[1]) or trace(*a, **k))
+    one = proj.weights(vox, method="los", build="single-pass")
+    assert 4 in modes and 1 not in modes  # one trace of every voxel, none overflowed
+    bitwise(two, one)
+    bitwise(two, proj.weights(vox, method="los", build="single-pass", storage="stored"))
+    modes.clear()
+    tight = proj.weights(vox, method="los", build="single-pass", storage="auto",
+                         budget_bytes=build_module.BYTES_PER_WEIGHT * two.nnz + 64 * grid.n_voxels)
+    assert 4 not in modes and 0 in modes  # counted first by the two-pass build, which stores what fits
+    bitwise(two, tight)
+    # the capacity sampled from the first voxel alone, the one with the fewest weights (that of others
+    # then overflow their slots), and small chunks
+    per_voxel = np.diff(two.to_numpy()[0])
+    order = np.argsort(per_voxel, kind="stable")
+    assert per_voxel[order[-1]] > 1.25 * per_voxel[order[0]] + 32
+    ordered = proj.wp.array(vox.numpy()[order], device=device)
+    two = proj.weights(ordered, method="los", build="two-pass")
+    modes.clear()
+    monkeypatch.setattr(build_module, "CAPACITY_SAMPLE", 1)
+    monkeypatch.setattr(build_module, "SINGLE_PASS_ENTRIES", 2000)
+    small = proj.weights(ordered, method="los", build="single-pass")
+    assert 1 in modes and 4 in modes  # overflowed slots written again at exact offsets
+    bitwise(two, small)
