@@ -250,14 +250,14 @@ class ReconSettings:
         warm start (the warm frame's own voxels are eliminated as before).
     coarse_iterations
         The line-of-sight iterations on the coarse grid (``coarse`` above 1).
-    los_prune
-        Where coarse-to-fine elimination ran (``coarse``), the pruning's threshold (a fraction of the
-        brightest, as ``prune``) at the hand-over from the ``los_iterations`` to DRT's weights: the
-        voxels dimmer than this get no DRT weights. The line-of-sight passes then started from the
-        coarse grid's volume, its ``coarse_iterations`` already spent on telling particles from
-        ghosts, and a voxel still this dim after them is a ghost; from a uniform start (small boxes,
-        a warm start) the hand-over prunes at ``prune`` as every other pruning does. 0: ``prune``
-        (or :data:`PRUNE`) everywhere.
+    coarse_prune
+        Where coarse-to-fine elimination ran (``coarse``), the pruning's threshold for the whole frame
+        (a fraction of the brightest, as ``prune``): the coarse grid's pruning, the line-of-sight
+        passes', the hand-over to DRT's weights (``los_iterations``) and the later passes'. The fine
+        grid then starts from the coarse grid's volume, in which the ghosts (where lines of sight from
+        lit pixels cross by chance) have had ``coarse_iterations`` to fade, so its particles stand
+        further above them than after a uniform start, where a small box (the tiny rig: Q 0.774
+        against 0.786 at 2%) keeps ``prune``. 0: ``prune`` everywhere.
     """
 
     method: str = "drt-mart"
@@ -286,7 +286,7 @@ class ReconSettings:
     stop_every: int = 10
     coarse: int = 1
     coarse_iterations: int = COARSE_ITERATIONS
-    los_prune: float = 0.0
+    coarse_prune: float = 0.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -360,9 +360,9 @@ class ReconSettings:
             raise ValueError("coarse-to-fine elimination (coarse) is for drt-mart's simultaneous form")
         if self.coarse_iterations < 1:
             raise ValueError(f"coarse_iterations must be 1 or more, got {self.coarse_iterations}")
-        if not 0.0 <= self.los_prune < 1.0:
-            raise ValueError(f"los_prune must be from 0 (the pruning's prune) to below 1 (a fraction of the "
-                             f"brightest voxels' intensity), got {self.los_prune}")
+        if not 0.0 <= self.coarse_prune < 1.0:
+            raise ValueError(f"coarse_prune must be from 0 (the pruning's prune) to below 1 (a fraction of the "
+                             f"brightest voxels' intensity), got {self.coarse_prune}")
 
     @property
     def warm_count(self) -> int:
@@ -404,17 +404,16 @@ class ReconSettings:
 #: iterations of DRT-MART, the pruning, and frame B of each pair warm-started from frame A along a
 #: series (where the volumes are reconstructed in memory); 4 ordered subsets, the rule measuring per
 #: pass (an iteration is then a pass through them), and coarse-to-fine elimination on a grid 3 times
-#: coarser in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels, after which the hand-over
-#: from the line-of-sight passes to DRT's weights keeps the voxels brighter than 2% of the brightest
-#: (``los_prune``; 1% from a uniform start, where the tiny rig lost 0.014 of Q at 2%). Measured by
-#: ``benchmarks/mcfast.py`` (``benchmarks/RESULTS.md``): on the Mc crop Q 0.785 (the chapter's 400
-#: iterations: 0.783) for about a twentieth of the chapter protocol's CPU time; DRT weights for 46,000
-#: voxels instead of 70,000.
+#: coarser in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels, where every pruning of the
+#: frame then keeps the voxels brighter than 2% of the brightest (``coarse_prune``; 1% in smaller boxes,
+#: where the tiny rig lost 0.012 of Q at 2%). Measured by ``benchmarks/mcfast.py`` (``benchmarks/RESULTS.md``):
+#: on the Mc crop Q 0.785 (the chapter's 400 iterations: 0.783) for about a twenty-first of the chapter
+#: protocol's CPU time.
 PROTOCOLS: dict[str, dict] = {
     "chapter": {"iterations": 400, "prune": 0.0, "relaxation": 1.0},
     "fixed": {"iterations": 50},
     "fast": {"iterations": 400, "stop_tolerance": STOP_TOLERANCE, "los_iterations": 20, "warm_start": True,
-             "coarse": 3, "subsets": 4, "los_prune": 0.02},
+             "coarse": 3, "subsets": 4, "coarse_prune": 0.02},
 }
 
 
@@ -1002,9 +1001,11 @@ class FrameReconstructor:
         flat = np.concatenate([s.ravel() for s in signals])
         wp.copy(self._image, wp.array(flat, dtype=float, device="cpu", copy=False))
         coarse = None
-        coarse_ran = self.coarse_applies() and not warmed
-        if coarse_ran:
+        cut = None  # the pruning's threshold: settings.prune, or coarse_prune after the coarse grid
+        if self.coarse_applies() and not warmed:
             voxels, coarse = self.coarse_eliminate(lits, self._image, noises)
+            if settings.prune > 0:  # no pruning asked for: none after the coarse grid either
+                cut = settings.coarse_prune or None
         else:
             voxels = self.eliminate(lits)  # returns once counted: synced
         t_elim = t0 if settings.method == "mart" else time.perf_counter()
@@ -1020,12 +1021,11 @@ class FrameReconstructor:
         if los_first:
             # the cheap weights first; DRT's then for the voxels still bright (a third of them on Mc)
             first = self.iterate(op, self._image, noises, progress=progress, iterations=settings.los_iterations,
-                                 stop_tolerance=0.0, start=start)
+                                 stop_tolerance=0.0, start=start, prune=cut)
             weights_s += first.start_s
             iterate_s += first.iterate_s
             t = time.perf_counter()
-            cut = (settings.los_prune if coarse_ran else 0.0) or settings.prune or PRUNE
-            (bright,), (e,) = prune_dark([first.op], [first.e], cut)
+            (bright,), (e,) = prune_dark([first.op], [first.e], cut or settings.prune or PRUNE)
             start = with_floor(e, WARM_BLEND)  # a dark voxel may still grow under the sharper weights
             del first, op, e
             op = self.operator(bright.voxels)
@@ -1036,7 +1036,7 @@ class FrameReconstructor:
         op_bytes = self.operator_bytes(op)
         ops = [op]
         del op  # iterate may split it into ordered subsets (settings.subsets): the unsplit rows may then go
-        done = self.iterate(ops.pop(), self._image, noises, progress=progress, iterations=its, start=start)
+        done = self.iterate(ops.pop(), self._image, noises, progress=progress, iterations=its, start=start, prune=cut)
         del start
         if warm is not None:
             warm.keep(done.op, done.e)
@@ -1113,7 +1113,8 @@ class FrameReconstructor:
             cgrid = coarse_grids.coarse_grid(p.grid, f)
             cproj = projector_for(p.cameras, cgrid, sub_apertures=s.sub_apertures, device=self.device)
             cset = replace(s, method="mlos-mart", projector="stored", iterations=s.coarse_iterations, los_iterations=0,
-                           subsets=1, stop_tolerance=0.0, warm_start=False, coarse=1, prune=s.prune or PRUNE)
+                           subsets=1, stop_tolerance=0.0, warm_start=False, coarse=1,
+                           prune=s.coarse_prune or s.prune or PRUNE)
             self._coarse = FrameReconstructor(cproj, cset, budget_bytes=self.budget_bytes)
         c = self._coarse
         cvox = c.eliminate(lit)
@@ -1199,7 +1200,7 @@ class FrameReconstructor:
 
     def iterate(self, op: Operator, image, noise: Sequence[float], *, iterations: int | None = None,
                 relaxation: float | None = None, progress: Callable[[int], None] | None = None,
-                start=None, stop_tolerance: float | None = None) -> Iterated:
+                start=None, stop_tolerance: float | None = None, prune: float | None = None) -> Iterated:
         """MART on ``weights``: a uniform start (or ``start``), then the iterations of ``settings.form``.
 
         The start is uniform (or ``start``), scaled so that its projection carries the measured total
@@ -1229,6 +1230,9 @@ class FrameReconstructor:
             start, :meth:`lfcore.warm.WarmStart.start`), all positive; None: uniform.
         stop_tolerance
             Overrides ``settings.stop_tolerance`` (:class:`StoppingRule`; 0: exactly ``iterations``).
+        prune
+            Overrides ``settings.prune`` (the threshold after coarse-to-fine elimination,
+            ``settings.coarse_prune``); None: ``settings.prune``.
 
         Returns
         -------
@@ -1271,7 +1275,7 @@ class FrameReconstructor:
         transposed = op.transpose() if s.form == "sequential" else None  # stored weights (ReconSettings checks)
         if transposed is None and self._ratio is None:
             self._ratio = wp.empty(p.n_pixels, dtype=float, device=self.device)
-        prune = s.prune if transposed is None else 0.0
+        prune = (s.prune if prune is None else float(prune)) if transposed is None else 0.0
         tolerance = s.stop_tolerance if stop_tolerance is None else float(stop_tolerance)
         # with the rule on, ordered subsets prune and measure per pass as often as the plain form per iteration
         per_pass = op.n_subsets if tolerance > 0 and isinstance(op, SubsetOperator) else 1
