@@ -251,13 +251,14 @@ class ReconSettings:
     coarse_iterations
         The line-of-sight iterations on the coarse grid (``coarse`` above 1).
     coarse_prune
-        Where coarse-to-fine elimination ran (``coarse``), the pruning's threshold for the whole frame
-        (a fraction of the brightest, as ``prune``): the coarse grid's pruning, the line-of-sight
-        passes', the hand-over to DRT's weights (``los_iterations``) and the later passes'. The fine
-        grid then starts from the coarse grid's volume, in which the ghosts (where lines of sight from
-        lit pixels cross by chance) have had ``coarse_iterations`` to fade, so its particles stand
-        further above them than after a uniform start, where a small box (the tiny rig: Q 0.774
-        against 0.786 at 2%) keeps ``prune``. 0: ``prune`` everywhere.
+        Where coarse-to-fine elimination ran (``coarse``), the pruning's threshold on the fine grid (a
+        fraction of the brightest, as ``prune``): the line-of-sight passes', the hand-over to DRT's
+        weights (``los_iterations``) and the later passes'. The fine grid then starts from the coarse
+        grid's volume, in which the ghosts (where lines of sight from lit pixels cross by chance) have
+        had ``coarse_iterations`` to fade, so its particles stand further above them than after a
+        uniform start, where a small box (the tiny rig: Q 0.772 against 0.786 with a 2% hand-over)
+        keeps ``prune``. The coarse grid's own pruning stays at ``prune`` (at 2% it lost particles).
+        0: ``prune`` everywhere.
     """
 
     method: str = "drt-mart"
@@ -404,11 +405,11 @@ class ReconSettings:
 #: iterations of DRT-MART, the pruning, and frame B of each pair warm-started from frame A along a
 #: series (where the volumes are reconstructed in memory); 4 ordered subsets, the rule measuring per
 #: pass (an iteration is then a pass through them), and coarse-to-fine elimination on a grid 3 times
-#: coarser in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels, where every pruning of the
-#: frame then keeps the voxels brighter than 2% of the brightest (``coarse_prune``; 1% in smaller boxes,
-#: where the tiny rig lost 0.012 of Q at 2%). Measured by ``benchmarks/mcfast.py`` (``benchmarks/RESULTS.md``):
-#: on the Mc crop Q 0.785 (the chapter's 400 iterations: 0.783) for about a twenty-first of the chapter
-#: protocol's CPU time.
+#: coarser in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels, after which the fine grid's
+#: prunings keep the voxels brighter than 2% of the brightest (``coarse_prune``; 1% in smaller boxes, where
+#: the tiny rig lost 0.014 of Q with a 2% hand-over). Measured by ``benchmarks/mcfast.py``
+#: (``benchmarks/RESULTS.md``): on the Mc crop Q 0.785 (the chapter's 400 iterations: 0.783) for about a
+#: twentieth of the chapter protocol's CPU time.
 PROTOCOLS: dict[str, dict] = {
     "chapter": {"iterations": 400, "prune": 0.0, "relaxation": 1.0},
     "fixed": {"iterations": 50},
@@ -1113,8 +1114,7 @@ class FrameReconstructor:
             cgrid = coarse_grids.coarse_grid(p.grid, f)
             cproj = projector_for(p.cameras, cgrid, sub_apertures=s.sub_apertures, device=self.device)
             cset = replace(s, method="mlos-mart", projector="stored", iterations=s.coarse_iterations, los_iterations=0,
-                           subsets=1, stop_tolerance=0.0, warm_start=False, coarse=1,
-                           prune=s.coarse_prune or s.prune or PRUNE)
+                           subsets=1, stop_tolerance=0.0, warm_start=False, coarse=1, prune=s.prune or PRUNE)
             self._coarse = FrameReconstructor(cproj, cset, budget_bytes=self.budget_bytes)
         c = self._coarse
         cvox = c.eliminate(lit)
