@@ -561,8 +561,9 @@ def frame_stages(cameras: str, grid: VolumeGrid, settings: ReconSettings, *, sla
     out: list[str] = []
     if s.coarse > 1 and s.method == "drt-mart" and s.form == "simultaneous":
         if coarse_runs(cameras, grid, s):
+            then = f"; the fine grid's voxels pruned at {s.coarse_prune:.0%}" if s.coarse_prune and s.prune > 0 else ""
             out.append(f"coarse-to-fine elimination on a {s.coarse}x coarser grid ({s.coarse_iterations} line-of-sight "
-                       "iterations)")
+                       f"iterations{then})")
         else:
             why = "cameras other than light-field ones" if cameras != "light-field" else \
                 f"a box of fewer than {coarse_grids.COARSE_MIN_VOXELS:,} voxels"

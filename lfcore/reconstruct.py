@@ -254,6 +254,15 @@ class ReconSettings:
         it); not with a warm start (the warm frame's own voxels are eliminated as before).
     coarse_iterations
         The line-of-sight iterations on the coarse grid (``coarse`` above 1).
+    coarse_prune
+        Where coarse-to-fine elimination ran (``coarse``), the pruning's threshold on the fine grid (a
+        fraction of the brightest, as ``prune``): the line-of-sight passes', the hand-over to DRT's
+        weights (``los_iterations``) and the later passes'. The fine grid then starts from the coarse
+        grid's volume, in which the ghosts (where lines of sight from lit pixels cross by chance) have
+        had ``coarse_iterations`` to fade, so its particles stand further above them than after a
+        uniform start, where a small box (the tiny rig: Q 0.772 against 0.786 with a 2% hand-over)
+        keeps ``prune``. The coarse grid's own pruning stays at ``prune`` (at 2% it lost particles).
+        0: ``prune`` everywhere.
     """
 
     method: str = "drt-mart"
@@ -282,6 +291,7 @@ class ReconSettings:
     stop_every: int = 10
     coarse: int = 1
     coarse_iterations: int = COARSE_ITERATIONS
+    coarse_prune: float = 0.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -355,6 +365,9 @@ class ReconSettings:
             raise ValueError("coarse-to-fine elimination (coarse) is for drt-mart's simultaneous form")
         if self.coarse_iterations < 1:
             raise ValueError(f"coarse_iterations must be 1 or more, got {self.coarse_iterations}")
+        if not 0.0 <= self.coarse_prune < 1.0:
+            raise ValueError(f"coarse_prune must be from 0 (the pruning's prune) to below 1 (a fraction of the "
+                             f"brightest voxels' intensity), got {self.coarse_prune}")
 
     @property
     def warm_count(self) -> int:
@@ -397,12 +410,16 @@ class ReconSettings:
 #: volume does not depend on which pairs a process made before it; ``warm_start`` adds the series' warm
 #: start); 4 ordered subsets, the rule measuring per
 #: pass (an iteration is then a pass through them), and coarse-to-fine elimination on a grid 3 times
-#: coarser in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels (``benchmarks/mcfast.py``:
-#: on the Mc crop Q 0.786 for a fifteenth to a twentieth of the chapter protocol's CPU time).
+#: coarser in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels, after which the fine grid's
+#: prunings keep the voxels brighter than 2% of the brightest (``coarse_prune``; 1% in smaller boxes, where
+#: the tiny rig lost 0.014 of Q with a 2% hand-over). Measured by ``benchmarks/mcfast.py``
+#: (``benchmarks/RESULTS.md``): on the Mc crop Q 0.785 (the chapter's 400 iterations: 0.783) for about a
+#: twentieth of the chapter protocol's CPU time.
 PROTOCOLS: dict[str, dict] = {
     "chapter": {"iterations": 400, "prune": 0.0, "relaxation": 1.0},
     "fixed": {"iterations": 50},
-    "fast": {"iterations": 400, "stop_tolerance": STOP_TOLERANCE, "los_iterations": 20, "coarse": 3, "subsets": 4},
+    "fast": {"iterations": 400, "stop_tolerance": STOP_TOLERANCE, "los_iterations": 20, "coarse": 3, "subsets": 4,
+             "coarse_prune": 0.02},
 }
 
 
@@ -951,7 +968,7 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
                      iterations: int | None = None, relaxation: float | None = None,
                      progress: Callable[[int], None] | None = None, start=None, stop_tolerance: float | None = None,
                      split: Callable[[Operator], Operator] | None = None, t0: float | None = None,
-                     started: Callable[[float], None] | None = None) -> Iterated:
+                     started: Callable[[float], None] | None = None, prune: float | None = None) -> Iterated:
     """MART's start and iterations on ``op`` in the buffers given: the one loop of
     :meth:`FrameReconstructor.iterate` (in memory) and :class:`lfcore.slabs.SlabReconstructor` (the
     operators of a volume's depth slabs as one, :class:`lfcore.slabs.SlabOperators`).
@@ -965,7 +982,7 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
     image, proj, ratio
         (n_pixels,) float32 Warp arrays: the measured signal in counts (:meth:`FrameReconstructor.iterate`),
         the projection's and the log ratios' scratch (``ratio`` None for the sequential form).
-    noise, settings, iterations, relaxation, progress, start, stop_tolerance
+    noise, settings, iterations, relaxation, progress, start, stop_tolerance, prune
         As :meth:`FrameReconstructor.iterate` takes them.
     split
         Called with the scaled-start operator where ``settings.subsets`` asks for ordered subsets (the
@@ -1011,7 +1028,7 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
         started(t1 - t0)
     floor = max(s.floor * s.threshold_sigma * float(np.mean(noise)), 1e-6)
     transposed = op.transpose() if s.form == "sequential" else None  # stored weights (ReconSettings checks)
-    prune = s.prune if transposed is None else 0.0
+    prune = (s.prune if prune is None else float(prune)) if transposed is None else 0.0
     tolerance = s.stop_tolerance if stop_tolerance is None else float(stop_tolerance)
     ordered = is_split(op)
     # with the rule on, ordered subsets prune and measure per pass as often as the plain form per iteration
@@ -1190,8 +1207,11 @@ class FrameReconstructor:
         flat = np.concatenate([s.ravel() for s in signals])
         wp.copy(self._image, wp.array(flat, dtype=float, device="cpu", copy=False))
         coarse = None
+        cut = None  # the pruning's threshold: settings.prune, or coarse_prune after the coarse grid
         if self.coarse_applies() and not warmed:
             voxels, coarse = self.coarse_eliminate(lits, self._image, noises)
+            if settings.prune > 0:  # no pruning asked for: none after the coarse grid either
+                cut = settings.coarse_prune or None
         else:
             voxels = self.eliminate(lits)  # returns once counted: synced
         t_elim = t0 if settings.method == "mart" else time.perf_counter()
@@ -1207,11 +1227,11 @@ class FrameReconstructor:
         if los_first:
             # the cheap weights first; DRT's then for the voxels still bright (a third of them on Mc)
             first = self.iterate(op, self._image, noises, progress=progress, iterations=settings.los_iterations,
-                                 stop_tolerance=0.0, start=start)
+                                 stop_tolerance=0.0, start=start, prune=cut)
             weights_s += first.start_s
             iterate_s += first.iterate_s
             t = time.perf_counter()
-            (bright,), (e,) = prune_dark([first.op], [first.e], settings.prune or PRUNE)
+            (bright,), (e,) = prune_dark([first.op], [first.e], cut or settings.prune or PRUNE)
             start = with_floor(e, WARM_BLEND)  # a dark voxel may still grow under the sharper weights
             del first, op, e
             op = self.operator(bright.voxels)
@@ -1222,7 +1242,7 @@ class FrameReconstructor:
         op_bytes = self.operator_bytes(op)
         ops = [op]
         del op  # iterate may split it into ordered subsets (settings.subsets): the unsplit rows may then go
-        done = self.iterate(ops.pop(), self._image, noises, progress=progress, iterations=its, start=start)
+        done = self.iterate(ops.pop(), self._image, noises, progress=progress, iterations=its, start=start, prune=cut)
         del start
         if warm is not None:
             warm.keep(done.op, done.e)
@@ -1367,7 +1387,7 @@ class FrameReconstructor:
 
     def iterate(self, op: Operator, image, noise: Sequence[float], *, iterations: int | None = None,
                 relaxation: float | None = None, progress: Callable[[int], None] | None = None,
-                start=None, stop_tolerance: float | None = None) -> Iterated:
+                start=None, stop_tolerance: float | None = None, prune: float | None = None) -> Iterated:
         """MART on ``weights``: a uniform start (or ``start``), then the iterations of ``settings.form``.
 
         The start is uniform (or ``start``), scaled so that its projection carries the measured total
@@ -1397,6 +1417,9 @@ class FrameReconstructor:
             start, :meth:`lfcore.warm.WarmStart.start`), all positive; None: uniform.
         stop_tolerance
             Overrides ``settings.stop_tolerance`` (:class:`StoppingRule`; 0: exactly ``iterations``).
+        prune
+            Overrides ``settings.prune`` (the threshold after coarse-to-fine elimination,
+            ``settings.coarse_prune``); None: ``settings.prune``.
 
         Returns
         -------
@@ -1415,7 +1438,7 @@ class FrameReconstructor:
             self._ratio = wp.empty(p.n_pixels, dtype=float, device=self.device)
         return smart_iterations(op, self._e[: max(n, 1)], image, self._proj, self._ratio, noise, s,
                                 iterations=iterations, relaxation=relaxation, progress=progress, start=start,
-                                stop_tolerance=stop_tolerance, split=self._ordered_subsets, t0=t0)
+                                stop_tolerance=stop_tolerance, split=self._ordered_subsets, t0=t0, prune=prune)
 
     def _ordered_subsets(self, op: Operator) -> Operator:
         """``op`` split by ``settings.subsets`` pixel subsets (:func:`lfcore.subsets.split`), or

@@ -332,10 +332,12 @@ class SlabReconstructor:
         timing = _IterationLog(s.iterations, progress, log, dev)
         timing.voxels = n_total
         self._held = held
+        # the pruning's threshold after the coarse grid (ReconSettings.coarse_prune), as in memory
+        cut = (s.coarse_prune or None) if bright is not None and s.prune > 0 else None
         done = smart_iterations(joint, wp.empty(max(n_total, 1), dtype=float, device=dev), image, proj, ratio, noises,
                                 s, iterations=s.los_iterations if los_first else s.iterations,
                                 stop_tolerance=0.0 if los_first else None, progress=timing.tick, start=start,
-                                split=lambda op: self._split(op, budget), t0=t1, started=timing.started)
+                                split=lambda op: self._split(op, budget), t0=t1, started=timing.started, prune=cut)
         del start, joint
         weights_s, iterate_s, ran = t1 - t0 + done.start_s, done.iterate_s, done.iterations
         kinds = first_kinds
@@ -343,7 +345,7 @@ class SlabReconstructor:
             # the cheap weights first; DRT's then for the voxels still bright, each slab's line-of-sight
             # weights freed before its DRT weights are built
             t = time.perf_counter()
-            (kept,), (e,) = prune_dark([done.op], [done.e], s.prune or PRUNE)
+            (kept,), (e,) = prune_dark([done.op], [done.e], cut or s.prune or PRUNE)
             start = with_floor(e, WARM_BLEND)  # a dark voxel may still grow under the sharper weights
             del done, e
             parts, drt, own = list(kept.parts), [], []
@@ -381,7 +383,7 @@ class SlabReconstructor:
             done = smart_iterations(joint, wp.empty(max(joint.n_voxels, 1), dtype=float, device=dev), image, proj,
                                     ratio, noises, s, iterations=s.iterations - s.los_iterations,
                                     progress=timing.tick, start=start, split=lambda op: self._split(op, budget),
-                                    t0=t2, started=timing.started)
+                                    t0=t2, started=timing.started, prune=cut)
             del start, joint
             weights_s += done.start_s
             iterate_s += done.iterate_s

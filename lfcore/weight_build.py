@@ -395,8 +395,9 @@ class WeightBuilder:
         budget_bytes
             Memory the weights may take; default: what the device has free.
         build
-            ``"auto"`` (single-pass for DRT weights on the CPU, else two-pass),
-            ``"single-pass"`` or ``"two-pass"``. LOS weights are always built in two passes.
+            ``"auto"`` (single-pass on the CPU, else two-pass), ``"single-pass"`` or ``"two-pass"``.
+            LOS weights are built in one pass only where they are all stored (``storage`` ``"stored"``,
+            or ``"auto"`` with room for them all); both builds give the same weights to the bit.
         sort
             Merge of a two-pass build: ``"auto"`` (per voxel on the CPU, the library's on a GPU),
             ``"per-voxel"`` or ``"library"``. A single-pass build always sorts per voxel.
@@ -443,6 +444,10 @@ class WeightBuilder:
         budget = available_bytes(self.device) if budget_bytes is None else budget_bytes
         if method == "drt" and build == "single-pass":
             return self._drt_single_pass(voxels, float(min_weight), budget)
+        if method == "los" and build == "single-pass" and storage != "on-the-fly" and n:
+            single = self._los_single_pass(voxels, float(min_weight), budget, held=storage == "stored")
+            if single is not None:
+                return single
         counts = wp.zeros(max(n, 1), dtype=wp.int64, device=self.device)
         sums = wp.zeros(max(n, 1), dtype=float, device=self.device)
         offsets = wp.zeros(n + 1, dtype=wp.int64, device=self.device)
@@ -528,6 +533,61 @@ class WeightBuilder:
                            min_weight=float(min_weight))
         return Weights(voxels=voxels, chunks=chunks, nnz=total, kind=TRACED if method == "drt" else LINE_OF_SIGHT)
 
+    def _los_single_pass(self, voxels, min_weight: float, budget: int, *, held: bool) -> Weights | None:
+        """Line-of-sight weights of ``voxels`` traced once (:func:`~lfcore._kernels.weights.los_weights`
+        mode 4: counted, summed and written into slots of a capacity guessed from a sample, then
+        divided and packed), the same weights as the two-pass build's to the bit, in about half its
+        tracing. None where they might not all be stored within ``budget`` (unless ``held``: storage
+        ``"stored"``, which refuses what does not fit as the two-pass build does): the two-pass build
+        then chooses which to store and which to make on the fly."""
+        wp, kw, dev = self.wp, self._kw, self.device
+        n = int(voxels.shape[0])
+
+        def trace(vox, slots, fill, counts, sums, pix, w):
+            self.trace_los(vox, fill, min_weight, counts=counts, sums=sums, offsets=slots, pix=pix, w=w)
+
+        take = np.unique(np.linspace(0, n - 1, min(n, CAPACITY_SAMPLE)).astype(np.int64))
+        sample = wp.array(voxels.numpy()[take], dtype=wp.int32, device=dev)
+        counts = wp.zeros(len(take), dtype=wp.int64, device=dev)
+        trace(sample, None, 0, counts, wp.zeros(len(take), dtype=float, device=dev), None, None)
+        cap = int(1.25 * int(counts.numpy().max())) + 32
+        if not held and BYTES_PER_WEIGHT * cap * n + (ON_THE_FLY_BYTES_PER_VOXEL + 28) * n > budget:
+            return None  # perhaps not all stored: the two-pass build counts them first
+        per_chunk = max(1, SINGLE_PASS_ENTRIES // cap)
+        chunks, group, total = [], [], 0
+        for lo in range(0, n, per_chunk):
+            hi = min(n, lo + per_chunk)
+            m = hi - lo
+            vox = voxels[lo:hi]
+            slots = wp.array(np.arange(m + 1, dtype=np.int64) * cap, device=dev)
+            pix = wp.empty(m * cap, dtype=wp.int32, device=dev)
+            w_raw = wp.empty(m * cap, dtype=float, device=dev)
+            counts = wp.zeros(m, dtype=wp.int64, device=dev)
+            sums = wp.zeros(m, dtype=float, device=dev)
+            trace(vox, slots, 4, counts, sums, pix, w_raw)
+            cnt = counts.numpy()
+            c_off = np.zeros(m + 1, dtype=np.int64)
+            np.cumsum(cnt, out=c_off[1:])
+            nnz = int(c_off[-1])
+            self._check_budget(total + nnz, n, budget)
+            offsets = wp.array(c_off, device=dev)
+            out_pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=dev)
+            out_w = wp.empty(max(nnz, 1), dtype=float, device=dev)
+            if int(cnt.max()) > cap:  # a voxel overflowed its slot: this chunk written again at exact offsets
+                trace(vox, offsets, 1, None, sums, out_pix, out_w)
+            else:
+                launch_rows(kw.pack_line_of_sight, m, [Rows(slots), Rows(counts), Rows(sums), pix, w_raw,
+                                                       Rows(offsets), out_pix, out_w], dev)
+            del pix, w_raw
+            chunk = WeightChunk(first=lo, n=m, offsets=offsets, pix=out_pix, w=out_w, nnz=nnz)
+            total += nnz
+            if group and sum(c.nnz for c in group) + nnz > CHUNK_ENTRIES["cpu" if dev == "cpu" else "cuda"]:
+                chunks += self._joined(group, total - nnz, budget)
+                group = []
+            group.append(chunk)
+        chunks += self._joined(group, total, budget)
+        return Weights(voxels=voxels, chunks=chunks, nnz=total, kind=LINE_OF_SIGHT)
+
     def trace_los(self, voxels, fill: int, min_weight: float, *, counts=None, sums, offsets=None, origin: int = 0,
                   pix=None, w=None, e=None, proj=None, ratio=None, relaxation: float = 0.0) -> None:
         """Launch the line-of-sight kernel over ``voxels`` in mode ``fill``.
@@ -536,7 +596,9 @@ class WeightBuilder:
         into ``counts`` and their sum into ``sums``; 1 write them to ``pix``/``w`` from
         ``offsets`` (less ``origin``); 2 project intensities ``e`` into ``proj`` (the
         :class:`~lfcore.device.PerBlock` output of a projection); 3 update ``e`` in place from the
-        pixels' log ``ratio`` with ``relaxation``. Arrays a mode does not use may be left out.
+        pixels' log ``ratio`` with ``relaxation``; 4 count and sum as 0 does and write the weights, not
+        yet divided by their sum, to ``pix``/``w`` in the slots ``offsets`` bound (the single-pass
+        build). Arrays a mode does not use may be left out.
         """
         wp = self.wp
 
@@ -547,7 +609,8 @@ class WeightBuilder:
             proj = PerBlock((self._f32,) * cpu_threads())
 
         launch_rows(self._kw.los_weights, int(voxels.shape[0]),
-                    [self.grid, self.views, self.n_views, Rows(voxels), rows(offsets, self._i64),
+                    [self.grid, self.views, self.n_views, Rows(voxels),
+                     self._i64 if offsets is None else Rows(offsets, extra=1),  # mode 4 reads a slot's end
                      wp.int64(origin), float(min_weight), fill, rows(counts, self._i64), Rows(sums),
                      self._i32 if pix is None else pix, self._f32 if w is None else w, rows(e, self._f32),
                      proj, self._f32 if ratio is None else ratio,

@@ -128,6 +128,40 @@ def add_segment(b: Boundary, sx: float, sy: float, dx: float, dy: float, t0: flo
     return b
 
 
+@wp.struct
+class EdgeSpans:
+    """Where each edge of a view's lenslet cell begins and ends along its own direction (the edge's
+    t0 .. t1 in :func:`cell_overlap`'s parametrisation): the same for every cell of the camera."""
+
+    t0: vec6
+    t1: vec6
+
+
+@wp.func
+def edge_spans(view: View) -> EdgeSpans:
+    """The :class:`EdgeSpans` of ``view``'s cell: each edge clipped to the other edges."""
+    h = 0.5 * view.cam.pitch
+    out = EdgeSpans()
+    for e in range(view.n_edges):
+        nx = view.edge_nx[e]
+        ny = view.edge_ny[e]
+        dx = -ny  # counter-clockwise along the edge (outward normal on the right)
+        dy = nx
+        t0 = float(-1.0e30)
+        t1 = float(1.0e30)
+        for f in range(view.n_edges):
+            den = view.edge_nx[f] * dx + view.edge_ny[f] * dy
+            if f != e and wp.abs(den) > 1.0e-6:
+                t = (h - h * (view.edge_nx[f] * nx + view.edge_ny[f] * ny)) / den
+                if den > 0.0:
+                    t1 = wp.min(t1, t)
+                else:
+                    t0 = wp.max(t0, t)
+        out.t0[e] = t0
+        out.t1[e] = t1
+    return out
+
+
 @wp.func
 def cell_overlap(view: View, cx: float, cy: float, x0: float, x1: float, y0: float, y1: float) -> Overlap:
     """The part of rectangle [x0, x1] x [y0, y1] inside the lenslet cell centred at (cx, cy).
@@ -138,6 +172,15 @@ def cell_overlap(view: View, cx: float, cy: float, x0: float, x1: float, y0: flo
     and extent follow from those segments alone (Green's theorem). Everything stays in
     registers: no polygon is built, which on a GPU would live in slow local memory.
     """
+    return spans_overlap(view, edge_spans(view), cx, cy, x0, x1, y0, y1)
+
+
+@wp.func
+def spans_overlap(view: View, spans: EdgeSpans, cx: float, cy: float, x0: float, x1: float, y0: float,
+                  y1: float) -> Overlap:
+    """:func:`cell_overlap` with the cell's :func:`edge_spans` computed once by the caller (a voxel's
+    footprints meet hundreds of cells of the same camera: the clipping of the cell's edges to each
+    other, a third of the work, is the same for all of them). The same arithmetic, the same result."""
     # Work relative to the cell centre so single precision keeps sub-micrometre detail.
     rx0 = x0 - cx
     rx1 = x1 - cx
@@ -154,16 +197,8 @@ def cell_overlap(view: View, cx: float, cy: float, x0: float, x1: float, y0: flo
         ny = view.edge_ny[e]
         dx = -ny  # counter-clockwise along the edge (outward normal on the right)
         dy = nx
-        t0 = float(-1.0e30)
-        t1 = float(1.0e30)
-        for f in range(view.n_edges):
-            den = view.edge_nx[f] * dx + view.edge_ny[f] * dy
-            if f != e and wp.abs(den) > 1.0e-6:
-                t = (h - h * (view.edge_nx[f] * nx + view.edge_ny[f] * ny)) / den
-                if den > 0.0:
-                    t1 = wp.min(t1, t)
-                else:
-                    t0 = wp.max(t0, t)
+        t0 = spans.t0[e]  # the edge clipped to the cell's other edges
+        t1 = spans.t1[e]
         # the rectangle's slabs (Liang-Barsky)
         bx = h * nx
         by = h * ny
@@ -618,6 +653,7 @@ def trace_point(
         gy = -p[1] * cam.si * inv
         dq = cam.si * inv * inv * view.half[2]
         lat = cam.si * inv
+        spans = edge_spans(view)
         for k in range(view.sub_first, view.sub_first + view.sub_count):
             ax = sub_a[k][0]
             ay = sub_a[k][1]
@@ -660,7 +696,7 @@ def trace_point(
                         ov.wy = 2.0 * fy
                     else:
                         c = from_lattice(cam, float(i) * cam.pitch + shift, float(j) * h)
-                        ov = cell_overlap(view, c[0], c[1], x0, x1, y0, y1)
+                        ov = spans_overlap(view, spans, c[0], c[1], x0, x1, y0, y1)
                     if ov.area <= 0.0:
                         continue
                     w1 = ov.area * inv_area
@@ -821,7 +857,10 @@ def los_weights(
     ``fill`` says what to do with them: 0 count them into ``counts`` and their sum into
     ``sums``; 1 write them, divided by ``sums[tid]``, to ``pix``/``w`` from ``offsets[tid]``;
     2 project the voxel, ``proj[pixel] += w e[tid]``; 3 update it, ``e[tid] <- e[tid]
-    exp(relaxation sum w log_ratio[pixel])`` (:func:`lfcore._kernels.mart.multiplied`). Modes 2 and
+    exp(relaxation sum w log_ratio[pixel])`` (:func:`lfcore._kernels.mart.multiplied`); 4 count
+    them and their sum as mode 0 does and write them, not yet divided, to the slot ``offsets[tid]``
+    .. ``offsets[tid + 1]`` (less ``origin``) as far as it holds them (:func:`pack_line_of_sight`
+    then divides and packs them: mode 0 and mode 1 in one trace). Modes 2 and
     3 are the MART iteration on weights computed where they are used, never stored: exactly
     what :mod:`lfcore._kernels.mart` does with the weights of mode 1, in a fraction of the memory.
 
@@ -834,7 +873,7 @@ def los_weights(
     """
     tid = wp.tid()
     ej = float(0.0)
-    if fill >= 2:
+    if fill == 2 or fill == 3:
         ej = e[tid]
         if ej == 0.0:
             return  # a dead voxel projects nothing and stays dead
@@ -842,10 +881,13 @@ def los_weights(
     n = wp.int64(0)
     base = wp.int64(0)
     norm = float(1.0)
-    if fill >= 1:
+    if fill >= 1 and fill <= 3:
         norm = 1.0 / wp.max(sums[tid], 1.0e-30)
-    if fill == 1:
+    end = wp.int64(0)
+    if fill == 1 or fill == 4:
         base = offsets[tid] - origin
+    if fill == 4:
+        end = offsets[tid + 1] - origin
     total = float(0.0)
     log_sum = float(0.0)
     for iv in range(n_views):
@@ -939,8 +981,11 @@ def los_weights(
                                 wp.atomic_add(proj, q, wt * norm * ej)
                             elif fill == 3:
                                 log_sum += wt * norm * log_ratio[q]
+                            elif fill == 4 and base + n < end:
+                                pix[base + n] = q
+                                w[base + n] = wt
                             n += wp.int64(1)
-    if fill == 0:
+    if fill == 0 or fill == 4:
         counts[tid] = n
         sums[tid] = total
     elif fill == 3:
@@ -1181,6 +1226,31 @@ def gather_merged(
     """Pack each voxel's merged entries (at ``starts``) contiguously (at ``new_starts``)."""
     v = wp.tid()
     _copy_run(src_pix, src_w, wp.int64(starts[v]), dst_pix, dst_w, new_starts[v], wp.int64(counts[v]))
+
+
+@wp.kernel
+def pack_line_of_sight(
+    slots: wp.array(dtype=wp.int64),
+    counts: wp.array(dtype=wp.int64),
+    sums: wp.array(dtype=float),
+    src_pix: wp.array(dtype=wp.int32),
+    src_w: wp.array(dtype=float),
+    offsets: wp.array(dtype=wp.int64),
+    dst_pix: wp.array(dtype=wp.int32),
+    dst_w: wp.array(dtype=float),
+):
+    """Pack voxel v's line-of-sight entries from its slot (at ``slots[v]``, :func:`los_weights` mode 4)
+    to ``offsets[v]``, each divided by the voxel's sum as mode 1 divides it (the same float arithmetic:
+    the same weights to the bit)."""
+    v = wp.tid()
+    norm = 1.0 / wp.max(sums[v], 1.0e-30)
+    s = slots[v]
+    d = offsets[v]
+    k = wp.int64(0)
+    while k < counts[v]:
+        dst_pix[d + k] = src_pix[s + k]
+        dst_w[d + k] = src_w[s + k] * norm
+        k += wp.int64(1)
 
 
 @wp.kernel

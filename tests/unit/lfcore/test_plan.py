@@ -96,7 +96,8 @@ def test_the_plan_says_what_each_frame_runs(tiny_rig, small):
     assert fast.describe_stages() == "; ".join(fast.stages) and "stages: " in fast.lines()[1]
     big = VolumeGrid(shape=(120, 100, 100), voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm)  # 1.2 M voxels
     assert frame_stages("light-field", big, protocol_settings("fast"))[0] == \
-        "coarse-to-fine elimination on a 3x coarser grid (20 line-of-sight iterations)"
+        "coarse-to-fine elimination on a 3x coarser grid (20 line-of-sight iterations; the fine grid's voxels pruned " \
+        "at 2%)"
     assert "cameras other than light-field ones" in frame_stages("joint", big, protocol_settings("fast"))[0]
     assert frame_stages("light-field", big, protocol_settings("fast"), slabs=2) == frame_stages(
         "light-field", big, protocol_settings("fast"))  # depth slabs run the in-memory plan

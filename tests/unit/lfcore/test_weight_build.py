@@ -358,3 +358,141 @@ def test_elimination_reuses_its_scratch_and_returns_arrays_of_its_own(small_dual
     got = [proj.eliminate(lits[k], min_seen=settings.min_seen, max_dark=settings.max_dark) for k in (0, 1, 0)]
     for k, voxels in zip((0, 1, 0), got, strict=True):
         assert np.array_equal(voxels.numpy(), fresh[k])
+
+
+@pytest.mark.parametrize(("edges", "rotation_deg"), [(4, 0.0), (4, 17.0), (6, 0.0), (6, 8.0)])
+def test_edge_spans_computed_once_give_the_per_cell_clipping_to_the_bit(device, edges, rotation_deg):
+    """The DRT trace clips the cell's edges to each other once per voxel and camera (kw.edge_spans)
+    instead of once per cell: the overlaps (area, centroid, extent) of rectangles with cells around
+    the footprint are those of the clipping done cell by cell as before, to the bit."""
+    import math
+
+    import warp as wp
+
+    from lfcore._kernels import weights as kw
+
+    @wp.func
+    def per_cell(view: kw.View, cx: float, cy: float, x0: float, x1: float, y0: float, y1: float) -> kw.Overlap:
+        # the edges' spans as cell_overlap computed them for every cell before edge_spans
+        h = 0.5 * view.cam.pitch
+        spans = kw.EdgeSpans()
+        for e in range(view.n_edges):
+            nx = view.edge_nx[e]
+            ny = view.edge_ny[e]
+            dx = -ny
+            dy = nx
+            t0 = float(-1.0e30)  # noqa: UP018 (a Warp variable the loop changes)
+            t1 = float(1.0e30)  # noqa: UP018
+            for f in range(view.n_edges):
+                den = view.edge_nx[f] * dx + view.edge_ny[f] * dy
+                if f != e and wp.abs(den) > 1.0e-6:
+                    t = (h - h * (view.edge_nx[f] * nx + view.edge_ny[f] * ny)) / den
+                    if den > 0.0:
+                        t1 = wp.min(t1, t)
+                    else:
+                        t0 = wp.max(t0, t)
+            spans.t0[e] = t0
+            spans.t1[e] = t1
+        return kw.spans_overlap(view, spans, cx, cy, x0, x1, y0, y1)
+
+    pitch = 0.077
+    ang = [math.radians(i * 360.0 / edges + rotation_deg) for i in range(edges)]
+    view = kw.View()
+    view.cam.pitch = pitch
+    view.n_edges = edges
+    view.edge_nx = kw.vec6(*[math.cos(a) for a in ang], *[0.0] * (6 - edges))
+    view.edge_ny = kw.vec6(*[math.sin(a) for a in ang], *[0.0] * (6 - edges))
+    rng = np.random.default_rng(7)
+    centre = rng.uniform(-1.5 * pitch, 1.5 * pitch, (300, 2)) + np.array([2.1, -0.7])
+    half = rng.uniform(0.02 * pitch, 1.2 * pitch, (300, 2))
+    rects = np.concatenate([centre - half, centre + half], axis=1)[:, [0, 2, 1, 3]].astype(np.float32)
+    cells = np.array([(2.1 + i * pitch, -0.7 + j * pitch) for i in (-1, 0, 1) for j in (-1, 0, 1)], np.float32)
+
+    @wp.kernel
+    def both(view: kw.View, r: wp.array(dtype=wp.vec4), cells: wp.array(dtype=wp.vec2),
+             once: wp.array2d(dtype=float), each: wp.array2d(dtype=float)):
+        i = wp.tid()
+        spans = kw.edge_spans(view)  # once, for every cell below
+        for k in range(cells.shape[0]):
+            c = cells[k]
+            a = kw.spans_overlap(view, spans, c[0], c[1], r[i][0], r[i][1], r[i][2], r[i][3])
+            b = per_cell(view, c[0], c[1], r[i][0], r[i][1], r[i][2], r[i][3])
+            once[i, 5 * k + 0] = a.area
+            once[i, 5 * k + 1] = a.cx
+            once[i, 5 * k + 2] = a.cy
+            once[i, 5 * k + 3] = a.wx
+            once[i, 5 * k + 4] = a.wy
+            each[i, 5 * k + 0] = b.area
+            each[i, 5 * k + 1] = b.cx
+            each[i, 5 * k + 2] = b.cy
+            each[i, 5 * k + 3] = b.wx
+            each[i, 5 * k + 4] = b.wy
+
+    n = len(rects)
+    once = wp.zeros((n, 5 * len(cells)), dtype=float, device=device)
+    each = wp.zeros((n, 5 * len(cells)), dtype=float, device=device)
+    wp.launch(both, dim=n, inputs=[view, wp.array(rects, dtype=wp.vec4, device=device),
+                                   wp.array(cells, dtype=wp.vec2, device=device), once, each], device=device)
+    got, ref = once.numpy(), each.numpy()
+    assert (ref[:, 0::5] > 0).sum() > 500 and (ref[:, 0::5] == 0).sum() > 500  # cells met and missed
+    assert np.array_equal(got, ref)
+    # and cell_overlap itself is the same function
+    direct = wp.zeros((n, 5 * len(cells)), dtype=float, device=device)
+
+    @wp.kernel
+    def plain(view: kw.View, r: wp.array(dtype=wp.vec4), cells: wp.array(dtype=wp.vec2), out: wp.array2d(dtype=float)):
+        i = wp.tid()
+        for k in range(cells.shape[0]):
+            c = cells[k]
+            a = kw.cell_overlap(view, c[0], c[1], r[i][0], r[i][1], r[i][2], r[i][3])
+            out[i, 5 * k + 0] = a.area
+            out[i, 5 * k + 1] = a.cx
+            out[i, 5 * k + 2] = a.cy
+            out[i, 5 * k + 3] = a.wx
+            out[i, 5 * k + 4] = a.wy
+
+    wp.launch(plain, dim=n, inputs=[view, wp.array(rects, dtype=wp.vec4, device=device),
+                                    wp.array(cells, dtype=wp.vec2, device=device), direct], device=device)
+    assert np.array_equal(direct.numpy(), ref)
+
+
+def test_line_of_sight_single_pass_gives_the_two_pass_weights_to_the_bit(small_dual_rig, device, monkeypatch):
+    """The MART baseline's weights traced once into slots (counted, summed, then divided and packed) are
+    the two-pass build's (counted first, then written divided) to the bit: with slots that hold every
+    voxel, with a tiny capacity sample (voxels overflow and their chunk is written again) and small
+    chunks; a budget that may not hold them all leaves the choice to the two-pass build."""
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
+    vox = proj.wp.array(np.arange(0, grid.n_voxels, 3, dtype=np.int32), device=device)
+    two = proj.weights(vox, method="los", build="two-pass")
+    assert two.nnz > 0
+
+    def bitwise(a, b):
+        assert np.array_equal(a.voxels.numpy(), b.voxels.numpy()) and a.nnz == b.nnz
+        assert all(np.array_equal(x, y) for x, y in zip(a.to_numpy(), b.to_numpy(), strict=True))
+
+    modes = []
+    trace = proj.builder.trace_los
+    monkeypatch.setattr(proj.builder, "trace_los", lambda *a, **k: modes.append(a[1]) or trace(*a, **k))
+    one = proj.weights(vox, method="los", build="single-pass")
+    assert 4 in modes and 1 not in modes  # one trace of every voxel, none overflowed
+    bitwise(two, one)
+    bitwise(two, proj.weights(vox, method="los", build="single-pass", storage="stored"))
+    modes.clear()
+    tight = proj.weights(vox, method="los", build="single-pass", storage="auto",
+                         budget_bytes=build_module.BYTES_PER_WEIGHT * two.nnz + 64 * grid.n_voxels)
+    assert 4 not in modes and 0 in modes  # counted first by the two-pass build, which stores what fits
+    bitwise(two, tight)
+    # the capacity sampled from the first voxel alone, the one with the fewest weights (that of others
+    # then overflow their slots), and small chunks
+    per_voxel = np.diff(two.to_numpy()[0])
+    order = np.argsort(per_voxel, kind="stable")
+    assert per_voxel[order[-1]] > 1.25 * per_voxel[order[0]] + 32
+    ordered = proj.wp.array(vox.numpy()[order], device=device)
+    two = proj.weights(ordered, method="los", build="two-pass")
+    modes.clear()
+    monkeypatch.setattr(build_module, "CAPACITY_SAMPLE", 1)
+    monkeypatch.setattr(build_module, "SINGLE_PASS_ENTRIES", 2000)
+    small = proj.weights(ordered, method="los", build="single-pass")
+    assert 1 in modes and 4 in modes  # overflowed slots written again at exact offsets
+    bitwise(two, small)
