@@ -329,7 +329,8 @@ def run_slabs(case: str, device: str, ppm: float, iterations: int | None, n_slab
         img, write=write, log=log)
     log("reconstructed")
     q = f", Q {metrics.q_recon(whole, metrics.truth_volume(grid, pts)):.3f}" if whole is not None else ""
-    print(f"  DRT-MART matrix-free in {res.slabs} slabs: {res.active_voxels:,} active voxels "
+    plan = "DRT-MART matrix-free" if protocol is None else protocol
+    print(f"  {plan} in {res.slabs} slabs: {res.active_voxels:,} active voxels "
           f"({res.active_fraction:.3%}), elimination {res.eliminate_s:.1f} s, weights_s {res.weights_s:.1f} s "
           f"(elimination, operators and start), {res.ms_per_iteration:.1f} ms/iteration, operator "
           f"{res.weight_bytes / 2**20:.0f} MiB ({res.projector}, {res.on_the_fly_voxels:,} voxels on the fly), "
