@@ -53,6 +53,13 @@ drifts by 20% within minutes, their ratio is measured only so.
 (:class:`lfcore.slabs.SlabReconstructor`: the templates' images stored where they fit, else applied
 in every iteration), logging each stage with the time since the start and the resident memory, then
 the peak resident memory, and Q where the box's volume and its truth fit in a quarter of the memory.
+With ``--protocol NAME`` the slabs run that protocol's whole plan instead (``fast``: the coarse grid
+in memory, 20 line-of-sight iterations, DRT weights for the survivors, 4 ordered subsets, the
+stopping rule; ``--coarse F`` its coarse factor), each stage logged with its wall and CPU
+(``time.process_time``) seconds and the resident memory; ``--budget-gib`` bounds the memory its
+weights and buffers may take (what does not fit is applied or made in every iteration)::
+
+    python benchmarks/recon.py --case L --device cpu --slabs 1 --planes 80:103 --protocol fast --budget-gib 7.5
 
 Line-of-sight weights that do not fit in the device's memory are made on the fly in each
 iteration (``--weight-storage auto``, the default; L by MLOS-MART on one GPU): such a run
@@ -78,7 +85,14 @@ from lfcore.device import resolve_device, warp  # noqa: E402
 from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.pinhole_projector import PinholeProjector  # noqa: E402
 from lfcore.projector import BYTES_PER_WEIGHT, STORAGE, LightFieldProjector, MemoryBudgetError  # noqa: E402
-from lfcore.reconstruct import ReconSettings, estimate_background, preprocess, reconstruct  # noqa: E402
+from lfcore.reconstruct import (  # noqa: E402
+    PROTOCOLS,
+    ReconSettings,
+    estimate_background,
+    preprocess,
+    protocol_settings,
+    reconstruct,
+)
 from lfcore.render import LightFieldRenderer, PinholeRenderer  # noqa: E402
 from lfcore.rig import Rig  # noqa: E402
 from lfcore.volume import VolumeGrid  # noqa: E402
@@ -245,16 +259,29 @@ def interleaved(proj, img, *, rounds: int, its: int) -> None:
 
 
 def run_slabs(case: str, device: str, ppm: float, iterations: int | None, n_slabs: int, storage: str,
-              planes: tuple[int, int] | None = None) -> None:
+              planes: tuple[int, int] | None = None, protocol: str | None = None, coarse: int | None = None,
+              budget_gib: float | None = None) -> None:
     """DRT-MART on the matrix-free projector in ``n_slabs`` depth slabs, every stage logged; with
     ``planes`` (z0, z1) only the box's planes z0 .. z1 - 1 are reconstructed (from the whole
-    scene's images): a sample of a box too large to reconstruct whole in the time there is."""
+    scene's images): a sample of a box too large to reconstruct whole in the time there is.
+
+    ``protocol`` (a name of :data:`lfcore.reconstruct.PROTOCOLS`): its whole plan instead (e.g. ``fast``:
+    the coarse grid, line-of-sight first iterations, ordered subsets, the stopping rule; ``iterations``
+    its most), with its own projector choice; ``coarse`` overrides its coarse factor. ``budget_gib``:
+    the memory the slabs' weights and buffers may take (default: what the host has free); what does not
+    fit in it is applied or made in every iteration."""
     from lfcore.slabs import SlabReconstructor, plan_slabs
 
     t0 = time.perf_counter()
+    c0 = time.process_time()
+    last = [t0, c0]
 
     def log(line: str) -> None:
-        print(f"  [{time.perf_counter() - t0:7.1f} s, RSS {rss_bytes() / 2**30:5.2f} GiB] {line}", flush=True)
+        # wall and CPU seconds since the start and since the last line, and the resident memory now
+        t, c = time.perf_counter(), time.process_time()
+        print(f"  [{t - t0:7.1f} s (+{t - last[0]:6.1f}), CPU {c - c0:7.1f} s (+{c - last[1]:6.1f}), "
+              f"RSS {rss_bytes() / 2**30:5.2f} GiB] {line}", flush=True)
+        last[:] = [t, c]
 
     _, its, cams, grid, pts, img = scene(case, device, ppm)
     its = iterations or its
@@ -284,16 +311,35 @@ def run_slabs(case: str, device: str, ppm: float, iterations: int | None, n_slab
         if whole is not None:
             whole[z0:z1] = planes
 
-    settings = ReconSettings(iterations=its, projector="matrix-free", weight_storage=storage)
-    res = SlabReconstructor(proj, settings, slabs=plan_slabs(nz, n_slabs)).reconstruct(img, write=write, log=log)
+    if protocol is None:
+        settings = ReconSettings(iterations=its, projector="matrix-free", weight_storage=storage)
+    else:
+        changes = {"weight_storage": storage}
+        if iterations:
+            changes["iterations"] = iterations
+        if coarse is not None:
+            changes["coarse"] = coarse
+        settings = protocol_settings(protocol, n_cameras=len(cams), **changes)
+        print(f"  protocol {protocol}: {settings.iterations} iterations at most (stop tolerance "
+              f"{settings.stop_tolerance:g}), {settings.los_iterations} line-of-sight first, {settings.subsets} "
+              f"subsets, coarse {settings.coarse} ({settings.coarse_iterations} iterations), projector "
+              f"{settings.projector}, weight storage {settings.weight_storage}", flush=True)
+    budget = None if budget_gib is None else int(budget_gib * 2**30)
+    res = SlabReconstructor(proj, settings, slabs=plan_slabs(nz, n_slabs), budget_bytes=budget).reconstruct(
+        img, write=write, log=log)
+    log("reconstructed")
     q = f", Q {metrics.q_recon(whole, metrics.truth_volume(grid, pts)):.3f}" if whole is not None else ""
-    print(f"  DRT-MART matrix-free in {res.slabs} slabs: {res.active_voxels:,} active voxels "
+    plan = "DRT-MART matrix-free" if protocol is None else protocol
+    print(f"  {plan} in {res.slabs} slabs: {res.active_voxels:,} active voxels "
           f"({res.active_fraction:.3%}), elimination {res.eliminate_s:.1f} s, weights_s {res.weights_s:.1f} s "
           f"(elimination, operators and start), {res.ms_per_iteration:.1f} ms/iteration, operator "
           f"{res.weight_bytes / 2**20:.0f} MiB ({res.projector}, {res.on_the_fly_voxels:,} voxels on the fly), "
           f"accounted peak {res.peak_bytes / 2**30:.2f} GiB, peak RSS {peak_bytes('cpu') / 2**30:.2f} GiB"
           f"{'' if device == 'cpu' else f', device peak {peak_bytes(device) / 2**30:.2f} GiB'}, total "
-          f"{time.perf_counter() - t0:.0f} s{q}", flush=True)
+          f"{time.perf_counter() - t0:.0f} s (CPU {time.process_time() - c0:.0f} s){q}", flush=True)
+    if protocol is not None:
+        print(f"  {protocol}: {res.iterations} iterations ({res.stopped}), {res.final_voxels:,} voxels at the end, "
+              f"operators {res.operator}", flush=True)
 
 
 def rss_bytes() -> int:
@@ -498,6 +544,14 @@ def main() -> int:
                     help="instead: DRT-MART on the matrix-free projector in N depth slabs, every stage logged")
     ap.add_argument("--planes", default=None, metavar="Z0:Z1",
                     help="with --slabs: reconstruct only the box's planes Z0 .. Z1 - 1 (from the whole scene's images)")
+    ap.add_argument("--protocol", choices=tuple(PROTOCOLS), default=None,
+                    help="with --slabs: the named protocol's whole plan (e.g. fast: coarse grid, line-of-sight first, "
+                    "ordered subsets, the stopping rule; --iterations its most) instead of matrix-free DRT-MART")
+    ap.add_argument("--coarse", type=int, default=None, metavar="F",
+                    help="with --protocol: the coarse-to-fine elimination's factor (1: none)")
+    ap.add_argument("--budget-gib", type=float, default=None, metavar="GIB",
+                    help="with --slabs: memory the weights and buffers may take (default: the host's free memory); "
+                    "weights beyond it are applied or made in every iteration")
     ap.add_argument("--profile-weights", action="store_true",
                     help="instead: time the elimination, each DRT weight build and every kernel of the builds")
     args = ap.parse_args()
@@ -510,7 +564,8 @@ def main() -> int:
         try:
             if args.slabs:
                 planes = tuple(int(v) for v in args.planes.split(":")) if args.planes else None
-                run_slabs(case, device, args.ppm, args.iterations, args.slabs, args.weight_storage, planes)
+                run_slabs(case, device, args.ppm, args.iterations, args.slabs, args.weight_storage, planes,
+                          args.protocol, args.coarse, args.budget_gib)
                 continue
             if case in TOMO_CASES:
                 run_tomo(case, device, args.ppp, args.iterations, not args.no_mart)
