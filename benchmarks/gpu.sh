@@ -32,9 +32,9 @@
 #                                  # slab path against the in-memory one on the GPU at two sizes, and a
 #                                  # 256 x 256 x 512 pair correlated in 8 slabs (about 6 minutes)
 #   bash benchmarks/gpu.sh less    # less work for the same answer (issue 47): the CUDA variants of the warm-start,
-#                                  # line-of-sight-first, stopping-rule, ordered-subsets and coarse-to-fine tests;
-#                                  # on Mc against the truth: the protocols plain and by 4 subsets, subsets against
-#                                  # plain, the fast protocol's stages (mcfast.py), warm-started (about 9 minutes)
+#                                  # line-of-sight-first, stopping-rule, ordered-subsets, coarse-to-fine, slab and
+#                                  # weight-build tests; fast's stages on Mc (mcfast.py, against fixed), M and 23
+#                                  # planes of L by fast (goals: M <= 1 s, L <= 60 s), Mc warm-started (~9 minutes)
 #   bash benchmarks/gpu.sh particles # particles, not voxels (issue 48): the particle tests' CUDA variants,
 #                                  # IPR against DRT-MART's peaks on the tiny rig and on Mc (the issue's
 #                                  # 512 x 512 rig), then the tracks against the truth (about 9 minutes)
@@ -154,13 +154,13 @@ elif [ "$stage" = batch ]; then
 elif [ "$stage" = less ]; then
     step pytest-less 120 python3 -m pytest tests/unit/lfcore/test_warm.py tests/unit/lfcore/test_los_first.py \
         tests/unit/lfcore/test_stopping.py tests/unit/lfcore/test_subsets.py tests/unit/lfcore/test_coarse.py \
+        tests/unit/lfcore/test_coarse_prune.py tests/unit/lfcore/test_slabs_fast.py tests/unit/lfcore/test_weight_build.py \
         -q -k cuda -p no:cacheprovider --timeout 100
-    step stopping-Mc 150 python3 benchmarks/stopping.py --case Mc --protocols fixed,fast,chapter --subsets 1,4 \
-        --device cuda
-    step subsets-Mc 100 python3 benchmarks/subsets.py --case Mc --subsets 4 --counts 25,50,100 --plain 100,400 \
-        --device cuda
-    step fast-Mc 100 python3 benchmarks/mcfast.py --case Mc --rows "fixed|fast|fast;prune=0.02" --device cuda
-    step warm-Mc 100 python3 benchmarks/warm.py --case Mc --pairs 3 --iterations 400 --counts 40,80 --device cuda
+    step fast-Mc 100 python3 benchmarks/mcfast.py --case Mc --rows "fixed|fast" --device cuda
+    step fast-M 150 python3 benchmarks/recon.py --case M --device cuda --no-mart --slabs 1 --protocol fast
+    step fast-L-mid 120 python3 benchmarks/recon.py --case L --device cuda --no-mart --slabs 1 --planes 80:103 \
+        --protocol fast
+    step warm-Mc 80 python3 benchmarks/warm.py --case Mc --pairs 3 --iterations 400 --counts 40,80 --device cuda
 elif [ "$stage" = particles ]; then
     step pytest-particles 150 python3 -m pytest tests/unit/lfcore/test_ipr.py tests/unit/realtime/test_particle_route.py \
         -q -k cuda -p no:cacheprovider --timeout 120
