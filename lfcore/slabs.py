@@ -609,16 +609,20 @@ class SlabOperators:
 
 class _IterationLog:
     """Progress and the stage log of a frame's iterations in slabs, counted across its stages (the
-    line-of-sight first iterations and DRT's): a line for the start, the first three iterations and the last."""
+    line-of-sight first iterations and DRT's): a line for each stage's start and its first three
+    iterations, every tenth iteration and the last (a frame of L runs for hours: not 400 lines, nor
+    none for an hour)."""
 
     def __init__(self, iterations: int, progress, log, device) -> None:
         self.iterations, self.progress, self.log, self.device = iterations, progress, log, device
         self.done = 0
+        self.in_stage = 0  # iterations of the stage that started last
         self.voxels = 0  # of the stage that starts next
         self.since = time.perf_counter()
 
     def started(self, seconds: float) -> None:
         self.log(f"start (one projection of {self.voxels:,} voxels) {seconds:.1f} s")
+        self.in_stage = 0
         self.since = time.perf_counter()
 
     def tick(self, k: int) -> None:
@@ -627,7 +631,8 @@ class _IterationLog:
         if k != 1:  # the iterations the stopping rule left out
             return
         self.done += 1
-        if self.done <= 3 or self.done == self.iterations:  # the first few and the last: not 400 lines
+        self.in_stage += 1
+        if self.in_stage <= 3 or self.done % 10 == 0 or self.done == self.iterations:
             warp().synchronize_device(self.device)
             self.log(f"iteration {self.done}/{self.iterations} {time.perf_counter() - self.since:.1f} s")
         self.since = time.perf_counter()

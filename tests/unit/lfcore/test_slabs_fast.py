@@ -108,6 +108,9 @@ def test_the_stage_log_of_the_fast_plan(scene, device, monkeypatch):
     assert all(line.startswith(f"slab {i}/3 (planes ") for i, line in zip((1, 2, 3), lines[1:4], strict=True)), lines
     assert lines[4].startswith(f"start (one projection of {res.active_voxels:,} voxels)"), lines
     assert "iteration 1/60" in lines[5] and "iteration 3/60" in lines[7], lines
+    # the DRT stage's start and first iterations, and every tenth, are logged too (an L frame runs for hours)
+    assert sum(line.startswith("start (one projection of") for line in lines) == 2, lines
+    assert "iteration 21/60" in " ".join(lines) and "iteration 10/60" in " ".join(lines), lines
     drt = [line for line in lines if "still bright" in line]
     assert len(drt) == 3 and all("traced" in line for line in drt), lines
     assert any(line.startswith(f"{res.iterations} iterations ({res.stopped}), {res.final_voxels:,} voxels left")
