@@ -533,6 +533,17 @@ class WeightBuilder:
                            min_weight=float(min_weight))
         return Weights(voxels=voxels, chunks=chunks, nnz=total, kind=TRACED if method == "drt" else LINE_OF_SIGHT)
 
+    def _slot_capacity(self, voxels, count) -> int:
+        """Entries a single-pass build's slot holds: the most of a sample of ``voxels`` spread over the
+        list (:data:`CAPACITY_SAMPLE`), counted by ``count(sample, counts)`` into (m,) int64 ``counts``,
+        plus a margin."""
+        n = int(voxels.shape[0])
+        take = np.unique(np.linspace(0, n - 1, min(n, CAPACITY_SAMPLE)).astype(np.int64))
+        sample = self.wp.array(voxels.numpy()[take], dtype=self.wp.int32, device=self.device)
+        counts = self.wp.zeros(len(take), dtype=self.wp.int64, device=self.device)
+        count(sample, counts)
+        return int(1.25 * int(counts.numpy().max())) + 32
+
     def _los_single_pass(self, voxels, min_weight: float, budget: int, *, held: bool) -> Weights | None:
         """Line-of-sight weights of ``voxels`` traced once (:func:`~lfcore._kernels.weights.los_weights`
         mode 4: counted, summed and written into slots of a capacity guessed from a sample, then
@@ -546,11 +557,8 @@ class WeightBuilder:
         def trace(vox, slots, fill, counts, sums, pix, w):
             self.trace_los(vox, fill, min_weight, counts=counts, sums=sums, offsets=slots, pix=pix, w=w)
 
-        take = np.unique(np.linspace(0, n - 1, min(n, CAPACITY_SAMPLE)).astype(np.int64))
-        sample = wp.array(voxels.numpy()[take], dtype=wp.int32, device=dev)
-        counts = wp.zeros(len(take), dtype=wp.int64, device=dev)
-        trace(sample, None, 0, counts, wp.zeros(len(take), dtype=float, device=dev), None, None)
-        cap = int(1.25 * int(counts.numpy().max())) + 32
+        cap = self._slot_capacity(voxels, lambda sample, counts: trace(
+            sample, None, 0, counts, wp.zeros(counts.shape[0], dtype=float, device=dev), None, None))
         if not held and BYTES_PER_WEIGHT * cap * n + (ON_THE_FLY_BYTES_PER_VOXEL + 28) * n > budget:
             return None  # perhaps not all stored: the two-pass build counts them first
         per_chunk = max(1, SINGLE_PASS_ENTRIES // cap)
@@ -683,12 +691,8 @@ class WeightBuilder:
                 launch_rows(kw.drt_weights, vox.shape[0], [*common, Rows(vox), Rows(offs), wp.int64(0), min_weight,
                                                            fill, wp.int64(limit), Rows(counts), pix, w], dev)
 
-        # Slot capacity: the most entries of a sample of voxels spread over the list, plus a margin.
-        take = np.unique(np.linspace(0, n - 1, min(n, CAPACITY_SAMPLE)).astype(np.int64))
-        sample = wp.array(voxels.numpy()[take], dtype=wp.int32, device=dev)
-        counts = wp.zeros(len(take), dtype=wp.int64, device=dev)
-        trace(sample, wp.zeros(len(take) + 1, dtype=wp.int64, device=dev), 0, 0, counts, self._i32, self._f32)
-        cap = int(1.25 * int(counts.numpy().max())) + 32
+        cap = self._slot_capacity(voxels, lambda sample, counts: trace(
+            sample, wp.zeros(counts.shape[0] + 1, dtype=wp.int64, device=dev), 0, 0, counts, self._i32, self._f32))
         per_chunk = max(1, SINGLE_PASS_ENTRIES // cap)
         chunks, group, total = [], [], 0
         for lo in range(0, n, per_chunk):
