@@ -10,7 +10,6 @@ import pytest
 
 from lfcore import coarse, metrics
 from lfcore.device import warp
-from lfcore.particles import particle_count, seed_particles
 from lfcore.plan import projector_for
 from lfcore.reconstruct import (
     CONVERGED,
@@ -21,19 +20,13 @@ from lfcore.reconstruct import (
     protocol_settings,
     stop_interval,
 )
-from lfcore.render import LightFieldRenderer
 from lfcore.volume import VolumeGrid
 
 
 @pytest.fixture(scope="module")
-def scene(tiny_rig):
-    rig = tiny_rig.model_copy(update={"volume": tiny_rig.volume.model_copy(update={"size_mm": (0.5, 0.4, 1.2)})})
-    grid = VolumeGrid.from_rig(rig)
-    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.2), np.random.default_rng(3))
-    cfg = rig.render.model_copy(update={"rays_per_particle": 5_000})
-    img = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(
-        pts, 50_000.0, seed=1)
-    return projector_for(rig.camera[:1], grid, device="cpu"), grid, pts, img
+def scene(small_box):
+    cams, grid, pts, img = small_box
+    return projector_for(cams, grid, device="cpu"), grid, pts, img
 
 
 def _centres(grid: VolumeGrid, flat: np.ndarray) -> np.ndarray:

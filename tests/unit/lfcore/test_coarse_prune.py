@@ -4,27 +4,12 @@ within a tolerance, no pruning where none is asked for, and older volumes' setti
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from lfcore import coarse, metrics
-from lfcore.particles import particle_count, seed_particles
 from lfcore.plan import projector_for
 from lfcore.reconstruct import PROTOCOLS, PRUNE, FrameReconstructor, ReconSettings, protocol_settings
-from lfcore.render import LightFieldRenderer
-from lfcore.volume import VolumeGrid
 from lfpiv.jobs.reconstruct import _matching, _recorded
-
-
-@pytest.fixture(scope="module")
-def scene(tiny_rig):
-    rig = tiny_rig.model_copy(update={"volume": tiny_rig.volume.model_copy(update={"size_mm": (0.5, 0.4, 1.2)})})
-    grid = VolumeGrid.from_rig(rig)
-    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.2), np.random.default_rng(3))
-    cfg = rig.render.model_copy(update={"rays_per_particle": 5_000})
-    img = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(
-        pts, 50_000.0, seed=1)
-    return rig.camera[:1], grid, pts, img
 
 
 def test_the_fast_protocol_prunes_at_two_percent_after_the_coarse_grid_and_the_others_at_the_pruning():
@@ -64,10 +49,10 @@ def _traced(frames: FrameReconstructor, img) -> tuple[object, list[int]]:
     return frames.reconstruct([img]), made
 
 
-def test_a_box_without_the_coarse_grid_prunes_at_the_pruning(scene):
+def test_a_box_without_the_coarse_grid_prunes_at_the_pruning(small_box):
     """The tiny box is below the coarse grid's size rule: fast traces DRT weights for the voxels its
     line-of-sight passes leave brighter than 1%, as many as with coarse_prune 0, and keeps as many."""
-    cams, grid, pts, img = scene
+    cams, grid, pts, img = small_box
     proj = projector_for(cams, grid, device="cpu")
     fast = protocol_settings("fast", projector="stored", warm_start=False)
     frames = FrameReconstructor(proj, fast)
@@ -80,13 +65,13 @@ def test_a_box_without_the_coarse_grid_prunes_at_the_pruning(scene):
     assert abs(metrics.q_recon(res.volume, truth) - metrics.q_recon(plain.volume, truth)) < 0.005
 
 
-def test_after_the_coarse_grid_fewer_voxels_are_reconstructed_for_the_same_q(scene, monkeypatch, device):
+def test_after_the_coarse_grid_fewer_voxels_are_reconstructed_for_the_same_q(small_box, monkeypatch, device):
     """With the coarse grid running (its size rule lowered for this box), pruning the fine grid at 2%
     traces DRT weights for fewer voxels and leaves fewer than 1% does, from the same voxels the coarse
     grid left (its own pruning stays at 1%), and Q stays within 0.02 of it (measured: DRT weights for
     1,097 voxels against 1,568, 561 left against 735, Q 0.713 against 0.715). With no pruning asked for
     (prune 0), none follows the coarse grid either."""
-    cams, grid, pts, img = scene
+    cams, grid, pts, img = small_box
     proj = projector_for(cams, grid, device=device)
     monkeypatch.setattr(coarse, "COARSE_MIN_VOXELS", 0)
     truth = metrics.truth_volume(grid, pts)
