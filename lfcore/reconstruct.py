@@ -79,9 +79,9 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
 __all__ = ["CAPPED", "CONVERGED", "FIXED", "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE",
            "PRUNE_PERCENTILE", "SEVERAL_CAMERAS", "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WEIGHTS",
            "CoarseBright", "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings", "StoppingRule",
-           "WARM_SHARE", "coarse_applies", "coarse_bright", "coarse_reconstructor", "estimate_background",
-           "is_split", "preprocess", "preprocess_images", "protocol_settings", "prune_dark", "reconstruct",
-           "relative_residual", "smart_iterations", "stop_interval", "warm_count"]
+           "WARM_SHARE", "bright_voxels", "coarse_applies", "coarse_bright", "coarse_reconstructor",
+           "estimate_background", "is_split", "preprocess", "preprocess_images", "protocol_settings", "prune_dark",
+           "reconstruct", "relative_residual", "smart_iterations", "stop_interval", "warm_count"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: The weights each method iterates on (the ``method`` of :meth:`lfcore.operator.Projector.operator`
@@ -822,6 +822,18 @@ def pass_prune_every(settings: ReconSettings, subsets: int) -> int:
     return -(-settings.prune_every // max(1, subsets))
 
 
+def _kept_rows(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[list[np.ndarray] | None, list]:
+    """Each operator's rows (ascending int32) whose voxel is at least ``fraction`` of the brightest of
+    all (the :data:`PRUNE_PERCENTILE` percentile of every operator's intensities together), and each
+    operator's intensities on the host; None for the rows where no operator holds a voxel."""
+    host = [np.asarray(e.numpy()[:op.n_voxels]) for op, e in zip(ops, es, strict=True)]
+    values = np.concatenate(host) if host else np.zeros(0, np.float32)
+    if values.size == 0:
+        return None, host
+    threshold = fraction * float(np.percentile(values, PRUNE_PERCENTILE))
+    return [np.flatnonzero(h >= threshold).astype(np.int32) for h in host], host
+
+
 def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[list[Operator], list]:
     """The operators and intensities without their dark voxels: those dimmer than ``fraction`` of
     the brightest of all (the :data:`PRUNE_PERCENTILE` percentile of every operator's intensities
@@ -843,14 +855,11 @@ def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[
         with their intensities; an operator that keeps every voxel is returned as it is.
     """
     wp = warp()
-    host = [np.asarray(e.numpy()[:op.n_voxels]) for op, e in zip(ops, es, strict=True)]
-    values = np.concatenate(host) if host else np.zeros(0, np.float32)
-    if values.size == 0:
+    keeps, _ = _kept_rows(ops, es, fraction)
+    if keeps is None:
         return list(ops), list(es)
-    threshold = fraction * float(np.percentile(values, PRUNE_PERCENTILE))
     out_ops, out_es = [], []
-    for op, e, h in zip(ops, es, host, strict=True):
-        keep = np.flatnonzero(h >= threshold).astype(np.int32)
+    for op, e, keep in zip(ops, es, keeps, strict=True):
         if keep.size == op.n_voxels:
             out_ops.append(op)
             out_es.append(e)
@@ -859,6 +868,33 @@ def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[
         out_ops.append(op.restrict(rows))
         out_es.append(gather(e, rows) if keep.size else wp.zeros(1, dtype=float, device=op.device)[:0])
     return out_ops, out_es
+
+
+def bright_voxels(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The voxels that :func:`prune_dark` would keep, and their intensities, without copying any
+    operator's weights: what the next stage's operator is made for (the line-of-sight weights'
+    survivors get DRT weights; the coarse grid's bright voxels, fine ones), so that the operators
+    can be freed before it is made.
+
+    Parameters
+    ----------
+    ops, es, fraction
+        As :func:`prune_dark`.
+
+    Returns
+    -------
+    voxels
+        Per operator, (k,) int32 flat voxel indices into its grid (its :attr:`voxels` numbering), in
+        its row order, on the host.
+    values
+        Per operator, (k,) float32 intensities of those voxels, on the host.
+    """
+    keeps, host = _kept_rows(ops, es, fraction)
+    if keeps is None:
+        keeps = [np.zeros(0, np.int32) for _ in ops]
+    voxels = [np.asarray(op.voxels.numpy()[:op.n_voxels], dtype=np.int32)[keep] for op, keep in zip(ops, keeps,
+                                                                                                     strict=True)]
+    return voxels, [h[keep].astype(np.float32) for h, keep in zip(host, keeps, strict=True)]
 
 
 def coarse_applies(projector: Projector, settings: ReconSettings) -> bool:
@@ -950,10 +986,9 @@ def coarse_bright(coarse: FrameReconstructor, lit, image, noise: Sequence[float]
     nbytes = int(op.nbytes)
     done = coarse.iterate(op, image, noise)
     del op
-    (bright,), (e,) = prune_dark([done.op], [done.e], coarse.settings.prune)
-    kept = bright.voxels.numpy().astype(np.int64)
-    values = e.numpy()[: bright.n_voxels].copy()
-    del done, bright, e
+    (kept,), (values,) = bright_voxels([done.op], [done.e], coarse.settings.prune)
+    kept = kept.astype(np.int64)
+    del done
     order = np.argsort(kept, kind="stable")
     return CoarseBright(kept[order], values[order], int(factor), active, nbytes)
 
@@ -1231,10 +1266,11 @@ class FrameReconstructor:
             weights_s += first.start_s
             iterate_s += first.iterate_s
             t = time.perf_counter()
-            (bright,), (e,) = prune_dark([first.op], [first.e], cut or settings.prune or PRUNE)
-            start = with_floor(e, WARM_BLEND)  # a dark voxel may still grow under the sharper weights
+            (bright,), (e,) = bright_voxels([first.op], [first.e], cut or settings.prune or PRUNE)
+            # a dark voxel may still grow under the sharper weights; the line-of-sight weights go first
+            start = with_floor(wp.array(e, dtype=float, device=self.device), WARM_BLEND, copy=False)
             del first, op, e
-            op = self.operator(bright.voxels)
+            op = self.operator(wp.array(bright, dtype=wp.int32, device=self.device))
             del bright
             weights_s += time.perf_counter() - t
             its -= settings.los_iterations

@@ -67,11 +67,11 @@ from lfcore.reconstruct import (
     FrameReconstructor,
     ReconResult,
     ReconSettings,
+    bright_voxels,
     coarse_applies,
     coarse_bright,
     coarse_reconstructor,
     preprocess_images,
-    prune_dark,
     smart_iterations,
 )
 from lfcore.subsets import SubsetOperator, pixel_subsets, split, split_bytes
@@ -342,25 +342,28 @@ class SlabReconstructor:
         weights_s, iterate_s, ran = t1 - t0 + done.start_s, done.iterate_s, done.iterations
         kinds = first_kinds
         if los_first:
-            # the cheap weights first; DRT's then for the voxels still bright, each slab's line-of-sight
-            # weights freed before its DRT weights are built
+            # the cheap weights first; DRT's then for the voxels still bright (one threshold over all
+            # slabs, as in memory), read without copying the line-of-sight weights, which all go before
+            # the first slab's DRT weights are made
             t = time.perf_counter()
-            (kept,), (e,) = prune_dark([done.op], [done.e], cut or s.prune or PRUNE)
-            start = with_floor(e, WARM_BLEND)  # a dark voxel may still grow under the sharper weights
-            del done, e
-            parts, drt, own = list(kept.parts), [], []
-            del kept
-            # held: the pixel buffers, the slabs' line-of-sight weights and the start
-            held = BYTES_PER_PIXEL * p.n_pixels + sum(int(w.nbytes) for w in parts) + 4 * int(start.shape[0])
+            joint = done.op
+            bright, values = bright_voxels(joint.parts, joint.views(done.e), cut or s.prune or PRUNE)
+            del done, joint
+            # a dark voxel may still grow under the sharper weights
+            start = with_floor(wp.array(np.concatenate(values), dtype=float, device=dev), WARM_BLEND, copy=False)
+            del values
+            drt, own = [], []
+            # held: the pixel buffers and the start
+            held = BYTES_PER_PIXEL * p.n_pixels + 4 * int(start.shape[0])
             for i, (slab, ps) in enumerate(zip(self.slabs, self._projectors, strict=True)):
-                vox, n = parts[i].voxels, parts[i].n_voxels
-                held -= int(parts[i].nbytes)
-                parts[i] = None
+                n = int(bright[i].size)
+                vox = wp.array(bright[i], dtype=wp.int32, device=dev)
+                bright[i] = None
                 frames = FrameReconstructor(ps, s, templates=self._templates)
                 first = not any(from_templates(x) for x in drt)
                 self._budget(frames, slab, ps, n, held, budget, first=first)
                 tb = time.perf_counter()
-                w = frames.operator(vox[:n])
+                w = frames.operator(vox)
                 if frames.templates is not None:
                     self._templates = frames.templates
                 own.append(self._own_bytes(w, first=first))
@@ -371,7 +374,7 @@ class SlabReconstructor:
                     f"{time.perf_counter() - tb:.1f} s, {own[-1] / 2**20:.0f} MiB")
                 drt.append(w)
             joint = SlabOperators(drt, scratch=wp.zeros(p.n_pixels, dtype=float, device=dev))
-            del drt, parts
+            del drt, bright
             nnz, fly, operator_bytes = joint.nnz, joint.n_on_the_fly, max(operator_bytes, sum(own))
             kinds = f"{first_kinds}, then {joint.kind}"
             weights_s += time.perf_counter() - t
@@ -570,14 +573,20 @@ class SlabOperators:
 
     def restrict(self, rows) -> SlabOperators:
         """The slabs' operators of some of the voxels (``rows``: (m,) int32 Warp array of positions in
-        slab order, ascending), each slab restricted to its own."""
+        slab order, ascending), each slab restricted to its own.
+
+        This operator is spent by it: it lets go of each slab's operator as that slab's copy is made,
+        so that beside the weights held stands one slab's copy at a time, not the whole box's (the
+        frame's pruning goes on with the operator returned)."""
         wp = warp()
         host = np.asarray(rows.numpy(), dtype=np.int64)
         parts = []
-        for w, a, b in zip(self.parts, self.offsets[:-1], self.offsets[1:], strict=True):
+        for i, (a, b) in enumerate(zip(self.offsets[:-1], self.offsets[1:], strict=True)):
+            w, self.parts[i] = self.parts[i], None
             mine = host[(host >= a) & (host < b)] - a
             parts.append(w if mine.size == w.n_voxels else
                          w.restrict(wp.array(mine.astype(np.int32), dtype=wp.int32, device=w.device)))
+            del w
         return SlabOperators(parts, scratch=self.scratch)
 
     def scatter(self, e, *, out=None):

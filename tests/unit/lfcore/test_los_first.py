@@ -43,3 +43,34 @@ def test_line_of_sight_first_reaches_the_drt_quality_on_a_fraction_of_the_voxels
     assert los.active_voxels == plain.active_voxels
     # the DRT weights were built for the voxels the line-of-sight iterations left bright: fewer rows
     assert los.nnz < 0.8 * plain.nnz, (los.nnz, plain.nnz)
+
+
+def test_the_bright_voxels_are_what_the_pruning_keeps_read_without_copying_weights(scene, device):
+    """bright_voxels gives the voxels and intensities prune_dark keeps, with one threshold over several
+    operators (the depth slabs'); a SlabOperators restricted lets go of each slab's operator."""
+    import numpy as np
+
+    from lfcore.device import warp
+    from lfcore.reconstruct import bright_voxels, prune_dark
+    from lfcore.slabs import SlabOperators
+
+    wp = warp()
+    rig, grid, _, _ = scene
+    proj = projector_for(rig.camera[:1], grid, device=device)
+    frames = FrameReconstructor(proj, ReconSettings(iterations=5, projector="stored"))
+    rng = np.random.default_rng(7)
+    picked = np.sort(rng.choice(grid.n_voxels, 4000, replace=False)).astype(np.int32)
+    ops = [frames.los_operator(wp.array(v, dtype=wp.int32, device=device)) for v in (picked[:2500], picked[2500:])]
+    es = [wp.array((rng.random(op.n_voxels) * [1.0, 0.6][i]).astype(np.float32), device=device)
+          for i, op in enumerate(ops)]
+    kept_ops, kept_es = prune_dark(ops, es, 0.3)
+    voxels, values = bright_voxels(ops, es, 0.3)
+    assert 0 < voxels[1].size < voxels[0].size < 2500  # one threshold: the dimmer operator keeps fewer
+    for op, e, v, x in zip(kept_ops, kept_es, voxels, values, strict=True):
+        np.testing.assert_array_equal(op.voxels.numpy()[:op.n_voxels], v)
+        np.testing.assert_allclose(e.numpy()[:op.n_voxels], x)
+    joint = SlabOperators(ops, scratch=wp.zeros(proj.n_pixels, dtype=float, device=device))
+    rows = np.arange(0, joint.n_voxels, 2, dtype=np.int32)
+    small = joint.restrict(wp.array(rows, dtype=wp.int32, device=device))
+    assert joint.parts == [None, None] and small.n_voxels == rows.size
+    np.testing.assert_array_equal(np.concatenate([w.voxels.numpy()[:w.n_voxels] for w in small.parts]), picked[rows])
