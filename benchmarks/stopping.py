@@ -11,6 +11,7 @@ Run from the repository root::
     python benchmarks/mcfast.py --case Mc                     # the stages' wall and CPU times against the chapter's
     python benchmarks/stopping.py --rig all                   # every example rig: the defaults against MART
     python benchmarks/stopping.py --rig examples/tiny.toml --rig examples/demo.toml --ppm 1
+    python benchmarks/stopping.py --rig all --caps 75,50,50/30   # the defaults at each most, several cameras
 
 Each row reconstructs the case's frame (``benchmarks/recon.py``'s scene) from its image with
 :meth:`lfcore.reconstruct.FrameReconstructor.reconstruct`, as ``lfpiv reconstruct`` does, with the
@@ -153,11 +154,52 @@ def rig_row(path: Path, args, device: str) -> str:
             f"{mart} | {base_q:.3f} in {base_cpu:.1f} |{same} {win} |")
 
 
+def rig_frame(path: Path, args, device: str):
+    """The rig's frame A as ``lfpiv synth`` renders pair 0: its projector, image, truth and its cameras."""
+    rig, note = cropped(path, not args.no_crop)
+    ppm, ppp = (seeding_density(rig, ppm=args.ppm) if rig.lightfield_cameras else seeding_density(rig, ppp=args.ppp))
+    scene = Scene(rig, ppm=ppm if ppm is not None else 0.5, ppp=ppp, seed=1, device=device)
+    particles, brightness = scene.world.pair(0)
+    img = [r.frame(particles[0], brightness[0], seed=derive_seed(scene.seed, 0, 0, c))
+           for c, r in enumerate(scene.renderers)]
+    grid = VolumeGrid.from_rig(rig)
+    truth = metrics.truth_volume(grid, particles[0], brightness=brightness[0])
+    return projector_for(list(rig.camera), grid, device=device), img, truth, list(rig.camera), note
+
+
+def cap_rows(path: Path, args, device: str) -> list[str]:
+    """``--caps``: the defaults of a rig of several cameras at each most iterations (``iterations`` of
+    :func:`protocol_settings`, the stopping rule's most), in one process: Q, iterations, CPU seconds."""
+    proj, img, truth, cams, note = rig_frame(path, args, device)
+    if len(cams) < 2:
+        return []
+    method = default_method(cams)
+    print(f"{path.stem}: {len(cams)} cameras{', ' + note if note else ''}", flush=True)
+    FrameReconstructor(proj, protocol_settings(args.protocol, n_cameras=len(cams), method=method,
+                                               iterations=2)).reconstruct(img)
+    rows = []
+    for cap in args.caps.split(","):
+        most, _, los = cap.partition("/")  # N or N/L: at most N iterations, the first L on line-of-sight weights
+        changes = {"iterations": int(most), **({"los_iterations": int(los)} if los and method == "drt-mart" else {})}
+        settings = protocol_settings(args.protocol, n_cameras=len(cams), method=method, **changes)
+        res, q, cpu = cpu_timed(proj, settings, img, truth)
+        rows.append(f"| {path.stem} | {len(cams)} | {method} | {cap} | {q:.3f} | {res.iterations} ({res.stopped}) | "
+                    f"{cpu:.1f} |")
+        print(rows[-1], flush=True)
+    return rows
+
+
 def rig_table(args, device: str) -> None:
     """The defaults against MART at equal CPU time on each rig of ``--rig``."""
     paths = []
     for r in args.rig:
         paths += sorted((ROOT / "examples").glob("*.toml")) if r == "all" else [Path(r)]
+    if args.caps:
+        rows = [row for path in paths for row in cap_rows(path, args, device)]
+        print("\n| rig | cameras | method | most iterations (/ line-of-sight) | Q | iterations (stopped) | CPU s |")
+        print("| --- " * 7 + "|")
+        print("\n".join(rows))
+        return
     rows = []
     t = time.perf_counter()
     for path in paths:
@@ -179,6 +221,9 @@ def main() -> None:
     ap.add_argument("--protocol", default="fast", help="with --rig: the defaults' protocol")
     ap.add_argument("--ppp", type=float, default=None,
                     help="with --rig: the pinhole rigs' seeding in particles per pixel")
+    ap.add_argument("--caps", default=None, metavar="N[/L],...",
+                    help="with --rig: the defaults at each of these most iterations (N/L: the first L of them on "
+                    "line-of-sight weights, drt-mart) on rigs of several cameras (no MART)")
     ap.add_argument("--no-crop", action="store_true", help="with --rig: the big rigs as they are (CROPS)")
     ap.add_argument("--mart-probe", type=int, default=5, help="with --rig: MART iterations timed per iteration")
     ap.add_argument("--device", default=None)

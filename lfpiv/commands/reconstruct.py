@@ -76,8 +76,8 @@ def protocol_help(default: str) -> str:
     return (f"a named set of settings (default: {default}), which the other options change: fast stops each frame "
             "when its projections have converged (at most 400 iterations), iterates DRT-MART's first 20 on "
             "line-of-sight weights, in 4 ordered subsets, eliminates on a coarser grid first in boxes of a million "
-            "voxels or more and prunes the dark voxels (on several cameras at most 75 iterations, without ordered "
-            "subsets or the coarse grid); fixed runs 50 "
+            "voxels or more and prunes the dark voxels (on several cameras at most 75 iterations, the first 30 on "
+            "line-of-sight weights, without ordered subsets or the coarse grid); fixed runs 50 "
             "iterations with pruning; chapter is the chapter's protocol (400 iterations of every active voxel from a "
             "uniform start, as lfpiv study runs it)")
 
@@ -160,8 +160,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--los-iterations", type=los_iterations, default=None, metavar="N",
                    help="drt-mart: the first N iterations on the MART baseline's line-of-sight weights (cheap to "
                    "build), then DRT weights only for the voxels still bright (those --prune keeps), the rest of "
-                   "--iterations on them (default: 20 for the fast protocol, 0 otherwise: DRT weights from the "
-                   "start)")
+                   "--iterations on them (default: 20 for the fast protocol, 30 on several cameras, 0 otherwise: DRT "
+                   "weights from the start)")
     r.add_argument("--subsets", type=subsets_option, default=None, metavar="N",
                    help="ordered subsets (OS-SMART): each iteration updates the voxels from N interleaved subsets "
                    "of the pixels in turn, for about the work of one update from all of them, so its first passes go "
