@@ -31,6 +31,7 @@ Positions are world mm (x, y, z); the grid's voxels set the scale of the searche
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -39,7 +40,11 @@ from scipy.stats import binned_statistic_dd
 from lfcore.volume import VolumeGrid
 from lfcore.warm import Predictor
 
-__all__ = ["FIELDS", "FIT_SMOOTHING", "MAX_CROWDING", "FitChoice", "TrackResult", "TrackSettings", "bin_tracks",
+if TYPE_CHECKING:
+    from scipy.interpolate import RBFInterpolator
+
+__all__ = ["FIELDS", "FIT_BLOCK_MARGIN", "FIT_BLOCK_TRACKS", "FIT_CV_BLOCKS", "FIT_GLOBAL_TRACKS", "FIT_SMOOTHING",
+           "MAX_CROWDING", "FitChoice", "TrackResult", "TrackSettings", "bin_tracks",
            "field_predictor", "fit_tracks", "pair_nearest", "predict_at", "reject_outliers", "search_crowding",
            "smooth_tracks", "track_pair"]
 
@@ -48,12 +53,14 @@ FIELDS = ("bins", "smooth", "fit")
 #: The smoothing parameters :func:`fit_tracks` chooses among (coordinates scaled to the tracks' extent):
 #: from nearly interpolating the tracks to nearly the trend alone.
 FIT_SMOOTHING = tuple(float(v) for v in np.logspace(-4.0, 3.0, 15))
-#: Beyond this many tracks :func:`fit_tracks` fits the box in blocks of about
-#: :data:`FIT_BLOCK_TRACKS` tracks, each with a margin of :data:`FIT_BLOCK_MARGIN` of its width
-#: (the smoothing cross-validated on :data:`FIT_CV_BLOCKS` of them).
+#: Beyond this many tracks :func:`fit_tracks` fits the box in blocks (one global fit of n tracks
+#: costs n^3, and its cross-validation 150 such fits).
 FIT_GLOBAL_TRACKS = 1000
+#: About how many tracks a block of a fit in blocks holds.
 FIT_BLOCK_TRACKS = 250
+#: The margin around a block whose tracks its fit also uses, in blocks' widths.
 FIT_BLOCK_MARGIN = 0.25
+#: How many blocks the smoothing of a fit in blocks is cross-validated on.
 FIT_CV_BLOCKS = 2
 #: Most frame-B particles a first-pass search may hold on average (:func:`search_crowding`) for the
 #: nearest one to be the right one often enough to pair meaningfully; beyond it a frame is refused.
@@ -335,7 +342,7 @@ def smooth_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres:
     return field.reshape(*shape, 3), counts.reshape(shape)
 
 
-def _rbf(x: np.ndarray, y: np.ndarray, degree: int, smoothing: float):
+def _rbf(x: np.ndarray, y: np.ndarray, degree: int, smoothing: float) -> RBFInterpolator:
     from scipy.interpolate import RBFInterpolator
 
     # A smoothing thin-plate spline: minimises the misfit plus smoothing x the bending energy,
@@ -353,16 +360,19 @@ def _choose_fit(problems: list[tuple[np.ndarray, np.ndarray, list[np.ndarray]]])
         if min(len(x) - max(len(f) for f in folds) for x, _, folds in problems) < 3 * (4 if degree == 1 else 10):
             continue  # too few tracks to cross-validate this trend
         cv, se = [], []
-        for lam in FIT_SMOOTHING:
-            r = []
-            for x, y, folds in problems:
-                for fold in folds:
-                    train = np.ones(len(x), bool)
-                    train[fold] = False
-                    r.append(_rbf(x[train], y[train], degree, lam)(x[fold]) - y[fold])  # all three components
-            r2 = np.concatenate(r) ** 2
-            cv.append(np.mean(r2, axis=0))
-            se.append(np.std(r2, axis=0) / np.sqrt(len(r2)))
+        try:
+            for lam in FIT_SMOOTHING:
+                r = []
+                for x, y, folds in problems:
+                    for fold in folds:
+                        train = np.ones(len(x), bool)
+                        train[fold] = False
+                        r.append(_rbf(x[train], y[train], degree, lam)(x[fold]) - y[fold])  # all three components
+                r2 = np.concatenate(r) ** 2
+                cv.append(np.mean(r2, axis=0))
+                se.append(np.std(r2, axis=0) / np.sqrt(len(r2)))
+        except np.linalg.LinAlgError:  # the tracks do not fix this trend (all near a plane, say)
+            continue
         cvs, ses = np.asarray(cv), np.asarray(se)  # (smoothings, 3)
         for c in range(3):
             i0 = int(np.argmin(cvs[:, c]))
@@ -419,7 +429,8 @@ def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: li
     Beyond :data:`FIT_GLOBAL_TRACKS` tracks the box is fitted in blocks of about
     :data:`FIT_BLOCK_TRACKS` tracks (each with a margin of its neighbours' tracks), the smoothing
     cross-validated on a few blocks and used for all: the cost grows with the tracks, not their
-    cube. With fewer than 10 tracks (or tracks all in one plane) the field is their mean.
+    cube. With fewer than 15 tracks (too few to cross-validate a linear trend) or tracks that do not
+    fix one (all in one plane, say) the field is their mean displacement.
 
     Parameters
     ----------
@@ -479,7 +490,7 @@ def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: li
     splits = [[f for f in np.array_split(rng.permutation(len(rows)), folds) if len(f)] for rows, _ in sample]
     values = np.full((len(at), 3), np.nan)
     try:
-        if len(pos) < 10 or scale <= 0:
+        if len(pos) < 15 or scale <= 0:
             raise np.linalg.LinAlgError("too few tracks")
         choice = _choose_fit([(x[rows], d[rows], s) for (rows, _), s in zip(sample, splits, strict=True)])
         for c, ch in enumerate(choice):

@@ -245,6 +245,12 @@ def test_the_fit_is_nan_away_from_the_tracks_and_outside_the_box():
     few, _, choice = fit_tracks(pos[:5], np.tile(shift, (5, 1)), centres, reach_mm=_REACH, box_mm=_BOX)
     assert all(ch.degree == 0 for ch in choice)
     assert np.allclose(few.reshape(-1, 3)[np.isfinite(few.reshape(-1, 3)[:, 0])], shift)
+    # tracks all in one plane fix no trend across it: their mean too
+    flat = pos.copy()
+    flat[:, 2] = 0.0
+    plane, _, choice = fit_tracks(flat, np.tile(shift, (len(flat), 1)), centres, reach_mm=_REACH, box_mm=_BOX)
+    assert all(ch.degree == 0 for ch in choice)
+    assert np.allclose(plane.reshape(-1, 3)[np.isfinite(plane.reshape(-1, 3)[:, 0])], shift)
 
 
 def test_track_pair_fits_a_known_rotation():
