@@ -19,7 +19,11 @@ particle looking for a B particle within a search ellipsoid around where a predi
    Gaussian-weighted average of the tracks around each centre (adaptive Gaussian windowing, Agui
    and Jimenez 1987) of width :attr:`TrackSettings.smooth_voxels` (NaN with fewer than
    :attr:`TrackSettings.min_tracks` tracks within 1.5 widths): a point value of the flow rather than
-   a bin's mean, with each track's weight falling off smoothly instead of at the bin's walls.
+   a bin's mean, with each track's weight falling off smoothly instead of at the bin's walls; or
+   ``"fit"``, a smoothing spline through all the tracks (:func:`fit_tracks`: a thin-plate radial
+   basis function fit with a linear or quadratic trend, each component's smoothing chosen by
+   cross-validation), evaluated at the centres inside the box with :attr:`TrackSettings.min_tracks`
+   tracks within a bin's width of them along every axis (or the tracks' mean spacing, where wider).
 
 Positions are world mm (x, y, z); the grid's voxels set the scale of the searches and bins.
 """
@@ -27,6 +31,7 @@ Positions are world mm (x, y, z); the grid's voxels set the scale of the searche
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -35,11 +40,28 @@ from scipy.stats import binned_statistic_dd
 from lfcore.volume import VolumeGrid
 from lfcore.warm import Predictor
 
-__all__ = ["FIELDS", "MAX_CROWDING", "TrackResult", "TrackSettings", "bin_tracks", "field_predictor", "pair_nearest",
-           "predict_at", "reject_outliers", "search_crowding", "smooth_tracks", "track_pair"]
+if TYPE_CHECKING:
+    from scipy.interpolate import RBFInterpolator
+
+__all__ = ["FIELDS", "FIT_BLOCK_MARGIN", "FIT_BLOCK_TRACKS", "FIT_CV_BLOCKS", "FIT_GLOBAL_TRACKS", "FIT_SMOOTHING",
+           "MAX_CROWDING", "FitChoice", "TrackResult", "TrackSettings", "bin_tracks",
+           "field_predictor", "fit_tracks", "pair_nearest", "predict_at", "reject_outliers", "search_crowding",
+           "smooth_tracks", "track_pair"]
 
 #: How the field is made from the tracks (:attr:`TrackSettings.field`).
-FIELDS = ("bins", "smooth")
+FIELDS = ("bins", "smooth", "fit")
+#: The smoothing parameters :func:`fit_tracks` chooses among (coordinates scaled to the tracks' extent):
+#: from nearly interpolating the tracks to nearly the trend alone.
+FIT_SMOOTHING = tuple(float(v) for v in np.logspace(-4.0, 3.0, 15))
+#: Beyond this many tracks :func:`fit_tracks` fits the box in blocks (one global fit of n tracks
+#: costs n^3, and its cross-validation 150 such fits).
+FIT_GLOBAL_TRACKS = 1000
+#: About how many tracks a block of a fit in blocks holds.
+FIT_BLOCK_TRACKS = 250
+#: The margin around a block whose tracks its fit also uses, in blocks' widths.
+FIT_BLOCK_MARGIN = 0.25
+#: How many blocks the smoothing of a fit in blocks is cross-validated on.
+FIT_CV_BLOCKS = 2
 #: Most frame-B particles a first-pass search may hold on average (:func:`search_crowding`) for the
 #: nearest one to be the right one often enough to pair meaningfully; beyond it a frame is refused.
 MAX_CROWDING = 8.0
@@ -70,8 +92,9 @@ class TrackSettings:
     field
         How the field is made from the tracks: ``"smooth"`` (a Gaussian-weighted average around each
         bin's centre; the default: on a uniform flow over the tiny rig at 0.5 PPM, 0.07, 0.09, 0.17
-        voxel RMS where the bins' means give 0.11, 0.15, 0.32, benchmarks/track.py) or ``"bins"``
-        (each bin's mean); see the module docstring.
+        voxel RMS where the bins' means give 0.11, 0.15, 0.32, benchmarks/track.py), ``"bins"``
+        (each bin's mean) or ``"fit"`` (a smoothing spline through all the tracks, its smoothing
+        chosen by cross-validation: :func:`fit_tracks`); see the module docstring.
     smooth_voxels
         The Gaussian's sigma (x, y, z), voxels, of ``field="smooth"``; None: half a bin.
     """
@@ -129,7 +152,11 @@ class TrackResult:
     field_mm
         (z, y, x, 3) mean displacement (x, y, z) of each bin's tracks, mm; NaN where too few.
     counts
-        (z, y, x) tracks in each bin (``field="smooth"``: within 1.5 sigma of each centre).
+        (z, y, x) tracks in each bin (``field="smooth"``: within 1.5 sigma of each centre;
+        ``field="fit"``: within a bin's width, or the tracks' mean spacing where wider, of each
+        centre along every axis).
+    fit
+        ``field="fit"``: the trend and smoothing chosen for each component (x, y, z); else None.
     """
 
     a_index: np.ndarray
@@ -141,6 +168,29 @@ class TrackResult:
     z_mm: np.ndarray
     field_mm: np.ndarray
     counts: np.ndarray
+    fit: tuple[FitChoice, FitChoice, FitChoice] | None = None
+
+
+@dataclass(frozen=True)
+class FitChoice:
+    """What :func:`fit_tracks` chose for one component of the displacement.
+
+    Attributes
+    ----------
+    degree
+        The polynomial trend's degree (1: linear, 2: quadratic; 0: too few tracks to fit, the
+        tracks' mean).
+    smoothing
+        The smoothing parameter (coordinates scaled to the tracks' extent), one of
+        :data:`FIT_SMOOTHING`; 0 with ``degree`` 0.
+    cv_rms_mm
+        The cross-validated RMS misfit of the held-out tracks at that choice, mm (NaN with
+        ``degree`` 0).
+    """
+
+    degree: int
+    smoothing: float
+    cv_rms_mm: float
 
 
 def search_crowding(n_particles: int, grid: VolumeGrid, search_voxels: tuple[float, float, float]) -> float:
@@ -292,6 +342,168 @@ def smooth_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres:
     return field.reshape(*shape, 3), counts.reshape(shape)
 
 
+def _rbf(x: np.ndarray, y: np.ndarray, degree: int, smoothing: float) -> RBFInterpolator:
+    from scipy.interpolate import RBFInterpolator
+
+    # A smoothing thin-plate spline: minimises the misfit plus smoothing x the bending energy,
+    # with a polynomial trend of the given degree left unpenalised.
+    return RBFInterpolator(x, y, kernel="thin_plate_spline", degree=degree, smoothing=smoothing)
+
+
+def _choose_fit(problems: list[tuple[np.ndarray, np.ndarray, list[np.ndarray]]]) -> list[FitChoice]:
+    """The trend and smoothing of each component by cross-validation over ``problems`` ((positions,
+    (m, 3) values, folds) each, their held-out misfits pooled), by the one-standard-error rule: the
+    smoothest fit whose held-out misfit is within a standard error of the least."""
+    # per component, degree: (smoothing, cv at it, least cv, its se)
+    best: list[dict[int, tuple[float, float, float, float]]] = [{}, {}, {}]
+    for degree in (1, 2):
+        if min(len(x) - max(len(f) for f in folds) for x, _, folds in problems) < 3 * (4 if degree == 1 else 10):
+            continue  # too few tracks to cross-validate this trend
+        cv, se = [], []
+        try:
+            for lam in FIT_SMOOTHING:
+                r = []
+                for x, y, folds in problems:
+                    for fold in folds:
+                        train = np.ones(len(x), bool)
+                        train[fold] = False
+                        r.append(_rbf(x[train], y[train], degree, lam)(x[fold]) - y[fold])  # all three components
+                r2 = np.concatenate(r) ** 2
+                cv.append(np.mean(r2, axis=0))
+                se.append(np.std(r2, axis=0) / np.sqrt(len(r2)))
+        except np.linalg.LinAlgError:  # the tracks do not fix this trend (all near a plane, say)
+            continue
+        cvs, ses = np.asarray(cv), np.asarray(se)  # (smoothings, 3)
+        for c in range(3):
+            i0 = int(np.argmin(cvs[:, c]))
+            i = int(np.nonzero(cvs[:, c] <= cvs[i0, c] + ses[i0, c])[0].max())  # the smoothest within one error
+            best[c][degree] = (FIT_SMOOTHING[i], float(cvs[i, c]), float(cvs[i0, c]), float(ses[i0, c]))
+    if not best[0]:
+        raise np.linalg.LinAlgError("too few tracks")
+    out = []
+    for b in best:
+        degree = 1 if 1 in b else 2
+        if 2 in b and b[2][2] + b[2][3] < b[degree][2]:  # a curved trend only where clearly better
+            degree = 2
+        lam, cv_at, _, _ = b[degree]
+        out.append(FitChoice(degree=degree, smoothing=lam, cv_rms_mm=float(np.sqrt(cv_at))))
+    return out
+
+
+def _blocks(x: np.ndarray, at: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The tracks (rows of ``x``) and points (rows of ``at``) of each block of a fit in blocks: the
+    tracks' box cut into blocks of about :data:`FIT_BLOCK_TRACKS` tracks, each fitted to its
+    tracks and those within :data:`FIT_BLOCK_MARGIN` of a block's width around it, each point
+    evaluated in the block it lies in (the nearest block beyond them)."""
+    lo, hi = x.min(axis=0), x.max(axis=0)
+    ext = np.maximum(hi - lo, 1e-12)
+    side = (float(np.prod(ext)) * FIT_BLOCK_TRACKS / len(x)) ** (1.0 / 3.0)
+    count = np.maximum(1, np.rint(ext / side)).astype(int)
+    width = ext / count
+    cell = np.clip(np.floor((x - lo) / width), 0, count - 1).astype(int)
+    cell_at = np.clip(np.floor((at - lo) / width), 0, count - 1).astype(int)
+    out = []
+    for idx in np.ndindex(*count):
+        core_lo = lo + np.asarray(idx) * width
+        near = np.all((x >= core_lo - FIT_BLOCK_MARGIN * width) & (x <= core_lo + (1 + FIT_BLOCK_MARGIN) * width),
+                      axis=1)
+        points = np.nonzero(np.all(cell_at == idx, axis=1))[0]
+        if near.any() and (len(points) or np.all(cell == idx, axis=1).any()):
+            out.append((np.nonzero(near)[0], points))
+    return out
+
+
+def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: list[np.ndarray], *,
+               reach_mm: np.ndarray, box_mm: tuple[np.ndarray, np.ndarray] | None = None, min_tracks: int = 1,
+               folds: int = 5, seed: int = 0) -> tuple[np.ndarray, np.ndarray, tuple[FitChoice, ...]]:
+    """A smooth field fitted to all the tracks, evaluated at the points of a grid.
+
+    Each component of the displacement is fitted separately by a smoothing thin-plate spline
+    (:class:`scipy.interpolate.RBFInterpolator`, a linear or quadratic trend plus thin-plate radial
+    basis functions on the tracks) in coordinates scaled to the tracks' extent. Its smoothing, one
+    of :data:`FIT_SMOOTHING`, and the trend's degree are chosen from the tracks themselves by
+    ``folds``-fold cross-validation, by the one-standard-error rule: the smoothest fit whose
+    held-out misfit is within one standard error of the least, and the quadratic trend only where
+    its least misfit is lower than the linear one's by more than its standard error. So noisier
+    tracks get a smoother field and a uniform or linear flow its trend, without a width to tune.
+    Beyond :data:`FIT_GLOBAL_TRACKS` tracks the box is fitted in blocks of about
+    :data:`FIT_BLOCK_TRACKS` tracks (each with a margin of its neighbours' tracks), the smoothing
+    cross-validated on a few blocks and used for all: the cost grows with the tracks, not their
+    cube. With fewer than 15 tracks (too few to cross-validate a linear trend) or tracks that do not
+    fix one (all in one plane, say) the field is their mean displacement.
+
+    Parameters
+    ----------
+    position_mm, displacement_mm
+        (m, 3) each track's position (its midpoint) and displacement (x, y, z), mm.
+    centres
+        [x_mm, y_mm, z_mm]: the grid's points along each axis.
+    reach_mm
+        (3,) how far from a point (x, y, z), mm, per axis, a track counts as near it: a point is
+        given a value only with at least ``min_tracks`` tracks within that box around it, so the
+        field is not extrapolated far beyond the tracks.
+    box_mm
+        (lower, upper) corners (x, y, z) of the measured box, mm: points outside it are NaN; None:
+        no limit.
+    min_tracks
+        Fewest tracks within ``reach_mm`` a point needs for a value.
+    folds
+        Cross-validation folds.
+    seed
+        Seed of the folds' random split (the result is reproducible).
+
+    Returns
+    -------
+    field
+        (z, y, x, 3) the fitted displacement, mm; NaN outside the box or away from the tracks.
+    counts
+        (z, y, x) tracks within ``reach_mm`` of each point.
+    choice
+        The :class:`FitChoice` of each component (x, y, z).
+    """
+    pos = np.asarray(position_mm, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(displacement_mm, dtype=np.float64).reshape(-1, 3)
+    reach = np.asarray(reach_mm, dtype=np.float64).reshape(3)
+    zz, yy, xx = np.meshgrid(centres[2], centres[1], centres[0], indexing="ij")
+    shape = xx.shape
+    nodes = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+    counts = np.zeros(len(nodes), np.int64)
+    field = np.full((len(nodes), 3), np.nan)
+    if len(pos) == 0:
+        return field.reshape(*shape, 3), counts.reshape(shape), tuple(FitChoice(0, 0.0, np.nan) for _ in range(3))
+    counts[:] = [len(n) for n in cKDTree(pos / reach).query_ball_point(nodes / reach, r=1.0, p=np.inf)]
+    use = counts >= max(1, min_tracks)
+    if box_mm is not None:
+        lo, hi = (np.asarray(b, dtype=np.float64).reshape(3) for b in box_mm)
+        use &= np.all((nodes >= lo) & (nodes <= hi), axis=1)
+    scale = float(np.max(np.ptp(pos, axis=0)))
+    x = (pos - pos.mean(axis=0)) / (scale if scale > 0 else 1.0)
+    at = (nodes[use] - pos.mean(axis=0)) / (scale if scale > 0 else 1.0)
+    rng = np.random.default_rng(seed)
+    if len(pos) > FIT_GLOBAL_TRACKS:
+        blocks = _blocks(x, at)
+        sample = [blocks[i] for i in sorted(rng.choice(len(blocks), size=min(FIT_CV_BLOCKS, len(blocks)),
+                                                       replace=False))]
+    else:
+        blocks = [(np.arange(len(x)), np.arange(len(at)))]
+        sample = blocks
+    splits = [[f for f in np.array_split(rng.permutation(len(rows)), folds) if len(f)] for rows, _ in sample]
+    values = np.full((len(at), 3), np.nan)
+    try:
+        if len(pos) < 15 or scale <= 0:
+            raise np.linalg.LinAlgError("too few tracks")
+        choice = _choose_fit([(x[rows], d[rows], s) for (rows, _), s in zip(sample, splits, strict=True)])
+        for c, ch in enumerate(choice):
+            for rows, points in blocks:
+                if len(points):
+                    values[points, c] = _rbf(x[rows], d[rows, c], ch.degree, ch.smoothing)(at[points])
+    except np.linalg.LinAlgError:  # too few tracks, or all in a plane or on a line: no trend to fit
+        choice = [FitChoice(0, 0.0, np.nan) for _ in range(3)]
+        values[:] = np.mean(d, axis=0)
+    field[use] = values
+    return field.reshape(*shape, 3), counts.reshape(shape), tuple(choice)  # type: ignore[return-value]
+
+
 def predict_at(predictor: Predictor, grid: VolumeGrid, at_mm: np.ndarray) -> np.ndarray:
     """A predictor's displacement at world points, mm: trilinear between its points, the nearest
     point's beyond them.
@@ -375,6 +587,7 @@ def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings
     a = np.asarray(a_mm, dtype=np.float64).reshape(-1, 3)
     b = np.asarray(b_mm, dtype=np.float64).reshape(-1, 3)
     voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
+    fit = None
     predicted = np.zeros_like(a) if predictor is None or not len(a) else predict_at(predictor, grid, a)
     radius = np.asarray(s.search_voxels) * voxel
     for done in range(s.passes):
@@ -389,8 +602,17 @@ def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings
         if last and s.field == "smooth":
             field, counts = smooth_tracks(mid[~out], disp[~out], centres, sigma_mm=np.asarray(s.sigma_voxels) * voxel,
                                           min_tracks=s.min_tracks)
+        elif last and s.field == "fit":
+            lo = np.asarray(grid.origin_mm, dtype=np.float64) - 0.5 * voxel
+            box = (lo, lo + np.asarray(grid.shape[::-1], dtype=np.float64) * voxel)
+            kept = mid[~out]
+            # a centre's value rests on the tracks within a bin's width, or their mean spacing where wider
+            spacing = float(np.prod(np.ptp(kept, axis=0)) / max(len(kept), 1)) ** (1.0 / 3.0) if len(kept) else 0.0
+            reach = np.maximum(np.asarray(s.bin_voxels) * voxel, spacing)
+            field, counts, fit = fit_tracks(kept, disp[~out], centres, reach_mm=reach, box_mm=box,
+                                            min_tracks=s.min_tracks)
         if not last:
             predicted = _predict(field, centres, a)
             radius = np.asarray(s.refine_voxels) * voxel
     return TrackResult(a_index=ia, b_index=ib, displacement_mm=disp, outlier=out, x_mm=centres[0], y_mm=centres[1],
-                       z_mm=centres[2], field_mm=field, counts=counts)
+                       z_mm=centres[2], field_mm=field, counts=counts, fit=fit)

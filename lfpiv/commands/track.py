@@ -34,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Pair the particles of frame A (lfpiv particles) with frame B's, one-to-one and "
                        "nearest first around a predictor (in the first pass --predictor's, the median of the tracks "
                        "in each bin after it), reject outliers by the normalized median test over the nearest "
-                       "tracks, and write a field made from the tracks (each bin's mean, or a smooth field) to "
+                       "tracks, and write a field made from the tracks (each bin's mean, a smooth average or a fitted "
+                   "smooth field) to "
                        "vectors/, the layout correlate writes, so evaluate and export read it unchanged; the tracks "
                        "are kept with it ('lfpiv export --format tracks-vtk' or tracks-csv writes them).")
     c.add_argument("run", metavar="RUN", help="run store with particles/")
@@ -53,9 +54,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the field's bins in voxels (default: 16x16x8)")
     c.add_argument("--min-tracks", type=positive_int, default=2, metavar="N",
                    help="fewest tracks a bin needs for a vector (default: 2)")
-    c.add_argument("--field", choices=("smooth", "bins"), default="smooth",
+    c.add_argument("--field", choices=("smooth", "bins", "fit"), default="smooth",
                    help="how the field is made from the tracks: smooth, their Gaussian-weighted average around each "
-                   "bin's centre; bins, the mean of each bin's tracks (default: smooth)")
+                   "bin's centre; bins, the mean of each bin's tracks; fit, a smoothing spline through all the tracks, "
+                   "its smoothing chosen by cross-validation, at the bins' centres inside the box with --min-tracks "
+                   "tracks within a bin (default: smooth)")
     c.add_argument("--smooth-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="the smooth field's Gaussian sigma in voxels (default: half a bin)")
     c.add_argument("--csv", default=None, metavar="FILE",

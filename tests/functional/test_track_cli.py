@@ -69,6 +69,23 @@ def test_the_volumes_predictor_and_the_smooth_field(particles_run, tmp_path, cap
     assert np.array_equal(RunStore.open(run).read_vectors(0)["u"], before, equal_nan=True)
 
 
+def test_the_fitted_field(particles_run, tmp_path, capsys):
+    run = _copy(particles_run, tmp_path)
+    rc, out, err = _run(capsys, "track", run, "--field", "fit", "--quiet")
+    assert rc == 0, err
+    assert "fit field, predictor none" in out
+    s = RunStore.open(run)
+    assert s.vectors()["attrs"]["settings"]["field"] == "fit"
+    held = s.read_vectors(0)
+    # the bins' centres outside the box (the last bins reach past it) hold none, those inside one
+    assert np.isfinite(held["u"]).any() and np.isnan(held["u"]).any()
+    rc, out, err = _run(capsys, "evaluate", run)
+    assert rc == 0, err
+    rms = _rms(out)
+    # a uniform flow: the fit's trend, far better than the particles' own position errors
+    assert rms[0] < 0.1 and rms[1] < 0.1 and rms[2] < 0.2
+
+
 def test_the_previous_pairs_predictor_tracks_a_series(particles_run, tmp_path, capsys):
     run = _copy(particles_run, tmp_path)
     rc, out, err = _run(capsys, "track", run, "--predictor", "previous", "--quiet")

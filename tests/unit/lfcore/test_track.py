@@ -162,3 +162,108 @@ def test_settings_refuse_an_unknown_field():
     with pytest.raises(ValueError, match="three positive"):
         TrackSettings(smooth_voxels=(1.0, 0.0, 1.0))
     assert TrackSettings().sigma_voxels == (8.0, 8.0, 4.0)
+
+
+def _centres(bin_voxels=(16, 16, 5)):
+    """The bins' centres (x, y, z lists) and their (k, 3) points on GRID."""
+    res = track_pair(np.zeros((0, 3)), np.zeros((0, 3)), GRID, settings=TrackSettings(bin_voxels=bin_voxels))
+    zz, yy, xx = np.meshgrid(res.z_mm, res.y_mm, res.x_mm, indexing="ij")
+    return [res.x_mm, res.y_mm, res.z_mm], np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+
+
+_BOX = (np.asarray(GRID.origin_mm) - 0.5 * np.asarray(GRID.voxel_mm),
+        np.asarray(GRID.origin_mm) + (np.asarray(GRID.shape[::-1]) - 0.5) * np.asarray(GRID.voxel_mm))
+_REACH = np.array([16, 16, 5]) * np.asarray(GRID.voxel_mm)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_fit_of_a_known_uniform_and_a_known_linear_field_beats_the_noise_of_one_track(seed):
+    from lfcore.track import fit_tracks
+
+    vox = np.asarray(GRID.voxel_mm)
+    n, sigma = 400, 0.1  # tracks, and each one's noise per axis (voxels)
+    pos = _points(n, 10 + seed)
+    centres, nodes = _centres()
+    rng = np.random.default_rng(20 + seed)
+    for name, flow in (("uniform", lambda p: np.tile([1.6, -0.9, 0.5], (len(p), 1)) * vox),
+                       ("rotation", lambda p: _rotate(p, 0.006) - p)):  # linear in position
+        d = flow(pos) + rng.normal(scale=sigma, size=pos.shape) * vox
+        field, counts, choice = fit_tracks(pos, d, centres, reach_mm=_REACH, box_mm=_BOX, min_tracks=1)
+        f = field.reshape(-1, 3)
+        good = np.all(np.isfinite(f), axis=1)
+        assert good.mean() > 0.5 and np.all(counts.reshape(-1)[good] >= 1)
+        err = (f[good] - flow(nodes[good])) / vox
+        # a fit with a few free parameters of n tracks: its error is a few times sigma / sqrt(n), far
+        # below one track's (sigma) and a bin's mean of a few tracks
+        assert np.all(np.sqrt(np.mean(err ** 2, axis=0)) < 4.0 * sigma / np.sqrt(n)), (name, choice)
+        assert all(c.degree in (1, 2) and c.cv_rms_mm > 0 for c in choice)
+
+
+def test_the_cross_validation_smooths_noisier_tracks_more():
+    from lfcore.track import fit_tracks
+
+    vox = np.asarray(GRID.voxel_mm)
+    pos = _points(300, 30)
+    centres, nodes = _centres()
+    # a curved flow: 3 voxels of x displacement over a sine across the box
+
+    def flow(p):
+        return np.column_stack([3.0 * np.sin(p[:, 0] / 0.2), np.zeros(len(p)), np.zeros(len(p))]) * vox
+
+    rng = np.random.default_rng(31)
+    chosen, errs = [], []
+    for sigma in (0.01, 0.5):
+        d = flow(pos) + rng.normal(scale=sigma, size=pos.shape) * vox
+        field, _, choice = fit_tracks(pos, d, centres, reach_mm=_REACH, box_mm=_BOX)
+        chosen.append(choice[0].smoothing)
+        good = np.isfinite(field.reshape(-1, 3)[:, 0])
+        errs.append(np.sqrt(np.mean(((field.reshape(-1, 3)[good, 0] - flow(nodes[good])[:, 0]) / vox[0]) ** 2)))
+    assert chosen[1] > chosen[0]
+    # the nearly exact tracks give the curve back; the noisy ones, smoothed, below one track's noise
+    assert errs[0] < 0.05 and errs[1] < 0.5
+
+
+def test_the_fit_is_nan_away_from_the_tracks_and_outside_the_box():
+    from lfcore.track import fit_tracks
+
+    vox = np.asarray(GRID.voxel_mm)
+    pos = _points(300, 40)
+    pos = pos[pos[:, 0] < -0.1]  # tracks in the box's lower x part only
+    centres, nodes = _centres()
+    shift = np.array([0.5, 0.5, 0.2]) * vox
+    box = (_BOX[0], np.array([_BOX[1][0], 0.0, _BOX[1][2]]))  # a box of the lower half in y
+    field, counts, _ = fit_tracks(pos, np.tile(shift, (len(pos), 1)), centres, reach_mm=_REACH, box_mm=box,
+                                  min_tracks=2)
+    f, c = field.reshape(-1, 3), counts.reshape(-1)
+    inside = np.all((nodes >= box[0]) & (nodes <= box[1]), axis=1)
+    near = c >= 2
+    assert np.all(np.isfinite(f[inside & near])) and np.all(np.isnan(f[~inside | ~near]))
+    assert np.all(np.isnan(f[nodes[:, 0] > -0.1 + _REACH[0]]))  # more than a bin beyond the last track
+    assert np.isnan(f[nodes[:, 1] > 0.0]).all() and near[nodes[:, 1] > 0.0].any()  # outside the box, near tracks
+    assert np.allclose(f[inside & near], shift, atol=1e-9)  # an exact uniform flow is its trend
+    # too few tracks to fit: their mean where they are near
+    few, _, choice = fit_tracks(pos[:5], np.tile(shift, (5, 1)), centres, reach_mm=_REACH, box_mm=_BOX)
+    assert all(ch.degree == 0 for ch in choice)
+    assert np.allclose(few.reshape(-1, 3)[np.isfinite(few.reshape(-1, 3)[:, 0])], shift)
+    # tracks all in one plane fix no trend across it: their mean too
+    flat = pos.copy()
+    flat[:, 2] = 0.0
+    plane, _, choice = fit_tracks(flat, np.tile(shift, (len(flat), 1)), centres, reach_mm=_REACH, box_mm=_BOX)
+    assert all(ch.degree == 0 for ch in choice)
+    assert np.allclose(plane.reshape(-1, 3)[np.isfinite(plane.reshape(-1, 3)[:, 0])], shift)
+
+
+def test_track_pair_fits_a_known_rotation():
+    a = _points(1500, 4)
+    omega = 0.006
+    b = _rotate(a, omega)
+    res = track_pair(a, b, GRID, settings=TrackSettings(bin_voxels=(16, 16, 5), field="fit"))
+    assert res.fit is not None and len(res.fit) == 3
+    zz, yy, xx = np.meshgrid(res.z_mm, res.y_mm, res.x_mm, indexing="ij")
+    centres = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
+    true = (_rotate(centres, omega) - centres).reshape(res.field_mm.shape)
+    good = np.isfinite(res.field_mm[..., 0])
+    assert good.mean() > 0.5
+    # exact tracks of a flow linear in position: the fit's trend is that flow
+    err = np.abs(res.field_mm[good] - true[good]) / np.asarray(GRID.voxel_mm)
+    assert err.max() < 0.01
