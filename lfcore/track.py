@@ -90,11 +90,12 @@ class TrackSettings:
     epsilon_voxels
         The test's noise floor, voxels.
     field
-        How the field is made from the tracks: ``"smooth"`` (a Gaussian-weighted average around each
-        bin's centre; the default: on a uniform flow over the tiny rig at 0.5 PPM, 0.07, 0.09, 0.17
-        voxel RMS where the bins' means give 0.11, 0.15, 0.32, benchmarks/track.py), ``"bins"``
-        (each bin's mean) or ``"fit"`` (a smoothing spline through all the tracks, its smoothing
-        chosen by cross-validation: :func:`fit_tracks`); see the module docstring.
+        How the field is made from the tracks: ``"fit"`` (the default: a smoothing spline through all
+        the tracks, its smoothing chosen by cross-validation, :func:`fit_tracks`; on one camera's A1
+        pair 0.079, 0.015, 0.041 voxel RMS and on a uniform flow 0.015, 0.033, 0.013, where
+        ``"smooth"`` gives 0.097, 0.049, 0.112 and 0.066, 0.078, 0.129, benchmarks/RESULTS.md),
+        ``"smooth"`` (a Gaussian-weighted average around each bin's centre) or ``"bins"`` (each
+        bin's mean); see the module docstring.
     smooth_voxels
         The Gaussian's sigma (x, y, z), voxels, of ``field="smooth"``; None: half a bin.
     """
@@ -107,7 +108,7 @@ class TrackSettings:
     neighbours: int = 8
     outlier_threshold: float = 3.0
     epsilon_voxels: float = 0.2
-    field: str = "smooth"
+    field: str = "fit"
     smooth_voxels: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
