@@ -20,6 +20,11 @@ The reference is the chapter's protocol (``ReconSettings.chapter``: uniform star
 ray-traced DRT weights, 400 iterations of every active voxel, no pruning). Without pruning every
 iteration costs the same, so ``--reference-iterations 40`` (the default) times 40 and scales the
 iterations by 10 (its Q is then not measured: ``--reference-iterations 400`` runs it whole).
+``--checkpoints 20,50,100,200,400`` also measures the reference's Q after those many of its iterations
+(the time that takes left out of every clock), so the best Q the chapter's protocol reaches at any count
+is known from one run::
+
+    python benchmarks/mcfast.py --case Mc2 --reference-iterations 400 --checkpoints 20,50,100,200,400
 """
 
 from __future__ import annotations
@@ -56,11 +61,36 @@ def parse_row(text: str, n_cameras: int = 1):
     return text, protocol_settings(name, n_cameras=n_cameras, **changes)
 
 
-def timed_frame(proj, settings, img):
+def timed_frame(proj, settings, img, *, checkpoints=(), truth=None):
     """One frame: its result and per stage [wall s, CPU s] (the iterations' start counted as operators'
-    time, as :class:`~lfcore.reconstruct.ReconResult` counts it)."""
+    time, as :class:`~lfcore.reconstruct.ReconResult` counts it).
+
+    ``checkpoints``: iteration counts of the last :meth:`~FrameReconstructor.iterate` at which Q against
+    ``truth`` is measured (on the volume of that iteration's intensities; its time is left out of every
+    clock), returned as ``res.checkpoints`` {count: Q}. Meant for the chapter's protocol (no pruning, no
+    subsets, a fixed count), where the volume after N of 400 iterations is the volume of N.
+    """
     frames = FrameReconstructor(proj, settings)
     clock = {stage: [0.0, 0.0] for stage in STAGES}
+    marks: dict[int, float] = {}
+    left_out = [0.0, 0.0]  # wall, CPU seconds of the checkpoints' Q
+    if checkpoints:
+        iterate = frames.iterate
+
+        def measured(op, *a, _iterate=iterate, **k):
+            n, done = op.n_voxels, [0]
+
+            def progress(step):
+                done[0] += step
+                if step == 1 and done[0] in checkpoints:
+                    w, c = time.perf_counter(), time.process_time()
+                    vol = frames.volume(op, frames._e[: max(n, 1)]).numpy().copy()
+                    marks[done[0]] = metrics.q_recon(vol, truth)
+                    left_out[0] += time.perf_counter() - w
+                    left_out[1] += time.process_time() - c
+            k["progress"] = progress
+            return _iterate(op, *a, **k)
+        frames.iterate = measured
     for stage, methods in STAGES.items():
         for name in methods:
             inner = getattr(frames, name)
@@ -78,11 +108,14 @@ def timed_frame(proj, settings, img):
             setattr(frames, name, wrapped)
     w, c = time.perf_counter(), time.process_time()
     res = frames.reconstruct(img)
-    total = [time.perf_counter() - w, time.process_time() - c]
+    total = [time.perf_counter() - w - left_out[0], time.process_time() - c - left_out[1]]
+    for i in (0, 1):
+        clock["iterations"][i] -= left_out[i]
     # the stages nest (coarse_eliminate calls eliminate on another reconstructor, not this one's)
     drt = clock.pop("DRT voxels", 0)
     clock["other"] = [total[i] - sum(v[i] for v in clock.values()) for i in (0, 1)]
     res.drt_voxels = drt  # the voxels DRT's operator was made for
+    res.checkpoints = marks
     return res, clock, total
 
 
@@ -95,7 +128,11 @@ def main() -> None:
                     help="rows, separated by '|' or ',' between protocol names (see the module docstring)")
     ap.add_argument("--reference-iterations", type=int, default=40,
                     help="iterations of the chapter's protocol to time (scaled to its 400); 0: no reference")
+    ap.add_argument("--checkpoints", default="",
+                    help="iteration counts of the reference at which its Q is measured too (e.g. 20,50,100,200,400; "
+                         "its time left out), for the best Q it reaches at any count")
     args = ap.parse_args()
+    checkpoints = tuple(int(c) for c in args.checkpoints.split(",") if c)
     device = resolve_device(args.device)
     _, _, cams, grid, pts, img = _recon_bench().scene(args.case, device, args.ppm)
     truth = metrics.truth_volume(grid, pts)
@@ -114,7 +151,8 @@ def main() -> None:
     ref_cpu = None
     if args.reference_iterations:
         n = args.reference_iterations
-        res, clock, total = timed_frame(proj, protocol_settings("chapter", iterations=n, projector="stored"), img)
+        res, clock, total = timed_frame(proj, protocol_settings("chapter", iterations=n, projector="stored"), img,
+                                        checkpoints=checkpoints, truth=truth)
         scale = 400 / n
         for i in (0, 1):
             total[i] += (scale - 1) * clock["iterations"][i]
@@ -126,6 +164,10 @@ def main() -> None:
               f"{res.final_voxels:,} | "
               + " | ".join(f"{clock[s][0]:.1f} ({clock[s][1]:.1f})" for s in (*STAGES, "other"))
               + f" | {total[0]:.1f} ({total[1]:.1f}) | 1 | {res.operator} |", flush=True)
+        if res.checkpoints:
+            best = max(res.checkpoints, key=res.checkpoints.get)
+            print("reference Q at " + ", ".join(f"{k}: {q:.3f}" for k, q in sorted(res.checkpoints.items()))
+                  + f"; best {res.checkpoints[best]:.3f} at {best}", flush=True)
     for label, settings in rows:
         res, clock, total = timed_frame(proj, settings, img)
         q = metrics.q_recon(res.volume, truth)

@@ -54,7 +54,7 @@ drifts by 20% within minutes, their ratio is measured only so.
 in every iteration), logging each stage with the time since the start and the resident memory, then
 the peak resident memory, and Q where the box's volume and its truth fit in a quarter of the memory.
 With ``--protocol NAME`` the slabs run that protocol's whole plan instead (``fast``: the coarse grid
-in memory, 20 line-of-sight iterations, DRT weights for the survivors, 4 ordered subsets, the
+in memory, 20 line-of-sight iterations, DRT weights for the survivors, 6 ordered subsets, the
 stopping rule; ``--coarse F`` its coarse factor), each stage logged with its wall and CPU
 (``time.process_time``) seconds and the resident memory; ``--budget-gib`` bounds the memory its
 weights and buffers may take (what does not fit is applied or made in every iteration)::

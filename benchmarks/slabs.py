@@ -27,7 +27,7 @@ is the host's, the accounted figure the device's.
 
 With ``--plans`` the frame is reconstructed in slabs by the plain plan (``--protocol fixed``: elimination,
 one operator, ``--iterations`` with the pruning) and by the ``fast`` protocol's (coarse-to-fine elimination,
-20 line-of-sight first iterations, 4 ordered subsets, the stopping rule at most 400; no warm start), and
+20 line-of-sight first iterations, 6 ordered subsets, the stopping rule at most 400; no warm start), and
 in memory by ``fast``'s: per run the CPU seconds (:func:`time.process_time`), the wall seconds, the
 iterations, the active voxels, Q against the truth and the peak memory; then the largest difference
 between ``fast``'s volumes in slabs and in memory.

@@ -408,18 +408,20 @@ class ReconSettings:
 #: ``fast`` (``lfpiv reconstruct``'s default): the stopping rule (at most 400 iterations), line-of-sight
 #: weights for the first 20 iterations of DRT-MART, the pruning, every frame from a uniform start (so a
 #: volume does not depend on which pairs a process made before it; ``warm_start`` adds the series' warm
-#: start); 4 ordered subsets, the rule measuring per
+#: start); 6 ordered subsets, the rule measuring per
 #: pass (an iteration is then a pass through them), and coarse-to-fine elimination on a grid 3 times
-#: coarser in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels, after which the fine grid's
+#: coarser in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels, with 30 line-of-sight
+#: iterations there, after which the fine grid's
 #: prunings keep the voxels brighter than 2% of the brightest (``coarse_prune``; 1% in smaller boxes, where
 #: the tiny rig lost 0.014 of Q with a 2% hand-over). Measured by ``benchmarks/mcfast.py``
-#: (``benchmarks/RESULTS.md``): on the Mc crop Q 0.785 (the chapter's 400 iterations: 0.783) for about a
-#: twentieth of the chapter protocol's CPU time.
+#: (``benchmarks/RESULTS.md``): on the Mc crop Q 0.784 (the chapter's 400 iterations: 0.783) for 1/23.6 to
+#: 1/24.8 of the chapter protocol's CPU time in three runs (4 subsets and 20 coarse iterations: Q 0.785,
+#: 1/21.0 to 1/22.0 in the same runs); the tiny rig 0.788 (0.786).
 PROTOCOLS: dict[str, dict] = {
     "chapter": {"iterations": 400, "prune": 0.0, "relaxation": 1.0},
     "fixed": {"iterations": 50},
-    "fast": {"iterations": 400, "stop_tolerance": STOP_TOLERANCE, "los_iterations": 20, "coarse": 3, "subsets": 4,
-             "coarse_prune": 0.02},
+    "fast": {"iterations": 400, "stop_tolerance": STOP_TOLERANCE, "los_iterations": 20, "coarse": 3, "subsets": 6,
+             "coarse_prune": 0.02, "coarse_iterations": 30},
 }
 
 

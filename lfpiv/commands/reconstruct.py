@@ -75,7 +75,7 @@ def protocol_help(default: str) -> str:
     """``--protocol``'s help, ``default`` the protocol without the option."""
     return (f"a named set of settings (default: {default}), which the other options change: fast stops each frame "
             "when its projections have converged (at most 400 iterations), iterates DRT-MART's first 20 on "
-            "line-of-sight weights, in 4 ordered subsets, eliminates on a coarser grid first in boxes of a million "
+            "line-of-sight weights, in 6 ordered subsets, eliminates on a coarser grid first in boxes of a million "
             "voxels or more and prunes the dark voxels (on several cameras at most 75 iterations, the first 30 on "
             "line-of-sight weights, without ordered subsets or the coarse grid); fixed runs 50 "
             "iterations with pruning; chapter is the chapter's protocol (400 iterations of every active voxel from a "
@@ -168,7 +168,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "about as far as N plain iterations each (4 subsets took 4x fewer --iterations on the rigs "
                    "measured); stored weights held whole (in memory or in depth slabs), the others run the "
                    "plain form; with the stopping rule it measures and prunes per pass, "
-                   "divided by N (default: 4 for the fast protocol, 1 otherwise: the plain simultaneous form)")
+                   "divided by N (default: 6 for the fast protocol, 1 otherwise: the plain simultaneous form)")
     r.add_argument("--subset-halving", type=subset_halving_option, default=None, metavar="PASSES",
                    help="with --subsets: every this many passes the subsets are joined in pairs, down to one (the "
                    "plain form), so that the last passes settle on one volume (default: "
@@ -180,7 +180,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "voxel's intensity; boxes of at least a million voxels (default: 3 for the fast protocol, 1 "
                    "otherwise: the whole grid eliminated)")
     r.add_argument("--coarse-iterations", type=positive_int, default=None, metavar="N",
-                   help="with --coarse: the line-of-sight iterations on the coarse grid (default: 20)")
+                   help="with --coarse: the line-of-sight iterations on the coarse grid (default: 30 for the fast "
+                   "protocol, 20 otherwise)")
     r.add_argument("--smooth", type=non_negative_float, default=0.6, metavar="VOXELS",
                    help="Gaussian sigma applied to the result, in voxels (default: 0.6; 0: none)")
     r.add_argument("--sub-apertures", type=sub_apertures, default=None,
