@@ -370,7 +370,7 @@ def test_coarse_from_the_command(capsys, synthetic_run, tmp_path):
                         "2", "--pair-range", "0:1", "--quiet")
     assert rc == 0, err
     settings = RunStore.open(run).group["volumes"].attrs["settings"]
-    assert settings["subsets"] == 4 and settings["coarse"] == 3 and not settings["warm_start"]
+    assert settings["subsets"] == 6 and settings["coarse"] == 3 and not settings["warm_start"]
     rc, out, err = _run(capsys, "reconstruct", str(run), "--coarse", "9", "--quiet")
     assert rc == 2 and out == "" and err.count("\n") == 1 and "--coarse" in err, err
 
@@ -467,7 +467,7 @@ def test_protocols_and_the_stopping_rule_from_the_command(capsys, synthetic_run,
     assert re.search(r"protocol fast: [\d-]+ iterations a frame \(.*at most 60 by the stopping rule", out), out
     # what each frame ran: the tiny box is too small for the coarse grid, and says so
     stages = ("each frame ran: elimination on the whole grid (no coarse grid for a box of fewer than 1,000,000 "
-              "voxels); 20 iterations on line-of-sight weights, then DRT weights for the voxels still bright; 4 "
+              "voxels); 20 iterations on line-of-sight weights, then DRT weights for the voxels still bright; 6 "
               "ordered subsets a pass; at most 60 iterations by the stopping rule")
     assert stages in out, out
     attrs = RunStore.open(run).group["volumes"].attrs

@@ -144,7 +144,7 @@ def test_the_fast_protocol_in_slabs_gives_its_in_memory_volume(capsys, one_pair,
     rc, out, err = _run(capsys, "reconstruct", sliced, "--protocol", "fast", "--slabs", "2", "--quiet")
     assert rc == 0 and "in 2 depth slabs" in out, err
     settings = RunStore.open(sliced).group["volumes"].attrs["settings"]
-    assert (settings["subsets"], settings["los_iterations"], settings["coarse"]) == (4, 20, 3)
+    assert (settings["subsets"], settings["los_iterations"], settings["coarse"]) == (6, 20, 3)
     assert settings["warm_start"] is False and settings["stop_tolerance"] > 0
     want, got = RunStore.open(here).volumes()[0], RunStore.open(sliced).volumes()[0]
     assert want.max() > 0

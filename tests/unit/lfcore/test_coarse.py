@@ -77,7 +77,7 @@ def test_the_composed_mode_keeps_the_particles_and_reaches_the_plain_modes_q(sce
     truth = metrics.truth_volume(grid, pts)
     monkeypatch.setattr(coarse, "COARSE_MIN_VOXELS", 0)
     plain = FrameReconstructor(proj, ReconSettings(iterations=100, projector="stored")).reconstruct([img])
-    assert protocol_settings("fast").coarse == 3 and protocol_settings("fast").subsets == 4
+    assert protocol_settings("fast").coarse == 3 and protocol_settings("fast").subsets == 6
     # a box this small has a coarse grid a few planes deep: fewer coarse iterations keep its particles
     fast = protocol_settings("fast", projector="stored", warm_start=False, coarse_iterations=5)
     frames = FrameReconstructor(proj, fast)

@@ -92,11 +92,11 @@ def test_the_plan_says_what_each_frame_runs(tiny_rig, small):
     fast = plan_reconstruction(tiny_rig.camera, grid, protocol_settings("fast"), device="cpu")
     assert fast.stages == ("elimination on the whole grid (no coarse grid for a box of fewer than 1,000,000 voxels)",
                            "20 iterations on line-of-sight weights, then DRT weights for the voxels still bright",
-                           "4 ordered subsets a pass", "at most 400 iterations by the stopping rule")
+                           "6 ordered subsets a pass", "at most 400 iterations by the stopping rule")
     assert fast.describe_stages() == "; ".join(fast.stages) and "stages: " in fast.lines()[1]
     big = VolumeGrid(shape=(120, 100, 100), voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm)  # 1.2 M voxels
     assert frame_stages("light-field", big, protocol_settings("fast"))[0] == \
-        "coarse-to-fine elimination on a 3x coarser grid (20 line-of-sight iterations; the fine grid's voxels pruned " \
+        "coarse-to-fine elimination on a 3x coarser grid (30 line-of-sight iterations; the fine grid's voxels pruned " \
         "at 2%)"
     assert "cameras other than light-field ones" in frame_stages("joint", big, protocol_settings("fast"))[0]
     assert frame_stages("light-field", big, protocol_settings("fast"), slabs=2) == frame_stages(
@@ -108,7 +108,7 @@ def test_the_plan_says_what_each_frame_runs(tiny_rig, small):
     assert warm[0].startswith("frames B warm-started from frame A")
     ph = plan_reconstruction(small.camera, VolumeGrid.from_rig(small), protocol_settings("fast", method="mlos-smart"),
                              device="cpu")
-    assert ph.stages == ("4 ordered subsets a pass", "at most 400 iterations by the stopping rule")
+    assert ph.stages == ("6 ordered subsets a pass", "at most 400 iterations by the stopping rule")
     assert Plan.from_dict(fast.as_dict()) == fast
     old = {k: v for k, v in fast.as_dict().items() if k != "stages"}  # recorded before December 2026
     assert Plan.from_dict(old).stages == () and Plan.from_dict(old).describe_stages() == ""

@@ -20,7 +20,7 @@ from lfpiv.jobs.reconstruct import camera_count, protocol_run_settings
 
 def test_fast_drops_its_subsets_on_several_cameras_only():
     one, two = protocol_settings("fast"), protocol_settings("fast", n_cameras=2)
-    assert (one.subsets, one.coarse, one.iterations) == (4, 3, 400)
+    assert (one.subsets, one.coarse, one.iterations) == (6, 3, 400)
     assert (two.subsets, two.coarse, two.iterations) == (1, 1, 75)
     # on several cameras 30 of the 75 iterations run on line-of-sight weights (the demo's ring: RESULTS,
     # seventh session); the rest of fast is the same on both: the stopping rule, pruning, no warm start
@@ -45,7 +45,7 @@ def test_the_run_settings_count_the_cameras_reconstructed(tiny_rig):
     rig = Rig.from_dict(d)
     assert camera_count(rig) == 2 and camera_count(rig, ["cam1"]) == 1 and camera_count(tiny_rig) == 1
     assert protocol_run_settings("fast", n_cameras=camera_count(rig)).subsets == 1
-    assert protocol_run_settings("fast", n_cameras=camera_count(rig, ["cam0"])).subsets == 4
+    assert protocol_run_settings("fast", n_cameras=camera_count(rig, ["cam0"])).subsets == 6
     assert protocol_run_settings("fast", n_cameras=2, subsets=2).subsets == 2
     # --max-iterations is the rule's most on two cameras too
     assert protocol_run_settings("fast", max_iterations=200, n_cameras=2).iterations == 200
