@@ -6,9 +6,10 @@ the reconstruction step of Shake-the-Box) reconstructs a list of particles, each
 the particles, not the voxels, and a position comes sub-voxel without the window averaging of
 cross-correlation. This module does it on the rig's own forward model:
 
-1. **Candidates**: a quick reconstruction (:class:`lfcore.reconstruct.FrameReconstructor` with
-   :attr:`IprSettings.candidate_iterations` iterations) and its sub-voxel peaks
-   (:func:`lfcore.metrics.detect_particles`).
+1. **Candidates**: a quick reconstruction (:class:`lfcore.reconstruct.FrameReconstructor` with the
+   settings of the named protocol :attr:`IprSettings.candidate_protocol`, ``lfpiv reconstruct``'s
+   ``fast`` by default, and at most :attr:`IprSettings.candidate_iterations` iterations) and its
+   sub-voxel peaks (:func:`lfcore.metrics.detect_particles`).
 2. **Fit** ("shake"): every particle's position and intensity fitted to the images at once by
    damped Gauss-Newton (Levenberg-Marquardt) steps, each position step at most
    :attr:`IprSettings.max_step_voxels` per axis, a step kept only where it lowers the residual.
@@ -64,7 +65,14 @@ from scipy.spatial import cKDTree
 
 from lfcore.metrics import detect_particles
 from lfcore.operator import Projector
-from lfcore.reconstruct import WEIGHTS, FrameReconstructor, ReconSettings, estimate_background
+from lfcore.reconstruct import (
+    PROTOCOLS,
+    WEIGHTS,
+    FrameReconstructor,
+    ReconSettings,
+    estimate_background,
+    protocol_settings,
+)
 from lfcore.volume import VolumeGrid
 
 __all__ = ["MODELS", "PARTICLE_FIELDS", "IprSettings", "ParticleReconstructor", "ParticleResult", "to_index", "to_mm"]
@@ -99,7 +107,18 @@ class IprSettings:
         (:data:`lfcore.reconstruct.METHODS`); None: DRT-MART for light-field cameras, MLOS-SMART
         for pinhole ones (:func:`lfcore.plan.default_method`).
     candidate_iterations
-        Iterations of the quick reconstruction whose peaks are the candidates.
+        Iterations of the quick reconstruction whose peaks are the candidates (with a protocol that
+        stops by the rule, ``fast``, the most it runs).
+    candidate_protocol
+        The quick reconstruction's protocol (:data:`lfcore.reconstruct.PROTOCOLS`, as ``lfpiv
+        reconstruct --protocol`` takes it, resolved for the projector's cameras by
+        :func:`lfcore.reconstruct.protocol_settings`), with :attr:`candidate_iterations` iterations
+        at most and no warm start. ``"fast"``: on light-field cameras, DRT-MART's first iterations on
+        line-of-sight weights, DRT weights only for the voxels still bright, ordered subsets, the
+        stopping rule, and in boxes of a million voxels or more coarse-to-fine elimination (on the
+        512 x 512 Mc crop about a twentieth of ``"fixed"``'s CPU time at the same candidates;
+        ``benchmarks/RESULTS.md``). ``"fixed"``: plain DRT-MART on DRT weights from the start (the
+        candidates before this setting existed).
     candidate_threshold
         Peaks below this fraction of the brightest voxel are no candidates.
     shakes
@@ -152,6 +171,7 @@ class IprSettings:
 
     method: str | None = None
     candidate_iterations: int = 50
+    candidate_protocol: str = "fast"
     candidate_threshold: float = 0.05
     shakes: int = 12
     max_step_voxels: float = 0.5
@@ -169,6 +189,9 @@ class IprSettings:
     def __post_init__(self) -> None:
         if self.candidate_iterations < 1 or self.shakes < 0 or self.rounds < 1:
             raise ValueError("candidate_iterations and rounds must be at least 1 and shakes at least 0")
+        if self.candidate_protocol not in PROTOCOLS:
+            raise ValueError(f"the candidates' protocol is one of {', '.join(PROTOCOLS)}, got "
+                             f"{self.candidate_protocol!r}")
         if not 0.0 < self.candidate_threshold < 1.0:
             raise ValueError(f"the candidate threshold (--threshold) is a fraction of the brightest voxel above 0 and "
                              f"below 1, got {self.candidate_threshold}")
@@ -609,8 +632,9 @@ class ParticleReconstructor:
     settings
         How to find, fit and prune the particles.
     recon
-        The quick reconstruction's other settings (thresholds, sub-apertures); its ``method`` and
-        ``iterations`` are replaced by ``settings``'; None: the defaults.
+        The quick reconstruction's settings (thresholds, sub-apertures, ...); its ``method`` and
+        ``iterations`` are replaced by ``settings``'; None: those of the protocol
+        :attr:`IprSettings.candidate_protocol` for the projector's cameras.
     """
 
     def __init__(self, projector: Projector, *, settings: IprSettings | None = None,
@@ -622,9 +646,13 @@ class ParticleReconstructor:
         self.projector = projector
         self.settings = settings or IprSettings()
         self.method = self.settings.method or default_method(projector.cameras)
-        base = recon or ReconSettings(method=self.method)
-        self.recon_settings = replace(base, method=self.method, iterations=self.settings.candidate_iterations,
-                                      warm_start=False)
+        its = self.settings.candidate_iterations
+        if recon is None:  # the protocol as lfpiv reconstruct resolves it for these cameras
+            base = protocol_settings(self.settings.candidate_protocol, n_cameras=len(projector.cameras),
+                                     method=self.method, iterations=its)
+        else:
+            base = replace(recon, method=self.method, iterations=its)
+        self.recon_settings = replace(base, warm_start=False)
         self.frames = FrameReconstructor(projector, self.recon_settings)
         #: True where particles are modelled as points (:attr:`IprSettings.model`)
         self.point_model = self.settings.model == "point"
