@@ -164,32 +164,40 @@ def main() -> None:
         for f in range(args.frames):
             pts = seed_particles(rig.volume, n, np.random.default_rng(100 + f))
             imgs = [r.frame(pts, rig.render.particle_counts, seed=7 + f + 1000 * k) for k, r in enumerate(renderers)]
+            depth = focus_distance(rig, grid, pts)
+
+            def score(route: str, pos: np.ndarray, t: float, f: int = f, pts: np.ndarray = pts,
+                      depth: np.ndarray = depth, rows: dict = rows) -> None:
+                every = metrics.match_particles(pos, pts, tol)
+                depth_found = focus_distance(rig, grid, pos)
+                away = [metrics.match_particles(pos[depth_found >= g], pts[depth >= g], tol) for g in gaps]
+                rows[route].append((every, *away, t))
+                rms = np.sqrt(np.mean(every.error_mm**2, axis=0)) / np.asarray(grid.voxel_mm)
+                print(f"frame {f}: {route} recall {every.n_matched / max(every.n_true, 1):.3f}, ghosts "
+                      f"{every.n_detected - every.n_matched}/{every.n_detected}, rms x,y,z {rms[0]:.3f}, {rms[1]:.3f}, "
+                      f"{rms[2]:.3f} voxel", flush=True)
+
             t0 = time.perf_counter()
             cpu.clear()
             c0 = time.process_time()
             res = ipr.reconstruct(imgs)
-            found = {"ipr": (res.positions_mm, time.perf_counter() - t0)}
+            wall = time.perf_counter() - t0
             c_all = time.process_time() - c0
             fit = c_all - cpu["candidates"] - cpu["operator"]
             print(f"frame {f}: IPR CPU s: candidates {cpu['candidates']:.1f} ({cpu['first'][1]:.1f} in the first "
-                  f"round), particle model {cpu['operator']:.1f}, fit {fit:.1f}, "
-                  f"all {c_all:.1f} (wall {found['ipr'][1]:.1f} s); {res.candidates} candidates, {res.n} particles; "
-                  f"peak RSS {peak_rss_gib():.2f} GiB", flush=True)
+                  f"round), particle model {cpu['operator']:.1f}, fit {fit:.1f}, all {c_all:.1f} (wall {wall:.1f} s); "
+                  f"{res.candidates} candidates, {res.n} particles; peak RSS {peak_rss_gib():.2f} GiB", flush=True)
+            score("ipr", res.positions_mm, wall)
+            score("candidates", *cpu["first"])
             if "drt-mart" in routes:
                 t0 = time.perf_counter()
                 c0 = time.process_time()
                 vol = reconstruct(proj, imgs, ReconSettings()).volume
                 found_mart, _, _ = metrics.detect_particles(vol, grid, threshold=0.1)
-                found["drt-mart"] = (found_mart, time.perf_counter() - t0)
-                print(f"frame {f}: DRT-MART CPU s {time.process_time() - c0:.1f} (wall {found['drt-mart'][1]:.1f}); "
+                wall = time.perf_counter() - t0
+                print(f"frame {f}: DRT-MART CPU s {time.process_time() - c0:.1f} (wall {wall:.1f}); "
                       f"peak RSS {peak_rss_gib():.2f} GiB", flush=True)
-            found["candidates"] = (cpu["first"][0], cpu["first"][1])
-            depth = focus_distance(rig, grid, pts)
-            for route, (pos, t) in found.items():
-                every = metrics.match_particles(pos, pts, tol)
-                depth_found = focus_distance(rig, grid, pos)
-                away = [metrics.match_particles(pos[depth_found >= g], pts[depth >= g], tol) for g in gaps]
-                rows[route].append((every, *away, t))
+                score("drt-mart", found_mart, wall)
         print(f"-- {ppm} PPM: {n} particles")
         for route, rs in rows.items():
             for label, k in (("all", 0), *((f">= {g:g} voxels from focus", 1 + i) for i, g in enumerate(gaps))):
