@@ -88,6 +88,11 @@ MODELS = ("point", "voxels")
 #: :func:`_relocate` to move it (a fraction of what the old one explains).
 RELOCATE_MARGIN = 0.02
 
+#: How many sets of positions' images the point model keeps (:meth:`_PointModel.unit_images`): the fit's
+#: current positions and its trial step's, whose images it asks for again (on the 512 x 512 Mc crop a
+#: third of the fit's tracings were such repeats).
+MEMO_IMAGES = 2
+
 #: How far either side along x the two halves of a split particle start, voxels
 #: (:attr:`IprSettings.split_intensity`).
 SPLIT_VOXELS = 0.75
@@ -399,6 +404,9 @@ class _PointModel:
                                    max(float(blur), floor)))
         self.wp = kw.wp
         self._capacity: dict[int, int] = {}  # entries per point a light-field camera's tracing needed
+        # the last positions' images (the fit asks for the same ones up to three times a step: the
+        # trial's cost, then the next step's Jacobian and residual; the same tracing, so the same images)
+        self._memo: list[tuple[bytes, sparse.csc_matrix]] = []
 
     def _light_field(self, lf, half: float, pts_mm: np.ndarray) -> sparse.csc_matrix:
         """(camera pixels, n): DRT weights of world points ``pts_mm`` (n, 3) in one light-field camera."""
@@ -454,7 +462,20 @@ class _PointModel:
         return sparse.csc_matrix((w[inside], (flat[inside].astype(np.int64), p[inside])), shape=(nrows * ncols, n))
 
     def unit_images(self, u: np.ndarray) -> sparse.csc_matrix:
-        """(pixels, n): each particle's image at voxel index coordinates ``u`` (n, 3) per unit intensity."""
+        """(pixels, n): each particle's image at voxel index coordinates ``u`` (n, 3) per unit intensity.
+        The last :data:`MEMO_IMAGES` sets of positions' images are kept and given again for the same
+        positions (the caller must not change them in place)."""
+        key = np.ascontiguousarray(u, dtype=np.float64).tobytes()
+        for i, (k, m) in enumerate(self._memo):
+            if k == key:
+                self._memo.append(self._memo.pop(i))  # most recently used last
+                return m
+        m = self._traced(u)
+        self._memo = [*self._memo[-(MEMO_IMAGES - 1):], (key, m)]
+        return m
+
+    def _traced(self, u: np.ndarray) -> sparse.csc_matrix:
+        """(pixels, n): :meth:`unit_images`, traced."""
         n = len(u)
         if n == 0:
             return sparse.csc_matrix((self.n_pixels, 0))
@@ -476,7 +497,7 @@ class _PointModel:
         for a in range(3):
             d = np.zeros(3)
             d[a] = self.step
-            diff = (self.unit_images(u + d) - here) / self.step  # forward differences
+            diff = (self._traced(u + d) - here) / self.step  # forward differences (not kept: used once)
             blocks.append(diff @ sparse.diags(intensity))
         j = sparse.hstack(blocks).tocsc()
         order = np.arange(4 * n).reshape(4, n).T.ravel()  # (unit, dz, dy, dx) per particle
