@@ -11,9 +11,14 @@ Run from the repository root::
     python benchmarks/particles.py --case S2 --frames 1 --focus-gap 3,10 --rays 40000 --max-std 0.05
     python benchmarks/particles.py --case S2off --no-mart                # S2 focused beyond the box
     python benchmarks/particles.py --case Soff                           # one camera focused beyond the box
+    python benchmarks/particles.py --case Mc --frames 1                  # issue 48's 512 x 512 one-camera rig
+    python benchmarks/particles.py --case Mcoff --frames 1               # ... focused beyond its box
+    python benchmarks/particles.py --case Mc --frames 1 --candidates fixed   # candidates from plain DRT-MART
 
-``--rays`` renders with more rays a particle than the rig's (less Monte-Carlo sampling noise in the
-frames); ``--shakes``, ``--split``, ``--rounds``, ``--relocate``, ``--max-std`` and ``--model`` set
+``--candidates`` is IPR's ``candidate_protocol`` (``fast``, its default, or ``fixed``: plain DRT-MART)
+and ``--candidate-iterations`` its ``candidate_iterations``. ``--rays`` renders with more rays a
+particle than the rig's (less Monte-Carlo sampling noise in the frames); ``--shakes``, ``--split``,
+``--rounds``, ``--relocate``, ``--max-std`` and ``--model`` set
 IPR's settings of those names. ``benchmarks/particles_budget.py`` is the error budget behind these
 figures (fits started at the true positions, candidates, ghosts).
 
@@ -26,12 +31,16 @@ the camera), so that both focal planes lie 0.2 mm (18 voxels) beyond the box, as
 ``examples/two_cameras_off_focus.toml``; ``--focus-shift`` moves any rig's focus points so, one camera
 included. ``Soff`` is the one-camera tiny rig (case S) focused so, ``--focus-shift -1.0`` by default, as in
 ``examples/one_camera_off_focus.toml``: its focal plane 0.2 mm (3.6 of its 55 um depth voxels) beyond
-the 1.6 mm deep box. Each
+the 1.6 mm deep box. ``Mcoff`` is issue 48's 512 x 512 one-camera rig (``Mc``: the M optics cropped, 245 x
+245 x 131 voxels of 18.3 x 18.3 x 91.7 um, a box 12 mm deep) focused so, ``--focus-shift -6.8`` by default:
+its focal plane 0.8 mm (8.7 depth voxels) beyond the box's far face, about as many lenslets of blur
+(0.9; Mc's optics blur 0.09 mm on the lenslets per mm out of focus, the tiny rig's 0.25) as Soff's 0.2
+mm. Each
 frame is reconstructed twice:
 
 ipr
-    :class:`lfcore.ipr.ParticleReconstructor` with its defaults (its candidates come from a
-    50-iteration DRT-MART).
+    :class:`lfcore.ipr.ParticleReconstructor` with its defaults (its candidates come from the peaks of
+    a quick reconstruction by ``lfpiv reconstruct``'s ``fast`` protocol, at most 50 iterations).
 drt-mart
     DRT-MART with the default 50 iterations and the peaks of its volume
     (:func:`lfcore.metrics.detect_particles`, threshold 0.1), the route ``lfpiv evaluate`` measures.
@@ -40,7 +49,10 @@ Both are matched one-to-one to the truth within ``--match-voxels`` voxels per ax
 (:func:`lfcore.metrics.match_particles`): recall, ghosts (found with no true particle within the
 tolerance, as a share of those found), RMS and median position error per axis in voxels, how many
 matched particles are more than 0.2 voxel off on some axis, and the wall time per frame (same
-process, same machine). The issue's goals: recall >= 90%, ghosts <= 5%, RMS <= 0.1 voxel
+process, same machine; besides, IPR's CPU seconds per stage: the candidates' reconstructions and peaks,
+the particle model's set-up, the fit with its splits, moves and prunings, and the process's peak
+resident memory). The first round's candidates (the quick reconstruction's peaks) are matched to the
+truth too: what the fit starts from. The issue's goals: recall >= 90%, ghosts <= 5%, RMS <= 0.1 voxel
 laterally and 0.3 in depth. Also reported: the same figures for the particles at least
 ``--focus-gap`` voxels from every camera's focal plane (voxels along that camera's depth), where a
 light-field camera sees a particle's position (on the focal plane a particle's light falls in one
@@ -51,6 +63,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import resource
 import sys
 import time
 from pathlib import Path
@@ -61,17 +74,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from lfcore import metrics  # noqa: E402
-from lfcore.ipr import MODELS, IprSettings, ParticleReconstructor  # noqa: E402
+from lfcore.ipr import MODELS, IprSettings, ParticleReconstructor, to_mm  # noqa: E402
 from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.plan import projector_for  # noqa: E402
-from lfcore.reconstruct import ReconSettings, reconstruct  # noqa: E402
+from lfcore.reconstruct import PROTOCOLS, ReconSettings, reconstruct  # noqa: E402
 from lfcore.render import renderer_for  # noqa: E402
 from lfcore.volume import VolumeGrid  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
 
 #: Cases focused beyond the box: each camera's focus shift (mm, along its optical axis; negative: away
 #: from the camera) that puts its focal plane 0.2 mm beyond the box's far face.
-OFF_FOCUS = {"S2off": -0.6, "Soff": -1.0}
+OFF_FOCUS = {"S2off": -0.6, "Soff": -1.0, "Mcoff": -6.8}
 
 
 def recon_bench():
@@ -86,12 +99,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rig", default=str(ROOT / "examples" / "tiny.toml"))
     ap.add_argument("--case", default=None,
-                    help="a case of benchmarks/recon.py instead of --rig (S, S2, Mc, ...), or S2off / Soff (S2 / S "
-                         "focused beyond the box)")
+                    help="a case of benchmarks/recon.py instead of --rig (S, S2, Mc, ...), or S2off / Soff / Mcoff "
+                         "(S2 / S / Mc focused beyond the box)")
     ap.add_argument("--focus-shift", type=float, default=None, metavar="MM",
                     help="move every camera's focus point this far along its optical axis (positive: toward the "
                          "camera; negative: away from it, the box then lies before the focal plane); S2off's "
-                         "default: -0.6 mm, Soff's -1.0 mm")
+                         "default: -0.6 mm, Soff's -1.0 mm, Mcoff's -6.8 mm")
     ap.add_argument("--ppm", type=float, default=0.5)
     ap.add_argument("--sweep", default=None, metavar="PPMS",
                     help="comma-separated densities (PPM) instead of --ppm: one line of figures per density")
@@ -101,6 +114,10 @@ def main() -> None:
     ap.add_argument("--match-voxels", type=float, default=1.0)
     ap.add_argument("--focus-gap", default="3", metavar="VOXELS",
                     help="comma-separated gaps from the focal planes: one line of figures per gap")
+    ap.add_argument("--candidates", choices=tuple(PROTOCOLS), default=IprSettings().candidate_protocol,
+                    help="IPR's candidate_protocol: the quick reconstruction's protocol")
+    ap.add_argument("--candidate-iterations", type=int, default=IprSettings().candidate_iterations,
+                    help="IPR's candidate_iterations")
     ap.add_argument("--model", choices=MODELS, default=IprSettings().model, help="IPR's particle model")
     ap.add_argument("--split", type=float, default=IprSettings().split_intensity, help="IPR's split_intensity")
     ap.add_argument("--rounds", type=int, default=IprSettings().rounds, help="IPR's rounds")
@@ -128,35 +145,59 @@ def main() -> None:
     renderers = [renderer_for(c, render, wavelength_nm=rig.laser.wavelength_nm, device=args.device)
                  for c in rig.camera]
     ipr = ParticleReconstructor(proj, settings=IprSettings(
-        model=args.model, shakes=args.shakes, split_intensity=args.split, rounds=args.rounds,
+        candidate_protocol=args.candidates, candidate_iterations=args.candidate_iterations, model=args.model,
+        shakes=args.shakes, split_intensity=args.split, rounds=args.rounds,
         relocate_depth=args.relocate, max_position_std=args.max_std,
         wavelength_nm=rig.laser.wavelength_nm, particle_image_px=rig.render.particle_image_px))
     densities = [float(p) for p in args.sweep.split(",")] if args.sweep else [args.ppm]
     gaps = [float(g) for g in args.focus_gap.split(",")]
     print(f"{name}: {len(rig.camera)} camera(s), grid {grid.shape} (z, y, x) voxels of {grid.voxel_mm} mm; "
           f"{args.frames} frame(s) per density; matching within {args.match_voxels} voxel per axis; IPR model "
-          f"{args.model}, relocate {args.relocate}, max std {args.max_std}; {render.rays_per_particle} rays a particle")
+          f"{args.model}, relocate {args.relocate}, max std {args.max_std}, candidates {args.candidates} (at most "
+          f"{args.candidate_iterations} iterations); {render.rays_per_particle} rays a particle")
+    cpu = stage_clock(ipr)
     routes = ("ipr",) if args.no_mart else ("ipr", "drt-mart")
     for ppm in densities:
         n = particle_count(rig, ppm=ppm)
         rows = {r: [] for r in routes}
+        rows["candidates"] = []
         for f in range(args.frames):
             pts = seed_particles(rig.volume, n, np.random.default_rng(100 + f))
             imgs = [r.frame(pts, rig.render.particle_counts, seed=7 + f + 1000 * k) for k, r in enumerate(renderers)]
-            t0 = time.perf_counter()
-            res = ipr.reconstruct(imgs)
-            found = {"ipr": (res.positions_mm, time.perf_counter() - t0)}
-            if "drt-mart" in routes:
-                t0 = time.perf_counter()
-                vol = reconstruct(proj, imgs, ReconSettings()).volume
-                found_mart, _, _ = metrics.detect_particles(vol, grid, threshold=0.1)
-                found["drt-mart"] = (found_mart, time.perf_counter() - t0)
             depth = focus_distance(rig, grid, pts)
-            for route, (pos, t) in found.items():
+
+            def score(route: str, pos: np.ndarray, t: float, f: int = f, pts: np.ndarray = pts,
+                      depth: np.ndarray = depth, rows: dict = rows) -> None:
                 every = metrics.match_particles(pos, pts, tol)
                 depth_found = focus_distance(rig, grid, pos)
                 away = [metrics.match_particles(pos[depth_found >= g], pts[depth >= g], tol) for g in gaps]
                 rows[route].append((every, *away, t))
+                rms = np.sqrt(np.mean(every.error_mm**2, axis=0)) / np.asarray(grid.voxel_mm)
+                print(f"frame {f}: {route} recall {every.n_matched / max(every.n_true, 1):.3f}, ghosts "
+                      f"{every.n_detected - every.n_matched}/{every.n_detected}, rms x,y,z {rms[0]:.3f}, {rms[1]:.3f}, "
+                      f"{rms[2]:.3f} voxel", flush=True)
+
+            t0 = time.perf_counter()
+            cpu.clear()
+            c0 = time.process_time()
+            res = ipr.reconstruct(imgs)
+            wall = time.perf_counter() - t0
+            c_all = time.process_time() - c0
+            fit = c_all - cpu["candidates"] - cpu["operator"]
+            print(f"frame {f}: IPR CPU s: candidates {cpu['candidates']:.1f} ({cpu['first'][1]:.1f} in the first "
+                  f"round), particle model {cpu['operator']:.1f}, fit {fit:.1f}, all {c_all:.1f} (wall {wall:.1f} s); "
+                  f"{res.candidates} candidates, {res.n} particles; peak RSS {peak_rss_gib():.2f} GiB", flush=True)
+            score("ipr", res.positions_mm, wall)
+            score("candidates", *cpu["first"])
+            if "drt-mart" in routes:
+                t0 = time.perf_counter()
+                c0 = time.process_time()
+                vol = reconstruct(proj, imgs, ReconSettings()).volume
+                found_mart, _, _ = metrics.detect_particles(vol, grid, threshold=0.1)
+                wall = time.perf_counter() - t0
+                print(f"frame {f}: DRT-MART CPU s {time.process_time() - c0:.1f} (wall {wall:.1f}); "
+                      f"peak RSS {peak_rss_gib():.2f} GiB", flush=True)
+                score("drt-mart", found_mart, wall)
         print(f"-- {ppm} PPM: {n} particles")
         for route, rs in rows.items():
             for label, k in (("all", 0), *((f">= {g:g} voxels from focus", 1 + i) for i, g in enumerate(gaps))):
@@ -171,7 +212,35 @@ def main() -> None:
                       f"{(n_det - matched) / n_det:.3f} ({n_det - matched}/{n_det})  rms x,y,z {rms[0]:.3f}, "
                       f"{rms[1]:.3f}, {rms[2]:.3f} voxel; median {med[0]:.3f}, {med[1]:.3f}, {med[2]:.3f}; "
                       f"{int((off.max(axis=1) > 0.2).sum()) if len(off) else 0} more than 0.2 voxel off")
-            print(f"{route:9s} time per frame {np.mean([r[-1] for r in rs]):.2f} s")
+            what = "CPU s per frame (first round)" if route == "candidates" else "time per frame"
+            print(f"{route:9s} {what} {np.mean([r[-1] for r in rs]):.2f} s")
+    print(f"peak RSS {peak_rss_gib():.2f} GiB")
+
+
+def peak_rss_gib() -> float:
+    """The process's peak resident memory so far, GiB (Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def stage_clock(ipr: ParticleReconstructor) -> dict:
+    """Wrap ``ipr``'s candidates (the quick reconstruction and its peaks) and particle model set-up to
+    count their process CPU seconds (robust to the other processes on a shared machine) into the
+    returned dict (``candidates``, ``operator``; ``first``: the first round's candidates, world mm, and
+    their CPU seconds), which the caller clears before each frame."""
+    clock: dict = {}
+    for name, key in (("_candidates", "candidates"), ("_model", "operator")):
+        inner = getattr(ipr, name)
+
+        def wrapped(*a, _inner=inner, _key=key, **k):
+            c = time.process_time()
+            out = _inner(*a, **k)
+            dt = time.process_time() - c
+            if _key == "candidates" and "candidates" not in clock:
+                clock["first"] = (to_mm(ipr.projector.grid, out), dt)
+            clock[_key] = clock.get(_key, 0.0) + dt
+            return out
+        setattr(ipr, name, wrapped)
+    return clock
 
 
 def shift_focus(rig, shift_mm: float):

@@ -6,9 +6,10 @@ the reconstruction step of Shake-the-Box) reconstructs a list of particles, each
 the particles, not the voxels, and a position comes sub-voxel without the window averaging of
 cross-correlation. This module does it on the rig's own forward model:
 
-1. **Candidates**: a quick reconstruction (:class:`lfcore.reconstruct.FrameReconstructor` with
-   :attr:`IprSettings.candidate_iterations` iterations) and its sub-voxel peaks
-   (:func:`lfcore.metrics.detect_particles`).
+1. **Candidates**: a quick reconstruction (:class:`lfcore.reconstruct.FrameReconstructor` with the
+   settings of the named protocol :attr:`IprSettings.candidate_protocol`, ``lfpiv reconstruct``'s
+   ``fast`` by default, and at most :attr:`IprSettings.candidate_iterations` iterations) and its
+   sub-voxel peaks (:func:`lfcore.metrics.detect_particles`).
 2. **Fit** ("shake"): every particle's position and intensity fitted to the images at once by
    damped Gauss-Newton (Levenberg-Marquardt) steps, each position step at most
    :attr:`IprSettings.max_step_voxels` per axis, a step kept only where it lowers the residual.
@@ -64,7 +65,14 @@ from scipy.spatial import cKDTree
 
 from lfcore.metrics import detect_particles
 from lfcore.operator import Projector
-from lfcore.reconstruct import WEIGHTS, FrameReconstructor, ReconSettings, estimate_background
+from lfcore.reconstruct import (
+    PROTOCOLS,
+    WEIGHTS,
+    FrameReconstructor,
+    ReconSettings,
+    estimate_background,
+    protocol_settings,
+)
 from lfcore.volume import VolumeGrid
 
 __all__ = ["MODELS", "PARTICLE_FIELDS", "IprSettings", "ParticleReconstructor", "ParticleResult", "to_index", "to_mm"]
@@ -79,6 +87,11 @@ MODELS = ("point", "voxels")
 #: How much more of the residual a particle's new position must explain than its old one for
 #: :func:`_relocate` to move it (a fraction of what the old one explains).
 RELOCATE_MARGIN = 0.02
+
+#: How many sets of positions' images the point model keeps (:meth:`_PointModel.unit_images`): the fit's
+#: current positions and its trial step's, whose images it asks for again (on the 512 x 512 Mc crop a
+#: third of the fit's tracings were such repeats).
+MEMO_IMAGES = 2
 
 #: How far either side along x the two halves of a split particle start, voxels
 #: (:attr:`IprSettings.split_intensity`).
@@ -99,7 +112,19 @@ class IprSettings:
         (:data:`lfcore.reconstruct.METHODS`); None: DRT-MART for light-field cameras, MLOS-SMART
         for pinhole ones (:func:`lfcore.plan.default_method`).
     candidate_iterations
-        Iterations of the quick reconstruction whose peaks are the candidates.
+        Iterations of the quick reconstruction whose peaks are the candidates (with a protocol that
+        stops by the rule, ``fast``, the most it runs).
+    candidate_protocol
+        The quick reconstruction's protocol (:data:`lfcore.reconstruct.PROTOCOLS`, as ``lfpiv
+        reconstruct --protocol`` takes it, resolved for the projector's cameras by
+        :func:`lfcore.reconstruct.protocol_settings`), with :attr:`candidate_iterations` iterations
+        at most and no warm start. ``"fast"``: on light-field cameras, DRT-MART's first iterations on
+        line-of-sight weights, DRT weights only for the voxels still bright, ordered subsets, the
+        stopping rule, and in boxes of a million voxels or more coarse-to-fine elimination: on the
+        512 x 512 Mc crop 20 CPU s a reconstruction against ``"fixed"``'s 88, and on the tiny rig
+        focused beyond its box better candidates (recall 0.84 against 0.74, ghosts 9% against 15%)
+        and particles (``benchmarks/RESULTS.md``). ``"fixed"``: plain DRT-MART on DRT weights from
+        the start (the candidates before this setting existed).
     candidate_threshold
         Peaks below this fraction of the brightest voxel are no candidates.
     shakes
@@ -152,6 +177,7 @@ class IprSettings:
 
     method: str | None = None
     candidate_iterations: int = 50
+    candidate_protocol: str = "fast"
     candidate_threshold: float = 0.05
     shakes: int = 12
     max_step_voxels: float = 0.5
@@ -169,6 +195,9 @@ class IprSettings:
     def __post_init__(self) -> None:
         if self.candidate_iterations < 1 or self.shakes < 0 or self.rounds < 1:
             raise ValueError("candidate_iterations and rounds must be at least 1 and shakes at least 0")
+        if self.candidate_protocol not in PROTOCOLS:
+            raise ValueError(f"the candidates' protocol is one of {', '.join(PROTOCOLS)}, got "
+                             f"{self.candidate_protocol!r}")
         if not 0.0 < self.candidate_threshold < 1.0:
             raise ValueError(f"the candidate threshold (--threshold) is a fraction of the brightest voxel above 0 and "
                              f"below 1, got {self.candidate_threshold}")
@@ -376,6 +405,9 @@ class _PointModel:
                                    max(float(blur), floor)))
         self.wp = kw.wp
         self._capacity: dict[int, int] = {}  # entries per point a light-field camera's tracing needed
+        # the last positions' images (the fit asks for the same ones up to three times a step: the
+        # trial's cost, then the next step's Jacobian and residual; the same tracing, so the same images)
+        self._memo: list[tuple[bytes, sparse.csc_matrix]] = []
 
     def _light_field(self, lf, half: float, pts_mm: np.ndarray) -> sparse.csc_matrix:
         """(camera pixels, n): DRT weights of world points ``pts_mm`` (n, 3) in one light-field camera."""
@@ -431,7 +463,20 @@ class _PointModel:
         return sparse.csc_matrix((w[inside], (flat[inside].astype(np.int64), p[inside])), shape=(nrows * ncols, n))
 
     def unit_images(self, u: np.ndarray) -> sparse.csc_matrix:
-        """(pixels, n): each particle's image at voxel index coordinates ``u`` (n, 3) per unit intensity."""
+        """(pixels, n): each particle's image at voxel index coordinates ``u`` (n, 3) per unit intensity.
+        The last :data:`MEMO_IMAGES` sets of positions' images are kept and given again for the same
+        positions (the caller must not change them in place)."""
+        key = np.ascontiguousarray(u, dtype=np.float64).tobytes()
+        for i, (k, m) in enumerate(self._memo):
+            if k == key:
+                self._memo.append(self._memo.pop(i))  # most recently used last
+                return m
+        m = self._traced(u)
+        self._memo = [*self._memo[-(MEMO_IMAGES - 1):], (key, m)]
+        return m
+
+    def _traced(self, u: np.ndarray) -> sparse.csc_matrix:
+        """(pixels, n): :meth:`unit_images`, traced."""
         n = len(u)
         if n == 0:
             return sparse.csc_matrix((self.n_pixels, 0))
@@ -453,7 +498,7 @@ class _PointModel:
         for a in range(3):
             d = np.zeros(3)
             d[a] = self.step
-            diff = (self.unit_images(u + d) - here) / self.step  # forward differences
+            diff = (self._traced(u + d) - here) / self.step  # forward differences (not kept: used once)
             blocks.append(diff @ sparse.diags(intensity))
         j = sparse.hstack(blocks).tocsc()
         order = np.arange(4 * n).reshape(4, n).T.ravel()  # (unit, dz, dy, dx) per particle
@@ -609,8 +654,9 @@ class ParticleReconstructor:
     settings
         How to find, fit and prune the particles.
     recon
-        The quick reconstruction's other settings (thresholds, sub-apertures); its ``method`` and
-        ``iterations`` are replaced by ``settings``'; None: the defaults.
+        The quick reconstruction's settings (thresholds, sub-apertures, ...); its ``method`` and
+        ``iterations`` are replaced by ``settings``'; None: those of the protocol
+        :attr:`IprSettings.candidate_protocol` for the projector's cameras.
     """
 
     def __init__(self, projector: Projector, *, settings: IprSettings | None = None,
@@ -622,9 +668,13 @@ class ParticleReconstructor:
         self.projector = projector
         self.settings = settings or IprSettings()
         self.method = self.settings.method or default_method(projector.cameras)
-        base = recon or ReconSettings(method=self.method)
-        self.recon_settings = replace(base, method=self.method, iterations=self.settings.candidate_iterations,
-                                      warm_start=False)
+        its = self.settings.candidate_iterations
+        if recon is None:  # the protocol as lfpiv reconstruct resolves it for these cameras
+            base = protocol_settings(self.settings.candidate_protocol, n_cameras=len(projector.cameras),
+                                     method=self.method, iterations=its)
+        else:
+            base = replace(recon, method=self.method, iterations=its)
+        self.recon_settings = replace(base, warm_start=False)
         self.frames = FrameReconstructor(projector, self.recon_settings)
         #: True where particles are modelled as points (:attr:`IprSettings.model`)
         self.point_model = self.settings.model == "point"

@@ -41,7 +41,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the reconstruction whose weights model the particles and give the candidates (default: "
                    "drt-mart for light-field cameras, mlos-smart for pinhole ones)")
     c.add_argument("--candidate-iterations", type=iterations, default=50, metavar="N",
-                   help="iterations of the quick reconstruction whose peaks are the candidates (default: 50)")
+                   help="iterations of the quick reconstruction whose peaks are the candidates (with "
+                   "--candidate-protocol fast, the most the stopping rule runs; default: 50)")
+    c.add_argument("--candidate-protocol", choices=("fast", "fixed", "chapter"), default="fast",
+                   help="the quick reconstruction's protocol, as lfpiv reconstruct --protocol: fast, line-of-sight "
+                   "weights first, DRT weights for the voxels still bright, ordered subsets, the stopping rule and, "
+                   "in boxes of a million voxels or more, coarse-to-fine elimination; fixed, plain DRT-MART of "
+                   "--candidate-iterations iterations (the candidates before this option; default: fast)")
     c.add_argument("--threshold", type=fraction, default=0.05,
                    help="candidates are peaks above this fraction of the brightest voxel (default: 0.05)")
     c.add_argument("--shakes", type=shakes, default=12, metavar="N",
@@ -79,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.runs import open_run
 
     options = dict(method=args.method, candidate_iterations=args.candidate_iterations,
-                   candidate_threshold=args.threshold, shakes=args.shakes, min_intensity=args.min_intensity,
+                   candidate_protocol=args.candidate_protocol, candidate_threshold=args.threshold, shakes=args.shakes,
+                   min_intensity=args.min_intensity,
                    merge_voxels=args.merge_voxels, rounds=args.rounds, split_intensity=args.split, model=args.model,
                    relocate_depth=args.relocate, max_position_std=args.max_std)
     ipr_settings(**options)  # bad options are refused before the run is opened

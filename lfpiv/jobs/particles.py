@@ -27,9 +27,10 @@ __all__ = ["IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "ipr
 #: Settings added to :class:`lfcore.ipr.IprSettings` after ``particles/`` was first written, at the
 #: value that reproduces what the code did before each existed: no splitting (before
 #: ``split_intensity``), the trilinear blend of voxels' rows (before ``model``), no whole-voxel moves
-#: (before ``relocate_depth``), every particle kept (before ``max_position_std``).
+#: (before ``relocate_depth``), every particle kept (before ``max_position_std``), candidates from
+#: plain DRT-MART of a fixed count (before ``candidate_protocol``).
 OLD_DEFAULTS: dict[str, Any] = {"split_intensity": 0.0, "model": "voxels", "relocate_depth": 0,
-                                "max_position_std": 0.0}
+                                "max_position_std": 0.0, "candidate_protocol": "fixed"}
 
 #: Settings of the point model only: the ``"voxels"`` model's particles do not depend on them
 #: (groups written before they existed hold none of them).

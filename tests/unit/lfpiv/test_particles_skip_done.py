@@ -19,16 +19,21 @@ def meta(**settings) -> dict:
 
 
 def test_an_old_group_matches_the_settings_that_reproduce_it() -> None:
-    old = meta(model="voxels", split_intensity=0.0, relocate_depth=0)
+    old = meta(model="voxels", split_intensity=0.0, relocate_depth=0, candidate_protocol="fixed")
     assert same_settings(FIRST, old)
     # the point model's own settings do not change the voxels model's particles
     assert same_settings(FIRST, meta(model="voxels", split_intensity=0.0, wavelength_nm=633.0, point_sub_apertures=40,
-                                     particle_image_px=2.0, relocate_depth=3))
+                                     particle_image_px=2.0, relocate_depth=3, candidate_protocol="fixed"))
     # a group written after split_intensity, before the point model
-    assert same_settings({**FIRST, "split_intensity": 1.4}, meta(model="voxels", split_intensity=1.4))
+    assert same_settings({**FIRST, "split_intensity": 1.4}, meta(model="voxels", split_intensity=1.4,
+                                                                  candidate_protocol="fixed"))
     # a group written after the point model, before max_position_std
     point = {k: v for k, v in meta().items() if k != "max_position_std"}
     assert same_settings(point, meta())
+    # a group written before candidate_protocol: its candidates came from plain DRT-MART (fixed)
+    before = {k: v for k, v in meta(candidate_protocol="fixed").items() if k != "candidate_protocol"}
+    assert same_settings(before, meta(candidate_protocol="fixed"))
+    assert not same_settings(before, meta())
 
 
 def test_an_old_group_does_not_match_other_settings() -> None:
