@@ -101,22 +101,12 @@ def cpu_timed(proj, settings, img, truth):
 
 def rig_row(path: Path, args, device: str) -> str:
     """One rig's row: the defaults' Q, iterations and CPU seconds, and MART's Q at their CPU seconds."""
-    rig, note = cropped(path, not args.no_crop)
-    # --ppm seeds the rigs with a light-field camera, --ppp those of pinhole cameras alone
-    ppm, ppp = (seeding_density(rig, ppm=args.ppm) if rig.lightfield_cameras else seeding_density(rig, ppp=args.ppp))
-    scene = Scene(rig, ppm=ppm if ppm is not None else 0.5, ppp=ppp, seed=1, device=device)
-    particles, brightness = scene.world.pair(0)
-    # frame A as `lfpiv synth` renders pair 0 (its seeds: the run's, the pair, the frame, the camera)
-    img = [r.frame(particles[0], brightness[0], seed=derive_seed(scene.seed, 0, 0, c))
-           for c, r in enumerate(scene.renderers)]
-    grid = VolumeGrid.from_rig(rig)
-    truth = metrics.truth_volume(grid, particles[0], brightness=brightness[0])
+    rig, note, density, n_particles, img, grid, truth = _frame_a(path, args, device)
     cams = list(rig.camera)
     method = default_method(cams)
     proj = projector_for(cams, grid, device=device)
-    density = f"{ppm:g} PPM" if ppm is not None else f"{ppp:g} ppp"
     shape = " x ".join(map(str, grid.shape[::-1]))
-    print(f"{path.stem}: {len(cams)} camera(s), {shape} voxels (x, y, z), {len(particles[0])} particles ({density})"
+    print(f"{path.stem}: {len(cams)} camera(s), {shape} voxels (x, y, z), {n_particles} particles ({density})"
           f"{', ' + note if note else ''}", flush=True)
     defaults = protocol_settings(args.protocol, n_cameras=len(cams), method=method)
     # the kernels loaded (and the first-call costs paid) before anything is timed
@@ -156,7 +146,16 @@ def rig_row(path: Path, args, device: str) -> str:
 
 def rig_frame(path: Path, args, device: str):
     """The rig's frame A as ``lfpiv synth`` renders pair 0: its projector, image, truth and its cameras."""
+    rig, note, _, _, img, grid, truth = _frame_a(path, args, device)
+    return projector_for(list(rig.camera), grid, device=device), img, truth, list(rig.camera), note
+
+
+def _frame_a(path: Path, args, device: str):
+    """The rig (cropped unless ``--no-crop``), the crop's note, its seeding ("0.5 PPM" or "0.05 ppp"),
+    its particles in frame A, and frame A's images, grid and truth volume as ``lfpiv synth`` renders
+    pair 0 (its seeds: the run's, the pair, the frame, the camera)."""
     rig, note = cropped(path, not args.no_crop)
+    # --ppm seeds the rigs with a light-field camera, --ppp those of pinhole cameras alone
     ppm, ppp = (seeding_density(rig, ppm=args.ppm) if rig.lightfield_cameras else seeding_density(rig, ppp=args.ppp))
     scene = Scene(rig, ppm=ppm if ppm is not None else 0.5, ppp=ppp, seed=1, device=device)
     particles, brightness = scene.world.pair(0)
@@ -164,7 +163,8 @@ def rig_frame(path: Path, args, device: str):
            for c, r in enumerate(scene.renderers)]
     grid = VolumeGrid.from_rig(rig)
     truth = metrics.truth_volume(grid, particles[0], brightness=brightness[0])
-    return projector_for(list(rig.camera), grid, device=device), img, truth, list(rig.camera), note
+    density = f"{ppm:g} PPM" if ppm is not None else f"{ppp:g} ppp"
+    return rig, note, density, len(particles[0]), img, grid, truth
 
 
 def cap_rows(path: Path, args, device: str) -> list[str]:
