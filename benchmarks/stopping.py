@@ -66,12 +66,13 @@ CROPS: dict[str, dict] = {
 }
 
 
-def timed(proj, settings, img, truth):
-    """One frame of ``settings``: its result, Q and seconds."""
+def timed(proj, settings, img, truth, *, clock=time.perf_counter):
+    """One frame of ``settings`` as ``reconstruct`` makes it: its result, Q and seconds by ``clock``
+    (wall seconds; ``time.process_time`` for CPU seconds)."""
     frames = FrameReconstructor(proj, settings)
-    t = time.perf_counter()
+    t = clock()
     res = frames.reconstruct(img)
-    total = time.perf_counter() - t
+    total = clock() - t
     return res, metrics.q_recon(res.volume, truth), total
 
 
@@ -91,12 +92,8 @@ def cropped(path: Path, crop: bool) -> tuple[Rig, str]:
 
 
 def cpu_timed(proj, settings, img, truth):
-    """One frame of ``settings`` as ``reconstruct`` makes it: its result, Q and CPU seconds."""
-    frames = FrameReconstructor(proj, settings)
-    t = time.process_time()
-    res = frames.reconstruct(img)
-    total = time.process_time() - t
-    return res, metrics.q_recon(res.volume, truth), total
+    """:func:`timed` in CPU seconds."""
+    return timed(proj, settings, img, truth, clock=time.process_time)
 
 
 def rig_row(path: Path, args, device: str) -> str:
