@@ -242,16 +242,16 @@ def tomo_arc_small():
                                   "volume": rig.volume.model_copy(update={"size_mm": (2.0, 2.0, 1.5)})})
 
 
-def lightfield_scene(rig):
-    """``rig``'s box seeded at 0.3 PPM and its first camera's image of it, rendered on the CPU:
-    (rig, grid, particles (n, 3) mm, image (rows, columns))."""
+def lightfield_scene(rig, *, ppm: float = 0.3, rays_per_particle: int = 20_000):
+    """``rig``'s box seeded at ``ppm`` and its first camera's image of it, rendered on the CPU with
+    ``rays_per_particle``: (rig, grid, particles (n, 3) mm, image (rows, columns))."""
     from lfcore.particles import particle_count, seed_particles
     from lfcore.render import LightFieldRenderer
     from lfcore.volume import VolumeGrid
 
     grid = VolumeGrid.from_rig(rig)
-    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.3), np.random.default_rng(3))
-    cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=ppm), np.random.default_rng(3))
+    cfg = rig.render.model_copy(update={"rays_per_particle": rays_per_particle})
     img = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(
         pts, 50_000.0, seed=1)
     return rig, grid, pts, img
