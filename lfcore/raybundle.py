@@ -1,8 +1,8 @@
 """Particle candidates by ray bundling: the bright pixels' rays voted into the box, not a reconstruction.
 
 IPR (:mod:`lfcore.ipr`) needs candidate positions to start its fit from. A quick volume reconstruction
-gives them at a cost that grows with the voxels; this module gives them at a cost that grows with the
-bright pixels (so with the particles at a given density):
+gives them at a cost that grows with the voxels; this module gives them with no volume and no weights
+(:attr:`lfcore.ipr.IprSettings.candidate_source` ``"rays"``):
 
 1. **Bright pixels.** Each camera's image less its background (:func:`lfcore.reconstruct.estimate_background`,
    as the reconstruction subtracts it); a pixel is bright above ``threshold_sigma`` noise sigmas (the
@@ -14,18 +14,23 @@ bright pixels (so with the particles at a given density):
    E = (A - s_in t, so - t) of the camera frame, t its distance in front of the lens. The true ray passed
    somewhere in the lenslet's cell, so each ray stands for a tube about an object-side lenslet
    (pitch / |M|) wide. A pinhole camera's pixel is its line of sight (:func:`lfcore.pinhole.line_of_sight`).
-3. **Vote.** Each ray is sampled through the box at steps of at most one vote bin along every axis
-   (bins a tube's width: whole voxels per axis); a bin's vote is the number of distinct lenslets
-   (a pinhole camera's pixels) with a ray through it, per camera. The particles' rays bundle where the
-   particle is; rays that cross by chance scatter.
-4. **Candidates.** Local maxima of the vote that at least ``min_lenslets`` lenslets agree on (and, on
-   several cameras, at least two cameras), each refined to the point nearest its rays (least squares,
-   intensity-weighted, the rays farther than a tube's half-width from it left out, three times), then
-   the weaker of two within a voxel of each other left out.
+3. **Vote.** Each ray is sampled through the box at steps of at most one vote bin along every axis (bins a
+   tube wide: whole voxels per axis); a bin's vote is its rays' light over the lenslets a particle there
+   would light. At LF-PIV densities most pixels are lit and every bin is crossed by many lenslets' rays,
+   so the vote only ranks the bins.
+4. **Check.** The points of the most voted bins (``keep_bins``), every half tube, are checked against each
+   lenslet that would see a particle there (:func:`point_scores`): a low percentile of the light at the
+   pixels where its light would land, one pixel a lenslet. A particle lights all of them; the light of
+   others lights some by chance.
+5. **Candidates.** The checks' local maxima above ``min_score`` of the brightest (and the noise), each
+   refined where the rays of its light in those lenslets meet (least squares, three times), the weaker
+   of two within a voxel, then within half the resolution, left out.
 
-The cost is the rays times the bins a ray crosses, and the vote's memory the box's bins (a tube's width
-each: on issue 48's Mc rig 49 voxels a bin), not its voxels. On the focal plane a particle's light falls
-in one lenslet, whose rays fan out from it: no depth there, as for the reconstruction.
+The cost is the rays times the bins a ray crosses (the vote), the bins kept times the lenslets a point's
+light reaches (the check), and the candidates times their lenslets (the refinement): no voxels' weights
+and no volume; the vote's memory is the box's bins (a tube's width each: on issue 48's Mc rig 49 voxels a
+bin). On the focal plane a particle's light falls in one lenslet, whose rays fan out from it: a point
+fewer than ``min_lenslets`` lenslets see is no candidate.
 """
 
 from __future__ import annotations
@@ -59,6 +64,8 @@ class Rays:
     tube_mm
         The width of the tube each ray stands for near the box, mm (an object-side lenslet, or two of a
         pinhole camera's object-side pixels).
+    camera
+        The camera the rays came from.
     """
 
     origin: np.ndarray
