@@ -268,7 +268,8 @@ def ray_candidates(grid: VolumeGrid, cameras: Sequence, images: Sequence[np.ndar
 
 def point_scores(cameras: Sequence, signals: Sequence[np.ndarray], points_mm: np.ndarray, *,
                  percentile: float = 10.0, min_lenslets: int = 4) -> np.ndarray:
-    """How well each point's would-be image is lit: the least over the cameras of each camera's check.
+    """How well each point's would-be image is lit: the least over the cameras of each camera's check
+    (one dark camera refuses it).
 
     A light-field camera's check is the ``percentile`` of its lenslets' signals, each lenslet whose cell
     meets the point's blur disc on the MLA read at the pixel the point's ray through the lenslet's centre
@@ -287,8 +288,9 @@ def point_scores(cameras: Sequence, signals: Sequence[np.ndarray], points_mm: np
     percentile
         The percentile of a light-field camera's lenslets' signals.
     min_lenslets
-        A point fewer of a light-field camera's lenslets see scores 0: near the focal plane a
-        particle's light falls in one or two lenslets, and a lit pixel's whole ray through them scores.
+        A light-field camera that sees a point through fewer lenslets abstains (near its focal plane
+        a particle's light falls in one or two lenslets, and a lit pixel's whole ray through them
+        would score); a point no camera checks scores 0.
 
     Returns
     -------
@@ -297,7 +299,7 @@ def point_scores(cameras: Sequence, signals: Sequence[np.ndarray], points_mm: np
     """
     from lfcore.rig import is_pinhole
 
-    out = np.full(len(points_mm), np.inf)
+    out = np.full(len(points_mm), np.nan)
     for cam, sig in zip(cameras, signals, strict=True):
         if is_pinhole(cam):
             from lfcore.pinhole import project
@@ -305,8 +307,8 @@ def point_scores(cameras: Sequence, signals: Sequence[np.ndarray], points_mm: np
             v = _read(sig, project(cam, points_mm))
         else:
             v = _light_field_scores(cam, sig, points_mm, percentile, min_lenslets)
-        out = np.minimum(out, v)
-    return out
+        out = np.fmin(out, v)  # a camera that cannot tell (NaN) abstains
+    return np.nan_to_num(out, nan=0.0)
 
 
 def _read(sig: np.ndarray, cr: np.ndarray) -> np.ndarray:
@@ -328,8 +330,9 @@ def _read(sig: np.ndarray, cr: np.ndarray) -> np.ndarray:
 
 def _light_field_scores(cam, sig: np.ndarray, points_mm: np.ndarray, percentile: float,
                         min_lenslets: int, chunk: int = 8192) -> np.ndarray:
-    """:func:`point_scores` of one light-field camera (``chunk`` points at a time)."""
-    out = np.zeros(len(points_mm))
+    """:func:`point_scores` of one light-field camera (``chunk`` points at a time); NaN where fewer than
+    ``min_lenslets`` lenslets see the point."""
+    out = np.full(len(points_mm), np.nan)
     for s in range(0, len(points_mm), chunk):
         _, cr, inside = _lenslet_pixels(cam, points_mm[s:s + chunk])
         # the percentile of the lenslets' reads (the nearest rank), the lenslets not seen sorted last
@@ -339,7 +342,7 @@ def _light_field_scores(cam, sig: np.ndarray, points_mm: np.ndarray, percentile:
         v = np.sort(np.where(ok, r, np.inf), axis=1)
         rank = np.floor(percentile / 100.0 * np.maximum(seen - 1, 0)).astype(np.int64)
         got = np.take_along_axis(v, rank[:, None], axis=1)[:, 0] if v.shape[1] else np.zeros(len(rank))
-        out[s:s + chunk] = np.where(seen >= min_lenslets, np.nan_to_num(got, posinf=0.0), 0.0)
+        out[s:s + chunk] = np.where(seen >= min_lenslets, np.nan_to_num(got, posinf=0.0), np.nan)
     return out
 
 

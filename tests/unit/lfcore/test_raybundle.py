@@ -100,3 +100,36 @@ def test_the_candidate_source_is_checked():
     with pytest.raises(ValueError, match="source"):
         ipr.IprSettings(candidate_source="voxels")
     assert ipr.IprSettings().candidate_source == "reconstruction"
+
+
+@pytest.mark.parametrize("kind", ["pinhole", "mixed"])
+def test_pinhole_and_mixed_rigs_candidates_by_rays(kind):
+    from lfcore.render import renderer_for
+    from lfpiv.rigfile import load_rig
+    from tests.conftest import EXAMPLES
+    from tests.helpers import tomo_arc_small
+
+    # four pinhole cameras, or the mixed rig (a light-field camera and two pinhole ones, focused on the
+    # box's middle: near its focal plane the light-field camera abstains and the pinhole ones decide)
+    rig = tomo_arc_small() if kind == "pinhole" else load_rig(EXAMPLES / "mixed_cameras.toml")
+    grid = VolumeGrid.from_rig(rig)
+    shape = np.asarray(grid.shape, dtype=np.float64)
+    frac = np.array([[0.15, 0.3, 0.28], [0.72, 0.7, 0.33], [0.77, 0.35, 0.71], [0.3, 0.72, 0.69]])
+    u = np.floor(frac * (shape - 1)) + np.array([[0.3, 0.25, 0.65], [0.6, 0.7, 0.2], [0.2, 0.4, 0.3],
+                                                 [0.75, 0.15, 0.55]])
+    truth = ipr.to_mm(grid, u)
+    cfg = rig.render.model_copy(update={"rays_per_particle": 40_000})
+    counts = 50_000.0 if kind == "pinhole" else 10_000.0  # the mixed rig's 12-bit pinhole cameras saturate
+    images = [renderer_for(c, cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(truth, counts, seed=3 + i)
+              for i, c in enumerate(rig.camera)]
+    found, _ = ray_candidates(grid, rig.camera, images)
+    print(kind, "candidates", len(found), "nearest to each particle (voxels)", _err(grid, found, u).round(2))
+    assert np.all(_err(grid, found, u) < 1.0)
+    settings = ipr.IprSettings(candidate_source="rays", wavelength_nm=rig.laser.wavelength_nm,
+                               particle_image_px=rig.render.particle_image_px)
+    proj = projector_for(rig.camera, grid, device="cpu")
+    res = ipr.ParticleReconstructor(proj, settings=settings).reconstruct(images)
+    err = np.array([np.min(np.max(np.abs(res.positions_mm - t) / grid.voxel_mm, axis=1)) for t in truth])
+    print(kind, "particles", res.n, "largest error per particle (voxels)", err.round(3))
+    assert res.n == len(truth)
+    assert np.all(err < 0.05)
