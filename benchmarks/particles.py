@@ -15,6 +15,13 @@ Run from the repository root::
     python benchmarks/particles.py --case Mcoff --frames 1               # ... focused beyond its box
     python benchmarks/particles.py --case Mc --frames 1 --candidates fixed   # candidates from plain DRT-MART
 
+``--candidate-source`` is IPR's ``candidate_source`` (``reconstruction``, its default, or ``rays``: ray
+bundling, :mod:`lfcore.raybundle`, with ``--ray-keep-bins`` and ``--ray-min-score``), or ``both``: IPR
+from each on the same frames in one process, rays first, the routes then named ``ipr-rays``,
+``ipr-recon`` and ``candidates-rays``, ``candidates-recon``::
+
+    python benchmarks/particles.py --case Soff --no-mart --candidate-source both
+
 ``--candidates`` is IPR's ``candidate_protocol`` (``fast``, its default, or ``fixed``: plain DRT-MART)
 and ``--candidate-iterations`` its ``candidate_iterations``. ``--rays`` renders with more rays a
 particle than the rig's (less Monte-Carlo sampling noise in the frames); ``--shakes``, ``--split``,
