@@ -15,6 +15,13 @@ Run from the repository root::
     python benchmarks/particles.py --case Mcoff --frames 1               # ... focused beyond its box
     python benchmarks/particles.py --case Mc --frames 1 --candidates fixed   # candidates from plain DRT-MART
 
+``--candidate-source`` is IPR's ``candidate_source`` (``reconstruction``, its default, or ``rays``: ray
+bundling, :mod:`lfcore.raybundle`, with ``--ray-keep-bins`` and ``--ray-min-score``), or ``both``: IPR
+from each on the same frames in one process, rays first, the routes then named ``ipr-rays``,
+``ipr-recon`` and ``candidates-rays``, ``candidates-recon``::
+
+    python benchmarks/particles.py --case Soff --no-mart --candidate-source both
+
 ``--candidates`` is IPR's ``candidate_protocol`` (``fast``, its default, or ``fixed``: plain DRT-MART)
 and ``--candidate-iterations`` its ``candidate_iterations``. ``--rays`` renders with more rays a
 particle than the rig's (less Monte-Carlo sampling noise in the frames); ``--shakes``, ``--split``,
@@ -74,7 +81,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from lfcore import metrics  # noqa: E402
-from lfcore.ipr import MODELS, IprSettings, ParticleReconstructor, to_mm  # noqa: E402
+from lfcore.ipr import CANDIDATE_SOURCES, MODELS, IprSettings, ParticleReconstructor, to_mm  # noqa: E402
 from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.plan import projector_for  # noqa: E402
 from lfcore.reconstruct import PROTOCOLS, ReconSettings, reconstruct  # noqa: E402
@@ -116,6 +123,14 @@ def main() -> None:
                     help="comma-separated gaps from the focal planes: one line of figures per gap")
     ap.add_argument("--candidates", choices=tuple(PROTOCOLS), default=IprSettings().candidate_protocol,
                     help="IPR's candidate_protocol: the quick reconstruction's protocol")
+    ap.add_argument("--candidate-source", choices=(*CANDIDATE_SOURCES, "both"), default=IprSettings().candidate_source,
+                    help="IPR's candidate_source: the quick reconstruction's peaks or ray bundling (rays); both: "
+                         "IPR twice on the same frames in this process, rays first (so that the peak RSS after it "
+                         "is its own)")
+    ap.add_argument("--ray-keep-bins", type=float, default=IprSettings().ray_keep_bins,
+                    help="IPR's ray_keep_bins (with --candidate-source rays)")
+    ap.add_argument("--ray-min-score", type=float, default=IprSettings().ray_min_score,
+                    help="IPR's ray_min_score (with --candidate-source rays)")
     ap.add_argument("--candidate-iterations", type=int, default=IprSettings().candidate_iterations,
                     help="IPR's candidate_iterations")
     ap.add_argument("--model", choices=MODELS, default=IprSettings().model, help="IPR's particle model")
@@ -144,23 +159,32 @@ def main() -> None:
     render = rig.render.model_copy(update={"rays_per_particle": args.rays}) if args.rays else rig.render
     renderers = [renderer_for(c, render, wavelength_nm=rig.laser.wavelength_nm, device=args.device)
                  for c in rig.camera]
-    ipr = ParticleReconstructor(proj, settings=IprSettings(
-        candidate_protocol=args.candidates, candidate_iterations=args.candidate_iterations, model=args.model,
+    sources = ("rays", "reconstruction") if args.candidate_source == "both" else (args.candidate_source,)
+    iprs = {src: ParticleReconstructor(proj, settings=IprSettings(
+        candidate_protocol=args.candidates, candidate_source=src,
+        ray_keep_bins=args.ray_keep_bins, ray_min_score=args.ray_min_score,
+        candidate_iterations=args.candidate_iterations, model=args.model,
         shakes=args.shakes, split_intensity=args.split, rounds=args.rounds,
         relocate_depth=args.relocate, max_position_std=args.max_std,
-        wavelength_nm=rig.laser.wavelength_nm, particle_image_px=rig.render.particle_image_px))
+        wavelength_nm=rig.laser.wavelength_nm, particle_image_px=rig.render.particle_image_px)) for src in sources}
+    # a route's name: "ipr" and "candidates" with one source, suffixed by it with both
+    tag = {src: f"-{src[:5]}" if len(sources) > 1 else "" for src in sources}
     densities = [float(p) for p in args.sweep.split(",")] if args.sweep else [args.ppm]
     gaps = [float(g) for g in args.focus_gap.split(",")]
+    source = " and ".join(f"by ray bundling (keep bins {args.ray_keep_bins:g}, min score {args.ray_min_score:g})"
+                          if src == "rays" else f"{args.candidates}" for src in sources)
     print(f"{name}: {len(rig.camera)} camera(s), grid {grid.shape} (z, y, x) voxels of {grid.voxel_mm} mm; "
           f"{args.frames} frame(s) per density; matching within {args.match_voxels} voxel per axis; IPR model "
-          f"{args.model}, relocate {args.relocate}, max std {args.max_std}, candidates {args.candidates} (at most "
+          f"{args.model}, relocate {args.relocate}, max std {args.max_std}, candidates "
+          f"{source} (at most "
           f"{args.candidate_iterations} iterations); {render.rays_per_particle} rays a particle")
-    cpu = stage_clock(ipr)
-    routes = ("ipr",) if args.no_mart else ("ipr", "drt-mart")
+    clocks = {src: stage_clock(ipr) for src, ipr in iprs.items()}
+    routes = (*(f"ipr{tag[src]}" for src in sources), *(() if args.no_mart else ("drt-mart",)))
     for ppm in densities:
         n = particle_count(rig, ppm=ppm)
         rows = {r: [] for r in routes}
-        rows["candidates"] = []
+        for src in sources:
+            rows[f"candidates{tag[src]}"] = []
         for f in range(args.frames):
             pts = seed_particles(rig.volume, n, np.random.default_rng(100 + f))
             imgs = [r.frame(pts, rig.render.particle_counts, seed=7 + f + 1000 * k) for k, r in enumerate(renderers)]
@@ -177,18 +201,21 @@ def main() -> None:
                       f"{every.n_detected - every.n_matched}/{every.n_detected}, rms x,y,z {rms[0]:.3f}, {rms[1]:.3f}, "
                       f"{rms[2]:.3f} voxel", flush=True)
 
-            t0 = time.perf_counter()
-            cpu.clear()
-            c0 = time.process_time()
-            res = ipr.reconstruct(imgs)
-            wall = time.perf_counter() - t0
-            c_all = time.process_time() - c0
-            fit = c_all - cpu["candidates"] - cpu["operator"]
-            print(f"frame {f}: IPR CPU s: candidates {cpu['candidates']:.1f} ({cpu['first'][1]:.1f} in the first "
-                  f"round), particle model {cpu['operator']:.1f}, fit {fit:.1f}, all {c_all:.1f} (wall {wall:.1f} s); "
-                  f"{res.candidates} candidates, {res.n} particles; peak RSS {peak_rss_gib():.2f} GiB", flush=True)
-            score("ipr", res.positions_mm, wall)
-            score("candidates", *cpu["first"])
+            for src, ipr in iprs.items():
+                cpu = clocks[src]
+                t0 = time.perf_counter()
+                cpu.clear()
+                c0 = time.process_time()
+                res = ipr.reconstruct(imgs)
+                wall = time.perf_counter() - t0
+                c_all = time.process_time() - c0
+                fit = c_all - cpu["candidates"] - cpu["operator"]
+                print(f"frame {f}: IPR{tag[src]} CPU s: candidates {cpu['candidates']:.1f} ({cpu['first'][1]:.1f} in "
+                      f"the first round), particle model {cpu['operator']:.1f}, fit {fit:.1f}, all {c_all:.1f} (wall "
+                      f"{wall:.1f} s); {res.candidates} candidates, {res.n} particles; peak RSS "
+                      f"{peak_rss_gib():.2f} GiB", flush=True)
+                score(f"ipr{tag[src]}", res.positions_mm, c_all)
+                score(f"candidates{tag[src]}", *cpu["first"])
             if "drt-mart" in routes:
                 t0 = time.perf_counter()
                 c0 = time.process_time()
@@ -212,7 +239,8 @@ def main() -> None:
                       f"{(n_det - matched) / n_det:.3f} ({n_det - matched}/{n_det})  rms x,y,z {rms[0]:.3f}, "
                       f"{rms[1]:.3f}, {rms[2]:.3f} voxel; median {med[0]:.3f}, {med[1]:.3f}, {med[2]:.3f}; "
                       f"{int((off.max(axis=1) > 0.2).sum()) if len(off) else 0} more than 0.2 voxel off")
-            what = "CPU s per frame (first round)" if route == "candidates" else "time per frame"
+            what = ("CPU s per frame (first round)" if route.startswith("candidates") else
+                    "CPU s per frame" if route.startswith("ipr") else "time per frame")
             print(f"{route:9s} {what} {np.mean([r[-1] for r in rs]):.2f} s")
     print(f"peak RSS {peak_rss_gib():.2f} GiB")
 

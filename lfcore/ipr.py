@@ -75,11 +75,16 @@ from lfcore.reconstruct import (
 )
 from lfcore.volume import VolumeGrid
 
-__all__ = ["MODELS", "PARTICLE_FIELDS", "IprSettings", "ParticleReconstructor", "ParticleResult", "to_index", "to_mm"]
+__all__ = ["CANDIDATE_SOURCES", "MODELS", "PARTICLE_FIELDS", "IprSettings", "ParticleReconstructor", "ParticleResult",
+           "to_index", "to_mm"]
 
 #: The columns of a frame's particles as :class:`ParticleResult` and the run store's ``particles/``
 #: keep them.
 PARTICLE_FIELDS = ("x_mm", "y_mm", "z_mm", "intensity", "residual")
+
+#: Where IPR's candidates come from (:attr:`IprSettings.candidate_source`): the peaks of a quick
+#: reconstruction, or ray bundling (:mod:`lfcore.raybundle`).
+CANDIDATE_SOURCES = ("reconstruction", "rays")
 
 #: The particle models of :attr:`IprSettings.model`.
 MODELS = ("point", "voxels")
@@ -127,6 +132,21 @@ class IprSettings:
         the start (the candidates before this setting existed).
     candidate_threshold
         Peaks below this fraction of the brightest voxel are no candidates.
+    candidate_source
+        Where the candidates come from (:data:`CANDIDATE_SOURCES`): ``"reconstruction"``, the peaks of
+        the quick reconstruction above (its cost grows with the box's voxels), or ``"rays"``, ray
+        bundling (:func:`lfcore.raybundle.ray_candidates`: the bright pixels' rays voted into bins a
+        lenslet wide, the most voted bins' voxels checked against each lenslet's own pixel; its cost
+        grows with the bright pixels and the bins, not the voxels). The fit, the prunings and the
+        residual rounds are the same. ``benchmarks/RESULTS.md`` (issue 48, eighth session) has both
+        measured.
+    ray_keep_bins
+        Ray bundling's share of the vote's bins (the most voted first) whose points are checked
+        against the lenslets' pixels (``keep_bins`` of :func:`lfcore.raybundle.ray_candidates`): 1
+        checks every bin a ray reaches.
+    ray_min_score
+        Ray bundling's least check of a candidate, as a share of the 99th percentile of the checks'
+        local maxima (``min_score`` of :func:`lfcore.raybundle.ray_candidates`).
     shakes
         Fit iterations (damped Gauss-Newton steps of every position and intensity) per fit.
     max_step_voxels
@@ -179,6 +199,9 @@ class IprSettings:
     candidate_iterations: int = 50
     candidate_protocol: str = "fast"
     candidate_threshold: float = 0.05
+    candidate_source: str = "reconstruction"
+    ray_keep_bins: float = 1.0
+    ray_min_score: float = 0.1
     shakes: int = 12
     max_step_voxels: float = 0.5
     min_intensity: float = 0.5
@@ -198,6 +221,12 @@ class IprSettings:
         if self.candidate_protocol not in PROTOCOLS:
             raise ValueError(f"the candidates' protocol is one of {', '.join(PROTOCOLS)}, got "
                              f"{self.candidate_protocol!r}")
+        if self.candidate_source not in CANDIDATE_SOURCES:
+            raise ValueError(f"the candidates' source is one of {', '.join(CANDIDATE_SOURCES)}, got "
+                             f"{self.candidate_source!r}")
+        if not (0.0 < self.ray_keep_bins <= 1.0 and 0.0 <= self.ray_min_score < 1.0):
+            raise ValueError(f"ray_keep_bins is a share above 0 and at most 1 and ray_min_score one from 0 to below 1, "
+                             f"got {self.ray_keep_bins} and {self.ray_min_score}")
         if not 0.0 < self.candidate_threshold < 1.0:
             raise ValueError(f"the candidate threshold (--threshold) is a fraction of the brightest voxel above 0 and "
                              f"below 1, got {self.candidate_threshold}")
@@ -679,9 +708,19 @@ class ParticleReconstructor:
         #: True where particles are modelled as points (:attr:`IprSettings.model`)
         self.point_model = self.settings.model == "point"
         self._offsets = _relocations(projector, self.settings.relocate_depth)
+        self._backgrounds: list[float] | None = None  # the frame's, for the ray candidates
 
     def _candidates(self, images: Sequence[np.ndarray]) -> np.ndarray:
-        """Peaks of a quick reconstruction of ``images``: (n, 3) voxel index coordinates (z, y, x)."""
+        """Peaks of a quick reconstruction of ``images``, or where their rays bundle
+        (:attr:`IprSettings.candidate_source`): (n, 3) voxel index coordinates (z, y, x)."""
+        if self.settings.candidate_source == "rays":
+            from lfcore.raybundle import ray_candidates
+
+            pos, _ = ray_candidates(self.projector.grid, self.projector.cameras, images,
+                                    threshold_sigma=self.recon_settings.threshold_sigma,
+                                    backgrounds=self._backgrounds, keep_bins=self.settings.ray_keep_bins,
+                                    min_score=self.settings.ray_min_score)
+            return pos
         vol = self.frames.reconstruct(images).volume
         pos, _, _ = detect_particles(vol, self.projector.grid, threshold=self.settings.candidate_threshold)
         return to_index(self.projector.grid, pos)
@@ -722,6 +761,7 @@ class ParticleReconstructor:
         b = np.concatenate([np.asarray(img, np.float64).ravel() - bg for img, bg in zip(images, backgrounds,
                                                                                         strict=True)])
         seconds = {"candidates": 0.0, "operator": 0.0, "fit": 0.0}
+        self._backgrounds = backgrounds
         u = np.zeros((0, 3))
         intensity = np.zeros(0)
         residual_images = list(images)

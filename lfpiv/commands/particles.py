@@ -29,7 +29,8 @@ def shakes(text: str) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     c = sub.add_parser("particles", help="reconstruct every frame's particles (positions, intensities) by IPR",
                        description="Iterative particle reconstruction (the reconstruction of Shake-the-Box) on the "
-                       "rig's own forward model: candidates from the peaks of a quick reconstruction, each "
+                       "rig's own forward model: candidates from the peaks of a quick reconstruction (or by ray "
+                       "bundling, --candidates rays), each "
                        "particle's position and intensity fitted to the images, the faint, the merged and those "
                        "outside the box pruned, and the residual searched again. Writes particles/: x, y, z (mm), "
                        "intensity and a fit residual of every particle of every frame.")
@@ -48,6 +49,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "weights first, DRT weights for the voxels still bright, ordered subsets, the stopping rule and, "
                    "in boxes of a million voxels or more, coarse-to-fine elimination; fixed, plain DRT-MART of "
                    "--candidate-iterations iterations (the candidates before this option; default: fast)")
+    c.add_argument("--candidates", choices=("reconstruction", "rays"), default="reconstruction",
+                   help="where the candidates come from: reconstruction, the peaks of the quick reconstruction "
+                   "(--candidate-protocol; its cost grows with the box's voxels); rays, ray bundling: the bright "
+                   "pixels' rays voted into the box, the most voted places checked against every lenslet's own "
+                   "pixel and refined where the lenslets' rays meet (its cost grows with the bright pixels; the "
+                   "fit is the same; default: reconstruction)")
     c.add_argument("--threshold", type=fraction, default=0.05,
                    help="candidates are peaks above this fraction of the brightest voxel (default: 0.05)")
     c.add_argument("--shakes", type=shakes, default=12, metavar="N",
@@ -85,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.runs import open_run
 
     options = dict(method=args.method, candidate_iterations=args.candidate_iterations,
-                   candidate_protocol=args.candidate_protocol, candidate_threshold=args.threshold, shakes=args.shakes,
+                   candidate_protocol=args.candidate_protocol, candidate_source=args.candidates,
+                   candidate_threshold=args.threshold, shakes=args.shakes,
                    min_intensity=args.min_intensity,
                    merge_voxels=args.merge_voxels, rounds=args.rounds, split_intensity=args.split, model=args.model,
                    relocate_depth=args.relocate, max_position_std=args.max_std)

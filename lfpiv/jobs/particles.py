@@ -28,9 +28,14 @@ __all__ = ["IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "ipr
 #: value that reproduces what the code did before each existed: no splitting (before
 #: ``split_intensity``), the trilinear blend of voxels' rows (before ``model``), no whole-voxel moves
 #: (before ``relocate_depth``), every particle kept (before ``max_position_std``), candidates from
-#: plain DRT-MART of a fixed count (before ``candidate_protocol``).
+#: plain DRT-MART of a fixed count (before ``candidate_protocol``), candidates from a reconstruction's
+#: peaks (before ``candidate_source``).
 OLD_DEFAULTS: dict[str, Any] = {"split_intensity": 0.0, "model": "voxels", "relocate_depth": 0,
-                                "max_position_std": 0.0, "candidate_protocol": "fixed"}
+                                "max_position_std": 0.0, "candidate_protocol": "fixed",
+                                "candidate_source": "reconstruction"}
+
+#: Settings of ray bundling only: the reconstruction's candidates do not depend on them.
+RAYS_ONLY = ("ray_keep_bins", "ray_min_score")
 
 #: Settings of the point model only: the ``"voxels"`` model's particles do not depend on them
 #: (groups written before they existed hold none of them).
@@ -43,10 +48,14 @@ def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
 
 
 def _matching(settings: dict[str, Any]) -> dict[str, Any]:
-    """The settings that make a different set of particles (the point model's own ones only for it)."""
-    if settings.get("model") == "voxels":
-        return {k: v for k, v in settings.items() if k not in POINT_ONLY}
-    return dict(settings)
+    """The settings that make a different set of particles (the point model's own ones only for it, ray
+    bundling's only for it)."""
+    out = dict(settings)
+    if out.get("candidate_source", "reconstruction") != "rays":
+        out = {k: v for k, v in out.items() if k not in RAYS_ONLY}
+    if out.get("model") == "voxels":
+        return {k: v for k, v in out.items() if k not in POINT_ONLY}
+    return out
 
 
 def same_settings(recorded: dict[str, Any], meta: dict[str, Any]) -> bool:

@@ -182,3 +182,27 @@ def test_particles_of_unsure_position_are_reported_as_left_out(tmp_path, capsys)
     # the same fit either way: what --max-std leaves out is what it reports
     assert int(m.group(1)) == n_every - n_sure > 0
     assert sure.particle_attrs()["settings"]["max_position_std"] == 0.1
+
+
+def test_particles_from_ray_candidates_end_to_end(tmp_path, capsys):
+    # the one-camera rig focused beyond its box (where to focus a light-field camera for particles)
+    run = tmp_path / "rays.zarr"
+    rc, _, err = _run(capsys, "synth", "--rig", EXAMPLES / "one_camera_off_focus.toml", "--out", run, "--pairs", "1",
+                      "--ppm", "0.3", "--quiet")
+    assert rc == 0, err
+    rc, out, err = _run(capsys, "particles", run, "--quiet", "--candidates", "rays")
+    assert rc == 0, err
+    s = RunStore.open(run)
+    assert s.particle_attrs()["settings"]["candidate_source"] == "rays"
+    rc, out, err = _run(capsys, "evaluate", run)
+    assert rc == 0, err
+    m = re.search(r"^all\s+(\d+)\s+(\d+)\s+([\d.]+)\s+(\d+) \(([\d.]+)%\)\s+([\d.]+), ([\d.]+), ([\d.]+)", out, re.M)
+    assert m, out
+    recall, ghosts = float(m.group(3)), float(m.group(5))
+    rms = [float(m.group(k)) for k in (6, 7, 8)]
+    print("recall", recall, "ghosts %", ghosts, "rms", rms)
+    assert recall > 0.85 and ghosts < 10.0
+    assert max(rms[:2]) < 0.2 and rms[2] < 0.35
+    # the same settings: nothing to do; the reconstruction's candidates are other settings
+    rc, out, _ = _run(capsys, "particles", run, "--quiet", "--skip-done", "--candidates", "rays")
+    assert rc == 0 and "nothing to do" in out

@@ -47,3 +47,10 @@ def test_an_old_group_does_not_match_other_settings() -> None:
     # today's groups compare every setting as before
     assert same_settings(meta(), meta())
     assert not same_settings(meta(), meta(wavelength_nm=633.0))
+
+
+def test_a_group_written_before_candidate_source_had_the_reconstructions_candidates() -> None:
+    before = {k: v for k, v in meta().items() if k != "candidate_source"}
+    assert same_settings(before, meta(candidate_source="reconstruction"))
+    assert not same_settings(before, meta(candidate_source="rays"))
+    assert same_settings(meta(candidate_source="rays"), meta(candidate_source="rays"))
