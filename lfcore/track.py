@@ -25,6 +25,12 @@ particle looking for a B particle within a search ellipsoid around where a predi
    cross-validation), evaluated at the centres inside the box with :attr:`TrackSettings.min_tracks`
    tracks within a bin's width of them along every axis (or the tracks' mean spacing, where wider).
 
+Along a time-resolved series (frames evenly spaced in time), the particles of every frame are
+linked into tracks through the frames instead (:func:`link_series`: each track carried on by its own
+velocity, started by :func:`track_pair`), each track fitted by local polynomials in time
+(:func:`fit_series`, Shake-the-Box's second-order fit), and each pair's tracks are the fitted
+positions at its two frames (:func:`pair_tracks`), made into a field as above (:func:`field_of_tracks`).
+
 Positions are world mm (x, y, z); the grid's voxels set the scale of the searches and bins.
 """
 
