@@ -117,6 +117,16 @@ def test_tracks_along_the_pairs_beat_each_pair_on_its_own(series_run, tmp_path, 
     assert rc == 0, err
     assert len((tmp_path / "csv" / "tracks.csv").read_text().splitlines()) == 1 + sum(len(s.read_tracks(p))
                                                                                     for p in range(4))
+    # and the tracks through the series, one row a point, with their times
+    rc, out, err = _run(capsys, "export", along, "--format", "series-csv", "--out", tmp_path / "csv")
+    assert rc == 0, err
+    table = np.loadtxt(tmp_path / "csv" / "series_tracks.csv", delimiter=",", skiprows=1)
+    assert np.allclose(table[:, [0, 1, 3, 4, 5]], series[:, :5], atol=1e-6)  # mm to 6 decimals
+    assert np.allclose(table[:, 2], series[:, 1] * s.timing["dt_s"])
+    assert np.allclose(table[:, 6:], series[:, 5:], equal_nan=True, atol=1e-6)
+    # a run tracked pair by pair has none: one line, exit 2
+    rc, out, err = _run(capsys, "export", pairwise, "--format", "series-csv", "--out", tmp_path / "csv2")
+    assert rc == 2 and "--along-pairs" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
 def test_along_pairs_refuses_a_run_that_is_not_time_resolved(tmp_path, capsys):
