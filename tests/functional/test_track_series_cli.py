@@ -157,3 +157,19 @@ def test_synth_refuses_a_rate_that_contradicts_a_time_resolved_series(tmp_path, 
                         "--time-resolved", "--rate-hz", "250", "--dt-ms", "2", "--pairs", "1", "--ppm", "0.1",
                         "--rays", "20", "--quiet")
     assert rc == 0, err
+
+
+def test_the_python_api_tracks_along_the_pairs_as_the_command_does(series_run, tmp_path, capsys):
+    import lfpiv
+
+    by_api = _copy(series_run, tmp_path, "api.zarr")
+    by_cli = _copy(series_run, tmp_path, "cli.zarr")
+    done = lfpiv.track(by_api, along_pairs={"fit_frames": 5}, progress=False)
+    assert done.series_frames == 8 and done.series_tracks > 0 and done.pairs == [0, 1, 2, 3]
+    assert _run(capsys, "track", by_cli, "--along-pairs", "--fit-frames", "5", "--quiet")[0] == 0
+    assert np.array_equal(RunStore.open(by_api).read_series_tracks(), RunStore.open(by_cli).read_series_tracks(),
+                          equal_nan=True)
+    from lfpiv.errors import UsageError
+
+    with pytest.raises(UsageError, match="fit_frames"):
+        lfpiv.track(by_api, along_pairs={"fit_frames": 2}, progress=False)
