@@ -308,6 +308,10 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
                          "--workers and --scheduler, or choose --predictor volumes")
     if along_pairs is not None:
         _check_series(store, chosen, client)
+        if 2 * len(chosen) < along_pairs.min_frames:
+            raise UsageError(f"--along-pairs fits tracks of at least {along_pairs.min_frames} frames (--min-frames), "
+                             f"but the {len(chosen)} pair(s) chosen hold {2 * len(chosen)}; choose more pairs "
+                             f"(--pair-range) or a smaller --min-frames")
         if predictor == "previous":  # along a series each step's field predicts the next already
             raise UsageError("--along-pairs predicts each frame from the frame before it already: choose "
                              "--predictor none or volumes (for the first pair)")

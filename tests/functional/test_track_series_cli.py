@@ -129,6 +129,13 @@ def test_tracks_along_the_pairs_beat_each_pair_on_its_own(series_run, tmp_path, 
     assert rc == 2 and "--along-pairs" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
+def test_along_pairs_refuses_too_few_frames(series_run, tmp_path, capsys):
+    run = _copy(series_run, tmp_path)
+    rc, out, err = _run(capsys, "track", run, "--along-pairs", "--pair-range", "0")
+    assert rc == 2 and "--min-frames" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not RunStore.open(run).has_vectors
+
+
 def test_along_pairs_refuses_a_run_that_is_not_time_resolved(tmp_path, capsys):
     run = tmp_path / "d.zarr"
     assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "2", "--ppm", "0.1",
