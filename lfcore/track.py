@@ -25,6 +25,12 @@ particle looking for a B particle within a search ellipsoid around where a predi
    cross-validation), evaluated at the centres inside the box with :attr:`TrackSettings.min_tracks`
    tracks within a bin's width of them along every axis (or the tracks' mean spacing, where wider).
 
+Along a time-resolved series (frames evenly spaced in time), the particles of every frame are
+linked into tracks through the frames instead (:func:`link_series`: each track carried on by its own
+velocity, started by :func:`track_pair`), each track fitted by local polynomials in time
+(:func:`fit_series`, Shake-the-Box's second-order fit), and each pair's tracks are the fitted
+positions at its two frames (:func:`pair_tracks`), made into a field as above (:func:`field_of_tracks`).
+
 Positions are world mm (x, y, z); the grid's voxels set the scale of the searches and bins.
 """
 
@@ -44,9 +50,10 @@ if TYPE_CHECKING:
     from scipy.interpolate import RBFInterpolator
 
 __all__ = ["FIELDS", "FIT_BLOCK_MARGIN", "FIT_BLOCK_TRACKS", "FIT_CV_BLOCKS", "FIT_GLOBAL_TRACKS", "FIT_SMOOTHING",
-           "MAX_CROWDING", "FitChoice", "TrackResult", "TrackSettings", "bin_tracks",
-           "field_predictor", "fit_tracks", "pair_nearest", "predict_at", "reject_outliers", "search_crowding",
-           "smooth_tracks", "track_pair"]
+           "MAX_CROWDING", "FitChoice", "SeriesSettings", "SeriesTracks", "TrackResult", "TrackSettings",
+           "bin_tracks", "field_of_tracks", "field_predictor", "fit_series", "fit_tracks", "link_series",
+           "pair_nearest", "pair_tracks", "predict_at", "reject_outliers", "search_crowding", "smooth_tracks",
+           "track_pair"]
 
 #: How the field is made from the tracks (:attr:`TrackSettings.field`).
 FIELDS = ("bins", "smooth", "fit")
@@ -588,7 +595,6 @@ def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings
     a = np.asarray(a_mm, dtype=np.float64).reshape(-1, 3)
     b = np.asarray(b_mm, dtype=np.float64).reshape(-1, 3)
     voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
-    fit = None
     predicted = np.zeros_like(a) if predictor is None or not len(a) else predict_at(predictor, grid, a)
     radius = np.asarray(s.search_voxels) * voxel
     for done in range(s.passes):
@@ -598,22 +604,351 @@ def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings
         out = reject_outliers(mid, disp, neighbours=s.neighbours, threshold=s.outlier_threshold,
                               epsilon_mm=s.epsilon_voxels * voxel)
         last = done + 1 == s.passes
-        centres, field, counts = bin_tracks(mid[~out], disp[~out], grid, bin_voxels=s.bin_voxels,
-                                            statistic="mean" if last else "median", min_tracks=s.min_tracks)
-        if last and s.field == "smooth":
-            field, counts = smooth_tracks(mid[~out], disp[~out], centres, sigma_mm=np.asarray(s.sigma_voxels) * voxel,
-                                          min_tracks=s.min_tracks)
-        elif last and s.field == "fit":
-            lo = np.asarray(grid.origin_mm, dtype=np.float64) - 0.5 * voxel
-            box = (lo, lo + np.asarray(grid.shape[::-1], dtype=np.float64) * voxel)
-            kept = mid[~out]
-            # a centre's value rests on the tracks within a bin's width, or their mean spacing where wider
-            spacing = float(np.prod(np.ptp(kept, axis=0)) / max(len(kept), 1)) ** (1.0 / 3.0) if len(kept) else 0.0
-            reach = np.maximum(np.asarray(s.bin_voxels) * voxel, spacing)
-            field, counts, fit = fit_tracks(kept, disp[~out], centres, reach_mm=reach, box_mm=box,
-                                            min_tracks=s.min_tracks)
+        centres, field, counts, fit = _field(mid[~out], disp[~out], grid, s, last=last)
         if not last:
             predicted = _predict(field, centres, a)
             radius = np.asarray(s.refine_voxels) * voxel
     return TrackResult(a_index=ia, b_index=ib, displacement_mm=disp, outlier=out, x_mm=centres[0], y_mm=centres[1],
                        z_mm=centres[2], field_mm=field, counts=counts, fit=fit)
+
+
+def _field(mid: np.ndarray, disp: np.ndarray, grid: VolumeGrid, s: TrackSettings, *, last: bool = True
+           ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, tuple[FitChoice, FitChoice, FitChoice] | None]:
+    """The field of the kept tracks (midpoints and displacements, mm) on the grid of bins: the bins'
+    medians before the last pass (a predictor), ``s.field``'s field in the last."""
+    voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
+    fit = None
+    centres, field, counts = bin_tracks(mid, disp, grid, bin_voxels=s.bin_voxels,
+                                        statistic="mean" if last else "median", min_tracks=s.min_tracks)
+    if last and s.field == "smooth":
+        field, counts = smooth_tracks(mid, disp, centres, sigma_mm=np.asarray(s.sigma_voxels) * voxel,
+                                      min_tracks=s.min_tracks)
+    elif last and s.field == "fit":
+        lo = np.asarray(grid.origin_mm, dtype=np.float64) - 0.5 * voxel
+        box = (lo, lo + np.asarray(grid.shape[::-1], dtype=np.float64) * voxel)
+        # a centre's value rests on the tracks within a bin's width, or their mean spacing where wider
+        spacing = float(np.prod(np.ptp(mid, axis=0)) / max(len(mid), 1)) ** (1.0 / 3.0) if len(mid) else 0.0
+        reach = np.maximum(np.asarray(s.bin_voxels) * voxel, spacing)
+        field, counts, fit = fit_tracks(mid, disp, centres, reach_mm=reach, box_mm=box, min_tracks=s.min_tracks)
+    return centres, field, counts, fit  # type: ignore[return-value]
+
+
+def field_of_tracks(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings: TrackSettings | None = None
+                    ) -> TrackResult:
+    """The field of tracks already paired (e.g. a time-resolved series' tracks at one pair,
+    :func:`pair_tracks`): the outlier test over them, then ``settings.field``'s field, as the last
+    pass of :func:`track_pair` makes it.
+
+    Parameters
+    ----------
+    a_mm, b_mm
+        (m, 3) each track's positions (x, y, z) at frame A and at frame B, mm, row for row.
+    grid
+        The voxel grid: the scale of the bins and the outlier test's noise floor.
+    settings
+        Bins, the outlier test and the field (the searches and passes are not used).
+
+    Returns
+    -------
+    TrackResult
+        ``a_index`` and ``b_index`` both the rows 0 .. m - 1.
+    """
+    s = settings or TrackSettings()
+    a = np.asarray(a_mm, dtype=np.float64).reshape(-1, 3)
+    b = np.asarray(b_mm, dtype=np.float64).reshape(-1, 3)
+    voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
+    disp = b - a
+    mid = a + 0.5 * disp
+    out = reject_outliers(mid, disp, neighbours=s.neighbours, threshold=s.outlier_threshold,
+                          epsilon_mm=s.epsilon_voxels * voxel)
+    centres, field, counts, fit = _field(mid[~out], disp[~out], grid, s)
+    rows = np.arange(len(a), dtype=np.int64)
+    return TrackResult(a_index=rows, b_index=rows.copy(), displacement_mm=disp, outlier=out, x_mm=centres[0],
+                       y_mm=centres[1], z_mm=centres[2], field_mm=field, counts=counts, fit=fit)
+
+
+# --- tracks through a time-resolved series (Shake-the-Box's long tracks) -------------------------
+
+@dataclass(frozen=True)
+class SeriesSettings:
+    """How a time-resolved series' particles are linked into tracks through its frames and how the
+    tracks are fitted (:func:`link_series`, :func:`fit_series`).
+
+    Attributes
+    ----------
+    link_voxels
+        The search radius (x, y, z), voxels, around where a track's own recent velocity puts it in
+        the next frame.
+    min_frames
+        Fewest frames a track needs to be fitted and used (shorter ones are left out).
+    fit_frames
+        How many of a track's frames, the nearest in time, each local fit uses (at least
+        ``degree + 1``; more average the position noise more, fewer follow a curved path closer).
+    degree
+        The polynomial's order in time (2: position, velocity and acceleration, as Shake-the-Box).
+    """
+
+    link_voxels: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    min_frames: int = 4
+    fit_frames: int = 6
+    degree: int = 2
+
+    def __post_init__(self) -> None:
+        if len(self.link_voxels) != 3 or min(self.link_voxels) <= 0:
+            raise ValueError(f"link_voxels needs three positive values (x, y, z), got {self.link_voxels}")
+        if self.degree < 1:
+            raise ValueError(f"the tracks' polynomial order must be at least 1, got {self.degree}")
+        if self.fit_frames < self.degree + 1:
+            raise ValueError(f"a fit of order {self.degree} needs at least {self.degree + 1} frames, got "
+                             f"fit_frames {self.fit_frames}")
+        if self.min_frames < self.degree + 1:
+            raise ValueError(f"a fit of order {self.degree} needs tracks of at least {self.degree + 1} frames, got "
+                             f"min_frames {self.min_frames}")
+
+    def as_dict(self) -> dict:
+        """The settings as JSON-compatible values."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+
+@dataclass
+class SeriesTracks:
+    """Tracks through the frames of a time-resolved series.
+
+    Attributes
+    ----------
+    track
+        (k,) the track each point belongs to, 0 .. tracks - 1, the points of a track together in
+        frame order.
+    frame
+        (k,) the point's frame in the series (0, 1, 2, ...: frame A of pair 0, B of pair 0, A of
+        pair 1, ...).
+    row
+        (k,) the particle's row in its frame's particles.
+    position_mm
+        (k, 3) the particle's position (x, y, z), mm, as reconstructed.
+    fitted_mm
+        (k, 3) the track's fitted position at the point's frame (:func:`fit_series`), mm; NaN for
+        tracks shorter than :attr:`SeriesSettings.min_frames` (or before fitting).
+    """
+
+    track: np.ndarray
+    frame: np.ndarray
+    row: np.ndarray
+    position_mm: np.ndarray
+    fitted_mm: np.ndarray
+
+    @property
+    def n_tracks(self) -> int:
+        """How many tracks (single particles included)."""
+        return int(self.track.max()) + 1 if len(self.track) else 0
+
+    def lengths(self) -> np.ndarray:
+        """(tracks,) each track's number of frames."""
+        return np.bincount(self.track, minlength=self.n_tracks)
+
+
+def _extrapolate(points: list[np.ndarray]) -> np.ndarray:
+    """Where a track's own recent velocity puts it one frame on: a straight line fitted to its last
+    three positions (two where it has only two), which averages some of the positions' noise."""
+    if len(points) >= 3:
+        p2, p1, p0 = points[-3], points[-2], points[-1]
+        return (p2 + p1 + p0) / 3.0 + (p0 - p2)  # the line's value two frames past its middle
+    return 2.0 * points[-1] - points[-2]
+
+
+def link_series(frames: list[np.ndarray], grid: VolumeGrid, *, settings: TrackSettings | None = None,
+                series: SeriesSettings | None = None, predictor: Predictor | None = None) -> SeriesTracks:
+    """Link the particles of a time-resolved series' frames into tracks through the frames.
+
+    From each frame to the next: a track of two or more frames looks for the nearest particle
+    within :attr:`SeriesSettings.link_voxels` of where its own recent velocity puts it
+    (:func:`_extrapolate`), one particle per track, nearest first; a particle not on such a track
+    starts one by the pair tracking of the two frames (:func:`track_pair`: ``settings``' searches
+    and passes, its first pass around ``predictor`` in the first step and around the step before's
+    field after it). The links of each step pass the outlier test of the pair tracking (the
+    normalized median test over the nearest links); a track whose link fails it ends there, and
+    the particle starts a new one. Particles left unlinked start new tracks. Last, each track of
+    two frames or more is extended backwards to an unlinked particle of the frame before it, found
+    the same way as forwards (the pair tracking leaves some particles of a frame unpaired that a
+    track's own velocity finds).
+
+    Parameters
+    ----------
+    frames
+        Each frame's (n_f, 3) particle positions (x, y, z), mm, in time order, every frame the same
+        time after the one before it.
+    grid
+        The voxel grid: the scale of the searches and bins.
+    settings
+        The pair tracking of the first links (its ``field`` is not used: the bins' medians predict).
+    series
+        The search around the extrapolated positions.
+    predictor
+        The first step's predicted displacement in voxels of ``grid`` (None: zero).
+
+    Returns
+    -------
+    SeriesTracks
+        Every particle of every frame on one track (single-frame tracks included), unfitted.
+    """
+    s = settings or TrackSettings()
+    ser = series or SeriesSettings()
+    pair_settings = TrackSettings(**{**asdict(s), "field": "bins"})  # the bins' medians are the next predictor
+    voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
+    link_radius = np.asarray(ser.link_voxels, dtype=np.float64) * voxel
+    pts = [np.asarray(f, dtype=np.float64).reshape(-1, 3) for f in frames]
+    # the tracks as lists of (frame, row); the track that each particle of the current frame is on
+    tracks: list[list[tuple[int, int]]] = [[(0, i)] for i in range(len(pts[0]) if pts else 0)]
+    on = np.arange(len(tracks), dtype=np.int64)
+    pred = predictor
+    for f in range(len(pts) - 1):
+        a, b = pts[f], pts[f + 1]
+        next_on = np.full(len(b), -1, np.int64)
+        links_a: list[int] = []
+        links_b: list[int] = []
+        links_cont: list[bool] = []
+        long = np.nonzero([len(tracks[t]) >= 2 for t in on])[0] if len(a) else np.zeros(0, np.int64)
+        used_a, used_b = np.zeros(len(a), bool), np.zeros(len(b), bool)
+        if len(long) and len(b):
+            # a track of two frames or more goes where its own velocity takes it
+            guess = np.array([_extrapolate([pts[fr][r] for fr, r in tracks[on[i]][-3:]]) for i in long])
+            ia, ib = pair_nearest(a[long], b, guess - a[long], link_radius)
+            for i, j in zip(long[ia], ib, strict=True):
+                links_a.append(int(i))
+                links_b.append(int(j))
+                links_cont.append(True)
+                used_a[i] = used_b[j] = True
+        if len(a) and len(b):
+            # the rest start tracks by the pair tracking of the two frames
+            res = track_pair(a, b, grid, settings=pair_settings, predictor=pred)
+            pred = field_predictor(res, grid)
+            for i, j, bad in zip(res.a_index, res.b_index, res.outlier, strict=True):
+                if not bad and not used_a[i] and not used_b[j] and len(tracks[on[i]]) == 1:
+                    links_a.append(int(i))
+                    links_b.append(int(j))
+                    links_cont.append(False)
+                    used_a[i] = used_b[j] = True
+        if links_a:
+            la, lb = np.asarray(links_a), np.asarray(links_b)
+            disp = b[lb] - a[la]
+            bad = reject_outliers(a[la] + 0.5 * disp, disp, neighbours=s.neighbours, threshold=s.outlier_threshold,
+                                  epsilon_mm=s.epsilon_voxels * voxel)
+            for i, j, out in zip(la, lb, bad, strict=True):
+                if not out:
+                    tracks[on[i]].append((f + 1, int(j)))
+                    next_on[j] = on[i]
+        for j in np.nonzero(next_on < 0)[0]:  # a new track from each particle left over
+            next_on[j] = len(tracks)
+            tracks.append([(f + 1, int(j))])
+        on = next_on
+    _extend_back(tracks, pts, link_radius)
+    tracks = [t for t in tracks if t]
+    k = sum(len(t) for t in tracks)
+    track = np.empty(k, np.int64)
+    frame = np.empty(k, np.int64)
+    row = np.empty(k, np.int64)
+    at = 0
+    for t, members in enumerate(tracks):
+        for fr, r in members:
+            track[at], frame[at], row[at] = t, fr, r
+            at += 1
+    position = np.array([pts[fr][r] for fr, r in zip(frame, row, strict=True)]).reshape(-1, 3)
+    return SeriesTracks(track=track, frame=frame, row=row, position_mm=position,
+                        fitted_mm=np.full_like(position, np.nan))
+
+
+def _extend_back(tracks: list[list[tuple[int, int]]], pts: list[np.ndarray], radius_mm: np.ndarray) -> None:
+    """Extend tracks backwards in time, in place: a track of two frames or more that starts after the
+    first frame takes the particle of the frame before it nearest where its own velocity puts it
+    then, within ``radius_mm``, if that particle is on no other track (a particle the pair tracking
+    of its frame and the next left unpaired: the forward linking starts a track only from a pair).
+    The single-frame tracks so taken are emptied."""
+    for f in range(len(pts) - 1, 0, -1):
+        heads = [t for t, m in enumerate(tracks) if len(m) >= 2 and m[0][0] == f]
+        single = [t for t, m in enumerate(tracks) if len(m) == 1 and m[0][0] == f - 1]
+        if not heads or not single:
+            continue
+        start = np.array([pts[f][tracks[t][0][1]] for t in heads])
+        guess = np.array([_extrapolate([pts[fr][r] for fr, r in tracks[t][:3][::-1]]) for t in heads])
+        cand = np.array([pts[f - 1][tracks[t][0][1]] for t in single])
+        ih, ic = pair_nearest(start, cand, guess - start, radius_mm)
+        for h, c in zip(ih, ic, strict=True):
+            tracks[heads[h]].insert(0, tracks[single[c]][0])
+            tracks[single[c]] = []
+
+
+def _window(frames: np.ndarray, at: float, size: int) -> np.ndarray:
+    """The indices of the ``size`` of ``frames`` nearest the time ``at`` (in frames)."""
+    order = np.argsort(np.abs(frames - at), kind="stable")
+    return np.sort(order[:size])
+
+
+def _poly(frames: np.ndarray, values: np.ndarray, at: np.ndarray, degree: int) -> np.ndarray:
+    """Least-squares polynomials of ``degree`` in time through (n, 3) ``values`` at ``frames``,
+    evaluated at ``at`` (frames): (len(at), 3)."""
+    t0 = float(np.mean(frames))
+    v = np.vander(frames - t0, degree + 1)
+    coef, *_ = np.linalg.lstsq(v, values, rcond=None)
+    return np.vander(np.asarray(at, dtype=np.float64) - t0, degree + 1) @ coef
+
+
+def fit_series(tracks: SeriesTracks, *, series: SeriesSettings | None = None) -> SeriesTracks:
+    """Fit every track of at least :attr:`SeriesSettings.min_frames` frames by polynomials in time
+    (:attr:`SeriesSettings.degree`), each point's fitted position from the
+    :attr:`SeriesSettings.fit_frames` of its track's frames nearest it: a local fit through a few
+    frames averages the positions' noise (a particle moves smoothly from frame to frame, its
+    reconstruction's errors do not) while following a curved path.
+
+    Returns
+    -------
+    SeriesTracks
+        ``tracks`` with :attr:`SeriesTracks.fitted_mm` set (NaN on tracks too short).
+    """
+    ser = series or SeriesSettings()
+    fitted = np.full_like(tracks.position_mm, np.nan)
+    starts = np.r_[0, np.nonzero(np.diff(tracks.track))[0] + 1, len(tracks.track)] if len(tracks.track) else [0]
+    for lo, hi in zip(starts[:-1], starts[1:], strict=True):
+        if hi - lo < ser.min_frames:
+            continue
+        fr = tracks.frame[lo:hi].astype(np.float64)
+        pos = tracks.position_mm[lo:hi]
+        for k in range(hi - lo):
+            w = _window(fr, fr[k], ser.fit_frames)
+            fitted[lo + k] = _poly(fr[w], pos[w], fr[k:k + 1], min(ser.degree, len(w) - 1))[0]
+    return SeriesTracks(track=tracks.track, frame=tracks.frame, row=tracks.row, position_mm=tracks.position_mm,
+                        fitted_mm=fitted)
+
+
+def pair_tracks(tracks: SeriesTracks, pair: int, *, series: SeriesSettings | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tracks of a time-resolved series at one pair (frames ``2 pair`` and ``2 pair + 1``):
+    each track of at least :attr:`SeriesSettings.min_frames` frames that holds both frames' particles,
+    its positions at frame A's and frame B's times from a polynomial (:attr:`SeriesSettings.degree`)
+    fitted to its :attr:`SeriesSettings.fit_frames` frames nearest the pair's mid-time. Their
+    difference is the displacement over dt at the pair's mid-time (exactly the fitted velocity
+    there times dt, for a polynomial of order 2).
+
+    Returns
+    -------
+    a_mm, b_mm
+        (m, 3) each track's fitted positions (x, y, z) at frame A and frame B, mm.
+    track
+        (m,) the tracks' indices in ``tracks``.
+    """
+    ser = series or SeriesSettings()
+    fa, fb = 2 * pair, 2 * pair + 1
+    a_out, b_out, ids = [], [], []
+    starts = np.r_[0, np.nonzero(np.diff(tracks.track))[0] + 1, len(tracks.track)] if len(tracks.track) else [0]
+    for lo, hi in zip(starts[:-1], starts[1:], strict=True):
+        fr = tracks.frame[lo:hi]
+        if hi - lo < ser.min_frames or fa not in fr or fb not in fr:
+            continue
+        w = _window(fr.astype(np.float64), fa + 0.5, ser.fit_frames)
+        ab = _poly(fr[w].astype(np.float64), tracks.position_mm[lo:hi][w], np.array([fa, fb], np.float64),
+                   min(ser.degree, len(w) - 1))
+        a_out.append(ab[0])
+        b_out.append(ab[1])
+        ids.append(int(tracks.track[lo]))
+    a = np.asarray(a_out, dtype=np.float64).reshape(-1, 3)
+    b = np.asarray(b_out, dtype=np.float64).reshape(-1, 3)
+    return a, b, np.asarray(ids, np.int64)

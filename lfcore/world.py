@@ -6,6 +6,10 @@ Fresh seeding per pair is what a PIV recording of a steady flow looks like to th
 (particles that left the volume are replaced by new ones) and keeps every pair independent of
 how many pairs came before, so the truth of any pair can be made again later. ``lfpiv synth``
 and the simulated lab's cameras (:class:`sim.world.SimWorld`) both look at this world.
+
+A time-resolved world (``time_resolved=True``) instead seeds once and advects the same particles
+through every frame, A0, B0, A1, B1, ... each ``dt`` apart (:meth:`ParticleWorld.series`): the
+truth of a time-resolved series, through which particles can be tracked from frame to frame.
 """
 
 from __future__ import annotations
@@ -49,6 +53,10 @@ class ParticleWorld:
         Time between the two pulses of a pair, s (None: the rig's ``timing.dt_us``).
     ppp
         Seeding density instead, particles per pixel of the first pinhole camera.
+    time_resolved
+        Frames evenly spaced in time, ``dt`` apart, pair ``k`` starting at ``2 k dt``, the same
+        particles in all of them (:meth:`series`); the vortex ring is then one ring travelling on
+        (not a new one each pair).
 
     Raises
     ------
@@ -64,6 +72,7 @@ class ParticleWorld:
     omega: float = 1.0
     dt_s: float | None = None
     ppp: float | None = None
+    time_resolved: bool = False
     _field: Flow = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -71,7 +80,8 @@ class ParticleWorld:
             self.dt_s = self.rig.timing.dt_us * 1e-6
         self._field = flow_for_displacement(self.flow, self.rig.volume, self.rig.camera[0].object_pixel_mm,
                                             self.dt_s, displacement_px=self.displacement_px, omega=self.omega,
-                                            period_s=1.0 / self.rig.laser.rate_hz)  # phase-locked ring
+                                            # phase-locked ring; one ring through a series
+                                            period_s=None if self.time_resolved else 1.0 / self.rig.laser.rate_hz)
         self.ppm, self.ppp = seeding_density(self.rig, ppm=self.ppm, ppp=self.ppp)
         self.n_particles = particle_count(self.rig, ppm=self.ppm, ppp=self.ppp)
 
@@ -81,7 +91,10 @@ class ParticleWorld:
         return self._field.params()
 
     def t0_s(self, k: int) -> float:
-        """Time of the first pulse of double pulse ``k`` on the flow's clock, s."""
+        """Time of the first pulse of double pulse ``k`` on the flow's clock, s (``2 k dt`` in a
+        time-resolved world)."""
+        if self.time_resolved:
+            return 2.0 * k * float(self.dt_s)  # type: ignore[arg-type]
         return k / self.rig.laser.rate_hz
 
     def pair(self, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -101,3 +114,29 @@ class ParticleWorld:
         brightness = self.rig.render.particle_counts * sheet_weights(particles.reshape(-1, 3), self.rig.laser,
                                                                      self.rig.volume)
         return particles, brightness.reshape(2, -1)
+
+    def series(self, pairs: int) -> tuple[np.ndarray, np.ndarray]:
+        """The same particles through ``2 pairs`` frames each ``dt`` apart (a time-resolved series):
+        seeded once (``seed``) at frame A of pair 0 and advected from frame to frame.
+
+        A particle that leaves the box re-enters it at the opposite face (a new particle there, as
+        a flow brings new particles in), so the seeding density stays as it is through the series.
+
+        Returns
+        -------
+        particles : numpy.ndarray
+            (pairs, 2, n, 3) world positions (x, y, z) in mm at frames A and B of each pair.
+        brightness : numpy.ndarray
+            (pairs, 2, n) counts each particle deposits (laser-sheet profile applied).
+        """
+        dt = float(self.dt_s)  # type: ignore[arg-type]
+        rng = np.random.default_rng(derive_seed(self.seed, 0))
+        frames = [seed_particles(self.rig.volume, self.n_particles, rng)]
+        lo, hi = (np.asarray(b, dtype=np.float64) for b in self.rig.volume.bounds_mm)
+        for f in range(1, 2 * pairs):
+            moved = advect(self._field, frames[-1], (f - 1) * dt, dt)
+            frames.append(lo + np.mod(moved - lo, hi - lo))  # the outflow comes back as inflow
+        particles = np.stack(frames).reshape(pairs, 2, self.n_particles, 3)
+        brightness = self.rig.render.particle_counts * sheet_weights(particles.reshape(-1, 3), self.rig.laser,
+                                                                     self.rig.volume)
+        return particles, brightness.reshape(pairs, 2, -1)

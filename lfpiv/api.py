@@ -247,17 +247,24 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
 
 
 def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, skip_done: bool = False,
-          progress: bool = True, predictor: str = "none", device: str | None = None, **options: Any) -> Any:
+          progress: bool = True, predictor: str = "none", device: str | None = None,
+          along_pairs: bool | dict[str, Any] = False, **options: Any) -> Any:
     """Pair each selected pair's particles from frame A to frame B and bin the tracks into the run's
     ``vectors/`` (``lfpiv track``); ``predictor`` is the first pass's (``"none"``, ``"volumes"`` or
     ``"previous"``: :mod:`lfpiv.jobs.track`), ``options`` are :class:`lfcore.track.TrackSettings`
     fields (``search_voxels``, ``refine_voxels``, ``passes``, ``bin_voxels``, ``min_tracks``,
-    ``field``, ``smooth_voxels``, ...). Returns the :class:`lfpiv.jobs.track.TracksDone` figures."""
-    from lfpiv.jobs.track import track_run, track_settings
+    ``field``, ``smooth_voxels``, ...). ``along_pairs`` (a time-resolved run: ``lfpiv track
+    --along-pairs``) follows the particles through every frame: True with the defaults, or a dict of
+    :class:`lfcore.track.SeriesSettings` fields (``link_voxels``, ``min_frames``, ``fit_frames``,
+    ``degree``). Returns the :class:`lfpiv.jobs.track.TracksDone` figures."""
+    from lfpiv.jobs.track import series_settings, track_run, track_settings
 
+    series = None
+    if along_pairs is not False:
+        series = series_settings(**(along_pairs if isinstance(along_pairs, dict) else {}))
     store = open_run(run, mode="r+")
     return track_run(store, track_settings(**options), _pairs(pairs), predictor=predictor, progress=progress,
-                     skip_done=skip_done, option="pairs", device=device)
+                     skip_done=skip_done, option="pairs", device=device, along_pairs=series)
 
 
 @dataclass(frozen=True)

@@ -55,7 +55,9 @@ store, the attribute, what it holds and what it should), put together as :class:
 """
 
 from lfcore.runstore._common import FORMAT, FORMAT_VERSION, STATES, RunStoreError
+from lfcore.runstore._coords import is_time_resolved
 from lfcore.runstore._frames import FRAME_CODEC, FrameWriter
 from lfcore.runstore._store import RunStore
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "FRAME_CODEC", "STATES", "FrameWriter", "RunStore", "RunStoreError"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "FRAME_CODEC", "STATES", "FrameWriter", "RunStore", "RunStoreError",
+           "is_time_resolved"]

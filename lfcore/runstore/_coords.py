@@ -35,6 +35,21 @@ def pair_times_s(n_pairs: int, timing: Mapping[str, Any]) -> np.ndarray | None:
     return np.arange(n_pairs) / float(rate) if rate else None
 
 
+def is_time_resolved(timing: Mapping[str, Any]) -> bool:
+    """Whether a run's ``timing`` is a time-resolved series: frames evenly spaced in time (A0, B0,
+    A1, B1, ... each ``dt_s`` apart), i.e. one pair every two ``dt_s`` (``1 / rate_hz = 2 dt_s``
+    within 1%). Frame B of pair i and frame A of pair i + 1 are then ``dt_s`` apart too, and a
+    particle can be followed through every frame (``lfpiv track --along-pairs``)."""
+    rate, dt = timing.get("rate_hz"), timing.get("dt_s")
+    try:
+        rate, dt = float(rate), float(dt)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return False
+    if not (np.isfinite(rate) and np.isfinite(dt) and rate > 0 and dt > 0):
+        return False
+    return abs(1.0 / rate - 2.0 * dt) <= 0.01 * 2.0 * dt
+
+
 def add_coordinates(group: zarr.Group, axes_mm: Mapping[str, np.ndarray], *, n_pairs: int,
                     timing: Mapping[str, Any], of: str) -> None:
     """Create the ``x``, ``y``, ``z`` and ``time`` coordinate arrays in ``group``.

@@ -9,6 +9,9 @@ Layout (docs/reference/run-store.md)::
     attrs               origin_mm, voxel_mm (the grid the particles were fitted on), method,
                         settings, fields, particle_pairs (the pairs written so far)
 
+``lfpiv track`` keeps its tracks with the vectors they make (``vectors/tracks``, ``track_index``
+and, along a time-resolved series, ``series_tracks`` and ``series_index``).
+
 A pair is written by appending its two frames' rows to ``table`` and then setting its ``index``;
 only the pairs in ``particle_pairs`` are whole (rows of a frame killed half-way are never indexed).
 """
@@ -29,6 +32,8 @@ PARTICLE_COLUMNS = ("x_mm", "y_mm", "z_mm", "intensity", "residual")
 TABLE_CHUNK = 65536
 #: The columns of ``vectors/tracks`` (written by ``lfpiv track``).
 TRACK_COLUMNS = ("x_a_mm", "y_a_mm", "z_a_mm", "x_b_mm", "y_b_mm", "z_b_mm", "outlier")
+#: The columns of ``vectors/series_tracks`` (written by ``lfpiv track --along-pairs``).
+SERIES_COLUMNS = ("track", "frame", "x_mm", "y_mm", "z_mm", "x_fit_mm", "y_fit_mm", "z_fit_mm")
 
 
 class Particles(Part):
@@ -149,6 +154,50 @@ class Particles(Part):
             raise RunStoreError(f"{self.path}: vectors/tracks of pair {pair} cannot be read ({type(exc).__name__}: "
                                 f"{exc}); 'lfpiv check {self.path}' lists what is damaged") from None
         return np.asarray(rows, dtype=np.float64).reshape(-1, 7)
+
+    def write_series_tracks(self, rows: np.ndarray) -> None:
+        """Write a time-resolved series' tracks through its frames (``lfpiv track --along-pairs``) to
+        the ``vectors/`` being written, replacing any there: ``series_tracks`` float64 (k, 8), one
+        row a point of a track (:data:`SERIES_COLUMNS`: the track, the frame in the series (frame A
+        of pair p is 2 p, frame B 2 p + 1), the particle's x, y, z and the track's fitted x, y, z
+        there, mm; NaN on tracks too short to fit), a track's points together in frame order;
+        ``series_index`` int64 (tracks, 2): each track's start and stop row."""
+        g = self.writing("vectors")
+        t = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
+        for name in ("series_tracks", "series_index"):
+            if name in g:
+                del g[name]
+        run_array(g, "series_tracks", "1, 1, mm, mm, mm, mm, mm, mm", ["point", "field"],
+                  "track, frame (2 pair + 0 for A, 1 for B), the particle's x, y, z and the track's fitted x, y, z "
+                  "(mm; NaN where too short to fit) of every point of every track through the series",
+                  shape=t.shape, chunks=(TABLE_CHUNK, 8), dtype=np.float64, fill_value=np.nan)[...] = t
+        ids = t[:, 0].astype(np.int64)
+        n = int(ids.max()) + 1 if len(ids) else 0
+        start = np.searchsorted(ids, np.arange(n), side="left")
+        stop = np.searchsorted(ids, np.arange(n), side="right")
+        run_array(g, "series_index", "row", ["track", "bound"], "start and stop row in series_tracks of each track",
+                  shape=(n, 2), chunks=(max(n, 1), 2), dtype=np.int64, fill_value=-1)[...] = np.column_stack(
+                      [start, stop]).reshape(n, 2)
+        g["series_tracks"].attrs["fields"] = list(SERIES_COLUMNS)
+
+    def read_series_tracks(self) -> np.ndarray:
+        """The (k, 8) points of the tracks through a time-resolved series (:meth:`write_series_tracks`).
+
+        Raises
+        ------
+        RunStoreError
+            If the run's vectors hold none (not tracked with ``--along-pairs``).
+        """
+        g = self.group["vectors"] if "vectors" in self.group else None
+        if g is None or "series_tracks" not in g:
+            raise RunStoreError(f"{self.path} holds no tracks through its series; run 'lfpiv track {self.path} "
+                                "--along-pairs' (a time-resolved run)")
+        try:
+            rows = g["series_tracks"][...]
+        except Exception as exc:  # noqa: BLE001 - a damaged chunk: name it
+            raise RunStoreError(f"{self.path}: vectors/series_tracks cannot be read ({type(exc).__name__}: {exc}); "
+                                f"'lfpiv check {self.path}' lists what is damaged") from None
+        return np.asarray(rows, dtype=np.float64).reshape(-1, 8)
 
     @property
     def has_particles(self) -> bool:

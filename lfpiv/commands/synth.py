@@ -38,6 +38,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--pairs", type=positive_int, default=3, help="double-frame pairs (default: 3)")
     s.add_argument("--dt-ms", type=positive_float, default=None,
                    help="time between frames A and B in ms (default: the rig's timing.dt_us)")
+    s.add_argument("--time-resolved", action="store_true",
+                   help="a time-resolved series: the same particles advected through every frame, A0, B0, A1, B1, "
+                   "... each --dt-ms apart (a pair every 2 dt), for tracks through the frames (lfpiv track "
+                   "--along-pairs); without it each pair is seeded afresh")
+    s.add_argument("--rate-hz", type=positive_float, default=None,
+                   help="pairs per second: pair i starts at i / rate (default: the rig's laser.rate_hz, or 1 / (2 dt) "
+                   "with --time-resolved, which refuses any other)")
     s.add_argument("--seed", type=whole_number, default=1, help="random seed (default: 1)")
     s.add_argument("--displacement-px", type=positive_float, default=None,
                    help="peak particle displacement over dt in object-side pixels of the first camera "
@@ -68,12 +75,13 @@ def run(args: argparse.Namespace) -> int:
                      dt_s=None if args.dt_ms is None else args.dt_ms * 1e-3, seed=args.seed,
                      omega=args.omega, displacement_px=args.displacement_px, points=points,
                      rays_per_particle=args.rays, device=args.device, overwrite=args.overwrite,
-                     progress=not args.quiet)
+                     progress=not args.quiet, time_resolved=args.time_resolved, rate_hz=args.rate_hz)
     if not res.particle_images:  # light-field cameras only
         work = f"{res.rays:.3g} rays in {res.seconds:.1f} s ({res.rays / res.seconds:.3g} rays/s)"
     else:
         rays = f"{res.rays:.3g} rays ({res.rays / res.seconds:.3g} rays/s) and " if res.rays else ""
         work = f"{rays}{res.particle_images:.3g} particle images in {res.seconds:.1f} s"
     print(f"wrote {res.store.path}: {res.store.n_pairs} pair(s) x {len(rig.camera)} camera(s), "
-          f"{res.particles_per_frame} particles per frame, flow {res.flow['name']}; {work}")
+          f"{res.particles_per_frame} particles per frame, flow {res.flow['name']}"
+          f"{', a time-resolved series' if args.time_resolved else ''}; {work}")
     return 0

@@ -37,7 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "tracks, and write a field made from the tracks (each bin's mean, a smooth average or a fitted "
                    "smooth field) to "
                        "vectors/, the layout correlate writes, so evaluate and export read it unchanged; the tracks "
-                       "are kept with it ('lfpiv export --format tracks-vtk' or tracks-csv writes them).")
+                       "are kept with it ('lfpiv export --format tracks-vtk' or tracks-csv writes them). On a "
+                       "time-resolved run, --along-pairs follows the particles through every frame and makes each "
+                       "pair's field from their fitted paths.")
     c.add_argument("run", metavar="RUN", help="run store with particles/")
     add_pair_range(c, "every pair with particles")
     c.add_argument("--predictor", choices=("none", "volumes", "previous"), default="none",
@@ -61,6 +63,22 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "tracks within a bin (default: fit)")
     c.add_argument("--smooth-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="the smooth field's Gaussian sigma in voxels (default: half a bin)")
+    c.add_argument("--along-pairs", action="store_true",
+                   help="a time-resolved run (every frame dt after the one before, as 'lfpiv synth --time-resolved' "
+                   "makes): link every frame's particles into tracks through the frames (each track carried on by its "
+                   "own velocity, started by the pair tracking), fit each track of --min-frames or more by local "
+                   "polynomials in time (Shake-the-Box's long tracks), and make each pair's field from the fitted "
+                   "tracks at its mid-time; without it each pair is tracked on its own")
+    c.add_argument("--link-voxels", type=xyz_triple, default=(1.0, 1.0, 1.0), metavar="X,Y,Z",
+                   help="--along-pairs: the search radius around where a track's own velocity puts it in the next "
+                   "frame (default: 1,1,1)")
+    c.add_argument("--min-frames", type=positive_int, default=4, metavar="N",
+                   help="--along-pairs: fewest frames a track needs to be fitted and used (default: 4)")
+    c.add_argument("--fit-frames", type=positive_int, default=6, metavar="N",
+                   help="--along-pairs: how many of a track's frames, the nearest the pair's mid-time, each fit uses "
+                   "(default: 6)")
+    c.add_argument("--fit-order", type=positive_int, default=2, metavar="N",
+                   help="--along-pairs: the tracks' polynomial order in time (default: 2, as Shake-the-Box)")
     c.add_argument("--csv", default=None, metavar="FILE",
                    help="also write every tracked pair's tracks to FILE: pair, frame A's x, y, z and frame B's (mm), "
                    "u, v, w (m/s), outlier")
@@ -72,12 +90,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.track import track_run, track_settings, tracks_csv
+    from lfpiv.jobs.track import series_settings, track_run, track_settings, tracks_csv
     from lfpiv.runs import open_run
 
     settings = track_settings(search_voxels=args.search_voxels, refine_voxels=args.refine_voxels,
                               passes=args.passes, bin_voxels=args.bin, min_tracks=args.min_tracks, field=args.field,
                               smooth_voxels=args.smooth_voxels)
+    series = (series_settings(link_voxels=args.link_voxels, min_frames=args.min_frames, fit_frames=args.fit_frames,
+                              degree=args.fit_order) if args.along_pairs else None)
     store = open_run(args.run, mode="r+")
     if args.csv:
         from pathlib import Path
@@ -90,15 +110,24 @@ def run(args: argparse.Namespace) -> int:
     if args.predictor == "previous" and (args.workers or args.scheduler):  # before any worker starts
         raise UsageError("--predictor previous tracks the pairs in order, each from the one before: leave out "
                          "--workers and --scheduler, or choose --predictor volumes")
+    if args.along_pairs and (args.workers or args.scheduler):
+        raise UsageError("--along-pairs links every frame's particles in order, each frame from the one before: "
+                         "leave out --workers and --scheduler")
     with dask_client(args.workers, args.scheduler) as client:
         done = track_run(store, settings, args.pairs, predictor=args.predictor, progress=not args.quiet,
-                         skip_done=args.skip_done, option=pairs_option(args), client=client, device=args.device)
+                         skip_done=args.skip_done, option=pairs_option(args), client=client, device=args.device,
+                         along_pairs=series)
+    if done.series_frames:
+        print(f"linked {done.series_tracks} tracks of at least {args.min_frames} frames through the "
+              f"{done.series_frames} frames (mean length {done.series_length:.1f} frames), fitted by polynomials "
+              f"of order {args.fit_order} in time through {args.fit_frames} frames")
     if done.pairs:
         nx, ny, nz = done.shape
         print(f"wrote {store.path}/vectors: {len(done.pairs)} pair(s) of {nx} x {ny} x {nz} bins (x, y, z) from "
               f"{done.tracks} tracks ({100.0 * done.outliers / max(done.tracks, 1):.1f}% outliers left out); "
               f"{100.0 * done.vectors / max(done.bins, 1):.0f}% of the bins hold a vector; {args.field} field, "
-              f"predictor {args.predictor}; {done.seconds:.1f} s{workers_phrase(args)}")
+              f"predictor {args.predictor}{', along the pairs' if args.along_pairs else ''}; {done.seconds:.1f} s"
+              f"{workers_phrase(args)}")
     else:
         print(f"every selected pair of {store.path} is tracked already with these settings; nothing to do")
     if args.csv:

@@ -12,6 +12,10 @@ components, m/s: the track's, at both ends) and ``frame`` (UInt8, 0 at A, 1 at B
 ``velocity`` and ``outlier`` (UInt8); field data ``TimeValue`` (s). ASCII, so any VTK reader opens
 it and a person can read it.
 
+The tracks through a time-resolved series (``lfpiv track --along-pairs``) as CSV, one row a point
+of a track: ``track,frame,time_s,x_mm,y_mm,z_mm,x_fit_mm,y_fit_mm,z_fit_mm`` (the fitted position
+``nan`` on tracks too short to fit).
+
 CSV: one row per track with the header ``pair,x_a_mm,y_a_mm,z_a_mm,x_b_mm,y_b_mm,z_b_mm,u_m_s,v_m_s,
 w_m_s,outlier``.
 """
@@ -26,12 +30,15 @@ import numpy as np
 
 from lfpiv.formats._files import replacing
 
-__all__ = ["CSV_HEADER", "PVD_NAME", "vtp_name", "write_tracks_csv", "write_tracks_vtp", "write_tracks_vtp_series"]
+__all__ = ["CSV_HEADER", "PVD_NAME", "SERIES_CSV_HEADER", "vtp_name", "write_series_csv", "write_tracks_csv",
+           "write_tracks_vtp", "write_tracks_vtp_series"]
 
 #: The collection file of a series.
 PVD_NAME = "tracks.pvd"
 #: The CSV file's header.
 CSV_HEADER = "pair,x_a_mm,y_a_mm,z_a_mm,x_b_mm,y_b_mm,z_b_mm,u_m_s,v_m_s,w_m_s,outlier"
+#: The header of the tracks through a time-resolved series (``--format series-csv``).
+SERIES_CSV_HEADER = "track,frame,time_s,x_mm,y_mm,z_mm,x_fit_mm,y_fit_mm,z_fit_mm"
 _VTP = re.compile(r"tracks_pair\d{4,}\.vtp")
 
 
@@ -52,6 +59,20 @@ def write_tracks_csv(path: str | os.PathLike[str], rows: np.ndarray) -> Path:
     with replacing(path) as tmp:
         np.savetxt(tmp, t, delimiter=",", header=CSV_HEADER, comments="",
                    fmt=["%d", *["%.6f"] * 6, *["%.6g"] * 3, "%d"])
+    return path
+
+
+def write_series_csv(path: str | os.PathLike[str], rows: np.ndarray, *, dt_s: float) -> Path:
+    """Write the (k, 8) points of the tracks through a time-resolved series
+    (:meth:`lfcore.runstore.RunStore.read_series_tracks`: track, frame, the particle's x, y, z and the
+    track's fitted x, y, z in mm) as CSV, one point a line with its time (frame x ``dt_s``, s since
+    frame A of pair 0), whole or not at all; returns ``path``."""
+    path = Path(path)
+    t = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
+    table = np.column_stack([t[:, :2], t[:, 1] * float(dt_s), t[:, 2:]])
+    with replacing(path) as tmp:
+        np.savetxt(tmp, table, delimiter=",", header=SERIES_CSV_HEADER, comments="",
+                   fmt=["%d", "%d", "%.9g", *["%.6f"] * 6])
     return path
 
 

@@ -16,10 +16,13 @@ davis       ``vectors.set`` + ``vectors/B00001.vc7`` ... DaVis, lvpyio
 mat         ``vectors.mat`` (meshgrid order)             MATLAB, ``scipy.io.loadmat``
 tracks-vtk  ``tracks.pvd`` + ``tracks_pairNNNN.vtp``     ParaView, VTK (particle tracks as lines)
 tracks-csv  ``tracks.csv``                               spreadsheets, pandas, MATLAB
+series-csv  ``series_tracks.csv`` (the tracks through a     spreadsheets, pandas, MATLAB
+            time-resolved series, one row a point)
 ==========  ===========================================  ==============================================
 
 The ``tracks-*`` formats write the particle tracks ``lfpiv track`` kept with its vectors
-(:mod:`lfpiv.formats.tracks`); the others, the vector fields.
+(:mod:`lfpiv.formats.tracks`), ``series-csv`` those ``lfpiv track --along-pairs`` followed through a
+time-resolved series; the others, the vector fields.
 
 Pairs that were not correlated are left out. Files of an earlier export are replaced only with
 ``overwrite``, each whole or not at all, and never through a symbolic link.
@@ -42,9 +45,9 @@ __all__ = ["FORMATS", "TRACK_FORMATS", "Fields", "export_run", "fields_of"]
 #: Export formats (``lfpiv export --format``) and the names they write in the folder.
 FORMATS = {"netcdf": ("vectors.nc",), "vtk": ("vectors.pvd",), "tecplot": ("vectors.dat",),
            "davis": ("vectors.set", "vectors"), "mat": ("vectors.mat",), "tracks-vtk": ("tracks.pvd",),
-           "tracks-csv": ("tracks.csv",)}
+           "tracks-csv": ("tracks.csv",), "series-csv": ("series_tracks.csv",)}
 #: The formats of the particle tracks rather than the vector fields.
-TRACK_FORMATS = ("tracks-vtk", "tracks-csv")
+TRACK_FORMATS = ("tracks-vtk", "tracks-csv", "series-csv")
 
 
 def _targets(fmt: str, out: Path, pairs: list[int]) -> list[Path]:
@@ -84,11 +87,16 @@ def _write(fmt: str, out: Path, fields: Fields, source: str) -> list[Path]:
 
 
 def _write_tracks(store: RunStore, fmt: str, out: Path, pairs: list[int]) -> list[Path]:
-    from lfpiv.formats.tracks import write_tracks_csv, write_tracks_vtp_series
+    from lfpiv.formats.tracks import write_series_csv, write_tracks_csv, write_tracks_vtp_series
     from lfpiv.jobs.track import tracks_table
 
-    table = tracks_table(store, pairs)  # a damaged table is an error (RunStoreError), named
+    if fmt == "series-csv":
+        series = store.read_series_tracks()  # none (not tracked along the pairs): a RunStoreError, one line
+    else:
+        table = tracks_table(store, pairs)  # a damaged table is an error (RunStoreError), named
     try:
+        if fmt == "series-csv":
+            return [write_series_csv(out / "series_tracks.csv", series, dt_s=float(store.timing["dt_s"]))]
         if fmt == "tracks-csv":
             return [write_tracks_csv(out / "tracks.csv", table)]
         return write_tracks_vtp_series(out, table, rate_hz=store.timing.get("rate_hz"), pairs=pairs)

@@ -20,7 +20,7 @@ from lfcore.flows import FLOW_NAMES, default_displacement_px
 from lfcore.particles import MAX_PPM, MAX_PPP, seeding_density, sheet_weights
 from lfcore.render import LightFieldRenderer, PinholeRenderer, derive_seed, renderer_for
 from lfcore.rig import MAX_RAYS_PER_PARTICLE, Rig, is_pinhole
-from lfcore.runstore import RunStore
+from lfcore.runstore import RunStore, is_time_resolved
 from lfcore.world import ParticleWorld
 from lfpiv import __version__
 from lfpiv.errors import UsageError
@@ -146,12 +146,28 @@ def _named(exc: OSError, path: str | Path) -> OSError:
     return exc if exc.filename is not None else OSError(exc.errno, exc.strerror or str(exc), str(path))
 
 
+def _pair_rate(rig: Rig, dt_s: float, rate_hz: float | None, time_resolved: bool) -> float:
+    """The run's pair rate, Hz: ``rate_hz``, the rig's, or a time-resolved series' ``1 / (2 dt_s)``;
+    a one-line error where a given rate contradicts a time-resolved series."""
+    if rate_hz is not None and not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise UsageError(f"--rate-hz must be positive, got {rate_hz:g}")
+    if not time_resolved:
+        return float(rig.laser.rate_hz if rate_hz is None else rate_hz)
+    rate = 1.0 / (2.0 * dt_s)  # frames evenly spaced: A0, B0, A1, ... each dt apart
+    if rate_hz is not None and not is_time_resolved({"dt_s": dt_s, "rate_hz": rate_hz}):
+        raise UsageError(f"--time-resolved spaces every frame dt = {dt_s * 1e3:g} ms apart, a pair every "
+                         f"{2 * dt_s * 1e3:g} ms ({rate:g} Hz), but --rate-hz is {rate_hz:g}; leave out --rate-hz or "
+                         f"give {rate:g} (or a --dt-ms of {0.5e3 / rate_hz:g})")
+    return rate
+
+
 def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: float | None = None,
                ppp: float | None = None, pairs: int = 3,
                dt_s: float | None = None, seed: int = 1, omega: float = 1.0,
                displacement_px: float | None = None, points: np.ndarray | None = None,
                rays_per_particle: int | None = None, device: str | None = None, overwrite: bool = False,
-               progress: bool = True, attrs: dict[str, Any] | None = None) -> SynthResult:
+               progress: bool = True, attrs: dict[str, Any] | None = None, time_resolved: bool = False,
+               rate_hz: float | None = None) -> SynthResult:
     """Render a synthetic run into a new run store.
 
     Parameters
@@ -192,6 +208,13 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         Show a progress bar on stderr.
     attrs
         Extra JSON-compatible attributes for the run's root group.
+    time_resolved
+        A time-resolved series: frames A0, B0, A1, B1, ... each ``dt_s`` apart (the pair rate
+        ``1 / (2 dt_s)``) showing the same particles, advected with the flow from frame to frame
+        (:meth:`lfcore.world.ParticleWorld.series`), instead of a fresh seeding per pair.
+    rate_hz
+        The pair rate, Hz: pair i starts at i / rate (None: the rig's ``laser.rate_hz``, or
+        ``1 / (2 dt_s)`` with ``time_resolved``, which refuses any other).
     """
     if pairs < 1:
         raise UsageError(f"--pairs must be at least 1, got {pairs}")
@@ -206,7 +229,10 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         if rays_per_particle < 1:
             raise UsageError(f"--rays must be at least 1, got {rays_per_particle}")
         render = render.model_copy(update={"rays_per_particle": int(rays_per_particle)})
-    rate = rig.laser.rate_hz
+    rate = _pair_rate(rig, dt_s, rate_hz, time_resolved)
+    if time_resolved and points is not None:
+        raise UsageError("--time-resolved advects a flow's particles from frame to frame; leave out --particles "
+                         "(one pair of fixed points) or --time-resolved")
 
     if points is not None:
         pairs = 1
@@ -223,15 +249,18 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         try:
             # the world the simulated lab's cameras see too: a fresh seeding per pair
             world = ParticleWorld(rig, flow=flow, ppm=ppm, displacement_px=displacement_px, seed=seed, omega=omega,
-                                  dt_s=dt_s, ppp=ppp)
+                                  dt_s=dt_s, ppp=ppp, time_resolved=time_resolved)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
         flow_params = world.flow_params
         # the whole run's truth at once: a run too large for memory fails here, before any work
-        particles = np.empty((pairs, 2, world.n_particles, 3))
-        brightness = np.empty((pairs, 2, world.n_particles))
-        for i in range(pairs):
-            particles[i], brightness[i] = world.pair(i)
+        if time_resolved:  # the same particles through every frame
+            particles, brightness = world.series(pairs)
+        else:
+            particles = np.empty((pairs, 2, world.n_particles, 3))
+            brightness = np.empty((pairs, 2, world.n_particles))
+            for i in range(pairs):
+                particles[i], brightness[i] = world.pair(i)
     _check_in_front(rig, particles.reshape(-1, 3))
     if points is not None:
         brightness = render.particle_counts * sheet_weights(particles.reshape(-1, 3), rig.laser, rig.volume)

@@ -13,6 +13,14 @@ previous
     The field of the pair tracked just before it in this command (a time-resolved series, where
     the flow changes little from pair to pair); the first pair, and a pair whose previous pair is
     not tracked in the same command, have none.
+
+Along a time-resolved series (``--along-pairs``, :func:`lfcore.runstore.is_time_resolved`: every
+frame ``dt`` after the one before), the particles of all the chosen pairs' frames are linked into
+tracks through the frames (:func:`lfcore.track.link_series`: the pair tracking starts each track,
+its own velocity carries it on), each track of enough frames is fitted by local polynomials in time
+(:func:`lfcore.track.fit_series`), and each pair's tracks are the fitted positions at its two frames
+(:func:`lfcore.track.pair_tracks`), made into a field as a pair's own tracks are. The tracks through
+the series are kept in ``vectors/series_tracks``.
 """
 
 from __future__ import annotations
@@ -25,15 +33,28 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from lfcore.runstore import RunStore, RunStoreError
-from lfcore.track import MAX_CROWDING, TrackResult, TrackSettings, field_predictor, search_crowding, track_pair
+from lfcore.runstore import RunStore, RunStoreError, is_time_resolved
+from lfcore.track import (
+    MAX_CROWDING,
+    SeriesSettings,
+    SeriesTracks,
+    TrackResult,
+    TrackSettings,
+    field_of_tracks,
+    field_predictor,
+    fit_series,
+    link_series,
+    pair_tracks,
+    search_crowding,
+    track_pair,
+)
 from lfcore.volume import VolumeGrid
 from lfcore.warm import Predictor
 from lfpiv.errors import UsageError
 from lfpiv.pair_runner import particle_pairs, run_pairs
 
-__all__ = ["PREDICTORS", "PairTracks", "TrackJob", "TrackSettings", "TracksDone", "track_pair_task", "track_run",
-           "track_settings", "tracks_csv"]
+__all__ = ["PREDICTORS", "PairTracks", "SeriesSettings", "TrackJob", "TrackSettings", "TracksDone", "series_settings",
+           "track_pair_task", "track_run", "track_settings", "tracks_csv"]
 
 #: The first pass's predictors (``lfpiv track --predictor``; see the module docstring).
 PREDICTORS = ("none", "volumes", "previous")
@@ -43,6 +64,14 @@ def track_settings(**options: Any) -> TrackSettings:
     """:class:`lfcore.track.TrackSettings` of the given options, or a one-line :class:`UsageError`."""
     try:
         return TrackSettings(**options)
+    except (TypeError, ValueError) as exc:
+        raise UsageError(str(exc)) from None
+
+
+def series_settings(**options: Any) -> SeriesSettings:
+    """:class:`lfcore.track.SeriesSettings` of the given options, or a one-line :class:`UsageError`."""
+    try:
+        return SeriesSettings(**options)
     except (TypeError, ValueError) as exc:
         raise UsageError(str(exc)) from None
 
@@ -60,6 +89,10 @@ class TracksDone:
     shape: tuple[int, int, int] = (0, 0, 0)
     predictor: str = "none"
     seconds: float = 0.0
+    #: along a series: its frames, the tracks fitted through it (of enough frames) and their mean length
+    series_frames: int = 0
+    series_tracks: int = 0
+    series_length: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -118,6 +151,48 @@ def track_pair_task(job: TrackJob, pair: int) -> PairTracks:
     pred = (_volumes_predictor(store, pair, job.grid, this_worker_device(job.device))
             if job.predictor == "volumes" else None)
     return _track(store, pair, job.grid, job.settings, pred)[0]
+
+
+def _check_series(store: RunStore, chosen: list[int], client: Any) -> None:
+    """A one-line error, before anything is written, where ``--along-pairs`` cannot follow the
+    particles through the chosen pairs' frames."""
+    timing = store.timing
+    if not is_time_resolved(timing):
+        dt, rate = timing.get("dt_s"), timing.get("rate_hz")
+        gap = f"a pair every {1e3 / float(rate):g} ms" if rate else "no pair rate"
+        raise UsageError(f"--along-pairs follows particles through a time-resolved series (every frame dt after the "
+                         f"one before: a pair every 2 dt), but {store.path} has dt {float(dt or 0) * 1e3:g} ms and "
+                         f"{gap}; track its pairs one by one (leave out --along-pairs), or record or synthesize a "
+                         f"time-resolved run (lfpiv synth --time-resolved)")
+    if client is not None:
+        raise UsageError("--along-pairs links every frame's particles in order, each frame from the one before: "
+                         "leave out --workers and --scheduler")
+    if chosen != list(range(chosen[0], chosen[-1] + 1)):
+        gap = next(p for p in range(chosen[0], chosen[-1] + 1) if p not in chosen)
+        raise UsageError(f"--along-pairs follows particles through consecutive pairs, but pair {gap} between "
+                         f"{chosen[0]} and {chosen[-1]} has no particles; run 'lfpiv particles {store.path}' for it, "
+                         "or choose consecutive pairs with --pair-range")
+
+
+def _series(store: RunStore, chosen: list[int], grid: VolumeGrid, settings: TrackSettings, series: SeriesSettings,
+            predictor: Predictor | None) -> SeriesTracks:
+    """The tracks through the chosen pairs' frames, fitted; frames numbered in the run (2 p + f)."""
+    frames = [store.read_particles(p, f)[:, :3] for p in chosen for f in (0, 1)]
+    tracks = fit_series(link_series(frames, grid, settings=settings, series=series, predictor=predictor),
+                        series=series)
+    tracks.frame = tracks.frame + 2 * chosen[0]
+    return tracks
+
+
+def _series_pair(tracks: SeriesTracks, pair: int, grid: VolumeGrid, settings: TrackSettings,
+                 series: SeriesSettings) -> PairTracks:
+    """A pair's tracks from the tracks through the series (fitted positions at its two frames) and their field."""
+    t0 = time.perf_counter()
+    a, b, _ = pair_tracks(tracks, pair, series=series)
+    res = field_of_tracks(a, b, grid, settings=settings)
+    rows = np.column_stack([a, b, res.outlier.astype(np.float64)])
+    return PairTracks(rows=rows, field_mm=res.field_mm, outliers=int(res.outlier.sum()),
+                      seconds=time.perf_counter() - t0)
 
 
 def _check_volumes(store: RunStore, chosen: list[int]) -> None:
@@ -184,7 +259,7 @@ def tracks_csv(store: RunStore, path: str | Path, pairs: list[int] | None = None
 
 def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = None, *, predictor: str = "none",
               progress: bool = True, skip_done: bool = False, option: str = "--pair-range", client: Any = None,
-              device: str | None = None) -> TracksDone:
+              device: str | None = None, along_pairs: SeriesSettings | None = None) -> TracksDone:
     """Track the particles of ``pairs`` (None: every pair with particles) into ``vectors/``.
 
     The field (``settings.field``: each bin's mean, or a smooth field at the bins' centres) is in
@@ -208,13 +283,18 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
         written here as they come back; None: in this process.
     device
         The Warp device of the volumes predictor's correlation.
+    along_pairs
+        Track along a time-resolved series instead of pair by pair (``--along-pairs``: see the
+        module docstring), with these settings; the pairs must be consecutive, the predictor (of
+        the first pair's first step) ``none`` or ``volumes``. None: pair by pair.
 
     Raises
     ------
     UsageError
         A run without particles, none of the selected pairs with particles, ``--predictor volumes``
         on a run (or pair) without volumes, ``--predictor previous`` on workers, or frames too
-        crowded to pair; each before anything is written.
+        crowded to pair; ``along_pairs`` on a run that is not a time-resolved series, on workers or
+        on pairs that are not consecutive; each before anything is written.
     """
     if predictor not in PREDICTORS:
         raise UsageError(f"--predictor must be one of {', '.join(PREDICTORS)}, got '{predictor}'")
@@ -226,8 +306,17 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
     if predictor == "previous" and client is not None:
         raise UsageError("--predictor previous tracks the pairs in order, each from the one before: leave out "
                          "--workers and --scheduler, or choose --predictor volumes")
+    if along_pairs is not None:
+        _check_series(store, chosen, client)
+        if 2 * len(chosen) < along_pairs.min_frames:
+            raise UsageError(f"--along-pairs fits tracks of at least {along_pairs.min_frames} frames (--min-frames), "
+                             f"but the {len(chosen)} pair(s) chosen hold {2 * len(chosen)}; choose more pairs "
+                             f"(--pair-range) or a smaller --min-frames")
+        if predictor == "previous":  # along a series each step's field predicts the next already
+            raise UsageError("--along-pairs predicts each frame from the frame before it already: choose "
+                             "--predictor none or volumes (for the first pair)")
     if predictor == "volumes":
-        _check_volumes(store, chosen)
+        _check_volumes(store, chosen if along_pairs is None else chosen[:1])
     _check_density(store, chosen, grid, settings)
     dt_s = float(store.timing["dt_s"])
     # the bins' grid, from a pair's result on no particles
@@ -236,6 +325,8 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
     windows = [[int(v) for v in settings.bin_voxels]]
     meta = {"source": "particle tracks", **settings.as_dict(), "predictor": predictor,
             "particles": attrs.get("settings", {})}
+    if along_pairs is not None:  # the series' pairs and how they are followed through it
+        meta["along_pairs"] = {**along_pairs.as_dict(), "pairs": [chosen[0], chosen[-1]]}
     out = TracksDone(shape=(len(x_mm), len(y_mm), len(z_mm)), predictor=predictor)
 
     def matches(g: Any) -> bool:
@@ -258,7 +349,29 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
         out.bins += int(np.prod(r.field_mm.shape[:3]))
         out.seconds += r.seconds
 
+    def along(todo: list[int]) -> None:
+        t0 = time.perf_counter()
+        pred = _volumes_predictor(store, chosen[0], grid, device) if predictor == "volumes" else None
+        tracks = _series(store, chosen, grid, settings, along_pairs, pred)  # type: ignore[arg-type]
+        lengths = tracks.lengths()
+        fitted = lengths >= along_pairs.min_frames  # type: ignore[union-attr]
+        out.series_frames = 2 * len(chosen)
+        out.series_tracks = int(fitted.sum())
+        out.series_length = float(lengths[fitted].mean()) if fitted.any() else 0.0
+        store.write_series_tracks(np.column_stack([tracks.track, tracks.frame, tracks.position_mm, tracks.fitted_mm]))
+        linked = time.perf_counter() - t0
+        with tqdm(total=len(todo), unit="pair", disable=not progress, desc="tracking", leave=False) as bar:
+            for p in todo:
+                made = _series_pair(tracks, p - chosen[0], grid, settings, along_pairs)  # type: ignore[arg-type]
+                written(p, PairTracks(rows=made.rows, field_mm=made.field_mm, outliers=made.outliers,
+                                      seconds=made.seconds + linked))
+                linked = 0.0
+                bar.update(1)
+
     def here(todo: list[int]) -> None:
+        if along_pairs is not None:
+            along(todo)
+            return
         last: tuple[int, TrackResult] | None = None
         with tqdm(total=len(todo), unit="pair", disable=not progress, desc="tracking", leave=False) as bar:
             for p in todo:

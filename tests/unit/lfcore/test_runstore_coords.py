@@ -137,3 +137,15 @@ def test_stores_made_before_the_coordinates_still_work(tiny_rig, tmp_path):
         r.write_volume(0, f, np.ones(grid.shape, np.float32))
     assert r.finish("volumes")
     assert "time" in xr.open_zarr(s.path, group="volumes", consolidated=False).coords
+
+
+def test_a_time_resolved_timing_is_told_by_its_rate_and_dt():
+    from lfcore.runstore import is_time_resolved
+
+    assert is_time_resolved({"dt_s": 0.002, "rate_hz": 250.0})  # a pair every 2 dt
+    assert is_time_resolved({"dt_s": 0.002, "rate_hz": 250.0 * 1.009})  # within 1%
+    assert not is_time_resolved({"dt_s": 0.002, "rate_hz": 250.0 * 1.02})
+    assert not is_time_resolved({"dt_s": 0.002, "rate_hz": 10.0})  # double-frame pairs at 10 Hz
+    assert not is_time_resolved({"dt_s": 0.002, "rate_hz": None})
+    assert not is_time_resolved({"dt_s": 0.002})
+    assert not is_time_resolved({})

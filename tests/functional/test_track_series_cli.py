@@ -1,0 +1,182 @@
+"""`lfpiv synth --time-resolved` and `lfpiv track --along-pairs` end to end on a tiny time-resolved
+series of a known uniform flow: tracks through every frame, their fit, the field against the truth,
+the export, and the refusals."""
+
+from __future__ import annotations
+
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+from lfcore.runstore import RunStore, is_time_resolved
+from lfcore.volume import VolumeGrid
+from tests.conftest import EXAMPLES
+from tests.conftest import run_cli as _run
+
+NOISE_VOXELS = np.array([0.1, 0.1, 0.2])  # about IPR's position error on one light-field camera
+
+
+@pytest.fixture(scope="module")
+def series_run(tmp_path_factory):
+    """Four pairs (eight frames) of a uniform flow on the tiny rig as a time-resolved series, with
+    particles made from the truth plus a known noise (a stand-in for 'lfpiv particles', which the
+    particle tests cover: here what is tested is what tracking makes of a known noise)."""
+    import contextlib
+    import io
+
+    from lfpiv.cli import main
+
+    run = tmp_path_factory.mktemp("series") / "s.zarr"
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        assert main([str(a) for a in ("synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "4",
+                                      "--ppm", "0.3", "--flow", "uniform", "--displacement-px", "4",
+                                      "--time-resolved", "--rays", "50", "--quiet")]) == 0
+    s = RunStore.open(run, mode="r+")
+    grid = VolumeGrid.from_rig(s.rig)
+    truth = s.truth()["particles"]
+    lo, hi = s.rig.volume.bounds_mm
+    rng = np.random.default_rng(7)
+    s.create_particles(grid, method="truth plus noise", settings={"noise_voxels": NOISE_VOXELS.tolist()})
+    for p in range(truth.shape[0]):
+        frames = []
+        for f in range(2):
+            xyz = truth[p, f]
+            xyz = xyz[np.all((xyz >= lo) & (xyz <= hi), axis=1)]  # the box's particles, as IPR keeps
+            xyz = xyz + rng.normal(size=xyz.shape) * NOISE_VOXELS * np.asarray(grid.voxel_mm)
+            frames.append(np.column_stack([xyz, np.ones(len(xyz)), np.zeros(len(xyz))]))
+        s.write_particles(p, frames)
+    return run
+
+
+def _copy(run, tmp_path, name="r.zarr"):
+    shutil.copytree(run, tmp_path / name)
+    return tmp_path / name
+
+
+def _rms(out):
+    m = re.search(r"velocity error: RMS u, v, w .* m/s \(([\d.]+), ([\d.]+), ([\d.]+) voxel\)", out)
+    assert m, out
+    return np.array([float(m.group(k)) for k in (1, 2, 3)])
+
+
+def test_a_time_resolved_series_is_synthesized(series_run):
+    s = RunStore.open(series_run)
+    assert is_time_resolved(s.timing)
+    assert s.timing["rate_hz"] == pytest.approx(1.0 / (2.0 * s.timing["dt_s"]))
+    truth = s.truth()["particles"]
+    # the same particles from frame to frame: each frame the last one moved by the flow (those that
+    # left the box come back in at the opposite face)
+    step = np.diff(truth.reshape(-1, *truth.shape[2:]), axis=0)
+    moved = np.median(step, axis=1)
+    assert np.allclose(step[np.all(np.abs(step - moved[:, None]) < 1e-6, axis=2)].mean(axis=0), moved[0], atol=1e-9)
+    assert np.mean(np.all(np.abs(step - moved[:, None]) < 1e-6, axis=2)) > 0.9
+    assert np.allclose(s.truth()["t0_s"], np.arange(4) * 2 * s.timing["dt_s"])
+
+
+def test_tracks_along_the_pairs_beat_each_pair_on_its_own(series_run, tmp_path, capsys):
+    pairwise = _copy(series_run, tmp_path, "p.zarr")
+    along = _copy(series_run, tmp_path, "a.zarr")
+    assert _run(capsys, "track", pairwise, "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "track", along, "--along-pairs", "--quiet")
+    assert rc == 0, err
+    assert "through the 8 frames" in out and "along the pairs" in out
+    s = RunStore.open(along)
+    series = s.read_series_tracks()
+    assert series.shape[1] == 8
+    lengths = np.bincount(series[:, 0].astype(int))
+    # most particles that stay in the box (do not leave it and come back at the opposite face) are
+    # followed through all eight frames
+    truth = s.truth()["particles"].reshape(-1, s.truth()["particles"].shape[2], 3)
+    step = np.diff(truth, axis=0)
+    stay = np.all(np.abs(step - np.median(step, axis=1)[:, None]) < 1e-6, axis=(0, 2))
+    assert np.count_nonzero(lengths == 8) >= 0.8 * np.count_nonzero(stay)
+    assert s.vectors()["attrs"]["settings"]["along_pairs"]["pairs"] == [0, 3]
+    # every pair's tracks are the fitted positions at its frames, in vectors/tracks as pair tracking writes them
+    assert all(len(s.read_tracks(p)) > 20 for p in range(4))
+    errs = []
+    for run in (pairwise, along):
+        rc, out, err = _run(capsys, "evaluate", run)
+        assert rc == 0, err
+        errs.append(_rms(out))
+    assert np.all(errs[1] < errs[0])  # the fit through the frames averages the positions' noise
+    # the tracks through the series: their fitted positions nearer the truth than the particles
+    voxel = np.asarray(VolumeGrid.from_rig(s.rig).voxel_mm)
+    fitted = np.isfinite(series[:, 5])
+    before, after = [], []
+    for f, xyz, fit in zip(series[fitted, 1].astype(int), series[fitted, 2:5], series[fitted, 5:8], strict=True):
+        near = truth[f][np.argmin(np.sum((truth[f] - xyz) ** 2, axis=1))]
+        before.append((xyz - near) / voxel)
+        after.append((fit - near) / voxel)
+    before, after = np.sqrt(np.mean(np.square(before), axis=0)), np.sqrt(np.mean(np.square(after), axis=0))
+    assert np.allclose(before, NOISE_VOXELS, rtol=0.2)
+    assert np.all(after < 0.8 * before)
+    # the tracks export as pair tracking's do
+    rc, out, err = _run(capsys, "export", along, "--format", "tracks-csv", "--out", tmp_path / "csv")
+    assert rc == 0, err
+    assert len((tmp_path / "csv" / "tracks.csv").read_text().splitlines()) == 1 + sum(len(s.read_tracks(p))
+                                                                                    for p in range(4))
+    # and the tracks through the series, one row a point, with their times
+    rc, out, err = _run(capsys, "export", along, "--format", "series-csv", "--out", tmp_path / "csv")
+    assert rc == 0, err
+    table = np.loadtxt(tmp_path / "csv" / "series_tracks.csv", delimiter=",", skiprows=1)
+    assert np.allclose(table[:, [0, 1, 3, 4, 5]], series[:, :5], atol=1e-6)  # mm to 6 decimals
+    assert np.allclose(table[:, 2], series[:, 1] * s.timing["dt_s"])
+    assert np.allclose(table[:, 6:], series[:, 5:], equal_nan=True, atol=1e-6)
+    # a run tracked pair by pair has none: one line, exit 2
+    rc, out, err = _run(capsys, "export", pairwise, "--format", "series-csv", "--out", tmp_path / "csv2")
+    assert rc == 2 and "--along-pairs" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_along_pairs_refuses_too_few_frames(series_run, tmp_path, capsys):
+    run = _copy(series_run, tmp_path)
+    rc, out, err = _run(capsys, "track", run, "--along-pairs", "--pair-range", "0")
+    assert rc == 2 and "--min-frames" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not RunStore.open(run).has_vectors
+
+
+def test_along_pairs_refuses_a_run_that_is_not_time_resolved(tmp_path, capsys):
+    run = tmp_path / "d.zarr"
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "2", "--ppm", "0.1",
+                "--flow", "uniform", "--rays", "20", "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "track", run, "--along-pairs")
+    # no particles yet: that is said first; with particles, the timing
+    assert rc == 2 and "Traceback" not in err
+    s = RunStore.open(run, mode="r+")
+    grid = VolumeGrid.from_rig(s.rig)
+    s.create_particles(grid, method="truth", settings={})
+    for p in range(2):
+        t = s.truth()["particles"][p]
+        s.write_particles(p, [np.column_stack([t[f], np.ones((len(t[f]), 2))]) for f in range(2)])
+    rc, out, err = _run(capsys, "track", run, "--along-pairs")
+    assert rc == 2 and "--along-pairs" in err and "time-resolved" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1 and not RunStore.open(run).has_vectors
+    assert not is_time_resolved(RunStore.open(run).timing)
+
+
+def test_synth_refuses_a_rate_that_contradicts_a_time_resolved_series(tmp_path, capsys):
+    rc, out, err = _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", tmp_path / "x.zarr",
+                        "--time-resolved", "--rate-hz", "10", "--dt-ms", "2", "--quiet")
+    assert rc == 2 and "--time-resolved" in err and "250" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "x.zarr").exists()
+    rc, out, err = _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", tmp_path / "y.zarr",
+                        "--time-resolved", "--rate-hz", "250", "--dt-ms", "2", "--pairs", "1", "--ppm", "0.1",
+                        "--rays", "20", "--quiet")
+    assert rc == 0, err
+
+
+def test_the_python_api_tracks_along_the_pairs_as_the_command_does(series_run, tmp_path, capsys):
+    import lfpiv
+
+    by_api = _copy(series_run, tmp_path, "api.zarr")
+    by_cli = _copy(series_run, tmp_path, "cli.zarr")
+    done = lfpiv.track(by_api, along_pairs={"fit_frames": 5}, progress=False)
+    assert done.series_frames == 8 and done.series_tracks > 0 and done.pairs == [0, 1, 2, 3]
+    assert _run(capsys, "track", by_cli, "--along-pairs", "--fit-frames", "5", "--quiet")[0] == 0
+    assert np.array_equal(RunStore.open(by_api).read_series_tracks(), RunStore.open(by_cli).read_series_tracks(),
+                          equal_nan=True)
+    from lfpiv.errors import UsageError
+
+    with pytest.raises(UsageError, match="fit_frames"):
+        lfpiv.track(by_api, along_pairs={"fit_frames": 2}, progress=False)

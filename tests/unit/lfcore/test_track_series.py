@@ -1,0 +1,133 @@
+"""Tracks through a time-resolved series (lfcore.track.link_series, fit_series, pair_tracks) from
+known motions of known point sets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from lfcore.track import (
+    SeriesSettings,
+    TrackSettings,
+    field_of_tracks,
+    fit_series,
+    link_series,
+    pair_tracks,
+)
+from lfcore.volume import VolumeGrid
+
+GRID = VolumeGrid(shape=(20, 64, 64), voxel_mm=(0.01, 0.01, 0.05), origin_mm=(-0.315, -0.315, -0.475))
+VOXEL = np.asarray(GRID.voxel_mm)
+
+
+def _points(n, seed):
+    """n points away from the faces, none within a voxel of another (IPR merges such particles,
+    and which of two is which is then anyone's guess)."""
+    rng = np.random.default_rng(seed)
+    lo = np.asarray(GRID.origin_mm) + 6 * VOXEL  # away from the faces
+    size = VOXEL * (np.asarray(GRID.shape[::-1]) - 13)
+    p = lo + rng.random((2 * n, 3)) * size
+    d, _ = cKDTree(p / VOXEL).query(p / VOXEL, k=2)
+    return p[d[:, 1] > 1.0][:n]
+
+
+def _shuffled(frames, seed):
+    """Each frame's particles in a random order, and where each true particle went."""
+    rng = np.random.default_rng(seed)
+    out, where = [], []
+    for f in frames:
+        perm = rng.permutation(len(f))
+        out.append(f[perm])
+        where.append(np.argsort(perm))  # true particle i is row where[i]
+    return out, where
+
+
+def _full_and_true(tracks, where, n, frames):
+    """How many tracks run through every frame, and whether each of them follows one true particle."""
+    full = np.nonzero(tracks.lengths() == frames)[0]
+    right = 0
+    for t in full:
+        rows = tracks.row[tracks.track == t]
+        truth = [np.nonzero(where[f] == r)[0][0] for f, r in enumerate(rows)]
+        right += len(set(truth)) == 1
+    return len(full), right
+
+
+def test_a_uniform_displacement_through_six_frames_is_linked_into_full_tracks():
+    a = _points(250, 0)
+    step = np.array([1.7, -1.2, 0.6]) * VOXEL  # per frame
+    frames = [a + k * step for k in range(6)]
+    shuffled, where = _shuffled(frames, 1)
+    tracks = link_series(shuffled, GRID, settings=TrackSettings(search_voxels=(3.0, 3.0, 1.5)))
+    full, right = _full_and_true(tracks, where, len(a), 6)
+    assert full == len(a) and right == len(a)  # every particle followed through all six frames
+    assert tracks.n_tracks == len(a)
+
+
+def test_a_rotation_through_six_frames_is_linked_into_full_tracks():
+    a = _points(400, 2)
+    omega = 0.01  # rad a frame about z: up to 4 voxels a frame at the corners
+    frames = []
+    for k in range(6):
+        c, s = np.cos(k * omega), np.sin(k * omega)
+        frames.append(np.column_stack([a[:, 0] * c - a[:, 1] * s, a[:, 0] * s + a[:, 1] * c, a[:, 2]]))
+    rng = np.random.default_rng(3)
+    noisy = [f + rng.normal(scale=0.05, size=f.shape) * VOXEL for f in frames]
+    shuffled, where = _shuffled(noisy, 4)
+    tracks = link_series(shuffled, GRID, settings=TrackSettings(search_voxels=(5.0, 5.0, 1.0), bin_voxels=(8, 8, 5)))
+    full, right = _full_and_true(tracks, where, len(a), 6)
+    assert full >= 0.97 * len(a)
+    assert right == full  # no track jumps from one particle to another
+
+
+def test_the_polynomial_fit_reduces_a_known_noise():
+    # a curved path (constant acceleration) sampled with 0.1 voxel of noise through 10 frames
+    rng = np.random.default_rng(5)
+    a = _points(300, 6)
+    vel = np.array([1.0, 0.5, 0.2]) * VOXEL
+    acc = np.array([0.1, -0.05, 0.0]) * VOXEL
+    true = [a + k * vel + 0.5 * k * k * acc for k in range(10)]
+    noise = 0.1 * VOXEL
+    frames = [t + rng.normal(size=t.shape) * noise for t in true]
+    ser = SeriesSettings(fit_frames=6)
+    tracks = fit_series(link_series(frames, GRID, settings=TrackSettings(search_voxels=(3.0, 3.0, 1.0))), series=ser)
+    assert np.all(tracks.lengths() == 10)
+    truth = np.array([true[f][r] for f, r in zip(tracks.frame, tracks.row, strict=True)])
+    before = np.sqrt(np.mean(((tracks.position_mm - truth) / VOXEL) ** 2, axis=0))
+    after = np.sqrt(np.mean(((tracks.fitted_mm - truth) / VOXEL) ** 2, axis=0))
+    assert np.allclose(before, 0.1, rtol=0.1)
+    assert np.all(after < 0.75 * before)  # a 2nd-order fit through 6 frames: about 0.6 of the noise
+    # the displacement over a pair at its mid-time: a pair alone has sqrt(2) x 0.1 voxel of noise
+    # the displacement over a pair at its mid-time: one pair's tracks alone have sqrt(2) x 0.1 = 0.14
+    # voxel of noise; a fit centred on the pair (2 of 6 frames either side) about 0.024, one at the
+    # series' ends (its window all on one side) about 0.07
+    for pair, most in ((0, 0.09), (2, 0.035), (4, 0.09)):
+        pa, pb, ids = pair_tracks(tracks, pair, series=ser)
+        assert len(ids) == len(a)
+        rows = [tracks.row[(tracks.track == t) & (tracks.frame == 2 * pair)][0] for t in ids]
+        exact = vel + (2 * pair + 0.5) * acc  # the velocity at the mid-time, times one frame
+        err = ((pb - pa) - exact) / VOXEL
+        assert np.all(np.sqrt(np.mean(err ** 2, axis=0)) < most)
+        assert np.sqrt(np.mean(((pa - np.array(true[2 * pair])[rows]) / VOXEL) ** 2)) < 0.095  # the noise: 0.1
+
+
+def test_short_tracks_are_not_fitted_and_settings_are_checked():
+    a = _points(50, 7)
+    frames = [a, a + VOXEL, a + 2 * VOXEL]  # three frames: too short for min_frames 4
+    tracks = fit_series(link_series(frames, GRID))
+    assert np.all(np.isnan(tracks.fitted_mm))
+    assert len(pair_tracks(tracks, 0)[2]) == 0
+    with pytest.raises(ValueError, match="at least 3 frames"):
+        SeriesSettings(fit_frames=2)
+    with pytest.raises(ValueError, match="link_voxels"):
+        SeriesSettings(link_voxels=(1.0, 0.0, 1.0))
+
+
+def test_the_field_of_fitted_tracks_is_the_known_displacement():
+    a = _points(300, 8)
+    shift = np.array([1.5, 0.5, 0.3]) * VOXEL
+    res = field_of_tracks(a, a + shift, GRID, settings=TrackSettings(bin_voxels=(16, 16, 5)))
+    good = np.isfinite(res.field_mm[..., 0])
+    assert good.mean() > 0.5 and not res.outlier.any()
+    assert np.allclose(res.field_mm[good], shift, atol=1e-6)
