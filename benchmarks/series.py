@@ -28,7 +28,13 @@ sys.path.insert(0, str(ROOT))
 
 from lfcore.reconstruct import FrameReconstructor  # noqa: E402
 from lfpiv.jobs.evaluate import evaluate_run  # noqa: E402
-from lfpiv.jobs.reconstruct import DEFAULT_PROTOCOL, camera_count, protocol_run_settings, reconstruct_run  # noqa: E402
+from lfpiv.jobs.reconstruct import (  # noqa: E402
+    DEFAULT_PROTOCOL,
+    camera_count,
+    default_method,
+    protocol_run_settings,
+    reconstruct_run,
+)
 from lfpiv.runs import open_run  # noqa: E402
 
 MODES = {"cold": {}, "warm": {"warm_start": True}}
@@ -69,7 +75,8 @@ def one_mode(path: Path, args, options: dict) -> dict:
     """Reconstruct the run at ``path`` as ``lfpiv reconstruct`` does with ``options``; per frame
     (pair, frame): iterations, why it stopped, voxels, warm, CPU s; and Q."""
     store = open_run(str(path), mode="r+")
-    settings = protocol_run_settings(args.protocol, n_cameras=camera_count(store.rig), **options)
+    settings = protocol_run_settings(args.protocol, n_cameras=camera_count(store.rig),
+                                     method=default_method(store.rig), **options)
     cpu: list[float] = []
     original = FrameReconstructor.reconstruct
 
