@@ -79,9 +79,10 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
 __all__ = ["CAPPED", "CONVERGED", "FIXED", "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE",
            "PRUNE_PERCENTILE", "SEVERAL_CAMERAS", "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WEIGHTS",
            "CoarseBright", "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings", "StoppingRule",
-           "WARM_SHARE", "bright_voxels", "coarse_applies", "coarse_bright", "coarse_reconstructor",
-           "estimate_background", "is_split", "preprocess", "preprocess_images", "protocol_settings", "prune_dark",
-           "reconstruct", "relative_residual", "smart_iterations", "stop_interval", "warm_count"]
+           "WARM_HANDOVER", "WARM_LOS_ITERATIONS", "WARM_SHARE", "WARM_STOP_EVERY", "bright_voxels", "coarse_applies",
+           "coarse_bright", "coarse_reconstructor", "estimate_background", "is_split", "preprocess",
+           "preprocess_images", "protocol_settings", "prune_dark", "reconstruct", "relative_residual",
+           "smart_iterations", "stop_interval", "unexplained_added", "warm_count"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: The weights each method iterates on (the ``method`` of :meth:`lfcore.operator.Projector.operator`
@@ -109,6 +110,30 @@ FORMS = ("simultaneous", "sequential")
 #: default): benchmarks/warm.py measured frame B started from A by the last pair's field reaching
 #: the cold frame's Q in this share.
 WARM_SHARE = 0.2
+#: A warm-started frame's line-of-sight iterations where its settings run some first
+#: (``ReconSettings.los_iterations``, fewer if they ask for fewer): the carried start already holds
+#: frame A's particles where they moved to, so a few are enough for what entered or the predictor
+#: missed to grow and for the chance crossings of lines of sight to fade before DRT's weights are
+#: built for the voxels still bright. On the tiny rig's vortex ring (``benchmarks/series.py``) 3 then
+#: one pass of DRT's weights gave frames B a mean Q of 0.83 against 0.80 with none (DRT's weights for
+#: every active voxel, twice the CPU).
+WARM_LOS_ITERATIONS = 3
+#: The least share of the brightest voxel's intensity a voxel of a warm-started frame needs after its
+#: line-of-sight iterations to get DRT weights (the hand-over's threshold; the frame's own is taken
+#: where higher). After 3 iterations the chance crossings of lines of sight have not faded as they
+#: have after a cold frame's 20 or 30, and at the pruning's 1% a warm frame B of the demo rig built DRT
+#: weights for 4 times the voxels of a cold one, its CPU 0.7 of frame A's; at 2% 0.5 of it, Q 0.852
+#: against 0.848, and on the tiny rig Q 0.839 at both (at 3% 0.820 and 4-11 iterations instead of 4;
+#: ``benchmarks/series.py``).
+WARM_HANDOVER = 0.02
+#: Iterations (passes through ordered subsets) between the stopping rule's measurements of a
+#: warm-started frame. The rule there stops once the residual fell by less than its tolerance over
+#: one of them, whatever the voxels leaving (:class:`StoppingRule`'s ``voxels`` test is for ghosts
+#: still fading from a uniform start; a warm start's faded over frame A's iterations): after the
+#: hand-over to DRT's weights the residual of a warm frame B no longer falls below the start's, and
+#: its Q falls with every pass (tiny rig: 0.833 after 3 + 2, 0.812 after 3 + 8, 0.801 where the cold
+#: rule stopped it, after 3 + 12 to 17).
+WARM_STOP_EVERY = 1
 
 
 #: Why a frame's iterations ended (:attr:`ReconResult.stopped`): all it was asked for (no stopping
@@ -207,7 +232,12 @@ class ReconSettings:
     warm_start
         Along a series, start frame B of each pair from frame A's intensities carried by the
         predicted displacement (the last pair's measured field) instead of uniform, and iterate it
-        ``warm_iterations`` times (:mod:`lfcore.warm`). The simultaneous form only.
+        ``warm_iterations`` times (:mod:`lfcore.warm`). The simultaneous form only. With the stopping
+        rule (``stop_tolerance``) that is the most it runs: the rule measures a warm frame every
+        :data:`WARM_STOP_EVERY` iterations, on the residual alone; and where ``los_iterations`` asks
+        for line-of-sight iterations first, a warm frame runs :data:`WARM_LOS_ITERATIONS` of them from
+        its start with the light it leaves unexplained added (:func:`unexplained_added`), and hands
+        the voxels above :data:`WARM_HANDOVER` of the brightest to DRT's weights.
     warm_iterations
         Iterations of a warm-started frame; None: :data:`WARM_SHARE` of ``iterations``.
     los_iterations
@@ -1010,7 +1040,8 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
                      iterations: int | None = None, relaxation: float | None = None,
                      progress: Callable[[int], None] | None = None, start=None, stop_tolerance: float | None = None,
                      split: Callable[[Operator], Operator] | None = None, t0: float | None = None,
-                     started: Callable[[float], None] | None = None, prune: float | None = None) -> Iterated:
+                     started: Callable[[float], None] | None = None, prune: float | None = None,
+                     warm: bool = False) -> Iterated:
     """MART's start and iterations on ``op`` in the buffers given: the one loop of
     :meth:`FrameReconstructor.iterate` (in memory) and :class:`lfcore.slabs.SlabReconstructor` (the
     operators of a volume's depth slabs as one, :class:`lfcore.slabs.SlabOperators`).
@@ -1024,7 +1055,7 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
     image, proj, ratio
         (n_pixels,) float32 Warp arrays: the measured signal in counts (:meth:`FrameReconstructor.iterate`),
         the projection's and the log ratios' scratch (``ratio`` None for the sequential form).
-    noise, settings, iterations, relaxation, progress, start, stop_tolerance, prune
+    noise, settings, iterations, relaxation, progress, start, stop_tolerance, prune, warm
         As :meth:`FrameReconstructor.iterate` takes them.
     split
         Called with the scaled-start operator where ``settings.subsets`` asks for ordered subsets (the
@@ -1076,8 +1107,13 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
     # with the rule on, ordered subsets prune and measure per pass as often as the plain form per iteration
     per_pass = op.n_subsets if tolerance > 0 and ordered else 1
     prune_every = pass_prune_every(s, per_pass) if per_pass > 1 else s.prune_every
-    rule = StoppingRule(tolerance, voxels=s.stop_voxels, every=stop_interval(s, prune=prune > 0,
-                                                                              subsets=per_pass))
+    if warm and tolerance > 0:
+        # a warm start: measured (and pruned) every WARM_STOP_EVERY, on the residual alone
+        prune_every = WARM_STOP_EVERY
+        rule = StoppingRule(tolerance, voxels=math.inf, every=WARM_STOP_EVERY)
+    else:
+        rule = StoppingRule(tolerance, voxels=s.stop_voxels, every=stop_interval(s, prune=prune > 0,
+                                                                                  subsets=per_pass))
     ran, stopped = its, (CAPPED if rule.on else FIXED)
     for it in range(1, its + 1):
         measure = rule.due(it - 1)  # the stopping rule: on the projection of what it - 1 iterations left
@@ -1101,6 +1137,67 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
         progress(its - ran)  # the iterations the rule left out, for a bar sized for the most
     wp.synchronize_device(device)
     return Iterated(e, t1 - t0, time.perf_counter() - t1, op, ran, stopped)
+
+
+def unexplained_added(op: Operator, start, image, noise: Sequence[float], *, settings: ReconSettings):
+    """A warm start with what it leaves unexplained added: the light of the measured ``image`` its
+    projection does not account for (particles that entered the box, or that the predictor missed)
+    put back along the lines of sight of the voxels whose pixels all saw it.
+
+    MART grows a voxel by the mean log ratio over its pixels, so a particle that is not in the warm
+    start, where some of its pixels are lit by carried ones, grows slowly from the start's floor
+    (:func:`lfcore.warm.with_floor`) while the carried particles settle. The unexplained signal
+    ``u = max(b - s Wx, 0)`` (``s`` the start's scale to the measured total) is turned into a
+    multiplicative line-of-sight volume (MLOS: ``exp(sum_i w_iv ln(max(u_i, f) / f)) - 1``, ``f`` the
+    update's floor: zero where a voxel's pixels are all explained) scaled to carry ``sum u``, and
+    added.
+
+    Parameters
+    ----------
+    op
+        The frame's operator (its first one: line-of-sight weights where the frame runs them).
+    start
+        (n,) float32 Warp array on the device: the warm start (:meth:`lfcore.warm.WarmStart.start`).
+    image
+        (n_pixels,) float32 Warp array: the measured signal, in counts (:data:`MASKED` pixels left out).
+    noise, settings
+        Each camera's noise sigma in counts, and the settings (the update's floor,
+        ``settings.floor * settings.threshold_sigma`` times their mean).
+
+    Returns
+    -------
+    warp.array
+        (n,) float32 on the device: the start, unscaled (the iterations scale it to the signal).
+    """
+    wp = warp()
+    n = op.n_voxels
+    if n == 0:
+        return start
+    device = op.device
+    proj = wp.zeros(int(image.shape[0]), dtype=float, device=device)
+    op.forward(start, out=proj)
+    b, p = image.numpy().astype(np.float64), proj.numpy().astype(np.float64)
+    ok = b >= 0
+    measured, projected = float(b[ok].sum()), float(p.sum())
+    if measured <= 0 or projected <= 0:
+        return start
+    scale = measured / projected
+    u = np.where(ok, np.maximum(b - scale * p, 0.0), 0.0)
+    total_u = float(u.sum())
+    floor = max(settings.floor * settings.threshold_sigma * float(np.mean(noise)), 1e-6)
+    if total_u <= 0:
+        return start
+    ratio = wp.array(np.log(np.maximum(u, floor) / floor).astype(np.float32), dtype=float, device=device)
+    e_u = wp.full(n, 1.0, dtype=float, device=device)
+    op.update(ratio, e_u, 1.0)
+    mlos = np.maximum(e_u.numpy().astype(np.float64) - 1.0, 0.0)
+    wp.copy(e_u, wp.array(mlos.astype(np.float32), dtype=float, device="cpu"))
+    op.forward(e_u, out=proj)
+    lit = float(proj.numpy().astype(np.float64).sum())
+    if lit <= 0:
+        return start
+    out = scale * start.numpy().astype(np.float64) + (total_u / lit) * mlos
+    return wp.array(out.astype(np.float32), dtype=float, device=device)
 
 
 def _mart_kernels():
@@ -1257,35 +1354,43 @@ class FrameReconstructor:
         else:
             voxels = self.eliminate(lits)  # returns once counted: synced
         t_elim = t0 if settings.method == "mart" else time.perf_counter()
-        los_first = bool(settings.los_iterations) and not warmed and int(voxels.shape[0]) > 0
+        # a warm frame runs fewer line-of-sight iterations: its start holds frame A's particles already
+        los_its = (min(settings.los_iterations, WARM_LOS_ITERATIONS, settings.warm_count - 1) if warmed
+                   else settings.los_iterations)
+        los_first = bool(los_its) and int(voxels.shape[0]) > 0
         op = self.los_operator(voxels) if los_first else self.operator(voxels)
         active, kind = op.n_voxels, op.kind
         nbytes = int(op.nbytes) if los_first else self.operator_bytes(op)
         weights_s = time.perf_counter() - t0
         its = settings.warm_count if warmed else settings.iterations
-        start = warm.start(op, predictor) if warmed else coarse
+        start = (unexplained_added(op, warm.start(op, predictor), self._image, noises, settings=settings) if warmed
+                 else coarse)
         del coarse
         iterate_s = 0.0
         if los_first:
             # the cheap weights first; DRT's then for the voxels still bright (a third of them on Mc)
-            first = self.iterate(op, self._image, noises, progress=progress, iterations=settings.los_iterations,
+            first = self.iterate(op, self._image, noises, progress=progress, iterations=los_its,
                                  stop_tolerance=0.0, start=start, prune=cut)
             weights_s += first.start_s
             iterate_s += first.iterate_s
             t = time.perf_counter()
-            (bright,), (e,) = bright_voxels([first.op], [first.e], cut or settings.prune or PRUNE)
+            handover = cut or settings.prune or PRUNE
+            if warmed:  # after a few iterations the chance crossings are still bright: a higher cut
+                handover = max(handover, WARM_HANDOVER)
+            (bright,), (e,) = bright_voxels([first.op], [first.e], handover)
             # a dark voxel may still grow under the sharper weights; the line-of-sight weights go first
             start = with_floor(wp.array(e, dtype=float, device=self.device), WARM_BLEND, copy=False)
             del first, op, e
             op = self.operator(wp.array(bright, dtype=wp.int32, device=self.device))
             del bright
             weights_s += time.perf_counter() - t
-            its -= settings.los_iterations
+            its = max(1, its - los_its)
         nnz, n_fly, applied, last_kind = op.nnz, op.n_on_the_fly, applied_by(op), op.kind
         op_bytes = self.operator_bytes(op)
         ops = [op]
         del op  # iterate may split it into ordered subsets (settings.subsets): the unsplit rows may then go
-        done = self.iterate(ops.pop(), self._image, noises, progress=progress, iterations=its, start=start, prune=cut)
+        done = self.iterate(ops.pop(), self._image, noises, progress=progress, iterations=its, start=start, prune=cut,
+                            warm=warmed)
         del start
         if warm is not None:
             warm.keep(done.op, done.e)
@@ -1296,7 +1401,7 @@ class FrameReconstructor:
         return ReconResult(volume=volume, active_voxels=active, active_fraction=active / p.grid.n_voxels,
                            nnz=nnz, weight_bytes=max(nbytes, op_bytes),
                            weights_s=weights_s + done.start_s, iterate_s=iterate_s + done.iterate_s,
-                           iterations=done.iterations + (settings.los_iterations if los_first else 0),
+                           iterations=done.iterations + (los_its if los_first else 0),
                            stopped=done.stopped, background=backgrounds,
                            noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=n_fly,
                            projector=applied, operator=f"{kind}, then {last_kind}" if los_first else kind,
@@ -1430,7 +1535,8 @@ class FrameReconstructor:
 
     def iterate(self, op: Operator, image, noise: Sequence[float], *, iterations: int | None = None,
                 relaxation: float | None = None, progress: Callable[[int], None] | None = None,
-                start=None, stop_tolerance: float | None = None, prune: float | None = None) -> Iterated:
+                start=None, stop_tolerance: float | None = None, prune: float | None = None,
+                warm: bool = False) -> Iterated:
         """MART on ``weights``: a uniform start (or ``start``), then the iterations of ``settings.form``.
 
         The start is uniform (or ``start``), scaled so that its projection carries the measured total
@@ -1463,6 +1569,9 @@ class FrameReconstructor:
         prune
             Overrides ``settings.prune`` (the threshold after coarse-to-fine elimination,
             ``settings.coarse_prune``); None: ``settings.prune``.
+        warm
+            Whether ``start`` is a warm start (:mod:`lfcore.warm`): the stopping rule then measures
+            every :data:`WARM_STOP_EVERY` iterations, on the residual alone.
 
         Returns
         -------
@@ -1481,7 +1590,8 @@ class FrameReconstructor:
             self._ratio = wp.empty(p.n_pixels, dtype=float, device=self.device)
         return smart_iterations(op, self._e[: max(n, 1)], image, self._proj, self._ratio, noise, s,
                                 iterations=iterations, relaxation=relaxation, progress=progress, start=start,
-                                stop_tolerance=stop_tolerance, split=self._ordered_subsets, t0=t0, prune=prune)
+                                stop_tolerance=stop_tolerance, split=self._ordered_subsets, t0=t0, prune=prune,
+                                warm=warm)
 
     def _ordered_subsets(self, op: Operator) -> Operator:
         """``op`` split by ``settings.subsets`` pixel subsets (:func:`lfcore.subsets.split`), or

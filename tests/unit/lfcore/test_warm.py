@@ -175,3 +175,91 @@ def test_a_moved_scene_reaches_the_cold_quality_in_a_fifth_of_the_iterations(mov
     p = predictor_field(res_a.volume, res_b.volume, device="cpu").mean()
     np.testing.assert_allclose(p[:2], shift[:2], atol=0.3)
     assert 0.2 < p[2] < 1.5
+
+
+# --- the warm start under the fast protocol: a few line-of-sight iterations, then the warm rule ------------------
+
+def _fast(**changes):
+    from lfcore.reconstruct import protocol_settings
+
+    return protocol_settings("fast", projector="stored", **changes)
+
+
+def test_a_still_scene_under_fast_stops_early_at_the_cold_quality(moving):
+    """The default protocol: a warm frame of a still scene stops by the rule in a quarter of the cold
+    frame's iterations, at its Q."""
+    from lfcore.reconstruct import CONVERGED, WARM_LOS_ITERATIONS
+
+    rig, grid, pts, images, _ = moving
+    proj = projector_for(rig.camera[:1], grid, device="cpu")
+    truth = metrics.truth_volume(grid, pts[1])
+    frames = FrameReconstructor(proj, _fast())
+    q_cold, cold = _q(frames, images[1], truth)
+    assert not cold.warm and cold.stopped == CONVERGED
+    ws = WarmStart(grid.shape, device="cpu")
+    _q(frames, images[0], truth, warm=ws)
+    q_w, res = _q(frames, images[1], truth, warm=ws, predictor=Predictor.uniform((0.0, 0.0, 0.0)))
+    assert res.warm and res.stopped == CONVERGED
+    assert WARM_LOS_ITERATIONS < res.iterations <= cold.iterations / 4, (res.iterations, cold.iterations)
+    assert q_w >= q_cold - 0.01, (q_w, q_cold)
+
+
+def test_the_warm_rule_stops_a_converged_frame_at_once(moving):
+    """A frame restarted from its own converged intensities: the warm rule stops it after one
+    iteration; the cold rule, which waits for the voxels to stop leaving, runs at least its interval."""
+    from lfcore.reconstruct import CONVERGED, WARM_STOP_EVERY
+
+    rig, grid, _, images, _ = moving
+    proj = projector_for(rig.camera[:1], grid, device="cpu")
+    settings = ReconSettings(iterations=100, projector="stored", stop_tolerance=0.003)
+    frames = FrameReconstructor(proj, settings)
+    from lfcore.reconstruct import preprocess_images
+
+    signals, lits, _, noises = preprocess_images(proj, [images[1]], settings)
+    wp = warp()
+    image = wp.array(np.concatenate([s.ravel() for s in signals]), dtype=float, device="cpu")
+    op = frames.operator(frames.eliminate(lits))
+    done = frames.iterate(op, image, noises, iterations=150, stop_tolerance=0.0)  # far past the rule's stop
+    e = wp.clone(done.e)
+    warm = frames.iterate(done.op, image, noises, start=wp.clone(e), warm=True)
+    assert warm.stopped == CONVERGED and warm.iterations == WARM_STOP_EVERY
+    cold = frames.iterate(done.op, image, noises, start=wp.clone(e))
+    assert cold.iterations >= 10 > warm.iterations
+    # a fixed count stays a fixed count, warm or not
+    fixed = frames.iterate(done.op, image, noises, start=wp.clone(e), warm=True, stop_tolerance=0.0, iterations=7)
+    assert fixed.iterations == 7
+
+
+def test_a_particle_that_enters_in_frame_b_is_found(tiny_rig):
+    """Frame B holds particles frame A did not (they entered the box): the warm frame under the fast
+    protocol finds them as the cold frame does, though its start holds none of them."""
+    from lfcore.particles import particle_count, seed_particles
+
+    rig = _crop(tiny_rig)
+    grid = VolumeGrid.from_rig(rig)
+    rng = np.random.default_rng(5)
+    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.3), rng)
+    shift = np.array([1.0, -1.0, 0.5])  # voxels
+    new = seed_particles(rig.volume, 8, rng)
+    b = np.concatenate([pts + shift * np.asarray(grid.voxel_mm), new])
+    cfg = rig.render.model_copy(update={"rays_per_particle": 20_000})
+    r = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu")
+    img_a, img_b = r.frame(pts, 50_000.0, seed=1), r.frame(b, 50_000.0, seed=2)
+    proj = projector_for(rig.camera[:1], grid, device="cpu")
+    frames = FrameReconstructor(proj, _fast())
+    tol = 2.0 * np.asarray(grid.voxel_mm)
+
+    def found(res) -> float:
+        det, _, _ = metrics.detect_particles(res.volume, grid)
+        return metrics.match_particles(det, new, tol).recall
+
+    cold = frames.reconstruct([img_b])
+    ws = WarmStart(grid.shape, device="cpu")
+    frames.reconstruct([img_a], warm=ws)
+    warm = frames.reconstruct([img_b], warm=ws, predictor=Predictor.uniform(tuple(shift)))
+    assert warm.warm and not cold.warm
+    assert found(cold) >= 0.75, found(cold)
+    assert found(warm) >= found(cold) - 1 / 8, (found(warm), found(cold))
+    # and the whole frame as well as cold
+    truth = metrics.truth_volume(grid, b)
+    assert metrics.q_recon(warm.volume, truth) >= metrics.q_recon(cold.volume, truth) - 0.01
