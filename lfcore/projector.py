@@ -68,6 +68,8 @@ def grid_struct(kw, box: VolumeGrid, *, z0: int = 0, z1: int | None = None):
 
 #: Checks per view of elimination's first pass over the grid (see :meth:`LightFieldProjector.eliminate`).
 PREFILTER_CHECKS = 4
+#: Checks of one view elimination makes before the next view's turn (see :func:`lfcore._kernels.weights.eliminate`).
+ROUND_CHECKS = 4
 
 
 def _sub_apertures(cam: Camera, n_sub: int, samples: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -385,12 +387,14 @@ class LightFieldProjector(BoundCameras):
         mask = self._scratch("mask", n, wp.int32)
         mask.zero_()
         given = self._none if within is None else within
-        launch_rows(kw.eliminate, n, [*common, given, PREFILTER_CHECKS, RowOffset(0), mask], self.device)
+        launch_rows(kw.eliminate_turns, n, [*common, given, PREFILTER_CHECKS, ROUND_CHECKS, RowOffset(0), mask],
+                    self.device)
         candidates = self._compact(mask, None if within is None else within, scratch="candidates")
         n = int(candidates.shape[0])
         mask = mask[:max(n, 1)]  # the grid pass is compacted: its mask is free again
         mask.zero_()
-        launch_rows(kw.eliminate, n, [*common, candidates, 2**30, RowOffset(0), mask], self.device)
+        launch_rows(kw.eliminate_turns, n, [*common, candidates, 2**30, ROUND_CHECKS, RowOffset(0), mask],
+                    self.device)
         return self._compact(mask[:n], candidates)
 
     @keyword_options("n_checks", "budget_bytes", since="0.1.0")
