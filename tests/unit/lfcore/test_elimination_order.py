@@ -1,5 +1,5 @@
 """Elimination with the views taking turns (lfcore._kernels.weights.eliminate, ``round_checks``) keeps the
-same voxels as one view after another.
+same voxels as one view after another, and MLOS-MART runs coarse-to-fine elimination where asked for.
 
 The scene is benchmarks/recon.py's S2 (the tiny rig's camera and a second one at 90 degrees about y):
 the survivors were pinned from the code before the views took turns (26,045 voxels at ``max_dark``
@@ -12,10 +12,11 @@ import hashlib
 import numpy as np
 import pytest
 
+from lfcore import coarse, metrics
 from lfcore import projector as projector_module
 from lfcore.particles import particle_count, seed_particles
-from lfcore.plan import projector_for
-from lfcore.reconstruct import ReconSettings, preprocess_images
+from lfcore.plan import coarse_runs, frame_stages, projector_for
+from lfcore.reconstruct import FrameReconstructor, ReconSettings, preprocess_images, protocol_settings
 from lfcore.render import LightFieldRenderer
 from lfcore.rig import Rig
 from lfcore.volume import VolumeGrid
@@ -65,3 +66,28 @@ def test_within_candidates_the_turns_keep_the_whole_grids_survivors(two_cameras,
                                                                  device=device)).numpy()
     assert np.array_equal(within, np.intersect1d(whole, candidates))
 
+
+def test_mlos_mart_takes_the_coarse_grid_when_given(two_cameras, monkeypatch):
+    """MLOS-MART after a coarse grid at 2 on S2 (its box lowered under the size rule): fewer voxels are
+    eliminated and iterated, nine in ten of the particles' voxels stay active, and Q is MLOS-MART's on
+    the whole grid within 0.03."""
+    cams, grid, pts, img = two_cameras
+    proj = projector_for(cams, grid, device="cpu")
+    truth = metrics.truth_volume(grid, pts)
+    monkeypatch.setattr(coarse, "COARSE_MIN_VOXELS", 0)
+    with pytest.raises(ValueError, match="drt-mart's simultaneous form and mlos-mart's"):
+        ReconSettings(method="mart", coarse=2)
+    assert protocol_settings("fast", n_cameras=2, method="mlos-mart").coarse == 1  # only where given
+    plain = protocol_settings("fast", n_cameras=2, method="mlos-mart", iterations=40, projector="stored")
+    given = protocol_settings("fast", n_cameras=2, method="mlos-mart", iterations=40, coarse=2, coarse_iterations=10,
+                              projector="stored")
+    assert given.coarse == 2 and coarse_runs("light-field", grid, given)
+    assert frame_stages("light-field", grid, given)[0].startswith("coarse-to-fine elimination on a 2x coarser grid")
+    frames = FrameReconstructor(proj, given)
+    assert frames.coarse_applies()
+    whole = FrameReconstructor(proj, plain).reconstruct(img)
+    res = frames.reconstruct(img)
+    assert res.active_voxels < whole.active_voxels
+    q_whole, q_coarse = metrics.q_recon(whole.volume, truth), metrics.q_recon(res.volume, truth)
+    assert q_whole > 0.6  # a reconstruction worth comparing
+    assert q_coarse >= q_whole - 0.03, (q_coarse, q_whole)
