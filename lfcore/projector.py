@@ -68,7 +68,7 @@ def grid_struct(kw, box: VolumeGrid, *, z0: int = 0, z1: int | None = None):
 
 #: Checks per view of elimination's first pass over the grid (see :meth:`LightFieldProjector.eliminate`).
 PREFILTER_CHECKS = 4
-#: Checks of one view elimination makes before the next view's turn (see :func:`lfcore._kernels.weights.eliminate`).
+#: Checks of one view elimination makes before the next view's turn (:func:`lfcore._kernels.weights.eliminate_turns`).
 ROUND_CHECKS = 4
 
 

@@ -1,4 +1,4 @@
-"""Elimination with the views taking turns (lfcore._kernels.weights.eliminate, ``round_checks``) keeps the
+"""Elimination with the views taking turns (lfcore._kernels.weights.eliminate_turns, ``round_checks``) keeps the
 same voxels as one view after another, and MLOS-MART runs coarse-to-fine elimination where asked for.
 
 The scene is benchmarks/recon.py's S2 (the tiny rig's camera and a second one at 90 degrees about y):
