@@ -387,13 +387,19 @@ class LightFieldProjector(BoundCameras):
         mask = self._scratch("mask", n, wp.int32)
         mask.zero_()
         given = self._none if within is None else within
-        launch_rows(kw.eliminate_turns, n, [*common, given, PREFILTER_CHECKS, ROUND_CHECKS, RowOffset(0), mask],
-                    self.device)
+        # with the views taking turns, the full pass goes on from the first pass's counts (kernel's notes)
+        carry = 0 < ROUND_CHECKS and 0 < PREFILTER_CHECKS <= 15 and len(self.cameras) <= kw.MAX_CARRIED
+        counts = self._scratch("counts", n, wp.int32) if carry else self._none
+        launch_rows(kw.eliminate_turns, n, [*common, given, PREFILTER_CHECKS, ROUND_CHECKS, self._none, 0,
+                                            RowOffset(0), mask, counts], self.device)
         candidates = self._compact(mask, None if within is None else within, scratch="candidates")
         n = int(candidates.shape[0])
+        if carry:
+            counts = self._compact(mask, counts, scratch="carried")
         mask = mask[:max(n, 1)]  # the grid pass is compacted: its mask is free again
         mask.zero_()
-        launch_rows(kw.eliminate_turns, n, [*common, candidates, 2**30, ROUND_CHECKS, RowOffset(0), mask],
+        launch_rows(kw.eliminate_turns, n, [*common, candidates, 2**30, ROUND_CHECKS, counts,
+                                            PREFILTER_CHECKS if carry else 0, RowOffset(0), mask, self._none],
                     self.device)
         return self._compact(mask[:n], candidates)
 

@@ -383,6 +383,8 @@ def inside_sensor(view: View, ax: float, ay: float, qx: float, qy: float, fx: fl
 #: The most views elimination interleaves (:func:`eliminate`); a rig of more views checks them one after another.
 MAX_INTERLEAVED = wp.constant(8)
 ALL_CHECKS = wp.constant(1 << 30)
+#: The most views whose counts a pass of :func:`eliminate_turns` carries to the next (8 bits each).
+MAX_CARRIED = wp.constant(3)
 vec_views = wp.types.vector(length=MAX_INTERLEAVED, dtype=wp.int32)
 
 
@@ -490,8 +492,12 @@ def eliminated(
     v: int,
     stage_checks: int,
     round_checks: int,
+    lo0: int,
+    carried: int,
 ):
-    """1 if voxel v is kept, 0 if not: :func:`eliminate_turns`' test of one voxel."""
+    """wp.vec2i(keep, counts): 1 if voxel v is kept, 0 if not (:func:`eliminate_turns`' test of one voxel),
+    and each view's seen and dark counts packed as :func:`eliminate_turns` carries them. ``lo0`` > 0: the
+    checks before it were made already (the views taking turns), with the counts ``carried``."""
     pw = voxel_centre(grid, v)
     keep = int(1)
     step = round_checks
@@ -500,6 +506,11 @@ def eliminated(
     seen = vec_views()
     dark = vec_views()
     lo = int(0)
+    if lo0 > 0 and step < ALL_CHECKS and n_views <= MAX_CARRIED:
+        lo = lo0
+        for iv in range(n_views):
+            seen[iv] = (carried >> (8 * iv)) & 15
+            dark[iv] = (carried >> (8 * iv + 4)) & 15
     more = int(1)
     while keep == 1 and more == 1:
         more = int(0)
@@ -530,7 +541,11 @@ def eliminated(
                     keep = int(0)
                     break
         lo += step
-    return keep
+    counts = int(0)
+    if step < ALL_CHECKS and n_views <= MAX_CARRIED:
+        for iv in range(n_views):
+            counts = counts | (wp.min(seen[iv], 15) << (8 * iv)) | (wp.min(dark[iv], 15) << (8 * iv + 4))
+    return wp.vec2i(keep, counts)
 
 
 @wp.kernel
@@ -548,8 +563,11 @@ def eliminate_turns(
     voxels: wp.array(dtype=wp.int32),
     stage_checks: int,
     round_checks: int,
+    carried_in: wp.array(dtype=wp.int32),
+    lo0: int,
     first: int,
     active: wp.array(dtype=wp.int32),
+    carried_out: wp.array(dtype=wp.int32),
 ):
     """active[i] = 1 if the checked sub-apertures of voxel v land on lit pixels in every view.
 
@@ -565,7 +583,10 @@ def eliminate_turns(
     The views take turns, ``round_checks`` checks each (up to :data:`MAX_INTERLEAVED` views; more are
     checked one after another): a voxel on a particle's line of sight in one camera passes most of
     that camera's checks, and is dropped sooner by another camera's. The order changes which checks
-    are made, not the result.
+    are made, not the result. With up to :data:`MAX_CARRIED` views a pass carries each view's seen and dark
+    counts (4 bits each, 8 bits a view: ``carried_out[i]``, where not empty), so that the next pass, over
+    the candidates, starts at check ``lo0`` from ``carried_in[i]`` (where not empty) instead of making
+    the first pass's checks again.
 
     ``table`` may hold, from :func:`check_pixels`, the pixels of the first ``n_table`` checks
     of every voxel and view, which then need no tracing (``n_table = 0``: no table). Thread i
@@ -579,8 +600,16 @@ def eliminate_turns(
     v = i
     if voxels.shape[0] > 0:
         v = voxels[i]
-    active[i] = eliminated(grid, views, n_views, sub_a, check_order, lit, min_seen, max_dark, table, n_table, v,
-                           stage_checks, round_checks)
+    start = int(0)
+    carried = int(0)
+    if carried_in.shape[0] > 0:
+        start = lo0
+        carried = carried_in[i]
+    r = eliminated(grid, views, n_views, sub_a, check_order, lit, min_seen, max_dark, table, n_table, v,
+                   stage_checks, round_checks, start, carried)
+    active[i] = r[0]
+    if carried_out.shape[0] > 0:
+        carried_out[i] = r[1]
 
 
 @wp.kernel
@@ -607,7 +636,7 @@ def eliminate(
     if voxels.shape[0] > 0:
         v = voxels[i]
     active[i] = eliminated(grid, views, n_views, sub_a, check_order, lit, min_seen, max_dark, table, n_table, v,
-                           stage_checks, 0)
+                           stage_checks, 0, 0, 0)[0]
 
 
 @wp.kernel
