@@ -15,6 +15,11 @@ A row is a protocol name (:data:`lfcore.reconstruct.PROTOCOLS`), ``fast-plain`` 
 its coarse-to-fine elimination and subsets: the protocol before them), or ``name;key=value,...``
 (the protocol with those settings changed), each resolved for the case's cameras as ``lfpiv
 reconstruct`` resolves it (``fast`` on two cameras has no ordered subsets unless a row gives them).
+A row's ``sub_apertures`` builds its own projector, as ``lfpiv reconstruct`` does. The key ``round_checks=N``
+is the benchmark's, not a setting: the row's elimination lets each view make N checks before the next
+view's turn (:data:`lfcore.projector.ROUND_CHECKS`; 0, one view after another, as before the turns)::
+
+    python benchmarks/mcfast.py --case Mc2 --reference-iterations 0 --rows "fast;round_checks=0|fast"
 
 The reference is the chapter's protocol (``ReconSettings.chapter``: uniform start, elimination,
 ray-traced DRT weights, 400 iterations of every active voxel, no pruning). Without pruning every
@@ -39,6 +44,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.convergence import _recon_bench  # noqa: E402  (benchmarks/recon.py's scenes)
 from lfcore import metrics  # noqa: E402
+from lfcore import projector as projector_module  # noqa: E402
 from lfcore.device import resolve_device  # noqa: E402
 from lfcore.plan import projector_for  # noqa: E402
 from lfcore.reconstruct import FrameReconstructor, protocol_settings  # noqa: E402
@@ -48,9 +54,10 @@ STAGES = {"elimination": ("eliminate", "coarse_eliminate"), "line-of-sight weigh
           "DRT operator": ("operator",), "iterations": ("iterate",)}
 
 
-def parse_row(text: str, n_cameras: int = 1):
+def parse_row(text: str, n_cameras: int = 1, *, extras: dict | None = None):
     """(label, settings) of a row: ``name`` or ``name;key=value,...``, resolved for ``n_cameras`` cameras
-    as ``lfpiv reconstruct`` resolves it (``fast`` on several cameras has no subsets unless given)."""
+    as ``lfpiv reconstruct`` resolves it (``fast`` on several cameras has no subsets unless given).
+    ``extras``: where given, the benchmark's own keys (``round_checks``) are put there, not in the settings."""
     name, _, rest = text.partition(";")
     changes = {}
     if name == "fast-plain":
@@ -58,6 +65,10 @@ def parse_row(text: str, n_cameras: int = 1):
     for item in filter(None, rest.split(",")):
         key, _, value = item.partition("=")
         changes[key.strip()] = (float(value) if "." in value else int(value)) if value[:1].isdigit() else value
+    if "round_checks" in changes:
+        checks = changes.pop("round_checks")
+        if extras is not None:
+            extras["round_checks"] = checks
     return text, protocol_settings(name, n_cameras=n_cameras, **changes)
 
 
@@ -143,7 +154,11 @@ def main() -> None:
         FrameReconstructor(proj, protocol_settings("fixed", method=method, iterations=2)).reconstruct(img)
     FrameReconstructor(proj, protocol_settings("fast", iterations=4, los_iterations=2, stop_tolerance=0.0,
                                                coarse=3, coarse_iterations=2)).reconstruct(img)
-    rows = [parse_row(r, len(cams)) for r in (args.rows.split("|") if "|" in args.rows else args.rows.split(","))]
+    texts = args.rows.split("|") if "|" in args.rows else args.rows.split(",")
+    extras = [{} for _ in texts]
+    rows = [parse_row(r, len(cams), extras=x) for r, x in zip(texts, extras, strict=True)]
+    projectors = {None: proj}  # by sub_apertures
+    round_checks = projector_module.ROUND_CHECKS
     print("| row | iterations | stopped | Q | voxels active / DRT / left | elimination s wall (CPU) | "
           "line-of-sight weights s | DRT operator s | iterations s | other s | total s wall (CPU) | "
           "CPU / reference's | operator |")
@@ -168,8 +183,15 @@ def main() -> None:
             best = max(res.checkpoints, key=res.checkpoints.get)
             print("reference Q at " + ", ".join(f"{k}: {q:.3f}" for k, q in sorted(res.checkpoints.items()))
                   + f"; best {res.checkpoints[best]:.3f} at {best}", flush=True)
-    for label, settings in rows:
-        res, clock, total = timed_frame(proj, settings, img)
+    for (label, settings), extra in zip(rows, extras, strict=True):
+        if settings.sub_apertures not in projectors:
+            projectors[settings.sub_apertures] = projector_for(cams, grid, sub_apertures=settings.sub_apertures,
+                                                               device=device)
+        projector_module.ROUND_CHECKS = extra.get("round_checks", round_checks)
+        try:
+            res, clock, total = timed_frame(projectors[settings.sub_apertures], settings, img)
+        finally:
+            projector_module.ROUND_CHECKS = round_checks
         q = metrics.q_recon(res.volume, truth)
         ratio = f"1/{ref_cpu / total[1]:.1f}" if ref_cpu else ""
         print(f"| {label} | {res.iterations} | {res.stopped} | {q:.3f} | {res.active_voxels:,} / "

@@ -40,7 +40,7 @@ from lfcore.operator import (
 )
 from lfcore.pinhole_projector import PINHOLE_METHODS, JointProjector, PinholeProjector
 from lfcore.projector import LightFieldProjector
-from lfcore.reconstruct import WEIGHTS, FrameReconstructor, ReconSettings
+from lfcore.reconstruct import COARSE_METHODS, WEIGHTS, FrameReconstructor, ReconSettings
 from lfcore.rig import is_pinhole
 from lfcore.slabs import SlabReconstructor, plan_slabs, slab_halo, slabs_for_budget
 from lfcore.volume import VolumeGrid
@@ -543,10 +543,10 @@ def plan_reconstruction(cameras: Sequence, grid: VolumeGrid, settings: ReconSett
 def coarse_runs(cameras: str, grid: VolumeGrid, settings: ReconSettings) -> bool:
     """Whether frames of ``grid`` on cameras of kind ``cameras`` (:func:`camera_kind`) run coarse-to-fine
     elimination: as :func:`lfcore.reconstruct.coarse_applies` decides on their projector (DRT-MART's
-    simultaneous form, light-field cameras alone, a box of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS`
+    simultaneous form or MLOS-MART, light-field cameras alone, a box of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS`
     voxels)."""
     s = settings
-    return (s.coarse > 1 and s.method == "drt-mart" and s.form == "simultaneous" and cameras == "light-field"
+    return (s.coarse > 1 and s.method in COARSE_METHODS and s.form == "simultaneous" and cameras == "light-field"
             and grid.n_voxels >= coarse_grids.COARSE_MIN_VOXELS)
 
 
@@ -559,7 +559,7 @@ def frame_stages(cameras: str, grid: VolumeGrid, settings: ReconSettings, *, sla
     """
     s = settings
     out: list[str] = []
-    if s.coarse > 1 and s.method == "drt-mart" and s.form == "simultaneous":
+    if s.coarse > 1 and s.method in COARSE_METHODS and s.form == "simultaneous":
         if coarse_runs(cameras, grid, s):
             then = f"; the fine grid's voxels pruned at {s.coarse_prune:.0%}" if s.coarse_prune and s.prune > 0 else ""
             out.append(f"coarse-to-fine elimination on a {s.coarse}x coarser grid ({s.coarse_iterations} line-of-sight "

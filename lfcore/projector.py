@@ -68,6 +68,8 @@ def grid_struct(kw, box: VolumeGrid, *, z0: int = 0, z1: int | None = None):
 
 #: Checks per view of elimination's first pass over the grid (see :meth:`LightFieldProjector.eliminate`).
 PREFILTER_CHECKS = 4
+#: Checks of one view elimination makes before the next view's turn (:func:`lfcore._kernels.weights.eliminate_turns`).
+ROUND_CHECKS = 4
 
 
 def _sub_apertures(cam: Camera, n_sub: int, samples: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -385,12 +387,20 @@ class LightFieldProjector(BoundCameras):
         mask = self._scratch("mask", n, wp.int32)
         mask.zero_()
         given = self._none if within is None else within
-        launch_rows(kw.eliminate, n, [*common, given, PREFILTER_CHECKS, RowOffset(0), mask], self.device)
+        # with the views taking turns, the full pass goes on from the first pass's counts (kernel's notes)
+        carry = 0 < ROUND_CHECKS and 0 < PREFILTER_CHECKS <= 15 and len(self.cameras) <= kw.MAX_CARRIED
+        counts = self._scratch("counts", n, wp.int32) if carry else self._none
+        launch_rows(kw.eliminate_turns, n, [*common, given, PREFILTER_CHECKS, ROUND_CHECKS, self._none, 0,
+                                            RowOffset(0), mask, counts], self.device)
         candidates = self._compact(mask, None if within is None else within, scratch="candidates")
         n = int(candidates.shape[0])
+        if carry:
+            counts = self._compact(mask, counts, scratch="carried")
         mask = mask[:max(n, 1)]  # the grid pass is compacted: its mask is free again
         mask.zero_()
-        launch_rows(kw.eliminate, n, [*common, candidates, 2**30, RowOffset(0), mask], self.device)
+        launch_rows(kw.eliminate_turns, n, [*common, candidates, 2**30, ROUND_CHECKS, counts,
+                                            PREFILTER_CHECKS if carry else 0, RowOffset(0), mask, self._none],
+                    self.device)
         return self._compact(mask[:n], candidates)
 
     @keyword_options("n_checks", "budget_bytes", since="0.1.0")

@@ -76,7 +76,7 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
     from lfcore.warm import Predictor, WarmStart
     from lfcore.weight_cache import WeightCache
 
-__all__ = ["CAPPED", "CONVERGED", "FIXED", "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE",
+__all__ = ["CAPPED", "COARSE_METHODS", "CONVERGED", "FIXED", "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE",
            "PRUNE_PERCENTILE", "SEVERAL_CAMERAS", "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WEIGHTS",
            "CoarseBright", "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings", "StoppingRule",
            "WARM_HANDOVER", "WARM_LOS_ITERATIONS", "WARM_SHARE", "WARM_STOP_EVERY", "bright_voxels", "coarse_applies",
@@ -89,6 +89,10 @@ METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
 #: and :class:`~lfcore.weight_cache.WeightCache`). ``mlos-smart`` is Tomo-PIV's MLOS-SMART on pinhole
 #: cameras (:mod:`lfcore.pinhole_projector`); on light-field cameras it is MLOS-MART.
 WEIGHTS = {"drt-mart": "drt", "mart": "los", "mlos-mart": "los", "mlos-smart": "los"}
+#: The methods that may run coarse-to-fine elimination (:attr:`ReconSettings.coarse`): those that eliminate
+#: on light-field cameras. On Mc2 (two cameras) MLOS-MART after a coarse grid at 2 reached Q 0.859 at 1/14
+#: of the chapter protocol's CPU time (benchmarks/RESULTS.md, 2026-12-06).
+COARSE_METHODS = ("drt-mart", "mlos-mart")
 #: ``ReconSettings.prune``'s default: voxels dimmer than this fraction of the brightest leave the operator.
 #: Measured against the truth (``benchmarks/convergence.py``): on the Mc crop (471,702 active voxels,
 #: 784 particles) Q is the unpruned one at every count from 50 to 400 iterations (0.783 at 400) while
@@ -278,7 +282,8 @@ class ReconSettings:
         from their coarse voxel's intensity. The fine elimination, weights and iterations then touch
         a fraction of the voxels a whole-grid elimination keeps (on the Mc crop at 3: about half,
         the true particles' 98.8%). 1: the whole fine grid is tested (the plain elimination).
-        DRT-MART's simultaneous form, on light-field cameras, in boxes of at least
+        DRT-MART's simultaneous form and MLOS-MART (:data:`COARSE_METHODS`; MLOS-MART only where ``coarse`` is
+        given, a protocol's own ``coarse`` is DRT-MART's), on light-field cameras, in boxes of at least
         :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels (others eliminate the whole grid), in memory or
         in depth slabs (:mod:`lfcore.slabs`: the coarse grid in memory, each slab's fine voxels from
         it); not with a warm start (the warm frame's own voxels are eliminated as before).
@@ -391,8 +396,8 @@ class ReconSettings:
         if not 1 <= self.coarse <= MAX_COARSE:
             raise ValueError(f"coarse must be from 1 (none) to {MAX_COARSE} fine voxels per coarse one, got "
                              f"{self.coarse}")
-        if self.coarse > 1 and (self.method != "drt-mart" or self.form != "simultaneous"):
-            raise ValueError("coarse-to-fine elimination (coarse) is for drt-mart's simultaneous form")
+        if self.coarse > 1 and (self.method not in COARSE_METHODS or self.form != "simultaneous"):
+            raise ValueError("coarse-to-fine elimination (coarse) is for drt-mart's simultaneous form and mlos-mart's")
         if self.coarse_iterations < 1:
             raise ValueError(f"coarse_iterations must be 1 or more, got {self.coarse_iterations}")
         if not 0.0 <= self.coarse_prune < 1.0:
@@ -936,11 +941,11 @@ def bright_voxels(ops: Sequence[Operator], es: Sequence, fraction: float) -> tup
 
 def coarse_applies(projector: Projector, settings: ReconSettings) -> bool:
     """Whether frames of ``projector`` (the whole box's) run coarse-to-fine elimination
-    (:attr:`ReconSettings.coarse`): DRT-MART's simultaneous form on light-field cameras alone (a
-    projector whose elimination takes ``within``), in a box of at least
+    (:attr:`ReconSettings.coarse`): DRT-MART's simultaneous form or MLOS-MART (:data:`COARSE_METHODS`) on
+    light-field cameras alone (a projector whose elimination takes ``within``), in a box of at least
     :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels."""
     s = settings
-    return (s.coarse > 1 and s.method == "drt-mart" and s.form == "simultaneous"
+    return (s.coarse > 1 and s.method in COARSE_METHODS and s.form == "simultaneous"
             and getattr(projector, "eliminates_within", False)
             and projector.grid.n_voxels >= coarse_grids.COARSE_MIN_VOXELS)
 
@@ -1430,8 +1435,8 @@ class FrameReconstructor:
 
     def coarse_applies(self) -> bool:
         """Whether this reconstructor's frames run coarse-to-fine elimination (:attr:`ReconSettings.coarse`):
-        DRT-MART's simultaneous form on light-field cameras alone (a projector whose elimination takes
-        ``within``), in a box of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels."""
+        DRT-MART's simultaneous form or MLOS-MART on light-field cameras alone (a projector whose elimination
+        takes ``within``), in a box of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels."""
         return coarse_applies(self.projector, self.settings)
 
     def coarse_eliminate(self, lit, image, noise: Sequence[float]) -> tuple[object, object]:

@@ -380,6 +380,238 @@ def inside_sensor(view: View, ax: float, ay: float, qx: float, qy: float, fx: fl
     return x_lo > -half_w and x_hi < half_w and y_lo > -half_h and y_hi < half_h
 
 
+#: The most views elimination interleaves (:func:`eliminate`); a rig of more views checks them one after another.
+MAX_INTERLEAVED = wp.constant(8)
+ALL_CHECKS = wp.constant(1 << 30)
+#: The most views whose counts a pass of :func:`eliminate_turns` carries to the next (8 bits each).
+MAX_CARRIED = wp.constant(3)
+vec_views = wp.types.vector(length=MAX_INTERLEAVED, dtype=wp.int32)
+
+
+@wp.func
+def view_checks(
+    view: View,
+    iv: int,
+    n_views: int,
+    v: int,
+    pw: wp.vec3,
+    sub_a: wp.array(dtype=wp.vec2),
+    check_order: wp.array(dtype=wp.int32),
+    lit: wp.array(dtype=wp.uint8),
+    table: wp.array(dtype=wp.int32),
+    n_table: int,
+    lo: int,
+    hi: int,
+    dark_in: int,
+    allowed: int,
+):
+    """Checks ``lo .. hi - 1`` of voxel v (centre ``pw``, world) in view ``iv``: wp.vec2i(seen, dark), the
+    checks whose points all land on the sensor and those of them dark, dark counted on from ``dark_in``
+    and stopped at the first check past ``allowed`` (the voxel is then dropped). seen = -1: the voxel
+    lies where the view cannot image it (at or beyond the lens's front focal plane). See :func:`eliminate`."""
+    cam = view.cam
+    p = view_point(view, pw)
+    sop = cam.so - p[2]
+    if sop * cam.inv_f <= 1.0:
+        return wp.vec2i(-1, dark_in)
+    inv = 1.0 / sop
+    a = 1.0 - cam.si * (cam.inv_f - inv)
+    gx = -p[0] * cam.si * inv
+    gy = -p[1] * cam.si * inv
+    dq = cam.si * inv * inv * view.half[2]
+    seen = int(0)
+    dark = dark_in
+    for mi in range(lo, hi):
+        m = view.check_first + mi
+        on = int(1)
+        hit = int(0)
+        if mi < n_table:
+            row = ((v * n_views + iv) * n_table + mi) * 5
+            if table[row] < 0:
+                on = int(0)  # a point off the sensor: the table marks the whole check
+            else:
+                corner = int(0)
+                while corner < 5 and hit == 0:
+                    if lit[table[row + corner]] != wp.uint8(0):
+                        hit = int(1)
+                    corner += 1
+        else:
+            k = check_order[m]
+            ax = sub_a[k][0]
+            ay = sub_a[k][1]
+            box = check_footprint(view, a, gx, gy, inv, dq, p, ax, ay)
+            qx = box[0]
+            qy = box[1]
+            fx = box[2]
+            fy = box[3]
+            if inside_sensor(view, ax, ay, qx, qy, fx, fy):
+                # Every point lands on the sensor, so the first lit one settles the check;
+                # and a footprint well inside its centre's lenslet cell (inradius half a
+                # pitch, square or hexagonal) needs that one lenslet only.
+                c0 = lenslet_centre(cam, qx, qy)
+                one_cell = wp.length(wp.vec2(qx - c0[0], qy - c0[1])) + wp.sqrt(fx * fx + fy * fy) < (
+                    0.4999 * cam.pitch)
+                corner = int(0)
+                while corner < 5 and hit == 0:
+                    pt = corner_point(qx, qy, fx, fy, corner)
+                    c = c0
+                    if corner > 0 and not one_cell:
+                        c = lenslet_centre(cam, pt[0], pt[1])
+                    if lit[landing_pixel(view, c, ax, ay, pt)] != wp.uint8(0):
+                        hit = int(1)
+                    corner += 1
+            else:
+                for corner in range(5):
+                    q = corner_pixel(view, ax, ay, qx, qy, fx, fy, corner)
+                    if q >= 0:
+                        if lit[q] != wp.uint8(0):
+                            hit = int(1)
+                    else:
+                        on = int(0)
+        if on == 1:
+            seen += 1
+            if hit == 0:
+                dark += 1
+                if dark > allowed:
+                    return wp.vec2i(seen, dark)
+    return wp.vec2i(seen, dark)
+
+
+@wp.func
+def eliminated(
+    grid: Grid,
+    views: wp.array(dtype=View),
+    n_views: int,
+    sub_a: wp.array(dtype=wp.vec2),
+    check_order: wp.array(dtype=wp.int32),
+    lit: wp.array(dtype=wp.uint8),
+    min_seen: float,
+    max_dark: float,
+    table: wp.array(dtype=wp.int32),
+    n_table: int,
+    v: int,
+    stage_checks: int,
+    round_checks: int,
+    lo0: int,
+    carried: int,
+):
+    """wp.vec2i(keep, counts): 1 if voxel v is kept, 0 if not (:func:`eliminate_turns`' test of one voxel),
+    and each view's seen and dark counts packed as :func:`eliminate_turns` carries them. ``lo0`` > 0: the
+    checks before it were made already (the views taking turns), with the counts ``carried``."""
+    pw = voxel_centre(grid, v)
+    keep = int(1)
+    step = round_checks
+    if n_views > MAX_INTERLEAVED or step < 1:
+        step = ALL_CHECKS  # one view after another
+    seen = vec_views()
+    dark = vec_views()
+    lo = int(0)
+    if lo0 > 0 and step < ALL_CHECKS and n_views <= MAX_CARRIED:
+        lo = lo0
+        for iv in range(n_views):
+            seen[iv] = (carried >> (8 * iv)) & 15
+            dark[iv] = (carried >> (8 * iv + 4)) & 15
+    more = int(1)
+    while keep == 1 and more == 1:
+        more = int(0)
+        for iv in range(n_views):
+            view = views[iv]
+            checks = wp.min(view.check_count, stage_checks)
+            if lo < checks:
+                allowed = int(max_dark * float(view.check_count))
+                hi = wp.min(checks, lo + step)
+                s = int(0)
+                d = int(0)
+                if step < ALL_CHECKS:
+                    d = dark[iv]
+                r = view_checks(view, iv, n_views, v, pw, sub_a, check_order, lit, table, n_table, lo, hi, d,
+                                allowed)
+                if r[0] < 0 or r[1] > allowed:
+                    keep = int(0)
+                    break
+                if step < ALL_CHECKS:
+                    s = seen[iv] + r[0]
+                    seen[iv] = s
+                    dark[iv] = r[1]
+                else:
+                    s = r[0]
+                if hi < checks:
+                    more = int(1)
+                elif checks == view.check_count and float(s) < min_seen * float(view.check_count):
+                    keep = int(0)
+                    break
+        lo += step
+    counts = int(0)
+    if step < ALL_CHECKS and n_views <= MAX_CARRIED:
+        for iv in range(n_views):
+            counts = counts | (wp.min(seen[iv], 15) << (8 * iv)) | (wp.min(dark[iv], 15) << (8 * iv + 4))
+    return wp.vec2i(keep, counts)
+
+
+@wp.kernel
+def eliminate_turns(
+    grid: Grid,
+    views: wp.array(dtype=View),
+    n_views: int,
+    sub_a: wp.array(dtype=wp.vec2),
+    check_order: wp.array(dtype=wp.int32),
+    lit: wp.array(dtype=wp.uint8),
+    min_seen: float,
+    max_dark: float,
+    table: wp.array(dtype=wp.int32),
+    n_table: int,
+    voxels: wp.array(dtype=wp.int32),
+    stage_checks: int,
+    round_checks: int,
+    carried_in: wp.array(dtype=wp.int32),
+    lo0: int,
+    first: int,
+    active: wp.array(dtype=wp.int32),
+    carried_out: wp.array(dtype=wp.int32),
+):
+    """active[i] = 1 if the checked sub-apertures of voxel v land on lit pixels in every view.
+
+    A sub-aperture counts as lit if any of the pixels hit by the centre or the corners of its
+    footprint is lit (the footprint may straddle lenslets). A sub-aperture with a point off the
+    sensor is no evidence either way; a voxel seen through fewer than ``min_seen`` of its
+    checked sub-apertures in some view is dropped, and so is one with more than ``max_dark``
+    of them dark (a little tolerance for noise and for particles larger than a point, whose
+    light near a lenslet edge may cross into the neighbour). The checks go in
+    ``check_order``, spread over the aperture, so that most empty voxels are rejected after a
+    few lookups.
+
+    The views take turns, ``round_checks`` checks each (up to :data:`MAX_INTERLEAVED` views; more are
+    checked one after another): a voxel on a particle's line of sight in one camera passes most of
+    that camera's checks, and is dropped sooner by another camera's. The order changes which checks
+    are made, not the result. With up to :data:`MAX_CARRIED` views a pass carries each view's seen and dark
+    counts (4 bits each, 8 bits a view: ``carried_out[i]``, where not empty), so that the next pass, over
+    the candidates, starts at check ``lo0`` from ``carried_in[i]`` (where not empty) instead of making
+    the first pass's checks again.
+
+    ``table`` may hold, from :func:`check_pixels`, the pixels of the first ``n_table`` checks
+    of every voxel and view, which then need no tracing (``n_table = 0``: no table). Thread i
+    takes voxel ``voxels[first + tid]``, or voxel ``first + tid`` of the grid if ``voxels`` is
+    empty. ``stage_checks`` below a view's check count makes only that many checks and drops a
+    voxel only for too many dark ones (the seen test needs them all): a first pass over the
+    grid that rejects what a full pass would, cheaply, so that the full pass runs on a list of
+    candidates in which a GPU warp's threads do similar work.
+    """
+    i = wp.tid() + first
+    v = i
+    if voxels.shape[0] > 0:
+        v = voxels[i]
+    start = int(0)
+    carried = int(0)
+    if carried_in.shape[0] > 0:
+        start = lo0
+        carried = carried_in[i]
+    r = eliminated(grid, views, n_views, sub_a, check_order, lit, min_seen, max_dark, table, n_table, v,
+                   stage_checks, round_checks, start, carried)
+    active[i] = r[0]
+    if carried_out.shape[0] > 0:
+        carried_out[i] = r[1]
+
+
 @wp.kernel
 def eliminate(
     grid: Grid,
@@ -397,108 +629,14 @@ def eliminate(
     first: int,
     active: wp.array(dtype=wp.int32),
 ):
-    """active[i] = 1 if the checked sub-apertures of voxel v land on lit pixels in every view.
-
-    A sub-aperture counts as lit if any of the pixels hit by the centre or the corners of its
-    footprint is lit (the footprint may straddle lenslets). A sub-aperture with a point off the
-    sensor is no evidence either way; a voxel seen through fewer than ``min_seen`` of its
-    checked sub-apertures in some view is dropped, and so is one with more than ``max_dark``
-    of them dark (a little tolerance for noise and for particles larger than a point, whose
-    light near a lenslet edge may cross into the neighbour). The checks go in
-    ``check_order``, spread over the aperture, so that most empty voxels are rejected after a
-    few lookups.
-
-    ``table`` may hold, from :func:`check_pixels`, the pixels of the first ``n_table`` checks
-    of every voxel and view, which then need no tracing (``n_table = 0``: no table). Thread i
-    takes voxel ``voxels[first + tid]``, or voxel ``first + tid`` of the grid if ``voxels`` is
-    empty. ``stage_checks`` below a view's check count makes only that many checks and drops a
-    voxel only for too many dark ones (the seen test needs them all): a first pass over the
-    grid that rejects what a full pass would, cheaply, so that the full pass runs on a list of
-    candidates in which a GPU warp's threads do similar work.
-    """
+    """:func:`eliminate_turns` with one view after another (its test as it was before the views took turns;
+    the tests compare the two)."""
     i = wp.tid() + first
     v = i
     if voxels.shape[0] > 0:
         v = voxels[i]
-    pw = voxel_centre(grid, v)
-    keep = int(1)
-    for iv in range(n_views):
-        view = views[iv]
-        cam = view.cam
-        p = view_point(view, pw)
-        sop = cam.so - p[2]
-        if sop * cam.inv_f <= 1.0:
-            keep = int(0)
-            break
-        inv = 1.0 / sop
-        a = 1.0 - cam.si * (cam.inv_f - inv)
-        gx = -p[0] * cam.si * inv
-        gy = -p[1] * cam.si * inv
-        dq = cam.si * inv * inv * view.half[2]
-        seen = int(0)
-        dark = int(0)
-        allowed = int(max_dark * float(view.check_count))
-        checks = wp.min(view.check_count, stage_checks)
-        for m in range(view.check_first, view.check_first + checks):
-            on = int(1)
-            hit = int(0)
-            mi = m - view.check_first
-            if mi < n_table:
-                row = ((v * n_views + iv) * n_table + mi) * 5
-                if table[row] < 0:
-                    on = int(0)  # a point off the sensor: the table marks the whole check
-                else:
-                    corner = int(0)
-                    while corner < 5 and hit == 0:
-                        if lit[table[row + corner]] != wp.uint8(0):
-                            hit = int(1)
-                        corner += 1
-            else:
-                k = check_order[m]
-                ax = sub_a[k][0]
-                ay = sub_a[k][1]
-                box = check_footprint(view, a, gx, gy, inv, dq, p, ax, ay)
-                qx = box[0]
-                qy = box[1]
-                fx = box[2]
-                fy = box[3]
-                if inside_sensor(view, ax, ay, qx, qy, fx, fy):
-                    # Every point lands on the sensor, so the first lit one settles the check;
-                    # and a footprint well inside its centre's lenslet cell (inradius half a
-                    # pitch, square or hexagonal) needs that one lenslet only.
-                    c0 = lenslet_centre(cam, qx, qy)
-                    one_cell = wp.length(wp.vec2(qx - c0[0], qy - c0[1])) + wp.sqrt(fx * fx + fy * fy) < (
-                        0.4999 * cam.pitch)
-                    corner = int(0)
-                    while corner < 5 and hit == 0:
-                        pt = corner_point(qx, qy, fx, fy, corner)
-                        c = c0
-                        if corner > 0 and not one_cell:
-                            c = lenslet_centre(cam, pt[0], pt[1])
-                        if lit[landing_pixel(view, c, ax, ay, pt)] != wp.uint8(0):
-                            hit = int(1)
-                        corner += 1
-                else:
-                    for corner in range(5):
-                        q = corner_pixel(view, ax, ay, qx, qy, fx, fy, corner)
-                        if q >= 0:
-                            if lit[q] != wp.uint8(0):
-                                hit = int(1)
-                        else:
-                            on = int(0)
-            if on == 1:
-                seen += 1
-                if hit == 0:
-                    dark += 1
-                    if dark > allowed:
-                        keep = int(0)
-                        break
-        if keep == 0:
-            break
-        if checks == view.check_count and float(seen) < min_seen * float(view.check_count):
-            keep = int(0)
-            break
-    active[i] = keep
+    active[i] = eliminated(grid, views, n_views, sub_a, check_order, lit, min_seen, max_dark, table, n_table, v,
+                           stage_checks, 0, 0, 0)[0]
 
 
 @wp.kernel

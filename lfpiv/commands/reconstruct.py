@@ -174,8 +174,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "plain form), so that the last passes settle on one volume (default: "
                    f"{SUBSET_HALVING or '0, the same subsets in every pass'})")
     r.add_argument("--coarse", type=coarse_option, default=None, metavar="N",
-                   help="drt-mart on light-field cameras: coarse-to-fine elimination, first a few line-of-sight "
-                   "iterations on a grid N times coarser along every axis, then only the voxels inside the coarse "
+                   help="drt-mart or mlos-mart on light-field cameras: coarse-to-fine elimination, first a few "
+                   "line-of-sight iterations on a grid N times coarser along every axis, then only the voxels inside "
+                   "the coarse "
                    "ones still bright (those --prune keeps) are eliminated, weighted and iterated, from their coarse "
                    "voxel's intensity; boxes of at least a million voxels (default: 3 for the fast protocol, 1 "
                    "otherwise: the whole grid eliminated)")
