@@ -362,7 +362,8 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
         linked = time.perf_counter() - t0
         with tqdm(total=len(todo), unit="pair", disable=not progress, desc="tracking", leave=False) as bar:
             for p in todo:
-                made = _series_pair(tracks, p - chosen[0], grid, settings, along_pairs)  # type: ignore[arg-type]
+                # the tracks' frames are the run's (2 p for pair p's A), not counted from the first chosen pair
+                made = _series_pair(tracks, p, grid, settings, along_pairs)  # type: ignore[arg-type]
                 written(p, PairTracks(rows=made.rows, field_mm=made.field_mm, outliers=made.outliers,
                                       seconds=made.seconds + linked))
                 linked = 0.0

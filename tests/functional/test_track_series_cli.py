@@ -180,3 +180,22 @@ def test_the_python_api_tracks_along_the_pairs_as_the_command_does(series_run, t
 
     with pytest.raises(UsageError, match="fit_frames"):
         lfpiv.track(by_api, along_pairs={"fit_frames": 2}, progress=False)
+
+
+def test_along_pairs_from_a_later_pair_gives_each_pair_its_own_frames(series_run, tmp_path, capsys):
+    """--pair-range 1:4: the series' frames are the run's (2 p and 2 p + 1 for pair p), so each pair's
+    tracks start on that pair's frame A and end on its frame B (the truth's particles there, within
+    the noise), and no pair is left without tracks."""
+    run = _copy(series_run, tmp_path)
+    rc, out, err = _run(capsys, "track", run, "--along-pairs", "--pair-range", "1:4", "--quiet")
+    assert rc == 0, err
+    s = RunStore.open(run)
+    truth = s.truth()["particles"]
+    voxel = np.asarray(VolumeGrid.from_rig(s.rig).voxel_mm)
+    for p in (1, 2, 3):
+        rows = s.read_tracks(p)
+        assert len(rows) > 20, p
+        for f, xyz in ((0, rows[:, :3]), (1, rows[:, 3:6])):
+            # each fitted end's nearest true particle of its own frame, in voxels (a pair's step is ~4 px)
+            d = np.min(np.linalg.norm((xyz[:, None, :] - truth[p, f][None]) / voxel, axis=2), axis=1)
+            assert np.median(d) < 0.5, (p, f, np.median(d))
