@@ -199,3 +199,20 @@ def test_along_pairs_from_a_later_pair_gives_each_pair_its_own_frames(series_run
             # each fitted end's nearest true particle of its own frame, in voxels (a pair's step is ~4 px)
             d = np.min(np.linalg.norm((xyz[:, None, :] - truth[p, f][None]) / voxel, axis=2), axis=1)
             assert np.median(d) < 0.5, (p, f, np.median(d))
+
+
+def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path, capsys):
+    """--link-voxels, --min-frames, --fit-frames and --fit-order only shape tracks along a series:
+    given without --along-pairs they would be ignored, so they are refused (one line, exit 2)."""
+    run = _copy(series_run, tmp_path)
+    for option, value in (("--link-voxels", "2,2,2"), ("--min-frames", "5"), ("--fit-frames", "4"),
+                          ("--fit-order", "1")):
+        rc, out, err = _run(capsys, "track", run, option, value, "--quiet")
+        assert rc == 2 and option in err and "--along-pairs" in err, (option, err)
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not RunStore.open(run).has_vectors
+    # with --along-pairs they apply, and the defaults are SeriesSettings' own
+    rc, out, err = _run(capsys, "track", run, "--along-pairs", "--fit-order", "1", "--fit-frames", "3")
+    assert rc == 0, err
+    assert "of order 1 in time through 3 frames" in out and "at least 4 frames" in out
+    assert RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]["degree"] == 1
