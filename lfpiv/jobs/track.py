@@ -335,7 +335,8 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
 
     def differences(g: Any) -> list[str]:
         old = dict(g.attrs.get("settings", {})) if g is not None else {}
-        return [k for k in meta if old.get(k) != meta[k]] or ["source"]
+        # a key on one side only differs too (along_pairs: tracked along the series before, or now)
+        return [k for k in {**meta, **old} if old.get(k) != meta.get(k)] or ["source"]
 
     def written(p: int, r: PairTracks) -> None:
         store.write_tracks(p, r.rows)

@@ -216,3 +216,14 @@ def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path
     assert rc == 0, err
     assert "of order 1 in time through 3 frames" in out and "at least 4 frames" in out
     assert RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]["degree"] == 1
+
+
+def test_tracking_pair_by_pair_after_along_the_pairs_names_the_difference(series_run, tmp_path, capsys):
+    """The vectors of a run tracked along its pairs, tracked again pair by pair: the note names what
+    differs (along_pairs, recorded before and not now), not 'source'."""
+    run = _copy(series_run, tmp_path)
+    assert _run(capsys, "track", run, "--along-pairs", "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "track", run, "--quiet")
+    assert rc == 0, err
+    assert "(along_pairs differ)" in err, err
+    assert "along_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]
