@@ -255,3 +255,20 @@ def lightfield_scene(rig, *, ppm: float = 0.3, rays_per_particle: int = 20_000):
     img = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(
         pts, 50_000.0, seed=1)
     return rig, grid, pts, img
+
+
+def copy_run(run: Path, tmp_path: Path, name: str = "r.zarr") -> Path:
+    """A copy of the run store ``run`` as ``tmp_path / name`` (a module fixture's run, changed by one test)."""
+    import shutil
+
+    shutil.copytree(run, tmp_path / name)
+    return tmp_path / name
+
+
+def velocity_rms(out: str) -> np.ndarray:
+    """(3,) ``lfpiv evaluate``'s RMS velocity error u, v, w in voxels, read from its output ``out``."""
+    import re
+
+    m = re.search(r"velocity error: RMS u, v, w .* m/s \(([\d.]+), ([\d.]+), ([\d.]+) voxel\)", out)
+    assert m, out
+    return np.array([float(m.group(k)) for k in (1, 2, 3)])

@@ -4,9 +4,6 @@ the export, and the refusals."""
 
 from __future__ import annotations
 
-import re
-import shutil
-
 import numpy as np
 import pytest
 
@@ -14,6 +11,8 @@ from lfcore.runstore import RunStore, is_time_resolved
 from lfcore.volume import VolumeGrid
 from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
+from tests.helpers import copy_run as _copy
+from tests.helpers import velocity_rms as _rms
 
 NOISE_VOXELS = np.array([0.1, 0.1, 0.2])  # about IPR's position error on one light-field camera
 
@@ -50,15 +49,6 @@ def series_run(tmp_path_factory):
     return run
 
 
-def _copy(run, tmp_path, name="r.zarr"):
-    shutil.copytree(run, tmp_path / name)
-    return tmp_path / name
-
-
-def _rms(out):
-    m = re.search(r"velocity error: RMS u, v, w .* m/s \(([\d.]+), ([\d.]+), ([\d.]+) voxel\)", out)
-    assert m, out
-    return np.array([float(m.group(k)) for k in (1, 2, 3)])
 
 
 def test_a_time_resolved_series_is_synthesized(series_run):
