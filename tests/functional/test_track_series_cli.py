@@ -217,3 +217,15 @@ def test_tracking_pair_by_pair_after_along_the_pairs_names_the_difference(series
     assert rc == 0, err
     assert "(along_pairs differ)" in err, err
     assert "along_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]
+
+
+def test_export_help_names_every_format(capsys):
+    """lfpiv export's description says what each --format writes: series-csv included."""
+    from lfpiv.jobs.export import FORMATS
+
+    with pytest.raises(SystemExit):
+        _run(capsys, "export", "--help")
+    out = " ".join(capsys.readouterr().out.split()).replace("- ", "-")  # argparse wraps at hyphens
+    description = out.split("positional arguments")[0]
+    for fmt, names in FORMATS.items():
+        assert f"{fmt} " in description and names[0] in description, fmt
