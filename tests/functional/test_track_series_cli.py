@@ -229,3 +229,13 @@ def test_export_help_names_every_format(capsys):
     description = out.split("positional arguments")[0]
     for fmt, names in FORMATS.items():
         assert f"{fmt} " in description and names[0] in description, fmt
+
+
+def test_the_python_api_along_pairs_none_tracks_pair_by_pair(series_run, tmp_path):
+    """``lfpiv.track(run, along_pairs=None)`` (an option left unset) tracks pair by pair, as False does."""
+    import lfpiv
+
+    run = _copy(series_run, tmp_path)
+    done = lfpiv.track(run, along_pairs=None, progress=False)
+    assert done.series_frames == 0 and done.pairs == [0, 1, 2, 3]
+    assert "along_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]
