@@ -239,3 +239,21 @@ def test_the_python_api_along_pairs_none_tracks_pair_by_pair(series_run, tmp_pat
     done = lfpiv.track(run, along_pairs=None, progress=False)
     assert done.series_frames == 0 and done.pairs == [0, 1, 2, 3]
     assert "along_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]
+
+
+def test_synth_rate_hz_is_the_flows_clock_and_the_recorded_rig(tmp_path, capsys):
+    """--rate-hz 3 on a rig whose laser runs at 10 Hz makes the run a rig at 3 Hz makes (the jet
+    changes in time, so the pairs' particles depend on when each pair is taken); the recorded rig is
+    the rig given."""
+    rig3 = tmp_path / "tiny3.toml"
+    text = (EXAMPLES / "tiny.toml").read_text()
+    assert "rate_hz = 10.0" in text
+    rig3.write_text(text.replace("rate_hz = 10.0", "rate_hz = 3.0"))
+    common = ("--pairs", "3", "--ppm", "0.1", "--flow", "jet", "--rays", "10", "--quiet")
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", tmp_path / "given.zarr", "--rate-hz", "3",
+                *common)[0] == 0
+    assert _run(capsys, "synth", "--rig", rig3, "--out", tmp_path / "rig.zarr", *common)[0] == 0
+    given, by_rig = RunStore.open(tmp_path / "given.zarr"), RunStore.open(tmp_path / "rig.zarr")
+    assert given.timing["rate_hz"] == by_rig.timing["rate_hz"] == 3.0
+    assert given.rig.laser.rate_hz == 10.0
+    assert np.array_equal(given.truth()["particles"], by_rig.truth()["particles"])
