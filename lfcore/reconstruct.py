@@ -238,10 +238,11 @@ class ReconSettings:
         predicted displacement (the last pair's measured field) instead of uniform, and iterate it
         ``warm_iterations`` times (:mod:`lfcore.warm`). The simultaneous form only. With the stopping
         rule (``stop_tolerance``) that is the most it runs: the rule measures a warm frame every
-        :data:`WARM_STOP_EVERY` iterations, on the residual alone; and where ``los_iterations`` asks
-        for line-of-sight iterations first, a warm frame runs :data:`WARM_LOS_ITERATIONS` of them from
-        its start with the light it leaves unexplained added (:func:`unexplained_added`), and hands
-        the voxels above :data:`WARM_HANDOVER` of the brightest to DRT's weights.
+        :data:`WARM_STOP_EVERY` iterations, on the residual alone. Every warm start has the light it
+        leaves unexplained added (:func:`unexplained_added`), with or without line-of-sight
+        iterations; where ``los_iterations`` asks for them first, a warm frame runs
+        :data:`WARM_LOS_ITERATIONS` of them from that start and hands the voxels above
+        :data:`WARM_HANDOVER` of the brightest to DRT's weights.
     warm_iterations
         Iterations of a warm-started frame; None: :data:`WARM_SHARE` of ``iterations``.
     los_iterations

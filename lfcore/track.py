@@ -899,6 +899,14 @@ def fit_series(tracks: SeriesTracks, *, series: SeriesSettings | None = None) ->
     frames averages the positions' noise (a particle moves smoothly from frame to frame, its
     reconstruction's errors do not) while following a curved path.
 
+    Parameters
+    ----------
+    tracks
+        The tracks through the series (:func:`link_series`): a track's points together, in frame
+        order, positions (x, y, z) in mm; frames are the time in units of the frames' spacing ``dt``.
+    series
+        The fit's frames (``fit_frames``), order (``degree``) and the tracks it fits (``min_frames``).
+
     Returns
     -------
     SeriesTracks
@@ -927,6 +935,16 @@ def pair_tracks(tracks: SeriesTracks, pair: int, *, series: SeriesSettings | Non
     fitted to its :attr:`SeriesSettings.fit_frames` frames nearest the pair's mid-time. Their
     difference is the displacement over dt at the pair's mid-time (exactly the fitted velocity
     there times dt, for a polynomial of order 2).
+
+    Parameters
+    ----------
+    tracks
+        The tracks through the series (:func:`link_series`), positions (x, y, z) in mm.
+    pair
+        The pair, numbered as ``tracks.frame`` counts frames: its frames are ``2 pair`` (A) and
+        ``2 pair + 1`` (B).
+    series
+        The fit's frames, order and the shortest track used.
 
     Returns
     -------

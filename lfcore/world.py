@@ -57,6 +57,10 @@ class ParticleWorld:
         Frames evenly spaced in time, ``dt`` apart, pair ``k`` starting at ``2 k dt``, the same
         particles in all of them (:meth:`series`); the vortex ring is then one ring travelling on
         (not a new one each pair).
+    rate_hz
+        Pairs per second: pair ``k`` starts at ``k / rate_hz`` on the flow's clock, and the vortex ring
+        is phase-locked to it (None: the rig's ``laser.rate_hz``; a time-resolved world's pairs are
+        ``2 dt`` apart whatever it is).
 
     Raises
     ------
@@ -73,15 +77,20 @@ class ParticleWorld:
     dt_s: float | None = None
     ppp: float | None = None
     time_resolved: bool = False
+    rate_hz: float | None = None
     _field: Flow = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.dt_s is None:
             self.dt_s = self.rig.timing.dt_us * 1e-6
+        if self.rate_hz is None:
+            self.rate_hz = float(self.rig.laser.rate_hz)
+        if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
+            raise ValueError(f"the pair rate must be positive, got {self.rate_hz}")
         self._field = flow_for_displacement(self.flow, self.rig.volume, self.rig.camera[0].object_pixel_mm,
                                             self.dt_s, displacement_px=self.displacement_px, omega=self.omega,
                                             # phase-locked ring; one ring through a series
-                                            period_s=None if self.time_resolved else 1.0 / self.rig.laser.rate_hz)
+                                            period_s=None if self.time_resolved else 1.0 / self.rate_hz)
         self.ppm, self.ppp = seeding_density(self.rig, ppm=self.ppm, ppp=self.ppp)
         self.n_particles = particle_count(self.rig, ppm=self.ppm, ppp=self.ppp)
 
@@ -95,7 +104,7 @@ class ParticleWorld:
         time-resolved world)."""
         if self.time_resolved:
             return 2.0 * k * float(self.dt_s)  # type: ignore[arg-type]
-        return k / self.rig.laser.rate_hz
+        return k / self.rate_hz  # type: ignore[operator]
 
     def pair(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Particles of double pulse ``k``.

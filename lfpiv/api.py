@@ -248,7 +248,7 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
 
 def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, skip_done: bool = False,
           progress: bool = True, predictor: str = "none", device: str | None = None,
-          along_pairs: bool | dict[str, Any] = False, **options: Any) -> Any:
+          along_pairs: bool | dict[str, Any] | None = False, **options: Any) -> Any:
     """Pair each selected pair's particles from frame A to frame B and bin the tracks into the run's
     ``vectors/`` (``lfpiv track``); ``predictor`` is the first pass's (``"none"``, ``"volumes"`` or
     ``"previous"``: :mod:`lfpiv.jobs.track`), ``options`` are :class:`lfcore.track.TrackSettings`
@@ -260,7 +260,7 @@ def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, sk
     from lfpiv.jobs.track import series_settings, track_run, track_settings
 
     series = None
-    if along_pairs is not False:
+    if along_pairs is not False and along_pairs is not None:  # None (as an unset option) is pair by pair too
         series = series_settings(**(along_pairs if isinstance(along_pairs, dict) else {}))
     store = open_run(run, mode="r+")
     return track_run(store, track_settings(**options), _pairs(pairs), predictor=predictor, progress=progress,

@@ -255,3 +255,30 @@ def lightfield_scene(rig, *, ppm: float = 0.3, rays_per_particle: int = 20_000):
     img = LightFieldRenderer(rig.camera[0], cfg, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(
         pts, 50_000.0, seed=1)
     return rig, grid, pts, img
+
+
+def copy_run(run: Path, tmp_path: Path, name: str = "r.zarr") -> Path:
+    """A copy of the run store ``run`` as ``tmp_path / name`` (a module fixture's run, changed by one test)."""
+    import shutil
+
+    shutil.copytree(run, tmp_path / name)
+    return tmp_path / name
+
+
+def velocity_rms(out: str) -> np.ndarray:
+    """(3,) ``lfpiv evaluate``'s RMS velocity error u, v, w in voxels, read from its output ``out``."""
+    import re
+
+    m = re.search(r"velocity error: RMS u, v, w .* m/s \(([\d.]+), ([\d.]+), ([\d.]+) voxel\)", out)
+    assert m, out
+    return np.array([float(m.group(k)) for k in (1, 2, 3)])
+
+
+def four_particles(grid) -> np.ndarray:
+    """(4, 3) voxel index coordinates (z, y, x) of four particles of ``grid`` well apart, off the voxel
+    centres (offsets 0.15 to 0.45 voxel), in the box's four quarters and at two depths away from a
+    light-field camera focused on the box's middle plane."""
+    shape = np.asarray(grid.shape, dtype=np.float64)
+    frac = np.array([[0.15, 0.3, 0.28], [0.72, 0.7, 0.33], [0.77, 0.35, 0.71], [0.3, 0.72, 0.69]])
+    return np.floor(frac * (shape - 1)) + np.array([[0.3, 0.25, 0.65], [0.6, 0.7, 0.2], [0.2, 0.4, 0.3],
+                                                    [0.75, 0.15, 0.55]])

@@ -39,7 +39,19 @@ def is_time_resolved(timing: Mapping[str, Any]) -> bool:
     """Whether a run's ``timing`` is a time-resolved series: frames evenly spaced in time (A0, B0,
     A1, B1, ... each ``dt_s`` apart), i.e. one pair every two ``dt_s`` (``1 / rate_hz = 2 dt_s``
     within 1%). Frame B of pair i and frame A of pair i + 1 are then ``dt_s`` apart too, and a
-    particle can be followed through every frame (``lfpiv track --along-pairs``)."""
+    particle can be followed through every frame (``lfpiv track --along-pairs``).
+
+    Parameters
+    ----------
+    timing
+        A run's timing: ``dt_s`` (s between frames A and B) and ``rate_hz`` (pairs per second);
+        either missing, not a number or not positive makes it not time-resolved.
+
+    Returns
+    -------
+    bool
+        Whether ``1 / rate_hz`` is ``2 dt_s`` within 1%.
+    """
     rate, dt = timing.get("rate_hz"), timing.get("dt_s")
     try:
         rate, dt = float(rate), float(dt)  # type: ignore[arg-type]

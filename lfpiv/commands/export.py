@@ -15,7 +15,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "ParaView collection vectors.pvd; tecplot vectors.dat (ASCII, one zone per pair); davis a "
                        "DaVis vector set vectors.set; mat vectors.mat (MATLAB, meshgrid order). The particle tracks "
                        "of 'lfpiv track': tracks-vtk one VTK PolyData file of lines from frame A to frame B per pair "
-                       "and a ParaView collection tracks.pvd; tracks-csv tracks.csv, one row per track.")
+                       "and a ParaView collection tracks.pvd; tracks-csv tracks.csv, one row per track; series-csv "
+                       "series_tracks.csv, the tracks of 'lfpiv track --along-pairs' through a time-resolved series, "
+                       "one row a point with its time.")
     e.add_argument("run", metavar="RUN", help="run store with vectors (a .zarr directory)")
     e.add_argument("--format", required=True, choices=tuple(FORMATS), help=", ".join(FORMATS))
     e.add_argument("--out", required=True, metavar="DIR", help="directory to write into (created if needed)")

@@ -19,6 +19,7 @@ from lfpiv.commands import (
     whole_number,
     workers_phrase,
 )
+from lfpiv.errors import UsageError
 
 
 def shakes(text: str) -> int:
@@ -41,10 +42,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--method", choices=("drt-mart", "mlos-mart", "mlos-smart"), default=None,
                    help="the reconstruction whose weights model the particles and give the candidates (default: "
                    "drt-mart for light-field cameras, mlos-smart for pinhole ones)")
-    c.add_argument("--candidate-iterations", type=iterations, default=50, metavar="N",
+    c.add_argument("--candidate-iterations", type=iterations, default=None, metavar="N",
                    help="iterations of the quick reconstruction whose peaks are the candidates (with "
                    "--candidate-protocol fast, the most the stopping rule runs; default: 50)")
-    c.add_argument("--candidate-protocol", choices=("fast", "fixed", "chapter"), default="fast",
+    c.add_argument("--candidate-protocol", choices=("fast", "fixed", "chapter"), default=None,
                    help="the quick reconstruction's protocol, as lfpiv reconstruct --protocol: fast, line-of-sight "
                    "weights first, DRT weights for the voxels still bright, ordered subsets, the stopping rule and, "
                    "in boxes of a million voxels or more, coarse-to-fine elimination; fixed, plain DRT-MART of "
@@ -55,7 +56,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "pixels' rays voted into the box, the most voted places checked against every lenslet's own "
                    "pixel and refined where the lenslets' rays meet (its cost grows with the bright pixels; the "
                    "fit is the same; default: reconstruction)")
-    c.add_argument("--threshold", type=fraction, default=0.05,
+    c.add_argument("--threshold", type=fraction, default=None,
                    help="candidates are peaks above this fraction of the brightest voxel (default: 0.05)")
     c.add_argument("--shakes", type=shakes, default=12, metavar="N",
                    help="fit iterations of every particle's position and intensity (default: 12)")
@@ -91,9 +92,16 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.jobs.particles import ipr_settings, particles_run
     from lfpiv.runs import open_run
 
-    options = dict(method=args.method, candidate_iterations=args.candidate_iterations,
-                   candidate_protocol=args.candidate_protocol, candidate_source=args.candidates,
-                   candidate_threshold=args.threshold, shakes=args.shakes,
+    # the quick reconstruction's own options (None where not given: IprSettings' defaults) mean nothing to ray bundling
+    quick = {k: v for k, v in (("candidate_iterations", args.candidate_iterations),
+                               ("candidate_protocol", args.candidate_protocol),
+                               ("candidate_threshold", args.threshold)) if v is not None}
+    if quick and args.candidates == "rays":
+        names = {"candidate_iterations": "--candidate-iterations", "candidate_protocol": "--candidate-protocol",
+                 "candidate_threshold": "--threshold"}
+        raise UsageError(f"{', '.join(names[k] for k in quick)}: the quick reconstruction's candidates, which "
+                         "--candidates rays does not make; leave them out, or choose --candidates reconstruction")
+    options = dict(method=args.method, **quick, candidate_source=args.candidates, shakes=args.shakes,
                    min_intensity=args.min_intensity,
                    merge_voxels=args.merge_voxels, rounds=args.rounds, split_intensity=args.split, model=args.model,
                    relocate_depth=args.relocate, max_position_std=args.max_std)

@@ -69,15 +69,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "own velocity, started by the pair tracking), fit each track of --min-frames or more by local "
                    "polynomials in time (Shake-the-Box's long tracks), and make each pair's field from the fitted "
                    "tracks at its mid-time; without it each pair is tracked on its own")
-    c.add_argument("--link-voxels", type=xyz_triple, default=(1.0, 1.0, 1.0), metavar="X,Y,Z",
+    c.add_argument("--link-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="--along-pairs: the search radius around where a track's own velocity puts it in the next "
                    "frame (default: 1,1,1)")
-    c.add_argument("--min-frames", type=positive_int, default=4, metavar="N",
+    c.add_argument("--min-frames", type=positive_int, default=None, metavar="N",
                    help="--along-pairs: fewest frames a track needs to be fitted and used (default: 4)")
-    c.add_argument("--fit-frames", type=positive_int, default=6, metavar="N",
+    c.add_argument("--fit-frames", type=positive_int, default=None, metavar="N",
                    help="--along-pairs: how many of a track's frames, the nearest the pair's mid-time, each fit uses "
                    "(default: 6)")
-    c.add_argument("--fit-order", type=positive_int, default=2, metavar="N",
+    c.add_argument("--fit-order", type=positive_int, default=None, metavar="N",
                    help="--along-pairs: the tracks' polynomial order in time (default: 2, as Shake-the-Box)")
     c.add_argument("--csv", default=None, metavar="FILE",
                    help="also write every tracked pair's tracks to FILE: pair, frame A's x, y, z and frame B's (mm), "
@@ -96,8 +96,15 @@ def run(args: argparse.Namespace) -> int:
     settings = track_settings(search_voxels=args.search_voxels, refine_voxels=args.refine_voxels,
                               passes=args.passes, bin_voxels=args.bin, min_tracks=args.min_tracks, field=args.field,
                               smooth_voxels=args.smooth_voxels)
-    series = (series_settings(link_voxels=args.link_voxels, min_frames=args.min_frames, fit_frames=args.fit_frames,
-                              degree=args.fit_order) if args.along_pairs else None)
+    # the series' options (None where not given: SeriesSettings' defaults) only mean something along the pairs
+    given = {k: v for k, v in (("link_voxels", args.link_voxels), ("min_frames", args.min_frames),
+                               ("fit_frames", args.fit_frames), ("degree", args.fit_order)) if v is not None}
+    if given and not args.along_pairs:
+        names = {"link_voxels": "--link-voxels", "min_frames": "--min-frames", "fit_frames": "--fit-frames",
+                 "degree": "--fit-order"}
+        raise UsageError(f"{', '.join(names[k] for k in given)} only apply to tracks along a time-resolved series: "
+                         "add --along-pairs, or leave them out")
+    series = series_settings(**given) if args.along_pairs else None
     store = open_run(args.run, mode="r+")
     if args.csv:
         from pathlib import Path
@@ -117,10 +124,10 @@ def run(args: argparse.Namespace) -> int:
         done = track_run(store, settings, args.pairs, predictor=args.predictor, progress=not args.quiet,
                          skip_done=args.skip_done, option=pairs_option(args), client=client, device=args.device,
                          along_pairs=series)
-    if done.series_frames:
-        print(f"linked {done.series_tracks} tracks of at least {args.min_frames} frames through the "
+    if done.series_frames and series is not None:
+        print(f"linked {done.series_tracks} tracks of at least {series.min_frames} frames through the "
               f"{done.series_frames} frames (mean length {done.series_length:.1f} frames), fitted by polynomials "
-              f"of order {args.fit_order} in time through {args.fit_frames} frames")
+              f"of order {series.degree} in time through {series.fit_frames} frames")
     if done.pairs:
         nx, ny, nz = done.shape
         print(f"wrote {store.path}/vectors: {len(done.pairs)} pair(s) of {nx} x {ny} x {nz} bins (x, y, z) from "

@@ -63,10 +63,25 @@ def write_tracks_csv(path: str | os.PathLike[str], rows: np.ndarray) -> Path:
 
 
 def write_series_csv(path: str | os.PathLike[str], rows: np.ndarray, *, dt_s: float) -> Path:
-    """Write the (k, 8) points of the tracks through a time-resolved series
-    (:meth:`lfcore.runstore.RunStore.read_series_tracks`: track, frame, the particle's x, y, z and the
-    track's fitted x, y, z in mm) as CSV, one point a line with its time (frame x ``dt_s``, s since
-    frame A of pair 0), whole or not at all; returns ``path``."""
+    """Write the (k, 8) points of the tracks through a time-resolved series as CSV, one point a line
+    with its time, whole or not at all.
+
+    Parameters
+    ----------
+    path
+        The CSV file (:data:`SERIES_CSV_HEADER`'s columns).
+    rows
+        (k, 8) :meth:`lfcore.runstore.RunStore.read_series_tracks`' points: track, frame (``2 p`` for
+        pair p's A, ``2 p + 1`` for its B), the particle's x, y, z and the track's fitted x, y, z, mm.
+    dt_s
+        The time between frames, s: a point's ``time_s`` is its frame times ``dt_s``, the time since
+        frame A of pair 0.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     path = Path(path)
     t = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
     table = np.column_stack([t[:, :2], t[:, 1] * float(dt_s), t[:, 2:]])

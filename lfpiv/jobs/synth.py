@@ -249,7 +249,7 @@ def synthesize(rig: Rig, out: str | Path, *, flow: str = "vortex-ring", ppm: flo
         try:
             # the world the simulated lab's cameras see too: a fresh seeding per pair
             world = ParticleWorld(rig, flow=flow, ppm=ppm, displacement_px=displacement_px, seed=seed, omega=omega,
-                                  dt_s=dt_s, ppp=ppp, time_resolved=time_resolved)
+                                  dt_s=dt_s, ppp=ppp, time_resolved=time_resolved, rate_hz=rate)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
         flow_params = world.flow_params

@@ -335,7 +335,8 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
 
     def differences(g: Any) -> list[str]:
         old = dict(g.attrs.get("settings", {})) if g is not None else {}
-        return [k for k in meta if old.get(k) != meta[k]] or ["source"]
+        # a key on one side only differs too (along_pairs: tracked along the series before, or now)
+        return [k for k in {**meta, **old} if old.get(k) != meta.get(k)] or ["source"]
 
     def written(p: int, r: PairTracks) -> None:
         store.write_tracks(p, r.rows)
@@ -362,7 +363,8 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
         linked = time.perf_counter() - t0
         with tqdm(total=len(todo), unit="pair", disable=not progress, desc="tracking", leave=False) as bar:
             for p in todo:
-                made = _series_pair(tracks, p - chosen[0], grid, settings, along_pairs)  # type: ignore[arg-type]
+                # the tracks' frames are the run's (2 p for pair p's A), not counted from the first chosen pair
+                made = _series_pair(tracks, p, grid, settings, along_pairs)  # type: ignore[arg-type]
                 written(p, PairTracks(rows=made.rows, field_mm=made.field_mm, outliers=made.outliers,
                                       seconds=made.seconds + linked))
                 linked = 0.0

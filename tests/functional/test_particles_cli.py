@@ -11,6 +11,14 @@ from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
 
 
+def _scores(out):
+    """``lfpiv evaluate``'s particle scores over all pairs: recall, ghosts (%) and the RMS position
+    error x, y, z (voxels)."""
+    m = re.search(r"^all\s+(\d+)\s+(\d+)\s+([\d.]+)\s+(\d+) \(([\d.]+)%\)\s+([\d.]+), ([\d.]+), ([\d.]+)", out, re.M)
+    assert m, out
+    return float(m.group(3)), float(m.group(5)), [float(m.group(k)) for k in (6, 7, 8)]
+
+
 def test_synth_particles_evaluate(tmp_path, capsys):
     run = tmp_path / "run.zarr"
     rc, _, err = _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "1", "--ppm", "0.3")
@@ -27,10 +35,7 @@ def test_synth_particles_evaluate(tmp_path, capsys):
     assert s.particle_attrs()["method"] == "drt-mart"
     rc, out, err = _run(capsys, "evaluate", run)
     assert rc == 0, err
-    m = re.search(r"^all\s+(\d+)\s+(\d+)\s+([\d.]+)\s+(\d+) \(([\d.]+)%\)\s+([\d.]+), ([\d.]+), ([\d.]+)", out, re.M)
-    assert m, out
-    recall, ghosts = float(m.group(3)), float(m.group(5))
-    rms = [float(m.group(k)) for k in (6, 7, 8)]
+    recall, ghosts, rms = _scores(out)
     # measured 0.86 recall, 14% ghosts, 0.13, 0.10, 0.23 voxel on this run (tiny rig, 0.3 PPM, one camera)
     assert recall > 0.7 and ghosts < 25.0
     assert max(rms[:2]) < 0.25 and rms[2] < 0.4
@@ -196,13 +201,24 @@ def test_particles_from_ray_candidates_end_to_end(tmp_path, capsys):
     assert s.particle_attrs()["settings"]["candidate_source"] == "rays"
     rc, out, err = _run(capsys, "evaluate", run)
     assert rc == 0, err
-    m = re.search(r"^all\s+(\d+)\s+(\d+)\s+([\d.]+)\s+(\d+) \(([\d.]+)%\)\s+([\d.]+), ([\d.]+), ([\d.]+)", out, re.M)
-    assert m, out
-    recall, ghosts = float(m.group(3)), float(m.group(5))
-    rms = [float(m.group(k)) for k in (6, 7, 8)]
+    recall, ghosts, rms = _scores(out)
     print("recall", recall, "ghosts %", ghosts, "rms", rms)
     assert recall > 0.85 and ghosts < 10.0
     assert max(rms[:2]) < 0.2 and rms[2] < 0.35
     # the same settings: nothing to do; the reconstruction's candidates are other settings
     rc, out, _ = _run(capsys, "particles", run, "--quiet", "--skip-done", "--candidates", "rays")
     assert rc == 0 and "nothing to do" in out
+
+
+def test_ray_candidates_refuse_the_quick_reconstructions_options(tmp_path, capsys):
+    """--threshold, --candidate-iterations and --candidate-protocol shape the quick reconstruction's
+    candidates only: with --candidates rays they would be ignored, so they are refused (one line,
+    exit 2, nothing written)."""
+    run = tmp_path / "r.zarr"
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "1", "--ppm", "0.1",
+                "--rays", "20", "--quiet")[0] == 0
+    for option, value in (("--threshold", "0.1"), ("--candidate-iterations", "5"), ("--candidate-protocol", "fixed")):
+        rc, out, err = _run(capsys, "particles", run, "--candidates", "rays", option, value, "--quiet")
+        assert rc == 2 and option in err and "--candidates" in err, (option, err)
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not RunStore.open(run).has_particles

@@ -3,15 +3,14 @@ end to end on tiny synthetic runs of a known uniform flow."""
 
 from __future__ import annotations
 
-import re
-import shutil
-
 import numpy as np
 import pytest
 
 from lfcore.runstore import RunStore
 from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
+from tests.helpers import copy_run as _copy
+from tests.helpers import velocity_rms as _rms
 
 
 @pytest.fixture(scope="module")
@@ -30,15 +29,6 @@ def particles_run(tmp_path_factory):
     return run
 
 
-def _copy(run, tmp_path, name="r.zarr"):
-    shutil.copytree(run, tmp_path / name)
-    return tmp_path / name
-
-
-def _rms(out):
-    m = re.search(r"velocity error: RMS u, v, w .* m/s \(([\d.]+), ([\d.]+), ([\d.]+) voxel\)", out)
-    assert m, out
-    return [float(m.group(k)) for k in (1, 2, 3)]
 
 
 def test_the_volumes_predictor_and_the_smooth_field(particles_run, tmp_path, capsys):

@@ -4,9 +4,6 @@ the export, and the refusals."""
 
 from __future__ import annotations
 
-import re
-import shutil
-
 import numpy as np
 import pytest
 
@@ -14,6 +11,8 @@ from lfcore.runstore import RunStore, is_time_resolved
 from lfcore.volume import VolumeGrid
 from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
+from tests.helpers import copy_run as _copy
+from tests.helpers import velocity_rms as _rms
 
 NOISE_VOXELS = np.array([0.1, 0.1, 0.2])  # about IPR's position error on one light-field camera
 
@@ -50,15 +49,6 @@ def series_run(tmp_path_factory):
     return run
 
 
-def _copy(run, tmp_path, name="r.zarr"):
-    shutil.copytree(run, tmp_path / name)
-    return tmp_path / name
-
-
-def _rms(out):
-    m = re.search(r"velocity error: RMS u, v, w .* m/s \(([\d.]+), ([\d.]+), ([\d.]+) voxel\)", out)
-    assert m, out
-    return np.array([float(m.group(k)) for k in (1, 2, 3)])
 
 
 def test_a_time_resolved_series_is_synthesized(series_run):
@@ -180,3 +170,90 @@ def test_the_python_api_tracks_along_the_pairs_as_the_command_does(series_run, t
 
     with pytest.raises(UsageError, match="fit_frames"):
         lfpiv.track(by_api, along_pairs={"fit_frames": 2}, progress=False)
+
+
+def test_along_pairs_from_a_later_pair_gives_each_pair_its_own_frames(series_run, tmp_path, capsys):
+    """--pair-range 1:4: the series' frames are the run's (2 p and 2 p + 1 for pair p), so each pair's
+    tracks start on that pair's frame A and end on its frame B (the truth's particles there, within
+    the noise), and no pair is left without tracks."""
+    run = _copy(series_run, tmp_path)
+    rc, out, err = _run(capsys, "track", run, "--along-pairs", "--pair-range", "1:4", "--quiet")
+    assert rc == 0, err
+    s = RunStore.open(run)
+    truth = s.truth()["particles"]
+    voxel = np.asarray(VolumeGrid.from_rig(s.rig).voxel_mm)
+    for p in (1, 2, 3):
+        rows = s.read_tracks(p)
+        assert len(rows) > 20, p
+        for f, xyz in ((0, rows[:, :3]), (1, rows[:, 3:6])):
+            # each fitted end's nearest true particle of its own frame, in voxels (a pair's step is ~4 px)
+            d = np.min(np.linalg.norm((xyz[:, None, :] - truth[p, f][None]) / voxel, axis=2), axis=1)
+            assert np.median(d) < 0.5, (p, f, np.median(d))
+
+
+def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path, capsys):
+    """--link-voxels, --min-frames, --fit-frames and --fit-order only shape tracks along a series:
+    given without --along-pairs they would be ignored, so they are refused (one line, exit 2)."""
+    run = _copy(series_run, tmp_path)
+    for option, value in (("--link-voxels", "2,2,2"), ("--min-frames", "5"), ("--fit-frames", "4"),
+                          ("--fit-order", "1")):
+        rc, out, err = _run(capsys, "track", run, option, value, "--quiet")
+        assert rc == 2 and option in err and "--along-pairs" in err, (option, err)
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not RunStore.open(run).has_vectors
+    # with --along-pairs they apply, and the defaults are SeriesSettings' own
+    rc, out, err = _run(capsys, "track", run, "--along-pairs", "--fit-order", "1", "--fit-frames", "3")
+    assert rc == 0, err
+    assert "of order 1 in time through 3 frames" in out and "at least 4 frames" in out
+    assert RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]["degree"] == 1
+
+
+def test_tracking_pair_by_pair_after_along_the_pairs_names_the_difference(series_run, tmp_path, capsys):
+    """The vectors of a run tracked along its pairs, tracked again pair by pair: the note names what
+    differs (along_pairs, recorded before and not now), not 'source'."""
+    run = _copy(series_run, tmp_path)
+    assert _run(capsys, "track", run, "--along-pairs", "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "track", run, "--quiet")
+    assert rc == 0, err
+    assert "(along_pairs differ)" in err, err
+    assert "along_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]
+
+
+def test_export_help_names_every_format(capsys):
+    """lfpiv export's description says what each --format writes: series-csv included."""
+    from lfpiv.jobs.export import FORMATS
+
+    with pytest.raises(SystemExit):
+        _run(capsys, "export", "--help")
+    out = " ".join(capsys.readouterr().out.split()).replace("- ", "-")  # argparse wraps at hyphens
+    description = out.split("positional arguments")[0]
+    for fmt, names in FORMATS.items():
+        assert f"{fmt} " in description and names[0] in description, fmt
+
+
+def test_the_python_api_along_pairs_none_tracks_pair_by_pair(series_run, tmp_path):
+    """``lfpiv.track(run, along_pairs=None)`` (an option left unset) tracks pair by pair, as False does."""
+    import lfpiv
+
+    run = _copy(series_run, tmp_path)
+    done = lfpiv.track(run, along_pairs=None, progress=False)
+    assert done.series_frames == 0 and done.pairs == [0, 1, 2, 3]
+    assert "along_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]
+
+
+def test_synth_rate_hz_is_the_flows_clock_and_the_recorded_rig(tmp_path, capsys):
+    """--rate-hz 3 on a rig whose laser runs at 10 Hz makes the run a rig at 3 Hz makes (the jet
+    changes in time, so the pairs' particles depend on when each pair is taken); the recorded rig is
+    the rig given."""
+    rig3 = tmp_path / "tiny3.toml"
+    text = (EXAMPLES / "tiny.toml").read_text()
+    assert "rate_hz = 10.0" in text
+    rig3.write_text(text.replace("rate_hz = 10.0", "rate_hz = 3.0"))
+    common = ("--pairs", "3", "--ppm", "0.1", "--flow", "jet", "--rays", "10", "--quiet")
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", tmp_path / "given.zarr", "--rate-hz", "3",
+                *common)[0] == 0
+    assert _run(capsys, "synth", "--rig", rig3, "--out", tmp_path / "rig.zarr", *common)[0] == 0
+    given, by_rig = RunStore.open(tmp_path / "given.zarr"), RunStore.open(tmp_path / "rig.zarr")
+    assert given.timing["rate_hz"] == by_rig.timing["rate_hz"] == 3.0
+    assert given.rig.laser.rate_hz == 10.0
+    assert np.array_equal(given.truth()["particles"], by_rig.truth()["particles"])

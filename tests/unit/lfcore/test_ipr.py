@@ -184,15 +184,14 @@ def _kind_rig(kind, tiny_rig):
 
 @pytest.mark.parametrize("kind", ["light-field", "pinhole", "mixed"])
 def test_isolated_particles_are_recovered_within_a_twentieth_of_a_voxel(tiny_rig, kind):
+    from tests.helpers import four_particles
+
     rig = _kind_rig(kind, tiny_rig)
     grid = VolumeGrid.from_rig(rig)
-    shape = np.asarray(grid.shape, dtype=np.float64)
-    # well apart, off the voxel centres (offsets 0.15 to 0.45 voxel), in the box's four quarters and at
-    # two depths away from the light-field camera's focal plane (the box's middle plane): there a
-    # light-field camera's image of a particle fills one lenslet and says little of where in it it is
-    frac = np.array([[0.15, 0.3, 0.28], [0.72, 0.7, 0.33], [0.77, 0.35, 0.71], [0.3, 0.72, 0.69]])
-    u = np.floor(frac * (shape - 1)) + np.array([[0.3, 0.25, 0.65], [0.6, 0.7, 0.2], [0.2, 0.4, 0.3],
-                                                 [0.75, 0.15, 0.55]])
+    # well apart, off the voxel centres, away from the light-field camera's focal plane (the box's
+    # middle plane): there a light-field camera's image of a particle fills one lenslet and says little
+    # of where in it it is
+    u = four_particles(grid)
     truth = ipr.to_mm(grid, u)
     proj = projector_for(rig.camera, grid, device="cpu")
     settings = ipr.IprSettings(wavelength_nm=rig.laser.wavelength_nm, particle_image_px=rig.render.particle_image_px)

@@ -107,16 +107,13 @@ def test_pinhole_and_mixed_rigs_candidates_by_rays(kind):
     from lfcore.render import renderer_for
     from lfpiv.rigfile import load_rig
     from tests.conftest import EXAMPLES
-    from tests.helpers import tomo_arc_small
+    from tests.helpers import four_particles, tomo_arc_small
 
     # four pinhole cameras, or the mixed rig (a light-field camera and two pinhole ones, focused on the
     # box's middle: near its focal plane the light-field camera abstains and the pinhole ones decide)
     rig = tomo_arc_small() if kind == "pinhole" else load_rig(EXAMPLES / "mixed_cameras.toml")
     grid = VolumeGrid.from_rig(rig)
-    shape = np.asarray(grid.shape, dtype=np.float64)
-    frac = np.array([[0.15, 0.3, 0.28], [0.72, 0.7, 0.33], [0.77, 0.35, 0.71], [0.3, 0.72, 0.69]])
-    u = np.floor(frac * (shape - 1)) + np.array([[0.3, 0.25, 0.65], [0.6, 0.7, 0.2], [0.2, 0.4, 0.3],
-                                                 [0.75, 0.15, 0.55]])
+    u = four_particles(grid)
     truth = ipr.to_mm(grid, u)
     cfg = rig.render.model_copy(update={"rays_per_particle": 40_000})
     counts = 50_000.0 if kind == "pinhole" else 10_000.0  # the mixed rig's 12-bit pinhole cameras saturate
