@@ -135,20 +135,24 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
     from lfpiv.jobs.calibrate import calibrated_rig, flat_fields
     from lfpiv.jobs.reconstruct import (
         camera_count,
+        cameras_kind,
         default_method,
         protocol_run_settings,
         recon_settings,
         reconstruct_run,
+        run_method,
     )
 
     store = open_run(run, mode="r+")
-    method = method or default_method(store.rig, cameras)
     if protocol is None:
-        settings = recon_settings(method=method, iterations=50 if iterations is None else iterations,
+        settings = recon_settings(method=method or default_method(store.rig, cameras),
+                                  iterations=50 if iterations is None else iterations,
                                   relaxation=relaxation, form=form, **options)
     else:
-        settings = protocol_run_settings(protocol, iterations=iterations, method=method, relaxation=relaxation,
-                                         form=form, n_cameras=camera_count(store.rig, cameras), **options)
+        # light-field cameras leave the method to the protocol's plan (fast on several: MLOS-MART)
+        settings = protocol_run_settings(protocol, iterations=iterations, method=run_method(store.rig, cameras, method),
+                                         relaxation=relaxation, form=form, n_cameras=camera_count(store.rig, cameras),
+                                         camera_kind=cameras_kind(store.rig, cameras), **options)
     rig, cal = calibrated_rig(store.rig, calibration, cameras) if calibration is not None else (None, None)
     flats, flat_info = (flat_fields(store.rig, flat_field, cameras)[:2] if flat_field is not None
                         else (None, None))

@@ -105,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
     _step(f"recording {args.pairs} double-frame pair(s) of a vortex ring: the pulse generator fires the laser and "
           "triggers both cameras", ["acquire", "--rig", rig_s, "--pairs", str(args.pairs), "--out", run_,
                                     "--sim-pool", str(min(args.pairs, 4)), "--quiet", *rays])
-    voxels_s = _step("reconstruction: DRT-MART, both cameras jointly", ["reconstruct", run_, *dev])
+    voxels_s = _step("reconstruction: MLOS-MART (fast's plan for two light-field cameras), both cameras jointly",
+                     ["reconstruct", run_, *dev])
     windows = demo_windows(run_)
     voxels_s += _step("3D multi-grid cross-correlation", ["correlate", run_, "--windows", windows, "--overlap", "0.5",
                                                          "--quiet", *dev])

@@ -217,12 +217,14 @@ def run(args: argparse.Namespace) -> int:
         BYTES_PER_BOX_VOXEL,
         DEFAULT_PROTOCOL,
         camera_count,
-        default_method,
+        cameras_kind,
         iterations_summary,
+        plan_words,
         protocol_run_settings,
         reconstruct_run,
         recorded_stages,
         resumed_protocol,
+        run_method,
         voxel_shape_notes,
     )
     from lfpiv.runs import open_run
@@ -230,7 +232,8 @@ def run(args: argparse.Namespace) -> int:
     check_pvr(args.pvr)
     # the cameras' default method needs the run's rig (read only: a bad option leaves the store untouched)
     run_rig = open_run(args.run).rig
-    method = args.method or default_method(run_rig, args.cameras)
+    # light-field cameras leave the method to the protocol's plan (fast on several: MLOS-MART)
+    method = run_method(run_rig, args.cameras, args.method)
     if args.protocol is None:
         # a run is finished as it was begun: --skip-done goes on with its volumes' protocol
         resumed = resumed_protocol(args.run) if args.skip_done else None
@@ -240,6 +243,7 @@ def run(args: argparse.Namespace) -> int:
         args.protocol = resumed or DEFAULT_PROTOCOL
     settings = protocol_run_settings(args.protocol, iterations=args.iterations, max_iterations=args.max_iterations,
                                      n_cameras=camera_count(run_rig, args.cameras),
+                                     camera_kind=cameras_kind(run_rig, args.cameras),
                                      stop_tolerance=args.stop_tolerance, method=method, relaxation=args.relaxation,
                                      form=args.form, sub_apertures=args.sub_apertures, background=args.background,
                                      threshold_sigma=args.threshold_sigma, smooth=args.smooth,
@@ -248,7 +252,10 @@ def run(args: argparse.Namespace) -> int:
                                      warm_iterations=args.warm_iterations, los_iterations=args.los_iterations,
                                      subsets=args.subsets, subset_halving=args.subset_halving, coarse=args.coarse,
                                      coarse_iterations=args.coarse_iterations)
-    args.method = method
+    args.method = settings.method
+    plan = plan_words(args.protocol, n_cameras=camera_count(run_rig, args.cameras),
+                      camera_kind=cameras_kind(run_rig, args.cameras), method=method,
+                      los_iterations=args.los_iterations, projector=args.projector)
     store = open_run(args.run, mode="r+")
     rig, calibration = None, None
     if args.calibration is not None:
@@ -289,7 +296,7 @@ def run(args: argparse.Namespace) -> int:
           f"{store.path}/volumes{workers_phrase(args)}; per volume: {act:.2%} of voxels active"
           f"{f' ({left:.0%} of them left after pruning)' if left < 1 else ''}, "
           f"{operator} built in {ws:.2f} s, {ms:.1f} ms per iteration")
-    print(f"protocol {args.protocol}: {iterations_summary(results, settings)}")
+    print(f"protocol {args.protocol}{plan}: {iterations_summary(results, settings)}")
     stages = recorded_stages(store)
     if stages:
         print(f"each frame ran: {stages}")
