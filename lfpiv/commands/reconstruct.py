@@ -76,8 +76,10 @@ def protocol_help(default: str) -> str:
     return (f"a named set of settings (default: {default}), which the other options change: fast stops each frame "
             "when its projections have converged (at most 400 iterations), iterates DRT-MART's first 20 on "
             "line-of-sight weights, in 6 ordered subsets, eliminates on a coarser grid first in boxes of a million "
-            "voxels or more and prunes the dark voxels (on several cameras at most 75 iterations, the first 30 on "
-            "line-of-sight weights, without ordered subsets or the coarse grid); fixed runs 50 "
+            "voxels or more and prunes the dark voxels (on several light-field cameras without --method, MLOS-MART "
+            "at relaxation 2, at most 20 iterations, after a 2x coarser grid with 15 iterations; on other rigs of "
+            "several cameras or with --method, at most 75 iterations, the first 30 on line-of-sight weights, without "
+            "ordered subsets or the coarse grid); fixed runs 50 "
             "iterations with pruning; chapter is the chapter's protocol (400 iterations of every active voxel from a "
             "uniform start, as lfpiv study runs it)")
 
@@ -112,7 +114,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "weights and SMART iterations.")
     r.add_argument("run", metavar="RUN", help="run store (a .zarr directory)")
     r.add_argument("--method", choices=("drt-mart", "mart", "mlos-mart", "mlos-smart"), default=None,
-                   help="default: drt-mart for light-field cameras, mlos-smart for pinhole ones")
+                   help="default: drt-mart for light-field cameras (mlos-mart, the plan of --protocol fast, on "
+                   "several light-field cameras), mlos-smart for pinhole ones")
     r.add_argument("--protocol", choices=tuple(PROTOCOLS), default=None,
                    help=protocol_help(DEFAULT_PROTOCOL) + "; with --skip-done, the protocol the run's volumes "
                    "were made by")
@@ -121,7 +124,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "for chapter; fast stops each frame by the rule)")
     r.add_argument("--max-iterations", type=iterations, default=None, metavar="N",
                    help="with the stopping rule, the most iterations a frame runs (default: the protocol's iterations: "
-                   "400 for fast and chapter, 75 for fast on several cameras, 50 for fixed); turns the rule on where "
+                   "400 for fast and chapter, 20 for fast on several light-field cameras, 75 on other rigs of several "
+                   "cameras, 50 for fixed); turns the rule on where "
                    "the protocol has none")
     r.add_argument("--stop-tolerance", type=stop_tolerance, default=None, metavar="FRACTION",
                    help="the stopping rule: every 10 iterations, stop once the projections' relative residual fell "
