@@ -452,7 +452,9 @@ class ReconSettings:
 #: the tiny rig lost 0.014 of Q with a 2% hand-over). Measured by ``benchmarks/mcfast.py``
 #: (``benchmarks/RESULTS.md``): on the Mc crop Q 0.784 (the chapter's 400 iterations: 0.783) for 1/23.6 to
 #: 1/24.8 of the chapter protocol's CPU time in three runs (4 subsets and 20 coarse iterations: Q 0.785,
-#: 1/21.0 to 1/22.0 in the same runs); the tiny rig 0.788 (0.786).
+#: 1/21.0 to 1/22.0 in the same runs); the tiny rig 0.788 (0.786). On several cameras ``fast`` changes
+#: as :data:`SEVERAL_CAMERAS` (DRT-MART) and, on light-field cameras without a method given,
+#: :data:`SEVERAL_LIGHT_FIELD_CAMERAS` (MLOS-MART) say.
 PROTOCOLS: dict[str, dict] = {
     "chapter": {"iterations": 400, "prune": 0.0, "relaxation": 1.0},
     "fixed": {"iterations": 50},

@@ -142,6 +142,20 @@ def test_what_the_user_gives_wins_over_the_light_field_plan(tiny_rig):
     assert plan_words("fast", n_cameras=2, camera_kind="light-field") != ""
     assert plan_words("fast", n_cameras=2, camera_kind="light-field", method="drt-mart") == ""
     assert plan_words("fast", n_cameras=1, camera_kind="light-field") == ""
+    # the demo names what the default plan runs on its rig's cameras
+    from lfpiv.jobs.demo import default_plan_method
+    from lfpiv.rigfile import load_rig
+    from tests.conftest import EXAMPLES
+
+    assert default_plan_method(rig) == "mlos-mart" and default_plan_method(tiny_rig) == "drt-mart"
+    assert default_plan_method(load_rig(EXAMPLES / "demo.toml")) == "mlos-mart"
+    tomo = load_rig(EXAMPLES / "tomo_4_cameras.toml")
+    assert default_plan_method(tomo) == "mlos-smart"
+    # a pinhole rig runs what it ran before the light-field plan: its method with SEVERAL_CAMERAS
+    assert cameras_kind(tomo) == "pinhole" and run_method(tomo) == "mlos-smart"
+    assert protocol_run_settings("fast", n_cameras=camera_count(tomo), camera_kind=cameras_kind(tomo),
+                                 method=run_method(tomo)) == \
+        protocol_run_settings("fast", n_cameras=camera_count(tomo), method="mlos-smart")
 
 
 def test_fast_on_two_light_field_cameras_is_as_good_as_fixed(two_cameras):
