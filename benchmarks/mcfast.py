@@ -54,10 +54,12 @@ STAGES = {"elimination": ("eliminate", "coarse_eliminate"), "line-of-sight weigh
           "DRT operator": ("operator",), "iterations": ("iterate",)}
 
 
-def parse_row(text: str, n_cameras: int = 1, *, extras: dict | None = None):
+def parse_row(text: str, n_cameras: int = 1, *, extras: dict | None = None, camera_kind: str | None = "light-field"):
     """(label, settings) of a row: ``name`` or ``name;key=value,...``, resolved for ``n_cameras`` cameras
     as ``lfpiv reconstruct`` resolves it (``fast`` on several cameras has no subsets unless given).
-    ``extras``: where given, the benchmark's own keys (``round_checks``) are put there, not in the settings."""
+    ``extras``: where given, the benchmark's own keys (``round_checks``) are put there, not in the settings.
+    ``camera_kind``: the cameras' (light-field: ``fast`` on several without a method is its plan for several
+    light-field cameras, :data:`lfcore.reconstruct.SEVERAL_LIGHT_FIELD_CAMERAS`)."""
     name, _, rest = text.partition(";")
     changes = {}
     if name == "fast-plain":
@@ -69,7 +71,7 @@ def parse_row(text: str, n_cameras: int = 1, *, extras: dict | None = None):
         checks = changes.pop("round_checks")
         if extras is not None:
             extras["round_checks"] = checks
-    return text, protocol_settings(name, n_cameras=n_cameras, **changes)
+    return text, protocol_settings(name, n_cameras=n_cameras, camera_kind=camera_kind, **changes)
 
 
 def timed_frame(proj, settings, img, *, checkpoints=(), truth=None):

@@ -31,9 +31,10 @@ from lfpiv.jobs.evaluate import evaluate_run  # noqa: E402
 from lfpiv.jobs.reconstruct import (  # noqa: E402
     DEFAULT_PROTOCOL,
     camera_count,
-    default_method,
+    cameras_kind,
     protocol_run_settings,
     reconstruct_run,
+    run_method,
 )
 from lfpiv.runs import open_run  # noqa: E402
 
@@ -76,7 +77,7 @@ def one_mode(path: Path, args, options: dict) -> dict:
     (pair, frame): iterations, why it stopped, voxels, warm, CPU s; and Q."""
     store = open_run(str(path), mode="r+")
     settings = protocol_run_settings(args.protocol, n_cameras=camera_count(store.rig),
-                                     method=default_method(store.rig), **options)
+                                     camera_kind=cameras_kind(store.rig), method=run_method(store.rig), **options)
     cpu: list[float] = []
     original = FrameReconstructor.reconstruct
 

@@ -46,7 +46,7 @@ from benchmarks.convergence import _recon_bench  # noqa: E402  (benchmarks/recon
 from lfcore import metrics  # noqa: E402
 from lfcore.device import resolve_device  # noqa: E402
 from lfcore.particles import seeding_density  # noqa: E402
-from lfcore.plan import default_method, projector_for  # noqa: E402
+from lfcore.plan import camera_kind, default_method, projector_for  # noqa: E402
 from lfcore.reconstruct import FrameReconstructor, protocol_settings  # noqa: E402
 from lfcore.render import derive_seed  # noqa: E402
 from lfcore.rig import Rig  # noqa: E402
@@ -100,14 +100,17 @@ def rig_row(path: Path, args, device: str) -> str:
     """One rig's row: the defaults' Q, iterations and CPU seconds, and MART's Q at their CPU seconds."""
     rig, note, density, n_particles, img, grid, truth = _frame_a(path, args, device)
     cams = list(rig.camera)
-    method = default_method(cams)
+    # as lfpiv reconstruct resolves it: light-field cameras leave the method to the protocol's plan
+    kind = camera_kind(cams)
+    given = None if kind == "light-field" else default_method(cams)
+    method = protocol_settings(args.protocol, n_cameras=len(cams), camera_kind=kind, method=given).method
     proj = projector_for(cams, grid, device=device)
     shape = " x ".join(map(str, grid.shape[::-1]))
     print(f"{path.stem}: {len(cams)} camera(s), {shape} voxels (x, y, z), {n_particles} particles ({density})"
           f"{', ' + note if note else ''}", flush=True)
-    defaults = protocol_settings(args.protocol, n_cameras=len(cams), method=method)
+    defaults = protocol_settings(args.protocol, n_cameras=len(cams), camera_kind=kind, method=given)
     # the kernels loaded (and the first-call costs paid) before anything is timed
-    FrameReconstructor(proj, protocol_settings(args.protocol, n_cameras=len(cams), method=method,
+    FrameReconstructor(proj, protocol_settings(args.protocol, n_cameras=len(cams), camera_kind=kind, method=given,
                                                iterations=2)).reconstruct(img)
     res, q, cpu = cpu_timed(proj, defaults, img, truth)
     print(f"  defaults ({args.protocol}, {method}): Q {q:.3f}, {res.iterations} iterations ({res.stopped}), "

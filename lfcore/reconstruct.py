@@ -76,11 +76,12 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
     from lfcore.warm import Predictor, WarmStart
     from lfcore.weight_cache import WeightCache
 
-__all__ = ["CAPPED", "COARSE_METHODS", "CONVERGED", "FIXED", "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE",
-           "PRUNE_PERCENTILE", "SEVERAL_CAMERAS", "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WEIGHTS",
-           "CoarseBright", "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings", "StoppingRule",
-           "WARM_HANDOVER", "WARM_LOS_ITERATIONS", "WARM_SHARE", "WARM_STOP_EVERY", "bright_voxels", "coarse_applies",
-           "coarse_bright", "coarse_reconstructor", "estimate_background", "is_split", "preprocess",
+__all__ = ["CAPPED", "COARSE_METHODS", "CONVERGED", "DRT_OPTIONS", "FIXED", "MASKED", "METHODS", "NO_VOXELS",
+           "PROTOCOLS", "PRUNE", "PRUNE_PERCENTILE", "SEVERAL_CAMERAS", "SEVERAL_LIGHT_FIELD_CAMERAS",
+           "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WARM_HANDOVER", "WARM_LOS_ITERATIONS", "WARM_SHARE",
+           "WARM_STOP_EVERY", "WEIGHTS", "CoarseBright", "FrameReconstructor", "Iterated", "ReconResult",
+           "ReconSettings", "StoppingRule", "bright_voxels", "coarse_applies", "coarse_bright",
+           "coarse_reconstructor", "estimate_background", "is_split", "light_field_plan", "preprocess",
            "preprocess_images", "protocol_settings", "prune_dark", "reconstruct", "relative_residual",
            "smart_iterations", "stop_interval", "unexplained_added", "warm_count"]
 
@@ -452,7 +453,9 @@ class ReconSettings:
 #: the tiny rig lost 0.014 of Q with a 2% hand-over). Measured by ``benchmarks/mcfast.py``
 #: (``benchmarks/RESULTS.md``): on the Mc crop Q 0.784 (the chapter's 400 iterations: 0.783) for 1/23.6 to
 #: 1/24.8 of the chapter protocol's CPU time in three runs (4 subsets and 20 coarse iterations: Q 0.785,
-#: 1/21.0 to 1/22.0 in the same runs); the tiny rig 0.788 (0.786).
+#: 1/21.0 to 1/22.0 in the same runs); the tiny rig 0.788 (0.786). On several cameras ``fast`` changes
+#: as :data:`SEVERAL_CAMERAS` (DRT-MART) and, on light-field cameras without a method given,
+#: :data:`SEVERAL_LIGHT_FIELD_CAMERAS` (MLOS-MART) say.
 PROTOCOLS: dict[str, dict] = {
     "chapter": {"iterations": 400, "prune": 0.0, "relaxation": 1.0},
     "fixed": {"iterations": 50},
@@ -478,10 +481,51 @@ PROTOCOLS: dict[str, dict] = {
 #: 34,853: 10% less CPU at the same Q 0.847) and took the demo's ring to 21.8% of its peak speed
 #: (20 of 75: 22.2%; ``fixed``: 22.0%; ``benchmarks/ring.py``); a cap of 50 did as well on the demo but
 #: cost the chapter's optics (the cropped ``two_cameras`` rig) 0.03 of Q.
+#: These are DRT-MART's settings on several cameras: a method given (``--method``), and pinhole or
+#: mixed rigs, keep them; rigs of several light-field cameras take :data:`SEVERAL_LIGHT_FIELD_CAMERAS`
+#: where no method is given.
 SEVERAL_CAMERAS: dict[str, dict] = {"fast": {"subsets": 1, "coarse": 1, "iterations": 75, "los_iterations": 30}}
 
+#: What a named protocol changes on a rig of several light-field cameras (:func:`protocol_settings`
+#: with ``n_cameras`` above 1 and ``camera_kind`` ``"light-field"``) where no method is given, on top of
+#: :data:`SEVERAL_CAMERAS`: ``fast`` runs MLOS-MART (line-of-sight weights, no DRT weights traced) at
+#: relaxation 2 (the most the simultaneous form takes), stopping by the rule within 20 iterations,
+#: after coarse-to-fine elimination on a grid 2 times coarser with 15 line-of-sight iterations there
+#: (in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels). Measured against the truth
+#: (``benchmarks/RESULTS.md``, eighth session): Q 0.856 on Mc2 (DRT-MART's best at any of the chapter's
+#: counts: 0.844) in about 1/16 of the chapter protocol's CPU time (the 75-iteration DRT-MART plan:
+#: 0.847 in 1/6); on the demo rig 0.855 against 0.819 and the demo's ring 20.5% of its peak speed
+#: against 21.8%, at two thirds of the CPU; S2 0.767 against 0.761 at half. The elimination keeps its
+#: default ``max_dark``: no dark check allowed (``max_dark`` 0) would take Mc2 to 1/22-1/25, but on
+#: images with 3 times the renderer's noise it lost Q 0.817 -> 0.629 there (a particle's voxels
+#: dropped by one noise-darkened check); on the demo rig and S2 (80 checks a camera) the two are the same.
+SEVERAL_LIGHT_FIELD_CAMERAS: dict[str, dict] = {
+    "fast": {"method": "mlos-mart", "relaxation": 2.0, "iterations": 20, "coarse": 2, "coarse_iterations": 15,
+             "los_iterations": 0},
+}
 
-def protocol_settings(name: str, *, n_cameras: int = 1, **changes) -> ReconSettings:
+#: Options that ask for DRT-MART's weights, so that a rig of several light-field cameras keeps
+#: DRT-MART's settings (:data:`SEVERAL_CAMERAS`) where one is given without a method.
+DRT_OPTIONS = ("los_iterations", "projector")
+
+
+def light_field_plan(name: str, *, n_cameras: int = 1, camera_kind: str | None = None,
+                     changes: dict | None = None) -> dict:
+    """The settings the named protocol changes on a rig of several light-field cameras
+    (:data:`SEVERAL_LIGHT_FIELD_CAMERAS`), or ``{}`` where they do not apply: one camera, another
+    ``camera_kind`` (pinhole, ``"joint"``, or None: not said), a method given in ``changes``, or an
+    option there that asks for DRT-MART's weights (:data:`DRT_OPTIONS`: ``los_iterations``, ``projector``
+    other than auto)."""
+    changes = changes or {}
+    if n_cameras < 2 or camera_kind != "light-field" or changes.get("method") is not None:
+        return {}
+    if "los_iterations" in changes or changes.get("projector", "auto") != "auto":
+        return {}
+    return dict(SEVERAL_LIGHT_FIELD_CAMERAS.get(name, {}))
+
+
+def protocol_settings(name: str, *, n_cameras: int = 1, camera_kind: str | None = None,
+                      **changes) -> ReconSettings:
     """The :class:`ReconSettings` of the named protocol (:data:`PROTOCOLS`), with ``changes`` applied.
 
     A method other than DRT-MART's simultaneous form drops the line-of-sight first iterations and the
@@ -489,6 +533,9 @@ def protocol_settings(name: str, *, n_cameras: int = 1, **changes) -> ReconSetti
     ordered subsets; ``iterations`` given with a protocol that stops by the rule is the rule's most.
     ``n_cameras``, the cameras reconstructed jointly: above 1 the protocol's settings for rigs of
     several cameras (:data:`SEVERAL_CAMERAS`) apply where ``changes`` does not give them.
+    ``camera_kind``, the cameras' kind (:func:`lfcore.plan.camera_kind`): ``"light-field"`` on several
+    cameras with no method in ``changes`` applies the protocol's plan for several light-field cameras
+    (:func:`light_field_plan`); None (the default) and the other kinds keep :data:`SEVERAL_CAMERAS`.
 
     Raises
     ------
@@ -497,13 +544,16 @@ def protocol_settings(name: str, *, n_cameras: int = 1, **changes) -> ReconSetti
     """
     if name not in PROTOCOLS:
         raise ValueError(f"protocol must be one of {', '.join(PROTOCOLS)}, got '{name}'")
-    several = SEVERAL_CAMERAS.get(name, {}) if n_cameras > 1 else {}
+    changes = {k: v for k, v in changes.items() if not (k == "method" and v is None)}
+    plan = light_field_plan(name, n_cameras=n_cameras, camera_kind=camera_kind, changes=changes)
+    several = {**SEVERAL_CAMERAS.get(name, {}), **plan} if n_cameras > 1 else {}
     merged = {**PROTOCOLS[name], **several, **changes}
-    if merged.get("method", "drt-mart") != "drt-mart" or merged.get("form", "simultaneous") != "simultaneous":
+    simultaneous = merged.get("form", "simultaneous") == "simultaneous"
+    if merged.get("method", "drt-mart") != "drt-mart" or not simultaneous:
         if "los_iterations" not in changes:
             merged["los_iterations"] = 0
-        if "coarse" not in changes:
-            merged["coarse"] = 1
+        if "coarse" not in changes and not ("coarse" in plan and simultaneous):
+            merged["coarse"] = 1  # a protocol's coarse grid is DRT-MART's, unless its plan gives one
         if merged.get("form", "simultaneous") != "simultaneous":
             for key, off in (("warm_start", False), ("subsets", 1)):
                 if key not in changes:

@@ -82,7 +82,7 @@ def import_files(rig: Rig | str | os.PathLike[str], out: str | os.PathLike[str],
 
 
 def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = None, iterations: int | None = None,
-                relaxation: float = 1.0, form: str = "simultaneous", pvr: Sequence[float] | None = None,
+                relaxation: float | None = None, form: str = "simultaneous", pvr: Sequence[float] | None = None,
                 margin_mm: Sequence[float] = (0.0, 0.0, 0.0), pairs: PairsLike = None,
                 cameras: Sequence[str] | None = None, calibration: str | os.PathLike[str] | None = None,
                 device: str | None = None, workers: int | None = None, scheduler: str | None = None,
@@ -96,9 +96,12 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
     run
         The run (a path or a store).
     method, iterations, relaxation, form
-        DRT-MART, MART, MLOS-MART or MLOS-SMART (None: DRT-MART for light-field cameras,
-        MLOS-SMART for pinhole ones); MART sweeps, a fixed count (None: 50, or the protocol's);
-        relaxation; simultaneous or sequential.
+        DRT-MART, MART, MLOS-MART or MLOS-SMART (None: DRT-MART for light-field cameras, MLOS-MART
+        under ``protocol="fast"`` on several light-field cameras (its plan for them,
+        :data:`lfcore.reconstruct.SEVERAL_LIGHT_FIELD_CAMERAS`), MLOS-SMART for pinhole ones); MART
+        sweeps, a fixed count (None: 50, or the protocol's);
+        relaxation (None: 1, or the protocol's: 2 in ``fast``'s plan for several light-field cameras);
+        simultaneous or sequential.
     pvr, margin_mm
         Pixel-voxel ratio (x, y, z) of the voxel grid (None: the rig's) and the margin around
         the rig's volume, mm.
@@ -135,20 +138,24 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
     from lfpiv.jobs.calibrate import calibrated_rig, flat_fields
     from lfpiv.jobs.reconstruct import (
         camera_count,
+        cameras_kind,
         default_method,
         protocol_run_settings,
         recon_settings,
         reconstruct_run,
+        run_method,
     )
 
     store = open_run(run, mode="r+")
-    method = method or default_method(store.rig, cameras)
     if protocol is None:
-        settings = recon_settings(method=method, iterations=50 if iterations is None else iterations,
-                                  relaxation=relaxation, form=form, **options)
+        settings = recon_settings(method=method or default_method(store.rig, cameras),
+                                  iterations=50 if iterations is None else iterations,
+                                  relaxation=1.0 if relaxation is None else relaxation, form=form, **options)
     else:
-        settings = protocol_run_settings(protocol, iterations=iterations, method=method, relaxation=relaxation,
-                                         form=form, n_cameras=camera_count(store.rig, cameras), **options)
+        # light-field cameras leave the method to the protocol's plan (fast on several: MLOS-MART)
+        settings = protocol_run_settings(protocol, iterations=iterations, method=run_method(store.rig, cameras, method),
+                                         relaxation=relaxation, form=form, n_cameras=camera_count(store.rig, cameras),
+                                         camera_kind=cameras_kind(store.rig, cameras), **options)
     rig, cal = calibrated_rig(store.rig, calibration, cameras) if calibration is not None else (None, None)
     flats, flat_info = (flat_fields(store.rig, flat_field, cameras)[:2] if flat_field is not None
                         else (None, None))

@@ -73,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.jobs.demo import (
         check_device,
         copy_recording,
+        default_plan_method,
         demo_windows,
         pictures,
         prepare_folder,
@@ -105,7 +106,8 @@ def run(args: argparse.Namespace) -> int:
     _step(f"recording {args.pairs} double-frame pair(s) of a vortex ring: the pulse generator fires the laser and "
           "triggers both cameras", ["acquire", "--rig", rig_s, "--pairs", str(args.pairs), "--out", run_,
                                     "--sim-pool", str(min(args.pairs, 4)), "--quiet", *rays])
-    voxels_s = _step("reconstruction: DRT-MART, both cameras jointly", ["reconstruct", run_, *dev])
+    method = default_plan_method(rig).upper()  # fast's: MLOS-MART on several light-field cameras
+    voxels_s = _step(f"reconstruction: {method}, the cameras jointly", ["reconstruct", run_, *dev])
     windows = demo_windows(run_)
     voxels_s += _step("3D multi-grid cross-correlation", ["correlate", run_, "--windows", windows, "--overlap", "0.5",
                                                          "--quiet", *dev])
@@ -128,9 +130,9 @@ def run(args: argparse.Namespace) -> int:
         particles_s += _step("tracking: frame A's particles paired with frame B's, binned on a grid",
                              ["track", prun, "--search-voxels", "4,4,4", "--bin", last, "--quiet"])
         _step("accuracy of the particle route against the simulated truth", ["evaluate", prun])
-        routes = [route_figures(run_, "DRT-MART + correlation", voxels_s, args.pairs),
+        routes = [route_figures(run_, f"{method} + correlation", voxels_s, args.pairs),
                   route_figures(prun, "particles (IPR) + tracking", particles_s, n)]
-        shown.append(routes_picture([("DRT-MART + correlation", run_), ("particles + tracking", prun)],
+        shown.append(routes_picture([(f"{method} + correlation", run_), ("particles + tracking", prun)],
                                     out / "routes.png"))
 
     mode = _monitor_mode(args.monitor)

@@ -76,8 +76,10 @@ def protocol_help(default: str) -> str:
     return (f"a named set of settings (default: {default}), which the other options change: fast stops each frame "
             "when its projections have converged (at most 400 iterations), iterates DRT-MART's first 20 on "
             "line-of-sight weights, in 6 ordered subsets, eliminates on a coarser grid first in boxes of a million "
-            "voxels or more and prunes the dark voxels (on several cameras at most 75 iterations, the first 30 on "
-            "line-of-sight weights, without ordered subsets or the coarse grid); fixed runs 50 "
+            "voxels or more and prunes the dark voxels (on several light-field cameras without --method, MLOS-MART "
+            "at relaxation 2, at most 20 iterations, after a 2x coarser grid with 15 iterations; on other rigs of "
+            "several cameras or with --method, at most 75 iterations, the first 30 on line-of-sight weights, without "
+            "ordered subsets or the coarse grid); fixed runs 50 "
             "iterations with pruning; chapter is the chapter's protocol (400 iterations of every active voxel from a "
             "uniform start, as lfpiv study runs it)")
 
@@ -112,7 +114,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "weights and SMART iterations.")
     r.add_argument("run", metavar="RUN", help="run store (a .zarr directory)")
     r.add_argument("--method", choices=("drt-mart", "mart", "mlos-mart", "mlos-smart"), default=None,
-                   help="default: drt-mart for light-field cameras, mlos-smart for pinhole ones")
+                   help="default: drt-mart for light-field cameras (mlos-mart, the plan of --protocol fast, on "
+                   "several light-field cameras), mlos-smart for pinhole ones")
     r.add_argument("--protocol", choices=tuple(PROTOCOLS), default=None,
                    help=protocol_help(DEFAULT_PROTOCOL) + "; with --skip-done, the protocol the run's volumes "
                    "were made by")
@@ -121,7 +124,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "for chapter; fast stops each frame by the rule)")
     r.add_argument("--max-iterations", type=iterations, default=None, metavar="N",
                    help="with the stopping rule, the most iterations a frame runs (default: the protocol's iterations: "
-                   "400 for fast and chapter, 75 for fast on several cameras, 50 for fixed); turns the rule on where "
+                   "400 for fast and chapter, 20 for fast on several light-field cameras, 75 on other rigs of several "
+                   "cameras, 50 for fixed); turns the rule on where "
                    "the protocol has none")
     r.add_argument("--stop-tolerance", type=stop_tolerance, default=None, metavar="FRACTION",
                    help="the stopping rule: every 10 iterations, stop once the projections' relative residual fell "
@@ -217,12 +221,14 @@ def run(args: argparse.Namespace) -> int:
         BYTES_PER_BOX_VOXEL,
         DEFAULT_PROTOCOL,
         camera_count,
-        default_method,
+        cameras_kind,
         iterations_summary,
+        plan_words,
         protocol_run_settings,
         reconstruct_run,
         recorded_stages,
         resumed_protocol,
+        run_method,
         voxel_shape_notes,
     )
     from lfpiv.runs import open_run
@@ -230,7 +236,8 @@ def run(args: argparse.Namespace) -> int:
     check_pvr(args.pvr)
     # the cameras' default method needs the run's rig (read only: a bad option leaves the store untouched)
     run_rig = open_run(args.run).rig
-    method = args.method or default_method(run_rig, args.cameras)
+    # light-field cameras leave the method to the protocol's plan (fast on several: MLOS-MART)
+    method = run_method(run_rig, args.cameras, args.method)
     if args.protocol is None:
         # a run is finished as it was begun: --skip-done goes on with its volumes' protocol
         resumed = resumed_protocol(args.run) if args.skip_done else None
@@ -240,6 +247,7 @@ def run(args: argparse.Namespace) -> int:
         args.protocol = resumed or DEFAULT_PROTOCOL
     settings = protocol_run_settings(args.protocol, iterations=args.iterations, max_iterations=args.max_iterations,
                                      n_cameras=camera_count(run_rig, args.cameras),
+                                     camera_kind=cameras_kind(run_rig, args.cameras),
                                      stop_tolerance=args.stop_tolerance, method=method, relaxation=args.relaxation,
                                      form=args.form, sub_apertures=args.sub_apertures, background=args.background,
                                      threshold_sigma=args.threshold_sigma, smooth=args.smooth,
@@ -248,7 +256,10 @@ def run(args: argparse.Namespace) -> int:
                                      warm_iterations=args.warm_iterations, los_iterations=args.los_iterations,
                                      subsets=args.subsets, subset_halving=args.subset_halving, coarse=args.coarse,
                                      coarse_iterations=args.coarse_iterations)
-    args.method = method
+    args.method = settings.method
+    plan = plan_words(args.protocol, n_cameras=camera_count(run_rig, args.cameras),
+                      camera_kind=cameras_kind(run_rig, args.cameras), method=method,
+                      los_iterations=args.los_iterations, projector=args.projector)
     store = open_run(args.run, mode="r+")
     rig, calibration = None, None
     if args.calibration is not None:
@@ -289,7 +300,7 @@ def run(args: argparse.Namespace) -> int:
           f"{store.path}/volumes{workers_phrase(args)}; per volume: {act:.2%} of voxels active"
           f"{f' ({left:.0%} of them left after pruning)' if left < 1 else ''}, "
           f"{operator} built in {ws:.2f} s, {ms:.1f} ms per iteration")
-    print(f"protocol {args.protocol}: {iterations_summary(results, settings)}")
+    print(f"protocol {args.protocol}{plan}: {iterations_summary(results, settings)}")
     stages = recorded_stages(store)
     if stages:
         print(f"each frame ran: {stages}")

@@ -13,14 +13,15 @@ from pathlib import Path
 import numpy as np
 
 from lfcore.device import resolve_device
+from lfcore.rig import Rig
 from lfcore.runstore import RunStore, RunStoreError
 from lfpiv.errors import UsageError
 from lfpiv.jobs.correlate import fitting_windows
 from lfpiv.jobs.evaluate import evaluate_vector_fields
 from lfpiv.plots import plot_raw_images, plot_routes, plot_vectors
 
-__all__ = ["MARKER", "RouteFigures", "check_device", "copy_recording", "demo_windows", "pictures", "prepare_folder",
-           "route_figures", "route_table", "routes_picture"]
+__all__ = ["MARKER", "RouteFigures", "check_device", "copy_recording", "default_plan_method", "demo_windows",
+           "pictures", "prepare_folder", "route_figures", "route_table", "routes_picture"]
 
 #: What a copy of the recording leaves out: what the processing wrote (the particle route's copy
 #: starts from the recorded frames and the truth alone).
@@ -33,6 +34,15 @@ MARKER = ".lfpiv-demo"
 def check_device(device: str) -> None:
     """A one-line error for a compute device this machine lacks (before anything is cleared)."""
     resolve_device(device)
+
+
+def default_plan_method(rig: Rig) -> str:
+    """The method ``lfpiv reconstruct`` runs on all of ``rig``'s cameras without options (the default
+    protocol's plan: MLOS-MART on several light-field cameras, DRT-MART on one, MLOS-SMART on pinhole ones)."""
+    from lfpiv.jobs.reconstruct import DEFAULT_PROTOCOL, camera_count, cameras_kind, protocol_run_settings, run_method
+
+    return protocol_run_settings(DEFAULT_PROTOCOL, n_cameras=camera_count(rig), camera_kind=cameras_kind(rig),
+                                 method=run_method(rig)).method
 
 
 def prepare_folder(out: Path) -> None:

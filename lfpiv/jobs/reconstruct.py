@@ -21,6 +21,7 @@ from lfcore.plan import (
     Plan,
     PlanError,
     build_reconstructor,
+    camera_kind,
     plan_reconstruction,
     unsupported_method,
 )
@@ -36,6 +37,7 @@ from lfcore.reconstruct import (
     FrameReconstructor,
     ReconResult,
     ReconSettings,
+    light_field_plan,
     protocol_settings,
 )
 from lfcore.rig import Rig, is_pinhole, voxel_shape_warnings
@@ -51,9 +53,9 @@ from lfpiv.pair_runner import recorded_pairs, run_pairs
 __all__ = ["BYTES_PER_BOX_VOXEL", "CONVERGENCE_ATTR", "DEFAULT_PROTOCOL", "MAX_SUB_APERTURES", "MAX_SUBSETS",
            "OPERATOR_ATTR", "PINHOLE_METHODS", "PLAN_ATTR", "PROJECTORS", "PROTOCOLS", "STOP_TOLERANCE",
            "STOP_VOXELS", "SUBSET_HALVING", "MAX_COARSE", "PairDone", "ReconJob", "ReconResult", "ReconSettings",
-           "camera_count", "convergence_figures", "default_method", "describe_convergence", "iterations_summary",
-           "operator_figures", "protocol_run_settings", "recon_settings", "reconstruct_pair_task",
-           "reconstruct_run", "voxel_shape_notes"]
+           "camera_count", "cameras_kind", "convergence_figures", "default_method", "describe_convergence",
+           "iterations_summary", "operator_figures", "plan_words", "protocol_run_settings", "recon_settings",
+           "reconstruct_pair_task", "reconstruct_run", "run_method", "voxel_shape_notes"]
 
 log = logging.getLogger(__name__)
 
@@ -78,13 +80,16 @@ def recon_settings(**options: Any) -> ReconSettings:
 
 
 def protocol_run_settings(protocol: str, *, iterations: int | None = None, max_iterations: int | None = None,
-                          stop_tolerance: float | None = None, n_cameras: int = 1, **options: Any) -> ReconSettings:
+                          stop_tolerance: float | None = None, n_cameras: int = 1, camera_kind: str | None = None,
+                          **options: Any) -> ReconSettings:
     """The settings of a named protocol (:func:`lfcore.reconstruct.protocol_settings`) changed by the
     options given (those None are the protocol's), or a one-line :class:`UsageError`.
 
     ``n_cameras`` is the number of cameras reconstructed jointly: on several the protocol's settings
     for rigs of several cameras apply (:data:`lfcore.reconstruct.SEVERAL_CAMERAS`: ``fast`` without
-    its ordered subsets) where the options do not give them.
+    its ordered subsets) where the options do not give them; ``camera_kind`` (:func:`cameras_kind`)
+    ``"light-field"`` with no ``method`` given applies the protocol's plan for several light-field
+    cameras instead (:func:`lfcore.reconstruct.light_field_plan`: ``fast`` by MLOS-MART).
 
     ``iterations`` is a fixed count (the stopping rule off); ``max_iterations`` the stopping rule's
     most (the rule on, at ``stop_tolerance`` or the protocol's or :data:`STOP_TOLERANCE`);
@@ -108,7 +113,7 @@ def protocol_run_settings(protocol: str, *, iterations: int | None = None, max_i
     elif stop_tolerance is not None:
         changes["stop_tolerance"] = stop_tolerance
     try:
-        return protocol_settings(protocol, n_cameras=n_cameras, **changes)
+        return protocol_settings(protocol, n_cameras=n_cameras, camera_kind=camera_kind, **changes)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
 
@@ -116,6 +121,30 @@ def protocol_run_settings(protocol: str, *, iterations: int | None = None, max_i
 def camera_count(rig: Rig, cameras: Sequence[str] | None = None) -> int:
     """How many of the rig's cameras are reconstructed jointly: those named (None: all of the rig's)."""
     return sum(1 for c in rig.camera if cameras is None or c.name in cameras)
+
+
+def cameras_kind(rig: Rig, cameras: Sequence[str] | None = None) -> str:
+    """The kind of the cameras named (None: all of the rig's), :func:`lfcore.plan.camera_kind`:
+    ``"light-field"``, ``"pinhole"`` or ``"joint"`` (a mix)."""
+    return camera_kind([c for c in rig.camera if cameras is None or c.name in cameras])
+
+
+def run_method(rig: Rig, cameras: Sequence[str] | None = None, method: str | None = None) -> str | None:
+    """The method to hand :func:`protocol_run_settings`: ``method`` where given; None for light-field
+    cameras (the protocol's plan for them picks: ``fast`` on several, MLOS-MART; DRT-MART otherwise);
+    the cameras' default (:func:`default_method`) for pinhole and mixed rigs."""
+    if method is not None:
+        return method
+    return None if cameras_kind(rig, cameras) == "light-field" else default_method(rig, cameras)
+
+
+def plan_words(protocol: str, *, n_cameras: int = 1, camera_kind: str | None = None, **given: Any) -> str:
+    """Words for the summary line on which of the protocol's plans ran: ``" (its plan for several
+    light-field cameras)"`` where :func:`lfcore.reconstruct.light_field_plan` applies to the options
+    ``given`` (those None not given), else ``""``."""
+    changes = {k: v for k, v in given.items() if v is not None}
+    applies = light_field_plan(protocol, n_cameras=n_cameras, camera_kind=camera_kind, changes=changes)
+    return " (its plan for several light-field cameras)" if applies else ""
 
 
 def default_method(rig: Rig, cameras: Sequence[str] | None = None) -> str:
