@@ -14,28 +14,16 @@ import pytest
 
 from lfcore import coarse, metrics
 from lfcore import projector as projector_module
-from lfcore.particles import particle_count, seed_particles
 from lfcore.plan import coarse_runs, frame_stages, projector_for
 from lfcore.reconstruct import FrameReconstructor, ReconSettings, preprocess_images, protocol_settings
-from lfcore.render import LightFieldRenderer
-from lfcore.rig import Rig
-from lfcore.volume import VolumeGrid
 
 #: (max_dark, survivors, the first 12 hex digits of the SHA-1 of their int32 indices) before the change
 PINNED = ((0.01, 26_045, "ef0938b0fdb6"), (0.05, 60_303, "70a002fc76af"))
 
 
 @pytest.fixture(scope="module")
-def two_cameras(tiny_rig):
-    d = tiny_rig.to_dict()
-    d["camera"].append(dict(d["camera"][0], name="cam1", rotation_deg=[0.0, 90.0, 0.0]))
-    d["volume"].update(size_mm=[0.8, 0.7, 0.8], pvr=[2.0, 2.0, 2.0])
-    rig = Rig.from_dict(d)
-    grid = VolumeGrid.from_rig(rig)
-    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.5), np.random.default_rng(1))
-    render = rig.render.model_copy(update={"rays_per_particle": 5_000})
-    img = [LightFieldRenderer(c, render, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(
-        pts, render.particle_counts, seed=1 + k) for k, c in enumerate(rig.camera)]
+def two_cameras(s2_scene):
+    rig, grid, pts, img = s2_scene
     return rig.camera, grid, pts, img
 
 

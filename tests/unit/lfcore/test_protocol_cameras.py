@@ -7,11 +7,9 @@ plan for them (SEVERAL_LIGHT_FIELD_CAMERAS: MLOS-MART on a coarse grid) reaches 
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from lfcore import metrics
-from lfcore.particles import particle_count, seed_particles
 from lfcore.plan import projector_for
 from lfcore.reconstruct import (
     PROTOCOLS,
@@ -21,9 +19,7 @@ from lfcore.reconstruct import (
     ReconSettings,
     protocol_settings,
 )
-from lfcore.render import LightFieldRenderer
 from lfcore.rig import Rig
-from lfcore.volume import VolumeGrid
 from lfpiv.jobs.reconstruct import camera_count, cameras_kind, plan_words, protocol_run_settings, run_method
 
 
@@ -64,17 +60,9 @@ def test_the_run_settings_count_the_cameras_reconstructed(tiny_rig):
 
 
 @pytest.fixture(scope="module")
-def two_cameras(tiny_rig):
+def two_cameras(s2_scene):
     """benchmarks/recon.py's S2: the tiny rig's camera and one at 90 degrees about y, 0.5 PPM."""
-    d = tiny_rig.to_dict()
-    d["camera"].append(dict(d["camera"][0], name="cam1", rotation_deg=[0.0, 90.0, 0.0]))
-    d["volume"].update(size_mm=[0.8, 0.7, 0.8], pvr=[2.0, 2.0, 2.0])
-    rig = Rig.from_dict(d)
-    grid = VolumeGrid.from_rig(rig)
-    pts = seed_particles(rig.volume, particle_count(rig, ppm=0.5), np.random.default_rng(1))
-    render = rig.render.model_copy(update={"rays_per_particle": 5_000})
-    img = [LightFieldRenderer(c, render, wavelength_nm=rig.laser.wavelength_nm, device="cpu").frame(
-        pts, render.particle_counts, seed=1 + k) for k, c in enumerate(rig.camera)]
+    rig, grid, pts, img = s2_scene
     return projector_for(rig.camera, grid, device="cpu"), metrics.truth_volume(grid, pts), img
 
 
