@@ -19,7 +19,6 @@ from lfpiv.commands import (
     whole_number,
     workers_phrase,
 )
-from lfpiv.errors import UsageError
 
 
 def shakes(text: str) -> int:
@@ -92,15 +91,10 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.jobs.particles import ipr_settings, particles_run
     from lfpiv.runs import open_run
 
-    # the quick reconstruction's own options (None where not given: IprSettings' defaults) mean nothing to ray bundling
+    # the quick reconstruction's own options where given (ipr_settings refuses them with ray bundling)
     quick = {k: v for k, v in (("candidate_iterations", args.candidate_iterations),
                                ("candidate_protocol", args.candidate_protocol),
                                ("candidate_threshold", args.threshold)) if v is not None}
-    if quick and args.candidates == "rays":
-        names = {"candidate_iterations": "--candidate-iterations", "candidate_protocol": "--candidate-protocol",
-                 "candidate_threshold": "--threshold"}
-        raise UsageError(f"{', '.join(names[k] for k in quick)}: the quick reconstruction's candidates, which "
-                         "--candidates rays does not make; leave them out, or choose --candidates reconstruction")
     options = dict(method=args.method, **quick, candidate_source=args.candidates, shakes=args.shakes,
                    min_intensity=args.min_intensity,
                    merge_voxels=args.merge_voxels, rounds=args.rounds, split_intensity=args.split, model=args.model,

@@ -37,6 +37,11 @@ OLD_DEFAULTS: dict[str, Any] = {"split_intensity": 0.0, "model": "voxels", "relo
 #: Settings of ray bundling only: the reconstruction's candidates do not depend on them.
 RAYS_ONLY = ("ray_keep_bins", "ray_min_score")
 
+#: Settings of the quick reconstruction's candidates only, with the command's option for each: ray
+#: bundling makes no reconstruction, so giving one of them with ``candidate_source="rays"`` is refused.
+QUICK_ONLY = {"candidate_iterations": "--candidate-iterations", "candidate_protocol": "--candidate-protocol",
+              "candidate_threshold": "--threshold"}
+
 #: Settings of the point model only: the ``"voxels"`` model's particles do not depend on them
 #: (groups written before they existed hold none of them).
 POINT_ONLY = ("point_sub_apertures", "particle_image_px", "wavelength_nm", "relocate_depth")
@@ -67,7 +72,12 @@ def same_settings(recorded: dict[str, Any], meta: dict[str, Any]) -> bool:
 
 
 def ipr_settings(**options: Any) -> IprSettings:
-    """:class:`lfcore.ipr.IprSettings` of the given options, or a one-line :class:`UsageError`."""
+    """:class:`lfcore.ipr.IprSettings` of the given options, or a one-line :class:`UsageError`
+    (also where a quick reconstruction's option is given with ray-bundling candidates, which ignore it)."""
+    given = [k for k in QUICK_ONLY if options.get(k) is not None]
+    if options.get("candidate_source") == "rays" and given:
+        raise UsageError(f"{', '.join(QUICK_ONLY[k] for k in given)}: the quick reconstruction's candidates, which "
+                         "--candidates rays does not make; leave them out, or choose --candidates reconstruction")
     try:
         return IprSettings(**options)
     except ValueError as exc:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 
 import numpy as np
+import pytest
 
 from lfcore.runstore import RunStore
 from tests.conftest import EXAMPLES
@@ -221,4 +222,18 @@ def test_ray_candidates_refuse_the_quick_reconstructions_options(tmp_path, capsy
         rc, out, err = _run(capsys, "particles", run, "--candidates", "rays", option, value, "--quiet")
         assert rc == 2 and option in err and "--candidates" in err, (option, err)
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not RunStore.open(run).has_particles
+
+
+def test_ray_candidates_refuse_the_quick_reconstructions_options_in_the_python_api(tmp_path, capsys):
+    """The Python API shares the command's check: a quick reconstruction's option given with ray-bundling
+    candidates is refused before anything is written, not silently ignored."""
+    import lfpiv
+    from lfpiv.errors import UsageError
+
+    run = tmp_path / "r.zarr"
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "1", "--ppm", "0.1",
+                "--rays", "20", "--quiet")[0] == 0
+    with pytest.raises(UsageError, match="--candidate-iterations"):
+        lfpiv.particles(run, candidate_source="rays", candidate_iterations=5, progress=False)
     assert not RunStore.open(run).has_particles
