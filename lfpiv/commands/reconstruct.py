@@ -77,7 +77,7 @@ def protocol_help(default: str) -> str:
             "when its projections have converged (at most 400 iterations), iterates DRT-MART's first 20 on "
             "line-of-sight weights, in 6 ordered subsets, eliminates on a coarser grid first in boxes of a million "
             "voxels or more and prunes the dark voxels (on several light-field cameras without --method, MLOS-MART "
-            "at relaxation 2, at most 20 iterations, after a 2x coarser grid with 15 iterations; on other rigs of "
+            "at relaxation 2, at most 75 iterations, after a 2x coarser grid with 15 iterations; on other rigs of "
             "several cameras or with --method, at most 75 iterations, the first 30 on line-of-sight weights, without "
             "ordered subsets or the coarse grid); fixed runs 50 "
             "iterations with pruning; chapter is the chapter's protocol (400 iterations of every active voxel from a "
