@@ -30,6 +30,17 @@ iterations by 10 (its Q is then not measured: ``--reference-iterations 400`` run
 is known from one run::
 
     python benchmarks/mcfast.py --case Mc2 --reference-iterations 400 --checkpoints 20,50,100,200,400
+
+``--noise 1,3,3+response`` runs every row on several renderings of the same particles, in one process:
+a factor F multiplies the renderer's shot and read noise (``read_noise_counts`` times F,
+``gain_e_per_count`` divided by F squared), and ``+response`` (or ``--response``, for every item) adds
+a camera's response (``lens_falloff`` 0.3, ``micro_vignetting`` 0.3, 20 dust spots, ``dark_fpn_counts``
+5). The reference runs on the first item's images::
+
+    python benchmarks/mcfast.py --case Mc2 --noise 1,3,3+response --rows "fast|fast;max_dark=0.0"
+
+The elimination stage is the fine grid's; after a coarse grid (``coarse``), the coarse grid's
+elimination, operator and iterations have their own column (CPU s).
 """
 
 from __future__ import annotations
@@ -45,6 +56,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.convergence import _recon_bench  # noqa: E402  (benchmarks/recon.py's scenes)
 from lfcore import metrics  # noqa: E402
 from lfcore import projector as projector_module  # noqa: E402
+from lfcore import reconstruct as reconstruct_module  # noqa: E402
 from lfcore.device import resolve_device  # noqa: E402
 from lfcore.plan import projector_for  # noqa: E402
 from lfcore.reconstruct import FrameReconstructor, protocol_settings  # noqa: E402
@@ -52,6 +64,23 @@ from lfcore.reconstruct import FrameReconstructor, protocol_settings  # noqa: E4
 #: The stages and the FrameReconstructor methods whose time is theirs.
 STAGES = {"elimination": ("eliminate", "coarse_eliminate"), "line-of-sight weights": ("los_operator",),
           "DRT operator": ("operator",), "iterations": ("iterate",)}
+#: The coarse grid's stages (its reconstructor's methods), inside the fine ``coarse_eliminate``'s time.
+COARSE_STAGES = {"coarse elimination": "eliminate", "coarse operator": "operator", "coarse iterations": "iterate"}
+#: A camera's response, as ``--response`` adds it to the images (:class:`lfcore.rig.RenderConfig`'s keys).
+RESPONSE = {"lens_falloff": 0.3, "micro_vignetting": 0.3, "dust_spots": 20, "dark_fpn_counts": 5.0}
+
+
+def render_changes(item: str, render, *, response: bool = False) -> dict:
+    """The ``[render]`` changes of one ``--noise`` item (``F`` or ``F+response``) on the rig's ``render``:
+    shot and read noise F times the renderer's (read noise times F, electrons per count over F squared)."""
+    factor, plus, extra = item.partition("+")
+    if plus and extra != "response":
+        raise SystemExit(f"--noise items are F or F+response, got '{item}'")
+    f = float(factor)
+    changes = {"read_noise_counts": render.read_noise_counts * f, "gain_e_per_count": render.gain_e_per_count / f**2}
+    if plus or response:
+        changes.update(RESPONSE)
+    return changes
 
 
 def parse_row(text: str, n_cameras: int = 1, *, extras: dict | None = None, camera_kind: str | None = "light-field"):
@@ -85,6 +114,23 @@ def timed_frame(proj, settings, img, *, checkpoints=(), truth=None):
     """
     frames = FrameReconstructor(proj, settings)
     clock = {stage: [0.0, 0.0] for stage in STAGES}
+    coarse_clock = {stage: [0.0, 0.0] for stage in COARSE_STAGES}
+    made = reconstruct_module.coarse_reconstructor
+
+    def coarse_reconstructor(*a, **k):  # the coarse grid's reconstructor, its stages timed
+        coarse = made(*a, **k)
+        for stage, name in COARSE_STAGES.items():
+            inner = getattr(coarse, name)
+
+            def timed(*a2, _inner=inner, _stage=stage, **k2):
+                w, c = time.perf_counter(), time.process_time()
+                try:
+                    return _inner(*a2, **k2)
+                finally:
+                    coarse_clock[_stage][0] += time.perf_counter() - w
+                    coarse_clock[_stage][1] += time.process_time() - c
+            setattr(coarse, name, timed)
+        return coarse
     marks: dict[int, float] = {}
     left_out = [0.0, 0.0]  # wall, CPU seconds of the checkpoints' Q
     if checkpoints:
@@ -120,10 +166,17 @@ def timed_frame(proj, settings, img, *, checkpoints=(), truth=None):
                     clock[_stage][1] += time.process_time() - c
             setattr(frames, name, wrapped)
     w, c = time.perf_counter(), time.process_time()
-    res = frames.reconstruct(img)
+    reconstruct_module.coarse_reconstructor = coarse_reconstructor
+    try:
+        res = frames.reconstruct(img)
+    finally:
+        reconstruct_module.coarse_reconstructor = made
     total = [time.perf_counter() - w - left_out[0], time.process_time() - c - left_out[1]]
     for i in (0, 1):
         clock["iterations"][i] -= left_out[i]
+        # the fine grid's elimination: the coarse grid's stages ran inside coarse_eliminate
+        clock["elimination"][i] -= sum(v[i] for v in coarse_clock.values())
+    clock.update(coarse_clock)
     # the stages nest (coarse_eliminate calls eliminate on another reconstructor, not this one's)
     drt = clock.pop("DRT voxels", 0)
     clock["other"] = [total[i] - sum(v[i] for v in clock.values()) for i in (0, 1)]
@@ -144,13 +197,25 @@ def main() -> None:
     ap.add_argument("--checkpoints", default="",
                     help="iteration counts of the reference at which its Q is measured too (e.g. 20,50,100,200,400; "
                          "its time left out), for the best Q it reaches at any count")
+    ap.add_argument("--noise", default="1",
+                    help="images: comma-separated noise factors, each F or F+response (e.g. 1,3,3+response); every "
+                         "row runs on each, the reference on the first")
+    ap.add_argument("--response", action="store_true", help="a camera's response on every --noise item's images")
     args = ap.parse_args()
     checkpoints = tuple(int(c) for c in args.checkpoints.split(",") if c)
     device = resolve_device(args.device)
-    _, _, cams, grid, pts, img = _recon_bench().scene(args.case, device, args.ppm)
+    bench = _recon_bench()
+    rig, _ = bench.case_rig(args.case)
+    items = [x.strip() for x in args.noise.split(",") if x.strip()]
+    images = {}
+    for item in items:
+        changes = render_changes(item, rig.render, response=args.response)
+        _, _, cams, grid, pts, images[item] = bench.scene(args.case, device, args.ppm, render_changes=changes)
+    img = images[items[0]]
     truth = metrics.truth_volume(grid, pts)
     proj = projector_for(cams, grid, device=device)
-    print(f"case {args.case}: grid {grid.shape} (z, y, x), {len(pts)} particles ({args.ppm:g} PPM), device {device}")
+    print(f"case {args.case}: grid {grid.shape} (z, y, x), {len(pts)} particles ({args.ppm:g} PPM), device {device}; "
+          f"images: " + ", ".join(f"{k}: {render_changes(k, rig.render, response=args.response)}" for k in items))
     # the kernels compiled (and the first-call costs paid) before anything is timed
     for method in ("drt-mart", "mlos-mart"):
         FrameReconstructor(proj, protocol_settings("fixed", method=method, iterations=2)).reconstruct(img)
@@ -161,10 +226,10 @@ def main() -> None:
     rows = [parse_row(r, len(cams), extras=x) for r, x in zip(texts, extras, strict=True)]
     projectors = {None: proj}  # by sub_apertures
     round_checks = projector_module.ROUND_CHECKS
-    print("| row | iterations | stopped | Q | voxels active / DRT / left | elimination s wall (CPU) | "
-          "line-of-sight weights s | DRT operator s | iterations s | other s | total s wall (CPU) | "
-          "CPU / reference's | operator |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| row | images | iterations | stopped | Q | voxels active / DRT / left | elimination s wall (CPU) | "
+          "line-of-sight weights s | DRT operator s | iterations s | coarse grid: elimination + operator + "
+          "iterations CPU s | other s | total s wall (CPU) | CPU / reference's | operator |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     ref_cpu = None
     if args.reference_iterations:
         n = args.reference_iterations
@@ -177,29 +242,35 @@ def main() -> None:
         ref_cpu = total[1]
         q = f"{metrics.q_recon(res.volume, truth):.3f}" + ("" if n == 400 else f" (at {n})")
         label = "chapter (reference)" + ("" if n == 400 else f", {n} iterations timed, x{scale:g}")
-        print(f"| {label} | 400 | fixed count | {q} | {res.active_voxels:,} / {res.drt_voxels:,} / "
-              f"{res.final_voxels:,} | "
-              + " | ".join(f"{clock[s][0]:.1f} ({clock[s][1]:.1f})" for s in (*STAGES, "other"))
-              + f" | {total[0]:.1f} ({total[1]:.1f}) | 1 | {res.operator} |", flush=True)
+        print(f"| {label} | {items[0]} | 400 | fixed count | {q} | {res.active_voxels:,} / {res.drt_voxels:,} / "
+              f"{res.final_voxels:,} | {stage_columns(clock)} | {total[0]:.1f} ({total[1]:.1f}) | 1 | "
+              f"{res.operator} |", flush=True)
         if res.checkpoints:
             best = max(res.checkpoints, key=res.checkpoints.get)
             print("reference Q at " + ", ".join(f"{k}: {q:.3f}" for k, q in sorted(res.checkpoints.items()))
                   + f"; best {res.checkpoints[best]:.3f} at {best}", flush=True)
-    for (label, settings), extra in zip(rows, extras, strict=True):
-        if settings.sub_apertures not in projectors:
-            projectors[settings.sub_apertures] = projector_for(cams, grid, sub_apertures=settings.sub_apertures,
-                                                               device=device)
-        projector_module.ROUND_CHECKS = extra.get("round_checks", round_checks)
-        try:
-            res, clock, total = timed_frame(projectors[settings.sub_apertures], settings, img)
-        finally:
-            projector_module.ROUND_CHECKS = round_checks
-        q = metrics.q_recon(res.volume, truth)
-        ratio = f"1/{ref_cpu / total[1]:.1f}" if ref_cpu else ""
-        print(f"| {label} | {res.iterations} | {res.stopped} | {q:.3f} | {res.active_voxels:,} / "
-              f"{res.drt_voxels:,} / {res.final_voxels:,} | " + " | ".join(f"{clock[s][0]:.1f} ({clock[s][1]:.1f})"
-                                                      for s in (*STAGES, "other"))
-              + f" | {total[0]:.1f} ({total[1]:.1f}) | {ratio} | {res.operator} |", flush=True)
+    for item in items:
+        for (label, settings), extra in zip(rows, extras, strict=True):
+            if settings.sub_apertures not in projectors:
+                projectors[settings.sub_apertures] = projector_for(cams, grid, sub_apertures=settings.sub_apertures,
+                                                                   device=device)
+            projector_module.ROUND_CHECKS = extra.get("round_checks", round_checks)
+            try:
+                res, clock, total = timed_frame(projectors[settings.sub_apertures], settings, images[item])
+            finally:
+                projector_module.ROUND_CHECKS = round_checks
+            q = metrics.q_recon(res.volume, truth)
+            ratio = f"1/{ref_cpu / total[1]:.1f}" if ref_cpu else ""
+            print(f"| {label} | {item} | {res.iterations} | {res.stopped} | {q:.3f} | {res.active_voxels:,} / "
+                  f"{res.drt_voxels:,} / {res.final_voxels:,} | {stage_columns(clock)} | {total[0]:.1f} "
+                  f"({total[1]:.1f}) | {ratio} | {res.operator} |", flush=True)
+
+
+def stage_columns(clock: dict) -> str:
+    """The stages' columns of a row: wall (CPU) s of each, the coarse grid's three stages' CPU s summed."""
+    coarse = " + ".join(f"{clock[s][1]:.1f}" for s in COARSE_STAGES)
+    cols = [f"{clock[s][0]:.1f} ({clock[s][1]:.1f})" for s in STAGES]
+    return " | ".join([*cols, coarse, f"{clock['other'][0]:.1f} ({clock['other'][1]:.1f})"])
 
 
 if __name__ == "__main__":

@@ -154,12 +154,13 @@ def peak_bytes(device: str) -> int:
     return int(wp.get_mempool_used_mem_high(device))
 
 
-def scene(case: str, device: str, ppm: float):
-    """The case's rig, iterations, cameras, grid and true particles, and one rendered image per camera."""
+def scene(case: str, device: str, ppm: float, *, render_changes: dict | None = None):
+    """The case's rig, iterations, cameras, grid and true particles, and one rendered image per camera.
+    ``render_changes``: ``[render]`` keys changed for the images (noise, the camera's response)."""
     rig, its = case_rig(case)
     cams = rig.camera if case in ("S2", "Mc2", "D") else rig.camera[:1]
     pts = seed_particles(rig.volume, particle_count(rig, ppm=ppm), np.random.default_rng(1))
-    render = rig.render.model_copy(update={"rays_per_particle": 5000})
+    render = rig.render.model_copy(update={"rays_per_particle": 5000, **(render_changes or {})})
     img = [LightFieldRenderer(c, render, wavelength_nm=rig.laser.wavelength_nm, device=device).frame(
                pts, render.particle_counts, seed=1 + k)
            for k, c in enumerate(cams)]

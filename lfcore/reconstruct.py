@@ -201,6 +201,13 @@ class ReconSettings:
         its voxels firmly but without wiping out a particle whose weight barely touches it.
     lit_grow
         Pixels by which the lit mask is widened before elimination (for imperfect calibration).
+    lit_hysteresis
+        Noise sigmas above the background at which a pixel next to a lit one (in its 3 x 3
+        neighbourhood) is lit too (hysteresis thresholding, as Canny's edge detector): the dim rim of
+        a particle's spot in a micro-image, which noise pushes below ``threshold_sigma``, stays lit, so
+        that a strict elimination (``max_dark`` 0) keeps the particle's voxels, while a lone pixel of
+        the background still needs ``threshold_sigma``. Only the lit mask (the elimination) takes it;
+        the signal the iterations fit is unchanged. None (default): off; at most ``threshold_sigma``.
     smooth
         Sigma, in voxels, of a Gaussian applied to the result (0: none). MART converges to
         particles about one voxel across, sharper than the 3-voxel particle images that
@@ -313,6 +320,7 @@ class ReconSettings:
     max_dark: float = 0.01
     floor: float = 0.3
     lit_grow: int = 0
+    lit_hysteresis: float | None = None
     smooth: float = 0.6
     weight_storage: str = "auto"
     projector: str = "auto"
@@ -344,6 +352,9 @@ class ReconSettings:
                              f"{MAX_SIMULTANEOUS_RELAXATION:g}, or the sequential form for the chapter's 2.5")
         if not self.threshold_sigma >= 0:
             raise ValueError(f"threshold_sigma must be 0 or more, got {self.threshold_sigma}")
+        if self.lit_hysteresis is not None and not 0 <= self.lit_hysteresis <= self.threshold_sigma:
+            raise ValueError(f"lit_hysteresis must be from 0 to threshold_sigma ({self.threshold_sigma:g}) noise "
+                             f"sigmas, or None (off), got {self.lit_hysteresis}")
         if not 0 <= self.smooth <= MAX_SMOOTH_VOXELS:
             # a sigma many voxels wide blurs particles (3 voxels across) into the background
             raise ValueError(f"smooth must be from 0 to {MAX_SMOOTH_VOXELS:g} voxels, got {self.smooth}")
@@ -689,14 +700,19 @@ def estimate_background(image: np.ndarray) -> tuple[float, float]:
     return level, max(sigma, 1e-6)
 
 
-def preprocess(image: np.ndarray, background: float, sigma: float, threshold_sigma: float, *, grow: int = 0
-               ) -> tuple[np.ndarray, np.ndarray]:
+def preprocess(image: np.ndarray, background: float, sigma: float, threshold_sigma: float, *, grow: int = 0,
+               hysteresis: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Background-subtracted signal and the lit-pixel mask.
 
     A particle anywhere inside a voxel sends each sub-aperture's light to the same pixel under
     a lenslet as the voxel centre does (the pixel encodes the direction, which a shift within a
     voxel changes by far less than a pixel), so no margin is needed for ideal optics; ``grow``
     widens the lit mask by that many pixels to tolerate calibration error in real rigs.
+
+    ``hysteresis`` (sigmas, :attr:`ReconSettings.lit_hysteresis`; None: off) lights, before the
+    growing, every pixel above that many sigmas next to (in the 3 x 3 neighbourhood of) a pixel
+    above ``threshold_sigma``: noise pushes the dim rim of a particle's spot below the threshold,
+    not a whole spot, so a strict elimination then keeps the particle. The signal is not changed.
 
     A NaN pixel (masked by the flat field, :func:`lfcore.flatfield.correct`: unlit between
     micro-images, under dust, dead) measured nothing: its signal is :data:`MASKED`, which the
@@ -708,12 +724,16 @@ def preprocess(image: np.ndarray, background: float, sigma: float, threshold_sig
     signal
         (rows, columns) float32, zero on unlit pixels, :data:`MASKED` on masked ones.
     lit
-        (rows, columns) bool: signal above ``threshold_sigma`` sigmas (grown by ``grow``), or masked.
+        (rows, columns) bool: signal above ``threshold_sigma`` sigmas (or above ``hysteresis`` next to
+        such a pixel; grown by ``grow``), or masked.
     """
     s = np.asarray(image, dtype=np.float32) - np.float32(background)
     masked = np.isnan(s)
     lit = s > threshold_sigma * sigma
     signal = np.where(lit, s, np.float32(0.0)).astype(np.float32)
+    if hysteresis is not None:
+        near = ndimage.binary_dilation(lit, structure=np.ones((3, 3), bool))
+        lit |= near & (s > hysteresis * sigma)
     if grow > 0:
         lit = ndimage.binary_dilation(lit, structure=np.ones((3, 3), bool), iterations=grow)
     if masked.any():
@@ -790,7 +810,8 @@ def preprocess_images(projector: Projector, images: Sequence[np.ndarray], settin
         level, sigma = estimate_background(img)
         if settings.background is not None:
             level = settings.background
-        sig, lit = preprocess(img, level, sigma, settings.threshold_sigma, grow=settings.lit_grow)
+        sig, lit = preprocess(img, level, sigma, settings.threshold_sigma, grow=settings.lit_grow,
+                              hysteresis=settings.lit_hysteresis)
         signals.append(sig)
         lits.append(lit)
         backgrounds.append(level)
