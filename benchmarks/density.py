@@ -35,9 +35,9 @@ detection at 0.1 of the brightest voxel) matched within 1 voxel as the particles
 of every stage's process (user + system, of the process and its children, from ``os.wait4``) and its
 peak RSS. Issue 48's one-camera goals (A1 at 0.5 PPM): recall >= 90%, ghosts <= 5% of the particles
 found, position RMS <= 0.1, 0.1, 0.3 voxel; the field <= 0.1, 0.1, 0.3 voxel and better than
-correlation's (here: on every axis than the fixed reconstruction's correlation; its share of the peak
-speed too). The figures are read from the run stores by :mod:`lfpiv.jobs.evaluate`, the code ``lfpiv
-evaluate`` prints them with.
+correlation's (here: below the fixed reconstruction's correlation on every axis; the shares of the peak
+speed are printed beside). The figures are read from the run stores by :mod:`lfpiv.jobs.evaluate`, the
+code ``lfpiv evaluate`` prints them with; ``--from-json FILE`` prints an earlier run's tables again.
 """
 
 from __future__ import annotations
