@@ -77,11 +77,14 @@ def test_fast_on_two_cameras_is_as_good_as_fixed(two_cameras):
 
 def test_fast_on_several_light_field_cameras_is_mlos_mart_on_a_coarse_grid():
     """fast's plan for several light-field cameras (SEVERAL_LIGHT_FIELD_CAMERAS): MLOS-MART at relaxation 2,
-    at most 75 iterations by the stopping rule, a coarse grid at 2 with 15 iterations, the default max_dark."""
+    at most 75 iterations by the stopping rule, a coarse grid at 2 with 15 iterations, a strict elimination on a
+    lit mask with hysteresis."""
     lf = protocol_settings("fast", n_cameras=2, camera_kind="light-field")
     assert (lf.method, lf.relaxation, lf.iterations, lf.coarse, lf.coarse_iterations) == ("mlos-mart", 2.0, 75, 2, 15)
     assert lf.stop_tolerance > 0 and lf.subsets == 1 and lf.los_iterations == 0 and not lf.warm_start
-    assert lf.max_dark == ReconSettings().max_dark  # no dark check allowed lost Q on noisy images (RESULTS)
+    # no dark check allowed, on a lit mask with hysteresis: without the hysteresis it lost Q on noisy images,
+    # with it the noisy and responding frames gained (RESULTS, ninth session)
+    assert (lf.max_dark, lf.lit_hysteresis) == (0.0, 0.5) and ReconSettings().lit_hysteresis is None
     assert lf.coarse_prune == protocol_settings("fast").coarse_prune
     assert ReconSettings.protocol("fast", n_cameras=3, camera_kind="light-field").method == "mlos-mart"
     old = protocol_settings("fast", n_cameras=2)  # no kind said: DRT-MART's settings, as before
