@@ -736,6 +736,8 @@ def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: li
             finally:
                 limits.restore_original_limits()
         if df is None:
+            if divergence_free and len(pos) > FIT_GLOBAL_TRACKS:  # the components apart, in fit's own blocks
+                blocks = _blocks(x, at)
             for c, ch in enumerate(choice):
                 for rows, points in blocks:
                     if len(points):
