@@ -53,9 +53,9 @@ from lfcore.warm import Predictor
 if TYPE_CHECKING:
     from scipy.interpolate import RBFInterpolator
 
-__all__ = ["DIVFREE_BLOCK_TRACKS", "DIVFREE_SMOOTHING", "DIVFREE_WEIGHTS", "FIELDS", "FIT_BLOCK_MARGIN",
-           "FIT_BLOCK_TRACKS", "FIT_CV_BLOCKS", "FIT_GLOBAL_TRACKS", "FIT_SMOOTHING", "MAX_CROWDING", "FitChoice",
-           "SeriesSettings", "SeriesTracks", "TrackResult", "TrackSettings",
+__all__ = ["DIVFREE_BLOCK_TRACKS", "DIVFREE_GLOBAL_TRACKS", "DIVFREE_SMOOTHING", "DIVFREE_WEIGHTS", "FIELDS",
+           "FIT_BLOCK_MARGIN", "FIT_BLOCK_TRACKS", "FIT_CV_BLOCKS", "FIT_GLOBAL_TRACKS", "FIT_SMOOTHING",
+           "MAX_CROWDING", "FitChoice", "SeriesSettings", "SeriesTracks", "TrackResult", "TrackSettings",
            "bin_tracks", "field_of_tracks", "field_predictor", "fit_series", "fit_tracks", "link_series",
            "pair_nearest", "pair_tracks", "predict_at", "reject_outliers", "search_crowding", "smooth_tracks",
            "track_pair"]
@@ -80,8 +80,10 @@ FIT_CV_BLOCKS = 2
 DIVFREE_WEIGHTS = (0.0, 0.01, 0.1, 1.0)
 #: The smoothing parameters of the ``divfree`` field (coordinates scaled to the tracks' extent).
 DIVFREE_SMOOTHING = tuple(float(v) for v in np.logspace(-6.0, 3.0, 19))
-#: About how many tracks a block of a ``divfree`` fit in blocks holds (its system is three times a
-#: component's of the ``fit`` field, so its blocks are smaller).
+#: Beyond this many tracks the ``divfree`` field is fitted in blocks (its systems are three times a
+#: component's of the ``fit`` field, and their cost grows with the cube).
+DIVFREE_GLOBAL_TRACKS = 500
+#: About how many tracks a block of a ``divfree`` fit in blocks holds.
 DIVFREE_BLOCK_TRACKS = 100
 #: Most frame-B particles a first-pass search may hold on average (:func:`search_crowding`) for the
 #: nearest one to be the right one often enough to pair meaningfully; beyond it a frame is refused.
@@ -527,6 +529,7 @@ class _DivFree:
     def __call__(self, at: np.ndarray, c: np.ndarray, b: np.ndarray, *, chunk: int = 2000) -> np.ndarray:
         """The fields of coefficients ``c``, ``b`` (s of each) at points ``at`` (m, 3): (s, m, 3)."""
         out = np.empty((len(c), len(at), 3))
+        chunk = max(1, min(chunk, 200_000 // max(len(self.x), 1)))  # the kernel's (chunk, n, 3, 3) in memory
         for lo in range(0, len(at), chunk):
             pts = at[lo:lo + chunk]
             v = c @ _df_kernel(pts, self.x, self.weight).T + b @ _df_trend(pts, self.weight).T
@@ -647,9 +650,10 @@ def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: li
     chooses among the models, from the most constrained: weight 0, the larger weights, then the
     components apart; each model at its own chosen smoothing, the held-out misfits pooled over the
     components. So an incompressible flow's tracks get a field free of divergence, and a
-    compressible flow's (Table 4.1's A1, u = 5 cos(kx)) the components apart, unchanged. A fit in
-    blocks uses blocks of about :data:`DIVFREE_BLOCK_TRACKS` tracks (its systems are three times a
-    component's).
+    compressible flow's (Table 4.1's A1, u = 5 cos(kx)) the components apart, unchanged (cross-
+    validated, beyond :data:`DIVFREE_GLOBAL_TRACKS` tracks, on the blocks of the matrix kernel). Beyond
+    :data:`DIVFREE_GLOBAL_TRACKS` tracks the matrix kernel is fitted in blocks of about
+    :data:`DIVFREE_BLOCK_TRACKS` tracks (its systems are three times a component's).
 
     Parameters
     ----------
@@ -702,7 +706,7 @@ def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: li
     x = (pos - pos.mean(axis=0)) / (scale if scale > 0 else 1.0)
     at = (nodes[use] - pos.mean(axis=0)) / (scale if scale > 0 else 1.0)
     rng = np.random.default_rng(seed)
-    if len(pos) > FIT_GLOBAL_TRACKS:
+    if len(pos) > (DIVFREE_GLOBAL_TRACKS if divergence_free else FIT_GLOBAL_TRACKS):
         blocks = _blocks(x, at, DIVFREE_BLOCK_TRACKS if divergence_free else FIT_BLOCK_TRACKS)
         sample = [blocks[i] for i in sorted(rng.choice(len(blocks), size=min(FIT_CV_BLOCKS, len(blocks)),
                                                        replace=False))]
@@ -736,8 +740,9 @@ def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: li
             finally:
                 limits.restore_original_limits()
         if df is None:
-            if divergence_free and len(pos) > FIT_GLOBAL_TRACKS:  # the components apart, in fit's own blocks
-                blocks = _blocks(x, at)
+            if divergence_free:  # the components apart as fit fits them: in one, or in its own blocks
+                blocks = (_blocks(x, at) if len(pos) > FIT_GLOBAL_TRACKS
+                          else [(np.arange(len(x)), np.arange(len(at)))])
             for c, ch in enumerate(choice):
                 for rows, points in blocks:
                     if len(points):
