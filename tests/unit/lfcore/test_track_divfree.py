@@ -109,3 +109,19 @@ def test_the_divfree_field_through_the_settings():
     nodes = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()])
     err, filled = _rms_voxels(res.field_mm, nodes, _incompressible)
     assert filled > 0.9 and err < 0.1  # exact tracks: a tenth of a voxel or better between them
+
+
+def test_many_tracks_are_fitted_in_blocks():
+    from lfcore.track import DIVFREE_GLOBAL_TRACKS
+
+    n = DIVFREE_GLOBAL_TRACKS + 100
+    pos = _points(n, 11)
+    rng = np.random.default_rng(12)
+    d = _incompressible(pos) + rng.normal(scale=0.1, size=pos.shape) * VOX
+    centres, nodes = _centres(4)
+    apart, _, _ = fit_tracks(pos, d, centres, reach_mm=_REACH, box_mm=_BOX)
+    together, _, choice = fit_tracks(pos, d, centres, reach_mm=_REACH, box_mm=_BOX, divergence_free=True)
+    e_apart, filled = _rms_voxels(apart, nodes, _incompressible)
+    e_together, filled_together = _rms_voxels(together, nodes, _incompressible)
+    assert filled_together == filled > 0.9
+    assert choice[0].weight is not None and e_together < e_apart, (e_together, e_apart)
