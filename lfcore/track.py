@@ -119,8 +119,9 @@ class TrackSettings:
         ``"smooth"`` gives 0.097, 0.049, 0.112 and 0.066, 0.078, 0.129, benchmarks/RESULTS.md),
         ``"divfree"`` (as ``"fit"``, but the three components together by a kernel free of
         divergence where the cross-validation finds it better: an incompressible flow; on the demo's
-        vortex ring 13.1% of the peak speed against ``"fit"``'s 13.4%, and from the noise-free true
-        tracks 5.2% against 6.8%; A1 unchanged, benchmarks/RESULTS.md), ``"smooth"`` (a
+        vortex ring along 5 time-resolved pairs 8.9% of the peak speed against ``"fit"``'s 11.7%,
+        from the noise-free true tracks 5.2% against 6.8%; A1 unchanged, benchmarks/RESULTS.md),
+        ``"smooth"`` (a
         Gaussian-weighted average around each bin's centre) or ``"bins"`` (each bin's mean); see the
         module docstring.
     smooth_voxels
