@@ -740,10 +740,12 @@ def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: li
                             values[points] = fit(at[points], *fit.coefficients(d[rows], np.array([df.smoothing])))[0]
             finally:
                 limits.restore_original_limits()
+        if df is None and divergence_free and len(pos) > DIVFREE_GLOBAL_TRACKS:
+            # the components apart chosen on the kernel's smaller blocks: fit them exactly as fit does
+            # (its own blocks, its own cross-validation on them)
+            return fit_tracks(pos, d, centres, reach_mm=reach, box_mm=box_mm, min_tracks=min_tracks, folds=folds,
+                              seed=seed)
         if df is None:
-            if divergence_free:  # the components apart as fit fits them: in one, or in its own blocks
-                blocks = (_blocks(x, at) if len(pos) > FIT_GLOBAL_TRACKS
-                          else [(np.arange(len(x)), np.arange(len(at)))])
             for c, ch in enumerate(choice):
                 for rows, points in blocks:
                     if len(points):
