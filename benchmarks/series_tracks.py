@@ -6,11 +6,12 @@ Run from the repository root, on time-resolved runs with particles::
     lfpiv synth --rig examples/one_camera_off_focus.toml --out a1.zarr --pairs 5 --flow A1 --omega 4.449 \\
         --displacement-px 10 --ppm 0.5 --seed 14 --time-resolved
     lfpiv particles a1.zarr
-    python benchmarks/series_tracks.py a1.zarr [ring.zarr ...] [--search-voxels 6,2,2] [--fit-frames 4,6,8]
+    python benchmarks/series_tracks.py a1.zarr [ring.zarr ...] [--search-voxels 6,2,2] [--fit-frames 4,6,8] \\
+        [--field fit,divfree]
 
 For each run (a copy of it, so the run itself is left as it was): ``lfpiv track`` pair by pair and
 ``lfpiv track --along-pairs`` with each ``--fit-frames`` (the same ``--search-voxels``, no predictor,
-the default ``fit`` field on 16 x 16 x 8 bins), then ``lfpiv evaluate``'s RMS velocity error over all
+each ``--field``, the default ``fit``, on 16 x 16 x 8 bins), then ``lfpiv evaluate``'s RMS velocity error over all
 pairs, per axis in voxels and as a share of the peak speed. And the position noise of the tracks
 through the series before and after their polynomial fit: each point of a fitted track (its particle,
 and the track's fitted position there) against the nearest true particle of its frame within a voxel
@@ -83,6 +84,7 @@ def main_(argv: list[str] | None = None) -> None:
     ap.add_argument("--fit-frames", default="6", help="--along-pairs' --fit-frames, comma-separated (default: 6)")
     ap.add_argument("--link-voxels", default="1,1,1", help="--along-pairs' --link-voxels (default: 1,1,1)")
     ap.add_argument("--bin", default="16x16x8", help="the field's bins (default: 16x16x8)")
+    ap.add_argument("--field", default="fit", help="the fields (--field), comma-separated (default: fit)")
     args = ap.parse_args(argv)
     print("| run | tracking | RMS x, y, z (voxel) | % of peak speed |")
     print("| --- | --- | --- | --- |")
@@ -90,19 +92,23 @@ def main_(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for run in args.runs:
             copy = Path(tmp) / run.name
-            common = ("--search-voxels", args.search_voxels, "--bin", args.bin, "--quiet")
-            shutil.copytree(run, copy)
-            _cli("track", copy, *common)
-            x, y, z, pct = _evaluate(copy)
-            print(f"| {run.name} | each pair on its own | {x:.3f}, {y:.3f}, {z:.3f} | {pct:.1f} |")
-            for ff in args.fit_frames.split(","):
-                shutil.rmtree(copy)
+            for field in args.field.split(","):
+                common = ("--search-voxels", args.search_voxels, "--bin", args.bin, "--field", field, "--quiet")
                 shutil.copytree(run, copy)
-                _cli("track", copy, *common, "--along-pairs", "--fit-frames", ff, "--link-voxels", args.link_voxels)
+                _cli("track", copy, *common)
                 x, y, z, pct = _evaluate(copy)
-                print(f"| {run.name} | along the pairs, {ff} frames a fit | {x:.3f}, {y:.3f}, {z:.3f} | {pct:.1f} |")
-                noise.append((run.name, ff, *_noise(copy)))
-            shutil.rmtree(copy)
+                print(f"| {run.name} | each pair on its own, {field} | {x:.3f}, {y:.3f}, {z:.3f} | {pct:.1f} |")
+                for ff in args.fit_frames.split(","):
+                    shutil.rmtree(copy)
+                    shutil.copytree(run, copy)
+                    _cli("track", copy, *common, "--along-pairs", "--fit-frames", ff, "--link-voxels",
+                         args.link_voxels)
+                    x, y, z, pct = _evaluate(copy)
+                    print(f"| {run.name} | along the pairs, {ff} frames a fit, {field} | {x:.3f}, {y:.3f}, {z:.3f} | "
+                          f"{pct:.1f} |", flush=True)
+                    if field == args.field.split(",")[0]:
+                        noise.append((run.name, ff, *_noise(copy)))
+                shutil.rmtree(copy)
     print()
     print("| run | frames a fit | tracks (mean length) | particles' RMS x, y, z (voxel) | fitted | matched |")
     print("| --- | --- | --- | --- | --- | --- |")

@@ -19,7 +19,7 @@ vortex
 
 **Tracks only** (default): the true positions of frames A and B, each blurred by Gaussian
 position noise of ``--noise`` voxels per axis (0.1, 0.1, 0.2: what ``lfpiv particles`` reaches on the
-tiny rig), tracked by :func:`lfcore.track.track_pair` with each field (``bins``, ``smooth``, ``fit``)
+tiny rig), tracked by :func:`lfcore.track.track_pair` with each field (``bins``, ``smooth``, ``fit``, ``divfree``)
 and bin size; the field's RMS error against the truth at the bins' centres at mid-pair time
 (:func:`lfcore.metrics.grid_velocity`), as a share of the peak speed (the issue's goal for the
 vortex ring: at most 5%), and per axis in voxels; and the share of bins with a vector.
@@ -28,7 +28,7 @@ vortex ring: at most 5%), and per axis in voxels; and the share of bins with a v
 and ``track`` with each field, without a predictor and with the ``volumes`` one), ``lfpiv
 evaluate``'s figures: the velocity error over the points with a vector (``filled``: their share),
 and the wall time (``particles`` plus ``track``; ``reconstruct`` plus ``correlate``).
-**Fit at scale** (``--fit-scale N``): the CPU time of the ``fit`` field
+**Fit at scale** (``--fit-scale N``): the CPU time of the ``fit`` and ``divfree`` fields
 (:func:`lfcore.track.fit_tracks`) and of the ``smooth`` one (:func:`lfcore.track.smooth_tracks`) in the
 same run, on N tracks of a smooth flow with 0.15 voxel of noise, in a box of 2200 x 1470 x 400 voxels
 of 10 x 10 x 50 um (the L scene's 1.3e9 voxels; its 85,578 particles: ``--fit-scale 85578``) with
@@ -75,7 +75,7 @@ def tracks_only(case: str, args: argparse.Namespace) -> None:
           f"noise {args.noise} voxel, {args.pairs} pair(s)")
     print(f"{'field':8s} {'bins':>9s} {'% peak':>7s} {'rms x, y, z (voxel)':>22s} {'filled':>7s} {'s/pair':>7s}")
     for b in _bins(args.bins if case == "vortex" else args.uniform_bins):
-        for fld in ("bins", "smooth", "fit"):
+        for fld in ("bins", "smooth", "fit", "divfree"):
             errs, vox, filled, secs = [], [], [], 0.0
             for k in range(args.pairs):
                 (a, bb), _ = world.pair(k)
@@ -143,7 +143,7 @@ def end_to_end(case: str, args: argparse.Namespace, work: Path) -> None:
     print(f"{'drt-mart + correlate (demo windows)':40s} {_vector_figures(run)} {'':>7s} {t_rec + t_cor:6.1f}")
     _, t_ipr = _cli("particles", run, "--device", "cpu", "--quiet")
     for b in _bins(args.bins if case == "vortex" else args.uniform_bins):
-        for fld in ("bins", "smooth", "fit"):
+        for fld in ("bins", "smooth", "fit", "divfree"):
             for pred in ("none", "volumes"):
                 one = work / f"{case}-{fld}-{pred}.zarr"
                 shutil.copytree(run, one)
@@ -177,10 +177,11 @@ def fit_scale(n: int) -> None:
     truth = flow(np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()]))
     print(f"\nfit at scale: {n} tracks, {truth.shape[0]} bins of 16 x 16 x 8 voxels, 0.15 voxel of noise")
     print(f"{'field':8s} {'cpu s':>8s} {'rms x, y, z (voxel)':>22s} {'filled':>7s}")
-    for fld in ("smooth", "fit"):
+    for fld in ("smooth", "fit", "divfree"):
         t0 = time.process_time()
-        if fld == "fit":
-            f = fit_tracks(pos, d, centres, reach_mm=bins * vox, box_mm=(-0.5 * size, 0.5 * size))[0]
+        if fld in ("fit", "divfree"):
+            f = fit_tracks(pos, d, centres, reach_mm=bins * vox, box_mm=(-0.5 * size, 0.5 * size),
+                           divergence_free=fld == "divfree")[0]
         else:
             f = smooth_tracks(pos, d, centres, sigma_mm=0.5 * bins * vox, min_tracks=1)[0]
         cpu = time.process_time() - t0

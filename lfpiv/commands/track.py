@@ -56,11 +56,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the field's bins in voxels (default: 16x16x8)")
     c.add_argument("--min-tracks", type=positive_int, default=2, metavar="N",
                    help="fewest tracks a bin needs for a vector (default: 2)")
-    c.add_argument("--field", choices=("fit", "smooth", "bins"), default="fit",
+    c.add_argument("--field", choices=("fit", "divfree", "smooth", "bins"), default="fit",
                    help="how the field is made from the tracks: smooth, their Gaussian-weighted average around each "
                    "bin's centre; bins, the mean of each bin's tracks; fit, a smoothing spline through all the tracks, "
                    "its smoothing chosen by cross-validation, at the bins' centres inside the box with --min-tracks "
-                   "tracks within a bin (default: fit)")
+                   "tracks within a bin; divfree, as fit but the three components fitted together by a kernel whose "
+                   "fields are free of divergence (an incompressible flow), the penalty on divergence chosen by "
+                   "cross-validation, and fit's field where that is better on held-out tracks (default: fit)")
     c.add_argument("--smooth-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="the smooth field's Gaussian sigma in voxels (default: half a bin)")
     c.add_argument("--along-pairs", action="store_true",

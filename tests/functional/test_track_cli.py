@@ -76,6 +76,18 @@ def test_the_fitted_field(particles_run, tmp_path, capsys):
     assert rms[0] < 0.1 and rms[1] < 0.1 and rms[2] < 0.2
 
 
+def test_the_divergence_free_field(particles_run, tmp_path, capsys):
+    run = _copy(particles_run, tmp_path)
+    rc, out, err = _run(capsys, "track", run, "--field", "divfree", "--quiet")
+    assert rc == 0, err
+    assert "divfree field, predictor none" in out
+    assert RunStore.open(run).vectors()["attrs"]["settings"]["field"] == "divfree"
+    rc, out, err = _run(capsys, "evaluate", run)
+    assert rc == 0, err
+    rms = _rms(out)
+    # a uniform flow is free of divergence and its trend: as the fit's field (above)
+    assert rms[0] < 0.1 and rms[1] < 0.1 and rms[2] < 0.2
+
 def test_the_previous_pairs_predictor_tracks_a_series(particles_run, tmp_path, capsys):
     run = _copy(particles_run, tmp_path)
     rc, out, err = _run(capsys, "track", run, "--predictor", "previous", "--quiet")
