@@ -555,6 +555,8 @@ def protocol_settings(name: str, *, n_cameras: int = 1, camera_kind: str | None 
     ``camera_kind``, the cameras' kind (:func:`lfcore.plan.camera_kind`): ``"light-field"`` on several
     cameras with no method in ``changes`` applies the protocol's plan for several light-field cameras
     (:func:`light_field_plan`); None (the default) and the other kinds keep :data:`SEVERAL_CAMERAS`.
+    A plan's ``lit_hysteresis`` is lowered to a ``threshold_sigma`` given below it (where it is the
+    threshold itself, the hysteresis lights nothing more).
 
     Raises
     ------
@@ -577,6 +579,10 @@ def protocol_settings(name: str, *, n_cameras: int = 1, camera_kind: str | None 
             for key, off in (("warm_start", False), ("subsets", 1)):
                 if key not in changes:
                     merged[key] = off
+    hysteresis = merged.get("lit_hysteresis")
+    if hysteresis is not None and "lit_hysteresis" not in changes:
+        # a plan's hysteresis never above a threshold given lower (where it would light nothing more)
+        merged["lit_hysteresis"] = min(hysteresis, merged.get("threshold_sigma", ReconSettings.threshold_sigma))
     los = merged.get("los_iterations", 0)
     if los and "los_iterations" not in changes and los >= merged.get("iterations", 50):
         merged["los_iterations"] = 0  # too few iterations for DRT's weights to take over after them
