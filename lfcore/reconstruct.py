@@ -203,7 +203,8 @@ class ReconSettings:
         Pixels by which the lit mask is widened before elimination (for imperfect calibration).
     lit_hysteresis
         Noise sigmas above the background at which a pixel next to a lit one (in its 3 x 3
-        neighbourhood) is lit too (hysteresis thresholding, as Canny's edge detector): the dim rim of
+        neighbourhood) is lit too (one step of the hysteresis thresholding of Canny's edge detector,
+        which goes on through the pixels so lit; here only a lit pixel's neighbours): the dim rim of
         a particle's spot in a micro-image, which noise pushes below ``threshold_sigma``, stays lit, so
         that a strict elimination (``max_dark`` 0) keeps the particle's voxels, while a lone pixel of
         the background still needs ``threshold_sigma``. Only the lit mask (the elimination) takes it;
