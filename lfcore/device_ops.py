@@ -46,8 +46,8 @@ class ImagePreprocessor:
     signal (raw minus the background level where that exceeds the threshold, zero elsewhere)
     and the uint8 lit mask, grown by ``grow`` pixels with a 3 x 3 square (pixels past the
     image border count as dark), exactly as :func:`lfcore.reconstruct.preprocess` without its
-    ``hysteresis`` (:attr:`lfcore.reconstruct.ReconSettings.lit_hysteresis`, which the live path's
-    settings leave off). With ``flats``
+    ``hysteresis`` (:attr:`lfcore.reconstruct.ReconSettings.lit_hysteresis`, which the live pipeline
+    refuses). With ``flats``
     (per camera a :class:`lfcore.flatfield.FlatField` or None) every frame is corrected first, as
     :func:`lfcore.flatfield.correct` does, its masked pixels given the signal
     :data:`lfcore.reconstruct.MASKED` and counted as lit.

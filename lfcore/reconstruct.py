@@ -203,7 +203,8 @@ class ReconSettings:
         Pixels by which the lit mask is widened before elimination (for imperfect calibration).
     lit_hysteresis
         Noise sigmas above the background at which a pixel next to a lit one (in its 3 x 3
-        neighbourhood) is lit too (hysteresis thresholding, as Canny's edge detector): the dim rim of
+        neighbourhood) is lit too (one step of the hysteresis thresholding of Canny's edge detector,
+        which goes on through the pixels so lit; here only a lit pixel's neighbours): the dim rim of
         a particle's spot in a micro-image, which noise pushes below ``threshold_sigma``, stays lit, so
         that a strict elimination (``max_dark`` 0) keeps the particle's voxels, while a lone pixel of
         the background still needs ``threshold_sigma``. Only the lit mask (the elimination) takes it;
@@ -555,6 +556,8 @@ def protocol_settings(name: str, *, n_cameras: int = 1, camera_kind: str | None 
     ``camera_kind``, the cameras' kind (:func:`lfcore.plan.camera_kind`): ``"light-field"`` on several
     cameras with no method in ``changes`` applies the protocol's plan for several light-field cameras
     (:func:`light_field_plan`); None (the default) and the other kinds keep :data:`SEVERAL_CAMERAS`.
+    A plan's ``lit_hysteresis`` is lowered to a ``threshold_sigma`` given below it (where it is the
+    threshold itself, the hysteresis lights nothing more).
 
     Raises
     ------
@@ -577,6 +580,10 @@ def protocol_settings(name: str, *, n_cameras: int = 1, camera_kind: str | None 
             for key, off in (("warm_start", False), ("subsets", 1)):
                 if key not in changes:
                     merged[key] = off
+    hysteresis = merged.get("lit_hysteresis")
+    if hysteresis is not None and "lit_hysteresis" not in changes:
+        # a plan's hysteresis never above a threshold given lower (where it would light nothing more)
+        merged["lit_hysteresis"] = min(hysteresis, merged.get("threshold_sigma", ReconSettings.threshold_sigma))
     los = merged.get("los_iterations", 0)
     if los and "los_iterations" not in changes and los >= merged.get("iterations", 50):
         merged["los_iterations"] = 0  # too few iterations for DRT's weights to take over after them

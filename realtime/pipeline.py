@@ -208,7 +208,7 @@ class LivePipeline:
     recon
         The fixed reconstruction settings (method: DRT-MART or MLOS-MART; thresholds, smoothing,
         sub-apertures); iterations and relaxation come from ``settings``. Only the simultaneous
-        form is used.
+        form is used; ``lit_hysteresis`` is refused (the device's lit mask has none).
     correlation
         The correlation; default: :func:`default_windows` at 50% overlap, no deformation.
     cameras
@@ -266,6 +266,9 @@ class LivePipeline:
         self._settings = settings or LiveSettings()
         base = recon or monitoring_recon(method=default_method(cams))
         check_live_method(base.method)
+        if base.lit_hysteresis is not None:  # the device's lit mask (ImagePreprocessor) would silently leave it out
+            raise ValueError(f"lit_hysteresis {base.lit_hysteresis:g}: the live path's lit mask, made on the device, "
+                             "has no hysteresis; leave it None (monitoring_recon's settings)")
         tomo = unsupported_method(cams, base.method)
         if tomo is not None:
             raise NotLightFieldError(f"camera '{tomo}' is a pinhole camera: the live {base.method} needs light-field "

@@ -88,6 +88,7 @@ def test_the_divergence_free_field(particles_run, tmp_path, capsys):
     # a uniform flow is free of divergence and its trend: as the fit's field (above)
     assert rms[0] < 0.1 and rms[1] < 0.1 and rms[2] < 0.2
 
+
 def test_the_previous_pairs_predictor_tracks_a_series(particles_run, tmp_path, capsys):
     run = _copy(particles_run, tmp_path)
     rc, out, err = _run(capsys, "track", run, "--predictor", "previous", "--quiet")

@@ -149,6 +149,18 @@ def test_what_the_user_gives_wins_over_the_light_field_plan(tiny_rig):
         protocol_run_settings("fast", n_cameras=camera_count(tomo), method="mlos-smart")
 
 
+def test_a_lower_threshold_given_lowers_the_plans_hysteresis():
+    """``lfpiv reconstruct --threshold-sigma 0.4`` on two light-field cameras: the plan's lit_hysteresis (0.5, no
+    command option) is not refused as above the threshold but taken down to it; one given stays checked."""
+    kind = dict(n_cameras=2, camera_kind="light-field")
+    low = protocol_run_settings("fast", threshold_sigma=0.4, **kind)
+    assert (low.threshold_sigma, low.lit_hysteresis, low.max_dark) == (0.4, 0.4, 0.0)
+    assert protocol_run_settings("fast", threshold_sigma=1.0, **kind).lit_hysteresis == 0.5
+    assert protocol_settings("fast", lit_hysteresis=0.2, threshold_sigma=0.4, **kind).lit_hysteresis == 0.2
+    with pytest.raises(ValueError, match="lit_hysteresis must be from 0 to threshold_sigma"):
+        protocol_settings("fast", lit_hysteresis=0.5, threshold_sigma=0.4, **kind)
+
+
 def test_fast_on_two_light_field_cameras_is_as_good_as_fixed(two_cameras):
     proj, truth, img = two_cameras
     settings = {"fixed": protocol_settings("fixed", n_cameras=2),

@@ -45,6 +45,16 @@ def test_the_pipeline_names_its_plan(tiny_rig) -> None:
     assert LivePipeline(tiny_rig, route="particles", device="cpu").stats().plan == ""
 
 
+def test_a_lit_hysteresis_the_live_path_cannot_apply_is_refused(tiny_rig) -> None:
+    """The live lit mask is made on the device (ImagePreprocessor), without ReconSettings.lit_hysteresis: settings
+    with it (the batch plan for several light-field cameras) are refused rather than run without it."""
+    from dataclasses import replace
+
+    with pytest.raises(ValueError, match="lit_hysteresis 0.5: the live path's lit mask"):
+        LivePipeline(tiny_rig, recon=replace(monitoring_recon(), lit_hysteresis=0.5), device="cpu")
+    assert LivePipeline(tiny_rig, recon=monitoring_recon(), device="cpu").recon.lit_hysteresis is None
+
+
 @pytest.mark.parametrize("protocol", ["drt", "fast"])
 def test_each_plan_measures_a_known_shift_live(tiny_rig, protocol: str) -> None:
     """Two pairs of a uniform shift of (2, 1, 0) voxels through the live pipeline of each plan: the
