@@ -11,8 +11,9 @@ particle looking for a B particle within a search ellipsoid around where a predi
    than :attr:`TrackSettings.outlier_threshold` times their median deviation (the normalized median
    test of PIV, Westerweel and Scarano 2005, over the tracks' neighbours instead of a grid's) is
    rejected.
-3. **Pass 2 on**: the predictor is the median of the pass before's tracks in each bin of the grid,
-   and the search shrinks to :attr:`TrackSettings.refine_voxels` around it.
+3. **Pass 2 on**: the predictor at each A particle is the median displacement of the pass before's
+   :attr:`TrackSettings.neighbours` tracks nearest it (the tracks kept by the outlier test), and the
+   search shrinks to :attr:`TrackSettings.refine_voxels` around it.
 4. **The field** on a grid of bins :attr:`TrackSettings.bin_voxels` wide, at the bins' centres
    (:attr:`TrackSettings.field`): ``"bins"``, the mean displacement of the tracks whose midpoint
    lies in each bin (NaN with fewer than :attr:`TrackSettings.min_tracks`); or ``"smooth"``, a
@@ -107,7 +108,8 @@ class TrackSettings:
     min_tracks
         Fewest tracks a bin needs for a vector.
     neighbours
-        Tracks the outlier test compares each track with.
+        Tracks the outlier test compares each track with, and the later passes' predictor takes the
+        median of around each particle.
     outlier_threshold
         The normalized median test's threshold.
     epsilon_voxels
@@ -803,16 +805,18 @@ def field_predictor(result: TrackResult, grid: VolumeGrid) -> Predictor | None:
     return Predictor(d.astype(np.float32), tuple(origin), tuple(step))  # type: ignore[arg-type]
 
 
-def _predict(field: np.ndarray, centres: list[np.ndarray], at_mm: np.ndarray) -> np.ndarray:
-    """The binned field at points: the value of the bin each lies in, the median of all bins where it
-    is empty (zero where every bin is)."""
-    idx = [np.clip(np.searchsorted(0.5 * (c[1:] + c[:-1]), at_mm[:, a]), 0, len(c) - 1)
-           for a, c in enumerate(centres)]
-    v = field[idx[2], idx[1], idx[0]]
-    filled = field.reshape(-1, 3)
-    filled = filled[np.all(np.isfinite(filled), axis=1)]
-    fallback = np.median(filled, axis=0) if len(filled) else np.zeros(3)
-    return np.where(np.isfinite(v), v, fallback)
+def _predict(mid_mm: np.ndarray, disp_mm: np.ndarray, at_mm: np.ndarray, *, neighbours: int) -> np.ndarray:
+    """The displacement the tracks of a pass predict at points: per component, the median of the
+    ``neighbours`` tracks whose midpoints lie nearest each point (zero without tracks). The tracks
+    themselves rather than a grid's bins: where a bin holds fewer tracks than a median needs (most
+    bins, when the particles are sparse against the bins), a flow that varies across the box is
+    still predicted where it is."""
+    at = np.asarray(at_mm, dtype=np.float64).reshape(-1, 3)
+    if not len(mid_mm) or not len(at):
+        return np.zeros_like(at)
+    k = min(neighbours, len(mid_mm))
+    _, idx = cKDTree(mid_mm).query(at, k=k)
+    return np.median(np.asarray(disp_mm)[np.asarray(idx).reshape(len(at), k)], axis=1)
 
 
 def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings: TrackSettings | None = None,
@@ -848,27 +852,25 @@ def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings
         mid = a[ia] + 0.5 * disp
         out = reject_outliers(mid, disp, neighbours=s.neighbours, threshold=s.outlier_threshold,
                               epsilon_mm=s.epsilon_voxels * voxel)
-        last = done + 1 == s.passes
-        centres, field, counts, fit = _field(mid[~out], disp[~out], grid, s, last=last)
-        if not last:
-            predicted = _predict(field, centres, a)
+        if done + 1 < s.passes:
+            predicted = _predict(mid[~out], disp[~out], a, neighbours=s.neighbours)
             radius = np.asarray(s.refine_voxels) * voxel
+    centres, field, counts, fit = _field(mid[~out], disp[~out], grid, s)
     return TrackResult(a_index=ia, b_index=ib, displacement_mm=disp, outlier=out, x_mm=centres[0], y_mm=centres[1],
                        z_mm=centres[2], field_mm=field, counts=counts, fit=fit)
 
 
-def _field(mid: np.ndarray, disp: np.ndarray, grid: VolumeGrid, s: TrackSettings, *, last: bool = True
+def _field(mid: np.ndarray, disp: np.ndarray, grid: VolumeGrid, s: TrackSettings
            ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, tuple[FitChoice, FitChoice, FitChoice] | None]:
-    """The field of the kept tracks (midpoints and displacements, mm) on the grid of bins: the bins'
-    medians before the last pass (a predictor), ``s.field``'s field in the last."""
+    """``s.field``'s field of the kept tracks (midpoints and displacements, mm) on the grid of bins."""
     voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
     fit = None
-    centres, field, counts = bin_tracks(mid, disp, grid, bin_voxels=s.bin_voxels,
-                                        statistic="mean" if last else "median", min_tracks=s.min_tracks)
-    if last and s.field == "smooth":
+    centres, field, counts = bin_tracks(mid, disp, grid, bin_voxels=s.bin_voxels, statistic="mean",
+                                        min_tracks=s.min_tracks)
+    if s.field == "smooth":
         field, counts = smooth_tracks(mid, disp, centres, sigma_mm=np.asarray(s.sigma_voxels) * voxel,
                                       min_tracks=s.min_tracks)
-    elif last and s.field in ("fit", "divfree"):
+    elif s.field in ("fit", "divfree"):
         lo = np.asarray(grid.origin_mm, dtype=np.float64) - 0.5 * voxel
         box = (lo, lo + np.asarray(grid.shape[::-1], dtype=np.float64) * voxel)
         # a centre's value rests on the tracks within a bin's width, or their mean spacing where wider

@@ -32,10 +32,10 @@ def bins(text: str) -> tuple[int, int, int]:
 def register(sub: argparse._SubParsersAction) -> None:
     c = sub.add_parser("track", help="pair each pair's particles from frame A to B and bin them into vectors/",
                        description="Pair the particles of frame A (lfpiv particles) with frame B's, one-to-one and "
-                       "nearest first around a predictor (in the first pass --predictor's, the median of the tracks "
-                       "in each bin after it), reject outliers by the normalized median test over the nearest "
-                       "tracks, and write a field made from the tracks (each bin's mean, a smooth average or a fitted "
-                   "smooth field) to "
+                       "nearest first around a predictor (in the first pass --predictor's, the median of the 8 tracks "
+                       "nearest each particle after it), reject outliers by the normalized median test over the "
+                       "nearest tracks, and write a field made from the tracks (each bin's mean, a smooth average or "
+                       "a fitted smooth field) to "
                        "vectors/, the layout correlate writes, so evaluate and export read it unchanged; the tracks "
                        "are kept with it ('lfpiv export --format tracks-vtk' or tracks-csv writes them). On a "
                        "time-resolved run, --along-pairs follows the particles through every frame and makes each "

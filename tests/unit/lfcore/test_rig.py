@@ -59,6 +59,25 @@ def test_one_camera_off_focus_example_is_the_tiny_rig_focused_beyond_its_box():
     assert depth.min() > max(3 * VolumeGrid.from_rig(rig).voxel_mm[2], 0.174)
 
 
+def test_m512_off_focus_rig_is_issue_48s_512_rig_focused_beyond_its_box():
+    # benchmarks/rigs/m512_off_focus.toml is benchmarks/recon.py's Mc (the M camera cropped to 512 x 512 px,
+    # a 4.5 x 4.5 x 12 mm box) with the focus moved 6.8 mm away from the camera, as benchmarks/particles.py's
+    # Mcoff: 245 x 245 x 131 voxels, the focal plane 0.8 mm beyond the far face of the box
+    rig = load_rig(EXAMPLES.parent / "benchmarks" / "rigs" / "m512_off_focus.toml")
+    m = load_rig(EXAMPLES / "one_camera.toml")
+    (cam,), (cam0,) = rig.camera, m.camera
+    assert rig.optics_warnings() == []
+    assert rig.volume == m.volume.model_copy(update={"size_mm": (4.5, 4.5, 12.0)})
+    assert cam.model_copy(update={"focus_mm": cam0.focus_mm, "sensor_px": cam0.sensor_px}) == cam0
+    assert tuple(cam.sensor_px) == (512, 512)
+    np.testing.assert_allclose(np.asarray(cam.focus_mm), np.asarray(cam0.focus_mm) - 6.8 * cam0.optical_axis)
+    assert VolumeGrid.from_rig(rig).shape == (131, 245, 245)  # z, y, x
+    corners = np.array(np.meshgrid(*[[-0.5, 0.5]] * 3, indexing="ij")).reshape(3, -1).T
+    corners = np.asarray(rig.volume.centre_mm) + corners * np.asarray(rig.volume.size_mm)
+    depth = cam.world_to_camera(corners)[:, 2]  # + toward the camera from its focal plane
+    assert depth.min() == pytest.approx(0.8) and depth.max() == pytest.approx(12.8)
+
+
 def test_derived_distances_follow_thin_lens(tiny_rig):
     cam = tiny_rig.camera[0]  # F = 50 mm, M = -1, N = 2
     assert cam.image_distance_mm == pytest.approx(100.0)
