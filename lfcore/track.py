@@ -380,6 +380,16 @@ def smooth_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres:
     return field.reshape(*shape, 3), counts.reshape(shape)
 
 
+def _held_out(problems):
+    """Each cross-validation fold of each problem ``(x, y, folds)``: its training positions and values,
+    then its held-out positions and values."""
+    for x, y, folds in problems:
+        for fold in folds:
+            train = np.ones(len(x), bool)
+            train[fold] = False
+            yield x[train], y[train], x[fold], y[fold]
+
+
 def _rbf(x: np.ndarray, y: np.ndarray, degree: int, smoothing: float) -> RBFInterpolator:
     from scipy.interpolate import RBFInterpolator
 
@@ -404,12 +414,8 @@ def _choose_fit(problems: list[tuple[np.ndarray, np.ndarray, list[np.ndarray]]],
         cv, se = [], []
         try:
             for lam in FIT_SMOOTHING:
-                r = []
-                for x, y, folds in problems:
-                    for fold in folds:
-                        train = np.ones(len(x), bool)
-                        train[fold] = False
-                        r.append(_rbf(x[train], y[train], degree, lam)(x[fold]) - y[fold])  # all three components
+                # all three components
+                r = [_rbf(xt, yt, degree, lam)(xf) - yf for xt, yt, xf, yf in _held_out(problems)]
                 r2 = np.concatenate(r) ** 2
                 cv.append(np.mean(r2, axis=0))
                 se.append(np.std(r2, axis=0) / np.sqrt(len(r2)))
@@ -561,12 +567,9 @@ def _choose_divfree(problems: list[tuple[np.ndarray, np.ndarray, list[np.ndarray
     per_weight = []
     for weight in DIVFREE_WEIGHTS:
         r = []
-        for x, y, folds in problems:
-            for fold in folds:
-                train = np.ones(len(x), bool)
-                train[fold] = False
-                fit = _DivFree(x[train], weight)
-                r.append(fit(x[fold], *fit.coefficients(y[train], lams)) - y[fold][None])  # (s, m, 3)
+        for xt, yt, xf, yf in _held_out(problems):
+            fit = _DivFree(xt, weight)
+            r.append(fit(xf, *fit.coefficients(yt, lams)) - yf[None])  # (s, m, 3)
         r2 = np.concatenate(r, axis=1) ** 2
         cv = np.mean(np.sum(r2, axis=2), axis=1)
         se = np.std(np.sum(r2, axis=2), axis=1) / np.sqrt(r2.shape[1])
