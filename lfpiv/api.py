@@ -127,7 +127,9 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
         as given (:class:`lfcore.reconstruct.ReconSettings`' defaults, 50 iterations).
     **options
         Further :class:`lfcore.reconstruct.ReconSettings` fields (``background``,
-        ``threshold_sigma``, ``smooth``, ``sub_apertures``, ``weight_storage``, ...).
+        ``threshold_sigma``, ``smooth``, ``sub_apertures``, ``weight_storage``, ...). One given as None
+        is that field's None, not the protocol's value (``lit_hysteresis=None``: no hysteresis, where
+        ``fast``'s plan for several light-field cameras has 0.5).
 
     Returns
     -------
@@ -155,7 +157,8 @@ def reconstruct(run: str | os.PathLike[str] | RunStore, *, method: str | None = 
         # light-field cameras leave the method to the protocol's plan (fast on several: MLOS-MART)
         settings = protocol_run_settings(protocol, iterations=iterations, method=run_method(store.rig, cameras, method),
                                          relaxation=relaxation, form=form, n_cameras=camera_count(store.rig, cameras),
-                                         camera_kind=cameras_kind(store.rig, cameras), **options)
+                                         camera_kind=cameras_kind(store.rig, cameras),
+                                         none_given=[k for k, v in options.items() if v is None], **options)
     rig, cal = calibrated_rig(store.rig, calibration, cameras) if calibration is not None else (None, None)
     flats, flat_info = (flat_fields(store.rig, flat_field, cameras)[:2] if flat_field is not None
                         else (None, None))

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -81,7 +81,7 @@ def recon_settings(**options: Any) -> ReconSettings:
 
 def protocol_run_settings(protocol: str, *, iterations: int | None = None, max_iterations: int | None = None,
                           stop_tolerance: float | None = None, n_cameras: int = 1, camera_kind: str | None = None,
-                          **options: Any) -> ReconSettings:
+                          none_given: Collection[str] = (), **options: Any) -> ReconSettings:
     """The settings of a named protocol (:func:`lfcore.reconstruct.protocol_settings`) changed by the
     options given (those None are the protocol's), or a one-line :class:`UsageError`.
 
@@ -94,13 +94,15 @@ def protocol_run_settings(protocol: str, *, iterations: int | None = None, max_i
     ``iterations`` is a fixed count (the stopping rule off); ``max_iterations`` the stopping rule's
     most (the rule on, at ``stop_tolerance`` or the protocol's or :data:`STOP_TOLERANCE`);
     ``stop_tolerance`` alone the rule's tolerance (0: the protocol's iterations, a fixed count).
+    ``none_given``: the options whose None was given as a value (the Python API's
+    ``lit_hysteresis=None``: off), not for the protocol's (a command's options left out are None).
     """
     if iterations is not None and max_iterations is not None:
         raise UsageError("--iterations is a fixed count and --max-iterations the stopping rule's most; give one")
     if iterations is not None and stop_tolerance:
         raise UsageError("--iterations is a fixed count, without the stopping rule; drop --stop-tolerance, or give "
                          "--max-iterations instead")
-    changes = {k: v for k, v in options.items() if v is not None}
+    changes = {k: v for k, v in options.items() if v is not None or k in none_given}
     base = PROTOCOLS.get(protocol, {})
     if iterations is not None:
         changes.update(iterations=iterations, stop_tolerance=0.0)

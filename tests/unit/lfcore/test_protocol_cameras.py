@@ -161,6 +161,15 @@ def test_a_lower_threshold_given_lowers_the_plans_hysteresis():
         protocol_settings("fast", lit_hysteresis=0.5, threshold_sigma=0.4, **kind)
 
 
+def test_a_none_given_in_python_turns_the_plans_hysteresis_off():
+    """The Python API's ``lit_hysteresis=None`` is the field's None (off), not "the protocol's" as a command's
+    option left out is: ``none_given`` names it."""
+    kind = dict(n_cameras=2, camera_kind="light-field")
+    assert protocol_run_settings("fast", lit_hysteresis=None, **kind).lit_hysteresis == 0.5
+    off = protocol_run_settings("fast", lit_hysteresis=None, none_given=["lit_hysteresis"], **kind)
+    assert off.lit_hysteresis is None and off.max_dark == 0.0
+
+
 def test_fast_on_two_light_field_cameras_is_as_good_as_fixed(two_cameras):
     proj, truth, img = two_cameras
     settings = {"fixed": protocol_settings("fixed", n_cameras=2),
@@ -169,3 +178,21 @@ def test_fast_on_two_light_field_cameras_is_as_good_as_fixed(two_cameras):
          for name, s in settings.items()}
     assert q["fixed"] > 0.6
     assert q["fast"] >= q["fixed"] - 0.01
+
+
+def test_the_python_api_passes_a_none_it_was_given(tmp_path, monkeypatch):
+    """``lfpiv.reconstruct(run, protocol="fast", lit_hysteresis=None)`` on two light-field cameras reconstructs
+    without the plan's hysteresis; an option not given keeps the plan's."""
+    import lfpiv
+    import lfpiv.jobs.reconstruct as job
+    from lfcore.runstore import RunStore
+    from lfpiv.rigfile import load_rig
+    from tests.conftest import EXAMPLES
+
+    run = tmp_path / "run.zarr"
+    RunStore.create(run, load_rig(EXAMPLES / "demo.toml"), 1, timing={}, software_version="test")
+    seen = []
+    monkeypatch.setattr(job, "reconstruct_run", lambda store, settings, **kw: seen.append(settings) or [])
+    lfpiv.reconstruct(run, protocol="fast", lit_hysteresis=None, progress=False)
+    lfpiv.reconstruct(run, protocol="fast", progress=False)
+    assert [s.lit_hysteresis for s in seen] == [None, 0.5] and seen[0].method == "mlos-mart"
