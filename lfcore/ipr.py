@@ -15,7 +15,9 @@ cross-correlation. This module does it on the rig's own forward model:
    :attr:`IprSettings.max_step_voxels` per axis, a step kept only where it lowers the residual.
 3. **Split** the particles about twice as bright as the median in two (two overlapping particles
    the quick reconstruction showed as one peak) and fit again.
-4. **Prune**: particles too faint (below :attr:`IprSettings.min_intensity` of the median), too
+4. **Prune**: particles too faint (below :attr:`IprSettings.min_intensity` of the median: the
+   frame's, or, along a laser sheet that lights the box unevenly, the median of the particles
+   nearest in the sheet's normal, :attr:`IprSettings.intensity_axis`), too
    close to a brighter one (within :attr:`IprSettings.merge_voxels`: merged, intensities added,
    the position intensity-weighted) or outside the box leave; the rest are fitted again.
 5. **Residual rounds**: the images' residual (recorded minus the particles' model) is
@@ -75,8 +77,8 @@ from lfcore.reconstruct import (
 )
 from lfcore.volume import VolumeGrid
 
-__all__ = ["CANDIDATE_SOURCES", "MODELS", "PARTICLE_FIELDS", "IprSettings", "ParticleReconstructor", "ParticleResult",
-           "to_index", "to_mm"]
+__all__ = ["CANDIDATE_SOURCES", "LOCAL_MEDIAN_PARTICLES", "MODELS", "PARTICLE_FIELDS", "IprSettings",
+           "ParticleReconstructor", "ParticleResult", "local_median", "to_index", "to_mm"]
 
 #: The columns of a frame's particles as :class:`ParticleResult` and the run store's ``particles/``
 #: keep them.
@@ -101,6 +103,10 @@ MEMO_IMAGES = 2
 #: How far either side along x the two halves of a split particle start, voxels
 #: (:attr:`IprSettings.split_intensity`).
 SPLIT_VOXELS = 0.75
+
+#: The fewest particles whose median judges a particle's intensity along
+#: :attr:`IprSettings.intensity_axis` (:func:`local_median`).
+LOCAL_MEDIAN_PARTICLES = 25
 
 # the 8 corners of a voxel cell, (z, y, x) offsets
 _CORNERS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=np.int64)
@@ -152,7 +158,21 @@ class IprSettings:
     max_step_voxels
         The largest position step of one fit iteration, voxels per axis.
     min_intensity
-        Particles fainter than this fraction of the median intensity are pruned (ghosts are faint).
+        Particles fainter than this fraction of the median intensity are pruned (ghosts are faint):
+        the frame's median, or that of the particles nearest along :attr:`intensity_axis`.
+    intensity_axis
+        ``"x"``, ``"y"`` or ``"z"``: each particle's intensity is judged against the median of the
+        :attr:`intensity_share` of the particles nearest it along this axis (a running median of
+        the particles' own intensities: the light where it is), not the frame's median. A laser
+        sheet's normal (``[laser] sheet_axis``), where the sheet lights the box unevenly: a Gaussian
+        sheet dims the particles towards its faces, and against the frame's median the dim real
+        ones are pruned as ghosts (issue 48's 512 x 512 rig: a 16 mm sheet over a 12 mm box lights
+        its faces at 0.32 of its peak; ``benchmarks/RESULTS.md``, tenth session). The running
+        median needs no profile: it follows the light the particles show, whatever the sheet.
+        None: the frame's median.
+    intensity_share
+        The share of the frame's particles (at least :data:`LOCAL_MEDIAN_PARTICLES`) whose median
+        judges each particle along :attr:`intensity_axis`.
     merge_voxels
         Particles closer than this, voxels (each axis in its own voxels), are merged.
     rounds
@@ -205,6 +225,8 @@ class IprSettings:
     shakes: int = 12
     max_step_voxels: float = 0.5
     min_intensity: float = 0.5
+    intensity_axis: str | None = None
+    intensity_share: float = 0.1
     merge_voxels: float = 1.0
     rounds: int = 3
     split_intensity: float = 1.4
@@ -248,6 +270,12 @@ class IprSettings:
                              f"{self.point_sub_apertures}")
         if self.split_intensity < 0:
             raise ValueError(f"split_intensity must be 0 (no splitting) or more, got {self.split_intensity}")
+        if self.intensity_axis not in (None, "x", "y", "z"):
+            raise ValueError(f"intensity_axis is 'x', 'y', 'z' or None (the frame's median), got "
+                             f"{self.intensity_axis!r}")
+        if not 0.0 < self.intensity_share <= 1.0:
+            raise ValueError(f"intensity_share is a share of the particles above 0 and at most 1, got "
+                             f"{self.intensity_share}")
         if self.max_step_voxels <= 0 or self.merge_voxels < 0 or self.min_intensity < 0:
             raise ValueError("max_step_voxels must be positive, merge_voxels and min_intensity at least 0")
 
@@ -638,6 +666,41 @@ def _position_std(model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray) ->
     return np.sqrt(np.abs(np.diagonal(cov, axis1=1, axis2=2)[:, 1:]))
 
 
+def local_median(coordinate: np.ndarray, values: np.ndarray, *, share: float,
+                 least: int = LOCAL_MEDIAN_PARTICLES) -> np.ndarray:
+    """Each point's running median along one axis: the median of ``values`` over the ``share`` of
+    the points (at least ``least``, at most all) nearest it in ``coordinate``, itself included (a
+    window of consecutive points in the coordinate's order, centred on the point where the ends
+    allow).
+
+    Parameters
+    ----------
+    coordinate
+        (n,) each point's coordinate along the axis.
+    values
+        (n,) each point's value (a particle's intensity).
+    share
+        The window's share of the points, above 0 and at most 1.
+    least
+        The fewest points in a window.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n,) float64 medians.
+    """
+    v = np.asarray(values, dtype=np.float64).ravel()
+    n = len(v)
+    if n == 0:
+        return np.zeros(0)
+    m = min(n, max(int(least), int(np.ceil(share * n))))
+    order = np.argsort(np.asarray(coordinate, dtype=np.float64).ravel(), kind="stable")
+    med = np.median(np.lib.stride_tricks.sliding_window_view(v[order], m), axis=1)  # (n - m + 1,)
+    out = np.empty(n)
+    out[order] = med[np.clip(np.arange(n) - m // 2, 0, n - m)]
+    return out
+
+
 def _split(u: np.ndarray, intensity: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
     """Particles brighter than ``factor`` times the median as two of half the intensity,
     :data:`SPLIT_VOXELS` either side along x."""
@@ -839,7 +902,11 @@ class ParticleReconstructor:
         inside = np.all((u >= -0.5) & (u <= shape - 0.5), axis=1) & (intensity > 0)
         u, intensity = _merge(u[inside], intensity[inside], s.merge_voxels)
         if len(intensity):
-            bright = intensity >= s.min_intensity * np.median(intensity)
+            if s.intensity_axis is None:
+                light = np.median(intensity)
+            else:  # the light where each particle is: u is (z, y, x)
+                light = local_median(u[:, 2 - "xyz".index(s.intensity_axis)], intensity, share=s.intensity_share)
+            bright = intensity >= s.min_intensity * light
             u, intensity = u[bright], intensity[bright]
         return u, intensity
 

@@ -244,12 +244,14 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
         The pairs done, particles and candidates per frame, seconds per frame.
     """
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.particles import ipr_settings, particles_run
+    from lfpiv.jobs.particles import intensity_axis, ipr_settings, particles_run
 
     store = open_run(run, mode="r+")
-    # as the command: the point model's diffraction blur and spot size are the rig's unless given
+    # as the command: the point model's diffraction blur and spot size, and the axis along which the
+    # faint are judged (the laser sheet's, where it lights the box unevenly), are the rig's unless given
     options = {"wavelength_nm": store.rig.laser.wavelength_nm,
-               "particle_image_px": store.rig.render.particle_image_px, **options}
+               "particle_image_px": store.rig.render.particle_image_px,
+               "intensity_axis": intensity_axis(store.rig), **options}
     settings = ipr_settings(**options)
     with dask_client(workers, scheduler) as client:
         return particles_run(store, settings, _pairs(pairs), cameras=cameras, device=device, progress=progress,

@@ -60,7 +60,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--shakes", type=shakes, default=12, metavar="N",
                    help="fit iterations of every particle's position and intensity (default: 12)")
     c.add_argument("--min-intensity", type=non_negative_float, default=0.5, metavar="F",
-                   help="prune particles fainter than F times the median (default: 0.5)")
+                   help="prune particles fainter than F times the median (default: 0.5) of --min-intensity-of")
+    c.add_argument("--min-intensity-of", choices=("auto", "frame", "sheet"), default="auto",
+                   help="the median --min-intensity is a share of: frame, the frame's particles'; sheet, that of "
+                   "the tenth of the particles nearest each along the rig's laser sheet axis ([laser] sheet_axis), "
+                   "the light where the particle is: a sheet that dims towards its faces does not prune the dim "
+                   "real particles there; auto, sheet where the rig's sheet_profile is not uniform, else frame "
+                   "(default: auto)")
     c.add_argument("--merge-voxels", type=positive_float, default=1.0, metavar="D",
                    help="merge particles closer than D voxels (default: 1)")
     c.add_argument("--split", type=non_negative_float, default=1.4, metavar="F",
@@ -88,7 +94,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.particles import ipr_settings, particles_run
+    from lfpiv.jobs.particles import intensity_axis, ipr_settings, particles_run
     from lfpiv.runs import open_run
 
     # the quick reconstruction's own options where given (ipr_settings refuses them with ray bundling)
@@ -103,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
     store = open_run(args.run, mode="r+")
     # the point model's diffraction blur and pinhole particle images are the rig's
     settings = ipr_settings(**options, wavelength_nm=store.rig.laser.wavelength_nm,
-                            particle_image_px=store.rig.render.particle_image_px)
+                            particle_image_px=store.rig.render.particle_image_px,
+                            intensity_axis=intensity_axis(store.rig, args.min_intensity_of))
     with dask_client(args.workers, args.scheduler) as client:
         done = particles_run(store, settings, args.pairs, cameras=args.cameras, device=args.device,
                              progress=not args.quiet, skip_done=args.skip_done, option=pairs_option(args),

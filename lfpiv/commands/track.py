@@ -50,7 +50,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the first pass's search radius around the predictor: the largest displacement expected, or "
                    "with a predictor its largest error (default: 4,4,2)")
     c.add_argument("--refine-voxels", type=xyz_triple, default=(1.0, 1.0, 1.0), metavar="X,Y,Z",
-                   help="the later passes' search radius around the predictor (default: 1,1,1)")
+                   help="the later passes' least search radius around their predictor (a linear fit through the "
+                   "pass before's nearest tracks), per axis widened to 4 times those tracks' scatter about it where "
+                   "that is wider, at most --search-voxels (default: 1,1,1)")
     c.add_argument("--passes", type=positive_int, default=2, help="pairing passes (default: 2)")
     c.add_argument("--bin", type=bins, default=(16, 16, 8), metavar="XxYxZ",
                    help="the field's bins in voxels (default: 16x16x8)")

@@ -20,8 +20,8 @@ from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError
 from lfpiv.pair_runner import recorded_pairs, run_pairs
 
-__all__ = ["IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "ipr_settings", "particles_pair_task",
-           "particles_run", "same_settings"]
+__all__ = ["INTENSITY_REFERENCES", "IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "intensity_axis",
+           "ipr_settings", "particles_pair_task", "particles_run", "same_settings"]
 
 
 #: Settings added to :class:`lfcore.ipr.IprSettings` after ``particles/`` was first written, at the
@@ -29,10 +29,16 @@ __all__ = ["IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "ipr
 #: ``split_intensity``), the trilinear blend of voxels' rows (before ``model``), no whole-voxel moves
 #: (before ``relocate_depth``), every particle kept (before ``max_position_std``), candidates from
 #: plain DRT-MART of a fixed count (before ``candidate_protocol``), candidates from a reconstruction's
-#: peaks (before ``candidate_source``).
+#: peaks (before ``candidate_source``), every particle judged against the frame's median intensity
+#: (before ``intensity_axis``).
 OLD_DEFAULTS: dict[str, Any] = {"split_intensity": 0.0, "model": "voxels", "relocate_depth": 0,
                                 "max_position_std": 0.0, "candidate_protocol": "fixed",
-                                "candidate_source": "reconstruction"}
+                                "candidate_source": "reconstruction", "intensity_axis": None,
+                                "intensity_share": 0.1}
+
+#: What ``lfpiv particles --min-intensity-of`` judges a particle's intensity against
+#: (:func:`intensity_axis`).
+INTENSITY_REFERENCES = ("auto", "frame", "sheet")
 
 #: Settings of ray bundling only: the reconstruction's candidates do not depend on them.
 RAYS_ONLY = ("ray_keep_bins", "ray_min_score")
@@ -56,6 +62,8 @@ def _matching(settings: dict[str, Any]) -> dict[str, Any]:
     """The settings that make a different set of particles (the point model's own ones only for it, ray
     bundling's only for it)."""
     out = dict(settings)
+    if out.get("intensity_axis") is None:  # the frame's median: the running median's window is not used
+        out.pop("intensity_share", None)
     if out.get("candidate_source", "reconstruction") != "rays":
         out = {k: v for k, v in out.items() if k not in RAYS_ONLY}
     if out.get("model") == "voxels":
@@ -69,6 +77,19 @@ def same_settings(recorded: dict[str, Any], meta: dict[str, Any]) -> bool:
     ``meta`` (today's :meth:`lfcore.ipr.IprSettings.as_dict` with ``method`` and ``cameras``) makes:
     what ``--skip-done`` keeps and adds to."""
     return _matching(_recorded(recorded)) == _matching(meta)
+
+
+def intensity_axis(rig: Rig, reference: str = "auto") -> str | None:
+    """:attr:`lfcore.ipr.IprSettings.intensity_axis` for ``lfpiv particles --min-intensity-of``
+    (:data:`INTENSITY_REFERENCES`): ``"frame"``, None (the frame's median); ``"sheet"``, the rig's
+    laser sheet axis (``[laser] sheet_axis``: each particle against the particles nearest it along
+    it); ``"auto"``, the sheet's axis where the rig's sheet lights the box unevenly (``sheet_profile``
+    other than ``"uniform"``), else None."""
+    if reference not in INTENSITY_REFERENCES:
+        raise UsageError(f"--min-intensity-of is one of {', '.join(INTENSITY_REFERENCES)}, got '{reference}'")
+    if reference == "frame" or (reference == "auto" and rig.laser.sheet_profile == "uniform"):
+        return None
+    return rig.laser.sheet_axis
 
 
 def ipr_settings(**options: Any) -> IprSettings:

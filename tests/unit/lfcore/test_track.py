@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lfcore.track import TrackSettings, bin_tracks, pair_nearest, reject_outliers, track_pair
+from lfcore.track import (
+    TrackSettings,
+    _predict,
+    _search_radius,
+    bin_tracks,
+    pair_nearest,
+    reject_outliers,
+    track_pair,
+)
 from lfcore.volume import VolumeGrid
 
 GRID = VolumeGrid(shape=(20, 64, 64), voxel_mm=(0.01, 0.01, 0.05), origin_mm=(-0.315, -0.315, -0.475))
@@ -285,3 +293,56 @@ def test_track_pair_fits_a_known_rotation():
     # exact tracks of a flow linear in position: the fit's trend is that flow
     err = np.abs(res.field_mm[good] - true[good]) / np.asarray(GRID.voxel_mm)
     assert err.max() < 0.01
+
+
+def test_the_later_passes_predictor_fits_a_linear_flow_exactly():
+    # the pass before's tracks of a linear flow: the predictor's fit through a point's nearest tracks gives the
+    # flow at the point itself, also at the box's faces, where all the neighbours lie on one side (their
+    # median misses there by the gradient times their lopsided reach)
+    mid = _points(200, 11)
+    grad = np.array([[0.3, 0.0, 0.1], [0.0, -0.2, 0.0], [0.05, 0.0, 0.0]])  # d(u, v, w)/d(x, y, z)
+    disp = 0.01 + (mid - mid.mean(axis=0)) @ grad.T
+    at = np.vstack([_points(50, 12), np.asarray(GRID.origin_mm)[None, :]])  # one at the box's corner
+    want = 0.01 + (at - mid.mean(axis=0)) @ grad.T
+    assert np.allclose(_predict(mid, disp, at, neighbours=8), want, atol=1e-5)
+    # each track predicted without itself: the same, and not its own value
+    assert np.allclose(_predict(mid, disp, mid, neighbours=8, leave_out=True), disp, atol=1e-5)
+
+
+def test_the_later_passes_search_follows_the_tracks_scatter():
+    # tracks of a uniform flow with known noise per axis: the search is 4 times the noise where that is
+    # wider than refine_voxels, refine_voxels where it is not, and never past the first pass's search
+    rng = np.random.default_rng(13)
+    mid = _points(2000, 13)
+    voxel = np.asarray(GRID.voxel_mm)
+    sigma = np.array([0.05, 0.3, 0.8]) * voxel
+    disp = np.array([1.0, 0.0, 0.0]) * voxel + rng.normal(size=mid.shape) * sigma
+    r = _search_radius(mid, disp, neighbours=8, least_mm=voxel, most_mm=np.array([6.0, 6.0, 2.0]) * voxel) / voxel
+    # the predictor's own error adds to the noise: sqrt(1 + about 1/8) of it
+    assert r[0] == pytest.approx(1.0)
+    assert 4.0 * 0.3 <= r[1] <= 4.0 * 0.3 * 1.2
+    assert r[2] == pytest.approx(2.0)
+
+
+def test_the_later_passes_keep_the_tracks_of_a_steep_wave_among_sparse_unsure_particles():
+    # issue 48's 512 x 512 rig in small: A1's u (a cosine along x, 8 voxels from trough to crest) among
+    # sparse particles whose depth is 0.35 voxel unsure: the second pass (1-voxel search around its
+    # predictor) must keep the tracks the first found (it lost a third of them around the median of the
+    # nearest tracks)
+    rng = np.random.default_rng(21)
+    a_true = _points(150, 21)
+    voxel = np.asarray(GRID.voxel_mm)
+    x = (a_true[:, 0] - GRID.origin_mm[0]) / (63 * voxel[0])
+    u = 4.0 * np.cos(2.0 * np.pi * (x - 0.5) / 1.4) - 1.0  # -2.6 to +3 voxels
+    b_true = a_true + np.column_stack([u * voxel[0], np.zeros((len(u), 2))])
+    noise = np.array([0.13, 0.13, 0.35]) * voxel
+    a = a_true + rng.normal(size=a_true.shape) * noise
+    b = b_true + rng.normal(size=b_true.shape) * noise
+    kept = {}
+    for passes in (1, 2):
+        res = track_pair(a, b, GRID, settings=TrackSettings(search_voxels=(6.0, 2.0, 2.0), passes=passes))
+        ok = ~res.outlier
+        assert np.all(res.a_index[ok] == res.b_index[ok])  # each particle paired with its own image
+        kept[passes] = int(ok.sum())
+    assert kept[1] >= 0.9 * len(a)
+    assert kept[2] >= kept[1] - 2

@@ -3,6 +3,8 @@ a missing setting reads as the value that reproduced the old code's particles.""
 
 from __future__ import annotations
 
+import pytest
+
 from lfcore.ipr import IprSettings
 from lfpiv.jobs.particles import same_settings
 
@@ -54,3 +56,25 @@ def test_a_group_written_before_candidate_source_had_the_reconstructions_candida
     assert same_settings(before, meta(candidate_source="reconstruction"))
     assert not same_settings(before, meta(candidate_source="rays"))
     assert same_settings(meta(candidate_source="rays"), meta(candidate_source="rays"))
+
+
+def test_a_group_written_before_intensity_axis_judged_by_the_frames_median() -> None:
+    before = {k: v for k, v in meta().items() if k not in ("intensity_axis", "intensity_share")}
+    assert same_settings(before, meta())
+    assert same_settings(before, meta(intensity_share=0.3))  # the window is not used without an axis
+    assert not same_settings(before, meta(intensity_axis="z"))
+    assert same_settings(meta(intensity_axis="z"), meta(intensity_axis="z"))
+    assert not same_settings(meta(intensity_axis="z"), meta(intensity_axis="z", intensity_share=0.3))
+
+
+def test_the_min_intensity_is_judged_along_an_uneven_sheet_by_default(tiny_rig) -> None:
+    from lfpiv.errors import UsageError
+    from lfpiv.jobs.particles import intensity_axis
+
+    even = tiny_rig  # sheet_profile "uniform"
+    gaussian = tiny_rig.model_copy(update={"laser": tiny_rig.laser.model_copy(
+        update={"sheet_profile": "gaussian", "sheet_axis": "y"})})
+    assert intensity_axis(even) is None and intensity_axis(even, "sheet") == even.laser.sheet_axis
+    assert intensity_axis(gaussian) == "y" and intensity_axis(gaussian, "frame") is None
+    with pytest.raises(UsageError, match="min-intensity-of"):
+        intensity_axis(even, "volume")
