@@ -1480,7 +1480,7 @@ class FrameReconstructor:
         los_its = (min(settings.los_iterations, WARM_LOS_ITERATIONS, settings.warm_count - 1) if warmed
                    else settings.los_iterations)
         los_first = bool(los_its) and int(voxels.shape[0]) > 0
-        if cheap is not None and (los_first or settings.method == "mlos-mart"):
+        if cheap is not None and (los_first or settings.method != "drt-mart"):
             op = cheap  # the predictor's line-of-sight operator is this frame's first one
         else:
             op = self.los_operator(voxels) if los_first else self.operator(voxels)
@@ -1546,14 +1546,15 @@ class FrameReconstructor:
             None where the box is too thin to correlate, or no voxel is active (the frame then starts
             uniform).
         operator
-            The line-of-sight operator of ``voxels`` (the frame's first one, where it runs such
-            iterations first, or its only one for MLOS-MART).
+            The line-of-sight operator of ``voxels`` (DRT-MART's first one, where it runs such
+            iterations first; the other methods' only one).
         seconds
             The wall seconds taken.
         """
         t = time.perf_counter()
         settings = self.settings
-        op = self.operator(voxels) if settings.method == "mlos-mart" else self.los_operator(voxels)
+        # DRT-MART's line-of-sight weights, or the other methods' own operator (line-of-sight ones)
+        op = self.los_operator(voxels) if settings.method == "drt-mart" else self.operator(voxels)
         if op.n_voxels == 0:
             return None, op, time.perf_counter() - t
         first = self.iterate(op, self._image, noise, iterations=WARM_OWN_ITERATIONS, stop_tolerance=0.0,
