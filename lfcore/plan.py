@@ -574,7 +574,9 @@ def frame_stages(cameras: str, grid: VolumeGrid, settings: ReconSettings, *, sla
     if s.subsets > 1:
         out.append(f"{s.subsets} ordered subsets a pass")
     if s.warm_start and slabs == 1:
-        out.append("frames B warm-started from frame A (without the coarse grid or the line-of-sight iterations)")
+        by = "their own pair's" if s.warm_predictor == "own" else "the last pair's"
+        out.append(f"frames B warm-started from frame A carried along {by} displacement, at most "
+                   f"{s.warm_count} iterations")
     out.append(f"at most {s.iterations} iterations by the stopping rule" if s.stopping else
                f"{s.iterations} iterations")
     return tuple(out)

@@ -68,7 +68,7 @@ from lfcore.subsets import (
     split,
     split_bytes,
 )
-from lfcore.warm import WARM_BLEND, with_floor
+from lfcore.warm import OWN_PAIR, WARM_BLEND, WARM_PREDICTORS, predictor_field, with_floor
 
 if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to import
     from lfcore.matrix_free import DrtTemplates
@@ -77,10 +77,10 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
     from lfcore.weight_cache import WeightCache
 
 __all__ = ["CAPPED", "COARSE_METHODS", "CONVERGED", "DRT_OPTIONS", "FIXED", "MASKED", "METHODS", "NO_VOXELS",
-           "PROTOCOLS", "PRUNE", "PRUNE_PERCENTILE", "SEVERAL_CAMERAS", "SEVERAL_LIGHT_FIELD_CAMERAS",
-           "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WARM_HANDOVER", "WARM_LOS_ITERATIONS", "WARM_SHARE",
-           "WARM_STOP_EVERY", "WEIGHTS", "CoarseBright", "FrameReconstructor", "Iterated", "ReconResult",
-           "ReconSettings", "StoppingRule", "bright_voxels", "coarse_applies", "coarse_bright",
+           "PROTOCOLS", "PRUNE", "PRUNE_PERCENTILE", "SEVERAL_CAMERAS", "SEVERAL_LIGHT_FIELD_CAMERAS", "STOP_REASONS",
+           "STOP_TOLERANCE", "STOP_VOXELS", "WARM_HANDOVER", "WARM_LOS_ITERATIONS", "WARM_SHARE",
+           "WARM_OWN_ITERATIONS", "WARM_STOP_EVERY", "WEIGHTS", "CoarseBright", "FrameReconstructor", "Iterated",
+           "ReconResult", "ReconSettings", "StoppingRule", "bright_voxels", "coarse_applies", "coarse_bright",
            "coarse_reconstructor", "estimate_background", "is_split", "light_field_plan", "preprocess",
            "preprocess_images", "protocol_settings", "prune_dark", "reconstruct", "relative_residual",
            "smart_iterations", "stop_interval", "unexplained_added", "warm_count"]
@@ -139,6 +139,10 @@ WARM_HANDOVER = 0.02
 #: its Q falls with every pass (tiny rig: 0.833 after 3 + 2, 0.812 after 3 + 8, 0.801 where the cold
 #: rule stopped it, after 3 + 12 to 17).
 WARM_STOP_EVERY = 1
+#: Line-of-sight iterations of a frame B (from the coarse grid's start where coarse-to-fine elimination
+#: ran, else uniform) whose volume, correlated with frame A's, is the pair's own predictor
+#: (``ReconSettings.warm_predictor`` ``"own"``, :data:`lfcore.warm.OWN_PAIR`).
+WARM_OWN_ITERATIONS = 5
 
 
 #: Why a frame's iterations ended (:attr:`ReconResult.stopped`): all it was asked for (no stopping
@@ -254,6 +258,12 @@ class ReconSettings:
         :data:`WARM_HANDOVER` of the brightest to DRT's weights.
     warm_iterations
         Iterations of a warm-started frame; None: :data:`WARM_SHARE` of ``iterations``.
+    warm_predictor
+        Where a warm-started frame B's predictor comes from (:data:`lfcore.warm.WARM_PREDICTORS`):
+        ``"own"``, its own pair (frame A correlated with :data:`WARM_OWN_ITERATIONS` line-of-sight
+        iterations of B; every pair's B warm-starts and depends on its pair alone), or ``"last"``, the
+        field the last pair a reconstructor made measured (the first pair's B starts uniform). Read by
+        the callers that keep a series (``lfpiv reconstruct``'s pairs).
     los_iterations
         DRT-MART's first iterations on the line-of-sight weights of the MART baseline (cheap to
         build) instead of its own; then the voxels still brighter than ``prune`` (or
@@ -296,7 +306,7 @@ class ReconSettings:
         given, a protocol's own ``coarse`` is DRT-MART's), on light-field cameras, in boxes of at least
         :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels (others eliminate the whole grid), in memory or
         in depth slabs (:mod:`lfcore.slabs`: the coarse grid in memory, each slab's fine voxels from
-        it); not with a warm start (the warm frame's own voxels are eliminated as before).
+        it). A warm-started frame eliminates so too (its start is the warm one, not the coarse grid's).
     coarse_iterations
         The line-of-sight iterations on the coarse grid (``coarse`` above 1).
     coarse_prune
@@ -329,6 +339,7 @@ class ReconSettings:
     prune_every: int = 10
     warm_start: bool = False
     warm_iterations: int | None = None
+    warm_predictor: str = OWN_PAIR
     los_iterations: int = 0
     subsets: int = 1
     subset_halving: int = SUBSET_HALVING
@@ -405,6 +416,8 @@ class ReconSettings:
                              f"{self.stop_voxels}")
         if self.stop_every < 1:
             raise ValueError(f"stop_every must be 1 or more iterations, got {self.stop_every}")
+        if self.warm_predictor not in WARM_PREDICTORS:
+            raise ValueError(f"warm_predictor must be one of {', '.join(WARM_PREDICTORS)}, got '{self.warm_predictor}'")
         if self.warm_iterations is not None and self.warm_iterations < 1:
             raise ValueError(f"warm_iterations must be 1 or more, got {self.warm_iterations}")
         if not 1 <= self.coarse <= MAX_COARSE:
@@ -455,9 +468,11 @@ class ReconSettings:
 #: ``fixed``: 50 iterations with the dark voxels leaving the operator (``lfpiv reconstruct``'s default
 #: before the stopping rule).
 #: ``fast`` (``lfpiv reconstruct``'s default): the stopping rule (at most 400 iterations), line-of-sight
-#: weights for the first 20 iterations of DRT-MART, the pruning, every frame from a uniform start (so a
-#: volume does not depend on which pairs a process made before it; ``warm_start`` adds the series' warm
-#: start); 6 ordered subsets, the rule measuring per
+#: weights for the first 20 iterations of DRT-MART, the pruning, frame A from a uniform start and frame B
+#: warm-started from frame A carried along the pair's own predictor (``warm_start``, ``warm_predictor``
+#: ``"own"``: a volume depends on its own pair alone, not on which pairs a process made before it; on
+#: the tiny rig's 10-pair series Q of frames B 0.838 against 0.787 from uniform starts, in 0.74 of their
+#: CPU, and as good on the demo rig and Mc2: ``benchmarks/series.py``); 6 ordered subsets, the rule measuring per
 #: pass (an iteration is then a pass through them), and coarse-to-fine elimination on a grid 3 times
 #: coarser in boxes of at least :data:`lfcore.coarse.COARSE_MIN_VOXELS` voxels, with 30 line-of-sight
 #: iterations there, after which the fine grid's
@@ -472,7 +487,7 @@ PROTOCOLS: dict[str, dict] = {
     "chapter": {"iterations": 400, "prune": 0.0, "relaxation": 1.0},
     "fixed": {"iterations": 50},
     "fast": {"iterations": 400, "stop_tolerance": STOP_TOLERANCE, "los_iterations": 20, "coarse": 3, "subsets": 6,
-             "coarse_prune": 0.02, "coarse_iterations": 30},
+             "coarse_prune": 0.02, "coarse_iterations": 30, "warm_start": True},
 }
 
 
@@ -625,6 +640,10 @@ class ReconResult:
     warm
         Whether the frame started from the last one's intensities carried by a predictor
         (:mod:`lfcore.warm`; ``iterations`` is then the warm count) rather than uniform.
+    predictor_s
+        Of a frame warm-started by its own pair's predictor (:data:`lfcore.warm.OWN_PAIR`), the seconds
+        its predictor took (the line-of-sight operator's build, which the frame's first iterations then
+        use, its iterations and the correlation; not in ``weights_s`` or ``iterate_s``).
     stopped
         Why the iterations ended (:data:`STOP_REASONS`): ``"fixed count"`` (no stopping rule),
         ``"converged"`` (the stopping rule, :attr:`ReconSettings.stop_tolerance`), ``"max iterations"``
@@ -658,6 +677,7 @@ class ReconResult:
     final_voxels: int = -1
     warm: bool = False
     stopped: str = FIXED
+    predictor_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.final_voxels < 0:
@@ -1395,7 +1415,7 @@ class FrameReconstructor:
 
     # --- one frame from host images --------------------------------------------------------------
     def reconstruct(self, images: Sequence[np.ndarray], *, progress: Callable[[int], None] | None = None,
-                    warm: WarmStart | None = None, predictor: Predictor | None = None) -> ReconResult:
+                    warm: WarmStart | None = None, predictor: Predictor | str | None = None) -> ReconResult:
         """Reconstruct one volume from one raw image per camera.
 
         Parameters
@@ -1409,7 +1429,10 @@ class FrameReconstructor:
             and with a ``predictor`` this frame starts from the kept ones carried along it and runs
             ``settings.warm_iterations`` (:mod:`lfcore.warm`).
         predictor
-            The displacement from the kept frame to this one; None: a uniform start.
+            The displacement from the kept frame to this one; :data:`lfcore.warm.OWN_PAIR` (``"own"``):
+            measured from this frame's own data before its fine iterations (:data:`WARM_OWN_ITERATIONS`
+            line-of-sight iterations correlated with the kept frame), so that the frame depends on the
+            kept one and its own images alone; None: a uniform start.
 
         Returns
         -------
@@ -1429,31 +1452,42 @@ class FrameReconstructor:
 
     def _reconstruct(self, signals: list[np.ndarray], lits: list[np.ndarray], backgrounds: list[float],
                      noises: list[float], progress: Callable[[int], None] | None, warm: WarmStart | None = None,
-                     predictor: Predictor | None = None) -> ReconResult:
+                     predictor: Predictor | str | None = None) -> ReconResult:
         wp, p, settings = self.wp, self.projector, self.settings
         t0 = time.perf_counter()
         warmed = warm is not None and predictor is not None and warm.held and settings.form == "simultaneous"
+        own = warmed and isinstance(predictor, str)
+        if own and predictor != OWN_PAIR:
+            raise ValueError(f"a frame's predictor is a Predictor, '{OWN_PAIR}' or None, got '{predictor}'")
         if self._image is None:
             self._image = wp.empty(p.n_pixels, dtype=float, device=self.device)
         flat = np.concatenate([s.ravel() for s in signals])
         wp.copy(self._image, wp.array(flat, dtype=float, device="cpu", copy=False))
         coarse = None
         cut = None  # the pruning's threshold: settings.prune, or coarse_prune after the coarse grid
-        if self.coarse_applies() and not warmed:
+        if self.coarse_applies():  # a warm frame's too: the whole grid's elimination costs most in a large box
             voxels, coarse = self.coarse_eliminate(lits, self._image, noises)
             if settings.prune > 0:  # no pruning asked for: none after the coarse grid either
                 cut = settings.coarse_prune or None
         else:
             voxels = self.eliminate(lits)  # returns once counted: synced
         t_elim = t0 if settings.method == "mart" else time.perf_counter()
+        cheap, predictor_s = None, 0.0
+        if own:  # the pair's own predictor: frame A against a few line-of-sight iterations of this frame
+            predictor, cheap, predictor_s = self._own_predictor(voxels, coarse, noises, warm)
+            warmed = predictor is not None
         # a warm frame runs fewer line-of-sight iterations: its start holds frame A's particles already
         los_its = (min(settings.los_iterations, WARM_LOS_ITERATIONS, settings.warm_count - 1) if warmed
                    else settings.los_iterations)
         los_first = bool(los_its) and int(voxels.shape[0]) > 0
-        op = self.los_operator(voxels) if los_first else self.operator(voxels)
+        if cheap is not None and (los_first or settings.method != "drt-mart"):
+            op = cheap  # the predictor's line-of-sight operator is this frame's first one
+        else:
+            op = self.los_operator(voxels) if los_first else self.operator(voxels)
+        del cheap
         active, kind = op.n_voxels, op.kind
         nbytes = int(op.nbytes) if los_first else self.operator_bytes(op)
-        weights_s = time.perf_counter() - t0
+        weights_s = time.perf_counter() - t0 - predictor_s
         its = settings.warm_count if warmed else settings.iterations
         start = (unexplained_added(op, warm.start(op, predictor), self._image, noises, settings=settings) if warmed
                  else coarse)
@@ -1497,7 +1531,38 @@ class FrameReconstructor:
                            stopped=done.stopped, background=backgrounds,
                            noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=n_fly,
                            projector=applied, operator=f"{kind}, then {last_kind}" if los_first else kind,
-                           final_voxels=done.op.n_voxels, warm=warmed)
+                           final_voxels=done.op.n_voxels, warm=warmed, predictor_s=predictor_s)
+
+    def _own_predictor(self, voxels, coarse, noise: Sequence[float], warm: WarmStart
+                       ) -> tuple[Predictor | None, Operator, float]:
+        """A frame B's predictor from its own pair (:data:`lfcore.warm.OWN_PAIR`): :data:`WARM_OWN_ITERATIONS`
+        line-of-sight iterations of ``voxels`` (from ``coarse``, the coarse grid's start, or uniform;
+        no pruning, no stopping rule), their volume correlated with the kept frame A's
+        (:func:`lfcore.warm.predictor_field`).
+
+        Returns
+        -------
+        predictor
+            None where the box is too thin to correlate, or no voxel is active (the frame then starts
+            uniform).
+        operator
+            The line-of-sight operator of ``voxels`` (DRT-MART's first one, where it runs such
+            iterations first; the other methods' only one).
+        seconds
+            The wall seconds taken.
+        """
+        t = time.perf_counter()
+        settings = self.settings
+        # DRT-MART's line-of-sight weights, or the other methods' own operator (line-of-sight ones)
+        op = self.los_operator(voxels) if settings.method == "drt-mart" else self.operator(voxels)
+        if op.n_voxels == 0:
+            return None, op, time.perf_counter() - t
+        first = self.iterate(op, self._image, noise, iterations=WARM_OWN_ITERATIONS, stop_tolerance=0.0,
+                             start=coarse, prune=0.0)
+        cheap = self.volume(first.op, first.e)
+        del first
+        predictor = predictor_field(warm.kept, cheap, device=self.device)
+        return predictor, op, time.perf_counter() - t
 
     # --- the stages ------------------------------------------------------------------------------
     def eliminate(self, lit) -> object:

@@ -30,14 +30,21 @@ from lfcore.device import RowOffset, launch_rows, resolve_device, warp
 from lfcore.device_ops import VolumeOps
 from lfcore.operator import Operator, gather
 
-__all__ = ["PREDICTOR_WINDOW", "WARM_BLEND", "WARM_BLUR", "Predictor", "WarmStart", "predictor_config",
-           "predictor_field", "with_floor"]
+__all__ = ["LAST_PAIR", "OWN_PAIR", "PREDICTOR_WINDOW", "WARM_BLEND", "WARM_BLUR", "WARM_PREDICTORS", "Predictor",
+           "WarmStart", "predictor_config", "predictor_field", "with_floor"]
 
 #: Gaussian sigma, voxels, of the carried intensities: the predictor's error it forgives.
 WARM_BLUR = 0.5
 #: Share of the carried intensities' mean added on every active voxel, so that what the predictor
 #: missed can grow (MART cannot grow a zero).
 WARM_BLEND = 0.1
+#: Where a warm-started frame B's predictor comes from (``ReconSettings.warm_predictor``): ``"own"``, the
+#: pair's own data (frame A's volume correlated with a cheap line-of-sight volume of B, made before B's
+#: fine iterations: B then depends on its own pair alone, and every pair's B warm-starts, the first
+#: included); ``"last"``, the field the last pair a reconstructor made measured (B then depends on which
+#: pair that was; the first pair's B starts uniform).
+OWN_PAIR, LAST_PAIR = "own", "last"
+WARM_PREDICTORS = (OWN_PAIR, LAST_PAIR)
 
 
 @dataclass(frozen=True)
@@ -178,6 +185,11 @@ class WarmStart:
             self._kept = self.ops.empty()
         op.scatter(e, out=self._kept)
         self.held = True
+
+    @property
+    def kept(self):
+        """The kept frame's (z, y, x) float32 intensities on the device (None before :meth:`keep`)."""
+        return self._kept if self.held else None
 
     def forget(self) -> None:
         """Start the next frame uniform (a new series, or a frame that is not the last one's successor)."""

@@ -155,10 +155,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--prune-every", type=positive_int, default=10, metavar="N",
                    help="iterations between the prunings, and before the first (default: 10)")
     r.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=None,
-                   help="start frame B of each pair from frame A carried along the displacement the last pair "
-                   "measured, instead of from a uniform volume, and iterate it --warm-iterations times (the first "
-                   "pair's B starts uniform; pairs are taken in order, each worker's own with --workers; default: no "
-                   "warm start, so that the volumes do not depend on how the run is processed)")
+                   help="start frame B of each pair from frame A carried along a predicted displacement "
+                   "(--warm-predictor), instead of from a uniform volume, and iterate it --warm-iterations times "
+                   "(default: the fast protocol's, by each pair's own predictor, so that a volume depends on its own "
+                   "pair alone; left out with --iterations or in depth slabs; no warm start for the other "
+                   "protocols); --no-warm-start starts every frame uniform")
+    r.add_argument("--warm-predictor", choices=("own", "last"), default=None,  # lfcore.warm.WARM_PREDICTORS
+                   help="with the warm start, where frame B's predicted displacement comes from: own, its own pair "
+                   "(frame A's volume correlated with a few line-of-sight iterations of B, so that B depends on its "
+                   "pair alone and every pair's B starts warm), or last, the field the last pair a reconstructor "
+                   "made measured (pairs in order; the first pair's B starts uniform) (default: own)")
     r.add_argument("--warm-iterations", type=positive_int, default=None, metavar="N",
                    help="iterations of a warm-started frame (default: a fifth of --iterations)")
     r.add_argument("--los-iterations", type=los_iterations, default=None, metavar="N",
@@ -253,7 +259,8 @@ def run(args: argparse.Namespace) -> int:
                                      threshold_sigma=args.threshold_sigma, smooth=args.smooth,
                                      weight_storage=args.weight_storage, projector=args.projector, prune=args.prune,
                                      prune_every=args.prune_every, warm_start=args.warm_start,
-                                     warm_iterations=args.warm_iterations, los_iterations=args.los_iterations,
+                                     warm_iterations=args.warm_iterations, warm_predictor=args.warm_predictor,
+                                     los_iterations=args.los_iterations,
                                      subsets=args.subsets, subset_halving=args.subset_halving, coarse=args.coarse,
                                      coarse_iterations=args.coarse_iterations)
     args.method = settings.method
@@ -308,8 +315,9 @@ def run(args: argparse.Namespace) -> int:
     if warm:
         took = (f"at most {settings.warm_count} iterations each instead of {settings.iterations}" if settings.stopping
                 else f"{warm[0].iterations} iterations each instead of {settings.iterations}")
-        print(f"{len(warm)} frame(s) B started from their frame A carried along the last pair's displacement: {took}")
-    elif args.warm_start:
+        whose = "their own pair's" if settings.warm_predictor == "own" else "the last pair's"
+        print(f"{len(warm)} frame(s) B started from their frame A carried along {whose} displacement: {took}")
+    elif args.warm_start and settings.warm_predictor == "last":
         print("no frame was warm-started: the first pair a reconstructor makes starts uniform (its B has no "
               "predictor yet); reconstruct two pairs or more in one run")
     split = max(r.slabs for r in results)

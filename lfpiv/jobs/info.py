@@ -52,14 +52,17 @@ def _projector(asked: str, operator: dict | None) -> str:
 
 
 def _warm(settings: dict) -> str:
-    """``" (frames B warm-started: 10)"``: what ``--warm-start`` did, or ``""``."""
+    """``" (frames B warm-started by their own pair: 10)"``: what the warm start did, by which predictor
+    (``warm_predictor``: ``own``, or ``last``, the last pair's field, which volumes recorded before the
+    setting existed used), or ``""``."""
     if not settings.get("warm_start"):
         return ""
     from lfcore.reconstruct import warm_count
 
     its, warm = settings.get("iterations"), settings.get("warm_iterations")
     n = warm_count(its, warm) if isinstance(its, int) and (warm is None or isinstance(warm, int)) else "?"
-    return f" (frames B warm-started: {n})"
+    by = "their own pair" if settings.get("warm_predictor", "last") == "own" else "the last pair"
+    return f" (frames B warm-started by {by}: {n})"
 
 
 def _iterations(settings: dict) -> str:

@@ -45,7 +45,7 @@ from lfcore.runstore import RunStore, RunStoreError
 from lfcore.slabs import SlabReconstructor
 from lfcore.subsets import MAX_SUBSETS, SUBSET_HALVING
 from lfcore.volume import VolumeGrid
-from lfcore.warm import Predictor, WarmStart, predictor_field
+from lfcore.warm import OWN_PAIR, Predictor, WarmStart, predictor_field
 from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
 from lfpiv.pair_runner import recorded_pairs, run_pairs
@@ -91,7 +91,8 @@ def protocol_run_settings(protocol: str, *, iterations: int | None = None, max_i
     ``"light-field"`` with no ``method`` given applies the protocol's plan for several light-field
     cameras instead (:func:`lfcore.reconstruct.light_field_plan`: ``fast`` by MLOS-MART).
 
-    ``iterations`` is a fixed count (the stopping rule off); ``max_iterations`` the stopping rule's
+    ``iterations`` is a fixed count (the stopping rule off) for every frame (the protocol's warm start
+    left out unless ``warm_start`` is given); ``max_iterations`` the stopping rule's
     most (the rule on, at ``stop_tolerance`` or the protocol's or :data:`STOP_TOLERANCE`);
     ``stop_tolerance`` alone the rule's tolerance (0: the protocol's iterations, a fixed count).
     ``none_given``: the options whose None was given as a value (the Python API's
@@ -106,6 +107,9 @@ def protocol_run_settings(protocol: str, *, iterations: int | None = None, max_i
     base = PROTOCOLS.get(protocol, {})
     if iterations is not None:
         changes.update(iterations=iterations, stop_tolerance=0.0)
+        # exactly that many for every frame: the protocol's warm start (a fifth of them for a frame B) only
+        # where asked for
+        changes.setdefault("warm_start", False)
     elif max_iterations is not None:
         tol = stop_tolerance if stop_tolerance is not None else base.get("stop_tolerance") or STOP_TOLERANCE
         if not tol:
@@ -226,27 +230,31 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, de
 
 @dataclass
 class Series:
-    """Warm starts along the pairs one reconstructor makes, in order (:mod:`lfcore.warm`): each
-    frame A is kept, each frame B starts from it carried along the predictor the last pair measured
-    (the first pair's B starts uniform)."""
+    """Warm starts along the pairs one reconstructor makes (:mod:`lfcore.warm`): each frame A is
+    kept, each frame B starts from it carried along its predictor: the pair's own
+    (``settings.warm_predictor`` ``"own"``: B depends on its pair alone, in whatever order the pairs
+    come), or the one the last pair measured (``"last"``: pairs in order, the first pair's B uniform)."""
 
     warm: WarmStart
-    predictor: Predictor | None = None
+    predictor: Predictor | str | None = None
 
     @classmethod
     def of(cls, frames: FrameReconstructor | SlabReconstructor, settings: ReconSettings) -> Series | None:
         """The series state of ``frames``, or None where ``settings`` start every frame uniform."""
         if not settings.warm_start or frames.in_slabs:
             return None
-        return cls(WarmStart(frames.projector.grid.shape, device=frames.device))
+        own = settings.warm_predictor == OWN_PAIR
+        return cls(WarmStart(frames.projector.grid.shape, device=frames.device), OWN_PAIR if own else None)
 
     def frame(self, frame: int) -> dict[str, Any]:
         """What :meth:`FrameReconstructor.reconstruct` takes for ``frame`` (0 A, 1 B) of a pair."""
         return {"warm": self.warm, "predictor": self.predictor if frame == 1 else None}
 
     def measured(self, results: Sequence[ReconResult], device: str) -> None:
-        """The pair's predictor for the next pair, from its two volumes."""
-        self.predictor = predictor_field(results[0].volume, results[1].volume, device=device)
+        """The pair's predictor for the next pair, from its two volumes (none needed where each pair's
+        B measures its own)."""
+        if self.predictor != OWN_PAIR:
+            self.predictor = predictor_field(results[0].volume, results[1].volume, device=device)
 
 
 def _reconstruct_frame(frames: FrameReconstructor | SlabReconstructor, store: RunStore, names: Sequence[str],
@@ -606,6 +614,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         settings = replace(settings, warm_start=False)  # the protocol's, left out: whole volumes only
     # where the weights lived does not change a volume, so it does not make volumes/ a different set
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
+    if not settings.warm_start:  # no frame warm-started: the predictor's source changes nothing
+        kept["warm_predictor"] = ReconSettings.warm_predictor
     meta = {**kept, "pvr": list(pvr or rig.volume.pvr), "margin_mm": list(margin_mm),
             "cameras": names, "calibration": calibration, "flat_field": flat_field if flats else None,
             "protocol": protocol}
@@ -652,9 +662,10 @@ def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, plan: Plan
     each volume is written (and recorded) while the next frame is reconstructed."""
     series = Series.of(frames, settings)
     its = max(settings.iterations, 1)
-    # with warm starts, every frame B after the first pair's takes the warm count
-    total = len(chosen) * 2 * its if series is None else len(chosen) * its + its + (len(chosen) - 1) * max(
-        settings.warm_count, 1)
+    # with warm starts, every frame B (after the first pair's, by the last pair's predictor) takes the warm count
+    cold_b = 0 if series is None or series.predictor == OWN_PAIR else 1
+    total = len(chosen) * 2 * its if series is None else len(chosen) * its + cold_b * its + (
+        len(chosen) - cold_b) * max(settings.warm_count, 1)
     with (WriteBehind() as writer,
           tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar):
         for p in chosen:
@@ -715,13 +726,17 @@ def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
     """Volumes' recorded settings, with those of settings added since at the value they had
     (volumes made before ``projector`` was recorded were made by ``auto``'s stored weights, those
     before ``prune`` with every voxel to the last iteration, those before ``warm_start`` from a uniform
-    start, those before ``los_iterations`` on DRT weights from the first iteration, those before
-    ``flat_field`` from uncorrected frames, those before ``subsets`` by the plain simultaneous form,
+    start, those before ``warm_predictor`` warm-started (if at all) by the last pair's field, those
+    before ``los_iterations`` on DRT weights from the first iteration, those before ``flat_field`` from
+    uncorrected frames, those before ``subsets`` by the plain simultaneous form,
     those before ``stop_tolerance`` with a fixed count, those before ``coarse`` with the whole grid
     eliminated, those before ``coarse_prune`` pruned at ``prune`` after the coarse grid too, those before
     ``lit_hysteresis`` with the plain lit mask, and those before ``protocol`` by settings given one by one)."""
+    # volumes warm-started before warm_predictor was recorded were started by the last pair's field
+    warm_predictor = "last" if settings.get("warm_start") else ReconSettings.warm_predictor
     return {"projector": "auto", "prune": 0.0, "prune_every": 10, "warm_start": False, "warm_iterations": None,
-            "los_iterations": 0, "flat_field": None, "subsets": 1, "subset_halving": SUBSET_HALVING,
+            "warm_predictor": warm_predictor, "los_iterations": 0, "flat_field": None, "subsets": 1,
+            "subset_halving": SUBSET_HALVING,
             "stop_tolerance": 0.0, "stop_voxels": STOP_VOXELS, "stop_every": 10, "coarse": 1,
             "coarse_iterations": COARSE_ITERATIONS, "coarse_prune": 0.0, "lit_hysteresis": None, "protocol": None,
             **settings}

@@ -376,9 +376,11 @@ def test_coarse_from_the_command(capsys, synthetic_run, tmp_path):
 
 
 def test_warm_start_from_the_command(capsys, tmp_path):
-    """--warm-start: each frame B after the first pair's starts from its frame A carried along the last
-    pair's field, in a fifth of the iterations, to the uniform start's quality (against the truth); the
-    settings record it; volumes made before it match a plain run; in depth slabs it is one line."""
+    """--warm-start --warm-predictor last: each frame B after the first pair's starts from its frame A
+    carried along the last pair's field, in a fifth of the iterations, to the uniform start's quality
+    (against the truth); --warm-start alone (its own pair's predictor): every pair's B, the first
+    included; the settings record which; volumes made before it match a plain run; in depth slabs it is
+    one line."""
     from lfcore import metrics
 
     run = tmp_path / "run.zarr"
@@ -386,7 +388,9 @@ def test_warm_start_from_the_command(capsys, tmp_path):
     cold = tmp_path / "cold.zarr"
     shutil.copytree(run, cold)
     fixed = ("--protocol", "fixed")  # 50 iterations, and no warm start unless asked for
-    rc, out, err = _run(capsys, "reconstruct", str(run), *fixed, "--warm-start", "--quiet")
+    own = tmp_path / "own.zarr"
+    shutil.copytree(run, own)
+    rc, out, err = _run(capsys, "reconstruct", str(run), *fixed, "--warm-start", "--warm-predictor", "last", "--quiet")
     assert rc == 0, err
     assert "2 frame(s) B started from their frame A carried along the last pair's displacement: 10 iterations " \
            "each instead of 50" in out, out
@@ -394,12 +398,20 @@ def test_warm_start_from_the_command(capsys, tmp_path):
     s, c = RunStore.open(run), RunStore.open(cold)
     settings = s.group["volumes"].attrs["settings"]
     assert settings["warm_start"] is True and settings["warm_iterations"] is None
+    assert settings["warm_predictor"] == "last"
     rc, out, err = _run(capsys, "info", str(run))
-    assert rc == 0 and "50 iterations (frames B warm-started: 10)" in out, out + err
+    assert rc == 0 and "50 iterations (frames B warm-started by the last pair: 10)" in out, out + err
+    rc, out, err = _run(capsys, "reconstruct", str(own), *fixed, "--warm-start", "--quiet")
+    assert rc == 0 and "3 frame(s) B started from their frame A carried along their own pair's displacement: 10 " \
+        "iterations each instead of 50" in out, out + err
+    assert RunStore.open(own).group["volumes"].attrs["settings"]["warm_predictor"] == "own"
+    rc, out, err = _run(capsys, "info", str(own))
+    assert rc == 0 and "50 iterations (frames B warm-started by their own pair: 10)" in out, out + err
     grid, truth = s.volume_grid(), s.truth()
     q = {name: [metrics.q_recon(st.read_volume(p, 1), metrics.truth_volume(grid, truth["particles"][p, 1]))
-                for p in (1, 2)] for name, st in (("warm", s), ("cold", c))}
+                for p in (1, 2)] for name, st in (("warm", s), ("cold", c), ("own", RunStore.open(own)))}
     assert np.mean(q["warm"]) >= np.mean(q["cold"]) - 0.015, q
+    assert np.mean(q["own"]) >= np.mean(q["cold"]) - 0.015, q
     # the first pair is the same either way (its B had no predictor yet)
     np.testing.assert_allclose(s.read_volume(0, 1), c.read_volume(0, 1), rtol=1e-5, atol=1e-6)
     # volumes of a plain run are taken as made without warm starts: nothing to do again
@@ -468,7 +480,8 @@ def test_protocols_and_the_stopping_rule_from_the_command(capsys, synthetic_run,
     # what each frame ran: the tiny box is too small for the coarse grid, and says so
     stages = ("each frame ran: elimination on the whole grid (no coarse grid for a box of fewer than 1,000,000 "
               "voxels); 20 iterations on line-of-sight weights, then DRT weights for the voxels still bright; 6 "
-              "ordered subsets a pass; at most 60 iterations by the stopping rule")
+              "ordered subsets a pass; frames B warm-started from frame A carried along their own pair's "
+              "displacement, at most 12 iterations; at most 60 iterations by the stopping rule")
     assert stages in out, out
     attrs = RunStore.open(run).group["volumes"].attrs
     assert attrs["settings"]["protocol"] == "fast" and attrs["settings"]["stop_tolerance"] > 0
@@ -543,16 +556,18 @@ def test_a_warm_start_asked_for_in_slabs_is_refused_even_with_the_fast_protocol(
 
 def test_the_default_is_fast_and_its_volumes_do_not_depend_on_how_the_run_is_processed(capsys, synthetic_run,
                                                                                        tmp_path):
-    """lfpiv reconstruct without options runs the fast protocol (the stopping rule, converged frames); pairs
-    made one range at a time and resumed with --skip-done give the volumes of one run in order (every frame
-    starts uniform: no warm start follows the pairs a process happened to make)."""
+    """lfpiv reconstruct without options runs the fast protocol (the stopping rule, converged frames, frames
+    B warm-started by their own pair); pairs made one range at a time and resumed with --skip-done give the
+    volumes of one run in order (a frame B depends on its own pair alone, not on the pairs a process
+    happened to make before it)."""
     whole, parts = tmp_path / "whole.zarr", tmp_path / "parts.zarr"
     shutil.copytree(synthetic_run, whole)
     shutil.copytree(synthetic_run, parts)
     rc, out, err = _run(capsys, "reconstruct", str(whole), "--quiet")
     assert rc == 0 and re.search(r"protocol fast: [\d-]+ iterations a frame \(.*stopping rule", out), out + err
     settings = RunStore.open(whole).group["volumes"].attrs["settings"]
-    assert settings["protocol"] == "fast" and settings["stop_tolerance"] > 0 and settings["warm_start"] is False
+    assert settings["protocol"] == "fast" and settings["stop_tolerance"] > 0 and settings["warm_start"] is True
+    assert settings["warm_predictor"] == "own" and "2 frame(s) B started from their frame A" in out, out
     assert _run(capsys, "reconstruct", str(parts), "--pair-range", "1:2", "--quiet")[0] == 0
     rc, out, err = _run(capsys, "reconstruct", str(parts), "--skip-done", "--quiet")
     assert rc == 0 and "reconstructed 2 volume(s)" in out, out + err  # pair 0 only

@@ -92,7 +92,9 @@ def test_the_plan_says_what_each_frame_runs(tiny_rig, small):
     fast = plan_reconstruction(tiny_rig.camera, grid, protocol_settings("fast"), device="cpu")
     assert fast.stages == ("elimination on the whole grid (no coarse grid for a box of fewer than 1,000,000 voxels)",
                            "20 iterations on line-of-sight weights, then DRT weights for the voxels still bright",
-                           "6 ordered subsets a pass", "at most 400 iterations by the stopping rule")
+                           "6 ordered subsets a pass",
+                           "frames B warm-started from frame A carried along their own pair's displacement, at most 80 "
+                           "iterations", "at most 400 iterations by the stopping rule")
     assert fast.describe_stages() == "; ".join(fast.stages) and "stages: " in fast.lines()[1]
     big = VolumeGrid(shape=(120, 100, 100), voxel_mm=grid.voxel_mm, origin_mm=grid.origin_mm)  # 1.2 M voxels
     assert frame_stages("light-field", big, protocol_settings("fast"))[0] == \
@@ -100,15 +102,17 @@ def test_the_plan_says_what_each_frame_runs(tiny_rig, small):
         "at 2%)"
     assert "cameras other than light-field ones" in frame_stages("joint", big, protocol_settings("fast"))[0]
     assert frame_stages("light-field", big, protocol_settings("fast"), slabs=2) == frame_stages(
-        "light-field", big, protocol_settings("fast"))  # depth slabs run the in-memory plan
+        "light-field", big, protocol_settings("fast", warm_start=False))  # depth slabs run the in-memory plan
     assert "warm-started" not in " ".join(frame_stages("light-field", big, protocol_settings("fast", warm_start=True),
                                                        slabs=2))  # but not the warm start
     assert frame_stages("light-field", grid, ReconSettings()) == ("50 iterations",)
     warm = frame_stages("light-field", grid, protocol_settings("fixed", warm_start=True))
     assert warm[0].startswith("frames B warm-started from frame A")
+    assert "the last pair's" in frame_stages("light-field", grid, protocol_settings("fixed", warm_start=True,
+                                                                                    warm_predictor="last"))[0]
     ph = plan_reconstruction(small.camera, VolumeGrid.from_rig(small), protocol_settings("fast", method="mlos-smart"),
                              device="cpu")
-    assert ph.stages == ("6 ordered subsets a pass", "at most 400 iterations by the stopping rule")
+    assert ph.stages[0] == "6 ordered subsets a pass" and ph.stages[-1] == "at most 400 iterations by the stopping rule"
     assert Plan.from_dict(fast.as_dict()) == fast
     old = {k: v for k, v in fast.as_dict().items() if k != "stages"}  # recorded before December 2026
     assert Plan.from_dict(old).stages == () and Plan.from_dict(old).describe_stages() == ""

@@ -28,12 +28,12 @@ def test_fast_drops_its_subsets_on_several_cameras_only():
     assert (one.subsets, one.coarse, one.iterations) == (6, 3, 400)
     assert (two.subsets, two.coarse, two.iterations) == (1, 1, 75)
     # on several cameras 30 of the 75 iterations run on line-of-sight weights (the demo's ring: RESULTS,
-    # seventh session); the rest of fast is the same on both: the stopping rule, pruning, no warm start
+    # seventh session); the rest of fast is the same on both: the stopping rule, pruning, the own-pair warm start
     assert (one.los_iterations, two.los_iterations) == (20, 30)
     changed = set(SEVERAL_CAMERAS["fast"])
     assert {k: v for k, v in one.as_dict().items() if k not in changed} == \
         {k: v for k, v in two.as_dict().items() if k not in changed}
-    assert two.stop_tolerance > 0 and not two.warm_start  # fast starts uniform
+    assert two.stop_tolerance > 0 and two.warm_start and two.warm_predictor == "own"  # frame B by its own pair
     # what the user gives wins
     given = protocol_settings("fast", n_cameras=2, subsets=4, coarse=3, iterations=400)
     assert (given.subsets, given.coarse, given.iterations) == (4, 3, 400)
@@ -81,7 +81,7 @@ def test_fast_on_several_light_field_cameras_is_mlos_mart_on_a_coarse_grid():
     lit mask with hysteresis."""
     lf = protocol_settings("fast", n_cameras=2, camera_kind="light-field")
     assert (lf.method, lf.relaxation, lf.iterations, lf.coarse, lf.coarse_iterations) == ("mlos-mart", 2.0, 75, 2, 15)
-    assert lf.stop_tolerance > 0 and lf.subsets == 1 and lf.los_iterations == 0 and not lf.warm_start
+    assert lf.stop_tolerance > 0 and lf.subsets == 1 and lf.los_iterations == 0 and lf.warm_start
     # no dark check allowed, on a lit mask with hysteresis: without the hysteresis it lost Q on noisy images,
     # with it the noisy and responding frames gained (RESULTS, ninth session)
     assert (lf.max_dark, lf.lit_hysteresis) == (0.0, 0.5) and ReconSettings().lit_hysteresis is None

@@ -86,7 +86,8 @@ def test_the_settings_and_protocols_are_checked():
     assert protocol_settings("fixed") == ReconSettings()  # lfpiv reconstruct's settings before the protocols
     fast = protocol_settings("fast")
     assert fast.stop_tolerance == STOP_TOLERANCE and fast.los_iterations and fast.prune > 0
-    assert not fast.warm_start  # deterministic volumes: the warm start follows each worker's own pairs
+    # frame B warm-started by its own pair: a volume depends on its pair alone, not on the pairs made before
+    assert fast.warm_start and fast.warm_predictor == "own"
     # another method or form keeps what applies to it
     assert protocol_settings("fast", method="mart").los_iterations == 0
     assert not protocol_settings("fast", form="sequential", relaxation=2.0).warm_start

@@ -263,3 +263,80 @@ def test_a_particle_that_enters_in_frame_b_is_found(tiny_rig):
     # and the whole frame as well as cold
     truth = metrics.truth_volume(grid, b)
     assert metrics.q_recon(warm.volume, truth) >= metrics.q_recon(cold.volume, truth) - 0.01
+
+
+# --- the pair's own predictor: frame A against a few line-of-sight iterations of frame B --------------------------
+
+def test_the_own_predictor_starts_a_moved_frame_at_the_cold_quality_in_a_few_iterations(moving):
+    """Frame B of a shifted scene started by its own pair's predictor (no field from another pair):
+    warm, stopped by the rule in at most a quarter of the cold frame's iterations, at least its Q."""
+    from lfcore.reconstruct import CONVERGED, WARM_OWN_ITERATIONS
+    from lfcore.warm import OWN_PAIR
+
+    rig, grid, pts, images, _ = moving
+    proj = projector_for(rig.camera[:1], grid, device="cpu")
+    truth_b = metrics.truth_volume(grid, pts[2])
+    frames = FrameReconstructor(proj, _fast())
+    q_cold, cold = _q(frames, images[2], truth_b)
+    assert cold.stopped == CONVERGED and cold.predictor_s == 0.0
+    ws = WarmStart(grid.shape, device="cpu")
+    _q(frames, images[0], metrics.truth_volume(grid, pts[0]), warm=ws)
+    q_w, res = _q(frames, images[2], truth_b, warm=ws, predictor=OWN_PAIR)
+    assert res.warm and res.stopped == CONVERGED and res.predictor_s > 0
+    assert res.iterations <= cold.iterations / 4, (res.iterations, cold.iterations)
+    assert q_w >= q_cold - 0.01, (q_w, q_cold)
+    # its start was the carried frame A, not uniform: as many iterations from uniform (the cheap volume's
+    # included) fall short
+    short = FrameReconstructor(proj, _fast(iterations=res.iterations + WARM_OWN_ITERATIONS, stop_tolerance=0.0,
+                                           los_iterations=0))
+    q_short, _ = _q(short, images[2], truth_b)
+    assert q_short < q_w - 0.03, (q_short, q_w)
+
+
+def test_a_still_scene_with_the_own_predictor_converges_in_a_few_iterations(moving):
+    from lfcore.warm import OWN_PAIR
+
+    rig, grid, pts, images, _ = moving
+    proj = projector_for(rig.camera[:1], grid, device="cpu")
+    truth = metrics.truth_volume(grid, pts[1])
+    frames = FrameReconstructor(proj, _fast())
+    q_cold, cold = _q(frames, images[1], truth)
+    ws = WarmStart(grid.shape, device="cpu")
+    _q(frames, images[0], truth, warm=ws)
+    q_w, res = _q(frames, images[1], truth, warm=ws, predictor=OWN_PAIR)
+    assert res.warm and res.iterations <= cold.iterations / 4, (res.iterations, cold.iterations)
+    assert q_w >= q_cold - 0.01, (q_w, q_cold)
+
+
+def test_a_frame_b_by_its_own_predictor_does_not_depend_on_the_frames_made_before(moving):
+    """Order independence: frame B started by its own pair's predictor is the same volume whether its
+    reconstructor made other frames (another pair, in another order) before the pair or not."""
+    from lfcore.warm import OWN_PAIR
+
+    rig, grid, _, images, _ = moving
+    proj = projector_for(rig.camera[:1], grid, device="cpu")
+
+    def pair_b(before: list[int]) -> np.ndarray:
+        frames, ws = FrameReconstructor(proj, _fast()), WarmStart(grid.shape, device="cpu")
+        for a, b in zip(before[::2], before[1::2], strict=True):  # other pairs first
+            frames.reconstruct([images[a]], warm=ws)
+            frames.reconstruct([images[b]], warm=ws, predictor=OWN_PAIR)
+        frames.reconstruct([images[0]], warm=ws)
+        res = frames.reconstruct([images[2]], warm=ws, predictor=OWN_PAIR)
+        assert res.warm
+        return res.volume
+
+    alone = pair_b([])
+    np.testing.assert_array_equal(pair_b([1, 0]), alone)
+    np.testing.assert_array_equal(pair_b([2, 1, 0, 2]), alone)
+
+
+def test_an_unknown_predictor_name_is_refused(moving):
+    rig, grid, _, images, _ = moving
+    frames = FrameReconstructor(projector_for(rig.camera[:1], grid, device="cpu"), _fast())
+    ws = WarmStart(grid.shape, device="cpu")
+    frames.reconstruct([images[0]], warm=ws)
+    with pytest.raises(ValueError, match="own"):
+        frames.reconstruct([images[1]], warm=ws, predictor="next")
+    with pytest.raises(ValueError, match="warm_predictor"):
+        ReconSettings(warm_predictor="next")
