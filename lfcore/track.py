@@ -34,7 +34,10 @@ Along a time-resolved series (frames evenly spaced in time), the particles of ev
 linked into tracks through the frames instead (:func:`link_series`: each track carried on by its own
 velocity, started by :func:`track_pair`), each track fitted by local polynomials in time
 (:func:`fit_series`, Shake-the-Box's second-order fit), and each pair's tracks are the fitted
-positions at its two frames (:func:`pair_tracks`), made into a field as above (:func:`field_of_tracks`).
+positions at its two frames (:func:`pair_tracks`), made into a field as above (:func:`field_of_tracks`),
+or, where the flow's pattern is carried along from pair to pair, with the neighbouring pairs' tracks
+moved by its translation estimated from the tracks, where the pair's own held-out tracks say they
+help (:func:`pooled_field_of_tracks`, :func:`pattern_shift`).
 
 Positions are world mm (x, y, z); the grid's voxels set the scale of the searches and bins.
 """
