@@ -39,7 +39,10 @@ Along a time-resolved series (frames evenly spaced in time), the particles of ev
 linked into tracks through the frames instead (:func:`link_series`: each track carried on by its own
 velocity, started by :func:`track_pair`), each track fitted by local polynomials in time
 (:func:`fit_series`, Shake-the-Box's second-order fit), and each pair's tracks are the fitted
-positions at its two frames (:func:`pair_tracks`), made into a field as above (:func:`field_of_tracks`).
+positions at its two frames (:func:`pair_tracks`), made into a field as above (:func:`field_of_tracks`),
+or, where the flow's pattern is carried along from pair to pair, with the neighbouring pairs' tracks
+moved by its translation estimated from the tracks, where the pair's own held-out tracks say they
+help (:func:`pooled_field_of_tracks`, :func:`pattern_shift`).
 
 Positions are world mm (x, y, z); the grid's voxels set the scale of the searches and bins.
 """
@@ -61,10 +64,10 @@ if TYPE_CHECKING:
 
 __all__ = ["DIVFREE_BLOCK_TRACKS", "DIVFREE_GLOBAL_TRACKS", "DIVFREE_SMOOTHING", "DIVFREE_WEIGHTS", "FIELDS",
            "FIT_BLOCK_MARGIN", "FIT_BLOCK_TRACKS", "FIT_CV_BLOCKS", "FIT_GLOBAL_TRACKS", "FIT_SMOOTHING",
-           "MAX_CROWDING", "FitChoice", "SeriesSettings", "SeriesTracks", "TrackResult", "TrackSettings",
-           "bin_tracks", "field_of_tracks", "field_predictor", "fit_series", "fit_tracks", "link_series",
-           "pair_nearest", "pair_tracks", "predict_at", "reject_outliers", "search_crowding", "smooth_tracks",
-           "track_pair"]
+           "MAX_CROWDING", "POOL_FOLDS", "FitChoice", "PoolChoice", "SeriesSettings", "SeriesTracks", "TrackResult",
+           "TrackSettings", "bin_tracks", "field_of_tracks", "field_predictor", "fit_series", "fit_tracks",
+           "link_series", "pair_nearest", "pair_tracks", "pattern_shift", "pooled_field_of_tracks", "predict_at",
+           "reject_outliers", "search_crowding", "smooth_tracks", "track_pair"]
 
 #: How the field is made from the tracks (:attr:`TrackSettings.field`).
 FIELDS = ("bins", "smooth", "fit", "divfree")
@@ -634,7 +637,7 @@ def _blocks(x: np.ndarray, at: np.ndarray, per_block: int = FIT_BLOCK_TRACKS) ->
 
 def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: list[np.ndarray], *,
                reach_mm: np.ndarray, box_mm: tuple[np.ndarray, np.ndarray] | None = None, min_tracks: int = 1,
-               folds: int = 5, seed: int = 0, divergence_free: bool = False
+               folds: int = 5, seed: int = 0, divergence_free: bool = False, support_mm: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray, tuple[FitChoice, ...]]:
     """A smooth field fitted to all the tracks, evaluated at the points of a grid.
 
@@ -690,6 +693,10 @@ def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: li
     divergence_free
         Also fit the three components together by the divergence-free kernel, and keep that fit
         where the cross-validation prefers it (above; ``TrackSettings(field="divfree")``).
+    support_mm
+        (k, 3) the positions whose nearness decides where the field has a value (``reach_mm``,
+        ``min_tracks``; ``counts``); None: ``position_mm``. Tracks pooled from other pairs
+        (:func:`pooled_field_of_tracks`) are fitted but leave the field where the pair's own tracks put it.
 
     Returns
     -------
@@ -710,7 +717,9 @@ def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: li
     field = np.full((len(nodes), 3), np.nan)
     if len(pos) == 0:
         return field.reshape(*shape, 3), counts.reshape(shape), tuple(FitChoice(0, 0.0, np.nan) for _ in range(3))
-    counts[:] = [len(n) for n in cKDTree(pos / reach).query_ball_point(nodes / reach, r=1.0, p=np.inf)]
+    support = pos if support_mm is None else np.asarray(support_mm, dtype=np.float64).reshape(-1, 3)
+    if len(support):
+        counts[:] = [len(n) for n in cKDTree(support / reach).query_ball_point(nodes / reach, r=1.0, p=np.inf)]
     use = counts >= max(1, min_tracks)
     if box_mm is not None:
         lo, hi = (np.asarray(b, dtype=np.float64).reshape(3) for b in box_mm)
@@ -756,7 +765,7 @@ def fit_tracks(position_mm: np.ndarray, displacement_mm: np.ndarray, centres: li
             # the components apart chosen on the kernel's smaller blocks: fit them exactly as fit does
             # (its own blocks, its own cross-validation on them)
             return fit_tracks(pos, d, centres, reach_mm=reach, box_mm=box_mm, min_tracks=min_tracks, folds=folds,
-                              seed=seed)
+                              seed=seed, support_mm=support_mm)
         if df is None:
             for c, ch in enumerate(choice):
                 for rows, points in blocks:
@@ -920,9 +929,12 @@ def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings
                        z_mm=centres[2], field_mm=field, counts=counts, fit=fit)
 
 
-def _field(mid: np.ndarray, disp: np.ndarray, grid: VolumeGrid, s: TrackSettings
+def _field(mid: np.ndarray, disp: np.ndarray, grid: VolumeGrid, s: TrackSettings,
+           extra: tuple[np.ndarray, np.ndarray] | None = None
            ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray, tuple[FitChoice, FitChoice, FitChoice] | None]:
-    """``s.field``'s field of the kept tracks (midpoints and displacements, mm) on the grid of bins."""
+    """``s.field``'s field of the kept tracks (midpoints and displacements, mm) on the grid of bins;
+    ``extra`` (midpoints, displacements): tracks pooled from other pairs, fitted with them (``"fit"``
+    and ``"divfree"`` only) but leaving the field's points where the kept tracks put them."""
     voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
     fit = None
     centres, field, counts = bin_tracks(mid, disp, grid, bin_voxels=s.bin_voxels, statistic="mean",
@@ -936,8 +948,9 @@ def _field(mid: np.ndarray, disp: np.ndarray, grid: VolumeGrid, s: TrackSettings
         # a centre's value rests on the tracks within a bin's width, or their mean spacing where wider
         spacing = float(np.prod(np.ptp(mid, axis=0)) / max(len(mid), 1)) ** (1.0 / 3.0) if len(mid) else 0.0
         reach = np.maximum(np.asarray(s.bin_voxels) * voxel, spacing)
-        field, counts, fit = fit_tracks(mid, disp, centres, reach_mm=reach, box_mm=box, min_tracks=s.min_tracks,
-                                        divergence_free=s.field == "divfree")
+        pos, d = (mid, disp) if extra is None else (np.concatenate([mid, extra[0]]), np.concatenate([disp, extra[1]]))
+        field, counts, fit = fit_tracks(pos, d, centres, reach_mm=reach, box_mm=box, min_tracks=s.min_tracks,
+                                        divergence_free=s.field == "divfree", support_mm=mid)
     return centres, field, counts, fit  # type: ignore[return-value]
 
 
@@ -994,12 +1007,18 @@ class SeriesSettings:
         ``degree + 1``; more average the position noise more, fewer follow a curved path closer).
     degree
         The polynomial's order in time (2: position, velocity and acceleration, as Shake-the-Box).
+    pool_pairs
+        Offer each pair's field the tracks of the pairs up to this many before and after it, moved
+        by the pattern's translation estimated from the tracks, kept where its own held-out tracks
+        say they help (:func:`pooled_field_of_tracks`; ``"fit"`` and ``"divfree"`` fields). 0: each
+        pair's own tracks only.
     """
 
     link_voxels: tuple[float, float, float] = (1.0, 1.0, 1.0)
     min_frames: int = 4
     fit_frames: int = 6
     degree: int = 2
+    pool_pairs: int = 0
 
     def __post_init__(self) -> None:
         if len(self.link_voxels) != 3 or min(self.link_voxels) <= 0:
@@ -1012,10 +1031,16 @@ class SeriesSettings:
         if self.min_frames < self.degree + 1:
             raise ValueError(f"a fit of order {self.degree} needs tracks of at least {self.degree + 1} frames, got "
                              f"min_frames {self.min_frames}")
+        if self.pool_pairs < 0:
+            raise ValueError(f"pool_pairs is how many pairs either side to pool, 0 or more, got {self.pool_pairs}")
 
     def as_dict(self) -> dict:
-        """The settings as JSON-compatible values."""
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+        """The settings as JSON-compatible values (``pool_pairs`` only where pooling: vectors tracked
+        before it existed read as tracked without it)."""
+        out = {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+        if not self.pool_pairs:
+            del out["pool_pairs"]
+        return out
 
 
 @dataclass
@@ -1278,3 +1303,287 @@ def pair_tracks(tracks: SeriesTracks, pair: int, *, series: SeriesSettings | Non
     a = np.asarray(a_out, dtype=np.float64).reshape(-1, 3)
     b = np.asarray(b_out, dtype=np.float64).reshape(-1, 3)
     return a, b, np.asarray(ids, np.int64)
+
+
+# --- tracks pooled from neighbouring pairs of a series (a pattern carried by the flow) -----------
+
+#: Folds of the cross-validation that decides whether a pair's field takes its neighbours' tracks
+#: (:func:`pooled_field_of_tracks`).
+POOL_FOLDS = 5
+
+
+@dataclass(frozen=True)
+class PoolChoice:
+    """What :func:`pooled_field_of_tracks` found for one pair.
+
+    Attributes
+    ----------
+    offsets
+        The neighbouring pairs offered, as offsets from the pair (-2, -1, 1, 2, ...).
+    shift_mm
+        (x, y, z) the pattern's estimated translation from one pair to the next, mm
+        (:func:`pattern_shift`): a neighbour ``k`` pairs on is moved back by ``k`` times it.
+    tracks
+        The neighbours' tracks pooled (inside the box once moved).
+    pooled
+        Whether the field took them: their held-out misfit on the pair's own tracks was lower than
+        without them by more than its standard error.
+    cv_own_mm, cv_pooled_mm
+        The RMS misfit of the pair's own held-out tracks (the three components together), mm,
+        fitted from the pair's own other tracks alone and with the neighbours' tracks.
+    """
+
+    offsets: tuple[int, ...]
+    shift_mm: tuple[float, float, float]
+    tracks: int
+    pooled: bool
+    cv_own_mm: float
+    cv_pooled_mm: float
+
+
+def _smooth_of(pos: np.ndarray, d: np.ndarray):
+    """A smooth field of tracks (midpoints, displacements, mm) that can be evaluated anywhere: each
+    component's smoothing spline (``fit``'s, chosen by cross-validation); their mean with too few."""
+    mean = np.mean(d, axis=0) if len(d) else np.zeros(3)
+    scale = float(np.max(np.ptp(pos, axis=0))) if len(pos) else 0.0
+    if len(pos) < 15 or scale <= 0:
+        return lambda at: np.broadcast_to(mean, (len(at), 3))
+    centre = pos.mean(axis=0)
+    x = (pos - centre) / scale
+    split = [f for f in np.array_split(np.random.default_rng(0).permutation(len(x)), 5) if len(f)]
+    try:
+        choice = _choose_fit([(x, d, split)])
+        fits = [_rbf(x, d[:, c], ch.degree, ch.smoothing) for c, ch in enumerate(choice)]
+    except np.linalg.LinAlgError:
+        return lambda at: np.broadcast_to(mean, (len(at), 3))
+    return lambda at: np.column_stack([f((np.asarray(at) - centre) / scale) for f in fits])
+
+
+def pattern_shift(position_mm: np.ndarray, displacement_mm: np.ndarray,
+                  neighbours: list[tuple[int, np.ndarray, np.ndarray]], grid: VolumeGrid) -> np.ndarray:
+    """The translation of the flow's pattern from one pair to the next, estimated from the tracks.
+
+    Taylor's frozen pattern: the field of the pair ``k`` pairs on is this pair's moved by ``k``
+    times a translation ``s`` (a vortex ring travelling at its own speed, a wake carried by the
+    stream). ``s`` minimises the mean squared misfit between each neighbour's tracks and this
+    pair's own field (a smoothing spline through its tracks, each component's smoothing chosen by
+    cross-validation) at the neighbour's positions moved back by ``k s``, over the neighbours'
+    tracks within the pair's own tracks' extent: first on grids of shifts (the field on a grid two
+    voxels apart, trilinear), as far as twice the largest displacement of a track per axis, then by
+    least squares (a soft L1 loss) on the spline itself. (Comparing this pair's tracks with each
+    neighbour's field as well changed the demo ring's estimates by at most 0.04 voxel, at twice
+    the cost.)
+
+    Parameters
+    ----------
+    position_mm, displacement_mm
+        (m, 3) this pair's tracks: midpoints and displacements (x, y, z), mm.
+    neighbours
+        Each neighbour as (k, its tracks' midpoints, their displacements): ``k`` its offset in pairs
+        (-1 the pair before, 1 the one after).
+    grid
+        The voxel grid: the scale of the search.
+
+    Returns
+    -------
+    numpy.ndarray
+        (3,) the translation per pair (x, y, z), mm; zeros without tracks enough to compare.
+    """
+    from scipy.ndimage import map_coordinates
+    from scipy.optimize import least_squares
+
+    pos = np.asarray(position_mm, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(displacement_mm, dtype=np.float64).reshape(-1, 3)
+    voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
+    if len(pos) < 15 or not neighbours:
+        return np.zeros(3)
+    # the neighbours' tracks within this pair's tracks' extent, each with its offset k
+    lo, hi = pos.min(axis=0), pos.max(axis=0)
+    ks, xs, ys = [], [], []
+    for k, p, v in neighbours:
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+        inside = np.all((p >= lo) & (p <= hi), axis=1)
+        ks.append(np.full(int(inside.sum()), float(k)))
+        xs.append(p[inside])
+        ys.append(np.asarray(v, dtype=np.float64).reshape(-1, 3)[inside])
+    k_all, x_all, y_all = np.concatenate(ks), np.concatenate(xs), np.concatenate(ys)
+    if len(k_all) < 15:
+        return np.zeros(3)
+    field = _smooth_of(pos, d)
+    step = 2.0 * voxel  # the field on a grid two voxels apart, for the searches on grids
+    axes = [np.arange(lo[a], hi[a] + step[a], step[a]) for a in range(3)]
+    gz, gy, gx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    on_grid = field(np.column_stack([gx.ravel(), gy.ravel(), gz.ravel()])).reshape(*gx.shape, 3)
+    cap = np.sum((2.0 * voxel) ** 2)  # a track more than about two voxels off counts as that far
+
+    def coarse_cost(shifts: np.ndarray) -> np.ndarray:  # (s, 3) shifts in mm -> (s,) mean squared misfit
+        out = np.empty(len(shifts))
+        for i0 in range(0, len(shifts), 128):
+            sh = shifts[i0:i0 + 128]
+            at = x_all[None, :, :] - k_all[None, :, None] * sh[:, None, :]  # (s, n, 3)
+            idx = ((at - lo) / step)[..., ::-1].reshape(-1, 3).T  # (z, y, x) rows
+            pred = np.stack([map_coordinates(on_grid[..., c], idx, order=1, mode="nearest") for c in range(3)],
+                            axis=-1).reshape(len(sh), -1, 3)
+            out[i0:i0 + 128] = np.mean(np.minimum(np.sum((pred - y_all[None]) ** 2, axis=-1), cap), axis=1)
+        return out
+
+    reach = 2.0 * np.max(np.abs(d), axis=0) + voxel  # the pattern moves at most at about the flow's speed
+    best = np.zeros(3)
+    width = reach
+    for _ in range(3):  # grids of 9^3 shifts, each a third as wide as the one before, around its best
+        ticks = [np.linspace(-width[a], width[a], 9) + best[a] for a in range(3)]
+        cand = np.stack(np.meshgrid(*ticks, indexing="ij"), axis=-1).reshape(-1, 3)
+        cand = np.vstack([cand, np.zeros((1, 3))])  # no translation is always a candidate
+        best = cand[int(np.argmin(coarse_cost(cand)))]
+        width = np.maximum(width / 3.0, 0.25 * voxel)
+
+    def residual(s_vox: np.ndarray) -> np.ndarray:
+        return ((field(x_all - k_all[:, None] * (s_vox * voxel)) - y_all) / voxel).ravel()
+
+    fit = least_squares(residual, best / voxel, loss="soft_l1", f_scale=0.5, diff_step=1e-3, max_nfev=50)
+    return np.asarray(fit.x, dtype=np.float64) * voxel
+
+
+def _fit_values(pos: np.ndarray, d: np.ndarray, at: np.ndarray, choice: tuple[FitChoice, ...]) -> np.ndarray:
+    """The field of ``choice`` (:func:`fit_tracks`' for these tracks or others like them) fitted to
+    tracks ``pos``, ``d`` (mm), at points ``at`` (mm): (len(at), 3), as :func:`fit_tracks` fits it
+    (coordinates scaled to the tracks' extent, in blocks beyond its limits)."""
+    scale = float(np.max(np.ptp(pos, axis=0))) if len(pos) else 0.0
+    if choice[0].degree == 0 or len(pos) < 15 or scale <= 0:
+        return np.broadcast_to(np.mean(d, axis=0), (len(at), 3)).copy()
+    centre = pos.mean(axis=0)
+    x, xa = (pos - centre) / scale, (np.asarray(at) - centre) / scale
+    divfree = choice[0].weight is not None
+    if len(pos) > (DIVFREE_GLOBAL_TRACKS if divfree else FIT_GLOBAL_TRACKS):
+        blocks = _blocks(x, xa, DIVFREE_BLOCK_TRACKS if divfree else FIT_BLOCK_TRACKS)
+    else:
+        blocks = [(np.arange(len(x)), np.arange(len(xa)))]
+    values = np.full((len(xa), 3), np.nan)
+    for rows, points in blocks:
+        if not len(points):
+            continue
+        if divfree:
+            w, lam = float(choice[0].weight), float(choice[0].smoothing)  # type: ignore[arg-type]
+            fit = _DivFree(x[rows], w, lam)
+            values[points] = fit(xa[points], *fit.coefficients(d[rows], np.array([lam])))[0]
+        else:
+            for c, ch in enumerate(choice):
+                values[points, c] = _rbf(x[rows], d[rows, c], ch.degree, ch.smoothing)(xa[points])
+    return values
+
+
+def _held_out_misfit(pos: np.ndarray, d: np.ndarray, extra: tuple[np.ndarray, np.ndarray] | None,
+                     choice: tuple[FitChoice, ...], *, folds: int, seed: int) -> np.ndarray:
+    """Each of the pair's own tracks' squared misfit (the components summed) when held out: the
+    field of ``choice`` fitted to the other folds' own tracks (and ``extra``, the neighbours'
+    tracks, never held out), in the order of the tracks."""
+    split = [f for f in np.array_split(np.random.default_rng(seed).permutation(len(pos)), folds) if len(f)]
+    x = pos if extra is None else np.concatenate([pos, extra[0]])
+    y = d if extra is None else np.concatenate([d, extra[1]])
+    # the neighbours' rows are in no fold: _held_out keeps them in every training set
+    out = np.empty(len(pos))
+    order = np.concatenate(split)
+    r2 = []
+    with _one_blas_thread():
+        for xt, yt, xf, yf in _held_out([(x, y, split)]):
+            r2.append(np.sum((_fit_values(xt, yt, xf, choice) - yf) ** 2, axis=1))
+    out[order] = np.concatenate(r2)
+    return out
+
+
+class _one_blas_thread:
+    """BLAS at one thread inside (the kernel's systems gain little from threads on shared cores)."""
+
+    def __enter__(self):
+        from threadpoolctl import threadpool_limits
+
+        self._limits = threadpool_limits(limits=1, user_api="blas")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._limits.restore_original_limits()
+
+
+def pooled_field_of_tracks(a_mm: np.ndarray, b_mm: np.ndarray, neighbours: list[tuple[int, np.ndarray, np.ndarray]],
+                           grid: VolumeGrid, *, settings: TrackSettings | None = None, folds: int = POOL_FOLDS,
+                           seed: int = 0) -> tuple[TrackResult, PoolChoice | None]:
+    """The field of a pair's tracks (:func:`field_of_tracks`) with the tracks of neighbouring pairs
+    of a series pooled into it where that helps.
+
+    Where the flow's pattern is carried along from pair to pair (Taylor's frozen pattern: a vortex
+    ring at its own speed, a wake in a stream), a neighbour's tracks are more samples of this
+    pair's field once moved back by the pattern's translation. That translation is estimated from
+    the tracks (:func:`pattern_shift`), each neighbour ``k`` pairs away moved back by ``k`` times
+    it, and the ``"fit"`` or ``"divfree"`` field fitted to the pair's own tracks and the moved ones
+    (its smoothing and model chosen by its own cross-validation). The pooled field is kept only
+    where it predicts the pair's own held-out tracks better: the same folds of the pair's own
+    tracks held out from both (the neighbours' tracks always in training), each model at its own
+    choice, the pooled one's mean squared misfit lower by more than the standard error of the
+    paired difference; otherwise the pair's own field, unchanged. The field's points (where it has
+    a value) are the pair's own tracks' either way.
+
+    Parameters
+    ----------
+    a_mm, b_mm
+        (m, 3) the pair's tracks' positions (x, y, z) at frame A and frame B, mm, row for row.
+    neighbours
+        Each neighbouring pair's tracks as (k, a_mm, b_mm): ``k`` its offset in pairs (-1 the pair
+        before, 1 the one after), each of the same time between frames as this pair's, the pairs
+        evenly spaced in time.
+    grid
+        The voxel grid: the scale of the bins, the outlier test and the search of the translation.
+    settings
+        As :func:`field_of_tracks`; only ``"fit"`` and ``"divfree"`` pool.
+    folds, seed
+        The held-out test's folds of the pair's own tracks and their random split.
+
+    Returns
+    -------
+    result
+        The pair's tracks and its field (pooled or its own).
+    choice
+        The translation, the tracks pooled and the test's figures; None where nothing was offered
+        to pool (no neighbours, a field that does not fit, or too few tracks).
+    """
+    s = settings or TrackSettings()
+    own = field_of_tracks(a_mm, b_mm, grid, settings=s)
+    if s.field not in ("fit", "divfree") or not neighbours or own.fit is None or own.fit[0].degree == 0:
+        return own, None
+    voxel = np.asarray(grid.voxel_mm, dtype=np.float64)
+    a = np.asarray(a_mm, dtype=np.float64).reshape(-1, 3)
+    mid = (a + 0.5 * own.displacement_mm)[~own.outlier]
+    disp = own.displacement_mm[~own.outlier]
+    moved = []
+    for k, na, nb in neighbours:
+        na = np.asarray(na, dtype=np.float64).reshape(-1, 3)
+        nd = np.asarray(nb, dtype=np.float64).reshape(-1, 3) - na
+        nm = na + 0.5 * nd
+        if len(nm) < 2:
+            continue
+        bad = reject_outliers(nm, nd, neighbours=s.neighbours, threshold=s.outlier_threshold,
+                              epsilon_mm=s.epsilon_voxels * voxel)
+        moved.append((int(k), nm[~bad], nd[~bad]))
+    if not moved:
+        return own, None
+    shift = pattern_shift(mid, disp, moved, grid)
+    lo = np.asarray(grid.origin_mm, dtype=np.float64) - 0.5 * voxel
+    hi = lo + np.asarray(grid.shape[::-1], dtype=np.float64) * voxel
+    em = np.concatenate([nm - k * shift for k, nm, _ in moved])
+    ed = np.concatenate([nd for _, _, nd in moved])
+    inside = np.all((em >= lo) & (em <= hi), axis=1)
+    extra = (em[inside], ed[inside])
+    offsets = tuple(sorted(k for k, _, _ in moved))
+    if not inside.any():
+        return own, PoolChoice(offsets, tuple(float(v) for v in shift), 0, False, np.nan, np.nan)  # type: ignore[arg-type]
+    centres, field, counts, fit = _field(mid, disp, grid, s, extra)
+    r_own = _held_out_misfit(mid, disp, None, own.fit, folds=folds, seed=seed)
+    r_pool = _held_out_misfit(mid, disp, extra, fit, folds=folds, seed=seed)  # type: ignore[arg-type]
+    diff = r_pool - r_own
+    better = bool(np.mean(diff) + np.std(diff) / np.sqrt(len(diff)) < 0.0)
+    choice = PoolChoice(offsets, tuple(float(v) for v in shift), int(inside.sum()), better,  # type: ignore[arg-type]
+                        float(np.sqrt(np.mean(r_own))), float(np.sqrt(np.mean(r_pool))))
+    if not better:
+        return own, choice
+    return TrackResult(a_index=own.a_index, b_index=own.b_index, displacement_mm=own.displacement_mm,
+                       outlier=own.outlier, x_mm=centres[0], y_mm=centres[1], z_mm=centres[2], field_mm=field,
+                       counts=counts, fit=fit), choice

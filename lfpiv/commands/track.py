@@ -83,6 +83,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "(default: 6)")
     c.add_argument("--fit-order", type=positive_int, default=None, metavar="N",
                    help="--along-pairs: the tracks' polynomial order in time (default: 2, as Shake-the-Box)")
+    c.add_argument("--pool-pairs", type=int, default=None, metavar="K",
+                   help="--along-pairs with --field fit or divfree: offer each pair's field the tracks of the K pairs "
+                   "before and after it, moved by the flow pattern's translation from pair to pair (estimated from "
+                   "the tracks: a vortex ring travelling at its own speed, a wake carried by a stream), and keep them "
+                   "only where the pair's own held-out tracks are predicted better with them (default: 0, each pair's "
+                   "own tracks)")
     c.add_argument("--csv", default=None, metavar="FILE",
                    help="also write every tracked pair's tracks to FILE: pair, frame A's x, y, z and frame B's (mm), "
                    "u, v, w (m/s), outlier")
@@ -102,10 +108,11 @@ def run(args: argparse.Namespace) -> int:
                               smooth_voxels=args.smooth_voxels)
     # the series' options (None where not given: SeriesSettings' defaults) only mean something along the pairs
     given = {k: v for k, v in (("link_voxels", args.link_voxels), ("min_frames", args.min_frames),
-                               ("fit_frames", args.fit_frames), ("degree", args.fit_order)) if v is not None}
+                               ("fit_frames", args.fit_frames), ("degree", args.fit_order),
+                               ("pool_pairs", args.pool_pairs)) if v is not None}
     if given and not args.along_pairs:
         names = {"link_voxels": "--link-voxels", "min_frames": "--min-frames", "fit_frames": "--fit-frames",
-                 "degree": "--fit-order"}
+                 "degree": "--fit-order", "pool_pairs": "--pool-pairs"}
         raise UsageError(f"{', '.join(names[k] for k in given)} only apply to tracks along a time-resolved series: "
                          "add --along-pairs, or leave them out")
     series = series_settings(**given) if args.along_pairs else None
@@ -132,6 +139,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"linked {done.series_tracks} tracks of at least {series.min_frames} frames through the "
               f"{done.series_frames} frames (mean length {done.series_length:.1f} frames), fitted by polynomials "
               f"of order {series.degree} in time through {series.fit_frames} frames")
+        if done.pool_offered:
+            import numpy as np
+
+            shift = ", ".join(f"{v:.2f}" for v in np.median(np.asarray(done.pool_shifts), axis=0))
+            print(f"pooled the tracks of up to {series.pool_pairs} pair(s) either side into {done.pool_taken} of the "
+                  f"{done.pool_offered} pairs' fields (the others' own held-out tracks were not predicted better); the "
+                  f"pattern's translation per pair (x, y, z) {shift} voxel (median of the pairs)")
     if done.pairs:
         nx, ny, nz = done.shape
         print(f"wrote {store.path}/vectors: {len(done.pairs)} pair(s) of {nx} x {ny} x {nz} bins (x, y, z) from "

@@ -20,7 +20,10 @@ tracks through the frames (:func:`lfcore.track.link_series`: the pair tracking s
 its own velocity carries it on), each track of enough frames is fitted by local polynomials in time
 (:func:`lfcore.track.fit_series`), and each pair's tracks are the fitted positions at its two frames
 (:func:`lfcore.track.pair_tracks`), made into a field as a pair's own tracks are. The tracks through
-the series are kept in ``vectors/series_tracks``.
+the series are kept in ``vectors/series_tracks``. With ``--pool-pairs K`` (``"fit"`` and
+``"divfree"`` fields) each pair's field is offered the tracks of the K pairs either side, moved by
+the flow pattern's translation estimated from the tracks, and takes them where its own held-out
+tracks say they help (:func:`lfcore.track.pooled_field_of_tracks`).
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from tqdm import tqdm
 from lfcore.runstore import RunStore, RunStoreError, is_time_resolved
 from lfcore.track import (
     MAX_CROWDING,
+    PoolChoice,
     SeriesSettings,
     SeriesTracks,
     TrackResult,
@@ -45,6 +49,7 @@ from lfcore.track import (
     fit_series,
     link_series,
     pair_tracks,
+    pooled_field_of_tracks,
     search_crowding,
     track_pair,
 )
@@ -93,6 +98,11 @@ class TracksDone:
     series_frames: int = 0
     series_tracks: int = 0
     series_length: float = 0.0
+    #: along a series with --pool-pairs: the pairs offered their neighbours' tracks, the pairs that took
+    #: them, and each offered pair's estimated translation of the pattern per pair (x, y, z), voxels
+    pool_offered: int = 0
+    pool_taken: int = 0
+    pool_shifts: list[tuple[float, float, float]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -185,14 +195,20 @@ def _series(store: RunStore, chosen: list[int], grid: VolumeGrid, settings: Trac
 
 
 def _series_pair(tracks: SeriesTracks, pair: int, grid: VolumeGrid, settings: TrackSettings,
-                 series: SeriesSettings) -> PairTracks:
-    """A pair's tracks from the tracks through the series (fitted positions at its two frames) and their field."""
+                 series: SeriesSettings, chosen: list[int] | None = None) -> tuple[PairTracks, PoolChoice | None]:
+    """A pair's tracks from the tracks through the series (fitted positions at its two frames) and their
+    field; with ``series.pool_pairs``, the tracks of the chosen pairs that many either side offered to it."""
     t0 = time.perf_counter()
     a, b, _ = pair_tracks(tracks, pair, series=series)
-    res = field_of_tracks(a, b, grid, settings=settings)
+    near = [k for k in range(-series.pool_pairs, series.pool_pairs + 1) if k and pair + k in (chosen or [])]
+    if near:
+        res, pool = pooled_field_of_tracks(
+            a, b, [(k, *pair_tracks(tracks, pair + k, series=series)[:2]) for k in near], grid, settings=settings)
+    else:
+        res, pool = field_of_tracks(a, b, grid, settings=settings), None
     rows = np.column_stack([a, b, res.outlier.astype(np.float64)])
     return PairTracks(rows=rows, field_mm=res.field_mm, outliers=int(res.outlier.sum()),
-                      seconds=time.perf_counter() - t0)
+                      seconds=time.perf_counter() - t0), pool
 
 
 def _check_volumes(store: RunStore, chosen: list[int]) -> None:
@@ -312,6 +328,9 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
             raise UsageError(f"--along-pairs fits tracks of at least {along_pairs.min_frames} frames (--min-frames), "
                              f"but the {len(chosen)} pair(s) chosen hold {2 * len(chosen)}; choose more pairs "
                              f"(--pair-range) or a smaller --min-frames")
+        if along_pairs.pool_pairs and settings.field not in ("fit", "divfree"):
+            raise UsageError(f"--pool-pairs pools the neighbouring pairs' tracks into a fitted field, but the field is "
+                             f"'{settings.field}': choose --field fit or divfree, or leave out --pool-pairs")
         if predictor == "previous":  # along a series each step's field predicts the next already
             raise UsageError("--along-pairs predicts each frame from the frame before it already: choose "
                              "--predictor none or volumes (for the first pair)")
@@ -364,7 +383,11 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
         with tqdm(total=len(todo), unit="pair", disable=not progress, desc="tracking", leave=False) as bar:
             for p in todo:
                 # the tracks' frames are the run's (2 p for pair p's A), not counted from the first chosen pair
-                made = _series_pair(tracks, p, grid, settings, along_pairs)  # type: ignore[arg-type]
+                made, pool = _series_pair(tracks, p, grid, settings, along_pairs, chosen)  # type: ignore[arg-type]
+                if pool is not None:
+                    out.pool_offered += 1
+                    out.pool_taken += int(pool.pooled)
+                    out.pool_shifts.append(tuple(float(v) for v in np.asarray(pool.shift_mm) / grid.voxel_mm))
                 written(p, PairTracks(rows=made.rows, field_mm=made.field_mm, outliers=made.outliers,
                                       seconds=made.seconds + linked))
                 linked = 0.0

@@ -196,7 +196,7 @@ def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path
     given without --along-pairs they would be ignored, so they are refused (one line, exit 2)."""
     run = _copy(series_run, tmp_path)
     for option, value in (("--link-voxels", "2,2,2"), ("--min-frames", "5"), ("--fit-frames", "4"),
-                          ("--fit-order", "1")):
+                          ("--fit-order", "1"), ("--pool-pairs", "1")):
         rc, out, err = _run(capsys, "track", run, option, value, "--quiet")
         assert rc == 2 and option in err and "--along-pairs" in err, (option, err)
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1
@@ -206,6 +206,35 @@ def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path
     assert rc == 0, err
     assert "of order 1 in time through 3 frames" in out and "at least 4 frames" in out
     assert RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]["degree"] == 1
+
+
+def test_pooling_the_neighbouring_pairs_tracks(series_run, tmp_path, capsys):
+    """--pool-pairs offers each pair's fitted field its neighbours' tracks (moved by the pattern's
+    translation): the command says how many pairs took them and records the setting; without it the
+    settings are as before (no pool_pairs key, so vectors tracked before it still match)."""
+    own, pooled = _copy(series_run, tmp_path, "o.zarr"), _copy(series_run, tmp_path, "p.zarr")
+    assert _run(capsys, "track", own, "--along-pairs", "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "track", pooled, "--along-pairs", "--pool-pairs", "1", "--quiet")
+    assert rc == 0, err
+    assert "of the 4 pairs' fields" in out and "translation per pair" in out, out
+    assert RunStore.open(pooled).vectors()["attrs"]["settings"]["along_pairs"]["pool_pairs"] == 1
+    assert "pool_pairs" not in RunStore.open(own).vectors()["attrs"]["settings"]["along_pairs"]
+    errs = []
+    for run in (own, pooled):
+        rc, out, err = _run(capsys, "evaluate", run)
+        assert rc == 0, err
+        errs.append(_rms(out))
+    # a uniform flow: its own tracks fix it already, and the held-out tracks keep it from getting worse
+    assert np.all(errs[1] <= errs[0] * 1.1 + 0.005), errs
+    # the pair's own tracks are stored either way
+    assert all(len(RunStore.open(pooled).read_tracks(p)) == len(RunStore.open(own).read_tracks(p)) for p in range(4))
+
+
+def test_pool_pairs_needs_a_fitted_field(series_run, tmp_path, capsys):
+    run = _copy(series_run, tmp_path)
+    rc, out, err = _run(capsys, "track", run, "--along-pairs", "--pool-pairs", "1", "--field", "bins", "--quiet")
+    assert rc == 2 and "--field fit or divfree" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not RunStore.open(run).has_vectors
 
 
 def test_tracking_pair_by_pair_after_along_the_pairs_names_the_difference(series_run, tmp_path, capsys):
