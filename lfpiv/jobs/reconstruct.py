@@ -390,9 +390,16 @@ def stages_of(recorded: object) -> str:
 
 def iterations_summary(results: Sequence[ReconResult], settings: ReconSettings) -> str:
     """The summary line's words on the frames' iterations: ``"150-200 iterations a frame (mean 172; at
-    most 400 by the stopping rule: converged 4), 2,085-4,457 voxels left of 26,256 active"``."""
-    return describe_convergence(convergence_figures(results), settings.stop_tolerance, settings.iterations,
-                                active=max((r.active_voxels for r in results), default=0))
+    most 400 by the stopping rule: converged 4), 2,085-4,457 voxels left of 26,256 active"``, and where
+    MLOS-MART handed frames to DRT weights (:attr:`lfcore.reconstruct.ReconResult.handover`), how many and
+    why the first did."""
+    words = describe_convergence(convergence_figures(results), settings.stop_tolerance, settings.iterations,
+                                 active=max((r.active_voxels for r in results), default=0))
+    handed = [r.handover for r in results if r.handover]
+    if handed:
+        frames = "1 frame" if len(handed) == 1 else f"{len(handed)} frames"
+        words += f"; {frames} of {len(results)} handed over to DRT weights (the first: {handed[0]})"
+    return words
 
 
 def describe_convergence(figures: dict[str, Any], stop_tolerance: float, most: int, *, active: int = 0) -> str:

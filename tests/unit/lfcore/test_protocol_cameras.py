@@ -7,6 +7,7 @@ plan for them (SEVERAL_LIGHT_FIELD_CAMERAS: MLOS-MART on a coarse grid) reaches 
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from lfcore import metrics
@@ -17,6 +18,7 @@ from lfcore.reconstruct import (
     SEVERAL_LIGHT_FIELD_CAMERAS,
     FrameReconstructor,
     ReconSettings,
+    hands_over,
     protocol_settings,
 )
 from lfcore.rig import Rig
@@ -169,3 +171,46 @@ def test_fast_on_two_light_field_cameras_is_as_good_as_fixed(two_cameras):
          for name, s in settings.items()}
     assert q["fixed"] > 0.6
     assert q["fast"] >= q["fixed"] - 0.01
+
+
+def test_the_hand_over_rule_on_known_counts():
+    """MLOS-MART's hand-over to DRT weights (hands_over): many voxels left while the light is explained (the
+    two_cameras rig after 20 iterations: 46% left, residual 0.23) switches; few left (Mc2: 30%), or many left
+    where noise keeps the residual high (Mc2 at 3 times its noise: 42%, 0.33), or the rule off, does not."""
+    assert hands_over(62_885, 29_112, 0.4, residual=0.227, max_residual=0.27)
+    assert not hands_over(36_047, 10_800, 0.4, residual=0.276, max_residual=0.27)
+    assert not hands_over(32_807, 13_800, 0.4, residual=0.325, max_residual=0.27)
+    assert hands_over(32_807, 13_800, 0.4)  # the share alone, where no residual bound is given
+    assert not hands_over(32_807, 13_800, 0.4, max_residual=0.27)  # a bound and no residual measured
+    assert not hands_over(62_885, 29_112, 0.0, residual=0.227, max_residual=0.27)  # off
+    assert not hands_over(0, 0, 0.4)
+    lf = protocol_settings("fast", n_cameras=2, camera_kind="light-field")
+    assert (lf.handover_share, lf.handover_at, lf.handover_residual) == (0.4, 20, 0.27)
+    # another method, or DRT-MART's weights asked for, drops it; MLOS-MART's alone takes it
+    assert protocol_settings("fast", n_cameras=2, camera_kind="light-field", method="drt-mart").handover_share == 0
+    assert protocol_settings("fast", n_cameras=2, camera_kind="light-field", los_iterations=20).handover_share == 0
+    assert protocol_settings("fast").handover_share == 0
+    with pytest.raises(ValueError, match="handover_share"):
+        ReconSettings(method="drt-mart", handover_share=0.4)
+    with pytest.raises(ValueError, match="handover_residual"):
+        ReconSettings(method="mlos-mart", handover_share=0.4, handover_residual=0.0)
+
+
+def test_a_frame_hands_over_where_the_rule_says_and_is_unchanged_where_not(two_cameras):
+    """On S2's frame (20% of the voxels left after 20 iterations) the plan does not hand over: the same volume as
+    with the rule off; with a share of 5% it must, and the survivors' DRT iterations keep the plan's Q."""
+    proj, truth, img = two_cameras
+    kind = dict(n_cameras=2, camera_kind="light-field")
+    plan = FrameReconstructor(proj, protocol_settings("fast", **kind)).reconstruct(img)
+    off = FrameReconstructor(proj, protocol_settings("fast", handover_share=0.0, **kind)).reconstruct(img)
+    assert plan.handover == "" and plan.operator == off.operator == "line-of-sight weights"
+    assert plan.iterations == off.iterations and plan.final_voxels == off.final_voxels
+    np.testing.assert_allclose(plan.volume, off.volume, rtol=1e-5, atol=1e-6 * float(off.volume.max()))
+    low = FrameReconstructor(proj, protocol_settings("fast", handover_share=0.05, handover_residual=None, **kind))
+    handed = low.reconstruct(img)
+    assert "left after 20 line-of-sight iterations, above 5%" in handed.handover
+    assert handed.operator.startswith("line-of-sight weights, then ") and handed.operator != plan.operator
+    assert 20 < handed.iterations <= 75 and handed.final_voxels < 0.4 * handed.active_voxels
+    q_plan, q_handed = metrics.q_recon(plan.volume, truth), metrics.q_recon(handed.volume, truth)
+    assert q_plan > 0.7
+    assert q_handed >= q_plan - 0.05
