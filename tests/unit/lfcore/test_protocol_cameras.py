@@ -11,18 +11,27 @@ import numpy as np
 import pytest
 
 from lfcore import metrics
-from lfcore.plan import projector_for
+from lfcore.plan import frame_stages, projector_for
 from lfcore.reconstruct import (
     PROTOCOLS,
     SEVERAL_CAMERAS,
     SEVERAL_LIGHT_FIELD_CAMERAS,
     FrameReconstructor,
+    ReconResult,
     ReconSettings,
     hands_over,
     protocol_settings,
 )
 from lfcore.rig import Rig
-from lfpiv.jobs.reconstruct import camera_count, cameras_kind, plan_words, protocol_run_settings, run_method
+from lfcore.volume import VolumeGrid
+from lfpiv.jobs.reconstruct import (
+    camera_count,
+    cameras_kind,
+    iterations_summary,
+    plan_words,
+    protocol_run_settings,
+    run_method,
+)
 
 
 def test_fast_drops_its_subsets_on_several_cameras_only():
@@ -190,6 +199,10 @@ def test_the_hand_over_rule_on_known_counts():
     assert protocol_settings("fast", n_cameras=2, camera_kind="light-field", method="drt-mart").handover_share == 0
     assert protocol_settings("fast", n_cameras=2, camera_kind="light-field", los_iterations=20).handover_share == 0
     assert protocol_settings("fast").handover_share == 0
+    # lfpiv info's stages name the rule (in memory; depth slabs run line-of-sight weights throughout)
+    grid = VolumeGrid((73, 73, 73), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+    assert any("more than 40% of them are left after 20 iterations" in x for x in frame_stages("light-field", grid, lf))
+    assert not any("DRT weights" in x for x in frame_stages("light-field", grid, lf, slabs=3))
     with pytest.raises(ValueError, match="handover_share"):
         ReconSettings(method="drt-mart", handover_share=0.4)
     with pytest.raises(ValueError, match="handover_residual"):
@@ -214,3 +227,14 @@ def test_a_frame_hands_over_where_the_rule_says_and_is_unchanged_where_not(two_c
     q_plan, q_handed = metrics.q_recon(plan.volume, truth), metrics.q_recon(handed.volume, truth)
     assert q_plan > 0.7
     assert q_handed >= q_plan - 0.05
+
+
+def test_the_summary_line_says_which_frames_handed_over():
+    settings = protocol_settings("fast", n_cameras=2, camera_kind="light-field")
+    why = "29,112 of 62,885 voxels (46%) left after 20 line-of-sight iterations"
+    frames = [ReconResult(volume=np.zeros((1, 1, 1), np.float32), active_voxels=62_885, active_fraction=0.2, nnz=0,
+                          weight_bytes=0, weights_s=0.0, iterate_s=0.0, iterations=75, handover=h)
+              for h in (why, "")]
+    said = iterations_summary(frames, settings)
+    assert said.endswith(f"; 1 frame of 2 handed over to DRT weights (the first: {why})")
+    assert "handed over" not in iterations_summary(frames[1:], settings)
