@@ -724,9 +724,10 @@ def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
     ``flat_field`` from uncorrected frames, those before ``subsets`` by the plain simultaneous form,
     those before ``stop_tolerance`` with a fixed count, those before ``coarse`` with the whole grid
     eliminated, those before ``coarse_prune`` pruned at ``prune`` after the coarse grid too, those before
-    ``lit_hysteresis`` with the plain lit mask, and those before ``protocol`` by settings given one by one)."""
+    ``lit_hysteresis`` with the plain lit mask, those before ``handover_share`` on line-of-sight weights to the
+    end under MLOS-MART, and those before ``protocol`` by settings given one by one)."""
     return {"projector": "auto", "prune": 0.0, "prune_every": 10, "warm_start": False, "warm_iterations": None,
             "los_iterations": 0, "flat_field": None, "subsets": 1, "subset_halving": SUBSET_HALVING,
             "stop_tolerance": 0.0, "stop_voxels": STOP_VOXELS, "stop_every": 10, "coarse": 1,
             "coarse_iterations": COARSE_ITERATIONS, "coarse_prune": 0.0, "lit_hysteresis": None, "protocol": None,
-            **settings}
+            "handover_share": 0.0, "handover_at": 20, "handover_residual": None, **settings}

@@ -25,6 +25,8 @@ from lfcore.reconstruct import (
 from lfcore.rig import Rig
 from lfcore.volume import VolumeGrid
 from lfpiv.jobs.reconstruct import (
+    _matching,
+    _recorded,
     camera_count,
     cameras_kind,
     iterations_summary,
@@ -238,3 +240,15 @@ def test_the_summary_line_says_which_frames_handed_over():
     said = iterations_summary(frames, settings)
     assert said.endswith(f"; 1 frame of 2 handed over to DRT weights (the first: {why})")
     assert "handed over" not in iterations_summary(frames[1:], settings)
+
+
+def test_older_volumes_ran_line_of_sight_weights_to_the_end():
+    """Volumes recorded before the hand-over settings count as made without it: the plan's older volumes are
+    another set (--skip-done makes them again), fixed's the same set."""
+    lf_now = {**protocol_settings("fast", n_cameras=2, camera_kind="light-field").as_dict(), "protocol": "fast"}
+    lf_before = {k: v for k, v in lf_now.items() if not k.startswith("handover_")}
+    assert _recorded(lf_before)["handover_share"] == 0.0
+    assert _matching(_recorded(lf_before)) != _matching(_recorded(lf_now))
+    fixed_now = {**protocol_settings("fixed", n_cameras=2).as_dict(), "protocol": "fixed"}
+    fixed_before = {k: v for k, v in fixed_now.items() if not k.startswith("handover_")}
+    assert _matching(_recorded(fixed_before)) == _matching(_recorded(fixed_now))
