@@ -554,8 +554,9 @@ def frame_stages(cameras: str, grid: VolumeGrid, settings: ReconSettings, *, sla
     """What each frame of ``grid`` runs with ``settings`` on cameras of kind ``cameras``
     (:func:`camera_kind`) in ``slabs`` depth slabs, in order, one phrase each (:attr:`Plan.stages`):
     the coarse-to-fine elimination where it runs (:func:`coarse_runs`; or why not, where asked for),
-    the line-of-sight iterations first, the ordered subsets, the warm start (never in depth slabs, which
-    run the rest of the plan as in memory) and the stopping rule or the fixed count.
+    the line-of-sight iterations first, MLOS-MART's hand-over to DRT weights (:func:`lfcore.reconstruct.hands_over`;
+    in memory only), the ordered subsets, the warm start (never in depth slabs, which run the rest of the plan as
+    in memory) and the stopping rule or the fixed count.
     """
     s = settings
     out: list[str] = []
@@ -571,6 +572,10 @@ def frame_stages(cameras: str, grid: VolumeGrid, settings: ReconSettings, *, sla
     if s.los_iterations:
         out.append(f"{s.los_iterations} iterations on line-of-sight weights, then DRT weights for the voxels still "
                    "bright")
+    if s.handover_share and s.method == "mlos-mart" and s.form == "simultaneous" and slabs == 1:
+        bound = f" while the residual is below {s.handover_residual:g}" if s.handover_residual else ""
+        out.append(f"DRT weights for the voxels still bright where more than {s.handover_share:.0%} of them are left "
+                   f"after {s.handover_at} iterations{bound} (cold frames)")
     if s.subsets > 1:
         out.append(f"{s.subsets} ordered subsets a pass")
     if s.warm_start and slabs == 1:

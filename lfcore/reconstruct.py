@@ -76,12 +76,13 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
     from lfcore.warm import Predictor, WarmStart
     from lfcore.weight_cache import WeightCache
 
-__all__ = ["CAPPED", "COARSE_METHODS", "CONVERGED", "DRT_OPTIONS", "FIXED", "MASKED", "METHODS", "NO_VOXELS",
-           "PROTOCOLS", "PRUNE", "PRUNE_PERCENTILE", "SEVERAL_CAMERAS", "SEVERAL_LIGHT_FIELD_CAMERAS", "STOP_REASONS",
-           "STOP_TOLERANCE", "STOP_VOXELS", "WARM_HANDOVER", "WARM_LOS_ITERATIONS", "WARM_SHARE",
-           "WARM_OWN_ITERATIONS", "WARM_STOP_EVERY", "WEIGHTS", "CoarseBright", "FrameReconstructor", "Iterated",
-           "ReconResult", "ReconSettings", "StoppingRule", "bright_voxels", "coarse_applies", "coarse_bright",
-           "coarse_reconstructor", "estimate_background", "is_split", "light_field_plan", "preprocess",
+__all__ = ["CAPPED", "COARSE_METHODS", "CONVERGED", "DRT_OPTIONS", "FIXED", "HANDED_OVER", "HANDOVER_RELAXATION",
+           "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE", "PRUNE_PERCENTILE", "SEVERAL_CAMERAS",
+           "SEVERAL_LIGHT_FIELD_CAMERAS", "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WARM_HANDOVER",
+           "WARM_LOS_ITERATIONS", "WARM_OWN_ITERATIONS", "WARM_SHARE", "WARM_STOP_EVERY", "WEIGHTS", "CoarseBright",
+           "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings", "StoppingRule", "bright_voxels",
+           "coarse_applies", "coarse_bright", "coarse_reconstructor", "estimate_background", "hands_over",
+           "is_split", "light_field_plan", "preprocess",
            "preprocess_images", "protocol_settings", "prune_dark", "reconstruct", "relative_residual",
            "smart_iterations", "stop_interval", "unexplained_added", "warm_count"]
 
@@ -149,6 +150,13 @@ WARM_OWN_ITERATIONS = 5
 #: rule), the stopping rule, the most the rule allows, or nothing to iterate.
 FIXED, CONVERGED, CAPPED, NO_VOXELS = "fixed count", "converged", "max iterations", "no active voxels"
 STOP_REASONS = (FIXED, CONVERGED, CAPPED, NO_VOXELS)
+#: Why MLOS-MART's line-of-sight iterations ended where the survivors go on with DRT weights
+#: (:attr:`ReconSettings.handover_share`): not a frame's last reason, the DRT stage's is.
+HANDED_OVER = "handed over"
+#: The relaxation of the iterations on DRT weights after MLOS-MART's hand-over
+#: (:attr:`ReconSettings.handover_share`): DRT-MART's own. At MLOS-MART's 2 the traced weights overshoot
+#: (the two_cameras rig: Q 0.41 against 0.85 at 1).
+HANDOVER_RELAXATION = 1.0
 #: The stopping rule's defaults (the ``fast`` protocol's ``stop_tolerance`` and ``stop_voxels``): a frame
 #: has converged when, over ``stop_every`` iterations, its projections' relative residual fell by less
 #: than 0.3% of itself and fewer than 2% of its voxels left the operator. Measured against the truth
@@ -318,6 +326,22 @@ class ReconSettings:
         uniform start, where a small box (the tiny rig: Q 0.772 against 0.786 with a 2% hand-over)
         keeps ``prune``. The coarse grid's own pruning stays at ``prune`` (at 2% it lost particles).
         0: ``prune`` everywhere.
+    handover_share
+        MLOS-MART's hand-over to DRT weights (:func:`hands_over`): after ``handover_at`` iterations of a
+        cold frame, where more than this share of its active voxels are still in the operator (and the
+        relative residual is below ``handover_residual``), the voxels still brighter than the pruning's
+        threshold get DRT-MART's weights (traced, or the templates as ``projector`` ``"auto"`` chooses)
+        and run the rest of ``iterations`` at :data:`HANDOVER_RELAXATION`: on a rig where the
+        line-of-sight weights' ghosts leave slowly, DRT's sharper weights tell them from the particles.
+        0 (default): never. MLOS-MART's simultaneous form, in memory (depth slabs run line-of-sight
+        weights throughout); :data:`SEVERAL_LIGHT_FIELD_CAMERAS` sets it.
+    handover_at
+        The iteration after which ``handover_share`` is measured (after its pruning: a multiple of
+        ``prune_every``).
+    handover_residual
+        The projections' relative residual (:func:`relative_residual`) the frame must be below to hand
+        over: where noise keeps voxels lit the residual is high, and DRT weights do not remove them.
+        None: the share alone.
     """
 
     method: str = "drt-mart"
@@ -349,6 +373,9 @@ class ReconSettings:
     coarse: int = 1
     coarse_iterations: int = COARSE_ITERATIONS
     coarse_prune: float = 0.0
+    handover_share: float = 0.0
+    handover_at: int = 20
+    handover_residual: float | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -427,6 +454,16 @@ class ReconSettings:
             raise ValueError("coarse-to-fine elimination (coarse) is for drt-mart's simultaneous form and mlos-mart's")
         if self.coarse_iterations < 1:
             raise ValueError(f"coarse_iterations must be 1 or more, got {self.coarse_iterations}")
+        if not 0.0 <= self.handover_share < 1.0:
+            raise ValueError(f"handover_share must be from 0 (never) to below 1 (a share of the active voxels), got "
+                             f"{self.handover_share}")
+        if self.handover_share and (self.method != "mlos-mart" or self.form != "simultaneous"):
+            raise ValueError("the hand-over to DRT weights (handover_share) is for mlos-mart's simultaneous form")
+        if self.handover_at < 1:
+            raise ValueError(f"handover_at must be 1 or more iterations, got {self.handover_at}")
+        if self.handover_residual is not None and not self.handover_residual > 0:
+            raise ValueError(f"handover_residual must be positive (a relative residual) or None (the share alone), "
+                             f"got {self.handover_residual}")
         if not 0.0 <= self.coarse_prune < 1.0:
             raise ValueError(f"coarse_prune must be from 0 (the pruning's prune) to below 1 (a fraction of the "
                              f"brightest voxels' intensity), got {self.coarse_prune}")
@@ -534,9 +571,23 @@ SEVERAL_CAMERAS: dict[str, dict] = {"fast": {"subsets": 1, "coarse": 1, "iterati
 #: sigma: a pixel next to a lit one is lit above half a sigma), which keeps the particles whose spots'
 #: dim rims noise darkens: Mc2 Q 0.869 on clean frames (the same), 0.833 at 3x noise (0.827) and 0.720
 #: with 3x noise and a camera's response (0.552), the example rigs' clean frames within 0.001.
+#: Since the tenth session a frame whose ghosts leave slowly hands its survivors to DRT weights
+#: (``handover_share`` 0.4 at ``handover_at`` 20 with ``handover_residual`` 0.27, :func:`hands_over`):
+#: where more than 40% of the active voxels are still in the operator after 20 iterations while the
+#: projections' relative residual is below 0.27 (the light explained, by ghosts as much as by
+#: particles), the voxels still brighter than the pruning's threshold get DRT weights and run the rest
+#: of the 75 at DRT-MART's relaxation 1 (:data:`HANDOVER_RELAXATION`). Measured on frame A of each rig
+#: (``benchmarks/RESULTS.md``, tenth session), after 20 iterations: two_cameras 46% left, residual 0.23
+#: (0.5 PPM) and 49%, 0.20 (1 PPM); Mc2 30%, 0.28; S2 20%, 0.29 and 29%, 0.25; the demo rig 16%, 0.41;
+#: two_cameras_off_focus 8%, 0.28 and 17%; Mc2 at 3 times its noise 42%, 0.33 and with a camera's response
+#: 46%, 0.39 (the share alone handed those over: Q 0.833 -> 0.823, 0.720 -> 0.716, 1.6 times the CPU).
+#: Only two_cameras switches: Q 0.857 against 0.814 (DRT-MART's plan 0.849) in 15.3-18.6 CPU s against
+#: 8.3-9.0 (DRT-MART's 17.5), at 1 PPM 0.728 against 0.693 (0.710) in 49 against 27 s (61 s); every other
+#: frame runs as before, to the same volume.
 SEVERAL_LIGHT_FIELD_CAMERAS: dict[str, dict] = {
     "fast": {"method": "mlos-mart", "relaxation": 2.0, "iterations": 75, "coarse": 2, "coarse_iterations": 15,
-             "los_iterations": 0, "max_dark": 0.0, "lit_hysteresis": 0.5},
+             "los_iterations": 0, "max_dark": 0.0, "lit_hysteresis": 0.5, "handover_share": 0.4,
+             "handover_at": 20, "handover_residual": 0.27},
 }
 
 #: Options that ask for DRT-MART's weights, so that a rig of several light-field cameras keeps
@@ -595,6 +646,8 @@ def protocol_settings(name: str, *, n_cameras: int = 1, camera_kind: str | None 
             for key, off in (("warm_start", False), ("subsets", 1)):
                 if key not in changes:
                     merged[key] = off
+    if (merged.get("method", "drt-mart") != "mlos-mart" or not simultaneous) and "handover_share" not in changes:
+        merged.pop("handover_share", None)  # MLOS-MART's hand-over to DRT weights, not another method's
     hysteresis = merged.get("lit_hysteresis")
     if hysteresis is not None and "lit_hysteresis" not in changes:
         # a plan's hysteresis never above a threshold given lower (where it would light nothing more)
@@ -649,6 +702,9 @@ class ReconResult:
         ``"converged"`` (the stopping rule, :attr:`ReconSettings.stop_tolerance`), ``"max iterations"``
         (the rule's most, ``iterations``, reached first) or ``"no active voxels"``; ``iterations`` is
         how many ran (the line-of-sight first ones included).
+    handover
+        Where MLOS-MART handed its survivors to DRT weights (:attr:`ReconSettings.handover_share`), why, in
+        words (the voxels left after its ``handover_at`` iterations); ``""``: it did not.
     slabs
         Depth slabs the volume was reconstructed in (1: in memory; see :mod:`lfcore.slabs`).
     peak_bytes
@@ -678,6 +734,7 @@ class ReconResult:
     warm: bool = False
     stopped: str = FIXED
     predictor_s: float = 0.0
+    handover: str = ""
 
     def __post_init__(self) -> None:
         if self.final_voxels < 0:
@@ -1153,7 +1210,7 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
                      progress: Callable[[int], None] | None = None, start=None, stop_tolerance: float | None = None,
                      split: Callable[[Operator], Operator] | None = None, t0: float | None = None,
                      started: Callable[[float], None] | None = None, prune: float | None = None,
-                     warm: bool = False) -> Iterated:
+                     warm: bool = False, handover: tuple[int, float, float | None] | None = None) -> Iterated:
     """MART's start and iterations on ``op`` in the buffers given: the one loop of
     :meth:`FrameReconstructor.iterate` (in memory) and :class:`lfcore.slabs.SlabReconstructor` (the
     operators of a volume's depth slabs as one, :class:`lfcore.slabs.SlabOperators`).
@@ -1177,6 +1234,11 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
     started
         Called with the start's seconds once the start is scaled (and the operator split), before the
         first iteration (the depth slabs' stage log).
+    handover
+        (iteration, share, residual): after that iteration (and its pruning), where more than that share
+        of the voxels it began with are still in the operator while the projections' relative residual
+        is below ``residual`` (None: whatever it is), the iterations end there (:data:`HANDED_OVER`;
+        :func:`hands_over`); None: never.
 
     Returns
     -------
@@ -1243,12 +1305,47 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
             op.update(log_ratio(image, proj, floor, ratio), e, mu)
         if prune > 0 and it % prune_every == 0 and it < its:  # the dark voxels leave
             (op,), (e,) = prune_dark([op], [e], prune)
+        if handover is not None and it == handover[0] and it < its and _hands_over(op, e, image, proj, n,
+                                                                                     handover):
+            ran, stopped = it, HANDED_OVER
+            if progress is not None:
+                progress(1)
+            break
         if progress is not None:
             progress(1)
     if progress is not None and ran < its:
         progress(its - ran)  # the iterations the rule left out, for a bar sized for the most
     wp.synchronize_device(device)
     return Iterated(e, t1 - t0, time.perf_counter() - t1, op, ran, stopped)
+
+
+def hands_over(active: int, left: int, share: float, *, residual: float | None = None,
+               max_residual: float | None = None) -> bool:
+    """MLOS-MART's hand-over rule (:attr:`ReconSettings.handover_share`): whether ``left`` of the
+    ``active`` voxels a frame began with, still in the operator after ``handover_at`` line-of-sight
+    iterations, are more than ``share`` of them while the projections' relative ``residual`` is below
+    ``max_residual`` (:attr:`ReconSettings.handover_residual`; None: the share alone): the light is
+    explained, by ghosts as much as by particles, which line-of-sight weights do not tell apart, so the
+    survivors go on with DRT weights. Where the residual is high the voxels left are noise's (the
+    images' noise lights pixels, and their voxels stay), which DRT weights do not remove (Mc2 at 3 times
+    its noise: 42% left after 20, residual 0.33, Q 0.833 -> 0.823 handed over). Never where ``share``
+    is 0 or nothing was active."""
+    if not (share > 0 and active > 0 and left > share * active):
+        return False
+    return max_residual is None or (residual is not None and residual < max_residual)
+
+
+def _hands_over(op: Operator, e, image, proj, active: int, handover: tuple[int, float, float | None]) -> bool:
+    """:func:`hands_over` for :func:`smart_iterations`: the residual of ``e`` projected (into ``proj``)
+    only where the share alone would hand over."""
+    _, share, max_residual = handover
+    if not hands_over(active, op.n_voxels, share):
+        return False
+    if max_residual is None:
+        return True
+    op.forward(e, out=proj)
+    return hands_over(active, op.n_voxels, share, residual=relative_residual(image, proj),
+                      max_residual=max_residual)
 
 
 def unexplained_added(op: Operator, start, image, noise: Sequence[float], *, settings: ReconSettings):
@@ -1410,6 +1507,7 @@ class FrameReconstructor:
         self._e = None  # the intensities, at least as long as the most active voxels so far
         self._volume = None  # (z, y, x) float32
         self._los_source = None  # line-of-sight weights for settings.los_iterations (made on first use)
+        self._drt_source = None  # DRT weights after MLOS-MART's hand-over (settings.handover_share; on first use)
         self._subset_of = None  # (n_pixels,) int32: each pixel's subset, for settings.subsets (made on first use)
         self._coarse = None  # the coarse grid's reconstructor, for settings.coarse (made on first use)
 
@@ -1515,9 +1613,34 @@ class FrameReconstructor:
         op_bytes = self.operator_bytes(op)
         ops = [op]
         del op  # iterate may split it into ordered subsets (settings.subsets): the unsplit rows may then go
+        handing = ((settings.handover_at, settings.handover_share, settings.handover_residual)
+                   if settings.handover_share and not warmed else None)
         done = self.iterate(ops.pop(), self._image, noises, progress=progress, iterations=its, start=start, prune=cut,
-                            warm=warmed)
+                            warm=warmed, handover=handing)
         del start
+        handed = ""
+        if done.stopped == HANDED_OVER:
+            # MLOS-MART's ghosts leave slowly on this frame: the survivors go on with DRT weights
+            first_its, left = done.iterations, done.op.n_voxels
+            below = (f" with the residual below {settings.handover_residual:g}" if settings.handover_residual
+                     else "")
+            handed = (f"{left:,} of {active:,} voxels ({left / active:.0%}) left after {first_its} line-of-sight "
+                      f"iterations, above {settings.handover_share:.0%}{below}: DRT weights for those still bright")
+            weights_s += done.start_s
+            iterate_s += done.iterate_s
+            t = time.perf_counter()
+            (bright,), (e,) = bright_voxels([done.op], [done.e], cut or settings.prune or PRUNE)
+            start = with_floor(wp.array(e, dtype=float, device=self.device), WARM_BLEND, copy=False)
+            del done, e
+            op = self.drt_operator(wp.array(bright, dtype=wp.int32, device=self.device))
+            del bright
+            weights_s += time.perf_counter() - t
+            nnz, n_fly, applied, last_kind = op.nnz, op.n_on_the_fly, applied_by(op), op.kind
+            op_bytes = max(op_bytes, self.operator_bytes(op))
+            done = self.iterate(op, self._image, noises, progress=progress, iterations=max(1, its - first_its),
+                                start=start, prune=cut, relaxation=HANDOVER_RELAXATION)
+            del op, start
+            done = done._replace(iterations=done.iterations + first_its)
         if warm is not None:
             warm.keep(done.op, done.e)
         vol = self.volume(done.op, done.e)
@@ -1530,8 +1653,10 @@ class FrameReconstructor:
                            iterations=done.iterations + (los_its if los_first else 0),
                            stopped=done.stopped, background=backgrounds,
                            noise=noises, eliminate_s=t_elim - t0, on_the_fly_voxels=n_fly,
-                           projector=applied, operator=f"{kind}, then {last_kind}" if los_first else kind,
-                           final_voxels=done.op.n_voxels, warm=warmed, predictor_s=predictor_s)
+                           projector=applied,
+                           operator=f"{kind}, then {last_kind}" if los_first or handed else kind,
+                           final_voxels=done.op.n_voxels, warm=warmed, handover=handed,
+                           predictor_s=predictor_s)
 
     def _own_predictor(self, voxels, coarse, noise: Sequence[float], warm: WarmStart
                        ) -> tuple[Predictor | None, Operator, float]:
@@ -1639,6 +1764,19 @@ class FrameReconstructor:
         n = int(voxels.shape[0])
         return self._los_source.operator(voxels, budget=lambda: self._weight_budget(n))
 
+    def drt_operator(self, voxels) -> Operator:
+        """DRT-MART's operator of ``voxels`` ((n,) int32 on the device) for the iterations after
+        MLOS-MART's hand-over (:attr:`ReconSettings.handover_share`), within the memory budget: traced
+        weights or the templates, as ``projector`` ``"auto"`` chooses for DRT-MART."""
+        if self._drt_source is None:
+            from lfcore.plan import operator_source
+
+            drt = replace(self.settings, method="drt-mart", relaxation=HANDOVER_RELAXATION, handover_share=0.0,
+                          warm_start=False, coarse=1)
+            self._drt_source = operator_source(self.projector, drt)
+        n = int(voxels.shape[0])
+        return self._drt_source.operator(voxels, budget=lambda: self._weight_budget(n))
+
     def operator(self, voxels) -> Operator:
         """The operator of ``voxels`` ((n,) int32 on the device), from this reconstructor's operator
         source within the memory budget (:meth:`_weight_budget`): from the cache where it has them
@@ -1693,7 +1831,7 @@ class FrameReconstructor:
     def iterate(self, op: Operator, image, noise: Sequence[float], *, iterations: int | None = None,
                 relaxation: float | None = None, progress: Callable[[int], None] | None = None,
                 start=None, stop_tolerance: float | None = None, prune: float | None = None,
-                warm: bool = False) -> Iterated:
+                warm: bool = False, handover: tuple[int, float, float | None] | None = None) -> Iterated:
         """MART on ``weights``: a uniform start (or ``start``), then the iterations of ``settings.form``.
 
         The start is uniform (or ``start``), scaled so that its projection carries the measured total
@@ -1729,6 +1867,9 @@ class FrameReconstructor:
         warm
             Whether ``start`` is a warm start (:mod:`lfcore.warm`): the stopping rule then measures
             every :data:`WARM_STOP_EVERY` iterations, on the residual alone.
+        handover
+            (iteration, share, residual) of :func:`smart_iterations`: end there (:data:`HANDED_OVER`)
+            where more than that share of the voxels are left and the residual is below that; None: never.
 
         Returns
         -------
@@ -1748,7 +1889,7 @@ class FrameReconstructor:
         return smart_iterations(op, self._e[: max(n, 1)], image, self._proj, self._ratio, noise, s,
                                 iterations=iterations, relaxation=relaxation, progress=progress, start=start,
                                 stop_tolerance=stop_tolerance, split=self._ordered_subsets, t0=t0, prune=prune,
-                                warm=warm)
+                                warm=warm, handover=handover)
 
     def _ordered_subsets(self, op: Operator) -> Operator:
         """``op`` split by ``settings.subsets`` pixel subsets (:func:`lfcore.subsets.split`), or

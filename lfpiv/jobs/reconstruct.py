@@ -400,9 +400,16 @@ def stages_of(recorded: object) -> str:
 
 def iterations_summary(results: Sequence[ReconResult], settings: ReconSettings) -> str:
     """The summary line's words on the frames' iterations: ``"150-200 iterations a frame (mean 172; at
-    most 400 by the stopping rule: converged 4), 2,085-4,457 voxels left of 26,256 active"``."""
-    return describe_convergence(convergence_figures(results), settings.stop_tolerance, settings.iterations,
-                                active=max((r.active_voxels for r in results), default=0))
+    most 400 by the stopping rule: converged 4), 2,085-4,457 voxels left of 26,256 active"``, and where
+    MLOS-MART handed frames to DRT weights (:attr:`lfcore.reconstruct.ReconResult.handover`), how many and
+    why the first did."""
+    words = describe_convergence(convergence_figures(results), settings.stop_tolerance, settings.iterations,
+                                 active=max((r.active_voxels for r in results), default=0))
+    handed = [r.handover for r in results if r.handover]
+    if handed:
+        frames = "1 frame" if len(handed) == 1 else f"{len(handed)} frames"
+        words += f"; {frames} of {len(results)} handed over to DRT weights (the first: {handed[0]})"
+    return words
 
 
 def describe_convergence(figures: dict[str, Any], stop_tolerance: float, most: int, *, active: int = 0) -> str:
@@ -731,7 +738,8 @@ def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
     uncorrected frames, those before ``subsets`` by the plain simultaneous form,
     those before ``stop_tolerance`` with a fixed count, those before ``coarse`` with the whole grid
     eliminated, those before ``coarse_prune`` pruned at ``prune`` after the coarse grid too, those before
-    ``lit_hysteresis`` with the plain lit mask, and those before ``protocol`` by settings given one by one)."""
+    ``lit_hysteresis`` with the plain lit mask, those before ``handover_share`` on line-of-sight weights to the
+    end under MLOS-MART, and those before ``protocol`` by settings given one by one)."""
     # volumes warm-started before warm_predictor was recorded were started by the last pair's field
     warm_predictor = "last" if settings.get("warm_start") else ReconSettings.warm_predictor
     return {"projector": "auto", "prune": 0.0, "prune_every": 10, "warm_start": False, "warm_iterations": None,
@@ -739,4 +747,4 @@ def _recorded(settings: dict[str, Any]) -> dict[str, Any]:
             "subset_halving": SUBSET_HALVING,
             "stop_tolerance": 0.0, "stop_voxels": STOP_VOXELS, "stop_every": 10, "coarse": 1,
             "coarse_iterations": COARSE_ITERATIONS, "coarse_prune": 0.0, "lit_hysteresis": None, "protocol": None,
-            **settings}
+            "handover_share": 0.0, "handover_at": 20, "handover_residual": None, **settings}

@@ -7,20 +7,33 @@ plan for them (SEVERAL_LIGHT_FIELD_CAMERAS: MLOS-MART on a coarse grid) reaches 
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from lfcore import metrics
-from lfcore.plan import projector_for
+from lfcore.plan import frame_stages, projector_for
 from lfcore.reconstruct import (
     PROTOCOLS,
     SEVERAL_CAMERAS,
     SEVERAL_LIGHT_FIELD_CAMERAS,
     FrameReconstructor,
+    ReconResult,
     ReconSettings,
+    hands_over,
     protocol_settings,
 )
 from lfcore.rig import Rig
-from lfpiv.jobs.reconstruct import camera_count, cameras_kind, plan_words, protocol_run_settings, run_method
+from lfcore.volume import VolumeGrid
+from lfpiv.jobs.reconstruct import (
+    _matching,
+    _recorded,
+    camera_count,
+    cameras_kind,
+    iterations_summary,
+    plan_words,
+    protocol_run_settings,
+    run_method,
+)
 
 
 def test_fast_drops_its_subsets_on_several_cameras_only():
@@ -196,3 +209,73 @@ def test_the_python_api_passes_a_none_it_was_given(tmp_path, monkeypatch):
     lfpiv.reconstruct(run, protocol="fast", lit_hysteresis=None, progress=False)
     lfpiv.reconstruct(run, protocol="fast", progress=False)
     assert [s.lit_hysteresis for s in seen] == [None, 0.5] and seen[0].method == "mlos-mart"
+
+
+def test_the_hand_over_rule_on_known_counts():
+    """MLOS-MART's hand-over to DRT weights (hands_over): many voxels left while the light is explained (the
+    two_cameras rig after 20 iterations: 46% left, residual 0.23) switches; few left (Mc2: 30%), or many left
+    where noise keeps the residual high (Mc2 at 3 times its noise: 42%, 0.33), or the rule off, does not."""
+    assert hands_over(62_885, 29_112, 0.4, residual=0.227, max_residual=0.27)
+    assert not hands_over(36_047, 10_800, 0.4, residual=0.276, max_residual=0.27)
+    assert not hands_over(32_807, 13_800, 0.4, residual=0.325, max_residual=0.27)
+    assert hands_over(32_807, 13_800, 0.4)  # the share alone, where no residual bound is given
+    assert not hands_over(32_807, 13_800, 0.4, max_residual=0.27)  # a bound and no residual measured
+    assert not hands_over(62_885, 29_112, 0.0, residual=0.227, max_residual=0.27)  # off
+    assert not hands_over(0, 0, 0.4)
+    lf = protocol_settings("fast", n_cameras=2, camera_kind="light-field")
+    assert (lf.handover_share, lf.handover_at, lf.handover_residual) == (0.4, 20, 0.27)
+    # another method, or DRT-MART's weights asked for, drops it; MLOS-MART's alone takes it
+    assert protocol_settings("fast", n_cameras=2, camera_kind="light-field", method="drt-mart").handover_share == 0
+    assert protocol_settings("fast", n_cameras=2, camera_kind="light-field", los_iterations=20).handover_share == 0
+    assert protocol_settings("fast").handover_share == 0
+    # lfpiv info's stages name the rule (in memory; depth slabs run line-of-sight weights throughout)
+    grid = VolumeGrid((73, 73, 73), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+    assert any("more than 40% of them are left after 20 iterations" in x for x in frame_stages("light-field", grid, lf))
+    assert not any("DRT weights" in x for x in frame_stages("light-field", grid, lf, slabs=3))
+    with pytest.raises(ValueError, match="handover_share"):
+        ReconSettings(method="drt-mart", handover_share=0.4)
+    with pytest.raises(ValueError, match="handover_residual"):
+        ReconSettings(method="mlos-mart", handover_share=0.4, handover_residual=0.0)
+
+
+def test_a_frame_hands_over_where_the_rule_says_and_is_unchanged_where_not(two_cameras):
+    """On S2's frame (20% of the voxels left after 20 iterations) the plan does not hand over: the same volume as
+    with the rule off; with a share of 5% it must, and the survivors' DRT iterations keep the plan's Q."""
+    proj, truth, img = two_cameras
+    kind = dict(n_cameras=2, camera_kind="light-field")
+    plan = FrameReconstructor(proj, protocol_settings("fast", **kind)).reconstruct(img)
+    off = FrameReconstructor(proj, protocol_settings("fast", handover_share=0.0, **kind)).reconstruct(img)
+    assert plan.handover == "" and plan.operator == off.operator == "line-of-sight weights"
+    assert plan.iterations == off.iterations and plan.final_voxels == off.final_voxels
+    np.testing.assert_allclose(plan.volume, off.volume, rtol=1e-5, atol=1e-6 * float(off.volume.max()))
+    low = FrameReconstructor(proj, protocol_settings("fast", handover_share=0.05, handover_residual=None, **kind))
+    handed = low.reconstruct(img)
+    assert "left after 20 line-of-sight iterations, above 5%" in handed.handover
+    assert handed.operator.startswith("line-of-sight weights, then ") and handed.operator != plan.operator
+    assert 20 < handed.iterations <= 75 and handed.final_voxels < 0.4 * handed.active_voxels
+    q_plan, q_handed = metrics.q_recon(plan.volume, truth), metrics.q_recon(handed.volume, truth)
+    assert q_plan > 0.7
+    assert q_handed >= q_plan - 0.05
+
+
+def test_the_summary_line_says_which_frames_handed_over():
+    settings = protocol_settings("fast", n_cameras=2, camera_kind="light-field")
+    why = "29,112 of 62,885 voxels (46%) left after 20 line-of-sight iterations"
+    frames = [ReconResult(volume=np.zeros((1, 1, 1), np.float32), active_voxels=62_885, active_fraction=0.2, nnz=0,
+                          weight_bytes=0, weights_s=0.0, iterate_s=0.0, iterations=75, handover=h)
+              for h in (why, "")]
+    said = iterations_summary(frames, settings)
+    assert said.endswith(f"; 1 frame of 2 handed over to DRT weights (the first: {why})")
+    assert "handed over" not in iterations_summary(frames[1:], settings)
+
+
+def test_older_volumes_ran_line_of_sight_weights_to_the_end():
+    """Volumes recorded before the hand-over settings count as made without it: the plan's older volumes are
+    another set (--skip-done makes them again), fixed's the same set."""
+    lf_now = {**protocol_settings("fast", n_cameras=2, camera_kind="light-field").as_dict(), "protocol": "fast"}
+    lf_before = {k: v for k, v in lf_now.items() if not k.startswith("handover_")}
+    assert _recorded(lf_before)["handover_share"] == 0.0
+    assert _matching(_recorded(lf_before)) != _matching(_recorded(lf_now))
+    fixed_now = {**protocol_settings("fixed", n_cameras=2).as_dict(), "protocol": "fixed"}
+    fixed_before = {k: v for k, v in fixed_now.items() if not k.startswith("handover_")}
+    assert _matching(_recorded(fixed_before)) == _matching(_recorded(fixed_now))
