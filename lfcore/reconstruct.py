@@ -79,7 +79,8 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
 __all__ = ["CAPPED", "COARSE_METHODS", "CONVERGED", "DRT_OPTIONS", "FIXED", "HANDED_OVER", "HANDOVER_RELAXATION",
            "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE", "PRUNE_PERCENTILE", "SEVERAL_CAMERAS",
            "SEVERAL_LIGHT_FIELD_CAMERAS", "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WARM_HANDOVER",
-           "WARM_LOS_ITERATIONS", "WARM_OWN_ITERATIONS", "WARM_SHARE", "WARM_STOP_EVERY", "WEIGHTS", "CoarseBright",
+           "WARM_LOS_ITERATIONS", "WARM_OWN_ITERATIONS", "WARM_SETTLE", "WARM_SHARE", "WARM_STOP_EVERY", "WEIGHTS",
+           "CoarseBright",
            "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings", "StoppingRule", "bright_voxels",
            "coarse_applies", "coarse_bright", "coarse_reconstructor", "estimate_background", "hands_over",
            "is_split", "light_field_plan", "preprocess",
@@ -140,6 +141,13 @@ WARM_HANDOVER = 0.02
 #: its Q falls with every pass (tiny rig: 0.833 after 3 + 2, 0.812 after 3 + 8, 0.801 where the cold
 #: rule stopped it, after 3 + 12 to 17).
 WARM_STOP_EVERY = 1
+#: Iterations a warm-started frame without line-of-sight iterations first (MLOS-MART's, or a method
+#: that has none) runs before the stopping rule may stop it: the carried start is blurred
+#: (:data:`lfcore.warm.WARM_BLUR`), and the rule, measuring every iteration, stopped the demo rig's warm
+#: frames B after one, their particles 3.5 voxels across against a cold frame's 2.8; the demo's ring then
+#: measured 22.1% of its peak speed against 21.0% from uniform starts; at least 3 iterations 21.0%, at
+#: least 5 20.7% (Q of frames B 0.875 against 0.853 cold; ``lfpiv demo``'s run, tenth session).
+WARM_SETTLE = 5
 #: Line-of-sight iterations of a frame B (from the coarse grid's start where coarse-to-fine elimination
 #: ran, else uniform) whose volume, correlated with frame A's, is the pair's own predictor
 #: (``ReconSettings.warm_predictor`` ``"own"``, :data:`lfcore.warm.OWN_PAIR`).
@@ -980,8 +988,8 @@ class StoppingRule:
     iterations while the residual falls by 1.5%), and ghosts leaving are seen as voxels leaving.
     """
 
-    def __init__(self, tolerance: float, *, voxels: float = STOP_VOXELS, every: int = 10) -> None:
-        self.tolerance, self.voxels, self.every = float(tolerance), float(voxels), int(every)
+    def __init__(self, tolerance: float, *, voxels: float = STOP_VOXELS, every: int = 10, least: int = 0) -> None:
+        self.tolerance, self.voxels, self.every, self.least = float(tolerance), float(voxels), int(every), int(least)
         self.last: tuple[float, int] | None = None
         #: the (iterations done, relative residual, voxels) of every measurement, for benchmarks
         self.history: list[tuple[int, float, int]] = []
@@ -998,7 +1006,7 @@ class StoppingRule:
         """Record a measurement after ``done`` iterations; True when the frame has converged."""
         self.history.append((done, residual, n_voxels))
         last, self.last = self.last, (residual, n_voxels)
-        if last is None or last[0] <= 0 or done == 0:
+        if last is None or last[0] <= 0 or done == 0 or done < self.least:
             return False
         fell = (last[0] - residual) / last[0]
         left = (last[1] - n_voxels) / max(last[1], 1)
@@ -1210,7 +1218,8 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
                      progress: Callable[[int], None] | None = None, start=None, stop_tolerance: float | None = None,
                      split: Callable[[Operator], Operator] | None = None, t0: float | None = None,
                      started: Callable[[float], None] | None = None, prune: float | None = None,
-                     warm: bool = False, handover: tuple[int, float, float | None] | None = None) -> Iterated:
+                     warm: bool = False, handover: tuple[int, float, float | None] | None = None,
+                     settle: int = 0) -> Iterated:
     """MART's start and iterations on ``op`` in the buffers given: the one loop of
     :meth:`FrameReconstructor.iterate` (in memory) and :class:`lfcore.slabs.SlabReconstructor` (the
     operators of a volume's depth slabs as one, :class:`lfcore.slabs.SlabOperators`).
@@ -1234,6 +1243,8 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
     started
         Called with the start's seconds once the start is scaled (and the operator split), before the
         first iteration (the depth slabs' stage log).
+    settle
+        Iterations that run before the stopping rule may stop the frame (a warm start's blur to settle).
     handover
         (iteration, share, residual): after that iteration (and its pruning), where more than that share
         of the voxels it began with are still in the operator while the projections' relative residual
@@ -1284,7 +1295,7 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
     if warm and tolerance > 0:
         # a warm start: measured (and pruned) every WARM_STOP_EVERY, on the residual alone
         prune_every = WARM_STOP_EVERY
-        rule = StoppingRule(tolerance, voxels=math.inf, every=WARM_STOP_EVERY)
+        rule = StoppingRule(tolerance, voxels=math.inf, every=WARM_STOP_EVERY, least=settle)
     else:
         rule = StoppingRule(tolerance, voxels=s.stop_voxels, every=stop_interval(s, prune=prune > 0,
                                                                                   subsets=per_pass))
@@ -1615,8 +1626,10 @@ class FrameReconstructor:
         del op  # iterate may split it into ordered subsets (settings.subsets): the unsplit rows may then go
         handing = ((settings.handover_at, settings.handover_share, settings.handover_residual)
                    if settings.handover_share and not warmed else None)
+        # a warm start without line-of-sight iterations first settles its carried blur before the rule
+        settle = WARM_SETTLE if warmed and not los_first else 0
         done = self.iterate(ops.pop(), self._image, noises, progress=progress, iterations=its, start=start, prune=cut,
-                            warm=warmed, handover=handing)
+                            warm=warmed, handover=handing, settle=settle)
         del start
         handed = ""
         if done.stopped == HANDED_OVER:
@@ -1831,7 +1844,8 @@ class FrameReconstructor:
     def iterate(self, op: Operator, image, noise: Sequence[float], *, iterations: int | None = None,
                 relaxation: float | None = None, progress: Callable[[int], None] | None = None,
                 start=None, stop_tolerance: float | None = None, prune: float | None = None,
-                warm: bool = False, handover: tuple[int, float, float | None] | None = None) -> Iterated:
+                warm: bool = False, handover: tuple[int, float, float | None] | None = None,
+                settle: int = 0) -> Iterated:
         """MART on ``weights``: a uniform start (or ``start``), then the iterations of ``settings.form``.
 
         The start is uniform (or ``start``), scaled so that its projection carries the measured total
@@ -1867,6 +1881,8 @@ class FrameReconstructor:
         warm
             Whether ``start`` is a warm start (:mod:`lfcore.warm`): the stopping rule then measures
             every :data:`WARM_STOP_EVERY` iterations, on the residual alone.
+        settle
+            Iterations that run before the stopping rule may stop the frame.
         handover
             (iteration, share, residual) of :func:`smart_iterations`: end there (:data:`HANDED_OVER`)
             where more than that share of the voxels are left and the residual is below that; None: never.
@@ -1889,7 +1905,7 @@ class FrameReconstructor:
         return smart_iterations(op, self._e[: max(n, 1)], image, self._proj, self._ratio, noise, s,
                                 iterations=iterations, relaxation=relaxation, progress=progress, start=start,
                                 stop_tolerance=stop_tolerance, split=self._ordered_subsets, t0=t0, prune=prune,
-                                warm=warm, handover=handover)
+                                warm=warm, handover=handover, settle=settle)
 
     def _ordered_subsets(self, op: Operator) -> Operator:
         """``op`` split by ``settings.subsets`` pixel subsets (:func:`lfcore.subsets.split`), or

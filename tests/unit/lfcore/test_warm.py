@@ -207,7 +207,7 @@ def test_a_still_scene_under_fast_stops_early_at_the_cold_quality(moving):
 def test_the_warm_rule_stops_a_converged_frame_at_once(moving):
     """A frame restarted from its own converged intensities: the warm rule stops it after one
     iteration; the cold rule, which waits for the voxels to stop leaving, runs at least its interval."""
-    from lfcore.reconstruct import CONVERGED, WARM_STOP_EVERY
+    from lfcore.reconstruct import CONVERGED, WARM_SETTLE, WARM_STOP_EVERY
 
     rig, grid, _, images, _ = moving
     proj = projector_for(rig.camera[:1], grid, device="cpu")
@@ -223,6 +223,9 @@ def test_the_warm_rule_stops_a_converged_frame_at_once(moving):
     e = wp.clone(done.e)
     warm = frames.iterate(done.op, image, noises, start=wp.clone(e), warm=True)
     assert warm.stopped == CONVERGED and warm.iterations == WARM_STOP_EVERY
+    # a warm start without line-of-sight iterations first settles WARM_SETTLE iterations before the rule may stop it
+    settled = frames.iterate(done.op, image, noises, start=wp.clone(e), warm=True, settle=WARM_SETTLE)
+    assert settled.stopped == CONVERGED and settled.iterations == WARM_SETTLE
     cold = frames.iterate(done.op, image, noises, start=wp.clone(e))
     assert cold.iterations >= 10 > warm.iterations
     # a fixed count stays a fixed count, warm or not
