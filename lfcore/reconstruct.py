@@ -1324,7 +1324,7 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
             break
         if progress is not None:
             progress(1)
-    if progress is not None and ran < its:
+    if progress is not None and ran < its and stopped != HANDED_OVER:  # handed over: the DRT stage counts the rest
         progress(its - ran)  # the iterations the rule left out, for a bar sized for the most
     wp.synchronize_device(device)
     return Iterated(e, t1 - t0, time.perf_counter() - t1, op, ran, stopped)

@@ -619,6 +619,8 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
                     if client is None else (None, None))
     if frames is not None and frames.in_slabs and settings.warm_start:
         settings = replace(settings, warm_start=False)  # the protocol's, left out: whole volumes only
+    elif frames is None and settings.warm_start and warm_optional and str(slabs).isdigit() and int(slabs) > 1:
+        settings = replace(settings, warm_start=False)  # so on the workers' depth slabs too (recorded so)
     # where the weights lived does not change a volume, so it does not make volumes/ a different set
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     if not settings.warm_start:  # no frame warm-started: the predictor's source changes nothing

@@ -113,6 +113,11 @@ def test_slabs_on_a_dask_worker_give_the_in_memory_volume(capsys, one_pair, tmp_
     want, got = RunStore.open(here).volumes()[0], RunStore.open(there).volumes()[0]
     assert RunStore.open(there).reconstructed_pairs() == [0] and want.max() > 0
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * float(want.max()))
+    # the fast protocol's warm start, left out in the workers' depth slabs, is recorded as left out
+    rc, out, err = _run(capsys, "reconstruct", there, "--protocol", "fast", "--quiet", "--slabs", "3", "--workers",
+                        "1")
+    assert rc == 0 and "in 3 depth slabs" in out, err
+    assert RunStore.open(there).group["volumes"].attrs["settings"]["warm_start"] is False
 
 
 def test_the_python_api_takes_slabs(one_pair, tmp_path):

@@ -249,8 +249,10 @@ def test_a_frame_hands_over_where_the_rule_says_and_is_unchanged_where_not(two_c
     assert plan.iterations == off.iterations and plan.final_voxels == off.final_voxels
     np.testing.assert_allclose(plan.volume, off.volume, rtol=1e-5, atol=1e-6 * float(off.volume.max()))
     low = FrameReconstructor(proj, protocol_settings("fast", handover_share=0.05, handover_residual=None, **kind))
-    handed = low.reconstruct(img)
+    ticks: list[int] = []
+    handed = low.reconstruct(img, progress=ticks.append)
     assert "left after 20 line-of-sight iterations, above 5%" in handed.handover
+    assert sum(ticks) == low.settings.iterations  # the bar's ticks: the DRT stage's after the first 20, not twice
     assert handed.operator.startswith("line-of-sight weights, then ") and handed.operator != plan.operator
     assert 20 < handed.iterations <= 75 and handed.final_voxels < 0.4 * handed.active_voxels
     q_plan, q_handed = metrics.q_recon(plan.volume, truth), metrics.q_recon(handed.volume, truth)
