@@ -22,8 +22,6 @@ axis, made into each pair's field directly (:func:`lfcore.track.field_of_tracks`
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import re
 import shutil
 import sys
@@ -36,23 +34,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from series_tracks import _cli  # noqa: E402  (the lfpiv command in this process, its output)
+
 from lfcore import metrics  # noqa: E402
 from lfcore.runstore import RunStore  # noqa: E402
 from lfcore.track import TrackSettings, field_of_tracks, pooled_field_of_tracks  # noqa: E402
 from lfcore.volume import VolumeGrid  # noqa: E402
-from lfpiv.cli import main  # noqa: E402
 from lfpiv.jobs.evaluate import evaluate_vector_fields  # noqa: E402
 
 _POOLED = re.compile(r"pooled the tracks .* into (\d+) of the (\d+) pairs' .* per pair \(x, y, z\) ([-\d., ]+) voxel")
-
-
-def _cli(*argv: object) -> str:
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        rc = main([str(a) for a in argv])
-    if rc:
-        sys.exit(f"lfpiv {' '.join(map(str, argv))} failed ({rc})")
-    return out.getvalue()
 
 
 def _per_pair(run: Path) -> tuple[list[float], float, np.ndarray]:
