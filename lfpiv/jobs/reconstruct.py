@@ -673,8 +673,10 @@ def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, plan: Plan
     its = max(settings.iterations, 1)
     # with warm starts, every frame B (after the first pair's, by the last pair's predictor) takes the warm count
     cold_b = 0 if series is None or series.predictor == OWN_PAIR else 1
+    warm_its = its if series is None else max(settings.warm_count, 1)
     total = len(chosen) * 2 * its if series is None else len(chosen) * its + cold_b * its + (
-        len(chosen) - cold_b) * max(settings.warm_count, 1)
+        len(chosen) - cold_b) * warm_its
+    left = total  # the iterations planned for the frames not yet made
     with (WriteBehind() as writer,
           tqdm(total=total, unit="it", disable=not progress, desc="reconstructing", leave=False) as bar):
         for p in chosen:
@@ -691,6 +693,11 @@ def _reconstruct_here(frames: FrameReconstructor | SlabReconstructor, plan: Plan
                 made.append(res)
                 if res.iterations == 0:
                     bar.update(1)
+                # a frame B planned warm that started uniform (no predictor) runs the cold count: the bar grows
+                left -= warm_its if f == 1 and series is not None and (p != chosen[0] or not cold_b) else its
+                if bar.n + left > bar.total:
+                    bar.total = bar.n + left
+                    bar.refresh()
                 bar.set_postfix(_shown(p, [res]))
             if series is not None:
                 series.measured(made, frames.device)

@@ -601,3 +601,31 @@ def test_skip_done_finishes_a_run_by_the_protocol_it_was_begun_with(capsys, synt
     rc, out, err = _run(capsys, "reconstruct", str(run), "--protocol", "fast", "--skip-done", "--pair-range", "0:1",
                         "--quiet")
     assert rc == 0 and "protocol fast: " in out and "going on" not in err and "replaced" in err, out + err
+
+
+def test_a_frame_b_planned_warm_that_starts_uniform_grows_the_progress_bar(capsys, synthetic_run, tmp_path,
+                                                                            monkeypatch):
+    """A frame B whose own pair gives no predictor (a box too thin to correlate) runs the cold count:
+    the progress bar's total grows with it instead of the count running past it."""
+    import lfpiv.jobs.reconstruct as job
+    from lfcore.reconstruct import FrameReconstructor
+
+    def no_predictor(self, voxels, coarse, noise, warm):
+        return None, self.los_operator(voxels) if self.settings.method == "drt-mart" else self.operator(voxels), 0.0
+
+    bars = []
+
+    class Recorded(job.tqdm):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **{**k, "disable": False})
+            bars.append(self)
+
+    monkeypatch.setattr(FrameReconstructor, "_own_predictor", no_predictor)
+    monkeypatch.setattr(job, "tqdm", Recorded)
+    run = tmp_path / "run.zarr"
+    shutil.copytree(synthetic_run, run)
+    rc, out, err = _run(capsys, "reconstruct", str(run), "--protocol", "fixed", "--warm-start", "--iterations", "6",
+                        "--warm-iterations", "2")
+    assert rc == 0, err
+    (bar,) = [b for b in bars if b.desc.startswith("reconstructing")]
+    assert bar.n == 4 * 6 and bar.total == bar.n, (bar.n, bar.total)  # planned 2 x 6 + 2 x 2, ran 4 x 6
