@@ -580,12 +580,14 @@ class WeightBuilder:
             return None  # perhaps not all stored: the two-pass build counts them first
         per_chunk = max(1, SINGLE_PASS_ENTRIES // cap)
         limit = CHUNK_ENTRIES["cpu" if dev == "cpu" else "cuda"]
-        # The chunks packed straight into one array where the sample's mean says they fit it (with a margin):
-        # no copy to join them (:meth:`_joined`), one allocation instead of one per chunk. A chunk that would
-        # pass its end (the guess too low) ends it; the rest then goes as before.
+        # On the CPU the chunks packed straight into one array where the sample's mean says they fit it (with
+        # a margin): no copy to join them (:meth:`_joined`), one allocation instead of one per chunk (the
+        # array's unwritten end is never touched there; a GPU's memory would hold it, and its copies are
+        # cheap). A chunk that would pass its end (the guess too low) ends it; the rest then goes as before.
         guess = int(LOS_PACKED_MARGIN * float(sampled.mean()) * n) + cap
         packed = None
-        if n > per_chunk and guess <= limit and BYTES_PER_WEIGHT * (guess + cap * per_chunk) <= budget:
+        if (dev == "cpu" and n > per_chunk and guess <= limit
+                and BYTES_PER_WEIGHT * (guess + cap * per_chunk) <= budget):
             packed = (wp.empty(guess, dtype=wp.int32, device=dev), wp.empty(guess, dtype=float, device=dev))
         packed_offsets = [np.zeros(1, dtype=np.int64)]
         # the slots of one chunk, kept for the next (their pages touched once)
