@@ -53,6 +53,9 @@ CHUNK_ENTRIES = {"cpu": 1 << 25, "cuda": 1 << 28}
 MERGE_SCRATCH_BYTES = {False: 28, True: 44}
 #: Raw-entry slots per chunk of the single-pass DRT build: small enough to stay in the caches.
 SINGLE_PASS_ENTRIES = 1 << 21
+#: The single-pass line-of-sight build packs its chunks into one array of this many times the entries the
+#: capacity sample's mean gives (:meth:`WeightBuilder._los_single_pass`): a margin for a sample's error.
+LOS_PACKED_MARGIN = 1.1
 #: Voxels whose entries are counted to size the slots of the single-pass build.
 CAPACITY_SAMPLE = 256
 #: What to change when the weights do not fit.
@@ -533,16 +536,29 @@ class WeightBuilder:
                            min_weight=float(min_weight))
         return Weights(voxels=voxels, chunks=chunks, nnz=total, kind=TRACED if method == "drt" else LINE_OF_SIGHT)
 
-    def _slot_capacity(self, voxels, count) -> int:
-        """Entries a single-pass build's slot holds: the most of a sample of ``voxels`` spread over the
-        list (:data:`CAPACITY_SAMPLE`), counted by ``count(sample, counts)`` into (m,) int64 ``counts``,
-        plus a margin."""
+    def _packed_chunk(self, packed, offsets: list[np.ndarray], total: int) -> WeightChunk:
+        """The chunk of the voxels packed so far into ``packed`` ((pix, w) arrays; ``offsets`` their rows'
+        offsets, in pieces), from the first voxel on: views of the first ``total`` entries."""
+        c_off = np.concatenate(offsets)
+        end = max(total, 1)
+        return WeightChunk(first=0, n=c_off.size - 1, offsets=self.wp.array(c_off, device=self.device),
+                           pix=packed[0][:end], w=packed[1][:end], nnz=total)
+
+    def _sample_counts(self, voxels, count) -> np.ndarray:
+        """The entries of a sample of ``voxels`` spread over the list (:data:`CAPACITY_SAMPLE`), counted by
+        ``count(sample, counts)`` into (m,) int64 ``counts``: (m,) int64 on the host."""
         n = int(voxels.shape[0])
         take = np.unique(np.linspace(0, n - 1, min(n, CAPACITY_SAMPLE)).astype(np.int64))
         sample = self.wp.array(voxels.numpy()[take], dtype=self.wp.int32, device=self.device)
         counts = self.wp.zeros(len(take), dtype=self.wp.int64, device=self.device)
         count(sample, counts)
-        return int(1.25 * int(counts.numpy().max())) + 32
+        return counts.numpy()
+
+    def _slot_capacity(self, voxels, count) -> int:
+        """Entries a single-pass build's slot holds: the most of a sample of ``voxels`` spread over the
+        list (:data:`CAPACITY_SAMPLE`), counted by ``count(sample, counts)`` into (m,) int64 ``counts``,
+        plus a margin."""
+        return int(1.25 * int(self._sample_counts(voxels, count).max())) + 32
 
     def _los_single_pass(self, voxels, min_weight: float, budget: int, *, held: bool) -> Weights | None:
         """Line-of-sight weights of ``voxels`` traced once (:func:`~lfcore._kernels.weights.los_weights`
@@ -557,19 +573,33 @@ class WeightBuilder:
         def trace(vox, slots, fill, counts, sums, pix, w):
             self.trace_los(vox, fill, min_weight, counts=counts, sums=sums, offsets=slots, pix=pix, w=w)
 
-        cap = self._slot_capacity(voxels, lambda sample, counts: trace(
+        sampled = self._sample_counts(voxels, lambda sample, counts: trace(
             sample, None, 0, counts, wp.zeros(counts.shape[0], dtype=float, device=dev), None, None))
+        cap = int(1.25 * int(sampled.max())) + 32
         if not held and BYTES_PER_WEIGHT * cap * n + (ON_THE_FLY_BYTES_PER_VOXEL + 28) * n > budget:
             return None  # perhaps not all stored: the two-pass build counts them first
         per_chunk = max(1, SINGLE_PASS_ENTRIES // cap)
+        limit = CHUNK_ENTRIES["cpu" if dev == "cpu" else "cuda"]
+        # On the CPU the chunks packed straight into one array where the sample's mean says they fit it (with
+        # a margin): no copy to join them (:meth:`_joined`), one allocation instead of one per chunk (the
+        # array's unwritten end is never touched there; a GPU's memory would hold it, and its copies are
+        # cheap). A chunk that would pass its end (the guess too low) ends it; the rest then goes as before.
+        guess = int(LOS_PACKED_MARGIN * float(sampled.mean()) * n) + cap
+        packed = None
+        if (dev == "cpu" and n > per_chunk and guess <= limit
+                and BYTES_PER_WEIGHT * (guess + cap * per_chunk) <= budget):
+            packed = (wp.empty(guess, dtype=wp.int32, device=dev), wp.empty(guess, dtype=float, device=dev))
+        packed_offsets = [np.zeros(1, dtype=np.int64)]
+        # the slots of one chunk, kept for the next (their pages touched once)
+        slot_pix = wp.empty(min(n, per_chunk) * cap, dtype=wp.int32, device=dev)
+        slot_w = wp.empty(min(n, per_chunk) * cap, dtype=float, device=dev)
         chunks, group, total = [], [], 0
         for lo in range(0, n, per_chunk):
             hi = min(n, lo + per_chunk)
             m = hi - lo
             vox = voxels[lo:hi]
             slots = wp.array(np.arange(m + 1, dtype=np.int64) * cap, device=dev)
-            pix = wp.empty(m * cap, dtype=wp.int32, device=dev)
-            w_raw = wp.empty(m * cap, dtype=float, device=dev)
+            pix, w_raw = slot_pix[: m * cap], slot_w[: m * cap]
             counts = wp.zeros(m, dtype=wp.int64, device=dev)
             sums = wp.zeros(m, dtype=float, device=dev)
             trace(vox, slots, 4, counts, sums, pix, w_raw)
@@ -579,20 +609,32 @@ class WeightBuilder:
             nnz = int(c_off[-1])
             self._check_budget(total + nnz, n, budget)
             offsets = wp.array(c_off, device=dev)
-            out_pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=dev)
-            out_w = wp.empty(max(nnz, 1), dtype=float, device=dev)
-            if int(cnt.max()) > cap:  # a voxel overflowed its slot: this chunk written again at exact offsets
-                trace(vox, offsets, 1, None, sums, out_pix, out_w)
+            into = packed is not None and total + nnz <= guess
+            if packed is not None and not into:  # the guess was low: what is packed is one chunk
+                group.append(self._packed_chunk(packed, packed_offsets, total))
+                packed = None
+            if into:
+                out_pix, out_w = packed[0][total: total + nnz], packed[1][total: total + nnz]
             else:
+                out_pix = wp.empty(max(nnz, 1), dtype=wp.int32, device=dev)
+                out_w = wp.empty(max(nnz, 1), dtype=float, device=dev)
+            if nnz and int(cnt.max()) > cap:  # a voxel overflowed its slot: this chunk written again at exact offsets
+                trace(vox, offsets, 1, None, sums, out_pix, out_w)
+            elif nnz:
                 launch_rows(kw.pack_line_of_sight, m, [Rows(slots), Rows(counts), Rows(sums), pix, w_raw,
                                                        Rows(offsets), out_pix, out_w], dev)
-            del pix, w_raw
-            chunk = WeightChunk(first=lo, n=m, offsets=offsets, pix=out_pix, w=out_w, nnz=nnz)
             total += nnz
-            if group and sum(c.nnz for c in group) + nnz > CHUNK_ENTRIES["cpu" if dev == "cpu" else "cuda"]:
+            if into:
+                packed_offsets.append(c_off[1:] + (total - nnz))
+                continue
+            chunk = WeightChunk(first=lo, n=m, offsets=offsets, pix=out_pix, w=out_w, nnz=nnz)
+            if group and sum(c.nnz for c in group) + nnz > limit:
                 chunks += self._joined(group, total - nnz, budget)
                 group = []
             group.append(chunk)
+        del slot_pix, slot_w
+        if packed is not None:
+            chunks.append(self._packed_chunk(packed, packed_offsets, total))
         chunks += self._joined(group, total, budget)
         return Weights(voxels=voxels, chunks=chunks, nnz=total, kind=LINE_OF_SIGHT)
 

@@ -496,3 +496,33 @@ def test_line_of_sight_single_pass_gives_the_two_pass_weights_to_the_bit(small_d
     small = proj.weights(ordered, method="los", build="single-pass")
     assert 1 in modes and 4 in modes  # overflowed slots written again at exact offsets
     bitwise(two, small)
+
+
+def test_line_of_sight_chunks_packed_into_one_array_are_the_same_weights(small_dual_rig, device, monkeypatch):
+    """The single-pass line-of-sight build's small chunks packed straight into one array on the CPU (sized
+    from the capacity sample's mean) give the two-pass build's weights to the bit as one chunk, with nothing
+    copied to join them; where that array is too short (a margin below the mean), what it holds is one chunk
+    and the rest are packed and joined as before: the same weights again."""
+    if device != "cpu":
+        pytest.skip("the CPU's build (a GPU's joins its chunks by copies)")
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
+    vox = proj.wp.array(np.arange(0, grid.n_voxels, 3, dtype=np.int32), device=device)
+    two = proj.weights(vox, method="los", build="two-pass")
+    want = two.to_numpy()
+    monkeypatch.setattr(build_module, "SINGLE_PASS_ENTRIES", 20_000)  # many chunks
+    joined = []
+    join = build_module.WeightBuilder._joined
+    monkeypatch.setattr(build_module.WeightBuilder, "_joined",
+                        lambda self, group, *a: joined.append(len(group)) or join(self, group, *a))
+    packed = proj.weights(vox, method="los", build="single-pass")
+    assert len(packed.chunks) == 1 and not any(k > 1 for k in joined)  # no copy made to join them
+    assert packed.nnz == two.nnz and all(np.array_equal(x, y) for x, y in zip(packed.to_numpy(), want, strict=True))
+    monkeypatch.setattr(build_module, "LOS_PACKED_MARGIN", 0.3)  # the array holds about a third of them
+    short = proj.weights(vox, method="los", build="single-pass")
+    assert any(k > 1 for k in joined)  # the chunks after it packed and joined as before
+    assert short.nnz == two.nnz and all(np.array_equal(x, y) for x, y in zip(short.to_numpy(), want, strict=True))
+    # the weights iterate as the two-pass build's
+    e = proj.wp.array(np.linspace(0.5, 2.0, two.n_voxels).astype(np.float32), device=device)
+    for got in (packed, short):
+        assert np.allclose(proj.bind(got).forward(e).numpy(), proj.bind(two).forward(e).numpy(), rtol=1e-6, atol=0)
