@@ -15,7 +15,9 @@ on the pipeline's thread:
    (geometry on the device), the pixel buffers and two volume buffers are built once and reused;
    the elimination is per frame, as the active voxels follow the particles, and a weight cache
    (where the plan has one) keeps the weights of every voxel already traced, so a frame traces
-   only voxels no earlier frame activated; the volumes are scattered and smoothed on the device;
+   only voxels no earlier frame activated (with line-of-sight weights the build traces every
+   voxel a frame can keep, and no frame traces any); the volumes are scattered and smoothed on
+   the device;
 3. 3D multi-grid correlation (one or two passes, no deformation by default) with a
    :class:`~lfcore.correlate.Correlator` whose device buffers are allocated once, reading the
    volumes where they are.
