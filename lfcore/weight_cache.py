@@ -176,12 +176,14 @@ class WeightCache:
         return True
 
     @keyword_options("voxels", since="0.1.0")
-    def prefill(self, *, voxels: np.ndarray | None = None) -> int:
+    def prefill(self, *, voxels: np.ndarray | None = None, whole: bool = False) -> int:
         """Trace ahead of time ``voxels`` (flat indices; default: the whole grid) not yet stored.
 
         Stops at the budget. Returns the number of voxels stored. After the first part, the pool
         grows once to what the rest takes at the first part's weights a voxel (and a little more),
         rather than doubling: a whole grid's rows would otherwise leave up to as much room again.
+        ``whole``: stop after the first part where that estimate passes the budget (rather than
+        tracing until the pool is full: the frames would then find their voxels mostly missing).
         """
         wp = self.wp
         todo = np.arange(self.projector.grid.n_voxels) if voxels is None else np.asarray(voxels, dtype=np.int64)
@@ -196,7 +198,8 @@ class WeightCache:
             stored += part.size
             if lo == 0 and todo.size > part.size:  # room for the rest at once (a miss only leaves the doubling)
                 rest = int(PREFILL_SLACK * built.nnz / max(part.size, 1) * (todo.size - part.size))
-                self._reserve(rest, exact=True)
+                if not self._reserve(rest, exact=True) and whole:
+                    break
         return stored
 
     def weights(self, voxels, *, host: np.ndarray | None = None) -> Weights:

@@ -62,8 +62,12 @@ from lfcore.warm import Predictor, WarmStart
 from realtime.settings import LiveSettings
 from realtime.staging import StagedPair, Staging
 
-__all__ = ["HostVolumeOps", "PairProcessor", "ParticleProcessor", "ProcessedPair", "particle_volume",
-           "tracks_as_field"]
+__all__ = ["PREFILL_MAX_VOXELS", "HostVolumeOps", "PairProcessor", "ParticleProcessor", "ProcessedPair",
+           "particle_volume", "tracks_as_field"]
+
+#: Most voxels whose weights the live build traces ahead (:meth:`_Reconstructor.prefill`): about 30 s
+#: of line-of-sight tracing on two CPU cores (the demo's 389,017 took 7 CPU s).
+PREFILL_MAX_VOXELS = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -176,7 +180,9 @@ class _Reconstructor:
     def prefill(self) -> int:
         """Store in the weight cache the weights of every voxel that any frame's elimination can keep:
         the survivors of an all-lit frame (a lit pixel never drops a voxel, so every frame's survivors
-        are among them), within the cache's budget.
+        are among them); none where they are more than :data:`PREFILL_MAX_VOXELS` (minutes of
+        tracing on a CPU), and no more than the first part where they would not all fit in the cache's
+        budget.
 
         Returns
         -------
@@ -185,7 +191,9 @@ class _Reconstructor:
         """
         assert self.cache is not None
         every = self.frames.eliminate(self.wp.ones(self.projector.n_pixels, dtype=self.wp.uint8, device=self.device))
-        return self.cache.prefill(voxels=every.numpy())
+        if int(every.shape[0]) > PREFILL_MAX_VOXELS:
+            return 0
+        return self.cache.prefill(voxels=every.numpy(), whole=True)
 
     def estimate_background(self, frames: np.ndarray) -> None:
         """Each camera's background level and noise, from frame A of flat host frames."""

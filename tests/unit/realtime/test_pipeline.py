@@ -353,3 +353,23 @@ def test_drt_weights_are_not_prefilled_by_default(tiny_rig) -> None:
     pipe = LivePipeline(tiny_rig, recon=monitoring_recon(method="drt-mart"), device="cpu")
     pipe.build()
     assert pipe._recon.prefilled == 0 and pipe._recon.cache.n_cached == 0
+
+
+def test_the_prefill_stays_within_its_limits(tiny_rig, monkeypatch) -> None:
+    """No prefill where an all-lit frame keeps more voxels than PREFILL_MAX_VOXELS; a budget too small
+    for all of them stops it after its first part (the pairs trace what they need, as without it)."""
+    import realtime.processing as processing
+    from lfcore import weight_cache
+    from realtime.pipeline import monitoring_recon
+
+    recon = monitoring_recon(method="mlos-mart", warm_start=True)
+    monkeypatch.setattr(processing, "PREFILL_MAX_VOXELS", 10)
+    pipe = LivePipeline(tiny_rig, recon=recon, device="cpu")
+    pipe.build()
+    assert pipe._recon.prefilled == 0 == pipe._recon.cache.n_cached
+    rc = pipe._recon
+    every = rc.frames.eliminate(rc.wp.ones(rc.projector.n_pixels, dtype=rc.wp.uint8, device="cpu")).numpy()
+    monkeypatch.setattr(weight_cache, "PREFILL_VOXELS", 1000)
+    small = weight_cache.WeightCache(rc.projector, method="los", budget_bytes=8 * 250 * 3000, checks=0)
+    assert every.size > 3000 and small.prefill(voxels=every, whole=True) == 1000
+    assert small.prefill(voxels=every) < every.size  # without whole: until the pool is full
