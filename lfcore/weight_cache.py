@@ -49,6 +49,9 @@ INITIAL_ENTRIES = 1 << 20
 MAX_ARRAY_ENTRIES = 2**31 - 1
 #: Voxels traced at once by :meth:`WeightCache.prefill` (bounds its scratch memory).
 PREFILL_VOXELS = 1 << 15
+#: Room :meth:`WeightCache.prefill` makes for the voxels after its first part, as a multiple of what
+#: they take at the first part's weights a voxel.
+PREFILL_SLACK = 1.1
 
 
 class WeightCache:
@@ -136,8 +139,9 @@ class WeightCache:
         self._count.fill(0)
         self._used = 0
 
-    def _reserve(self, entries: int) -> bool:
-        """Make room for ``entries`` more weights; False if that would pass the budget."""
+    def _reserve(self, entries: int, *, exact: bool = False) -> bool:
+        """Make room for ``entries`` more weights (the pool doubling, or with ``exact`` growing to just
+        that); False if that would pass the budget."""
         need = self._used + entries
         if BYTES_PER_WEIGHT * need > self.budget_bytes or need > MAX_ARRAY_ENTRIES:
             return False
@@ -145,7 +149,8 @@ class WeightCache:
         if need <= cap:
             return True
         wp = self.wp
-        new_cap = min(max(need, 2 * cap, INITIAL_ENTRIES), self.budget_bytes // BYTES_PER_WEIGHT, MAX_ARRAY_ENTRIES)
+        grown = need if exact else max(need, 2 * cap, INITIAL_ENTRIES)
+        new_cap = min(grown, self.budget_bytes // BYTES_PER_WEIGHT, MAX_ARRAY_ENTRIES)
         pix = wp.empty(new_cap, dtype=wp.int32, device=self.device)
         w = wp.empty(new_cap, dtype=float, device=self.device)
         if self._used:
@@ -171,10 +176,14 @@ class WeightCache:
         return True
 
     @keyword_options("voxels", since="0.1.0")
-    def prefill(self, *, voxels: np.ndarray | None = None) -> int:
+    def prefill(self, *, voxels: np.ndarray | None = None, whole: bool = False) -> int:
         """Trace ahead of time ``voxels`` (flat indices; default: the whole grid) not yet stored.
 
-        Stops at the budget. Returns the number of voxels stored.
+        Stops at the budget. Returns the number of voxels stored. After the first part, the pool
+        grows once to what the rest takes at the first part's weights a voxel (and a little more),
+        rather than doubling: a whole grid's rows would otherwise leave up to as much room again.
+        ``whole``: stop after the first part where that estimate passes the budget (rather than
+        tracing until the pool is full: the frames would then find their voxels mostly missing).
         """
         wp = self.wp
         todo = np.arange(self.projector.grid.n_voxels) if voxels is None else np.asarray(voxels, dtype=np.int64)
@@ -187,6 +196,10 @@ class WeightCache:
             if not self._store(part, built):
                 break
             stored += part.size
+            if lo == 0 and todo.size > part.size:  # room for the rest at once (a miss only leaves the doubling)
+                rest = int(PREFILL_SLACK * built.nnz / max(part.size, 1) * (todo.size - part.size))
+                if not self._reserve(rest, exact=True) and whole:
+                    break
         return stored
 
     def weights(self, voxels, *, host: np.ndarray | None = None) -> Weights:

@@ -242,6 +242,10 @@ class LivePipeline:
     protocol
         The named plan ``recon`` was made from (:data:`realtime.settings.LIVE_PROTOCOLS`), for the
         status line (:attr:`plan`); None: settings of one's own.
+    prefill
+        The voxel route's build traces the weights of every voxel a frame can keep (within the weight
+        cache's budget), so that no pair traces any (:class:`realtime.processing.PairProcessor`); None:
+        where the cache holds line-of-sight weights (MLOS-MART, the fast plan).
 
     Attributes
     ----------
@@ -255,7 +259,7 @@ class LivePipeline:
                  cameras: Sequence[str] | None = None, pvr: Sequence[float] | None = None, device: str | None = None,
                  poll_s: float = 0.005, flats: Mapping[str, FlatField] | None = None, route: str = "voxels",
                  ipr: IprSettings | None = None, tracking: TrackSettings | None = None,
-                 protocol: str | None = None) -> None:
+                 protocol: str | None = None, prefill: bool | None = None) -> None:
         check_live_route(route)
         self.route = route
         self.rig = rig
@@ -280,6 +284,7 @@ class LivePipeline:
         self.ipr = ipr or monitoring_ipr(method=self.recon.method)
         self.tracking = tracking or monitoring_tracking(self.grid.shape)
         self.device_request = device
+        self.prefill = prefill
         self.dt_s = rig.timing.dt_us * 1e-6
         self.poll_s = float(poll_s)
         self._lock = threading.Lock()
@@ -347,7 +352,7 @@ class LivePipeline:
                                               self.device_request, flats=self.flats)
             else:
                 processor = PairProcessor(self.rig, self.cameras, self.grid, self.recon, self.correlation,
-                                          self.device_request, flats=self.flats)
+                                          self.device_request, flats=self.flats, prefill=self.prefill)
             self._staging.build(processor.layout)
             self._processor = processor
 

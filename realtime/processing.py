@@ -15,7 +15,9 @@ on the pipeline's thread:
    (geometry on the device), the pixel buffers and two volume buffers are built once and reused;
    the elimination is per frame, as the active voxels follow the particles, and a weight cache
    (where the plan has one) keeps the weights of every voxel already traced, so a frame traces
-   only voxels no earlier frame activated; the volumes are scattered and smoothed on the device;
+   only voxels no earlier frame activated (with line-of-sight weights the build traces every
+   voxel a frame can keep, and no frame traces any); the volumes are scattered and smoothed on
+   the device;
 3. 3D multi-grid correlation (one or two passes, no deformation by default) with a
    :class:`~lfcore.correlate.Correlator` whose device buffers are allocated once, reading the
    volumes where they are.
@@ -60,8 +62,12 @@ from lfcore.warm import Predictor, WarmStart
 from realtime.settings import LiveSettings
 from realtime.staging import StagedPair, Staging
 
-__all__ = ["HostVolumeOps", "PairProcessor", "ParticleProcessor", "ProcessedPair", "particle_volume",
-           "tracks_as_field"]
+__all__ = ["PREFILL_MAX_VOXELS", "HostVolumeOps", "PairProcessor", "ParticleProcessor", "ProcessedPair",
+           "particle_volume", "tracks_as_field"]
+
+#: Most voxels whose weights the live build traces ahead (:meth:`_Reconstructor.prefill`): about 30 s
+#: of line-of-sight tracing on two CPU cores (the demo's 389,017 took 7 CPU s).
+PREFILL_MAX_VOXELS = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -133,7 +139,8 @@ class _Reconstructor:
     """
 
     def __init__(self, rig: Rig, cameras: Sequence[str], grid: VolumeGrid, recon: ReconSettings,
-                 device: str | None, flats: Mapping[str, FlatField] | None = None) -> None:
+                 device: str | None, flats: Mapping[str, FlatField] | None = None, *,
+                 prefill: bool | None = None) -> None:
         self.cams = [rig.camera_named(n) for n in cameras]
         self.flats = [None if flats is None else flats.get(n) for n in cameras]
         self.recon = recon
@@ -148,6 +155,10 @@ class _Reconstructor:
         # the matrix-free templates built now (kept by the reconstructor), not in the first pair's time;
         # a geometry without them (MatrixFreeUnsupported) or no room for them fails the build
         self.frames.prepare()
+        # the weights of every voxel a frame can keep, traced now rather than in the first pairs' time
+        if prefill is None:
+            prefill = self.cache is not None and self.cache.method == "los"
+        self.prefilled = self.prefill() if prefill and self.cache is not None else 0
         self.offsets = [int(o) for o in p.pixel_offsets]
         self.pre = ImagePreprocessor(self.cams, device=self.device, flats=self.flats)
         self.ops = self.frames.ops
@@ -165,6 +176,24 @@ class _Reconstructor:
         """Camera ``k``'s (rows, columns) view of frame ``f`` of flat (2, n_pixels) host frames."""
         rows, cols = self.cams[k].sensor_px[1], self.cams[k].sensor_px[0]
         return frames[f, self.offsets[k]:self.offsets[k + 1]].reshape(rows, cols)
+
+    def prefill(self) -> int:
+        """Store in the weight cache the weights of every voxel that any frame's elimination can keep:
+        the survivors of an all-lit frame (a lit pixel never drops a voxel, so every frame's survivors
+        are among them); none where they are more than :data:`PREFILL_MAX_VOXELS` (minutes of
+        tracing on a CPU), and no more than the first part where they would not all fit in the cache's
+        budget.
+
+        Returns
+        -------
+        int
+            Voxels stored.
+        """
+        assert self.cache is not None
+        every = self.frames.eliminate(self.wp.ones(self.projector.n_pixels, dtype=self.wp.uint8, device=self.device))
+        if int(every.shape[0]) > PREFILL_MAX_VOXELS:
+            return 0
+        return self.cache.prefill(voxels=every.numpy(), whole=True)
 
     def estimate_background(self, frames: np.ndarray) -> None:
         """Each camera's background level and noise, from frame A of flat host frames."""
@@ -235,6 +264,10 @@ class PairProcessor:
     flats
         Per camera name, the flat field its raw frames are corrected by on the device
         (:class:`lfcore.flatfield.FlatField`; None or a camera left out: uncorrected).
+    prefill
+        Trace the weights of every voxel a frame can keep while building, within the weight
+        cache's budget, so that no pair traces any; None: where the cache holds line-of-sight
+        weights (MLOS-MART: seconds for the demo's box; DRT weights would take minutes).
 
     Attributes
     ----------
@@ -247,11 +280,11 @@ class PairProcessor:
 
     def __init__(self, rig: Rig, cameras: Sequence[str], grid: VolumeGrid, recon: ReconSettings,
                  correlation: CorrelationConfig, device: str | None,
-                 flats: Mapping[str, FlatField] | None = None) -> None:
+                 flats: Mapping[str, FlatField] | None = None, *, prefill: bool | None = None) -> None:
         self.cameras = list(cameras)
         self.grid = grid
         self.dt_s = rig.timing.dt_us * 1e-6
-        self.recon = _Reconstructor(rig, self.cameras, grid, recon, device, flats)
+        self.recon = _Reconstructor(rig, self.cameras, grid, recon, device, flats, prefill=prefill)
         self.correlator = Correlator(grid.shape, config=correlation, device=self.recon.device)
 
     route = "voxels"

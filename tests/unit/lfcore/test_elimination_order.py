@@ -79,3 +79,20 @@ def test_mlos_mart_takes_the_coarse_grid_when_given(two_cameras, monkeypatch):
     q_whole, q_coarse = metrics.q_recon(whole.volume, truth), metrics.q_recon(res.volume, truth)
     assert q_whole > 0.6  # a reconstruction worth comparing
     assert q_coarse >= q_whole - 0.03, (q_coarse, q_whole)
+
+
+def test_a_full_check_table_on_the_cpu_keeps_the_same_voxels(two_cameras, monkeypatch):
+    """With every check's pixels in the table (as the live path's weight cache stores them), the CPU's
+    elimination takes longer turns (``TABLE_PREFILTER_CHECKS``, ``TABLE_ROUND_CHECKS``) and keeps the
+    pinned survivors; so do turns of other lengths."""
+    cams, grid, _, img = two_cameras
+    proj = projector_for(cams, grid, device="cpu")
+    _, lits, _, _ = preprocess_images(proj, img, ReconSettings())
+    assert proj.precompute_checks() > 0 and proj._n_checks == proj.max_checks
+    for turns in ((projector_module.TABLE_PREFILTER_CHECKS, projector_module.TABLE_ROUND_CHECKS), (1, 3), (12, 64)):
+        monkeypatch.setattr(projector_module, "TABLE_PREFILTER_CHECKS", turns[0])
+        monkeypatch.setattr(projector_module, "TABLE_ROUND_CHECKS", turns[1])
+        for max_dark, count, digest in PINNED:
+            kept = _survivors(proj, lits, max_dark)
+            assert kept.size == count
+            assert hashlib.sha1(kept.astype(np.int32).tobytes()).hexdigest()[:12] == digest

@@ -297,3 +297,79 @@ def test_live_warm_start_starts_frame_b_from_a_after_the_first_pair(tiny_rig) ->
     cold, warm = (np.nanmedian(results[w][1].velocity.reshape(-1, 3), axis=0) for w in (False, True))
     assert np.sign(warm[0]) == np.sign(cold[0]) != 0
     np.testing.assert_allclose(warm[:2], cold[:2], rtol=0.35)
+
+
+def test_prefilled_weights_trace_no_pair_and_change_nothing(tiny_rig) -> None:
+    """The fast plan's build traces the line-of-sight weights of every voxel an all-lit frame keeps (a
+    superset of any frame's survivors): two pairs of fresh particles then trace nothing, and give the
+    same volumes and vectors to the bit as the pipeline that traces each pair's new voxels."""
+    from lfcore.particles import particle_count, seed_particles
+    from lfcore.render import LightFieldRenderer
+    from realtime.pipeline import monitoring_recon
+
+    cfg = tiny_rig.render.model_copy(update={"rays_per_particle": 20_000})
+    renderer = LightFieldRenderer(tiny_rig.camera[0], cfg, wavelength_nm=tiny_rig.laser.wavelength_nm, device="cpu")
+    shift = np.array([0.022, 0.011, 0.0])  # mm: (2, 1, 0) voxels
+    frames = []
+    for p in range(2):
+        pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm=0.5), np.random.default_rng(20 + p))
+        frames.append([renderer.frame(pts + f * shift, 50_000.0, seed=2 * p + f) for f in range(2)])
+    results, cached = {}, {}
+    for prefill in (None, False):  # None: the default, prefilled for line-of-sight weights
+        ring = PairRing({"cam0": SHAPE}, slots=4)
+        for p in range(2):
+            for f in range(2):
+                assert ring.put("cam0", p, f, frames[p][f], f, time.time_ns())
+        got = []
+        pipe = LivePipeline(tiny_rig, ring, settings=LiveSettings(iterations=5),
+                            recon=monitoring_recon(method="mlos-mart", warm_start=True), device="cpu", prefill=prefill)
+        pipe.build()
+        rc = pipe._recon
+        built = rc.cache.n_cached
+        assert (built == rc.prefilled > 0) if prefill is None else (built == rc.prefilled == 0)
+        pipe.subscribe(got.append)
+        ring.publish(0)
+        with pipe:
+            assert pipe.wait_processed(1, 60.0)
+            ring.publish(1)
+            assert pipe.wait_processed(2, 60.0), pipe.stats()
+        cached[prefill] = (built, rc.cache.n_cached)
+        results[prefill] = got
+    built, after = cached[None]
+    assert after == built  # no pair traced a voxel
+    assert cached[False][1] > 0 and cached[False][1] <= built  # the traced pipeline's voxels are among them
+    for a, b in zip(results[None], results[False], strict=True):
+        assert a.pair == b.pair and a.warm == b.warm
+        for axis in "zyx":
+            assert np.array_equal(a.mip[axis], b.mip[axis])
+        assert np.array_equal(a.velocity, b.velocity, equal_nan=True)
+
+
+def test_drt_weights_are_not_prefilled_by_default(tiny_rig) -> None:
+    """DRT-MART's traced weights take about ten times as long as line-of-sight ones: the build leaves
+    them to the pairs unless asked."""
+    from realtime.pipeline import monitoring_recon
+
+    pipe = LivePipeline(tiny_rig, recon=monitoring_recon(method="drt-mart"), device="cpu")
+    pipe.build()
+    assert pipe._recon.prefilled == 0 and pipe._recon.cache.n_cached == 0
+
+
+def test_the_prefill_stays_within_its_limits(tiny_rig, monkeypatch) -> None:
+    """No prefill where an all-lit frame keeps more voxels than PREFILL_MAX_VOXELS; a budget too small
+    for all of them stops it after its first part (the pairs trace what they need, as without it)."""
+    import realtime.processing as processing
+    from lfcore import weight_cache
+    from realtime.pipeline import monitoring_recon
+
+    recon = monitoring_recon(method="mlos-mart", warm_start=True)
+    monkeypatch.setattr(processing, "PREFILL_MAX_VOXELS", 10)
+    pipe = LivePipeline(tiny_rig, recon=recon, device="cpu")
+    pipe.build()
+    assert pipe._recon.prefilled == 0 == pipe._recon.cache.n_cached
+    rc = pipe._recon
+    every = rc.frames.eliminate(rc.wp.ones(rc.projector.n_pixels, dtype=rc.wp.uint8, device="cpu")).numpy()
+    monkeypatch.setattr(weight_cache, "PREFILL_VOXELS", 1000)
+    small = weight_cache.WeightCache(rc.projector, method="los", budget_bytes=8 * 250 * 3000, checks=0)
+    assert every.size > 3000 and small.prefill(voxels=every, whole=True) == 1000
+    assert small.prefill(voxels=every) < every.size  # without whole: until the pool is full
