@@ -168,11 +168,9 @@ class VolumeOps:
         radius = (taps.shape[0] - 1) // 2
         # z into tmp, y back into vol, x into tmp, then tmp copied to vol
         src, dst = vol, self._tmp
-        # the CPU a thread per row of x (the same sums, in the same order), a GPU a thread per voxel
-        kernel, rest = ((self._k.convolve_rows, self.shape[1:2]) if d == "cpu"
-                        else (self._k.convolve_axis, self.shape[1:]))
         for axis in (0, 1, 2):
-            launch_rows(kernel, self.shape[0], [src, taps, radius, axis, RowOffset(0), dst], d, rest=rest)
+            launch_rows(self._k.convolve_axis, self.shape[0], [src, taps, radius, axis, RowOffset(0), dst], d,
+                        rest=self.shape[1:])
             src, dst = dst, src
         wp.copy(vol, src)
 

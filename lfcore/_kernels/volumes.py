@@ -54,45 +54,6 @@ def convolve_axis(
 
 
 @wp.kernel
-def convolve_rows(
-    src: wp.array3d(dtype=float),
-    taps: wp.array(dtype=float),
-    radius: int,
-    axis: int,
-    z0: int,
-    dst: wp.array3d(dtype=float),
-):
-    """:func:`convolve_axis` with a thread per (z, y) row of x: the CPU's form (a thread per voxel there
-    costs more in the thread loop than in its five taps). Each voxel's taps are added in the same order
-    as :func:`convolve_axis` adds them, so the two give the same volume. The launch covers planes ``z0 + z``."""
-    z, y = wp.tid()
-    z += z0
-    nx = src.shape[2]
-    if axis == 2:
-        for x in range(nx):
-            acc = float(0.0)
-            for k in range(wp.max(-radius, -x), wp.min(radius, nx - 1 - x) + 1):
-                acc += taps[k + radius] * src[z, y, x + k]
-            dst[z, y, x] = acc
-        return
-    n = src.shape[axis]
-    pos = z
-    if axis == 1:
-        pos = y
-    lo = wp.max(-radius, -pos)
-    hi = wp.min(radius, n - 1 - pos)
-    for x in range(nx):
-        acc = float(0.0)
-        if axis == 0:
-            for k in range(lo, hi + 1):
-                acc += taps[k + radius] * src[z + k, y, x]
-        else:
-            for k in range(lo, hi + 1):
-                acc += taps[k + radius] * src[z, y + k, x]
-        dst[z, y, x] = acc
-
-
-@wp.kernel
 def max_along(
     vol: wp.array3d(dtype=float),
     axis: int,

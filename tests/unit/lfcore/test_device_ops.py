@@ -67,36 +67,6 @@ def test_smoothing_projections_and_slices_equal_numpy(device) -> None:
     assert np.allclose(d.numpy(), ref, rtol=1e-5, atol=1e-7)
 
 
-def test_the_cpus_row_smoothing_equals_the_voxel_kernels_bit_for_bit() -> None:
-    """The CPU's smoothing (a thread per row of x, :func:`lfcore._kernels.volumes.convolve_rows`) adds each
-    voxel's taps as the GPU's kernel (a thread per voxel, ``convolve_axis``) does: the same volume, to the bit,
-    along every axis and at the edges (a sparse volume, as a reconstruction's, and a dense one)."""
-    from lfcore._kernels import volumes as kv
-    from lfcore.device_ops import gaussian_taps
-
-    wp = warp()
-    rng = np.random.default_rng(2)
-    sparse = np.zeros((11, 7, 13), np.float32)
-    sparse.ravel()[rng.choice(sparse.size, 40, replace=False)] = rng.random(40).astype(np.float32)
-    for vol in (sparse, rng.random((6, 9, 5)).astype(np.float32) ** 4):
-        for sigma in (0.6, 1.3):
-            taps = wp.array(gaussian_taps(sigma), dtype=float, device="cpu")
-            radius = (taps.shape[0] - 1) // 2
-            src = wp.array(vol, dtype=float, device="cpu")
-            for axis in (0, 1, 2):
-                by_voxel = wp.empty(vol.shape, dtype=float, device="cpu")
-                by_row = wp.empty(vol.shape, dtype=float, device="cpu")
-                args = [src, taps, radius, axis, 0]
-                wp.launch(kv.convolve_axis, dim=vol.shape, inputs=[*args, by_voxel], device="cpu")
-                wp.launch(kv.convolve_rows, dim=vol.shape[:2], inputs=[*args, by_row], device="cpu")
-                assert np.array_equal(by_row.numpy(), by_voxel.numpy())
-            ops = VolumeOps(vol.shape, device="cpu")
-            d = wp.array(vol, dtype=float, device="cpu")
-            ops.smooth(d, sigma)
-            ref = ndimage.gaussian_filter(vol, sigma, mode="constant", truncate=3.0)
-            assert np.allclose(d.numpy(), ref, rtol=1e-5, atol=1e-7)
-
-
 def test_scatter_keeps_the_volume_on_the_device(tiny_rig, device) -> None:
     grid = VolumeGrid.from_rig(tiny_rig)
     p = LightFieldProjector(tiny_rig.camera, grid, device=device)
