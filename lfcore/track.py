@@ -1012,6 +1012,11 @@ class SeriesSettings:
         by the pattern's translation estimated from the tracks, kept where its own held-out tracks
         say they help (:func:`pooled_field_of_tracks`; ``"fit"`` and ``"divfree"`` fields). 0: each
         pair's own tracks only.
+    bridge_frames
+        Join a track that ends to one that starts up to this many frames later, where its own
+        recent velocity puts it there (:func:`_bridge_gaps`): a particle that reconstruction missed
+        in a frame or two no longer breaks its track in two, and a pair whose particle is missing in
+        frame A or B gets the track's fitted positions there. 0: tracks without gaps.
     """
 
     link_voxels: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -1019,6 +1024,7 @@ class SeriesSettings:
     fit_frames: int = 6
     degree: int = 2
     pool_pairs: int = 0
+    bridge_frames: int = 0
 
     def __post_init__(self) -> None:
         if len(self.link_voxels) != 3 or min(self.link_voxels) <= 0:
@@ -1033,13 +1039,17 @@ class SeriesSettings:
                              f"min_frames {self.min_frames}")
         if self.pool_pairs < 0:
             raise ValueError(f"pool_pairs is how many pairs either side to pool, 0 or more, got {self.pool_pairs}")
+        if self.bridge_frames < 0:
+            raise ValueError(f"bridge_frames is how many missing frames a track may bridge, 0 or more, got "
+                             f"{self.bridge_frames}")
 
     def as_dict(self) -> dict:
-        """The settings as JSON-compatible values (``pool_pairs`` only where pooling: vectors tracked
-        before it existed read as tracked without it)."""
+        """The settings as JSON-compatible values (``pool_pairs`` only where pooling and
+        ``bridge_frames`` only where bridging: vectors tracked before them read as tracked without)."""
         out = {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
-        if not self.pool_pairs:
-            del out["pool_pairs"]
+        for key in ("pool_pairs", "bridge_frames"):
+            if not out[key]:
+                del out[key]
         return out
 
 
@@ -1103,7 +1113,8 @@ def link_series(frames: list[np.ndarray], grid: VolumeGrid, *, settings: TrackSe
     the particle starts a new one. Particles left unlinked start new tracks. Last, each track of
     two frames or more is extended backwards to an unlinked particle of the frame before it, found
     the same way as forwards (the pair tracking leaves some particles of a frame unpaired that a
-    track's own velocity finds).
+    track's own velocity finds). With :attr:`SeriesSettings.bridge_frames`, tracks are then
+    joined across up to that many frames where their particle is missing (:func:`_bridge_gaps`).
 
     Parameters
     ----------
@@ -1175,6 +1186,8 @@ def link_series(frames: list[np.ndarray], grid: VolumeGrid, *, settings: TrackSe
             tracks.append([(f + 1, int(j))])
         on = next_on
     _extend_back(tracks, pts, link_radius)
+    for gap in range(1, ser.bridge_frames + 1):
+        _bridge_gaps(tracks, pts, link_radius, gap)
     tracks = [t for t in tracks if t]
     k = sum(len(t) for t in tracks)
     track = np.empty(k, np.int64)
@@ -1208,6 +1221,43 @@ def _extend_back(tracks: list[list[tuple[int, int]]], pts: list[np.ndarray], rad
         for h, c in zip(ih, ic, strict=True):
             tracks[heads[h]].insert(0, tracks[single[c]][0])
             tracks[single[c]] = []
+
+
+def _line_at(frames: list[int], points: list[np.ndarray], at: float) -> np.ndarray:
+    """Where a straight line fitted (least squares) to ``points`` at ``frames`` puts a track at frame
+    ``at`` (a single point: that point)."""
+    if len(points) < 2:
+        return np.asarray(points[-1], dtype=np.float64)
+    t = np.asarray(frames, dtype=np.float64)
+    p = np.asarray(points, dtype=np.float64)
+    t0 = float(t.mean())
+    slope = np.sum((t - t0)[:, None] * (p - p.mean(axis=0)), axis=0) / float(np.sum((t - t0) ** 2))
+    return p.mean(axis=0) + slope * (at - t0)
+
+
+def _bridge_gaps(tracks: list[list[tuple[int, int]]], pts: list[np.ndarray], radius_mm: np.ndarray, gap: int
+                 ) -> None:
+    """Join tracks across ``gap`` missing frames, in place, frame by frame forwards: a track of two
+    frames or more that ends at frame f takes the track (a single particle included) that starts at
+    frame f + gap + 1 nearest where a straight line through its last three positions puts it then,
+    within ``radius_mm`` times gap + 1 (the line's error grows with the frames bridged). A particle
+    that reconstruction missed in a frame or two (near the cameras' focal planes, or where its image
+    overlaps another's) no longer breaks its track in two. The tracks so taken are emptied."""
+    last = len(pts) - 1
+    for f in range(last - gap):
+        g = f + gap + 1
+        tails = [t for t, m in enumerate(tracks) if len(m) >= 2 and m[-1][0] == f]
+        heads = [t for t, m in enumerate(tracks) if m and m[0][0] == g]
+        if not tails or not heads:
+            continue
+        end = np.array([pts[f][tracks[t][-1][1]] for t in tails])
+        guess = np.array([_line_at([fr for fr, _ in tracks[t][-3:]], [pts[fr][r] for fr, r in tracks[t][-3:]], g)
+                          for t in tails])
+        cand = np.array([pts[g][tracks[t][0][1]] for t in heads])
+        it, ih = pair_nearest(end, cand, guess - end, radius_mm * (gap + 1))
+        for i, j in zip(it, ih, strict=True):
+            tracks[tails[i]].extend(tracks[heads[j]])
+            tracks[heads[j]] = []
 
 
 def _window(frames: np.ndarray, at: float, size: int) -> np.ndarray:
@@ -1263,8 +1313,10 @@ def fit_series(tracks: SeriesTracks, *, series: SeriesSettings | None = None) ->
 def pair_tracks(tracks: SeriesTracks, pair: int, *, series: SeriesSettings | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tracks of a time-resolved series at one pair (frames ``2 pair`` and ``2 pair + 1``):
-    each track of at least :attr:`SeriesSettings.min_frames` frames that holds both frames' particles,
-    its positions at frame A's and frame B's times from a polynomial (:attr:`SeriesSettings.degree`)
+    each track of at least :attr:`SeriesSettings.min_frames` frames whose frames nearest the pair
+    reach from frame A to frame B (without bridged gaps, :attr:`SeriesSettings.bridge_frames`: that
+    holds both frames' particles; with them, one whose particle was missed in frame A or B too), its
+    positions at frame A's and frame B's times from a polynomial (:attr:`SeriesSettings.degree`)
     fitted to its :attr:`SeriesSettings.fit_frames` frames nearest the pair's mid-time. Their
     difference is the displacement over dt at the pair's mid-time (exactly the fitted velocity
     there times dt, for a polynomial of order 2).
@@ -1292,9 +1344,11 @@ def pair_tracks(tracks: SeriesTracks, pair: int, *, series: SeriesSettings | Non
     starts = np.r_[0, np.nonzero(np.diff(tracks.track))[0] + 1, len(tracks.track)] if len(tracks.track) else [0]
     for lo, hi in zip(starts[:-1], starts[1:], strict=True):
         fr = tracks.frame[lo:hi]
-        if hi - lo < ser.min_frames or fa not in fr or fb not in fr:
+        if hi - lo < ser.min_frames:
             continue
         w = _window(fr.astype(np.float64), fa + 0.5, ser.fit_frames)
+        if fr[w].min() > fa or fr[w].max() < fb:  # the fit must reach both frames (bridged gaps inside)
+            continue
         ab = _poly(fr[w].astype(np.float64), tracks.position_mm[lo:hi][w], np.array([fa, fb], np.float64),
                    min(ser.degree, len(w) - 1))
         a_out.append(ab[0])

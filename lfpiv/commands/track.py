@@ -89,6 +89,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "the tracks: a vortex ring travelling at its own speed, a wake carried by a stream), and keep them "
                    "only where the pair's own held-out tracks are predicted better with them (default: 0, each pair's "
                    "own tracks)")
+    c.add_argument("--bridge-frames", type=int, default=None, metavar="N",
+                   help="--along-pairs: join a track that ends to one that starts up to N frames later where its own "
+                   "velocity puts it, so a particle that reconstruction missed in a frame or two keeps its track, "
+                   "and a pair whose particle is missing in frame A or B gets the track's fitted positions there "
+                   "(default: 0, tracks without gaps)")
     c.add_argument("--csv", default=None, metavar="FILE",
                    help="also write every tracked pair's tracks to FILE: pair, frame A's x, y, z and frame B's (mm), "
                    "u, v, w (m/s), outlier")
@@ -109,10 +114,11 @@ def run(args: argparse.Namespace) -> int:
     # the series' options (None where not given: SeriesSettings' defaults) only mean something along the pairs
     given = {k: v for k, v in (("link_voxels", args.link_voxels), ("min_frames", args.min_frames),
                                ("fit_frames", args.fit_frames), ("degree", args.fit_order),
-                               ("pool_pairs", args.pool_pairs)) if v is not None}
+                               ("pool_pairs", args.pool_pairs), ("bridge_frames", args.bridge_frames))
+             if v is not None}
     if given and not args.along_pairs:
         names = {"link_voxels": "--link-voxels", "min_frames": "--min-frames", "fit_frames": "--fit-frames",
-                 "degree": "--fit-order", "pool_pairs": "--pool-pairs"}
+                 "degree": "--fit-order", "pool_pairs": "--pool-pairs", "bridge_frames": "--bridge-frames"}
         raise UsageError(f"{', '.join(names[k] for k in given)} only apply to tracks along a time-resolved series: "
                          "add --along-pairs, or leave them out")
     series = series_settings(**given) if args.along_pairs else None
@@ -138,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
     if done.series_frames and series is not None:
         print(f"linked {done.series_tracks} tracks of at least {series.min_frames} frames through the "
               f"{done.series_frames} frames (mean length {done.series_length:.1f} frames), fitted by polynomials "
-              f"of order {series.degree} in time through {series.fit_frames} frames")
+              f"of order {series.degree} in time through {series.fit_frames} frames"
+              + (f", gaps of up to {series.bridge_frames} missing frame(s) bridged" if series.bridge_frames else ""))
         if done.pool_offered:
             import numpy as np
 

@@ -196,7 +196,7 @@ def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path
     given without --along-pairs they would be ignored, so they are refused (one line, exit 2)."""
     run = _copy(series_run, tmp_path)
     for option, value in (("--link-voxels", "2,2,2"), ("--min-frames", "5"), ("--fit-frames", "4"),
-                          ("--fit-order", "1"), ("--pool-pairs", "1")):
+                          ("--fit-order", "1"), ("--pool-pairs", "1"), ("--bridge-frames", "2")):
         rc, out, err = _run(capsys, "track", run, option, value, "--quiet")
         assert rc == 2 and option in err and "--along-pairs" in err, (option, err)
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1
@@ -206,6 +206,12 @@ def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path
     assert rc == 0, err
     assert "of order 1 in time through 3 frames" in out and "at least 4 frames" in out
     assert RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]["degree"] == 1
+    assert "bridge_frames" not in RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]
+    bridged = _copy(series_run, tmp_path, "b.zarr")
+    rc, out, err = _run(capsys, "track", bridged, "--along-pairs", "--bridge-frames", "2", "--quiet")
+    assert rc == 0, err
+    assert "gaps of up to 2 missing frame(s) bridged" in out, out
+    assert RunStore.open(bridged).vectors()["attrs"]["settings"]["along_pairs"]["bridge_frames"] == 2
 
 
 def test_pooling_the_neighbouring_pairs_tracks(series_run, tmp_path, capsys):

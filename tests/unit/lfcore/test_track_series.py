@@ -122,6 +122,49 @@ def test_short_tracks_are_not_fitted_and_settings_are_checked():
         SeriesSettings(fit_frames=2)
     with pytest.raises(ValueError, match="link_voxels"):
         SeriesSettings(link_voxels=(1.0, 0.0, 1.0))
+    with pytest.raises(ValueError, match="bridge_frames"):
+        SeriesSettings(bridge_frames=-1)
+    assert "bridge_frames" not in SeriesSettings().as_dict()  # vectors tracked before it read the same
+    assert SeriesSettings(bridge_frames=2).as_dict()["bridge_frames"] == 2
+
+
+def _missing(n_frames, n, share, seed):
+    """Which particles each frame misses: ``share`` of them at random, as reconstruction does."""
+    rng = np.random.default_rng(seed)
+    return [rng.random(n) < share for _ in range(n_frames)]
+
+
+def test_bridged_gaps_keep_the_tracks_of_particles_missed_in_a_frame_or_two():
+    # a curved path through 10 frames (0.05 voxel of noise), each frame missing 12% of its particles:
+    # without bridging, a track breaks at every miss and a pair loses each particle missed in A or B
+    n, nf = 250, 10
+    a = _points(n, 11)
+    vel = np.array([1.5, -1.0, 0.4]) * VOXEL
+    acc = np.array([0.08, 0.04, 0.0]) * VOXEL
+    rng = np.random.default_rng(12)
+    true = [a + k * vel + 0.5 * k * k * acc for k in range(nf)]
+    gone = _missing(nf, n, 0.12, 13)
+    frames = [(t + rng.normal(size=t.shape) * 0.05 * VOXEL)[~g] for t, g in zip(true, gone, strict=True)]
+    ids = [np.nonzero(~g)[0] for g in gone]  # each row's true particle
+    settings = TrackSettings(search_voxels=(3.0, 3.0, 1.0))
+    out = {}
+    for bridge in (0, 2):
+        ser = SeriesSettings(bridge_frames=bridge)
+        tracks = fit_series(link_series(frames, GRID, settings=settings, series=ser), series=ser)
+        owner = np.array([ids[f][r] for f, r in zip(tracks.frame, tracks.row, strict=True)])
+        one = [len(set(owner[tracks.track == t])) == 1 for t in range(tracks.n_tracks)]
+        long = tracks.lengths() >= 7
+        out[bridge] = (int(long.sum()), bool(np.all(np.asarray(one)[long])))
+        pa, pb, _ = pair_tracks(tracks, 2, series=ser)
+        exact = vel + 4.5 * acc  # the velocity at pair 2's mid-time, times one frame
+        err = np.sqrt(np.mean((((pb - pa) - exact) / VOXEL) ** 2, axis=0))
+        out[bridge] += (len(pa), err)
+    # bridged: nearly every particle on one track of 7 frames or more, no track jumping particles
+    assert out[2][0] >= 0.9 * n and out[2][1]
+    assert out[0][0] < 0.6 * n  # unbridged: a track breaks at each miss
+    # pair 2's tracks: nearly every particle (those missed in frame A or B too), at the known velocity
+    assert out[2][2] >= 0.95 * n > 0.85 * n >= out[0][2]
+    assert np.all(out[2][3] < 0.05), out[2][3]  # one pair's own two frames: 0.07 voxel of noise
 
 
 def test_the_field_of_fitted_tracks_is_the_known_displacement():
