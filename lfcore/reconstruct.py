@@ -77,6 +77,7 @@ if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to i
     from lfcore.weight_cache import WeightCache
 
 __all__ = ["CAPPED", "COARSE_METHODS", "CONVERGED", "DRT_OPTIONS", "FIXED", "HANDED_OVER", "HANDOVER_RELAXATION",
+           "HANDOVER_STOP_VOXELS", "LOS_STOP_VOXELS",
            "MASKED", "METHODS", "NO_VOXELS", "PROTOCOLS", "PRUNE", "PRUNE_PERCENTILE", "SEVERAL_CAMERAS",
            "SEVERAL_LIGHT_FIELD_CAMERAS", "STOP_REASONS", "STOP_TOLERANCE", "STOP_VOXELS", "WARM_HANDOVER",
            "WARM_LOS_ITERATIONS", "WARM_OWN_ITERATIONS", "WARM_SETTLE", "WARM_SHARE", "WARM_STOP_EVERY", "WEIGHTS",
@@ -173,6 +174,20 @@ HANDOVER_RELAXATION = 1.0
 #: pruning's threshold), so the voxels leaving tell the two apart.
 STOP_TOLERANCE = 0.003
 STOP_VOXELS = 0.02
+#: The stopping rule's share of the voxels leaving in its plan for several light-field cameras
+#: (:data:`SEVERAL_LIGHT_FIELD_CAMERAS`, MLOS-MART at relaxation 2 on line-of-sight weights): their
+#: dim ghosts leave at 3-7% per 10 iterations long after Q has settled, so at :data:`STOP_VOXELS`
+#: the rule never ended a frame before its most (Mc2: 6.9% left between 30 and 40, 3.1% between 60
+#: and 70, Q 0.866 at 40 and 0.869 at 75; S2, still gaining, 12.6% at 40). The margin is thin:
+#: two_cameras_off_focus at 1 PPM, still gaining 0.004 after 70, left 7.5% there (8% stopped it).
+#: After the hand-over to DRT weights the rule takes DRT-MART's :data:`STOP_VOXELS` again
+#: (:data:`HANDOVER_STOP_VOXELS`). Measured against the truth (``benchmarks/RESULTS.md``, eleventh session).
+LOS_STOP_VOXELS = 0.07
+#: The stopping rule's share of the voxels leaving on DRT weights after MLOS-MART's hand-over
+#: (:attr:`ReconSettings.handover_share`), whatever ``stop_voxels`` says: DRT-MART's own, as its
+#: relaxation is (:data:`HANDOVER_RELAXATION`). The hand-over's frames need their iterations (two_cameras:
+#: Q 0.848 after 40 on DRT weights with 5.4% of the voxels leaving in the last 10, 0.857 at the most).
+HANDOVER_STOP_VOXELS = STOP_VOXELS
 #: Line-of-sight iterations on the coarse grid of coarse-to-fine elimination (``ReconSettings.coarse``):
 #: on the Mc crop 20 iterations left bright 23% of the coarse voxels elimination kept, holding 98.8%
 #: of the true particles (``benchmarks/mcfast.py``).
@@ -592,10 +607,14 @@ SEVERAL_CAMERAS: dict[str, dict] = {"fast": {"subsets": 1, "coarse": 1, "iterati
 #: Only two_cameras switches: Q 0.857 against 0.814 (DRT-MART's plan 0.849) in 15.3-18.6 CPU s against
 #: 8.3-9.0 (DRT-MART's 17.5), at 1 PPM 0.728 against 0.693 (0.710) in 49 against 27 s (61 s); every other
 #: frame runs as before, to the same volume.
+#: Since the eleventh session the rule's voxel share is :data:`LOS_STOP_VOXELS` (7% per 10 iterations
+#: instead of 2%, DRT weights after a hand-over keeping 2%): Mc2 stops at 40 (Q 0.866 against 0.869 at 75),
+#: at 3x noise and with a response too at 50 (0.833, 0.720: the same), S2 at 70 (the same Q); the demo,
+#: two_cameras and two_cameras_off_focus run their 75 as before.
 SEVERAL_LIGHT_FIELD_CAMERAS: dict[str, dict] = {
     "fast": {"method": "mlos-mart", "relaxation": 2.0, "iterations": 75, "coarse": 2, "coarse_iterations": 15,
              "los_iterations": 0, "max_dark": 0.0, "lit_hysteresis": 0.5, "handover_share": 0.4,
-             "handover_at": 20, "handover_residual": 0.27},
+             "handover_at": 20, "handover_residual": 0.27, "stop_voxels": LOS_STOP_VOXELS},
 }
 
 #: Options that ask for DRT-MART's weights, so that a rig of several light-field cameras keeps
@@ -1219,7 +1238,7 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
                      split: Callable[[Operator], Operator] | None = None, t0: float | None = None,
                      started: Callable[[float], None] | None = None, prune: float | None = None,
                      warm: bool = False, handover: tuple[int, float, float | None] | None = None,
-                     settle: int = 0) -> Iterated:
+                     settle: int = 0, stop_voxels: float | None = None) -> Iterated:
     """MART's start and iterations on ``op`` in the buffers given: the one loop of
     :meth:`FrameReconstructor.iterate` (in memory) and :class:`lfcore.slabs.SlabReconstructor` (the
     operators of a volume's depth slabs as one, :class:`lfcore.slabs.SlabOperators`).
@@ -1233,7 +1252,7 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
     image, proj, ratio
         (n_pixels,) float32 Warp arrays: the measured signal in counts (:meth:`FrameReconstructor.iterate`),
         the projection's and the log ratios' scratch (``ratio`` None for the sequential form).
-    noise, settings, iterations, relaxation, progress, start, stop_tolerance, prune, warm
+    noise, settings, iterations, relaxation, progress, start, stop_tolerance, prune, warm, stop_voxels
         As :meth:`FrameReconstructor.iterate` takes them.
     split
         Called with the scaled-start operator where ``settings.subsets`` asks for ordered subsets (the
@@ -1297,8 +1316,8 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
         prune_every = WARM_STOP_EVERY
         rule = StoppingRule(tolerance, voxels=math.inf, every=WARM_STOP_EVERY, least=settle)
     else:
-        rule = StoppingRule(tolerance, voxels=s.stop_voxels, every=stop_interval(s, prune=prune > 0,
-                                                                                  subsets=per_pass))
+        rule = StoppingRule(tolerance, voxels=s.stop_voxels if stop_voxels is None else float(stop_voxels),
+                            every=stop_interval(s, prune=prune > 0, subsets=per_pass))
     ran, stopped = its, (CAPPED if rule.on else FIXED)
     for it in range(1, its + 1):
         measure = rule.due(it - 1)  # the stopping rule: on the projection of what it - 1 iterations left
@@ -1651,7 +1670,8 @@ class FrameReconstructor:
             nnz, n_fly, applied, last_kind = op.nnz, op.n_on_the_fly, applied_by(op), op.kind
             op_bytes = max(op_bytes, self.operator_bytes(op))
             done = self.iterate(op, self._image, noises, progress=progress, iterations=max(1, its - first_its),
-                                start=start, prune=cut, relaxation=HANDOVER_RELAXATION)
+                                start=start, prune=cut, relaxation=HANDOVER_RELAXATION,
+                                stop_voxels=HANDOVER_STOP_VOXELS)
             del op, start
             done = done._replace(iterations=done.iterations + first_its)
         if warm is not None:
@@ -1845,7 +1865,7 @@ class FrameReconstructor:
                 relaxation: float | None = None, progress: Callable[[int], None] | None = None,
                 start=None, stop_tolerance: float | None = None, prune: float | None = None,
                 warm: bool = False, handover: tuple[int, float, float | None] | None = None,
-                settle: int = 0) -> Iterated:
+                settle: int = 0, stop_voxels: float | None = None) -> Iterated:
         """MART on ``weights``: a uniform start (or ``start``), then the iterations of ``settings.form``.
 
         The start is uniform (or ``start``), scaled so that its projection carries the measured total
@@ -1875,6 +1895,9 @@ class FrameReconstructor:
             start, :meth:`lfcore.warm.WarmStart.start`), all positive; None: uniform.
         stop_tolerance
             Overrides ``settings.stop_tolerance`` (:class:`StoppingRule`; 0: exactly ``iterations``).
+        stop_voxels
+            Overrides ``settings.stop_voxels`` (the rule's share of the voxels leaving; the DRT weights
+            after MLOS-MART's hand-over take :data:`HANDOVER_STOP_VOXELS`).
         prune
             Overrides ``settings.prune`` (the threshold after coarse-to-fine elimination,
             ``settings.coarse_prune``); None: ``settings.prune``.
@@ -1905,7 +1928,7 @@ class FrameReconstructor:
         return smart_iterations(op, self._e[: max(n, 1)], image, self._proj, self._ratio, noise, s,
                                 iterations=iterations, relaxation=relaxation, progress=progress, start=start,
                                 stop_tolerance=stop_tolerance, split=self._ordered_subsets, t0=t0, prune=prune,
-                                warm=warm, handover=handover, settle=settle)
+                                warm=warm, handover=handover, settle=settle, stop_voxels=stop_voxels)
 
     def _ordered_subsets(self, op: Operator) -> Operator:
         """``op`` split by ``settings.subsets`` pixel subsets (:func:`lfcore.subsets.split`), or

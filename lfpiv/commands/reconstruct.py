@@ -101,7 +101,14 @@ def add_projector(parser: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from lfpiv.jobs.reconstruct import DEFAULT_PROTOCOL, PROTOCOLS, STOP_TOLERANCE, STOP_VOXELS, SUBSET_HALVING
+    from lfpiv.jobs.reconstruct import (
+        DEFAULT_PROTOCOL,
+        LOS_STOP_VOXELS,
+        PROTOCOLS,
+        STOP_TOLERANCE,
+        STOP_VOXELS,
+        SUBSET_HALVING,
+    )
 
     r = sub.add_parser(
         "reconstruct", help="reconstruct 3D particle volumes from a run's light-field images",
@@ -129,7 +136,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "the protocol has none")
     r.add_argument("--stop-tolerance", type=stop_tolerance, default=None, metavar="FRACTION",
                    help="the stopping rule: every 10 iterations, stop once the projections' relative residual fell "
-                   f"by less than this fraction of itself and fewer than {STOP_VOXELS:g} of the voxels left (default: "
+                   f"by less than this fraction of itself and fewer than {STOP_VOXELS:g} of the voxels left "
+                   f"({LOS_STOP_VOXELS:g} in fast's plan for several light-field cameras; default: "
                    f"the protocol's: {STOP_TOLERANCE:g} for fast; 0: a fixed count)")
     r.add_argument("--relaxation", type=positive_float, default=None,
                    help="relaxation mu (default: 1; at most 2 for the simultaneous form; the chapter's "

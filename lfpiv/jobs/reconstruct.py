@@ -29,6 +29,7 @@ from lfcore.plan import default_method as cameras_default_method
 from lfcore.reconstruct import (
     COARSE_ITERATIONS,
     FIXED,
+    LOS_STOP_VOXELS,
     MAX_SUB_APERTURES,
     PROTOCOLS,
     STOP_REASONS,
@@ -50,8 +51,8 @@ from lfpiv.errors import UsageError
 from lfpiv.overlap import WriteBehind
 from lfpiv.pair_runner import recorded_pairs, run_pairs
 
-__all__ = ["BYTES_PER_BOX_VOXEL", "CONVERGENCE_ATTR", "DEFAULT_PROTOCOL", "MAX_SUB_APERTURES", "MAX_SUBSETS",
-           "OPERATOR_ATTR", "PINHOLE_METHODS", "PLAN_ATTR", "PROJECTORS", "PROTOCOLS", "STOP_TOLERANCE",
+__all__ = ["BYTES_PER_BOX_VOXEL", "CONVERGENCE_ATTR", "DEFAULT_PROTOCOL", "LOS_STOP_VOXELS", "MAX_SUB_APERTURES",
+           "MAX_SUBSETS", "OPERATOR_ATTR", "PINHOLE_METHODS", "PLAN_ATTR", "PROJECTORS", "PROTOCOLS", "STOP_TOLERANCE",
            "STOP_VOXELS", "SUBSET_HALVING", "MAX_COARSE", "PairDone", "ReconJob", "ReconResult", "ReconSettings",
            "camera_count", "cameras_kind", "convergence_figures", "default_method", "describe_convergence",
            "iterations_summary", "operator_figures", "plan_words", "protocol_run_settings", "recon_settings",
