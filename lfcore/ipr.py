@@ -228,7 +228,8 @@ class IprSettings:
         rig, fitted from the true positions, the near quarter's (9-13 mm out of focus) RMS error
         falls from 0.21, 0.20, 0.85 to 0.17, 0.17, 0.70 voxel and the far quarter's depth error from
         0.34 to 0.16, and IPR's A1 pair from recall 0.878 and 7.6% ghosts to 0.893 and 5.5%; on the
-        tiny rig focused beyond its box it lost recall (0.919 to 0.892): not the default
+        tiny rig focused beyond its box it lost recall (0.919 to 0.892), on the demo's two-camera
+        ring more (0.905 to 0.772): not the default
         (``benchmarks/RESULTS.md``, eleventh session).
     """
 
