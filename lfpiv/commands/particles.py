@@ -86,6 +86,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="at the end, leave out particles whose position is less sure than V voxels on any axis "
                    "(its standard deviation from the fit): fewer ghosts near a light-field camera's focal plane, "
                    "fewer particles found (0: keep all; default: 0)")
+    c.add_argument("--noise-model", choices=("shot", "flat"), default="flat",
+                   help="how the fit weighs the pixels: shot, each by the inverse of its noise variance, the "
+                   "background's noise plus a share of the particles' light there fitted to the residual (a pixel "
+                   "on a bright particle is noisier than one on a far-out-of-focus particle's thin light); flat, "
+                   "every pixel alike (plain least squares; default: flat)")
     add_device(c)
     add_workers(c, "reconstruct the particles of")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -104,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     options = dict(method=args.method, **quick, candidate_source=args.candidates, shakes=args.shakes,
                    min_intensity=args.min_intensity,
                    merge_voxels=args.merge_voxels, rounds=args.rounds, split_intensity=args.split, model=args.model,
-                   relocate_depth=args.relocate, max_position_std=args.max_std)
+                   relocate_depth=args.relocate, max_position_std=args.max_std, noise_model=args.noise_model)
     ipr_settings(**options)  # bad options are refused before the run is opened
     store = open_run(args.run, mode="r+")
     # the point model's diffraction blur and pinhole particle images are the rig's

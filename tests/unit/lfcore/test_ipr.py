@@ -114,6 +114,78 @@ def test_the_running_median_follows_a_known_profile():
     assert ipr.local_median(np.zeros(0), np.zeros(0), share=0.1).shape == (0,)
 
 
+def test_noise_weights_follow_a_known_noise_of_background_and_signal():
+    # two cameras: background noise 10 and 4 counts, variance per count of signal 5 and 1 (a renderer's rays
+    # of 5 counts each; photon shot noise at a gain of 1): each pixel's weight is 1 / (sigma0^2 + k m),
+    # scaled to 1 on the quieter background
+    rng = np.random.default_rng(7)
+    n = 200_000
+    m = np.concatenate([rng.uniform(0.0, 400.0, n), rng.uniform(0.0, 400.0, n)])
+    m[::4] = 0.0  # unlit pixels: the background alone
+    sigma0 = np.array([10.0, 4.0])
+    k = np.array([5.0, 1.0])
+    var = np.concatenate([sigma0[0] ** 2 + k[0] * m[:n], sigma0[1] ** 2 + k[1] * m[n:]])
+    b = m + rng.normal(size=2 * n) * np.sqrt(var)
+    w = ipr.noise_weights(b, m, sigma0, [n, n])
+    assert np.allclose(w, 16.0 / var, rtol=0.03)
+    # no signal: the background's weight
+    assert np.allclose(ipr.noise_weights(np.zeros(4), np.zeros(4), np.array([3.0]), [4]), 1.0)
+
+
+class _Blobs:
+    """A 1-d toy model for ``ipr._fit``: each particle a Gaussian blob of its own width along x (the
+    z and y columns of the Jacobian are 0)."""
+
+    def __init__(self, widths):
+        self.x = np.arange(120.0)
+        self.widths = np.asarray(widths, dtype=np.float64)
+
+    def unit_images(self, u):
+        from scipy import sparse
+
+        g = np.exp(-0.5 * ((self.x[:, None] - u[None, :, 2]) / self.widths[None]) ** 2)
+        return sparse.csc_matrix(g / g.sum(axis=0))
+
+    def image(self, u, intensity):
+        return self.unit_images(u) @ intensity
+
+    def jacobian(self, u, intensity):
+        from scipy import sparse
+
+        c = self.unit_images(u).toarray()
+        dx = c * (self.x[:, None] - u[None, :, 2]) / self.widths[None] ** 2 * intensity[None]
+        z = np.zeros_like(c)
+        return sparse.csc_matrix(np.stack([c, z, z, dx], axis=2).reshape(len(self.x), -1))
+
+
+def test_a_faint_spread_particle_beside_a_bright_sharp_one_is_fitted_better_weighed_by_its_noise():
+    # a bright sharp particle (in focus) overlapping a faint one spread wide (far out of focus), pixels
+    # noisy by shot noise of 5 counts a count (the renderer's rays) over a background of 10 counts: weighed
+    # by each pixel's noise the faint one's position scatters less than by plain least squares, and no
+    # more than 1.2 times its Cramer-Rao bound
+    model = _Blobs([1.5, 12.0])
+    u0 = np.array([[0.0, 0.0, 60.0], [0.0, 0.0, 66.0]])
+    i0 = np.array([40_000.0, 8_000.0])
+    clean = model.image(u0, i0)
+    var = 100.0 + 5.0 * clean
+    rng = np.random.default_rng(3)
+    err = {"flat": [], "shot": []}
+    for _ in range(150):
+        b = clean + rng.normal(size=clean.size) * np.sqrt(var)
+        for kind in err:
+            u, i = ipr._fit(model, b, u0.copy(), i0.copy(), shakes=12, max_step=0.5)
+            if kind == "shot":
+                w = ipr.noise_weights(b, model.image(u, i), np.array([10.0]), [clean.size])
+                u, i = ipr._fit(model, b, u, i, shakes=12, max_step=0.5, weights=w)
+            err[kind].append(u[1, 2] - u0[1, 2])
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in err.items()}
+    j = model.jacobian(u0, i0).toarray()[:, [0, 3, 4, 7]]  # the two intensities and x positions
+    bound = float(np.sqrt(np.linalg.inv(j.T @ (j / var[:, None]))[3, 3]))
+    print("faint particle's x error RMS", rms, "Cramer-Rao", bound)
+    assert rms["shot"] < 0.8 * rms["flat"]
+    assert rms["shot"] < 1.2 * bound
+
+
 def test_settings_refuse_nonsense():
     with pytest.raises(ValueError, match="threshold"):
         ipr.IprSettings(candidate_threshold=1.0)
@@ -123,6 +195,8 @@ def test_settings_refuse_nonsense():
         ipr.IprSettings(intensity_axis="w")
     with pytest.raises(ValueError, match="intensity_share"):
         ipr.IprSettings(intensity_share=0.0)
+    with pytest.raises(ValueError, match="noise model"):
+        ipr.IprSettings(noise_model="poisson")
 
 
 def test_wrong_image_count_is_refused(setup):

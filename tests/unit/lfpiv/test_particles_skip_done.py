@@ -67,6 +67,13 @@ def test_a_group_written_before_intensity_axis_judged_by_the_frames_median() -> 
     assert not same_settings(meta(intensity_axis="z"), meta(intensity_axis="z", intensity_share=0.3))
 
 
+def test_a_group_written_before_noise_model_was_fitted_by_plain_least_squares() -> None:
+    before = {k: v for k, v in meta().items() if k != "noise_model"}
+    assert same_settings(before, meta(noise_model="flat")) and same_settings(before, meta())  # flat: the default
+    assert not same_settings(before, meta(noise_model="shot"))
+    assert same_settings(meta(noise_model="shot"), meta(noise_model="shot"))
+
+
 def test_the_min_intensity_is_judged_along_an_uneven_sheet_by_default(tiny_rig) -> None:
     from lfpiv.errors import UsageError
     from lfpiv.jobs.particles import intensity_axis
