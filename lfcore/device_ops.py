@@ -154,14 +154,21 @@ class VolumeOps:
         """
         if sigma <= 0:
             return
-        wp, d = self.wp, self.device
         if self._tmp is None:
             self._tmp = self.empty()
-        if d == "cpu":  # the array is host memory: SciPy's filter, about 8x less CPU than the kernels' passes
+        if self.device == "cpu":  # the array is host memory: SciPy's filter, about 8x less CPU than the kernels' passes
             host = vol.numpy()
             ndimage.gaussian_filter(host, float(sigma), mode="constant", truncate=3.0, output=self._tmp.numpy())
             np.copyto(host, self._tmp.numpy())
             return
+        self._smooth_passes(vol, sigma)
+
+    def _smooth_passes(self, vol, sigma: float) -> None:
+        """:meth:`smooth` by three passes of the separable kernel (a GPU's way; any device runs it, so the
+        CPU's tests check the kernels too)."""
+        wp, d = self.wp, self.device
+        if self._tmp is None:
+            self._tmp = self.empty()
         taps = self._taps.get(float(sigma))
         if taps is None:
             taps = self._taps[float(sigma)] = wp.array(gaussian_taps(sigma), dtype=float, device=d)

@@ -619,7 +619,7 @@ def _fit(model: _Model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, *, 
 
 def noise_weights(b: np.ndarray, m: np.ndarray, sigma0: np.ndarray, sizes: Sequence[int]) -> np.ndarray:
     """Each pixel's weight, the inverse of its noise variance ``sigma0^2 + k m``, ``k`` per camera
-    fitted to the residual.
+    fitted to the residual, scaled to 1 on the background of the quietest camera.
 
     Parameters
     ----------
@@ -635,7 +635,8 @@ def noise_weights(b: np.ndarray, m: np.ndarray, sigma0: np.ndarray, sizes: Seque
     Returns
     -------
     numpy.ndarray
-        (pixels,) ``1 / (sigma0^2 + k m)`` with ``k`` the least-squares slope (through the origin,
+        (pixels,) ``min(sigma0)^2 / (sigma0^2 + k m)`` (unscaled where any camera's
+        ``sigma0`` is 0) with ``k`` the least-squares slope (through the origin,
         at least 0) of the squared residual less ``sigma0^2`` against ``m`` over the pixels the
         particles light: photon shot noise is ``k`` = the gain (counts per electron), and a
         renderer's rays each carrying several counts add to it.

@@ -610,8 +610,9 @@ class WeightBuilder:
             self._check_budget(total + nnz, n, budget)
             offsets = wp.array(c_off, device=dev)
             into = packed is not None and total + nnz <= guess
-            if packed is not None and not into:  # the guess was low: what is packed is one chunk
-                group.append(self._packed_chunk(packed, packed_offsets, total))
+            if packed is not None and not into:  # the guess was low: what is packed (if any) is one chunk
+                if len(packed_offsets) > 1:  # voxels packed (their entries perhaps none)
+                    group.append(self._packed_chunk(packed, packed_offsets, total))
                 packed = None
             if into:
                 out_pix, out_w = packed[0][total: total + nnz], packed[1][total: total + nnz]

@@ -180,7 +180,7 @@ class _Reconstructor:
     def prefill(self) -> int:
         """Store in the weight cache the weights of every voxel that any frame's elimination can keep:
         the survivors of an all-lit frame (a lit pixel never drops a voxel, so every frame's survivors
-        are among them); none where they are more than :data:`PREFILL_MAX_VOXELS` (minutes of
+        are among them); none where they are more than :data:`PREFILL_MAX_VOXELS` (over half a minute of
         tracing on a CPU), and no more than the first part where they would not all fit in the cache's
         budget.
 

@@ -526,3 +526,22 @@ def test_line_of_sight_chunks_packed_into_one_array_are_the_same_weights(small_d
     e = proj.wp.array(np.linspace(0.5, 2.0, two.n_voxels).astype(np.float32), device=device)
     for got in (packed, short):
         assert np.allclose(proj.bind(got).forward(e).numpy(), proj.bind(two).forward(e).numpy(), rtol=1e-6, atol=0)
+
+
+def test_a_packed_array_too_short_for_the_first_chunk_leaves_no_empty_chunk(small_dual_rig, device, monkeypatch):
+    """Where the capacity sample's mean puts the packed array below even the first chunk's entries, nothing is
+    packed and the chunks go as before: no chunk of no voxels, the same weights as the two-pass build."""
+    if device != "cpu":
+        pytest.skip("the CPU's build (a GPU's joins its chunks by copies)")
+    grid = VolumeGrid.from_rig(small_dual_rig)
+    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
+    vox = proj.wp.array(np.arange(0, grid.n_voxels, 3, dtype=np.int32), device=device)
+    two = proj.weights(vox, method="los", build="two-pass")
+    monkeypatch.setattr(build_module, "SINGLE_PASS_ENTRIES", 20_000)  # many chunks
+    monkeypatch.setattr(build_module, "LOS_PACKED_MARGIN", 1e-6)  # the array holds one slot's entries
+    # no room to join the chunks (a budget near full): each stays as it was made
+    monkeypatch.setattr(build_module.WeightBuilder, "_joined", lambda self, group, *a: group)
+    got = proj.weights(vox, method="los", build="single-pass")
+    assert all(c.n > 0 for c in got.chunks), [(c.first, c.n) for c in got.chunks]
+    assert got.nnz == two.nnz and all(np.array_equal(x, y) for x, y in zip(got.to_numpy(), two.to_numpy(),
+                                                                           strict=True))
