@@ -184,7 +184,7 @@ STOP_VOXELS = 0.02
 #: (:data:`HANDOVER_STOP_VOXELS`). Measured against the truth (``benchmarks/RESULTS.md``, eleventh session).
 LOS_STOP_VOXELS = 0.07
 #: The stopping rule's share of the voxels leaving on DRT weights after MLOS-MART's hand-over
-#: (:attr:`ReconSettings.handover_share`), whatever ``stop_voxels`` says: DRT-MART's own, as its
+#: (:attr:`ReconSettings.handover_share`), or ``stop_voxels`` where that is stricter: DRT-MART's own, as its
 #: relaxation is (:data:`HANDOVER_RELAXATION`). The hand-over's frames need their iterations (two_cameras:
 #: Q 0.848 after 40 on DRT weights with 5.4% of the voxels leaving in the last 10, 0.857 at the most).
 HANDOVER_STOP_VOXELS = STOP_VOXELS
@@ -1671,7 +1671,7 @@ class FrameReconstructor:
             op_bytes = max(op_bytes, self.operator_bytes(op))
             done = self.iterate(op, self._image, noises, progress=progress, iterations=max(1, its - first_its),
                                 start=start, prune=cut, relaxation=HANDOVER_RELAXATION,
-                                stop_voxels=HANDOVER_STOP_VOXELS)
+                                stop_voxels=min(settings.stop_voxels, HANDOVER_STOP_VOXELS))
             del op, start
             done = done._replace(iterations=done.iterations + first_its)
         if warm is not None:
@@ -1897,7 +1897,7 @@ class FrameReconstructor:
             Overrides ``settings.stop_tolerance`` (:class:`StoppingRule`; 0: exactly ``iterations``).
         stop_voxels
             Overrides ``settings.stop_voxels`` (the rule's share of the voxels leaving; the DRT weights
-            after MLOS-MART's hand-over take :data:`HANDOVER_STOP_VOXELS`).
+            after MLOS-MART's hand-over take at most :data:`HANDOVER_STOP_VOXELS`).
         prune
             Overrides ``settings.prune`` (the threshold after coarse-to-fine elimination,
             ``settings.coarse_prune``); None: ``settings.prune``.
