@@ -231,6 +231,13 @@ class IprSettings:
         tiny rig focused beyond its box it lost recall (0.919 to 0.892), on the demo's two-camera
         ring more (0.905 to 0.772): not the default
         (``benchmarks/RESULTS.md``, eleventh session).
+    noise_floor
+        With ``noise_model`` ``"shot"``: no pixel weighed less than this share of its camera's
+        background (its variance taken as at most ``sigma0^2 / noise_floor``); 0 (the default): no
+        floor, 1: every pixel alike. Where the images differ from the model by more on bright
+        pixels than their noise allows (synthetic images of a few thousand rays a particle), the
+        unfloored weights take a bright particle's core down hundreds of times and the fit leans
+        on its wings (``benchmarks/RESULTS.md``, eleventh session, issue 48).
     """
 
     method: str | None = None
@@ -255,6 +262,7 @@ class IprSettings:
     relocate_depth: int = 4
     max_position_std: float = 0.0
     noise_model: str = "flat"
+    noise_floor: float = 0.0
 
     def __post_init__(self) -> None:
         if self.candidate_iterations < 1 or self.shakes < 0 or self.rounds < 1:
@@ -281,6 +289,9 @@ class IprSettings:
                              f"{self.wavelength_nm}")
         if self.noise_model not in NOISE_MODELS:
             raise ValueError(f"the noise model is one of {', '.join(NOISE_MODELS)}, got {self.noise_model!r}")
+        if not 0.0 <= self.noise_floor <= 1.0:
+            raise ValueError(f"noise_floor is a share of the background's weight, from 0 (none) to 1, got "
+                             f"{self.noise_floor}")
         if self.max_position_std < 0:
             raise ValueError(f"max_position_std is a standard deviation in voxels, 0 (keep all) or more, got "
                              f"{self.max_position_std}")
@@ -617,9 +628,30 @@ def _fit(model: _Model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, *, 
     return u, intensity
 
 
-def noise_weights(b: np.ndarray, m: np.ndarray, sigma0: np.ndarray, sizes: Sequence[int]) -> np.ndarray:
-    """Each pixel's weight, the inverse of its noise variance ``sigma0^2 + k m``, ``k`` per camera
-    fitted to the residual, scaled to 1 on the background of the quietest camera.
+def _variance_slopes(m: np.ndarray, y: np.ndarray, model_error: bool) -> tuple[float, float]:
+    """The non-negative least-squares ``k, e2`` of ``y ~ k m + e2 m^2`` (``e2`` 0 without
+    ``model_error``)."""
+    a = np.stack([m, m * m], axis=1) if model_error else m[:, None]
+    best, best_cost = (0.0, 0.0), float(np.sum(y * y))
+    for cols in ([[0, 1], [0], [1]] if model_error else [[0]]):
+        ac = a[:, cols]
+        coef = np.linalg.lstsq(ac, y, rcond=None)[0]
+        if np.any(coef < 0):
+            continue
+        cost = float(np.sum((y - ac @ coef) ** 2))
+        if cost < best_cost:
+            full = [0.0, 0.0]
+            for c, v in zip(cols, coef, strict=True):
+                full[c] = float(v)
+            best, best_cost = (full[0], full[1]), cost
+    return best
+
+
+def noise_weights(b: np.ndarray, m: np.ndarray, sigma0: np.ndarray, sizes: Sequence[int], *,
+                  model_error: bool = False, floor: float = 0.0) -> np.ndarray:
+    """Each pixel's weight, the inverse of its noise variance ``sigma0^2 + k m`` (and, with
+    ``model_error``, ``+ (e m)^2``), ``k`` (and ``e``) per camera fitted to the residual, scaled to
+    1 on the background of the quietest camera.
 
     Parameters
     ----------
@@ -631,15 +663,23 @@ def noise_weights(b: np.ndarray, m: np.ndarray, sigma0: np.ndarray, sizes: Seque
         (cameras,) each camera's background noise, counts.
     sizes
         Each camera's pixels, in ``b``'s order.
+    model_error
+        Add the model's own error, a share ``e`` of the signal: ``(e m)^2``. A synthetic image
+        rendered from a few thousand rays a particle, or a real one, differs from the model by
+        more on a bright pixel than its shot noise allows; with this term such a pixel is trusted
+        no more than the model's accuracy there.
+    floor
+        No pixel's weight below ``floor`` times its camera's background's (its variance at most
+        ``sigma0^2 / floor``); 0: no floor.
 
     Returns
     -------
     numpy.ndarray
-        (pixels,) ``min(sigma0)^2 / (sigma0^2 + k m)`` (unscaled where any camera's
-        ``sigma0`` is 0) with ``k`` the least-squares slope (through the origin,
-        at least 0) of the squared residual less ``sigma0^2`` against ``m`` over the pixels the
-        particles light: photon shot noise is ``k`` = the gain (counts per electron), and a
-        renderer's rays each carrying several counts add to it.
+        (pixels,) ``1 / (sigma0^2 + k m [+ e^2 m^2])`` with ``k`` (and ``e^2``) the non-negative
+        least-squares fit of the squared residual less ``sigma0^2`` against ``m`` (and ``m^2``)
+        over the pixels the particles light: photon shot noise is ``k`` = the gain (counts per
+        electron), and a renderer's rays each carrying several counts add to it; times
+        ``min(sigma0)^2`` (unscaled where any camera's ``sigma0`` is 0).
     """
     w = np.empty(len(b))
     offs = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
@@ -648,9 +688,12 @@ def noise_weights(b: np.ndarray, m: np.ndarray, sigma0: np.ndarray, sizes: Seque
         mc = np.maximum(np.asarray(m[sl], dtype=np.float64), 0.0)
         v0 = max(float(sigma0[c]) ** 2, 1e-12)
         lit = mc > 0
-        den = float(np.sum(mc[lit] ** 2))
-        k = max(float(np.sum(mc[lit] * ((b[sl][lit] - mc[lit]) ** 2 - v0))) / den, 0.0) if den > 0 else 0.0
-        w[sl] = 1.0 / (v0 + k * mc)
+        k, e2 = (_variance_slopes(mc[lit], (b[sl][lit] - mc[lit]) ** 2 - v0, model_error) if np.any(lit)
+                 else (0.0, 0.0))
+        var = v0 + k * mc + e2 * mc * mc
+        if floor > 0:
+            var = np.minimum(var, v0 / floor)
+        w[sl] = 1.0 / var
     return w * (float(np.min(sigma0)) ** 2 if np.min(sigma0) > 0 else 1.0)  # 1 on the background of the quietest
 
 
@@ -898,7 +941,7 @@ class ParticleReconstructor:
         def weigh(model, u: np.ndarray, intensity: np.ndarray) -> np.ndarray | None:
             if s.noise_model != "shot":
                 return None
-            return noise_weights(b, model.image(u, intensity), np.asarray(sigma0), sizes)
+            return noise_weights(b, model.image(u, intensity), np.asarray(sigma0), sizes, floor=s.noise_floor)
 
         u = np.zeros((0, 3))
         intensity = np.zeros(0)

@@ -91,6 +91,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "background's noise plus a share of the particles' light there fitted to the residual (a pixel "
                    "on a bright particle is noisier than one on a far-out-of-focus particle's thin light); flat, "
                    "every pixel alike (plain least squares; default: flat)")
+    c.add_argument("--noise-floor", type=non_negative_float, default=0.0, metavar="F",
+                   help="with --noise-model shot, weigh no pixel less than F times its camera's background (0 to "
+                   "1; 0: no floor, the default): the images' bright pixels may differ from the model by more "
+                   "than their noise, and unfloored the fit leans on the particles' wings")
     add_device(c)
     add_workers(c, "reconstruct the particles of")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -109,7 +113,8 @@ def run(args: argparse.Namespace) -> int:
     options = dict(method=args.method, **quick, candidate_source=args.candidates, shakes=args.shakes,
                    min_intensity=args.min_intensity,
                    merge_voxels=args.merge_voxels, rounds=args.rounds, split_intensity=args.split, model=args.model,
-                   relocate_depth=args.relocate, max_position_std=args.max_std, noise_model=args.noise_model)
+                   relocate_depth=args.relocate, max_position_std=args.max_std, noise_model=args.noise_model,
+                   noise_floor=args.noise_floor)
     ipr_settings(**options)  # bad options are refused before the run is opened
     store = open_run(args.run, mode="r+")
     # the point model's diffraction blur and pinhole particle images are the rig's

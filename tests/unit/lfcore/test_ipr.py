@@ -132,6 +132,40 @@ def test_noise_weights_follow_a_known_noise_of_background_and_signal():
     assert np.allclose(ipr.noise_weights(np.zeros(4), np.zeros(4), np.array([3.0]), [4]), 1.0)
 
 
+def test_noise_weights_recover_a_known_model_error_and_floor():
+    # two cameras: background noise 10 and 4 counts, shot noise 5 and 1 counts of variance a count, and
+    # the model off by 8% and 3% of the signal (a renderer's few rays a particle): with model_error each
+    # pixel's weight is 1 / (sigma0^2 + k m + (e m)^2), scaled to 1 on the quieter background
+    rng = np.random.default_rng(11)
+    n = 200_000
+    m = np.concatenate([rng.uniform(0.0, 2000.0, n), rng.uniform(0.0, 2000.0, n)])
+    m[::4] = 0.0
+    sigma0 = np.array([10.0, 4.0])
+    k, e = np.array([5.0, 1.0]), np.array([0.08, 0.03])
+    var = np.concatenate([sigma0[c] ** 2 + k[c] * m[c * n:(c + 1) * n] + (e[c] * m[c * n:(c + 1) * n]) ** 2
+                          for c in range(2)])
+    b = m + rng.normal(size=2 * n) * np.sqrt(var)
+    w = ipr.noise_weights(b, m, sigma0, [n, n], model_error=True)
+    assert np.allclose(w, 16.0 / var, rtol=0.05)
+    # without the term the first camera's fitted k takes the model's error in (too high a variance on dim
+    # pixels, too low on the brightest)
+    w_shot = ipr.noise_weights(b, m, sigma0, [n, n])
+    first = np.arange(2 * n) < n
+    dim, bright = first & (m > 50) & (m < 150), first & (m > 1900)
+    assert np.all(w_shot[dim] < 0.8 * 16.0 / var[dim]) and np.all(w_shot[bright] > 1.1 * 16.0 / var[bright])
+    # a floor: no weight below that share of its camera's background's
+    wf = ipr.noise_weights(b, m, sigma0, [n, n], model_error=True, floor=0.1)
+    v0 = np.repeat(sigma0**2, n)
+    assert np.allclose(wf, 16.0 / np.minimum(var, v0 / 0.1), rtol=0.05)
+    assert np.min(wf[:n]) >= 0.1 * 16.0 / 100.0 * (1 - 1e-12)
+    # a floor of 1: every pixel of a camera alike (plain least squares)
+    assert np.allclose(ipr.noise_weights(b[:n], m[:n], sigma0[:1], [n], floor=1.0), 1.0)
+    # no model error in the images: e is fitted near 0 and the weights are shot's
+    var0 = np.concatenate([sigma0[c] ** 2 + k[c] * m[c * n:(c + 1) * n] for c in range(2)])
+    b0 = m + rng.normal(size=2 * n) * np.sqrt(var0)
+    assert np.allclose(ipr.noise_weights(b0, m, sigma0, [n, n], model_error=True), 16.0 / var0, rtol=0.05)
+
+
 class _Blobs:
     """A 1-d toy model for ``ipr._fit``: each particle a Gaussian blob of its own width along x (the
     z and y columns of the Jacobian are 0)."""
@@ -197,6 +231,8 @@ def test_settings_refuse_nonsense():
         ipr.IprSettings(intensity_share=0.0)
     with pytest.raises(ValueError, match="noise model"):
         ipr.IprSettings(noise_model="poisson")
+    with pytest.raises(ValueError, match="noise_floor"):
+        ipr.IprSettings(noise_model="shot", noise_floor=1.5)
 
 
 def test_wrong_image_count_is_refused(setup):

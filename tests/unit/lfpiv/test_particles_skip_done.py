@@ -85,3 +85,9 @@ def test_the_min_intensity_is_judged_along_an_uneven_sheet_by_default(tiny_rig) 
     assert intensity_axis(gaussian) == "y" and intensity_axis(gaussian, "frame") is None
     with pytest.raises(UsageError, match="min-intensity-of"):
         intensity_axis(even, "volume")
+
+
+def test_a_group_written_before_noise_floor_had_no_floor() -> None:
+    before = {k: v for k, v in meta(noise_model="shot").items() if k != "noise_floor"}
+    assert same_settings(before, meta(noise_model="shot", noise_floor=0.0))
+    assert not same_settings(before, meta(noise_model="shot", noise_floor=0.1))
