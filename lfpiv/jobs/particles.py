@@ -101,6 +101,9 @@ def ipr_settings(**options: Any) -> IprSettings:
     if options.get("candidate_source") == "rays" and given:
         raise UsageError(f"{', '.join(QUICK_ONLY[k] for k in given)}: the quick reconstruction's candidates, which "
                          "--candidates rays does not make; leave them out, or choose --candidates reconstruction")
+    if options.get("noise_floor") and options.get("noise_model", "flat") != "shot":
+        raise UsageError("--noise-floor weighs the pixels of --noise-model shot, and the flat model weighs them all "
+                         "alike: add --noise-model shot, or leave --noise-floor out")
     try:
         return IprSettings(**options)
     except ValueError as exc:

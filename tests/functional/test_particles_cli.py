@@ -54,6 +54,10 @@ def test_bad_threshold_is_one_line_exit_2(tmp_path, capsys):
     assert rc == 2
     assert "threshold" in err and "Traceback" not in err
     assert not RunStore.open(run).has_particles
+    # a noise floor without the shot noise model would be ignored: refused instead
+    rc, out, err = _run(capsys, "particles", run, "--noise-floor", "0.1")
+    assert rc == 2 and err.count("\n") == 1 and "--noise-model shot" in err and "Traceback" not in err, err
+    assert not RunStore.open(run).has_particles
 
 
 def test_track_a_uniform_flow_into_vectors(tmp_path, capsys):
