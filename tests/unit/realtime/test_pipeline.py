@@ -261,20 +261,28 @@ def test_the_live_path_runs_only_eliminating_methods(tiny_rig) -> None:
         LivePipeline(tiny_rig, recon=ReconSettings(method="mart"), device="cpu")
 
 
-def test_live_warm_start_starts_frame_b_from_a_after_the_first_pair(tiny_rig) -> None:
-    """With warm starts, the first pair's B starts uniform; a later pair's B from its A carried along
-    the first pair's field, with a fifth of the iterations, still close to the uniform start's volume."""
+def _two_shifted_pairs(tiny_rig, *, seed: int) -> list[list[np.ndarray]]:
+    """Two pairs of fresh particles (0.5 PPM, seeds ``seed`` and ``seed + 1``) on the tiny rig's camera, each
+    frame B moved (2, 1, 0) voxels from its A, rendered with 20,000 rays a particle: [pair][frame] images."""
     from lfcore.particles import particle_count, seed_particles
     from lfcore.render import LightFieldRenderer
-    from realtime.pipeline import monitoring_recon
 
     cfg = tiny_rig.render.model_copy(update={"rays_per_particle": 20_000})
     renderer = LightFieldRenderer(tiny_rig.camera[0], cfg, wavelength_nm=tiny_rig.laser.wavelength_nm, device="cpu")
     shift = np.array([0.022, 0.011, 0.0])  # mm: (2, 1, 0) voxels
     frames = []
     for p in range(2):
-        pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm=0.5), np.random.default_rng(10 + p))
+        pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm=0.5), np.random.default_rng(seed + p))
         frames.append([renderer.frame(pts + f * shift, 50_000.0, seed=2 * p + f) for f in range(2)])
+    return frames
+
+
+def test_live_warm_start_starts_frame_b_from_a_after_the_first_pair(tiny_rig) -> None:
+    """With warm starts, the first pair's B starts uniform; a later pair's B from its A carried along
+    the first pair's field, with a fifth of the iterations, still close to the uniform start's volume."""
+    from realtime.pipeline import monitoring_recon
+
+    frames = _two_shifted_pairs(tiny_rig, seed=10)
     results = {}
     for warm in (False, True):
         ring = PairRing({"cam0": SHAPE}, slots=4)
@@ -303,17 +311,9 @@ def test_prefilled_weights_trace_no_pair_and_change_nothing(tiny_rig) -> None:
     """The fast plan's build traces the line-of-sight weights of every voxel an all-lit frame keeps (a
     superset of any frame's survivors): two pairs of fresh particles then trace nothing, and give the
     same volumes and vectors to the bit as the pipeline that traces each pair's new voxels."""
-    from lfcore.particles import particle_count, seed_particles
-    from lfcore.render import LightFieldRenderer
     from realtime.pipeline import monitoring_recon
 
-    cfg = tiny_rig.render.model_copy(update={"rays_per_particle": 20_000})
-    renderer = LightFieldRenderer(tiny_rig.camera[0], cfg, wavelength_nm=tiny_rig.laser.wavelength_nm, device="cpu")
-    shift = np.array([0.022, 0.011, 0.0])  # mm: (2, 1, 0) voxels
-    frames = []
-    for p in range(2):
-        pts = seed_particles(tiny_rig.volume, particle_count(tiny_rig, ppm=0.5), np.random.default_rng(20 + p))
-        frames.append([renderer.frame(pts + f * shift, 50_000.0, seed=2 * p + f) for f in range(2)])
+    frames = _two_shifted_pairs(tiny_rig, seed=20)
     results, cached = {}, {}
     for prefill in (None, False):  # None: the default, prefilled for line-of-sight weights
         ring = PairRing({"cam0": SHAPE}, slots=4)
