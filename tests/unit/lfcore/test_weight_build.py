@@ -498,17 +498,24 @@ def test_line_of_sight_single_pass_gives_the_two_pass_weights_to_the_bit(small_d
     bitwise(two, small)
 
 
+def _every_third_voxels_two_pass(rig, device: str):
+    """The CPU's packed-build tests' start: the rig's projector, every third voxel of its box, and their
+    line-of-sight weights by the two-pass build (the reference); skipped on a GPU, whose build joins its
+    chunks by copies."""
+    if device != "cpu":
+        pytest.skip("the CPU's build (a GPU's joins its chunks by copies)")
+    grid = VolumeGrid.from_rig(rig)
+    proj = LightFieldProjector(rig.camera, grid, device=device)
+    vox = proj.wp.array(np.arange(0, grid.n_voxels, 3, dtype=np.int32), device=device)
+    return proj, vox, proj.weights(vox, method="los", build="two-pass")
+
+
 def test_line_of_sight_chunks_packed_into_one_array_are_the_same_weights(small_dual_rig, device, monkeypatch):
     """The single-pass line-of-sight build's small chunks packed straight into one array on the CPU (sized
     from the capacity sample's mean) give the two-pass build's weights to the bit as one chunk, with nothing
     copied to join them; where that array is too short (a margin below the mean), what it holds is one chunk
     and the rest are packed and joined as before: the same weights again."""
-    if device != "cpu":
-        pytest.skip("the CPU's build (a GPU's joins its chunks by copies)")
-    grid = VolumeGrid.from_rig(small_dual_rig)
-    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
-    vox = proj.wp.array(np.arange(0, grid.n_voxels, 3, dtype=np.int32), device=device)
-    two = proj.weights(vox, method="los", build="two-pass")
+    proj, vox, two = _every_third_voxels_two_pass(small_dual_rig, device)
     want = two.to_numpy()
     monkeypatch.setattr(build_module, "SINGLE_PASS_ENTRIES", 20_000)  # many chunks
     joined = []
@@ -531,12 +538,7 @@ def test_line_of_sight_chunks_packed_into_one_array_are_the_same_weights(small_d
 def test_a_packed_array_too_short_for_the_first_chunk_leaves_no_empty_chunk(small_dual_rig, device, monkeypatch):
     """Where the capacity sample's mean puts the packed array below even the first chunk's entries, nothing is
     packed and the chunks go as before: no chunk of no voxels, the same weights as the two-pass build."""
-    if device != "cpu":
-        pytest.skip("the CPU's build (a GPU's joins its chunks by copies)")
-    grid = VolumeGrid.from_rig(small_dual_rig)
-    proj = LightFieldProjector(small_dual_rig.camera, grid, device=device)
-    vox = proj.wp.array(np.arange(0, grid.n_voxels, 3, dtype=np.int32), device=device)
-    two = proj.weights(vox, method="los", build="two-pass")
+    proj, vox, two = _every_third_voxels_two_pass(small_dual_rig, device)
     monkeypatch.setattr(build_module, "SINGLE_PASS_ENTRIES", 20_000)  # many chunks
     monkeypatch.setattr(build_module, "LOS_PACKED_MARGIN", 1e-6)  # the array holds one slot's entries
     # no room to join the chunks (a budget near full): each stays as it was made
