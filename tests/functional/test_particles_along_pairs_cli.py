@@ -93,3 +93,15 @@ def test_along_pairs_refusals(series_run, tmp_path, capsys):
     rc, out, err = _run(capsys, "particles", flat, "--along-pairs", *FAST)
     assert rc == 2 and "time-resolved" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not RunStore.open(flat).has_particles
+
+
+def test_the_python_api_refuses_unknown_along_pairs_settings(series_run, tmp_path):
+    import lfpiv
+    from lfpiv.errors import UsageError
+
+    run = _copy(series_run, tmp_path)
+    with pytest.raises(UsageError, match="search_voxels and link_voxels"):
+        lfpiv.particles(run, along_pairs={"link": (1, 1, 1)}, progress=False)
+    with pytest.raises(UsageError, match="link_voxels"):
+        lfpiv.particles(run, along_pairs={"link_voxels": (0, 1, 1)}, progress=False)
+    assert not RunStore.open(run).has_particles
