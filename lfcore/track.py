@@ -64,10 +64,11 @@ if TYPE_CHECKING:
 
 __all__ = ["DIVFREE_BLOCK_TRACKS", "DIVFREE_GLOBAL_TRACKS", "DIVFREE_SMOOTHING", "DIVFREE_WEIGHTS", "FIELDS",
            "FIT_BLOCK_MARGIN", "FIT_BLOCK_TRACKS", "FIT_CV_BLOCKS", "FIT_GLOBAL_TRACKS", "FIT_SMOOTHING",
-           "MAX_CROWDING", "POOL_FOLDS", "FitChoice", "PoolChoice", "SeriesSettings", "SeriesTracks", "TrackResult",
-           "TrackSettings", "bin_tracks", "field_of_tracks", "field_predictor", "fit_series", "fit_tracks",
-           "link_series", "pair_nearest", "pair_tracks", "pattern_shift", "pooled_field_of_tracks", "predict_at",
-           "reject_outliers", "search_crowding", "smooth_tracks", "track_pair"]
+           "MAX_CROWDING", "POOL_FOLDS", "FitChoice", "PoolChoice", "SeriesSettings",
+           "SeriesTracks", "TrackResult", "TrackSettings", "bin_tracks", "field_of_tracks", "field_predictor",
+           "fit_series", "fit_tracks", "link_series", "pair_nearest", "pair_tracks", "pattern_shift",
+           "pooled_field_of_tracks", "predict_at", "predict_series", "reject_outliers", "search_crowding",
+           "smooth_tracks", "track_pair"]
 
 #: How the field is made from the tracks (:attr:`TrackSettings.field`).
 FIELDS = ("bins", "smooth", "fit", "divfree")
@@ -1357,6 +1358,72 @@ def pair_tracks(tracks: SeriesTracks, pair: int, *, series: SeriesSettings | Non
     a = np.asarray(a_out, dtype=np.float64).reshape(-1, 3)
     b = np.asarray(b_out, dtype=np.float64).reshape(-1, 3)
     return a, b, np.asarray(ids, np.int64)
+
+
+def predict_series(tracks: SeriesTracks, frame: int, *, series: SeriesSettings | None = None, missed: int = 1,
+                   neighbours: int = 8) -> np.ndarray:
+    """Where the tracks so far put their particles in the next frame (Shake-the-Box's prediction):
+    the candidates that :meth:`lfcore.ipr.ParticleReconstructor.reconstruct` fits first in frame
+    ``frame + 1``, beside the quick reconstruction's peaks.
+
+    Each track of two frames or more whose last particle is in ``frame`` (or, for a track of three
+    frames or more, up to ``missed`` frames before it: a particle the reconstruction missed in a
+    frame stays predicted) is carried on by a polynomial in time through its last
+    :data:`PREDICT_FRAMES` positions: of :attr:`SeriesSettings.degree` (Shake-the-Box's 2:
+    a curved path followed) through four positions or more, a straight line (least squares)
+    through three, the last displacement through two. Each particle of ``frame`` on no such track
+    (one found in this frame only, or a track's start) is carried on by the displacement of the
+    ``neighbours`` tracks nearest it over their last frame (:func:`_predict`'s local linear fit;
+    none without tracks).
+
+    Parameters
+    ----------
+    tracks
+        The tracks through frames 0 .. ``frame`` (:func:`link_series`), positions (x, y, z) in mm.
+    frame
+        The last frame linked.
+    series
+        The polynomial's order (``degree``) and the positions it goes through (``fit_frames``).
+    missed
+        How many frames at most a track's particle may have been missed before ``frame`` and it is
+        still predicted (0: only tracks with a particle in ``frame``).
+    neighbours
+        The tracks that predict each lone particle's displacement.
+
+    Returns
+    -------
+    numpy.ndarray
+        (m, 3) predicted positions (x, y, z) in frame ``frame + 1``, mm.
+    """
+    ser = series or SeriesSettings()
+    if not len(tracks.track):
+        return np.zeros((0, 3))
+    out: list[np.ndarray] = []
+    lone: list[np.ndarray] = []
+    mids: list[np.ndarray] = []  # the tracks' last steps: midpoints and displacements over a frame
+    steps: list[np.ndarray] = []
+    starts = np.r_[0, np.nonzero(np.diff(tracks.track))[0] + 1, len(tracks.track)]
+    for lo, hi in zip(starts[:-1], starts[1:], strict=True):
+        fr = tracks.frame[lo:hi].astype(np.float64)
+        pos = tracks.position_mm[lo:hi]
+        last = int(tracks.frame[hi - 1])
+        n = hi - lo
+        if n == 1:
+            if last == frame:
+                lone.append(pos[0])
+            continue
+        if last != frame and not (n >= 3 and frame - missed <= last < frame):
+            continue
+        k = min(n, ser.fit_frames)
+        degree = 1 if k < 4 else min(ser.degree, k - 1)
+        out.append(_poly(fr[-k:], pos[-k:], np.array([frame + 1.0]), degree)[0])
+        if last == frame and fr[-2] == frame - 1:
+            mids.append(0.5 * (pos[-1] + pos[-2]))
+            steps.append(pos[-1] - pos[-2])
+    if lone and mids:
+        at = np.asarray(lone)
+        out.extend(at + _predict(np.asarray(mids), np.asarray(steps), at, neighbours=neighbours))
+    return np.asarray(out, dtype=np.float64).reshape(-1, 3)
 
 
 # --- tracks pooled from neighbouring pairs of a series (a pattern carried by the flow) -----------

@@ -220,7 +220,8 @@ def correlate(run: str | os.PathLike[str] | RunStore, *,
 
 def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, cameras: Sequence[str] | None = None,
               device: str | None = None, workers: int | None = None, scheduler: str | None = None,
-              skip_done: bool = False, progress: bool = True, **options: Any) -> Any:
+              skip_done: bool = False, progress: bool = True, along_pairs: bool | dict[str, Any] | None = False,
+              **options: Any) -> Any:
     """Reconstruct every frame's particles of the selected pairs into the run's ``particles/`` by
     iterative particle reconstruction (``lfpiv particles``).
 
@@ -234,6 +235,11 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
         Camera names to use (None: all).
     device, workers, scheduler, skip_done, progress
         As the command's ``--device``, ``--workers``, ``--scheduler``, ``--skip-done`` and its progress bar.
+    along_pairs
+        A time-resolved run's frames in time order, each predicted by the tracks through the frames
+        before it (``lfpiv particles --along-pairs``): True with the defaults, or a dict of
+        :class:`lfpiv.jobs.particles.AlongPairs` fields (``search_voxels``, ``link_voxels``); False
+        or None: every frame on its own.
     **options
         :class:`lfcore.ipr.IprSettings` fields (``method``, ``candidate_iterations``, ``shakes``,
         ``min_intensity``, ``merge_voxels``, ``rounds``, ...).
@@ -244,8 +250,15 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
         The pairs done, particles and candidates per frame, seconds per frame.
     """
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.particles import intensity_axis, ipr_settings, particles_run
+    from lfpiv.jobs.particles import AlongPairs, intensity_axis, ipr_settings, particles_run
 
+    along = None
+    if along_pairs is not False and along_pairs is not None:
+        given = along_pairs if isinstance(along_pairs, dict) else {}
+        try:
+            along = AlongPairs(**{k: tuple(v) for k, v in given.items()})
+        except TypeError as exc:
+            raise UsageError(f"along_pairs takes search_voxels and link_voxels: {exc}") from None
     store = open_run(run, mode="r+")
     # as the command: the point model's diffraction blur and spot size, and the axis along which the
     # faint are judged (the laser sheet's, where it lights the box unevenly), are the rig's unless given
@@ -255,7 +268,7 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
     settings = ipr_settings(**options)
     with dask_client(workers, scheduler) as client:
         return particles_run(store, settings, _pairs(pairs), cameras=cameras, device=device, progress=progress,
-                             skip_done=skip_done, option="pairs", client=client)
+                             skip_done=skip_done, option="pairs", client=client, along_pairs=along)
 
 
 def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, skip_done: bool = False,

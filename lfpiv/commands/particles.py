@@ -18,7 +18,9 @@ from lfpiv.commands import (
     positive_int,
     whole_number,
     workers_phrase,
+    xyz_triple,
 )
+from lfpiv.errors import UsageError
 
 
 def shakes(text: str) -> int:
@@ -95,6 +97,20 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --noise-model shot, weigh no pixel less than F times its camera's background (0 to "
                    "1; 0: no floor, the default): the images' bright pixels may differ from the model by more "
                    "than their noise, and unfloored the fit leans on the particles' wings")
+    c.add_argument("--along-pairs", action="store_true",
+                   help="a time-resolved run (every frame dt after the one before, as 'lfpiv synth --time-resolved' "
+                   "makes): reconstruct the frames in time order, and fit first in each frame the positions where "
+                   "the tracks through the frames before it put their particles (Shake-the-Box's prediction: each "
+                   "track carried on by a polynomial through its last positions, a particle on no track by its "
+                   "neighbouring tracks' displacement), beside the quick reconstruction's peaks; a prediction with "
+                   "no particle fades away. It finds fast particles the peaks miss; one process, frame after frame "
+                   "(not with --workers or --scheduler); without it every frame is reconstructed on its own")
+    c.add_argument("--search-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
+                   help="--along-pairs: the pair tracking's first search radius that starts the tracks, as 'lfpiv "
+                   "track --search-voxels' (default: 4,4,2)")
+    c.add_argument("--link-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
+                   help="--along-pairs: the search radius around where a track's own velocity puts it in the next "
+                   "frame, as 'lfpiv track --link-voxels' (default: 1,1,1)")
     add_device(c)
     add_workers(c, "reconstruct the particles of")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -103,8 +119,18 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.particles import intensity_axis, ipr_settings, particles_run
+    from lfpiv.jobs.particles import AlongPairs, intensity_axis, ipr_settings, particles_run
     from lfpiv.runs import open_run
+
+    given = {k: v for k, v in (("search_voxels", args.search_voxels), ("link_voxels", args.link_voxels))
+             if v is not None}
+    if given and not args.along_pairs:
+        raise UsageError(f"{', '.join('--' + k.replace('_', '-') for k in given)} only apply to the tracks that "
+                         "predict a time-resolved run's particles: add --along-pairs, or leave them out")
+    if args.along_pairs and (args.workers or args.scheduler):  # before any worker starts
+        raise UsageError("--along-pairs reconstructs the frames in time order, each predicted from the ones before: "
+                         "leave out --workers and --scheduler")
+    along = AlongPairs(**given) if args.along_pairs else None
 
     # the quick reconstruction's own options where given (ipr_settings refuses them with ray bundling)
     quick = {k: v for k, v in (("candidate_iterations", args.candidate_iterations),
@@ -124,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     with dask_client(args.workers, args.scheduler) as client:
         done = particles_run(store, settings, args.pairs, cameras=args.cameras, device=args.device,
                              progress=not args.quiet, skip_done=args.skip_done, option=pairs_option(args),
-                             client=client)
+                             client=client, along_pairs=along)
     if not done.pairs:
         print(f"every selected pair of {store.path} has its particles with these settings already; nothing to do")
         old_spelling_notes(args)
@@ -134,6 +160,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {store.path}/particles: {len(done.pairs)} pair(s), {n} particles in {len(done.counts)} frame(s) "
           f"({n / len(done.counts):.0f} a frame, from {sum(done.candidates)} candidates); {secs:.1f} s on "
           f"{done.device} ({secs / len(done.counts):.2f} s a frame){workers_phrase(args)}")
+    if along is not None:
+        print(f"along the pairs: {sum(done.predicted)} positions predicted by the tracks so far "
+              f"({sum(done.predicted) / len(done.counts):.0f} a frame) fitted first")
     if args.max_std > 0:
         print(f"left out as unsure (--max-std {args.max_std:g} voxel): {sum(done.unsure)} particles "
               f"({sum(done.unsure) / max(n + sum(done.unsure), 1):.1%} of those fitted)")

@@ -15,13 +15,14 @@ from lfcore.device import MemoryBudgetError
 from lfcore.ipr import IprSettings, ParticleReconstructor, ParticleResult
 from lfcore.plan import projector_for, unsupported_method
 from lfcore.rig import Rig
-from lfcore.runstore import RunStore
+from lfcore.runstore import RunStore, is_time_resolved
+from lfcore.track import SeriesSettings, TrackSettings, link_series, predict_series
 from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError
 from lfpiv.pair_runner import recorded_pairs, run_pairs
 
-__all__ = ["INTENSITY_REFERENCES", "IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "intensity_axis",
-           "ipr_settings", "particles_pair_task", "particles_run", "same_settings"]
+__all__ = ["INTENSITY_REFERENCES", "AlongPairs", "IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob",
+           "intensity_axis", "ipr_settings", "particles_pair_task", "particles_run", "same_settings"]
 
 
 #: Settings added to :class:`lfcore.ipr.IprSettings` after ``particles/`` was first written, at the
@@ -110,6 +111,47 @@ def ipr_settings(**options: Any) -> IprSettings:
         raise UsageError(str(exc)) from None
 
 
+@dataclass(frozen=True)
+class AlongPairs:
+    """``lfpiv particles --along-pairs``: a time-resolved run's frames reconstructed in time order,
+    each frame's first candidates predicted by the tracks through the frames before it
+    (Shake-the-Box's prediction, :func:`lfcore.track.predict_series`).
+
+    Attributes
+    ----------
+    search_voxels
+        The pair tracking's first search (x, y, z), voxels, that starts the tracks
+        (:attr:`lfcore.track.TrackSettings.search_voxels`, ``lfpiv track --search-voxels``).
+    link_voxels
+        The search around where a track's own velocity puts it in the next frame
+        (:attr:`lfcore.track.SeriesSettings.link_voxels`, ``lfpiv track --link-voxels``).
+    """
+
+    search_voxels: tuple[float, float, float] = TrackSettings().search_voxels
+    link_voxels: tuple[float, float, float] = SeriesSettings().link_voxels
+
+    def __post_init__(self) -> None:
+        try:  # the tracking's own checks
+            TrackSettings(search_voxels=self.search_voxels)
+            SeriesSettings(link_voxels=self.link_voxels)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+
+    def as_dict(self) -> dict[str, Any]:
+        """The settings as JSON-compatible values (recorded in ``particles/``' settings)."""
+        return {"search_voxels": [float(v) for v in self.search_voxels],
+                "link_voxels": [float(v) for v in self.link_voxels]}
+
+    def predict(self, frames: list[np.ndarray], grid: VolumeGrid) -> np.ndarray:
+        """The (m, 3) positions (x, y, z), mm, the tracks through ``frames`` (each frame's (n, 3)
+        particles, mm, in time order) predict in the frame after the last; none before two frames."""
+        if len(frames) < 2:
+            return np.zeros((0, 3))
+        tracks = link_series(frames, grid, settings=TrackSettings(search_voxels=self.search_voxels),
+                             series=SeriesSettings(link_voxels=self.link_voxels))
+        return predict_series(tracks, len(frames) - 1)
+
+
 @dataclass
 class ParticlesDone:
     """What :func:`particles_run` did.
@@ -126,6 +168,8 @@ class ParticlesDone:
         Wall time of each frame.
     unsure
         Particles per frame left out as unsure (:attr:`lfcore.ipr.IprSettings.max_position_std`).
+    predicted
+        Positions per frame the tracks so far predicted (``--along-pairs``; 0 otherwise).
     device
         The Warp device.
     """
@@ -135,6 +179,7 @@ class ParticlesDone:
     candidates: list[int] = field(default_factory=list)
     seconds: list[float] = field(default_factory=list)
     unsure: list[int] = field(default_factory=list)
+    predicted: list[int] = field(default_factory=list)
     device: str = "cpu"
 
 
@@ -161,14 +206,14 @@ class PairParticles:
     unsure: list[int] = field(default_factory=lambda: [0, 0])
 
 
-def _frame(ipr: ParticleReconstructor, store: RunStore, names: Sequence[str], pair: int, frame: int
-           ) -> tuple[ParticleResult, float]:
+def _frame(ipr: ParticleReconstructor, store: RunStore, names: Sequence[str], pair: int, frame: int,
+           predicted_mm: np.ndarray | None = None) -> tuple[ParticleResult, float]:
     import time
 
     images = [store.read_frame(n, pair, frame) for n in names]  # a damaged frame is an error
     t0 = time.perf_counter()
     try:
-        res = ipr.reconstruct(images)
+        res = ipr.reconstruct(images, predicted_mm=predicted_mm)
     except MemoryBudgetError as exc:
         raise UsageError(str(exc)) from None
     return res, time.perf_counter() - t0
@@ -190,9 +235,25 @@ def particles_pair_task(job: ParticlesJob, pair: int) -> PairParticles:
                          seconds=[t for _, t in made], unsure=[r.unsure for r, _ in made])
 
 
+def _check_along(store: RunStore, chosen: list[int], client: Any) -> None:
+    """A one-line error, before anything is written, where ``--along-pairs`` cannot follow the
+    particles through the chosen pairs' frames."""
+    if not is_time_resolved(store.timing):
+        raise UsageError(f"--along-pairs predicts each frame's particles from the frames before it, but "
+                         f"{store.path} is not a time-resolved series (every frame dt after the one before); leave out "
+                         "--along-pairs, or record or synthesize a time-resolved run (lfpiv synth --time-resolved)")
+    if client is not None:
+        raise UsageError("--along-pairs reconstructs the frames in time order, each predicted from the ones before: "
+                         "leave out --workers and --scheduler")
+    if chosen != list(range(chosen[0], chosen[-1] + 1)):
+        raise UsageError("--along-pairs follows particles through consecutive pairs: choose them with --pair-range "
+                         "A:B (no step)")
+
+
 def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = None, *,
                   cameras: Sequence[str] | None = None, device: str | None = None, progress: bool = True,
-                  skip_done: bool = False, option: str = "--pair-range", client: Any = None) -> ParticlesDone:
+                  skip_done: bool = False, option: str = "--pair-range", client: Any = None,
+                  along_pairs: AlongPairs | None = None) -> ParticlesDone:
     """Reconstruct the particles of both frames of ``pairs`` (None: every recorded pair) into
     ``particles/``.
 
@@ -201,10 +262,17 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     does with ``volumes/``). With a Dask ``client`` (:func:`lfpiv.batch.dask_client`) the pairs are
     done on its workers, and this process appends each pair's particles to the store as it comes back.
 
+    With ``along_pairs`` (a time-resolved run, :func:`lfcore.runstore.is_time_resolved`) the frames
+    are done in time order in this process, each frame's first candidates the positions the tracks
+    through the chosen pairs' frames before it predict (:meth:`AlongPairs.predict`); with
+    ``skip_done`` the particles kept are those tracks' frames.
+
     Raises
     ------
     UsageError
-        No recorded pairs, a pair never recorded, an unknown camera, or a box too big for memory.
+        No recorded pairs, a pair never recorded, an unknown camera, or a box too big for memory;
+        ``along_pairs`` on a run that is not time-resolved, on pairs that are not consecutive or on
+        Dask workers.
     """
     rig = store.rig
     chosen, names = recorded_pairs(store, pairs, cameras, option=option)
@@ -212,6 +280,8 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     if settings.method is not None and unsupported_method(cams, settings.method) is not None:
         raise UsageError(f"camera '{unsupported_method(cams, settings.method)}' is a pinhole camera: --method "
                          f"{settings.method} needs light-field cameras; use --method mlos-smart")
+    if along_pairs is not None:
+        _check_along(store, chosen, client)
     grid = VolumeGrid.from_rig(rig)
     proj = projector_for(cams, grid, device=device)
     try:
@@ -219,6 +289,8 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     except MemoryBudgetError as exc:
         raise UsageError(str(exc)) from None
     meta = {**settings.as_dict(), "method": ipr.method, "cameras": names}
+    if along_pairs is not None:  # only where on: groups written before it, or without it, read as without
+        meta["along_pairs"] = along_pairs.as_dict()
     done = ParticlesDone(device=proj.device)
 
     def matches(g: Any) -> bool:
@@ -232,11 +304,19 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
         return [k for k in now if old.get(k) != now[k]]
 
     def here(todo: list[int]) -> None:
+        history: list[np.ndarray] = []  # --along-pairs: the chosen pairs' frames so far, in time order
         with tqdm(total=2 * len(todo), unit="frame", disable=not progress, desc="particles", leave=False) as bar:
-            for p in todo:
+            for p in (chosen if along_pairs is not None else todo):
+                if p not in todo:  # kept by --skip-done: its particles carry the tracks on
+                    history.extend(store.read_particles(p, f)[:, :3] for f in (0, 1))
+                    continue
                 frames: list[ParticleResult] = []
                 for f in (0, 1):
-                    res, seconds = _frame(ipr, store, names, p, f)
+                    predicted = along_pairs.predict(history, grid) if along_pairs is not None else None
+                    res, seconds = _frame(ipr, store, names, p, f, predicted)
+                    if along_pairs is not None:
+                        history.append(res.positions_mm)
+                        done.predicted.append(len(predicted))  # type: ignore[arg-type]
                     done.seconds.append(seconds)
                     done.counts.append(res.n)
                     done.candidates.append(res.candidates)

@@ -9,11 +9,13 @@ from scipy.spatial import cKDTree
 
 from lfcore.track import (
     SeriesSettings,
+    SeriesTracks,
     TrackSettings,
     field_of_tracks,
     fit_series,
     link_series,
     pair_tracks,
+    predict_series,
 )
 from lfcore.volume import VolumeGrid
 
@@ -174,3 +176,60 @@ def test_the_field_of_fitted_tracks_is_the_known_displacement():
     good = np.isfinite(res.field_mm[..., 0])
     assert good.mean() > 0.5 and not res.outlier.any()
     assert np.allclose(res.field_mm[good], shift, atol=1e-6)
+
+
+def _known(paths):
+    """SeriesTracks of known tracks: ``paths`` a list of (frames, (n, 3) positions mm)."""
+    track = np.concatenate([np.full(len(f), t) for t, (f, _) in enumerate(paths)]).astype(np.int64)
+    frame = np.concatenate([np.asarray(f) for f, _ in paths]).astype(np.int64)
+    pos = np.vstack([p for _, p in paths])
+    return SeriesTracks(track=track, frame=frame, row=np.zeros(len(track), np.int64), position_mm=pos,
+                        fitted_mm=np.full_like(pos, np.nan))
+
+
+def _nearest(pred, at):
+    """Each point of ``at``'s distance to the nearest prediction, voxels (largest axis)."""
+    return np.array([np.min(np.max(np.abs(pred - p) / VOXEL, axis=1)) for p in at])
+
+
+def test_the_prediction_carries_known_tracks_on_by_their_own_paths():
+    """Shake-the-Box's prediction of the next frame from known tracks: a straight path and a curved
+    (second-order) one exactly, a track of two frames by its last step, a track whose particle was
+    missed in the last frame still predicted, one missed longer not; a particle on no track by its
+    neighbours' step (a uniform step: exactly)."""
+    x0 = np.array([0.0, 0.0, 0.0])
+    line = lambda t: x0 + np.array([1.3, -0.7, 0.4]) * VOXEL * t  # noqa: E731
+    curve = lambda t: x0 + 0.05 + np.array([0.9 * t, 0.25 * t * t, -0.1 * t * t]) * VOXEL  # noqa: E731
+    step = np.array([0.8, 0.5, -0.3]) * VOXEL
+    two = np.array([[-0.1, 0.1, 0.0], [-0.1, 0.1, 0.0] + step])
+    paths = [(range(6), np.array([line(t) for t in range(6)])),
+             (range(2, 6), np.array([curve(t) for t in range(2, 6)])),
+             ([4, 5], two),
+             ([1, 2, 3, 4], np.array([line(t) + 0.1 for t in range(1, 5)])),  # missed in frame 5
+             ([0, 1, 2], np.array([line(t) - 0.1 for t in range(3)])),  # ended long ago
+             ([5], np.array([[0.1, -0.1, 0.0]]))]  # on no track: the others' steps predict it
+    tracks = _known(paths)
+    expect = np.array([line(6), curve(6), two[1] + step, line(6) + 0.1])
+    pred = predict_series(tracks, 5)
+    assert len(pred) == 5  # four tracks, one lone particle; the track that ended in frame 2 is not carried on
+    assert np.all(_nearest(pred, expect) < 1e-9)
+    # the lone particle by its neighbours' last steps (a straight line's, a curve's, a pair's: near step)
+    lone = _nearest(pred, [paths[-1][1][0] + step])[0]
+    assert lone < 1.0, lone
+    # without the missed frame's leeway the track missed in frame 5 is not predicted
+    assert len(predict_series(tracks, 5, missed=0)) == 4
+    assert len(predict_series(_known([([0], np.zeros((1, 3)))]), 0)) == 0  # a lone particle, no tracks
+
+
+def test_the_prediction_of_a_uniform_flow_from_linked_noisy_frames_is_within_the_noise():
+    """link_series then predict_series (what ``lfpiv particles --along-pairs`` does between frames):
+    a known uniform step with 0.05 voxel of noise, the prediction of frame 6 (a second-order
+    polynomial through six positions: 1.8 times their noise per axis) within about that."""
+    a = _points(200, 3)
+    step = np.array([1.5, -0.8, 0.4]) * VOXEL
+    rng = np.random.default_rng(4)
+    frames = [a + k * step + rng.normal(size=a.shape) * 0.05 * VOXEL for k in range(6)]
+    pred = predict_series(link_series(frames, GRID), 5)
+    err = _nearest(pred, a + 6 * step)
+    assert len(pred) >= 195
+    assert np.median(err) < 0.15 and np.mean(err < 0.3) > 0.95, (np.median(err), np.mean(err < 0.3))

@@ -91,3 +91,15 @@ def test_a_group_written_before_noise_floor_had_no_floor() -> None:
     before = {k: v for k, v in meta(noise_model="shot").items() if k != "noise_floor"}
     assert same_settings(before, meta(noise_model="shot", noise_floor=0.0))
     assert not same_settings(before, meta(noise_model="shot", noise_floor=0.1))
+
+
+def test_particles_made_along_the_pairs_match_only_along_the_pairs() -> None:
+    """--along-pairs is recorded only where on (settings.along_pairs): groups written before it, or
+    without it, match today's frame-by-frame settings; along the pairs only the same searches match."""
+    from lfpiv.jobs.particles import AlongPairs
+
+    along = {**meta(), "along_pairs": AlongPairs().as_dict()}
+    assert same_settings(meta(), meta())
+    assert not same_settings(meta(), along) and not same_settings(along, meta())
+    assert same_settings(along, {**meta(), "along_pairs": AlongPairs().as_dict()})
+    assert not same_settings(along, {**meta(), "along_pairs": AlongPairs(search_voxels=(4, 4, 4)).as_dict()})

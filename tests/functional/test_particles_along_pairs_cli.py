@@ -1,0 +1,107 @@
+"""``lfpiv particles --along-pairs`` (Shake-the-Box's prediction) end to end on a tiny time-resolved
+series of a known uniform flow: the frames done in time order with the tracks' predictions, the
+setting recorded, ``--skip-done`` with it, and the refusals (one line, exit 2, nothing written)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lfcore.runstore import RunStore
+from tests.conftest import EXAMPLES
+from tests.conftest import run_cli as _run
+from tests.helpers import copy_run as _copy
+
+FAST = ("--candidate-iterations", "10", "--rounds", "1", "--shakes", "6", "--relocate", "0", "--device", "cpu",
+        "--quiet")
+
+
+@pytest.fixture(scope="module")
+def series_run(tmp_path_factory):
+    """Three pairs (six frames) of a uniform flow on the tiny rig, time-resolved, without particles."""
+    import contextlib
+    import io
+
+    from lfpiv.cli import main
+
+    run = tmp_path_factory.mktemp("stb") / "s.zarr"
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        assert main([str(a) for a in ("synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "3",
+                                      "--ppm", "0.1", "--flow", "uniform", "--displacement-px", "4",
+                                      "--time-resolved", "--rays", "2000", "--quiet")]) == 0
+    return run
+
+
+def _recall(run):
+    from lfpiv.jobs.evaluate import evaluate_particles
+
+    return np.array([e.match.recall for e in evaluate_particles(RunStore.open(run))])
+
+
+def test_along_pairs_predicts_each_frame_from_the_tracks_before_it(series_run, tmp_path, capsys):
+    alone = _copy(series_run, tmp_path, "alone.zarr")
+    along = _copy(series_run, tmp_path, "along.zarr")
+    assert _run(capsys, "particles", alone, *FAST)[0] == 0
+    rc, out, err = _run(capsys, "particles", along, "--along-pairs", "--search-voxels", "4,4,4", *FAST)
+    assert rc == 0, err
+    assert "along the pairs:" in out and "positions predicted" in out, out
+    settings = RunStore.open(along).particle_attrs()["settings"]
+    assert settings["along_pairs"] == {"search_voxels": [4.0, 4.0, 4.0], "link_voxels": [1.0, 1.0, 1.0]}
+    assert "along_pairs" not in RunStore.open(alone).particle_attrs()["settings"]
+    # the first two frames have no tracks to predict them: the same particles as without
+    s_alone, s_along = RunStore.open(alone), RunStore.open(along)
+    for f in (0, 1):
+        assert np.allclose(s_alone.read_particles(0, f), s_along.read_particles(0, f))
+    # later frames: a known uniform flow's particles found at least as well as each frame on its own
+    ra, rb = _recall(alone), _recall(along)
+    print("recall alone", ra.round(3), "along", rb.round(3))
+    assert rb[2:].mean() >= ra[2:].mean() - 0.02 and rb.min() > 0.8
+    # --skip-done with the same settings: nothing to do; without --along-pairs: the difference named
+    rc, out, err = _run(capsys, "particles", along, "--along-pairs", "--search-voxels", "4,4,4", "--skip-done",
+                        *FAST)
+    assert rc == 0 and "nothing to do" in out, (out, err)
+
+
+def test_skip_done_carries_the_tracks_on_from_the_pairs_kept(series_run, tmp_path, capsys):
+    """Pair 0 done first, then --skip-done over all: pair 0 is kept and its frames predict pair 1's,
+    which come out as those of one run through all the pairs."""
+    whole = _copy(series_run, tmp_path, "whole.zarr")
+    parts = _copy(series_run, tmp_path, "parts.zarr")
+    assert _run(capsys, "particles", whole, "--along-pairs", "--pair-range", "0:2", *FAST)[0] == 0
+    assert _run(capsys, "particles", parts, "--along-pairs", "--pair-range", "0", *FAST)[0] == 0
+    rc, out, err = _run(capsys, "particles", parts, "--along-pairs", "--pair-range", "0:2", "--skip-done", *FAST)
+    assert rc == 0, err
+    assert "1 pair(s)" in out, out
+    for f in (0, 1):
+        assert np.allclose(RunStore.open(whole).read_particles(1, f), RunStore.open(parts).read_particles(1, f))
+
+
+def test_along_pairs_refusals(series_run, tmp_path, capsys):
+    run = _copy(series_run, tmp_path)
+    for args, words in ((("--search-voxels", "4,4,4"), ("--search-voxels", "--along-pairs")),
+                        (("--link-voxels", "2,2,2"), ("--link-voxels", "--along-pairs")),
+                        (("--along-pairs", "--workers", "2"), ("--along-pairs", "--workers")),
+                        (("--along-pairs", "--link-voxels", "0,1,1"), ("link_voxels",))):
+        rc, out, err = _run(capsys, "particles", run, *args, *FAST)
+        assert rc == 2 and all(w in err for w in words), (args, err)
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+        assert not RunStore.open(run).has_particles
+    # a run that is not time-resolved
+    flat = tmp_path / "flat.zarr"
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", flat, "--pairs", "2", "--ppm", "0.1",
+                "--flow", "uniform", "--rays", "20", "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "particles", flat, "--along-pairs", *FAST)
+    assert rc == 2 and "time-resolved" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not RunStore.open(flat).has_particles
+
+
+def test_the_python_api_refuses_unknown_along_pairs_settings(series_run, tmp_path):
+    import lfpiv
+    from lfpiv.errors import UsageError
+
+    run = _copy(series_run, tmp_path)
+    with pytest.raises(UsageError, match="search_voxels and link_voxels"):
+        lfpiv.particles(run, along_pairs={"link": (1, 1, 1)}, progress=False)
+    with pytest.raises(UsageError, match="link_voxels"):
+        lfpiv.particles(run, along_pairs={"link_voxels": (0, 1, 1)}, progress=False)
+    assert not RunStore.open(run).has_particles
