@@ -1369,7 +1369,7 @@ def predict_series(tracks: SeriesTracks, frame: int, *, series: SeriesSettings |
     Each track of two frames or more whose last particle is in ``frame`` (or, for a track of three
     frames or more, up to ``missed`` frames before it: a particle the reconstruction missed in a
     frame stays predicted) is carried on by a polynomial in time through its last
-    :data:`PREDICT_FRAMES` positions: of :attr:`SeriesSettings.degree` (Shake-the-Box's 2:
+    :attr:`SeriesSettings.fit_frames` positions: of :attr:`SeriesSettings.degree` (Shake-the-Box's 2:
     a curved path followed) through four positions or more, a straight line (least squares)
     through three, the last displacement through two. Each particle of ``frame`` on no such track
     (one found in this frame only, or a track's start) is carried on by the displacement of the

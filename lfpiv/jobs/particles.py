@@ -142,11 +142,20 @@ class AlongPairs:
         return {"search_voxels": [float(v) for v in self.search_voxels],
                 "link_voxels": [float(v) for v in self.link_voxels]}
 
+    @property
+    def frames_read(self) -> int:
+        """The frames before the next one that its prediction reads (the rest may be let go)."""
+        return SeriesSettings().fit_frames + 2
+
     def predict(self, frames: list[np.ndarray], grid: VolumeGrid) -> np.ndarray:
         """The (m, 3) positions (x, y, z), mm, the tracks through ``frames`` (each frame's (n, 3)
-        particles, mm, in time order) predict in the frame after the last; none before two frames."""
+        particles, mm, in time order) predict in the frame after the last; none before two frames.
+
+        Only the last frames a prediction reads are linked (the polynomial's ``fit_frames``, a
+        frame missed and the one before), so a long series costs the same a frame throughout."""
         if len(frames) < 2:
             return np.zeros((0, 3))
+        frames = frames[-self.frames_read:]
         tracks = link_series(frames, grid, settings=TrackSettings(search_voxels=self.search_voxels),
                              series=SeriesSettings(link_voxels=self.link_voxels))
         return predict_series(tracks, len(frames) - 1)
@@ -309,6 +318,7 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
             for p in (chosen if along_pairs is not None else todo):
                 if p not in todo:  # kept by --skip-done: its particles carry the tracks on
                     history.extend(store.read_particles(p, f)[:, :3] for f in (0, 1))
+                    del history[:-along_pairs.frames_read]  # type: ignore[union-attr]
                     continue
                 frames: list[ParticleResult] = []
                 for f in (0, 1):
@@ -316,6 +326,7 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
                     res, seconds = _frame(ipr, store, names, p, f, predicted)
                     if along_pairs is not None:
                         history.append(res.positions_mm)
+                        del history[:-along_pairs.frames_read]  # a long series' particles are in the store
                         done.predicted.append(len(predicted))  # type: ignore[arg-type]
                     done.seconds.append(seconds)
                     done.counts.append(res.n)
