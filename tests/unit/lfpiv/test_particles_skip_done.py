@@ -103,3 +103,25 @@ def test_particles_made_along_the_pairs_match_only_along_the_pairs() -> None:
     assert not same_settings(meta(), along) and not same_settings(along, meta())
     assert same_settings(along, {**meta(), "along_pairs": AlongPairs().as_dict()})
     assert not same_settings(along, {**meta(), "along_pairs": AlongPairs(search_voxels=(4, 4, 4)).as_dict()})
+
+
+def test_the_prediction_along_the_pairs_reads_only_the_last_frames() -> None:
+    """A uniform flow of 30 particles through 14 frames: the prediction from the whole history
+    equals the one from its last frames, and is where the particles go next (so a long series
+    may let its early frames go)."""
+    import numpy as np
+
+    from lfcore.volume import VolumeGrid
+    from lfpiv.jobs.particles import AlongPairs
+
+    grid = VolumeGrid(shape=(20, 64, 64), voxel_mm=(0.01, 0.01, 0.05), origin_mm=(-0.315, -0.315, -0.475))
+    rng = np.random.default_rng(3)
+    start = np.asarray(grid.origin_mm) + np.asarray(grid.voxel_mm) * (8 + rng.random((30, 3)) * [20, 20, 4])
+    step = np.asarray(grid.voxel_mm) * [1.5, -0.5, 0.3]  # voxels a frame (x, y, z)
+    frames = [start + k * step for k in range(14)]
+    along = AlongPairs()
+    whole = along.predict(frames, grid)
+    last = along.predict(frames[-along.frames_read:], grid)
+    assert along.frames_read < len(frames)
+    np.testing.assert_allclose(np.sort(whole, axis=0), np.sort(last, axis=0), atol=1e-9)
+    np.testing.assert_allclose(np.sort(whole, axis=0), np.sort(start + 14 * step, axis=0), atol=1e-6)
