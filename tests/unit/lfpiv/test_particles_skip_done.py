@@ -91,3 +91,9 @@ def test_a_group_written_before_noise_floor_had_no_floor() -> None:
     before = {k: v for k, v in meta(noise_model="shot").items() if k != "noise_floor"}
     assert same_settings(before, meta(noise_model="shot", noise_floor=0.0))
     assert not same_settings(before, meta(noise_model="shot", noise_floor=0.1))
+
+
+def test_a_group_written_before_residual_mask_masked_nothing() -> None:
+    before = {k: v for k, v in meta().items() if k != "residual_mask"}
+    assert same_settings(before, meta(residual_mask=0.0))
+    assert not same_settings(before, meta(residual_mask=3.0))
