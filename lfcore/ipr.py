@@ -238,6 +238,17 @@ class IprSettings:
         pixels than their noise allows (synthetic images of a few thousand rays a particle), the
         unfloored weights take a bright particle's core down hundreds of times and the fit leans
         on its wings (``benchmarks/RESULTS.md``, eleventh session, issue 48).
+    residual_mask
+        In the residual rounds, the pixels where the particles found so far are brighter than this
+        many times their camera's background noise are masked (NaN) in the residual images whose
+        quick reconstruction gives the round's candidates; 0 (the default): none. There the
+        residual is the bright particles' noise and the model's error, often below the background
+        (a fitted particle's image taken off noisy pixels), and the quick reconstruction's
+        elimination takes every voxel whose rays meet a dark pixel away: a faint particle spread
+        far out of focus over a bright one's pixels loses its voxels there, and no candidate comes.
+        A masked pixel neither removes voxels nor pulls them dark (:func:`lfcore.reconstruct.preprocess`),
+        and a background estimated from the residual image, which those pixels' noise widens, is
+        not. ``benchmarks/RESULTS.md`` (twelfth session, issue 48) has it measured.
     """
 
     method: str | None = None
@@ -263,6 +274,7 @@ class IprSettings:
     max_position_std: float = 0.0
     noise_model: str = "flat"
     noise_floor: float = 0.0
+    residual_mask: float = 0.0
 
     def __post_init__(self) -> None:
         if self.candidate_iterations < 1 or self.shakes < 0 or self.rounds < 1:
@@ -292,6 +304,9 @@ class IprSettings:
         if not 0.0 <= self.noise_floor <= 1.0:
             raise ValueError(f"noise_floor is a share of the background's weight, from 0 (none) to 1, got "
                              f"{self.noise_floor}")
+        if not self.residual_mask >= 0:
+            raise ValueError(f"residual_mask is a number of background noise sigmas, 0 (none) or more, got "
+                             f"{self.residual_mask}")
         if self.max_position_std < 0:
             raise ValueError(f"max_position_std is a standard deviation in voxels, 0 (keep all) or more, got "
                              f"{self.max_position_std}")
@@ -994,8 +1009,12 @@ class ParticleReconstructor:
             u, intensity = self._prune(u, intensity)
             seconds["fit"] += time.perf_counter() - t0
             if rnd + 1 < s.rounds:
-                left = b - model.image(u, intensity)
+                found = model.image(u, intensity)
+                left = b - found
                 offs = np.concatenate([[0], np.cumsum([img.size for img in images])])
+                if s.residual_mask > 0:  # no elimination by pixels that the found particles' noise fills
+                    noise = np.repeat(np.asarray(sigma0, dtype=np.float64), sizes)
+                    left = np.where(found > s.residual_mask * noise, np.nan, left)
                 residual_images = [(left[offs[k]:offs[k + 1]].reshape(img.shape) + backgrounds[k]).astype(np.float32)
                                    for k, img in enumerate(images)]
         unsure = 0

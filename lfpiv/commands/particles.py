@@ -111,6 +111,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--link-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="--along-pairs: the search radius around where a track's own velocity puts it in the next "
                    "frame, as 'lfpiv track --link-voxels' (default: 1,1,1)")
+    c.add_argument("--residual-mask", type=non_negative_float, default=0.0, metavar="S",
+                   help="in the residual rounds, mask the pixels where the particles found so far are brighter than "
+                   "S times the camera's background noise, so that their noise removes no voxel from the quick "
+                   "reconstruction whose peaks are the next candidates: faint out-of-focus particles beside "
+                   "bright ones are found (0: none, the default)")
     add_device(c)
     add_workers(c, "reconstruct the particles of")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -140,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
                    min_intensity=args.min_intensity,
                    merge_voxels=args.merge_voxels, rounds=args.rounds, split_intensity=args.split, model=args.model,
                    relocate_depth=args.relocate, max_position_std=args.max_std, noise_model=args.noise_model,
-                   noise_floor=args.noise_floor)
+                   noise_floor=args.noise_floor, residual_mask=args.residual_mask)
     ipr_settings(**options)  # bad options are refused before the run is opened
     store = open_run(args.run, mode="r+")
     # the point model's diffraction blur and pinhole particle images are the rig's

@@ -32,12 +32,13 @@ __all__ = ["INTENSITY_REFERENCES", "AlongPairs", "IprSettings", "PairParticles",
 #: plain DRT-MART of a fixed count (before ``candidate_protocol``), candidates from a reconstruction's
 #: peaks (before ``candidate_source``), every particle judged against the frame's median intensity
 #: (before ``intensity_axis``), every pixel weighed alike in the fit (before ``noise_model``), no floor
-#: on the weights (before ``noise_floor``).
+#: on the weights (before ``noise_floor``), no masked pixels in the residual rounds (before
+#: ``residual_mask``).
 OLD_DEFAULTS: dict[str, Any] = {"split_intensity": 0.0, "model": "voxels", "relocate_depth": 0,
                                 "max_position_std": 0.0, "candidate_protocol": "fixed",
                                 "candidate_source": "reconstruction", "intensity_axis": None,
                                 "intensity_share": 0.1, "noise_model": "flat",
-                                "noise_floor": 0.0}
+                                "noise_floor": 0.0, "residual_mask": 0.0}
 
 #: What ``lfpiv particles --min-intensity-of`` judges a particle's intensity against
 #: (:func:`intensity_axis`).

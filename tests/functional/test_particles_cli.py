@@ -58,6 +58,9 @@ def test_bad_threshold_is_one_line_exit_2(tmp_path, capsys):
     rc, out, err = _run(capsys, "particles", run, "--noise-floor", "0.1")
     assert rc == 2 and err.count("\n") == 1 and "--noise-model shot" in err and "Traceback" not in err, err
     assert not RunStore.open(run).has_particles
+    rc, out, err = _run(capsys, "particles", run, "--residual-mask", "-1")
+    assert rc == 2 and "--residual-mask" in err and "Traceback" not in err, err
+    assert not RunStore.open(run).has_particles
 
 
 def test_track_a_uniform_flow_into_vectors(tmp_path, capsys):

@@ -125,3 +125,9 @@ def test_the_prediction_along_the_pairs_reads_only_the_last_frames() -> None:
     assert along.frames_read < len(frames)
     np.testing.assert_allclose(np.sort(whole, axis=0), np.sort(last, axis=0), atol=1e-9)
     np.testing.assert_allclose(np.sort(whole, axis=0), np.sort(start + 14 * step, axis=0), atol=1e-6)
+
+
+def test_a_group_written_before_residual_mask_masked_nothing() -> None:
+    before = {k: v for k, v in meta().items() if k != "residual_mask"}
+    assert same_settings(before, meta(residual_mask=0.0))
+    assert not same_settings(before, meta(residual_mask=3.0))
