@@ -40,7 +40,14 @@ a camera's response (``lens_falloff`` 0.3, ``micro_vignetting`` 0.3, 20 dust spo
     python benchmarks/mcfast.py --case Mc2 --noise 1,3,3+response --rows "fast|fast;max_dark=0.0"
 
 The elimination stage is the fine grid's; after a coarse grid (``coarse``), the coarse grid's
-elimination, operator and iterations have their own column (CPU s).
+elimination, operator and iterations have their own column (CPU s). Each row's operators are listed by
+their bytes (the coarse grid's, the fine grid's line-of-sight one, DRT's: the largest of each kind the
+row made, with the voxels whose weights were made on the fly), and its own peak resident memory (the
+process's ``VmHWM``, reset before each row; what the process held as the row began in brackets).
+L's optics on a crop (``--case Lc``), whose plain plan would not fit, compiles its kernels on another
+case first::
+
+    python benchmarks/mcfast.py --case Lc --warm-case S --reference-iterations 0 --rows "fast|fast;coarse=4"
 """
 
 from __future__ import annotations
@@ -103,6 +110,44 @@ def parse_row(text: str, n_cameras: int = 1, *, extras: dict | None = None, came
     return text, protocol_settings(name, n_cameras=n_cameras, camera_kind=camera_kind, **changes)
 
 
+def reset_peak_rss() -> bool:
+    """Reset this process's peak resident memory (``VmHWM``, Linux 4.0 on), so that the next row's peak is
+    its own; False where the kernel does not allow it (the peaks are then the process's so far)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _status_bytes(key: str) -> int:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+def peak_rss() -> int:
+    """This process's peak resident memory (since the last :func:`reset_peak_rss`), in bytes."""
+    return _status_bytes("VmHWM:")
+
+
+def rss() -> int:
+    """This process's resident memory now, in bytes."""
+    return _status_bytes("VmRSS:")
+
+
+def memory_columns(res) -> str:
+    """A row's memory columns: each operator's MiB (with the voxels made on the fly) and the peak RSS."""
+    def mib(stage: str) -> str:
+        held, fly = res.operator_sizes.get(stage, (0, 0))
+        return f"{held / 2**20:.0f}" + (f" ({fly:,} on the fly)" if fly else "")
+    return " | ".join([f"{mib('coarse operator')} / {mib('line-of-sight weights')} / {mib('DRT operator')}",
+                       f"{res.peak_rss / 2**30:.2f} ({res.rss_before / 2**30:.2f})"])
+
+
 def timed_frame(proj, settings, img, *, checkpoints=(), truth=None):
     """One frame: its result and per stage [wall s, CPU s] (the iterations' start counted as operators'
     time, as :class:`~lfcore.reconstruct.ReconResult` counts it).
@@ -114,6 +159,7 @@ def timed_frame(proj, settings, img, *, checkpoints=(), truth=None):
     """
     frames = FrameReconstructor(proj, settings)
     clock = {stage: [0.0, 0.0] for stage in STAGES}
+    sizes: dict[str, tuple[int, int]] = {}  # operator bytes and voxels made on the fly, by stage
     coarse_clock = {stage: [0.0, 0.0] for stage in COARSE_STAGES}
     made = reconstruct_module.coarse_reconstructor
 
@@ -125,7 +171,10 @@ def timed_frame(proj, settings, img, *, checkpoints=(), truth=None):
             def timed(*a2, _inner=inner, _stage=stage, **k2):
                 w, c = time.perf_counter(), time.process_time()
                 try:
-                    return _inner(*a2, **k2)
+                    out = _inner(*a2, **k2)
+                    if _stage == "coarse operator":
+                        sizes[_stage] = (int(out.nbytes), int(out.n_on_the_fly))
+                    return out
                 finally:
                     coarse_clock[_stage][0] += time.perf_counter() - w
                     coarse_clock[_stage][1] += time.process_time() - c
@@ -160,17 +209,23 @@ def timed_frame(proj, settings, img, *, checkpoints=(), truth=None):
                     out = _inner(*a, **k)
                     if _stage == "DRT operator":
                         clock["DRT voxels"] = out.n_voxels
+                    if _stage in ("line-of-sight weights", "DRT operator"):  # the largest of each kind
+                        held = int(out.nbytes) if _stage == "line-of-sight weights" else frames.operator_bytes(out)
+                        sizes[_stage] = max(sizes.get(_stage, (0, 0)), (held, int(out.n_on_the_fly)))
                     return out
                 finally:
                     clock[_stage][0] += time.perf_counter() - w
                     clock[_stage][1] += time.process_time() - c
             setattr(frames, name, wrapped)
+    reset_peak_rss()
+    before = rss()
     w, c = time.perf_counter(), time.process_time()
     reconstruct_module.coarse_reconstructor = coarse_reconstructor
     try:
         res = frames.reconstruct(img)
     finally:
         reconstruct_module.coarse_reconstructor = made
+    res.peak_rss, res.rss_before = peak_rss(), before
     total = [time.perf_counter() - w - left_out[0], time.process_time() - c - left_out[1]]
     for i in (0, 1):
         clock["iterations"][i] -= left_out[i]
@@ -182,6 +237,7 @@ def timed_frame(proj, settings, img, *, checkpoints=(), truth=None):
     clock["other"] = [total[i] - sum(v[i] for v in clock.values()) for i in (0, 1)]
     res.drt_voxels = drt  # the voxels DRT's operator was made for
     res.checkpoints = marks
+    res.operator_sizes = sizes
     return res, clock, total
 
 
@@ -201,6 +257,9 @@ def main() -> None:
                     help="images: comma-separated noise factors, each F or F+response (e.g. 1,3,3+response); every "
                          "row runs on each, the reference on the first")
     ap.add_argument("--response", action="store_true", help="a camera's response on every --noise item's images")
+    ap.add_argument("--warm-case", default=None,
+                    help="the case whose frames compile the kernels before the rows (default: --case's own; e.g. S "
+                         "for Lc, whose plain plan's DRT operator would not fit)")
     args = ap.parse_args()
     checkpoints = tuple(int(c) for c in args.checkpoints.split(",") if c)
     device = resolve_device(args.device)
@@ -216,11 +275,17 @@ def main() -> None:
     proj = projector_for(cams, grid, device=device)
     print(f"case {args.case}: grid {grid.shape} (z, y, x), {len(pts)} particles ({args.ppm:g} PPM), device {device}; "
           f"images: " + ", ".join(f"{k}: {render_changes(k, rig.render, response=args.response)}" for k in items))
-    # the kernels compiled (and the first-call costs paid) before anything is timed
+    # the kernels compiled (and the first-call costs paid) before anything is timed: on the case's own
+    # frame, or on --warm-case's where a whole-grid DRT operator of the case would not fit
+    w_proj, w_img = proj, img
+    if args.warm_case and args.warm_case != args.case:
+        _, _, w_cams, w_grid, _, w_img = bench.scene(args.warm_case, device, args.ppm)
+        w_proj = projector_for(w_cams, w_grid, device=device)
     for method in ("drt-mart", "mlos-mart"):
-        FrameReconstructor(proj, protocol_settings("fixed", method=method, iterations=2)).reconstruct(img)
-    FrameReconstructor(proj, protocol_settings("fast", iterations=4, los_iterations=2, stop_tolerance=0.0,
-                                               coarse=3, coarse_iterations=2)).reconstruct(img)
+        FrameReconstructor(w_proj, protocol_settings("fixed", method=method, iterations=2)).reconstruct(w_img)
+    FrameReconstructor(w_proj, protocol_settings("fast", iterations=4, los_iterations=2, stop_tolerance=0.0,
+                                                 coarse=3, coarse_iterations=2)).reconstruct(w_img)
+    del w_proj, w_img
     texts = args.rows.split("|") if "|" in args.rows else args.rows.split(",")
     extras = [{} for _ in texts]
     rows = [parse_row(r, len(cams), extras=x) for r, x in zip(texts, extras, strict=True)]
@@ -228,8 +293,9 @@ def main() -> None:
     round_checks = projector_module.ROUND_CHECKS
     print("| row | images | iterations | stopped | Q | voxels active / DRT / left | elimination s wall (CPU) | "
           "line-of-sight weights s | DRT operator s | iterations s | coarse grid: elimination + operator + "
-          "iterations CPU s | other s | total s wall (CPU) | CPU / reference's | operator |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          "iterations CPU s | other s | total s wall (CPU) | CPU / reference's | operator | operators MiB: coarse / "
+          "line-of-sight / DRT | peak RSS GiB (before the row) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     ref_cpu = None
     if args.reference_iterations:
         n = args.reference_iterations
@@ -244,7 +310,7 @@ def main() -> None:
         label = "chapter (reference)" + ("" if n == 400 else f", {n} iterations timed, x{scale:g}")
         print(f"| {label} | {items[0]} | 400 | fixed count | {q} | {res.active_voxels:,} / {res.drt_voxels:,} / "
               f"{res.final_voxels:,} | {stage_columns(clock)} | {total[0]:.1f} ({total[1]:.1f}) | 1 | "
-              f"{res.operator} |", flush=True)
+              f"{res.operator} | {memory_columns(res)} |", flush=True)
         if res.checkpoints:
             best = max(res.checkpoints, key=res.checkpoints.get)
             print("reference Q at " + ", ".join(f"{k}: {q:.3f}" for k, q in sorted(res.checkpoints.items()))
@@ -263,7 +329,7 @@ def main() -> None:
             ratio = f"1/{ref_cpu / total[1]:.1f}" if ref_cpu else ""
             print(f"| {label} | {item} | {res.iterations} | {res.stopped} | {q:.3f} | {res.active_voxels:,} / "
                   f"{res.drt_voxels:,} / {res.final_voxels:,} | {stage_columns(clock)} | {total[0]:.1f} "
-                  f"({total[1]:.1f}) | {ratio} | {res.operator} |", flush=True)
+                  f"({total[1]:.1f}) | {ratio} | {res.operator} | {memory_columns(res)} |", flush=True)
 
 
 def stage_columns(clock: dict) -> str:

@@ -25,6 +25,8 @@ Mc2 Mc's camera and a second one at 90 degrees about y around a 4.5 mm cube, rec
 M   examples/one_camera.toml: 2048 x 2048 pixels, 14 pixels per hexagonal lenslet, 400 iterations.
 L   the chapter's experiment: camera 0 of examples/two_cameras.toml (6600 x 4400 pixels),
     3300 x 2200 x 182 voxels, 400 iterations.
+Lc  L's optics on a 660 x 440 crop of its sensor (330 x 220 x 182 voxels of L's size, a hundredth of
+    L's box and its particles): L's depth and blur at a size a CPU manages in minutes, as Mc is to M.
 D   the chapter's dual-camera box, examples/two_cameras.toml as it is: two 6600 x 4400 px cameras at
     90 degrees, 1939 x 1455 x 1939 voxels (5.5e9, more than int32 indices number: depth slabs
     only, ``--slabs``; ``--planes`` for a sample).
@@ -128,7 +130,11 @@ def case_rig(case: str) -> tuple[Rig, int]:
     d = load_rig(ROOT / "examples" / "two_cameras.toml").to_dict()
     d["camera"] = d["camera"][:1]
     # 3300 x 2200 x 182 voxels of 11 x 11 x 55 um at PVR (2, 2, 10) and |M| = 1
-    d["volume"].update(size_mm=[3300 * 0.011, 2200 * 0.011, 182 * 0.055], pvr=[2.0, 2.0, 10.0])
+    nx, ny = 3300, 2200
+    if case == "Lc":  # L's optics on a 660 x 440 crop of its sensor: the box's voxels and depth, a tenth across
+        d["camera"][0]["sensor_px"] = [660, 440]
+        nx, ny = 330, 220
+    d["volume"].update(size_mm=[nx * 0.011, ny * 0.011, 182 * 0.055], pvr=[2.0, 2.0, 10.0])
     return Rig.from_dict(d), 400
 
 
@@ -522,7 +528,7 @@ def peak_capacity(device: str) -> int:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--case", choices=("S", "S2", "Mc", "Mc2", "M", "L", "D", *TOMO_CASES), action="append",
+    ap.add_argument("--case", choices=("S", "S2", "Mc", "Mc2", "M", "L", "Lc", "D", *TOMO_CASES), action="append",
                     help="case(s) to run (default: S)")
     ap.add_argument("--device", default=None, help="cpu or cuda (default: a GPU if there is one)")
     ap.add_argument("--ppm", type=float, default=0.5)

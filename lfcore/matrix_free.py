@@ -488,9 +488,10 @@ class TemplateOperator:
         launch_rows(km.smart_update, self.n_voxels, [*t._common(), float(self.min_weight), Rows(self.order()),
                                                      self.voxels, ratio, float(relaxation), e, t._none_i], t.device)
 
-    def restrict(self, rows) -> TemplateOperator:
+    def restrict(self, rows, *, spend: bool = False) -> TemplateOperator:
         """The templates' operator of some of these voxels: ``rows`` (k,) int32 row indices
-        (ascending, on the device); row t of the result is voxel ``voxels[rows[t]]``."""
+        (ascending, on the device); row t of the result is voxel ``voxels[rows[t]]`` (``spend``: as
+        :meth:`lfcore.operator.Operator.restrict`; the templates hold no rows, so nothing to let go)."""
         return TemplateOperator(self.templates, gather(self.voxels, rows), self.min_weight)
 
     @deprecated("op.update(ratio, e, relaxation)", since="0.1.0")

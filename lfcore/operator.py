@@ -150,9 +150,11 @@ class Operator(Protocol):
         """The dense (z, y, x) float32 volume of the grid with ``e`` at the voxels, zero elsewhere,
         on the device (``out`` zeroed and written; None: a new array)."""
 
-    def restrict(self, rows) -> Operator:
+    def restrict(self, rows, *, spend: bool = False) -> Operator:
         """The operator of some of its rows: ``rows`` (k,) int32 row indices (ascending, on the
-        device) into :attr:`voxels`; a new operator whose row t is this one's ``rows[t]``."""
+        device) into :attr:`voxels`; a new operator whose row t is this one's ``rows[t]``.
+        ``spend``: this operator's stored rows are let go as the kept ones are copied (piece by piece,
+        so that the copy and the whole do not stand together), and it is not applied again."""
 
 
 class Projector(Protocol):

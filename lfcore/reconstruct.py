@@ -85,7 +85,7 @@ __all__ = ["CAPPED", "COARSE_METHODS", "CONVERGED", "DRT_OPTIONS", "FIXED", "HAN
            "FrameReconstructor", "Iterated", "ReconResult", "ReconSettings", "StoppingRule", "bright_voxels",
            "coarse_applies", "coarse_bright", "coarse_reconstructor", "estimate_background", "hands_over",
            "is_split", "light_field_plan", "preprocess",
-           "preprocess_images", "protocol_settings", "prune_dark", "reconstruct", "relative_residual",
+           "preprocess_images", "protocol_settings", "prune_dark", "reconstruct", "relative_residual", "restrict_bytes",
            "smart_iterations", "stop_interval", "unexplained_added", "warm_count"]
 
 METHODS = ("drt-mart", "mart", "mlos-mart", "mlos-smart")
@@ -1067,7 +1067,8 @@ def _kept_rows(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[
     return [np.flatnonzero(h >= threshold).astype(np.int32) for h in host], host
 
 
-def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[list[Operator], list]:
+def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float, *, spend: bool = False
+               ) -> tuple[list[Operator], list]:
     """The operators and intensities without their dark voxels: those dimmer than ``fraction`` of
     the brightest of all (the :data:`PRUNE_PERCENTILE` percentile of every operator's intensities
     together: one threshold for the depth slabs of one volume).
@@ -1080,6 +1081,10 @@ def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[
         Their intensities, (n,) float32 Warp arrays (or longer: the first n count).
     fraction
         Of the brightest voxels' intensity, below which a voxel leaves.
+    spend
+        The operators are the caller's to let go: each one's stored rows go chunk by chunk as the
+        kept ones are copied (:meth:`~lfcore.operator.Operator.restrict`), so that the copy and the
+        whole never stand together (:func:`restrict_bytes`); a restricted operator is then spent.
 
     Returns
     -------
@@ -1098,9 +1103,39 @@ def prune_dark(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[
             out_es.append(e)
             continue
         rows = wp.array(keep, dtype=wp.int32, device=op.device)
-        out_ops.append(op.restrict(rows))
+        out_ops.append(op.restrict(rows, spend=spend))
         out_es.append(gather(e, rows) if keep.size else wp.zeros(1, dtype=float, device=op.device)[:0])
     return out_ops, out_es
+
+
+def _stored_chunks(op) -> list:
+    """The CSR chunks ``op`` holds (:class:`lfcore.weight_build.Weights`), its parts' (ordered subsets,
+    depth slabs) included."""
+    out = list(getattr(op, "chunks", None) or ())
+    for part in getattr(op, "parts", None) or ():
+        if part is not None:
+            out += _stored_chunks(part)
+    return out
+
+
+def _let_go(op) -> None:
+    """Let go of the rows of stored weights (:class:`lfcore.weight_build.Weights`) whose entries another
+    operator holds now (their ordered subsets' split): they are spent, whoever still refers to them."""
+    if hasattr(op, "spent") and hasattr(op, "chunks"):
+        op.chunks, op.spent = [], True
+
+
+def restrict_bytes(op: Operator, *, spend: bool = False) -> int:
+    """The most bytes :func:`prune_dark` holds beside ``op`` while it restricts it: without ``spend``
+    the copy of the rows it keeps (at most all of them, :attr:`~lfcore.operator.Operator.nbytes`); with
+    it one chunk's copy at a time (the largest chunk's entries and row offsets), each chunk let go once
+    copied. Both with the kept voxels' indices, intensities and (ordered subsets) scales."""
+    n = int(op.n_voxels)
+    per_voxel = 4 * n * (2 + int(getattr(op, "n_subsets", 0) or 0))
+    if not spend:
+        return int(op.nbytes) + per_voxel
+    chunks = _stored_chunks(op)
+    return max((8 * int(c.nnz) + 8 * (int(c.n) + 1) for c in chunks), default=0) + per_voxel
 
 
 def bright_voxels(ops: Sequence[Operator], es: Sequence, fraction: float) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -1171,6 +1206,8 @@ class CoarseBright(NamedTuple):
         Coarse voxels the coarse elimination kept.
     nbytes
         Device bytes of the coarse grid's operator (freed since).
+    copy_bytes
+        The most bytes its pruning held beside it (:func:`restrict_bytes`: one chunk's copy).
     """
 
     voxels: np.ndarray
@@ -1178,6 +1215,7 @@ class CoarseBright(NamedTuple):
     factor: int
     active: int = 0
     nbytes: int = 0
+    copy_bytes: int = 0
 
     def inherited(self, fine: np.ndarray, grid: VolumeGrid, *, z0: int = 0) -> np.ndarray:
         """(n,) float32: the intensity of each fine voxel's coarse voxel (``fine``: flat indices of
@@ -1215,15 +1253,14 @@ def coarse_bright(coarse: FrameReconstructor, lit, image, noise: Sequence[float]
     active = int(cvox.shape[0])
     if active == 0:
         return CoarseBright(np.zeros(0, np.int64), np.zeros(0, np.float32), int(factor))
-    op = coarse.operator(cvox)
-    nbytes = int(op.nbytes)
-    done = coarse.iterate(op, image, noise)
-    del op
+    given = [coarse.operator(cvox)]
+    nbytes, copy_bytes = int(given[0].nbytes), restrict_bytes(given[0], spend=True)
+    done = coarse.iterate(given.pop(), image, noise, spend=True)
     (kept,), (values,) = bright_voxels([done.op], [done.e], coarse.settings.prune)
     kept = kept.astype(np.int64)
     del done
     order = np.argsort(kept, kind="stable")
-    return CoarseBright(kept[order], values[order], int(factor), active, nbytes)
+    return CoarseBright(kept[order], values[order], int(factor), active, nbytes, copy_bytes)
 
 
 def is_split(op) -> bool:
@@ -1238,7 +1275,7 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
                      split: Callable[[Operator], Operator] | None = None, t0: float | None = None,
                      started: Callable[[float], None] | None = None, prune: float | None = None,
                      warm: bool = False, handover: tuple[int, float, float | None] | None = None,
-                     settle: int = 0, stop_voxels: float | None = None) -> Iterated:
+                     settle: int = 0, stop_voxels: float | None = None, spend: bool = False) -> Iterated:
     """MART's start and iterations on ``op`` in the buffers given: the one loop of
     :meth:`FrameReconstructor.iterate` (in memory) and :class:`lfcore.slabs.SlabReconstructor` (the
     operators of a volume's depth slabs as one, :class:`lfcore.slabs.SlabOperators`).
@@ -1269,6 +1306,10 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
         of the voxels it began with are still in the operator while the projections' relative residual
         is below ``residual`` (None: whatever it is), the iterations end there (:data:`HANDED_OVER`;
         :func:`hands_over`); None: never.
+    spend
+        ``op`` is the caller's to let go (it holds no other reference to it): its first pruning lets
+        go of its rows chunk by chunk as the kept ones are copied (:func:`prune_dark`). The operators
+        made here (the split, the pruned) are always let go so; ``op`` given without ``spend`` is left whole.
 
     Returns
     -------
@@ -1297,8 +1338,15 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
         e.fill_(scale)
     else:
         wp.launch(_mart_kernels().scale_shift, dim=n, inputs=[e, scale, 0.0], device=device)
+    own = spend  # whether the pruning may let go of op's rows as it copies the kept ones
     if split is not None and s.subsets > 1 and s.form == "simultaneous":  # OS-SMART: the rows split by subset, once
-        op = split(op)
+        cut = split(op)
+        if cut is not op:
+            if own:  # the split holds every row again: the caller's whole rows go now, not at its return
+                _let_go(op)
+            own = True  # the split rows are this loop's own
+        op = cut
+        del cut
     wp.synchronize_device(device)
     t1 = time.perf_counter()
     if started is not None:
@@ -1334,7 +1382,10 @@ def smart_iterations(op: Operator, e, image, proj, ratio, noise: Sequence[float]
         else:
             op.update(log_ratio(image, proj, floor, ratio), e, mu)
         if prune > 0 and it % prune_every == 0 and it < its:  # the dark voxels leave
-            (op,), (e,) = prune_dark([op], [e], prune)
+            kept = prune_dark([op], [e], prune, spend=own)
+            own = own or kept[0][0] is not op  # a restricted copy is this loop's own
+            (op,), (e,) = kept
+            del kept
         if handover is not None and it == handover[0] and it < its and _hands_over(op, e, image, proj, n,
                                                                                      handover):
             ran, stopped = it, HANDED_OVER
@@ -1623,8 +1674,10 @@ class FrameReconstructor:
         iterate_s = 0.0
         if los_first:
             # the cheap weights first; DRT's then for the voxels still bright (a third of them on Mc)
-            first = self.iterate(op, self._image, noises, progress=progress, iterations=los_its,
-                                 stop_tolerance=0.0, start=start, prune=cut)
+            given = [op]
+            del op  # the loop's own: once pruned, the whole line-of-sight operator goes
+            first = self.iterate(given.pop(), self._image, noises, progress=progress, iterations=los_its,
+                                 stop_tolerance=0.0, start=start, prune=cut, spend=True)
             weights_s += first.start_s
             iterate_s += first.iterate_s
             t = time.perf_counter()
@@ -1634,7 +1687,7 @@ class FrameReconstructor:
             (bright,), (e,) = bright_voxels([first.op], [first.e], handover)
             # a dark voxel may still grow under the sharper weights; the line-of-sight weights go first
             start = with_floor(wp.array(e, dtype=float, device=self.device), WARM_BLEND, copy=False)
-            del first, op, e
+            del first, e
             op = self.operator(wp.array(bright, dtype=wp.int32, device=self.device))
             del bright
             weights_s += time.perf_counter() - t
@@ -1648,7 +1701,7 @@ class FrameReconstructor:
         # a warm start without line-of-sight iterations first settles its carried blur before the rule
         settle = WARM_SETTLE if warmed and not los_first else 0
         done = self.iterate(ops.pop(), self._image, noises, progress=progress, iterations=its, start=start, prune=cut,
-                            warm=warmed, handover=handing, settle=settle)
+                            warm=warmed, handover=handing, settle=settle, spend=True)
         del start
         handed = ""
         if done.stopped == HANDED_OVER:
@@ -1669,10 +1722,12 @@ class FrameReconstructor:
             weights_s += time.perf_counter() - t
             nnz, n_fly, applied, last_kind = op.nnz, op.n_on_the_fly, applied_by(op), op.kind
             op_bytes = max(op_bytes, self.operator_bytes(op))
-            done = self.iterate(op, self._image, noises, progress=progress, iterations=max(1, its - first_its),
+            given = [op]
+            del op
+            done = self.iterate(given.pop(), self._image, noises, progress=progress, iterations=max(1, its - first_its),
                                 start=start, prune=cut, relaxation=HANDOVER_RELAXATION,
-                                stop_voxels=min(settings.stop_voxels, HANDOVER_STOP_VOXELS))
-            del op, start
+                                stop_voxels=min(settings.stop_voxels, HANDOVER_STOP_VOXELS), spend=True)
+            del start
             done = done._replace(iterations=done.iterations + first_its)
         if warm is not None:
             warm.keep(done.op, done.e)
@@ -1865,7 +1920,7 @@ class FrameReconstructor:
                 relaxation: float | None = None, progress: Callable[[int], None] | None = None,
                 start=None, stop_tolerance: float | None = None, prune: float | None = None,
                 warm: bool = False, handover: tuple[int, float, float | None] | None = None,
-                settle: int = 0, stop_voxels: float | None = None) -> Iterated:
+                settle: int = 0, stop_voxels: float | None = None, spend: bool = False) -> Iterated:
         """MART on ``weights``: a uniform start (or ``start``), then the iterations of ``settings.form``.
 
         The start is uniform (or ``start``), scaled so that its projection carries the measured total
@@ -1909,6 +1964,11 @@ class FrameReconstructor:
         handover
             (iteration, share, residual) of :func:`smart_iterations`: end there (:data:`HANDED_OVER`)
             where more than that share of the voxels are left and the residual is below that; None: never.
+        spend
+            ``op`` is handed over (the caller keeps no reference to it): once split into ordered subsets
+            or pruned its rows go, and its first pruning lets them go chunk by chunk as the kept ones are
+            copied (:func:`smart_iterations`), so that the whole operator and its copy do not stand
+            together. Without it ``op`` is left whole, to be iterated again.
 
         Returns
         -------
@@ -1925,10 +1985,12 @@ class FrameReconstructor:
             self._proj = wp.zeros(p.n_pixels, dtype=float, device=self.device)
         if s.form == "simultaneous" and self._ratio is None:
             self._ratio = wp.empty(p.n_pixels, dtype=float, device=self.device)
-        return smart_iterations(op, self._e[: max(n, 1)], image, self._proj, self._ratio, noise, s,
+        given = [op]
+        del op  # handed over (spend): the loop's own from here, not held by this frame while it runs
+        return smart_iterations(given.pop(), self._e[: max(n, 1)], image, self._proj, self._ratio, noise, s,
                                 iterations=iterations, relaxation=relaxation, progress=progress, start=start,
                                 stop_tolerance=stop_tolerance, split=self._ordered_subsets, t0=t0, prune=prune,
-                                warm=warm, handover=handover, settle=settle, stop_voxels=stop_voxels)
+                                warm=warm, handover=handover, settle=settle, stop_voxels=stop_voxels, spend=spend)
 
     def _ordered_subsets(self, op: Operator) -> Operator:
         """``op`` split by ``settings.subsets`` pixel subsets (:func:`lfcore.subsets.split`), or

@@ -72,6 +72,7 @@ from lfcore.reconstruct import (
     coarse_bright,
     coarse_reconstructor,
     preprocess_images,
+    restrict_bytes,
     smart_iterations,
 )
 from lfcore.subsets import SubsetOperator, pixel_subsets, split, split_bytes
@@ -274,8 +275,10 @@ class SlabReconstructor:
             coarse = coarse_reconstructor(p, s, budget_bytes=budget - held)
             bright = coarse_bright(coarse, lit_host, image, noises, factor=s.coarse)
             n_coarse = coarse.projector.grid.n_voxels
-            # its elimination's buffers, operator, intensities and projection buffers, all freed since
-            self._peak(held + BYTES_PER_SLAB_VOXEL * n_coarse + bright.nbytes + 6 * bright.active + 8 * p.n_pixels)
+            # its elimination's buffers, operator (with its pruning's copy of one chunk), intensities and
+            # projection buffers, all freed since
+            self._peak(held + BYTES_PER_SLAB_VOXEL * n_coarse + bright.nbytes + bright.copy_bytes + 6 * bright.active
+                       + 8 * p.n_pixels)
             del coarse
             t_coarse = time.perf_counter() - ta
             log(f"coarse grid ({s.coarse}x coarser, {n_coarse:,} voxels): {bright.active:,} active, "
@@ -334,6 +337,8 @@ class SlabReconstructor:
         self._held = held
         # the pruning's threshold after the coarse grid (ReconSettings.coarse_prune), as in memory
         cut = (s.coarse_prune or None) if bright is not None and s.prune > 0 else None
+        if (cut or s.prune) > 0:  # the pruning copies one chunk at a time beside what is held
+            self._peak(held + restrict_bytes(joint, spend=True))
         done = smart_iterations(joint, wp.empty(max(n_total, 1), dtype=float, device=dev), image, proj, ratio, noises,
                                 s, iterations=s.los_iterations if los_first else s.iterations,
                                 stop_tolerance=0.0 if los_first else None, progress=timing.tick, start=start,
@@ -380,7 +385,7 @@ class SlabReconstructor:
             weights_s += time.perf_counter() - t
             held += 4 * joint.n_voxels  # the intensities
             self._held = held
-            self._peak(held)
+            self._peak(held + (restrict_bytes(joint, spend=True) if (cut or s.prune) > 0 else 0))
             timing.voxels = joint.n_voxels
             t2 = time.perf_counter()
             done = smart_iterations(joint, wp.empty(max(joint.n_voxels, 1), dtype=float, device=dev), image, proj,
@@ -571,13 +576,15 @@ class SlabOperators:
         for w, v in self._each(e):
             w.update(ratio, v, relaxation)
 
-    def restrict(self, rows) -> SlabOperators:
+    def restrict(self, rows, *, spend: bool = True) -> SlabOperators:
         """The slabs' operators of some of the voxels (``rows``: (m,) int32 Warp array of positions in
         slab order, ascending), each slab restricted to its own.
 
-        This operator is spent by it: it lets go of each slab's operator as that slab's copy is made,
-        so that beside the weights held stands one slab's copy at a time, not the whole box's (the
-        frame's pruning goes on with the operator returned)."""
+        This operator is spent by it (``spend`` is always so here): it lets go of each slab's operator
+        as that slab's copy is made, and each slab's stored rows chunk by chunk as they are copied
+        (:meth:`lfcore.weight_build.Weights.restrict`), so that beside the weights held stands one
+        chunk's copy at a time, not a slab's or the whole box's (the frame's pruning goes on with the
+        operator returned)."""
         wp = warp()
         host = np.asarray(rows.numpy(), dtype=np.int64)
         parts = []
@@ -585,7 +592,7 @@ class SlabOperators:
             w, self.parts[i] = self.parts[i], None
             mine = host[(host >= a) & (host < b)] - a
             parts.append(w if mine.size == w.n_voxels else
-                         w.restrict(wp.array(mine.astype(np.int32), dtype=wp.int32, device=w.device)))
+                         w.restrict(wp.array(mine.astype(np.int32), dtype=wp.int32, device=w.device), spend=True))
             del w
         return SlabOperators(parts, scratch=self.scratch)
 

@@ -196,9 +196,10 @@ class SubsetOperator:
         p = self.parts[0]
         return scatter_voxels(p.voxels, e, p.binding.shape, device=p.device, out=out)
 
-    def restrict(self, rows) -> SubsetOperator:
-        """The split weights of some voxels (see :meth:`lfcore.operator.Operator.restrict`)."""
-        parts = [p.restrict(rows) for p in self.parts]
+    def restrict(self, rows, *, spend: bool = False) -> SubsetOperator:
+        """The split weights of some voxels (see :meth:`lfcore.operator.Operator.restrict`); ``spend``:
+        each subset's weights let go chunk by chunk as they are copied (this operator is then spent)."""
+        parts = [p.restrict(rows, spend=spend) for p in self.parts]
         voxels = parts[0].voxels
         for p in parts[1:]:  # one copy of the voxel indices
             p.voxels = voxels

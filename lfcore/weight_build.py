@@ -147,6 +147,8 @@ class Weights:
     min_weight: float = 1e-6
     kind: str = TRACED
     binding: Binding | None = field(default=None, repr=False)
+    #: Let go by :meth:`restrict` with ``spend``: no rows held, none to apply.
+    spent: bool = field(default=False, repr=False)
 
     @property
     def n_voxels(self) -> int:
@@ -179,7 +181,7 @@ class Weights:
 
     @property
     def device(self) -> str:
-        return self._bound().device
+        return self.binding.device if self.spent and self.binding is not None else self._bound().device
 
     def to_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(offsets (n + 1,), pix (nnz,), w (nnz,)) of all chunks joined, on the host."""
@@ -199,6 +201,8 @@ class Weights:
 
     # --- the operator -------------------------------------------------------------------------------
     def _bound(self) -> Binding:
+        if self.spent:
+            raise ValueError("these weights were spent by restrict(rows, spend=True); apply the weights it returned")
         if self.binding is None:
             raise ValueError("these weights are not bound to a projector; make them with a projector's operator() "
                              "or weights()")
@@ -260,11 +264,16 @@ class Weights:
         """Like :meth:`scatter`, as a host (z, y, x) float32 array."""
         return self.scatter(e).numpy()
 
-    def restrict(self, rows) -> Weights:
+    def restrict(self, rows, *, spend: bool = False) -> Weights:
         """The weights of some of these voxels: ``rows`` (k,) int32 row indices (ascending, on the
         device); row t of the result is row ``rows[t]`` of these, copied (new arrays, so these may be
         let go). Rows made on the fly stay so (their sums are kept); ``nnz`` then counts the stored
-        entries only."""
+        entries only.
+
+        ``spend``: these weights are let go chunk by chunk as each chunk's kept rows are copied, so
+        that beside the rows kept so far stands one chunk's copy at a time (:func:`restrict_bytes`), not
+        the copy of every kept row beside all of these; they are then spent (applying them raises).
+        """
         from lfcore._kernels import weights as kw
 
         b = self._bound()
@@ -274,7 +283,12 @@ class Weights:
         k = self.n_stored
         stored = rows_h[rows_h < k]
         chunks, first, total = [], 0, 0
-        for c in self.chunks:
+        old = self.chunks
+        if spend:  # this object holds no chunk from here on: each goes once copied (or passed over)
+            self.chunks, self.spent = [], True
+        for i, c in enumerate(old):
+            if spend:
+                old[i] = None
             sel = stored[(stored >= c.first) & (stored < c.first + c.n)] - c.first
             if sel.size == 0:
                 continue
@@ -292,6 +306,8 @@ class Weights:
             chunks.append(WeightChunk(first=first, n=int(sel.size), offsets=offsets, pix=pix, w=w, nnz=nnz))
             first += int(sel.size)
             total += nnz
+            del c  # a spent chunk goes here, before the next one is copied
+        del old
         sums = None
         if self.sums is not None and rows_h.size > stored.size:  # the rows made on the fly: their sums
             sums = gather(self.sums, wp.array((rows_h[stored.size:] - k).astype(np.int32), dtype=wp.int32,
