@@ -316,8 +316,8 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
         history: list[np.ndarray] = []  # --along-pairs: the chosen pairs' frames so far, in time order
         with tqdm(total=2 * len(todo), unit="frame", disable=not progress, desc="particles", leave=False) as bar:
             for p in (chosen if along_pairs is not None else todo):
-                if p not in todo:  # kept by --skip-done: its particles carry the tracks on
-                    history.extend(store.read_particles(p, f)[:, :3] for f in (0, 1))
+                if p not in todo:  # kept by --skip-done: its particles (in the set being written) carry the tracks on
+                    history.extend(store.read_particles(p, f, writing=True)[:, :3] for f in (0, 1))
                     del history[:-along_pairs.frames_read]  # type: ignore[union-attr]
                     continue
                 frames: list[ParticleResult] = []

@@ -105,3 +105,34 @@ def test_the_python_api_refuses_unknown_along_pairs_settings(series_run, tmp_pat
     with pytest.raises(UsageError, match="link_voxels"):
         lfpiv.particles(run, along_pairs={"link_voxels": (0, 1, 1)}, progress=False)
     assert not RunStore.open(run).has_particles
+
+
+def test_skip_done_resumes_an_interrupted_replacement_from_its_own_pairs(series_run, tmp_path, capsys, monkeypatch):
+    """A run whose particles/ holds pair 2 made frame by frame; --along-pairs over 0:3 fails in pair 1,
+    its pair 0 kept aside in the pending replacement. The same command with --skip-done goes on from
+    the replacement's pair 0 (not the old set, which has none of it): pair 1 comes out as in one run
+    through all the pairs."""
+    import lfpiv.jobs.particles as job
+    from lfpiv.errors import UsageError
+
+    whole = _copy(series_run, tmp_path, "whole.zarr")
+    parts = _copy(series_run, tmp_path, "parts.zarr")
+    assert _run(capsys, "particles", whole, "--along-pairs", "--pair-range", "0:2", *FAST)[0] == 0
+    assert _run(capsys, "particles", parts, "--pair-range", "2", *FAST)[0] == 0
+    frame = job._frame
+
+    def failing(ipr, store, names, pair, f, predicted_mm=None):
+        if pair == 1:
+            raise UsageError("pair 1 failed")
+        return frame(ipr, store, names, pair, f, predicted_mm)
+
+    monkeypatch.setattr(job, "_frame", failing)
+    rc, out, err = _run(capsys, "particles", parts, "--along-pairs", "--pair-range", "0:3", *FAST)
+    assert rc == 2 and "kept aside" in err, err
+    monkeypatch.setattr(job, "_frame", frame)
+    rc, out, err = _run(capsys, "particles", parts, "--along-pairs", "--pair-range", "0:3", "--skip-done", *FAST)
+    assert rc == 0, err
+    assert "2 pair(s)" in out and "along the pairs:" in out, out
+    assert RunStore.open(parts).particle_attrs()["settings"]["along_pairs"]  # the replacement is in place
+    for f in (0, 1):
+        assert np.allclose(RunStore.open(whole).read_particles(1, f), RunStore.open(parts).read_particles(1, f))
