@@ -136,3 +136,21 @@ def test_skip_done_resumes_an_interrupted_replacement_from_its_own_pairs(series_
     assert RunStore.open(parts).particle_attrs()["settings"]["along_pairs"]  # the replacement is in place
     for f in (0, 1):
         assert np.allclose(RunStore.open(whole).read_particles(1, f), RunStore.open(parts).read_particles(1, f))
+
+
+def test_the_python_api_refuses_workers_along_the_pairs_before_any_starts(series_run, tmp_path, monkeypatch):
+    """lfpiv.particles(along_pairs=True, workers=2) is refused as the command refuses it, before a
+    Dask cluster is started (and nothing written)."""
+    import lfpiv
+    import lfpiv.batch
+    from lfpiv.errors import UsageError
+
+    def no_cluster(*args, **kwargs):
+        raise AssertionError("a Dask cluster was started")
+
+    monkeypatch.setattr(lfpiv.batch, "dask_client", no_cluster)
+    run = _copy(series_run, tmp_path)
+    for given in ({"workers": 2}, {"scheduler": "tcp://localhost:8786"}):
+        with pytest.raises(UsageError, match="--workers and --scheduler"):
+            lfpiv.particles(run, along_pairs=True, progress=False, **given)
+    assert not RunStore.open(run).has_particles
