@@ -1373,8 +1373,8 @@ def predict_series(tracks: SeriesTracks, frame: int, *, series: SeriesSettings |
     a curved path followed) through four positions or more, a straight line (least squares)
     through three, the last displacement through two. Each particle of ``frame`` on no such track
     (one found in this frame only, or a track's start) is carried on by the displacement of the
-    ``neighbours`` tracks nearest it over their last frame (:func:`_predict`'s local linear fit;
-    none without tracks).
+    ``neighbours`` tracks nearest it over their last frame (:func:`_predict`'s local linear fit, their
+    median with fewer than :data:`LINEAR_PREDICTOR_TRACKS`; none without tracks).
 
     Parameters
     ----------

@@ -179,7 +179,7 @@ class ParticlesDone:
     unsure
         Particles per frame left out as unsure (:attr:`lfcore.ipr.IprSettings.max_position_std`).
     predicted
-        Positions per frame the tracks so far predicted (``--along-pairs``; 0 otherwise).
+        Positions per frame the tracks so far predicted (``--along-pairs``; empty otherwise).
     device
         The Warp device.
     """
