@@ -81,7 +81,9 @@ def test_along_pairs_refusals(series_run, tmp_path, capsys):
     for args, words in ((("--search-voxels", "4,4,4"), ("--search-voxels", "--along-pairs")),
                         (("--link-voxels", "2,2,2"), ("--link-voxels", "--along-pairs")),
                         (("--along-pairs", "--workers", "2"), ("--along-pairs", "--workers")),
-                        (("--along-pairs", "--link-voxels", "0,1,1"), ("link_voxels",))):
+                        (("--along-pairs", "--link-voxels", "0,1,1"), ("link_voxels",)),
+                        (("--along-pairs", "--search-voxels", "nan,4,2"), ("search_voxels",)),
+                        (("--along-pairs", "--link-voxels", "1,inf,1"), ("link_voxels",))):
         rc, out, err = _run(capsys, "particles", run, *args, *FAST)
         assert rc == 2 and all(w in err for w in words), (args, err)
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1

@@ -249,3 +249,12 @@ def test_a_lone_particle_is_carried_on_by_its_neighbours_known_step():
         expect = np.vstack([starts + 4 * step, lone + step])
         assert len(pred) == n + 1
         assert np.all(_nearest(pred, expect) < 1e-9), (n, _nearest(pred, expect))
+
+
+@pytest.mark.parametrize("bad", [(float("nan"), 1.0, 1.0), (1.0, float("inf"), 1.0), (1.0, 1.0, 0.0)])
+def test_search_radii_must_be_positive_and_finite(bad):
+    """A NaN radius passed ``min(v) <= 0`` and crashed the k-d tree far from the option; refused at once."""
+    for make in (lambda: TrackSettings(search_voxels=bad), lambda: TrackSettings(refine_voxels=bad),
+                 lambda: SeriesSettings(link_voxels=bad)):
+        with pytest.raises(ValueError, match="three positive"):
+            make()
