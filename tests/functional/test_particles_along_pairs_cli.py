@@ -156,3 +156,19 @@ def test_the_python_api_refuses_workers_along_the_pairs_before_any_starts(series
         with pytest.raises(UsageError, match="--workers and --scheduler"):
             lfpiv.particles(run, along_pairs=True, progress=False, **given)
     assert not RunStore.open(run).has_particles
+
+
+def test_the_python_api_predicts_from_the_third_frame_on(series_run, tmp_path):
+    """lfpiv.particles(along_pairs=...): the first two frames have no tracks to predict them; every
+    later frame of the uniform flow (37 particles a frame) has about as many predictions as particles."""
+    import lfpiv
+
+    run = _copy(series_run, tmp_path)
+    done = lfpiv.particles(run, along_pairs={"search_voxels": (4, 4, 4)}, progress=False, device="cpu",
+                           candidate_iterations=10, rounds=1, shakes=6, relocate_depth=0)
+    assert done.pairs == [0, 1, 2] and len(done.predicted) == 6
+    assert done.predicted[:2] == [0, 0]
+    counts = np.asarray(done.counts)
+    assert np.all(np.asarray(done.predicted[2:]) >= 0.7 * counts[1:-1]), (done.predicted, done.counts)
+    assert np.all(np.asarray(done.predicted[2:]) <= 1.3 * counts[1:-1]), (done.predicted, done.counts)
+    assert RunStore.open(run).particle_attrs()["settings"]["along_pairs"]["search_voxels"] == [4.0, 4.0, 4.0]
