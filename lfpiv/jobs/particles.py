@@ -137,6 +137,9 @@ class AlongPairs:
             SeriesSettings(link_voxels=self.link_voxels)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
+        except TypeError:  # not numbers (the Python API's dict)
+            raise UsageError(f"search_voxels and link_voxels need three positive values (x, y, z), got "
+                             f"{self.search_voxels} and {self.link_voxels}") from None
 
     def as_dict(self) -> dict[str, Any]:
         """The settings as JSON-compatible values (recorded in ``particles/``' settings)."""

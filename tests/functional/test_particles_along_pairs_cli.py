@@ -106,6 +106,8 @@ def test_the_python_api_refuses_unknown_along_pairs_settings(series_run, tmp_pat
         lfpiv.particles(run, along_pairs={"link": (1, 1, 1)}, progress=False)
     with pytest.raises(UsageError, match="link_voxels"):
         lfpiv.particles(run, along_pairs={"link_voxels": (0, 1, 1)}, progress=False)
+    with pytest.raises(UsageError, match="three positive values"):  # not numbers
+        lfpiv.particles(run, along_pairs={"search_voxels": ("a", "b", "c")}, progress=False)
     assert not RunStore.open(run).has_particles
 
 
