@@ -5,6 +5,7 @@ Run from the repository root on two copies of one time-resolved run, one whose p
 frame by frame and one made along the pairs (the particles are the costly part; made once)::
 
     lfpiv synth --rig examples/demo.toml --out ring5.zarr --pairs 5 --time-resolved --flow vortex-ring
+    cp -r ring5.zarr ring5_stb.zarr
     lfpiv particles ring5.zarr --candidate-iterations 20 --rounds 2                      # before
     lfpiv particles ring5_stb.zarr --candidate-iterations 20 --rounds 2 --along-pairs \\
         --search-voxels 4,4,4                                                           # after
@@ -80,6 +81,7 @@ def _bands(run: Path, tracked: bool) -> list[tuple[int, int, int]]:
 
 
 def _field(run: Path) -> tuple[list[float], float, np.ndarray]:
+    """The field's RMS velocity error, % of the peak speed, each pair and over all; and its RMS per axis, voxels."""
     store = RunStore.open(run)
     each = [100 * evaluate_vector_fields(store, slice(p, p + 1)).errors.of_peak  # type: ignore[union-attr]
             for p in store.correlated_pairs()]
@@ -88,6 +90,7 @@ def _field(run: Path) -> tuple[list[float], float, np.ndarray]:
 
 
 def main() -> None:
+    """Print each run's particle figures and, after ``lfpiv track --along-pairs`` on a copy, its field's."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", type=Path, help="time-resolved synthetic runs with particles/")
     ap.add_argument("--track", default="", help="lfpiv track options besides --along-pairs (one string)")

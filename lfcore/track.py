@@ -159,7 +159,7 @@ class TrackSettings:
             v = getattr(self, name)
             if v is None:
                 continue
-            if len(v) != 3 or min(v) <= 0:
+            if len(v) != 3 or not all(0 < x < np.inf for x in v):  # NaN too
                 raise ValueError(f"{name} needs three positive values (x, y, z), got {v}")
         if self.passes < 1 or self.min_tracks < 1 or self.neighbours < 2 or self.outlier_threshold <= 0:
             raise ValueError("passes and min_tracks must be at least 1, neighbours at least 2, and the outlier "
@@ -1028,7 +1028,7 @@ class SeriesSettings:
     bridge_frames: int = 0
 
     def __post_init__(self) -> None:
-        if len(self.link_voxels) != 3 or min(self.link_voxels) <= 0:
+        if len(self.link_voxels) != 3 or not all(0 < x < np.inf for x in self.link_voxels):  # NaN too
             raise ValueError(f"link_voxels needs three positive values (x, y, z), got {self.link_voxels}")
         if self.degree < 1:
             raise ValueError(f"the tracks' polynomial order must be at least 1, got {self.degree}")
@@ -1373,8 +1373,8 @@ def predict_series(tracks: SeriesTracks, frame: int, *, series: SeriesSettings |
     a curved path followed) through four positions or more, a straight line (least squares)
     through three, the last displacement through two. Each particle of ``frame`` on no such track
     (one found in this frame only, or a track's start) is carried on by the displacement of the
-    ``neighbours`` tracks nearest it over their last frame (:func:`_predict`'s local linear fit;
-    none without tracks).
+    ``neighbours`` tracks nearest it over their last frame (:func:`_predict`'s local linear fit, their
+    median with fewer than :data:`LINEAR_PREDICTOR_TRACKS`; none without tracks).
 
     Parameters
     ----------

@@ -250,7 +250,7 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
         The pairs done, particles and candidates per frame, seconds per frame.
     """
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.particles import AlongPairs, intensity_axis, ipr_settings, particles_run
+    from lfpiv.jobs.particles import AlongPairs, check_along_workers, intensity_axis, ipr_settings, particles_run
 
     along = None
     if along_pairs is not False and along_pairs is not None:
@@ -259,6 +259,8 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
             along = AlongPairs(**{k: tuple(v) for k, v in given.items()})
         except TypeError as exc:
             raise UsageError(f"along_pairs takes search_voxels and link_voxels: {exc}") from None
+    if along is not None:
+        check_along_workers(workers, scheduler)  # before any worker starts
     store = open_run(run, mode="r+")
     # as the command: the point model's diffraction blur and spot size, and the axis along which the
     # faint are judged (the laser sheet's, where it lights the box unevenly), are the rig's unless given

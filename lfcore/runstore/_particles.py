@@ -219,27 +219,37 @@ class Particles(Part):
             raise RunStoreError(f"{self.path} has no particles; run 'lfpiv particles {self.path}' first")
         return dict(self.group["particles"].attrs)
 
-    def read_particles(self, pair: int, frame: int) -> np.ndarray:
+    def read_particles(self, pair: int, frame: int, *, writing: bool = False) -> np.ndarray:
         """The (n, 5) particles (x, y, z mm, intensity, residual) of frame ``frame`` (0: A, 1: B) of
         pair ``pair``.
+
+        Parameters
+        ----------
+        pair, frame
+            The pair, and its frame (0: A, 1: B).
+        writing
+            Read the set being written (``particles/``' pending replacement where one is resumed or
+            made, :meth:`create_particles`) instead of ``particles/`` itself.
 
         Raises
         ------
         RunStoreError
             If the run has no particles, or none of that pair.
         """
-        if pair not in self.particle_pairs():
+        done = (self.done_pairs("particles", self._particles_writing()) if writing  # type: ignore[attr-defined]
+                else self.particle_pairs())
+        if pair not in done:
             raise RunStoreError(f"{self.path} holds no particles of pair {pair}; run 'lfpiv particles {self.path}' "
                                 "for it")
-        g = self.group["particles"]
+        g = self._particles_writing() if writing else self.group["particles"]
         start, stop = (int(v) for v in g["index"][pair, frame])
         if start < 0 or stop < start or stop > g["table"].shape[0]:
-            raise RunStoreError(f"{self.path}: particles/index of pair {pair} is damaged ({start}, {stop}); "
+            raise RunStoreError(f"{self.path}: {g.basename}/index of pair {pair} is damaged ({start}, {stop}); "
                                 f"run 'lfpiv particles {self.path}' again")
         try:
             rows = g["table"][start:stop]
         except Exception as exc:  # noqa: BLE001 - a damaged chunk (checksum, codec, size): name it
-            raise RunStoreError(f"{self.path}: particles/table rows {start} to {stop - 1} (pair {pair}) cannot be "
+            raise RunStoreError(f"{self.path}: {g.basename}/table rows {start} to {stop - 1} (pair {pair}) cannot be "
                                 f"read ({type(exc).__name__}: {exc}); 'lfpiv check {self.path}' lists what is "
                                 "damaged") from None
         return np.asarray(rows, dtype=np.float64).reshape(-1, 5)

@@ -124,7 +124,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.particles import AlongPairs, intensity_axis, ipr_settings, particles_run
+    from lfpiv.jobs.particles import (
+        AlongPairs,
+        check_along_workers,
+        intensity_axis,
+        ipr_settings,
+        particles_run,
+    )
     from lfpiv.runs import open_run
 
     given = {k: v for k, v in (("search_voxels", args.search_voxels), ("link_voxels", args.link_voxels))
@@ -132,10 +138,9 @@ def run(args: argparse.Namespace) -> int:
     if given and not args.along_pairs:
         raise UsageError(f"{', '.join('--' + k.replace('_', '-') for k in given)} only apply to the tracks that "
                          "predict a time-resolved run's particles: add --along-pairs, or leave them out")
-    if args.along_pairs and (args.workers or args.scheduler):  # before any worker starts
-        raise UsageError("--along-pairs reconstructs the frames in time order, each predicted from the ones before: "
-                         "leave out --workers and --scheduler")
     along = AlongPairs(**given) if args.along_pairs else None
+    if along is not None:
+        check_along_workers(args.workers, args.scheduler)  # before any worker starts
 
     # the quick reconstruction's own options where given (ipr_settings refuses them with ray bundling)
     quick = {k: v for k, v in (("candidate_iterations", args.candidate_iterations),

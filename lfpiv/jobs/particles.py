@@ -22,7 +22,8 @@ from lfpiv.errors import UsageError
 from lfpiv.pair_runner import recorded_pairs, run_pairs
 
 __all__ = ["INTENSITY_REFERENCES", "AlongPairs", "IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob",
-           "intensity_axis", "ipr_settings", "particles_pair_task", "particles_run", "same_settings"]
+           "check_along_workers", "intensity_axis", "ipr_settings", "particles_pair_task", "particles_run",
+           "same_settings"]
 
 
 #: Settings added to :class:`lfcore.ipr.IprSettings` after ``particles/`` was first written, at the
@@ -137,6 +138,9 @@ class AlongPairs:
             SeriesSettings(link_voxels=self.link_voxels)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
+        except TypeError:  # not numbers (the Python API's dict)
+            raise UsageError(f"search_voxels and link_voxels need three positive values (x, y, z), got "
+                             f"{self.search_voxels} and {self.link_voxels}") from None
 
     def as_dict(self) -> dict[str, Any]:
         """The settings as JSON-compatible values (recorded in ``particles/``' settings)."""
@@ -179,7 +183,7 @@ class ParticlesDone:
     unsure
         Particles per frame left out as unsure (:attr:`lfcore.ipr.IprSettings.max_position_std`).
     predicted
-        Positions per frame the tracks so far predicted (``--along-pairs``; 0 otherwise).
+        Positions per frame the tracks so far predicted (``--along-pairs``; empty otherwise).
     device
         The Warp device.
     """
@@ -245,6 +249,21 @@ def particles_pair_task(job: ParticlesJob, pair: int) -> PairParticles:
                          seconds=[t for _, t in made], unsure=[r.unsure for r, _ in made])
 
 
+def check_along_workers(workers: Any, scheduler: Any) -> None:
+    """The one-line error of ``--along-pairs`` with ``--workers`` or ``--scheduler`` (``workers``,
+    ``scheduler``: the options as given; None or 0 where not), called where
+    ``--along-pairs`` is asked, before any worker starts.
+
+    Raises
+    ------
+    UsageError
+        Workers or a scheduler: the frames are done in time order, in this process.
+    """
+    if workers or scheduler:
+        raise UsageError("--along-pairs reconstructs the frames in time order, each predicted from the ones before: "
+                         "leave out --workers and --scheduler")
+
+
 def _check_along(store: RunStore, chosen: list[int], client: Any) -> None:
     """A one-line error, before anything is written, where ``--along-pairs`` cannot follow the
     particles through the chosen pairs' frames."""
@@ -252,9 +271,7 @@ def _check_along(store: RunStore, chosen: list[int], client: Any) -> None:
         raise UsageError(f"--along-pairs predicts each frame's particles from the frames before it, but "
                          f"{store.path} is not a time-resolved series (every frame dt after the one before); leave out "
                          "--along-pairs, or record or synthesize a time-resolved run (lfpiv synth --time-resolved)")
-    if client is not None:
-        raise UsageError("--along-pairs reconstructs the frames in time order, each predicted from the ones before: "
-                         "leave out --workers and --scheduler")
+    check_along_workers(client is not None, None)
     if chosen != list(range(chosen[0], chosen[-1] + 1)):
         raise UsageError("--along-pairs follows particles through consecutive pairs: choose them with --pair-range "
                          "A:B (no step)")
@@ -317,8 +334,8 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
         history: list[np.ndarray] = []  # --along-pairs: the chosen pairs' frames so far, in time order
         with tqdm(total=2 * len(todo), unit="frame", disable=not progress, desc="particles", leave=False) as bar:
             for p in (chosen if along_pairs is not None else todo):
-                if p not in todo:  # kept by --skip-done: its particles carry the tracks on
-                    history.extend(store.read_particles(p, f)[:, :3] for f in (0, 1))
+                if p not in todo:  # kept by --skip-done: its particles (in the set being written) carry the tracks on
+                    history.extend(store.read_particles(p, f, writing=True)[:, :3] for f in (0, 1))
                     del history[:-along_pairs.frames_read]  # type: ignore[union-attr]
                     continue
                 frames: list[ParticleResult] = []

@@ -81,7 +81,9 @@ def test_along_pairs_refusals(series_run, tmp_path, capsys):
     for args, words in ((("--search-voxels", "4,4,4"), ("--search-voxels", "--along-pairs")),
                         (("--link-voxels", "2,2,2"), ("--link-voxels", "--along-pairs")),
                         (("--along-pairs", "--workers", "2"), ("--along-pairs", "--workers")),
-                        (("--along-pairs", "--link-voxels", "0,1,1"), ("link_voxels",))):
+                        (("--along-pairs", "--link-voxels", "0,1,1"), ("link_voxels",)),
+                        (("--along-pairs", "--search-voxels", "nan,4,2"), ("search_voxels",)),
+                        (("--along-pairs", "--link-voxels", "1,inf,1"), ("link_voxels",))):
         rc, out, err = _run(capsys, "particles", run, *args, *FAST)
         assert rc == 2 and all(w in err for w in words), (args, err)
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1
@@ -104,4 +106,71 @@ def test_the_python_api_refuses_unknown_along_pairs_settings(series_run, tmp_pat
         lfpiv.particles(run, along_pairs={"link": (1, 1, 1)}, progress=False)
     with pytest.raises(UsageError, match="link_voxels"):
         lfpiv.particles(run, along_pairs={"link_voxels": (0, 1, 1)}, progress=False)
+    with pytest.raises(UsageError, match="three positive values"):  # not numbers
+        lfpiv.particles(run, along_pairs={"search_voxels": ("a", "b", "c")}, progress=False)
     assert not RunStore.open(run).has_particles
+
+
+def test_skip_done_resumes_an_interrupted_replacement_from_its_own_pairs(series_run, tmp_path, capsys, monkeypatch):
+    """A run whose particles/ holds pair 2 made frame by frame; --along-pairs over 0:3 fails in pair 1,
+    its pair 0 kept aside in the pending replacement. The same command with --skip-done goes on from
+    the replacement's pair 0 (not the old set, which has none of it): pair 1 comes out as in one run
+    through all the pairs."""
+    import lfpiv.jobs.particles as job
+    from lfpiv.errors import UsageError
+
+    whole = _copy(series_run, tmp_path, "whole.zarr")
+    parts = _copy(series_run, tmp_path, "parts.zarr")
+    assert _run(capsys, "particles", whole, "--along-pairs", "--pair-range", "0:2", *FAST)[0] == 0
+    assert _run(capsys, "particles", parts, "--pair-range", "2", *FAST)[0] == 0
+    frame = job._frame
+
+    def failing(ipr, store, names, pair, f, predicted_mm=None):
+        if pair == 1:
+            raise UsageError("pair 1 failed")
+        return frame(ipr, store, names, pair, f, predicted_mm)
+
+    monkeypatch.setattr(job, "_frame", failing)
+    rc, out, err = _run(capsys, "particles", parts, "--along-pairs", "--pair-range", "0:3", *FAST)
+    assert rc == 2 and "kept aside" in err, err
+    monkeypatch.setattr(job, "_frame", frame)
+    rc, out, err = _run(capsys, "particles", parts, "--along-pairs", "--pair-range", "0:3", "--skip-done", *FAST)
+    assert rc == 0, err
+    assert "2 pair(s)" in out and "along the pairs:" in out, out
+    assert RunStore.open(parts).particle_attrs()["settings"]["along_pairs"]  # the replacement is in place
+    for f in (0, 1):
+        assert np.allclose(RunStore.open(whole).read_particles(1, f), RunStore.open(parts).read_particles(1, f))
+
+
+def test_the_python_api_refuses_workers_along_the_pairs_before_any_starts(series_run, tmp_path, monkeypatch):
+    """lfpiv.particles(along_pairs=True, workers=2) is refused as the command refuses it, before a
+    Dask cluster is started (and nothing written)."""
+    import lfpiv
+    import lfpiv.batch
+    from lfpiv.errors import UsageError
+
+    def no_cluster(*args, **kwargs):
+        raise AssertionError("a Dask cluster was started")
+
+    monkeypatch.setattr(lfpiv.batch, "dask_client", no_cluster)
+    run = _copy(series_run, tmp_path)
+    for given in ({"workers": 2}, {"scheduler": "tcp://localhost:8786"}):
+        with pytest.raises(UsageError, match="--workers and --scheduler"):
+            lfpiv.particles(run, along_pairs=True, progress=False, **given)
+    assert not RunStore.open(run).has_particles
+
+
+def test_the_python_api_predicts_from_the_third_frame_on(series_run, tmp_path):
+    """lfpiv.particles(along_pairs=...): the first two frames have no tracks to predict them; every
+    later frame of the uniform flow (37 particles a frame) has about as many predictions as particles."""
+    import lfpiv
+
+    run = _copy(series_run, tmp_path)
+    done = lfpiv.particles(run, along_pairs={"search_voxels": (4, 4, 4)}, progress=False, device="cpu",
+                           candidate_iterations=10, rounds=1, shakes=6, relocate_depth=0)
+    assert done.pairs == [0, 1, 2] and len(done.predicted) == 6
+    assert done.predicted[:2] == [0, 0]
+    counts = np.asarray(done.counts)
+    assert np.all(np.asarray(done.predicted[2:]) >= 0.7 * counts[1:-1]), (done.predicted, done.counts)
+    assert np.all(np.asarray(done.predicted[2:]) <= 1.3 * counts[1:-1]), (done.predicted, done.counts)
+    assert RunStore.open(run).particle_attrs()["settings"]["along_pairs"]["search_voxels"] == [4.0, 4.0, 4.0]

@@ -195,8 +195,8 @@ def _nearest(pred, at):
 def test_the_prediction_carries_known_tracks_on_by_their_own_paths():
     """Shake-the-Box's prediction of the next frame from known tracks: a straight path and a curved
     (second-order) one exactly, a track of two frames by its last step, a track whose particle was
-    missed in the last frame still predicted, one missed longer not; a particle on no track by its
-    neighbours' step (a uniform step: exactly)."""
+    missed in the last frame still predicted, one missed longer not; a particle on no track near its
+    neighbours' steps (exactly where they are one step: the next test)."""
     x0 = np.array([0.0, 0.0, 0.0])
     line = lambda t: x0 + np.array([1.3, -0.7, 0.4]) * VOXEL * t  # noqa: E731
     curve = lambda t: x0 + 0.05 + np.array([0.9 * t, 0.25 * t * t, -0.1 * t * t]) * VOXEL  # noqa: E731
@@ -233,3 +233,28 @@ def test_the_prediction_of_a_uniform_flow_from_linked_noisy_frames_is_within_the
     err = _nearest(pred, a + 6 * step)
     assert len(pred) >= 195
     assert np.median(err) < 0.15 and np.mean(err < 0.3) > 0.95, (np.median(err), np.mean(err < 0.3))
+
+
+def test_a_lone_particle_is_carried_on_by_its_neighbours_known_step():
+    """A particle found in the last frame only, among tracks of one known step (a uniform flow): few
+    tracks (their median) or many (the local linear fit), it is predicted one step on, exactly; the
+    tracks' own predictions too, and nothing else is predicted."""
+    step = np.array([1.2, -0.6, 0.35]) * VOXEL
+    lone = np.array([0.02, -0.03, 0.1])
+    for n in (3, 12):
+        starts = _points(n, 7)
+        paths = [(range(4), np.array([a + t * step for t in range(4)])) for a in starts]
+        paths.append(([3], lone[None, :]))
+        pred = predict_series(_known(paths), 3)
+        expect = np.vstack([starts + 4 * step, lone + step])
+        assert len(pred) == n + 1
+        assert np.all(_nearest(pred, expect) < 1e-9), (n, _nearest(pred, expect))
+
+
+@pytest.mark.parametrize("bad", [(float("nan"), 1.0, 1.0), (1.0, float("inf"), 1.0), (1.0, 1.0, 0.0)])
+def test_search_radii_must_be_positive_and_finite(bad):
+    """A NaN radius passed ``min(v) <= 0`` and crashed the k-d tree far from the option; refused at once."""
+    for make in (lambda: TrackSettings(search_voxels=bad), lambda: TrackSettings(refine_voxels=bad),
+                 lambda: SeriesSettings(link_voxels=bad)):
+        with pytest.raises(ValueError, match="three positive"):
+            make()
