@@ -888,7 +888,7 @@ def _search_radius(mid_mm: np.ndarray, disp_mm: np.ndarray, *, neighbours: int, 
 
 
 def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings: TrackSettings | None = None,
-               predictor: Predictor | None = None) -> TrackResult:
+               predictor: Predictor | None = None, keep_wide: bool = False) -> TrackResult:
     """Track a pair's particles (see the module docstring).
 
     Parameters
@@ -903,6 +903,12 @@ def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings
         The first pass's predicted displacement, in voxels of ``grid`` (e.g.
         :func:`lfcore.warm.predictor_field` of the pair's volumes, or :func:`field_predictor` of the
         previous pair); None: zero.
+    keep_wide
+        After the last of two passes or more, pair the particles it left unpaired on both sides as the
+        first pass does (within :attr:`TrackSettings.search_voxels`), around the last pass's
+        predictor, and judge them by the outlier test with the rest: a particle much faster than its
+        neighbours (a vortex core, narrower than the neighbours the predictor fits) lies outside the
+        later passes' narrow search around their prediction.
 
     Returns
     -------
@@ -916,6 +922,11 @@ def track_pair(a_mm: np.ndarray, b_mm: np.ndarray, grid: VolumeGrid, *, settings
     radius = np.asarray(s.search_voxels) * voxel
     for done in range(s.passes):
         ia, ib = pair_nearest(a, b, predicted, radius)
+        if keep_wide and done and done + 1 == s.passes:
+            left_a = np.setdiff1d(np.arange(len(a)), ia)
+            left_b = np.setdiff1d(np.arange(len(b)), ib)
+            ja, jb = pair_nearest(a[left_a], b[left_b], predicted[left_a], np.asarray(s.search_voxels) * voxel)
+            ia, ib = np.r_[ia, left_a[ja]], np.r_[ib, left_b[jb]]
         disp = b[ib] - a[ia]
         mid = a[ia] + 0.5 * disp
         out = reject_outliers(mid, disp, neighbours=s.neighbours, threshold=s.outlier_threshold,
@@ -1018,6 +1029,15 @@ class SeriesSettings:
         recent velocity puts it there (:func:`_bridge_gaps`): a particle that reconstruction missed
         in a frame or two no longer breaks its track in two, and a pair whose particle is missing in
         frame A or B gets the track's fitted positions there. 0: tracks without gaps.
+    relink
+        Let the pair tracking's links carry on tracks that a straight line loses: a track of two
+        frames or more whose own recent velocity finds no particle in the next frame takes the pair
+        tracking's link of its particle (where that passes the outlier test), and the pair tracking
+        pairs the particles its later passes leave unpaired as its first pass does
+        (:func:`track_pair`'s ``keep_wide``). For particles on paths curved more sharply than
+        :attr:`link_voxels` allows from frame to frame (a vortex core's); on one camera's smooth flow
+        it also keeps depth-misplaced particles on their tracks (benchmarks/RESULTS.md). False: a
+        track ends where its own velocity finds nothing.
     """
 
     link_voxels: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -1026,6 +1046,7 @@ class SeriesSettings:
     degree: int = 2
     pool_pairs: int = 0
     bridge_frames: int = 0
+    relink: bool = False
 
     def __post_init__(self) -> None:
         if len(self.link_voxels) != 3 or not all(0 < x < np.inf for x in self.link_voxels):  # NaN too
@@ -1045,10 +1066,11 @@ class SeriesSettings:
                              f"{self.bridge_frames}")
 
     def as_dict(self) -> dict:
-        """The settings as JSON-compatible values (``pool_pairs`` only where pooling and
-        ``bridge_frames`` only where bridging: vectors tracked before them read as tracked without)."""
+        """The settings as JSON-compatible values (``pool_pairs`` only where pooling, ``bridge_frames``
+        only where bridging and ``relink`` only where on: vectors tracked before them read as tracked
+        without)."""
         out = {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
-        for key in ("pool_pairs", "bridge_frames"):
+        for key in ("pool_pairs", "bridge_frames", "relink"):
             if not out[key]:
                 del out[key]
         return out
@@ -1116,6 +1138,9 @@ def link_series(frames: list[np.ndarray], grid: VolumeGrid, *, settings: TrackSe
     the same way as forwards (the pair tracking leaves some particles of a frame unpaired that a
     track's own velocity finds). With :attr:`SeriesSettings.bridge_frames`, tracks are then
     joined across up to that many frames where their particle is missing (:func:`_bridge_gaps`).
+    With :attr:`SeriesSettings.relink`, a track that its own velocity cannot carry on takes the pair
+    tracking's link instead, and the pair tracking keeps its first pass's wide search for the
+    particles its later passes leave unpaired.
 
     Parameters
     ----------
@@ -1165,10 +1190,11 @@ def link_series(frames: list[np.ndarray], grid: VolumeGrid, *, settings: TrackSe
                 used_a[i] = used_b[j] = True
         if len(a) and len(b):
             # the rest start tracks by the pair tracking of the two frames
-            res = track_pair(a, b, grid, settings=pair_settings, predictor=pred)
+            res = track_pair(a, b, grid, settings=pair_settings, predictor=pred, keep_wide=ser.relink)
             pred = field_predictor(res, grid)
             for i, j, bad in zip(res.a_index, res.b_index, res.outlier, strict=True):
-                if not bad and not used_a[i] and not used_b[j] and len(tracks[on[i]]) == 1:
+                # a particle on a track takes the pair's link only where its own velocity found nothing
+                if not bad and not used_a[i] and not used_b[j] and (ser.relink or len(tracks[on[i]]) == 1):
                     links_a.append(int(i))
                     links_b.append(int(j))
                     links_cont.append(False)

@@ -283,7 +283,8 @@ def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, sk
     ``field``, ``smooth_voxels``, ...). ``along_pairs`` (a time-resolved run: ``lfpiv track
     --along-pairs``) follows the particles through every frame: True with the defaults, or a dict of
     :class:`lfcore.track.SeriesSettings` fields (``link_voxels``, ``min_frames``, ``fit_frames``,
-    ``degree``, ``pool_pairs``, ``bridge_frames``). Returns the :class:`lfpiv.jobs.track.TracksDone` figures."""
+    ``degree``, ``pool_pairs``, ``bridge_frames``, ``relink``). Returns the
+    :class:`lfpiv.jobs.track.TracksDone` figures."""
     from lfpiv.jobs.track import series_settings, track_run, track_settings
 
     series = None

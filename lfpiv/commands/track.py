@@ -94,6 +94,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "velocity puts it, so a particle that reconstruction missed in a frame or two keeps its track, "
                    "and a pair whose particle is missing in frame A or B gets the track's fitted positions there "
                    "(default: 0, tracks without gaps)")
+    c.add_argument("--relink", action="store_true", default=None,
+                   help="--along-pairs: a track whose own velocity finds no particle in the next frame takes the pair "
+                   "tracking's link of its particle instead of ending, and the pair tracking's last pass pairs what "
+                   "it left unpaired within --search-voxels: particles on paths that turn faster than --link-voxels "
+                   "allows from frame to frame (a vortex core) keep their tracks (default: off; on a smooth flow seen "
+                   "by one camera it also keeps depth-misplaced particles on their tracks)")
     c.add_argument("--csv", default=None, metavar="FILE",
                    help="also write every tracked pair's tracks to FILE: pair, frame A's x, y, z and frame B's (mm), "
                    "u, v, w (m/s), outlier")
@@ -114,11 +120,13 @@ def run(args: argparse.Namespace) -> int:
     # the series' options (None where not given: SeriesSettings' defaults) only mean something along the pairs
     given = {k: v for k, v in (("link_voxels", args.link_voxels), ("min_frames", args.min_frames),
                                ("fit_frames", args.fit_frames), ("degree", args.fit_order),
-                               ("pool_pairs", args.pool_pairs), ("bridge_frames", args.bridge_frames))
+                               ("pool_pairs", args.pool_pairs), ("bridge_frames", args.bridge_frames),
+                               ("relink", args.relink))
              if v is not None}
     if given and not args.along_pairs:
         names = {"link_voxels": "--link-voxels", "min_frames": "--min-frames", "fit_frames": "--fit-frames",
-                 "degree": "--fit-order", "pool_pairs": "--pool-pairs", "bridge_frames": "--bridge-frames"}
+                 "degree": "--fit-order", "pool_pairs": "--pool-pairs", "bridge_frames": "--bridge-frames",
+                 "relink": "--relink"}
         raise UsageError(f"{', '.join(names[k] for k in given)} only apply to tracks along a time-resolved series: "
                          "add --along-pairs, or leave them out")
     series = series_settings(**given) if args.along_pairs else None
@@ -145,7 +153,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"linked {done.series_tracks} tracks of at least {series.min_frames} frames through the "
               f"{done.series_frames} frames (mean length {done.series_length:.1f} frames), fitted by polynomials "
               f"of order {series.degree} in time through {series.fit_frames} frames"
-              + (f", gaps of up to {series.bridge_frames} missing frame(s) bridged" if series.bridge_frames else ""))
+              + (f", gaps of up to {series.bridge_frames} missing frame(s) bridged" if series.bridge_frames else "")
+              + (", tracks a straight line lost carried on by the pair tracking's links" if series.relink else ""))
         if done.pool_offered:
             import numpy as np
 

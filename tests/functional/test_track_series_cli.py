@@ -192,7 +192,7 @@ def test_along_pairs_from_a_later_pair_gives_each_pair_its_own_frames(series_run
 
 
 def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path, capsys):
-    """--link-voxels, --min-frames, --fit-frames and --fit-order only shape tracks along a series:
+    """--link-voxels, --min-frames, --fit-frames, --fit-order (and the rest) only shape tracks along a series:
     given without --along-pairs they would be ignored, so they are refused (one line, exit 2)."""
     run = _copy(series_run, tmp_path)
     for option, value in (("--link-voxels", "2,2,2"), ("--min-frames", "5"), ("--fit-frames", "4"),
@@ -200,6 +200,8 @@ def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path
         rc, out, err = _run(capsys, "track", run, option, value, "--quiet")
         assert rc == 2 and option in err and "--along-pairs" in err, (option, err)
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    rc, out, err = _run(capsys, "track", run, "--relink", "--quiet")
+    assert rc == 2 and "--relink" in err and "--along-pairs" in err, err
     assert not RunStore.open(run).has_vectors
     # with --along-pairs they apply, and the defaults are SeriesSettings' own
     rc, out, err = _run(capsys, "track", run, "--along-pairs", "--fit-order", "1", "--fit-frames", "3")
@@ -207,11 +209,14 @@ def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path
     assert "of order 1 in time through 3 frames" in out and "at least 4 frames" in out
     assert RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]["degree"] == 1
     assert "bridge_frames" not in RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]
+    assert "relink" not in RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]
     bridged = _copy(series_run, tmp_path, "b.zarr")
-    rc, out, err = _run(capsys, "track", bridged, "--along-pairs", "--bridge-frames", "2", "--quiet")
+    rc, out, err = _run(capsys, "track", bridged, "--along-pairs", "--bridge-frames", "2", "--relink", "--quiet")
     assert rc == 0, err
     assert "gaps of up to 2 missing frame(s) bridged" in out, out
+    assert "carried on by the pair tracking's links" in out, out
     assert RunStore.open(bridged).vectors()["attrs"]["settings"]["along_pairs"]["bridge_frames"] == 2
+    assert RunStore.open(bridged).vectors()["attrs"]["settings"]["along_pairs"]["relink"] is True
 
 
 def test_pooling_the_neighbouring_pairs_tracks(series_run, tmp_path, capsys):
