@@ -249,6 +249,11 @@ class IprSettings:
         A masked pixel neither removes voxels nor pulls them dark (:func:`lfcore.reconstruct.preprocess`),
         and a background estimated from the residual image, which those pixels' noise widens, is
         not. ``benchmarks/RESULTS.md`` (twelfth session, issue 48) has it measured.
+
+    ``noise_model`` and ``residual_mask`` keep their defaults here (``"flat"`` and 0): this class
+    is explicit. ``lfpiv particles`` and ``lfpiv.particles`` choose them from the cameras used
+    (``"shot"`` and 3 where a light-field camera is among them, ``"flat"`` and 0 for pinhole
+    cameras alone: ``lfpiv.jobs.particles.fit_defaults``); the live route keeps ``"flat"`` and 0.
     """
 
     method: str | None = None

@@ -242,7 +242,10 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
         or None: every frame on its own.
     **options
         :class:`lfcore.ipr.IprSettings` fields (``method``, ``candidate_iterations``, ``shakes``,
-        ``min_intensity``, ``merge_voxels``, ``rounds``, ...).
+        ``min_intensity``, ``merge_voxels``, ``rounds``, ...). ``noise_model`` and ``residual_mask``
+        take ``"auto"`` too, their default, as the command does: chosen from the cameras used
+        (:func:`lfpiv.jobs.particles.fit_defaults`; ``"shot"`` and 3 where a light-field camera is
+        among them, ``"flat"`` and 0 for pinhole cameras alone).
 
     Returns
     -------
@@ -250,7 +253,15 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
         The pairs done, particles and candidates per frame, seconds per frame.
     """
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.particles import AlongPairs, check_along_workers, intensity_axis, ipr_settings, particles_run
+    from lfpiv.jobs.particles import (
+        AlongPairs,
+        check_along_workers,
+        fit_defaults,
+        intensity_axis,
+        ipr_settings,
+        particles_run,
+        used_cameras,
+    )
 
     along = None
     if along_pairs is not False and along_pairs is not None:
@@ -263,10 +274,13 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
         check_along_workers(workers, scheduler)  # before any worker starts
     store = open_run(run, mode="r+")
     # as the command: the point model's diffraction blur and spot size, and the axis along which the
-    # faint are judged (the laser sheet's, where it lights the box unevenly), are the rig's unless given
+    # faint are judged (the laser sheet's, where it lights the box unevenly), are the rig's unless given;
+    # the fit's weights and residual mask, unless given (or given as "auto"), the cameras' (fit_defaults)
+    fit = fit_defaults(used_cameras(store.rig, cameras), noise_model=options.pop("noise_model", "auto"),
+                       residual_mask=options.pop("residual_mask", "auto"))
     options = {"wavelength_nm": store.rig.laser.wavelength_nm,
                "particle_image_px": store.rig.render.particle_image_px,
-               "intensity_axis": intensity_axis(store.rig), **options}
+               "intensity_axis": intensity_axis(store.rig), **fit, **options}
     settings = ipr_settings(**options)
     with dask_client(workers, scheduler) as client:
         return particles_run(store, settings, _pairs(pairs), cameras=cameras, device=device, progress=progress,

@@ -156,8 +156,13 @@ def monitoring_ipr(candidate_iterations: int = 20, rounds: int = 2, *, method: s
     ValueError
         Fewer than one iteration or round.
     """
+    # One copy of the algorithm: the live route calls the same lfcore.ipr functions as ``lfpiv
+    # particles``, only its settings differ. It keeps every pixel weighed alike and no residual mask
+    # (flat + 0) on every rig, where ``lfpiv particles`` chooses shot + 3 for light-field cameras
+    # (lfpiv.jobs.particles.fit_defaults): on the live route those cost 3.1x the CPU and found fewer
+    # (benchmarks/RESULTS.md, twelfth session, issue 48).
     return IprSettings(method=method, candidate_iterations=candidate_iterations, candidate_protocol="fixed",
-                       rounds=rounds, model="voxels", relocate_depth=0)
+                       rounds=rounds, model="voxels", relocate_depth=0, noise_model="flat", residual_mask=0.0)
 
 
 def monitoring_tracking(shape: tuple[int, int, int], *, passes: int = 2) -> TrackSettings:

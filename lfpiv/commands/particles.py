@@ -28,6 +28,11 @@ def shakes(text: str) -> int:
     return whole_number(text, 0)
 
 
+def mask_sigmas(text: str) -> float | str:
+    """argparse type of ``--residual-mask``: ``auto`` or a finite number of at least 0."""
+    return "auto" if text == "auto" else non_negative_float(text)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     c = sub.add_parser("particles", help="reconstruct every frame's particles (positions, intensities) by IPR",
                        description="Iterative particle reconstruction (the reconstruction of Shake-the-Box) on the "
@@ -88,15 +93,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="at the end, leave out particles whose position is less sure than V voxels on any axis "
                    "(its standard deviation from the fit): fewer ghosts near a light-field camera's focal plane, "
                    "fewer particles found (0: keep all; default: 0)")
-    c.add_argument("--noise-model", choices=("shot", "flat"), default="flat",
+    c.add_argument("--noise-model", choices=("auto", "shot", "flat"), default="auto",
                    help="how the fit weighs the pixels: shot, each by the inverse of its noise variance, the "
                    "background's noise plus a share of the particles' light there fitted to the residual (a pixel "
                    "on a bright particle is noisier than one on a far-out-of-focus particle's thin light); flat, "
-                   "every pixel alike (plain least squares; default: flat)")
+                   "every pixel alike (plain least squares); auto, shot where the cameras used (--cameras) include "
+                   "a light-field camera, flat for pinhole cameras alone (default: auto)")
     c.add_argument("--noise-floor", type=non_negative_float, default=0.0, metavar="F",
-                   help="with --noise-model shot, weigh no pixel less than F times its camera's background (0 to "
-                   "1; 0: no floor, the default): the images' bright pixels may differ from the model by more "
-                   "than their noise, and unfloored the fit leans on the particles' wings")
+                   help="with --noise-model shot (or auto where it chooses shot), weigh no pixel less than F times "
+                   "its camera's background (0 to 1; 0: no floor, the default): the images' bright pixels may "
+                   "differ from the model by more than their noise, and unfloored the fit leans on the particles' "
+                   "wings")
     c.add_argument("--along-pairs", action="store_true",
                    help="a time-resolved run (every frame dt after the one before, as 'lfpiv synth --time-resolved' "
                    "makes): reconstruct the frames in time order, and fit first in each frame the positions where "
@@ -111,11 +118,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--link-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="--along-pairs: the search radius around where a track's own velocity puts it in the next "
                    "frame, as 'lfpiv track --link-voxels' (default: 1,1,1)")
-    c.add_argument("--residual-mask", type=non_negative_float, default=0.0, metavar="S",
+    c.add_argument("--residual-mask", type=mask_sigmas, default="auto", metavar="S",
                    help="in the residual rounds, mask the pixels where the particles found so far are brighter than "
                    "S times the camera's background noise, so that their noise removes no voxel from the quick "
                    "reconstruction whose peaks are the next candidates: faint out-of-focus particles beside "
-                   "bright ones are found (0: none, the default)")
+                   "bright ones are found (0: none; auto, 3 where the cameras used include a light-field camera, "
+                   "0 for pinhole cameras alone; default: auto)")
     add_device(c)
     add_workers(c, "reconstruct the particles of")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -125,11 +133,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from lfpiv.batch import dask_client
     from lfpiv.jobs.particles import (
+        LIGHT_FIELD_FIT,
         AlongPairs,
         check_along_workers,
+        fit_defaults,
         intensity_axis,
         ipr_settings,
         particles_run,
+        used_cameras,
     )
     from lfpiv.runs import open_run
 
@@ -149,12 +160,17 @@ def run(args: argparse.Namespace) -> int:
     options = dict(method=args.method, **quick, candidate_source=args.candidates, shakes=args.shakes,
                    min_intensity=args.min_intensity,
                    merge_voxels=args.merge_voxels, rounds=args.rounds, split_intensity=args.split, model=args.model,
-                   relocate_depth=args.relocate, max_position_std=args.max_std, noise_model=args.noise_model,
-                   noise_floor=args.noise_floor, residual_mask=args.residual_mask)
-    ipr_settings(**options)  # bad options are refused before the run is opened
+                   relocate_depth=args.relocate, max_position_std=args.max_std, noise_floor=args.noise_floor)
+    fit = {"noise_model": args.noise_model, "residual_mask": args.residual_mask}
+    # bad options are refused before the run is opened (auto as the light-field cameras' choice, with which
+    # --noise-floor goes; the cameras' own choice is checked again below)
+    ipr_settings(**options, **{k: LIGHT_FIELD_FIT[k] if v == "auto" else v for k, v in fit.items()})
     store = open_run(args.run, mode="r+")
-    # the point model's diffraction blur and pinhole particle images are the rig's
-    settings = ipr_settings(**options, wavelength_nm=store.rig.laser.wavelength_nm,
+    # the fit's weights and residual mask where auto are the cameras' (shot + 3 with a light-field camera, flat
+    # + 0 for pinhole cameras alone: what particles/ records); the point model's diffraction blur and pinhole
+    # particle images are the rig's
+    settings = ipr_settings(**options, **fit_defaults(used_cameras(store.rig, args.cameras), **fit),
+                            wavelength_nm=store.rig.laser.wavelength_nm,
                             particle_image_px=store.rig.render.particle_image_px,
                             intensity_axis=intensity_axis(store.rig, args.min_intensity_of))
     with dask_client(args.workers, args.scheduler) as client:

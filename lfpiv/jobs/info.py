@@ -198,8 +198,12 @@ def describe(path: str | Path) -> list[str]:
     if store.has_particles:
         pa = store.group["particles"].attrs
         n_rows = store.group["particles"]["table"].shape[0]
+        ps = pa.get("settings", {})
+        # the fit's weights and residual mask as recorded (auto's choice; a group written before they
+        # existed was fitted flat with no mask)
+        fit = f"{ps.get('noise_model', 'flat')} fit, residual mask {float(ps.get('residual_mask', 0.0)):g}"
         lines.append(("particles", f"{_count(store.particle_pairs())} reconstructed ({pa.get('method')} IPR, "
-                                   f"{pa.get('settings', {}).get('rounds')} round(s)), {n_rows:,} particle rows"))
+                                   f"{ps.get('rounds')} round(s), {fit}), {n_rows:,} particle rows"))
     for name, command in (("volumes", "reconstruct"), ("vectors", "correlate"), ("particles", "particles")):
         pending = store.pending(name)
         if pending is not None:

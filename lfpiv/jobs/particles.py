@@ -14,16 +14,16 @@ from tqdm import tqdm
 from lfcore.device import MemoryBudgetError
 from lfcore.ipr import IprSettings, ParticleReconstructor, ParticleResult
 from lfcore.plan import projector_for, unsupported_method
-from lfcore.rig import Rig
+from lfcore.rig import Rig, is_pinhole
 from lfcore.runstore import RunStore, is_time_resolved
 from lfcore.track import SeriesSettings, TrackSettings, link_series, predict_series
 from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError
 from lfpiv.pair_runner import recorded_pairs, run_pairs
 
-__all__ = ["INTENSITY_REFERENCES", "AlongPairs", "IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob",
-           "check_along_workers", "intensity_axis", "ipr_settings", "particles_pair_task", "particles_run",
-           "same_settings"]
+__all__ = ["INTENSITY_REFERENCES", "LIGHT_FIELD_FIT", "NOISE_MODEL_CHOICES", "PINHOLE_FIT", "AlongPairs",
+           "IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "check_along_workers", "fit_defaults",
+           "intensity_axis", "ipr_settings", "particles_pair_task", "particles_run", "same_settings", "used_cameras"]
 
 
 #: Settings added to :class:`lfcore.ipr.IprSettings` after ``particles/`` was first written, at the
@@ -44,6 +44,70 @@ OLD_DEFAULTS: dict[str, Any] = {"split_intensity": 0.0, "model": "voxels", "relo
 #: What ``lfpiv particles --min-intensity-of`` judges a particle's intensity against
 #: (:func:`intensity_axis`).
 INTENSITY_REFERENCES = ("auto", "frame", "sheet")
+
+#: What ``lfpiv particles --noise-model`` takes: :data:`lfcore.ipr.NOISE_MODELS` or ``"auto"``
+#: (:func:`fit_defaults`).
+NOISE_MODEL_CHOICES = ("auto", "shot", "flat")
+
+#: The fit's weights and residual mask that ``"auto"`` gives where the cameras used include a
+#: light-field camera (:func:`fit_defaults`), and those it gives to pinhole cameras alone.
+LIGHT_FIELD_FIT: dict[str, Any] = {"noise_model": "shot", "residual_mask": 3.0}
+PINHOLE_FIT: dict[str, Any] = {"noise_model": "flat", "residual_mask": 0.0}
+
+
+def fit_defaults(cameras: Sequence[Any], *, noise_model: str = "auto",
+                 residual_mask: float | str = "auto") -> dict[str, Any]:
+    """:attr:`lfcore.ipr.IprSettings.noise_model` and :attr:`~lfcore.ipr.IprSettings.residual_mask`
+    for ``lfpiv particles --noise-model`` and ``--residual-mask``: each given value as it is, each
+    ``"auto"`` chosen from the cameras used (after ``--cameras``).
+
+    Where a light-field camera is among them, ``"auto"`` is :data:`LIGHT_FIELD_FIT` (the shot-noise
+    weights and the residual rounds' mask at 3 background sigmas); pinhole cameras alone get
+    :data:`PINHOLE_FIT` (every pixel alike, no mask). Measured end to end (``benchmarks/RESULTS.md``,
+    twelfth session, issue 48): with a light-field camera, shot + 3 found more and fewer ghosts on
+    every rig (issue 48's 512 x 512 rig's A1 pair recall 0.938 and 4.0% ghosts; the mixed rig of
+    one light-field and two pinhole cameras 0.852 and 10.7% ghosts to 0.890 and 2.4%); four pinhole
+    cameras lost (recall 0.904 to 0.871, ghosts 1.8% to 3.0%).
+
+    Parameters
+    ----------
+    cameras
+        The cameras used (:class:`lfcore.rig.Camera` or any object with a ``kind``:
+        :func:`lfcore.rig.is_pinhole`).
+    noise_model
+        ``"auto"``, ``"shot"`` or ``"flat"`` (:data:`NOISE_MODEL_CHOICES`).
+    residual_mask
+        ``"auto"`` or a number of background sigmas, 0 or more.
+
+    Returns
+    -------
+    dict
+        ``{"noise_model": str, "residual_mask": float}``: what ``particles/`` records.
+
+    Raises
+    ------
+    UsageError
+        No cameras (where one of them is ``"auto"``), or a value neither ``"auto"`` nor one of
+        those above.
+    """
+    if noise_model not in NOISE_MODEL_CHOICES:
+        raise UsageError(f"--noise-model is one of {', '.join(NOISE_MODEL_CHOICES)}, got '{noise_model}'")
+    if isinstance(residual_mask, str) and residual_mask != "auto":
+        raise UsageError(f"--residual-mask is auto or a number of background sigmas, got '{residual_mask}'")
+    auto = "auto" in (noise_model, residual_mask)
+    if auto and not cameras:
+        raise UsageError("--noise-model and --residual-mask auto choose from the cameras used, and none is given")
+    chosen = PINHOLE_FIT if all(is_pinhole(c) for c in cameras) else LIGHT_FIELD_FIT
+    return {"noise_model": chosen["noise_model"] if noise_model == "auto" else noise_model,
+            "residual_mask": chosen["residual_mask"] if residual_mask == "auto" else float(residual_mask)}
+
+
+def used_cameras(rig: Rig, names: Sequence[str] | None) -> list[Any]:
+    """The cameras of ``rig`` named in ``names`` (``--cameras``; all of them where None or empty),
+    in the rig's order; names the rig does not have are left for :func:`lfpiv.pair_runner.recorded_pairs`
+    to refuse."""
+    return [c for c in rig.camera if not names or c.name in names]
+
 
 #: Settings of ray bundling only: the reconstruction's candidates do not depend on them.
 RAYS_ONLY = ("ray_keep_bins", "ray_min_score")

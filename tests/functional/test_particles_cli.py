@@ -34,14 +34,20 @@ def test_synth_particles_evaluate(tmp_path, capsys):
         assert found.shape[1] == 5 and np.all(np.isfinite(found))
         assert 0.8 * len(truth[0, f]) <= len(found) <= 1.2 * len(truth[0, f])
     assert s.particle_attrs()["method"] == "drt-mart"
+    # --noise-model and --residual-mask auto: recorded as what they chose for this light-field camera
+    recorded = s.particle_attrs()["settings"]
+    assert recorded["noise_model"] == "shot" and recorded["residual_mask"] == 3.0
     rc, out, err = _run(capsys, "evaluate", run)
     assert rc == 0, err
     recall, ghosts, rms = _scores(out)
-    # measured 0.86 recall, 14% ghosts, 0.13, 0.10, 0.23 voxel on this run (tiny rig, 0.3 PPM, one camera)
+    # measured 0.86 recall, 14% ghosts, 0.13, 0.10, 0.23 voxel on this run (tiny rig, 0.3 PPM, one camera);
+    # thirteenth session, auto's shot + 3: 0.833, 11.9%, 0.113, 0.095, 0.181 (flat + 0: 0.851, 12.9%, 0.105, 0.078,
+    # 0.179)
     assert recall > 0.7 and ghosts < 25.0
     assert max(rms[:2]) < 0.25 and rms[2] < 0.4
     rc, out, _ = _run(capsys, "info", run)
     assert rc == 0 and re.search(r"^particles\s+1 pair\(s\) \(0\) reconstructed \(drt-mart IPR", out, re.M), out
+    assert "3 round(s), shot fit, residual mask 3)" in out, out
     # done already with these settings: nothing to do, nothing rewritten
     rc, out, _ = _run(capsys, "particles", run, "--quiet", "--skip-done")
     assert rc == 0 and "nothing to do" in out
@@ -54,8 +60,9 @@ def test_bad_threshold_is_one_line_exit_2(tmp_path, capsys):
     assert rc == 2
     assert "threshold" in err and "Traceback" not in err
     assert not RunStore.open(run).has_particles
-    # a noise floor without the shot noise model would be ignored: refused instead
-    rc, out, err = _run(capsys, "particles", run, "--noise-floor", "0.1")
+    # a noise floor without the shot noise model would be ignored: refused instead (the flat model given:
+    # auto chooses shot for this light-field camera)
+    rc, out, err = _run(capsys, "particles", run, "--noise-floor", "0.1", "--noise-model", "flat")
     assert rc == 2 and err.count("\n") == 1 and "--noise-model shot" in err and "Traceback" not in err, err
     assert not RunStore.open(run).has_particles
     rc, out, err = _run(capsys, "particles", run, "--residual-mask", "-1")
