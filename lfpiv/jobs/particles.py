@@ -104,8 +104,17 @@ def fit_defaults(cameras: Sequence[Any], *, noise_model: str = "auto",
 
 def used_cameras(rig: Rig, names: Sequence[str] | None) -> list[Any]:
     """The cameras of ``rig`` named in ``names`` (``--cameras``; all of them where None or empty),
-    in the rig's order; names the rig does not have are left for :func:`lfpiv.pair_runner.recorded_pairs`
-    to refuse."""
+    in the rig's order.
+
+    Raises
+    ------
+    UsageError
+        A name the rig does not have (as :func:`lfpiv.pair_runner.recorded_pairs` says it).
+    """
+    have = [c.name for c in rig.camera]
+    unknown = [n for n in names or () if n not in have]
+    if unknown:
+        raise UsageError(f"--cameras: no camera '{unknown[0]}' in this run (it has {', '.join(have)})")
     return [c for c in rig.camera if not names or c.name in names]
 
 
@@ -170,7 +179,8 @@ def ipr_settings(**options: Any) -> IprSettings:
                          "--candidates rays does not make; leave them out, or choose --candidates reconstruction")
     if options.get("noise_floor") and options.get("noise_model", "flat") != "shot":
         raise UsageError("--noise-floor weighs the pixels of --noise-model shot, and the flat model weighs them all "
-                         "alike: add --noise-model shot, or leave --noise-floor out")
+                         "alike (the default for pinhole cameras alone): add --noise-model shot, or leave "
+                         "--noise-floor out")
     try:
         return IprSettings(**options)
     except ValueError as exc:

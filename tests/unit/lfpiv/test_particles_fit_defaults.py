@@ -51,6 +51,12 @@ def test_the_cameras_used_decide_not_the_rigs(rigs) -> None:
     assert fit_defaults(used_cameras(mixed, [])) == LIGHT_FIELD_FIT  # none named: all of them
 
 
+def test_a_camera_the_rig_does_not_have_is_named(rigs) -> None:
+    """--cameras with a name the rig lacks: the same one-line refusal as the pairs' (not 'none is given')."""
+    with pytest.raises(UsageError, match=r"--cameras: no camera 'nonexist' in this run \(it has "):
+        used_cameras(rigs["tiny"], ["nonexist"])
+
+
 def test_given_values_are_kept_exactly(rigs) -> None:
     lf, pin = used_cameras(rigs["tiny"], None), used_cameras(rigs["tomo_4_cameras"], None)
     assert fit_defaults(lf, noise_model="flat", residual_mask=0.0) == PINHOLE_FIT
