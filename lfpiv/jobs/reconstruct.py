@@ -225,8 +225,30 @@ def _operator(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, de
         raise UsageError(str(exc)) from None
     if settings.warm_start and frames.in_slabs and not warm_optional:
         raise UsageError(f"--warm-start carries whole volumes from frame to frame, and this box is reconstructed in "
-                         f"{plan.slabs} depth slabs; drop --warm-start (or --slabs)")
+                         f"{plan.slabs} depth slabs; drop --warm-start (--no-warm-start under a protocol that "
+                         "warm-starts) or --slabs")
     return plan, frames
+
+
+def _plans_in_slabs(cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings, device: str | None) -> bool:
+    """Worker task: whether ``--slabs auto`` reconstructs this worker's frames in depth slabs (True also
+    where it cannot plan them at all: its tasks refuse as they would)."""
+    from lfpiv.batch import this_worker_device
+
+    try:
+        return plan_reconstruction(cams, grid, settings, device=this_worker_device(device), slabs="auto").slabs > 1
+    except Exception:  # noqa: BLE001 - the worker's own tasks say what is wrong
+        return True
+
+
+def _workers_in_slabs(client: Any, cams: Sequence[Any], grid: VolumeGrid, settings: ReconSettings,
+                      device: str | None) -> list[str]:
+    """The workers of ``client`` whose ``--slabs auto`` plan (by their own device's memory, now)
+    reconstructs the run's frames in depth slabs, by address."""
+    workers = sorted(client.scheduler_info().get("workers", {}))
+    futures = [client.submit(_plans_in_slabs, cams, grid, settings, device, workers=[w], allow_other_workers=False,
+                             pure=False) for w in workers]
+    return [w for w, split in zip(workers, client.gather(futures), strict=True) if split]
 
 
 @dataclass
@@ -569,8 +591,11 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
     in the ``volumes/`` settings (None: settings given as they are). ``warm_optional``: the settings'
     warm start is the protocol's, left out where the volumes are reconstructed in depth slabs
     (None: where ``protocol`` warm-starts and ``--warm-start`` was not asked for, so never without a
-    protocol). ``subsets_optional`` is accepted and unused (depth slabs run the settings' ordered subsets,
-    its coarse grid and line-of-sight first iterations as the volumes in memory do).
+    protocol). With a ``client`` and ``slabs`` ``"auto"`` (each worker plans its slabs by its own
+    memory) that is decided once, before the pairs are sent out: left out for every frame if any worker
+    plans depth slabs, else kept and required of every worker. ``subsets_optional`` is accepted and
+    unused (depth slabs run the settings' ordered subsets, its coarse grid and line-of-sight first
+    iterations as the volumes in memory do).
 
     ``slabs`` reconstructs each volume in depth slabs (:mod:`lfcore.slabs`; the same volume, with
     no buffer of the whole box): a number of slabs, or ``"auto"``, in memory where the box fits and
@@ -622,6 +647,16 @@ def reconstruct_run(store: RunStore, settings: ReconSettings, *, pvr: Sequence[f
         settings = replace(settings, warm_start=False)  # the protocol's, left out: whole volumes only
     elif frames is None and settings.warm_start and warm_optional and str(slabs).isdigit() and int(slabs) > 1:
         settings = replace(settings, warm_start=False)  # so on the workers' depth slabs too (recorded so)
+    elif frames is None and settings.warm_start and warm_optional and slabs == "auto":
+        # each worker plans its slabs by its own memory: decided once here, from what every worker
+        # plans now, so that what volumes/ records is what every worker runs
+        split = _workers_in_slabs(client, cams, grid, settings, device)
+        if split:
+            log.info(f"--slabs auto: worker {split[0]} reconstructs in depth slabs, where the warm start is not "
+                     "run: every frame starts uniform (recorded so)")
+            settings = replace(settings, warm_start=False)
+        else:  # every worker in memory: warm-started, and a worker that needs slabs later refuses in one line
+            warm_optional = False
     # where the weights lived does not change a volume, so it does not make volumes/ a different set
     kept = {k: v for k, v in settings.as_dict().items() if k != "weight_storage"}
     if not settings.warm_start:  # no frame warm-started: the predictor's source changes nothing

@@ -159,3 +159,46 @@ def test_the_fast_protocol_in_slabs_gives_its_in_memory_volume(capsys, one_pair,
                         "--quiet")
     assert rc == 0 and "in 2 depth slabs" in out, err
     assert RunStore.open(sliced).group["volumes"].attrs["settings"]["subsets"] == 4
+
+
+def test_workers_slabs_auto_record_the_warm_start_that_ran(capsys, one_pair, tmp_path):
+    """`--workers 1 --slabs auto` under the fast protocol: the worker's memory holds the tiny box, so it
+    reconstructs in memory and warm-starts frame B, as volumes/ records: the volumes of the same command
+    run in this process."""
+    here, there = tmp_path / "memory.zarr", tmp_path / "worker.zarr"
+    shutil.copytree(one_pair, here)
+    shutil.copytree(one_pair, there)
+    assert _run(capsys, "reconstruct", here, "--protocol", "fast", "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "reconstruct", there, "--protocol", "fast", "--quiet", "--slabs", "auto", "--workers",
+                        "1")
+    assert rc == 0 and "depth slabs" not in out, err
+    assert "1 frame(s) B started from their frame A" in out, out
+    assert RunStore.open(there).group["volumes"].attrs["settings"]["warm_start"] is True
+    rc, info, _ = _run(capsys, "info", there)
+    assert rc == 0 and "frames B warm-started by their own pair" in info, info
+    want, got = RunStore.open(here).volumes()[0], RunStore.open(there).volumes()[0]
+    assert want.max() > 0
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4 * float(want.max()))
+
+
+def test_workers_that_plan_slabs_auto_in_slabs_record_no_warm_start(one_pair, tmp_path, monkeypatch):
+    """A worker whose memory takes the box in depth slabs only (`--slabs auto`) runs no warm start: the
+    job finds so before the workers start, and volumes/ records every frame started uniform, as the
+    frames ran (here a worker thread of this process, whose memory is lowered)."""
+    from distributed import Client, LocalCluster
+
+    from lfcore.reconstruct import ReconSettings
+    from lfpiv.jobs.reconstruct import reconstruct_run
+
+    run = tmp_path / "run.zarr"
+    shutil.copytree(one_pair, run)
+    _small_memory(monkeypatch)
+    store = RunStore.open(run, mode="r+")
+    settings = ReconSettings.protocol("fast")
+    assert settings.warm_start
+    with (LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster,
+          Client(cluster) as client):
+        results = reconstruct_run(store, settings, progress=False, client=client, slabs="auto", protocol="fast")
+    assert [r.slabs > 1 for r in results] == [True, True] and not any(r.warm for r in results)
+    recorded = RunStore.open(run).group["volumes"].attrs["settings"]
+    assert recorded["warm_start"] is False and recorded["protocol"] == "fast"
