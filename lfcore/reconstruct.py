@@ -144,11 +144,17 @@ WARM_HANDOVER = 0.02
 WARM_STOP_EVERY = 1
 #: Iterations a warm-started frame without line-of-sight iterations first (MLOS-MART's, or a method
 #: that has none) runs before the stopping rule may stop it: the carried start is blurred
-#: (:data:`lfcore.warm.WARM_BLUR`), and the rule, measuring every iteration, stopped the demo rig's warm
-#: frames B after one, their particles 3.5 voxels across against a cold frame's 2.8; the demo's ring then
-#: measured 22.1% of its peak speed against 21.0% from uniform starts; at least 3 iterations 21.0%, at
-#: least 5 20.7% (Q of frames B 0.875 against 0.853 cold; ``lfpiv demo``'s run, tenth session).
-WARM_SETTLE = 5
+#: (:data:`lfcore.warm.WARM_BLUR`), its residual is flat from the first iteration, and the rule, measuring
+#: every iteration, stops it as soon as it may while its particles still sharpen (after one iteration the
+#: demo's were 3.5 voxels across against a cold frame's 2.8, tenth session). Own-pair frames B of the
+#: rigs of two light-field cameras (``benchmarks/series.py``'s runs, fourteenth session), at 5, 10 and 15:
+#: two_cameras_off_focus Q 0.922, 0.935, 0.939 (cold 0.943), two_cameras cropped 0.788, 0.809, 0.817 (cold
+#: 0.838), the vectors the same within 0.015 voxel, CPU a frame B 1.3-1.6 s and 3.0-4.1 s; the demo's ring
+#: 21.1%, 20.7%, 20.7% of its peak speed (frames B 0.876, 0.877, 0.874). Under the fast plan's 75
+#: iterations 15 is also these frames' most (:data:`WARM_SHARE`), so they run exactly 15 and stop at the
+#: cap; where ``warm_iterations`` allows more the rule stops them (at 15 or 16 with 25 allowed: Q 0.943 and
+#: 0.820, the ring 20.8%).
+WARM_SETTLE = 15
 #: Line-of-sight iterations of a frame B (from the coarse grid's start where coarse-to-fine elimination
 #: ran, else uniform) whose volume, correlated with frame A's, is the pair's own predictor
 #: (``ReconSettings.warm_predictor`` ``"own"``, :data:`lfcore.warm.OWN_PAIR`).

@@ -206,8 +206,9 @@ def test_a_still_scene_under_fast_stops_early_at_the_cold_quality(moving):
 
 def test_the_warm_rule_stops_a_converged_frame_at_once(moving):
     """A frame restarted from its own converged intensities: the warm rule stops it after one
-    iteration; the cold rule, which waits for the voxels to stop leaving, runs at least its interval."""
-    from lfcore.reconstruct import CONVERGED, WARM_SETTLE, WARM_STOP_EVERY
+    iteration, or after the settle where one is asked for (at the cap where that is no more); the cold
+    rule, which waits for the voxels to stop leaving, runs at least its interval."""
+    from lfcore.reconstruct import CAPPED, CONVERGED, WARM_SETTLE, WARM_STOP_EVERY
 
     rig, grid, _, images, _ = moving
     proj = projector_for(rig.camera[:1], grid, device="cpu")
@@ -223,9 +224,16 @@ def test_the_warm_rule_stops_a_converged_frame_at_once(moving):
     e = wp.clone(done.e)
     warm = frames.iterate(done.op, image, noises, start=wp.clone(e), warm=True)
     assert warm.stopped == CONVERGED and warm.iterations == WARM_STOP_EVERY
-    # a warm start without line-of-sight iterations first settles WARM_SETTLE iterations before the rule may stop it
+    # a warm start without line-of-sight iterations first settles WARM_SETTLE iterations before the rule may stop it:
+    # with more allowed (here the settings' 100) the rule stops it then, at once
+    assert WARM_SETTLE < settings.iterations
     settled = frames.iterate(done.op, image, noises, start=wp.clone(e), warm=True, settle=WARM_SETTLE)
     assert settled.stopped == CONVERGED and settled.iterations == WARM_SETTLE
+    # with no more than WARM_SETTLE allowed (the fast plan's warm count on several light-field cameras, 15 of
+    # 75) the rule never measures past the settle: the frame runs its most and stops there
+    capped = frames.iterate(done.op, image, noises, start=wp.clone(e), warm=True, settle=WARM_SETTLE,
+                            iterations=WARM_SETTLE)
+    assert capped.stopped == CAPPED and capped.iterations == WARM_SETTLE
     cold = frames.iterate(done.op, image, noises, start=wp.clone(e))
     assert cold.iterations >= 10 > warm.iterations
     # a fixed count stays a fixed count, warm or not
