@@ -580,3 +580,71 @@ def test_a_particle_dimmed_in_one_frame_is_found_where_its_track_predicts_it(set
     print("without", alone.round(3), "with", predicted.round(3))  # measured: the dim one 19 voxels / 0.044
     assert alone[0] > 1.0 and np.all(alone[1:] < 0.05)
     assert np.all(predicted < 0.05)
+
+
+def test_the_point_models_columns_are_the_comparison_sorts_to_the_bit(setup):
+    rig, grid, proj = setup
+    from scipy import sparse
+
+    # the light-field tracing's entries (a pixel repeated by the sub-apertures) made canonical by two
+    # counting sorts (in parts of CANONICAL_POINTS points), against scipy's sort and sum of the same entries:
+    # the same matrix to the bit, for points off focus, on the focal plane (the middle plane: the most
+    # repeats on one pixel) and random
+    model = ipr._PointModel(proj, wavelength_nm=rig.laser.wavelength_nm)
+    rng = np.random.default_rng(3)
+    u = np.vstack([[[7.3, 20.25, 24.65], [14.0, 35.3, 42.6], [14.5, 30.5, 40.5], [0.0, 0.0, 0.0]],
+                   rng.uniform(-0.5, np.asarray(grid.shape) - 0.5, size=(ipr.CANONICAL_POINTS + 60, 3))])
+    seen = {}
+    made = ipr._canonical_columns
+
+    def spy(w, pix, offsets, n_pixels):
+        seen["entries"] = (w.copy(), pix.copy(), offsets.copy(), n_pixels)
+        return made(w, pix, offsets, n_pixels)
+
+    ipr._canonical_columns = spy
+    try:
+        got = model.unit_images(u)
+    finally:
+        ipr._canonical_columns = made
+    w, pix, offsets, n_pixels = seen["entries"]
+    reference = sparse.csc_matrix((w.astype(np.float64), pix.astype(np.int64), offsets), shape=(n_pixels, len(u)))
+    reference.sum_duplicates()
+    repeats = len(w) / reference.nnz
+    assert repeats > 2  # the entries do repeat pixels (measured about 4 a pixel)
+    assert got.has_canonical_format
+    assert np.array_equal(got.indptr, reference.indptr) and np.array_equal(got.indices, reference.indices)
+    assert np.array_equal(got.data, reference.data)
+    # and entries in any order, a pixel repeated: summed and sorted as sum_duplicates does
+    w = rng.uniform(1e-6, 1.0, 5000).astype(np.float32)
+    pix = rng.integers(0, 300, 5000).astype(np.int32)
+    offsets = np.array([0, 0, 1000, 1001, 4000, 5000])
+    reference = sparse.csc_matrix((w.astype(np.float64), pix.astype(np.int64), offsets), shape=(300, 5))
+    reference.sum_duplicates()
+    got = ipr._canonical_columns(w, pix, offsets, 300)
+    assert np.array_equal(got.indices, reference.indices) and np.array_equal(got.indptr, reference.indptr)
+    assert np.allclose(got.data, reference.data, rtol=1e-14, atol=0)
+
+
+def test_points_traced_together_are_each_traced_alone_to_the_bit(setup, monkeypatch):
+    rig, grid, proj = setup
+    from scipy import sparse
+
+    # the Jacobian's moved particles and the relocation's moves are traced many at once: each point's image
+    # is its own, and the moves tried a batch at a time pick what one move at a time picks
+    model = ipr._PointModel(proj, wavelength_nm=rig.laser.wavelength_nm)
+    u = np.array([[7.3, 20.25, 24.65], [14.4, 30.3, 40.5], [12.5, 30.5, 40.5], [8.75, 49.15, 56.55]])
+    together = model.traced(np.vstack([u, u + 0.05]))
+    alone = sparse.hstack([model.traced(u[k:k + 1] + d) for d in (0.0, 0.05) for k in range(len(u))], format="csc")
+    assert together.shape == alone.shape
+    assert (together != alone).nnz == 0 and np.array_equal(together.indices, alone.indices)
+    # relocation: particles a voxel or two off their true depth, against the images of the truth
+    truth = u + np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [-1.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
+    images = [_image(rig, _on_grid(grid, truth))]
+    b = np.asarray(images[0], np.float64).ravel() - ipr.estimate_background(images[0])[0]
+    intensity = np.full(len(u), 50_000.0 / 4)
+    offsets = ipr._relocations(proj, 4)
+    batched = ipr._relocate(model, b, u, intensity, offsets)
+    monkeypatch.setattr(ipr, "RELOCATE_POINTS", 1)  # one move a tracing
+    one = ipr._relocate(model, b, u, intensity, offsets)
+    assert np.array_equal(batched[0], one[0]) and np.array_equal(batched[1], one[1])
+    assert np.abs(batched[0] - truth).max() < 1e-9  # and the moves found the truth's whole-voxel offsets
