@@ -193,7 +193,7 @@ def _check_series(store: RunStore, chosen: list[int], client: Any) -> None:
         gap = f"a pair every {1e3 / float(rate):g} ms" if rate else "no pair rate"
         raise UsageError(f"--along-pairs follows particles through a time-resolved series (every frame dt after the "
                          f"one before: a pair every 2 dt), but {store.path} has dt {float(dt or 0) * 1e3:g} ms and "
-                         f"{gap}; track its pairs one by one (leave out --along-pairs), or record or synthesize a "
+                         f"{gap}; track its pairs one by one (--pair-by-pair), or record or synthesize a "
                          f"time-resolved run (lfpiv synth --time-resolved)")
     if client is not None:
         raise UsageError("--along-pairs links every frame's particles in order, each frame from the one before: "
