@@ -152,8 +152,10 @@ def time_resolved(ppm: float, seed: int, pairs: int, work: Path) -> dict:
           "--displacement-px", "10", "--ppm", ppm, "--seed", seed, "--pairs", pairs, "--time-resolved", "--quiet")
     vox = work / f"{run.stem}_fixed.zarr"
     shutil.copytree(run, vox)
-    lfpiv(stages, "particles", "particles", run, "--quiet")
-    lfpiv(stages, "track --along-pairs", "track", run, "--along-pairs", "--search-voxels", "6,2,2", "--quiet")
+    # frame by frame, and along the pairs with the defaults before the fourteenth session, as recorded
+    lfpiv(stages, "particles", "particles", run, "--pair-by-pair", "--quiet")
+    lfpiv(stages, "track --along-pairs", "track", run, "--along-pairs", "--search-voxels", "6,2,2", "--no-relink",
+          "--pool-pairs", "0", "--quiet")
     lfpiv(stages, "evaluate", "evaluate", run)
     store = RunStore.open(run)
     pe = evaluate_particles(store, match_voxels=1.0)

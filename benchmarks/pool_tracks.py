@@ -118,7 +118,7 @@ def main_(argv: list[str] | None = None) -> None:
                     shutil.copytree(run, copy)
                     t0 = time.process_time()
                     text = _cli("track", copy, "--search-voxels", args.search_voxels, "--bin", args.bin, "--field",
-                                fld, "--along-pairs", "--quiet", *(("--pool-pairs", k) if k else ()))
+                                fld, "--along-pairs", "--quiet", "--no-relink", "--pool-pairs", k)
                     cpu = time.process_time() - t0
                     each, allp, vox = _per_pair(copy)
                     m = _POOLED.search(text)

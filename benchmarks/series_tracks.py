@@ -95,14 +95,14 @@ def main_(argv: list[str] | None = None) -> None:
             for field in args.field.split(","):
                 common = ("--search-voxels", args.search_voxels, "--bin", args.bin, "--field", field, "--quiet")
                 shutil.copytree(run, copy)
-                _cli("track", copy, *common)
+                _cli("track", copy, *common, "--pair-by-pair")
                 x, y, z, pct = _evaluate(copy)
                 print(f"| {run.name} | each pair on its own, {field} | {x:.3f}, {y:.3f}, {z:.3f} | {pct:.1f} |")
                 for ff in args.fit_frames.split(","):
                     shutil.rmtree(copy)
                     shutil.copytree(run, copy)
                     _cli("track", copy, *common, "--along-pairs", "--fit-frames", ff, "--link-voxels",
-                         args.link_voxels)
+                         args.link_voxels, "--no-relink", "--pool-pairs", "0")  # the defaults before the 14th session
                     x, y, z, pct = _evaluate(copy)
                     print(f"| {run.name} | along the pairs, {ff} frames a fit, {field} | {x:.3f}, {y:.3f}, {z:.3f} | "
                           f"{pct:.1f} |", flush=True)

@@ -122,7 +122,8 @@ def main() -> None:
                 copy = Path(tmp) / "r.zarr"
                 shutil.copytree(run, copy)
                 t0 = time.process_time()
-                _cli("track", copy, "--along-pairs", *base, *extra, "--quiet")
+                # the defaults along the pairs before the fourteenth session, unless the options say otherwise
+                _cli("track", copy, "--along-pairs", "--no-relink", "--pool-pairs", "0", *base, *extra, "--quiet")
                 cpu = time.process_time() - t0
                 each, over, rms = _field(copy)
                 bands = _bands(copy, tracked=True)

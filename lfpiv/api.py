@@ -220,8 +220,8 @@ def correlate(run: str | os.PathLike[str] | RunStore, *,
 
 def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, cameras: Sequence[str] | None = None,
               device: str | None = None, workers: int | None = None, scheduler: str | None = None,
-              skip_done: bool = False, progress: bool = True, along_pairs: bool | dict[str, Any] | None = False,
-              **options: Any) -> Any:
+              skip_done: bool = False, progress: bool = True,
+              along_pairs: bool | str | dict[str, Any] | None = "auto", **options: Any) -> Any:
     """Reconstruct every frame's particles of the selected pairs into the run's ``particles/`` by
     iterative particle reconstruction (``lfpiv particles``).
 
@@ -239,7 +239,10 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
         A time-resolved run's frames in time order, each predicted by the tracks through the frames
         before it (``lfpiv particles --along-pairs``): True with the defaults, or a dict of
         :class:`lfpiv.jobs.particles.AlongPairs` fields (``search_voxels``, ``link_voxels``); False
-        or None: every frame on its own.
+        or None: every frame on its own; ``"auto"`` (the default, as the command's): along the pairs
+        where the run is time-resolved, the pairs consecutive (two or more) and no workers given,
+        else every frame on its own (:func:`lfpiv.pair_runner.along_pairs_choice`; the result's
+        ``along`` says which ran and why).
     **options
         :class:`lfcore.ipr.IprSettings` fields (``method``, ``candidate_iterations``, ``shakes``,
         ``min_intensity``, ``merge_voxels``, ``rounds``, ...). ``noise_model`` and ``residual_mask``
@@ -263,14 +266,14 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
         used_cameras,
     )
 
-    along = None
-    if along_pairs is not False and along_pairs is not None:
+    along, mode = None, _along_mode(along_pairs)
+    if mode != "off":
         given = along_pairs if isinstance(along_pairs, dict) else {}
         try:
             along = AlongPairs(**{k: tuple(v) for k, v in given.items()})
         except TypeError as exc:
             raise UsageError(f"along_pairs takes search_voxels and link_voxels: {exc}") from None
-    if along is not None:
+    if mode == "on":
         check_along_workers(workers, scheduler)  # before any worker starts
     store = open_run(run, mode="r+")
     # as the command: the point model's diffraction blur and spot size, and the axis along which the
@@ -284,12 +287,13 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
     settings = ipr_settings(**options)
     with dask_client(workers, scheduler) as client:
         return particles_run(store, settings, _pairs(pairs), cameras=cameras, device=device, progress=progress,
-                             skip_done=skip_done, option="pairs", client=client, along_pairs=along)
+                             skip_done=skip_done, option="pairs", client=client, along_pairs=along,
+                             along_mode=mode)
 
 
 def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, skip_done: bool = False,
           progress: bool = True, predictor: str = "none", device: str | None = None,
-          along_pairs: bool | dict[str, Any] | None = False, **options: Any) -> Any:
+          along_pairs: bool | str | dict[str, Any] | None = "auto", **options: Any) -> Any:
     """Pair each selected pair's particles from frame A to frame B and bin the tracks into the run's
     ``vectors/`` (``lfpiv track``); ``predictor`` is the first pass's (``"none"``, ``"volumes"`` or
     ``"previous"``: :mod:`lfpiv.jobs.track`), ``options`` are :class:`lfcore.track.TrackSettings`
@@ -297,16 +301,35 @@ def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, sk
     ``field``, ``smooth_voxels``, ...). ``along_pairs`` (a time-resolved run: ``lfpiv track
     --along-pairs``) follows the particles through every frame: True with the defaults, or a dict of
     :class:`lfcore.track.SeriesSettings` fields (``link_voxels``, ``min_frames``, ``fit_frames``,
-    ``degree``, ``pool_pairs``, ``bridge_frames``, ``relink``). Returns the
-    :class:`lfpiv.jobs.track.TracksDone` figures."""
-    from lfpiv.jobs.track import series_settings, track_run, track_settings
+    ``degree``, ``pool_pairs``, ``bridge_frames``, ``relink``; those not given are the command's
+    defaults along the pairs, :data:`lfpiv.jobs.track.ALONG_DEFAULTS`); False or None: pair by pair;
+    ``"auto"`` (the default, as the command's): along the pairs where the run allows it
+    (:func:`lfpiv.pair_runner.along_pairs_choice`), else pair by pair. Returns the
+    :class:`lfpiv.jobs.track.TracksDone` figures (``along``: which ran and why)."""
+    from lfpiv.jobs.track import along_defaults, series_settings, track_run, track_settings
 
+    mode = _along_mode(along_pairs)
+    settings = track_settings(**options)
     series = None
-    if along_pairs is not False and along_pairs is not None:  # None (as an unset option) is pair by pair too
-        series = series_settings(**(along_pairs if isinstance(along_pairs, dict) else {}))
+    if mode != "off":  # what is not given is the command's default along the pairs (along_defaults)
+        series = series_settings(**along_defaults(settings.field,
+                                                  **(along_pairs if isinstance(along_pairs, dict) else {})))
     store = open_run(run, mode="r+")
-    return track_run(store, track_settings(**options), _pairs(pairs), predictor=predictor, progress=progress,
-                     skip_done=skip_done, option="pairs", device=device, along_pairs=series)
+    return track_run(store, settings, _pairs(pairs), predictor=predictor, progress=progress,
+                     skip_done=skip_done, option="pairs", device=device, along_pairs=series, along_mode=mode)
+
+
+def _along_mode(along_pairs: bool | str | dict[str, Any] | None) -> str:
+    """:data:`lfpiv.pair_runner.ALONG_PAIRS_MODES` of the API's ``along_pairs``: ``"auto"`` as it is,
+    False and None ``"off"``, True and a dict of settings ``"on"``."""
+    if isinstance(along_pairs, str):
+        from lfpiv.pair_runner import ALONG_PAIRS_MODES
+
+        if along_pairs not in ALONG_PAIRS_MODES:
+            raise UsageError(f"along_pairs is True, False, a dict of settings or one of "
+                             f"{', '.join(ALONG_PAIRS_MODES)}, got '{along_pairs}'")
+        return along_pairs
+    return "off" if along_pairs is False or along_pairs is None else "on"
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,8 @@ the worker task with its (picklable) job description.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from lfcore.plan import SLAB_SHARE, PlanError, asked_slabs
@@ -26,10 +27,97 @@ from lfcore.runstore import RunStore, RunStoreError
 from lfpiv import replacement
 from lfpiv.errors import UsageError, naming
 
-__all__ = ["SLAB_SHARE", "particle_pairs", "recorded_pairs", "run_pairs", "select_pairs", "slabs_asked"]
+__all__ = ["ALONG_PAIRS_MODES", "SLAB_SHARE", "WORKERS_GIVEN", "AlongChoice", "along_option_error",
+           "along_pairs_choice", "particle_pairs", "recorded_pairs", "run_pairs", "select_pairs", "slabs_asked"]
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
+
+#: What ``lfpiv particles`` and ``lfpiv track`` take for following a time-resolved run's particles
+#: along its pairs (:func:`along_pairs_choice`): ``"auto"`` (the default, no option), ``"on"``
+#: (``--along-pairs``), ``"off"`` (``--pair-by-pair``).
+ALONG_PAIRS_MODES = ("auto", "on", "off")
+
+#: Why ``"auto"`` goes pair by pair with workers (:func:`along_pairs_choice`).
+WORKERS_GIVEN = "--workers or --scheduler given (along the pairs runs frame after frame, in this process)"
+
+
+@dataclass(frozen=True)
+class AlongChoice:
+    """Whether a command follows the particles along the pairs (:func:`along_pairs_choice`).
+
+    Attributes
+    ----------
+    on
+        Along the pairs (True) or pair by pair.
+    why
+        Why, for the command's one line: e.g. ``"a time-resolved run, pairs 0 to 4"``.
+    """
+
+    on: bool
+    why: str
+
+    def line(self) -> str:
+        """The command's line saying which and why."""
+        return f"{'along the pairs' if self.on else 'pair by pair'}: {self.why}"
+
+
+def along_pairs_choice(mode: str, *, time_resolved: bool, pairs: Sequence[int], workers: bool = False,
+                       min_frames: int = 3, previous: bool = False) -> AlongChoice:
+    """Whether ``lfpiv particles`` or ``lfpiv track`` follows the particles along the pairs.
+
+    ``"on"`` (``--along-pairs``) is along the pairs (the job refuses what cannot be, with one line);
+    ``"off"`` (``--pair-by-pair``) pair by pair; ``"auto"`` (no option) along the pairs where the run
+    is time-resolved (:func:`lfcore.runstore.is_time_resolved`), the chosen pairs are consecutive and
+    hold ``min_frames`` frames or more, no workers are asked and no ``--predictor previous``, else
+    pair by pair, never an error. The same inputs give the same choice, so what ran is recorded and
+    ``--skip-done`` finds it again.
+
+    Parameters
+    ----------
+    mode
+        One of :data:`ALONG_PAIRS_MODES`.
+    time_resolved
+        The run is a time-resolved series (every frame ``dt`` after the one before).
+    pairs
+        The chosen pairs, in order.
+    workers
+        ``--workers`` or ``--scheduler`` given (the frames are done in time order, in one process).
+    min_frames
+        Fewest frames along which following pays: 3 for ``particles`` (a prediction needs two frames
+        before), the tracks' ``--min-frames`` for ``track``.
+    previous
+        ``track --predictor previous`` (each pair predicted by the one before: pair by pair).
+
+    Returns
+    -------
+    AlongChoice
+
+    Raises
+    ------
+    UsageError
+        A mode not in :data:`ALONG_PAIRS_MODES`.
+    """
+    if mode not in ALONG_PAIRS_MODES:
+        raise UsageError(f"along the pairs is one of {', '.join(ALONG_PAIRS_MODES)}, got '{mode}'")
+    chosen = list(pairs)
+    span = f"pairs {chosen[0]} to {chosen[-1]}" if chosen else "no pairs"
+    if mode == "on":
+        return AlongChoice(True, f"asked (--along-pairs), {span}")
+    if mode == "off":
+        return AlongChoice(False, "asked (--pair-by-pair)")
+    if not time_resolved:
+        return AlongChoice(False, "not a time-resolved run (every frame dt after the one before)")
+    if workers:
+        return AlongChoice(False, WORKERS_GIVEN)
+    if previous:
+        return AlongChoice(False, "--predictor previous predicts each pair from the one before")
+    if not chosen or chosen != list(range(chosen[0], chosen[-1] + 1)):
+        return AlongChoice(False, "the chosen pairs are not consecutive")
+    if 2 * len(chosen) < min_frames:
+        return AlongChoice(False, f"{2 * len(chosen)} frame(s) chosen, fewer than the {min_frames} that tracks "
+                           "along the pairs need")
+    return AlongChoice(True, f"a time-resolved run, {span} (--pair-by-pair to track each pair on its own)")
 
 def slabs_asked(slabs: int | str | None, nz: int) -> int | None:
     """The depth slabs ``--slabs`` asks for over a box ``nz`` voxels deep: 1 for None (not given),
@@ -191,3 +279,10 @@ def select_pairs(pairs: slice | None, n_pairs: int, *, option: str = "--pair-ran
         raise UsageError(f"{option} selects no pair of this run (it has pairs 0 to {n_pairs - 1}); give START:STOP "
                          "with START below STOP, e.g. 0:10")
     return chosen
+
+
+def along_option_error(options: Sequence[str], choice: AlongChoice) -> str:
+    """The one-line refusal of options that only apply along the pairs (``options``, as spelt) where
+    ``choice`` (:func:`along_pairs_choice` of ``"auto"``) is pair by pair."""
+    return (f"{', '.join(options)} only apply along the pairs of a time-resolved series, and this command goes pair "
+            f"by pair ({choice.why}); leave them out, or give --along-pairs where the run allows it")

@@ -104,19 +104,26 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "its camera's background (0 to 1; 0: no floor, the default): the images' bright pixels may "
                    "differ from the model by more than their noise, and unfloored the fit leans on the particles' "
                    "wings")
-    c.add_argument("--along-pairs", action="store_true",
-                   help="a time-resolved run (every frame dt after the one before, as 'lfpiv synth --time-resolved' "
-                   "makes): reconstruct the frames in time order, and fit first in each frame the positions where "
-                   "the tracks through the frames before it put their particles (Shake-the-Box's prediction: each "
-                   "track carried on by a polynomial through its last positions, a particle on no track by its "
-                   "neighbouring tracks' displacement), beside the quick reconstruction's peaks; a prediction with "
-                   "no particle fades away. It finds fast particles the peaks miss; one process, frame after frame "
-                   "(not with --workers or --scheduler); without it every frame is reconstructed on its own")
+    along = c.add_mutually_exclusive_group()
+    along.add_argument("--along-pairs", dest="along_pairs", action="store_const", const="on", default="auto",
+                       help="a time-resolved run (every frame dt after the one before, as 'lfpiv synth "
+                       "--time-resolved' makes): reconstruct the frames in time order, and fit first in each frame "
+                       "the positions where the tracks through the frames before it put their particles "
+                       "(Shake-the-Box's prediction: each track carried on by a polynomial through its last "
+                       "positions, a particle on no track by its neighbouring tracks' displacement), beside the quick "
+                       "reconstruction's peaks; a prediction with no particle fades away. It finds fast particles the "
+                       "peaks miss; one process, frame after frame (not with --workers or --scheduler). The default "
+                       "where the run is time-resolved, the chosen pairs are consecutive (two or more) and neither "
+                       "--workers nor --scheduler is given; the command says which ran and why; given, it is refused "
+                       "where it cannot run")
+    along.add_argument("--pair-by-pair", dest="along_pairs", action="store_const", const="off",
+                       help="reconstruct every frame on its own, also on a time-resolved run (each frame's "
+                       "particles as before --along-pairs became the default there)")
     c.add_argument("--search-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
-                   help="--along-pairs: the pair tracking's first search radius that starts the tracks, as 'lfpiv "
+                   help="along the pairs: the pair tracking's first search radius that starts the tracks, as 'lfpiv "
                    "track --search-voxels' (default: 4,4,2)")
     c.add_argument("--link-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
-                   help="--along-pairs: the search radius around where a track's own velocity puts it in the next "
+                   help="along the pairs: the search radius around where a track's own velocity puts it in the next "
                    "frame, as 'lfpiv track --link-voxels' (default: 1,1,1)")
     c.add_argument("--residual-mask", type=mask_sigmas, default="auto", metavar="S",
                    help="in the residual rounds, mask the pixels where the particles found so far are brighter than "
@@ -142,16 +149,20 @@ def run(args: argparse.Namespace) -> int:
         particles_run,
         used_cameras,
     )
+    from lfpiv.pair_runner import WORKERS_GIVEN, AlongChoice, along_option_error
     from lfpiv.runs import open_run
 
     given = {k: v for k, v in (("search_voxels", args.search_voxels), ("link_voxels", args.link_voxels))
              if v is not None}
-    if given and not args.along_pairs:
+    if given and args.along_pairs == "off":
         raise UsageError(f"{', '.join('--' + k.replace('_', '-') for k in given)} only apply to the tracks that "
-                         "predict a time-resolved run's particles: add --along-pairs, or leave them out")
-    along = AlongPairs(**given) if args.along_pairs else None
-    if along is not None:
+                         "predict a time-resolved run's particles: leave out --pair-by-pair, or leave them out")
+    along = AlongPairs(**given) if args.along_pairs != "off" else None
+    if args.along_pairs == "on":
         check_along_workers(args.workers, args.scheduler)  # before any worker starts
+    elif given and (args.workers or args.scheduler):  # auto goes frame by frame on workers: refused before they start
+        raise UsageError(along_option_error([f"--{k.replace('_', '-')}" for k in given],
+                                            AlongChoice(False, WORKERS_GIVEN)))
 
     # the quick reconstruction's own options where given (ipr_settings refuses them with ray bundling)
     quick = {k: v for k, v in (("candidate_iterations", args.candidate_iterations),
@@ -176,7 +187,9 @@ def run(args: argparse.Namespace) -> int:
     with dask_client(args.workers, args.scheduler) as client:
         done = particles_run(store, settings, args.pairs, cameras=args.cameras, device=args.device,
                              progress=not args.quiet, skip_done=args.skip_done, option=pairs_option(args),
-                             client=client, along_pairs=along)
+                             client=client, along_pairs=along, along_mode=args.along_pairs,
+                             along_options=[f"--{k.replace('_', '-')}" for k in given])
+    print(done.along.line())
     if not done.pairs:
         print(f"every selected pair of {store.path} has its particles with these settings already; nothing to do")
         old_spelling_notes(args)
@@ -186,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {store.path}/particles: {len(done.pairs)} pair(s), {n} particles in {len(done.counts)} frame(s) "
           f"({n / len(done.counts):.0f} a frame, from {sum(done.candidates)} candidates); {secs:.1f} s on "
           f"{done.device} ({secs / len(done.counts):.2f} s a frame){workers_phrase(args)}")
-    if along is not None:
+    if done.along.on:
         print(f"along the pairs: {sum(done.predicted)} positions predicted by the tracks so far "
               f"({sum(done.predicted) / len(done.counts):.0f} a frame) fitted first")
     if args.max_std > 0:

@@ -38,8 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "a fitted smooth field) to "
                        "vectors/, the layout correlate writes, so evaluate and export read it unchanged; the tracks "
                        "are kept with it ('lfpiv export --format tracks-vtk' or tracks-csv writes them). On a "
-                       "time-resolved run, --along-pairs follows the particles through every frame and makes each "
-                       "pair's field from their fitted paths.")
+                       "time-resolved run the particles are followed through every frame and each pair's field made "
+                       "from their fitted paths (--along-pairs, the default there; --pair-by-pair to track each pair "
+                       "on its own).")
     c.add_argument("run", metavar="RUN", help="run store with particles/")
     add_pair_range(c, "every pair with particles")
     c.add_argument("--predictor", choices=("none", "volumes", "previous"), default="none",
@@ -67,39 +68,47 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "cross-validation, and fit's field where that is better on held-out tracks (default: fit)")
     c.add_argument("--smooth-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="the smooth field's Gaussian sigma in voxels (default: half a bin)")
-    c.add_argument("--along-pairs", action="store_true",
-                   help="a time-resolved run (every frame dt after the one before, as 'lfpiv synth --time-resolved' "
-                   "makes): link every frame's particles into tracks through the frames (each track carried on by its "
-                   "own velocity, started by the pair tracking), fit each track of --min-frames or more by local "
-                   "polynomials in time (Shake-the-Box's long tracks), and make each pair's field from the fitted "
-                   "tracks at its mid-time; without it each pair is tracked on its own")
+    along = c.add_mutually_exclusive_group()
+    along.add_argument("--along-pairs", dest="along_pairs", action="store_const", const="on", default="auto",
+                       help="a time-resolved run (every frame dt after the one before, as 'lfpiv synth "
+                       "--time-resolved' makes): link every frame's particles into tracks through the frames (each "
+                       "track carried on by its own velocity, started by the pair tracking), fit each track of "
+                       "--min-frames or more by local polynomials in time (Shake-the-Box's long tracks), and make "
+                       "each pair's field from the fitted tracks at its mid-time. The default where the run is "
+                       "time-resolved, the chosen pairs are consecutive and hold --min-frames frames or more, and "
+                       "neither --workers, --scheduler nor --predictor previous is given; the command says which ran "
+                       "and why; given, it is refused where it cannot run")
+    along.add_argument("--pair-by-pair", dest="along_pairs", action="store_const", const="off",
+                       help="track each pair on its own, also on a time-resolved run (as before --along-pairs became "
+                       "the default there)")
     c.add_argument("--link-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
-                   help="--along-pairs: the search radius around where a track's own velocity puts it in the next "
+                   help="along the pairs: the search radius around where a track's own velocity puts it in the next "
                    "frame (default: 1,1,1)")
     c.add_argument("--min-frames", type=positive_int, default=None, metavar="N",
-                   help="--along-pairs: fewest frames a track needs to be fitted and used (default: 4)")
+                   help="along the pairs: fewest frames a track needs to be fitted and used (default: 4)")
     c.add_argument("--fit-frames", type=positive_int, default=None, metavar="N",
-                   help="--along-pairs: how many of a track's frames, the nearest the pair's mid-time, each fit uses "
+                   help="along the pairs: how many of a track's frames, the nearest the pair's mid-time, each fit uses "
                    "(default: 6)")
     c.add_argument("--fit-order", type=positive_int, default=None, metavar="N",
-                   help="--along-pairs: the tracks' polynomial order in time (default: 2, as Shake-the-Box)")
+                   help="along the pairs: the tracks' polynomial order in time (default: 2, as Shake-the-Box)")
     c.add_argument("--pool-pairs", type=int, default=None, metavar="K",
-                   help="--along-pairs with --field fit or divfree: offer each pair's field the tracks of the K pairs "
-                   "before and after it, moved by the flow pattern's translation from pair to pair (estimated from "
-                   "the tracks: a vortex ring travelling at its own speed, a wake carried by a stream), and keep them "
-                   "only where the pair's own held-out tracks are predicted better with them (default: 0, each pair's "
-                   "own tracks)")
+                   help="along the pairs, with --field fit or divfree: offer each pair's field the tracks of the K "
+                   "pairs before and after it, moved by the flow pattern's translation from pair to pair "
+                   "(estimated from the tracks: a vortex ring travelling at its own speed, a wake carried by a "
+                   "stream), and keep them only where the pair's own held-out tracks are predicted better with them "
+                   "(default along the pairs: 4 with --field fit or divfree, 0 otherwise; 0: each pair's own tracks)")
     c.add_argument("--bridge-frames", type=int, default=None, metavar="N",
-                   help="--along-pairs: join a track that ends to one that starts up to N frames later where its own "
+                   help="along the pairs: join a track that ends to one that starts up to N frames later where its own "
                    "velocity puts it, so a particle that reconstruction missed in a frame or two keeps its track, "
                    "and a pair whose particle is missing in frame A or B gets the track's fitted positions there "
                    "(default: 0, tracks without gaps)")
-    c.add_argument("--relink", action="store_true", default=None,
-                   help="--along-pairs: a track whose own velocity finds no particle in the next frame takes the pair "
-                   "tracking's link of its particle instead of ending, and the pair tracking's last pass pairs what "
-                   "it left unpaired within --search-voxels: particles on paths that turn faster than --link-voxels "
-                   "allows from frame to frame (a vortex core) keep their tracks (default: off; on a smooth flow seen "
-                   "by one camera it also keeps depth-misplaced particles on their tracks)")
+    c.add_argument("--relink", action=argparse.BooleanOptionalAction, default=None,
+                   help="along the pairs: a track whose own velocity finds no particle in the next frame takes the "
+                   "pair tracking's link of its particle instead of ending, and the pair tracking's last pass pairs "
+                   "what it left unpaired within --search-voxels: particles on paths that turn faster than "
+                   "--link-voxels allows from frame to frame (a vortex core) keep their tracks (default along the "
+                   "pairs: on; --no-relink: off, where a smooth flow seen by one camera would keep depth-misplaced "
+                   "particles on their tracks)")
     c.add_argument("--csv", default=None, metavar="FILE",
                    help="also write every tracked pair's tracks to FILE: pair, frame A's x, y, z and frame B's (mm), "
                    "u, v, w (m/s), outlier")
@@ -111,7 +120,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lfpiv.batch import dask_client
-    from lfpiv.jobs.track import series_settings, track_run, track_settings, tracks_csv
+    from lfpiv.jobs.track import along_defaults, series_settings, track_run, track_settings, tracks_csv
     from lfpiv.runs import open_run
 
     settings = track_settings(search_voxels=args.search_voxels, refine_voxels=args.refine_voxels,
@@ -123,13 +132,14 @@ def run(args: argparse.Namespace) -> int:
                                ("pool_pairs", args.pool_pairs), ("bridge_frames", args.bridge_frames),
                                ("relink", args.relink))
              if v is not None}
-    if given and not args.along_pairs:
-        names = {"link_voxels": "--link-voxels", "min_frames": "--min-frames", "fit_frames": "--fit-frames",
-                 "degree": "--fit-order", "pool_pairs": "--pool-pairs", "bridge_frames": "--bridge-frames",
-                 "relink": "--relink"}
+    names = {"link_voxels": "--link-voxels", "min_frames": "--min-frames", "fit_frames": "--fit-frames",
+             "degree": "--fit-order", "pool_pairs": "--pool-pairs", "bridge_frames": "--bridge-frames",
+             "relink": "--relink"}
+    if given and args.along_pairs == "off":
         raise UsageError(f"{', '.join(names[k] for k in given)} only apply to tracks along a time-resolved series: "
-                         "add --along-pairs, or leave them out")
-    series = series_settings(**given) if args.along_pairs else None
+                         "leave out --pair-by-pair, or leave them out")
+    # along the pairs, what is not given is along_defaults' (ALONG_DEFAULTS, then SeriesSettings' own)
+    series = series_settings(**along_defaults(args.field, **given)) if args.along_pairs != "off" else None
     store = open_run(args.run, mode="r+")
     if args.csv:
         from pathlib import Path
@@ -142,14 +152,19 @@ def run(args: argparse.Namespace) -> int:
     if args.predictor == "previous" and (args.workers or args.scheduler):  # before any worker starts
         raise UsageError("--predictor previous tracks the pairs in order, each from the one before: leave out "
                          "--workers and --scheduler, or choose --predictor volumes")
-    if args.along_pairs and (args.workers or args.scheduler):
+    if args.along_pairs == "on" and (args.workers or args.scheduler):
         raise UsageError("--along-pairs links every frame's particles in order, each frame from the one before: "
                          "leave out --workers and --scheduler")
+    if given and args.along_pairs == "auto" and (args.workers or args.scheduler):  # before any worker starts
+        from lfpiv.pair_runner import WORKERS_GIVEN, AlongChoice, along_option_error
+
+        raise UsageError(along_option_error([names[k] for k in given], AlongChoice(False, WORKERS_GIVEN)))
     with dask_client(args.workers, args.scheduler) as client:
         done = track_run(store, settings, args.pairs, predictor=args.predictor, progress=not args.quiet,
                          skip_done=args.skip_done, option=pairs_option(args), client=client, device=args.device,
-                         along_pairs=series)
-    if done.series_frames and series is not None:
+                         along_pairs=series, along_mode=args.along_pairs, along_options=[names[k] for k in given])
+    print(done.along.line())
+    if done.series_frames and series is not None and done.along.on:
         print(f"linked {done.series_tracks} tracks of at least {series.min_frames} frames through the "
               f"{done.series_frames} frames (mean length {done.series_length:.1f} frames), fitted by polynomials "
               f"of order {series.degree} in time through {series.fit_frames} frames"
@@ -167,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {store.path}/vectors: {len(done.pairs)} pair(s) of {nx} x {ny} x {nz} bins (x, y, z) from "
               f"{done.tracks} tracks ({100.0 * done.outliers / max(done.tracks, 1):.1f}% outliers left out); "
               f"{100.0 * done.vectors / max(done.bins, 1):.0f}% of the bins hold a vector; {args.field} field, "
-              f"predictor {args.predictor}{', along the pairs' if args.along_pairs else ''}; {done.seconds:.1f} s"
+              f"predictor {args.predictor}{', along the pairs' if done.along.on else ''}; {done.seconds:.1f} s"
               f"{workers_phrase(args)}")
     else:
         print(f"every selected pair of {store.path} is tracked already with these settings; nothing to do")

@@ -3,6 +3,7 @@ reconstruction (:mod:`lfcore.ipr`), pair by pair, resumable with ``--skip-done``
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +20,9 @@ from lfcore.runstore import RunStore, is_time_resolved
 from lfcore.track import SeriesSettings, TrackSettings, link_series, predict_series
 from lfcore.volume import VolumeGrid
 from lfpiv.errors import UsageError
-from lfpiv.pair_runner import recorded_pairs, run_pairs
+from lfpiv.pair_runner import AlongChoice, along_option_error, along_pairs_choice, recorded_pairs, run_pairs
+
+log = logging.getLogger(__name__)
 
 __all__ = ["INTENSITY_REFERENCES", "LIGHT_FIELD_FIT", "NOISE_MODEL_CHOICES", "PINHOLE_FIT", "AlongPairs",
            "IprSettings", "PairParticles", "ParticlesDone", "ParticlesJob", "check_along_workers", "fit_defaults",
@@ -260,6 +263,9 @@ class ParticlesDone:
         Positions per frame the tracks so far predicted (``--along-pairs``; empty otherwise).
     device
         The Warp device.
+    along
+        Whether the frames were followed along the pairs, and why
+        (:func:`lfpiv.pair_runner.along_pairs_choice`).
     """
 
     pairs: list[int] = field(default_factory=list)
@@ -269,6 +275,7 @@ class ParticlesDone:
     unsure: list[int] = field(default_factory=list)
     predicted: list[int] = field(default_factory=list)
     device: str = "cpu"
+    along: AlongChoice = AlongChoice(False, "not asked")
 
 
 @dataclass(frozen=True)
@@ -354,7 +361,8 @@ def _check_along(store: RunStore, chosen: list[int], client: Any) -> None:
 def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = None, *,
                   cameras: Sequence[str] | None = None, device: str | None = None, progress: bool = True,
                   skip_done: bool = False, option: str = "--pair-range", client: Any = None,
-                  along_pairs: AlongPairs | None = None) -> ParticlesDone:
+                  along_pairs: AlongPairs | None = None, along_mode: str = "on",
+                  along_options: Sequence[str] = ()) -> ParticlesDone:
     """Reconstruct the particles of both frames of ``pairs`` (None: every recorded pair) into
     ``particles/``.
 
@@ -366,14 +374,20 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     With ``along_pairs`` (a time-resolved run, :func:`lfcore.runstore.is_time_resolved`) the frames
     are done in time order in this process, each frame's first candidates the positions the tracks
     through the chosen pairs' frames before it predict (:meth:`AlongPairs.predict`); with
-    ``skip_done`` the particles kept are those tracks' frames.
+    ``skip_done`` the particles kept are those tracks' frames. ``along_mode`` says how
+    ``along_pairs`` applies (:func:`lfpiv.pair_runner.along_pairs_choice`): ``"on"`` always (refused
+    where it cannot), ``"auto"`` where the run is time-resolved, the pairs consecutive (two or more)
+    and no ``client`` given, else frame by frame; ``"off"`` never. What ran is recorded
+    (``particles/``' settings hold ``along_pairs`` where on) and said in the result's ``along``.
+    ``along_options``: the options given that only apply along the pairs (as spelt), refused where
+    ``"auto"`` goes frame by frame.
 
     Raises
     ------
     UsageError
         No recorded pairs, a pair never recorded, an unknown camera, or a box too big for memory;
-        ``along_pairs`` on a run that is not time-resolved, on pairs that are not consecutive or on
-        Dask workers.
+        ``along_pairs`` with ``along_mode`` ``"on"`` on a run that is not time-resolved, on pairs
+        that are not consecutive or on Dask workers; ``along_options`` where it goes frame by frame.
     """
     rig = store.rig
     chosen, names = recorded_pairs(store, pairs, cameras, option=option)
@@ -381,8 +395,16 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     if settings.method is not None and unsupported_method(cams, settings.method) is not None:
         raise UsageError(f"camera '{unsupported_method(cams, settings.method)}' is a pinhole camera: --method "
                          f"{settings.method} needs light-field cameras; use --method mlos-smart")
+    mode = along_mode if along_pairs is not None else "off"
+    choice = along_pairs_choice(mode, time_resolved=is_time_resolved(store.timing), pairs=chosen,
+                                workers=client is not None)
+    if not choice.on:
+        if along_options:
+            raise UsageError(along_option_error(along_options, choice))
+        along_pairs = None
     if along_pairs is not None:
         _check_along(store, chosen, client)
+    log.info("%s: particles %s", store.path, choice.line())
     grid = VolumeGrid.from_rig(rig)
     proj = projector_for(cams, grid, device=device)
     try:
@@ -392,7 +414,7 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     meta = {**settings.as_dict(), "method": ipr.method, "cameras": names}
     if along_pairs is not None:  # only where on: groups written before it, or without it, read as without
         meta["along_pairs"] = along_pairs.as_dict()
-    done = ParticlesDone(device=proj.device)
+    done = ParticlesDone(device=proj.device, along=choice)
 
     def matches(g: Any) -> bool:
         return (g is not None and same_settings(dict(g.attrs.get("settings", {})), meta)
@@ -402,7 +424,8 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     def differences(g: Any) -> list[str]:
         old = _matching(_recorded(dict(g.attrs.get("settings", {})))) if g is not None else {}
         now = _matching(meta)
-        return [k for k in now if old.get(k) != now[k]]
+        # a key on one side only differs too (along_pairs: followed along the pairs before, or now)
+        return [k for k in {**now, **old} if old.get(k) != now.get(k)]
 
     def here(todo: list[int]) -> None:
         history: list[np.ndarray] = []  # --along-pairs: the chosen pairs' frames so far, in time order

@@ -29,6 +29,7 @@ tracks say they help (:func:`lfcore.track.pooled_field_of_tracks`).
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,13 +57,31 @@ from lfcore.track import (
 from lfcore.volume import VolumeGrid
 from lfcore.warm import Predictor
 from lfpiv.errors import UsageError
-from lfpiv.pair_runner import particle_pairs, run_pairs
+from lfpiv.pair_runner import AlongChoice, along_option_error, along_pairs_choice, particle_pairs, run_pairs
 
-__all__ = ["PREDICTORS", "PairTracks", "SeriesSettings", "TrackJob", "TrackSettings", "TracksDone", "series_settings",
-           "track_pair_task", "track_run", "track_settings", "tracks_csv"]
+__all__ = ["ALONG_DEFAULTS", "POOLED_FIELDS", "PREDICTORS", "PairTracks", "SeriesSettings", "TrackJob", "TrackSettings",
+           "TracksDone", "along_defaults", "series_settings", "track_pair_task", "track_run", "track_settings",
+           "tracks_csv"]
 
 #: The first pass's predictors (``lfpiv track --predictor``; see the module docstring).
 PREDICTORS = ("none", "volumes", "previous")
+
+#: The fields into which ``--pool-pairs`` pools the neighbouring pairs' tracks.
+POOLED_FIELDS = ("fit", "divfree")
+
+#: What ``lfpiv track`` (and :func:`lfpiv.track`) use along the pairs where not given, beside
+#: :class:`lfcore.track.SeriesSettings`' own defaults (:func:`along_defaults`): the pair tracking's
+#: links for tracks a straight line loses and the tracks of 4 pairs either side offered to each
+#: pair's fitted field. Measured in ``benchmarks/RESULTS.md`` (fourteenth session, issue 48).
+ALONG_DEFAULTS: dict[str, Any] = {"relink": True, "pool_pairs": 4}
+
+
+def along_defaults(field: str, **given: Any) -> dict[str, Any]:
+    """The :class:`lfcore.track.SeriesSettings` options of ``lfpiv track`` along the pairs: those
+    ``given`` as they are, :data:`ALONG_DEFAULTS` for the others (``pool_pairs`` only where
+    ``field`` is one of :data:`POOLED_FIELDS`: a binned or smooth field pools nothing)."""
+    out = {k: v for k, v in ALONG_DEFAULTS.items() if k != "pool_pairs" or field in POOLED_FIELDS}
+    return {**out, **given}
 
 
 def track_settings(**options: Any) -> TrackSettings:
@@ -103,6 +122,8 @@ class TracksDone:
     pool_offered: int = 0
     pool_taken: int = 0
     pool_shifts: list[tuple[float, float, float]] = field(default_factory=list)
+    #: whether the pairs were tracked along the series, and why (:func:`lfpiv.pair_runner.along_pairs_choice`)
+    along: AlongChoice = AlongChoice(False, "not asked")
 
 
 @dataclass(frozen=True)
@@ -172,7 +193,7 @@ def _check_series(store: RunStore, chosen: list[int], client: Any) -> None:
         gap = f"a pair every {1e3 / float(rate):g} ms" if rate else "no pair rate"
         raise UsageError(f"--along-pairs follows particles through a time-resolved series (every frame dt after the "
                          f"one before: a pair every 2 dt), but {store.path} has dt {float(dt or 0) * 1e3:g} ms and "
-                         f"{gap}; track its pairs one by one (leave out --along-pairs), or record or synthesize a "
+                         f"{gap}; track its pairs one by one (--pair-by-pair), or record or synthesize a "
                          f"time-resolved run (lfpiv synth --time-resolved)")
     if client is not None:
         raise UsageError("--along-pairs links every frame's particles in order, each frame from the one before: "
@@ -275,7 +296,8 @@ def tracks_csv(store: RunStore, path: str | Path, pairs: list[int] | None = None
 
 def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = None, *, predictor: str = "none",
               progress: bool = True, skip_done: bool = False, option: str = "--pair-range", client: Any = None,
-              device: str | None = None, along_pairs: SeriesSettings | None = None) -> TracksDone:
+              device: str | None = None, along_pairs: SeriesSettings | None = None, along_mode: str = "on",
+              along_options: Sequence[str] = ()) -> TracksDone:
     """Track the particles of ``pairs`` (None: every pair with particles) into ``vectors/``.
 
     The field (``settings.field``: each bin's mean, or a smooth field at the bins' centres) is in
@@ -303,6 +325,15 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
         Track along a time-resolved series instead of pair by pair (``--along-pairs``: see the
         module docstring), with these settings; the pairs must be consecutive, the predictor (of
         the first pair's first step) ``none`` or ``volumes``. None: pair by pair.
+    along_mode
+        How ``along_pairs`` applies (:func:`lfpiv.pair_runner.along_pairs_choice`): ``"on"`` always
+        (refused where it cannot), ``"auto"`` where the run is time-resolved, the pairs consecutive
+        and of ``along_pairs.min_frames`` frames or more, no ``client`` and no ``predictor``
+        ``"previous"``, else pair by pair; ``"off"`` never. What ran is recorded (``vectors/``'
+        settings hold ``along_pairs`` where on) and said in the result's ``along``.
+    along_options
+        The options given that only apply along the pairs (as spelt), refused where ``"auto"`` goes
+        pair by pair.
 
     Raises
     ------
@@ -310,7 +341,8 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
         A run without particles, none of the selected pairs with particles, ``--predictor volumes``
         on a run (or pair) without volumes, ``--predictor previous`` on workers, or frames too
         crowded to pair; ``along_pairs`` on a run that is not a time-resolved series, on workers or
-        on pairs that are not consecutive; each before anything is written.
+        on pairs that are not consecutive (``along_mode`` ``"on"``); ``along_options`` where it goes
+        pair by pair; each before anything is written.
     """
     if predictor not in PREDICTORS:
         raise UsageError(f"--predictor must be one of {', '.join(PREDICTORS)}, got '{predictor}'")
@@ -322,13 +354,22 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
     if predictor == "previous" and client is not None:
         raise UsageError("--predictor previous tracks the pairs in order, each from the one before: leave out "
                          "--workers and --scheduler, or choose --predictor volumes")
+    mode = along_mode if along_pairs is not None else "off"
+    choice = along_pairs_choice(mode, time_resolved=is_time_resolved(store.timing), pairs=chosen,
+                                workers=client is not None,
+                                min_frames=along_pairs.min_frames if along_pairs is not None else 3,
+                                previous=predictor == "previous")
+    if not choice.on:
+        if along_options:
+            raise UsageError(along_option_error(along_options, choice))
+        along_pairs = None
     if along_pairs is not None:
         _check_series(store, chosen, client)
         if 2 * len(chosen) < along_pairs.min_frames:
             raise UsageError(f"--along-pairs fits tracks of at least {along_pairs.min_frames} frames (--min-frames), "
                              f"but the {len(chosen)} pair(s) chosen hold {2 * len(chosen)}; choose more pairs "
                              f"(--pair-range) or a smaller --min-frames")
-        if along_pairs.pool_pairs and settings.field not in ("fit", "divfree"):
+        if along_pairs.pool_pairs and settings.field not in POOLED_FIELDS:
             raise UsageError(f"--pool-pairs pools the neighbouring pairs' tracks into a fitted field, but the field is "
                              f"'{settings.field}': choose --field fit or divfree, or leave out --pool-pairs")
         if predictor == "previous":  # along a series each step's field predicts the next already
@@ -346,7 +387,7 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
             "particles": attrs.get("settings", {})}
     if along_pairs is not None:  # the series' pairs and how they are followed through it
         meta["along_pairs"] = {**along_pairs.as_dict(), "pairs": [chosen[0], chosen[-1]]}
-    out = TracksDone(shape=(len(x_mm), len(y_mm), len(z_mm)), predictor=predictor)
+    out = TracksDone(shape=(len(x_mm), len(y_mm), len(z_mm)), predictor=predictor, along=choice)
 
     def matches(g: Any) -> bool:
         return (g is not None and g.attrs.get("settings") == meta and g.attrs.get("windows") == windows

@@ -41,7 +41,7 @@ def _recall(run):
 def test_along_pairs_predicts_each_frame_from_the_tracks_before_it(series_run, tmp_path, capsys):
     alone = _copy(series_run, tmp_path, "alone.zarr")
     along = _copy(series_run, tmp_path, "along.zarr")
-    assert _run(capsys, "particles", alone, *FAST)[0] == 0
+    assert _run(capsys, "particles", alone, "--pair-by-pair", *FAST)[0] == 0
     rc, out, err = _run(capsys, "particles", along, "--along-pairs", "--search-voxels", "4,4,4", *FAST)
     assert rc == 0, err
     assert "along the pairs:" in out and "positions predicted" in out, out
@@ -78,8 +78,9 @@ def test_skip_done_carries_the_tracks_on_from_the_pairs_kept(series_run, tmp_pat
 
 def test_along_pairs_refusals(series_run, tmp_path, capsys):
     run = _copy(series_run, tmp_path)
-    for args, words in ((("--search-voxels", "4,4,4"), ("--search-voxels", "--along-pairs")),
-                        (("--link-voxels", "2,2,2"), ("--link-voxels", "--along-pairs")),
+    for args, words in ((("--search-voxels", "4,4,4", "--pair-by-pair"), ("--search-voxels", "--pair-by-pair")),
+                        (("--link-voxels", "2,2,2", "--pair-by-pair"), ("--link-voxels", "--pair-by-pair")),
+                        (("--link-voxels", "2,2,2", "--workers", "2"), ("--link-voxels", "--workers")),
                         (("--along-pairs", "--workers", "2"), ("--along-pairs", "--workers")),
                         (("--along-pairs", "--link-voxels", "0,1,1"), ("link_voxels",)),
                         (("--along-pairs", "--search-voxels", "nan,4,2"), ("search_voxels",)),
@@ -174,3 +175,68 @@ def test_the_python_api_predicts_from_the_third_frame_on(series_run, tmp_path):
     assert np.all(np.asarray(done.predicted[2:]) >= 0.7 * counts[1:-1]), (done.predicted, done.counts)
     assert np.all(np.asarray(done.predicted[2:]) <= 1.3 * counts[1:-1]), (done.predicted, done.counts)
     assert RunStore.open(run).particle_attrs()["settings"]["along_pairs"]["search_voxels"] == [4.0, 4.0, 4.0]
+
+
+def test_no_option_follows_a_time_resolved_run_along_its_pairs(series_run, tmp_path, capsys):
+    """With no option (auto) a time-resolved run's consecutive pairs are followed along the pairs with
+    the defaults, as --along-pairs does; the line says which and why, particles/ records it, and
+    --skip-done with no option or with --along-pairs finds it done; --pair-by-pair does not."""
+    run = _copy(series_run, tmp_path)
+    rc, out, err = _run(capsys, "particles", run, *FAST)
+    assert rc == 0, err
+    assert "along the pairs: a time-resolved run, pairs 0 to 2" in out and "positions predicted" in out, out
+    settings = RunStore.open(run).particle_attrs()["settings"]
+    assert settings["along_pairs"] == {"search_voxels": [4.0, 4.0, 2.0], "link_voxels": [1.0, 1.0, 1.0]}
+    for more in ((), ("--along-pairs",)):
+        rc, out, err = _run(capsys, "particles", run, *more, "--skip-done", *FAST)
+        assert rc == 0 and "nothing to do" in out, (more, out, err)
+    rc, out, err = _run(capsys, "particles", run, "--pair-by-pair", "--skip-done", *FAST)
+    assert rc == 0 and "pair by pair: asked (--pair-by-pair)" in out and "along_pairs" in err, (out, err)
+    assert "along_pairs" not in RunStore.open(run).particle_attrs()["settings"]
+
+
+def test_no_option_goes_pair_by_pair_where_it_cannot_follow(series_run, tmp_path, capsys):
+    """Auto is never an error: one pair (nothing to predict from), pairs that are not consecutive and a
+    run that is not time-resolved are reconstructed frame by frame, the line says why, and nothing
+    records along_pairs; an option of along the pairs given there is refused (one line, exit 2)."""
+    run = _copy(series_run, tmp_path)
+    for pairs, why in (("1", "fewer than the 3"),):
+        rc, out, err = _run(capsys, "particles", run, "--pair-range", pairs, *FAST)
+        assert rc == 0 and f"pair by pair: 2 frame(s) chosen, {why}" in out, (out, err)
+        assert "positions predicted" not in out
+        assert "along_pairs" not in RunStore.open(run).particle_attrs()["settings"]
+    flat = tmp_path / "flat.zarr"
+    assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", flat, "--pairs", "2", "--ppm", "0.1",
+                "--flow", "uniform", "--rays", "20", "--quiet")[0] == 0
+    rc, out, err = _run(capsys, "particles", flat, "--search-voxels", "4,4,4", *FAST)
+    assert rc == 2 and "--search-voxels" in err and "not a time-resolved run" in err, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1 and not RunStore.open(flat).has_particles
+    rc, out, err = _run(capsys, "particles", flat, "--pair-range", "0", *FAST)
+    assert rc == 0 and "pair by pair: not a time-resolved run" in out, (out, err)
+    assert "along_pairs" not in RunStore.open(flat).particle_attrs()["settings"]
+
+
+def test_the_python_api_defaults_to_auto(series_run, tmp_path, monkeypatch):
+    """lfpiv.particles(run) hands the job auto with the default settings, as the command does;
+    along_pairs=False is pair by pair, "auto" and True as said, anything else refused."""
+    import lfpiv
+    import lfpiv.jobs.particles as job
+
+    seen = {}
+
+    def choose(store, settings, pairs=None, **kw):
+        seen.update(kw)
+        return job.ParticlesDone()
+
+    monkeypatch.setattr(job, "particles_run", choose)
+    run = _copy(series_run, tmp_path)
+    lfpiv.particles(run, progress=False)
+    assert seen["along_mode"] == "auto" and seen["along_pairs"] is not None
+    lfpiv.particles(run, progress=False, along_pairs=False)
+    assert seen["along_mode"] == "off"
+    lfpiv.particles(run, progress=False, along_pairs=True)
+    assert seen["along_mode"] == "on"
+    from lfpiv.errors import UsageError
+
+    with pytest.raises(UsageError, match="auto, on, off"):
+        lfpiv.particles(run, progress=False, along_pairs="sometimes")

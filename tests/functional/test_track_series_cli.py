@@ -68,7 +68,7 @@ def test_a_time_resolved_series_is_synthesized(series_run):
 def test_tracks_along_the_pairs_beat_each_pair_on_its_own(series_run, tmp_path, capsys):
     pairwise = _copy(series_run, tmp_path, "p.zarr")
     along = _copy(series_run, tmp_path, "a.zarr")
-    assert _run(capsys, "track", pairwise, "--quiet")[0] == 0
+    assert _run(capsys, "track", pairwise, "--pair-by-pair", "--quiet")[0] == 0
     rc, out, err = _run(capsys, "track", along, "--along-pairs", "--quiet")
     assert rc == 0, err
     assert "through the 8 frames" in out and "along the pairs" in out
@@ -143,6 +143,10 @@ def test_along_pairs_refuses_a_run_that_is_not_time_resolved(tmp_path, capsys):
     assert rc == 2 and "--along-pairs" in err and "time-resolved" in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1 and not RunStore.open(run).has_vectors
     assert not is_time_resolved(RunStore.open(run).timing)
+    # with no option it is tracked pair by pair, and the line says why
+    rc, out, err = _run(capsys, "track", run, "--quiet")
+    assert rc == 0 and "pair by pair: not a time-resolved run" in out, (out, err)
+    assert "along_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]
 
 
 def test_synth_refuses_a_rate_that_contradicts_a_time_resolved_series(tmp_path, capsys):
@@ -191,25 +195,37 @@ def test_along_pairs_from_a_later_pair_gives_each_pair_its_own_frames(series_run
             assert np.median(d) < 0.5, (p, f, np.median(d))
 
 
-def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path, capsys):
+def test_the_series_options_pair_by_pair_are_refused(series_run, tmp_path, capsys):
     """--link-voxels, --min-frames, --fit-frames, --fit-order (and the rest) only shape tracks along a series:
-    given without --along-pairs they would be ignored, so they are refused (one line, exit 2)."""
+    given with --pair-by-pair, or where the default goes pair by pair (--predictor previous), they
+    would be ignored, so they are refused (one line, exit 2)."""
     run = _copy(series_run, tmp_path)
     for option, value in (("--link-voxels", "2,2,2"), ("--min-frames", "5"), ("--fit-frames", "4"),
                           ("--fit-order", "1"), ("--pool-pairs", "1"), ("--bridge-frames", "2")):
-        rc, out, err = _run(capsys, "track", run, option, value, "--quiet")
-        assert rc == 2 and option in err and "--along-pairs" in err, (option, err)
+        rc, out, err = _run(capsys, "track", run, option, value, "--pair-by-pair", "--quiet")
+        assert rc == 2 and option in err and "--pair-by-pair" in err, (option, err)
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1
-    rc, out, err = _run(capsys, "track", run, "--relink", "--quiet")
-    assert rc == 2 and "--relink" in err and "--along-pairs" in err, err
+    rc, out, err = _run(capsys, "track", run, "--relink", "--pair-by-pair", "--quiet")
+    assert rc == 2 and "--relink" in err and "--pair-by-pair" in err, err
+    rc, out, err = _run(capsys, "track", run, "--relink", "--predictor", "previous", "--quiet")
+    assert rc == 2 and "--relink" in err and "pair by pair (--predictor previous" in err, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not RunStore.open(run).has_vectors
-    # with --along-pairs they apply, and the defaults are SeriesSettings' own
+    # with --along-pairs they apply, and the defaults are the command's along the pairs (ALONG_DEFAULTS:
+    # relinked, 4 pairs pooled either side), then SeriesSettings' own
     rc, out, err = _run(capsys, "track", run, "--along-pairs", "--fit-order", "1", "--fit-frames", "3")
     assert rc == 0, err
     assert "of order 1 in time through 3 frames" in out and "at least 4 frames" in out
-    assert RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]["degree"] == 1
-    assert "bridge_frames" not in RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]
-    assert "relink" not in RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]
+    assert "carried on by the pair tracking's links" in out and "pooled the tracks of up to 4 pair(s)" in out, out
+    recorded = RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]
+    assert recorded["degree"] == 1 and recorded["relink"] is True and recorded["pool_pairs"] == 4
+    assert "bridge_frames" not in recorded
+    # each default turned off: --no-relink, --pool-pairs 0 (recorded as vectors tracked before them were)
+    off = _copy(series_run, tmp_path, "off.zarr")
+    rc, out, err = _run(capsys, "track", off, "--no-relink", "--pool-pairs", "0", "--quiet")
+    assert rc == 0 and "carried on by" not in out and "pooled" not in out, out
+    recorded = RunStore.open(off).vectors()["attrs"]["settings"]["along_pairs"]
+    assert "relink" not in recorded and "pool_pairs" not in recorded
     bridged = _copy(series_run, tmp_path, "b.zarr")
     rc, out, err = _run(capsys, "track", bridged, "--along-pairs", "--bridge-frames", "2", "--relink", "--quiet")
     assert rc == 0, err
@@ -221,10 +237,10 @@ def test_the_series_options_without_along_pairs_are_refused(series_run, tmp_path
 
 def test_pooling_the_neighbouring_pairs_tracks(series_run, tmp_path, capsys):
     """--pool-pairs offers each pair's fitted field its neighbours' tracks (moved by the pattern's
-    translation): the command says how many pairs took them and records the setting; without it the
+    translation): the command says how many pairs took them and records the setting; with 0 the
     settings are as before (no pool_pairs key, so vectors tracked before it still match)."""
     own, pooled = _copy(series_run, tmp_path, "o.zarr"), _copy(series_run, tmp_path, "p.zarr")
-    assert _run(capsys, "track", own, "--along-pairs", "--quiet")[0] == 0
+    assert _run(capsys, "track", own, "--along-pairs", "--pool-pairs", "0", "--quiet")[0] == 0
     rc, out, err = _run(capsys, "track", pooled, "--along-pairs", "--pool-pairs", "1", "--quiet")
     assert rc == 0, err
     assert "of the 4 pairs' fields" in out and "translation per pair" in out, out
@@ -246,14 +262,19 @@ def test_pool_pairs_needs_a_fitted_field(series_run, tmp_path, capsys):
     rc, out, err = _run(capsys, "track", run, "--along-pairs", "--pool-pairs", "1", "--field", "bins", "--quiet")
     assert rc == 2 and "--field fit or divfree" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not RunStore.open(run).has_vectors
+    # not given, the default pooling goes with the fitted fields only: a binned field pools nothing
+    rc, out, err = _run(capsys, "track", run, "--field", "bins", "--quiet")
+    assert rc == 0 and "along the pairs" in out and "pooled" not in out, (out, err)
+    assert "pool_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]["along_pairs"]
 
 
 def test_tracking_pair_by_pair_after_along_the_pairs_names_the_difference(series_run, tmp_path, capsys):
     """The vectors of a run tracked along its pairs, tracked again pair by pair: the note names what
     differs (along_pairs, recorded before and not now), not 'source'."""
     run = _copy(series_run, tmp_path)
-    assert _run(capsys, "track", run, "--along-pairs", "--quiet")[0] == 0
-    rc, out, err = _run(capsys, "track", run, "--quiet")
+    assert _run(capsys, "track", run, "--quiet")[0] == 0  # the default on a time-resolved run
+    assert "along_pairs" in RunStore.open(run).vectors()["attrs"]["settings"]
+    rc, out, err = _run(capsys, "track", run, "--pair-by-pair", "--quiet")
     assert rc == 0, err
     assert "(along_pairs differ)" in err, err
     assert "along_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]
@@ -297,3 +318,35 @@ def test_synth_rate_hz_is_the_flows_clock_and_the_recorded_rig(tmp_path, capsys)
     assert given.timing["rate_hz"] == by_rig.timing["rate_hz"] == 3.0
     assert given.rig.laser.rate_hz == 10.0
     assert np.array_equal(given.truth()["particles"], by_rig.truth()["particles"])
+
+
+def test_no_option_tracks_a_time_resolved_run_along_its_pairs(series_run, tmp_path, capsys):
+    """With no option (auto) a time-resolved run's consecutive pairs are tracked along the pairs as
+    --along-pairs tracks them; the line says which and why, vectors/ records it and --skip-done (with
+    no option or --along-pairs) finds it done."""
+    auto, asked = _copy(series_run, tmp_path, "auto.zarr"), _copy(series_run, tmp_path, "asked.zarr")
+    rc, out, err = _run(capsys, "track", auto, "--quiet")
+    assert rc == 0, err
+    assert "along the pairs: a time-resolved run, pairs 0 to 3" in out and "through the 8 frames" in out, out
+    assert _run(capsys, "track", asked, "--along-pairs", "--quiet")[0] == 0
+    a, b = RunStore.open(auto).vectors()["attrs"], RunStore.open(asked).vectors()["attrs"]
+    assert a["settings"] == b["settings"] and a["settings"]["along_pairs"]["pairs"] == [0, 3]
+    for p in range(4):
+        assert np.array_equal(RunStore.open(auto).read_tracks(p), RunStore.open(asked).read_tracks(p))
+    for more in ((), ("--along-pairs",)):
+        rc, out, err = _run(capsys, "track", auto, *more, "--skip-done", "--quiet")
+        assert rc == 0 and "nothing to do" in out, (more, out, err)
+
+
+def test_no_option_goes_pair_by_pair_where_it_cannot_follow(series_run, tmp_path, capsys):
+    """Auto is never an error: workers, --predictor previous and too few frames for a track
+    (--min-frames 4 against one pair's 2) are tracked pair by pair, the line says why, and vectors/
+    records no along_pairs."""
+    run = _copy(series_run, tmp_path)
+    for args, why in ((("--workers", "1"), "--workers or --scheduler given"),
+                      (("--predictor", "previous"), "--predictor previous"),
+                      (("--pair-range", "1"), "2 frame(s) chosen, fewer than the 4")):
+        rc, out, err = _run(capsys, "track", run, *args, "--quiet")
+        assert rc == 0 and f"pair by pair: {why}" in out, (args, out, err)
+        assert "through the" not in out and ", along the pairs" not in out
+        assert "along_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]
