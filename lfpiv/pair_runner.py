@@ -119,6 +119,7 @@ def along_pairs_choice(mode: str, *, time_resolved: bool, pairs: Sequence[int], 
                            "along the pairs need")
     return AlongChoice(True, f"a time-resolved run, {span} (--pair-by-pair to track each pair on its own)")
 
+
 def slabs_asked(slabs: int | str | None, nz: int) -> int | None:
     """The depth slabs ``--slabs`` asks for over a box ``nz`` voxels deep: 1 for None (not given),
     None for ``"auto"`` (the job chooses from the memory free), else the number, checked
