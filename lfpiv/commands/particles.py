@@ -188,8 +188,7 @@ def run(args: argparse.Namespace) -> int:
         done = particles_run(store, settings, args.pairs, cameras=args.cameras, device=args.device,
                              progress=not args.quiet, skip_done=args.skip_done, option=pairs_option(args),
                              client=client, along_pairs=along, along_mode=args.along_pairs,
-                             along_options=[f"--{k.replace('_', '-')}" for k in given])
-    print(done.along.line())
+                             along_options=[f"--{k.replace('_', '-')}" for k in given], announce=_say)
     if not done.pairs:
         print(f"every selected pair of {store.path} has its particles with these settings already; nothing to do")
         old_spelling_notes(args)
@@ -207,3 +206,9 @@ def run(args: argparse.Namespace) -> int:
               f"({sum(done.unsure) / max(n + sum(done.unsure), 1):.1%} of those fitted)")
     old_spelling_notes(args)
     return 0
+
+
+def _say(line: str) -> None:
+    """The job's line saying along the pairs or pair by pair, printed as it comes (before the
+    long work; flushed, so it is not held back behind the progress bar)."""
+    print(line, flush=True)

@@ -162,8 +162,8 @@ def run(args: argparse.Namespace) -> int:
     with dask_client(args.workers, args.scheduler) as client:
         done = track_run(store, settings, args.pairs, predictor=args.predictor, progress=not args.quiet,
                          skip_done=args.skip_done, option=pairs_option(args), client=client, device=args.device,
-                         along_pairs=series, along_mode=args.along_pairs, along_options=[names[k] for k in given])
-    print(done.along.line())
+                         along_pairs=series, along_mode=args.along_pairs, along_options=[names[k] for k in given],
+                         announce=lambda line: print(line, flush=True))  # said before the long work
     if done.series_frames and series is not None and done.along.on:
         print(f"linked {done.series_tracks} tracks of at least {series.min_frames} frames through the "
               f"{done.series_frames} frames (mean length {done.series_length:.1f} frames), fitted by polynomials "

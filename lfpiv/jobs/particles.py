@@ -4,7 +4,7 @@ reconstruction (:mod:`lfcore.ipr`), pair by pair, resumable with ``--skip-done``
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -362,7 +362,7 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
                   cameras: Sequence[str] | None = None, device: str | None = None, progress: bool = True,
                   skip_done: bool = False, option: str = "--pair-range", client: Any = None,
                   along_pairs: AlongPairs | None = None, along_mode: str = "on",
-                  along_options: Sequence[str] = ()) -> ParticlesDone:
+                  along_options: Sequence[str] = (), announce: Callable[[str], None] | None = None) -> ParticlesDone:
     """Reconstruct the particles of both frames of ``pairs`` (None: every recorded pair) into
     ``particles/``.
 
@@ -380,7 +380,8 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     and no ``client`` given, else frame by frame; ``"off"`` never. What ran is recorded
     (``particles/``' settings hold ``along_pairs`` where on) and said in the result's ``along``.
     ``along_options``: the options given that only apply along the pairs (as spelt), refused where
-    ``"auto"`` goes frame by frame.
+    ``"auto"`` goes frame by frame. ``announce`` (the command's ``print``) is handed the line saying
+    which ran and why (:meth:`lfpiv.pair_runner.AlongChoice.line`) once, before the frames are done.
 
     Raises
     ------
@@ -405,6 +406,8 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     if along_pairs is not None:
         _check_along(store, chosen, client)
     log.info("%s: particles %s", store.path, choice.line())
+    if announce is not None:  # before the long work, not after it
+        announce(choice.line())
     grid = VolumeGrid.from_rig(rig)
     proj = projector_for(cams, grid, device=device)
     try:

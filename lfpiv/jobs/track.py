@@ -29,7 +29,7 @@ tracks say they help (:func:`lfcore.track.pooled_field_of_tracks`).
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -297,7 +297,7 @@ def tracks_csv(store: RunStore, path: str | Path, pairs: list[int] | None = None
 def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = None, *, predictor: str = "none",
               progress: bool = True, skip_done: bool = False, option: str = "--pair-range", client: Any = None,
               device: str | None = None, along_pairs: SeriesSettings | None = None, along_mode: str = "on",
-              along_options: Sequence[str] = ()) -> TracksDone:
+              along_options: Sequence[str] = (), announce: Callable[[str], None] | None = None) -> TracksDone:
     """Track the particles of ``pairs`` (None: every pair with particles) into ``vectors/``.
 
     The field (``settings.field``: each bin's mean, or a smooth field at the bins' centres) is in
@@ -334,6 +334,9 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
     along_options
         The options given that only apply along the pairs (as spelt), refused where ``"auto"`` goes
         pair by pair.
+    announce
+        Handed the line saying which ran and why (:meth:`lfpiv.pair_runner.AlongChoice.line`) once,
+        after the checks and before the pairs are tracked (the command's ``print``); None: not said.
 
     Raises
     ------
@@ -378,6 +381,8 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
     if predictor == "volumes":
         _check_volumes(store, chosen if along_pairs is None else chosen[:1])
     _check_density(store, chosen, grid, settings)
+    if announce is not None:  # before the long work, not after it
+        announce(choice.line())
     dt_s = float(store.timing["dt_s"])
     # the bins' grid, from a pair's result on no particles
     empty = track_pair(np.zeros((0, 3)), np.zeros((0, 3)), grid, settings=settings)

@@ -240,3 +240,31 @@ def test_the_python_api_defaults_to_auto(series_run, tmp_path, monkeypatch):
 
     with pytest.raises(UsageError, match="auto, on, off"):
         lfpiv.particles(run, progress=False, along_pairs="sometimes")
+
+
+def test_the_along_line_is_said_once_before_the_frames_are_done(series_run, tmp_path, capsys):
+    """The line saying along the pairs or pair by pair comes before the long work (announce is
+    handed it before any frame is reconstructed) and once on the command's output."""
+    from lfpiv.jobs.particles import AlongPairs, ipr_settings, particles_run
+
+    run = _copy(series_run, tmp_path)
+    said = []
+
+    class Said(Exception):
+        pass
+
+    def announce(line):
+        said.append(line)
+        raise Said
+
+    with pytest.raises(Said):
+        particles_run(RunStore.open(run, mode="r+"), ipr_settings(), progress=False, along_pairs=AlongPairs(),
+                      along_mode="auto", announce=announce)
+    assert said == ["along the pairs: a time-resolved run, pairs 0 to 2 (--pair-by-pair to track each pair on "
+                    "its own)"]
+    assert not (run / "particles").exists()  # said before any frame was reconstructed
+    rc, out, err = _run(capsys, "particles", run, "--pair-range", "0:1", *FAST)
+    assert rc == 0, err
+    lines = out.splitlines()
+    assert sum(x.startswith(("along the pairs: ", "pair by pair: ")) for x in lines) == 1, out
+    assert lines[0].startswith("pair by pair: 2 frame(s) chosen"), out

@@ -350,3 +350,32 @@ def test_no_option_goes_pair_by_pair_where_it_cannot_follow(series_run, tmp_path
         assert rc == 0 and f"pair by pair: {why}" in out, (args, out, err)
         assert "through the" not in out and ", along the pairs" not in out
         assert "along_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]
+
+
+def test_the_along_line_is_said_once_before_the_pairs_are_tracked(series_run, tmp_path, capsys):
+    """The line saying along the pairs or pair by pair comes before the long work (announce is
+    handed it before anything is written) and once on the command's output."""
+    from lfpiv.jobs.track import along_defaults, series_settings, track_run, track_settings
+
+    run = _copy(series_run, tmp_path)
+    said = []
+
+    class Said(Exception):
+        pass
+
+    def announce(line):
+        said.append(line)
+        raise Said
+
+    settings = track_settings(search_voxels=(4, 4, 4))
+    with pytest.raises(Said):
+        track_run(RunStore.open(run, mode="r+"), settings, progress=False, along_mode="auto", announce=announce,
+                  along_pairs=series_settings(**along_defaults(settings.field)))
+    assert said == ["along the pairs: a time-resolved run, pairs 0 to 3 (--pair-by-pair to track each pair on "
+                    "its own)"]
+    assert not (run / "vectors").exists()  # said before the pairs were tracked
+    rc, out, err = _run(capsys, "track", run, "--search-voxels", "4,4,4", "--quiet")
+    assert rc == 0, err
+    lines = out.splitlines()
+    assert sum(x.startswith(("along the pairs: a time", "pair by pair: ")) for x in lines) == 1, out
+    assert lines[0].startswith("along the pairs: a time-resolved run"), out
