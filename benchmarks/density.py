@@ -155,7 +155,7 @@ def time_resolved(ppm: float, seed: int, pairs: int, work: Path) -> dict:
     # frame by frame, and along the pairs with the defaults before the fourteenth session, as recorded
     lfpiv(stages, "particles", "particles", run, "--pair-by-pair", "--quiet")
     lfpiv(stages, "track --along-pairs", "track", run, "--along-pairs", "--search-voxels", "6,2,2", "--no-relink",
-          "--pool-pairs", "0", "--quiet")
+          "--pool-pairs", "0", "--field", "fit", "--quiet")
     lfpiv(stages, "evaluate", "evaluate", run)
     store = RunStore.open(run)
     pe = evaluate_particles(store, match_voxels=1.0)

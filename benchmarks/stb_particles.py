@@ -96,7 +96,8 @@ def main() -> None:
     ap.add_argument("--track", default="", help="lfpiv track options besides --along-pairs (one string)")
     ap.add_argument("--search-voxels", default=None, help="lfpiv track --search-voxels")
     ap.add_argument("--bin", default=None, help="lfpiv track --bin")
-    ap.add_argument("--field", default=None, help="lfpiv track --field")
+    ap.add_argument("--field", default="fit", help="lfpiv track --field (default: fit, the field along the pairs "
+                    "before the fourteenth session)")
     ap.add_argument("--best", default="", help="further lfpiv track options of the second row (one string)")
     args = ap.parse_args()
     base = shlex.split(args.track)

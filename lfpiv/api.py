@@ -302,7 +302,8 @@ def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, sk
     --along-pairs``) follows the particles through every frame: True with the defaults, or a dict of
     :class:`lfcore.track.SeriesSettings` fields (``link_voxels``, ``min_frames``, ``fit_frames``,
     ``degree``, ``pool_pairs``, ``bridge_frames``, ``relink``; those not given are the command's
-    defaults along the pairs, :data:`lfpiv.jobs.track.ALONG_DEFAULTS`); False or None: pair by pair;
+    defaults along the pairs, :data:`lfpiv.jobs.track.ALONG_DEFAULTS`, and the field, where ``field``
+    is not given, :data:`lfpiv.jobs.track.ALONG_FIELD`); False or None: pair by pair;
     ``"auto"`` (the default, as the command's): along the pairs where the run allows it
     (:func:`lfpiv.pair_runner.along_pairs_choice`), else pair by pair. Returns the
     :class:`lfpiv.jobs.track.TracksDone` figures (``along``: which ran and why)."""
@@ -312,11 +313,12 @@ def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, sk
     settings = track_settings(**options)
     series = None
     if mode != "off":  # what is not given is the command's default along the pairs (along_defaults)
-        series = series_settings(**along_defaults(settings.field,
+        series = series_settings(**along_defaults(options.get("field"),
                                                   **(along_pairs if isinstance(along_pairs, dict) else {})))
     store = open_run(run, mode="r+")
     return track_run(store, settings, _pairs(pairs), predictor=predictor, progress=progress,
-                     skip_done=skip_done, option="pairs", device=device, along_pairs=series, along_mode=mode)
+                     skip_done=skip_done, option="pairs", device=device, along_pairs=series, along_mode=mode,
+                     field_given="field" in options)
 
 
 def _along_mode(along_pairs: bool | str | dict[str, Any] | None) -> str:

@@ -59,13 +59,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the field's bins in voxels (default: 16x16x8)")
     c.add_argument("--min-tracks", type=positive_int, default=2, metavar="N",
                    help="fewest tracks a bin needs for a vector (default: 2)")
-    c.add_argument("--field", choices=("fit", "divfree", "smooth", "bins"), default="fit",
+    c.add_argument("--field", choices=("fit", "divfree", "smooth", "bins"), default=None,
                    help="how the field is made from the tracks: smooth, their Gaussian-weighted average around each "
                    "bin's centre; bins, the mean of each bin's tracks; fit, a smoothing spline through all the tracks, "
                    "its smoothing chosen by cross-validation, at the bins' centres inside the box with --min-tracks "
                    "tracks within a bin; divfree, as fit but the three components fitted together by a kernel whose "
                    "fields are free of divergence (an incompressible flow), the penalty on divergence chosen by "
-                   "cross-validation, and fit's field where that is better on held-out tracks (default: fit)")
+                   "cross-validation, and fit's field where that is better on held-out tracks (default: fit; "
+                   "divfree along the pairs of a time-resolved run)")
     c.add_argument("--smooth-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="the smooth field's Gaussian sigma in voxels (default: half a bin)")
     along = c.add_mutually_exclusive_group()
@@ -124,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
     from lfpiv.runs import open_run
 
     settings = track_settings(search_voxels=args.search_voxels, refine_voxels=args.refine_voxels,
-                              passes=args.passes, bin_voxels=args.bin, min_tracks=args.min_tracks, field=args.field,
+                              passes=args.passes, bin_voxels=args.bin, min_tracks=args.min_tracks,
+                              field=args.field or "fit",
                               smooth_voxels=args.smooth_voxels)
     # the series' options (None where not given: SeriesSettings' defaults) only mean something along the pairs
     given = {k: v for k, v in (("link_voxels", args.link_voxels), ("min_frames", args.min_frames),
@@ -163,7 +165,8 @@ def run(args: argparse.Namespace) -> int:
         done = track_run(store, settings, args.pairs, predictor=args.predictor, progress=not args.quiet,
                          skip_done=args.skip_done, option=pairs_option(args), client=client, device=args.device,
                          along_pairs=series, along_mode=args.along_pairs, along_options=[names[k] for k in given],
-                         announce=lambda line: print(line, flush=True))  # said before the long work
+                         announce=lambda line: print(line, flush=True),  # said before the long work
+                         field_given=args.field is not None)
     if done.series_frames and series is not None and done.along.on:
         print(f"linked {done.series_tracks} tracks of at least {series.min_frames} frames through the "
               f"{done.series_frames} frames (mean length {done.series_length:.1f} frames), fitted by polynomials "
@@ -181,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
         nx, ny, nz = done.shape
         print(f"wrote {store.path}/vectors: {len(done.pairs)} pair(s) of {nx} x {ny} x {nz} bins (x, y, z) from "
               f"{done.tracks} tracks ({100.0 * done.outliers / max(done.tracks, 1):.1f}% outliers left out); "
-              f"{100.0 * done.vectors / max(done.bins, 1):.0f}% of the bins hold a vector; {args.field} field, "
+              f"{100.0 * done.vectors / max(done.bins, 1):.0f}% of the bins hold a vector; {done.field} field, "
               f"predictor {args.predictor}{', along the pairs' if done.along.on else ''}; {done.seconds:.1f} s"
               f"{workers_phrase(args)}")
     else:

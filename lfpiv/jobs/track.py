@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -59,9 +59,9 @@ from lfcore.warm import Predictor
 from lfpiv.errors import UsageError
 from lfpiv.pair_runner import AlongChoice, along_option_error, along_pairs_choice, particle_pairs, run_pairs
 
-__all__ = ["ALONG_DEFAULTS", "POOLED_FIELDS", "PREDICTORS", "PairTracks", "SeriesSettings", "TrackJob", "TrackSettings",
-           "TracksDone", "along_defaults", "series_settings", "track_pair_task", "track_run", "track_settings",
-           "tracks_csv"]
+__all__ = ["ALONG_DEFAULTS", "ALONG_FIELD", "POOLED_FIELDS", "PREDICTORS", "PairTracks", "SeriesSettings", "TrackJob",
+           "TrackSettings", "TracksDone", "along_defaults", "series_settings", "track_pair_task", "track_run",
+           "track_settings", "tracks_csv"]
 
 #: The first pass's predictors (``lfpiv track --predictor``; see the module docstring).
 PREDICTORS = ("none", "volumes", "previous")
@@ -75,11 +75,21 @@ POOLED_FIELDS = ("fit", "divfree")
 #: pair's fitted field. Measured in ``benchmarks/RESULTS.md`` (fourteenth session, issue 48).
 ALONG_DEFAULTS: dict[str, Any] = {"relink": True, "pool_pairs": 4}
 
+#: The field ``lfpiv track`` makes along the pairs where ``--field`` is not given (pair by pair:
+#: :class:`lfcore.track.TrackSettings`' own, ``fit``): the divergence-free fit, which keeps fit's
+#: field wherever that predicts held-out tracks better. On the demo's ring from ``lfpiv particles``
+#: and ``lfpiv track`` with no options: 4.9% of the peak speed against fit's 5.8%; on the tiny rig's
+#: A1 series no worse (1.6% both), at 4-5 times the field's CPU (``benchmarks/RESULTS.md``,
+#: fourteenth session, issue 48).
+ALONG_FIELD = "divfree"
 
-def along_defaults(field: str, **given: Any) -> dict[str, Any]:
+
+def along_defaults(field: str | None, **given: Any) -> dict[str, Any]:
     """The :class:`lfcore.track.SeriesSettings` options of ``lfpiv track`` along the pairs: those
     ``given`` as they are, :data:`ALONG_DEFAULTS` for the others (``pool_pairs`` only where
-    ``field`` is one of :data:`POOLED_FIELDS`: a binned or smooth field pools nothing)."""
+    ``field`` is one of :data:`POOLED_FIELDS`, or None: :data:`ALONG_FIELD`; a binned or smooth
+    field pools nothing)."""
+    field = ALONG_FIELD if field is None else field
     out = {k: v for k, v in ALONG_DEFAULTS.items() if k != "pool_pairs" or field in POOLED_FIELDS}
     return {**out, **given}
 
@@ -124,6 +134,8 @@ class TracksDone:
     pool_shifts: list[tuple[float, float, float]] = field(default_factory=list)
     #: whether the pairs were tracked along the series, and why (:func:`lfpiv.pair_runner.along_pairs_choice`)
     along: AlongChoice = AlongChoice(False, "not asked")
+    #: the field made (``settings.field``, or :data:`ALONG_FIELD` along the pairs where none was given)
+    field: str = "fit"
 
 
 @dataclass(frozen=True)
@@ -297,7 +309,8 @@ def tracks_csv(store: RunStore, path: str | Path, pairs: list[int] | None = None
 def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = None, *, predictor: str = "none",
               progress: bool = True, skip_done: bool = False, option: str = "--pair-range", client: Any = None,
               device: str | None = None, along_pairs: SeriesSettings | None = None, along_mode: str = "on",
-              along_options: Sequence[str] = (), announce: Callable[[str], None] | None = None) -> TracksDone:
+              along_options: Sequence[str] = (), announce: Callable[[str], None] | None = None,
+              field_given: bool = True) -> TracksDone:
     """Track the particles of ``pairs`` (None: every pair with particles) into ``vectors/``.
 
     The field (``settings.field``: each bin's mean, or a smooth field at the bins' centres) is in
@@ -334,6 +347,9 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
     along_options
         The options given that only apply along the pairs (as spelt), refused where ``"auto"`` goes
         pair by pair.
+    field_given
+        Whether ``settings.field`` was asked for (``--field``); where not, the pairs tracked along the
+        series get :data:`ALONG_FIELD` (pair by pair ``settings.field`` stays).
     announce
         Handed the line saying which ran and why (:meth:`lfpiv.pair_runner.AlongChoice.line`) once,
         after the checks and before the pairs are tracked (the command's ``print``); None: not said.
@@ -368,6 +384,8 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
         along_pairs = None
     if along_pairs is not None:
         _check_series(store, chosen, client)
+        if not field_given:  # along the pairs the default field is the divergence-free fit
+            settings = replace(settings, field=ALONG_FIELD)
         if 2 * len(chosen) < along_pairs.min_frames:
             raise UsageError(f"--along-pairs fits tracks of at least {along_pairs.min_frames} frames (--min-frames), "
                              f"but the {len(chosen)} pair(s) chosen hold {2 * len(chosen)}; choose more pairs "
@@ -392,7 +410,8 @@ def track_run(store: RunStore, settings: TrackSettings, pairs: slice | None = No
             "particles": attrs.get("settings", {})}
     if along_pairs is not None:  # the series' pairs and how they are followed through it
         meta["along_pairs"] = {**along_pairs.as_dict(), "pairs": [chosen[0], chosen[-1]]}
-    out = TracksDone(shape=(len(x_mm), len(y_mm), len(z_mm)), predictor=predictor, along=choice)
+    out = TracksDone(shape=(len(x_mm), len(y_mm), len(z_mm)), predictor=predictor, along=choice,
+                     field=settings.field)
 
     def matches(g: Any) -> bool:
         return (g is not None and g.attrs.get("settings") == meta and g.attrs.get("windows") == windows

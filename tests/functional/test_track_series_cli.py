@@ -270,13 +270,14 @@ def test_pool_pairs_needs_a_fitted_field(series_run, tmp_path, capsys):
 
 def test_tracking_pair_by_pair_after_along_the_pairs_names_the_difference(series_run, tmp_path, capsys):
     """The vectors of a run tracked along its pairs, tracked again pair by pair: the note names what
-    differs (along_pairs, recorded before and not now), not 'source'."""
+    differs (along_pairs, recorded before and not now, and the field: divfree along the pairs, fit pair by
+    pair), not 'source'."""
     run = _copy(series_run, tmp_path)
     assert _run(capsys, "track", run, "--quiet")[0] == 0  # the default on a time-resolved run
     assert "along_pairs" in RunStore.open(run).vectors()["attrs"]["settings"]
     rc, out, err = _run(capsys, "track", run, "--pair-by-pair", "--quiet")
     assert rc == 0, err
-    assert "(along_pairs differ)" in err, err
+    assert "(field, along_pairs differ)" in err, err
     assert "along_pairs" not in RunStore.open(run).vectors()["attrs"]["settings"]
 
 
@@ -336,6 +337,34 @@ def test_no_option_tracks_a_time_resolved_run_along_its_pairs(series_run, tmp_pa
     for more in ((), ("--along-pairs",)):
         rc, out, err = _run(capsys, "track", auto, *more, "--skip-done", "--quiet")
         assert rc == 0 and "nothing to do" in out, (more, out, err)
+
+
+def test_along_the_pairs_the_default_field_is_the_divergence_free_fit(series_run, tmp_path, capsys):
+    """Along the pairs with no --field the field is divfree (ALONG_FIELD), recorded and said; a --field
+    given is kept; pair by pair the default stays fit. On a known uniform flow the divergence-free
+    field is as near the truth as fit's."""
+    from lfpiv.jobs.track import ALONG_FIELD
+
+    assert ALONG_FIELD == "divfree"
+    auto, fit, pairwise = (_copy(series_run, tmp_path, n) for n in ("auto.zarr", "fit.zarr", "pw.zarr"))
+    rc, out, err = _run(capsys, "track", auto, "--quiet")
+    assert rc == 0 and "divfree field" in out and ", along the pairs" in out, (out, err)
+    assert RunStore.open(auto).vectors()["attrs"]["settings"]["field"] == "divfree"
+    rc, out, err = _run(capsys, "track", fit, "--field", "fit", "--quiet")
+    assert rc == 0 and "fit field" in out, (out, err)
+    assert RunStore.open(fit).vectors()["attrs"]["settings"]["field"] == "fit"
+    rc, out, err = _run(capsys, "track", pairwise, "--pair-by-pair", "--quiet")
+    assert rc == 0 and "fit field" in out, (out, err)
+    assert RunStore.open(pairwise).vectors()["attrs"]["settings"]["field"] == "fit"
+    errs = []
+    for run in (auto, fit):
+        rc, out, err = _run(capsys, "evaluate", run)
+        assert rc == 0, err
+        errs.append(_rms(out))
+    assert np.all(errs[0] <= errs[1] + 0.01), errs  # voxels, per axis
+    # --skip-done with no option finds the divfree field done
+    rc, out, err = _run(capsys, "track", auto, "--skip-done", "--quiet")
+    assert rc == 0 and "nothing to do" in out, (out, err)
 
 
 def test_no_option_goes_pair_by_pair_where_it_cannot_follow(series_run, tmp_path, capsys):
