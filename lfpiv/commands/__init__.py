@@ -321,6 +321,16 @@ def add_workers(parser: argparse.ArgumentParser, what: str) -> None:
                         help="leave out the selected pairs already done with the same settings (to resume)")
 
 
+def add_along_pairs(parser: argparse.ArgumentParser, *, along_help: str, pair_by_pair_help: str) -> None:
+    """``--along-pairs`` / ``--pair-by-pair``: how ``particles`` and ``track`` go through a time-resolved
+    run (``args.along_pairs`` ``"on"``, ``"off"``, or ``"auto"`` where neither is given:
+    :func:`lfpiv.pair_runner.along_pairs_choice`)."""
+    g = parser.add_mutually_exclusive_group()
+    g.add_argument("--along-pairs", dest="along_pairs", action="store_const", const="on", default="auto",
+                   help=along_help)
+    g.add_argument("--pair-by-pair", dest="along_pairs", action="store_const", const="off", help=pair_by_pair_help)
+
+
 def workers_phrase(args: argparse.Namespace) -> str:
     """Where the pairs were done, for a command's summary line (see :func:`add_workers`)."""
     if args.workers:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from lfpiv.commands import (
+    add_along_pairs,
     add_device,
     add_pair_range,
     add_workers,
@@ -104,21 +105,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "its camera's background (0 to 1; 0: no floor, the default): the images' bright pixels may "
                    "differ from the model by more than their noise, and unfloored the fit leans on the particles' "
                    "wings")
-    along = c.add_mutually_exclusive_group()
-    along.add_argument("--along-pairs", dest="along_pairs", action="store_const", const="on", default="auto",
-                       help="a time-resolved run (every frame dt after the one before, as 'lfpiv synth "
-                       "--time-resolved' makes): reconstruct the frames in time order, and fit first in each frame "
-                       "the positions where the tracks through the frames before it put their particles "
-                       "(Shake-the-Box's prediction: each track carried on by a polynomial through its last "
-                       "positions, a particle on no track by its neighbouring tracks' displacement), beside the quick "
-                       "reconstruction's peaks; a prediction with no particle fades away. It finds fast particles the "
-                       "peaks miss; one process, frame after frame (not with --workers or --scheduler). The default "
-                       "where the run is time-resolved, the chosen pairs are consecutive (two or more) and neither "
-                       "--workers nor --scheduler is given; the command says which ran and why; given, it is refused "
-                       "where it cannot run")
-    along.add_argument("--pair-by-pair", dest="along_pairs", action="store_const", const="off",
-                       help="reconstruct every frame on its own, also on a time-resolved run (each frame's "
-                       "particles as before --along-pairs became the default there)")
+    add_along_pairs(c, along_help="a time-resolved run (every frame dt after the one before, as 'lfpiv synth "
+                    "--time-resolved' makes): reconstruct the frames in time order, and fit first in each frame "
+                    "the positions where the tracks through the frames before it put their particles "
+                    "(Shake-the-Box's prediction: each track carried on by a polynomial through its last "
+                    "positions, a particle on no track by its neighbouring tracks' displacement), beside the quick "
+                    "reconstruction's peaks; a prediction with no particle fades away. It finds fast particles the "
+                    "peaks miss; one process, frame after frame (not with --workers or --scheduler). The default "
+                    "where the run is time-resolved, the chosen pairs are consecutive (two or more) and neither "
+                    "--workers nor --scheduler is given; the command says which ran and why; given, it is refused "
+                    "where it cannot run",
+                    pair_by_pair_help="reconstruct every frame on its own, also on a time-resolved run (each frame's "
+                    "particles as before --along-pairs became the default there)")
     c.add_argument("--search-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="along the pairs: the pair tracking's first search radius that starts the tracks, as 'lfpiv "
                    "track --search-voxels' (default: 4,4,2)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from lfpiv.commands import (
+    add_along_pairs,
     add_device,
     add_pair_range,
     add_workers,
@@ -69,19 +70,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "divfree along the pairs of a time-resolved run)")
     c.add_argument("--smooth-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="the smooth field's Gaussian sigma in voxels (default: half a bin)")
-    along = c.add_mutually_exclusive_group()
-    along.add_argument("--along-pairs", dest="along_pairs", action="store_const", const="on", default="auto",
-                       help="a time-resolved run (every frame dt after the one before, as 'lfpiv synth "
-                       "--time-resolved' makes): link every frame's particles into tracks through the frames (each "
-                       "track carried on by its own velocity, started by the pair tracking), fit each track of "
-                       "--min-frames or more by local polynomials in time (Shake-the-Box's long tracks), and make "
-                       "each pair's field from the fitted tracks at its mid-time. The default where the run is "
-                       "time-resolved, the chosen pairs are consecutive and hold --min-frames frames or more, and "
-                       "neither --workers, --scheduler nor --predictor previous is given; the command says which ran "
-                       "and why; given, it is refused where it cannot run")
-    along.add_argument("--pair-by-pair", dest="along_pairs", action="store_const", const="off",
-                       help="track each pair on its own, also on a time-resolved run (as before --along-pairs became "
-                       "the default there)")
+    add_along_pairs(c, along_help="a time-resolved run (every frame dt after the one before, as 'lfpiv synth "
+                    "--time-resolved' makes): link every frame's particles into tracks through the frames (each "
+                    "track carried on by its own velocity, started by the pair tracking), fit each track of "
+                    "--min-frames or more by local polynomials in time (Shake-the-Box's long tracks), and make "
+                    "each pair's field from the fitted tracks at its mid-time. The default where the run is "
+                    "time-resolved, the chosen pairs are consecutive and hold --min-frames frames or more, and "
+                    "neither --workers, --scheduler nor --predictor previous is given; the command says which ran "
+                    "and why; given, it is refused where it cannot run",
+                    pair_by_pair_help="track each pair on its own, also on a time-resolved run (as before "
+                    "--along-pairs became the default there)")
     c.add_argument("--link-voxels", type=xyz_triple, default=None, metavar="X,Y,Z",
                    help="along the pairs: the search radius around where a track's own velocity puts it in the next "
                    "frame (default: 1,1,1)")
