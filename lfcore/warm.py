@@ -45,7 +45,8 @@ WARM_BLEND = 0.1
 #: vectors lose what the warm start gave them (fifteenth session, own predictor, 15 iterations; Q of
 #: frames B, vector RMS of all pairs x, y, z voxel): ``two_cameras`` cropped (10 pairs; uniform starts
 #: 0.839 in 75) at 1: Q 0.817 (0.808 after 10), 0.397, 0.594, 0.408; at 2: **Q 0.843** (0.837 after 10),
-#: CPU a frame B 4.1 -> 2.7 s, but 0.551, 0.707, 0.601; ``two_cameras_off_focus`` (6 pairs; 0.943) at 1:
+#: CPU a frame B 4.1 -> 2.7 s, but 0.551, 0.707, 0.601 (at 1.5: 0.837, 0.417, 0.610, 0.476);
+#: ``two_cameras_off_focus`` (6 pairs; 0.943) at 1:
 #: 0.939, 0.528, 0.664, 0.524; at 1.5 0.948, 0.657, 0.696, 0.641; at 2 0.948, 0.702, 0.707, 0.696 (worse
 #: than uniform starts' 0.681, 0.716, 0.600 of pairs 2-6); the demo's ring 20.7% -> 20.8%; the live
 #: monitor's warm frames (raised by hand: it calls :meth:`WarmStart.start` without a power) 23.55% ->
