@@ -68,7 +68,7 @@ from lfcore.subsets import (
     split,
     split_bytes,
 )
-from lfcore.warm import OWN_PAIR, WARM_BLEND, WARM_PREDICTORS, predictor_field, with_floor
+from lfcore.warm import OWN_PAIR, WARM_BLEND, WARM_POWER, WARM_PREDICTORS, predictor_field, with_floor
 
 if TYPE_CHECKING:  # the concrete operators are the planner's (lfcore.plan) to import
     from lfcore.matrix_free import DrtTemplates
@@ -1674,8 +1674,10 @@ class FrameReconstructor:
         nbytes = int(op.nbytes) if los_first else self.operator_bytes(op)
         weights_s = time.perf_counter() - t0 - predictor_s
         its = settings.warm_count if warmed else settings.iterations
-        start = (unexplained_added(op, warm.start(op, predictor), self._image, noises, settings=settings) if warmed
-                 else coarse)
+        # raised to WARM_POWER (1: as carried; 2 meets the cold Q, not the vectors) only where no line-of-sight
+        # iterations come first: their hand-over would leave a dimmed new particle's voxels out
+        start = (unexplained_added(op, warm.start(op, predictor, power=1.0 if los_first else WARM_POWER), self._image,
+                                   noises, settings=settings) if warmed else coarse)
         del coarse
         iterate_s = 0.0
         if los_first:

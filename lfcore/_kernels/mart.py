@@ -288,6 +288,13 @@ def scale_shift(e: wp.array(dtype=float), a: float, b: float):
 
 
 @wp.kernel
+def power_of_share(e: wp.array(dtype=float), inv_scale: float, p: float):
+    """e = (max(e, 0) inv_scale) ^ p, in place (a warm start sharpened, :data:`lfcore.warm.WARM_POWER`)."""
+    i = wp.tid()
+    e[i] = wp.pow(wp.max(e[i] * inv_scale, 0.0), p)
+
+
+@wp.kernel
 def residual_sums(image: wp.array(dtype=float), proj: wp.array(dtype=float), out: wp.array(dtype=wp.float64)):
     """out[0] += (I_i - proj_i)^2 and out[1] += I_i^2 over the measured pixels (a masked one's signal is negative)."""
     i = wp.tid()
