@@ -19,7 +19,8 @@ cross-correlation. This module does it on the rig's own forward model:
    frame's, or, along a laser sheet that lights the box unevenly, the median of the particles
    nearest in the sheet's normal, :attr:`IprSettings.intensity_axis`), too
    close to a brighter one (within :attr:`IprSettings.merge_voxels`: merged, intensities added,
-   the position intensity-weighted) or outside the box leave; the rest are fitted again.
+   the position intensity-weighted) or outside the box (by more than :data:`BOX_MARGIN_VOXELS`
+   with the point model) leave; the rest are fitted again.
 5. **Residual rounds**: the images' residual (recorded minus the particles' model) is
    reconstructed again and its peaks, where no particle is near, join the list; fit and prune
    again (:attr:`IprSettings.rounds` in all).
@@ -111,6 +112,13 @@ CANONICAL_POINTS = 128
 #: How far either side along x the two halves of a split particle start, voxels
 #: (:attr:`IprSettings.split_intensity`).
 SPLIT_VOXELS = 0.75
+
+#: How far outside the box a particle of the point model is kept and fitted, voxels (each face):
+#: a particle just outside the box still lights the cameras (in frame B, those the flow carried
+#: out of it), and left out, its light pulls the particles whose images overlap its own, bright
+#: and off, to explain it (``benchmarks/RESULTS.md``, fifteenth session, issue 48). The voxels'
+#: model (:attr:`IprSettings.model` ``"voxels"``) has no image outside the box: none there.
+BOX_MARGIN_VOXELS = 2.0
 
 #: The noise models of the fit (:attr:`IprSettings.noise_model`).
 NOISE_MODELS = ("shot", "flat")
@@ -1100,10 +1108,12 @@ class ParticleReconstructor:
         return _Model(self.projector, self.method, u)
 
     def _prune(self, u: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Leave out the particles outside the box, merge the close ones and drop the faint ones."""
+        """Leave out the particles outside the box (by more than :data:`BOX_MARGIN_VOXELS` with
+        the point model), merge the close ones and drop the faint ones."""
         s = self.settings
         shape = np.asarray(self.projector.grid.shape)
-        inside = np.all((u >= -0.5) & (u <= shape - 0.5), axis=1) & (intensity > 0)
+        margin = BOX_MARGIN_VOXELS if self.point_model else 0.0
+        inside = np.all((u >= -0.5 - margin) & (u <= shape - 0.5 + margin), axis=1) & (intensity > 0)
         u, intensity = _merge(u[inside], intensity[inside], s.merge_voxels)
         if len(intensity):
             if s.intensity_axis is None:
