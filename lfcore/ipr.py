@@ -359,7 +359,8 @@ class ParticleResult:
     Attributes
     ----------
     positions_mm
-        (n, 3) world positions (x, y, z), mm.
+        (n, 3) world positions (x, y, z), mm; with the point model up to :data:`BOX_MARGIN_VOXELS`
+        outside the grid's box.
     intensity
         (n,) intensities in the operator's units: a particle of intensity E at a voxel centre adds E
         times that voxel's weights to the images (background-subtracted counts).

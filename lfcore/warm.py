@@ -256,7 +256,8 @@ def sharpened(e, power: float, *, copy: bool = True):
     Parameters
     ----------
     e
-        (n,) float32 Warp array of intensities (negative ones taken as zero).
+        (n,) float32 Warp array of intensities, non-negative (a negative one is taken as zero where
+        ``power`` is not 1).
     power
         1 or more; 1 returns ``e`` as it is (copied where ``copy``).
     copy
@@ -266,16 +267,25 @@ def sharpened(e, power: float, *, copy: bool = True):
     -------
     warp.array
         (n,) float32 on ``e``'s device; all zero where ``e`` is.
+
+    Raises
+    ------
+    ValueError
+        If ``power`` is below 1 (or not a number).
     """
     from lfcore._kernels import mart as km
 
+    if not power >= 1:
+        raise ValueError(f"the power must be 1 or more, got {power}")
     wp = warp()
     out = wp.clone(e) if copy else e
     n = int(out.shape[0])
     if n and power != 1:
         mean = _sum(out) / n
-        if mean > 0:
-            wp.launch(km.power_of_share, dim=n, inputs=[out, 1.0 / mean, float(power)], device=str(out.device))
+        # no positive mean (all zero, or no more light than the negative values take away): only the
+        # negative values set to zero
+        wp.launch(km.power_of_share, dim=n, inputs=[out, 1.0 / mean if mean > 0 else 1.0, float(power)],
+                  device=str(out.device))
     return out
 
 

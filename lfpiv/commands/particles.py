@@ -40,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "rig's own forward model: candidates from the peaks of a quick reconstruction (or by ray "
                        "bundling, --candidates rays), each "
                        "particle's position and intensity fitted to the images, the faint, the merged and those "
-                       "outside the box pruned, and the residual searched again. Writes particles/: x, y, z (mm), "
+                       "outside the box (by more than 2 voxels with the point model) pruned, and the residual "
+                       "searched again. Writes particles/: x, y, z (mm), "
                        "intensity and a fit residual of every particle of every frame.")
     c.add_argument("run", metavar="RUN", help="run store with recorded frames")
     add_pair_range(c, "every recorded pair")

@@ -100,6 +100,31 @@ def test_bins_cover_the_grid_and_count_tracks():
     assert np.isnan(field[1, 1, 1]).all()
 
 
+def test_particles_just_outside_the_box_are_tracked_and_binned_with_the_rest():
+    """IPR keeps particles up to lfcore.ipr.BOX_MARGIN_VOXELS outside the box (frame B's the flow carried
+    out): they pair as the others, the bins that reach past the box count them, and those wholly
+    beyond the bins' edges are in no bin (no index out of range)."""
+    from lfcore.ipr import BOX_MARGIN_VOXELS
+
+    vox = np.asarray(GRID.voxel_mm)
+    n = np.asarray(GRID.shape[::-1], dtype=np.float64)
+    rng = np.random.default_rng(3)
+    # (x, y, z) voxel coordinates from the margin's far edge below the box to the one above it
+    u = -0.5 - BOX_MARGIN_VOXELS + 0.05 + rng.random((400, 3)) * (n + 2 * BOX_MARGIN_VOXELS - 0.1)
+    a = np.asarray(GRID.origin_mm) + u * vox
+    shift = np.array([0.8, -0.6, 0.3]) * vox
+    for field in ("bins", "fit"):
+        res = track_pair(a, a + shift, GRID, settings=TrackSettings(bin_voxels=(16, 16, 5), field=field))
+        assert len(res.a_index) == len(a) and not res.outlier.any()
+        good = np.all(np.isfinite(res.field_mm), axis=-1)
+        assert good.any() and np.allclose(res.field_mm[good], shift, atol=1e-9)
+    mid = a + 0.5 * shift
+    _, _, counts = bin_tracks(mid, np.tile(shift, (len(a), 1)), GRID, bin_voxels=(16, 16, 5))
+    lo = np.asarray(GRID.origin_mm) - 0.5 * vox  # the bins' edges: 4 bins of 16, 16 and 5 voxels from the box's
+    hi = lo + np.array([64, 64, 20]) * vox
+    assert counts.sum() == np.count_nonzero(np.all((mid >= lo) & (mid < hi), axis=1)) < len(a)
+
+
 def test_settings_refuse_nonsense():
     with pytest.raises(ValueError, match="three positive"):
         TrackSettings(bin_voxels=(16, 16))

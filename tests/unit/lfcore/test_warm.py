@@ -127,6 +127,22 @@ def test_the_start_is_sharpened(device):
         ws.start(op, Predictor.uniform((0.0, 0.0, 0.0)), power=0.5)
 
 
+def test_sharpened_takes_negative_values_as_zero_and_refuses_a_power_below_one(device):
+    """A negative value is taken as zero (a mean above zero or not), whatever the scale; power 1
+    leaves the array as it is (no kernel), and a power below 1 (or NaN) is refused."""
+    e = np.array([-2.0, 0.0, 1.0, 3.0], dtype=np.float32)
+    out = sharpened(warp().array(e, dtype=float, device=device), 2.0).numpy()
+    np.testing.assert_allclose(out, [0.0, 0.0, 4.0, 36.0], rtol=1e-6)  # (max(e, 0) / their mean 0.5)^2
+    dark = sharpened(warp().array([-3.0, 1.0, 0.5], dtype=float, device=device), 2.0).numpy()
+    assert dark[0] == 0.0 and np.all(dark >= 0)  # the mean below zero: the negative value still zero
+    same = warp().array(e, dtype=float, device=device)
+    assert sharpened(same, 1.0, copy=False) is same and same.numpy().tolist() == e.tolist()
+    assert sharpened(warp().zeros(0, dtype=float, device=device), 3.0).shape == (0,)
+    for bad in (0.5, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="power"):
+            sharpened(same, bad)
+
+
 def test_the_warm_count():
     assert warm_count(50, None) == 10 and warm_count(400, None) == 80 and warm_count(2, None) == 1
     assert warm_count(50, 7) == 7

@@ -71,3 +71,18 @@ def test_particles_drawn_into_the_volume_keep_their_light_at_their_place(tiny_ri
     with pytest.raises(IndexError, match="outside"):
         ops.plane(vol, 0, grid.shape[0])
     assert particle_volume(grid, np.zeros((0, 3)), np.zeros(0)).sum() == 0
+
+
+def test_particles_outside_the_box_draw_only_their_light_inside_it(tiny_rig) -> None:
+    """IPR keeps particles up to lfcore.ipr.BOX_MARGIN_VOXELS outside the box: drawn, they add the
+    share of their light that falls on the box's voxels and index nothing out of it."""
+    from lfcore.ipr import BOX_MARGIN_VOXELS
+
+    grid = VolumeGrid.from_rig(tiny_rig)
+    nz, ny, nx = grid.shape
+    far = -0.5 - BOX_MARGIN_VOXELS + 0.1  # -2.4 voxels: no corner inside
+    u = np.array([[far, 20.0, 30.0], [10.0, far, 30.0], [10.0, 20.0, nx - 0.6 + BOX_MARGIN_VOXELS],
+                  [-0.7, 20.0, 30.0]])  # (z, y, x); the last 0.3 of its light on plane 0
+    vol = particle_volume(grid, to_mm(grid, u), np.array([1.0, 1.0, 1.0, 2.0]))
+    assert vol.sum() == pytest.approx(0.6, rel=1e-5) and vol[0, 20, 30] == pytest.approx(0.6, rel=1e-5)
+
