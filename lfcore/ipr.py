@@ -265,6 +265,10 @@ class IprSettings:
         A masked pixel neither removes voxels nor pulls them dark (:func:`lfcore.reconstruct.preprocess`),
         and a background estimated from the residual image, which those pixels' noise widens, is
         not. ``benchmarks/RESULTS.md`` (twelfth session, issue 48) has it measured.
+    box_margin_voxels
+        With the point model, particles up to this far outside the box (voxels, on each face) are
+        kept and fitted (:data:`BOX_MARGIN_VOXELS`, the default; 0: inside the box only, the rule
+        before the fifteenth session). The voxels' model has no image outside the box: none there.
 
     ``noise_model`` and ``residual_mask`` keep their defaults here (``"flat"`` and 0): this class
     is explicit. ``lfpiv particles`` and ``lfpiv.particles`` choose them from the cameras used
@@ -296,8 +300,12 @@ class IprSettings:
     noise_model: str = "flat"
     noise_floor: float = 0.0
     residual_mask: float = 0.0
+    box_margin_voxels: float = BOX_MARGIN_VOXELS
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.box_margin_voxels <= 16.0:
+            raise ValueError(f"box_margin_voxels is how far outside the box particles are kept, voxels, from 0 to 16, "
+                             f"got {self.box_margin_voxels}")
         if self.candidate_iterations < 1 or self.shakes < 0 or self.rounds < 1:
             raise ValueError("candidate_iterations and rounds must be at least 1 and shakes at least 0")
         if self.candidate_protocol not in PROTOCOLS:
@@ -1113,7 +1121,7 @@ class ParticleReconstructor:
         the point model), merge the close ones and drop the faint ones."""
         s = self.settings
         shape = np.asarray(self.projector.grid.shape)
-        margin = BOX_MARGIN_VOXELS if self.point_model else 0.0
+        margin = s.box_margin_voxels if self.point_model else 0.0
         inside = np.all((u >= -0.5 - margin) & (u <= shape - 0.5 + margin), axis=1) & (intensity > 0)
         u, intensity = _merge(u[inside], intensity[inside], s.merge_voxels)
         if len(intensity):

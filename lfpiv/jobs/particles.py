@@ -42,7 +42,7 @@ OLD_DEFAULTS: dict[str, Any] = {"split_intensity": 0.0, "model": "voxels", "relo
                                 "max_position_std": 0.0, "candidate_protocol": "fixed",
                                 "candidate_source": "reconstruction", "intensity_axis": None,
                                 "intensity_share": 0.1, "noise_model": "flat",
-                                "noise_floor": 0.0, "residual_mask": 0.0}
+                                "noise_floor": 0.0, "residual_mask": 0.0, "box_margin_voxels": 0.0}
 
 #: What ``lfpiv particles --min-intensity-of`` judges a particle's intensity against
 #: (:func:`intensity_axis`).
@@ -131,7 +131,7 @@ QUICK_ONLY = {"candidate_iterations": "--candidate-iterations", "candidate_proto
 
 #: Settings of the point model only: the ``"voxels"`` model's particles do not depend on them
 #: (groups written before they existed hold none of them).
-POINT_ONLY = ("point_sub_apertures", "particle_image_px", "wavelength_nm", "relocate_depth")
+POINT_ONLY = ("point_sub_apertures", "particle_image_px", "wavelength_nm", "relocate_depth", "box_margin_voxels")
 
 
 def _recorded(settings: dict[str, Any]) -> dict[str, Any]:

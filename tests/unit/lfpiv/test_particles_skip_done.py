@@ -131,3 +131,14 @@ def test_a_group_written_before_residual_mask_masked_nothing() -> None:
     before = {k: v for k, v in meta().items() if k != "residual_mask"}
     assert same_settings(before, meta(residual_mask=0.0))
     assert not same_settings(before, meta(residual_mask=3.0))
+
+
+def test_a_group_written_before_box_margin_voxels_kept_only_the_box() -> None:
+    before = {k: v for k, v in meta().items() if k != "box_margin_voxels"}
+    assert same_settings(before, meta(box_margin_voxels=0.0))
+    assert not same_settings(before, meta())  # today's default keeps particles 2 voxels outside: remade
+    # the voxels' model has no image outside the box: the margin changes nothing there
+    voxels = {k: v for k, v in meta(model="voxels").items() if k != "box_margin_voxels"}
+    assert same_settings(voxels, meta(model="voxels"))
+    with pytest.raises(ValueError, match="box_margin_voxels"):
+        IprSettings(box_margin_voxels=-1.0)
