@@ -287,11 +287,24 @@ def _one_ctrl_c(grace_s: float = 5.0) -> Iterator[None]:
         first[:] = [time.monotonic()]
         raise KeyboardInterrupt
 
+    def unraisable(info: Any) -> None:
+        # a Ctrl-C that still ended inside a finalizer or a weakref callback (one the frames above do
+        # not show, e.g. a library's, collected during an import): Python would print it with a traceback
+        # and drop it; taken again a moment later instead, as a first one
+        if isinstance(info.exc_value, KeyboardInterrupt):
+            first.clear()
+            threading.Timer(0.02, signal.raise_signal, (signal.SIGINT,)).start()
+            return
+        previous_hook(info)
+
+    previous_hook = sys.unraisablehook
+    sys.unraisablehook = unraisable
     signal.signal(signal.SIGINT, on_sigint)
     try:
         yield
     finally:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+        sys.unraisablehook = previous_hook
 
 
 def main(argv: Sequence[str] | None = None) -> int:
