@@ -19,8 +19,8 @@ cross-correlation. This module does it on the rig's own forward model:
    frame's, or, along a laser sheet that lights the box unevenly, the median of the particles
    nearest in the sheet's normal, :attr:`IprSettings.intensity_axis`), too
    close to a brighter one (within :attr:`IprSettings.merge_voxels`: merged, intensities added,
-   the position intensity-weighted) or outside the box (by more than :data:`BOX_MARGIN_VOXELS`
-   with the point model) leave; the rest are fitted again.
+   the position intensity-weighted) or outside the box (by more than
+   :attr:`IprSettings.box_margin_voxels` with the point model) leave; the rest are fitted again.
 5. **Residual rounds**: the images' residual (recorded minus the particles' model) is
    reconstructed again and its peaks, where no particle is near, join the list; fit and prune
    again (:attr:`IprSettings.rounds` in all).
@@ -367,8 +367,8 @@ class ParticleResult:
     Attributes
     ----------
     positions_mm
-        (n, 3) world positions (x, y, z), mm; with the point model up to :data:`BOX_MARGIN_VOXELS`
-        outside the grid's box.
+        (n, 3) world positions (x, y, z), mm; with the point model up to
+        :attr:`IprSettings.box_margin_voxels` outside the grid's box.
     intensity
         (n,) intensities in the operator's units: a particle of intensity E at a voxel centre adds E
         times that voxel's weights to the images (background-subtracted counts).
@@ -1117,8 +1117,8 @@ class ParticleReconstructor:
         return _Model(self.projector, self.method, u)
 
     def _prune(self, u: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Leave out the particles outside the box (by more than :data:`BOX_MARGIN_VOXELS` with
-        the point model), merge the close ones and drop the faint ones."""
+        """Leave out the particles outside the box (by more than :attr:`IprSettings.box_margin_voxels`
+        with the point model), merge the close ones and drop the faint ones."""
         s = self.settings
         shape = np.asarray(self.projector.grid.shape)
         margin = s.box_margin_voxels if self.point_model else 0.0
