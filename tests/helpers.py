@@ -282,3 +282,19 @@ def four_particles(grid) -> np.ndarray:
     frac = np.array([[0.15, 0.3, 0.28], [0.72, 0.7, 0.33], [0.77, 0.35, 0.71], [0.3, 0.72, 0.69]])
     return np.floor(frac * (shape - 1)) + np.array([[0.3, 0.25, 0.65], [0.6, 0.7, 0.2], [0.2, 0.4, 0.3],
                                                     [0.75, 0.15, 0.55]])
+
+
+class Announced(Exception):
+    """Raised by :func:`stop_at_announce`'s callback: the job said its line and stopped there."""
+
+
+def stop_at_announce() -> tuple[list[str], Callable[[str], None]]:
+    """A job's ``announce`` callback that records the line and stops the job (raises
+    :class:`Announced`), so a test sees what was said before any long work began."""
+    said: list[str] = []
+
+    def announce(line: str) -> None:
+        said.append(line)
+        raise Announced
+
+    return said, announce

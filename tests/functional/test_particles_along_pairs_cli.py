@@ -10,6 +10,7 @@ import pytest
 from lfcore.runstore import RunStore
 from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
+from tests.helpers import Announced, stop_at_announce
 from tests.helpers import copy_run as _copy
 
 FAST = ("--candidate-iterations", "10", "--rounds", "1", "--shakes", "6", "--relocate", "0", "--device", "cpu",
@@ -248,16 +249,9 @@ def test_the_along_line_is_said_once_before_the_frames_are_done(series_run, tmp_
     from lfpiv.jobs.particles import AlongPairs, ipr_settings, particles_run
 
     run = _copy(series_run, tmp_path)
-    said = []
+    said, announce = stop_at_announce()
 
-    class Said(Exception):
-        pass
-
-    def announce(line):
-        said.append(line)
-        raise Said
-
-    with pytest.raises(Said):
+    with pytest.raises(Announced):
         particles_run(RunStore.open(run, mode="r+"), ipr_settings(), progress=False, along_pairs=AlongPairs(),
                       along_mode="auto", announce=announce)
     assert said == ["along the pairs: a time-resolved run, pairs 0 to 2 (--pair-by-pair to track each pair on "

@@ -11,6 +11,7 @@ from lfcore.runstore import RunStore, is_time_resolved
 from lfcore.volume import VolumeGrid
 from tests.conftest import EXAMPLES
 from tests.conftest import run_cli as _run
+from tests.helpers import Announced, stop_at_announce
 from tests.helpers import copy_run as _copy
 from tests.helpers import velocity_rms as _rms
 
@@ -387,17 +388,10 @@ def test_the_along_line_is_said_once_before_the_pairs_are_tracked(series_run, tm
     from lfpiv.jobs.track import along_defaults, series_settings, track_run, track_settings
 
     run = _copy(series_run, tmp_path)
-    said = []
-
-    class Said(Exception):
-        pass
-
-    def announce(line):
-        said.append(line)
-        raise Said
+    said, announce = stop_at_announce()
 
     settings = track_settings(search_voxels=(4, 4, 4))
-    with pytest.raises(Said):
+    with pytest.raises(Announced):
         track_run(RunStore.open(run, mode="r+"), settings, progress=False, along_mode="auto", announce=announce,
                   along_pairs=series_settings(**along_defaults(settings.field)))
     assert said == ["along the pairs: a time-resolved run, pairs 0 to 3 (--pair-by-pair to track each pair on "
