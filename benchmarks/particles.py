@@ -13,7 +13,10 @@ Run from the repository root::
     python benchmarks/particles.py --case Soff                           # one camera focused beyond the box
     python benchmarks/particles.py --case Mc --frames 1                  # issue 48's 512 x 512 one-camera rig
     python benchmarks/particles.py --case Mcoff --frames 1               # ... focused beyond its box
+    python benchmarks/particles.py --case Lc --frames 1 --no-mart        # L's optics on a 660 x 440 crop
+    python benchmarks/particles.py --case Lcoff --frames 1 --no-mart     # ... focused beyond its box
     python benchmarks/particles.py --case Mc --frames 1 --candidates fixed   # candidates from plain DRT-MART
+    python benchmarks/particles.py --case Lc --frames 1 --no-mart --candidates-only --candidate-source both
 
 ``--candidate-source`` is IPR's ``candidate_source`` (``reconstruction``, its default, or ``rays``: ray
 bundling, :mod:`lfcore.raybundle`, with ``--ray-keep-bins`` and ``--ray-min-score``), or ``both``: IPR
@@ -22,6 +25,8 @@ from each on the same frames in one process, rays first, the routes then named `
 
     python benchmarks/particles.py --case Soff --no-mart --candidate-source both
 
+``--candidates-only`` stops each frame after IPR's first round's candidates (scored against the truth as the
+``candidates`` routes, with their CPU seconds): the candidate stages compared without the fit.
 ``--candidates`` is IPR's ``candidate_protocol`` (``fast``, its default, or ``fixed``: plain DRT-MART)
 and ``--candidate-iterations`` its ``candidate_iterations``. ``--rays`` renders with more rays a
 particle than the rig's (less Monte-Carlo sampling noise in the frames); ``--shakes``, ``--split``,
@@ -42,7 +47,12 @@ the 1.6 mm deep box. ``Mcoff`` is issue 48's 512 x 512 one-camera rig (``Mc``: t
 245 x 131 voxels of 18.3 x 18.3 x 91.7 um, a box 12 mm deep) focused so, ``--focus-shift -6.8`` by default:
 its focal plane 0.8 mm (8.7 depth voxels) beyond the box's far face, about as many lenslets of blur
 (0.9; Mc's optics blur 0.09 mm on the lenslets per mm out of focus, the tiny rig's 0.25) as Soff's 0.2
-mm. Each
+mm. ``Lc`` is L's optics (the chapter's 29 MP camera: 77 um f/4 lenslets 14 pixels across, M = -1) on a
+660 x 440 crop of its sensor, 330 x 220 x 182 voxels of 11 x 11 x 55 um (a box 10 mm deep, focused on its
+middle), 878 particles at 0.5 PPM: a hundredth of L's box and particles (``benchmarks/recon.py``'s
+``Lc``). ``Lcoff`` is Lc focused so, ``--focus-shift -5.3`` by default: its focal plane 0.3 mm (5.4 depth
+voxels) beyond the box's far face, about as many lenslets of blur (0.96; L's optics blur 0.25 mm on the
+lenslets per mm out of focus) as Mcoff's 0.8 mm. Each
 frame is reconstructed twice:
 
 ipr
@@ -86,12 +96,13 @@ from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.plan import projector_for  # noqa: E402
 from lfcore.reconstruct import PROTOCOLS, ReconSettings, reconstruct  # noqa: E402
 from lfcore.render import renderer_for  # noqa: E402
+from lfcore.rig import Rig  # noqa: E402
 from lfcore.volume import VolumeGrid  # noqa: E402
 from lfpiv.rigfile import load_rig  # noqa: E402
 
 #: Cases focused beyond the box: each camera's focus shift (mm, along its optical axis; negative: away
 #: from the camera) that puts its focal plane 0.2 mm beyond the box's far face.
-OFF_FOCUS = {"S2off": -0.6, "Soff": -1.0, "Mcoff": -6.8}
+OFF_FOCUS = {"S2off": -0.6, "Soff": -1.0, "Mcoff": -6.8, "Lcoff": -5.3}
 
 
 def recon_bench():
@@ -106,12 +117,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rig", default=str(ROOT / "examples" / "tiny.toml"))
     ap.add_argument("--case", default=None,
-                    help="a case of benchmarks/recon.py instead of --rig (S, S2, Mc, ...), or S2off / Soff / Mcoff "
-                         "(S2 / S / Mc focused beyond the box)")
+                    help="a case of benchmarks/recon.py instead of --rig (S, S2, Mc, Lc, ...), or S2off / Soff / "
+                         "Mcoff / Lcoff (S2 / S / Mc / Lc focused beyond the box)")
     ap.add_argument("--focus-shift", type=float, default=None, metavar="MM",
                     help="move every camera's focus point this far along its optical axis (positive: toward the "
                          "camera; negative: away from it, the box then lies before the focal plane); S2off's "
-                         "default: -0.6 mm, Soff's -1.0 mm, Mcoff's -6.8 mm")
+                         "default: -0.6 mm, Soff's -1.0 mm, Mcoff's -6.8 mm, Lcoff's -5.3 mm")
     ap.add_argument("--ppm", type=float, default=0.5)
     ap.add_argument("--sweep", default=None, metavar="PPMS",
                     help="comma-separated densities (PPM) instead of --ppm: one line of figures per density")
@@ -141,17 +152,15 @@ def main() -> None:
     ap.add_argument("--max-std", type=float, default=IprSettings().max_position_std,
                     help="IPR's max_position_std (voxels; 0: keep all)")
     ap.add_argument("--no-mart", action="store_true", help="IPR only (no DRT-MART peaks beside it)")
+    ap.add_argument("--candidates-only", action="store_true",
+                    help="only IPR's first round's candidates (each source's), scored against the truth: no fit")
     ap.add_argument("--device", default="cpu", help="where the reconstructions and the point model run (cpu, cuda)")
     args = ap.parse_args()
-    if args.case:
-        rig, _ = recon_bench().case_rig(args.case.removesuffix("off") if args.case in OFF_FOCUS else args.case)
-        name = f"case {args.case}"
-    else:
-        rig = load_rig(args.rig)
-        name = f"rig {Path(args.rig).name}"
-    shift = OFF_FOCUS[args.case] if args.case in OFF_FOCUS and args.focus_shift is None else (args.focus_shift or 0.0)
+    rig, shift = case_rig(args.case, focus_shift=args.focus_shift) if args.case else (load_rig(args.rig), 0.0)
+    if not args.case and args.focus_shift:
+        rig, shift = shift_focus(rig, args.focus_shift), args.focus_shift
+    name = f"case {args.case}" if args.case else f"rig {Path(args.rig).name}"
     if shift:
-        rig = shift_focus(rig, shift)
         name += f", each camera's focus moved {shift:g} mm along its optical axis (+: toward it)"
     grid = VolumeGrid.from_rig(rig)
     proj = projector_for(rig.camera, grid, device=args.device)
@@ -205,6 +214,12 @@ def main() -> None:
                 cpu = clocks[src]
                 t0 = time.perf_counter()
                 cpu.clear()
+                if args.candidates_only:
+                    ipr._candidates(imgs)
+                    print(f"frame {f}: candidates{tag[src]} CPU s {cpu['first'][1]:.1f} (wall "
+                          f"{time.perf_counter() - t0:.1f} s); peak RSS {peak_rss_gib():.2f} GiB", flush=True)
+                    score(f"candidates{tag[src]}", *cpu["first"])
+                    continue
                 c0 = time.process_time()
                 res = ipr.reconstruct(imgs)
                 wall = time.perf_counter() - t0
@@ -212,8 +227,11 @@ def main() -> None:
                 fit = c_all - cpu["candidates"] - cpu["operator"]
                 print(f"frame {f}: IPR{tag[src]} CPU s: candidates {cpu['candidates']:.1f} ({cpu['first'][1]:.1f} in "
                       f"the first round), particle model {cpu['operator']:.1f}, fit {fit:.1f}, all {c_all:.1f} (wall "
-                      f"{wall:.1f} s); {res.candidates} candidates, {res.n} particles; peak RSS "
-                      f"{peak_rss_gib():.2f} GiB", flush=True)
+                      f"{wall:.1f} s); {res.candidates} candidates, {res.n} particles, {res.rounds} rounds; fit "
+                      f"{fit / max(res.candidates, 1):.3f} CPU s a candidate, {fit / max(res.n, 1):.3f} a particle "
+                      f"found; peak RSS {cpu['first_rss']:.2f} GiB after the first candidates, "
+                      f"{peak_rss_gib():.2f} GiB now", flush=True)
+                print(f"frame {f}: IPR{tag[src]} CPU s by round: {round_text(cpu, c0 + c_all)}", flush=True)
                 score(f"ipr{tag[src]}", res.positions_mm, c_all)
                 score(f"candidates{tag[src]}", *cpu["first"])
             if "drt-mart" in routes:
@@ -227,6 +245,8 @@ def main() -> None:
                 score("drt-mart", found_mart, wall)
         print(f"-- {ppm} PPM: {n} particles")
         for route, rs in rows.items():
+            if not rs:  # (IPR's routes with --candidates-only)
+                continue
             for label, k in (("all", 0), *((f">= {g:g} voxels from focus", 1 + i) for i, g in enumerate(gaps))):
                 err = np.concatenate([r[k].error_mm for r in rs])
                 rms = np.sqrt(np.mean(err**2, axis=0)) / np.asarray(grid.voxel_mm)
@@ -262,13 +282,55 @@ def stage_clock(ipr: ParticleReconstructor) -> dict:
         def wrapped(*a, _inner=inner, _key=key, **k):
             c = time.process_time()
             out = _inner(*a, **k)
-            dt = time.process_time() - c
-            if _key == "candidates" and "candidates" not in clock:
-                clock["first"] = (to_mm(ipr.projector.grid, out), dt)
+            done = time.process_time()
+            dt = done - c
+            if _key == "candidates":
+                if "candidates" not in clock:
+                    clock["first"] = (to_mm(ipr.projector.grid, out), dt)
+                    clock["first_rss"] = peak_rss_gib()
+                # each round's candidates: (CPU s, how many found, when they were done)
+                clock.setdefault("rounds", []).append((dt, len(out), done))
+                print(f"  round {len(clock['rounds'])}'s candidates: {len(out)} in {dt:.1f} CPU s; peak RSS "
+                      f"{peak_rss_gib():.2f} GiB", flush=True)
             clock[_key] = clock.get(_key, 0.0) + dt
             return out
         setattr(ipr, name, wrapped)
     return clock
+
+
+def round_text(clock: dict, end: float) -> str:
+    """Each round's candidates' CPU seconds and count, and the CPU seconds from them to the next
+    round's candidates (or ``end``, the frame's last process time): the round's model and fit."""
+    rounds = clock.get("rounds", [])
+    parts = []
+    for r, (dt, n, done) in enumerate(rounds):
+        nxt = rounds[r + 1][2] - rounds[r + 1][0] if r + 1 < len(rounds) else end
+        parts.append(f"round {r + 1}: {n} candidates in {dt:.1f} s, then {nxt - done:.1f} s")
+        # ("then": the particle model's set-up and the fit, splits, moves and prunings of that round)
+    return "; ".join(parts)
+
+
+def case_rig(case: str, *, focus_shift: float | None = None) -> tuple[Rig, float]:
+    """A case's rig: ``benchmarks/recon.py``'s case of that name, or a case of :data:`OFF_FOCUS`
+    (its name less ``off``) refocused by its shift.
+
+    Parameters
+    ----------
+    case
+        S, S2, Mc, Lc, ... (``benchmarks/recon.py``) or S2off, Soff, Mcoff, Lcoff.
+    focus_shift
+        Every camera's focus point moved this far along its optical axis, mm (positive: toward the
+        camera); None: the case's own (:data:`OFF_FOCUS`, else none).
+
+    Returns
+    -------
+    tuple
+        The rig and the focus shift applied, mm (0: none).
+    """
+    base = case.removesuffix("off") if case in OFF_FOCUS else case
+    rig, _ = recon_bench().case_rig(base)
+    shift = OFF_FOCUS.get(case, 0.0) if focus_shift is None else focus_shift
+    return (shift_focus(rig, shift) if shift else rig), shift
 
 
 def shift_focus(rig, shift_mm: float):

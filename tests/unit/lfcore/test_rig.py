@@ -78,6 +78,42 @@ def test_m512_off_focus_rig_is_issue_48s_512_rig_focused_beyond_its_box():
     assert depth.min() == pytest.approx(0.8) and depth.max() == pytest.approx(12.8)
 
 
+def _benchmark(name: str):
+    """benchmarks/NAME.py as a module (the benchmarks are scripts, not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", EXAMPLES.parent / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_lc_cases_are_ls_optics_on_a_hundredth_of_its_box():
+    # benchmarks/particles.py's Lc is benchmarks/recon.py's: camera 0 of the chapter's 29 MP rig on a
+    # 660 x 440 crop of its sensor, 330 x 220 x 182 voxels of 11 x 11 x 55 um, 878 particles at 0.5 PPM
+    # (85,578 in L's box); Lcoff the same focused 5.3 mm away from the camera, its focal plane 0.295 mm
+    # beyond the far face of the 10.01 mm deep box
+    from lfcore.particles import particle_count
+
+    particles = _benchmark("particles")
+    rig, shift = particles.case_rig("Lc")
+    (cam,), cam0 = rig.camera, load_rig(EXAMPLES / "two_cameras.toml").camera[0]
+    assert shift == 0.0 and rig.optics_warnings() == []
+    assert cam.model_copy(update={"sensor_px": cam0.sensor_px}) == cam0
+    assert tuple(cam.sensor_px) == (660, 440)
+    assert VolumeGrid.from_rig(rig).shape == (182, 220, 330)  # z, y, x
+    np.testing.assert_allclose(VolumeGrid.from_rig(rig).voxel_mm, (0.011, 0.011, 0.055))
+    assert particle_count(rig, ppm=0.5) == 878
+    off, shift = particles.case_rig("Lcoff")
+    assert shift == -5.3 and off.volume == rig.volume
+    np.testing.assert_allclose(np.asarray(off.camera[0].focus_mm), np.asarray(cam.focus_mm) - 5.3 * cam.optical_axis)
+    corners = np.array(np.meshgrid(*[[-0.5, 0.5]] * 3, indexing="ij")).reshape(3, -1).T
+    corners = np.asarray(rig.volume.centre_mm) + corners * np.asarray(rig.volume.size_mm)
+    depth = off.camera[0].world_to_camera(corners)[:, 2]  # + toward the camera from its focal plane
+    assert depth.min() == pytest.approx(0.295) and depth.max() == pytest.approx(10.305)
+    assert particles.case_rig("Lc", focus_shift=-1.0)[1] == -1.0
+
+
 def test_derived_distances_follow_thin_lens(tiny_rig):
     cam = tiny_rig.camera[0]  # F = 50 mm, M = -1, N = 2
     assert cam.image_distance_mm == pytest.approx(100.0)
