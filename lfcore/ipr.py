@@ -63,7 +63,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy import sparse
-from scipy.sparse.linalg import spsolve
+from scipy.sparse.linalg import cg, splu
 from scipy.spatial import cKDTree
 
 from lfcore.metrics import detect_particles
@@ -695,8 +695,10 @@ def _fit(model: _Model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, *, 
         g = jw.T @ r
         d = jtj.diagonal().copy()
         d[d <= 0] = 1.0
+        x0 = None
         for _ in range(6):  # raise the damping until a step lowers the residual
-            step = spsolve((jtj + sparse.diags(lam * d)).tocsc(), g)
+            step = _damped_step(jtj, lam * d, g, x0=x0)
+            x0 = step
             step = step.reshape(-1, 4)
             new_u = u + np.clip(step[:, 1:], -max_step, max_step)
             new_i = np.maximum(intensity + step[:, 0], 0.0)
@@ -709,6 +711,45 @@ def _fit(model: _Model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, *, 
         else:
             break
     return u, intensity
+
+
+def _damped_step(jtj: sparse.csc_matrix, damping: np.ndarray, g: np.ndarray, *, x0: np.ndarray | None = None,
+                 cg_from: int = 1000, cg_iterations: int = 60, cg_rtol: float = 1e-6) -> np.ndarray:
+    """The Levenberg-Marquardt step ``x`` of ``(jtj + diag(damping)) x = g``.
+
+    Parameters
+    ----------
+    jtj : scipy.sparse.csc_matrix
+        The weighted normal matrix J^T W J, symmetric positive semi-definite.
+    damping : numpy.ndarray
+        The damping added to its diagonal, every entry positive: the system is positive definite.
+    g : numpy.ndarray
+        The right-hand side J^T W r.
+    x0 : numpy.ndarray or None
+        Where conjugate gradients start (the step of a trial that failed with less damping); None: zero.
+    cg_from : int
+        Systems of at least this many unknowns are tried by conjugate gradients first.
+    cg_iterations : int
+        The most conjugate-gradient iterations before the direct solve takes over.
+    cg_rtol : float
+        Conjugate gradients stop at a residual this many times ``|g|``.
+
+    Returns
+    -------
+    numpy.ndarray
+        The step. Conjugate gradients preconditioned by the diagonal, where they converge within
+        ``cg_iterations`` (a heavily damped system), else a sparse LU (SuperLU) in a minimum-degree order of
+        the symmetric pattern with pivots on the diagonal (no pivoting is needed for a positive definite
+        matrix): about half the cost of ``spsolve``'s column order and partial pivoting, the same solution
+        to rounding.
+    """
+    a = (jtj + sparse.diags(damping)).tocsc()
+    if a.shape[0] >= cg_from:
+        x, info = cg(a, g, x0=x0, M=sparse.diags(1.0 / a.diagonal()), rtol=cg_rtol, maxiter=cg_iterations)
+        if info == 0:
+            return x
+    lu = splu(a, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return lu.solve(g)
 
 
 def _variance_slopes(m: np.ndarray, y: np.ndarray, model_error: bool) -> tuple[float, float]:

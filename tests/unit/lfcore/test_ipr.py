@@ -115,6 +115,29 @@ def test_the_running_median_follows_a_known_profile():
     assert ipr.local_median(np.zeros(0), np.zeros(0), share=0.1).shape == (0,)
 
 
+# the sparse LU alone; conjugate gradients (they converge in about 25 iterations); too few of them: the LU
+@pytest.mark.parametrize(("cg_from", "cg_iterations"), [(10**9, 60), (1, 60), (1, 2)])
+def test_the_damped_step_solves_a_known_spd_system(cg_from, cg_iterations):
+    # a J^T J of 300 particles' (intensity, z, y, x), each coupled with a few neighbours, damped as the fit
+    # damps it: the step is the system's solution (spsolve's) within the solver's tolerance
+    from scipy import sparse
+    from scipy.sparse.linalg import spsolve
+
+    rng = np.random.default_rng(3)
+    j = sparse.random(4000, 1200, density=0.01, random_state=rng, format="csc")
+    jtj = (j.T @ j).tocsc()
+    d = jtj.diagonal().copy()
+    d[d <= 0] = 1.0
+    g = rng.normal(size=1200)
+    for lam in (1e-3, 1e-1):
+        want = spsolve((jtj + sparse.diags(lam * d)).tocsc(), g)
+        got = ipr._damped_step(jtj, lam * d, g, cg_from=cg_from, cg_iterations=cg_iterations)
+        assert np.linalg.norm(got - want) <= 1e-4 * np.linalg.norm(want)
+    # warm started from a step near the solution: the same step
+    got = ipr._damped_step(jtj, 1e-1 * d, g, x0=want * 1.01, cg_from=cg_from, cg_iterations=cg_iterations)
+    assert np.linalg.norm(got - want) <= 1e-4 * np.linalg.norm(want)
+
+
 def test_noise_weights_follow_a_known_noise_of_background_and_signal():
     # two cameras: background noise 10 and 4 counts, variance per count of signal 5 and 1 (a renderer's rays
     # of 5 counts each; photon shot noise at a gain of 1): each pixel's weight is 1 / (sigma0^2 + k m),
