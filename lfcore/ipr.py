@@ -23,7 +23,9 @@ cross-correlation. This module does it on the rig's own forward model:
    :attr:`IprSettings.box_margin_voxels` with the point model) leave; the rest are fitted again.
 5. **Residual rounds**: the images' residual (recorded minus the particles' model) is
    reconstructed again and its peaks, where no particle is near, join the list; fit and prune
-   again (:attr:`IprSettings.rounds` in all).
+   again (:attr:`IprSettings.rounds` in all). A round whose candidates are few
+   (:attr:`IprSettings.local_refit_share` of the particles) fits only them and the particles whose
+   images share pixels with theirs, the others held.
 6. Optionally, the particles whose fitted position is unsure (:attr:`IprSettings.max_position_std`)
    are left out.
 
@@ -60,6 +62,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
+from functools import partial
 
 import numpy as np
 from scipy import sparse
@@ -119,6 +122,13 @@ SPLIT_VOXELS = 0.75
 #: and off, to explain it (``benchmarks/RESULTS.md``, fifteenth session, issue 48). The voxels'
 #: model (:attr:`IprSettings.model` ``"voxels"``) has no image outside the box: none there.
 BOX_MARGIN_VOXELS = 2.0
+
+#: A residual round whose new candidates are at most this share of the particles found so far refits
+#: only them and the particles whose images share pixels with theirs, the others held
+#: (:attr:`IprSettings.local_refit_share`): on L's optics crop a third round's 12 candidates among 870
+#: particles took 18 CPU s so against 89 refitting every one, with the same quality
+#: (``benchmarks/RESULTS.md``, sixteenth session).
+LOCAL_REFIT_SHARE = 0.02
 
 #: The noise models of the fit (:attr:`IprSettings.noise_model`).
 NOISE_MODELS = ("shot", "flat")
@@ -269,6 +279,13 @@ class IprSettings:
         With the point model, particles up to this far outside the box (voxels, on each face) are
         kept and fitted (:data:`BOX_MARGIN_VOXELS`, the default; 0: inside the box only, the rule
         before the fifteenth session). The voxels' model has no image outside the box: none there.
+    local_refit_share
+        A residual round that finds at most this share of the particles found so far as new
+        candidates (:data:`LOCAL_REFIT_SHARE`, the default; 0: never, every particle refitted each
+        round, the rule before the sixteenth session) fits, splits, relocates and prunes only the new
+        candidates and the particles whose images share a pixel with theirs; the other particles
+        are held (their image taken off the recorded one). A round with more candidates (on two
+        cameras, hundreds of noise candidates that act as the fit's starts) refits every particle.
 
     ``noise_model`` and ``residual_mask`` keep their defaults here (``"flat"`` and 0): this class
     is explicit. ``lfpiv particles`` and ``lfpiv.particles`` choose them from the cameras used
@@ -301,8 +318,12 @@ class IprSettings:
     noise_floor: float = 0.0
     residual_mask: float = 0.0
     box_margin_voxels: float = BOX_MARGIN_VOXELS
+    local_refit_share: float = LOCAL_REFIT_SHARE
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.local_refit_share <= 1.0:
+            raise ValueError(f"local_refit_share is a share of the particles found, from 0 (never) to 1, got "
+                             f"{self.local_refit_share}")
         if not 0.0 <= self.box_margin_voxels <= 16.0:
             raise ValueError(f"box_margin_voxels is how far outside the box particles are kept, voxels, from 0 to 16, "
                              f"got {self.box_margin_voxels}")
@@ -944,12 +965,13 @@ def local_median(coordinate: np.ndarray, values: np.ndarray, *, share: float,
     return out
 
 
-def _split(u: np.ndarray, intensity: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
-    """Particles brighter than ``factor`` times the median as two of half the intensity,
-    :data:`SPLIT_VOXELS` either side along x."""
+def _split(u: np.ndarray, intensity: np.ndarray, factor: float, *,
+           median: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Particles brighter than ``factor`` times the ``median`` (None: that of ``intensity``) as two of
+    half the intensity, :data:`SPLIT_VOXELS` either side along x."""
     if factor <= 0 or len(intensity) == 0:
         return u, intensity
-    big = intensity > factor * np.median(intensity)
+    big = intensity > factor * (np.median(intensity) if median is None else median)
     d = np.array([0.0, 0.0, SPLIT_VOXELS])  # (z, y, x)
     return (np.vstack([u[~big], u[big] + d, u[big] - d]),
             np.concatenate([intensity[~big], 0.5 * intensity[big], 0.5 * intensity[big]]))
@@ -1073,10 +1095,11 @@ class ParticleReconstructor:
         sizes = [img.size for img in images]
         weights = None  # each pixel's (noise_model "shot"), from the residual of the fit before
 
-        def weigh(model, u: np.ndarray, intensity: np.ndarray) -> np.ndarray | None:
+        def weigh(model, u: np.ndarray, intensity: np.ndarray, fixed: np.ndarray | float = 0.0) -> np.ndarray | None:
             if s.noise_model != "shot":
                 return None
-            return noise_weights(b, model.image(u, intensity), np.asarray(sigma0), sizes, floor=s.noise_floor)
+            return noise_weights(b, fixed + model.image(u, intensity), np.asarray(sigma0), sizes,
+                                 floor=s.noise_floor)
 
         u = np.zeros((0, 3))
         intensity = np.zeros(0)
@@ -1101,6 +1124,8 @@ class ParticleReconstructor:
             if len(cand) == 0:
                 break
             n_cand += len(cand)
+            # few new candidates (a residual round): only they and the particles their images touch are fitted
+            local = rnd > 0 and len(cand) <= s.local_refit_share * len(intensity)
             u = np.vstack([u, cand])
             t0 = time.perf_counter()
             model = self._model(u, model)
@@ -1111,25 +1136,24 @@ class ParticleReconstructor:
             rest = b - (model.image(u[:len(intensity)], intensity) if len(intensity) else 0.0)
             norm = np.asarray(c.multiply(c).sum(axis=0)).ravel()
             start = np.where(norm > 0, (c.T @ rest) / np.where(norm > 0, norm, 1.0), 0.0)
-            intensity = np.concatenate([intensity, np.maximum(start, 0.0)])
-            u, intensity = _fit(model, b, u, intensity, shakes=s.shakes, max_step=s.max_step_voxels,
-                                weights=weights)
-            weights = weigh(model, u, intensity)
-            u, intensity = self._prune(u, intensity)
-            if s.split_intensity > 0:
-                u, intensity = _split(u, intensity, s.split_intensity)
-                u, intensity = _fit(model, b, u, intensity, shakes=s.shakes, max_step=s.max_step_voxels,
-                                    weights=weights)
-                u, intensity = self._prune(u, intensity)
-            if self.point_model and s.relocate_depth > 0:
-                u, intensity = _relocate(model, b, u, intensity, self._offsets, weights)
-            u, intensity = _fit(model, b, u, intensity, shakes=max(s.shakes // 2, 1), max_step=s.max_step_voxels,
-                                weights=weights)
-            weights = weigh(model, u, intensity)
-            u, intensity = self._prune(u, intensity)
+            if local:
+                old = len(intensity)
+                c_old = model.unit_images(u[:old])
+                near = np.asarray(abs(c_old).T @ np.asarray(abs(c).sum(axis=1)).ravel()).ravel() > 0
+                held = (u[:old][~near], intensity[~near])
+                fixed = c_old[:, ~near] @ held[1]  # the held particles' image, taken off the recorded one
+                g_u, g_i, weights = self._shake(model, b - fixed, np.vstack([u[:old][near], cand]),
+                                                np.concatenate([intensity[near], np.maximum(start, 0.0)]),
+                                                weights, partial(weigh, fixed=fixed), held)
+                u, intensity = np.vstack([held[0], g_u]), np.concatenate([held[1], g_i])
+                found = fixed + model.image(g_u, g_i)
+            else:
+                intensity = np.concatenate([intensity, np.maximum(start, 0.0)])
+                u, intensity, weights = self._shake(model, b, u, intensity, weights, weigh)
+                found = None
             seconds["fit"] += time.perf_counter() - t0
             if rnd + 1 < s.rounds:
-                found = model.image(u, intensity)
+                found = model.image(u, intensity) if found is None else found
                 left = b - found
                 offs = np.concatenate([[0], np.cumsum([img.size for img in images])])
                 if s.residual_mask > 0:  # no elimination by pixels that the found particles' noise fills
@@ -1145,6 +1169,31 @@ class ParticleReconstructor:
         return ParticleResult(positions_mm=to_mm(p.grid, u), intensity=intensity, residual=res, candidates=n_cand,
                               rounds=rounds, rms_residual=rms, seconds=seconds, unsure=unsure)
 
+    def _shake(self, model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, weights: np.ndarray | None,
+               weigh, held: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """A round's fit of the particles ``u``, ``intensity`` to the images ``b``: fit, prune, split,
+        fit, prune, relocate, fit and prune; the fitted particles and the pixels' new ``weights``
+        (``weigh(model, u, intensity)``). ``held``: the particles held (not fitted, their image off
+        ``b`` already), which the pruning's and the split's median intensity counts."""
+        s = self.settings
+        u, intensity = _fit(model, b, u, intensity, shakes=s.shakes, max_step=s.max_step_voxels, weights=weights)
+        weights = weigh(model, u, intensity)
+        u, intensity = self._prune(u, intensity, held)
+        if s.split_intensity > 0:
+            median = None if held is None else float(np.median(np.concatenate([held[1], intensity])))
+            u, intensity = _split(u, intensity, s.split_intensity, median=median)
+            u, intensity = _fit(model, b, u, intensity, shakes=s.shakes, max_step=s.max_step_voxels,
+                                weights=weights)
+            u, intensity = self._prune(u, intensity, held)
+        if self.point_model and s.relocate_depth > 0:
+            u, intensity = _relocate(model, b, u, intensity, self._offsets, weights)
+        u, intensity = _fit(model, b, u, intensity, shakes=max(s.shakes // 2, 1), max_step=s.max_step_voxels,
+                            weights=weights)
+        weights = weigh(model, u, intensity)
+        u, intensity = self._prune(u, intensity, held)
+        return u, intensity, weights
+
     def _model(self, u: np.ndarray, previous: _Model | _PointModel | None) -> _Model | _PointModel:
         """The particles' forward model: the point model (one for all rounds: light-field cameras'
         traced points, pinhole cameras' Gaussian spots) where :attr:`IprSettings.model` asks for it,
@@ -1157,19 +1206,24 @@ class ParticleReconstructor:
             return previous
         return _Model(self.projector, self.method, u)
 
-    def _prune(self, u: np.ndarray, intensity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _prune(self, u: np.ndarray, intensity: np.ndarray, held: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
         """Leave out the particles outside the box (by more than :attr:`IprSettings.box_margin_voxels`
-        with the point model), merge the close ones and drop the faint ones."""
+        with the point model), merge the close ones and drop the faint ones. ``held``: particles
+        not pruned here whose intensities the median counts too."""
         s = self.settings
         shape = np.asarray(self.projector.grid.shape)
         margin = s.box_margin_voxels if self.point_model else 0.0
         inside = np.all((u >= -0.5 - margin) & (u <= shape - 0.5 + margin), axis=1) & (intensity > 0)
         u, intensity = _merge(u[inside], intensity[inside], s.merge_voxels)
         if len(intensity):
+            all_u, all_i = (u, intensity) if held is None else (np.vstack([held[0], u]),
+                                                                np.concatenate([held[1], intensity]))
             if s.intensity_axis is None:
-                light = np.median(intensity)
+                light = np.median(all_i)
             else:  # the light where each particle is: u is (z, y, x)
-                light = local_median(u[:, 2 - "xyz".index(s.intensity_axis)], intensity, share=s.intensity_share)
+                light = local_median(all_u[:, 2 - "xyz".index(s.intensity_axis)], all_i,
+                                     share=s.intensity_share)[len(all_i) - len(intensity):]
             bright = intensity >= s.min_intensity * light
             u, intensity = u[bright], intensity[bright]
         return u, intensity

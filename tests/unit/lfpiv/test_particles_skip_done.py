@@ -21,14 +21,15 @@ def meta(**settings) -> dict:
 
 
 def test_an_old_group_matches_the_settings_that_reproduce_it() -> None:
-    old = meta(model="voxels", split_intensity=0.0, relocate_depth=0, candidate_protocol="fixed")
+    old = meta(model="voxels", split_intensity=0.0, relocate_depth=0, candidate_protocol="fixed", local_refit_share=0.0)
     assert same_settings(FIRST, old)
     # the point model's own settings do not change the voxels model's particles
     assert same_settings(FIRST, meta(model="voxels", split_intensity=0.0, wavelength_nm=633.0, point_sub_apertures=40,
-                                     particle_image_px=2.0, relocate_depth=3, candidate_protocol="fixed"))
+                                     particle_image_px=2.0, relocate_depth=3, candidate_protocol="fixed",
+                                     local_refit_share=0.0))
     # a group written after split_intensity, before the point model
     assert same_settings({**FIRST, "split_intensity": 1.4}, meta(model="voxels", split_intensity=1.4,
-                                                                  candidate_protocol="fixed"))
+                                                                  candidate_protocol="fixed", local_refit_share=0.0))
     # a group written after the point model, before max_position_std
     point = {k: v for k, v in meta().items() if k != "max_position_std"}
     assert same_settings(point, meta())
@@ -142,3 +143,9 @@ def test_a_group_written_before_box_margin_voxels_kept_only_the_box() -> None:
     assert same_settings(voxels, meta(model="voxels"))
     with pytest.raises(ValueError, match="box_margin_voxels"):
         IprSettings(box_margin_voxels=-1.0)
+
+
+def test_a_group_written_before_local_refit_share_refitted_every_particle() -> None:
+    before = {k: v for k, v in meta().items() if k != "local_refit_share"}
+    assert same_settings(before, meta(local_refit_share=0.0))
+    assert not same_settings(before, meta())  # today's residual rounds of few candidates refit locally: remade
