@@ -1196,7 +1196,9 @@ class ParticleReconstructor:
         weights = weigh(model, u, intensity)
         u, intensity = self._prune(u, intensity, held)
         if s.split_intensity > 0:
-            median = None if held is None else float(np.median(np.concatenate([held[1], intensity])))
+            median = None  # that of intensity; with particles held, theirs counted too (none left: no split)
+            if held is not None and len(intensity):
+                median = float(np.median(np.concatenate([held[1], intensity])))
             u, intensity = _split(u, intensity, s.split_intensity, median=median)
             u, intensity = _fit(model, b, u, intensity, shakes=s.shakes, max_step=s.max_step_voxels,
                                 weights=weights)

@@ -771,3 +771,20 @@ def test_masked_pixels_measure_nothing(setup, monkeypatch, model, noise_model, s
     assert np.all(err < (0.12 if model == "point" else 0.3))
     assert np.allclose(res.intensity, 50_000.0, rtol=0.3)
     assert np.all(np.isfinite(res.residual)) and np.all(res.residual < 1.0) and np.isfinite(res.rms_residual)
+
+
+def test_a_local_round_whose_particles_all_leave_warns_nothing(setup):
+    # a local round with no particle held (every one's image touches a new candidate's) in which the first
+    # pruning leaves none (here the one particle has no light): nothing left, and no median of no
+    # intensities ("Mean of empty slice") on the way
+    import warnings
+
+    rig, grid, proj = setup
+    for model in ("point", "voxels"):
+        pr = ipr.ParticleReconstructor(proj, settings=ipr.IprSettings(model=model))
+        u = np.array([[10.2, 30.3, 40.4]])
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            got_u, got_i, _ = pr._shake(pr._model(u, None), np.zeros(proj.n_pixels), u, np.zeros(1), None,
+                                        lambda *a, **k: None, (np.zeros((0, 3)), np.zeros(0)))
+        assert got_u.shape == (0, 3) and got_i.shape == (0,)
