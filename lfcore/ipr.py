@@ -60,7 +60,7 @@ centres at whole numbers.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from functools import partial
 
@@ -1184,9 +1184,9 @@ class ParticleReconstructor:
         return ParticleResult(positions_mm=to_mm(p.grid, u), intensity=intensity, residual=res, candidates=n_cand,
                               rounds=rounds, rms_residual=rms, seconds=seconds, unsure=unsure)
 
-    def _shake(self, model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, weights: np.ndarray | None,
-               weigh, held: tuple[np.ndarray, np.ndarray] | None = None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def _shake(self, model: _Model | _PointModel, b: np.ndarray, u: np.ndarray, intensity: np.ndarray,
+               weights: np.ndarray | None, weigh: Callable[..., np.ndarray | None],
+               held: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """A round's fit of the particles ``u``, ``intensity`` to the images ``b``: fit, prune, split,
         fit, prune, relocate, fit and prune; the fitted particles and the pixels' new ``weights``
         (``weigh(model, u, intensity)``). ``held``: the particles held (not fitted, their image off
