@@ -60,7 +60,7 @@ centres at whole numbers.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from functools import partial
 
@@ -909,12 +909,16 @@ def _relocations(projector: Projector, depth: int) -> np.ndarray:
     return np.array(sorted(moves), dtype=np.float64).reshape(-1, 3)
 
 
-def _position_std(model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray) -> np.ndarray:
+def _position_std(model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, *,
+                  seen: np.ndarray | None = None) -> np.ndarray:
     """(n, 3) each particle's position uncertainty (z, y, x), voxels: the standard deviation of its
     fitted position from its own image's Jacobian (the others held) and the residual's variance over
     the pixels the particles light. Large where the images hardly change as the particle moves:
-    a light-field camera's particle near its focal plane, whose light falls in one lenslet."""
+    a light-field camera's particle near its focal plane, whose light falls in one lenslet.
+    ``seen``: 1 on the pixels measured, 0 on masked ones (None: every pixel)."""
     j = model.jacobian(u, intensity)
+    if seen is not None:  # a masked pixel says nothing of where the particle is
+        j = (sparse.diags(seen) @ j).tocsc()
     r = b - model.image(u, intensity)
     lit = np.asarray(abs(j).sum(axis=1)).ravel() > 0
     var = float(np.mean(r[lit] ** 2)) if lit.any() else 0.0
@@ -1059,7 +1063,9 @@ class ParticleReconstructor:
         Parameters
         ----------
         images
-            One raw (rows, columns) image per camera, in the projector's camera order, counts.
+            One raw (rows, columns) image per camera, in the projector's camera order, counts; NaN
+            on a flat field's masked pixels (:func:`lfcore.flatfield.correct`), which measured
+            nothing: they weigh nothing in the fit and are masked in the residual rounds.
         predicted_mm
             (m, 3) world points (x, y, z) mm where particles are expected (Shake-the-Box's
             prediction from the tracks so far): first-round candidates beside the quick
@@ -1090,16 +1096,24 @@ class ParticleReconstructor:
         # the signal the particles must explain: background-subtracted counts of all cameras' pixels
         b = np.concatenate([np.asarray(img, np.float64).ravel() - bg for img, bg in zip(images, backgrounds,
                                                                                         strict=True)])
+        # a flat field's masked pixels (NaN: lfcore.flatfield.correct) measured nothing: no weight in the fit
+        seen = np.isfinite(b)
+        measured = None if seen.all() else seen.astype(np.float64)
+        if measured is not None:
+            b = np.where(seen, b, 0.0)
         seconds = {"candidates": 0.0, "operator": 0.0, "fit": 0.0}
         self._backgrounds = backgrounds
         sizes = [img.size for img in images]
-        weights = None  # each pixel's (noise_model "shot"), from the residual of the fit before
+        weights = measured  # each pixel's (noise_model "shot"), from the residual of the fit before
 
         def weigh(model, u: np.ndarray, intensity: np.ndarray, fixed: np.ndarray | float = 0.0) -> np.ndarray | None:
             if s.noise_model != "shot":
-                return None
-            return noise_weights(b, fixed + model.image(u, intensity), np.asarray(sigma0), sizes,
-                                 floor=s.noise_floor)
+                return measured
+            if measured is None:
+                return noise_weights(b, fixed + model.image(u, intensity), np.asarray(sigma0), sizes,
+                                     floor=s.noise_floor)
+            return np.where(seen, noise_weights(b, np.where(seen, fixed + model.image(u, intensity), 0.0),
+                                                np.asarray(sigma0), sizes, floor=s.noise_floor), 0.0)
 
         u = np.zeros((0, 3))
         intensity = np.zeros(0)
@@ -1134,8 +1148,9 @@ class ParticleReconstructor:
             # a new particle's first intensity: its image's best fit to what is left unexplained
             c = model.unit_images(u[len(intensity):])
             rest = b - (model.image(u[:len(intensity)], intensity) if len(intensity) else 0.0)
-            norm = np.asarray(c.multiply(c).sum(axis=0)).ravel()
-            start = np.where(norm > 0, (c.T @ rest) / np.where(norm > 0, norm, 1.0), 0.0)
+            cs = c if measured is None else (sparse.diags(measured) @ c).tocsc()  # on the pixels seen
+            norm = np.asarray(cs.multiply(cs).sum(axis=0)).ravel()
+            start = np.where(norm > 0, (cs.T @ rest) / np.where(norm > 0, norm, 1.0), 0.0)
             if local:
                 old = len(intensity)
                 c_old = model.unit_images(u[:old])
@@ -1154,7 +1169,7 @@ class ParticleReconstructor:
             seconds["fit"] += time.perf_counter() - t0
             if rnd + 1 < s.rounds:
                 found = model.image(u, intensity) if found is None else found
-                left = b - found
+                left = b - found if measured is None else np.where(seen, b - found, np.nan)
                 offs = np.concatenate([[0], np.cumsum([img.size for img in images])])
                 if s.residual_mask > 0:  # no elimination by pixels that the found particles' noise fills
                     noise = np.repeat(np.asarray(sigma0, dtype=np.float64), sizes)
@@ -1163,15 +1178,15 @@ class ParticleReconstructor:
                                    for k, img in enumerate(images)]
         unsure = 0
         if s.max_position_std > 0 and model is not None and len(u):
-            sure = _position_std(model, b, u, intensity).max(axis=1) <= s.max_position_std
+            sure = _position_std(model, b, u, intensity, seen=measured).max(axis=1) <= s.max_position_std
             u, intensity, unsure = u[sure], intensity[sure], int(np.count_nonzero(~sure))
-        res, rms = self._residuals(model, b, u, intensity)
+        res, rms = self._residuals(model, b, u, intensity, seen=measured)
         return ParticleResult(positions_mm=to_mm(p.grid, u), intensity=intensity, residual=res, candidates=n_cand,
                               rounds=rounds, rms_residual=rms, seconds=seconds, unsure=unsure)
 
-    def _shake(self, model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, weights: np.ndarray | None,
-               weigh, held: tuple[np.ndarray, np.ndarray] | None = None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    def _shake(self, model: _Model | _PointModel, b: np.ndarray, u: np.ndarray, intensity: np.ndarray,
+               weights: np.ndarray | None, weigh: Callable[..., np.ndarray | None],
+               held: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """A round's fit of the particles ``u``, ``intensity`` to the images ``b``: fit, prune, split,
         fit, prune, relocate, fit and prune; the fitted particles and the pixels' new ``weights``
         (``weigh(model, u, intensity)``). ``held``: the particles held (not fitted, their image off
@@ -1181,7 +1196,9 @@ class ParticleReconstructor:
         weights = weigh(model, u, intensity)
         u, intensity = self._prune(u, intensity, held)
         if s.split_intensity > 0:
-            median = None if held is None else float(np.median(np.concatenate([held[1], intensity])))
+            median = None  # that of intensity; with particles held, theirs counted too (none left: no split)
+            if held is not None and len(intensity):
+                median = float(np.median(np.concatenate([held[1], intensity])))
             u, intensity = _split(u, intensity, s.split_intensity, median=median)
             u, intensity = _fit(model, b, u, intensity, shakes=s.shakes, max_step=s.max_step_voxels,
                                 weights=weights)
@@ -1229,11 +1246,16 @@ class ParticleReconstructor:
         return u, intensity
 
     @staticmethod
-    def _residuals(model: _Model | None, b: np.ndarray, u: np.ndarray, intensity: np.ndarray
-                   ) -> tuple[np.ndarray, float]:
+    def _residuals(model: _Model | None, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, *,
+                   seen: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        """Each particle's residual (that over its pixels against its own image) and the RMS residual
+        over the pixels the particles light; ``seen``: 1 on the pixels measured, 0 on masked ones
+        (None: every pixel)."""
         if model is None or len(u) == 0:
             return np.zeros(len(u)), float("nan")
         c = model.unit_images(u)  # (pixels, n) per unit intensity
+        if seen is not None:
+            c = (sparse.diags(seen) @ c).tocsc()
         r = b - c @ intensity
         lit = (abs(c) > 0).astype(np.float64)
         r2 = lit.T @ (r * r)
