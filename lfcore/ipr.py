@@ -108,6 +108,15 @@ MEMO_IMAGES = 2
 #: on issue 48's 512 x 512 rig a point's tracing takes up to 4,000 entries, about 80 kB of working memory.
 RELOCATE_POINTS = 4096
 
+#: How many of a particle's moves :func:`_relocate`'s screen (:attr:`IprSettings.relocate_screen`) passes
+#: to the full tracing: its best by the coarse tracing's gain.
+RELOCATE_KEEP = 3
+
+#: A particle's moves pass :func:`_relocate`'s screen only where the best of them explains at least this
+#: share of what its position explains in the coarse tracing (below it no move can win by the full
+#: tracing's :data:`RELOCATE_MARGIN`, unless the coarse tracing misjudged it by more than a tenth).
+RELOCATE_SCREEN_SLACK = 0.9
+
 #: The points :func:`_canonical_columns` orders at once (a part whose entries stay in the cache: on the tiny
 #: rig 128 points' took 0.8 of the time of 4,000 points' at once).
 CANONICAL_POINTS = 128
@@ -231,6 +240,13 @@ class IprSettings:
         its image explains more of the residual, then fitted again (the point model only; 0:
         never). The fit only finds the nearest minimum; on one frame of the tiny rig at 0.5 PPM
         these moves lower the images' residual by a third.
+    relocate_screen
+        With the point model, :attr:`relocate_depth`'s moves are first traced at this share of its
+        sub-apertures per aperture diameter (its square of the rays; at least one); only each
+        particle's :data:`RELOCATE_KEEP` best moves by that coarse tracing (and only where the best
+        explains at least :data:`RELOCATE_SCREEN_SLACK` of what the particle's position explains
+        there) are traced in full and decide the move, as without the screen. 0: no screen,
+        every move traced in full.
     max_position_std
         At the end, particles whose fitted position is less sure than this on any axis (its
         standard deviation from its own image's Jacobian and the residual's noise, voxels) are
@@ -313,6 +329,7 @@ class IprSettings:
     particle_image_px: float = 3.0
     wavelength_nm: float = 532.0
     relocate_depth: int = 4
+    relocate_screen: float = 0.0
     max_position_std: float = 0.0
     noise_model: str = "flat"
     noise_floor: float = 0.0
@@ -360,6 +377,9 @@ class IprSettings:
         if self.max_position_std < 0:
             raise ValueError(f"max_position_std is a standard deviation in voxels, 0 (keep all) or more, got "
                              f"{self.max_position_std}")
+        if not 0.0 <= self.relocate_screen <= 1.0:
+            raise ValueError(f"relocate_screen is a share of the sub-apertures, 0 (no screen) to 1, got "
+                             f"{self.relocate_screen}")
         if self.relocate_depth < 0:
             raise ValueError(f"relocate_depth is a number of voxels, 0 (no moves) or more, got {self.relocate_depth}")
         if self.point_sub_apertures < 0:
@@ -530,7 +550,7 @@ class _PointModel:
     """
 
     def __init__(self, projector: Projector, *, sub_apertures: int | None = None, wavelength_nm: float = 532.0,
-                 particle_image_px: float = 3.0, step: float = 0.05) -> None:
+                 particle_image_px: float = 3.0, step: float = 0.05, sub_share: float = 1.0) -> None:
         from lfcore._kernels import weights as kw
         from lfcore.chief_ray import diffraction_sigma_mm
         from lfcore.plan import projector_for
@@ -543,6 +563,10 @@ class _PointModel:
         self.device = projector.device
         self.sigma_px = 0.25 * float(particle_image_px)
         self.step = float(step)
+        self._init = dict(sub_apertures=sub_apertures, wavelength_nm=wavelength_nm,
+                          particle_image_px=particle_image_px, step=step)
+        self._projector = projector
+        self._coarse: dict[float, _PointModel] = {}
         # per camera in image order: a light-field camera's own projector (its views and
         # sub-apertures) and the half-extent of the box it traces, or None for a pinhole camera
         floor = 0.01 * float(min(grid.voxel_mm))  # a footprint in focus keeps an area
@@ -552,6 +576,7 @@ class _PointModel:
                 self._cams.append((cam, None, 0.0))
             else:
                 n_sub = sub_apertures or max(1, 2 * round(cam.pixels_per_lenslet))
+                n_sub = max(1, round(sub_share * n_sub)) if sub_share != 1.0 else n_sub
                 # a box of half-width h has the variance h^2 / 3 of a Gaussian of sigma h / sqrt(3);
                 # object-side, the blur on the MLA over the magnification
                 blur = np.sqrt(3.0) * diffraction_sigma_mm(wavelength_nm, cam.image_side_f_number) / abs(
@@ -563,6 +588,14 @@ class _PointModel:
         # the last positions' images (the fit asks for the same ones up to three times a step: the
         # trial's cost, then the next step's Jacobian and residual; the same tracing, so the same images)
         self._memo: list[tuple[bytes, sparse.csc_matrix]] = []
+
+    def coarse(self, share: float) -> _PointModel:
+        """This model traced at ``share`` of its sub-apertures per aperture diameter (at least one):
+        the same cameras, blur and pinhole spots, a cheaper and rougher light-field image (made once,
+        kept). :func:`_relocate`'s screen of its moves."""
+        if share not in self._coarse:
+            self._coarse[share] = _PointModel(self._projector, sub_share=share, **self._init)
+        return self._coarse[share]
 
     def _light_field(self, lf, half: float, pts_mm: np.ndarray) -> sparse.csc_matrix:
         """(camera pixels, n): DRT weights of world points ``pts_mm`` (n, 3) in one light-field camera."""
@@ -842,16 +875,69 @@ def noise_weights(b: np.ndarray, m: np.ndarray, sigma0: np.ndarray, sizes: Seque
     return w * (float(np.min(sigma0)) ** 2 if np.min(sigma0) > 0 else 1.0)  # 1 on the background of the quietest
 
 
+def _move_gains(trace, moves: np.ndarray, wc0: sparse.csc_matrix, wr: np.ndarray,
+                intensity: np.ndarray, w: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Each of ``moves`` (m, 4: a particle's index, then its new position z, y, x, voxels): its
+    image's weighted norm ``nk`` and its weighted product ``dot`` with what the other particles
+    leave unexplained, traced by ``trace`` :data:`RELOCATE_POINTS` at a time (each point's image
+    its own, whatever is traced beside it)."""
+    m = len(moves)
+    nks, dots = np.empty(m), np.empty(m)
+    for first in range(0, m, RELOCATE_POINTS):
+        part = moves[first:first + RELOCATE_POINTS]
+        p = part[:, 0].astype(np.int64)
+        ck = trace(np.ascontiguousarray(part[:, 1:]))
+        nks[first:first + len(p)] = np.asarray(ck.multiply(ck if w is None else sparse.diags(w) @ ck).sum(axis=0)
+                                               ).ravel()
+        cross = np.asarray(ck.multiply(wc0[:, p]).sum(axis=0)).ravel()
+        dots[first:first + len(p)] = np.asarray(ck.T @ wr).ravel() + intensity[p] * cross
+    return nks, dots
+
+
+def _gain(nk: np.ndarray, dot: np.ndarray) -> np.ndarray:
+    """What a position's image at its best intensity explains: ``dot^2 / nk`` (0 where either is not
+    positive)."""
+    return np.where((nk > 0) & (dot > 0), dot**2 / np.where(nk > 0, nk, 1.0), 0.0)
+
+
+def _screened_moves(coarse, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, offsets: np.ndarray,
+                    weights: np.ndarray | None) -> np.ndarray:
+    """(n, :data:`RELOCATE_KEEP`) each particle's best moves (indices into ``offsets``, ascending;
+    -1: none) by ``coarse``'s images: its moves that explain the most of what the others leave,
+    where the best explains at least :data:`RELOCATE_SCREEN_SLACK` of what its own position does."""
+    n, k = len(u), len(offsets)
+    c0 = coarse.traced(u)
+    w = None if weights is None else np.asarray(weights, dtype=np.float64)
+    wc0 = c0 if w is None else (sparse.diags(w) @ c0).tocsc()
+    wr = (b - c0 @ intensity) * (1.0 if w is None else w)
+    n0 = np.asarray(c0.multiply(wc0).sum(axis=0)).ravel()
+    stay = _gain(n0, np.asarray(c0.T @ wr).ravel() + intensity * n0)
+    idx = np.tile(np.arange(n), k)
+    moves = np.column_stack([idx, np.vstack([u + off for off in offsets])])  # move m's particles in m n ..
+    gains = _gain(*_move_gains(coarse.traced, moves, wc0, wr, intensity, w)).reshape(k, n).T  # (n, k)
+    keep = min(RELOCATE_KEEP, k)
+    top = np.argpartition(-gains, keep - 1, axis=1)[:, :keep] if keep < k else np.tile(np.arange(k), (n, 1))
+    worth = gains.max(axis=1) >= RELOCATE_SCREEN_SLACK * stay
+    top = np.sort(top, axis=1)
+    top[~worth] = -1
+    return top
+
+
 def _relocate(model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, offsets: np.ndarray,
-              weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+              weights: np.ndarray | None = None, *, screen: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Each particle moved to the best of its position and ``offsets`` (k, 3) voxels (z, y, x) from
     it, the others held: the position whose image, at its best intensity, explains most of what
     the others leave unexplained. The fit only finds the nearest minimum of the residual; a
     light-field camera's image of a particle changes slowly with depth (and alike either side of
     the focal plane), so a particle fitted a voxel or two off in depth stays there unless moved.
-    With ``weights`` (each pixel's, :func:`noise_weights`) the products are weighted alike."""
+    With ``weights`` (each pixel's, :func:`noise_weights`) the products are weighted alike.
+    ``screen`` (a point model's, :attr:`IprSettings.relocate_screen`, above 0): the moves first
+    traced at that share of its sub-apertures, only each particle's best few by that
+    (:func:`_screened_moves`) traced in full and compared as without it."""
     if len(u) == 0 or len(offsets) == 0:
         return u, intensity
+    if screen > 0 and hasattr(model, "coarse"):
+        return _relocate_screened(model, b, u, intensity, offsets, weights, screen)
     c0 = model.unit_images(u)
     r = b - c0 @ intensity
     w = np.ones(len(b)) if weights is None else np.asarray(weights, dtype=np.float64)
@@ -881,6 +967,38 @@ def _relocate(model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, offset
             best[better] = gain[better]
             best_u[better] = u[better] + off
             best_i[better] = dot[better] / nk[better]
+    return best_u, best_i
+
+
+def _relocate_screened(model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, offsets: np.ndarray,
+                       weights: np.ndarray | None, screen: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_relocate` of the moves that pass :func:`_screened_moves` (``model.coarse(screen)``'s
+    images): those traced by ``model`` and compared in ``offsets``' order, a later move beating the
+    earlier ones' best by :data:`RELOCATE_MARGIN`, as every move is without the screen."""
+    top = _screened_moves(model.coarse(screen), b, u, intensity, offsets, weights)
+    c0 = model.unit_images(u)
+    w = None if weights is None else np.asarray(weights, dtype=np.float64)
+    wc0 = c0 if w is None else (sparse.diags(w) @ c0).tocsc()
+    wr = (b - c0 @ intensity) * (1.0 if w is None else w)
+    n0 = np.asarray(c0.multiply(wc0).sum(axis=0)).ravel()
+    own = np.asarray(c0.T @ wr).ravel() + intensity * n0
+    best = np.where(n0 > 0, np.maximum(own, 0.0) ** 2 / np.where(n0 > 0, n0, 1.0), 0.0)
+    best_u, best_i = u.copy(), intensity.copy()
+    p, r = np.nonzero(top >= 0)  # particle by particle, its moves in offsets' order
+    if len(p) == 0:
+        return best_u, best_i
+    mv = top[p, r]
+    moves = np.column_stack([p, u[p] + offsets[mv]])
+    nk, dot = _move_gains(getattr(model, "traced", model.unit_images), moves, wc0, wr, intensity, w)
+    gain = _gain(nk, dot)
+    for rank in range(top.shape[1]):
+        sel = r == rank
+        q = p[sel]
+        better = gain[sel] > best[q] * (1.0 + RELOCATE_MARGIN)
+        q = q[better]
+        best[q] = gain[sel][better]
+        best_u[q] = u[q] + offsets[mv[sel][better]]
+        best_i[q] = dot[sel][better] / nk[sel][better]
     return best_u, best_i
 
 
@@ -1204,7 +1322,7 @@ class ParticleReconstructor:
                                 weights=weights)
             u, intensity = self._prune(u, intensity, held)
         if self.point_model and s.relocate_depth > 0:
-            u, intensity = _relocate(model, b, u, intensity, self._offsets, weights)
+            u, intensity = _relocate(model, b, u, intensity, self._offsets, weights, screen=s.relocate_screen)
         u, intensity = _fit(model, b, u, intensity, shakes=max(s.shakes // 2, 1), max_step=s.max_step_voxels,
                             weights=weights)
         weights = weigh(model, u, intensity)

@@ -149,3 +149,11 @@ def test_a_group_written_before_local_refit_share_refitted_every_particle() -> N
     before = {k: v for k, v in meta().items() if k != "local_refit_share"}
     assert same_settings(before, meta(local_refit_share=0.0))
     assert not same_settings(before, meta())  # today's residual rounds of few candidates refit locally: remade
+
+
+def test_a_group_written_before_relocate_screen_traced_every_move_in_full() -> None:
+    before = {k: v for k, v in meta().items() if k != "relocate_screen"}
+    assert same_settings(before, meta(relocate_screen=0.0))
+    assert not same_settings(before, meta(relocate_screen=0.5))  # screened moves: other particles, remade
+    # the voxels' model makes no moves: the screen changes nothing there
+    assert same_settings(meta(model="voxels"), meta(model="voxels", relocate_screen=0.5))
