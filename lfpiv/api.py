@@ -221,7 +221,8 @@ def correlate(run: str | os.PathLike[str] | RunStore, *,
 def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, cameras: Sequence[str] | None = None,
               device: str | None = None, workers: int | None = None, scheduler: str | None = None,
               skip_done: bool = False, progress: bool = True,
-              along_pairs: bool | str | dict[str, Any] | None = "auto", **options: Any) -> Any:
+              along_pairs: bool | str | dict[str, Any] | None = "auto",
+              flat_field: str | os.PathLike[str] | None = None, **options: Any) -> Any:
     """Reconstruct every frame's particles of the selected pairs into the run's ``particles/`` by
     iterative particle reconstruction (``lfpiv particles``).
 
@@ -243,6 +244,9 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
         where the run is time-resolved, the pairs consecutive (two or more) and no workers given,
         else every frame on its own (:func:`lfpiv.pair_runner.along_pairs_choice`; the result's
         ``along`` says which ran and why).
+    flat_field
+        As the command's ``--flat-field``: a calibration store whose dark and white images correct
+        every raw frame before its particles are fitted (None: the raw frames).
     **options
         :class:`lfcore.ipr.IprSettings` fields (``method``, ``candidate_iterations``, ``shakes``,
         ``min_intensity``, ``merge_voxels``, ``rounds``, ...). ``noise_model`` and ``residual_mask``
@@ -285,10 +289,15 @@ def particles(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None
                "particle_image_px": store.rig.render.particle_image_px,
                "intensity_axis": intensity_axis(store.rig), **fit, **options}
     settings = ipr_settings(**options)
+    flats, flat_info = None, None
+    if flat_field is not None:
+        from lfpiv.jobs.calibrate import flat_fields
+
+        flats, flat_info = flat_fields(store.rig, flat_field, cameras)[:2]
     with dask_client(workers, scheduler) as client:
         return particles_run(store, settings, _pairs(pairs), cameras=cameras, device=device, progress=progress,
                              skip_done=skip_done, option="pairs", client=client, along_pairs=along,
-                             along_mode=mode)
+                             along_mode=mode, flats=flats, flat_field=flat_info)
 
 
 def track(run: str | os.PathLike[str] | RunStore, *, pairs: PairsLike = None, skip_done: bool = False,

@@ -17,6 +17,7 @@ from lfpiv.commands import (
     pairs_option,
     positive_float,
     positive_int,
+    warn,
     whole_number,
     workers_phrase,
     xyz_triple,
@@ -135,6 +136,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "0 for pinhole cameras alone; default: auto)")
     add_device(c)
     add_workers(c, "reconstruct the particles of")
+    c.add_argument("--flat-field", default=None, metavar="CALIB",
+                   help="calibration store with white (and dark) images (lfpiv calibrate mla): correct every raw "
+                   "frame per pixel by them before the particles are fitted, as lfpiv reconstruct --flat-field "
+                   "and the live monitor do (the pixels they show unlit or dead weigh nothing in the fit; "
+                   "default: the raw frames)")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=run)
 
@@ -187,11 +193,18 @@ def run(args: argparse.Namespace) -> int:
                             wavelength_nm=store.rig.laser.wavelength_nm,
                             particle_image_px=store.rig.render.particle_image_px,
                             intensity_axis=intensity_axis(store.rig, args.min_intensity_of))
+    flats, flat_info = None, None
+    if args.flat_field is not None:
+        from lfpiv.jobs.calibrate import flat_fields
+
+        flats, flat_info, notes = flat_fields(store.rig, args.flat_field, args.cameras)
+        warn(notes)
     with dask_client(args.workers, args.scheduler) as client:
         done = particles_run(store, settings, args.pairs, cameras=args.cameras, device=args.device,
                              progress=not args.quiet, skip_done=args.skip_done, option=pairs_option(args),
                              client=client, along_pairs=along, along_mode=args.along_pairs,
-                             along_options=[f"--{k.replace('_', '-')}" for k in given], announce=_say)
+                             along_options=[f"--{k.replace('_', '-')}" for k in given], announce=_say,
+                             flats=flats, flat_field=flat_info)
     if not done.pairs:
         print(f"every selected pair of {store.path} has its particles with these settings already; nothing to do")
         old_spelling_notes(args)

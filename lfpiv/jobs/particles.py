@@ -13,6 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from lfcore.device import MemoryBudgetError
+from lfcore.flatfield import FlatField, correct
 from lfcore.ipr import IprSettings, ParticleReconstructor, ParticleResult
 from lfcore.plan import projector_for, unsupported_method
 from lfcore.rig import Rig, is_pinhole
@@ -293,6 +294,8 @@ class ParticlesJob:
     settings: IprSettings
     device: str | None
     token: str
+    #: per camera, the flat field its raw frames are corrected by (:func:`lfcore.flatfield.correct`)
+    flats: dict[str, FlatField] | None = None
 
 
 @dataclass(frozen=True)
@@ -306,10 +309,13 @@ class PairParticles:
 
 
 def _frame(ipr: ParticleReconstructor, store: RunStore, names: Sequence[str], pair: int, frame: int,
-           predicted_mm: np.ndarray | None = None) -> tuple[ParticleResult, float]:
+           predicted_mm: np.ndarray | None = None, flats: dict[str, FlatField] | None = None
+           ) -> tuple[ParticleResult, float]:
     import time
 
     images = [store.read_frame(n, pair, frame) for n in names]  # a damaged frame is an error
+    if flats:  # the response divided out; the masked pixels NaN, which the fit weighs not at all
+        images = [correct(img, flats[n]) if n in flats else img for img, n in zip(images, names, strict=True)]
     t0 = time.perf_counter()
     try:
         res = ipr.reconstruct(images, predicted_mm=predicted_mm)
@@ -329,7 +335,7 @@ def particles_pair_task(job: ParticlesJob, pair: int) -> PairParticles:
         return RunStore.open(job.path), ParticleReconstructor(proj, settings=job.settings)  # it reads frames only
 
     store, ipr = worker_state(job.token, build)
-    made = [_frame(ipr, store, job.cameras, pair, f) for f in (0, 1)]
+    made = [_frame(ipr, store, job.cameras, pair, f, flats=job.flats) for f in (0, 1)]
     return PairParticles(tables=[r.table() for r, _ in made], candidates=[r.candidates for r, _ in made],
                          seconds=[t for _, t in made], unsure=[r.unsure for r, _ in made])
 
@@ -366,7 +372,9 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
                   cameras: Sequence[str] | None = None, device: str | None = None, progress: bool = True,
                   skip_done: bool = False, option: str = "--pair-range", client: Any = None,
                   along_pairs: AlongPairs | None = None, along_mode: str = "on",
-                  along_options: Sequence[str] = (), announce: Callable[[str], None] | None = None) -> ParticlesDone:
+                  along_options: Sequence[str] = (), announce: Callable[[str], None] | None = None,
+                  flats: dict[str, FlatField] | None = None, flat_field: dict[str, Any] | None = None
+                  ) -> ParticlesDone:
     """Reconstruct the particles of both frames of ``pairs`` (None: every recorded pair) into
     ``particles/``.
 
@@ -386,6 +394,10 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     ``along_options``: the options given that only apply along the pairs (as spelt), refused where
     ``"auto"`` goes frame by frame. ``announce`` (the command's ``print``) is handed the line saying
     which ran and why (:meth:`lfpiv.pair_runner.AlongChoice.line`) once, before the frames are done.
+    ``flats`` (per camera, :func:`lfpiv.jobs.calibrate.flat_fields`) corrects every raw frame by its
+    camera's flat field before its particles are fitted, as ``reconstruct`` and the live route do (its
+    masked pixels weigh nothing); ``flat_field`` says which calibration that is and is recorded in
+    ``particles/``' settings, so particles of other frames' corrections are not kept by ``skip_done``.
 
     Raises
     ------
@@ -421,6 +433,8 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
     meta = {**settings.as_dict(), "method": ipr.method, "cameras": names}
     if along_pairs is not None:  # only where on: groups written before it, or without it, read as without
         meta["along_pairs"] = along_pairs.as_dict()
+    if flats:  # likewise: groups of raw frames hold no flat_field
+        meta["flat_field"] = flat_field or {}
     done = ParticlesDone(device=proj.device, along=choice)
 
     def matches(g: Any) -> bool:
@@ -445,7 +459,7 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
                 frames: list[ParticleResult] = []
                 for f in (0, 1):
                     predicted = along_pairs.predict(history, grid) if along_pairs is not None else None
-                    res, seconds = _frame(ipr, store, names, p, f, predicted)
+                    res, seconds = _frame(ipr, store, names, p, f, predicted, flats=flats)
                     if along_pairs is not None:
                         history.append(res.positions_mm)
                         del history[:-along_pairs.frames_read]  # a long series' particles are in the store
@@ -464,7 +478,8 @@ def particles_run(store: RunStore, settings: IprSettings, pairs: slice | None = 
         from lfpiv.batch import new_token
 
         return particles_pair_task, ParticlesJob(path=str(Path(store.path).resolve()), rig=rig, cameras=tuple(names),
-                                                 grid=grid, settings=settings, device=device, token=new_token())
+                                                 grid=grid, settings=settings, device=device, token=new_token(),
+                                                 flats=flats)
 
     def written(p: int, r: PairParticles) -> None:
         store.write_particles(p, r.tables)
