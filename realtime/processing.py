@@ -517,7 +517,7 @@ class ParticleProcessor:
             for k in range(len(self.cameras)):
                 img = lay.camera_image(slot.frames, f, k)
                 flat = self.flats[k]
-                images.append(img.copy() if flat is None else correct(img, flat))  # as lfpiv particles reads them
+                images.append(img.copy() if flat is None else correct(img, flat))  # as particles --flat-field does
             frames.append(images)
         raw = {c: lay.camera_image(slot.frames, 0, k).copy() for k, c in enumerate(self.cameras)}
         staging.consumed(staged)
