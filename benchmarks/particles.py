@@ -143,7 +143,8 @@ def main() -> None:
     ap.add_argument("--ray-min-score", type=float, default=IprSettings().ray_min_score,
                     help="IPR's ray_min_score (with --candidate-source rays)")
     ap.add_argument("--candidate-weights", choices=CANDIDATE_WEIGHTS, default=IprSettings().candidate_weights,
-                    help="IPR's candidate_weights: the protocol's, or line-of-sight weights throughout (no DRT weights)")
+                    help="IPR's candidate_weights: the protocol's, or line-of-sight weights throughout (no DRT "
+                    "weights)")
     ap.add_argument("--candidate-smoothing", type=float, default=None, metavar="VOXELS",
                     help="IPR's candidate_smoothing (default: that of --candidate-weights)")
     ap.add_argument("--candidate-storage", choices=("auto", "on-the-fly"), default="auto",
@@ -180,9 +181,9 @@ def main() -> None:
     renderers = [renderer_for(c, render, wavelength_nm=rig.laser.wavelength_nm, device=args.device)
                  for c in rig.camera]
     sources = ("rays", "reconstruction") if args.candidate_source == "both" else (args.candidate_source,)
-    # the quick reconstruction's protocol with another relaxation where asked
-    changes = {k: v for k, v in (("relaxation", args.candidate_relaxation),
-                                 ("weight_storage", None if args.candidate_storage == "auto" else args.candidate_storage))
+    # the quick reconstruction's protocol with another relaxation or weight storage where asked
+    storage = None if args.candidate_storage == "auto" else args.candidate_storage
+    changes = {k: v for k, v in (("relaxation", args.candidate_relaxation), ("weight_storage", storage))
                if v is not None}
     quick = protocol_settings(args.candidates, n_cameras=len(rig.camera), **changes) if changes else None
     iprs = {src: ParticleReconstructor(proj, recon=quick, settings=IprSettings(

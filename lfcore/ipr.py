@@ -81,7 +81,8 @@ from lfcore.reconstruct import (
 )
 from lfcore.volume import VolumeGrid
 
-__all__ = ["CANDIDATE_LOS_RELAXATION", "CANDIDATE_SMOOTHING", "CANDIDATE_SOURCES", "CANDIDATE_WEIGHTS", "LOCAL_MEDIAN_PARTICLES", "MODELS", "PARTICLE_FIELDS", "IprSettings",
+__all__ = ["CANDIDATE_LOS_RELAXATION", "CANDIDATE_SMOOTHING", "CANDIDATE_SOURCES", "CANDIDATE_WEIGHTS",
+           "LOCAL_MEDIAN_PARTICLES", "MODELS", "PARTICLE_FIELDS", "IprSettings",
            "ParticleReconstructor", "ParticleResult", "local_median", "to_index", "to_mm"]
 
 #: The columns of a frame's particles as :class:`ParticleResult` and the run store's ``particles/``
@@ -200,9 +201,10 @@ class IprSettings:
         The quick reconstruction's weights (:data:`CANDIDATE_WEIGHTS`): ``"protocol"``, those of
         :attr:`candidate_protocol` as resolved for the cameras, or ``"line-of-sight"``, MLOS-MART's
         line-of-sight weights for every iteration at relaxation :data:`CANDIDATE_LOS_RELAXATION` (the
-        protocol's coarse-to-fine elimination, subsets and stopping rule kept; no line-of-sight first iterations and no hand-over to DRT weights,
-        which are DRT's): no DRT weight is traced, the costliest stage of ``fast``'s plan on large
-        boxes. The fit, the relocation and the residual rounds refine and complete the candidates.
+        protocol's coarse-to-fine elimination, subsets and stopping rule kept; no line-of-sight first
+        iterations and no hand-over to DRT weights, which are DRT's): no DRT weight is traced, the
+        costliest stage of ``fast``'s plan on large boxes. The fit, the relocation and the residual
+        rounds refine and complete the candidates.
     candidate_smoothing
         The quick reconstruction's volume smoothed by a Gaussian of this sigma (voxels along the grid's y
         and x; along z a third of it) before its peaks are found; 0: none; None (the default): that
