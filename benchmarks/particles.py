@@ -145,8 +145,8 @@ def main() -> None:
     ap.add_argument("--candidate-weights", choices=CANDIDATE_WEIGHTS, default=IprSettings().candidate_weights,
                     help="IPR's candidate_weights: the protocol's, or line-of-sight weights throughout (no DRT "
                     "weights)")
-    ap.add_argument("--candidate-smoothing", type=float, default=None, metavar="VOXELS",
-                    help="IPR's candidate_smoothing (default: that of --candidate-weights)")
+    ap.add_argument("--candidate-smoothing", type=float, default=IprSettings().candidate_smoothing,
+                    metavar="VOXELS", help="IPR's candidate_smoothing (a Gaussian's sigma across, voxels)")
     ap.add_argument("--candidate-storage", choices=("auto", "on-the-fly"), default="auto",
                     help="the quick reconstruction's weight_storage: on-the-fly makes every row again in each "
                     "iteration (what fits a small memory)")

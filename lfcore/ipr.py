@@ -81,7 +81,7 @@ from lfcore.reconstruct import (
 )
 from lfcore.volume import VolumeGrid
 
-__all__ = ["CANDIDATE_LOS_RELAXATION", "CANDIDATE_SMOOTHING", "CANDIDATE_SOURCES", "CANDIDATE_WEIGHTS",
+__all__ = ["CANDIDATE_SOURCES", "CANDIDATE_WEIGHTS",
            "LOCAL_MEDIAN_PARTICLES", "MODELS", "PARTICLE_FIELDS", "IprSettings",
            "ParticleReconstructor", "ParticleResult", "local_median", "to_index", "to_mm"]
 
@@ -98,21 +98,6 @@ CANDIDATE_SOURCES = ("reconstruction", "rays")
 #: line-of-sight iterations) or line-of-sight weights throughout (``"line-of-sight"``: MLOS-MART on the
 #: protocol's grids, no DRT weight traced).
 CANDIDATE_WEIGHTS = ("protocol", "line-of-sight")
-
-#: The smoothing of the quick reconstruction's volume before its peaks are found where
-#: :attr:`IprSettings.candidate_smoothing` is None, per :data:`CANDIDATE_WEIGHTS` (a Gaussian's sigma
-#: in voxels along the grid's y and x; along z a third of it). Line-of-sight weights sample each
-#: voxel's light at the lenslets' centres: their volume is speckled at the lenslets' pitch (7 voxels
-#: on L's optics), a particle's light split among several peaks. On L's optics crop (``--case Lc``) its
-#: unsmoothed peaks were 6,157 for 878 particles (recall 0.28 within a voxel, 96% ghosts); smoothed by 3
-#: (and 1 along z) 954 (0.66, 39%), the DRT weights' own 1,114 (0.68, 47%) (``benchmarks/RESULTS.md``,
-#: seventeenth session).
-CANDIDATE_SMOOTHING = {"protocol": 0.0, "line-of-sight": 3.0}
-
-#: MLOS-MART's relaxation for line-of-sight candidates (:attr:`IprSettings.candidate_weights`): the most the
-#: simultaneous form takes, as the plan for several light-field cameras runs it. On L's optics crop 47 CPU s
-#: against relaxation 1's 61, 503,013 voxels left by the coarse grid against 597,785.
-CANDIDATE_LOS_RELAXATION = 2.0
 
 #: The particle models of :attr:`IprSettings.model`.
 MODELS = ("point", "voxels")
@@ -200,16 +185,19 @@ class IprSettings:
     candidate_weights
         The quick reconstruction's weights (:data:`CANDIDATE_WEIGHTS`): ``"protocol"``, those of
         :attr:`candidate_protocol` as resolved for the cameras, or ``"line-of-sight"``, MLOS-MART's
-        line-of-sight weights for every iteration at relaxation :data:`CANDIDATE_LOS_RELAXATION` (the
-        protocol's coarse-to-fine elimination, subsets and stopping rule kept; no line-of-sight first
+        line-of-sight weights for every iteration (the protocol's coarse-to-fine elimination, subsets,
+        relaxation and stopping rule kept; no line-of-sight first
         iterations and no hand-over to DRT weights, which are DRT's): no DRT weight is traced, the
         costliest stage of ``fast``'s plan on large boxes. The fit, the relocation and the residual
         rounds refine and complete the candidates.
     candidate_smoothing
         The quick reconstruction's volume smoothed by a Gaussian of this sigma (voxels along the grid's y
-        and x; along z a third of it) before its peaks are found; 0: none; None (the default): that
-        of :attr:`candidate_weights` (:data:`CANDIDATE_SMOOTHING`: none for the protocol's, 3 voxels for
-        line-of-sight weights, whose volume is speckled at the lenslets' pitch).
+        and x; along z a third of it) before its peaks are found; 0 (the default): none. Line-of-sight
+        weights sample a voxel's light at the lenslets' centres: on L's deep box (``benchmarks/particles.py
+        --case Lc``) their volume was speckled, 6,157 peaks for 878 particles (recall 0.28 within a
+        voxel, 96% ghosts), and smoothed by 3 it gave 954 (0.66, 39%; DRT weights' own 1,114: 0.68,
+        47%); on the tiny rig's 1.6 mm box their peaks need none, and 2 lost a fifth of the particles
+        (``benchmarks/RESULTS.md``, seventeenth session).
     ray_keep_bins
         Ray bundling's share of the vote's bins (the most voted first) whose points are checked
         against the lenslets' pixels (``keep_bins`` of :func:`lfcore.raybundle.ray_candidates`): 1
@@ -334,7 +322,7 @@ class IprSettings:
     candidate_threshold: float = 0.05
     candidate_source: str = "reconstruction"
     candidate_weights: str = "protocol"
-    candidate_smoothing: float | None = None
+    candidate_smoothing: float = 0.0
     ray_keep_bins: float = 1.0
     ray_min_score: float = 0.1
     shakes: int = 12
@@ -375,9 +363,9 @@ class IprSettings:
         if self.candidate_weights not in CANDIDATE_WEIGHTS:
             raise ValueError(f"the candidates' weights are one of {', '.join(CANDIDATE_WEIGHTS)}, got "
                              f"{self.candidate_weights!r}")
-        if self.candidate_smoothing is not None and not 0.0 <= self.candidate_smoothing <= 16.0:
-            raise ValueError(f"candidate_smoothing is a sigma in voxels from 0 (none) to 16, or None (the weights' "
-                             f"own), got {self.candidate_smoothing}")
+        if not 0.0 <= self.candidate_smoothing <= 16.0:
+            raise ValueError(f"candidate_smoothing is a sigma in voxels from 0 (none) to 16, got "
+                             f"{self.candidate_smoothing}")
         if not (0.0 < self.ray_keep_bins <= 1.0 and 0.0 <= self.ray_min_score < 1.0):
             raise ValueError(f"ray_keep_bins is a share above 0 and at most 1 and ray_min_score one from 0 to below 1, "
                              f"got {self.ray_keep_bins} and {self.ray_min_score}")
@@ -1077,8 +1065,7 @@ class ParticleReconstructor:
         if self.settings.candidate_weights == "line-of-sight" and base.method in ("drt-mart", "mlos-mart"):
             # MLOS-MART on the same grids: no DRT weights traced (the line-of-sight first iterations and
             # MLOS-MART's hand-over are DRT's)
-            base = replace(base, method="mlos-mart", los_iterations=0, handover_share=0.0,
-                           relaxation=CANDIDATE_LOS_RELAXATION)
+            base = replace(base, method="mlos-mart", los_iterations=0, handover_share=0.0)
         self.recon_settings = replace(base, warm_start=False)
         self.frames = FrameReconstructor(projector, self.recon_settings)
         #: True where particles are modelled as points (:attr:`IprSettings.model`)
@@ -1099,8 +1086,6 @@ class ParticleReconstructor:
             return pos
         vol = self.frames.reconstruct(images).volume
         smooth = self.settings.candidate_smoothing
-        if smooth is None:
-            smooth = CANDIDATE_SMOOTHING[self.settings.candidate_weights]
         if smooth > 0:  # (z, y, x): a particle's light gathered into one peak
             from scipy.ndimage import gaussian_filter
 

@@ -46,7 +46,7 @@ OLD_DEFAULTS: dict[str, Any] = {"split_intensity": 0.0, "model": "voxels", "relo
                                 "intensity_share": 0.1, "noise_model": "flat",
                                 "noise_floor": 0.0, "residual_mask": 0.0, "box_margin_voxels": 0.0,
                                 "local_refit_share": 0.0, "candidate_weights": "protocol",
-                                "candidate_smoothing": None}
+                                "candidate_smoothing": 0.0}
 
 #: What ``lfpiv particles --min-intensity-of`` judges a particle's intensity against
 #: (:func:`intensity_axis`).
@@ -131,7 +131,8 @@ RAYS_ONLY = ("ray_keep_bins", "ray_min_score")
 #: Settings of the quick reconstruction's candidates only, with the command's option for each: ray
 #: bundling makes no reconstruction, so giving one of them with ``candidate_source="rays"`` is refused.
 QUICK_ONLY = {"candidate_iterations": "--candidate-iterations", "candidate_protocol": "--candidate-protocol",
-              "candidate_threshold": "--threshold", "candidate_weights": "--candidate-weights"}
+              "candidate_threshold": "--threshold", "candidate_weights": "--candidate-weights",
+              "candidate_smoothing": "--candidate-smoothing"}
 
 #: Settings of the point model only: the ``"voxels"`` model's particles do not depend on them
 #: (groups written before they existed hold none of them).

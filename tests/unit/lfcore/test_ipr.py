@@ -461,6 +461,27 @@ def test_candidates_on_line_of_sight_weights_alone_recover_isolated_particles_wi
     assert np.all(err < 0.05)  # as from the protocol's own candidates
 
 
+def test_a_particles_speckled_light_smoothed_gives_one_candidate_at_its_centre(setup, monkeypatch):
+    from types import SimpleNamespace
+
+    rig, grid, proj = setup
+    nz, ny, nx = grid.shape
+    centre = np.array([14.0, 34.3, 40.6])  # (z, y, x) voxels
+    z, y, x = np.meshgrid(*(np.arange(n, dtype=np.float64) for n in grid.shape), indexing="ij")
+    blob = np.exp(-0.5 * (((z - centre[0]) / 1.0) ** 2 + ((y - centre[1]) / 3.0) ** 2 + ((x - centre[2]) / 3.0) ** 2))
+    # light sampled at a lenslet pitch of 5 voxels across: the blob split among several peaks
+    comb = (1.0 + np.cos(2 * np.pi * y / 5.0)) * (1.0 + np.cos(2 * np.pi * x / 5.0)) / 4.0
+    volume = (blob * (0.2 + comb)).astype(np.float32)
+    found = {}
+    for sigma in (0.0, 3.0):
+        r = ipr.ParticleReconstructor(proj, settings=ipr.IprSettings(candidate_smoothing=sigma))
+        monkeypatch.setattr(r.frames, "reconstruct", lambda images, v=volume: SimpleNamespace(volume=v))
+        found[sigma] = r._candidates([np.zeros(1)])
+    assert len(found[0.0]) > 1  # the speckle's peaks
+    assert len(found[3.0]) == 1
+    assert np.all(np.abs(found[3.0][0] - centre) < 0.5)  # (z, y, x) index coordinates
+
+
 def test_the_ghosts_of_a_two_camera_ambiguity_are_removed():
     from lfcore.pinhole import line_of_sight, project
     from tests.helpers import tomo_arc_small

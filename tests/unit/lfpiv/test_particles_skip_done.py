@@ -151,7 +151,7 @@ def test_a_group_written_before_local_refit_share_refitted_every_particle() -> N
     assert not same_settings(before, meta())  # today's residual rounds of few candidates refit locally: remade
 
 
-def test_a_group_written_before_candidate_weights_had_its_protocols_unsmoothed() -> None:
+def test_a_group_written_before_candidate_weights_had_the_protocols_weights_unsmoothed() -> None:
     before = {k: v for k, v in meta().items() if k not in ("candidate_weights", "candidate_smoothing")}
     assert same_settings(before, meta())  # the protocol's weights, no smoothing: today's default
     assert not same_settings(before, meta(candidate_weights="line-of-sight"))  # other candidates: remade
