@@ -185,8 +185,11 @@ def main() -> None:
     storage = None if args.candidate_storage == "auto" else args.candidate_storage
     changes = {k: v for k, v in (("relaxation", args.candidate_relaxation), ("weight_storage", storage))
                if v is not None}
+    if storage and args.candidate_weights == "line-of-sight":  # rows made again: MLOS-MART's, on the protocol's grids
+        changes.update(method="mlos-mart", coarse=PROTOCOLS[args.candidates].get("coarse", 1))
     quick = protocol_settings(args.candidates, n_cameras=len(rig.camera), **changes) if changes else None
     iprs = {src: ParticleReconstructor(proj, recon=quick, settings=IprSettings(
+        method=changes.get("method"),
         candidate_protocol=args.candidates, candidate_source=src,
         ray_keep_bins=args.ray_keep_bins, ray_min_score=args.ray_min_score,
         candidate_threshold=args.candidate_threshold, candidate_smoothing=args.candidate_smoothing,

@@ -189,13 +189,14 @@ class IprSettings:
         relaxation and stopping rule kept; no line-of-sight first
         iterations and no hand-over to DRT weights, which are DRT's): no DRT weight is traced, the
         costliest stage of ``fast``'s plan on large boxes. The fit, the relocation and the residual
-        rounds refine and complete the candidates.
+        rounds refine and complete the candidates. Other methods (pinhole cameras' MLOS-SMART, MART)
+        have line-of-sight weights already: unchanged.
     candidate_smoothing
         The quick reconstruction's volume smoothed by a Gaussian of this sigma (voxels along the grid's y
         and x; along z a third of it) before its peaks are found; 0 (the default): none. Line-of-sight
         weights sample a voxel's light at the lenslets' centres: on L's deep box (``benchmarks/particles.py
-        --case Lc``) their volume was speckled, 6,157 peaks for 878 particles (recall 0.28 within a
-        voxel, 96% ghosts), and smoothed by 3 it gave 954 (0.66, 39%; DRT weights' own 1,114: 0.68,
+        --case Lc``) their volume was speckled, 7,542 peaks for 878 particles (recall 0.32 within a
+        voxel, 96% ghosts), and smoothed by 3 it gave 905 (0.70, 33%; DRT weights' own 1,114: 0.68,
         47%); on the tiny rig's 1.6 mm box their peaks need none, and 2 lost a fifth of the particles
         (``benchmarks/RESULTS.md``, seventeenth session).
     ray_keep_bins
