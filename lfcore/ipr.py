@@ -81,8 +81,7 @@ from lfcore.reconstruct import (
 )
 from lfcore.volume import VolumeGrid
 
-__all__ = ["CANDIDATE_SOURCES", "CANDIDATE_WEIGHTS",
-           "LOCAL_MEDIAN_PARTICLES", "MODELS", "PARTICLE_FIELDS", "IprSettings",
+__all__ = ["CANDIDATE_SOURCES", "CANDIDATE_WEIGHTS", "LOCAL_MEDIAN_PARTICLES", "MODELS", "PARTICLE_FIELDS", "IprSettings",
            "ParticleReconstructor", "ParticleResult", "local_median", "to_index", "to_mm"]
 
 #: The columns of a frame's particles as :class:`ParticleResult` and the run store's ``particles/``
@@ -186,8 +185,8 @@ class IprSettings:
         The quick reconstruction's weights (:data:`CANDIDATE_WEIGHTS`): ``"protocol"``, those of
         :attr:`candidate_protocol` as resolved for the cameras, or ``"line-of-sight"``, MLOS-MART's
         line-of-sight weights for every iteration (the protocol's coarse-to-fine elimination, subsets,
-        relaxation and stopping rule kept; no line-of-sight first
-        iterations and no hand-over to DRT weights, which are DRT's): no DRT weight is traced, the
+        relaxation and stopping rule kept; no line-of-sight first iterations and no hand-over to DRT
+        weights, which are DRT's): no DRT weight is traced, the
         costliest stage of ``fast``'s plan on large boxes. The fit, the relocation and the residual
         rounds refine and complete the candidates. Other methods (pinhole cameras' MLOS-SMART, MART)
         have line-of-sight weights already: unchanged.
@@ -197,7 +196,7 @@ class IprSettings:
         weights sample a voxel's light at the lenslets' centres: on L's deep box (``benchmarks/particles.py
         --case Lc``) their volume was speckled, 7,542 peaks for 878 particles (recall 0.32 within a
         voxel, 96% ghosts), and smoothed by 3 it gave 905 (0.70, 33%; DRT weights' own 1,114: 0.68,
-        47%); on the tiny rig's 1.6 mm box their peaks need none, and 2 lost a fifth of the particles
+        47%); on the tiny rig's 1.6 mm box their peaks need none, and 2 lost a fifth of the candidates' recall
         (``benchmarks/RESULTS.md``, seventeenth session).
     ray_keep_bins
         Ray bundling's share of the vote's bins (the most voted first) whose points are checked
