@@ -81,8 +81,8 @@ from lfcore.reconstruct import (
 )
 from lfcore.volume import VolumeGrid
 
-__all__ = ["CANDIDATE_SOURCES", "CANDIDATE_WEIGHTS", "LOCAL_MEDIAN_PARTICLES", "MODELS", "PARTICLE_FIELDS", "IprSettings",
-           "ParticleReconstructor", "ParticleResult", "local_median", "to_index", "to_mm"]
+__all__ = ["CANDIDATE_SOURCES", "CANDIDATE_WEIGHTS", "LOCAL_MEDIAN_PARTICLES", "MODELS", "PARTICLE_FIELDS",
+           "IprSettings", "ParticleReconstructor", "ParticleResult", "local_median", "to_index", "to_mm"]
 
 #: The columns of a frame's particles as :class:`ParticleResult` and the run store's ``particles/``
 #: keep them.
