@@ -91,10 +91,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from lfcore import metrics  # noqa: E402
-from lfcore.ipr import CANDIDATE_SOURCES, MODELS, IprSettings, ParticleReconstructor, to_mm  # noqa: E402
+from lfcore.ipr import CANDIDATE_SOURCES, CANDIDATE_WEIGHTS, MODELS, IprSettings, ParticleReconstructor, to_mm  # noqa: E402
 from lfcore.particles import particle_count, seed_particles  # noqa: E402
 from lfcore.plan import projector_for  # noqa: E402
-from lfcore.reconstruct import PROTOCOLS, ReconSettings, reconstruct  # noqa: E402
+from lfcore.reconstruct import PROTOCOLS, ReconSettings, protocol_settings, reconstruct  # noqa: E402
 from lfcore.render import renderer_for  # noqa: E402
 from lfcore.rig import Rig  # noqa: E402
 from lfcore.volume import VolumeGrid  # noqa: E402
@@ -142,6 +142,18 @@ def main() -> None:
                     help="IPR's ray_keep_bins (with --candidate-source rays)")
     ap.add_argument("--ray-min-score", type=float, default=IprSettings().ray_min_score,
                     help="IPR's ray_min_score (with --candidate-source rays)")
+    ap.add_argument("--candidate-weights", choices=CANDIDATE_WEIGHTS, default=IprSettings().candidate_weights,
+                    help="IPR's candidate_weights: the protocol's, or line-of-sight weights throughout (no DRT "
+                    "weights)")
+    ap.add_argument("--candidate-smoothing", type=float, default=IprSettings().candidate_smoothing,
+                    metavar="VOXELS", help="IPR's candidate_smoothing (a Gaussian's sigma across, voxels)")
+    ap.add_argument("--candidate-storage", choices=("auto", "on-the-fly"), default="auto",
+                    help="the quick reconstruction's weight_storage: on-the-fly makes every row again in each "
+                    "iteration (what fits a small memory)")
+    ap.add_argument("--candidate-relaxation", type=float, default=None, metavar="R",
+                    help="the quick reconstruction's relaxation (default: its protocol's)")
+    ap.add_argument("--candidate-threshold", type=float, default=IprSettings().candidate_threshold,
+                    help="IPR's candidate_threshold (a fraction of the brightest voxel)")
     ap.add_argument("--candidate-iterations", type=int, default=IprSettings().candidate_iterations,
                     help="IPR's candidate_iterations")
     ap.add_argument("--model", choices=MODELS, default=IprSettings().model, help="IPR's particle model")
@@ -172,10 +184,19 @@ def main() -> None:
     renderers = [renderer_for(c, render, wavelength_nm=rig.laser.wavelength_nm, device=args.device)
                  for c in rig.camera]
     sources = ("rays", "reconstruction") if args.candidate_source == "both" else (args.candidate_source,)
-    iprs = {src: ParticleReconstructor(proj, settings=IprSettings(
+    # the quick reconstruction's protocol with another relaxation or weight storage where asked
+    storage = None if args.candidate_storage == "auto" else args.candidate_storage
+    changes = {k: v for k, v in (("relaxation", args.candidate_relaxation), ("weight_storage", storage))
+               if v is not None}
+    if storage and args.candidate_weights == "line-of-sight":  # rows made again: MLOS-MART's, on the protocol's grids
+        changes.update(method="mlos-mart", coarse=PROTOCOLS[args.candidates].get("coarse", 1))
+    quick = protocol_settings(args.candidates, n_cameras=len(rig.camera), **changes) if changes else None
+    iprs = {src: ParticleReconstructor(proj, recon=quick, settings=IprSettings(
+        method=changes.get("method"),
         candidate_protocol=args.candidates, candidate_source=src,
         ray_keep_bins=args.ray_keep_bins, ray_min_score=args.ray_min_score,
-        candidate_iterations=args.candidate_iterations, model=args.model,
+        candidate_threshold=args.candidate_threshold, candidate_smoothing=args.candidate_smoothing,
+        candidate_iterations=args.candidate_iterations, candidate_weights=args.candidate_weights, model=args.model,
         shakes=args.shakes, split_intensity=args.split, rounds=args.rounds,
         relocate_depth=args.relocate, relocate_screen=args.relocate_screen, max_position_std=args.max_std,
         wavelength_nm=rig.laser.wavelength_nm, particle_image_px=rig.render.particle_image_px)) for src in sources}
@@ -190,7 +211,10 @@ def main() -> None:
           f"{args.model}, relocate {args.relocate} (screen {args.relocate_screen:g}), max std {args.max_std}, "
           f"candidates "
           f"{source} (at most "
-          f"{args.candidate_iterations} iterations); {render.rays_per_particle} rays a particle")
+          f"{args.candidate_iterations} iterations, weights {args.candidate_weights}, relaxation "
+          f"{args.candidate_relaxation or 'of the protocol'}, threshold {args.candidate_threshold:g}, smoothing "
+          f"{args.candidate_smoothing}); {render.rays_per_particle} "
+          f"rays a particle")
     clocks = {src: stage_clock(ipr) for src, ipr in iprs.items()}
     routes = (*(f"ipr{tag[src]}" for src in sources), *(() if args.no_mart else ("drt-mart",)))
     for ppm in densities:
@@ -299,6 +323,19 @@ def stage_clock(ipr: ParticleReconstructor) -> dict:
             clock[_key] = clock.get(_key, 0.0) + dt
             return out
         setattr(ipr, name, wrapped)
+    if ipr.settings.candidate_source == "reconstruction":
+        inner_recon = ipr.frames.reconstruct
+
+        def recon(*a, _inner=inner_recon, **k):
+            before = peak_rss_gib()
+            out = _inner(*a, **k)
+            # the quick reconstruction: what it held and did (the largest operator's MiB, its stages' seconds)
+            print(f"  quick reconstruction: {out.iterations} iterations ({out.stopped}), {out.active_voxels:,} voxels "
+                  f"active, {out.final_voxels:,} left; operator {out.operator}, {out.weight_bytes / 2**20:.0f} MiB at "
+                  f"most; weights {out.weights_s:.1f} s, iterations {out.iterate_s:.1f} s (wall); peak RSS "
+                  f"{before:.2f} GiB before it", flush=True)
+            return out
+        ipr.frames.reconstruct = recon
     return clock
 
 

@@ -81,8 +81,8 @@ from lfcore.reconstruct import (
 )
 from lfcore.volume import VolumeGrid
 
-__all__ = ["CANDIDATE_SOURCES", "LOCAL_MEDIAN_PARTICLES", "MODELS", "PARTICLE_FIELDS", "IprSettings",
-           "ParticleReconstructor", "ParticleResult", "local_median", "to_index", "to_mm"]
+__all__ = ["CANDIDATE_SOURCES", "CANDIDATE_WEIGHTS", "LOCAL_MEDIAN_PARTICLES", "MODELS", "PARTICLE_FIELDS",
+           "IprSettings", "ParticleReconstructor", "ParticleResult", "local_median", "to_index", "to_mm"]
 
 #: The columns of a frame's particles as :class:`ParticleResult` and the run store's ``particles/``
 #: keep them.
@@ -91,6 +91,12 @@ PARTICLE_FIELDS = ("x_mm", "y_mm", "z_mm", "intensity", "residual")
 #: Where IPR's candidates come from (:attr:`IprSettings.candidate_source`): the peaks of a quick
 #: reconstruction, or ray bundling (:mod:`lfcore.raybundle`).
 CANDIDATE_SOURCES = ("reconstruction", "rays")
+
+#: The weights of the candidates' quick reconstruction (:attr:`IprSettings.candidate_weights`): its
+#: protocol's own (``"protocol"``: ``fast`` traces DRT weights for the voxels still bright after its
+#: line-of-sight iterations) or line-of-sight weights throughout (``"line-of-sight"``: MLOS-MART on the
+#: protocol's grids, no DRT weight traced).
+CANDIDATE_WEIGHTS = ("protocol", "line-of-sight")
 
 #: The particle models of :attr:`IprSettings.model`.
 MODELS = ("point", "voxels")
@@ -184,6 +190,23 @@ class IprSettings:
         grows with the bright pixels and the bins, not the voxels). The fit, the prunings and the
         residual rounds are the same. ``benchmarks/RESULTS.md`` (issue 48, eighth session) has both
         measured.
+    candidate_weights
+        The quick reconstruction's weights (:data:`CANDIDATE_WEIGHTS`): ``"protocol"``, those of
+        :attr:`candidate_protocol` as resolved for the cameras, or ``"line-of-sight"``, MLOS-MART's
+        line-of-sight weights for every iteration (the protocol's coarse-to-fine elimination, subsets,
+        relaxation and stopping rule kept; no line-of-sight first iterations and no hand-over to DRT
+        weights, which are DRT's): no DRT weight is traced, the
+        costliest stage of ``fast``'s plan on large boxes. The fit, the relocation and the residual
+        rounds refine and complete the candidates. Other methods (pinhole cameras' MLOS-SMART, MART)
+        have line-of-sight weights already: unchanged.
+    candidate_smoothing
+        The quick reconstruction's volume smoothed by a Gaussian of this sigma (voxels along the grid's y
+        and x; along z a third of it) before its peaks are found; 0 (the default): none. Line-of-sight
+        weights sample a voxel's light at the lenslets' centres: on L's deep box (``benchmarks/particles.py
+        --case Lc``) their volume was speckled, 7,542 peaks for 878 particles (recall 0.32 within a
+        voxel, 96% ghosts), and smoothed by 3 it gave 905 (0.70, 33%; DRT weights' own 1,114: 0.68,
+        47%); on the tiny rig's 1.6 mm box their peaks need none, and 2 lost a fifth of the candidates' recall
+        (``benchmarks/RESULTS.md``, seventeenth session).
     ray_keep_bins
         Ray bundling's share of the vote's bins (the most voted first) whose points are checked
         against the lenslets' pixels (``keep_bins`` of :func:`lfcore.raybundle.ray_candidates`): 1
@@ -314,6 +337,8 @@ class IprSettings:
     candidate_protocol: str = "fast"
     candidate_threshold: float = 0.05
     candidate_source: str = "reconstruction"
+    candidate_weights: str = "protocol"
+    candidate_smoothing: float = 0.0
     ray_keep_bins: float = 1.0
     ray_min_score: float = 0.1
     shakes: int = 12
@@ -352,6 +377,12 @@ class IprSettings:
         if self.candidate_source not in CANDIDATE_SOURCES:
             raise ValueError(f"the candidates' source is one of {', '.join(CANDIDATE_SOURCES)}, got "
                              f"{self.candidate_source!r}")
+        if self.candidate_weights not in CANDIDATE_WEIGHTS:
+            raise ValueError(f"the candidates' weights are one of {', '.join(CANDIDATE_WEIGHTS)}, got "
+                             f"{self.candidate_weights!r}")
+        if not 0.0 <= self.candidate_smoothing <= 16.0:
+            raise ValueError(f"candidate_smoothing is a sigma in voxels from 0 (none) to 16, got "
+                             f"{self.candidate_smoothing}")
         if not (0.0 < self.ray_keep_bins <= 1.0 and 0.0 <= self.ray_min_score < 1.0):
             raise ValueError(f"ray_keep_bins is a share above 0 and at most 1 and ray_min_score one from 0 to below 1, "
                              f"got {self.ray_keep_bins} and {self.ray_min_score}")
@@ -1153,6 +1184,10 @@ class ParticleReconstructor:
                                      method=self.method, iterations=its)
         else:
             base = replace(recon, method=self.method, iterations=its)
+        if self.settings.candidate_weights == "line-of-sight" and base.method in ("drt-mart", "mlos-mart"):
+            # MLOS-MART on the same grids: no DRT weights traced (the line-of-sight first iterations and
+            # MLOS-MART's hand-over are DRT's)
+            base = replace(base, method="mlos-mart", los_iterations=0, handover_share=0.0)
         self.recon_settings = replace(base, warm_start=False)
         self.frames = FrameReconstructor(projector, self.recon_settings)
         #: True where particles are modelled as points (:attr:`IprSettings.model`)
@@ -1172,6 +1207,11 @@ class ParticleReconstructor:
                                     min_score=self.settings.ray_min_score)
             return pos
         vol = self.frames.reconstruct(images).volume
+        smooth = self.settings.candidate_smoothing
+        if smooth > 0:  # (z, y, x): a particle's light gathered into one peak
+            from scipy.ndimage import gaussian_filter
+
+            vol = gaussian_filter(vol, (smooth / 3.0, smooth, smooth))
         pos, _, _ = detect_particles(vol, self.projector.grid, threshold=self.settings.candidate_threshold)
         return to_index(self.projector.grid, pos)
 

@@ -59,6 +59,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "weights first, DRT weights for the voxels still bright, ordered subsets, the stopping rule and, "
                    "in boxes of a million voxels or more, coarse-to-fine elimination; fixed, plain DRT-MART of "
                    "--candidate-iterations iterations (the candidates before this option; default: fast)")
+    c.add_argument("--candidate-weights", choices=("protocol", "line-of-sight"), default=None,
+                   help="the quick reconstruction's weights: protocol, those of --candidate-protocol (fast: DRT "
+                   "weights traced for the voxels still bright after its line-of-sight iterations); "
+                   "line-of-sight, MLOS-MART's line-of-sight weights throughout on the same grids, no DRT weight "
+                   "traced (less CPU and memory a voxel; on a deep box add --candidate-smoothing; default: "
+                   "protocol)")
+    c.add_argument("--candidate-smoothing", type=non_negative_float, default=None, metavar="VOXELS",
+                   help="the quick reconstruction's volume smoothed by a Gaussian of this sigma (voxels across, a "
+                   "third of it along z) before its peaks are found: line-of-sight weights' volume of a deep box is "
+                   "speckled, a particle's light in several peaks (3 on L's optics; default: 0, none)")
     c.add_argument("--candidates", choices=("reconstruction", "rays"), default="reconstruction",
                    help="where the candidates come from: reconstruction, the peaks of the quick reconstruction "
                    "(--candidate-protocol; its cost grows with the box's voxels); rays, ray bundling: the bright "
@@ -175,6 +185,8 @@ def run(args: argparse.Namespace) -> int:
     # the quick reconstruction's own options where given (ipr_settings refuses them with ray bundling)
     quick = {k: v for k, v in (("candidate_iterations", args.candidate_iterations),
                                ("candidate_protocol", args.candidate_protocol),
+                               ("candidate_weights", args.candidate_weights),
+                               ("candidate_smoothing", args.candidate_smoothing),
                                ("candidate_threshold", args.threshold)) if v is not None}
     options = dict(method=args.method, **quick, candidate_source=args.candidates, shakes=args.shakes,
                    min_intensity=args.min_intensity,

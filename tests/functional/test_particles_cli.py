@@ -226,13 +226,14 @@ def test_particles_from_ray_candidates_end_to_end(tmp_path, capsys):
 
 
 def test_ray_candidates_refuse_the_quick_reconstructions_options(tmp_path, capsys):
-    """--threshold, --candidate-iterations and --candidate-protocol shape the quick reconstruction's
-    candidates only: with --candidates rays they would be ignored, so they are refused (one line,
-    exit 2, nothing written)."""
+    """--threshold, --candidate-iterations, --candidate-protocol, --candidate-weights and
+    --candidate-smoothing shape the quick reconstruction's candidates only: with --candidates rays
+    they would be ignored, so they are refused (one line, exit 2, nothing written)."""
     run = tmp_path / "r.zarr"
     assert _run(capsys, "synth", "--rig", EXAMPLES / "tiny.toml", "--out", run, "--pairs", "1", "--ppm", "0.1",
                 "--rays", "20", "--quiet")[0] == 0
-    for option, value in (("--threshold", "0.1"), ("--candidate-iterations", "5"), ("--candidate-protocol", "fixed")):
+    for option, value in (("--threshold", "0.1"), ("--candidate-iterations", "5"), ("--candidate-protocol", "fixed"),
+                          ("--candidate-weights", "line-of-sight"), ("--candidate-smoothing", "3")):
         rc, out, err = _run(capsys, "particles", run, "--candidates", "rays", option, value, "--quiet")
         assert rc == 2 and option in err and "--candidates" in err, (option, err)
         assert "Traceback" not in err and len(err.strip().splitlines()) == 1

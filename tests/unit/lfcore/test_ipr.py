@@ -285,6 +285,8 @@ def test_settings_refuse_nonsense():
         ipr.IprSettings(local_refit_share=1.5)
     with pytest.raises(ValueError, match="relocate_screen"):
         ipr.IprSettings(relocate_screen=1.5)
+    with pytest.raises(ValueError, match="candidates' weights"):
+        ipr.IprSettings(candidate_weights="drt")
 
 
 def test_wrong_image_count_is_refused(setup):
@@ -435,6 +437,51 @@ def test_isolated_particles_are_recovered_within_a_twentieth_of_a_voxel(tiny_rig
     err = np.array([np.min(np.max(np.abs(res.positions_mm - t) / grid.voxel_mm, axis=1)) for t in truth])
     print(kind, "largest error per particle (voxels)", err.round(3))
     assert np.all(err < 0.05)
+
+
+def test_candidates_on_line_of_sight_weights_alone_recover_isolated_particles_within_a_twentieth(setup):
+    from tests.helpers import four_particles
+
+    rig, grid, proj = setup
+    u = four_particles(grid)  # apart, off the voxel centres, away from the focal plane
+    truth = ipr.to_mm(grid, u)
+    settings = ipr.IprSettings(candidate_weights="line-of-sight", wavelength_nm=rig.laser.wavelength_nm,
+                               particle_image_px=rig.render.particle_image_px)
+    reconstructor = ipr.ParticleReconstructor(proj, settings=settings)
+    quick = reconstructor.recon_settings
+    assert quick.method == "mlos-mart" and quick.los_iterations == 0 and quick.handover_share == 0.0
+    images = _rendered(rig, truth)
+    # the quick reconstruction traced no DRT weight: its operator is the line-of-sight one throughout
+    assert reconstructor.frames.reconstruct(images).operator == "line-of-sight weights"
+    cand = ipr.to_mm(grid, reconstructor._candidates(images))
+    near = np.array([np.min(np.max(np.abs(cand - t) / grid.voxel_mm, axis=1)) for t in truth])
+    assert np.all(near < 1.0)  # each particle has a candidate within a voxel of it
+    res = reconstructor.reconstruct(images)
+    assert res.n == len(truth)  # no ghost, none missed
+    err = np.array([np.min(np.max(np.abs(res.positions_mm - t) / grid.voxel_mm, axis=1)) for t in truth])
+    print("candidates' nearest (voxels)", near.round(3), "particles' errors", err.round(3))
+    assert np.all(err < 0.05)  # as from the protocol's own candidates
+
+
+def test_a_particles_speckled_light_smoothed_gives_one_candidate_at_its_centre(setup, monkeypatch):
+    from types import SimpleNamespace
+
+    rig, grid, proj = setup
+    nz, ny, nx = grid.shape
+    centre = np.array([14.0, 34.3, 40.6])  # (z, y, x) voxels
+    z, y, x = np.meshgrid(*(np.arange(n, dtype=np.float64) for n in grid.shape), indexing="ij")
+    blob = np.exp(-0.5 * (((z - centre[0]) / 1.0) ** 2 + ((y - centre[1]) / 3.0) ** 2 + ((x - centre[2]) / 3.0) ** 2))
+    # light sampled at a lenslet pitch of 5 voxels across: the blob split among several peaks
+    comb = (1.0 + np.cos(2 * np.pi * y / 5.0)) * (1.0 + np.cos(2 * np.pi * x / 5.0)) / 4.0
+    volume = (blob * (0.2 + comb)).astype(np.float32)
+    found = {}
+    for sigma in (0.0, 3.0):
+        r = ipr.ParticleReconstructor(proj, settings=ipr.IprSettings(candidate_smoothing=sigma))
+        monkeypatch.setattr(r.frames, "reconstruct", lambda images, v=volume: SimpleNamespace(volume=v))
+        found[sigma] = r._candidates([np.zeros(1)])
+    assert len(found[0.0]) > 1  # the speckle's peaks
+    assert len(found[3.0]) == 1
+    assert np.all(np.abs(found[3.0][0] - centre) < 0.5)  # (z, y, x) index coordinates
 
 
 def test_the_ghosts_of_a_two_camera_ambiguity_are_removed():

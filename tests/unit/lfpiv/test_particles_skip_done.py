@@ -157,3 +157,12 @@ def test_a_group_written_before_relocate_screen_traced_every_move_in_full() -> N
     assert not same_settings(before, meta(relocate_screen=0.5))  # screened moves: other particles, remade
     # the voxels' model makes no moves: the screen changes nothing there
     assert same_settings(meta(model="voxels"), meta(model="voxels", relocate_screen=0.5))
+
+
+def test_a_group_written_before_candidate_weights_had_the_protocols_weights_unsmoothed() -> None:
+    before = {k: v for k, v in meta().items() if k not in ("candidate_weights", "candidate_smoothing")}
+    assert same_settings(before, meta())  # the protocol's weights, no smoothing: today's default
+    assert not same_settings(before, meta(candidate_weights="line-of-sight"))  # other candidates: remade
+    assert not same_settings(before, meta(candidate_smoothing=2.0))
+    with pytest.raises(ValueError, match="candidate_smoothing"):
+        IprSettings(candidate_smoothing=-1.0)
