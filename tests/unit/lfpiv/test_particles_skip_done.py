@@ -157,3 +157,11 @@ def test_a_group_written_before_relocate_screen_traced_every_move_in_full() -> N
     assert not same_settings(before, meta(relocate_screen=0.5))  # screened moves: other particles, remade
     # the voxels' model makes no moves: the screen changes nothing there
     assert same_settings(meta(model="voxels"), meta(model="voxels", relocate_screen=0.5))
+
+
+def test_a_group_written_before_jacobian_reuse_traced_every_jacobian() -> None:
+    before = {k: v for k, v in meta().items() if k != "jacobian_reuse"}
+    assert same_settings(before, meta(jacobian_reuse=0.0))
+    assert not same_settings(before, meta(jacobian_reuse=0.05))  # an inexact Jacobian: other particles, remade
+    # the voxels' model traces no point: the reuse changes nothing there
+    assert same_settings(meta(model="voxels"), meta(model="voxels", jacobian_reuse=0.05))
