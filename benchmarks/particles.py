@@ -30,7 +30,7 @@ from each on the same frames in one process, rays first, the routes then named `
 ``--candidates`` is IPR's ``candidate_protocol`` (``fast``, its default, or ``fixed``: plain DRT-MART)
 and ``--candidate-iterations`` its ``candidate_iterations``. ``--rays`` renders with more rays a
 particle than the rig's (less Monte-Carlo sampling noise in the frames); ``--shakes``, ``--split``,
-``--rounds``, ``--relocate``, ``--relocate-screen``, ``--max-std`` and ``--model`` set
+``--rounds``, ``--relocate``, ``--relocate-screen``, ``--jacobian-reuse``, ``--max-std`` and ``--model`` set
 IPR's settings of those names. ``benchmarks/particles_budget.py`` is the error budget behind these
 figures (fits started at the true positions, candidates, ghosts).
 
@@ -161,6 +161,9 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=IprSettings().rounds, help="IPR's rounds")
     ap.add_argument("--shakes", type=int, default=IprSettings().shakes, help="IPR's fit iterations (shakes)")
     ap.add_argument("--relocate", type=int, default=IprSettings().relocate_depth, help="IPR's relocate_depth")
+    ap.add_argument("--jacobian-reuse", type=float, default=IprSettings().jacobian_reuse,
+                    help="IPR's jacobian_reuse (a particle moved at most this many voxels keeps its Jacobian's "
+                    "columns in the fit; 0: every particle traced every shake)")
     ap.add_argument("--relocate-screen", type=float, default=IprSettings().relocate_screen,
                     help="IPR's relocate_screen (the relocation's moves screened at this share of the sub-apertures; "
                          "0: none)")
@@ -199,6 +202,7 @@ def main() -> None:
         candidate_iterations=args.candidate_iterations, candidate_weights=args.candidate_weights, model=args.model,
         shakes=args.shakes, split_intensity=args.split, rounds=args.rounds,
         relocate_depth=args.relocate, relocate_screen=args.relocate_screen, max_position_std=args.max_std,
+        jacobian_reuse=args.jacobian_reuse,
         wavelength_nm=rig.laser.wavelength_nm, particle_image_px=rig.render.particle_image_px)) for src in sources}
     # a route's name: "ipr" and "candidates" with one source, suffixed by it with both
     tag = {src: f"-{src[:5]}" if len(sources) > 1 else "" for src in sources}
@@ -208,8 +212,8 @@ def main() -> None:
                           if src == "rays" else f"{args.candidates}" for src in sources)
     print(f"{name}: {len(rig.camera)} camera(s), grid {grid.shape} (z, y, x) voxels of {grid.voxel_mm} mm; "
           f"{args.frames} frame(s) per density; matching within {args.match_voxels} voxel per axis; IPR model "
-          f"{args.model}, relocate {args.relocate} (screen {args.relocate_screen:g}), max std {args.max_std}, "
-          f"candidates "
+          f"{args.model}, relocate {args.relocate} (screen {args.relocate_screen:g}), jacobian reuse "
+          f"{args.jacobian_reuse:g}, max std {args.max_std}, candidates "
           f"{source} (at most "
           f"{args.candidate_iterations} iterations, weights {args.candidate_weights}, relaxation "
           f"{args.candidate_relaxation or 'of the protocol'}, threshold {args.candidate_threshold:g}, smoothing "

@@ -270,6 +270,12 @@ class IprSettings:
         explains at least :data:`RELOCATE_SCREEN_SLACK` of what the particle's position explains
         there) are traced in full and decide the move, as without the screen. 0: no screen,
         every move traced in full.
+    jacobian_reuse
+        With the point model, a fit's Jacobian keeps a particle's position columns (its image's
+        derivatives per unit intensity, times its current intensity) from the last shake that traced
+        them while the particle has moved by at most this many voxels along every axis since; only
+        the particles that moved more are traced again (an inexact Gauss-Newton; a fit's first shake
+        traces every particle). 0: every particle traced every shake.
     max_position_std
         At the end, particles whose fitted position is less sure than this on any axis (its
         standard deviation from its own image's Jacobian and the residual's noise, voxels) are
@@ -355,6 +361,7 @@ class IprSettings:
     wavelength_nm: float = 532.0
     relocate_depth: int = 4
     relocate_screen: float = 0.0
+    jacobian_reuse: float = 0.0
     max_position_std: float = 0.0
     noise_model: str = "flat"
     noise_floor: float = 0.0
@@ -411,6 +418,9 @@ class IprSettings:
         if not 0.0 <= self.relocate_screen <= 1.0:
             raise ValueError(f"relocate_screen is a share of the sub-apertures, 0 (no screen) to 1, got "
                              f"{self.relocate_screen}")
+        if not 0.0 <= self.jacobian_reuse < 1.0:
+            raise ValueError(f"jacobian_reuse is a move in voxels, 0 (every particle traced) to below 1, got "
+                             f"{self.jacobian_reuse}")
         if self.relocate_depth < 0:
             raise ValueError(f"relocate_depth is a number of voxels, 0 (no moves) or more, got {self.relocate_depth}")
         if self.point_sub_apertures < 0:
@@ -711,18 +721,44 @@ class _PointModel:
         """The particles' model image, (n_pixels,) counts."""
         return self.unit_images(u) @ intensity
 
-    def jacobian(self, u: np.ndarray, intensity: np.ndarray) -> sparse.csc_matrix:
+    def jacobian(self, u: np.ndarray, intensity: np.ndarray, *, reuse: dict | None = None,
+                 reuse_below: float = 0.0) -> sparse.csc_matrix:
         """(pixels, 4n): per particle its image per unit intensity, then its image's derivatives along
-        z, y and x (columns 4p .. 4p + 3)."""
+        z, y and x (columns 4p .. 4p + 3).
+
+        ``reuse``: a dict this call keeps its unit derivatives in (the positions they were traced at
+        and the three derivative columns per particle); a particle that moved by at most
+        ``reuse_below`` voxels along every axis since its derivatives were traced keeps them (scaled by
+        its current intensity: an inexact Newton), and only the others are traced again. An empty dict
+        or ``reuse_below`` 0: every particle traced. The particles must be the same ones, in the same
+        order, from call to call with one dict (a fit's shakes)."""
         n = len(u)
         here = self.unit_images(u)
+        fresh = np.ones(n, dtype=bool)
+        if reuse and reuse_below > 0 and len(reuse["u"]) == n:
+            fresh = np.max(np.abs(u - reuse["u"]), axis=1) > reuse_below
+        idx = np.flatnonzero(fresh)
         # the three moved copies of every particle traced at once (one launch: each point's image is its
         # own, whatever else is traced beside it), not kept: used once
-        moved = self.traced(np.vstack([u + self.step * np.eye(3)[a] for a in range(3)]))
-        blocks = [here]
-        for a in range(3):
-            diff = (moved[:, a * n:(a + 1) * n] - here) / self.step  # forward differences
-            blocks.append(diff @ sparse.diags(intensity))
+        moved = self.traced(np.vstack([u[idx] + self.step * np.eye(3)[a] for a in range(3)]))
+        k = len(idx)
+        here_f = here[:, idx]
+        units = [(moved[:, a * k:(a + 1) * k] - here_f) / self.step for a in range(3)]  # forward differences
+        if k < n:  # the kept particles' columns from the last tracing, the fresh ones in their places
+            pos = np.empty(n, dtype=np.int64)
+            keep = np.flatnonzero(~fresh)
+            pos[idx] = np.arange(k)
+            pos[keep] = k + np.arange(len(keep))
+            units = [sparse.hstack([units[a], reuse["d"][a][:, keep]]).tocsc()[:, pos] for a in range(3)]
+            last_u = reuse["u"].copy()
+            last_u[idx] = u[idx]
+        else:
+            units = [m.tocsc() for m in units]
+            last_u = np.array(u, dtype=np.float64)
+        if reuse is not None:
+            reuse["u"], reuse["d"] = last_u, units
+            reuse["traced"] = reuse.get("traced", 0) + k
+        blocks = [here] + [units[a] @ sparse.diags(intensity) for a in range(3)]
         j = sparse.hstack(blocks).tocsc()
         order = np.arange(4 * n).reshape(4, n).T.ravel()  # (unit, dz, dy, dx) per particle
         return j[:, order]
@@ -763,17 +799,22 @@ def _canonical_part(w: np.ndarray, pix: np.ndarray, offsets: np.ndarray, n_pixel
 
 
 def _fit(model: _Model, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, *, shakes: int,
-         max_step: float, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+         max_step: float, weights: np.ndarray | None = None,
+         jacobian_reuse: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Levenberg-Marquardt on every particle's (intensity, z, y, x) at once against the images
     ``b``, each pixel's squared residual times its ``weights`` (None: 1); returns the fitted ``u``
-    and ``intensity``."""
+    and ``intensity``. ``jacobian_reuse`` (voxels, a point model's; 0: none): a particle that moved
+    at most this far since its Jacobian's columns were traced keeps them
+    (:attr:`IprSettings.jacobian_reuse`)."""
     if len(u) == 0:
         return u, intensity
     w = np.ones(len(b)) if weights is None else weights
     cost = float(np.sum(w * (b - model.image(u, intensity)) ** 2))
     lam = 1e-3
+    memo: dict = {}  # the point model's last unit derivatives (the first shake traces every particle)
     for _ in range(shakes):
-        j = model.jacobian(u, intensity)  # (pixels, 4n)
+        j = (model.jacobian(u, intensity, reuse=memo, reuse_below=jacobian_reuse)  # (pixels, 4n)
+             if jacobian_reuse > 0 and isinstance(model, _PointModel) else model.jacobian(u, intensity))
         r = b - model.image(u, intensity)
         jw = j if weights is None else (sparse.diags(w) @ j).tocsc()
         jtj = (j.T @ jw).tocsc()
@@ -1350,7 +1391,8 @@ class ParticleReconstructor:
         (``weigh(model, u, intensity)``). ``held``: the particles held (not fitted, their image off
         ``b`` already), which the pruning's and the split's median intensity counts."""
         s = self.settings
-        u, intensity = _fit(model, b, u, intensity, shakes=s.shakes, max_step=s.max_step_voxels, weights=weights)
+        u, intensity = _fit(model, b, u, intensity, shakes=s.shakes, max_step=s.max_step_voxels, weights=weights,
+                            jacobian_reuse=s.jacobian_reuse)
         weights = weigh(model, u, intensity)
         u, intensity = self._prune(u, intensity, held)
         if s.split_intensity > 0:
@@ -1359,12 +1401,12 @@ class ParticleReconstructor:
                 median = float(np.median(np.concatenate([held[1], intensity])))
             u, intensity = _split(u, intensity, s.split_intensity, median=median)
             u, intensity = _fit(model, b, u, intensity, shakes=s.shakes, max_step=s.max_step_voxels,
-                                weights=weights)
+                                weights=weights, jacobian_reuse=s.jacobian_reuse)
             u, intensity = self._prune(u, intensity, held)
         if self.point_model and s.relocate_depth > 0:
             u, intensity = _relocate(model, b, u, intensity, self._offsets, weights, screen=s.relocate_screen)
         u, intensity = _fit(model, b, u, intensity, shakes=max(s.shakes // 2, 1), max_step=s.max_step_voxels,
-                            weights=weights)
+                            weights=weights, jacobian_reuse=s.jacobian_reuse)
         weights = weigh(model, u, intensity)
         u, intensity = self._prune(u, intensity, held)
         return u, intensity, weights

@@ -105,6 +105,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--relocate-screen", type=non_negative_float, default=0.0, metavar="S",
                    help="trace the relocation's moves first at S of the point model's sub-apertures per aperture "
                    "diameter and only each particle's best few in full (0 to 1; 0: every move in full; default: 0)")
+    c.add_argument("--jacobian-reuse", type=non_negative_float, default=0.0, metavar="V",
+                   help="in the fit, keep a particle's Jacobian columns while it has moved at most V voxels since "
+                   "they were traced (point model; below 1; 0: every particle traced every step; default: 0)")
     c.add_argument("--max-std", type=non_negative_float, default=0.0, metavar="V",
                    help="at the end, leave out particles whose position is less sure than V voxels on any axis "
                    "(its standard deviation from the fit): fewer ghosts near a light-field camera's focal plane, "
@@ -192,6 +195,7 @@ def run(args: argparse.Namespace) -> int:
                    min_intensity=args.min_intensity,
                    merge_voxels=args.merge_voxels, rounds=args.rounds, split_intensity=args.split, model=args.model,
                    relocate_depth=args.relocate, relocate_screen=args.relocate_screen, max_position_std=args.max_std,
+                   jacobian_reuse=args.jacobian_reuse,
                    noise_floor=args.noise_floor)
     fit = {"noise_model": args.noise_model, "residual_mask": args.residual_mask}
     # bad options are refused before the run is opened (auto as the light-field cameras' choice, with which

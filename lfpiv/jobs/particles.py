@@ -41,14 +41,15 @@ __all__ = ["INTENSITY_REFERENCES", "LIGHT_FIELD_FIT", "NOISE_MODEL_CHOICES", "PI
 #: ``residual_mask``), only the box's particles (before ``box_margin_voxels``), every particle refitted in
 #: every residual round (before ``local_refit_share``), every relocation move traced in full (before
 #: ``relocate_screen``), the candidates' quick reconstruction on its protocol's weights, its volume
-#: unsmoothed (before ``candidate_weights`` and ``candidate_smoothing``).
+#: unsmoothed (before ``candidate_weights`` and ``candidate_smoothing``), every particle's Jacobian
+#: traced every shake (before ``jacobian_reuse``).
 OLD_DEFAULTS: dict[str, Any] = {"split_intensity": 0.0, "model": "voxels", "relocate_depth": 0,
                                 "max_position_std": 0.0, "candidate_protocol": "fixed",
                                 "candidate_source": "reconstruction", "intensity_axis": None,
                                 "intensity_share": 0.1, "noise_model": "flat",
                                 "noise_floor": 0.0, "residual_mask": 0.0, "box_margin_voxels": 0.0,
                                 "local_refit_share": 0.0, "relocate_screen": 0.0, "candidate_weights": "protocol",
-                                "candidate_smoothing": 0.0}
+                                "candidate_smoothing": 0.0, "jacobian_reuse": 0.0}
 
 #: What ``lfpiv particles --min-intensity-of`` judges a particle's intensity against
 #: (:func:`intensity_axis`).
@@ -139,7 +140,7 @@ QUICK_ONLY = {"candidate_iterations": "--candidate-iterations", "candidate_proto
 #: Settings of the point model only: the ``"voxels"`` model's particles do not depend on them
 #: (groups written before they existed hold none of them).
 POINT_ONLY = ("point_sub_apertures", "particle_image_px", "wavelength_nm", "relocate_depth", "box_margin_voxels",
-              "relocate_screen")
+              "relocate_screen", "jacobian_reuse")
 
 
 def _recorded(settings: dict[str, Any]) -> dict[str, Any]:

@@ -166,3 +166,11 @@ def test_a_group_written_before_candidate_weights_had_the_protocols_weights_unsm
     assert not same_settings(before, meta(candidate_smoothing=2.0))
     with pytest.raises(ValueError, match="candidate_smoothing"):
         IprSettings(candidate_smoothing=-1.0)
+
+
+def test_a_group_written_before_jacobian_reuse_traced_every_jacobian() -> None:
+    before = {k: v for k, v in meta().items() if k != "jacobian_reuse"}
+    assert same_settings(before, meta(jacobian_reuse=0.0))
+    assert not same_settings(before, meta(jacobian_reuse=0.05))  # an inexact Jacobian: other particles, remade
+    # the voxels' model traces no point: the reuse changes nothing there
+    assert same_settings(meta(model="voxels"), meta(model="voxels", jacobian_reuse=0.05))
