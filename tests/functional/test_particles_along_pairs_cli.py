@@ -127,10 +127,10 @@ def test_skip_done_resumes_an_interrupted_replacement_from_its_own_pairs(series_
     assert _run(capsys, "particles", parts, "--pair-range", "2", *FAST)[0] == 0
     frame = job._frame
 
-    def failing(ipr, store, names, pair, f, predicted_mm=None):
+    def failing(ipr, store, names, pair, f, predicted_mm=None, **kw):
         if pair == 1:
             raise UsageError("pair 1 failed")
-        return frame(ipr, store, names, pair, f, predicted_mm)
+        return frame(ipr, store, names, pair, f, predicted_mm, **kw)
 
     monkeypatch.setattr(job, "_frame", failing)
     rc, out, err = _run(capsys, "particles", parts, "--along-pairs", "--pair-range", "0:3", *FAST)
