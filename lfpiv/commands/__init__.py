@@ -361,6 +361,19 @@ def warn(lines: list[str]) -> None:
         print(f"lfpiv: warning: {w}", file=sys.stderr)
 
 
+def run_flat_fields(rig, calibration: str | None, cameras: list[str] | None = None) -> tuple[dict | None, dict | None]:
+    """``--flat-field CALIB``'s flat fields of ``rig``'s light-field cameras (``cameras``: those used, None:
+    all) and what they are (:func:`lfpiv.jobs.calibrate.flat_fields`), a camera without a dark image
+    warned of on stderr; ``(None, None)`` where no calibration is given."""
+    if calibration is None:
+        return None, None
+    from lfpiv.jobs.calibrate import flat_fields
+
+    flats, info, notes = flat_fields(rig, calibration, cameras)
+    warn(notes)
+    return flats, info
+
+
 def add_sim_options(parser: argparse.ArgumentParser) -> None:
     """The ``--sim-*`` options of commands that can run on the simulated lab."""
     parser.add_argument("--sim-flow", default="vortex-ring", metavar="FLOW",

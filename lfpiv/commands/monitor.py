@@ -17,8 +17,8 @@ from lfpiv.commands import (
     positive_float,
     positive_int,
     ring_slots,
+    run_flat_fields,
     sim_lab_options,
-    warn,
     warn_optics,
     xyz_triple,
 )
@@ -136,12 +136,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"lfpiv monitor: {text}", file=sys.stderr)
 
-    flats = None
-    if args.flat_field is not None:
-        from lfpiv.jobs.calibrate import flat_fields
-
-        flats, _, notes = flat_fields(rig, args.flat_field)
-        warn(notes)
+    flats, _ = run_flat_fields(rig, args.flat_field)
     end = run_monitor(rig, pairs=args.pairs, settings=settings, method=method, projector=args.projector,
                       passes=args.passes, pvr=args.pvr,
                       device=args.device, out=args.out, overwrite=args.overwrite,

@@ -17,7 +17,7 @@ from lfpiv.commands import (
     pairs_option,
     positive_float,
     positive_int,
-    warn,
+    run_flat_fields,
     whole_number,
     workers_phrase,
     xyz_triple,
@@ -209,12 +209,7 @@ def run(args: argparse.Namespace) -> int:
                             wavelength_nm=store.rig.laser.wavelength_nm,
                             particle_image_px=store.rig.render.particle_image_px,
                             intensity_axis=intensity_axis(store.rig, args.min_intensity_of))
-    flats, flat_info = None, None
-    if args.flat_field is not None:
-        from lfpiv.jobs.calibrate import flat_fields
-
-        flats, flat_info, notes = flat_fields(store.rig, args.flat_field, args.cameras)
-        warn(notes)
+    flats, flat_info = run_flat_fields(store.rig, args.flat_field, args.cameras)
     with dask_client(args.workers, args.scheduler) as client:
         done = particles_run(store, settings, args.pairs, cameras=args.cameras, device=args.device,
                              progress=not args.quiet, skip_done=args.skip_done, option=pairs_option(args),

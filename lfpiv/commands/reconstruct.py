@@ -18,6 +18,7 @@ from lfpiv.commands import (
     pairs_option,
     positive_float,
     positive_int,
+    run_flat_fields,
     sub_apertures,
     warn,
     whole_number,
@@ -281,12 +282,7 @@ def run(args: argparse.Namespace) -> int:
         from lfpiv.jobs.calibrate import calibrated_rig
 
         rig, calibration = calibrated_rig(store.rig, args.calibration, args.cameras)
-    flats, flat_info = None, None
-    if args.flat_field is not None:
-        from lfpiv.jobs.calibrate import flat_fields
-
-        flats, flat_info, notes = flat_fields(store.rig, args.flat_field, args.cameras)
-        warn(notes)
+    flats, flat_info = run_flat_fields(store.rig, args.flat_field, args.cameras)
     warn(voxel_shape_notes(rig or store.rig, args.cameras, args.pvr))
     with dask_client(args.workers, args.scheduler) as client:
         results = reconstruct_run(store, settings, pvr=args.pvr, margin_mm=args.margin_mm, pairs=args.pairs,
