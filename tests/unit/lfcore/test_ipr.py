@@ -266,27 +266,16 @@ def test_a_faint_spread_particle_beside_a_bright_one_is_found_in_the_residual_wi
     assert all(found[3.0])  # and every other one (without, one of the isolated faint ones is missed too)
 
 
-def test_settings_refuse_nonsense():
-    with pytest.raises(ValueError, match="threshold"):
-        ipr.IprSettings(candidate_threshold=1.0)
-    with pytest.raises(ValueError, match="at least"):
-        ipr.IprSettings(rounds=0)
-    with pytest.raises(ValueError, match="intensity_axis"):
-        ipr.IprSettings(intensity_axis="w")
-    with pytest.raises(ValueError, match="intensity_share"):
-        ipr.IprSettings(intensity_share=0.0)
-    with pytest.raises(ValueError, match="noise model"):
-        ipr.IprSettings(noise_model="poisson")
-    with pytest.raises(ValueError, match="noise_floor"):
-        ipr.IprSettings(noise_model="shot", noise_floor=1.5)
-    with pytest.raises(ValueError, match="residual_mask"):
-        ipr.IprSettings(residual_mask=-1.0)
-    with pytest.raises(ValueError, match="local_refit_share"):
-        ipr.IprSettings(local_refit_share=1.5)
-    with pytest.raises(ValueError, match="relocate_screen"):
-        ipr.IprSettings(relocate_screen=1.5)
-    with pytest.raises(ValueError, match="candidates' weights"):
-        ipr.IprSettings(candidate_weights="drt")
+@pytest.mark.parametrize(("options", "match"), [
+    ({"candidate_threshold": 1.0}, "threshold"), ({"rounds": 0}, "at least"),
+    ({"intensity_axis": "w"}, "intensity_axis"), ({"intensity_share": 0.0}, "intensity_share"),
+    ({"noise_model": "poisson"}, "noise model"), ({"noise_model": "shot", "noise_floor": 1.5}, "noise_floor"),
+    ({"residual_mask": -1.0}, "residual_mask"), ({"local_refit_share": 1.5}, "local_refit_share"),
+    ({"relocate_screen": 1.5}, "relocate_screen"), ({"candidate_weights": "drt"}, "candidates' weights"),
+])
+def test_settings_refuse_nonsense(options, match):
+    with pytest.raises(ValueError, match=match):
+        ipr.IprSettings(**options)
 
 
 def test_wrong_image_count_is_refused(setup):
