@@ -972,18 +972,25 @@ def _gain(nk: np.ndarray, dot: np.ndarray) -> np.ndarray:
     return np.where((nk > 0) & (dot > 0), dot**2 / np.where(nk > 0, nk, 1.0), 0.0)
 
 
+def _stay_gains(c0: sparse.csc_matrix, b: np.ndarray, intensity: np.ndarray, w: np.ndarray | None
+                ) -> tuple[sparse.csc_matrix, np.ndarray, np.ndarray]:
+    """For the particles' unit images ``c0`` (pixels, n): ``w`` times them, ``w`` times the residual
+    ``b - c0 @ intensity`` (``w``: each pixel's weight, None: alike), and what each particle's own
+    position explains of what the others leave (:func:`_gain`)."""
+    wc0 = c0 if w is None else (sparse.diags(w) @ c0).tocsc()
+    wr = (b - c0 @ intensity) * (1.0 if w is None else w)
+    n0 = np.asarray(c0.multiply(wc0).sum(axis=0)).ravel()
+    return wc0, wr, _gain(n0, np.asarray(c0.T @ wr).ravel() + intensity * n0)
+
+
 def _screened_moves(coarse, b: np.ndarray, u: np.ndarray, intensity: np.ndarray, offsets: np.ndarray,
                     weights: np.ndarray | None) -> np.ndarray:
     """(n, :data:`RELOCATE_KEEP`) each particle's best moves (indices into ``offsets``, ascending;
     -1: none) by ``coarse``'s images: its moves that explain the most of what the others leave,
     where the best explains at least :data:`RELOCATE_SCREEN_SLACK` of what its own position does."""
     n, k = len(u), len(offsets)
-    c0 = coarse.traced(u)
     w = None if weights is None else np.asarray(weights, dtype=np.float64)
-    wc0 = c0 if w is None else (sparse.diags(w) @ c0).tocsc()
-    wr = (b - c0 @ intensity) * (1.0 if w is None else w)
-    n0 = np.asarray(c0.multiply(wc0).sum(axis=0)).ravel()
-    stay = _gain(n0, np.asarray(c0.T @ wr).ravel() + intensity * n0)
+    wc0, wr, stay = _stay_gains(coarse.traced(u), b, intensity, w)
     idx = np.tile(np.arange(n), k)
     moves = np.column_stack([idx, np.vstack([u + off for off in offsets])])  # move m's particles in m n ..
     gains = _gain(*_move_gains(coarse.traced, moves, wc0, wr, intensity, w)).reshape(k, n).T  # (n, k)
@@ -1048,13 +1055,8 @@ def _relocate_screened(model, b: np.ndarray, u: np.ndarray, intensity: np.ndarra
     images): those traced by ``model`` and compared in ``offsets``' order, a later move beating the
     earlier ones' best by :data:`RELOCATE_MARGIN`, as every move is without the screen."""
     top = _screened_moves(model.coarse(screen), b, u, intensity, offsets, weights)
-    c0 = model.unit_images(u)
     w = None if weights is None else np.asarray(weights, dtype=np.float64)
-    wc0 = c0 if w is None else (sparse.diags(w) @ c0).tocsc()
-    wr = (b - c0 @ intensity) * (1.0 if w is None else w)
-    n0 = np.asarray(c0.multiply(wc0).sum(axis=0)).ravel()
-    own = np.asarray(c0.T @ wr).ravel() + intensity * n0
-    best = np.where(n0 > 0, np.maximum(own, 0.0) ** 2 / np.where(n0 > 0, n0, 1.0), 0.0)
+    wc0, wr, best = _stay_gains(model.unit_images(u), b, intensity, w)
     best_u, best_i = u.copy(), intensity.copy()
     p, r = np.nonzero(top >= 0)  # particle by particle, its moves in offsets' order
     if len(p) == 0:
